@@ -1,0 +1,30 @@
+"""Errors raised at the edges of the backend.
+
+`InputError` is the one exception the command line turns into exit code 2 and a
+one-line message: it always names the offending file (or argument) and says what
+was expected.  Everything else escaping the backend is an internal error (exit 1).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class InputError(ValueError):
+    """Bad user input: a file, a key, a line or an argument that breaks a contract."""
+
+    def __init__(self, where: str | Path | None, message: str):
+        self.where = str(where) if where is not None else None
+        self.message = message
+        super().__init__(self.one_line())
+
+    def one_line(self) -> str:
+        if self.where:
+            return f"{self.where}: {self.message}"
+        return self.message
+
+
+class RequestError(InputError):
+    """A reconstruction or simulation request the chosen method cannot honour."""
+
+    def __init__(self, message: str, where: str | None = "request"):
+        super().__init__(where, message)
