@@ -70,3 +70,19 @@ def test_hdf5_bad_files(tmp_path):
 def test_reciprocity_of_symmetric_table():
     t = lambert_table()
     assert reciprocity_error(t)["max_rel"] < 1e-12
+
+
+def test_hdf5_round_trip_with_mueller(tmp_path):
+    t = lambert_table()
+    m = np.zeros(t.values_per_sr.shape + (4, 4))
+    m[..., 0, 0] = t.values_per_sr
+    m[..., 1, 1] = 0.5 * t.values_per_sr
+    t.mueller_per_sr = m
+    t.specular_mueller_R = np.tile(np.eye(4), t.specular_R.shape + (1, 1)) * 0.05
+    (u,) = load_tables(save_tables(tmp_path / "m.h5", [t]))
+    assert u.is_polarized
+    np.testing.assert_allclose(u.mueller_per_sr, m, rtol=1e-6)
+    np.testing.assert_allclose(u.specular_mueller_R[0, 0], 0.05 * np.eye(4), rtol=1e-6)
+    with pytest.raises(InputError, match="mueller"):
+        BsdfTable(t.wavelength_nm, t.theta_i_deg, t.phi_i_deg, t.theta_s_edges_deg, t.phi_s_edges_deg,
+                  t.values_per_sr, mueller_per_sr=np.zeros(3))

@@ -14,6 +14,15 @@ the R cells (plus the delta-like specular part, which is kept apart in
 
 Transmission values are radiance BTDFs (formats.md): f(a->b)/n_b^2 = f(b->a)/n_a^2.
 
+Polarisation (optional): `mueller_per_sr[w, i, p, k, s, a]` is a 4x4 Mueller matrix
+per cell with element [0, 0] equal to `values_per_sr`.  Stokes vectors
+(S0, S1 = I_s - I_p, S2, S3) are referred to the s/p basis of the plane that holds
+the direction and the macroscopic normal z: for the incident light the plane of
+(w_i, z), for the scattered light the plane of (w_s, z), with s = z x w / |z x w|
+(for w along z, s = (-sin phi, cos phi, 0) from the cell's azimuth).  `specular_mueller_R/T`
+(W, I, P, 4, 4) do the same for the delta parts.  A plate model that tracks Stokes
+vectors through both faces uses these; an unpolarised table leaves them None.
+
 `incident_from` says where the light comes from: "outside" (the lit medium, usually
 air) or "inside" (the dielectric).  For "inside" the frame is mirrored so +z points
 into the medium of incidence; R stays in that medium, T crosses the boundary.
@@ -77,6 +86,9 @@ class BsdfTable:
     specular_T: np.ndarray | None = None            # (W, I, P)
     lost: np.ndarray | None = None                  # (W, I, P) absorbed / unaccounted
     sigma_per_sr: np.ndarray | None = None          # like values: 1-sigma (Monte-Carlo) error
+    mueller_per_sr: np.ndarray | None = None        # (W, I, P, 2, S, A, 4, 4), see module doc
+    specular_mueller_R: np.ndarray | None = None    # (W, I, P, 4, 4)
+    specular_mueller_T: np.ndarray | None = None    # (W, I, P, 4, 4)
     method: str = "unknown"
     material: dict = field(default_factory=dict)    # Material.describe()
     relief: dict = field(default_factory=dict)      # relief statistics and provenance
@@ -100,6 +112,16 @@ class BsdfTable:
             setattr(self, name, np.zeros(w) if v is None else np.broadcast_to(np.asarray(v, float), w).copy())
         if self.sigma_per_sr is not None and np.shape(self.sigma_per_sr) != shape:
             raise InputError("BsdfTable", "sigma_per_sr must have the shape of values_per_sr")
+        if self.mueller_per_sr is not None and np.shape(self.mueller_per_sr) != shape + (4, 4):
+            raise InputError("BsdfTable", "mueller_per_sr must have shape values.shape + (4, 4)")
+        for name in ("specular_mueller_R", "specular_mueller_T"):
+            v = getattr(self, name)
+            if v is not None and np.shape(v) != w + (4, 4):
+                raise InputError("BsdfTable", f"{name} must have shape {w + (4, 4)}")
+
+    @property
+    def is_polarized(self) -> bool:
+        return self.mueller_per_sr is not None
 
     # ----------------------------------------------------------------- axes
     @property
@@ -210,9 +232,10 @@ class BsdfTable:
             return self
         k = int(np.argmin(np.abs(self.wavelength_nm - wavelength_nm)))
         s = slice(k, k + 1)
+        cut = {n: (None if getattr(self, n) is None else getattr(self, n)[s])
+               for n in ("sigma_per_sr", "mueller_per_sr", "specular_mueller_R", "specular_mueller_T")}
         return replace(self, wavelength_nm=self.wavelength_nm[s], values_per_sr=self.values_per_sr[s],
-                       specular_R=self.specular_R[s], specular_T=self.specular_T[s], lost=self.lost[s],
-                       sigma_per_sr=None if self.sigma_per_sr is None else self.sigma_per_sr[s])
+                       specular_R=self.specular_R[s], specular_T=self.specular_T[s], lost=self.lost[s], **cut)
 
     def summary(self) -> dict:
         return {"kind": "bsdf", "method": self.method, "from": self.incident_from,

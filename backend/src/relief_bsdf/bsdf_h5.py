@@ -22,6 +22,7 @@ FORMAT = "relief-bsdf-table/1"
 _AXES = {"wavelength_nm": "nm", "theta_i_deg": "deg", "phi_i_deg": "deg",
          "theta_s_edges_deg": "deg", "phi_s_edges_deg": "deg"}
 _PER_INCIDENCE = ("specular_R", "specular_T", "lost")
+_OPTIONAL = ("sigma_per_sr", "mueller_per_sr", "specular_mueller_R", "specular_mueller_T")
 
 
 def save_tables(path: str | Path, tables: list[BsdfTable], compression: int = 4) -> Path:
@@ -44,10 +45,14 @@ def save_tables(path: str | Path, tables: list[BsdfTable], compression: int = 4)
                 d.attrs["units"] = "1/sr"
                 d.attrs["axes"] = "wavelength_nm,theta_i_deg,phi_i_deg,side(R,T),theta_s,phi_s"
                 d.attrs["meaning"] = "Nicodemus BSDF averaged over each scatter cell in projected solid angle"
-                if t.sigma_per_sr is not None:
-                    s = g.create_dataset("sigma_per_sr", data=t.sigma_per_sr.astype(np.float32), chunks=chunks,
+                for opt in _OPTIONAL:
+                    arr = getattr(t, opt)
+                    if arr is None:
+                        continue
+                    ch = chunks + arr.shape[6:] if arr.ndim > 6 else None
+                    s = g.create_dataset(opt, data=arr.astype(np.float32), chunks=ch,
                                          compression="gzip", compression_opts=compression, shuffle=True)
-                    s.attrs["units"] = "1/sr"
+                    s.attrs["units"] = "1/sr" if opt.endswith("per_sr") else "fraction of incident power"
                 for name in _PER_INCIDENCE:
                     d = g.create_dataset(name, data=getattr(t, name))
                     d.attrs["units"] = "fraction of incident power"
@@ -79,8 +84,8 @@ def load_tables(path: str | Path) -> list[BsdfTable]:
             try:
                 kw = {ax: g[ax][()] for ax in _AXES}
                 kw.update({n: g[n][()] for n in _PER_INCIDENCE})
+                kw.update({n: g[n][()].astype(np.float64) for n in _OPTIONAL if n in g})
                 t = BsdfTable(values_per_sr=g["values_per_sr"][()].astype(np.float64),
-                              sigma_per_sr=g["sigma_per_sr"][()].astype(np.float64) if "sigma_per_sr" in g else None,
                               incident_from=str(g.attrs["incident_from"]), method=str(g.attrs["method"]),
                               material=json.loads(g.attrs["material"]), relief=json.loads(g.attrs["relief"]),
                               metadata=json.loads(g.attrs["metadata"]), **kw)
