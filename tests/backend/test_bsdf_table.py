@@ -82,7 +82,7 @@ def test_hdf5_round_trip_with_mueller(tmp_path):
     (u,) = load_tables(save_tables(tmp_path / "m.h5", [t]))
     assert u.is_polarized
     np.testing.assert_allclose(u.mueller_per_sr, m, rtol=1e-6)
-    np.testing.assert_allclose(u.specular_mueller_R[0, 0], 0.05 * np.eye(4), rtol=1e-6)
+    np.testing.assert_allclose(u.specular_mueller_R[0, 0, 0], 0.05 * np.eye(4), rtol=1e-6)
     with pytest.raises(InputError, match="mueller"):
         BsdfTable(t.wavelength_nm, t.theta_i_deg, t.phi_i_deg, t.theta_s_edges_deg, t.phi_s_edges_deg,
                   t.values_per_sr, mueller_per_sr=np.zeros(3))
