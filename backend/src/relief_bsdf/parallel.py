@@ -34,6 +34,22 @@ def task_rng(seed: int, *key: int) -> np.random.Generator:
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence(ints)))
 
 
+_WORKER_CACHE: dict[Any, Any] = {}
+
+
+def worker_cached(key: Any, build: Callable[[], Any]) -> Any:
+    """Build an expensive per-context object (a BVH, an FFT plan) once per worker process.
+
+    Tasks call `worker_cached(("bvh", relief_digest), lambda: Tracer(relief))`; the object
+    lives for the life of the worker, so it is built once per worker, not once per task.
+    """
+    if key not in _WORKER_CACHE:
+        if len(_WORKER_CACHE) > 8:
+            _WORKER_CACHE.clear()
+        _WORKER_CACHE[key] = build()
+    return _WORKER_CACHE[key]
+
+
 def default_workers() -> int:
     """Worker count: RELIEF_WORKERS if set, else every core."""
     env = os.environ.get("RELIEF_WORKERS")
