@@ -1,0 +1,149 @@
+"""Plate model (plate.py): flat-plate Fresnel series per polarisation, energy, absorption, cone, rows."""
+import numpy as np
+import pytest
+
+from relief_bsdf.bsdf import BsdfTable
+from relief_bsdf.errors import InputError
+from relief_bsdf.optics import CauchyIndex, ConstantIndex, Material, fresnel_power
+from relief_bsdf.plate import PlateModel, PlateSolver, Rows, flat_tables, in_plane_rows, simulate_rows
+from relief_bsdf.request import Request
+
+N_GLASS = 1.5
+
+
+def lambert(frm, aR, aT, th, spec_R=0.0, spec_T=0.0):
+    """Isotropic table with constant (Lambertian) cells: albedos aR, aT at every incidence."""
+    r = Request(theta_i_deg=tuple(th))
+    v = np.zeros((1, len(th), 1, 2, r.theta_s_deg.size, r.phi_s_deg.size))
+    v[:, :, :, 0] = aR / np.pi
+    v[:, :, :, 1] = aT / np.pi
+    return BsdfTable(r.wavelengths_nm, r.theta_i_deg, r.phi_i_deg, r.theta_s_edges_deg, r.phi_s_edges_deg, v,
+                     incident_from=frm, specular_R=spec_R, specular_T=spec_T)
+
+
+def flat_plate(theta_i, pol, face="front", n=N_GLASS, absorption=0.0):
+    tt = float(np.degrees(np.arcsin(np.sin(np.radians(theta_i)) / n)))
+    o, i = flat_tables(Material(ConstantIndex(n)), [550.0], sorted({0.0, theta_i}), sorted({0.0, tt, 60.0}))
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(n), polarization=pol, rough_face=face,
+                   absorption_per_m=absorption)
+    return PlateSolver(m, i, o).solve(550.0, [theta_i])[0].hemispherical()
+
+
+def stokes_series(R1):
+    T1 = 1 - R1
+    return R1 + T1**2 * R1 / (1 - R1**2), T1**2 / (1 - R1**2)
+
+
+@pytest.mark.parametrize("theta_i", [0.0, 30.0, 60.0, 75.0])
+@pytest.mark.parametrize("face", ["front", "back"])
+def test_flat_plate_matches_incoherent_series_for_s_and_p(theta_i, face):
+    Rs, Rp, _, _ = fresnel_power(np.cos(np.radians(theta_i)), 1.0, N_GLASS)
+    for pol, R1 in (("s", Rs), ("p", Rp)):
+        h = flat_plate(theta_i, pol, face)
+        R, T = stokes_series(R1)
+        assert h["R"] == pytest.approx(R, rel=1e-3)
+        assert h["T"] == pytest.approx(T, rel=1e-3)
+        assert h["R"] + h["T"] == pytest.approx(1.0, abs=1e-12)
+    # unpolarised light = the mean of the s and p plates
+    hu = flat_plate(theta_i, "unpolarized", face)
+    assert hu["R"] == pytest.approx(0.5 * (stokes_series(Rs)[0] + stokes_series(Rp)[0]), rel=1e-3)
+
+
+def test_averaging_fresnel_first_is_several_percent_wrong_at_60_deg():
+    Rs, Rp, _, _ = fresnel_power(np.cos(np.radians(60.0)), 1.0, N_GLASS)
+    right = flat_plate(60.0, "unpolarized")["R"]
+    wrong = stokes_series(0.5 * (Rs + Rp))[0]
+    assert abs(wrong - right) / right > 0.03
+
+
+def test_absorbing_flat_plate_follows_beer_lambert_series():
+    a = 300.0  # per metre
+    theta_i = 45.0
+    tt = np.arcsin(np.sin(np.radians(theta_i)) / N_GLASS)
+    k = np.exp(-a * 2e-3 / np.cos(tt))
+    Rs, _, _, _ = fresnel_power(np.cos(np.radians(theta_i)), 1.0, N_GLASS)
+    h = flat_plate(theta_i, "s", absorption=a)
+    T1 = 1 - Rs
+    assert h["T"] == pytest.approx(T1**2 * k / (1 - Rs**2 * k**2), rel=1e-3)
+    assert h["R"] == pytest.approx(Rs + T1**2 * Rs * k**2 / (1 - Rs**2 * k**2), rel=1e-3)
+
+
+@pytest.mark.parametrize("face", ["front", "back"])
+def test_lossless_diffuse_plate_conserves_energy_and_absorption_removes_some(face):
+    o = lambert("outside", 0.1, 0.9, [0, 30, 60])
+    i = lambert("inside", 0.6, 0.4, np.arange(0, 90, 5.0))
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), rough_face=face)
+    for r in PlateSolver(m, i, o).solve(550.0, [0.0, 30.0, 60.0]):
+        h = r.hemispherical()
+        assert h["R"] + h["T"] == pytest.approx(1.0, abs=2e-3)
+        # trapped light escapes: much more than the single-pass transmission leaves through the rough face
+        assert h["diffuse_R"] > (0.1 if face == "front" else 0.0) + 0.05
+    ma = m.with_effects(absorption_per_m=300.0)
+    h = PlateSolver(ma, i, o).solve(550.0, [30.0])[0].hemispherical()
+    assert 0.3 < h["R"] + h["T"] < 0.99
+
+
+def test_trapped_light_series_matches_closed_form_for_lambertian_front():
+    # Lambertian rough face (albedo R_in back into glass, T_in out); flat back face.  Light leaving the
+    # rough face into the glass is Lambertian, so its flat-face reflectance is the hemispherical
+    # (projected-solid-angle) average of Fresnel, r_bar.  Round trip gain g = r_bar * R_in and
+    # R_plate = R_out + T_out * r_bar * T_in / (1 - g), T_plate = T_out * (1 - r_bar) / (1 - g).
+    aR_o, aT_o, aR_i, aT_i = 0.1, 0.9, 0.6, 0.4
+    o = lambert("outside", aR_o, aT_o, [0, 30])
+    i = lambert("inside", aR_i, aT_i, np.arange(0, 90, 5.0))
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
+    h = PlateSolver(m, i, o).solve(550.0, [30.0])[0].hemispherical()
+    mu = np.linspace(0, 1, 200001)[1:]
+    Rs, Rp, _, _ = fresnel_power(mu, N_GLASS, 1.0)
+    r_bar = np.trapz(0.5 * (Rs + Rp) * 2 * mu, mu)
+    g = r_bar * aR_i
+    assert h["R"] == pytest.approx(aR_o + aT_o * r_bar * aT_i / (1 - g), rel=2e-3)
+    assert h["T"] == pytest.approx(aT_o * (1 - r_bar) / (1 - g), rel=2e-3)
+
+
+def test_rows_use_detector_cone_for_the_delta_part():
+    o, i = flat_tables(Material(ConstantIndex(N_GLASS)), [550.0], [30.0], np.arange(0, 90, 1.0))
+    h = 1.5
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), detector_half_angle_deg=h)
+    rows = Rows([550.0] * 4, [30.0] * 4, [0.0] * 4, ["R", "R", "R", "T"], [30.0, 30.0 + 0.8 * h, 30.0 + 1.2 * h, 30.0],
+                [180.0, 180.0, 180.0, 180.0])
+    v = simulate_rows(m, i, o, rows)
+    tot = PlateSolver(m, i, o).solve(550.0, [30.0])[0].hemispherical()
+    omega = 2 * np.pi * (1 - np.cos(np.radians(h)))
+    assert v[0] == pytest.approx(tot["R"] / (omega * np.cos(np.radians(30.0))), rel=1e-9)
+    assert v[1] == pytest.approx(v[0] * np.cos(np.radians(30)) / np.cos(np.radians(30 + 0.8 * h)), rel=1e-9)
+    assert v[2] == 0.0
+    assert v[3] == pytest.approx(tot["T"] / (omega * np.cos(np.radians(30.0))), rel=1e-9)
+
+
+def test_diffuse_rows_of_lambertian_plate_are_flat_in_angle_and_reciprocal_in_sum():
+    o = lambert("outside", 0.1, 0.9, [0, 30, 60])
+    i = lambert("inside", 0.6, 0.4, np.arange(0, 90, 5.0))
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
+    rows = in_plane_rows(550.0, [0, 30], np.arange(2.5, 80, 5.0), sides=("R",))
+    v = simulate_rows(m, i, o, rows)
+    # R side: outside table constant + rough-face exit of a (nearly) isotropic internal field -> constant
+    assert np.ptp(v) / v.mean() < 0.02
+
+
+def test_bad_rows_and_models_are_input_errors():
+    o = lambert("outside", 0.1, 0.9, [0, 30])
+    i = lambert("inside", 0.6, 0.4, [0, 45, 89])
+    m = PlateModel(thickness_m=2e-3, index=CauchyIndex(1.49, 4000.0))
+    with pytest.raises(InputError, match="wavelength"):
+        simulate_rows(m, i, o, Rows([1200.0], [0.0], [0.0], ["R"], [10.0], [0.0]), where="rec.csv")
+    with pytest.raises(InputError, match="theta_s_deg"):
+        simulate_rows(m, i, o, Rows([550.0], [0.0], [0.0], ["R"], [90.0], [0.0]), where="rec.csv")
+    with pytest.raises(InputError, match="theta_i_deg"):
+        simulate_rows(m, i, o, Rows([550.0], [95.0], [0.0], ["R"], [10.0], [0.0]), where="rec.csv")
+    with pytest.raises(InputError, match="detector_half_angle_deg"):
+        PlateModel(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=0.0)
+
+
+def test_dispersive_index_changes_the_plate():
+    o, i = flat_tables(Material(CauchyIndex(1.49, 20000.0)), [450.0, 650.0], [45.0], np.arange(0, 90, 0.5))
+    m = PlateModel(thickness_m=2e-3, index=CauchyIndex(1.49, 20000.0), polarization="s")
+    s = PlateSolver(m, i, o)
+    r_blue = s.solve(450.0, [45.0])[0].hemispherical()["R"]
+    r_red = s.solve(650.0, [45.0])[0].hemispherical()["R"]
+    assert r_blue > r_red
