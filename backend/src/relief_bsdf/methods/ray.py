@@ -1,0 +1,620 @@
+"""Method `ray`: geometric-optics ray tracing of the real relief with Embree (paper sec. 2.3).
+
+Model and regime of validity
+----------------------------
+Geometric optics on the measured surface: valid when the relief's lateral features
+(correlation length) and heights are much larger than the wavelength, so that each
+facet reflects and refracts like a flat interface and diffraction is negligible
+(Beckmann & Spizzichino 1963, ch. 2; Ogilvy 1991 sec. 4).  Polarisation is tracked
+exactly within that model; interference between rays is ignored.
+
+- Surface: the height map as a piecewise-linear periodic mesh (`relief_bsdf.mesh`): a
+  ray leaving the tile sideways re-enters from the opposite side (the tile is one
+  period of an infinite surface), which removes the paper's boundary losses at
+  grazing incidence.  Non-periodic maps are mirror-extended (see mesh.py).
+- Interaction: at each hit the local facet is a flat interface between n1 (medium of
+  the ray) and n2 (the other one).  Fresnel amplitudes (Born & Wolf 1.5.20-21, as in
+  `optics.fresnel_amplitudes`), Snell refraction, total internal reflection (complex
+  r_s, r_p with unit modulus: the phase retardance is kept in the Mueller matrix).
+  Light transmitted into an absorbing medium (complex index, metals) is absorbed and
+  counted as `lost`.
+- Reflect or refract is chosen by Russian roulette with probability equal to the
+  reflectance of the ray's *current* polarisation state, P_R = (M_R S)_0 / S_0, and the
+  state is renormalised, S <- M S / P.  This is unbiased and keeps every ray weight at 1
+  (Veach 1997 sec. 4.2 roulette; energy conserved ray by ray for lossless media).  For
+  tables (`reconstruct`) the first interaction is split deterministically into both
+  branches with weights P_R and 1 - P_R (option `first_hit_split`, default True): a flat
+  surface is then exact, and the BRDF of a dielectric gets all N rays instead of ~4% of
+  them.  Without polarisation (`polarized=False`) the unpolarised Fresnel reflectance is
+  used at every bounce (the usual scalar approximation, which ignores that the first
+  bounce polarises the light for the second).
+- Polarisation: each ray carries a 4 x K real matrix (K = 1: one Stokes vector; K = 4: a
+  Mueller matrix whose columns are the responses to the incident basis states) in the
+  basis (s, p) with s a unit vector normal to the propagation direction k and p = s x k.
+  At a hit the basis is rotated about k onto the facet's s = n x k / |n x k| (Stokes
+  rotation by twice the angle between the old and new s), the facet's Mueller matrix
+  (`optics.mueller_interface` form) is applied, and s is kept for the outgoing wave.
+  With p = s x k for every wave this is Born & Wolf's sign convention, so a flat
+  interface gives exactly `optics.mueller_interface`.
+  Reference frames at the layer's entry and exit: s = z x k / |z x k| (k the physical
+  propagation direction; along z, s = (-sin phi, cos phi, 0)), p = s x k.  The sign of s
+  does not change a Stokes vector when p = s x k, so this is the frame of bsdf.py
+  (s = z x w with w pointing away from the surface) for both incident and scattered light.
+  For light from inside the same *physical* bases are used (no mirror of the fields).
+- Detector: every ray leaves the relief layer (above its highest or below its lowest
+  point, moving away); exit directions are binned into the request's (theta_s, phi_s)
+  cells, f = sum(weights) / (N * projected solid angle), which makes
+  `BsdfTable.hemispherical()` equal to the power fractions of the incident beam (the beam
+  irradiates the tile uniformly on the mean plane).  Rays that leave within
+  `specular_tol_rad` of the mean plane's mirror / refraction direction (exactly flat
+  facets) go to the delta parts `specular_R/T`.  Max bounces, absorption and numerical
+  leaks (a ray found on the wrong side of the surface) are counted in `lost` with the
+  detail in metadata; nothing is dropped silently.
+"""
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..bsdf import BsdfTable, direction, projected_solid_angle
+from ..errors import RequestError
+from ..mesh import TileMesh, build_tile_mesh
+from ..optics import fresnel_amplitudes
+from ..parallel import default_workers, task_rng
+from ..progress import silent
+from ..relief import Relief
+
+F32 = np.float32
+CHUNK = 1 << 17                # rays per independent chunk (its own seed, one thread at a time)
+
+# exit states
+ABOVE, BELOW, LOST_BOUNCES, LOST_LEAK, LOST_ABSORBED = 0, 1, 2, 3, 4
+STATE_NAMES = {LOST_BOUNCES: "max_bounces", LOST_LEAK: "numerical_leak", LOST_ABSORBED: "absorbed"}
+
+
+@dataclass
+class ScatterResult:
+    """What left the relief layer, one entry per input ray (see `ReliefTracer.scatter`).
+
+    dirs: (N, 3) propagation directions on leaving (undefined where lost).
+    weight: (N,) power weight (1 for lossless roulette; the input S0 when Stokes were given).
+    above: (N,) True when the ray left upward (z > relief), False downward or lost.
+    stokes: (N, 4) exit Stokes vectors (S0 = weight) in the frame s = z x k, p = s x k; None
+        when traced without polarisation.
+    lost: (N,) True when the ray did not leave (absorbed, max bounces, numerical leak).
+    bounces: (N,) number of surface interactions.
+    state: (N,) int8: 0 above, 1 below, 2 max bounces, 3 numerical leak, 4 absorbed.
+    segments: total ray segments traced (Embree queries), for speed figures.
+    """
+
+    dirs: np.ndarray
+    weight: np.ndarray
+    above: np.ndarray
+    stokes: np.ndarray | None
+    lost: np.ndarray
+    bounces: np.ndarray
+    state: np.ndarray
+    segments: int = 0
+
+
+# ----------------------------------------------------------------------------- small vector helpers
+
+
+def _normalize_rows(v: np.ndarray) -> np.ndarray:
+    n = np.sqrt(np.einsum("ij,ij->i", v, v))
+    return v / n[:, None]
+
+
+def _frame_s(k: np.ndarray, phi_ref_rad: float | np.ndarray = 0.0) -> np.ndarray:
+    """s = z x k / |z x k| for each row of k; (-sin phi, cos phi, 0) where k is along z."""
+    s = np.empty(k.shape, dtype=k.dtype)
+    s[:, 0] = -k[:, 1]
+    s[:, 1] = k[:, 0]
+    s[:, 2] = 0
+    nrm = np.hypot(s[:, 0], s[:, 1])
+    small = nrm < 1e-7
+    nrm = np.where(small, 1, nrm)
+    s[:, 0] /= nrm
+    s[:, 1] /= nrm
+    if small.any():
+        phi = np.broadcast_to(np.asarray(phi_ref_rad, dtype=np.float64), (k.shape[0],))[small]
+        s[small, 0] = -np.sin(phi)
+        s[small, 1] = np.cos(phi)
+    return s
+
+
+def _rotate_stokes(A: np.ndarray, s_old: np.ndarray, k: np.ndarray, s_new: np.ndarray) -> None:
+    """Re-express the Stokes columns of A (4, K, n) from basis (s_old, s_old x k) to (s_new, s_new x k).
+
+    With c = s_old . s_new, d = p_old . s_new (p_old = s_old x k) the field components
+    transform as E_s' = c E_s + d E_p, E_p' = -d E_s + c E_p, hence
+    S1' = (c^2 - d^2) S1 + 2cd S2, S2' = -2cd S1 + (c^2 - d^2) S2 (S0, S3 unchanged).
+    """
+    c = np.einsum("ij,ij->i", s_old, s_new)
+    p_old = np.cross(s_old, k)
+    d = np.einsum("ij,ij->i", p_old, s_new)
+    r = c * c + d * d
+    r[r == 0] = 1
+    cos2 = (c * c - d * d) / r
+    sin2 = 2 * c * d / r
+    a1 = A[1].copy()
+    A[1] = cos2 * a1 + sin2 * A[2]
+    A[2] = -sin2 * a1 + cos2 * A[2]
+
+
+def interface_coefficients(cos_i: np.ndarray, n1: np.ndarray, n2: np.ndarray):
+    """Mueller coefficients (a, b, c, d) of reflection and transmission at a flat facet.
+
+    The Mueller matrix is [[a, b, 0, 0], [b, a, 0, 0], [0, 0, c, d], [0, 0, -d, c]]
+    (the form of `optics.mueller_interface`, Born & Wolf 1.5.20-21 and 1.5.27).  Real
+    arithmetic in float32 for real indices (TIR handled: |r_s| = |r_p| = 1 with the phase
+    difference in c, d); complex (float64) path through `optics.fresnel_amplitudes` when an
+    index is complex.  Returns (R: (aR, bR, cR, dR), T: (aT, bT, cT, dT)); T is zero past the
+    critical angle, and for an absorbing n2 it is the power entering (and absorbed in) n2.
+    """
+    if np.iscomplexobj(n1) or np.iscomplexobj(n2):
+        ci = cos_i.astype(np.float64)
+        rs, rp, ts, tp = fresnel_amplitudes(ci, n1, n2)
+        A_, B_ = np.abs(rs) ** 2, np.abs(rp) ** 2
+        C_ = rs * np.conj(rp)
+        R = (0.5 * (A_ + B_), 0.5 * (A_ - B_), np.real(C_), np.imag(C_))
+        # transmitted power, whatever happens to it later (absorbed for a metal)
+        aT = 1.0 - R[0]
+        bT = -R[1]
+        R = tuple(np.asarray(x, dtype=F32) for x in R)
+        z = np.zeros_like(R[0])
+        return R, (aT.astype(F32), bT.astype(F32), z, z)
+    ci = cos_i
+    eta2 = (n1 / n2) ** 2
+    sin2_t = eta2 * np.maximum(0, 1 - ci * ci)
+    tir = sin2_t >= 1
+    ct = np.sqrt(np.maximum(0, 1 - sin2_t))
+    a = n1 * ci
+    b = n2 * ct
+    c = n2 * ci
+    d = n1 * ct
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rs = (a - b) / (a + b)
+        rp = (c - d) / (c + d)
+        rs2, rp2 = rs * rs, rp * rp
+        aR = 0.5 * (rs2 + rp2)
+        bR = 0.5 * (rs2 - rp2)
+        cR = rs * rp
+        dR = np.zeros_like(aR)
+        # transmission: power factor (n2 ct)/(n1 ci) times t_s t_p
+        ts = 2 * a / (a + b)
+        tp = 2 * a / (c + d)
+        scale = b / a
+        cT = scale * ts * tp
+    aT = 1 - aR
+    bT = -bR
+    if tir.any():
+        # r = (X - iY)/(X + iY) = (X - iY)^2 / (X^2 + Y^2): unit modulus, phase only
+        g = np.sqrt(np.maximum(0, sin2_t - 1))
+        A1 = (n1 * ci)[tir] if np.ndim(n1) else n1 * ci[tir]
+        B1 = (n2 * g)[tir] if np.ndim(n2) else n2 * g[tir]
+        P1 = (n2 * ci)[tir] if np.ndim(n2) else n2 * ci[tir]
+        Q1 = (n1 * g)[tir] if np.ndim(n1) else n1 * g[tir]
+        den = (A1 * A1 + B1 * B1) * (P1 * P1 + Q1 * Q1)
+        ab, pq = A1 * A1 - B1 * B1, P1 * P1 - Q1 * Q1
+        reC = (ab * pq + 4 * A1 * B1 * P1 * Q1) / den
+        imC = (2 * P1 * Q1 * ab - 2 * A1 * B1 * pq) / den
+        aR[tir], bR[tir], cR[tir], dR[tir] = 1, 0, reC, imC
+        aT[tir], bT[tir], cT[tir] = 0, 0, 0
+    cT = np.where(tir | ~np.isfinite(cT), 0, cT).astype(F32)
+    for arr in (aR, bR, cR):
+        np.nan_to_num(arr, copy=False)
+    return (aR, bR, cR, dR), (aT, bT, cT, np.zeros_like(aT))
+
+
+def _apply_mueller(A: np.ndarray, a, b, c, d, inv_p) -> None:
+    """A <- M A / p in place, M = [[a,b,0,0],[b,a,0,0],[0,0,c,d],[0,0,-d,c]] per ray."""
+    a = a * inv_p
+    b = b * inv_p
+    c = c * inv_p
+    d = d * inv_p
+    r0, r1, r2, r3 = A[0].copy(), A[1].copy(), A[2].copy(), A[3]
+    A[0] = a * r0 + b * r1
+    A[1] = b * r0 + a * r1
+    A[2] = c * r2 + d * r3
+    A[3] = c * r3 - d * r2
+
+
+# ----------------------------------------------------------------------------- the tracer
+
+
+class ReliefTracer:
+    """Periodic relief mesh in an Embree BVH, built once; traces ray batches through the layer.
+
+    Thread-safe: `scatter` and `trace` may be called from several threads at once (Embree
+    queries release the GIL; each call works on its own arrays).
+    """
+
+    def __init__(self, relief: Relief, max_bounces: int = 100, fill_holes: bool | int | None = None,
+                 threads: int | None = None):
+        from embreex import rtcore_scene as rtcs
+        from embreex.mesh_construction import TriangleMesh
+
+        if int(max_bounces) < 1:
+            raise RequestError(f"max_bounces must be >= 1, got {max_bounces}", "max_bounces")
+        self.relief = relief
+        self.max_bounces = int(max_bounces)
+        self.threads = int(threads or default_workers())
+        t0 = time.perf_counter()
+        self.mesh: TileMesh = build_tile_mesh(relief, fill_holes)
+        self.scene = rtcs.EmbreeScene()
+        self._embree_mesh = TriangleMesh(self.scene, self.mesh.vertices, self.mesh.triangles)
+        m = self.mesh
+        self.Lx, self.Ly = (F32(m.period[0]), F32(m.period[1]))
+        self.hx, self.hy = F32(m.period[0] / 2), F32(m.period[1] / 2)
+        big = max(m.period[0] / 2, m.period[1] / 2, abs(m.z_min), abs(m.z_max), 1.0)
+        # offset of a new ray origin from its hit point: 64 float32 ulps of the largest coordinate
+        self.eps = F32(64 * big * 2.0**-24)
+        self.z_top = F32(m.z_max + 8 * self.eps)
+        self.z_bot = F32(m.z_min - 8 * self.eps)
+        # commit the BVH now (first query) so timings of later calls are clean
+        self.scene.run(np.array([[0, 0, self.z_top + 1]], F32), np.array([[0, 0, -1]], F32))
+        self.build_s = time.perf_counter() - t0
+
+    # ------------------------------------------------------------------ public API
+    def scatter(self, dirs, n_above, n_below, rng, stokes=None, origins_xy=None,
+                polarized: bool = True) -> ScatterResult:
+        """Send rays with propagation directions `dirs` (N, 3) into the relief layer.
+
+        dz < 0: from above (the medium of index n_above, the lit side); dz > 0: from below
+        (n_below, the dielectric).  origins_xy (N, 2) in metres, relative to the tile (taken
+        modulo the period); default uniform over the tile.  stokes (N, 4) in the frame
+        s = z x k / |z x k|, p = s x k (along z: s = (0, 1, 0)); default unpolarised.  With
+        polarized=False (and no stokes) the scalar approximation is used and stokes is None.
+        Each ray has exactly one outcome (Russian roulette, weights stay at S0).
+        """
+        k = np.asarray(dirs, dtype=np.float64)
+        if k.ndim != 2 or k.shape[1] != 3:
+            raise RequestError(f"dirs must have shape (N, 3), got {k.shape}", "dirs")
+        n = k.shape[0]
+        k = _normalize_rows(k)
+        if np.any(np.abs(k[:, 2]) < 1e-9) or not np.all(np.isfinite(k)):
+            raise RequestError("ray directions must be finite and cross the mean plane (dz != 0)", "dirs")
+        n_above, n_below = _check_index_pair(n_above, n_below)
+        from_below = k[:, 2] > 0
+        if from_below.any() and np.iscomplexobj(n_below) and np.imag(n_below) > 0:
+            raise RequestError("rays cannot arrive from inside an absorbing medium", "dirs")
+        if origins_xy is None:
+            xy = rng.random((n, 2))
+            xy[:, 0] = (xy[:, 0] - 0.5) * self.Lx
+            xy[:, 1] = (xy[:, 1] - 0.5) * self.Ly
+        else:
+            xy = np.asarray(origins_xy, dtype=np.float64) / self.mesh.unit_m
+            if xy.shape != (n, 2):
+                raise RequestError(f"origins_xy must have shape ({n}, 2), got {xy.shape}", "origins_xy")
+            xy = np.mod(xy + [self.hx, self.hy], [self.Lx, self.Ly]) - [self.hx, self.hy]
+        K = 0
+        weight = np.ones(n)
+        if stokes is not None:
+            st = np.asarray(stokes, dtype=np.float64)
+            if st.shape != (n, 4):
+                raise RequestError(f"stokes must have shape ({n}, 4), got {st.shape}", "stokes")
+            if np.any(st[:, 0] <= 0):
+                raise RequestError("Stokes S0 must be > 0", "stokes")
+            weight = st[:, 0].copy()
+            K = 1
+        elif polarized:
+            st = np.zeros((n, 4))
+            st[:, 0] = 1
+            K = 1
+        # coherence: sort by 32 x 32 px blocks of the entry point
+        order = _block_order(xy, self.hx, self.hy)
+        o = np.empty((n, 3), F32)
+        o[:, :2] = xy[order]
+        o[:, 2] = np.where(from_below[order], self.z_bot, self.z_top)
+        kk = k[order].astype(F32)
+        A = None
+        if K:
+            A = (st[order] / st[order, :1]).T.astype(F32)[:, None, :]  # (4, 1, n)
+        seeds = rng.integers(0, 2**63 - 1, size=max(1, -(-n // CHUNK)))
+        res = self._run_chunks(o, kk, from_below[order], A, seeds, n_above, n_below, split_first=False)
+        out_k, out_A, out_w, out_state, out_b, segs = res
+        inv = np.empty(n, np.int64)
+        inv[order] = np.arange(n)
+        state = out_state[inv]
+        lost = state >= 2
+        stokes_out = None
+        if K:
+            stokes_out = out_A[:, 0, :].T[inv].astype(np.float64) * weight[:, None]
+        return ScatterResult(dirs=out_k[inv].astype(np.float64), weight=weight * out_w[inv],
+                             above=state == ABOVE, stokes=stokes_out, lost=lost,
+                             bounces=out_b[inv].astype(np.int64), state=state, segments=segs)
+
+    # ------------------------------------------------------------------ chunk driver
+    def _run_chunks(self, o, k, below, A, seeds, n_above, n_below, split_first, reduce=None):
+        """Trace all rays in fixed-size chunks over a thread pool; deterministic for given seeds.
+
+        Without `reduce`, returns concatenated raw outputs; with it, returns the list of
+        reduce(chunk_index, raw_output) results in chunk order.
+        """
+        n = o.shape[0]
+        bounds = [(i, min(n, i + CHUNK)) for i in range(0, n, CHUNK)]
+
+        def job(ci):
+            lo, hi = bounds[ci]
+            rng = np.random.Generator(np.random.PCG64(int(seeds[ci])))
+            sub_A = None if A is None else np.ascontiguousarray(A[:, :, lo:hi])
+            out = self._trace_chunk(o[lo:hi].copy(), k[lo:hi].copy(), below[lo:hi].copy(), sub_A, rng,
+                                    n_above, n_below, split_first)
+            return reduce(ci, out) if reduce else out
+
+        if self.threads > 1 and len(bounds) > 1:
+            with ThreadPoolExecutor(max_workers=self.threads) as ex:
+                outs = list(ex.map(job, range(len(bounds))))
+        else:
+            outs = [job(ci) for ci in range(len(bounds))]
+        if reduce:
+            return outs
+        cat = [np.concatenate([x[j] for x in outs], axis=-1 if j == 1 else 0) for j in (0, 1, 2, 3, 4)]
+        segs = sum(x[5] for x in outs)
+        if A is None:
+            cat[1] = None
+        return (*cat, segs)
+
+    def _trace_chunk(self, o, k, below, A, rng, n_above, n_below, split_first):
+        """Trace one batch until every ray has left the layer or is lost.
+
+        o, k: (n, 3) float32 origins and unit propagation directions; below: (n,) bool, True
+        for rays in the lower medium; A: (4, K, n) float32 polarisation state (column 0 has
+        S0 = 1) or None.  With split_first each ray's first interaction yields two rays
+        (reflected: output index i, transmitted: i + n) with weights P_R and 1 - P_R.
+        Returns (k_out (m, 3), A_out (4, K, m) or None, weight (m,), state (m,) int8,
+        bounces (m,) int16, segments) with m = n or 2 n.
+        """
+        n0 = o.shape[0]
+        m = 2 * n0 if split_first else n0
+        K = 0 if A is None else A.shape[1]
+        out_k = np.zeros((m, 3), F32)
+        out_A = np.zeros((4, K, m), F32) if K else None
+        out_w = np.zeros(m, F32)
+        out_state = np.full(m, LOST_LEAK, np.int8)
+        out_b = np.zeros(m, np.int16)
+        out_s = np.zeros((m, 3), F32) if K else None
+        ids = np.arange(n0, dtype=np.int64)
+        w = np.ones(n0, F32)
+        nb = np.zeros(n0, np.int16)
+        pending = np.full(n0, bool(split_first))
+        # incident frames: s = z x k (along z: s = (0, 1, 0); reconstruct rotates its input state
+        # for normal incidence at phi_i != 0 before calling, see _incident_state)
+        s = _frame_s(k) if K else None
+        nA = complex(n_above) if np.iscomplexobj(n_above) else float(n_above)
+        nB = complex(n_below) if np.iscomplexobj(n_below) else float(n_below)
+        absorbing_below = isinstance(nB, complex) and nB.imag > 0
+        hx, hy, Lx, Ly = self.hx, self.hy, self.Lx, self.Ly
+        eps = self.eps
+        segments = 0
+        scene = self.scene
+
+        def finish(sel, state):
+            idx = ids[sel]
+            out_k[idx] = k[sel]
+            out_w[idx] = w[sel]
+            out_state[idx] = state
+            out_b[idx] = nb[sel]
+            if K:
+                out_A[:, :, idx] = A[:, :, sel]
+                out_s[idx] = s[sel]
+
+        while ids.size:
+            segments += ids.size
+            kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tx = (np.where(kx > 0, hx, -hx) - o[:, 0]) / kx
+                ty = (np.where(ky > 0, hy, -hy) - o[:, 1]) / ky
+                tz = (np.where(kz > 0, self.z_top, self.z_bot) - o[:, 2]) / kz
+            tx = np.where(np.isfinite(tx), np.maximum(tx, 0), np.inf).astype(F32)
+            ty = np.where(np.isfinite(ty), np.maximum(ty, 0), np.inf).astype(F32)
+            tz = np.where(np.isfinite(tz), np.maximum(tz, 0), np.inf).astype(F32)
+            t_lat = np.minimum(tx, ty)
+            tfar = np.minimum(t_lat, tz)
+            res = scene.run(o, k, dists=tfar.copy(), output=1)
+            prim = res["primID"]
+            hit = prim >= 0
+            miss = ~hit
+            keep = hit.copy()
+            # ---- rays that reached the top or bottom plane: they left the layer
+            out_slab = miss & (tz <= t_lat)
+            if out_slab.any():
+                up = kz > 0
+                ok_up = out_slab & up & ~below
+                ok_dn = out_slab & ~up & below
+                finish(ok_up, ABOVE)
+                finish(ok_dn, BELOW)
+                finish(out_slab & ~(ok_up | ok_dn), LOST_LEAK)
+            # ---- rays that reached a side of the tile: re-enter from the opposite side
+            wrap = miss & ~out_slab
+            if wrap.any():
+                keep |= wrap
+                t = t_lat[wrap]
+                kw = k[wrap]
+                ow = o[wrap] + t[:, None] * kw
+                bx = tx[wrap] <= t
+                by = ty[wrap] <= t
+                ow[bx, 0] = np.where(kw[bx, 0] > 0, -hx, hx)
+                ow[by, 1] = np.where(kw[by, 1] > 0, -hy, hy)
+                o[wrap] = ow
+            # ---- hits: one interaction each
+            if hit.any():
+                hi = np.flatnonzero(hit)
+                ng = res["Ng"][hi]
+                nrm = np.sqrt(np.einsum("ij,ij->i", ng, ng))
+                nrm = np.where(ng[:, 2] < 0, -nrm, nrm)       # orient up (+z)
+                n_up = ng / nrm[:, None]
+                kh = k[hi]
+                bh = below[hi]
+                dot = np.einsum("ij,ij->i", kh, n_up)
+                # a ray above the surface must hit it from above (dot < 0), below from below
+                leak = np.where(bh, dot < 0, dot > 0)
+                if leak.any():
+                    sel = np.zeros(hit.shape, bool)
+                    sel[hi[leak]] = True
+                    finish(sel, LOST_LEAK)
+                    keep[hi[leak]] = False
+                    good = ~leak
+                    hi, n_up, kh, bh, dot = hi[good], n_up[good], kh[good], bh[good], dot[good]
+                nb[hi] += 1
+                ci = np.abs(dot)
+                nf = np.where(bh[:, None], -n_up, n_up)          # facet normal on the incident side
+                p_hit = o[hi] + res["tfar"][hi][:, None] * kh
+                # indices per ray
+                if isinstance(nA, complex) or isinstance(nB, complex):
+                    n1 = np.where(bh, nB, nA).astype(np.complex128)
+                    n2 = np.where(bh, nA, nB).astype(np.complex128)
+                else:
+                    n1 = np.where(bh, F32(nB), F32(nA))
+                    n2 = np.where(bh, F32(nA), F32(nB))
+                (aR, bR, cR, dR), (aT, bT, cT, dT) = interface_coefficients(ci, n1, n2)
+                if K:
+                    Ah = A[:, :, hi]
+                    s_old = s[hi]
+                    s_new = np.cross(nf, kh)
+                    sn = np.sqrt(np.einsum("ij,ij->i", s_new, s_new))
+                    degenerate = sn < 1e-6
+                    s_new = np.where(degenerate[:, None], s_old, s_new / np.where(degenerate, 1, sn)[:, None])
+                    _rotate_stokes(Ah, s_old, kh, s_new)
+                    pR = np.clip(aR + bR * Ah[1, 0], 0, 1)
+                else:
+                    pR = aR
+                pR = pR.astype(F32)
+                # reflected and refracted directions
+                kr = kh + (2 * ci)[:, None] * nf
+                refr_ok = aT > 0
+                if isinstance(nA, complex) or isinstance(nB, complex):
+                    eta = np.real(n1 / n2).astype(F32)
+                else:
+                    eta = (n1 / n2).astype(F32)
+                sin2t = eta * eta * np.maximum(0, 1 - ci * ci)
+                ct = np.sqrt(np.maximum(0, 1 - sin2t))
+                kt = eta[:, None] * kh + (eta * ci - ct)[:, None] * nf
+                # absorbing medium on the far side: transmitted power is absorbed
+                absorbed_T = (~bh) & absorbing_below if absorbing_below else np.zeros(hi.size, bool)
+                split = pending[hi]
+                u = rng.random(hi.size, dtype=F32)
+                refl = u < pR
+                if split.any():
+                    # deterministic split: reflected copy keeps the id, transmitted copy gets id + n0
+                    refl = refl | split
+                # --- build the transmitted copies of split rays (appended to the batch)
+                tsel = split & refr_ok
+                new_rows = None
+                if tsel.any():
+                    j = np.flatnonzero(tsel)
+                    wt = w[hi[j]] * (1 - pR[j])
+                    ids_t = ids[hi[j]] + n0
+                    kt_j = _normalize_rows(kt[j]).astype(F32)
+                    bh_j = bh[j]
+                    o_t = (p_hit[j] - eps * nf[j]).astype(F32)
+                    A_t = None
+                    if K:
+                        A_t = Ah[:, :, j].copy()
+                        _apply_mueller(A_t, aT[j], bT[j], cT[j], dT[j], 1 / np.maximum(1 - pR[j], 1e-30))
+                    new_rows = (o_t, kt_j, ~bh_j, A_t, ids_t, wt, nb[hi[j]], s_new[j] if K else None,
+                                absorbed_T[j])
+                # --- update the rays in place (reflect or refract)
+                w_h = w[hi]
+                w_h = np.where(split, w_h * pR, w_h)
+                w[hi] = w_h
+                knew = np.where(refl[:, None], kr, kt)
+                knew = _normalize_rows(knew).astype(F32)
+                side = np.where(refl, 1, -1).astype(F32)
+                o[hi] = (p_hit + (side * eps)[:, None] * nf).astype(F32)
+                k[hi] = knew
+                below[hi] = np.where(refl, bh, ~bh)
+                if K:
+                    pc = np.where(refl, pR, 1 - pR)
+                    inv_p = 1 / np.maximum(pc, 1e-30)
+                    _apply_mueller(Ah, np.where(refl, aR, aT), np.where(refl, bR, bT),
+                                   np.where(refl, cR, cT), np.where(refl, dR, dT), inv_p)
+                    A[:, :, hi] = Ah
+                    s[hi] = s_new
+                pending[hi] = False
+                # absorbed (transmitted into a metal) and max-bounce rays end here
+                absorbed = (~refl) & absorbed_T
+                if absorbed.any():
+                    sel = np.zeros(hit.shape, bool)
+                    sel[hi[absorbed]] = True
+                    finish(sel, LOST_ABSORBED)
+                    keep[hi[absorbed]] = False
+                over = nb[hi] >= self.max_bounces
+                if over.any():
+                    sel = np.zeros(hit.shape, bool)
+                    sel[hi[over & ~absorbed]] = True
+                    finish(sel, LOST_BOUNCES)
+                    keep[hi[over & ~absorbed]] = False
+                # split rays with zero reflectance weight are still traced (weight 0): harmless
+                # ---- compact and append new rows
+                o, k, below, ids, w, nb, pending = (o[keep], k[keep], below[keep], ids[keep], w[keep],
+                                                    nb[keep], pending[keep])
+                if K:
+                    A = A[:, :, keep]
+                    s = s[keep]
+                if new_rows is not None:
+                    o_t, kt_j, b_t, A_t, ids_t, wt, nb_t, s_t, abs_t = new_rows
+                    # transmitted into an absorbing medium: finished at once
+                    if abs_t.any():
+                        ia = ids_t[abs_t]
+                        out_w[ia] = wt[abs_t]
+                        out_state[ia] = LOST_ABSORBED
+                        out_b[ia] = nb_t[abs_t]
+                        keep_t = ~abs_t
+                        o_t, kt_j, b_t, ids_t, wt, nb_t = (o_t[keep_t], kt_j[keep_t], b_t[keep_t], ids_t[keep_t],
+                                                           wt[keep_t], nb_t[keep_t])
+                        if K:
+                            A_t, s_t = A_t[:, :, keep_t], s_t[keep_t]
+                    o = np.concatenate([o, o_t])
+                    k = np.concatenate([k, kt_j])
+                    below = np.concatenate([below, b_t])
+                    ids = np.concatenate([ids, ids_t])
+                    w = np.concatenate([w, wt.astype(F32)])
+                    nb = np.concatenate([nb, nb_t])
+                    pending = np.concatenate([pending, np.zeros(ids_t.size, bool)])
+                    if K:
+                        A = np.concatenate([A, A_t], axis=2)
+                        s = np.concatenate([s, s_t])
+            else:
+                o, k, below, ids, w, nb, pending = (o[keep], k[keep], below[keep], ids[keep], w[keep],
+                                                    nb[keep], pending[keep])
+                if K:
+                    A = A[:, :, keep]
+                    s = s[keep]
+        # exit frames: rotate the Stokes columns from the ray's (s, s x k) to (z x k, ...)
+        if K:
+            done = np.flatnonzero(out_state <= BELOW)
+            if done.size:
+                kd = out_k[done]
+                Ad = out_A[:, :, done]
+                phi = np.arctan2(kd[:, 1], kd[:, 0])
+                _rotate_stokes(Ad, out_s[done], kd, _frame_s(kd, phi))
+                out_A[:, :, done] = Ad
+        return out_k, out_A, out_w, out_state, out_b, segments
+
+
+def _check_index_pair(n_above, n_below):
+    vals = []
+    for name, v in (("n_above", n_above), ("n_below", n_below)):
+        v = np.asarray(v)[()]
+        if not np.isfinite(v) or np.real(v) <= 0 or np.imag(v) < 0:
+            raise RequestError(f"unphysical refractive index {name} = {v!r} (need Re n > 0, Im n >= 0)", name)
+        vals.append(complex(v) if np.imag(v) > 0 else float(np.real(v)))
+    if isinstance(vals[0], complex):
+        raise RequestError("the medium above the relief must be transparent (real index)", "n_above")
+    return vals[0], vals[1]
+
+
+def _block_order(xy: np.ndarray, hx: float, hy: float, block: float = 32.0) -> np.ndarray:
+    """Permutation sorting entry points by 32 x 32 px tiles (ray coherence in the BVH)."""
+    bx = np.floor((xy[:, 0] + hx) / block).astype(np.int64)
+    by = np.floor((xy[:, 1] + hy) / block).astype(np.int64)
+    key = by * (int(2 * hx / block) + 2) + bx
+    return np.argsort(key, kind="stable")
