@@ -362,7 +362,7 @@ class ReliefTracer:
             cat[1] = None
         return (*cat, segs)
 
-    def _trace_chunk(self, o, k, below, A, rng, n_above, n_below, split_first):
+    def _trace_chunk(self, o, k, below, A, rng, n_above, n_below, split_first, s_init=None):
         """Trace one batch until every ray has left the layer or is lost.
 
         o, k: (n, 3) float32 origins and unit propagation directions; below: (n,) bool, True
@@ -387,7 +387,10 @@ class ReliefTracer:
         pending = np.full(n0, bool(split_first))
         # incident frames: s = z x k (along z: s = (0, 1, 0); reconstruct rotates its input state
         # for normal incidence at phi_i != 0 before calling, see _incident_state)
-        s = _frame_s(k) if K else None
+        s = None
+        if K:
+            s = _frame_s(k) if s_init is None else np.ascontiguousarray(
+                np.broadcast_to(np.asarray(s_init, F32), k.shape))
         nA = complex(n_above) if np.iscomplexobj(n_above) else float(n_above)
         nB = complex(n_below) if np.iscomplexobj(n_below) else float(n_below)
         absorbing_below = isinstance(nB, complex) and nB.imag > 0
@@ -618,3 +621,307 @@ def _block_order(xy: np.ndarray, hx: float, hy: float, block: float = 32.0) -> n
     by = np.floor((xy[:, 1] + hy) / block).astype(np.int64)
     key = by * (int(2 * hx / block) + 2) + bx
     return np.argsort(key, kind="stable")
+
+
+# ----------------------------------------------------------------------------- reconstruction
+
+def _options(request) -> dict:
+    o = dict(request.options or {})
+    known = {"polarized", "max_bounces", "first_hit_split", "specular_tol_rad", "fill_holes", "threads",
+             "block_px"}
+    out = {"polarized": bool(o.get("polarized", True)), "max_bounces": int(o.get("max_bounces", 100)),
+           "first_hit_split": bool(o.get("first_hit_split", True)),
+           "specular_tol_rad": float(o.get("specular_tol_rad", 1e-5)), "fill_holes": o.get("fill_holes"),
+           "threads": o.get("threads")}
+    out["unknown"] = sorted(set(o) - known)
+    if out["max_bounces"] < 1:
+        raise RequestError(f"max_bounces must be >= 1, got {out['max_bounces']}", "max_bounces")
+    if not (0 <= out["specular_tol_rad"] < 0.01):
+        raise RequestError("specular_tol_rad must lie in [0, 0.01) rad", "specular_tol_rad")
+    return out
+
+
+MIN_SAMPLES_PER_SIDE = 16
+MIN_WAVELENGTHS_PER_TILE = 10.0
+
+
+def check_request(relief: Relief, material, request) -> dict:
+    """Every reason to refuse, raised as RequestError/InputError before any tracing starts."""
+    request.validate()
+    opts = _options(request)
+    where = relief.source or "relief"
+    relief.require_valid()
+    if not relief.valid.all() and opts["fill_holes"] in (None, False):
+        raise RequestError(f"{(~relief.valid).sum()} height samples of {where} are invalid (NaN): the ray tracer "
+                           "needs a closed surface; fill them explicitly (relief fill / Relief.fill_holes) or set "
+                           "the request option fill_holes=True (or a max gap in px)", where)
+    ny, nx = relief.shape
+    if min(nx, ny) < MIN_SAMPLES_PER_SIDE:
+        raise RequestError(f"relief {where} of {ny} x {nx} samples is too small for ray tracing "
+                           f"(need at least {MIN_SAMPLES_PER_SIDE} per side)", where)
+    lam_max_m = max(request.wavelengths_nm) * 1e-9
+    ext = min(nx * relief.dx_m, ny * relief.dy_m)
+    if ext < MIN_WAVELENGTHS_PER_TILE * lam_max_m:
+        raise RequestError(f"relief {where} spans {ext * 1e6:.3g} um, less than {MIN_WAVELENGTHS_PER_TILE:g} "
+                           f"wavelengths ({lam_max_m * 1e9:g} nm): geometric optics does not apply; "
+                           "use a wave method (kirchhoff, rayleigh-rice)", where)
+    n_cells = 2 * (len(request.theta_s_edges_deg) - 1) * (len(request.phi_s_edges_deg) - 1)
+    facets = 2 * nx * ny
+    if facets < n_cells:
+        raise RequestError(f"relief {where} is too coarse for the request: its {facets} facets cannot fill "
+                           f"{n_cells} scatter cells; use a larger map or coarser theta_s/phi_s cells", where)
+    for wl in request.wavelengths_nm:
+        for side in request.incident_from:
+            n1, n2 = material.n_pair(wl, side)
+            for v in (n1, n2):
+                if not (np.isfinite(v) and np.real(v) > 0 and np.imag(v) >= 0):
+                    raise RequestError(f"unphysical refractive index {v} at {wl:g} nm", "--n/--cauchy")
+            if np.imag(n1) > 0:
+                raise RequestError("light cannot arrive from inside an absorbing medium (complex index)", "--from")
+    return opts
+
+
+def _beam_strata(n: int, Lx: float, Ly: float, block_px: float = 32.0):
+    """Stratified beam: (nxs, nys) strata covering the tile and their order by 32 x 32 px blocks."""
+    nxs = max(1, int(round(math.sqrt(n * Lx / Ly))))
+    nys = max(1, -(-n // nxs))
+    iy, ix = np.divmod(np.arange(nxs * nys, dtype=np.int64), nxs)
+    bx = (ix * (Lx / nxs) // block_px).astype(np.int64)
+    by = (iy * (Ly / nys) // block_px).astype(np.int64)
+    order = np.argsort(by * (int(Lx // block_px) + 2) + bx, kind="stable")
+    return nxs, nys, order
+
+
+class _Accumulator:
+    """Per-task sums of weights (and Mueller elements) per scatter cell."""
+
+    def __init__(self, S: int, A: int, polarized: bool):
+        self.S, self.A = S, A
+        nc = 2 * S * A
+        self.sum_w = np.zeros(nc)
+        self.sum_w2 = np.zeros(nc)
+        self.sum_M = np.zeros((16, nc)) if polarized else None
+        self.spec = np.zeros(2)
+        self.spec_w2 = np.zeros(2)
+        self.spec_M = np.zeros((2, 16)) if polarized else None
+        self.lost = {name: 0.0 for name in STATE_NAMES.values()}
+        self.outside_table = 0.0
+        self.segments = 0
+        self.bounce_sum = 0.0
+        self.paths = 0
+        self.exits = 0
+
+    def add(self, other: "_Accumulator") -> None:
+        self.sum_w += other.sum_w
+        self.sum_w2 += other.sum_w2
+        if self.sum_M is not None:
+            self.sum_M += other.sum_M
+            self.spec_M += other.spec_M
+        self.spec += other.spec
+        self.spec_w2 += other.spec_w2
+        for k_ in self.lost:
+            self.lost[k_] += other.lost[k_]
+        self.outside_table += other.outside_table
+        self.segments += other.segments
+        self.bounce_sum += other.bounce_sum
+        self.paths += other.paths
+        self.exits += other.exits
+
+
+def _bin_chunk(acc: _Accumulator, out, n_paths: int, side_of_state: tuple, te_sin2, pe, spec_dirs, cos_tol):
+    """Bin one chunk's exits into the accumulator (vectorised, np.bincount)."""
+    out_k, out_A, out_w, out_state, out_b, segs = out
+    acc.segments += segs
+    acc.paths += n_paths
+    w = out_w.astype(np.float64)
+    for code, name in STATE_NAMES.items():
+        acc.lost[name] += float(w[out_state == code].sum())
+    done = np.flatnonzero(out_state <= BELOW)
+    acc.exits += done.size
+    acc.bounce_sum += float(out_b[done].sum())
+    if done.size == 0:
+        return
+    k = out_k[done].astype(np.float64)
+    wd = w[done]
+    side = np.where(out_state[done] == ABOVE, side_of_state[0], side_of_state[1])
+    # delta parts: exits along the mean plane's mirror / refraction direction
+    spec = np.zeros(done.size, bool)
+    for sd in (0, 1):
+        if spec_dirs[sd] is not None:
+            spec |= (side == sd) & (k @ spec_dirs[sd] > cos_tol)
+    sin2 = np.clip(1.0 - k[:, 2] ** 2, 0.0, 1.0)
+    ib = np.searchsorted(te_sin2, sin2, side="right") - 1
+    ib = np.where(sin2 == te_sin2[-1], ib - 1, ib)
+    phi = np.degrees(np.arctan2(k[:, 1], k[:, 0]))
+    phi = np.mod(phi - pe[0], 360.0) + pe[0]
+    ia = np.searchsorted(pe, phi, side="right") - 1
+    S, A_ = acc.S, acc.A
+    inside = (~spec) & (ib >= 0) & (ib < S) & (ia >= 0) & (ia < A_)
+    acc.outside_table += float(wd[(~spec) & ~inside].sum())
+    cell = (side * S + ib) * A_ + ia
+    c_in = cell[inside]
+    w_in = wd[inside]
+    nc = acc.sum_w.size
+    acc.sum_w += np.bincount(c_in, weights=w_in, minlength=nc)
+    acc.sum_w2 += np.bincount(c_in, weights=w_in * w_in, minlength=nc)
+    for sd in (0, 1):
+        m = spec & (side == sd)
+        acc.spec[sd] += float(wd[m].sum())
+        acc.spec_w2[sd] += float((wd[m] ** 2).sum())
+    if acc.sum_M is not None:
+        Md = out_A[:, :, done].reshape(16, done.size).astype(np.float64) * wd
+        for e in range(16):
+            acc.sum_M[e] += np.bincount(c_in, weights=Md[e][inside], minlength=nc)
+            for sd in (0, 1):
+                acc.spec_M[sd, e] += float(Md[e][spec & (side == sd)].sum())
+
+
+def _incident_state(K: int, n: int) -> np.ndarray | None:
+    if not K:
+        return None
+    A = np.zeros((4, 4, n), F32)
+    for i in range(4):
+        A[i, i] = 1
+    return A
+
+
+def reconstruct(relief: Relief, material, request, progress=None) -> list[BsdfTable]:
+    """Ray-trace the relief for every (wavelength, incidence, side) of the request (module doc).
+
+    Options (request.options): polarized (True: Mueller matrices per cell, see module doc),
+    max_bounces (100), first_hit_split (True), specular_tol_rad (1e-5), fill_holes (None:
+    refuse NaN; True or max gap in px: Laplace filling), threads (default: every core).
+    One BVH is built for the relief and reused for every task; the tasks' ray chunks share
+    one thread pool (Embree releases the GIL).  `request.samples` rays per incidence.
+    """
+    progress = progress or silent
+    opts = check_request(relief, material, request)
+    t0 = time.perf_counter()
+    tracer = ReliefTracer(relief, opts["max_bounces"], opts["fill_holes"], threads=opts["threads"])
+    K = 4 if opts["polarized"] else 0
+    te = np.asarray(request.theta_s_edges_deg, float)
+    pe = np.asarray(request.phi_s_edges_deg, float)
+    S, A_ = te.size - 1, pe.size - 1
+    te_sin2 = np.sin(np.radians(te)) ** 2
+    psa = projected_solid_angle(te, pe)
+    nxs, nys, strata_order = _beam_strata(int(request.samples), float(tracer.Lx), float(tracer.Ly))
+    N = nxs * nys
+    chunks = [(lo, min(N, lo + CHUNK)) for lo in range(0, N, CHUNK)]
+    cos_tol = math.cos(opts["specular_tol_rad"])
+    W, I, P = len(request.wavelengths_nm), len(request.theta_i_deg), len(request.phi_i_deg)
+
+    tasks = []
+    for si, side in enumerate(request.incident_from):
+        for iw, wl in enumerate(request.wavelengths_nm):
+            n_from, n_to = material.n_pair(wl, side)
+            n_out, n_in = (n_from, n_to) if side == "outside" else (n_to, n_from)
+            for ii, ti in enumerate(request.theta_i_deg):
+                for ip, pi_ in enumerate(request.phi_i_deg):
+                    tasks.append((si, side, iw, ii, ip, complex(n_out), complex(n_in), float(ti), float(pi_)))
+
+    def job(args):
+        t, ci = args
+        si, side, iw, ii, ip, n_out, n_in, ti, pi_ = tasks[t]
+        lo, hi = chunks[ci]
+        rng = task_rng(request.seed, si, iw, ii, ip, ci)
+        wi = direction(ti, pi_)                                    # table frame, toward the source
+        k_in = -wi if side == "outside" else np.array([-wi[0], -wi[1], wi[2]])
+        from_below = side == "inside"
+        st = strata_order[lo:hi]
+        iy, ix = np.divmod(st, nxs)
+        jit = rng.random((hi - lo, 2))
+        o = np.empty((hi - lo, 3), F32)
+        o[:, 0] = (ix + jit[:, 0]) * (tracer.Lx / nxs) - tracer.hx
+        o[:, 1] = (iy + jit[:, 1]) * (tracer.Ly / nys) - tracer.hy
+        o[:, 2] = tracer.z_bot if from_below else tracer.z_top
+        k = np.broadcast_to(k_in.astype(F32), o.shape).copy()
+        below = np.full(hi - lo, from_below)
+        s_init = _frame_s(k_in[None, :], math.radians(pi_))[0] if K else None
+        n_above = n_out.real
+        n_below = n_in if n_in.imag > 0 else n_in.real
+        out = tracer._trace_chunk(o, k, below, _incident_state(K, hi - lo), rng, n_above, n_below,
+                                  opts["first_hit_split"], s_init=s_init)
+        # ideal directions of the flat mean plane (physical), for the delta parts
+        spec_R = np.array([k_in[0], k_in[1], -k_in[2]])
+        n1, n2 = (n_above, n_below) if not from_below else (n_below, n_above)
+        eta = float(np.real(n1) / np.real(n2))
+        sin2t = eta**2 * (1 - k_in[2] ** 2)
+        spec_T = None
+        if sin2t < 1 and not (np.iscomplexobj(n2) and np.imag(n2) > 0):
+            spec_T = np.array([eta * k_in[0], eta * k_in[1], math.copysign(math.sqrt(1 - sin2t), k_in[2])])
+        side_of_state = (0, 1) if side == "outside" else (1, 0)     # (ABOVE ->, BELOW ->) table side
+        acc = _Accumulator(S, A_, bool(K))
+        _bin_chunk(acc, out, hi - lo, side_of_state, te_sin2, pe, (spec_R, spec_T), cos_tol)
+        return t, acc
+
+    jobs = [(t, ci) for t in range(len(tasks)) for ci in range(len(chunks))]
+    accs = [_Accumulator(S, A_, bool(K)) for _ in tasks]
+    left = [len(chunks)] * len(tasks)
+    done_tasks = 0
+    t_trace = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=max(1, tracer.threads)) as ex:
+        for t, acc in ex.map(job, jobs):
+            accs[t].add(acc)
+            left[t] -= 1
+            if left[t] == 0:
+                done_tasks += 1
+                progress(done_tasks, len(tasks), "ray tracing")
+    t_trace = time.perf_counter() - t_trace
+
+    tables = []
+    for si, side in enumerate(request.incident_from):
+        vals = np.zeros((W, I, P, 2, S, A_))
+        sig = np.zeros_like(vals)
+        mue = np.zeros(vals.shape + (4, 4)) if K else None
+        specR = np.zeros((W, I, P))
+        specT = np.zeros((W, I, P))
+        lost = np.zeros((W, I, P))
+        smR = np.zeros((W, I, P, 4, 4)) if K else None
+        smT = np.zeros((W, I, P, 4, 4)) if K else None
+        diag = []
+        for t, task in enumerate(tasks):
+            if task[0] != si:
+                continue
+            _, _, iw, ii, ip, *_ = task
+            acc = accs[t]
+            n = float(acc.paths)
+            mean = acc.sum_w / n
+            var = np.maximum(acc.sum_w2 / n - mean**2, 0.0) / n
+            vals[iw, ii, ip] = mean.reshape(2, S, A_) / psa
+            sig[iw, ii, ip] = np.sqrt(var).reshape(2, S, A_) / psa
+            specR[iw, ii, ip], specT[iw, ii, ip] = acc.spec / n
+            lost[iw, ii, ip] = (sum(acc.lost.values()) + acc.outside_table) / n
+            if K:
+                m = (acc.sum_M / n).reshape(4, 4, 2, S, A_).transpose(2, 3, 4, 0, 1)
+                mue[iw, ii, ip] = m / psa[None, :, :, None, None]
+                smR[iw, ii, ip] = (acc.spec_M[0] / n).reshape(4, 4)
+                smT[iw, ii, ip] = (acc.spec_M[1] / n).reshape(4, 4)
+                vals[iw, ii, ip] = mue[iw, ii, ip][..., 0, 0]
+            diag.append({"wavelength_nm": float(request.wavelengths_nm[iw]),
+                         "theta_i_deg": float(request.theta_i_deg[ii]), "phi_i_deg": float(request.phi_i_deg[ip]),
+                         "rays": int(acc.paths), "segments": int(acc.segments),
+                         "mean_bounces": acc.bounce_sum / max(acc.exits, 1),
+                         "lost": {k_: v / n for k_, v in acc.lost.items()},
+                         "outside_table": acc.outside_table / n})
+        mesh = tracer.mesh
+        meta = {"request": {"samples_requested": int(request.samples), "rays_per_incidence": int(N),
+                            "seed": int(request.seed), "options": {k_: v for k_, v in opts.items()
+                                                                   if k_ != "unknown"}},
+                "unknown_options": opts["unknown"],
+                "mesh": {"triangles": mesh.n_triangles, "tile_samples": list(mesh.shape),
+                         "mirror_extended": mesh.mirrored, "history": list(mesh.history)},
+                "timing_s": {"build": tracer.build_s, "trace_all_sides": t_trace,
+                             "total": time.perf_counter() - t0},
+                "tasks": diag,
+                "notes": ["geometric optics: valid when relief features >> wavelength",
+                          "Stokes bases: s = z x k / |z x k|, p = s x k with k the physical propagation "
+                          "direction (also for light from inside)",
+                          "lost = max bounces + numerical leaks + absorbed + exits outside the table's cells"]}
+        rel = relief.describe()
+        tables.append(BsdfTable(
+            wavelength_nm=np.asarray(request.wavelengths_nm, float), theta_i_deg=np.asarray(request.theta_i_deg),
+            phi_i_deg=np.asarray(request.phi_i_deg), theta_s_edges_deg=te, phi_s_edges_deg=pe,
+            values_per_sr=vals, incident_from=side, specular_R=specR, specular_T=specT, lost=lost,
+            sigma_per_sr=sig, mueller_per_sr=mue, specular_mueller_R=smR, specular_mueller_T=smT,
+            method="ray", material=material.describe(), relief=rel, metadata=meta))
+    return tables
