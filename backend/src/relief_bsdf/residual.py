@@ -1,0 +1,95 @@
+"""Comparison of a simulated plate BSDF with a goniophotometer recording.
+
+Metric ("log-chi"): a BSDF spans many decades (a specular peak 1e3-1e5 times the wings), so
+differences are taken on logarithms, each normalised by its uncertainty:
+
+    r_k = [ln(sim_k + b) - ln(meas_k + b)] / s_k
+    s_k = sqrt( (sigma_k / (meas_k + b))^2 + q^2 )
+    metric = sqrt(mean_k r_k^2)
+
+- b (floor, 1/sr) = `floor_rel` x median(meas): values far below the floor (dark noise, the
+  detector's stray light) count as "about zero", so the metric does not chase noise in the
+  deep wings.
+- sigma_k / (meas_k + b) is the row's 1-sigma uncertainty propagated to ln (first order);
+  where sigma is unknown (NaN) `default_rel_sigma` of the value is assumed.
+- q = `model_rel` is a relative model/calibration floor added in quadrature (default 1 %).
+
+A recording that agrees with the simulation within its noise gives metric ~ 1 (chi-like);
+below 1 is "within the noise".  `describe()` is the text written to fit.json's "metric".
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class LogChiMetric:
+    floor_rel: float = 1e-2
+    default_rel_sigma: float = 0.05
+    model_rel: float = 0.01
+
+    def floor(self, meas: np.ndarray) -> float:
+        m = np.asarray(meas, float)
+        pos = m[np.isfinite(m) & (m > 0)]
+        return float(self.floor_rel * np.median(pos)) if pos.size else 1e-12
+
+    def sigma_log(self, meas: np.ndarray, sigma: np.ndarray | None) -> np.ndarray:
+        m = np.asarray(meas, float)
+        b = self.floor(m)
+        s = np.full(m.shape, np.nan) if sigma is None else np.asarray(sigma, float)
+        s = np.where(np.isfinite(s), s, self.default_rel_sigma * np.abs(m))
+        return np.sqrt((s / (np.abs(m) + b)) ** 2 + self.model_rel**2)
+
+    def residuals(self, sim: Any, meas: Any, sigma: Any = None) -> np.ndarray:
+        """Normalised residuals r_k (sim above the measurement: positive)."""
+        sim = np.asarray(sim, float)
+        meas = np.asarray(meas, float)
+        b = self.floor(meas)
+        d = np.log(np.maximum(sim, 0.0) + b) - np.log(np.maximum(meas, 0.0) + b)
+        return d / self.sigma_log(meas, sigma)
+
+    def value(self, sim: Any, meas: Any, sigma: Any = None) -> float:
+        r = self.residuals(sim, meas, sigma)
+        return float(np.sqrt(np.mean(r**2))) if r.size else 0.0
+
+    def describe(self) -> str:
+        return ("log-chi: sqrt(mean(r^2)), r = [ln(sim + b) - ln(meas + b)] / s, b = "
+                f"{self.floor_rel:g} x median(measured) (floor, 1/sr), s = sqrt((sigma/(meas + b))^2 + "
+                f"{self.model_rel:g}^2) (sigma unknown: {self.default_rel_sigma:g} x meas); "
+                "1 = agreement within the recording's noise")
+
+
+DEFAULT_METRIC = LogChiMetric()
+
+
+def residual_map(rec: Any, sim: Any, metric: LogChiMetric = DEFAULT_METRIC) -> dict:
+    """Residuals grouped for plotting: {(side, phi_rel): (theta_i list, signed theta_s list, r)}.
+
+    Signed scatter angle: negative on the phi_s = phi_i + 180 half-plane (specular /
+    undeviated side), positive on phi_s = phi_i (paper figs. 4 and 9).
+    """
+    r = metric.residuals(sim, rec.bsdf_sr, rec.sigma_sr)
+    rel = np.mod(np.asarray(rec.phi_s_deg) - np.asarray(rec.phi_i_deg), 360.0)
+    signed = np.where(np.abs(rel - 180.0) < 90.0, -1.0, 1.0) * np.asarray(rec.theta_s_deg)
+    out = {}
+    for sd in ("R", "T"):
+        m = np.asarray(rec.side) == sd
+        if m.any():
+            out[sd] = (np.asarray(rec.theta_i_deg)[m], signed[m], r[m])
+    return out
+
+
+def mismatch_share(rec: Any, sim: Any, metric: LogChiMetric = DEFAULT_METRIC) -> list[dict]:
+    """Where the squared residual lives: share per (side, theta_i), largest first."""
+    r2 = metric.residuals(sim, rec.bsdf_sr, rec.sigma_sr) ** 2
+    tot = float(r2.sum()) or 1.0
+    out = []
+    for sd in ("R", "T"):
+        for ti in np.unique(rec.theta_i_deg):
+            m = (np.asarray(rec.side) == sd) & (np.asarray(rec.theta_i_deg) == ti)
+            if m.any():
+                out.append({"side": sd, "theta_i_deg": float(ti), "share": float(r2[m].sum() / tot)})
+    return sorted(out, key=lambda d: -d["share"])
