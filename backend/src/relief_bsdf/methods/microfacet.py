@@ -1,0 +1,674 @@
+"""`microfacet`: analytic microfacet BSDFs of a rough dielectric (or metal) boundary.
+
+Paper sec. 2.1 (Cook-Torrance, the multi-lobe mixture eq. 4, the V-cavity factor eq. 5)
+and Walter, Marschner, Li & Torrance, "Microfacet models for refraction through rough
+surfaces", EGSR 2007 (cited below as W07), which extends it to transmission.
+
+Frame (formats.md): `wi` points toward the source, +z points into the medium the light
+comes from (index n_i); `wo` is the scattered direction, z > 0 reflection (still in n_i),
+z < 0 transmission (into n_t).  Light from inside the dielectric is handled by the caller
+mirroring the frame (n_i = n_inside, n_t = n_outside).
+
+Model (W07):
+- reflection, eq. 20 with the half vector h_r = normalize(wi + wo) (eq. 13):
+      f_r = F(wi.h) D(h) G(wi, wo, h) / (4 |wi.n| |wo.n|)
+- transmission, eq. 21 with the generalised half vector h_t = -normalize(n_i wi + n_t wo)
+  (eq. 16), oriented to +z:
+      f_t = |wi.h| |wo.h| / (|wi.n| |wo.n|) * n_t^2 (1 - F(wi.h)) D(h) G / (n_i wi.h + n_t wo.h)^2
+  This is a *radiance* BTDF: swapping the roles gives f_t(a->b) / n_b^2 = f_t(b->a) / n_a^2,
+  the convention of formats.md, and its cosine-weighted integral over wo is the power
+  transmittance (it equals Mitsuba 3's `roughdielectric` in importance transport).
+- distributions (W07 eqs. 25, 28 / paper eq. 3): Beckmann D = exp(-tan^2 t / a^2) / (pi a^2 cos^4 t),
+  GGX D = a^2 / (pi cos^4 t (a^2 + tan^2 t)^2), both normalised so that int D(m) (m.n) dw_m = 1.
+- multi-lobe mixture (paper eq. 4): D = sum_j w_j D(a_j), sum w_j = 1.  The slope density of
+  a mixture is the mixture of slope densities and Smith's Lambda is linear in the slope
+  density, so the consistent Smith term is Lambda = sum_j w_j Lambda_j (used here).
+- shadowing: "smith": separable G = G1(wi) G1(wo), G1 = chi+(v.m / v.n) / (1 + Lambda(v)) with
+  Beckmann's exact Lambda = (erf(a) - 1)/2 + exp(-a^2) / (2 a sqrt(pi)), a = 1/(alpha tan t)
+  (W07 eq. 27) and GGX's exact Lambda = (sqrt(1 + alpha^2 tan^2 t) - 1)/2 (W07 eq. 34);
+  "vcavity": paper eq. 5, G = min(1, 2 (n.h)(n.wo)/|wo.h|, 2 (n.h)(n.wi)/|wi.h|) (for
+  transmission the same expression with absolute values, an approximation: the V-cavity
+  derivation is for reflection);
+  "incident": G = G1(wi) only (no masking of wo) - what the `normals` Monte Carlo samples;
+  "none": G = 1.
+Regime of validity: geometric optics (relief heights and facet sizes >> wavelength), a
+single scattering event per path (inter-reflections are neglected, so R + T < 1 at high
+roughness and grazing angles; the deficit is reported as `lost`), facet slopes distributed
+as the chosen analytic lobes.  Cook-Torrance (paper eqs. 1-6) is the reflection part with the
+V-cavity G; note that its 1982 form F D G / (pi (n.l)(n.v)) with the paper's un-normalised D
+(eq. 3) equals 4x the energy-consistent F D G / (4 (n.l)(n.v)) used here (W07 sec. 4).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+from scipy import optimize, special
+
+from ..bsdf import BsdfTable, direction, projected_solid_angle
+from ..errors import InputError, RequestError
+from ..optics import Material, fresnel_unpolarized, mueller_interface
+from ..parallel import map_tasks
+
+DISTRIBUTIONS = ("beckmann", "ggx")
+SHADOWING = ("smith", "vcavity", "incident", "none")
+_SQRT_PI = np.sqrt(np.pi)
+
+
+# ------------------------------------------------------------------ distributions
+
+
+def _lobes(alpha: Any, weights: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """Lobe roughnesses (L,) and weights (L,) normalised to sum 1."""
+    a = np.atleast_1d(np.asarray(alpha, float))
+    if a.ndim != 1 or a.size == 0 or np.any(~np.isfinite(a)) or np.any(a <= 0):
+        raise InputError("alpha", f"roughness must be one or more positive numbers, got {alpha!r}")
+    if weights is None:
+        if a.size != 1:
+            raise InputError("weights", "several lobes need their weights")
+        return a, np.ones(1)
+    w = np.atleast_1d(np.asarray(weights, float))
+    if w.shape != a.shape or np.any(w < 0) or not w.sum() > 0:
+        raise InputError("weights", f"lobe weights must be >= 0, one per lobe, not all zero; got {weights!r}")
+    return a, w / w.sum()
+
+
+def distribution_D(cos_m: Any, alpha: Any, distribution: str = "beckmann", weights: Any = None) -> np.ndarray:
+    """Normal distribution D(m) (1/sr) for cos(theta_m) = m.n; 0 for m below the surface.
+
+    Beckmann (W07 eq. 25, paper eq. 3 normalised) or GGX (W07 eq. 33); several lobes mix by
+    paper eq. 4.
+    """
+    a, w = _lobes(alpha, weights)
+    c = np.asarray(cos_m, float)
+    pos = c > 0
+    cs = np.where(pos, c, 1.0)
+    c2 = cs * cs
+    t2 = (1.0 - c2) / c2                             # tan^2 theta_m
+    a2 = (a * a).reshape((-1,) + (1,) * c.ndim)
+    if distribution == "beckmann":
+        d = np.exp(-t2 / a2) / (np.pi * a2 * c2 * c2)
+    elif distribution == "ggx":
+        d = a2 / (np.pi * c2 * c2 * (a2 + t2) ** 2)
+    else:
+        raise InputError("distribution", f"unknown distribution {distribution!r}; choose {DISTRIBUTIONS}")
+    d = np.tensordot(w, d, axes=(0, 0))
+    return np.where(pos, d, 0.0)
+
+
+def smith_lambda(cos_v: Any, alpha: Any, distribution: str = "beckmann", weights: Any = None) -> np.ndarray:
+    """Smith's Lambda(v) for a direction with cos(theta_v) = |v.n| (exact forms, see module doc)."""
+    a, w = _lobes(alpha, weights)
+    c = np.clip(np.abs(np.asarray(cos_v, float)), 0.0, 1.0)
+    s = np.sqrt(np.maximum(0.0, 1.0 - c * c))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tan_t = np.where(c > 0, s / np.where(c > 0, c, 1.0), np.inf)
+    ar = a.reshape((-1,) + (1,) * c.ndim)
+    if distribution == "beckmann":
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            x = 1.0 / (ar * tan_t)                      # a = cot / alpha; inf at normal incidence
+            lam = 0.5 * (np.exp(-x * x) / (x * _SQRT_PI) - special.erfc(x))
+        lam = np.where(tan_t == 0, 0.0, np.where(np.isinf(tan_t), np.inf, lam))
+        lam = np.maximum(lam, 0.0)
+    elif distribution == "ggx":
+        with np.errstate(invalid="ignore", over="ignore"):
+            lam = 0.5 * (np.sqrt(1.0 + (ar * tan_t) ** 2) - 1.0)
+    else:
+        raise InputError("distribution", f"unknown distribution {distribution!r}; choose {DISTRIBUTIONS}")
+    return np.tensordot(w, lam, axes=(0, 0))
+
+
+def smith_G1(cos_v: Any, alpha: Any, distribution: str = "beckmann", weights: Any = None) -> np.ndarray:
+    """Smith masking 1 / (1 + Lambda) (without the facet back-facing test)."""
+    return 1.0 / (1.0 + smith_lambda(cos_v, alpha, distribution, weights))
+
+
+def vcavity_G1(v_dot_n: Any, v_dot_m: Any, m_dot_n: Any) -> np.ndarray:
+    """One direction's V-cavity factor min(1, 2 (n.m)|n.v| / |v.m|) (paper eq. 5)."""
+    vm = np.abs(np.asarray(v_dot_m, float))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g = 2.0 * np.asarray(m_dot_n, float) * np.abs(v_dot_n) / vm
+    return np.where(vm > 0, np.minimum(1.0, g), 0.0)
+
+
+# ------------------------------------------------------------------ the BSDF
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("...k,...k->...", a, b)
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.where(n > 0, n, 1.0)
+
+
+@dataclass
+class WalterTerms:
+    """Pieces of the Walter BSDF at a batch of direction pairs (for scalar and Mueller use)."""
+
+    f: np.ndarray           # (N,) BSDF in 1/sr
+    geom: np.ndarray        # (N,) f without its Fresnel factor (F for R, 1 - F for T)
+    h: np.ndarray           # (N, 3) microfacet normal, +z side
+    is_T: np.ndarray        # (N,) bool
+    cos_ih: np.ndarray      # (N,) wi.h (> 0 where valid)
+
+
+def walter_terms(wi: Any, wo: Any, n_i: Any, n_t: Any, alpha: Any, distribution: str = "beckmann",
+                 shadowing: str = "smith", weights: Any = None) -> WalterTerms:
+    """Evaluate W07 eqs. 20-21 and return the value and its geometric part (see `walter_bsdf`)."""
+    wi = np.atleast_2d(np.asarray(wi, float))
+    wo = np.atleast_2d(np.asarray(wo, float))
+    wi, wo = np.broadcast_arrays(wi, wo)
+    if shadowing not in SHADOWING:
+        raise InputError("shadowing", f"unknown shadowing {shadowing!r}; choose {SHADOWING}")
+    n_i = np.real(np.asarray(n_i, complex)) if np.iscomplexobj(n_i) else np.asarray(n_i, float)
+    n_t_c = np.asarray(n_t, complex)
+    n_t_re = np.real(n_t_c)
+    absorbing = np.imag(n_t_c) > 0
+    ci = wi[..., 2]
+    co = wo[..., 2]
+    is_T = co < 0
+    # half vectors: eq. 13 (reflection) and eq. 16 (transmission), oriented to +z
+    h_r = wi + wo
+    h_t = -(np.asarray(n_i)[..., None] * wi + np.asarray(n_t_re)[..., None] * wo)
+    h = _normalize(np.where(is_T[..., None], h_t, h_r))
+    h = h * np.where(h[..., 2] < 0, -1.0, 1.0)[..., None]
+    ih = _dot(wi, h)
+    oh = _dot(wo, h)
+    mn = h[..., 2]
+    D = distribution_D(mn, alpha, distribution, weights)
+    # facet side tests (chi+ of W07 eq. 19): wi in front of the facet; wo in front (R) or behind (T)
+    ok = (ci > 0) & (ih > 0) & (mn > 0) & np.where(is_T, oh < 0, oh > 0) & (co != 0)
+    if shadowing == "smith":
+        G = smith_G1(ci, alpha, distribution, weights) * smith_G1(co, alpha, distribution, weights)
+    elif shadowing == "incident":
+        G = smith_G1(ci, alpha, distribution, weights)
+    elif shadowing == "vcavity":
+        G = np.minimum(vcavity_G1(ci, ih, mn), vcavity_G1(co, oh, mn))
+    else:
+        G = np.ones_like(ci)
+    F = fresnel_unpolarized(np.clip(ih, 0.0, 1.0), n_i, n_t_c)
+    aci = np.abs(ci)
+    aco = np.where(co == 0, 1.0, np.abs(co))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        geom_r = D * G / (4.0 * aci * aco)
+        denom = (n_i * ih + n_t_re * oh) ** 2
+        geom_t = np.abs(ih * oh) / (aci * aco) * n_t_re**2 * D * G / denom
+    geom = np.where(is_T, geom_t, geom_r)
+    geom = np.where(ok & np.isfinite(geom) & ~(is_T & absorbing), geom, 0.0)
+    f = geom * np.where(is_T, 1.0 - F, F)
+    return WalterTerms(f=f, geom=geom, h=h, is_T=is_T, cos_ih=ih)
+
+
+def walter_bsdf(wi: Any, wo: Any, n_i: Any, n_t: Any, alpha: Any, distribution: str = "beckmann",
+                shadowing: str = "smith", weights: Any = None) -> np.ndarray:
+    """Rough-dielectric BSDF f(wi -> wo) in 1/sr (W07 eqs. 20-21; module doc for conventions).
+
+    wi (N, 3) toward the source with wi.z > 0 in the incident medium n_i; wo (N, 3) with
+    wo.z > 0 reflection, wo.z < 0 transmission into n_t.  `alpha` is one roughness or the
+    lobe roughnesses of a mixture with `weights` (paper eq. 4).  A complex n_t (metal)
+    reflects with its complex Fresnel factor and transmits nothing (absorbed).
+    """
+    return walter_terms(wi, wo, n_i, n_t, alpha, distribution, shadowing, weights).f
+
+
+def cook_torrance_brdf(wi: Any, wo: Any, n_i: Any, n_t: Any, m: Any, distribution: str = "beckmann",
+                       weights: Any = None, shadowing: str = "vcavity", diffuse: float = 0.0) -> np.ndarray:
+    """Cook-Torrance reflection (paper eqs. 1-6) for opaque or metal surfaces, in 1/sr.
+
+    Specular part: F D G / (4 (n.l)(n.v)) with the V-cavity G (eq. 5) and D a single or
+    multi-lobe (eq. 4) distribution of rms slope `m`; F from the complex index n_t.  Plus an
+    optional Lambertian part `diffuse` / pi (the d R_d term of eq. 1, albedo in [0, 1]).
+    Transmission directions (wo.z < 0) get 0.
+    """
+    wo = np.atleast_2d(np.asarray(wo, float))
+    f = walter_bsdf(wi, wo, n_i, n_t, m, distribution, shadowing, weights)
+    f = np.where(wo[..., 2] > 0, f, 0.0)
+    if diffuse:
+        f = f + np.where(wo[..., 2] > 0, diffuse / np.pi, 0.0)
+    return f
+
+
+# ------------------------------------------------------------------ polarisation
+
+
+def _s_vector(w: np.ndarray, phi_fallback_rad: np.ndarray) -> np.ndarray:
+    """s = z x w / |z x w|; for w along z the azimuthal fallback (-sin phi, cos phi, 0) (bsdf.py)."""
+    s = np.stack([-w[..., 1], w[..., 0], np.zeros(w.shape[:-1])], axis=-1)
+    n = np.linalg.norm(s, axis=-1, keepdims=True)
+    fb = np.stack([-np.sin(phi_fallback_rad), np.cos(phi_fallback_rad), np.zeros(np.shape(phi_fallback_rad))], -1)
+    fb = np.broadcast_to(fb, s.shape)
+    return np.where(n > 1e-12, s / np.where(n > 1e-12, n, 1.0), fb)
+
+
+def stokes_rotation(k: np.ndarray, s_from: np.ndarray, s_to: np.ndarray) -> np.ndarray:
+    """Mueller matrix (..., 4, 4) re-expressing Stokes vectors from basis (s_from, k x s_from) to (s_to, k x s_to).
+
+    Stokes (S0, S1 = I_s - I_p, S2, S3) with right-handed (s, p = k x s, k) for the beam
+    propagating along k; s_to = cos(psi) s_from + sin(psi) p_from.
+    """
+    p_from = np.cross(k, s_from)
+    c = _dot(s_from, s_to)
+    s = _dot(p_from, s_to)
+    psi = np.arctan2(s, c)
+    c2, s2 = np.cos(2 * psi), np.sin(2 * psi)
+    L = np.zeros(psi.shape + (4, 4))
+    L[..., 0, 0] = 1.0
+    L[..., 3, 3] = 1.0
+    L[..., 1, 1] = c2
+    L[..., 1, 2] = s2
+    L[..., 2, 1] = -s2
+    L[..., 2, 2] = c2
+    return L
+
+
+def walter_mueller(wi: Any, wo: Any, n_i: Any, n_t: Any, alpha: Any, distribution: str = "beckmann",
+                   shadowing: str = "smith", weights: Any = None, phi_i_rad: float = 0.0,
+                   phi_o_rad: Any = 0.0) -> np.ndarray:
+    """Mueller BSDF (N, 4, 4) in 1/sr: W07's geometric factor times the facet's Fresnel Mueller matrix.
+
+    The Fresnel Mueller matrix (optics.mueller_interface) acts in the s/p basis of the facet's
+    plane of incidence (wi, h); it is rotated from the table's incident basis (s = z x wi) and
+    into the scattered basis (s = z x wo), the frames documented in bsdf.py.  Element [0, 0]
+    equals `walter_bsdf`.  Single scattering off one facet, so no depolarisation by multiple
+    bounces is modelled.
+    """
+    t = walter_terms(wi, wo, n_i, n_t, alpha, distribution, shadowing, weights)
+    wi = np.broadcast_to(np.atleast_2d(np.asarray(wi, float)), t.h.shape)
+    wo = np.broadcast_to(np.atleast_2d(np.asarray(wo, float)), t.h.shape)
+    ki = -wi
+    s_tab_i = _s_vector(wi, np.asarray(phi_i_rad, float))
+    s_tab_o = _s_vector(wo, np.asarray(phi_o_rad, float))
+    s_m = np.cross(t.h, wi)
+    nm = np.linalg.norm(s_m, axis=-1, keepdims=True)
+    s_m = np.where(nm > 1e-12, s_m / np.where(nm > 1e-12, nm, 1.0), s_tab_i)
+    cos_ih = np.clip(t.cos_ih, 0.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):   # cos = 0 only where geom is 0 anyway
+        MR = mueller_interface(cos_ih, n_i, n_t, "R")
+        MT = mueller_interface(cos_ih, n_i, n_t, "T")
+    MF = np.where(t.is_T[..., None, None], MT, MR)
+    MF = np.nan_to_num(MF)
+    L_in = stokes_rotation(ki, s_tab_i, s_m)
+    L_out = stokes_rotation(wo, s_m, s_tab_o)
+    M = L_out @ MF @ L_in
+    return t.geom[..., None, None] * M
+
+
+# ------------------------------------------------------------------ cell averages
+
+
+def cell_directions(theta_edges_deg: Any, phi_edges_deg: Any, side: str, subsamples: int = 4):
+    """Sub-sample directions (S, A, K*K, 3) uniform in projected solid angle within each cell.
+
+    Midpoints of a K x K grid in (sin^2 theta, phi): equal projected solid angle each, so a
+    plain mean is the cell average the tables store.  Side "T" points to z < 0.  Also returns
+    the azimuths (S, A, K*K) in radians.
+    """
+    k = int(subsamples)
+    te = np.radians(np.asarray(theta_edges_deg, float))
+    pe = np.radians(np.asarray(phi_edges_deg, float))
+    u_lo, u_hi = np.sin(te[:-1]) ** 2, np.sin(te[1:]) ** 2
+    frac = (np.arange(k) + 0.5) / k
+    u = u_lo[:, None] + (u_hi - u_lo)[:, None] * frac[None, :]             # (S, K)
+    ph = pe[:-1, None] + np.diff(pe)[:, None] * frac[None, :]               # (A, K)
+    st = np.sqrt(u)
+    ct = np.sqrt(np.maximum(0.0, 1.0 - u))
+    S, A = u.shape[0], ph.shape[0]
+    st4 = st[:, None, :, None]
+    ct4 = ct[:, None, :, None]
+    ph4 = ph[None, :, None, :]
+    x = st4 * np.cos(ph4)
+    y = st4 * np.sin(ph4)
+    z = np.broadcast_to(ct4, x.shape)
+    if side == "T":
+        z = -z
+    d = np.stack(np.broadcast_arrays(x, y, z), axis=-1).reshape(S, A, k * k, 3)
+    phis = np.broadcast_to(ph4, x.shape).reshape(S, A, k * k)
+    return d, phis
+
+
+def cell_average(fn: Callable[[np.ndarray], np.ndarray], theta_edges_deg: Any, phi_edges_deg: Any, side: str,
+                 subsamples: int = 4) -> np.ndarray:
+    """Average of fn(wo) over each scatter cell in projected solid angle, shape (S, A) (+ fn's trailing dims).
+
+    `fn` takes (M, 3) directions and returns (M,) or (M, ...) values, e.g.
+    `lambda wo: walter_bsdf(wi, wo, 1.0, 1.5, 0.1)`.  Analytic tables averaged this way compare
+    cell for cell with Monte-Carlo tables that bin exit directions.
+    """
+    d, _ = cell_directions(theta_edges_deg, phi_edges_deg, side, subsamples)
+    S, A, K, _ = d.shape
+    v = np.asarray(fn(d.reshape(-1, 3)))
+    v = v.reshape((S, A, K) + v.shape[1:])
+    return v.mean(axis=2)
+
+
+def auto_subsamples(theta_edges_deg: Any, phi_edges_deg: Any, alpha_min: float) -> int:
+    """Sub-samples per cell axis so a lobe of width ~alpha is resolved by a few points per width."""
+    te = np.radians(np.asarray(theta_edges_deg, float))
+    pe = np.radians(np.asarray(phi_edges_deg, float))
+    width = max(np.max(np.diff(te)), np.max(np.diff(pe)) * 0.5)
+    return int(np.clip(np.ceil(3.0 * width / max(alpha_min, 1e-4)), 3, 12))
+
+
+# ------------------------------------------------------------------ slopes and lobe fits
+
+
+def relief_slopes(relief) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel surface slopes (dz/dx, dz/dy) of a relief, valid points only, mean slope removed.
+
+    Central differences (wrapped when the relief is periodic, one-sided at the borders
+    otherwise); a pixel counts where its differences are finite.  Each pixel has the same
+    area in the x-y plane, so these samples are drawn from the slope density P22 weighted by
+    *projected* area, which is exactly the density behind D(m) (D(m) cos(theta_m) d w_m is
+    the projected-area fraction of facets).  The mean slope (an instrument tilt) is removed:
+    the lobes are centred on the macroscopic normal by construction.
+    """
+    h = relief.heights_m
+    if relief.periodic:
+        sx = (np.roll(h, -1, axis=1) - np.roll(h, 1, axis=1)) / (2 * relief.dx_m)
+        sy = (np.roll(h, -1, axis=0) - np.roll(h, 1, axis=0)) / (2 * relief.dy_m)
+    else:
+        sy, sx = np.gradient(h, relief.dy_m, relief.dx_m)
+    ok = np.isfinite(sx) & np.isfinite(sy)
+    if ok.sum() < 16:
+        raise InputError(relief.source or "relief", "too few valid points to measure facet slopes "
+                         "(need at least 16 with valid neighbours)")
+    sx, sy = sx[ok], sy[ok]
+    return sx - sx.mean(), sy - sy.mean()
+
+
+def _slope_pdf_magnitude(s2: np.ndarray, alpha: float, distribution: str) -> np.ndarray:
+    """Density of the slope magnitude s for an isotropic lobe, divided by s (depends on s^2 only)."""
+    a2 = alpha * alpha
+    if distribution == "beckmann":
+        return 2.0 / a2 * np.exp(-s2 / a2)
+    return 2.0 * a2 / (a2 + s2) ** 2
+
+
+@dataclass
+class Lobes:
+    """A mixture of isotropic microfacet lobes (paper eq. 4)."""
+
+    alpha: np.ndarray                 # (L,)
+    weight: np.ndarray                # (L,) sum 1
+    distribution: str = "beckmann"
+    info: dict = field(default_factory=dict)
+
+    def describe(self) -> dict:
+        return {"distribution": self.distribution, "alpha": self.alpha.tolist(), "weight": self.weight.tolist(),
+                **self.info}
+
+
+def fit_lobes(relief_or_slopes: Any, n_lobes: int = 1, distribution: str = "beckmann",
+              iterations: int = 200) -> Lobes:
+    """Fit paper eq. 4's weights and roughnesses to a relief's measured facet slopes.
+
+    Maximum likelihood on the slope magnitudes s = |grad z| (isotropic lobes: the slope
+    density of one lobe is P22(s) and the magnitude density 2 pi s P22(s)) by expectation-
+    maximisation.  Beckmann's M-step is closed form, alpha_j^2 = <s^2>_j (for one lobe
+    alpha = rms slope magnitude, the usual Beckmann identity); GGX's is a 1-D likelihood
+    maximisation.  Lobes start at quantiles of s.  `relief_or_slopes` is a Relief or a pair
+    (sx, sy) of slope arrays.
+    """
+    if distribution not in DISTRIBUTIONS:
+        raise InputError("distribution", f"unknown distribution {distribution!r}; choose {DISTRIBUTIONS}")
+    n_lobes = int(n_lobes)
+    if n_lobes < 1 or n_lobes > 8:
+        raise InputError("lobes", f"number of lobes must be 1..8, got {n_lobes}")
+    if isinstance(relief_or_slopes, tuple):
+        sx, sy = (np.asarray(v, float).ravel() for v in relief_or_slopes)
+    else:
+        sx, sy = relief_slopes(relief_or_slopes)
+    s2 = sx * sx + sy * sy
+    s2 = s2[np.isfinite(s2)]
+    if s2.size < 16 or not np.any(s2 > 0):
+        raise InputError("relief", "the relief has no measurable slopes (flat or too few points)")
+    if s2.size > 400_000:      # a deterministic thinning keeps EM fast on big maps
+        s2 = s2[:: int(np.ceil(s2.size / 400_000))]
+    rms = float(np.sqrt(s2.mean()))
+    if n_lobes == 1 and distribution == "beckmann":
+        return Lobes(np.array([rms]), np.ones(1), distribution, {"rms_slope": rms, "n_slopes": int(s2.size)})
+    q = np.quantile(np.sqrt(s2), (np.arange(n_lobes) + 0.5) / n_lobes)
+    alpha = np.maximum(q * 1.2, 1e-4 * max(rms, 1e-12))
+    weight = np.full(n_lobes, 1.0 / n_lobes)
+    prev = -np.inf
+    for _ in range(iterations):
+        p = np.stack([w * _slope_pdf_magnitude(s2, a, distribution) for a, w in zip(alpha, weight)])
+        tot = p.sum(axis=0)
+        tot = np.where(tot > 0, tot, 1e-300)
+        ll = float(np.mean(np.log(tot)))
+        r = p / tot
+        nj = r.sum(axis=1)
+        weight = nj / nj.sum()
+        for j in range(n_lobes):
+            if nj[j] <= 0:
+                continue
+            if distribution == "beckmann":
+                alpha[j] = np.sqrt(max((r[j] * s2).sum() / nj[j], 1e-30))
+            else:
+                rj = r[j]
+
+                def nll(la):
+                    return -float((rj * np.log(_slope_pdf_magnitude(s2, np.exp(la), "ggx"))).sum())
+                res = optimize.minimize_scalar(nll, bracket=(np.log(alpha[j]) - 0.3, np.log(alpha[j]) + 0.3))
+                alpha[j] = float(np.exp(res.x))
+        if abs(ll - prev) < 1e-10 * max(1.0, abs(ll)):
+            break
+        prev = ll
+    order = np.argsort(alpha)
+    return Lobes(alpha[order], weight[order], distribution,
+                 {"rms_slope": rms, "n_slopes": int(s2.size), "log_likelihood": ll})
+
+
+# ------------------------------------------------------------------ fit to any table
+
+
+@dataclass
+class TableFit:
+    """A compact microfacet form of a BsdfTable, per incidence and side.
+
+    f_k(wi -> wo) ~= sum_j weight[..., k, j] * walter_bsdf(wi, wo; alpha[..., k, j]) for side k
+    (R, T), with the table's own indices (so the Fresnel factor is built in and a pure
+    Walter table fits with weight 1).  Arrays are (W, I, P, 2, L); `rms_rel` (W, I, P, 2) is the
+    rms residual in projected-solid-angle-weighted energy relative to the side's diffuse total.
+    """
+
+    alpha: np.ndarray
+    weight: np.ndarray
+    rms_rel: np.ndarray
+    distribution: str
+    n_i: np.ndarray          # (W,)
+    n_t: np.ndarray          # (W,)
+    specular_R: np.ndarray
+    specular_T: np.ndarray
+    incident_from: str
+
+    def eval(self, iw: int, ii: int, ip: int, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        wo = np.atleast_2d(wo)
+        out = np.zeros(wo.shape[0])
+        for k in (0, 1):
+            sel = (wo[:, 2] < 0) if k else (wo[:, 2] >= 0)
+            for a, w in zip(self.alpha[iw, ii, ip, k], self.weight[iw, ii, ip, k]):
+                if w > 0:
+                    out += np.where(sel, w * walter_bsdf(wi, wo, self.n_i[iw], self.n_t[iw], a,
+                                                         self.distribution, "smith"), 0.0)
+        return out
+
+
+def fit_table(table: BsdfTable, n_lobes: int = 1, distribution: str = "ggx", subsamples: int = 3) -> TableFit:
+    """Fit weights and roughnesses of `n_lobes` Walter lobes per incidence and side to any table.
+
+    Variable projection: the roughnesses (log scale) by scipy.optimize.least_squares, the
+    non-negative weights for given roughnesses by NNLS.  Residuals are (model - table) cell
+    values times sqrt(projected solid angle), i.e. an energy-weighted L2 error.  The table's
+    specular (delta) parts are not fitted; they are passed through.  Used by the Blender
+    bake (GGX: Cycles' microfacet distribution, roughness = sqrt(alpha)).
+    """
+    if not table.material:
+        raise InputError("table", "the table records no material; cannot build Fresnel factors")
+    mat = Material.from_dict(table.material)
+    psa = table.projected_solid_angle_sr
+    sq = np.sqrt(psa).ravel()
+    W, I, P = table.values_per_sr.shape[:3]
+    L = int(n_lobes)
+    alpha = np.zeros((W, I, P, 2, L))
+    weight = np.zeros((W, I, P, 2, L))
+    rms = np.zeros((W, I, P, 2))
+    n_i = np.zeros(W)
+    n_t = np.zeros(W)
+    dirs = {k: cell_directions(table.theta_s_edges_deg, table.phi_s_edges_deg, side, subsamples)[0].reshape(-1, 3)
+            for k, side in enumerate(("R", "T"))}
+    ncell = psa.size
+    for iw, wl in enumerate(table.wavelength_nm):
+        a_n, b_n = mat.n_pair(float(wl), table.incident_from)
+        n_i[iw], n_t[iw] = np.real(a_n), np.real(b_n)
+        for ii, ti in enumerate(table.theta_i_deg):
+            for ip, pi in enumerate(table.phi_i_deg):
+                wi = direction(ti, pi)[None, :]
+                for k in (0, 1):
+                    target = table.values_per_sr[iw, ii, ip, k].ravel()
+                    tot = float((target * psa.ravel()).sum())
+                    if tot <= 0:
+                        continue
+
+                    def basis(log_a):
+                        cols = []
+                        for a in np.exp(log_a):
+                            v = walter_bsdf(wi, dirs[k], a_n, b_n, a, distribution, "smith")
+                            cols.append(v.reshape(ncell, -1).mean(axis=1))
+                        return np.stack(cols, axis=1)
+
+                    def resid(log_a):
+                        B = basis(log_a) * sq[:, None]
+                        w, _ = optimize.nnls(B, target * sq)
+                        return B @ w - target * sq
+
+                    starts = np.log(np.geomspace(0.05, 0.6, L)) if L > 1 else np.array([np.log(0.2)])
+                    best = None
+                    for x0 in (starts, starts + np.log(0.25)):
+                        r = optimize.least_squares(resid, x0, bounds=(np.log(1e-3), np.log(3.0)), x_scale=1.0)
+                        if best is None or r.cost < best.cost:
+                            best = r
+                    la = best.x
+                    B = basis(la) * sq[:, None]
+                    w, _ = optimize.nnls(B, target * sq)
+                    alpha[iw, ii, ip, k] = np.exp(la)
+                    weight[iw, ii, ip, k] = w
+                    rms[iw, ii, ip, k] = float(np.sqrt(np.sum((B @ w - target * sq) ** 2))) / tot
+    return TableFit(alpha, weight, rms, distribution, n_i, n_t, table.specular_R.copy(), table.specular_T.copy(),
+                    table.incident_from)
+
+
+# ------------------------------------------------------------------ reconstruct
+
+
+def _options(request) -> dict:
+    o = dict(request.options or {})
+    known = {"alpha", "distribution", "shadowing", "lobes", "weights", "polarized", "subsamples"}
+    unknown = set(o) - known - {"grazing_heuristic", "max_bounces"}
+    if unknown:
+        raise RequestError(f"unknown microfacet option(s) {sorted(unknown)}; known: {sorted(known)}", "options")
+    dist = o.get("distribution", "beckmann")
+    if dist not in DISTRIBUTIONS:
+        raise RequestError(f"distribution must be one of {DISTRIBUTIONS}, got {dist!r}", "options.distribution")
+    sh = o.get("shadowing", "smith")
+    if sh not in SHADOWING:
+        raise RequestError(f"shadowing must be one of {SHADOWING}, got {sh!r}", "options.shadowing")
+    return o
+
+
+def _task(ctx: dict, task: tuple) -> dict:
+    side_from, iw, ii, ip = task
+    req = ctx["request"]
+    wl = req.wavelengths_nm[iw]
+    n_a, n_b = ctx["material"].n_pair(float(wl), side_from)
+    wi = direction(req.theta_i_deg[ii], req.phi_i_deg[ip])[None, :]
+    lob = ctx["lobes"]
+    out = {}
+    k = ctx["subsamples"]
+    for s, side in enumerate(("R", "T")):
+        if ctx["polarized"]:
+            d, ph = cell_directions(req.theta_s_edges_deg, req.phi_s_edges_deg, side, k)
+            S, A, K, _ = d.shape
+            M = walter_mueller(wi, d.reshape(-1, 3), np.real(n_a), n_b, lob.alpha, lob.distribution,
+                               ctx["shadowing"], lob.weight, np.radians(req.phi_i_deg[ip]), ph.reshape(-1))
+            M = M.reshape(S, A, K, 4, 4).mean(axis=2)
+            out[side + "_mueller"] = M
+            out[side] = M[..., 0, 0].copy()
+        else:
+            out[side] = cell_average(lambda wo: walter_bsdf(wi, wo, np.real(n_a), n_b, lob.alpha, lob.distribution,
+                                                            ctx["shadowing"], lob.weight),
+                                     req.theta_s_edges_deg, req.phi_s_edges_deg, side, k)
+    return out
+
+
+def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
+    """Analytic Walter / Cook-Torrance tables for every side in `request.incident_from`.
+
+    Roughness: `request.options` may give `alpha` (one value or a list with `weights`),
+    `distribution` ("beckmann" default, "ggx"), `shadowing` ("smith" default, "vcavity",
+    "incident", "none"), `lobes` (number of mixture lobes fitted to the relief's slopes when no
+    alpha is given; default 1, i.e. alpha = rms slope magnitude for Beckmann), `subsamples`
+    (per cell axis; default from the lobe width), `polarized` (fill the Mueller matrices).
+    Values are cell averages (see `cell_average`); the model has no delta part (specular = 0);
+    `lost` = 1 - R - T is the energy the single-scattering model does not conserve (plus the
+    quadrature error of the cell averages, small when cells resolve the lobe).
+    For light from inside, the relief is seen mirrored: its slopes flip sign, which leaves an
+    isotropic lobe unchanged.
+    """
+    request.validate()
+    opts = _options(request)
+    dist = opts.get("distribution", "beckmann")
+    if "alpha" in opts:
+        a, w = _lobes(opts["alpha"], opts.get("weights"))
+        lobes = Lobes(a, w, dist, {"source": "request options"})
+    else:
+        if relief is None:
+            raise RequestError("no relief and no alpha given: the microfacet roughness must come from one of them",
+                               "options.alpha")
+        relief.require_valid()
+        lobes = fit_lobes(relief, int(opts.get("lobes", 1)), dist)
+        lobes.info["source"] = "fitted to the relief's facet slopes"
+    polarized = bool(opts.get("polarized", False))
+    sub = int(opts.get("subsamples") or auto_subsamples(request.theta_s_edges_deg, request.phi_s_edges_deg,
+                                                        float(lobes.alpha.min())))
+    ctx = {"request": request, "material": material, "lobes": lobes, "shadowing": opts.get("shadowing", "smith"),
+           "polarized": polarized, "subsamples": sub}
+    W, I, P = len(request.wavelengths_nm), len(request.theta_i_deg), len(request.phi_i_deg)
+    tables = []
+    sides = list(request.incident_from)
+    tasks = [(sf, iw, ii, ip) for sf in sides for iw in range(W) for ii in range(I) for ip in range(P)]
+    res = map_tasks(_task, tasks, ctx, progress=progress, label="microfacet")
+    te, pe = np.asarray(request.theta_s_edges_deg), np.asarray(request.phi_s_edges_deg)
+    psa = projected_solid_angle(te, pe)
+    for sf in sides:
+        vals = np.zeros((W, I, P, 2, te.size - 1, pe.size - 1))
+        mu = np.zeros(vals.shape + (4, 4)) if polarized else None
+        for (tsf, iw, ii, ip), r in zip(tasks, res):
+            if tsf != sf:
+                continue
+            vals[iw, ii, ip, 0] = r["R"]
+            vals[iw, ii, ip, 1] = r["T"]
+            if polarized:
+                mu[iw, ii, ip, 0] = r["R_mueller"]
+                mu[iw, ii, ip, 1] = r["T_mueller"]
+        tot = np.einsum("wipksa,sa->wip", vals, psa)
+        lost = 1.0 - tot
+        desc = relief.describe() if relief is not None else {}
+        desc["lobes"] = lobes.describe()
+        tables.append(BsdfTable(request.wavelengths_nm,
+                                request.theta_i_deg, request.phi_i_deg, te, pe, vals, incident_from=sf,
+                                lost=lost, mueller_per_sr=mu,
+                                specular_mueller_R=np.zeros((W, I, P, 4, 4)) if polarized else None,
+                                specular_mueller_T=np.zeros((W, I, P, 4, 4)) if polarized else None,
+                                method="microfacet", material=material.describe(), relief=desc,
+                                metadata={"model": "Walter et al. 2007 rough dielectric (paper sec. 2.1)",
+                                          "distribution": dist, "shadowing": ctx["shadowing"],
+                                          "subsamples_per_cell_axis": sub,
+                                          "lost_meaning": "1 - R - T: energy the single-scattering model does not "
+                                                          "conserve (inter-reflections neglected) plus cell "
+                                                          "quadrature error",
+                                          "polarized": polarized}))
+    return tables
