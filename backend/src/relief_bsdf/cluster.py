@@ -53,7 +53,7 @@ def get_client(spec: Any, workers: int | None = None):
 
         n = int(workers or default_workers())
         cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                           dashboard_address=None, silence_logs=logging.ERROR)
+                                           dashboard_address=":0", silence_logs=logging.ERROR)
         client = distributed.Client(cluster)
     else:
         try:
@@ -84,38 +84,58 @@ def close_all() -> None:
         close_client(spec)
 
 
-def _call(task: Any, fn: Callable, context: Any) -> Any:
+def _call(batch: list, fn: Callable, context: Any) -> list:
     from . import parallel
 
     parallel._IN_WORKER = True  # a task that calls map_tasks itself runs it serially here
-    return fn(context, task)
+    return [fn(context, task) for task in batch]
+
+
+def batch_size(n_tasks: int, n_workers: int) -> int:
+    """Tasks per Dask task: 1 unless there are many more tasks than workers.
+
+    Each Dask task costs about 1-3 ms of scheduling (bench_scale.py); grouping consecutive
+    tasks amortises that while keeping at least 16 groups per worker, so the idle tail at
+    the end of a run stays a few percent of it, and at most 32 tasks per group, so
+    progress, checkpoints and the work lost with a worker stay fine-grained.
+    `RELIEF_DASK_BATCH` overrides it.
+    """
+    env = os.environ.get("RELIEF_DASK_BATCH")
+    if env:
+        return max(1, int(env))
+    return int(min(32, max(1, n_tasks // (16 * max(1, n_workers)))))
 
 
 def run_on_client(client, fn: Callable, context: Any, items: list[tuple[int, Any]], *, retries: int = 2,
                   label: str = "task") -> Iterator[tuple[int, Any]]:
     """Run `fn(context, task)` for (index, task) items on the cluster; yield (index, result)
-    in completion order.  The context travels to each worker once; on exit (normal, error,
-    Ctrl-C, or the consumer stopping) the unfinished futures are cancelled."""
+    in completion order.  The context travels to each worker once; consecutive tasks are
+    grouped (`batch_size`); on exit (normal, error, Ctrl-C, or the consumer stopping) the
+    unfinished futures are cancelled."""
     import distributed
 
     # wrapped in a list: scatter would split a dict or list context into one future per item
     ctx = client.scatter([context], broadcast=True, hash=False)[0] if context is not None else None
+    n_workers = len(client.scheduler_info().get("workers", {}))
+    b = batch_size(len(items), n_workers)
+    groups = [items[k:k + b] for k in range(0, len(items), b)]
     tag = uuid.uuid4().hex[:8]
-    keys = [f"{label}-{tag}-{i}" for i, _ in items]
-    index = dict(zip(keys, (i for i, _ in items)))
-    futures = client.map(_call, [t for _, t in items], key=keys, retries=int(retries), pure=False,
+    keys = [f"{label}-{tag}-{g[0][0]}" + (f"+{len(g)}" if len(g) > 1 else "") for g in groups]
+    index = {k: [i for i, _ in g] for k, g in zip(keys, groups)}
+    futures = client.map(_call, [[t for _, t in g] for g in groups], key=keys, retries=int(retries), pure=False,
                          fn=fn, context=ctx)
     remaining = {f.key: f for f in futures}
     try:
-        for f in distributed.as_completed(futures):
+        for f in distributed.as_completed(futures, loop=client.loop):
             try:
-                r = f.result()
+                rs = f.result()
             except distributed.KilledWorker as e:
-                raise RuntimeError(f"{label} task {index[f.key]} killed its worker repeatedly on the Dask cluster "
-                                   f"({e}); the finished tasks were kept") from None
+                raise RuntimeError(f"{label} tasks {index[f.key]} killed their worker repeatedly on the Dask "
+                                   f"cluster ({e}); the finished tasks were kept") from None
             remaining.pop(f.key, None)
             f.release()
-            yield index[f.key], r
+            for i, r in zip(index[f.key], rs):
+                yield i, r
     finally:
         if remaining:
             with contextlib.suppress(Exception):
