@@ -356,11 +356,19 @@ class ReliefTracer:
             outs = [job(ci) for ci in range(len(bounds))]
         if reduce:
             return outs
-        cat = [np.concatenate([x[j] for x in outs], axis=-1 if j == 1 else 0) for j in (0, 1, 2, 3, 4)]
-        segs = sum(x[5] for x in outs)
-        if A is None:
-            cat[1] = None
-        return (*cat, segs)
+        lo_of = [b[0] for b in bounds]
+        ks, As, ws, sts, nbs = [], [], [], [], []
+        for ci, ex in enumerate(outs):
+            k_, A_, w_, st_, nb_ = ex.ordered()
+            ks.append(k_)
+            As.append(A_)
+            ws.append(w_)
+            sts.append(st_)
+            nbs.append(nb_)
+        del lo_of
+        segs = sum(ex.segments for ex in outs)
+        A_all = None if A is None else np.concatenate(As, axis=2)
+        return (np.concatenate(ks), A_all, np.concatenate(ws), np.concatenate(sts), np.concatenate(nbs), segs)
 
     def _trace_chunk(self, o, k, below, A, rng, n_above, n_below, split_first, s_init=None):
         """Trace one batch until every ray has left the layer or is lost.
@@ -370,237 +378,279 @@ class ReliefTracer:
         S0 = 1) or None.  With split_first each ray's first interaction yields two rays
         (reflected: output index i, transmitted: i + n) with weights P_R and 1 - P_R.
         Returns (k_out (m, 3), A_out (4, K, m) or None, weight (m,), state (m,) int8,
-        bounces (m,) int16, segments) with m = n or 2 n.
+        bounces (m,) int16, segments) with m = n or 2 n; rays' Stokes columns are returned in
+        their exit frames (s = z x k).
         """
         n0 = o.shape[0]
-        m = 2 * n0 if split_first else n0
         K = 0 if A is None else A.shape[1]
-        out_k = np.zeros((m, 3), F32)
-        out_A = np.zeros((4, K, m), F32) if K else None
-        out_w = np.zeros(m, F32)
-        out_state = np.full(m, LOST_LEAK, np.int8)
-        out_b = np.zeros(m, np.int16)
-        out_s = np.zeros((m, 3), F32) if K else None
-        ids = np.arange(n0, dtype=np.int64)
-        w = np.ones(n0, F32)
-        nb = np.zeros(n0, np.int16)
-        pending = np.full(n0, bool(split_first))
-        # incident frames: s = z x k (along z: s = (0, 1, 0); reconstruct rotates its input state
-        # for normal incidence at phi_i != 0 before calling, see _incident_state)
-        s = None
+        exits: list = []
+        st = _RayState(o=o, k=k, below=below, ids=np.arange(n0, dtype=np.int64), w=np.ones(n0, F32),
+                       nb=np.zeros(n0, np.int16), pending=np.full(n0, bool(split_first)), A=A, s=None)
         if K:
-            s = _frame_s(k) if s_init is None else np.ascontiguousarray(
+            st.s = _frame_s(k) if s_init is None else np.ascontiguousarray(
                 np.broadcast_to(np.asarray(s_init, F32), k.shape))
-        nA = complex(n_above) if np.iscomplexobj(n_above) else float(n_above)
-        nB = complex(n_below) if np.iscomplexobj(n_below) else float(n_below)
-        absorbing_below = isinstance(nB, complex) and nB.imag > 0
-        hx, hy, Lx, Ly = self.hx, self.hy, self.Lx, self.Ly
+        complex_idx = np.iscomplexobj(n_above) or np.iscomplexobj(n_below)
+        absorbing_below = complex_idx and np.imag(n_below) > 0
+        hx, hy = self.hx, self.hy
         eps = self.eps
+        z_top, z_bot = self.z_top, self.z_bot
         segments = 0
         scene = self.scene
 
-        def finish(sel, state):
-            idx = ids[sel]
-            out_k[idx] = k[sel]
-            out_w[idx] = w[sel]
-            out_state[idx] = state
-            out_b[idx] = nb[sel]
-            if K:
-                out_A[:, :, idx] = A[:, :, sel]
-                out_s[idx] = s[sel]
+        def finish(rows: _RayState, state):
+            if rows.ids.size:
+                exits.append((rows, np.full(rows.ids.size, state, np.int8)))
 
-        while ids.size:
-            segments += ids.size
+        while st.ids.size:
+            n = st.ids.size
+            segments += n
+            o, k = st.o, st.k
             kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
             with np.errstate(divide="ignore", invalid="ignore"):
-                tx = (np.where(kx > 0, hx, -hx) - o[:, 0]) / kx
-                ty = (np.where(ky > 0, hy, -hy) - o[:, 1]) / ky
-                tz = (np.where(kz > 0, self.z_top, self.z_bot) - o[:, 2]) / kz
-            tx = np.where(np.isfinite(tx), np.maximum(tx, 0), np.inf).astype(F32)
-            ty = np.where(np.isfinite(ty), np.maximum(ty, 0), np.inf).astype(F32)
-            tz = np.where(np.isfinite(tz), np.maximum(tz, 0), np.inf).astype(F32)
-            t_lat = np.minimum(tx, ty)
-            tfar = np.minimum(t_lat, tz)
-            res = scene.run(o, k, dists=tfar.copy(), output=1)
-            prim = res["primID"]
-            hit = prim >= 0
-            miss = ~hit
-            keep = hit.copy()
-            # ---- rays that reached the top or bottom plane: they left the layer
-            out_slab = miss & (tz <= t_lat)
-            if out_slab.any():
-                up = kz > 0
-                ok_up = out_slab & up & ~below
-                ok_dn = out_slab & ~up & below
-                finish(ok_up, ABOVE)
-                finish(ok_dn, BELOW)
-                finish(out_slab & ~(ok_up | ok_dn), LOST_LEAK)
-            # ---- rays that reached a side of the tile: re-enter from the opposite side
-            wrap = miss & ~out_slab
-            if wrap.any():
-                keep |= wrap
-                t = t_lat[wrap]
-                kw = k[wrap]
-                ow = o[wrap] + t[:, None] * kw
-                bx = tx[wrap] <= t
-                by = ty[wrap] <= t
-                ow[bx, 0] = np.where(kw[bx, 0] > 0, -hx, hx)
-                ow[by, 1] = np.where(kw[by, 1] > 0, -hy, hy)
-                o[wrap] = ow
-            # ---- hits: one interaction each
-            if hit.any():
-                hi = np.flatnonzero(hit)
-                ng = res["Ng"][hi]
-                nrm = np.sqrt(np.einsum("ij,ij->i", ng, ng))
-                nrm = np.where(ng[:, 2] < 0, -nrm, nrm)       # orient up (+z)
-                n_up = ng / nrm[:, None]
-                kh = k[hi]
-                bh = below[hi]
-                dot = np.einsum("ij,ij->i", kh, n_up)
-                # a ray above the surface must hit it from above (dot < 0), below from below
-                leak = np.where(bh, dot < 0, dot > 0)
-                if leak.any():
-                    sel = np.zeros(hit.shape, bool)
-                    sel[hi[leak]] = True
-                    finish(sel, LOST_LEAK)
-                    keep[hi[leak]] = False
-                    good = ~leak
-                    hi, n_up, kh, bh, dot = hi[good], n_up[good], kh[good], bh[good], dot[good]
-                nb[hi] += 1
-                ci = np.abs(dot)
-                nf = np.where(bh[:, None], -n_up, n_up)          # facet normal on the incident side
-                p_hit = o[hi] + res["tfar"][hi][:, None] * kh
-                # indices per ray
-                if isinstance(nA, complex) or isinstance(nB, complex):
-                    n1 = np.where(bh, nB, nA).astype(np.complex128)
-                    n2 = np.where(bh, nA, nB).astype(np.complex128)
+                tx = (np.copysign(hx, kx) - o[:, 0]) / kx
+                ty = (np.copysign(hy, ky) - o[:, 1]) / ky
+                tz = (np.where(kz > 0, z_top, z_bot) - o[:, 2]) / kz
+            t_lat = np.fmin(tx, ty)
+            tfar = np.fmin(t_lat, tz)
+            np.maximum(tfar, 0, out=tfar)
+            res = scene.run(o, k, dists=tfar, output=1)
+            hit = res["primID"] >= 0
+            n_hit = int(np.count_nonzero(hit))
+            parts = []
+            if n_hit < n:
+                miss = ~hit
+                out_slab = miss & ~(t_lat < tz)
+                if out_slab.any():
+                    up = kz > 0
+                    ok_up = out_slab & up & ~st.below
+                    ok_dn = out_slab & ~up & st.below
+                    finish(st.take(np.flatnonzero(ok_up)), ABOVE)
+                    finish(st.take(np.flatnonzero(ok_dn)), BELOW)
+                    bad = out_slab & ~(ok_up | ok_dn)
+                    if bad.any():
+                        finish(st.take(np.flatnonzero(bad)), LOST_LEAK)
+                wrap = np.flatnonzero(miss & ~out_slab)
+                if wrap.size:
+                    wr = st.take(wrap)
+                    t = t_lat[wrap]
+                    ow = wr.o + t[:, None] * wr.k
+                    bx = tx[wrap] <= t
+                    by = ty[wrap] <= t
+                    ow[bx, 0] = -np.copysign(hx, wr.k[bx, 0])
+                    ow[by, 1] = -np.copysign(hy, wr.k[by, 1])
+                    wr.o = ow
+                    parts.append(wr)
+            if n_hit:
+                if n_hit == n:
+                    h = st
+                    ng, t_hit = res["Ng"], res["tfar"]
                 else:
-                    n1 = np.where(bh, F32(nB), F32(nA))
-                    n2 = np.where(bh, F32(nA), F32(nB))
-                (aR, bR, cR, dR), (aT, bT, cT, dT) = interface_coefficients(ci, n1, n2)
-                if K:
-                    Ah = A[:, :, hi]
-                    s_old = s[hi]
-                    s_new = np.cross(nf, kh)
-                    sn = np.sqrt(np.einsum("ij,ij->i", s_new, s_new))
-                    degenerate = sn < 1e-6
-                    s_new = np.where(degenerate[:, None], s_old, s_new / np.where(degenerate, 1, sn)[:, None])
-                    _rotate_stokes(Ah, s_old, kh, s_new)
-                    pR = np.clip(aR + bR * Ah[1, 0], 0, 1)
-                else:
-                    pR = aR
-                pR = pR.astype(F32)
-                # reflected and refracted directions
-                kr = kh + (2 * ci)[:, None] * nf
-                refr_ok = aT > 0
-                if isinstance(nA, complex) or isinstance(nB, complex):
-                    eta = np.real(n1 / n2).astype(F32)
-                else:
-                    eta = (n1 / n2).astype(F32)
-                sin2t = eta * eta * np.maximum(0, 1 - ci * ci)
-                ct = np.sqrt(np.maximum(0, 1 - sin2t))
-                kt = eta[:, None] * kh + (eta * ci - ct)[:, None] * nf
-                # absorbing medium on the far side: transmitted power is absorbed
-                absorbed_T = (~bh) & absorbing_below if absorbing_below else np.zeros(hi.size, bool)
-                split = pending[hi]
-                u = rng.random(hi.size, dtype=F32)
-                refl = u < pR
-                if split.any():
-                    # deterministic split: reflected copy keeps the id, transmitted copy gets id + n0
-                    refl = refl | split
-                # --- build the transmitted copies of split rays (appended to the batch)
-                tsel = split & refr_ok
-                new_rows = None
-                if tsel.any():
-                    j = np.flatnonzero(tsel)
-                    wt = w[hi[j]] * (1 - pR[j])
-                    ids_t = ids[hi[j]] + n0
-                    kt_j = _normalize_rows(kt[j]).astype(F32)
-                    bh_j = bh[j]
-                    o_t = (p_hit[j] - eps * nf[j]).astype(F32)
-                    A_t = None
-                    if K:
-                        A_t = Ah[:, :, j].copy()
-                        _apply_mueller(A_t, aT[j], bT[j], cT[j], dT[j], 1 / np.maximum(1 - pR[j], 1e-30))
-                    new_rows = (o_t, kt_j, ~bh_j, A_t, ids_t, wt, nb[hi[j]], s_new[j] if K else None,
-                                absorbed_T[j])
-                # --- update the rays in place (reflect or refract)
-                w_h = w[hi]
-                w_h = np.where(split, w_h * pR, w_h)
-                w[hi] = w_h
-                knew = np.where(refl[:, None], kr, kt)
-                knew = _normalize_rows(knew).astype(F32)
-                side = np.where(refl, 1, -1).astype(F32)
-                o[hi] = (p_hit + (side * eps)[:, None] * nf).astype(F32)
-                k[hi] = knew
-                below[hi] = np.where(refl, bh, ~bh)
-                if K:
-                    pc = np.where(refl, pR, 1 - pR)
-                    inv_p = 1 / np.maximum(pc, 1e-30)
-                    _apply_mueller(Ah, np.where(refl, aR, aT), np.where(refl, bR, bT),
-                                   np.where(refl, cR, cT), np.where(refl, dR, dT), inv_p)
-                    A[:, :, hi] = Ah
-                    s[hi] = s_new
-                pending[hi] = False
-                # absorbed (transmitted into a metal) and max-bounce rays end here
-                absorbed = (~refl) & absorbed_T
-                if absorbed.any():
-                    sel = np.zeros(hit.shape, bool)
-                    sel[hi[absorbed]] = True
-                    finish(sel, LOST_ABSORBED)
-                    keep[hi[absorbed]] = False
-                over = nb[hi] >= self.max_bounces
-                if over.any():
-                    sel = np.zeros(hit.shape, bool)
-                    sel[hi[over & ~absorbed]] = True
-                    finish(sel, LOST_BOUNCES)
-                    keep[hi[over & ~absorbed]] = False
-                # split rays with zero reflectance weight are still traced (weight 0): harmless
-                # ---- compact and append new rows
-                o, k, below, ids, w, nb, pending = (o[keep], k[keep], below[keep], ids[keep], w[keep],
-                                                    nb[keep], pending[keep])
-                if K:
-                    A = A[:, :, keep]
-                    s = s[keep]
-                if new_rows is not None:
-                    o_t, kt_j, b_t, A_t, ids_t, wt, nb_t, s_t, abs_t = new_rows
-                    # transmitted into an absorbing medium: finished at once
-                    if abs_t.any():
-                        ia = ids_t[abs_t]
-                        out_w[ia] = wt[abs_t]
-                        out_state[ia] = LOST_ABSORBED
-                        out_b[ia] = nb_t[abs_t]
-                        keep_t = ~abs_t
-                        o_t, kt_j, b_t, ids_t, wt, nb_t = (o_t[keep_t], kt_j[keep_t], b_t[keep_t], ids_t[keep_t],
-                                                           wt[keep_t], nb_t[keep_t])
-                        if K:
-                            A_t, s_t = A_t[:, :, keep_t], s_t[keep_t]
-                    o = np.concatenate([o, o_t])
-                    k = np.concatenate([k, kt_j])
-                    below = np.concatenate([below, b_t])
-                    ids = np.concatenate([ids, ids_t])
-                    w = np.concatenate([w, wt.astype(F32)])
-                    nb = np.concatenate([nb, nb_t])
-                    pending = np.concatenate([pending, np.zeros(ids_t.size, bool)])
-                    if K:
-                        A = np.concatenate([A, A_t], axis=2)
-                        s = np.concatenate([s, s_t])
-            else:
-                o, k, below, ids, w, nb, pending = (o[keep], k[keep], below[keep], ids[keep], w[keep],
-                                                    nb[keep], pending[keep])
-                if K:
-                    A = A[:, :, keep]
-                    s = s[keep]
-        # exit frames: rotate the Stokes columns from the ray's (s, s x k) to (z x k, ...)
+                    hi = np.flatnonzero(hit)
+                    h = st.take(hi)
+                    ng, t_hit = np.take(res["Ng"], hi, axis=0), res["tfar"][hi]
+                parts = self._interact(h, ng, t_hit, rng, n_above, n_below, complex_idx, absorbing_below,
+                                       n0, finish) + parts
+            if not parts:
+                break
+            st = parts[0] if len(parts) == 1 else _RayState.concat(parts)
+        if not exits:
+            z = np.zeros(0, np.int64)
+            return _Exits(ids=z, k=np.zeros((0, 3), F32), A=np.zeros((4, K, 0), F32) if K else None,
+                          w=np.zeros(0, F32), state=np.zeros(0, np.int8), nb=np.zeros(0, np.int16),
+                          segments=segments, n_paths=n0, m=2 * n0 if split_first else n0)
+        rows = _RayState.concat([e[0] for e in exits]) if len(exits) > 1 else exits[0][0]
+        state = np.concatenate([e[1] for e in exits])
         if K:
-            done = np.flatnonzero(out_state <= BELOW)
-            if done.size:
-                kd = out_k[done]
-                Ad = out_A[:, :, done]
-                phi = np.arctan2(kd[:, 1], kd[:, 0])
-                _rotate_stokes(Ad, out_s[done], kd, _frame_s(kd, phi))
-                out_A[:, :, done] = Ad
-        return out_k, out_A, out_w, out_state, out_b, segments
+            done = np.flatnonzero(state <= BELOW)
+            kd = rows.k[done]
+            Ad = np.take(rows.A, done, axis=2)
+            phi = np.arctan2(kd[:, 1], kd[:, 0])
+            _rotate_stokes(Ad, rows.s[done], kd, _frame_s(kd, phi))
+            rows.A[:, :, done] = Ad
+        return _Exits(ids=rows.ids, k=rows.k, A=rows.A, w=rows.w, state=state, nb=rows.nb, segments=segments,
+                      n_paths=n0, m=2 * n0 if split_first else n0)
+
+    def _interact(self, h, ng, t_hit, rng, n_above, n_below, complex_idx, absorbing_below, n0, finish):
+        """One surface interaction for every ray of `h` (all hit); returns the continuing rays."""
+        K = 0 if h.A is None else h.A.shape[1]
+        eps = self.eps
+        k = h.k
+        bh = h.below
+        # unit facet normal oriented up (+z), then toward the incident side
+        nrm = np.sqrt(np.einsum("ij,ij->i", ng, ng))
+        np.copysign(nrm, ng[:, 2], out=nrm)
+        dot = np.einsum("ij,ij->i", k, ng) / nrm
+        # a ray above the surface must hit it from above (dot < 0), a ray below from below
+        leak = (dot > 0) != bh
+        if leak.any():
+            finish(h.take(np.flatnonzero(leak)), LOST_LEAK)
+            good = np.flatnonzero(~leak)
+            h = h.take(good)
+            ng, t_hit, nrm, dot, k, bh = ng[good], t_hit[good], nrm[good], dot[good], h.k, h.below
+        sgn = np.where(bh, F32(-1), F32(1)) / nrm               # nf = sgn * ng: unit, incident side
+        nf = ng * sgn[:, None]
+        ci = np.abs(dot)
+        h.nb = h.nb + np.int16(1)
+        if complex_idx:
+            n1 = np.where(bh, n_below, n_above).astype(np.complex128)
+            n2 = np.where(bh, n_above, n_below).astype(np.complex128)
+            eta = np.real(n1 / n2).astype(F32)
+        else:
+            n1 = np.where(bh, F32(n_below), F32(n_above))
+            n2 = np.where(bh, F32(n_above), F32(n_below))
+            eta = n1 / n2
+        sin2t = eta * eta * (1 - ci * ci)
+        tir = sin2t >= 1
+        ct = np.sqrt(np.maximum(0, 1 - sin2t))
+        if K:
+            (aR, bR, cR, dR), (aT, bT, cT, dT) = interface_coefficients(ci, n1, n2)
+            s_new = np.cross(nf, k)
+            sn = np.sqrt(np.einsum("ij,ij->i", s_new, s_new))
+            degenerate = sn < 1e-6
+            s_new /= np.where(degenerate, 1, sn)[:, None]
+            if degenerate.any():
+                s_new[degenerate] = h.s[degenerate]
+            _rotate_stokes(h.A, h.s, k, s_new)
+            pR = np.clip(aR + bR * h.A[1, 0], 0, 1).astype(F32)
+        else:
+            pR = _reflectance_unpolarized(ci, n1, n2, ct) if not complex_idx else \
+                interface_coefficients(ci, n1, n2)[0][0].astype(F32)
+            pR[tir] = 1
+        absorbed_T = (~bh) if absorbing_below else None
+        split = h.pending
+        any_split = bool(split.any())
+        refl = rng.random(ci.size, dtype=F32) < pR
+        if any_split:
+            refl |= split
+        parts = []
+        # transmitted copies of split rays (the reflected branch keeps the ray)
+        if any_split:
+            j = np.flatnonzero(split & ~tir & (pR < 1))
+            if j.size:
+                tr = h.take(j)
+                tr.ids = tr.ids + n0
+                tr.w = tr.w * (1 - pR[j])
+                etaj, cij, ctj = eta[j], ci[j], ct[j]
+                kt = etaj[:, None] * tr.k + (etaj * cij - ctj)[:, None] * nf[j]
+                kt /= np.sqrt(np.einsum("ij,ij->i", kt, kt))[:, None]
+                tr.o = tr.o + t_hit[j][:, None] * tr.k - eps * nf[j]
+                tr.k = kt
+                tr.below = ~tr.below
+                tr.pending = np.zeros(j.size, bool)
+                if K:
+                    tr.A = tr.A.copy()
+                    _apply_mueller(tr.A, aT[j], bT[j], cT[j], dT[j], 1 / np.maximum(1 - pR[j], F32(1e-30)))
+                    tr.s = s_new[j]
+                if absorbed_T is not None and absorbed_T[j].any():
+                    a_ = absorbed_T[j]
+                    finish(tr.take(np.flatnonzero(a_)), LOST_ABSORBED)
+                    tr = tr.take(np.flatnonzero(~a_))
+                parts.append(tr)
+            h.w = np.where(split, h.w * pR, h.w)
+        # the ray itself: reflect or refract
+        a = np.where(refl, F32(1), eta)
+        b = np.where(refl, 2 * ci, eta * ci - ct)
+        knew = a[:, None] * k + b[:, None] * nf
+        knew /= np.sqrt(np.einsum("ij,ij->i", knew, knew))[:, None]
+        h.o = h.o + t_hit[:, None] * k + (np.where(refl, eps, -eps))[:, None] * nf
+        h.k = knew
+        h.below = bh ^ ~refl
+        if any_split:
+            h.pending = np.zeros(ci.size, bool)
+        if K:
+            pc = np.where(refl, pR, 1 - pR)
+            _apply_mueller(h.A, np.where(refl, aR, aT), np.where(refl, bR, bT), np.where(refl, cR, cT),
+                           np.where(refl, dR, dT), 1 / np.maximum(pc, F32(1e-30)))
+            h.s = s_new
+        end = None
+        if absorbed_T is not None:
+            end = ~refl & absorbed_T
+            if end.any():
+                finish(h.take(np.flatnonzero(end)), LOST_ABSORBED)
+        over = h.nb >= self.max_bounces
+        if over.any():
+            sel = over if end is None else over & ~end
+            finish(h.take(np.flatnonzero(sel)), LOST_BOUNCES)
+            end = over if end is None else end | over
+        if end is not None and end.any():
+            h = h.take(np.flatnonzero(~end))
+        return [h] + parts
+
+
+@dataclass
+class _Exits:
+    """Every ray that ended (in no particular order): `ids` says which input ray (+ n for split copies)."""
+
+    ids: np.ndarray
+    k: np.ndarray
+    A: np.ndarray | None
+    w: np.ndarray
+    state: np.ndarray
+    nb: np.ndarray
+    segments: int
+    n_paths: int
+    m: int
+
+    def ordered(self):
+        """(k, A, w, state, nb) arrays of length m in id order (never-ended ids: lost as leaks)."""
+        m = self.m
+        k = np.zeros((m, 3), F32)
+        w = np.zeros(m, F32)
+        state = np.full(m, LOST_LEAK, np.int8)
+        nb = np.zeros(m, np.int16)
+        k[self.ids] = self.k
+        w[self.ids] = self.w
+        state[self.ids] = self.state
+        nb[self.ids] = self.nb
+        A = None
+        if self.A is not None:
+            A = np.zeros((4, self.A.shape[1], m), F32)
+            A[:, :, self.ids] = self.A
+        return k, A, w, state, nb
+
+
+@dataclass
+class _RayState:
+    """Structure of arrays of the rays in flight (float32 geometry, (4, K, n) Stokes columns)."""
+
+    o: np.ndarray
+    k: np.ndarray
+    below: np.ndarray
+    ids: np.ndarray
+    w: np.ndarray
+    nb: np.ndarray
+    pending: np.ndarray
+    A: np.ndarray | None
+    s: np.ndarray | None
+
+    def take(self, idx: np.ndarray) -> "_RayState":
+        return _RayState(o=np.take(self.o, idx, axis=0), k=np.take(self.k, idx, axis=0), below=self.below[idx],
+                         ids=self.ids[idx], w=self.w[idx], nb=self.nb[idx], pending=self.pending[idx],
+                         A=None if self.A is None else np.take(self.A, idx, axis=2),
+                         s=None if self.s is None else np.take(self.s, idx, axis=0))
+
+    @staticmethod
+    def concat(parts: list) -> "_RayState":
+        p0 = parts[0]
+        return _RayState(o=np.concatenate([p.o for p in parts]), k=np.concatenate([p.k for p in parts]),
+                         below=np.concatenate([p.below for p in parts]), ids=np.concatenate([p.ids for p in parts]),
+                         w=np.concatenate([p.w for p in parts]), nb=np.concatenate([p.nb for p in parts]),
+                         pending=np.concatenate([p.pending for p in parts]),
+                         A=None if p0.A is None else np.concatenate([p.A for p in parts], axis=2),
+                         s=None if p0.s is None else np.concatenate([p.s for p in parts]))
+
+
+def _reflectance_unpolarized(ci, n1, n2, ct):
+    """Unpolarised Fresnel reflectance (|r_s|^2 + |r_p|^2)/2 in float32, real indices, below TIR."""
+    a = n1 * ci
+    b = n2 * ct
+    c = n2 * ci
+    d = n1 * ct
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rs = (a - b) / (a + b)
+        rp = (c - d) / (c + d)
+    out = F32(0.5) * (rs * rs + rp * rp)
+    return np.nan_to_num(out, copy=False, nan=1.0)
 
 
 def _check_index_pair(n_above, n_below):
@@ -728,52 +778,74 @@ class _Accumulator:
         self.exits += other.exits
 
 
-def _bin_chunk(acc: _Accumulator, out, n_paths: int, side_of_state: tuple, te_sin2, pe, spec_dirs, cos_tol):
+def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, te_sin2, pe, spec_dirs, cos_tol):
     """Bin one chunk's exits into the accumulator (vectorised, np.bincount)."""
-    out_k, out_A, out_w, out_state, out_b, segs = out
-    acc.segments += segs
-    acc.paths += n_paths
-    w = out_w.astype(np.float64)
+    acc.segments += ex.segments
+    acc.paths += ex.n_paths
+    w = ex.w
+    state = ex.state
     for code, name in STATE_NAMES.items():
-        acc.lost[name] += float(w[out_state == code].sum())
-    done = np.flatnonzero(out_state <= BELOW)
+        sel = state == code
+        if sel.any():
+            acc.lost[name] += float(w[sel].sum(dtype=np.float64))
+    done = np.flatnonzero(state <= BELOW)
     acc.exits += done.size
-    acc.bounce_sum += float(out_b[done].sum())
+    acc.bounce_sum += float(ex.nb[done].sum(dtype=np.float64))
     if done.size == 0:
         return
-    k = out_k[done].astype(np.float64)
-    wd = w[done]
-    side = np.where(out_state[done] == ABOVE, side_of_state[0], side_of_state[1])
+    all_done = done.size == state.size
+    k = ex.k if all_done else ex.k[done]
+    wd = w if all_done else w[done]
+    side = np.where(state[done] == ABOVE, side_of_state[0], side_of_state[1]).astype(np.int64)
+    kz = k[:, 2].astype(np.float64)
     # delta parts: exits along the mean plane's mirror / refraction direction
-    spec = np.zeros(done.size, bool)
+    spec = None
     for sd in (0, 1):
         if spec_dirs[sd] is not None:
-            spec |= (side == sd) & (k @ spec_dirs[sd] > cos_tol)
-    sin2 = np.clip(1.0 - k[:, 2] ** 2, 0.0, 1.0)
+            d = np.asarray(spec_dirs[sd], np.float64)
+            near = (k[:, 0] * d[0] + k[:, 1] * d[1] + kz * d[2]) > cos_tol   # float64: tol << float32 eps
+            if near.any():
+                near &= side == sd
+                spec = near if spec is None else spec | near
+    sin2 = np.clip(1.0 - kz * kz, 0.0, 1.0)
     ib = np.searchsorted(te_sin2, sin2, side="right") - 1
-    ib = np.where(sin2 == te_sin2[-1], ib - 1, ib)
-    phi = np.degrees(np.arctan2(k[:, 1], k[:, 0]))
+    ib[sin2 == te_sin2[-1]] -= 1
+    phi = np.degrees(np.arctan2(k[:, 1], k[:, 0]).astype(np.float64))
     phi = np.mod(phi - pe[0], 360.0) + pe[0]
     ia = np.searchsorted(pe, phi, side="right") - 1
     S, A_ = acc.S, acc.A
-    inside = (~spec) & (ib >= 0) & (ib < S) & (ia >= 0) & (ia < A_)
-    acc.outside_table += float(wd[(~spec) & ~inside].sum())
+    inside = (ib >= 0) & (ib < S) & (ia >= 0) & (ia < A_)
+    if spec is not None:
+        inside &= ~spec
+        for sd in (0, 1):
+            msk = spec & (side == sd)
+            if msk.any():
+                acc.spec[sd] += float(wd[msk].sum(dtype=np.float64))
+                acc.spec_w2[sd] += float((wd[msk].astype(np.float64) ** 2).sum())
+                if acc.sum_M is not None:
+                    Ms = np.take(ex.A.reshape(16, -1)[:, done] if not all_done else ex.A.reshape(16, -1),
+                                 np.flatnonzero(msk), axis=1)
+                    acc.spec_M[sd] += (Ms * wd[msk]).sum(axis=1, dtype=np.float64)
+    n_in = int(np.count_nonzero(inside))
+    outside = wd.size - n_in - (0 if spec is None else int(np.count_nonzero(spec)))
+    if outside:
+        acc.outside_table += float(wd[~inside & (True if spec is None else ~spec)].sum(dtype=np.float64))
+    full = n_in == wd.size
     cell = (side * S + ib) * A_ + ia
-    c_in = cell[inside]
-    w_in = wd[inside]
+    c_in = cell if full else cell[inside]
+    w_in = (wd if full else wd[inside]).astype(np.float64)
     nc = acc.sum_w.size
     acc.sum_w += np.bincount(c_in, weights=w_in, minlength=nc)
     acc.sum_w2 += np.bincount(c_in, weights=w_in * w_in, minlength=nc)
-    for sd in (0, 1):
-        m = spec & (side == sd)
-        acc.spec[sd] += float(wd[m].sum())
-        acc.spec_w2[sd] += float((wd[m] ** 2).sum())
     if acc.sum_M is not None:
-        Md = out_A[:, :, done].reshape(16, done.size).astype(np.float64) * wd
+        M16 = ex.A.reshape(16, -1)
+        if not all_done:
+            M16 = np.take(M16, done, axis=1)
+        if not full:
+            M16 = np.take(M16, np.flatnonzero(inside), axis=1)
+        M16 = M16 * w_in.astype(F32)
         for e in range(16):
-            acc.sum_M[e] += np.bincount(c_in, weights=Md[e][inside], minlength=nc)
-            for sd in (0, 1):
-                acc.spec_M[sd, e] += float(Md[e][spec & (side == sd)].sum())
+            acc.sum_M[e] += np.bincount(c_in, weights=M16[e], minlength=nc)
 
 
 def _incident_state(K: int, n: int) -> np.ndarray | None:
@@ -851,7 +923,7 @@ def reconstruct(relief: Relief, material, request, progress=None) -> list[BsdfTa
             spec_T = np.array([eta * k_in[0], eta * k_in[1], math.copysign(math.sqrt(1 - sin2t), k_in[2])])
         side_of_state = (0, 1) if side == "outside" else (1, 0)     # (ABOVE ->, BELOW ->) table side
         acc = _Accumulator(S, A_, bool(K))
-        _bin_chunk(acc, out, hi - lo, side_of_state, te_sin2, pe, (spec_R, spec_T), cos_tol)
+        _bin_chunk(acc, out, side_of_state, te_sin2, pe, (spec_R, spec_T), cos_tol)
         return t, acc
 
     jobs = [(t, ci) for t in range(len(tasks)) for ci in range(len(chunks))]
@@ -859,13 +931,17 @@ def reconstruct(relief: Relief, material, request, progress=None) -> list[BsdfTa
     left = [len(chunks)] * len(tasks)
     done_tasks = 0
     t_trace = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=max(1, tracer.threads)) as ex:
-        for t, acc in ex.map(job, jobs):
+    ex = ThreadPoolExecutor(max_workers=tracer.threads) if tracer.threads > 1 and len(jobs) > 1 else None
+    try:
+        for t, acc in (ex.map(job, jobs) if ex else map(job, jobs)):
             accs[t].add(acc)
             left[t] -= 1
             if left[t] == 0:
                 done_tasks += 1
                 progress(done_tasks, len(tasks), "ray tracing")
+    finally:
+        if ex:
+            ex.shutdown(cancel_futures=True)
     t_trace = time.perf_counter() - t_trace
 
     tables = []
