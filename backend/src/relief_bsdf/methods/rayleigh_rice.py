@@ -1,0 +1,338 @@
+"""`rayleigh-rice`: first-order vector perturbation theory of a slightly rough interface.
+
+Physics (Rice 1951; Elson & Bennett 1979; Stover, *Optical Scattering*, 3rd ed., eq. 5.17
+and Table 5.1 for reflection; Germer's SCATMECH "Microroughness_BRDF_Model" for the
+general interface).  The interface z = h(x, y) between medium 1 (index n1, the light's
+side, z > 0) and medium 2 (n2) is replaced by a sheet of polarisation proportional to
+(eps2 - eps1) h located on the flat mean plane.  By reciprocity the first-order
+scattering amplitude from incident polarisation a to scattered polarisation b is
+
+    A_ba = (eps2 - eps1) [ E_t^(a) . E_t^(b)  +  D_z^(a) D_z^(b) / (eps1 eps2) ]
+
+where E^(a) is the zeroth-order (flat-interface, Fresnel) field at the interface produced
+by the incident plane wave of unit amplitude and E^(b) the one produced by a unit wave
+arriving from the scattering direction (time-reversed detection); the tangential E and
+the normal D are continuous across the interface, so either side may be used.  The
+Nicodemus BSDF is
+
+    f_ba = (pi^2 / lambda0^4) X |A_ba|^2 S(f) / (cos t_i cos t_s),    X = n_b / n_1
+    f    = (n_1 sin t_i (cos p_i, sin p_i) + n_b sin t_s (cos p_s, sin p_s)) / lambda0
+
+with S the two-sided 2-D PSD of the heights (int S d^2f = sigma^2, m^4), theta_i in medium 1
+and theta_s in the medium of exit b (n_b = n1 for R, n2 for T).  For reflection from vacuum
+this is exactly Stover's f = (16 pi^2 / lambda^4) cos t_i cos t_s Q S with his Q_ss, Q_sp,
+Q_ps, Q_pp; the medium factor X = n_b / n_1 makes f(a->b)/n_b^2 = f(b->a)/n_a^2 (the
+radiance-BTDF reciprocity of formats.md: |A|^2, S and the cosines are symmetric) and was
+checked against SCATMECH's Microroughness_BRDF_Model for light from outside and inside,
+R and T, in and out of the plane, to 4 digits (tests/backend/test_rayleigh_rice.py).
+Light from inside uses the mirrored frame (formats.md): n1 = n_inside, heights -h (the PSD
+is unchanged).  Past the critical angle the transmitted zeroth-order field is evanescent
+and the formulas continue analytically (complex cosines): the field at the interface is
+then enhanced, which is why inside scattering at 60 deg is ~5x that at 30 deg.
+
+Polarisation: the Jones matrix J[b, a] (b, a in s, p) gives the Mueller matrix per cell
+(`mueller_per_sr`, Stokes in the s/p bases of BsdfTable's module doc; p = s x propagation
+direction).  The unpolarised BSDF is M00 = sum |J|^2 / 2.
+
+Specular parts: the Fresnel reflectance / transmittance of the mean plane times the
+Debye-Waller factors exp(-(4 pi sigma n1 cos t_i / lambda)^2) and
+exp(-(2 pi sigma (n1 cos t_i - n2 cos t_t) / lambda)^2) (first-order energy bookkeeping,
+Stover eq. 2.xx / Beckmann), so R + T close to 1 is a genuine check, not a definition.
+
+Regime of validity: (4 pi sigma cos t_i / lambda)^2 << 1 (sigma << lambda/10) and slopes
+small; any lateral scale.  No multiple scattering (second order) terms.
+
+PSD estimate (`estimate_psd`): periodogram |FFT(h w)|^2 dx dy / sum(w^2) after levelling
+(plane; mean only for periodic reliefs), w = 1 for periodic reliefs and a 2-D Hann window
+otherwise; invalid points are set to 0 and excluded from the normalisation.  Smoothing:
+for an isotropic relief (detected from the eigenvalues of the PSD's slope tensor, ratio of
+rms slopes < 1.25, or forced by `options["psd_isotropic"]`) the periodogram is averaged in
+annuli of width max(df, w / lambda) (w: the request's filter width in direction cosines,
+so the smoothing matches the cell size and is the same for every wavelength in
+direction-cosine terms at the shortest wavelength); otherwise the 2-D periodogram is
+Gaussian-smoothed with that width.  Between annuli S is linearly interpolated.
+
+Options (`request.options`): psd_isotropic (bool), smoothing_dcos (float), polarized (bool,
+default True: fill mueller_per_sr).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from ..bsdf import BsdfTable
+from ..errors import RequestError
+from ..optics import Material, cos_transmitted, fresnel_amplitudes, mueller_interface
+from ..parallel import map_tasks
+from ..wave_filter import cell_samples, smoothing_width_dcos
+
+# ------------------------------------------------------------------ PSD
+
+
+@dataclass
+class Psd:
+    """Smoothed 2-D height PSD (m^4) of a relief; `at(fx, fy)` with f in 1/m."""
+
+    sigma_m: float
+    isotropic: bool
+    df: float
+    radial_f: np.ndarray | None = None         # isotropic: annulus centres (1/m)
+    radial_s: np.ndarray | None = None         # isotropic: annulus means (m^4)
+    grid: np.ndarray | None = None             # anisotropic: fftshifted smoothed periodogram
+    f0: tuple = (0.0, 0.0)
+    dfxy: tuple = (1.0, 1.0)
+    description: str = ""
+
+    def at(self, fx, fy) -> np.ndarray:
+        fx = np.asarray(fx, float)
+        fy = np.asarray(fy, float)
+        if self.isotropic:
+            fr = np.hypot(fx, fy)
+            return np.interp(fr, self.radial_f, self.radial_s, left=self.radial_s[0], right=0.0)
+        ci = (fx - self.f0[0]) / self.dfxy[0]
+        cj = (fy - self.f0[1]) / self.dfxy[1]
+        shape = np.broadcast(ci, cj).shape
+        ci, cj = np.broadcast_arrays(ci, cj)
+        v = ndimage.map_coordinates(self.grid, [cj.ravel(), ci.ravel()], order=1, mode="constant", cval=0.0)
+        return v.reshape(shape)
+
+
+def prepared_heights(relief) -> tuple[np.ndarray, np.ndarray]:
+    """Levelled heights with invalid points set to 0, and the window (Hann, or 1 if periodic).
+
+    The window is zero on invalid points so they take no part in any estimate.
+    """
+    relief.require_valid(0.5)
+    r = relief.level(0) if relief.periodic else relief.level(1)
+    h = r.heights_m
+    ny, nx = h.shape
+    if relief.periodic:
+        w = np.ones((ny, nx))
+    else:
+        w = np.outer(np.hanning(ny + 2)[1:-1], np.hanning(nx + 2)[1:-1])
+    valid = np.isfinite(h)
+    w = np.where(valid, w, 0.0)
+    h = np.where(valid, h, 0.0)
+    # remove the window-weighted mean so the windowed field has no DC leakage
+    h = h - np.sum(h * w) / np.sum(w)
+    return h, w
+
+
+def estimate_psd(relief, smoothing_df: float = 0.0, isotropic: bool | None = None) -> Psd:
+    """Windowed periodogram of the relief, smoothed as described in the module doc."""
+    h, w = prepared_heights(relief)
+    ny, nx = h.shape
+    dx, dy = relief.dx_m, relief.dy_m
+    F = np.fft.fft2(h * w)
+    P = np.abs(F) ** 2 * dx * dy / np.sum(w ** 2)
+    fx = np.fft.fftfreq(nx, dx)
+    fy = np.fft.fftfreq(ny, dy)
+    FX, FY = np.meshgrid(fx, fy)
+    sigma = float(np.sqrt(np.sum(w ** 2 * h ** 2) / np.sum(w ** 2)))
+    dfx, dfy = 1.0 / (nx * dx), 1.0 / (ny * dy)
+    if isotropic is None:
+        m = np.array([[np.sum(P * FX * FX), np.sum(P * FX * FY)], [np.sum(P * FX * FY), np.sum(P * FY * FY)]])
+        ev = np.linalg.eigvalsh(m)
+        isotropic = bool(ev[0] > 0 and np.sqrt(ev[1] / ev[0]) < 1.25)
+    width = max(dfx, dfy, smoothing_df)
+    if isotropic:
+        fr = np.hypot(FX, FY).ravel()
+        p = P.ravel()
+        keep = fr > 0
+        nb = int(np.ceil(fr.max() / width)) + 1
+        k = np.floor(fr[keep] / width).astype(int)
+        cnt = np.bincount(k, minlength=nb)
+        s = np.bincount(k, weights=p[keep], minlength=nb)
+        fm = np.bincount(k, weights=fr[keep], minlength=nb)
+        ok = cnt > 0
+        rf = fm[ok] / cnt[ok]
+        rs = s[ok] / cnt[ok]
+        desc = (f"periodogram ({'periodic, no window' if relief.periodic else '2-D Hann window'}), "
+                f"annulus average, width {width:.4g} 1/m")
+        return Psd(sigma, True, width, radial_f=np.concatenate([[0.0], rf]),
+                   radial_s=np.concatenate([[rs[0]], rs]), description=desc)
+    Ps = np.fft.fftshift(P)
+    sig = (smoothing_df / dfy, smoothing_df / dfx)
+    if max(sig) > 0.3:
+        Ps = ndimage.gaussian_filter(Ps, sig, mode="wrap")
+    fxs, fys = np.fft.fftshift(fx), np.fft.fftshift(fy)
+    desc = (f"periodogram ({'periodic, no window' if relief.periodic else '2-D Hann window'}), "
+            f"anisotropic, Gaussian smoothing sigma {smoothing_df:.4g} 1/m")
+    return Psd(sigma, False, width, grid=Ps, f0=(fxs[0], fys[0]), dfxy=(dfx, dfy), description=desc)
+
+
+# ------------------------------------------------------------------ zeroth-order fields
+
+
+def _interface_field(theta, phi, n_from, n_to, from_below: bool):
+    """Zeroth-order field at the flat interface for unit s and p waves (lab frame of medium 1 = z>0).
+
+    Returns (E_s, E_p), each a (..., 3) complex array whose x, y part is the tangential E and
+    whose z entry is the normal D / (eps1 eps2)^(1/2) * ... (see `_amplitude`): here we return
+    the tangential field and D_z separately packed as (Ex, Ey, Dz).
+    The wave comes from direction (theta, phi) (pointing toward its source) in medium n_from;
+    from_below=True means that medium is z < 0 (the frame is mirrored for the computation).
+    """
+    ci = np.cos(theta)
+    si = np.sin(theta)
+    cp, sp = np.cos(phi), np.sin(phi)
+    rs, rp, ts, tp = fresnel_amplitudes(ci, n_from, n_to)
+    ct = cos_transmitted(ci, n_from, n_to)
+    eta = n_from / n_to
+    # transmitted propagation direction (computational frame: source side z > 0)
+    dt = np.stack(np.broadcast_arrays(-eta * si * cp + 0j, -eta * si * sp + 0j, -ct + 0j), axis=-1)
+    s_hat = np.stack(np.broadcast_arrays(-sp + 0j, cp + 0j, 0j * cp), axis=-1)
+    p_t = np.cross(s_hat, dt)
+    eps_to = n_to ** 2
+    Es = ts[..., None] * s_hat
+    Ep = tp[..., None] * p_t
+    sign = -1.0 if from_below else 1.0
+    out = []
+    for E in (Es, Ep):
+        out.append(np.stack([E[..., 0], E[..., 1], sign * eps_to * E[..., 2]], axis=-1))
+    return out
+
+
+def rr_jones(theta_i, phi_i, theta_s, phi_s, side: str, n1, n2) -> np.ndarray:
+    """Perturbation amplitudes A[..., b, a] (b, a in s, p) of module doc; dimensionless.
+
+    Light in medium n1 (z > 0) from (theta_i, phi_i); scattered into (theta_s, phi_s) on
+    `side` 'R' (medium 1) or 'T' (medium 2).  Sign convention of the outgoing p: s x w_s.
+    """
+    eps1, eps2 = n1 ** 2, n2 ** 2
+    a_s, a_p = _interface_field(theta_i, phi_i, n1, n2, from_below=False)
+    if side == "R":
+        b_s, b_p = _interface_field(theta_s, phi_s, n1, n2, from_below=False)
+    else:
+        b_s, b_p = _interface_field(theta_s, phi_s, n2, n1, from_below=True)
+
+    def amp(a, b):
+        return (eps2 - eps1) * (a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2] / (eps1 * eps2))
+
+    J = np.empty(np.broadcast(np.asarray(theta_i), np.asarray(theta_s), np.asarray(phi_s)).shape + (2, 2), complex)
+    J[..., 0, 0] = amp(a_s, b_s)
+    J[..., 0, 1] = amp(a_p, b_s)
+    J[..., 1, 0] = -amp(a_s, b_p)      # reverse wave's p is -(s x w_s)
+    J[..., 1, 1] = -amp(a_p, b_p)
+    return J
+
+
+def jones_to_mueller(J: np.ndarray) -> np.ndarray:
+    """Mueller matrices (..., 4, 4) of Jones matrices (..., 2, 2) in the s/p basis.
+
+    Stokes convention of optics.mueller_interface: S1 = I_s - I_p, S2 = 2 Re(E_s E_p*),
+    S3 = -2 Im(E_s E_p*).
+    """
+    T = np.array([[1, 0, 0, 1], [1, 0, 0, -1], [0, 1, 1, 0], [0, 1j, -1j, 0]])
+    Ti = np.linalg.inv(T)
+    K = np.einsum("...ac,...bd->...abcd", J, np.conj(J)).reshape(J.shape[:-2] + (4, 4))
+    return np.real(T @ K @ Ti)
+
+
+def medium_factor(side: str, n1, n2) -> float:
+    """X = n_b / n_1 of the module doc (1 for reflection)."""
+    nb = n1 if side == "R" else n2
+    return float(np.real(nb) / np.real(n1))
+
+
+def rr_mueller(theta_i, phi_i, theta_s, phi_s, side: str, n1, n2, wavelength_m: float, psd: Psd) -> np.ndarray:
+    """Mueller BSDF (..., 4, 4) in 1/sr at the given directions (angles in radians)."""
+    nb = n1 if side == "R" else n2
+    J = rr_jones(theta_i, phi_i, theta_s, phi_s, side, n1, n2)
+    fx = (np.real(n1) * np.sin(theta_i) * np.cos(phi_i) + np.real(nb) * np.sin(theta_s) * np.cos(phi_s)) / wavelength_m
+    fy = (np.real(n1) * np.sin(theta_i) * np.sin(phi_i) + np.real(nb) * np.sin(theta_s) * np.sin(phi_s)) / wavelength_m
+    S = psd.at(fx, fy)
+    ci = np.cos(theta_i)
+    cs = np.maximum(np.cos(theta_s), 1e-12)
+    pref = np.pi ** 2 / wavelength_m ** 4 * medium_factor(side, n1, n2) * S / (ci * cs)
+    return jones_to_mueller(J) * pref[..., None, None]
+
+
+def rr_bsdf(theta_i, phi_i, theta_s, phi_s, side: str, n1, n2, wavelength_m: float, psd: Psd) -> np.ndarray:
+    """Unpolarised BSDF (1/sr)."""
+    return rr_mueller(theta_i, phi_i, theta_s, phi_s, side, n1, n2, wavelength_m, psd)[..., 0, 0]
+
+
+# ------------------------------------------------------------------ method
+
+
+def _task(ctx, task):
+    psd, cells, frame_n = ctx["psd"], ctx["cells"], ctx["n"]
+    iw, it, ip, side_from = task
+    wl_nm = ctx["wavelengths"][iw]
+    n1, n2 = frame_n[(iw, side_from)]
+    ti = np.radians(ctx["theta_i"][it])
+    pi_ = np.radians(ctx["phi_i"][ip])
+    polarized = ctx["polarized"]
+    out = {}
+    for k, side in enumerate(("R", "T")):
+        nb = n1 if side == "R" else n2
+        if side == "T" and np.imag(nb) > 0:
+            M = np.zeros(cells.alpha.shape[:2] + (4, 4))
+        else:
+            M = rr_mueller(ti, pi_, cells.theta, cells.phi, side, n1, n2, wl_nm * 1e-9, psd).mean(axis=2)
+        out[side] = M if polarized else M[..., 0, 0]
+    # specular parts with Debye-Waller factors
+    lam = wl_nm * 1e-9
+    ci = np.cos(ti)
+    ct = cos_transmitted(ci, n1, n2)
+    sig = psd.sigma_m
+    dw_r = np.exp(-(4 * np.pi * sig * np.real(n1) * ci / lam) ** 2)
+    tir = np.abs(np.real(ct)) < 1e-12
+    dw_t = 0.0 if tir else float(np.exp(-(2 * np.pi * sig * np.real(n1 * ci - n2 * ct) / lam) ** 2))
+    MR = mueller_interface(ci, n1, n2, "R") * dw_r
+    MT = mueller_interface(ci, n1, n2, "T") * dw_t if np.imag(n2) == 0 else np.zeros((4, 4))
+    return out, MR, MT
+
+
+def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
+    """Rayleigh-Rice tables, one per side of incidence in request.incident_from (module doc)."""
+    request.validate()
+    opts = dict(request.options or {})
+    wls = np.asarray(request.wavelengths_nm, float)
+    # filter width: cell scale (no speckle here; the PSD is smoothed instead)
+    w = smoothing_width_dcos(0.0, request.theta_s_edges_deg, opts)
+    cells = cell_samples(request.theta_s_edges_deg, request.phi_s_edges_deg, w, max_per_axis=6)
+    psd = estimate_psd(relief, smoothing_df=w / (wls.min() * 1e-9), isotropic=opts.get("psd_isotropic"))
+    polarized = bool(opts.get("polarized", True))
+    sigma_ratio = psd.sigma_m / (wls.min() * 1e-9)
+    frame_n = {}
+    for iw, wl in enumerate(wls):
+        for fr in request.incident_from:
+            frame_n[(iw, fr)] = material.n_pair(wl, fr)
+    ctx = {"psd": psd, "cells": cells, "n": frame_n, "wavelengths": wls, "theta_i": request.theta_i_deg,
+           "phi_i": request.phi_i_deg, "polarized": polarized}
+    tables = []
+    W, I, P = len(wls), len(request.theta_i_deg), len(request.phi_i_deg)
+    S, A = cells.alpha.shape[:2]
+    for fr in request.incident_from:
+        tasks = [(iw, it, ip, fr) for iw in range(W) for it in range(I) for ip in range(P)]
+        res = map_tasks(_task, tasks, ctx, progress=progress, label=f"rayleigh-rice {fr}", backend="serial")
+        shape = (W, I, P, 2, S, A)
+        mu = np.zeros(shape + (4, 4)) if polarized else None
+        vals = np.zeros(shape)
+        sR, sT = np.zeros((W, I, P)), np.zeros((W, I, P))
+        mR, mT = np.zeros((W, I, P, 4, 4)), np.zeros((W, I, P, 4, 4))
+        for (iw, it, ip, _), (out, MR, MT) in zip(tasks, res):
+            for k, side in enumerate(("R", "T")):
+                if polarized:
+                    mu[iw, it, ip, k] = out[side]
+                    vals[iw, it, ip, k] = out[side][..., 0, 0]
+                else:
+                    vals[iw, it, ip, k] = out[side]
+            mR[iw, it, ip], mT[iw, it, ip] = MR, MT
+            sR[iw, it, ip], sT[iw, it, ip] = MR[0, 0], MT[0, 0]
+        tables.append(BsdfTable(
+            wavelength_nm=wls, theta_i_deg=request.theta_i_deg, phi_i_deg=request.phi_i_deg,
+            theta_s_edges_deg=request.theta_s_edges_deg, phi_s_edges_deg=request.phi_s_edges_deg,
+            values_per_sr=vals, incident_from=fr, specular_R=sR, specular_T=sT,
+            mueller_per_sr=mu, specular_mueller_R=mR if polarized else None,
+            specular_mueller_T=mT if polarized else None, method="rayleigh-rice",
+            material=material.describe(), relief=relief.describe(),
+            metadata={"psd_estimate": psd.description, "psd_isotropic": psd.isotropic,
+                      "rms_height_m": psd.sigma_m, "smoothing_dcos": w,
+                      "rayleigh_parameter_max": float((4 * np.pi * sigma_ratio) ** 2),
+                      "validity": "first-order perturbation: valid for (4 pi sigma cos t / lambda)^2 << 1"}))
+    return tables
