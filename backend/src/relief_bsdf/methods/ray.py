@@ -261,6 +261,7 @@ class ReliefTracer:
         # commit the BVH now (first query) so timings of later calls are clean
         self.scene.run(np.array([[0, 0, self.z_top + 1]], F32), np.array([[0, 0, -1]], F32))
         self.build_s = time.perf_counter() - t0
+        self.record_segments: list | None = None
 
     # ------------------------------------------------------------------ public API
     def scatter(self, dirs, n_above, n_below, rng, stokes=None, origins_xy=None,
@@ -413,6 +414,8 @@ class ReliefTracer:
             t_lat = np.fmin(tx, ty)
             tfar = np.fmin(t_lat, tz)
             np.maximum(tfar, 0, out=tfar)
+            if self.record_segments is not None:      # benchmark hook: replay the same batches
+                self.record_segments.append((o.copy(), k.copy(), tfar.copy()))
             res = scene.run(o, k, dists=tfar, output=1)
             hit = res["primID"] >= 0
             n_hit = int(np.count_nonzero(hit))
@@ -866,10 +869,18 @@ def reconstruct(relief: Relief, material, request, progress=None) -> list[BsdfTa
     One BVH is built for the relief and reused for every task; the tasks' ray chunks share
     one thread pool (Embree releases the GIL).  `request.samples` rays per incidence.
     """
+    opts = check_request(relief, material, request)
+    tracer = ReliefTracer(relief, opts["max_bounces"], opts["fill_holes"], threads=opts["threads"])
+    return reconstruct_with(tracer, relief, material, request, progress)
+
+
+def reconstruct_with(tracer: ReliefTracer, relief: Relief, material, request, progress=None) -> list[BsdfTable]:
+    """`reconstruct` with an already built tracer (reuse one BVH across requests, e.g. in fits)."""
     progress = progress or silent
     opts = check_request(relief, material, request)
+    if opts["threads"]:
+        tracer.threads = int(opts["threads"])
     t0 = time.perf_counter()
-    tracer = ReliefTracer(relief, opts["max_bounces"], opts["fill_holes"], threads=opts["threads"])
     K = 4 if opts["polarized"] else 0
     te = np.asarray(request.theta_s_edges_deg, float)
     pe = np.asarray(request.phi_s_edges_deg, float)
@@ -986,6 +997,7 @@ def reconstruct(relief: Relief, material, request, progress=None) -> list[BsdfTa
                 "unknown_options": opts["unknown"],
                 "mesh": {"triangles": mesh.n_triangles, "tile_samples": list(mesh.shape),
                          "mirror_extended": mesh.mirrored, "history": list(mesh.history)},
+                "max_bounces": tracer.max_bounces,
                 "timing_s": {"build": tracer.build_s, "trace_all_sides": t_trace,
                              "total": time.perf_counter() - t0},
                 "tasks": diag,
