@@ -244,12 +244,13 @@ def _s_vector(w: np.ndarray, phi_fallback_rad: np.ndarray) -> np.ndarray:
 
 
 def stokes_rotation(k: np.ndarray, s_from: np.ndarray, s_to: np.ndarray) -> np.ndarray:
-    """Mueller matrix (..., 4, 4) re-expressing Stokes vectors from basis (s_from, k x s_from) to (s_to, k x s_to).
+    """Mueller matrix (..., 4, 4) re-expressing Stokes vectors from basis (s_from, p_from) to (s_to, p_to).
 
-    Stokes (S0, S1 = I_s - I_p, S2, S3) with right-handed (s, p = k x s, k) for the beam
-    propagating along k; s_to = cos(psi) s_from + sin(psi) p_from.
+    Stokes (S0, S1 = I_s - I_p, S2, S3) with p = s x k for the beam propagating along k
+    (Born & Wolf's right-handed (p, s, k); the same convention as methods/ray.py, so tables
+    from both methods share their Mueller frames); s_to = cos(psi) s_from + sin(psi) p_from.
     """
-    p_from = np.cross(k, s_from)
+    p_from = np.cross(s_from, k)
     c = _dot(s_from, s_to)
     s = _dot(p_from, s_to)
     psi = np.arctan2(s, c)
