@@ -35,7 +35,7 @@ from .atomic import write_text_atomic
 from .bsdf import BsdfTable
 from .errors import InputError
 from .optics import Material, fresnel_power, mueller_interface
-from .plate import PlateModel, PlateSolver, simulate_rows
+from .plate import PlateModel, check_rows, simulate_rows
 from .progress import Progress, silent
 from .relief import Relief
 from .request import Request
@@ -143,6 +143,9 @@ class Forward:
     samples: int = 200_000
     seed: int = 0
     where: str = "recording"
+
+    def __post_init__(self) -> None:
+        check_rows(self.model, self.rows, self.where)   # bad rows fail before any table is derived
 
     def tables(self, height_scale: float, filter_sigma_um: float):
         r = process_relief(self.relief, height_scale, filter_sigma_um)

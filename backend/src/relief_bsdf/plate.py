@@ -109,6 +109,13 @@ class PlateModel:
         """Build from a `relief_bsdf.recording.Sample` (sample.toml)."""
         p, ins = sample.plate, sample.instrument
         a = getattr(p, "absorption_per_mm", None)
+        try:
+            return PlateModel._from_specs(p, ins, a)
+        except InputError as e:
+            raise InputError(f"{sample.path}: {e.where}", e.message) from None
+
+    @staticmethod
+    def _from_specs(p: Any, ins: Any, a: Any) -> "PlateModel":
         return PlateModel(thickness_m=float(p.thickness_mm) * 1e-3, index=p.index, rough_face=p.rough_face,
                           absorption_per_m=0.0 if a is None else float(a) * 1e3,
                           detector_half_angle_deg=float(ins.detector_half_angle_deg),
@@ -545,7 +552,8 @@ def rows_from_result(res: PlateResult, side: np.ndarray, theta_s: np.ndarray, ph
         else:
             frac = (ang <= h + 1e-12).astype(float)
         out[sel] += frac * p / (omega * np.cos(np.radians(theta_s[sel])))
-    return out + model.background_per_sr
+    # FFT round-off can leave -1e-20 where the field is zero: a BSDF is never negative
+    return np.maximum(out, 0.0) + model.background_per_sr
 
 
 def _unit(theta_deg: Any, phi_deg: Any) -> np.ndarray:

@@ -1,0 +1,92 @@
+"""`relief simulate` and `relief fit` on small samples, and their bad-input exits."""
+import json
+
+import numpy as np
+import pytest
+
+from relief_bsdf.cli import main
+from relief_bsdf.readers import write_relief
+from relief_bsdf.recording import Recording, read_recording, write_recording, write_sample
+from relief_bsdf.synth import random_relief
+
+
+def make_sample(tmp_path, *, cauchy=None, theta_s_max=89.0, half_angle=1.0, relief=True, recording=True):
+    if relief:
+        write_relief(tmp_path / "relief.npz", random_relief(48, 0.125e-6, 30e-9, 1.0e-6, "gaussian", seed=2))
+    ts = np.arange(1.0, 89.5, 8.0)
+    if theta_s_max >= 90.0:
+        ts = np.append(ts, theta_s_max)
+    rows = [(550.0, ti, 0.0, sd, t, ps) for ti in (0.0, 30.0) for sd in "RT" for ps in (0.0, 180.0) for t in ts]
+    a = np.array(rows, dtype=object)
+    if recording:
+        rec = Recording(a[:, 0].astype(float), a[:, 1].astype(float), a[:, 2].astype(float), a[:, 3].astype(str),
+                        a[:, 4].astype(float), a[:, 5].astype(float), np.ones(len(rows)), np.full(len(rows), 0.05))
+        write_recording(tmp_path / "recording.csv", rec)
+    plate = {"thickness_mm": 2.0, "rough_face": "front"}
+    plate.update({"cauchy": cauchy} if cauchy else {"refractive_index": 1.5})
+    write_sample(tmp_path / "sample.toml", {
+        "plate": plate, "relief": {"file": "relief.npz"},
+        "instrument": {"detector_half_angle_deg": half_angle, "polarization": "unpolarized"},
+        "recording": {"file": "recording.csv"}})
+    return tmp_path / "sample.toml"
+
+
+def test_simulate_writes_the_recording_rows(tmp_path):
+    s = make_sample(tmp_path)
+    assert main(["simulate", str(s), "-o", str(tmp_path / "out")]) == 0
+    sim = read_recording(tmp_path / "out" / "simulated.csv")
+    rec = read_recording(tmp_path / "recording.csv")
+    assert len(sim) == len(rec)
+    np.testing.assert_array_equal(sim.theta_s_deg, rec.theta_s_deg)
+    np.testing.assert_array_equal(sim.side, rec.side)
+    assert np.all(sim.bsdf_sr >= 0) and np.all(np.isfinite(sim.bsdf_sr))
+    # the in-plane specular row (theta_s = 30 is not on the 8-degree grid) is absent; the lobe is there
+    assert sim.bsdf_sr.max() > 10 * np.median(sim.bsdf_sr)
+
+
+def test_fit_cli_writes_fit_json_and_resumes(tmp_path, capsys):
+    s = make_sample(tmp_path)
+    out = tmp_path / "fit"
+    args = ["fit", str(s), "-o", str(out), "--max-iter", "4", "--theta-step-deg", "3", "--phi-step-deg", "15"]
+    assert main(args) == 0
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["format"] == "relief-fit/1"
+    assert set(doc["parameters"]) >= {"height_scale", "filter_sigma_um"}
+    assert doc["rms_after"] <= doc["rms_before"]
+    assert doc["iterations"][0]["parameters"]["height_scale"] == 1.0
+    assert "log-chi" in doc["metric"]
+    for f in ("checkpoint.json", "boundary.h5", "relief_optimised.npz", "report.html", "in_plane_after.png",
+              "residual_before.png", "simulated.csv"):
+        assert (out / f).exists(), f
+    n_ck = len(json.loads((out / "checkpoint.json").read_text())["evaluations"])
+    assert main(args) == 0               # replayed from the checkpoint: same answer
+    doc2 = json.loads((out / "fit.json").read_text())
+    assert doc2["parameters"] == doc["parameters"] and doc2["rms_after"] == doc["rms_after"]
+    assert len(json.loads((out / "checkpoint.json").read_text())["evaluations"]) == n_ck
+
+
+@pytest.mark.parametrize("case, needle", [
+    ("no_relief", "relief.file"),
+    ("no_recording", "recording.file"),
+    ("wavelength", "wavelength"),
+    ("theta90", "theta_s_deg"),
+    ("cone0", "detector_half_angle_deg"),
+])
+def test_bad_input_exits_2_naming_file_and_key(tmp_path, capsys, case, needle):
+    kw = {"no_relief": dict(relief=False), "no_recording": dict(recording=False),
+          "wavelength": dict(cauchy=[1.49, 4000.0]), "theta90": dict(theta_s_max=90.0),
+          "cone0": dict(half_angle=0.0)}[case]
+    if case == "cone0":
+        s = make_sample(tmp_path)
+        s.write_text(s.read_text().replace("detector_half_angle_deg = 1.0", "detector_half_angle_deg = 0.0"))
+    else:
+        s = make_sample(tmp_path, **kw)
+    if case == "wavelength":   # Cauchy models are valid 350-1000 nm by default
+        rec = read_recording(tmp_path / "recording.csv")
+        rec.wavelength_nm[:] = 1200.0
+        write_recording(tmp_path / "recording.csv", rec)
+    rc = main(["simulate", str(s), "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert len(err) == 1 and needle in err[0]
+    assert ("sample.toml" in err[0]) or ("recording.csv" in err[0])
