@@ -46,20 +46,25 @@ def _synthetic(args):
 
 
 @contextlib.contextmanager
-def _backend_env(name):
-    """Force the backend of every map_tasks call inside (methods call it without backend=)."""
-    old = os.environ.get("RELIEF_BACKEND")
-    if name is None:
-        os.environ.pop("RELIEF_BACKEND", None)
+def _env(name, value):
+    """Set (or with None, unset) an environment variable inside the block."""
+    old = os.environ.get(name)
+    if value is None:
+        os.environ.pop(name, None)
     else:
-        os.environ["RELIEF_BACKEND"] = name
+        os.environ[name] = value
     try:
         yield
     finally:
         if old is None:
-            os.environ.pop("RELIEF_BACKEND", None)
+            os.environ.pop(name, None)
         else:
-            os.environ["RELIEF_BACKEND"] = old
+            os.environ[name] = old
+
+
+def _backend_env(name):
+    """Force the backend of every map_tasks call inside (methods call it without backend=)."""
+    return _env("RELIEF_BACKEND", name)
 
 
 def _gaussian_relief(n, pitch_m, rms_m, corr_m, seed):
@@ -155,7 +160,7 @@ def main(argv=None) -> dict:
             with parallel.parallel_settings(dask=clients[nw]):
                 run()                                       # warm-up: imports and caches in the workers
         # interleaved rounds: load from other processes on the machine hits every variant alike
-        times: dict = {k: [] for k in ("serial", "processes", 1, 2, "trivial", "trivial_processes")}
+        times: dict = {k: [] for k in ("serial", "processes", 1, 2, "trivial", "trivial_batched", "trivial_processes")}
         for _ in range(args.repeat):
             times["serial"].append(_measure(lambda: run(backend="serial"), local_cpu))
             for nw in (1, 2):
@@ -163,7 +168,10 @@ def main(argv=None) -> dict:
                     times[nw].append(_measure(run, cluster_cpu(nw)))
             times["processes"].append(_measure(lambda: run(backend="processes", workers=2), local_cpu))
             with parallel.parallel_settings(dask=clients[2]):
-                times["trivial"].append(_measure(
+                with _env("RELIEF_TASK_GROUP", "1"):               # one Dask task per task: raw overhead
+                    times["trivial"].append(_measure(
+                        lambda: parallel.map_tasks(trivial_task, triv, None, label="trivial"), cluster_cpu(2)))
+                times["trivial_batched"].append(_measure(      # map_tasks' automatic grouping
                     lambda: parallel.map_tasks(trivial_task, triv, None, label="trivial"), cluster_cpu(2)))
             times["trivial_processes"].append(_measure(
                 lambda: parallel.map_tasks(trivial_task, triv, None, backend="processes", workers=2), local_cpu))
@@ -194,6 +202,7 @@ def main(argv=None) -> dict:
         "cores_busy_processes_2": round(cpu["processes"] / wall["processes"], 2),
         "overhead_per_task_s": round(wall["trivial"] / len(triv), 6),
         "overhead_cpu_per_task_s": round(cpu["trivial"] / len(triv), 6),
+        "overhead_per_task_batched_s": round(wall["trivial_batched"] / len(triv), 6),
         "overhead_per_task_processes_s": round(wall["trivial_processes"] / len(triv), 6),
         "cpu_count": os.cpu_count(),
         "load_avg_1min": round(load, 2),
@@ -207,7 +216,9 @@ def main(argv=None) -> dict:
     print(f"local processes (2): {wall['processes']:.3f} s, speed-up vs serial "
           f"{wall['serial'] / wall['processes']:.2f} (cores busy {cpu['processes'] / wall['processes']:.2f})")
     print(f"overhead per trivial task: Dask {wall['trivial'] / len(triv) * 1e3:.2f} ms wall "
-          f"({cpu['trivial'] / len(triv) * 1e3:.2f} ms CPU), processes {wall['trivial_processes'] / len(triv) * 1e3:.3f} ms")
+          f"({cpu['trivial'] / len(triv) * 1e3:.2f} ms CPU), grouped by map_tasks "
+          f"{wall['trivial_batched'] / len(triv) * 1e3:.3f} ms, local processes "
+          f"{wall['trivial_processes'] / len(triv) * 1e3:.3f} ms")
     if load > (os.cpu_count() or 1):
         print(f"note: load average {load:.1f} on {os.cpu_count()} cores: other processes took CPU, so the wall-time "
               "speed-ups understate what idle cores give; 'cores_busy' says how many cores the run actually got")

@@ -151,3 +151,55 @@ def test_checkpointed_dask_run_resumes_after_failure(client, tmp_path):
     assert parallel.last_run()["loaded"] == len(saved)
     assert set(_executions(ctx)) == set(range(N)) - saved     # nothing finished ran twice
     assert _same(out, _reference())
+
+
+def _toy_incidence(ctx, task):
+    """A smooth stand-in lobe for one (wavelength, theta_i, phi_i): values decay away from the
+    specular direction, scaled by wavelength; seeded noise so every cell depends on the seed."""
+    iw, ii, ip = task
+    th = ctx["theta_s"][:, None]
+    ph = ctx["phi_s"][None, :]
+    lobe = np.exp(-((th - ctx["theta_i"][ii]) / 15.0) ** 2) * (1 + np.cos(np.radians(ph - ctx["phi_i"][ip] - 180)))
+    noise = parallel.task_rng(ctx["seed"], iw, ii, ip).random(lobe.shape) * 1e-3
+    r = (lobe + noise) * ctx["wavelength"][iw] / 550.0
+    return np.stack([r, 0.5 * r])
+
+
+def test_spectral_anisotropic_request_as_one_chunked_table(client, tmp_path):
+    """31 wavelengths x 18 theta_i x 12 phi_i (6696 tasks) on the cluster, one BsdfTable, one HDF5
+    file chunked per incidence and compressed; every cell back where its task put it."""
+    import cloudpickle
+    import sys
+
+    from relief_bsdf.bsdf import BsdfTable
+    from relief_bsdf.bsdf_h5 import load_tables, save_tables
+
+    te, pe = np.linspace(0, 90, 19), np.arange(-5.0, 360.0, 10.0)
+    ctx = {"seed": 5, "wavelength": np.linspace(400, 700, 31), "theta_i": np.arange(0, 90, 5.0),
+           "phi_i": np.arange(0, 360, 30.0), "theta_s": 0.5 * (te[1:] + te[:-1]), "phi_s": 0.5 * (pe[1:] + pe[:-1])}
+    W, I, P = 31, 18, 12
+    tasks = [(iw, ii, ip) for iw in range(W) for ii in range(I) for ip in range(P)]
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    seen = []
+    try:
+        res = parallel.map_tasks(_toy_incidence, tasks, ctx, label="toy", progress=lambda d, n, w: seen.append(d))
+    finally:
+        cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+    assert parallel.last_run()["backend"] == "dask" and seen[-1] == len(tasks)
+    values = np.stack(res).reshape(W, I, P, 2, len(te) - 1, len(pe) - 1)
+    table = BsdfTable(ctx["wavelength"], ctx["theta_i"], ctx["phi_i"], te, pe, values, method="toy")
+    path = save_tables(tmp_path / "big.h5", [table])
+    import h5py
+
+    with h5py.File(path) as f:
+        d = f["outside/values_per_sr"]
+        assert d.shape == (W, I, P, 2, 18, 36)
+        assert d.chunks == (1, 1, 1, 2, 18, 36)            # one chunk per incidence: eval reads one
+        assert d.compression == "gzip" and d.shuffle
+    # the smooth lobes compress: the file is well under the raw float32 size
+    assert path.stat().st_size < 0.6 * values.size * 4
+    back = load_tables(path)[0]
+    k = 4321
+    iw, ii, ip = tasks[k]
+    assert np.allclose(back.values_per_sr[iw, ii, ip], _toy_incidence(ctx, tasks[k]).astype(np.float32))
+    assert np.allclose(back.values_per_sr, values.astype(np.float32))

@@ -49,7 +49,7 @@ def save_tables(path: str | Path, tables: list[BsdfTable], compression: int = 4)
                     arr = getattr(t, opt)
                     if arr is None:
                         continue
-                    ch = chunks + arr.shape[6:] if arr.ndim > 6 else None
+                    ch = chunks + arr.shape[6:] if arr.ndim >= 6 else None   # per incidence, like the values
                     s = g.create_dataset(opt, data=arr.astype(np.float32), chunks=ch,
                                          compression="gzip", compression_opts=compression, shuffle=True)
                     s.attrs["units"] = "1/sr" if opt.endswith("per_sr") else "fraction of incident power"

@@ -91,33 +91,20 @@ def _call(batch: list, fn: Callable, context: Any) -> list:
     return [fn(context, task) for task in batch]
 
 
-def batch_size(n_tasks: int, n_workers: int) -> int:
-    """Tasks per Dask task: 1 unless there are many more tasks than workers.
-
-    Each Dask task costs about 1-3 ms of scheduling (bench_scale.py); grouping consecutive
-    tasks amortises that while keeping at least 16 groups per worker, so the idle tail at
-    the end of a run stays a few percent of it, and at most 32 tasks per group, so
-    progress, checkpoints and the work lost with a worker stay fine-grained.
-    `RELIEF_DASK_BATCH` overrides it.
-    """
-    env = os.environ.get("RELIEF_DASK_BATCH")
-    if env:
-        return max(1, int(env))
-    return int(min(32, max(1, n_tasks // (16 * max(1, n_workers)))))
-
-
 def run_on_client(client, fn: Callable, context: Any, items: list[tuple[int, Any]], *, retries: int = 2,
                   label: str = "task") -> Iterator[tuple[int, Any]]:
     """Run `fn(context, task)` for (index, task) items on the cluster; yield (index, result)
     in completion order.  The context travels to each worker once; consecutive tasks are
-    grouped (`batch_size`); on exit (normal, error, Ctrl-C, or the consumer stopping) the
+    grouped (`parallel.group_size`); on exit (normal, error, Ctrl-C, or the consumer stopping) the
     unfinished futures are cancelled."""
     import distributed
+
+    from .parallel import group_size
 
     # wrapped in a list: scatter would split a dict or list context into one future per item
     ctx = client.scatter([context], broadcast=True, hash=False)[0] if context is not None else None
     n_workers = len(client.scheduler_info().get("workers", {}))
-    b = batch_size(len(items), n_workers)
+    b = group_size(len(items), n_workers)
     groups = [items[k:k + b] for k in range(0, len(items), b)]
     tag = uuid.uuid4().hex[:8]
     keys = [f"{label}-{tag}-{g[0][0]}" + (f"+{len(g)}" if len(g) > 1 else "") for g in groups]
