@@ -151,6 +151,12 @@ def test_write_read_round_trip(tmp_path, suffix):
     assert b.periodic == r.periodic
 
 
+@pytest.mark.parametrize("suffix", [".npz", ".x3p", ".exr", ".tif"])
+def test_periodic_flag_survives(tmp_path, suffix):
+    r = _relief(nan=False, periodic=True)
+    assert read_relief(write_relief(tmp_path / f"p{suffix}", r)).periodic
+
+
 def test_x3p_is_valid_iso_container(tmp_path):
     import hashlib
     import xml.etree.ElementTree as ET

@@ -268,6 +268,19 @@ def _read_image(path: Path, pitch: tuple | None, channel: int | str | None, z_un
     return _finish(path, pixels * LENGTH_UNITS[unit], dx, dy, periodic, meta)
 
 
+def _one_line(e: BaseException, limit: int = 200) -> str:
+    text = " ".join(str(e).split())
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _st_format_for(path: Path) -> str | None:
+    """SurfaceTopography's format name for this extension, when exactly one reader claims it."""
+    from SurfaceTopography.IO import readers
+    ext = path.suffix.lower().lstrip(".")
+    claims = [r._format for r in readers if ext in [x.lower() for x in getattr(r, "_file_extensions", [])]]
+    return claims[0] if len(claims) == 1 else None
+
+
 def _surface_topography_version() -> str:
     try:
         return _metadata.version("SurfaceTopography")
@@ -279,10 +292,12 @@ def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str
     import SurfaceTopography as ST
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        fmt = _st_format_for(path)
         try:
-            reader = ST.open_topography(str(path))
+            reader = ST.open_topography(str(path), format=fmt) if fmt else ST.open_topography(str(path))
         except Exception as e:
-            raise InputError(path, f"cannot read as a height map: {type(e).__name__}: {str(e).strip()[:200]} "
+            what = f"as a {fmt} file" if fmt else "as a height map"
+            raise InputError(path, f"cannot read {what}: {type(e).__name__}: {_one_line(e)} "
                                    "(supported: x3p, gwy, sur, sdf, datx/dat, plu/plux, opd, di/spm, nid, ibw, "
                                    "mi, frt, npz, float tif/exr and the other SurfaceTopography formats)") from None
         chans = reader.channels
@@ -319,7 +334,7 @@ def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str
             topo = reader.topography(channel_index=ch.index, **kw)
             raw = topo.heights()
         except Exception as e:
-            raise InputError(path, f"cannot read channel {ch.name!r}: {type(e).__name__}: {str(e).strip()[:200]} "
+            raise InputError(path, f"cannot read channel {ch.name!r}: {type(e).__name__}: {_one_line(e)} "
                                    "(corrupt or truncated file?)") from None
     t_unit = topo.unit
     lat_unit, z_unit = (t_unit if isinstance(t_unit, tuple) else (t_unit, t_unit))
@@ -350,8 +365,20 @@ def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str
         dx, dy = sx * lf / nx, sy * lf / ny
         meta["pitch_source"] = "file"
         _check_pitch(dx, dy, path, f"the file ({sx:g} x {sy:g} {lat_unit})")
-    periodic = bool(getattr(topo, "is_periodic", False))
+    periodic = bool(getattr(topo, "is_periodic", False)) or _x3p_written_periodic(path)
     return _finish(path, h.T * zf, dx, dy, periodic, meta)
+
+
+def _x3p_written_periodic(path: Path) -> bool:
+    """True for an X3P that `write_relief` wrote from a periodic tile (flag in Record2/Comment)."""
+    if path.suffix.lower() != ".x3p":
+        return False
+    try:
+        with zipfile.ZipFile(path) as z:
+            xml = z.read("main.xml").decode("utf-8", errors="replace")
+    except (OSError, KeyError, zipfile.BadZipFile):
+        return False
+    return "written by relief_bsdf; periodic=true;" in xml
 
 
 # ---------------------------------------------------------------- ISO 25178-71 SDF
@@ -502,7 +529,8 @@ def _x3p_bytes(relief: Relief) -> bytes:
     data = np.ascontiguousarray(relief.heights_m, dtype="<f8").tobytes()   # row y, x fastest
     data_md5 = hashlib.md5(data).hexdigest().upper()
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S+00:00")
-    comment = ("written by relief_bsdf; heights in metres, NaN = invalid point; "
+    comment = (f"written by relief_bsdf; periodic={'true' if relief.periodic else 'false'}; "
+               "heights in metres, NaN = invalid point; "
                f"source: {relief.source}; history: {'; '.join(relief.history) or 'none'}")
     comment = comment.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
     xml = f"""<?xml version="1.0" encoding="UTF-8" standalone="no" ?>

@@ -1,0 +1,215 @@
+"""`relief info FILE [--json]`: what is in a height map, a BSDF table, a recording or a sample."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser("info", help="summarise a height map, BSDF table (.h5), recording (.csv) or sample (.toml)",
+                       description="Summarise a file. Height maps: size, pitch, valid fraction, rms height "
+                                   "(after least-squares plane levelling), rms slope (forward differences), "
+                                   "correlation length (1/e of the radially averaged autocorrelation).")
+    p.add_argument("file", help="height map (x3p, gwy, sur, sdf, datx, plu, opd, di, nid, ibw, mi, frt, tif, exr, "
+                                "npz, ...), BSDF table .h5, recording .csv, sample .toml or IS-BSDF .bsdf")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("--channel", help="height-map channel (index or name) for multi-channel files")
+    p.add_argument("--pitch-um", help="lateral pitch DX[,DY] in micrometres (images without sidecar)")
+    return p
+
+
+def _kind(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix == ".toml":
+        return "sample"
+    if suffix == ".bsdf":
+        return "is-bsdf"
+    if suffix in (".h5", ".hdf5"):
+        try:
+            import h5py
+            from ..bsdf_h5 import FORMAT
+            with h5py.File(path, "r") as f:
+                if f.attrs.get("format") == FORMAT:
+                    return "bsdf"
+        except OSError:
+            pass
+        return "relief"
+    if suffix == ".csv":
+        try:
+            with open(path, "rb") as f:
+                head = f.readline().decode("utf-8-sig", errors="replace").strip()
+        except OSError:
+            head = ""
+        if head.startswith("# relief-recording"):
+            return "recording"
+        return "relief"
+    return "relief"
+
+
+def _pitch(arg: str | None):
+    if not arg:
+        return None
+    from ..errors import InputError
+    try:
+        parts = [float(v) * 1e-6 for v in arg.split(",")]
+    except ValueError:
+        raise InputError("--pitch-um", f"expected DX or DX,DY in micrometres, got {arg!r}") from None
+    if len(parts) == 1:
+        parts *= 2
+    if len(parts) != 2:
+        raise InputError("--pitch-um", f"expected DX or DX,DY, got {arg!r}")
+    return tuple(parts)
+
+
+def relief_info(relief) -> dict:
+    """The JSON object of `relief info` for a height map (formats.md keys first)."""
+    from ..stats import relief_stats
+    s = relief_stats(relief).as_dict()
+    out = {"kind": "relief", "shape": s["shape"], "pitch_m": s["pitch_m"], "valid_fraction": s["valid_fraction"],
+           "rms_height_m": s["rms_height_m"], "rms_slope": s["rms_slope"],
+           "correlation_length_m": s["correlation_length_m"]}
+    for k in ("rms_slope_x", "rms_slope_y", "correlation_length_x_m", "correlation_length_y_m", "skewness",
+              "kurtosis", "peak_to_valley_m", "mean_height_m"):
+        out[k] = s[k]
+    out["size_m"] = list(relief.size_m)
+    out["periodic"] = relief.periodic
+    out["source"] = relief.source
+    out["metadata"] = relief.metadata
+    out["estimators"] = {"rms_height_m": "std of heights after least-squares plane levelling, valid points",
+                         "rms_slope": "rms of forward differences between adjacent valid pixels, "
+                                      "sqrt(sx^2 + sy^2)",
+                         "correlation_length_m": "1/e point of the radially averaged autocorrelation"}
+    return out
+
+
+def _fmt_len(m: float | None) -> str:
+    if m is None or not math.isfinite(m):
+        return "n/a"
+    a = abs(m)
+    if a >= 1e-3:
+        return f"{m * 1e3:.4g} mm"
+    if a >= 1e-6:
+        return f"{m * 1e6:.4g} um"
+    return f"{m * 1e9:.4g} nm"
+
+
+def _print_relief(d: dict) -> None:
+    ny, nx = d["shape"]
+    dx, dy = d["pitch_m"]
+    sx, sy = d["size_m"]
+    md = d.get("metadata", {})
+    print(f"height map   {d['source']}")
+    if md.get("reader"):
+        extra = f", channel {md['channel']!r}" if md.get("channel") else ""
+        print(f"  read by    {md['reader']}{extra}, heights in file: {md.get('file_unit', '?')}")
+    if md.get("instrument"):
+        print(f"  instrument {md['instrument'].get('name', md['instrument'])}")
+    print(f"  grid       {nx} x {ny} px, pitch {_fmt_len(dx)} x {_fmt_len(dy)}, size {_fmt_len(sx)} x {_fmt_len(sy)}"
+          + (" (periodic tile)" if d.get("periodic") else ""))
+    print(f"  valid      {d['valid_fraction']:.1%} of the points (invalid points are kept as holes, not filled)")
+    print(f"  rms height {_fmt_len(d['rms_height_m'])} (Sq after plane levelling), peak-to-valley "
+          f"{_fmt_len(d['peak_to_valley_m'])}")
+
+    def deg(s):
+        return f"{math.degrees(math.atan(s)):.3g} deg" if s is not None else "n/a"
+    print(f"  rms slope  {d['rms_slope']:.4g} ({deg(d['rms_slope'])}); along x {d['rms_slope_x']:.4g}, "
+          f"along y {d['rms_slope_y']:.4g}  [forward differences at the pixel pitch]")
+    print(f"  corr. len. {_fmt_len(d['correlation_length_m'])} (1/e of radial ACF); along x "
+          f"{_fmt_len(d['correlation_length_x_m'])}, along y {_fmt_len(d['correlation_length_y_m'])}")
+    if d["skewness"] is not None:
+        print(f"  moments    skewness {d['skewness']:.3g}, kurtosis {d['kurtosis']:.3g} (3 = Gaussian)")
+    s = d["rms_height_m"]
+    if s:
+        g = (4 * math.pi * s / 550e-9) ** 2
+        regime = ("smooth: first-order perturbation (Rayleigh-Rice) applies" if g < 0.1 else
+                  "rough: geometric optics / Kirchhoff regime" if g > 1 else "intermediate roughness")
+        print(f"  at 550 nm  Rayleigh parameter (4 pi Sq / lambda)^2 = {g:.3g} at normal incidence -> {regime}")
+
+
+def run(args) -> int:
+    from ..errors import InputError
+    path = Path(args.file)
+    if not path.exists():
+        raise InputError(path, "file not found")
+    kind = _kind(path)
+    if kind == "relief":
+        from ..readers import read_relief
+        relief = read_relief(path, pitch_m=_pitch(args.pitch_um), channel=args.channel)
+        d = relief_info(relief)
+        if args.json:
+            print(json.dumps(d, default=str))
+        else:
+            _print_relief(d)
+        return 0
+    if kind == "bsdf":
+        from ..bsdf_h5 import load_tables
+        tables = load_tables(path)
+        rows = [r for t in tables for r in t.albedo_rows()]
+        d = {"kind": "bsdf", "method": tables[0].method if tables else None, "albedo": rows,
+             "tables": [{k: v for k, v in t.summary().items() if k != "albedo"} for t in tables]}
+        if args.json:
+            print(json.dumps(d, default=str))
+            return 0
+        print(f"BSDF table   {path}  (method {d['method']})")
+        for t in tables:
+            s = t.summary()
+            print(f"  light from {t.incident_from}: {len(s['wavelength_nm'])} wavelength(s) {s['wavelength_nm']} nm, "
+                  f"theta_i {s['theta_i_deg']} deg, phi_i {s['phi_i_deg']} deg, "
+                  f"{s['theta_s_cells']} x {s['phi_s_cells']} scatter cells")
+        print("  hemispherical integrals per incidence (R, T include the specular parts):")
+        print(f"    {'from':8s} {'lambda/nm':>9s} {'theta_i':>7s} {'phi_i':>6s} {'R':>8s} {'T':>8s} "
+              f"{'spec R':>8s} {'spec T':>8s} {'lost':>8s}")
+        for r in rows:
+            print(f"    {r['from']:8s} {r['wavelength_nm']:9.4g} {r['theta_i_deg']:7.3g} {r['phi_i_deg']:6.3g} "
+                  f"{r['R']:8.4f} {r['T']:8.4f} {r['specular_R']:8.4f} {r['specular_T']:8.4f} {r['lost']:8.4f}")
+        return 0
+    if kind == "recording":
+        from ..recording import read_recording
+        rec = read_recording(path)
+        d = rec.summary()
+        if args.json:
+            print(json.dumps(d))
+            return 0
+        print(f"recording    {path}")
+        print(f"  rows       {d['rows']} ({d['rows_per_side']['R']} reflected, {d['rows_per_side']['T']} transmitted)")
+        print(f"  wavelength {', '.join(f'{w:g}' for w in d['wavelengths_nm'])} nm")
+        print(f"  incidences {', '.join(f'({t:g}, {p:g})' for t, p in d['incidences_deg'])} deg (theta_i, phi_i)")
+        print(f"  BSDF range {d['bsdf_range_sr'][0]:.4g} .. {d['bsdf_range_sr'][1]:.4g} 1/sr; "
+              f"uncertainty given for {d['sigma_known_fraction']:.0%} of the rows")
+        for c in rec.comments[:5]:
+            print(f"  # {c}")
+        return 0
+    if kind == "sample":
+        from ..recording import read_sample
+        s = read_sample(path)
+        d = s.summary()
+        if args.json:
+            print(json.dumps(d, default=str))
+            return 0
+        pl = d["plate"]
+        idx = pl["index"]
+        n = (f"n = {idx['n']}" if idx.get("model") == "constant" else
+             f"Cauchy A={idx.get('A')}, B={idx.get('B_nm2')} nm^2, C={idx.get('C_nm4')} nm^4")
+        print(f"sample       {path}")
+        print(f"  plate      {pl['thickness_mm']} mm, {n}, relief on the {pl['rough_face']} face, absorption "
+              + ("not known" if pl["absorption_per_mm"] is None else f"{pl['absorption_per_mm']} /mm"))
+        ins = d["instrument"]
+        print(f"  instrument detector half-angle {ins['detector_half_angle_deg']} deg "
+              f"({ins['detector_solid_angle_sr']:.3g} sr), {ins['polarization']} light")
+        print(f"  relief     {d['relief']}")
+        print(f"  recording  {d['recording']}")
+        return 0
+    # IS-BSDF
+    from ..bsdf_isbsdf import read_isbsdf
+    b = read_isbsdf(path)
+    d = {"kind": "is-bsdf", "scatter_type": b.scatter_type, "symmetry": b.symmetry,
+         "sample_rotation_deg": b.sample_rotation_deg.tolist(), "angle_of_incidence_deg": b.angle_of_incidence_deg.tolist(),
+         "azimuths": int(b.azimuth_deg.size), "radials": int(b.radial_deg.size), "tis": b.tis.tolist()}
+    if args.json:
+        print(json.dumps(d))
+    else:
+        print(f"IS-BSDF      {path}: {b.scatter_type}, {b.symmetry}, incidences {d['angle_of_incidence_deg']} deg, "
+              f"{d['azimuths']} azimuths x {d['radials']} radial angles; TIS {[round(v, 4) for v in b.tis[0]]}")
+    return 0
