@@ -239,3 +239,27 @@ def test_unreachable_scheduler_is_an_input_error(monkeypatch):
     with parallel.parallel_settings(dask="tcp://127.0.0.1:9"):
         with pytest.raises(InputError, match="--dask.*cannot reach"):
             parallel.map_tasks(synthetic_task, TASKS, _ctx())
+
+
+def test_grouped_tasks_checkpoint_and_resume_one_by_one(tmp_path, monkeypatch):
+    monkeypatch.setenv("RELIEF_TASK_GROUP", "5")
+    assert parallel.group_size(1000, 2) == 5
+    monkeypatch.delenv("RELIEF_TASK_GROUP")
+    assert parallel.group_size(12, 2) == 1 and parallel.group_size(100_000, 2) == 32
+    assert parallel.group_size(3200, 100) == 2
+    monkeypatch.setenv("RELIEF_TASK_GROUP", "5")
+    ck = tmp_path / "ck"
+    poison = tmp_path / "poison"
+    poison.touch()
+    ctx = _ctx(tmp_path, poison_file=str(poison), poison_from=N - 1)
+    with pytest.raises(RuntimeError, match="poisoned"):
+        parallel.map_tasks(synthetic_task, TASKS, ctx, backend="processes", workers=2, checkpoint_dir=ck)
+    saved = len(list(ck.glob("*.pkl.z")))
+    assert saved <= N - 2                                    # the group holding task N-1 never returned
+    poison.unlink()
+    seen = []
+    out = parallel.map_tasks(synthetic_task, TASKS, ctx, backend="processes", workers=2, checkpoint_dir=ck,
+                             progress=lambda d, n, w: seen.append(d))
+    assert _same(out, parallel.map_tasks(synthetic_task, TASKS, _ctx(), backend="serial"))
+    assert len(list(ck.glob("*.pkl.z"))) == N
+    assert seen[-1] == N and seen == sorted(seen)

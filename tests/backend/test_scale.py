@@ -203,3 +203,32 @@ def test_spectral_anisotropic_request_as_one_chunked_table(client, tmp_path):
     iw, ii, ip = tasks[k]
     assert np.allclose(back.values_per_sr[iw, ii, ip], _toy_incidence(ctx, tasks[k]).astype(np.float32))
     assert np.allclose(back.values_per_sr, values.astype(np.float32))
+
+
+def test_monte_carlo_method_identical_on_dask_and_locally(client):
+    """A real seeded Monte-Carlo method (normals) gives bit-identical tables on the cluster,
+    on local processes and in this process."""
+    from relief_bsdf.methods import reconstruct
+    from relief_bsdf.optics import ConstantIndex, Material
+    from relief_bsdf.request import Request
+    from relief_bsdf.synth import random_relief
+
+    relief = random_relief(64, 1e-6, 0.4e-6, 8e-6, seed=2)
+    req = Request(wavelengths_nm=(450.0, 650.0), theta_i_deg=(0.0, 40.0, 70.0), phi_i_deg=(0.0, 90.0),
+                  incident_from=("outside", "inside"), samples=4000, seed=9,
+                  theta_s_edges_deg=tuple(np.linspace(0, 90, 19)), phi_s_edges_deg=tuple(np.arange(-15.0, 360, 30)))
+    mat = Material(inside=ConstantIndex(1.5))
+    on_dask = reconstruct(relief, mat, req, "normals")
+    assert parallel.last_run()["backend"] == "dask" and parallel.last_run()["total"] == 24
+    with parallel.parallel_settings(dask=None):
+        local = reconstruct(relief, mat, req, "normals")
+        assert parallel.last_run()["backend"] == "processes"
+    os.environ["RELIEF_BACKEND"] = "serial"
+    try:
+        serial = reconstruct(relief, mat, req, "normals")
+    finally:
+        del os.environ["RELIEF_BACKEND"]
+    for a, b, c in zip(on_dask, local, serial):
+        assert a.values_per_sr.any()
+        assert np.array_equal(a.values_per_sr, b.values_per_sr) and np.array_equal(a.values_per_sr, c.values_per_sr)
+        assert np.array_equal(a.specular_R, c.specular_R) and np.array_equal(a.lost, c.lost)
