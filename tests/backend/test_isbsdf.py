@@ -6,7 +6,7 @@ import pytest
 
 from relief_bsdf.bsdf import BsdfTable, direction
 from relief_bsdf.bsdf_isbsdf import (export_isbsdf, from_specular_coords, import_isbsdf, read_isbsdf,
-                                     to_specular_coords)
+                                     read_isbsdf_all, to_specular_coords, write_isbsdf)
 from relief_bsdf.errors import InputError
 
 TE = np.linspace(0, 90, 31)       # 3 degree cells
@@ -130,3 +130,16 @@ def test_foreign_file_needs_wavelength(tmp_path):
         import_isbsdf(foreign)
     tab = import_isbsdf(foreign, wavelength_nm=600.0)
     assert tab.wavelength_nm[0] == 600.0 and tab.values_per_sr.shape[-2:] == (90, 72)
+
+
+def test_combined_file_round_trip(tmp_path):
+    t = lobe_table([0.0], wl=(450.0, 650.0), seed=9)
+    p = write_isbsdf(tmp_path / "all.isbsdf", t)
+    blocks = read_isbsdf_all(p)
+    assert [b.scatter_type for b in blocks] == ["BRDF", "BTDF", "BRDF", "BTDF"]
+    assert [b.relief_tag("wavelength_nm") for b in blocks] == ["450.0", "450.0", "650.0", "650.0"]
+    back = import_isbsdf(p, TE, PE)
+    assert back.wavelength_nm.tolist() == [450.0, 650.0]
+    np.testing.assert_allclose(back.values_per_sr, t.values_per_sr, rtol=1e-5)
+    only = import_isbsdf(p, TE, PE, wavelength_nm=650.0)
+    np.testing.assert_allclose(only.values_per_sr[0], t.values_per_sr[1], rtol=1e-5)

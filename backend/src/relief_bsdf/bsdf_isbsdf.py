@@ -21,9 +21,11 @@ specular delta part is not in the data: optical design programs trace it apart).
 
 Choices made here (stated because the published descriptions differ):
 
-- One ScatterType per file, as every reader of the format expects: a table
+- One ScatterType per file (`export_isbsdf`), as every reader of the format expects: a table
   (one incidence side) gives a BRDF file and a BTDF file; one file per wavelength
   (SpectralContent Monochrome).  `export_isbsdf` returns the paths it wrote.
+  `write_isbsdf` writes all blocks one after another into one file (a single
+  artefact for reports and fits; `read_isbsdf_all` / `import_isbsdf` read it).
 - BTDF blocks are centred on the *undeviated* (direct) transmission direction
   (T, theta_i, phi_i + 180) of formats.md, as in Radiant's original description
   ("relative to the angle of direct transmission"); AngleOfIncidence is then the
@@ -211,6 +213,19 @@ def format_block(block: IsBsdfBlock) -> str:
     return "\n".join(out)
 
 
+def write_isbsdf(path: str | Path, table: BsdfTable, wavelength_nm: float | None = None) -> Path:
+    """One combined file at `path`: the BRDF block, then the BTDF block, for every wavelength
+    (or the one nearest `wavelength_nm`).  Convenient as a single artefact (fit output) and
+    read back by `read_isbsdf_all` / `import_isbsdf`; optical design programs expect one
+    block per file, which `export_isbsdf` writes.
+    """
+    wls = range(table.wavelength_nm.size)
+    if wavelength_nm is not None:
+        wls = [int(np.argmin(np.abs(table.wavelength_nm - wavelength_nm)))]
+    text = "".join(format_block(block_from_table(table, side, iw)) for iw in wls for side in ("R", "T"))
+    return write_text_atomic(Path(path), text)
+
+
 def export_isbsdf(table: BsdfTable, path: str | Path, sides: Sequence[str] = ("R", "T"),
                   wavelength_nm: float | None = None) -> list[Path]:
     """Write the table as IS-BSDF file(s); returns the paths written (atomically).
@@ -249,8 +264,9 @@ def _numbers(tokens: list[str], n: int, where: str, what: str) -> np.ndarray:
         raise InputError(where, f"{what}: {e}") from None
 
 
-def read_isbsdf(path: str | Path) -> IsBsdfBlock:
-    """Parse a Monochrome IS-BSDF file strictly (InputError naming the file and the problem)."""
+def read_isbsdf_all(path: str | Path) -> list[IsBsdfBlock]:
+    """Every block of a .bsdf file: one for standard files, several for the combined
+    files `write_isbsdf` makes (blocks follow one another, each ending with DataEnd)."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8", errors="strict")
@@ -261,8 +277,27 @@ def read_isbsdf(path: str | Path) -> IsBsdfBlock:
             text = path.read_text(encoding="latin-1")
         except OSError as e:  # pragma: no cover
             raise InputError(path, f"cannot read: {e}") from None
-    comments, body = [], []
+    chunks: list[list[str]] = [[]]
     for line in text.splitlines():
+        chunks[-1].append(line)
+        if line.strip() == "DataEnd":
+            chunks.append([])
+    if len(chunks) > 1 and not any(l.strip() and not l.strip().startswith("#") for l in chunks[-1]):
+        chunks.pop()                                   # trailing comments / blank lines only
+    return [_parse_block(c, path) for c in chunks]
+
+
+def read_isbsdf(path: str | Path) -> IsBsdfBlock:
+    """Parse a Monochrome IS-BSDF file strictly (InputError naming the file and the problem).
+
+    Returns the first block (the only one in a standard file); see `read_isbsdf_all`.
+    """
+    return read_isbsdf_all(path)[0]
+
+
+def _parse_block(lines: list[str], path: Path) -> IsBsdfBlock:
+    comments, body = [], []
+    for line in lines:
         s = line.strip()
         if s.startswith("#"):
             comments.append(s[1:].strip())
@@ -368,7 +403,8 @@ def _interp_block(block: IsBsdfBlock, p: int, i: int, radial: np.ndarray, az: np
 def import_isbsdf(paths: str | Path | Sequence[str | Path], theta_s_edges_deg: Any = None,
                   phi_s_edges_deg: Any = None, wavelength_nm: float | None = None,
                   incident_from: str | None = None, method: str | None = None) -> BsdfTable:
-    """Build a BsdfTable from one BRDF and/or one BTDF IS-BSDF file of the same wavelength.
+    """Build a BsdfTable from IS-BSDF files: one BRDF and/or one BTDF block per wavelength
+    (standard one-block files, or combined files from `write_isbsdf`).
 
     The scatter grid defaults to 1-degree theta cells (0..90) and 5-degree phi cells;
     values are interpolated in specular coordinates at the cell centres.  Wavelength,
@@ -378,20 +414,52 @@ def import_isbsdf(paths: str | Path | Sequence[str | Path], theta_s_edges_deg: A
     """
     if isinstance(paths, (str, Path)):
         paths = [paths]
-    blocks = [read_isbsdf(p) for p in paths]
+    blocks = [b for p in paths for b in read_isbsdf_all(p)]
+    if wavelength_nm is not None and any(b.relief_tag("wavelength_nm") is not None for b in blocks):
+        tagged = [b for b in blocks if b.relief_tag("wavelength_nm") is not None
+                  and abs(float(b.relief_tag("wavelength_nm")) - wavelength_nm) < 1e-6]
+        if not tagged:
+            raise InputError(blocks[0].path, f"no block for wavelength {wavelength_nm:g} nm")
+        blocks = tagged
+    first = blocks[0]
+    wl_tags = sorted({b.relief_tag("wavelength_nm") or "" for b in blocks}, key=lambda t: float(t) if t else 0.0)
+    if len(wl_tags) > 1:
+        # several wavelengths: one table per wavelength, then stacked along the wavelength axis
+        parts = [import_isbsdf_blocks([b for b in blocks if (b.relief_tag("wavelength_nm") or "") == t],
+                                      theta_s_edges_deg, phi_s_edges_deg, None, incident_from, method)
+                 for t in wl_tags]
+        return _stack_wavelengths(parts)
+    return import_isbsdf_blocks(blocks, theta_s_edges_deg, phi_s_edges_deg, wavelength_nm, incident_from, method)
+
+
+def _stack_wavelengths(parts: list[BsdfTable]) -> BsdfTable:
+    base = parts[0]
+    for t in parts[1:]:
+        if not (np.array_equal(t.theta_i_deg, base.theta_i_deg) and np.array_equal(t.phi_i_deg, base.phi_i_deg)):
+            raise InputError("is-bsdf", "blocks of different wavelengths have different incidence angles")
+    return BsdfTable(wavelength_nm=np.concatenate([t.wavelength_nm for t in parts]), theta_i_deg=base.theta_i_deg,
+                     phi_i_deg=base.phi_i_deg, theta_s_edges_deg=base.theta_s_edges_deg,
+                     phi_s_edges_deg=base.phi_s_edges_deg,
+                     values_per_sr=np.concatenate([t.values_per_sr for t in parts], axis=0),
+                     incident_from=base.incident_from, method=base.method, metadata=base.metadata)
+
+
+def import_isbsdf_blocks(blocks: list[IsBsdfBlock], theta_s_edges_deg: Any = None, phi_s_edges_deg: Any = None,
+                         wavelength_nm: float | None = None, incident_from: str | None = None,
+                         method: str | None = None) -> BsdfTable:
+    """`import_isbsdf` for already parsed blocks of one wavelength (at most one BRDF, one BTDF)."""
     by_side: dict[str, IsBsdfBlock] = {}
     for b in blocks:
         side = TYPE_SIDE[b.scatter_type]
         if side in by_side:
-            raise InputError(b.path, f"two {b.scatter_type} files given; pass one BRDF and/or one BTDF")
+            raise InputError(b.path, f"two {b.scatter_type} blocks for one wavelength; pass one BRDF and/or one BTDF")
         by_side[side] = b
     first = blocks[0]
     for b in blocks[1:]:
         if not (np.array_equal(b.angle_of_incidence_deg, first.angle_of_incidence_deg)
                 and np.array_equal(b.sample_rotation_deg, first.sample_rotation_deg)):
-            raise InputError(b.path, "BRDF and BTDF files have different incidence angles / sample rotations")
-        if b.relief_tag("wavelength_nm") != first.relief_tag("wavelength_nm"):
-            raise InputError(b.path, "BRDF and BTDF files are for different wavelengths")
+            raise InputError(b.path, "BRDF and BTDF blocks have different incidence angles / sample rotations")
+    for b in blocks:
         if b.relief_tag("btdf_centre") not in (None, "undeviated"):
             raise InputError(b.path, "only BTDF data centred on the undeviated direction are supported")
     wl = wavelength_nm
