@@ -1,0 +1,552 @@
+"""`kirchhoff`: scalar Kirchhoff (tangent-plane) diffraction by the measured height map.
+
+Paper sec. 2.4 ("smooth reliefs ... Tangent Plane Approximation ... propagated away from it
+using the Kirchhoff integral") with partial coherence modelled by random phase screens.
+
+Model.  Light of vacuum wavelength lambda arrives in medium n1 from direction w_i (pointing
+toward the source, formats.md frame; for light from inside the frame is mirrored and the
+heights change sign).  Each point of the relief z = h(x, y) reflects / transmits like its
+tangent plane, and the far field in direction w_s (medium n_s: n1 for R, n2 for T) is the
+Kirchhoff integral (Beckmann & Spizzichino 1963 ch. 3; Ogilvy, *Theory of wave scattering
+from random rough surfaces*, 1991, eqs. 4.13-4.20)
+
+    U(w_s) ~ F_loc * K(w_i, w_s) * int exp(-i (nu_xy . r + nu_z h(r))) dr,
+    nu = k1 w_i + k_s w_s   (k = 2 pi n / lambda; nu_z = k1 cos t_i + k_s cos t_s for R,
+                              k1 cos t_i - k_2 cos t_t for T).
+
+Normalisation.  In direction cosines (alpha, beta) d alpha d beta = cos t d omega, so the
+BSDF equals the scattered power fraction per unit d alpha d beta.  The phase-only
+integral is a 2-D FFT (nu_xy = 2 pi f on the FFT grid) and by Parseval its power, divided
+by N sum(w^2), is a fraction of the incident power; the power density per d alpha d beta
+is that per FFT sample times (k_s / 2 pi)^2 / (df_x df_y) ... i.e. sample power / (d alpha d beta of
+the sample).  Two factors multiply it:
+- Fresnel: the unpolarised (or s / p, request.polarization) power reflectance F of the
+  *local tangent plane at the stationary-phase facet*, whose normal is h = nu / |nu|, at
+  the local incidence cos = |w_i . h|; transmission gets 1 - F (0 past the local critical
+  angle, and 0 where w_i, w_s are on the same side of that facet, which no refraction links).
+- Obliquity: K = |w_i.h| |w_s.h| |nu|^2 / (nu_z^2 cos t_i cos t_s).  It is the factor by
+  which the stationary-phase (geometric-optics) limit of the tangent-plane integral becomes
+  Walter et al. 2007 eqs. 20-21 with G = 1 (no shadowing), for R and T alike; it is 1 at
+  the specular and undeviated directions, and in the small-roughness limit it gives
+  f = (16 pi^2 / lambda^4) |w_i.h|^4 / (cos t_i cos t_s) F S(f), Rayleigh-Rice's form with
+  Q ~ F close to the specular direction.
+No shadowing or multiple scattering (tangent-plane approximation: radius of curvature >> lambda,
+moderate slopes, not too grazing).
+
+Coherent specular part.  The mean field m = sum(w u) / sum(w) of u = exp(-i nu_z h) at the
+specular (undeviated) nu_z is removed from the field before the FFT; |m|^2 F is reported as
+`specular_R` / `specular_T` (a delta, not smeared into cells).
+
+The nu_z dependence (q_z scheme).  nu_z changes with the scattering direction, so one FFT
+is exact only on one ring of directions.  FFTs are taken at a few nodes nu_z,j (one at the
+specular nu_z, others stepping out to cover the requested theta_s range); between nodes the
+power density D(nu_xy; nu_z) is interpolated linearly in nu_z from the two nearest nodes
+after a *similarity transformation* that is exact in both asymptotic regimes
+(x = nu_z^2 sigma^2):
+    D(nu_xy; nu_z) ~ A D_j(nu_xy r^gamma),  r = nu_z,j / nu_z,  gamma = x / (1 + x),
+    A = [(1 - e^-x) / (1 - e^-x_j)] |r|^(2 gamma).
+For x << 1 (first-order regime) D is proportional to x S(nu_xy / 2 pi) (A = x / x_j, no
+rescaling); for x >> 1 (geometric optics) D = p(slope = -nu_xy / nu_z) / nu_z^2 (pure
+rescaling).  Nodes are spaced so that the change of x between nodes is at most
+tau max(1, x^2 / 2) (tau = options["qz_tolerance"], default 0.3): a handful of FFTs per
+side, often one or two.  FFTs are single precision (complex64) with scipy.fft, workers =
+options["fft_workers"] (default 2).
+
+Partial coherence (request.coherence_length_m = Lc).  The incident field is multiplied by
+exp(i psi), psi a Gaussian random phase screen of rms pi rad and Gaussian correlation length
+pi Lc, so the illumination's mutual coherence is exp(-pi^2 (1 - exp(-r^2 / (pi Lc)^2))) ~
+exp(-r^2 / Lc^2): coherent over ~Lc, angular spread ~ lambda / (pi Lc) (1/e half width in
+direction cosines).  The ensemble average over `coherence_instances` screens (option,
+default 8; reported with its convergence) of the diffuse field (u - m) exp(i psi) and of the
+coherent part |m|^2 |FFT(exp(i psi) w)|^2 gives a specular *lobe* (Phong-like peak) in the
+cells instead of a delta (specular_R/T = 0) and washes out interference structure.
+
+Sampling limits (RequestError before work): the pitch must resolve the requested
+directions, |k1 sin t_i + k_s sin t_s,max| <= pi / dx (and dy) unless
+options["band_limited"] = True (then the relief is taken as band-limited and directions
+beyond are left with no scattered power); the tile must resolve the cells,
+lambda / (n_s L) <= the finest theta cell (rad); the field exp(-i nu_z h) must not alias
+(|nu_z| |dh| <= pi between neighbouring pixels for 99% of them); Lc must lie between 2
+pixels and a quarter of the tile.  Periodic reliefs are used as they are (the FFT is then
+exact: diffraction orders of the periodic tile); measured ones are levelled and multiplied
+by a 2-D Hann window (normalised by sum(w^2)), which suppresses the edge discontinuity.
+
+Filtering into cells: `wave_filter` (one Gaussian width in direction cosines for the whole
+request, from the coarsest speckle grain and the finest cell).  FFT samples are first
+summed in blocks (power conserving) to a grid no finer than a third of that width.
+
+Options (request.options): qz_tolerance, max_qz_nodes (default 16), fft_workers,
+band_limited, coherence_instances, smoothing_dcos.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.fft as sfft
+from scipy import ndimage
+
+from ..bsdf import BsdfTable
+from ..errors import RequestError
+from ..optics import Material, cos_transmitted, fresnel_power
+from ..parallel import map_tasks, task_rng
+from ..wave_filter import DcosGrid, cell_samples, cell_average, smoothing_width_dcos
+from .rayleigh_rice import prepared_heights
+
+# ------------------------------------------------------------------ helpers
+
+
+def _fresnel(cos_loc, n1, n2, polarization: str) -> np.ndarray:
+    Rs, Rp, _, _ = fresnel_power(cos_loc, n1, n2)
+    if polarization == "s":
+        return Rs
+    if polarization == "p":
+        return Rp
+    return 0.5 * (Rs + Rp)
+
+
+def qz_nodes(nu_lo: float, nu_hi: float, nu_spec: float | None, sigma_m: float, tau: float = 0.3,
+             max_nodes: int = 16) -> np.ndarray:
+    """nu_z nodes covering [nu_lo, nu_hi], one at nu_spec, spaced by the rule of the module doc."""
+    lo, hi = min(nu_lo, nu_hi), max(nu_lo, nu_hi)
+    start = nu_spec if (nu_spec is not None and lo <= nu_spec <= hi) else 0.5 * (lo + hi)
+    s2 = max(sigma_m, 1e-30) ** 2
+
+    def step(nu):
+        x = nu * nu * s2
+        dx = tau * max(1.0, 0.5 * x * x)
+        return dx / (2.0 * max(abs(nu), 1e-9 * (hi - lo + 1.0)) * s2)
+
+    nodes = [start]
+    for direction, bound in ((1.0, hi), (-1.0, lo)):
+        nu = start
+        while (bound - nu) * direction > 1e-12 * max(abs(bound), 1.0):
+            nu = nu + direction * step(nu)
+            if (nu - bound) * direction >= 0:
+                nu = bound
+            nodes.append(nu)
+            if len(nodes) > 4 * max_nodes:
+                break
+    nodes = np.unique(np.asarray(nodes))
+    if nodes.size > max_nodes:   # keep the specular node and spread the rest evenly
+        extra = np.linspace(lo, hi, max_nodes - 1)
+        nodes = np.unique(np.concatenate([extra, [start]]))
+    return nodes
+
+
+def _gaussian_screen(shape, pitch, corr_m, rms, rng) -> np.ndarray:
+    """Periodic Gaussian random field, autocovariance rms^2 exp(-r^2 / corr^2) (FFT filtering)."""
+    ny, nx = shape
+    fx = np.fft.fftfreq(nx, pitch[0])
+    fy = np.fft.rfftfreq(ny, pitch[1]) if False else np.fft.fftfreq(ny, pitch[1])
+    amp = np.sqrt(np.pi * corr_m ** 2 * np.exp(-(np.pi * corr_m) ** 2 * (fx[None, :] ** 2 + fy[:, None] ** 2)))
+    amp *= np.sqrt(1.0 / (pitch[0] * pitch[1]))
+    noise = rng.standard_normal(shape)
+    f = np.real(sfft.ifft2(sfft.fft2(noise) * amp))
+    s = f.std()
+    return f * (rms / s) if s > 0 else f
+
+
+def _pool_factor(n: int, target: int) -> int:
+    """Largest power of two <= target that divides n / 2 (n even), else 1."""
+    if n % 2 or target < 2:
+        return 1
+    b = 1
+    while b * 2 <= target and (n // 2) % (b * 2) == 0:
+        b *= 2
+    return b
+
+
+def _pool(p: np.ndarray, by: int, bx: int) -> np.ndarray:
+    if by == 1 and bx == 1:
+        return p
+    ny, nx = p.shape
+    return p.reshape(ny // by, by, nx // bx, bx).sum(axis=(1, 3))
+
+
+# ------------------------------------------------------------------ checks
+
+
+def check_sampling(relief, material: Material, request, width_dcos: float, opts: dict) -> None:
+    """Raise RequestError when the relief cannot resolve what the request asks (module doc)."""
+    ny, nx = relief.shape
+    dx, dy = relief.dx_m, relief.dy_m
+    Lx, Ly = nx * dx, ny * dy
+    te = np.radians(np.asarray(request.theta_s_edges_deg, float))
+    finest = float(np.min(np.diff(te)))
+    s_max = np.sin(te[-1])
+    t_max = np.radians(max(request.theta_i_deg))
+    band = bool(opts.get("band_limited", False))
+    for wl in request.wavelengths_nm:
+        lam = wl * 1e-9
+        for fr in request.incident_from:
+            n1, n2 = (np.real(v) for v in material.n_pair(wl, fr))
+            for side, ns in (("R", n1), ("T", n2)):
+                need = n1 * np.sin(t_max) + ns * s_max           # |nu_x| / k0 at the worst direction
+                have = lam / (2 * max(dx, dy))
+                if need > have and not band:
+                    smax = (have - n1 * np.sin(t_max)) / ns
+                    hint = (f"request theta_s up to {np.degrees(np.arcsin(smax)):.1f} deg" if 0 < smax < 1
+                            else "use a finer-pitch relief")
+                    raise RequestError(
+                        f"kirchhoff: the pitch {max(dx, dy) * 1e6:.4g} um resolves |n1 sin t_i + n_s sin t_s| <= "
+                        f"lambda / (2 dx) = {have:.3f} at {wl:g} nm, but {fr} incidence up to "
+                        f"{np.degrees(t_max):.1f} deg with {side} scattering up to {np.degrees(np.arcsin(s_max)):.1f} deg "
+                        f"needs {need:.3f}; {hint}, or set option band_limited=true to take the relief as "
+                        f"band-limited (no scatter beyond)", "theta_s_edges_deg")
+                res = lam / (ns * min(Lx, Ly))
+                if res > finest:
+                    raise RequestError(
+                        f"kirchhoff: the tile ({min(Lx, Ly) * 1e6:.4g} um) resolves angles of lambda / (n L) = "
+                        f"{np.degrees(res):.3g} deg at {wl:g} nm, coarser than the finest requested theta_s cell "
+                        f"({np.degrees(finest):.3g} deg); use coarser cells or a larger relief", "theta_s_edges_deg")
+    Lc = request.coherence_length_m
+    if Lc is not None:
+        if Lc > 0.25 * min(Lx, Ly):
+            raise RequestError(f"coherence length {Lc * 1e6:.4g} um exceeds a quarter of the tile "
+                               f"({min(Lx, Ly) * 1e6:.4g} um): the tile cannot show partial coherence; "
+                               "omit --coherence-length-um (coherent) or use a larger relief",
+                               "--coherence-length-um")
+        if np.pi * Lc < 2 * max(dx, dy):
+            raise RequestError(f"coherence length {Lc * 1e6:.4g} um is not resolved by the pitch "
+                               f"{max(dx, dy) * 1e6:.4g} um", "--coherence-length-um")
+
+
+def check_aliasing(h: np.ndarray, w: np.ndarray, nu_max: float, where: str = "relief") -> float:
+    """Fraction of neighbour steps where the phase nu_max |dh| exceeds pi; RequestError above 1%."""
+    m = w > 0
+    dxs = np.abs(np.diff(h, axis=1))[m[:, 1:] & m[:, :-1]]
+    dys = np.abs(np.diff(h, axis=0))[m[1:, :] & m[:-1, :]]
+    steps = np.concatenate([dxs, dys])
+    frac = float(np.mean(nu_max * steps > np.pi)) if steps.size else 0.0
+    if frac > 0.01:
+        raise RequestError(
+            f"kirchhoff: the relief's slopes are too steep for its pitch at this wavelength: the phase "
+            f"nu_z dh exceeds pi between {frac:.1%} of neighbouring pixels, so the diffracted field is aliased; "
+            "use a longer wavelength check, a finer-pitch relief or method ray", where)
+    return frac
+
+
+# ------------------------------------------------------------------ the per-incidence solver
+
+
+def _side_geometry(side, n1, ns, ci, ai, bi, k0, shape_c, f0, df):
+    """Coarse-grid direction cosines and nu for one side. Returns dict of arrays."""
+    ncy, ncx = shape_c
+    fxc = f0[0] + df[0] * np.arange(ncx)
+    fyc = f0[1] + df[1] * np.arange(ncy)
+    k1, ks = k0 * n1, k0 * ns
+    a = (2 * np.pi * fxc[None, :] - k1 * ai) / ks
+    b = (2 * np.pi * fyc[:, None] - k1 * bi) / ks
+    r2 = a * a + b * b
+    prop = r2 < 1.0
+    cs = np.sqrt(np.clip(1.0 - r2, 0.0, 1.0))
+    sgn = 1.0 if side == "R" else -1.0
+    nuz = k1 * ci + sgn * ks * cs
+    return {"alpha0": float(a[0, 0]), "beta0": float(b[0, 0]), "dalpha": 2 * np.pi * df[0] / ks,
+            "dbeta": 2 * np.pi * df[1] / ks, "a": a, "b": b, "cs": cs, "prop": prop, "nuz": nuz,
+            "k1": k1, "ks": ks, "sgn": sgn}
+
+
+def _obliquity_fresnel(geo, wi, n1, n2, side, polarization):
+    """K * F_loc on the coarse grid (module doc), 0 where not propagating or not realisable."""
+    a, b, cs = geo["a"], geo["b"], geo["cs"]
+    k1, ks, sgn = geo["k1"], geo["ks"], geo["sgn"]
+    ws = np.stack(np.broadcast_arrays(a, b, sgn * cs), axis=0)
+    nu = k1 * np.asarray(wi)[:, None, None] + ks * ws
+    nn = np.sqrt(np.sum(nu * nu, axis=0))
+    nn = np.maximum(nn, 1e-30)
+    ih = np.abs(np.tensordot(wi, nu, axes=(0, 0))) / nn
+    oh_signed = np.sum(ws * nu, axis=0) / nn
+    oh = np.abs(oh_signed)
+    nuz2 = np.maximum(nu[2] ** 2, 1e-30 * nn ** 2)
+    ci = wi[2]
+    K = ih * oh * nn ** 2 / (nuz2 * ci * np.maximum(cs, 1e-12))
+    F = _fresnel(ih, n1, n2, polarization)
+    if side == "R":
+        fac = K * F
+    else:
+        ih_signed = np.tensordot(wi, nu, axes=(0, 0)) / nn
+        ok = ih_signed * oh_signed < 0
+        fac = np.where(ok, K * (1.0 - F), 0.0)
+    return np.where(geo["prop"], fac, 0.0)
+
+
+def _interp_nodes(nodes, grids, geo, sigma, f0, df, f0n):
+    """Density in nu_xy on the target grid (origin f0) at each point's own nu_z (similarity
+    interpolation); node grids have origin f0n and the same spacing df."""
+    nuz = geo["nuz"]
+    s2 = sigma * sigma
+    ncy, ncx = nuz.shape
+    fxc = f0[0] + df[0] * np.arange(ncx)
+    fyc = f0[1] + df[1] * np.arange(ncy)
+    FX, FY = np.meshgrid(fxc, fyc)
+    out = np.zeros_like(nuz)
+    x = nuz * nuz * s2
+    gam = x / (1.0 + x)
+    g = -np.expm1(-x)
+    t = np.zeros(nuz.shape)
+    nuc = np.clip(nuz, nodes[0], nodes[-1])
+    j = np.clip(np.searchsorted(nodes, nuc, side="right") - 1, 0, max(nodes.size - 2, 0))
+    if nodes.size > 1:
+        t = (nuc - nodes[j]) / (nodes[j + 1] - nodes[j])
+    for jn, nj in enumerate(nodes):
+        if nodes.size == 1:
+            wgt = np.ones(nuz.shape)
+        else:
+            wgt = np.where(j == jn, 1.0 - t, 0.0) + np.where(j + 1 == jn, t, 0.0)
+        sel = wgt > 0
+        if not np.any(sel):
+            continue
+        nz = nuz[sel]
+        r = nj / np.where(np.abs(nz) > 0, nz, 1e-30)
+        sc = np.sign(r) * np.abs(r) ** gam[sel]
+        xj = nj * nj * s2
+        gj = -np.expm1(-xj)
+        amp = np.where(gj > 0, g[sel] / max(gj, 1e-300), 1.0) * np.abs(r) ** (2 * gam[sel])
+        ci = (FX[sel] * sc - f0n[0]) / df[0]
+        cj = (FY[sel] * sc - f0n[1]) / df[1]
+        val = ndimage.map_coordinates(grids[jn], [cj, ci], order=1, mode="constant", cval=0.0, prefilter=False)
+        out[sel] += wgt[sel] * amp * val
+    return out
+
+
+def solve_incidence(h, w, pitch, periodic, wavelength_nm, theta_i_deg, phi_i_deg, n1, n2, cells, width_dcos,
+                    polarization="unpolarized", coherence_length_m=None, instances=8, seed=0, key=(0,),
+                    tau=0.3, max_nodes=16, workers=2, sides=("R", "T"), theta_s_range_deg=(0.0, 90.0)):
+    """Kirchhoff tables for one incidence: {'R': (S, A), 'T': (S, A), 'spec_R', 'spec_T', 'info'}.
+
+    h: heights in the frame of the incident medium (already sign-flipped for inside), w: window.
+    """
+    t0 = time.perf_counter()
+    ny, nx = h.shape
+    dx, dy = pitch
+    lam = wavelength_nm * 1e-9
+    k0 = 2 * np.pi / lam
+    ti, pi_ = np.radians(theta_i_deg), np.radians(phi_i_deg)
+    ci = np.cos(ti)
+    ai, bi = np.sin(ti) * np.cos(pi_), np.sin(ti) * np.sin(pi_)
+    wi = np.array([ai, bi, ci])
+    sw = float(np.sum(w))
+    sw2 = float(np.sum(w * w))
+    sigma = float(np.sqrt(np.sum(w * w * h * h) / sw2))
+    h32 = h.astype(np.float32)
+    w32 = None if periodic else w.astype(np.float32)
+    ntot = nx * ny
+    fxs = np.fft.fftshift(np.fft.fftfreq(nx, dx))
+    fys = np.fft.fftshift(np.fft.fftfreq(ny, dy))
+    # screens for partial coherence (shared by both sides and all nodes)
+    screens = []
+    if coherence_length_m is not None:
+        for k in range(instances):
+            rng = task_rng(seed, *key, 7919, k)
+            psi = _gaussian_screen((ny, nx), (dx, dy), np.pi * coherence_length_m, np.pi, rng)
+            e = np.empty((ny, nx), np.complex64)
+            np.cos(psi, out=e.real)
+            np.sin(psi, out=e.imag)
+            screens.append(e)
+    n_fft = 0
+    out = {"info": {}}
+    te = np.radians(np.asarray(theta_s_range_deg, float))
+    for side in sides:
+        ns = np.real(n1) if side == "R" else np.real(n2)
+        if side == "T" and np.imag(n2) > 0:
+            out["T"] = np.zeros(cells.alpha.shape[:2])
+            out["spec_T"] = 0.0
+            continue
+        k1, ks = k0 * np.real(n1), k0 * ns
+        sgn = 1.0 if side == "R" else -1.0
+        # specular / undeviated nu_z
+        if side == "R":
+            nu_spec = 2 * k1 * ci
+            F_spec = float(_fresnel(ci, n1, n2, polarization))
+        else:
+            ct = cos_transmitted(ci, n1, n2)
+            tir = abs(np.real(ct)) < 1e-12
+            nu_spec = None if tir else float(k1 * ci - ks * np.real(ct))
+            F_spec = 0.0 if tir else 1.0 - float(_fresnel(ci, n1, n2, polarization))
+        cs_lo, cs_hi = np.cos(te[-1]), np.cos(te[0])
+        nu_a, nu_b = k1 * ci + sgn * ks * cs_lo, k1 * ci + sgn * ks * cs_hi
+        nodes = qz_nodes(nu_a, nu_b, nu_spec, sigma, tau, max_nodes)
+        if nu_spec is not None and not np.any(np.isclose(nodes, nu_spec)):
+            nodes = np.unique(np.concatenate([nodes, [nu_spec]]))
+        # pooling: coarse spacing in direction cosines <= width / 3
+        dal = lam / (ns * nx * dx)
+        dbe = lam / (ns * ny * dy)
+        bx = _pool_factor(nx, int(max(1, width_dcos / 3 / dal)))
+        by = _pool_factor(ny, int(max(1, width_dcos / 3 / dbe)))
+        f0 = (fxs[: (nx // bx) * bx].reshape(-1, bx).mean(axis=1)[0], fys[: (ny // by) * by].reshape(-1, by).mean(axis=1)[0])
+        df = (bx / (nx * dx), by / (ny * dy))
+        dF = (2 * np.pi) ** 2 * df[0] * df[1]          # nu_xy area of one coarse sample
+        # crops of the coarse grid: the target box holds the requested disc plus the filter
+        # margin; node grids also hold the points the similarity lookups reach
+        ncx_f, ncy_f = nx // bx, ny // by
+        reach = min(np.sin(te[-1]) + 4 * width_dcos, 1.0 + 4 * width_dcos)
+        fxb = ((k1 * ai - ks * reach) / (2 * np.pi), (k1 * ai + ks * reach) / (2 * np.pi))
+        fyb = ((k1 * bi - ks * reach) / (2 * np.pi), (k1 * bi + ks * reach) / (2 * np.pi))
+        anu = np.abs(nodes)
+        ratio = float(np.max(anu[1:] / np.maximum(anu[:-1], 1e-30))) if nodes.size > 1 else 1.0
+        ratio = max(ratio, 1.0 / min(ratio, 1.0) if ratio > 0 else 1.0)
+        if nodes.size > 1 and (np.min(anu) <= 0.25 * np.max(anu) or ratio > 4):
+            fbn = None
+        else:
+            fmax = max(abs(fxb[0]), abs(fxb[1]), abs(fyb[0]), abs(fyb[1])) * (ratio if nodes.size > 1 else 1.0)
+            fbn = ((-fmax, fmax), (-fmax, fmax))
+
+        def box(fb):
+            if fb is None:
+                return slice(0, ncy_f), slice(0, ncx_f)
+            i0 = int(np.clip(np.floor((fb[0][0] - f0[0]) / df[0]) - 1, 0, ncx_f))
+            i1 = int(np.clip(np.ceil((fb[0][1] - f0[0]) / df[0]) + 2, 0, ncx_f))
+            j0 = int(np.clip(np.floor((fb[1][0] - f0[1]) / df[1]) - 1, 0, ncy_f))
+            j1 = int(np.clip(np.ceil((fb[1][1] - f0[1]) / df[1]) + 2, 0, ncy_f))
+            return slice(j0, j1), slice(i0, i1)
+
+        tb = box((fxb, fyb))
+        nb = box(fbn)
+        f0t = (f0[0] + tb[1].start * df[0], f0[1] + tb[0].start * df[1])
+        f0n = (f0[0] + nb[1].start * df[0], f0[1] + nb[0].start * df[1])
+        halves = 2 if screens else 1
+        grids = [[] for _ in range(halves)]
+        m_spec = 0.0
+        for nu in nodes:
+            ph = h32 * np.float32(nu)
+            u = np.empty((ny, nx), np.complex64)
+            np.cos(ph, out=u.real)
+            np.sin(ph, out=u.imag)
+            np.negative(u.imag, out=u.imag)                 # u = exp(-i nu h)
+            m = (np.sum(u) / ntot) if w32 is None else (np.sum(u * w32) / sw)
+            if nu_spec is not None and np.isclose(nu, nu_spec):
+                m_spec = complex(m)
+            u -= np.complex64(m)
+            if w32 is not None:
+                u *= w32
+            acc = [None] * halves
+            for k, e in enumerate(screens or [None]):
+                v = u * e if e is not None else u
+                F = sfft.fft2(v, workers=workers, overwrite_x=e is not None)
+                n_fft += 1
+                p = F.real * F.real
+                p += F.imag * F.imag
+                p = _pool(p, by, bx)
+                acc[k % halves] = p if acc[k % halves] is None else acc[k % halves] + p
+            for k in range(halves):
+                cnt = len(screens[k::2]) if screens else 1
+                grids[k].append(np.fft.fftshift(acc[k])[nb].astype(float) / (cnt * ntot * sw2 * dF))
+        shape_t = (tb[0].stop - tb[0].start, tb[1].stop - tb[1].start)
+        geo = _side_geometry(side, np.real(n1), ns, ci, ai, bi, k0, shape_t, f0t, df)
+        dens = [_interp_nodes(nodes, g, geo, sigma, f0t, df, f0n) for g in grids]
+        spec = abs(m_spec) ** 2 * F_spec
+        if screens and nu_spec is not None:
+            # coherent part spread by the illumination's angular spectrum (the Phong-like peak)
+            acc = [None, None]
+            for k, e in enumerate(screens):
+                v = e if w32 is None else e * w32
+                F = sfft.fft2(v, workers=workers)
+                n_fft += 1
+                p = _pool(F.real * F.real + F.imag * F.imag, by, bx)
+                acc[k % 2] = p if acc[k % 2] is None else acc[k % 2] + p
+            for k in range(2):
+                lobe = np.fft.fftshift(acc[k])[tb].astype(float) / (len(screens[k::2]) * ntot * sw2 * dF)
+                # centred on nu_xy = 0 (the specular direction); Fresnel and obliquity via K F below
+                dens[k] = dens[k] + abs(m_spec) ** 2 * lobe
+            out["info"][f"coherent_specular_{side}"] = spec
+            spec = 0.0
+        fac = ks * ks * _obliquity_fresnel(geo, wi, n1, n2, side, polarization)
+        vals = [cell_average(DcosGrid(d * fac, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"])
+                             .smoothed(width_dcos), cells) for d in dens]
+        out[side] = sum(vals) / len(vals)
+        if screens:
+            big = out[side] > 0.01 * out[side].max()
+            diff = (vals[0] - vals[1])[big]
+            out["info"][f"coherence_rel_error_{side}"] = float(
+                0.5 * np.sqrt(np.mean(diff ** 2)) / np.sqrt(np.mean(out[side][big] ** 2))) if big.any() else 0.0
+        out[f"spec_{side}"] = spec
+        out["info"][f"qz_nodes_{side}"] = int(nodes.size)
+        out["info"][f"pool_{side}"] = [by, bx]
+    out["info"]["ffts"] = n_fft
+    out["info"]["seconds"] = time.perf_counter() - t0
+    out["info"]["rms_height_m"] = sigma
+    return out
+
+
+# ------------------------------------------------------------------ method entry point
+
+
+def _task(ctx, task):
+    iw, it, ip, fr = task
+    wl = ctx["wavelengths"][iw]
+    n1, n2 = ctx["n"][(iw, fr)]
+    h = ctx["h"] if fr == "outside" else -ctx["h"]
+    return solve_incidence(h, ctx["w"], ctx["pitch"], ctx["periodic"], wl, ctx["theta_i"][it], ctx["phi_i"][ip],
+                           n1, n2, ctx["cells"], ctx["width"], ctx["polarization"], ctx["lc"], ctx["instances"],
+                           ctx["seed"], (iw, it, ip, 0 if fr == "outside" else 1), ctx["tau"], ctx["max_nodes"],
+                           ctx["workers"], theta_s_range_deg=ctx["theta_range"])
+
+
+def speckle_dcos(relief, material: Material, request) -> float:
+    """Coarsest speckle grain lambda / (n L) over the request (direction cosines)."""
+    ny, nx = relief.shape
+    L = min(nx * relief.dx_m, ny * relief.dy_m)
+    worst = 0.0
+    for wl in request.wavelengths_nm:
+        for fr in request.incident_from:
+            for n in material.n_pair(wl, fr):
+                worst = max(worst, wl * 1e-9 / (np.real(n) * L))
+    return worst
+
+
+def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
+    """Kirchhoff tables, one per side of incidence in request.incident_from (module doc)."""
+    request.validate()
+    opts = dict(request.options or {})
+    width = smoothing_width_dcos(speckle_dcos(relief, material, request), request.theta_s_edges_deg, opts)
+    check_sampling(relief, material, request, width, opts)
+    h, w = prepared_heights(relief)
+    wls = np.asarray(request.wavelengths_nm, float)
+    nmax = max(np.real(n) for wl in wls for fr in request.incident_from for n in material.n_pair(wl, fr))
+    nu_max = 2 * nmax * 2 * np.pi / (wls.min() * 1e-9)
+    alias = check_aliasing(h, w, nu_max, relief.source or "relief")
+    cells = cell_samples(request.theta_s_edges_deg, request.phi_s_edges_deg, width)
+    frame_n = {(iw, fr): material.n_pair(wl, fr) for iw, wl in enumerate(wls) for fr in request.incident_from}
+    lc = request.coherence_length_m
+    instances = int(opts.get("coherence_instances", 8))
+    if lc is not None and instances < 2:
+        raise RequestError("coherence_instances must be >= 2 (the convergence estimate needs two halves)",
+                           "options.coherence_instances")
+    ctx = {"h": h, "w": w, "pitch": (relief.dx_m, relief.dy_m), "periodic": relief.periodic, "wavelengths": wls,
+           "theta_i": request.theta_i_deg, "phi_i": request.phi_i_deg, "n": frame_n, "cells": cells,
+           "width": width, "polarization": request.polarization, "lc": lc, "instances": instances,
+           "seed": request.seed, "tau": float(opts.get("qz_tolerance", 0.3)),
+           "max_nodes": int(opts.get("max_qz_nodes", 16)), "workers": int(opts.get("fft_workers", 2)),
+           "theta_range": (request.theta_s_edges_deg[0], request.theta_s_edges_deg[-1])}
+    W, I, P = len(wls), len(request.theta_i_deg), len(request.phi_i_deg)
+    S, A = cells.alpha.shape[:2]
+    tables = []
+    for fr in request.incident_from:
+        tasks = [(iw, it, ip, fr) for iw in range(W) for it in range(I) for ip in range(P)]
+        res = map_tasks(_task, tasks, ctx, progress=progress, label=f"kirchhoff {fr}",
+                        backend=opts.get("backend"))
+        vals = np.zeros((W, I, P, 2, S, A))
+        sR, sT = np.zeros((W, I, P)), np.zeros((W, I, P))
+        infos = []
+        for (iw, it, ip, _), r in zip(tasks, res):
+            vals[iw, it, ip, 0] = r["R"]
+            vals[iw, it, ip, 1] = r["T"]
+            sR[iw, it, ip], sT[iw, it, ip] = r["spec_R"], r["spec_T"]
+            infos.append({"wavelength_nm": float(wls[iw]), "theta_i_deg": float(request.theta_i_deg[it]),
+                          "phi_i_deg": float(request.phi_i_deg[ip]), **r["info"]})
+        tab = BsdfTable(
+            wavelength_nm=wls, theta_i_deg=request.theta_i_deg, phi_i_deg=request.phi_i_deg,
+            theta_s_edges_deg=request.theta_s_edges_deg, phi_s_edges_deg=request.phi_s_edges_deg,
+            values_per_sr=vals, incident_from=fr, specular_R=sR, specular_T=sT, method="kirchhoff",
+            material=material.describe(), relief=relief.describe(),
+            metadata={"smoothing_dcos": width, "window": "none (periodic)" if relief.periodic else "2-D Hann",
+                      "aliased_step_fraction": alias, "coherence_length_m": lc,
+                      "coherence_instances": instances if lc is not None else 0, "incidences": infos,
+                      "validity": "tangent-plane approximation: radius of curvature >> lambda, no shadowing, "
+                                  "single scattering"})
+        h_ = tab.hemispherical()
+        tab.lost = np.clip(1.0 - h_["R"] - h_["T"], 0.0, None) if not material.inside.is_absorbing(wls) else tab.lost
+        tables.append(tab)
+    return tables
