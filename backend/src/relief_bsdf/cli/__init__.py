@@ -49,6 +49,11 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         print(f"relief {args.command}: error: {e.one_line()}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader of our stdout went away (e.g. `relief info --json | head`): not an error of ours
+        import os
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt:
         print(f"relief {args.command}: interrupted", file=sys.stderr)
         return 130
