@@ -371,7 +371,7 @@ class ReliefTracer:
         A_all = None if A is None else np.concatenate(As, axis=2)
         return (np.concatenate(ks), A_all, np.concatenate(ws), np.concatenate(sts), np.concatenate(nbs), segs)
 
-    def _trace_chunk(self, o, k, below, A, rng, n_above, n_below, split_first, s_init=None):
+    def _trace_chunk(self, o, k, below, A, rng, n_above, n_below, split_first, s_init=None, phi_exit_rad=0.0):
         """Trace one batch until every ray has left the layer or is lost.
 
         o, k: (n, 3) float32 origins and unit propagation directions; below: (n,) bool, True
@@ -467,8 +467,9 @@ class ReliefTracer:
             done = np.flatnonzero(state <= BELOW)
             kd = rows.k[done]
             Ad = np.take(rows.A, done, axis=2)
-            phi = np.arctan2(kd[:, 1], kd[:, 0])
-            _rotate_stokes(Ad, rows.s[done], kd, _frame_s(kd, phi))
+            # exits exactly along z (flat relief at normal incidence): the frame of the specular
+            # azimuth phi_exit_rad (bsdf.py: s from the azimuth when w is along z)
+            _rotate_stokes(Ad, rows.s[done], kd, _frame_s(kd, phi_exit_rad))
             rows.A[:, :, done] = Ad
         return _Exits(ids=rows.ids, k=rows.k, A=rows.A, w=rows.w, state=state, nb=rows.nb, segments=segments,
                       n_paths=n0, m=2 * n0 if split_first else n0)
@@ -806,7 +807,9 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, te_sin2, p
     for sd in (0, 1):
         if spec_dirs[sd] is not None:
             d = np.asarray(spec_dirs[sd], np.float64)
-            near = (k[:, 0] * d[0] + k[:, 1] * d[1] + kz * d[2]) > cos_tol   # float64: tol << float32 eps
+            # float64 and renormalised: a float32 unit vector's norm is off by ~1e-8 >> 1 - cos(tol)
+            kx64, ky64 = k[:, 0].astype(np.float64), k[:, 1].astype(np.float64)
+            near = (kx64 * d[0] + ky64 * d[1] + kz * d[2]) > cos_tol * np.sqrt(kx64 * kx64 + ky64 * ky64 + kz * kz)
             if near.any():
                 near &= side == sd
                 spec = near if spec is None else spec | near
@@ -923,7 +926,7 @@ def reconstruct_with(tracer: ReliefTracer, relief: Relief, material, request, pr
         n_above = n_out.real
         n_below = n_in if n_in.imag > 0 else n_in.real
         out = tracer._trace_chunk(o, k, below, _incident_state(K, hi - lo), rng, n_above, n_below,
-                                  opts["first_hit_split"], s_init=s_init)
+                                  opts["first_hit_split"], s_init=s_init, phi_exit_rad=math.radians(pi_ + 180.0))
         # ideal directions of the flat mean plane (physical), for the delta parts
         spec_R = np.array([k_in[0], k_in[1], -k_in[2]])
         n1, n2 = (n_above, n_below) if not from_below else (n_below, n_above)
