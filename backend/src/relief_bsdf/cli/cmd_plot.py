@@ -1,0 +1,36 @@
+"""`relief plot`: in-plane BSDF curves per incidence angle and polar maps of a table, to PNG."""
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser("plot", help="plot a BSDF table (in-plane curves and polar maps) to PNG",
+                       description="In-plane BSDF curves per incidence angle (log scale, signed scatter angle, "
+                                   "like the paper's figures 4 and 9) and polar maps of the scatter hemisphere.")
+    p.add_argument("table", metavar="TABLE.h5")
+    p.add_argument("-o", "--out", default=None, help="output PNG (default: TABLE.png beside the table)")
+    p.add_argument("--side", choices=("R", "T"), default=None, help="only reflection or transmission (default both)")
+    p.add_argument("--from", dest="incident_from", choices=("outside", "inside"), default=None,
+                   help="which table of the file (default: the first)")
+    p.add_argument("--wavelength-nm", type=float, default=None, help="wavelength to show (nearest tabulated)")
+    return p
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from ..bsdf_h5 import load_tables, table_for
+    from ..errors import InputError
+    from ..plots import save_figure, table_figure
+    path = Path(args.table)
+    tables = load_tables(path)
+    table = table_for(tables, args.incident_from, path) if args.incident_from else tables[0]
+    table = table.select(args.wavelength_nm)
+    out = Path(args.out) if args.out else path.with_suffix(".png")
+    if out.suffix.lower() != ".png":
+        raise InputError(out, "the plot is written as PNG; give a .png file name")
+    sides = (args.side,) if args.side else ("R", "T")
+    save_figure(table_figure(table, sides), out)
+    print(f"wrote {out}")
+    return 0

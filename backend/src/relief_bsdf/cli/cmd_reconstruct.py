@@ -1,0 +1,146 @@
+"""`relief reconstruct`: run one reconstruction method on a relief and write the BSDF tables (HDF5)."""
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser("reconstruct", help="BSDF tables of a rough boundary from its height map",
+                       description="Reconstruct the BSDF of the boundary described by RELIEF with one method and "
+                                   "write one table per side of incidence to an HDF5 file. The refractive index "
+                                   "of the material below the relief is required (--n or --cauchy); the lit "
+                                   "medium is air (n = 1).")
+    p.add_argument("relief", metavar="RELIEF", help="height map (.x3p, .gwy, .sur, .sdf, .tif, .exr, .npz)")
+    p.add_argument("--method", required=True, help="microfacet | normals | ray | kirchhoff | rayleigh-rice | auto")
+    p.add_argument("--wavelengths-nm", default="550", help="comma-separated vacuum wavelengths (default 550)")
+    p.add_argument("--theta-i-deg", default="0,15,30,45,60,75", help="incidence angles, degrees in [0, 90)")
+    p.add_argument("--phi-i-deg", default="0", help="incidence azimuths (one value: isotropic table)")
+    p.add_argument("--from", dest="incident_from", default="outside", choices=("outside", "inside", "both"),
+                   help="side the light arrives from")
+    idx = p.add_mutually_exclusive_group()
+    idx.add_argument("--n", help="refractive index of the material: n or n,k (k >= 0 absorbing)")
+    idx.add_argument("--cauchy", help="Cauchy coefficients A,B[,C] (B in nm^2, C in nm^4)")
+    p.add_argument("--samples", type=int, default=None, help="rays (paths) per incidence for Monte-Carlo methods")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--coherence-length-um", type=float, default=None, help="source coherence length (wave methods)")
+    p.add_argument("--theta-step-deg", type=float, default=1.0, help="scatter cell size in theta_s (divides 90)")
+    p.add_argument("--phi-step-deg", type=float, default=5.0, help="scatter cell size in phi_s (divides 360); "
+                   "cells are centred on phi_s = 0, step, ...")
+    p.add_argument("--pitch-um", default=None, help="lateral pitch dx[,dy] in um for files without one (images)")
+    p.add_argument("--polarized", action="store_true", help="also compute Mueller matrices (ray, microfacet)")
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="method option (value parsed as JSON when possible), e.g. distribution=\"ggx\", alpha=0.2, "
+                        "grazing_heuristic=smith; repeatable")
+    p.add_argument("-o", "--out", required=True, help="output table (.h5)")
+    return p
+
+
+def parse_floats(text: str, flag: str) -> tuple:
+    from ..errors import InputError
+    try:
+        vals = tuple(float(v) for v in str(text).split(",") if v.strip() != "")
+    except ValueError:
+        raise InputError(flag, f"expected comma-separated numbers, got {text!r}") from None
+    if not vals:
+        raise InputError(flag, "expected at least one number")
+    return vals
+
+
+def material_from_args(args):
+    """Material from --n / --cauchy (formats.md); InputError when missing or unphysical."""
+    from ..errors import InputError
+    from ..optics import CauchyIndex, ConstantIndex, Material
+    if args.n is None and args.cauchy is None:
+        raise InputError("--n/--cauchy", "the refractive index of the material is required (e.g. --n 1.5 or "
+                         "--cauchy 1.5046,4200)")
+    if args.n is not None:
+        v = parse_floats(args.n, "--n")
+        if len(v) > 2:
+            raise InputError("--n", f"expected n or n,k, got {args.n!r}")
+        inside = ConstantIndex(v[0], v[1] if len(v) > 1 else 0.0)
+    else:
+        v = parse_floats(args.cauchy, "--cauchy")
+        if len(v) not in (2, 3):
+            raise InputError("--cauchy", f"expected A,B or A,B,C, got {args.cauchy!r}")
+        inside = CauchyIndex(*v)
+    return Material(inside=inside)
+
+
+def edges_from_steps(theta_step: float, phi_step: float) -> tuple[tuple, tuple]:
+    from ..errors import InputError
+    for name, step, span in (("--theta-step-deg", theta_step, 90.0), ("--phi-step-deg", phi_step, 360.0)):
+        n = span / step if step > 0 else 0
+        if not (step > 0) or abs(n - round(n)) > 1e-9 or round(n) < 1:
+            raise InputError(name, f"cell size must divide {span:g} degrees exactly, got {step}")
+    nt = int(round(90.0 / theta_step))
+    npf = int(round(360.0 / phi_step))
+    te = tuple(np.linspace(0.0, 90.0, nt + 1))
+    pe = tuple(-phi_step / 2 + phi_step * np.arange(npf + 1))
+    return te, pe
+
+
+def parse_options(items: list[str]) -> dict:
+    from ..errors import InputError
+    out = {}
+    for it in items:
+        if "=" not in it:
+            raise InputError("--option", f"expected KEY=VALUE, got {it!r}")
+        k, v = it.split("=", 1)
+        try:
+            out[k.strip()] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k.strip()] = v
+    return out
+
+
+def build_request(args):
+    from ..request import Request
+    te, pe = edges_from_steps(args.theta_step_deg, args.phi_step_deg)
+    sides = ("outside", "inside") if args.incident_from == "both" else (args.incident_from,)
+    opts = parse_options(args.option)
+    if args.polarized:
+        opts["polarized"] = True
+    kw = {}
+    if args.samples is not None:
+        kw["samples"] = int(args.samples)
+    return Request(wavelengths_nm=parse_floats(args.wavelengths_nm, "--wavelengths-nm"),
+                   theta_i_deg=parse_floats(args.theta_i_deg, "--theta-i-deg"),
+                   phi_i_deg=parse_floats(args.phi_i_deg, "--phi-i-deg"), incident_from=sides,
+                   theta_s_edges_deg=te, phi_s_edges_deg=pe, seed=int(args.seed),
+                   coherence_length_m=None if args.coherence_length_um is None else args.coherence_length_um * 1e-6,
+                   options=opts, **kw).validate()
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from ..bsdf_h5 import save_tables
+    from ..errors import InputError
+    from ..methods import get_method, reconstruct
+    from ..progress import TerminalBar
+    from ..readers import read_relief
+    out = Path(args.out)
+    if out.suffix.lower() not in (".h5", ".hdf5"):
+        raise InputError(out, "the output table must be an HDF5 file (.h5)")
+    get_method(args.method)                          # unknown method: fail before reading anything
+    material = material_from_args(args)
+    request = build_request(args)
+    pitch = None
+    if args.pitch_um is not None:
+        v = parse_floats(args.pitch_um, "--pitch-um")
+        pitch = (v[0] * 1e-6, (v[1] if len(v) > 1 else v[0]) * 1e-6)
+    relief = read_relief(args.relief, pitch_m=pitch)
+    bar = TerminalBar(f"reconstruct {args.method}")
+    tables = reconstruct(relief, material, request, args.method, progress=bar)
+    save_tables(out, tables)
+    print(f"wrote {out}: method {args.method}, {len(tables)} table(s)")
+    print(f"{'from':8s} {'lambda_nm':>9s} {'theta_i':>7s} {'phi_i':>6s} {'R':>8s} {'T':>8s} {'spec_R':>8s} "
+          f"{'spec_T':>8s} {'lost':>8s}")
+    for t in tables:
+        for r in t.albedo_rows():
+            print(f"{r['from']:8s} {r['wavelength_nm']:9g} {r['theta_i_deg']:7g} {r['phi_i_deg']:6g} {r['R']:8.5f} "
+                  f"{r['T']:8.5f} {r['specular_R']:8.5f} {r['specular_T']:8.5f} {r['lost']:8.5f}")
+    return 0
