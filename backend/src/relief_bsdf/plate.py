@@ -376,10 +376,14 @@ class PlateSolver:
         u = (np.sin(e[:-1])[:, None] ** 2 + (np.arange(ns) + 0.5)[None] / ns
              * (np.sin(e[1:]) ** 2 - np.sin(e[:-1]) ** 2)[:, None])                           # (O, ns)
         th_int = _snell_deg(np.degrees(np.arcsin(np.sqrt(u))), n0, n)
-        jcell = np.clip(np.searchsorted(self.theta_edges, th_int, side="right") - 1, 0, N - 1)
         tf = _fresnel(np.cos(np.radians(th_int)), n, n0, "T")[..., 0, :c] / ns               # (O, ns, c)
+        # internal radiance linearly interpolated between cell centres, held constant across the
+        # critical angle (trapped cells never feed the exit) and at the grid ends
+        th_c = np.degrees(np.arcsin(min(n0 / n, 1.0)))
+        below = tc < th_c
+        Wi = _lin_matrix(tc[below], th_int.ravel())                                          # (O ns, Nb)
         Wflat = np.zeros((N, N, c))
-        np.add.at(Wflat, (np.repeat(np.arange(N), ns), jcell.ravel()), tf.reshape(-1, c))
+        Wflat[:, below, :] = np.einsum("osj,osc->ojc", Wi.reshape(N, ns, -1), tf)
         ops = dict(n=n, n0=n0, vin=vin, vout=vout, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, Gh=Gh,
                    Wflat=Wflat, c=c, M=Mk)
         self._ops[wl] = ops
