@@ -1,0 +1,275 @@
+"""Baked BSDF -> packed float32 lookup image + reusable shader node group (bpy only here).
+
+The physics (what the rows mean, why they are indexed by the view angle, how weights
+account for the closures' own albedo) is in the backend: `relief_bsdf.bake`.  This module
+only builds Blender data:
+
+- image "Relief LUT: <name>": C x (2 * 5) float32 RGBA, non-colour data, packed, fake user;
+- node group "Relief LUT coordinate": (Row) -> texel-centred (u, v) from the view angle
+  theta_v = acos(|I . N|) and Backfacing (selects the inside row block);
+- node group "Relief BSDF: <name>": four Cycles closures whose colours and roughnesses are
+  read from the image (Linear interpolation, EXTEND), summed into one BSDF output.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+GROUP_PREFIX = "Relief BSDF: "
+IMAGE_PREFIX = "Relief LUT: "
+COORD_GROUP = "Relief LUT coordinate"
+CALIBRATION = Path(__file__).resolve().parent / "data" / "cycles_albedo.npz"
+
+
+def closure_albedo():
+    """The measured Cycles closure albedo shipped with the add-on (None if missing)."""
+    from relief_bsdf.bake import ClosureAlbedo
+    return ClosureAlbedo.load(CALIBRATION) if CALIBRATION.exists() else None
+
+
+def lut_image(lut) -> bpy.types.Image:
+    """Packed float32 data image holding the LUT rows (row 0 at the bottom)."""
+    name = IMAGE_PREFIX + lut.name
+    old = bpy.data.images.get(name)
+    if old is not None:
+        bpy.data.images.remove(old)
+    n_cols, n_rows = lut.rows.shape[1], lut.rows.shape[0]
+    img = bpy.data.images.new(name, n_cols, n_rows, alpha=True, float_buffer=True, is_data=True)
+    img.colorspace_settings.is_data = True
+    img.pixels.foreach_set(lut.image_pixels())
+    img.pack()
+    img.use_fake_user = True
+    img["relief_theta_deg"] = [float(lut.theta_deg[0]), float(lut.theta_deg[-1])]
+    return img
+
+
+def _math(nt, op, a=None, b=None, location=(0, 0), label=None):
+    n = nt.nodes.new("ShaderNodeMath")
+    n.operation = op
+    n.location = location
+    if label:
+        n.label = label
+    for k, v in enumerate((a, b)):
+        if v is None:
+            continue
+        if isinstance(v, (int, float)):
+            n.inputs[k].default_value = float(v)
+        else:
+            nt.links.new(v, n.inputs[k])
+    return n
+
+
+def coordinate_group(n_cols: int, n_rows: int, rows_per_side: int) -> bpy.types.ShaderNodeTree:
+    """(Row) -> Vector (u, v, 0): u from theta_v (texel centres), v = row (+ block if backfacing)."""
+    name = f"{COORD_GROUP} {n_cols}x{n_rows}"
+    g = bpy.data.node_groups.get(name)
+    if g is not None:
+        return g
+    g = bpy.data.node_groups.new(name, "ShaderNodeTree")
+    g.interface.new_socket("Row", in_out="INPUT", socket_type="NodeSocketFloat")
+    g.interface.new_socket("Vector", in_out="OUTPUT", socket_type="NodeSocketVector")
+    gi = g.nodes.new("NodeGroupInput")
+    gi.location = (-900, 0)
+    go = g.nodes.new("NodeGroupOutput")
+    go.location = (500, 0)
+    geo = g.nodes.new("ShaderNodeNewGeometry")
+    geo.location = (-900, -250)
+    dot = g.nodes.new("ShaderNodeVectorMath")
+    dot.operation = "DOT_PRODUCT"
+    dot.location = (-700, -250)
+    g.links.new(geo.outputs["Incoming"], dot.inputs[0])
+    g.links.new(geo.outputs["Normal"], dot.inputs[1])
+    ab = _math(g, "ABSOLUTE", dot.outputs["Value"], location=(-520, -250))
+    cl = _math(g, "MINIMUM", ab.outputs[0], 1.0, location=(-360, -250))
+    ac = _math(g, "ARCCOSINE", cl.outputs[0], location=(-200, -250), label="theta_v (rad)")
+    # u = theta / (pi/2) * (C - 1) / C + 0.5 / C
+    su = _math(g, "MULTIPLY", ac.outputs[0], (2.0 / math.pi) * (n_cols - 1) / n_cols, location=(-40, -250))
+    u = _math(g, "ADD", su.outputs[0], 0.5 / n_cols, location=(120, -250), label="u")
+    # v = (row + rows_per_side * backfacing + 0.5) / n_rows
+    blk = _math(g, "MULTIPLY", geo.outputs["Backfacing"], float(rows_per_side), location=(-520, 50))
+    rr = _math(g, "ADD", gi.outputs["Row"], blk.outputs[0], location=(-360, 50))
+    rh = _math(g, "ADD", rr.outputs[0], 0.5, location=(-200, 50))
+    v = _math(g, "DIVIDE", rh.outputs[0], float(n_rows), location=(-40, 50), label="v")
+    comb = g.nodes.new("ShaderNodeCombineXYZ")
+    comb.location = (300, 0)
+    g.links.new(u.outputs[0], comb.inputs["X"])
+    g.links.new(v.outputs[0], comb.inputs["Y"])
+    g.links.new(comb.outputs[0], go.inputs["Vector"])
+    return g
+
+
+def _lut_tex(g, img, coord, row: int, location):
+    cg = g.nodes.new("ShaderNodeGroup")
+    cg.node_tree = coord
+    cg.inputs["Row"].default_value = float(row)
+    cg.location = (location[0] - 220, location[1])
+    tex = g.nodes.new("ShaderNodeTexImage")
+    tex.image = img
+    tex.interpolation = "Linear"
+    tex.extension = "EXTEND"
+    tex.location = location
+    tex.label = f"row {row}"
+    g.links.new(cg.outputs["Vector"], tex.inputs["Vector"])
+    return tex
+
+
+def _metallic_lobe(g, lut, tex, roughness_socket, geo, loc):
+    """Fresnel-weighted GGX reflection lobe: Metallic BSDF (physical conductor, extinction 0,
+    IOR n per channel, 1/n when back-facing) times the LUT's green weight (two halves through
+    Mix Shader factors, which Cycles clamps to [0, 1], so weights up to 2 pass)."""
+    b = g.nodes.new("ShaderNodeBsdfMetallic")
+    b.location = loc
+    b.label = "diffuse_R"
+    b.fresnel_type = "PHYSICAL_CONDUCTOR"
+    b.distribution = "GGX"
+    b.inputs["Extinction"].default_value = (0.0, 0.0, 0.0)
+    g.links.new(roughness_socket, b.inputs["Roughness"])
+    mix = g.nodes.new("ShaderNodeMix")
+    mix.data_type = "VECTOR"
+    mix.location = (loc[0] - 200, loc[1] - 150)
+    vec_in = [s for s in mix.inputs if s.name == "A" and s.type == "VECTOR"]
+    vec_b = [s for s in mix.inputs if s.name == "B" and s.type == "VECTOR"]
+    vec_out = [s for s in mix.outputs if s.type == "VECTOR"][0]
+    vec_in[0].default_value = lut.ior_rgb
+    vec_b[0].default_value = tuple(1.0 / n for n in lut.ior_rgb)
+    g.links.new(geo.outputs["Backfacing"], mix.inputs["Factor"])
+    g.links.new(vec_out, b.inputs["IOR"])
+    sc = g.nodes.new("ShaderNodeSeparateColor")
+    sc.location = (loc[0] - 200, loc[1] + 100)
+    g.links.new(tex.outputs["Color"], sc.inputs["Color"])
+    half = _math(g, "MULTIPLY", sc.outputs["Green"], 0.5, location=(loc[0] - 20, loc[1] + 100))
+    add = g.nodes.new("ShaderNodeAddShader")
+    add.location = (loc[0] + 300, loc[1])
+    for k in range(2):
+        m = g.nodes.new("ShaderNodeMixShader")
+        m.location = (loc[0] + 150, loc[1] - 60 * k)
+        g.links.new(half.outputs[0], m.inputs["Fac"])
+        g.links.new(b.outputs[0], m.inputs[2])
+        g.links.new(m.outputs[0], add.inputs[k])
+    return add
+
+
+def build_node_group(lut, img: bpy.types.Image | None = None) -> bpy.types.ShaderNodeTree:
+    """The reusable node group "Relief BSDF: <name>" for a `relief_bsdf.bake.BakedLut`."""
+    from relief_bsdf.bake import ROW_NAMES, ROWS_PER_SIDE
+    img = img or lut_image(lut)
+    name = GROUP_PREFIX + lut.name
+    old = bpy.data.node_groups.get(name)
+    if old is not None:
+        bpy.data.node_groups.remove(old)
+    n_cols, n_rows = lut.rows.shape[1], lut.rows.shape[0]
+    coord = coordinate_group(n_cols, n_rows, ROWS_PER_SIDE)
+    g = bpy.data.node_groups.new(name, "ShaderNodeTree")
+    g.interface.new_socket("BSDF", in_out="OUTPUT", socket_type="NodeSocketShader")
+    g.use_fake_user = True
+    go = g.nodes.new("NodeGroupOutput")
+    go.location = (900, 0)
+    tex = {r: _lut_tex(g, img, coord, k, (-300, 300 - 260 * k)) for k, r in enumerate(ROW_NAMES)}
+    sep = g.nodes.new("ShaderNodeSeparateColor")
+    sep.location = (-20, -1000)
+    g.links.new(tex["roughness"].outputs["Color"], sep.inputs["Color"])
+    geo = g.nodes.new("ShaderNodeNewGeometry")
+    geo.location = (-20, -1250)
+    closures = []
+    spec = [("specular_R", "ShaderNodeBsdfGlossy", None), ("diffuse_R", None, "Red"),
+            ("specular_T", "ShaderNodeBsdfRefraction", None), ("diffuse_T", "ShaderNodeBsdfRefraction", "Green")]
+    for k, (row, kind, rough) in enumerate(spec):
+        loc = (250, 400 - 280 * k)
+        if row == "diffuse_R" and lut.reflection_closure == "metallic":
+            closures.append(_metallic_lobe(g, lut, tex[row], sep.outputs[rough], geo, loc))
+            continue
+        b = g.nodes.new(kind or "ShaderNodeBsdfGlossy")
+        b.location = loc
+        b.label = row
+        b.distribution = "GGX"
+        if b.bl_idname == "ShaderNodeBsdfRefraction":
+            b.inputs["IOR"].default_value = lut.ior
+        else:
+            b.distribution = "MULTI_GGX"
+        g.links.new(tex[row].outputs["Color"], b.inputs["Color"])
+        if rough is None:
+            b.inputs["Roughness"].default_value = 0.0
+        else:
+            g.links.new(sep.outputs[rough], b.inputs["Roughness"])
+        closures.append(b)
+    acc = closures[0].outputs[0]
+    for k, b in enumerate(closures[1:]):
+        add = g.nodes.new("ShaderNodeAddShader")
+        add.location = (550, 300 - 200 * k)
+        g.links.new(acc, add.inputs[0])
+        g.links.new(b.outputs[0], add.inputs[1])
+        acc = add.outputs[0]
+    g.links.new(acc, go.inputs["BSDF"])
+    g["relief_ior"] = float(lut.ior)
+    g["relief_rgb_nm"] = list(lut.rgb_nm)
+    g["relief_image"] = img.name
+    return g
+
+
+def has_metallic_bsdf() -> bool:
+    """Blender 4.3+ has the Metallic BSDF (physical conductor Fresnel)."""
+    return bpy.app.version >= (4, 3, 0)
+
+
+def bake_tables(tables, name: str, albedo="calibrated"):
+    """BsdfTables -> (BakedLut, image, node group)."""
+    from relief_bsdf.bake import bake_lut
+    alb = closure_albedo() if albedo == "calibrated" else albedo
+    closure = "metallic" if has_metallic_bsdf() and (alb is None or getattr(alb, "metallic", 1) is not None) \
+        else "glossy"
+    lut = bake_lut(tables, name, albedo=alb, reflection_closure=closure)
+    img = lut_image(lut)
+    return lut, img, build_node_group(lut, img)
+
+
+def material_for_group(group: bpy.types.ShaderNodeTree, name: str | None = None) -> bpy.types.Material:
+    """A material whose surface is the node group (one per group, reused)."""
+    name = name or group.name
+    mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
+    nt = mat.node_tree
+    nt.nodes.clear()
+    node = nt.nodes.new("ShaderNodeGroup")
+    node.node_tree = group
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    out.location = (300, 0)
+    nt.links.new(node.outputs["BSDF"], out.inputs["Surface"])
+    return mat
+
+
+def glass_material(ior: float, name: str = "Relief smooth glass") -> bpy.types.Material:
+    mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
+    nt = mat.node_tree
+    nt.nodes.clear()
+    b = nt.nodes.new("ShaderNodeBsdfGlass")
+    b.distribution = "MULTI_GGX" if "MULTI_GGX" in [e.identifier for e in b.bl_rna.properties["distribution"].enum_items] \
+        else b.distribution
+    b.inputs["Roughness"].default_value = 0.0
+    b.inputs["IOR"].default_value = float(ior)
+    b.inputs["Color"].default_value = (1, 1, 1, 1)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    nt.links.new(b.outputs[0], out.inputs["Surface"])
+    return mat
+
+
+def assign_to_rough_face(obj: bpy.types.Object, group: bpy.types.ShaderNodeTree, rough_face: str = "front") -> None:
+    """Give `obj` two material slots: glass (all faces) and the baked BSDF on its rough face.
+
+    The rough face is the face whose normal is most along +z ("front", the lit face) or -z
+    ("back").  Faces are selected by their normal in object space.
+    """
+    me = obj.data
+    glass = glass_material(group.get("relief_ior", 1.5))
+    baked = material_for_group(group)
+    me.materials.clear()
+    me.materials.append(glass)
+    me.materials.append(baked)
+    n = len(me.polygons)
+    normals = np.empty(3 * n, np.float32)
+    me.polygons.foreach_get("normal", normals)
+    nz = normals.reshape(n, 3)[:, 2]
+    target = nz > 0.5 if rough_face == "front" else nz < -0.5
+    me.polygons.foreach_set("material_index", target.astype(np.int32))
+    me.update()

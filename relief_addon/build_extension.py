@@ -1,0 +1,244 @@
+"""Build the Blender extension zips (one per platform) with the backend and its wheels bundled.
+
+    python relief_addon/build_extension.py --out dist [--platforms linux-x64,windows-x64,macos-arm64]
+                                           [--cache build/wheels] [--offline]
+
+Steps:
+1. wheel of the backend (`backend/`, import name `relief_bsdf`), built locally;
+2. the backend's runtime dependencies, i.e. the transitive closure of its requirements as
+   installed in this environment, at the versions pinned in requirements/runtime.txt, minus
+   what Blender ships (numpy; bpy itself).  Binary wheels for each target platform come from
+   PyPI with `pip download --only-binary=:all: --platform ... --python-version 3.11 --no-deps`
+   (Blender 4.2 to 5.0 embed Python 3.11); pure-Python packages that only publish an sdist are
+   built into a py3-none-any wheel once.  Everything is cached under `--cache` (gitignored), so a
+   second build is offline;
+3. a staging folder with blender_manifest.toml (plus the `wheels` list and the chosen
+   `platforms`) and the add-on's Python files;
+4. Blender's own `blender_ext.py build --split-platforms` (runs under plain Python), then
+   `blender_ext.py validate` on every zip.
+
+A package with no wheel for a platform is reported and left out of that platform's zip (the
+feature needing it then fails there with a clear error); the build does not stop.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+ADDON_DIR = ROOT / "relief_addon"
+PY_VERSION = "3.11"
+NOT_BUNDLED = {"numpy", "bpy", "relief-bsdf"}   # Blender ships numpy (bpy 5.0.1 needs numpy < 2)
+
+# pip --platform tags per Blender platform; pip expands each to the older compatible tags.
+PLATFORM_TAGS = {
+    "linux-x64": ["manylinux_2_28_x86_64", "manylinux2014_x86_64", "linux_x86_64"],
+    "windows-x64": ["win_amd64"],
+    "macos-arm64": ["macosx_14_0_arm64", "macosx_11_0_universal2"],
+}
+
+
+def _norm(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def blender_ext_script() -> Path:
+    """Blender's extension builder/validator inside the installed bpy module."""
+    import importlib.util
+    spec = importlib.util.find_spec("bpy")
+    if spec is None or spec.origin is None:
+        raise SystemExit("build_extension: the bpy module is not installed in this Python")
+    hits = sorted(Path(spec.origin).parent.glob("*/scripts/addons_core/bl_pkg/cli/blender_ext.py"))
+    if not hits:
+        raise SystemExit("build_extension: blender_ext.py not found inside the bpy module")
+    return hits[-1]
+
+
+def pinned_versions() -> dict[str, str]:
+    pins = {}
+    for line in (ROOT / "requirements" / "runtime.txt").read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if "==" in line:
+            name, ver = line.split("==", 1)
+            pins[_norm(name)] = ver.strip()
+    return pins
+
+
+def dependency_closure(top: str = "relief-bsdf") -> dict[str, dict]:
+    """{normalised name: {"name", "version", "pure"}} of every runtime dependency of `top`."""
+    from packaging.requirements import Requirement
+    pins = pinned_versions()
+    out: dict[str, dict] = {}
+    stack = [top]
+    while stack:
+        name = stack.pop()
+        key = _norm(name)
+        if key in out:
+            continue
+        dist = metadata.distribution(name)
+        wheel_meta = dist.read_text("WHEEL") or ""
+        out[key] = {"name": dist.metadata["Name"], "version": pins.get(key, dist.version),
+                    "pure": "Root-Is-Purelib: true" in wheel_meta}
+        for r in dist.requires or []:
+            req = Requirement(r)
+            if req.marker is not None and not req.marker.evaluate({"extra": ""}):
+                continue
+            stack.append(req.name)
+    return {k: v for k, v in out.items() if k not in NOT_BUNDLED}
+
+
+def _pip(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pip", *args], capture_output=True, text=True)
+
+
+def _wheel_name_key(path: Path) -> str:
+    return _norm(path.name.split("-")[0])
+
+
+def build_backend_wheel(cache: Path) -> Path:
+    out = cache / "backend"
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    r = _pip("wheel", "--no-deps", "--no-build-isolation", "-w", str(out), str(ROOT / "backend"))
+    if r.returncode != 0:
+        r = _pip("wheel", "--no-deps", "-w", str(out), str(ROOT / "backend"))
+    if r.returncode != 0:
+        raise SystemExit(f"build_extension: building the backend wheel failed:\n{r.stderr[-2000:]}")
+    wheels = sorted(out.glob("relief_bsdf-*.whl"))
+    if not wheels:
+        raise SystemExit("build_extension: the backend wheel was not produced")
+    return wheels[-1]
+
+
+def _find_cached(cache: Path, name: str, version: str, tags: list[str] | None) -> Path | None:
+    stem = re.sub(r"[-_.]+", "_", name).lower()
+    for w in cache.glob("*.whl"):
+        parts = w.name[:-4].split("-")
+        if re.sub(r"[-_.]+", "_", parts[0]).lower() != stem or parts[1] != version:
+            continue
+        plat = parts[-1]
+        if plat == "any" or tags is None or _platform_matches(plat, tags):
+            return w
+    return None
+
+
+def _platform_matches(wheel_plat: str, tags: list[str]) -> bool:
+    fam = {"linux": ("manylinux", "linux"), "win": ("win_amd64",), "macosx": ("macosx",)}
+    for p in wheel_plat.split("."):
+        for t in tags:
+            if t.startswith("manylinux") or t.startswith("linux"):
+                if p.startswith(fam["linux"]) and p.endswith("x86_64"):
+                    return True
+            elif t == "win_amd64" and p == "win_amd64":
+                return True
+            elif t.startswith("macosx") and p.startswith("macosx") and (p.endswith("arm64") or p.endswith("universal2")):
+                return True
+    return False
+
+
+def fetch_wheels(deps: dict[str, dict], platforms: list[str], cache: Path, offline: bool) -> tuple[list[Path], list[str]]:
+    """Wheels for every dependency and platform (from the cache or PyPI); and what is missing."""
+    cache.mkdir(parents=True, exist_ok=True)
+    found: dict[str, Path] = {}
+    missing = []
+    for key, d in sorted(deps.items()):
+        spec = f"{d['name']}=={d['version']}"
+        pure_hit = _find_cached(cache, d["name"], d["version"], None)
+        if pure_hit is not None and pure_hit.name.endswith("-any.whl"):
+            found[pure_hit.name] = pure_hit
+            continue
+        for plat in platforms:
+            tags = PLATFORM_TAGS[plat]
+            hit = _find_cached(cache, d["name"], d["version"], tags)
+            if hit is None and not offline:
+                args = ["download", "--only-binary=:all:", "--no-deps", "--python-version", PY_VERSION,
+                        "--implementation", "cp", "-d", str(cache), "--quiet"]
+                for t in tags:
+                    args += ["--platform", t]
+                r = _pip(*args, spec)
+                hit = _find_cached(cache, d["name"], d["version"], tags)
+                if hit is None and d["pure"]:
+                    # pure Python published as an sdist only: build the universal wheel once
+                    _pip("wheel", "--no-deps", "-w", str(cache), "--quiet", spec)
+                    hit = _find_cached(cache, d["name"], d["version"], None)
+                if hit is None:
+                    print(f"  no wheel of {spec} for {plat}: {r.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
+            if hit is None:
+                missing.append(f"{spec} ({plat})")
+                continue
+            found[hit.name] = hit
+            if hit.name.endswith("-any.whl"):
+                break
+    return sorted(found.values()), missing
+
+
+def stage(stage_dir: Path, wheels: list[Path], platforms: list[str]) -> Path:
+    """The extension's source folder: add-on modules, manifest with wheels, wheels/."""
+    shutil.rmtree(stage_dir, ignore_errors=True)
+    (stage_dir / "wheels").mkdir(parents=True)
+    for p in ADDON_DIR.rglob("*"):
+        rel = p.relative_to(ADDON_DIR)
+        if "__pycache__" in rel.parts or p.name == "build_extension.py" or p.is_dir():
+            continue
+        dst = stage_dir / rel
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(p, dst)
+    for w in wheels:
+        shutil.copy2(w, stage_dir / "wheels" / w.name)
+    text = (ROOT / "blender_manifest.toml").read_text()
+    text = re.sub(r"(?m)^platforms\s*=.*$", "platforms = " + json.dumps(platforms), text)
+    wheel_list = ",\n".join(f'  "./wheels/{w.name}"' for w in wheels)
+    # `wheels` must be a top-level key: insert it before the first table header
+    head, sep, tail = text.partition("\n[")
+    text = head.rstrip() + f"\n\nwheels = [\n{wheel_list},\n]\n" + (sep + tail if sep else "")
+    (stage_dir / "blender_manifest.toml").write_text(text)
+    return stage_dir
+
+
+def build(out: Path, platforms: list[str], cache: Path, offline: bool = False) -> list[Path]:
+    for p in platforms:
+        if p not in PLATFORM_TAGS:
+            raise SystemExit(f"build_extension: unknown platform {p!r}; choose from {', '.join(PLATFORM_TAGS)}")
+    ext = blender_ext_script()
+    deps = dependency_closure()
+    print(f"bundling {len(deps)} packages for {', '.join(platforms)} (numpy not bundled)")
+    backend = build_backend_wheel(cache)
+    wheels, missing = fetch_wheels(deps, platforms, cache / "pypi", offline)
+    if missing:
+        print("left out (no wheel): " + "; ".join(missing), file=sys.stderr)
+    src = stage(cache.parent / "extension_stage", [backend, *wheels], platforms)
+    out.mkdir(parents=True, exist_ok=True)
+    for old in out.glob("relief_addon-*.zip"):
+        old.unlink()
+    r = subprocess.run([sys.executable, str(ext), "build", "--source-dir", str(src), "--output-dir", str(out),
+                        "--split-platforms"], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"build_extension: blender_ext build failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
+    zips = sorted(out.glob("relief_addon-*.zip"))
+    for z in zips:
+        v = subprocess.run([sys.executable, str(ext), "validate", str(z)], capture_output=True, text=True)
+        if v.returncode != 0:
+            raise SystemExit(f"build_extension: {z.name} does not validate:\n{v.stdout}\n{v.stderr}")
+        print(f"built and validated {z} ({z.stat().st_size / 1e6:.1f} MB)")
+    return zips
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=ROOT / "dist")
+    ap.add_argument("--platforms", default=",".join(PLATFORM_TAGS))
+    ap.add_argument("--cache", type=Path, default=ROOT / "build" / "wheels")
+    ap.add_argument("--offline", action="store_true", help="use cached wheels only")
+    a = ap.parse_args(argv)
+    build(a.out, [p for p in a.platforms.split(",") if p], a.cache.resolve(), a.offline)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,423 @@
+"""Operators: thin wrappers over backend calls (relief_bsdf), bpy data only on the main thread."""
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import bpy
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy_extras.io_utils import ImportHelper
+
+from .jobs import JobOperator
+from .props import METHOD_ITEMS, SIDE_ITEMS
+
+# every suffix the backend reads: npz, images (OpenImageIO), .sdf, and SurfaceTopography's readers
+BASE_SUFFIXES = ("npz", "x3p", "gwy", "sur", "sdf", "tif", "tiff", "exr")
+
+
+def reader_suffixes() -> tuple:
+    ext = set(BASE_SUFFIXES)
+    try:
+        from SurfaceTopography.IO import readers
+        for r in readers:
+            try:
+                ext.update(e.lower() for e in r.file_extensions())
+            except Exception:  # noqa: BLE001 - a reader without the method
+                pass
+    except Exception:  # noqa: BLE001 - SurfaceTopography missing on this platform
+        pass
+    return tuple(sorted(ext))
+
+
+def abspath(p: str) -> Path:
+    """Blender path ('//' = the .blend's folder; a temporary folder when the file is unsaved)."""
+    if p.startswith("//") and not bpy.data.filepath:
+        return Path(tempfile.gettempdir()) / "relief" / p[2:]
+    return Path(bpy.path.abspath(p))
+
+
+def _floats(text: str, what: str) -> tuple:
+    from relief_bsdf.errors import InputError
+    try:
+        vals = tuple(float(t) for t in text.replace(";", ",").split(",") if t.strip())
+    except ValueError:
+        raise InputError(what, f"expected comma-separated numbers, got {text!r}") from None
+    if not vals:
+        raise InputError(what, "no value given")
+    return vals
+
+
+def _require(module: str, what: str):
+    """Import a backend module or raise an error naming the missing feature."""
+    import importlib
+    from relief_bsdf.errors import InputError
+    try:
+        return importlib.import_module(module)
+    except ImportError as e:
+        raise InputError(what, f"this backend has no {module} ({e}); update relief-bsdf") from None
+
+
+# ====================================================================== import
+
+
+def _import_file(context, path: Path, pitch_um: float, z_scale: float):
+    from relief_bsdf.readers import read_relief
+    from .mesh_import import import_relief
+    pitch = (pitch_um * 1e-6, pitch_um * 1e-6) if pitch_um > 0 else None
+    relief = read_relief(path, pitch_m=pitch)
+    obj = import_relief(relief, z_scale=z_scale, collection=context.collection)
+    for o in context.view_layer.objects:
+        o.select_set(False)
+    obj.select_set(True)
+    context.view_layer.objects.active = obj
+    return obj
+
+
+class RELIEF_OT_import_heightmap(bpy.types.Operator, ImportHelper):
+    """Import a measured surface height map as a mesh (true heights in metres)"""
+
+    bl_idname = "relief.import_heightmap"
+    bl_label = "Import Surface Height Map"
+    bl_options = {"REGISTER", "UNDO", "PRESET"}
+
+    filename_ext = ""
+    filter_glob: StringProperty(default=";".join(f"*.{e}" for e in BASE_SUFFIXES), options={"HIDDEN"})
+    files: CollectionProperty(type=bpy.types.OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
+    directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
+    pitch_um: FloatProperty(name="Pitch (um)", default=0.0, min=0.0,
+                            description="Lateral pitch for images without sidecar; 0 = from the file")
+    z_scale: FloatProperty(name="Height exaggeration", default=1.0, min=0.0,
+                           description="Display factor for z (true heights are kept)")
+
+    def execute(self, context):
+        paths = [Path(self.directory) / f.name for f in self.files if f.name] if self.files and self.directory \
+            else [Path(self.filepath)]
+        made = []
+        for p in paths:
+            try:
+                made.append(_import_file(context, p, self.pitch_um, self.z_scale))
+            except Exception as exc:  # noqa: BLE001 - report, never a console-only traceback
+                from .jobs import _error_text
+                self.report({"ERROR"}, f"Import: {_error_text(exc)}")
+                return {"CANCELLED"}
+        for o in made:
+            self.report({"INFO"}, f"Imported {o.name}: {len(o.data.vertices)} vertices")
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        if self.filepath or (self.files and self.directory):
+            return self.execute(context)
+        self.filter_glob = ";".join(f"*.{e}" for e in reader_suffixes())
+        return ImportHelper.invoke(self, context, event)
+
+
+class RELIEF_FH_heightmap(bpy.types.FileHandler):
+    bl_idname = "RELIEF_FH_heightmap"
+    bl_label = "Surface height map"
+    bl_import_operator = "relief.import_heightmap"
+    bl_file_extensions = ";".join(f".{e}" for e in BASE_SUFFIXES + ("plu", "opd", "datx", "nid", "mi", "vk4"))
+
+    @classmethod
+    def poll_drop(cls, context):
+        return context.area is not None and context.area.type in ("VIEW_3D", "OUTLINER")
+
+
+def menu_import(self, context):
+    self.layout.operator(RELIEF_OT_import_heightmap.bl_idname, text="Surface height map")
+
+
+# ====================================================================== reconstruct
+
+
+def _relief_source(context) -> tuple[str, list | None]:
+    from relief_bsdf.errors import InputError
+    obj = context.active_object
+    if obj is None or "relief_source" not in obj:
+        raise InputError("active object", "select an imported relief (File > Import > Surface height map)")
+    pitch = obj.get("relief_pitch_m")
+    return obj["relief_source"], (list(pitch) if pitch is not None else None)
+
+
+class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
+    """Reconstruct the BSDF table of the active relief and bake it to a node group"""
+
+    bl_idname = "relief.reconstruct"
+    bl_label = "Reconstruct BSDF"
+    bl_options = {"REGISTER"}
+    job_label = "Reconstruct"
+
+    method: EnumProperty(name="Method", items=METHOD_ITEMS, default="microfacet")
+    wavelengths_nm: StringProperty(name="Wavelengths (nm)", default="")
+    theta_i_deg: StringProperty(name="Incidences (deg)", default="")
+    sides: EnumProperty(name="Sides", items=SIDE_ITEMS, default="both")
+    samples: IntProperty(name="Samples", default=0, min=0, description="0 = the scene setting")
+    ior: FloatProperty(name="Refractive index", default=0.0, min=0.0, description="0 = the scene setting")
+    relief_path: StringProperty(name="Relief file", default="", subtype="FILE_PATH",
+                                description="Height map (default: the active imported relief)")
+    filepath: StringProperty(name="Table", default="", subtype="FILE_PATH", description="Output table (.h5)")
+    bake: BoolProperty(name="Bake", default=True, description="Bake the table to a node group when done")
+
+    def invoke(self, context, event):
+        s = context.scene.relief
+        # the panel's settings fill what the caller did not set
+        if not self.properties.is_property_set("method"):
+            self.method = s.method
+        if not self.properties.is_property_set("sides"):
+            self.sides = s.sides
+        return JobOperator.invoke(self, context, event)
+
+    def prepare(self, context):
+        from relief_bsdf.optics import ConstantIndex, Material
+        from relief_bsdf.request import Request
+        s = context.scene.relief
+        if self.relief_path:
+            src, pitch = str(abspath(self.relief_path)), None
+        else:
+            src, pitch = _relief_source(context)
+        sides = ("outside", "inside") if self.sides == "both" else (self.sides,)
+        req = Request(wavelengths_nm=_floats(self.wavelengths_nm or s.wavelengths_nm, "wavelengths"),
+                      theta_i_deg=_floats(self.theta_i_deg or s.theta_i_deg, "incidences"),
+                      incident_from=sides, samples=int(self.samples or s.samples), seed=int(s.seed)).validate()
+        out = abspath(self.filepath or s.table_path)
+        albedo = None
+        if self.bake:
+            from .bake_nodes import closure_albedo
+            albedo = closure_albedo()
+        from .bake_nodes import has_metallic_bsdf
+        return {"relief": src, "pitch": pitch, "material": Material(ConstantIndex(float(self.ior or s.ior))),
+                "request": req, "method": self.method, "out": out, "bake": self.bake, "albedo": albedo,
+                "closure": "metallic" if has_metallic_bsdf() else "glossy", "name": Path(src).stem}
+
+    @staticmethod
+    def work(p, progress):
+        from relief_bsdf.bsdf_h5 import save_tables
+        from relief_bsdf.methods import reconstruct
+        from relief_bsdf.readers import read_relief
+        relief = read_relief(p["relief"], pitch_m=p["pitch"])
+        tables = reconstruct(relief, p["material"], p["request"], p["method"], progress=progress)
+        save_tables(p["out"], tables)
+        lut = None
+        if p["bake"]:
+            from relief_bsdf.bake import bake_lut
+            lut = bake_lut(tables, p["name"], albedo=p["albedo"], reflection_closure=p["closure"])
+        return {"tables": tables, "out": p["out"], "lut": lut}
+
+    def finish(self, context, r):
+        context.scene.relief.table_path = str(r["out"])
+        rows = r["tables"][0].albedo_rows()
+        msg = ", ".join(f"{x['theta_i_deg']:.0f} deg: R {x['R']:.3f} T {x['T']:.3f}" for x in rows[:4])
+        self.report({"INFO"}, f"Wrote {r['out']} ({msg}{', ...' if len(rows) > 4 else ''})")
+        if r["lut"] is not None:
+            _install_lut(context, r["lut"], assign=False)
+
+
+# ====================================================================== bake
+
+
+def _install_lut(context, lut, assign: bool):
+    from .bake_nodes import assign_to_rough_face, build_node_group, lut_image
+    img = lut_image(lut)
+    group = build_node_group(lut, img)
+    obj = context.active_object
+    if assign and obj is not None and obj.type == "MESH":
+        assign_to_rough_face(obj, group, obj.get("relief_rough_face", "front"))
+    return group
+
+
+class RELIEF_OT_bake_bsdf(JobOperator, bpy.types.Operator):
+    """Bake a BSDF table (HDF5) to the node group "Relief BSDF: <name>" with packed lookup images"""
+
+    bl_idname = "relief.bake_bsdf"
+    bl_label = "Bake BSDF Node Group"
+    bl_options = {"REGISTER", "UNDO"}
+    job_label = "Bake"
+
+    filepath: StringProperty(name="Table", default="", subtype="FILE_PATH")
+    name: StringProperty(name="Name", default="", description="Node group name suffix (default: file stem)")
+    assign: BoolProperty(name="Assign to active", default=True,
+                         description="Put the group on the rough face of the active mesh")
+
+    def prepare(self, context):
+        from relief_bsdf.errors import InputError
+        from .bake_nodes import closure_albedo, has_metallic_bsdf
+        path = abspath(self.filepath or context.scene.relief.table_path)
+        if not path.is_file():
+            raise InputError(path, "BSDF table file not found (reconstruct first or choose a .h5 file)")
+        return {"path": path, "name": self.name or path.stem, "albedo": closure_albedo(),
+                "closure": "metallic" if has_metallic_bsdf() else "glossy"}
+
+    @staticmethod
+    def work(p, progress):
+        from relief_bsdf.bake import bake_lut
+        from relief_bsdf.bsdf_h5 import load_tables
+        tables = load_tables(p["path"])
+        progress(0, 1, "fitting lobes")
+        lut = bake_lut(tables, p["name"], albedo=p["albedo"], reflection_closure=p["closure"])
+        progress(1, 1, "done")
+        return lut
+
+    def finish(self, context, lut):
+        group = _install_lut(context, lut, self.assign)
+        self.report({"INFO"}, f"Baked {group.name}")
+
+
+# ====================================================================== plate, fit, diagnose
+
+
+def _sample_and_out(op, context, sub: str):
+    from relief_bsdf.errors import InputError
+    s = context.scene.relief
+    sample = abspath(op.sample or s.sample_path) if (op.sample or s.sample_path) else None
+    if sample is None or not sample.is_file():
+        raise InputError(sample or "sample", "choose a sample.toml (Plate & recording panel)")
+    out = abspath(op.output_dir or s.output_dir) / sub
+    return sample, out
+
+
+class RELIEF_OT_simulate_plate(JobOperator, bpy.types.Operator):
+    """Simulate the plate of a sample on its recording's rows (writes simulated.csv)"""
+
+    bl_idname = "relief.simulate_plate"
+    bl_label = "Simulate Plate"
+    job_label = "Simulate"
+
+    sample: StringProperty(name="Sample", default="", subtype="FILE_PATH")
+    output_dir: StringProperty(name="Output", default="", subtype="DIR_PATH")
+    method: StringProperty(name="Method", default="microfacet+dw")
+    table: StringProperty(name="Table", default="", subtype="FILE_PATH",
+                          description="Use this boundary table instead of deriving one")
+
+    def prepare(self, context):
+        sample, out = _sample_and_out(self, context, "simulate")
+        return {"sample": str(sample), "out": str(out), "method": self.method,
+                "table": str(abspath(self.table)) if self.table else None}
+
+    @staticmethod
+    def work(p, progress):
+        cmd = _require("relief_bsdf.cli.cmd_simulate", "simulate")
+        args = argparse.Namespace(sample=p["sample"], out=p["out"], method=p["method"], samples=200_000, seed=0,
+                                  height_scale=1.0, filter_sigma_um=0.0, table=p["table"])
+        progress(0, 1, "simulating")
+        cmd.run(args)
+        progress(1, 1, "done")
+        return Path(p["out"]) / "simulated.csv"
+
+    def finish(self, context, path):
+        self.report({"INFO"}, f"Wrote {path}")
+
+
+class RELIEF_OT_fit(JobOperator, bpy.types.Operator):
+    """Fit the relief's height scale and smoothing to the sample's recording"""
+
+    bl_idname = "relief.fit"
+    bl_label = "Fit to Recording"
+    job_label = "Fit"
+
+    sample: StringProperty(name="Sample", default="", subtype="FILE_PATH")
+    output_dir: StringProperty(name="Output", default="", subtype="DIR_PATH")
+    method: StringProperty(name="Method", default="microfacet+dw")
+    max_iter: IntProperty(name="Iterations", default=60, min=1)
+
+    def prepare(self, context):
+        sample, out = _sample_and_out(self, context, "fit")
+        return {"sample": str(sample), "out": str(out), "method": self.method, "max_iter": self.max_iter}
+
+    @staticmethod
+    def work(p, progress):
+        fit = _require("relief_bsdf.fit", "fit")
+        doc = fit.run_fit_job(p["sample"], p["out"], method=p["method"], max_iter=p["max_iter"], progress=progress)
+        return {"doc": doc, "out": p["out"]}
+
+    def finish(self, context, r):
+        context.scene.relief.fit_dir = r["out"]
+        d = r["doc"]
+        self.report({"INFO"}, f"Fit: rms {d['rms_before']:.4g} -> {d['rms_after']:.4g}, "
+                              f"parameters {json.dumps(d.get('parameters', {}))}")
+
+
+class RELIEF_OT_diagnose(JobOperator, bpy.types.Operator):
+    """Find the physical effect the model leaves out (writes diagnosis.json and report.html)"""
+
+    bl_idname = "relief.diagnose"
+    bl_label = "Diagnose"
+    job_label = "Diagnose"
+
+    sample: StringProperty(name="Sample", default="", subtype="FILE_PATH")
+    output_dir: StringProperty(name="Output", default="", subtype="DIR_PATH")
+
+    def prepare(self, context):
+        sample, out = _sample_and_out(self, context, "diagnose")
+        return {"sample": str(sample), "out": str(out)}
+
+    @staticmethod
+    def work(p, progress):
+        diag = _require("relief_bsdf.diagnose", "diagnose")
+        res = diag.diagnose(p["sample"], p["out"], progress=progress)
+        path = Path(p["out"]) / "diagnosis.json"
+        if not isinstance(res, dict) and path.is_file():
+            res = json.loads(path.read_text())
+        return res
+
+    def finish(self, context, res):
+        if isinstance(res, dict):
+            self.report({"INFO"}, f"Diagnosis: {res.get('effect')} (rms {res.get('rms_before', float('nan')):.4g} "
+                                  f"-> {res.get('rms_after', float('nan')):.4g}): {res.get('explanation', '')}")
+
+
+# ====================================================================== render
+
+
+class RELIEF_OT_render_plate(JobOperator, bpy.types.Operator):
+    """Render the plate over a checkerboard before and after the fit, side by side (Cycles)"""
+
+    bl_idname = "relief.render_plate"
+    bl_label = "Render Plate"
+    job_label = "Render"
+
+    filepath: StringProperty(name="Output", default="", subtype="FILE_PATH")
+    source: StringProperty(name="Sample or fit folder", default="", subtype="FILE_PATH",
+                           description="sample.toml or a folder written by Fit (default: the scene's)")
+    width: IntProperty(name="Width per image", default=0, min=0)
+    samples: IntProperty(name="Samples", default=0, min=0)
+
+    def prepare(self, context):
+        from relief_bsdf.errors import InputError
+        from .bake_nodes import closure_albedo, has_metallic_bsdf
+        s = context.scene.relief
+        src = self.source or s.fit_dir or s.sample_path
+        if not src:
+            raise InputError("source", "choose a sample.toml or a fit folder")
+        return {"source": str(abspath(src)), "out": str(abspath(self.filepath or s.render_path)),
+                "width": self.width or s.render_width, "samples": self.samples or s.render_samples,
+                "albedo": closure_albedo(), "closure": "metallic" if has_metallic_bsdf() else "glossy"}
+
+    @staticmethod
+    def work(p, progress):
+        from .plate_scene import prepare_plates
+        return {**p, "plates": prepare_plates(p["source"], p["albedo"], p["closure"], progress)}
+
+    def finish(self, context, r):
+        from .plate_scene import render_side_by_side
+        out = render_side_by_side(r["plates"], r["out"], width=r["width"], samples=r["samples"])
+        self.report({"INFO"}, f"Wrote {out}")
+
+
+CLASSES = (RELIEF_OT_import_heightmap, RELIEF_FH_heightmap, RELIEF_OT_reconstruct, RELIEF_OT_bake_bsdf,
+           RELIEF_OT_simulate_plate, RELIEF_OT_fit, RELIEF_OT_diagnose, RELIEF_OT_render_plate)
+
+
+def register():
+    for c in CLASSES:
+        if c is RELIEF_FH_heightmap and not hasattr(bpy.types, "FileHandler"):
+            continue                       # Blender < 4.1: no drag-and-drop handlers
+        bpy.utils.register_class(c)
+    bpy.types.TOPBAR_MT_file_import.append(menu_import)
+
+
+def unregister():
+    bpy.types.TOPBAR_MT_file_import.remove(menu_import)
+    for c in reversed(CLASSES):
+        if c.is_registered:
+            bpy.utils.unregister_class(c)

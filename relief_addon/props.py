@@ -1,0 +1,67 @@
+"""Scene settings (`scene.relief`) and the object property `relief_z_scale`."""
+from __future__ import annotations
+
+import bpy
+from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+METHOD_ITEMS = [
+    ("microfacet", "Microfacet", "Analytic Walter / Cook-Torrance lobes fitted to the relief's slopes (fast)"),
+    ("normals", "Normals", "Monte Carlo over the relief's facet normals"),
+    ("ray", "Ray tracing", "Geometric optics ray tracing of the height field (Embree)"),
+    ("kirchhoff", "Kirchhoff", "Scalar Kirchhoff diffraction (wave optics, rough)"),
+    ("rayleigh-rice", "Rayleigh-Rice", "First-order vector perturbation (smooth surfaces)"),
+    ("auto", "Auto", "Choose the method from the relief's statistics and the wavelength"),
+]
+SIDE_ITEMS = [
+    ("outside", "Outside", "Light arriving from outside (air)"),
+    ("inside", "Inside", "Light arriving from inside the dielectric"),
+    ("both", "Both", "Both sides (needed for plates and the bake's back faces)"),
+]
+
+
+def _z_scale_changed(obj, context):
+    from .mesh_import import set_z_scale
+    set_z_scale(obj, obj.relief_z_scale)
+
+
+class ReliefSceneSettings(bpy.types.PropertyGroup):
+    method: EnumProperty(name="Method", items=METHOD_ITEMS, default="microfacet")
+    wavelengths_nm: StringProperty(name="Wavelengths (nm)", default="550",
+                                   description="Comma-separated vacuum wavelengths; three or more bake as RGB")
+    theta_i_deg: StringProperty(name="Incidences (deg)", default="0,10,20,30,40,50,60,70,80,89",
+                                description="Comma-separated incidence angles theta_i in [0, 90)")
+    sides: EnumProperty(name="Sides", items=SIDE_ITEMS, default="both")
+    samples: IntProperty(name="Samples", default=200_000, min=1, description="Monte-Carlo samples per incidence")
+    seed: IntProperty(name="Seed", default=0, min=0)
+    ior: FloatProperty(name="Refractive index", default=1.5, min=1.0001, max=4.0)
+    table_path: StringProperty(name="Table", subtype="FILE_PATH", default="//relief_table.h5",
+                               description="BSDF table (HDF5) written by Reconstruct, read by Bake")
+    sample_path: StringProperty(name="Sample", subtype="FILE_PATH", default="",
+                                description="sample.toml (plate, relief, instrument, recording)")
+    output_dir: StringProperty(name="Output", subtype="DIR_PATH", default="//relief_out/",
+                               description="Folder for simulate / fit / diagnose results")
+    fit_dir: StringProperty(name="Fit result", subtype="DIR_PATH", default="",
+                            description="Folder written by Fit (fit.json); used by Render")
+    render_path: StringProperty(name="Render", subtype="FILE_PATH", default="//relief_plate.png")
+    render_width: IntProperty(name="Width per image", default=256, min=16, max=4096)
+    render_samples: IntProperty(name="Render samples", default=32, min=1, max=4096)
+    job_status: StringProperty(name="Status", default="")
+
+
+CLASSES = (ReliefSceneSettings,)
+
+
+def register():
+    for c in CLASSES:
+        bpy.utils.register_class(c)
+    bpy.types.Scene.relief = PointerProperty(type=ReliefSceneSettings)
+    bpy.types.Object.relief_z_scale = FloatProperty(
+        name="Height exaggeration", default=1.0, min=0.0, soft_max=1000.0,
+        description="Display factor: vertex z = true height (m) x this factor", update=_z_scale_changed)
+
+
+def unregister():
+    del bpy.types.Object.relief_z_scale
+    del bpy.types.Scene.relief
+    for c in reversed(CLASSES):
+        bpy.utils.unregister_class(c)

@@ -1,0 +1,116 @@
+"""Register / unregister, import of real height maps, operators' error reports."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import SHARED
+
+import bpy
+
+
+def _snapshot():
+    return {
+        "types": set(dir(bpy.types)),
+        "ops": set(dir(bpy.ops.relief)),
+        "scene": set(bpy.types.Scene.bl_rna.properties.keys()),
+        "object": set(bpy.types.Object.bl_rna.properties.keys()),
+        "import_menu": len(getattr(bpy.types.TOPBAR_MT_file_import, "_dyn_ui_initialize", lambda: [])()),
+    }
+
+
+def test_register_unregister_leave_nothing_behind(clean_bpy):
+    import relief_addon
+    before = _snapshot()
+    relief_addon.register()
+    during = _snapshot()
+    # what the add-on promises while registered
+    assert {"import_heightmap", "reconstruct", "simulate_plate", "fit", "diagnose", "bake_bsdf",
+            "render_plate"} <= during["ops"]
+    assert "relief" in during["scene"] and "relief_z_scale" in during["object"]
+    assert {"RELIEF_PT_relief", "RELIEF_PT_reconstruct", "RELIEF_PT_plate", "RELIEF_PT_bake_render",
+            "RELIEF_FH_heightmap"} <= during["types"]
+    assert during["import_menu"] == before["import_menu"] + 1
+    relief_addon.unregister()
+    after = _snapshot()
+    assert after == before
+    # and again: a second cycle works (no stale class registrations)
+    relief_addon.register()
+    relief_addon.unregister()
+    assert _snapshot() == before
+
+
+def test_file_handler_covers_backend_formats(addon):
+    fh = bpy.types.RELIEF_FH_heightmap
+    exts = set(fh.bl_file_extensions.split(";"))
+    assert {".x3p", ".gwy", ".sur", ".sdf", ".tif", ".tiff", ".exr", ".npz"} <= exts
+    from relief_addon.operators import reader_suffixes
+    # the file browser filter offers every suffix the SurfaceTopography readers know
+    assert {"x3p", "gwy", "sur", "sdf", "npz", "exr", "frt", "plu", "opd", "nid", "mi"} <= set(reader_suffixes())
+
+
+@pytest.mark.parametrize("name", ["ST_x3p-2.x3p", "ST_frt-1.frt"])
+def test_import_real_file_true_heights(addon, name):
+    from relief_bsdf.readers import read_relief
+    path = SHARED / "data" / "topography" / name
+    relief = read_relief(path)
+    assert bpy.ops.relief.import_heightmap(filepath=str(path), z_scale=10.0) == {"FINISHED"}
+    obj = bpy.context.active_object
+    assert obj is not None and obj["relief_source"] == str(path)
+    me = obj.data
+    ny, nx = relief.shape
+    assert len(me.vertices) == ny * nx
+    pos = np.empty(3 * ny * nx, np.float32)
+    me.attributes["position"].data.foreach_get("vector", pos)
+    pos = pos.reshape(ny, nx, 3)
+    h = relief.heights_m
+    valid = np.isfinite(h)
+    # z = height (m) x exaggeration at every valid point; x, y in metres at the file's pitch
+    np.testing.assert_allclose(pos[..., 2][valid], (h[valid] * 10.0).astype(np.float32), rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(np.diff(pos[0, :, 0]), relief.dx_m, rtol=1e-4)
+    np.testing.assert_allclose(np.diff(pos[:, 0, 1]), relief.dy_m, rtol=1e-4)
+    # quads touching invalid points are left out
+    n_quads = int((valid[:-1, :-1] & valid[1:, :-1] & valid[:-1, 1:] & valid[1:, 1:]).sum())
+    assert len(me.polygons) == n_quads
+    # statistics in the object (panel): rms height after plane levelling, as the backend computes it
+    from relief_bsdf.stats import relief_stats
+    st = relief_stats(relief).as_dict()
+    assert obj["relief_stats"]["rms_height_m"] == pytest.approx(st["rms_height_m"], rel=1e-9)
+    # changing the exaggeration rewrites z from the stored true heights
+    obj.relief_z_scale = 1.0
+    me.attributes["position"].data.foreach_get("vector", pos.ravel())
+    np.testing.assert_allclose(pos[..., 2][valid], h[valid].astype(np.float32), rtol=1e-6, atol=1e-12)
+
+
+def test_import_bad_file_is_a_report_not_a_crash(addon, tmp_path):
+    bad = tmp_path / "broken.x3p"
+    bad.write_bytes(b"not a zip file")
+    with pytest.raises(RuntimeError, match="broken.x3p"):
+        bpy.ops.relief.import_heightmap(filepath=str(bad))
+    assert not any(o.type == "MESH" for o in bpy.data.objects)
+
+
+def test_operators_without_input_report_errors(addon):
+    # no sample chosen: the operators report a one-line error (RuntimeError in background mode)
+    for op in (bpy.ops.relief.fit, bpy.ops.relief.diagnose, bpy.ops.relief.simulate_plate):
+        with pytest.raises(RuntimeError, match="sample"):
+            op()
+    with pytest.raises(RuntimeError, match="not found"):
+        bpy.ops.relief.bake_bsdf(filepath="/nonexistent/table.h5")
+
+
+def test_reconstruct_operator_writes_table_and_bakes(addon, tmp_path):
+    from relief_bsdf.bsdf_h5 import load_tables
+    from relief_bsdf.readers import write_relief
+    from relief_bsdf.relief import Relief
+    rng = np.random.default_rng(1)
+    h = 0.2e-6 * rng.standard_normal((64, 64))
+    path = write_relief(tmp_path / "r.npz", Relief(h, 1e-6, 1e-6))
+    assert bpy.ops.relief.import_heightmap(filepath=str(path)) == {"FINISHED"}
+    out = tmp_path / "t.h5"
+    res = bpy.ops.relief.reconstruct(method="microfacet", wavelengths_nm="550", theta_i_deg="0,30,60",
+                                     sides="both", filepath=str(out))
+    assert res == {"FINISHED"}
+    tabs = load_tables(out)
+    assert sorted(t.incident_from for t in tabs) == ["inside", "outside"]
+    assert "Relief BSDF: r" in bpy.data.node_groups
