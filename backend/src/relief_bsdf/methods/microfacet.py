@@ -509,8 +509,9 @@ class TableFit:
 def fit_table(table: BsdfTable, n_lobes: int = 1, distribution: str = "ggx", subsamples: int = 3) -> TableFit:
     """Fit weights and roughnesses of `n_lobes` Walter lobes per incidence and side to any table.
 
-    Variable projection: the roughnesses (log scale) by scipy.optimize.least_squares, the
-    non-negative weights for given roughnesses by NNLS.  Residuals are (model - table) cell
+    Variable projection: the roughnesses (log scale) by a bounded scalar search (one lobe) or
+    scipy.optimize.least_squares (several), the non-negative weights for given roughnesses by
+    NNLS.  Residuals are (model - table) cell
     values times sqrt(projected solid angle), i.e. an energy-weighted L2 error.  The table's
     specular (delta) parts are not fitted; they are passed through.  Used by the Blender
     bake (GGX: Cycles' microfacet distribution, roughness = sqrt(alpha)).
@@ -554,18 +555,26 @@ def fit_table(table: BsdfTable, n_lobes: int = 1, distribution: str = "ggx", sub
                         w, _ = optimize.nnls(B, target * sq)
                         return B @ w - target * sq
 
-                    starts = np.log(np.geomspace(0.05, 0.6, L)) if L > 1 else np.array([np.log(0.2)])
-                    best = None
-                    for x0 in (starts, starts + np.log(0.25)):
-                        r = optimize.least_squares(resid, x0, bounds=(np.log(1e-3), np.log(3.0)), x_scale=1.0)
-                        if best is None or r.cost < best.cost:
-                            best = r
-                    la = best.x
+                    lo_b, hi_b = np.log(1e-3), np.log(3.0)
+                    if L == 1:
+                        r1 = optimize.minimize_scalar(lambda x: 0.5 * float(np.sum(resid(np.array([x])) ** 2)),
+                                                      bounds=(lo_b, hi_b), method="bounded",
+                                                      options={"xatol": 2e-3})
+                        la = np.array([r1.x])
+                    else:
+                        best = None
+                        starts = np.log(np.geomspace(0.05, 0.6, L))
+                        for x0 in (starts, starts + np.log(0.25)):
+                            r = optimize.least_squares(resid, x0, bounds=(lo_b, hi_b), x_scale=1.0)
+                            if best is None or r.cost < best.cost:
+                                best = r
+                        la = best.x
                     B = basis(la) * sq[:, None]
                     w, _ = optimize.nnls(B, target * sq)
                     alpha[iw, ii, ip, k] = np.exp(la)
                     weight[iw, ii, ip, k] = w
-                    rms[iw, ii, ip, k] = float(np.sqrt(np.sum((B @ w - target * sq) ** 2))) / tot
+                    norm = float(np.sqrt(np.sum((target * sq) ** 2)))
+                    rms[iw, ii, ip, k] = float(np.sqrt(np.sum((B @ w - target * sq) ** 2))) / norm
     return TableFit(alpha, weight, rms, distribution, n_i, n_t, table.specular_R.copy(), table.specular_T.copy(),
                     table.incident_from)
 
@@ -586,6 +595,18 @@ def _options(request) -> dict:
     if sh not in SHADOWING:
         raise RequestError(f"shadowing must be one of {SHADOWING}, got {sh!r}", "options.shadowing")
     return o
+
+
+def check_indices(material: Material, request) -> None:
+    """RequestError for an unphysical index at any requested wavelength, or light from inside a metal."""
+    for wl in request.wavelengths_nm:
+        for side in request.incident_from:
+            n1, n2 = material.n_pair(float(wl), side)
+            for v in (n1, n2):
+                if not (np.isfinite(v) and np.real(v) > 0 and np.imag(v) >= 0):
+                    raise RequestError(f"unphysical refractive index {v} at {wl:g} nm", "--n/--cauchy")
+            if np.imag(n1) > 0:
+                raise RequestError("light cannot arrive from inside an absorbing medium (complex index)", "--from")
 
 
 def _task(ctx: dict, task: tuple) -> dict:
@@ -629,6 +650,7 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
     """
     request.validate()
     opts = _options(request)
+    check_indices(material, request)
     dist = opts.get("distribution", "beckmann")
     if "alpha" in opts:
         a, w = _lobes(opts["alpha"], opts.get("weights"))
