@@ -232,3 +232,29 @@ def test_monte_carlo_method_identical_on_dask_and_locally(client):
         assert a.values_per_sr.any()
         assert np.array_equal(a.values_per_sr, b.values_per_sr) and np.array_equal(a.values_per_sr, c.values_per_sr)
         assert np.array_equal(a.specular_R, c.specular_R) and np.array_equal(a.lost, c.lost)
+
+
+def test_cli_reconstruct_on_a_local_dask_cluster_matches_default(tmp_path):
+    import subprocess
+    import sys
+
+    from relief_bsdf.bsdf_h5 import load_tables
+    from relief_bsdf.synth import random_relief
+
+    r = random_relief(64, 1e-6, 0.4e-6, 8e-6, seed=4)
+    np.savez(tmp_path / "r.npz", heights=r.heights_m, dx=r.dx_m, dy=r.dy_m)
+    relief_cli = [sys.executable, "-m", "relief_bsdf.cli", "reconstruct", str(tmp_path / "r.npz"), "--method", "normals",
+                  "--n", "1.5", "--wavelengths-nm", "500,600", "--theta-i-deg", "0,40", "--phi-i-deg", "0,90",
+                  "--samples", "3000", "--theta-step-deg", "5", "--phi-step-deg", "30", "--seed", "3"]
+    env = {k: v for k, v in os.environ.items() if k not in ("RELIEF_DASK_SCHEDULER", "RELIEF_BACKEND")}
+    a = subprocess.run(relief_cli + ["-o", str(tmp_path / "a.h5")], capture_output=True, text=True, env=env)
+    assert a.returncode == 0, a.stderr
+    b = subprocess.run(relief_cli + ["--dask", "local", "--workers", "2", "--checkpoint-dir", str(tmp_path / "ck"),
+                                     "-o", str(tmp_path / "b.h5")], capture_output=True, text=True, env=env)
+    assert b.returncode == 0, b.stderr
+    ta, tb = load_tables(tmp_path / "a.h5")[0], load_tables(tmp_path / "b.h5")[0]
+    assert ta.values_per_sr.any() and np.array_equal(ta.values_per_sr, tb.values_per_sr)
+    assert len(list((tmp_path / "ck").glob("normals-*.pkl.z"))) == 2 * 2 * 2
+    bad = subprocess.run(relief_cli + ["--dask", "nowhere", "-o", str(tmp_path / "c.h5")], capture_output=True,
+                         text=True, env=env)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--dask" in bad.stderr

@@ -18,10 +18,14 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--theta-step-deg", type=float, default=1.0, help="boundary table theta cell size")
     p.add_argument("--phi-step-deg", type=float, default=5.0, help="boundary table azimuth cell size")
     p.add_argument("--progress", action="store_true", help="force the progress bar")
+    from ..parallel import add_parallel_args
+    add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
     return p
 
 
 def run(args) -> int:
+    from ..parallel import apply_parallel_args
+    apply_parallel_args(args)
     from ..errors import InputError
     from ..fit import TableGrid, run_fit_job
     from ..progress import TerminalBar

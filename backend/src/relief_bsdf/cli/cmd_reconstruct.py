@@ -35,6 +35,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="method option (value parsed as JSON when possible), e.g. distribution=\"ggx\", alpha=0.2, "
                         "grazing_heuristic=smith; repeatable")
     p.add_argument("-o", "--out", required=True, help="output table (.h5)")
+    from ..parallel import add_parallel_args
+    add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
     return p
 
 
@@ -115,6 +117,8 @@ def build_request(args):
 
 
 def run(args) -> int:
+    from ..parallel import apply_parallel_args
+    apply_parallel_args(args)
     from pathlib import Path
 
     from ..bsdf_h5 import save_tables

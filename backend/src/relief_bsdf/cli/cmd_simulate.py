@@ -15,10 +15,14 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--height-scale", type=float, default=1.0, help="relief height scale")
     p.add_argument("--filter-sigma-um", type=float, default=0.0, help="Gaussian filter sigma (um)")
     p.add_argument("--table", help="use this boundary table file (HDF5, outside+inside) instead of deriving one")
+    from ..parallel import add_parallel_args
+    add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
     return p
 
 
 def run(args) -> int:
+    from ..parallel import apply_parallel_args
+    apply_parallel_args(args)
     from ..bsdf_h5 import load_tables, table_for
     from ..fit import Forward
     from ..plate import PlateModel, simulate_rows
