@@ -38,21 +38,27 @@ def test_scale_and_filter_act_differently_on_heights_and_slopes():
 
 
 class _CheapForward:
-    """A stand-in forward model (analytic lobe) so the checkpoint logic is tested in milliseconds."""
+    """A stand-in forward model so the checkpoint logic is tested in milliseconds.
+
+    Like the plate: a lobe whose width follows the processed relief's rms slope and a specular
+    peak whose weight follows its rms height (Debye-Waller-like), on a small relief.
+    """
 
     def __init__(self, log):
-        self.relief = random_relief(8, 0.125e-6, 30e-9, 0.5e-6, "gaussian", seed=0)
+        self.relief = random_relief(32, 0.125e-6, 30e-9, 0.5e-6, "gaussian", seed=0)
         self.x = np.linspace(-30, 30, 61)
         self.log = log
 
     def simulate(self, s, g):
         self.log.append((s, g))
-        w = 5.0 * s / (1.0 + g) ** 2
-        return 10.0 * s * np.exp(-0.5 * (self.x / w) ** 2) / w + 0.01
+        sigma, slope = relief_rms(process_relief(self.relief, s, g))
+        w = np.degrees(slope) + 0.1
+        spec = np.exp(-(sigma / 30e-9) ** 2)
+        return (1 - spec) * np.exp(-0.5 * (self.x / w) ** 2) / w + spec * np.exp(-0.5 * (self.x / 1.0) ** 2) + 1e-3
 
 
 def test_interrupted_fit_resumes_from_checkpoint_with_identical_result(tmp_path):
-    truth = _CheapForward([]).simulate(1.4, 0.3)
+    truth = _CheapForward([]).simulate(1.4, 0.1)
     sigma = 0.02 * truth
     full = fit_relief(_CheapForward([]), truth, sigma, max_iter=50)
 
@@ -78,7 +84,7 @@ def test_interrupted_fit_resumes_from_checkpoint_with_identical_result(tmp_path)
 
 
 def test_threshold_stops_early():
-    truth = _CheapForward([]).simulate(1.4, 0.3)
+    truth = _CheapForward([]).simulate(1.4, 0.1)
     res = fit_relief(_CheapForward([]), truth, 0.02 * truth, max_iter=50, threshold=5.0)
     assert res.stopped == "threshold" and res.rms_after <= 5.0
     assert len(res.iterations) < 50

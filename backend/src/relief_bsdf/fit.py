@@ -191,7 +191,7 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
                max_filter_um: float | None = None, on_eval: Callable[[int], None] | None = None) -> FitResult:
     """Optimise (height_scale, filter_sigma_um) so the simulated plate matches `measured`.
 
-    Nelder-Mead on (ln s, g) with g >= 0; the first evaluation (s = 1, g = 0) is the
+    Nelder-Mead on (u, g), u = ln(s m(g)/m(0)) (m = rms slope after filtering), g >= 0; the first evaluation (s = 1, g = 0) is the
     baseline "rms_before".  `checkpoint`: JSON file of {params: metric}; existing entries are
     replayed.  `on_eval(n)` is called after each *new* evaluation (tests use it to interrupt).
     """
@@ -210,9 +210,22 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     iterations: list[dict] = []
     new_evals = [0]
 
+    # Optimiser coordinates (u, g): u = ln(s * m(g) / m(0)) with m(g) the rms slope of the relief
+    # filtered by g.  Geometric-optics lobes depend on slopes, so at fixed u the lobe width is
+    # (nearly) fixed and the valley of the metric runs along g instead of curving through (s, g).
+    rough = forward.relief
+    m0 = relief_rms(rough)[1] or 1.0
+    slope_cache: dict[float, float] = {}
+
+    def slope_ratio(g: float) -> float:
+        gk = round(g, 12)
+        if gk not in slope_cache:
+            slope_cache[gk] = (relief_rms(process_relief(rough, 1.0, g))[1] / m0) if g > 0 else 1.0
+        return slope_cache[gk] or 1.0
+
     def evaluate(x: np.ndarray) -> float:
-        s = float(np.exp(x[0]))
         g = float(np.clip(x[1], 0.0, gmax))
+        s = float(np.exp(x[0]) / slope_ratio(g))
         key = _key(np.array([s, g]))
         if key in cache:
             m = cache[key]
@@ -233,7 +246,7 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
         return m
 
     x0 = np.array([0.0, 0.0])
-    step_g = max(0.5 * pitch_um, 0.05)
+    step_g = max(2.0 * pitch_um, 0.05)
     simplex = np.array([x0, x0 + [np.log(1.25), 0.0], x0 + [0.0, step_g]])
     rms_before = evaluate(x0) if threshold < float("inf") else float("nan")
     stopped = "converged"

@@ -1,0 +1,60 @@
+"""Monte-Carlo plate (plate_mc.py): flat-plate series per polarisation, absorption, and agreement
+with the deterministic plate (plate.py) fed with ray-traced boundary tables of the same relief."""
+import numpy as np
+import pytest
+
+from relief_bsdf.fit import TableGrid
+from relief_bsdf.methods import reconstruct
+from relief_bsdf.optics import ConstantIndex, fresnel_power
+from relief_bsdf.plate import PlateModel, in_plane_rows, simulate_rows
+from relief_bsdf.plate_mc import hemispherical, make_tracer, simulate_rows_mc, trace_plate
+from relief_bsdf.relief import Relief
+from relief_bsdf.synth import random_relief
+
+FLAT = Relief(np.zeros((16, 16)), 1e-6, 1e-6, periodic=True, source="flat")
+
+
+@pytest.mark.parametrize("face", ["front", "back"])
+@pytest.mark.parametrize("pol", ["s", "p"])
+def test_flat_plate_mc_matches_incoherent_series(face, pol):
+    n, ti, N = 1.5, 60.0, 100_000
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(n), polarization=pol, rough_face=face)
+    h = hemispherical(trace_plate(make_tracer(FLAT, face), m, 550.0, ti, 0.0, N, np.random.default_rng(1)))
+    Rs, Rp, _, _ = fresnel_power(np.cos(np.radians(ti)), 1.0, n)
+    R1 = Rs if pol == "s" else Rp
+    R = R1 + (1 - R1) ** 2 * R1 / (1 - R1**2)
+    assert h["R"] == pytest.approx(R, abs=4 * np.sqrt(R * (1 - R) / N) + 1e-4)
+    assert h["R"] + h["T"] + h["lost"] == pytest.approx(1.0, abs=1e-6)  # tracer works in float32
+
+
+def test_absorption_follows_beer_lambert_on_flat_plate():
+    n, ti, a, N = 1.5, 0.0, 200.0, 100_000
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(n), absorption_per_m=a)
+    h = hemispherical(trace_plate(make_tracer(FLAT, "front"), m, 550.0, ti, 0.0, N, np.random.default_rng(2)))
+    R1 = ((n - 1) / (n + 1)) ** 2
+    k = np.exp(-a * 2e-3)
+    T = (1 - R1) ** 2 * k / (1 - R1**2 * k**2)
+    assert h["T"] == pytest.approx(T, rel=0.01)
+    assert h["R"] + h["T"] < 0.75
+
+
+@pytest.mark.slow
+def test_mc_plate_agrees_with_deterministic_plate_in_lobe():
+    # a diffuser-like relief (rms slope ~0.5): the lobes span many table cells, and 256^2 pixels give
+    # enough facets that the finite relief's own angular fine structure averages out in a 4-degree cone
+    relief = random_relief(256, 1e-6, 1.0e-6, 4e-6, "gaussian", seed=3)
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=4.0)
+    rows = in_plane_rows(550.0, [30.0], np.arange(1.0, 89.0, 2.0))
+    g = TableGrid(1.0, 5.0, 5.0)
+    (out,) = reconstruct(relief, m.material, g.request([550.0], [30.0], "outside", "ray", 2_000_000, 1), "ray")
+    (ins,) = reconstruct(relief, m.material, g.request([550.0], np.arange(0, 90, 5.0), "inside", "ray", 100_000, 2),
+                         "ray")
+    det = simulate_rows(m, ins, out, rows)
+    mc, err, info = simulate_rows_mc(relief, m, rows, photons=1_000_000, seed=2)
+    lobe = det > 0.3 * det.max()
+    assert lobe.sum() >= 10
+    rel = (det - mc)[lobe] / mc[lobe]
+    assert np.sqrt(np.mean(rel**2)) < 0.03
+    assert abs(det[lobe].sum() / mc[lobe].sum() - 1) < 0.03
+    assert np.abs(rel).max() < 0.06
+    assert max(info["lost_fraction"].values()) < 1e-3
