@@ -258,3 +258,13 @@ def test_cli_reconstruct_on_a_local_dask_cluster_matches_default(tmp_path):
     bad = subprocess.run(relief_cli + ["--dask", "nowhere", "-o", str(tmp_path / "c.h5")], capture_output=True,
                          text=True, env=env)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--dask" in bad.stderr
+
+
+def test_workers_with_another_relief_version_are_refused(client, monkeypatch):
+    from relief_bsdf import cluster
+    from relief_bsdf.errors import InputError
+
+    cluster.check_workers(client)                             # same installation: accepted
+    monkeypatch.setattr("relief_bsdf.__version__", "0.0.0-other")
+    with pytest.raises(InputError, match=r"--dask: 2 of 2 Dask workers do not run relief_bsdf 0.0.0-other"):
+        cluster.check_workers(client)

@@ -60,8 +60,34 @@ def get_client(spec: Any, workers: int | None = None):
             client = distributed.Client(spec, timeout=float(os.environ.get("RELIEF_DASK_TIMEOUT_S", "20")))
         except (OSError, TimeoutError) as e:
             raise InputError("--dask", f"cannot reach a Dask scheduler at {spec} ({type(e).__name__}: {e})") from None
+        try:
+            check_workers(client, spec)
+        except BaseException:
+            client.close()
+            raise
     _CLIENTS[spec] = client
     return client
+
+
+def _worker_relief_version() -> str:
+    try:
+        import relief_bsdf
+    except ImportError:
+        return "missing"
+    return getattr(relief_bsdf, "__version__", "unknown")
+
+
+def check_workers(client, where: str = "--dask") -> None:
+    """Refuse a cluster whose workers lack this relief_bsdf version: their results would
+    differ (or the tasks fail to unpickle) far into a long run."""
+    from . import __version__
+
+    found = client.run(_worker_relief_version, on_error="return")
+    bad = {w: v for w, v in found.items() if v != __version__}
+    if bad:
+        shown = ", ".join(f"{w}: {v if isinstance(v, str) else type(v).__name__}" for w, v in list(bad.items())[:4])
+        raise InputError(where, f"{len(bad)} of {len(found)} Dask workers do not run relief_bsdf {__version__} "
+                                f"({shown}); install the same version on every worker")
 
 
 def close_client(spec: str) -> None:
