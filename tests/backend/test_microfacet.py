@@ -293,3 +293,13 @@ def test_mueller_frames_agree_with_ray_tracing():
     big = np.abs(mf[0][sel][:, 1, 2] / mf[0][sel][:, 0, 0]) > 0.2
     assert big.any()
     assert np.all(np.sign(ray[0][sel][big][:, 1, 2]) == np.sign(mf[0][sel][big][:, 1, 2]))
+
+
+def test_fit_lobes_ggx_maximum_likelihood():
+    rng = np.random.default_rng(12)
+    alpha = 0.25
+    u = rng.random(200_000)
+    s = alpha * np.sqrt(u / (1 - u))          # GGX slope magnitude: CDF s^2 / (alpha^2 + s^2)
+    ph = rng.random(u.size) * 2 * np.pi
+    lob = fit_lobes((s * np.cos(ph), s * np.sin(ph)), 1, "ggx")
+    assert lob.alpha[0] == pytest.approx(alpha, rel=0.01)

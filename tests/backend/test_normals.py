@@ -134,3 +134,15 @@ def test_bad_requests_fail_early():
     metal = Material(inside=ConstantIndex(0.2, 3.0))
     with pytest.raises(InputError):
         reconstruct(relief, metal, Request(incident_from=("inside",)))
+
+
+def test_metal_absorbs_what_it_does_not_reflect():
+    rng = np.random.default_rng(6)
+    n_metal = complex(0.2, 3.0)
+    flat = SlopeSet(np.zeros(64), np.zeros(64))
+    N = 100_000
+    r = trace_normals(flat, direction(45.0, 0.0), 1.0, n_metal, N, rng, TE, PE)
+    F = float(fresnel_unpolarized(np.cos(np.radians(45.0)), 1.0, n_metal))
+    assert r["specular_T"] == 0 and r["counts"][1].sum() == 0
+    assert r["specular_R"] / N == pytest.approx(F, abs=4 * np.sqrt(F * (1 - F) / N))
+    assert r["specular_R"] + r["absorbed"] == N

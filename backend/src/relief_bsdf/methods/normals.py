@@ -226,7 +226,12 @@ def trace_normals(slopes: SlopeSet, wi: np.ndarray, n_a: complex, n_b: complex, 
                 refl = rng.random(F.size) < F
                 ds, ns, cs = d[sel], nf[sel], cos_i[sel]
                 out = ds + 2.0 * cs[:, None] * ns
-                if (~refl).any():
+                if absorbing[1 - k] and (~refl).any():
+                    # transmitted into an absorbing medium (metal): absorbed, whatever Snell says
+                    a = alive[sel]
+                    a[~refl] = False
+                    alive[sel] = a
+                elif (~refl).any():
                     wt, ok = refract(-ds[~refl], ns[~refl], np.real(n1) / np.real(n2))
                     tmp = out[~refl]
                     tmp[ok] = wt[ok]                       # TIR (not ok) keeps the mirror direction
@@ -236,10 +241,6 @@ def trace_normals(slopes: SlopeSet, wi: np.ndarray, n_a: complex, n_b: complex, 
                     nm = new_med[sel]
                     nm[moved] = 1 - k
                     new_med[sel] = nm
-                    if absorbing[1 - k]:
-                        a = alive[sel]
-                        a[moved] = False
-                        alive[sel] = a
                 new_d[sel] = out
             tally["absorbed"] += int((~alive).sum())
             d, med = new_d[alive], new_med[alive]
