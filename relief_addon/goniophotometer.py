@@ -166,3 +166,16 @@ def directional(material, theta_deg: float, side: str = "R", samples: int = 256)
         return _render_mean(scene)
     finally:
         _cleanup(scene)
+
+
+def radiance(material, theta_deg: float, phi_deg: float = 0.0, below: bool = False, samples: int = 16) -> np.ndarray:
+    """Mean radiance (RGB) of the patch seen from (theta, phi), above or below, in a black world
+    (for emissive materials, e.g. to read lookup images back through Cycles)."""
+    scene = new_scene(samples)
+    try:
+        _world(scene, "black")
+        _patch(scene, material)
+        _camera(scene, theta_deg, phi_deg, below)
+        return _render_mean(scene)
+    finally:
+        _cleanup(scene)

@@ -173,12 +173,12 @@ def _per_incidence(table: BsdfTable) -> dict[str, np.ndarray]:
     return {k: np.asarray(h[k], float).mean(axis=2) for k in ("specular_R", "diffuse_R", "specular_T", "diffuse_T")}
 
 
-def _fit_roughness(table: BsdfTable, wl_nm: float) -> np.ndarray:
+def _fit_roughness(table: BsdfTable, wl_nm: float, subsamples: int = 1) -> np.ndarray:
     """(I, 2) Cycles roughness of one GGX lobe per incidence and side (R, T) at one wavelength."""
     from .methods.microfacet import fit_table
     t = table.select(wl_nm)
     diffuse = _per_incidence(t)
-    fit = fit_table(t, n_lobes=1, distribution="ggx")
+    fit = fit_table(t, n_lobes=1, distribution="ggx", subsamples=subsamples)
     alpha = fit.alpha[0, :, :, :, 0].mean(axis=1)                  # (I, 2)
     r = np.sqrt(np.clip(alpha, 0.0, None))
     for k, key in enumerate(("diffuse_R", "diffuse_T")):

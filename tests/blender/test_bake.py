@@ -1,0 +1,147 @@
+"""Bake: node group structure, lookup accuracy through Cycles, virtual goniophotometer vs the table."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import bpy
+
+
+def _microfacet_tables(alpha=0.3, n=1.5):
+    from relief_bsdf.methods import reconstruct
+    from relief_bsdf.optics import ConstantIndex, Material
+    from relief_bsdf.request import Request
+    req = Request(theta_i_deg=(0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 89.0),
+                  incident_from=("outside", "inside"),
+                  # cells fine enough (1 x 5 deg) that cell averages resolve the transmitted lobe's peak
+                  theta_s_edges_deg=tuple(np.linspace(0, 90, 91)), phi_s_edges_deg=tuple(np.arange(-2.5, 360, 5)),
+                  options={"alpha": alpha, "distribution": "ggx"})
+    return reconstruct(None, Material(ConstantIndex(n)), req, "microfacet")
+
+
+@pytest.fixture(scope="module")
+def tables():
+    return _microfacet_tables()
+
+
+def test_node_group_structure(clean_bpy, tables):
+    from relief_addon import bake_nodes
+    from relief_bsdf.bake import ROW_NAMES
+    lut, img, group = bake_nodes.bake_tables(tables, "probe")
+    assert group.name == "Relief BSDF: probe" and group.use_fake_user
+    outs = [s for s in group.interface.items_tree if getattr(s, "in_out", "") == "OUTPUT"]
+    assert [s.socket_type for s in outs] == ["NodeSocketShader"]
+    glossy = {"ShaderNodeBsdfAnisotropic": "ShaderNodeBsdfGlossy"}      # Blender 4+ merged the two
+    kinds = sorted(glossy.get(n.bl_idname, n.bl_idname) for n in group.nodes if n.bl_idname.startswith("ShaderNodeBsdf"))
+    assert kinds == ["ShaderNodeBsdfGlossy", "ShaderNodeBsdfMetallic", "ShaderNodeBsdfRefraction",
+                     "ShaderNodeBsdfRefraction"]
+    texs = [n for n in group.nodes if n.bl_idname == "ShaderNodeTexImage"]
+    assert len(texs) == len(ROW_NAMES)
+    assert all(t.image == img and t.extension == "EXTEND" and t.interpolation == "Linear" for t in texs)
+    # the image: packed float32 non-colour data with a fake user, exactly the LUT rows
+    assert img.is_float and img.colorspace_settings.is_data and img.packed_file is not None and img.use_fake_user
+    assert tuple(img.size) == (lut.rows.shape[1], lut.rows.shape[0])
+    px = np.empty(len(img.pixels), np.float32)
+    img.pixels.foreach_get(px)
+    np.testing.assert_array_equal(px, lut.image_pixels())
+    # refraction IOR is the table's n_inside / n_outside
+    refr = [n for n in group.nodes if n.bl_idname == "ShaderNodeBsdfRefraction"]
+    assert all(r.inputs["IOR"].default_value == pytest.approx(1.5) for r in refr)
+    # assigned to the rough face of a plate: top face gets the group, the others glass
+    me = bpy.data.meshes.new("plate")
+    me.from_pydata([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0), (-1, -1, 1), (1, -1, 1), (1, 1, 1), (-1, 1, 1)],
+                   [], [(0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)])
+    ob = bpy.data.objects.new("plate", me)
+    bake_nodes.assign_to_rough_face(ob, group, "front")
+    idx = [p.material_index for p in me.polygons]
+    assert idx == [0, 1, 0, 0, 0, 0]
+    assert me.materials[1].node_tree.nodes[0].node_tree == group
+
+
+def test_lookup_through_cycles_matches_interpolation(clean_bpy):
+    """The texel-centred coordinate math read back through a Cycles render, front and back faces."""
+    from relief_addon import bake_nodes, goniophotometer as G
+    from relief_bsdf.bake import ROWS_PER_SIDE, BakedLut
+    cols = np.linspace(0.0, 90.0, 91)
+    rows = np.zeros((2 * ROWS_PER_SIDE, cols.size, 4), np.float32)
+    for k in range(rows.shape[0]):
+        for c in range(3):
+            rows[k, :, c] = 0.5 + 0.4 * np.sin(np.radians(cols) * (1 + k) * 0.7 + c)
+    rows[..., 3] = 1.0
+    lut = BakedLut("lookup", cols, rows, 1.5, (610.0, 550.0, 465.0))
+    img = bake_nodes.lut_image(lut)
+    coord = bake_nodes.coordinate_group(cols.size, rows.shape[0], ROWS_PER_SIDE)
+    for side, row, below in (("outside", "diffuse_R", False), ("inside", "diffuse_T", True)):
+        mat = bpy.data.materials.new(f"probe {row}")
+        nt = mat.node_tree
+        nt.nodes.clear()
+        cg = nt.nodes.new("ShaderNodeGroup")
+        cg.node_tree = coord
+        from relief_bsdf.bake import ROW_NAMES
+        cg.inputs["Row"].default_value = float(ROW_NAMES.index(row))
+        tex = nt.nodes.new("ShaderNodeTexImage")
+        tex.image, tex.interpolation, tex.extension = img, "Linear", "EXTEND"
+        em = nt.nodes.new("ShaderNodeEmission")
+        out = nt.nodes.new("ShaderNodeOutputMaterial")
+        nt.links.new(cg.outputs[0], tex.inputs["Vector"])
+        nt.links.new(tex.outputs["Color"], em.inputs["Color"])
+        nt.links.new(em.outputs[0], out.inputs["Surface"])
+        for theta in (0.0, 7.3, 33.3, 61.7, 84.0):
+            got = G.radiance(mat, theta, 0.0, below=below, samples=4)
+            want = lut.lookup(side, row, theta)[:3]
+            np.testing.assert_allclose(got, want, atol=2e-3, err_msg=f"{side} {row} theta {theta}")
+
+
+def test_flat_interface_bake_reproduces_fresnel(clean_bpy):
+    """Delta rows: a flat boundary's specular R and T (Fresnel) come back from Cycles."""
+    from relief_addon import bake_nodes, goniophotometer as G
+    from relief_bsdf.optics import ConstantIndex, Material
+    from relief_bsdf.plate import flat_tables
+    mat = Material(ConstantIndex(1.5))
+    th = np.arange(0.0, 90.0, 10.0)
+    tabs = flat_tables(mat, [550.0], th, th, np.linspace(0, 90, 10), np.arange(-15.0, 360.0, 30.0))
+    _, _, group = bake_nodes.bake_tables(list(tabs), "flat")
+    m = bake_nodes.material_for_group(group)
+    h = tabs[0].hemispherical()
+    for i, t in enumerate(th[[0, 3, 6]]):
+        k = [0, 3, 6][i]
+        R = G.directional(m, t, "R", samples=16)
+        T = G.directional(m, t, "T", samples=16)
+        assert R[1] == pytest.approx(h["R"][0, k, 0], rel=0.05), t
+        assert T[1] == pytest.approx(h["T"][0, k, 0], rel=0.05), t
+
+
+@pytest.mark.slow
+def test_goniophotometer_reproduces_table(clean_bpy, tables):
+    """Directional R and T within 5 %, in-lobe BSDF values within 20 %, at several incidences.
+
+    Directional values: uniform radiance over one hemisphere (reciprocity, see goniophotometer).
+    In-lobe values: collimated sun of known irradiance, orthographic camera; for the camera
+    inside the medium Cycles renders basic radiance L / n^2, so f_phys = f_rendered * n^2.
+    """
+    from relief_addon import bake_nodes, goniophotometer as G
+    _, _, group = bake_nodes.bake_tables(tables, "rough")
+    m = bake_nodes.material_for_group(group)
+    out = tables[0]
+    h = out.hemispherical()
+    for t in (0.0, 30.0, 60.0):
+        k = int(np.argmin(np.abs(out.theta_i_deg - t)))
+        R = G.directional(m, t, "R", samples=128)[1]
+        T = G.directional(m, t, "T", samples=128)[1]
+        assert R == pytest.approx(h["R"][0, k, 0], rel=0.05), (t, R)
+        assert T == pytest.approx(h["T"][0, k, 0], rel=0.05), (t, T)
+    n = 1.5
+    for ti in (20.0, 40.0, 60.0):
+        # reflection lobe: the specular direction and 10 degrees either side
+        for ts in (ti - 10.0, ti, ti + 10.0):
+            f = G.bsdf(m, ti, ts, 180.0, "R", samples=64)[1]
+            ft = float(out.eval(550.0, ti, 0.0, "R", ts, 180.0))
+            assert f == pytest.approx(ft, rel=0.20), (ti, ts, f, ft)
+        # transmission lobe: the refracted direction (Snell) and 5 degrees beyond
+        for d in (0.0, 5.0):
+            ts = math.degrees(math.asin(math.sin(math.radians(ti)) / n)) + d
+            f = G.bsdf(m, ti, ts, 180.0, "T", samples=64)[1] * n**2
+            ft = float(out.eval(550.0, ti, 0.0, "T", ts, 180.0))
+            assert f == pytest.approx(ft, rel=0.20), (ti, ts, f, ft)
