@@ -71,7 +71,7 @@ from ..progress import silent
 from ..relief import Relief
 
 F32 = np.float32
-CHUNK = 1 << 17                # rays per independent chunk (its own seed, one thread at a time)
+CHUNK = 1 << 16                # rays per independent chunk (its own seed, one thread at a time)
 
 # exit states
 ABOVE, BELOW, LOST_BOUNCES, LOST_LEAK, LOST_ABSORBED = 0, 1, 2, 3, 4
@@ -400,6 +400,10 @@ class ReliefTracer:
 
         def finish(rows: _RayState, state):
             if rows.ids.size:
+                if K and state <= BELOW:
+                    # exit frame s = z x k; exactly along z (flat relief at normal incidence) the
+                    # frame of the specular azimuth phi_exit_rad (bsdf.py: s from the azimuth)
+                    _rotate_stokes(rows.A, rows.s, rows.k, _frame_s(rows.k, phi_exit_rad))
                 exits.append((rows, np.full(rows.ids.size, state, np.int8)))
 
         while st.ids.size:
@@ -427,11 +431,11 @@ class ReliefTracer:
                     up = kz > 0
                     ok_up = out_slab & up & ~st.below
                     ok_dn = out_slab & ~up & st.below
-                    finish(st.take(np.flatnonzero(ok_up)), ABOVE)
-                    finish(st.take(np.flatnonzero(ok_dn)), BELOW)
+                    finish(st.take(np.flatnonzero(ok_up), exit_only=True), ABOVE)
+                    finish(st.take(np.flatnonzero(ok_dn), exit_only=True), BELOW)
                     bad = out_slab & ~(ok_up | ok_dn)
                     if bad.any():
-                        finish(st.take(np.flatnonzero(bad)), LOST_LEAK)
+                        finish(st.take(np.flatnonzero(bad), exit_only=True), LOST_LEAK)
                 wrap = np.flatnonzero(miss & ~out_slab)
                 if wrap.size:
                     wr = st.take(wrap)
@@ -463,14 +467,6 @@ class ReliefTracer:
                           segments=segments, n_paths=n0, m=2 * n0 if split_first else n0)
         rows = _RayState.concat([e[0] for e in exits]) if len(exits) > 1 else exits[0][0]
         state = np.concatenate([e[1] for e in exits])
-        if K:
-            done = np.flatnonzero(state <= BELOW)
-            kd = rows.k[done]
-            Ad = np.take(rows.A, done, axis=2)
-            # exits exactly along z (flat relief at normal incidence): the frame of the specular
-            # azimuth phi_exit_rad (bsdf.py: s from the azimuth when w is along z)
-            _rotate_stokes(Ad, rows.s[done], kd, _frame_s(kd, phi_exit_rad))
-            rows.A[:, :, done] = Ad
         return _Exits(ids=rows.ids, k=rows.k, A=rows.A, w=rows.w, state=state, nb=rows.nb, segments=segments,
                       n_paths=n0, m=2 * n0 if split_first else n0)
 
@@ -487,7 +483,7 @@ class ReliefTracer:
         # a ray above the surface must hit it from above (dot < 0), a ray below from below
         leak = (dot > 0) != bh
         if leak.any():
-            finish(h.take(np.flatnonzero(leak)), LOST_LEAK)
+            finish(h.take(np.flatnonzero(leak), exit_only=True), LOST_LEAK)
             good = np.flatnonzero(~leak)
             h = h.take(good)
             ng, t_hit, nrm, dot, k, bh = ng[good], t_hit[good], nrm[good], dot[good], h.k, h.below
@@ -547,7 +543,7 @@ class ReliefTracer:
                     tr.s = s_new[j]
                 if absorbed_T is not None and absorbed_T[j].any():
                     a_ = absorbed_T[j]
-                    finish(tr.take(np.flatnonzero(a_)), LOST_ABSORBED)
+                    finish(tr.take(np.flatnonzero(a_), exit_only=True), LOST_ABSORBED)
                     tr = tr.take(np.flatnonzero(~a_))
                 parts.append(tr)
             h.w = np.where(split, h.w * pR, h.w)
@@ -570,11 +566,11 @@ class ReliefTracer:
         if absorbed_T is not None:
             end = ~refl & absorbed_T
             if end.any():
-                finish(h.take(np.flatnonzero(end)), LOST_ABSORBED)
+                finish(h.take(np.flatnonzero(end), exit_only=True), LOST_ABSORBED)
         over = h.nb >= self.max_bounces
         if over.any():
             sel = over if end is None else over & ~end
-            finish(h.take(np.flatnonzero(sel)), LOST_BOUNCES)
+            finish(h.take(np.flatnonzero(sel), exit_only=True), LOST_BOUNCES)
             end = over if end is None else end | over
         if end is not None and end.any():
             h = h.take(np.flatnonzero(~end))
@@ -627,7 +623,13 @@ class _RayState:
     A: np.ndarray | None
     s: np.ndarray | None
 
-    def take(self, idx: np.ndarray) -> "_RayState":
+    def take(self, idx: np.ndarray, exit_only: bool = False) -> "_RayState":
+        """Rows `idx`; exit_only keeps what the detector needs (ids, k, w, nb, A, s)."""
+        if exit_only:
+            return _RayState(o=None, k=np.take(self.k, idx, axis=0), below=None, ids=self.ids[idx], w=self.w[idx],
+                             nb=self.nb[idx], pending=None,
+                             A=None if self.A is None else np.take(self.A, idx, axis=2),
+                             s=None if self.s is None else np.take(self.s, idx, axis=0))
         return _RayState(o=np.take(self.o, idx, axis=0), k=np.take(self.k, idx, axis=0), below=self.below[idx],
                          ids=self.ids[idx], w=self.w[idx], nb=self.nb[idx], pending=self.pending[idx],
                          A=None if self.A is None else np.take(self.A, idx, axis=2),
@@ -635,13 +637,11 @@ class _RayState:
 
     @staticmethod
     def concat(parts: list) -> "_RayState":
-        p0 = parts[0]
-        return _RayState(o=np.concatenate([p.o for p in parts]), k=np.concatenate([p.k for p in parts]),
-                         below=np.concatenate([p.below for p in parts]), ids=np.concatenate([p.ids for p in parts]),
-                         w=np.concatenate([p.w for p in parts]), nb=np.concatenate([p.nb for p in parts]),
-                         pending=np.concatenate([p.pending for p in parts]),
-                         A=None if p0.A is None else np.concatenate([p.A for p in parts], axis=2),
-                         s=None if p0.s is None else np.concatenate([p.s for p in parts]))
+        def cat(name, axis=0):
+            vals = [getattr(p, name) for p in parts]
+            return None if any(v is None for v in vals) else np.concatenate(vals, axis=axis)
+        return _RayState(o=cat("o"), k=cat("k"), below=cat("below"), ids=cat("ids"), w=cat("w"), nb=cat("nb"),
+                         pending=cat("pending"), A=cat("A", axis=2), s=cat("s"))
 
 
 def _reflectance_unpolarized(ci, n1, n2, ct):
@@ -801,24 +801,23 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, te_sin2, p
     k = ex.k if all_done else ex.k[done]
     wd = w if all_done else w[done]
     side = np.where(state[done] == ABOVE, side_of_state[0], side_of_state[1]).astype(np.int64)
-    kz = k[:, 2].astype(np.float64)
-    # delta parts: exits along the mean plane's mirror / refraction direction
+    # delta parts: exits along the mean plane's mirror / refraction direction.  A float32 prefilter,
+    # then float64 with renormalisation (a float32 unit vector's norm is off by ~1e-8 >> 1 - cos(tol))
     spec = None
     for sd in (0, 1):
         if spec_dirs[sd] is not None:
             d = np.asarray(spec_dirs[sd], np.float64)
-            # float64 and renormalised: a float32 unit vector's norm is off by ~1e-8 >> 1 - cos(tol)
-            kx64, ky64 = k[:, 0].astype(np.float64), k[:, 1].astype(np.float64)
-            near = (kx64 * d[0] + ky64 * d[1] + kz * d[2]) > cos_tol * np.sqrt(kx64 * kx64 + ky64 * ky64 + kz * kz)
-            if near.any():
-                near &= side == sd
-                spec = near if spec is None else spec | near
-    sin2 = np.clip(1.0 - kz * kz, 0.0, 1.0)
-    ib = np.searchsorted(te_sin2, sin2, side="right") - 1
-    ib[sin2 == te_sin2[-1]] -= 1
-    phi = np.degrees(np.arctan2(k[:, 1], k[:, 0]).astype(np.float64))
-    phi = np.mod(phi - pe[0], 360.0) + pe[0]
-    ia = np.searchsorted(pe, phi, side="right") - 1
+            cand = np.flatnonzero((k @ d.astype(F32)) > F32(0.9999))
+            if cand.size:
+                kc = k[cand].astype(np.float64)
+                ok = (kc @ d) > cos_tol * np.sqrt(np.einsum("ij,ij->i", kc, kc))
+                ok &= side[cand] == sd
+                if ok.any():
+                    if spec is None:
+                        spec = np.zeros(k.shape[0], bool)
+                    spec[cand[ok]] = True
+    ib = _theta_bins(k[:, 2], te_sin2)
+    ia = _phi_bins(k, pe)
     S, A_ = acc.S, acc.A
     inside = (ib >= 0) & (ib < S) & (ia >= 0) & (ia < A_)
     if spec is not None:
@@ -852,6 +851,27 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, te_sin2, p
         M16 = M16 * w_in.astype(F32)
         for e in range(16):
             acc.sum_M[e] += np.bincount(c_in, weights=M16[e], minlength=nc)
+
+
+def _theta_bins(kz: np.ndarray, te_sin2: np.ndarray) -> np.ndarray:
+    """Ring index of each direction (edges given as sin^2 theta); -1 / S outside."""
+    sin2 = np.maximum(F32(0), 1 - kz * kz).astype(np.float64)
+    ib = np.searchsorted(te_sin2, sin2, side="right") - 1
+    ib[sin2 >= te_sin2[-1]] = te_sin2.size - 2 if te_sin2[-1] >= 1.0 else te_sin2.size - 1
+    return ib
+
+
+def _phi_bins(k: np.ndarray, pe: np.ndarray) -> np.ndarray:
+    """Azimuth cell of each direction; uniform edges by arithmetic, others by search."""
+    phi = np.degrees(np.arctan2(k[:, 1], k[:, 0]).astype(np.float64))
+    phi -= pe[0]
+    np.mod(phi, 360.0, out=phi)
+    d = np.diff(pe)
+    if np.allclose(d, d[0]):
+        ia = np.floor(phi / d[0]).astype(np.int64)
+        ia[ia >= d.size] = d.size                    # beyond the last edge (span < 360): outside
+        return ia
+    return np.searchsorted(pe - pe[0], phi, side="right") - 1
 
 
 def _incident_state(K: int, n: int) -> np.ndarray | None:
