@@ -189,7 +189,26 @@ def test_sampling_limits_raise_before_work():
 def test_qz_nodes_rule():
     # smooth: one or two nodes; rough (geometric optics): the similarity makes one node enough
     k = 2 * np.pi / 550e-9
-    assert kirchhoff.qz_nodes(k, 2 * k, 2 * k, 5e-9).size <= 2
-    assert kirchhoff.qz_nodes(k, 2 * k, 2 * k, 2e-6).size <= 2
-    mid = kirchhoff.qz_nodes(k, 2 * k, 2 * k, 60e-9)
+    assert kirchhoff.qz_nodes(k, 2 * k, 2 * k, 60e-9).size == 1     # default: one node, similarity elsewhere
+    assert kirchhoff.qz_nodes(k, 2 * k, 2 * k, 5e-9, tau=0.3).size <= 2
+    assert kirchhoff.qz_nodes(k, 2 * k, 2 * k, 2e-6, tau=0.3).size <= 2
+    mid = kirchhoff.qz_nodes(k, 2 * k, 2 * k, 60e-9, tau=0.3)
     assert mid.size >= 3 and np.isclose(mid, 2 * k).any()
+
+
+def test_one_node_similarity_matches_dense_nodes():
+    """The default single q_z node (similarity extrapolation) against 10-40 exact nodes."""
+    rel = gaussian_relief(512, 0.1e-6, 0.1e-6, 3e-6, seed=8)
+    base = dict(wavelengths_nm=(550.0,), theta_i_deg=(30.0,), theta_s_edges_deg=tuple(np.linspace(0, 80, 41)),
+                phi_s_edges_deg=tuple(np.arange(-5, 360, 10.0)))
+    (one,) = reconstruct(rel, MAT, Request(**base, options={"band_limited": True}), "kirchhoff")
+    (ref,) = reconstruct(rel, MAT, Request(**base, options={"band_limited": True, "qz_tolerance": 0.05,
+                                                            "max_qz_nodes": 40}), "kirchhoff")
+    assert one.metadata["incidences"][0]["qz_nodes_R"] == 1
+    assert ref.metadata["incidences"][0]["qz_nodes_R"] >= 10
+    for s in range(2):
+        a, r = one.values_per_sr[0, 0, 0, s], ref.values_per_sr[0, 0, 0, s]
+        lobe = r > 0.05 * r.max()
+        assert np.median(np.abs(a[lobe] / r[lobe] - 1)) < 0.02
+    np.testing.assert_allclose(one.hemispherical()["T"], ref.hemispherical()["T"], rtol=0.01)
+    np.testing.assert_allclose(one.hemispherical()["R"], ref.hemispherical()["R"], rtol=0.01)

@@ -47,9 +47,15 @@ after a *similarity transformation* that is exact in both asymptotic regimes
     A = [(1 - e^-x) / (1 - e^-x_j)] |r|^(2 gamma).
 For x << 1 (first-order regime) D is proportional to x S(nu_xy / 2 pi) (A = x / x_j, no
 rescaling); for x >> 1 (geometric optics) D = p(slope = -nu_xy / nu_z) / nu_z^2 (pure
-rescaling).  Nodes are spaced so that the change of x between nodes is at most
-tau max(1, x^2 / 2) (tau = options["qz_tolerance"], default 0.3): a handful of FFTs per
-side, often one or two.  FFTs are single precision (complex64) with scipy.fft, workers =
+rescaling).  By default ONE node per side (the specular nu_z; the midpoint of the range when
+there is no specular direction) and the similarity transformation extrapolates to every
+other direction: measured against a dense-node reference (30-40 nodes, 1024^2 Gaussian
+reliefs, rms 50 / 100 / 300 nm, correlation 5 um, 550 nm, 30 deg, both sides) the median
+in-lobe cell error is 0.1-1.1 % (largest 6-15 % at the lobe's 1 % edge) and R + T moves by
+<= 0.2 %.  `options["qz_tolerance"] = tau` adds nodes, spaced greedily so that the change
+of x between a node and the points it serves is at most tau max(1, x^2 / 2) (never blending
+across nu_z = 0, where the pattern mirrors); tau = 0.3 brings the median error to ~0.4 %
+for 2-20 nodes per side.  FFTs are single precision (complex64) with scipy.fft, workers =
 options["fft_workers"] (default 2).
 
 Partial coherence (request.coherence_length_m = Lc).  The incident field is multiplied by
@@ -75,7 +81,7 @@ Filtering into cells: `wave_filter` (one Gaussian width in direction cosines for
 request, from the coarsest speckle grain and the finest cell).  FFT samples are first
 summed in blocks (power conserving) to a grid no finer than a third of that width.
 
-Options (request.options): qz_tolerance, max_qz_nodes (default 16), fft_workers,
+Options (request.options): qz_tolerance (default: one node), max_qz_nodes (default 16), fft_workers,
 band_limited, coherence_instances, smoothing_dcos.
 """
 from __future__ import annotations
@@ -97,7 +103,21 @@ from .rayleigh_rice import prepared_heights
 
 
 def _fresnel(cos_loc, n1, n2, polarization: str) -> np.ndarray:
-    Rs, Rp, _, _ = fresnel_power(cos_loc, n1, n2)
+    if np.imag(n1) == 0 and np.imag(n2) == 0:       # real indices: a fast real-valued path
+        c = np.clip(np.asarray(cos_loc, float), 0.0, 1.0)
+        eta = float(np.real(n1) / np.real(n2))
+        ct2 = 1.0 - eta * eta * (1.0 - c * c)
+        tir = ct2 <= 0
+        ct = np.sqrt(np.where(tir, 0.0, ct2))
+        a, b = np.real(n1) * c, np.real(n2) * ct
+        cc, d = np.real(n2) * c, np.real(n1) * ct
+        with np.errstate(invalid="ignore", divide="ignore"):
+            Rs = np.where(tir, 1.0, ((a - b) / (a + b)) ** 2)
+            Rp = np.where(tir, 1.0, ((cc - d) / (cc + d)) ** 2)
+        Rs = np.nan_to_num(Rs, nan=1.0)
+        Rp = np.nan_to_num(Rp, nan=1.0)
+    else:
+        Rs, Rp, _, _ = fresnel_power(cos_loc, n1, n2)
     if polarization == "s":
         return Rs
     if polarization == "p":
@@ -105,26 +125,44 @@ def _fresnel(cos_loc, n1, n2, polarization: str) -> np.ndarray:
     return 0.5 * (Rs + Rp)
 
 
-def qz_nodes(nu_lo: float, nu_hi: float, nu_spec: float | None, sigma_m: float, tau: float = 0.3,
+def qz_nodes(nu_lo: float, nu_hi: float, nu_spec: float | None, sigma_m: float, tau: float = np.inf,
              max_nodes: int = 16) -> np.ndarray:
-    """nu_z nodes covering [nu_lo, nu_hi], one at nu_spec, spaced by the rule of the module doc."""
+    """nu_z nodes for [nu_lo, nu_hi]: one at nu_spec, then greedily as far apart as the rule allows.
+
+    The distance between two nu_z in x = nu_z^2 sigma^2 is |x1 - x2| on the same side of 0
+    and x1 + x2 across it; a node covers the points within tau max(1, x^2 / 2) of it (x the
+    smaller of the two), beyond which the similarity interpolation of the module doc would be
+    used too far from its asymptotic regimes.  The ends of the range need no node of their own
+    when the last node covers them (they are reached by the similarity extrapolation).
+    """
     lo, hi = min(nu_lo, nu_hi), max(nu_lo, nu_hi)
     start = nu_spec if (nu_spec is not None and lo <= nu_spec <= hi) else 0.5 * (lo + hi)
-    s2 = max(sigma_m, 1e-30) ** 2
+    if sigma_m <= 0 or hi <= lo:
+        return np.array([start])
+    s = sigma_m
 
-    def step(nu):
-        x = nu * nu * s2
-        dx = tau * max(1.0, 0.5 * x * x)
-        return dx / (2.0 * max(abs(nu), 1e-9 * (hi - lo + 1.0)) * s2)
+    def dist(a, b):
+        xa, xb = (a * s) ** 2, (b * s) ** 2
+        return np.where(np.sign(a) == np.sign(b), np.abs(xa - xb), xa + xb)
+
+    def allowed(a, b):
+        x = np.minimum((a * s) ** 2, (b * s) ** 2)
+        return tau * np.maximum(1.0, 0.5 * x * x)
 
     nodes = [start]
-    for direction, bound in ((1.0, hi), (-1.0, lo)):
-        nu = start
-        while (bound - nu) * direction > 1e-12 * max(abs(bound), 1.0):
-            nu = nu + direction * step(nu)
-            if (nu - bound) * direction >= 0:
-                nu = bound
-            nodes.append(nu)
+    for bound in (hi, lo):
+        cand = np.linspace(start, bound, 4001)[1:]
+        cand = cand[np.abs(cand) * s > 1e-6] if np.any(np.abs(cand) * s > 1e-6) else cand
+        last = start
+        while cand.size:
+            ok = dist(last, cand) <= allowed(last, cand)
+            if ok.all():
+                break
+            k = int(np.argmin(ok)) - 1          # farthest candidate before the first uncovered one
+            k = max(k, 0)
+            last = float(cand[k])
+            nodes.append(last)
+            cand = cand[k + 1:]
             if len(nodes) > 4 * max_nodes:
                 break
     nodes = np.unique(np.asarray(nodes))
@@ -250,26 +288,30 @@ def _side_geometry(side, n1, ns, ci, ai, bi, k0, shape_c, f0, df):
 
 def _obliquity_fresnel(geo, wi, n1, n2, side, polarization):
     """K * F_loc on the coarse grid (module doc), 0 where not propagating or not realisable."""
+    prop = geo["prop"]
     a, b, cs = geo["a"], geo["b"], geo["cs"]
+    a = np.broadcast_to(a, prop.shape)[prop]
+    b = np.broadcast_to(b, prop.shape)[prop]
+    cs = cs[prop]
     k1, ks, sgn = geo["k1"], geo["ks"], geo["sgn"]
-    ws = np.stack(np.broadcast_arrays(a, b, sgn * cs), axis=0)
-    nu = k1 * np.asarray(wi)[:, None, None] + ks * ws
-    nn = np.sqrt(np.sum(nu * nu, axis=0))
-    nn = np.maximum(nn, 1e-30)
-    ih = np.abs(np.tensordot(wi, nu, axes=(0, 0))) / nn
-    oh_signed = np.sum(ws * nu, axis=0) / nn
-    oh = np.abs(oh_signed)
-    nuz2 = np.maximum(nu[2] ** 2, 1e-30 * nn ** 2)
-    ci = wi[2]
-    K = ih * oh * nn ** 2 / (nuz2 * ci * np.maximum(cs, 1e-12))
+    nux = k1 * wi[0] + ks * a
+    nuy = k1 * wi[1] + ks * b
+    nuz = k1 * wi[2] + ks * sgn * cs
+    nn2 = np.maximum(nux * nux + nuy * nuy + nuz * nuz, 1e-300)
+    nn = np.sqrt(nn2)
+    ih_signed = (wi[0] * nux + wi[1] * nuy + wi[2] * nuz) / nn
+    oh_signed = (a * nux + b * nuy + sgn * cs * nuz) / nn
+    ih, oh = np.abs(ih_signed), np.abs(oh_signed)
+    nuz2 = np.maximum(nuz * nuz, 1e-30 * nn2)
+    K = ih * oh * nn2 / (nuz2 * wi[2] * np.maximum(cs, 1e-12))
     F = _fresnel(ih, n1, n2, polarization)
     if side == "R":
         fac = K * F
     else:
-        ih_signed = np.tensordot(wi, nu, axes=(0, 0)) / nn
-        ok = ih_signed * oh_signed < 0
-        fac = np.where(ok, K * (1.0 - F), 0.0)
-    return np.where(geo["prop"], fac, 0.0)
+        fac = np.where(ih_signed * oh_signed < 0, K * (1.0 - F), 0.0)
+    out = np.zeros(prop.shape)
+    out[prop] = fac
+    return out
 
 
 def _interp_nodes(nodes, grids, geo, sigma, f0, df, f0n):
@@ -290,6 +332,9 @@ def _interp_nodes(nodes, grids, geo, sigma, f0, df, f0n):
     j = np.clip(np.searchsorted(nodes, nuc, side="right") - 1, 0, max(nodes.size - 2, 0))
     if nodes.size > 1:
         t = (nuc - nodes[j]) / (nodes[j + 1] - nodes[j])
+        # never blend across nu_z = 0: the pattern is mirrored there; use the node on the target's side
+        cross = np.sign(nodes[j]) * np.sign(nodes[j + 1]) < 0
+        t = np.where(cross, np.where(np.sign(nuz) == np.sign(nodes[j + 1]), 1.0, 0.0), t)
     for jn, nj in enumerate(nodes):
         if nodes.size == 1:
             wgt = np.ones(nuz.shape)
@@ -313,7 +358,7 @@ def _interp_nodes(nodes, grids, geo, sigma, f0, df, f0n):
 
 def solve_incidence(h, w, pitch, periodic, wavelength_nm, theta_i_deg, phi_i_deg, n1, n2, cells, width_dcos,
                     polarization="unpolarized", coherence_length_m=None, instances=8, seed=0, key=(0,),
-                    tau=0.3, max_nodes=16, workers=2, sides=("R", "T"), theta_s_range_deg=(0.0, 90.0)):
+                    tau=np.inf, max_nodes=16, workers=2, sides=("R", "T"), theta_s_range_deg=(0.0, 90.0)):
     """Kirchhoff tables for one incidence: {'R': (S, A), 'T': (S, A), 'spec_R', 'spec_T', 'info'}.
 
     h: heights in the frame of the incident medium (already sign-flipped for inside), w: window.
@@ -517,7 +562,7 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
     ctx = {"h": h, "w": w, "pitch": (relief.dx_m, relief.dy_m), "periodic": relief.periodic, "wavelengths": wls,
            "theta_i": request.theta_i_deg, "phi_i": request.phi_i_deg, "n": frame_n, "cells": cells,
            "width": width, "polarization": request.polarization, "lc": lc, "instances": instances,
-           "seed": request.seed, "tau": float(opts.get("qz_tolerance", 0.3)),
+           "seed": request.seed, "tau": float(opts.get("qz_tolerance", np.inf)),
            "max_nodes": int(opts.get("max_qz_nodes", 16)), "workers": int(opts.get("fft_workers", 2)),
            "theta_range": (request.theta_s_edges_deg[0], request.theta_s_edges_deg[-1])}
     W, I, P = len(wls), len(request.theta_i_deg), len(request.phi_i_deg)
