@@ -81,14 +81,24 @@ def colour_plot(out: Path) -> str:
     req = Request(wavelengths_nm=(450.0, 550.0, 650.0), theta_i_deg=(0.0,),
                   theta_s_edges_deg=tuple(np.linspace(0, 40, 41)), options={"band_limited": True})
     (tab,) = reconstruct(rel, mat, req, "kirchhoff")
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    psa = tab.projected_solid_angle_sr
     for iw, (wl, c) in enumerate(zip(tab.wavelength_nm, ("tab:blue", "tab:green", "tab:red"))):
         ang, vals = tab.in_plane("R", iw=iw)
         ax.semilogy(ang, vals[0], color=c, label=f"{wl:.0f} nm, specular R = {tab.specular_R[iw, 0, 0]:.4f}")
+        # encircled reflectance: specular delta + cells inside theta, as a share of all reflected power
+        ring = np.cumsum((tab.values_per_sr[iw, 0, 0, 0] * psa).sum(axis=1))
+        total = ring[-1] + tab.specular_R[iw, 0, 0]
+        ax2.plot(tab.theta_s_edges_deg[1:], (ring + tab.specular_R[iw, 0, 0]) / total, color=c, label=f"{wl:.0f} nm")
     ax.set_xlabel("signed scatter angle (deg)")
     ax.set_ylabel("BRDF (1/sr), diffuse part")
-    ax.set_title("Kirchhoff, rms 50 nm, corr 3 um: sharper in the red")
+    ax.set_title("Kirchhoff, rms 50 nm, corr 3 um, normal incidence", fontsize=9)
     ax.legend(fontsize=8)
+    ax2.set_xlabel("theta_s (deg)")
+    ax2.set_ylabel("share of reflected power within theta_s")
+    ax2.set_xlim(0, 15)
+    ax2.set_title("sharper in the red (more specular, tighter core)", fontsize=9)
+    ax2.legend(fontsize=8)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "kirchhoff_colour.png"
     fig.tight_layout()
