@@ -77,6 +77,27 @@ def test_flat_relief_mueller_matches_interface_including_tir_phase():
     assert abs(tab.specular_mueller_R[0, 2, 0, 2, 3]) > 0.1
 
 
+def test_spectral_index_and_thread_count_do_not_change_results():
+    from relief_bsdf.optics import CauchyIndex
+    cauchy = Material(CauchyIndex(1.5046, 4200.0))
+    wl = (400.0, 700.0)
+    req = Request(wavelengths_nm=wl, theta_i_deg=(50.0,), samples=2048, theta_s_edges_deg=TE, phi_s_edges_deg=PE,
+                  options={"polarized": False})
+    tab = ray.reconstruct(flat(), cauchy, req)[0]
+    n = 1.5046 + 4200.0 / np.asarray(wl) ** 2
+    R = fresnel_unpolarized(np.cos(np.radians(50.0)), 1.0, n)
+    np.testing.assert_allclose(tab.specular_R[:, 0, 0], R, rtol=1e-4)
+    assert tab.specular_R[0, 0, 0] > tab.specular_R[1, 0, 0]          # dispersion: more at 400 nm
+    relief = gaussian_relief(0.3, n=64, corr_px=6.0)
+    kw = dict(theta_i_deg=(40.0,), samples=150000, theta_s_edges_deg=TE, phi_s_edges_deg=PE)
+    one = ray.reconstruct(relief, GLASS, Request(options={"threads": 1}, **kw))[0]
+    two = ray.reconstruct(relief, GLASS, Request(options={"threads": 2}, **kw))[0]
+    np.testing.assert_array_equal(one.values_per_sr, two.values_per_sr)
+    np.testing.assert_array_equal(one.mueller_per_sr, two.mueller_per_sr)
+    other_seed = ray.reconstruct(relief, GLASS, Request(seed=1, options={"threads": 2}, **kw))[0]
+    assert not np.array_equal(one.values_per_sr, other_seed.values_per_sr)
+
+
 def test_metal_flat_reflects_fresnel_and_counts_absorption_as_lost():
     metal = Material(ConstantIndex(0.2, 3.0))
     req = Request(theta_i_deg=(0.0, 60.0), samples=4096, theta_s_edges_deg=TE, phi_s_edges_deg=PE)
@@ -208,6 +229,36 @@ def test_agrees_with_walter_beckmann_at_low_slope_and_departs_at_high_slope():
     assert abs(float((h["R"] + h["T"]).ravel()[0]) - 1) < 3e-3
 
 
+def test_mueller_matrices_agree_with_walter_mueller_at_low_slope_both_sides():
+    """Every Stokes rotation (incident frame -> facet -> exit frame) and the inside mirror convention.
+
+    At low slope single scattering dominates, so the normalised Mueller matrices of the lobe cells
+    must equal W07's facet Mueller matrices (microfacet.walter_mueller); 40 degrees from inside is
+    near the critical angle, where TIR phases give large M23 and off-plane cells large M12, M13.
+    """
+    from relief_bsdf.bsdf import direction
+    relief = gaussian_relief(0.1, n=256, corr_px=8.0)
+    alpha = mesh_alpha(relief)
+    te = tuple(np.linspace(0, 90, 46))
+    pe = tuple(np.arange(-5, 360, 10.0))
+    req = Request(theta_i_deg=(40.0,), incident_from=("outside", "inside"), samples=200000, theta_s_edges_deg=te,
+                  phi_s_edges_deg=pe)
+    wi = direction(40.0, 0.0)[None]
+    big_off_block = 0.0
+    for tab in ray.reconstruct(relief, GLASS, req):
+        n_i, n_t = (1.0, N_GLASS) if tab.incident_from == "outside" else (N_GLASS, 1.0)
+        for k, side in enumerate("RT"):
+            ref = mf.cell_average(lambda wo: mf.walter_mueller(wi, wo, n_i, n_t, alpha,
+                                                               phi_o_rad=np.arctan2(wo[:, 1], wo[:, 0])),
+                                  te, pe, side, 4)
+            lobe = ref[..., 0, 0] > 0.3 * ref[..., 0, 0].max()
+            nr = ref[lobe] / ref[lobe][:, :1, :1]
+            nm = tab.mueller_per_sr[0, 0, 0, k][lobe] / tab.mueller_per_sr[0, 0, 0, k][lobe][:, :1, :1]
+            assert np.abs(nr - nm).max() < 0.05, (tab.incident_from, side, np.abs(nr - nm).max(axis=0))
+            big_off_block = max(big_off_block, np.abs(nr[:, 1, 3]).max(), np.abs(nr[:, 0, 2]).max())
+    assert big_off_block > 0.1            # the comparison exercised the frame rotations
+
+
 # ----------------------------------------------------------------------------- scatter API
 
 def test_scatter_api_stokes_and_determinism():
@@ -219,6 +270,8 @@ def test_scatter_api_stokes_and_determinism():
     res = tr.scatter(d, 1.0, N_GLASS, np.random.default_rng(1), stokes=st)
     assert res.dirs.shape == (n, 3) and res.stokes.shape == (n, 4)
     assert not res.above.any()                            # no reflection at Brewster for p
+    st_ = np.sin(th) / N_GLASS                             # Snell
+    np.testing.assert_allclose(res.dirs, np.tile([st_, 0.0, -np.sqrt(1 - st_**2)], (n, 1)), atol=2e-7)
     np.testing.assert_allclose(res.stokes[:, 1], -1.0, atol=1e-5)    # still p-polarised after refraction
     np.testing.assert_allclose(res.weight, 1.0)
     # from below, past the critical angle: everything reflected, moving down again

@@ -40,7 +40,11 @@ exactly within that model; interference between rays is ignored.
   propagation direction; along z, s = (-sin phi, cos phi, 0)), p = s x k.  The sign of s
   does not change a Stokes vector when p = s x k, so this is the frame of bsdf.py
   (s = z x w with w pointing away from the surface) for both incident and scattered light.
-  For light from inside the same *physical* bases are used (no mirror of the fields).
+  For light from inside the table's frame is mirrored (z -> -z, bsdf.py) and its Stokes bases
+  are the same formulas applied in that mirrored frame, as `microfacet` does: a mirror maps
+  the physical basis (s, s x k) to (s', -p'), so the traced (physical) Mueller matrices are
+  converted by M -> D M D, D = diag(1, 1, -1, -1).  `ReliefTracer.scatter` works in the
+  physical frame throughout (s = z x k, p = s x k).
 - Detector: every ray leaves the relief layer (above its highest or below its lowest
   point, moving away); exit directions are binned into the request's (theta_s, phi_s)
   cells, f = sum(weights) / (N * projected solid angle), which makes
@@ -129,6 +133,17 @@ def _frame_s(k: np.ndarray, phi_ref_rad: float | np.ndarray = 0.0) -> np.ndarray
     return s
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (n, 3) arrays (np.cross is generic and slower)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
+    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
+    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
+    np.subtract(ay * bz, az * by, out=out[..., 0])
+    np.subtract(az * bx, ax * bz, out=out[..., 1])
+    np.subtract(ax * by, ay * bx, out=out[..., 2])
+    return out
+
+
 def _rotate_stokes(A: np.ndarray, s_old: np.ndarray, k: np.ndarray, s_new: np.ndarray) -> None:
     """Re-express the Stokes columns of A (4, K, n) from basis (s_old, s_old x k) to (s_new, s_new x k).
 
@@ -137,8 +152,7 @@ def _rotate_stokes(A: np.ndarray, s_old: np.ndarray, k: np.ndarray, s_new: np.nd
     S1' = (c^2 - d^2) S1 + 2cd S2, S2' = -2cd S1 + (c^2 - d^2) S2 (S0, S3 unchanged).
     """
     c = np.einsum("ij,ij->i", s_old, s_new)
-    p_old = np.cross(s_old, k)
-    d = np.einsum("ij,ij->i", p_old, s_new)
+    d = np.einsum("ij,ij->i", _cross(s_old, k), s_new)          # p_old . s_new, p_old = s_old x k
     r = c * c + d * d
     r[r == 0] = 1
     cos2 = (c * c - d * d) / r
@@ -283,6 +297,10 @@ class ReliefTracer:
         if np.any(np.abs(k[:, 2]) < 1e-9) or not np.all(np.isfinite(k)):
             raise RequestError("ray directions must be finite and cross the mean plane (dz != 0)", "dirs")
         n_above, n_below = _check_index_pair(n_above, n_below)
+        if n == 0:
+            return ScatterResult(dirs=np.zeros((0, 3)), weight=np.zeros(0), above=np.zeros(0, bool),
+                                 stokes=np.zeros((0, 4)) if (stokes is not None or polarized) else None,
+                                 lost=np.zeros(0, bool), bounces=np.zeros(0, np.int64), state=np.zeros(0, np.int8))
         from_below = k[:, 2] > 0
         if from_below.any() and np.iscomplexobj(n_below) and np.imag(n_below) > 0:
             raise RequestError("rays cannot arrive from inside an absorbing medium", "dirs")
@@ -504,7 +522,7 @@ class ReliefTracer:
         ct = np.sqrt(np.maximum(0, 1 - sin2t))
         if K:
             (aR, bR, cR, dR), (aT, bT, cT, dT) = interface_coefficients(ci, n1, n2)
-            s_new = np.cross(nf, k)
+            s_new = _cross(nf, k)
             sn = np.sqrt(np.einsum("ij,ij->i", s_new, s_new))
             degenerate = sn < 1e-6
             s_new /= np.where(degenerate, 1, sn)[:, None]
@@ -874,6 +892,9 @@ def _phi_bins(k: np.ndarray, pe: np.ndarray) -> np.ndarray:
     return np.searchsorted(pe - pe[0], phi, side="right") - 1
 
 
+_MIRROR_DD = np.outer([1.0, 1.0, -1.0, -1.0], [1.0, 1.0, -1.0, -1.0])
+
+
 def _incident_state(K: int, n: int) -> np.ndarray | None:
     if not K:
         return None
@@ -1002,10 +1023,13 @@ def reconstruct_with(tracer: ReliefTracer, relief: Relief, material, request, pr
             specR[iw, ii, ip], specT[iw, ii, ip] = acc.spec / n
             lost[iw, ii, ip] = (sum(acc.lost.values()) + acc.outside_table) / n
             if K:
+                # light from inside: the table's frame is mirrored (z -> -z); a mirror maps the physical
+                # basis (s, p = s x k) to (s', -p'), so S2, S3 change sign: M_table = D M D, D = diag(1,1,-1,-1)
+                dd = _MIRROR_DD if side == "inside" else 1.0
                 m = (acc.sum_M / n).reshape(4, 4, 2, S, A_).transpose(2, 3, 4, 0, 1)
-                mue[iw, ii, ip] = m / psa[None, :, :, None, None]
-                smR[iw, ii, ip] = (acc.spec_M[0] / n).reshape(4, 4)
-                smT[iw, ii, ip] = (acc.spec_M[1] / n).reshape(4, 4)
+                mue[iw, ii, ip] = m / psa[None, :, :, None, None] * dd
+                smR[iw, ii, ip] = (acc.spec_M[0] / n).reshape(4, 4) * dd
+                smT[iw, ii, ip] = (acc.spec_M[1] / n).reshape(4, 4) * dd
                 vals[iw, ii, ip] = mue[iw, ii, ip][..., 0, 0]
             diag.append({"wavelength_nm": float(request.wavelengths_nm[iw]),
                          "theta_i_deg": float(request.theta_i_deg[ii]), "phi_i_deg": float(request.phi_i_deg[ip]),
@@ -1025,8 +1049,8 @@ def reconstruct_with(tracer: ReliefTracer, relief: Relief, material, request, pr
                              "total": time.perf_counter() - t0},
                 "tasks": diag,
                 "notes": ["geometric optics: valid when relief features >> wavelength",
-                          "Stokes bases: s = z x k / |z x k|, p = s x k with k the physical propagation "
-                          "direction (also for light from inside)",
+                          "Stokes bases: s = z x k / |z x k|, p = s x k with k the propagation direction, "
+                          "in the table's frame (mirrored for light from inside, as bsdf.py)",
                           "lost = max bounces + numerical leaks + absorbed + exits outside the table's cells"]}
         rel = relief.describe()
         tables.append(BsdfTable(
