@@ -7,10 +7,10 @@ for a bare sample, a smooth plate and the measured relief) and bakes their looku
 renders it, and writes the images side by side (left: before, right: after) through
 OpenImageIO (`relief_bsdf.oiio`).
 
-Scene (metres): a checkerboard (10 mm squares, diffuse, albedo 0.05 / 0.8) on z = 0; the
-plate (50 x 50 mm, the sample's thickness) 8 mm above it, its rough face carrying the baked
-node group and every other face smooth glass of the same index; a uniform white world
-(diffuse light, radiance 1); a perspective camera 30 degrees off the normal.  Cycles,
+Scene (metres): a checkerboard (5 mm squares, diffuse, albedo 0.05 / 0.8) on z = 0; the
+plate (50 x 50 mm, the sample's thickness) 30 mm above it, so that the scattering visibly
+blurs the board; its rough face carries the baked node group and every other face is smooth
+glass of the same index; a uniform white world (diffuse light, radiance 1); a perspective camera 30 degrees off the normal.  Cycles,
 Standard view transform, no denoising: a 256 px wide image at 32 samples takes seconds.
 """
 from __future__ import annotations
@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 PLATE_SIZE_M = 0.05
-GAP_M = 0.008
-CHECKER_M = 0.01
+GAP_M = 0.03
+CHECKER_M = 0.005
 
 
 def _sample_path_from_fit(fit_dir: Path, doc: dict) -> Path:
@@ -236,9 +236,13 @@ def _remove_scene(sc) -> None:
     for ob in list(sc.collection.objects):
         data = ob.data
         bpy.data.objects.remove(ob)
-        for coll in (bpy.data.meshes, bpy.data.cameras):
-            if data is not None and data.name in coll and coll[data.name] == data and data.users == 0:
-                coll.remove(data)
+        try:
+            if isinstance(data, bpy.types.Mesh) and data.users == 0:
+                bpy.data.meshes.remove(data)
+            elif isinstance(data, bpy.types.Camera) and data.users == 0:
+                bpy.data.cameras.remove(data)
+        except ReferenceError:       # already freed with its object
+            pass
     if sc.world is not None and sc.world.users <= 1:
         bpy.data.worlds.remove(sc.world)
     bpy.data.scenes.remove(sc)

@@ -1,0 +1,83 @@
+"""Plate renders: `relief render` (bpy module) and scenes/render_plate.py write before/after side by side."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+
+WIDTH = 96
+
+
+def _read(path):
+    from relief_bsdf import oiio as loader
+    oiio = loader.load()
+    buf = oiio.ImageBuf(str(path))
+    assert not buf.has_error, buf.geterror()
+    return buf.get_pixels(oiio.FLOAT)
+
+
+def _halves(img):
+    gap = max(2, WIDTH // 64)
+    return img[:, :WIDTH, :3], img[:, WIDTH + gap:, :3]
+
+
+def _check_pair(img):
+    h = int(round(WIDTH * 0.75))
+    assert img.shape[:2] == (h, 2 * WIDTH + max(2, WIDTH // 64))
+    left, right = _halves(img)
+    # same board, light and camera: the rows above the plate (far board) agree within noise...
+    top = slice(0, h // 6)
+    assert np.mean(left[top]) == pytest.approx(np.mean(right[top]), rel=0.1)
+    assert 0.05 < np.mean(left[top]) < 0.95
+    return left, right
+
+
+def _contrast(img, width):
+    """Checkerboard contrast seen through the plate: std of 2x2-binned grey values in its centre."""
+    h = img.shape[0]
+    c = img[int(0.38 * h):int(0.62 * h), int(0.4 * width):int(0.6 * width)].mean(axis=2)
+    c = c[: c.shape[0] // 2 * 2, : c.shape[1] // 2 * 2]
+    return float(c.reshape(c.shape[0] // 2, 2, c.shape[1] // 2, 2).mean(axis=(1, 3)).std())
+
+
+@pytest.mark.slow
+def test_relief_render_cli_on_sample(tmp_path):
+    out = tmp_path / "plate.png"
+    r = subprocess.run([sys.executable, "-m", "relief_bsdf.cli", "render", str(REPO / "scenes/demo/sample.toml"),
+                        "-o", str(out), "--width", str(WIDTH), "--samples", "4"],
+                       capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    _check_pair(_read(out))
+
+
+def test_relief_render_cli_bad_input_exit_2(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "relief_bsdf.cli", "render", str(tmp_path / "missing.toml"),
+                        "-o", str(tmp_path / "x.png")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2
+    assert "missing.toml" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.slow
+def test_scene_script_on_fit_folder(clean_bpy, tmp_path):
+    """The scene script's code path (as under `blender --background --python`) on a fit folder."""
+    fit = tmp_path / "fit"
+    fit.mkdir()
+    (fit / "fit.json").write_text(json.dumps({
+        "format": "relief-fit/1", "sample": str(REPO / "scenes/demo/sample.toml"), "method": "microfacet+dw",
+        "parameters": {"height_scale": 3.0, "filter_sigma_um": 0.0}, "rms_before": 1.0, "rms_after": 0.5}))
+    spec = importlib.util.spec_from_file_location("render_plate_script", REPO / "scenes/render_plate.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "fit.png"
+    assert mod.main([str(fit), "-o", str(out), "--width", str(WIDTH), "--samples", "16"]) == 0
+    left, right = _check_pair(_read(out))
+    # the fit roughened the relief 3x: the checkerboard seen through the plate loses contrast
+    assert _contrast(right, WIDTH) < 0.8 * _contrast(left, WIDTH)
+    # bad input: one line, exit code 2
+    assert mod.main([str(tmp_path), "-o", str(out)]) == 2
