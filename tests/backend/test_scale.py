@@ -268,3 +268,19 @@ def test_workers_with_another_relief_version_are_refused(client, monkeypatch):
     monkeypatch.setattr("relief_bsdf.__version__", "0.0.0-other")
     with pytest.raises(InputError, match=r"--dask: 2 of 2 Dask workers do not run relief_bsdf 0.0.0-other"):
         cluster.check_workers(client)
+
+
+def test_in_process_threaded_cluster_leaves_the_client_process_usable():
+    """With a threads-only cluster the tasks run in this process: the 'inside a task' mark
+    must stay on the worker thread, so later calls here still use the pool they ask for."""
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=":0") as lc, \
+            distributed.Client(lc, set_as_default=False) as c:
+        with parallel.parallel_settings(dask=c):
+            out = parallel.map_tasks(_nested_backend, [0, 1, 2, 3], None)
+    assert out == ["serial"] * 4
+    assert not parallel.in_worker()
+    assert parallel.resolve_backend("processes") == "processes"
+
+
+def _nested_backend(context, task):
+    return parallel.resolve_backend("processes")

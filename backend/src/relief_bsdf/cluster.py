@@ -111,10 +111,10 @@ def close_all() -> None:
 
 
 def _call(batch: list, fn: Callable, context: Any) -> list:
-    from . import parallel
+    from .parallel import running_task
 
-    parallel._IN_WORKER = True  # a task that calls map_tasks itself runs it serially here
-    return [fn(context, task) for task in batch]
+    with running_task():        # a task that calls map_tasks itself runs it serially here
+        return [fn(context, task) for task in batch]
 
 
 def run_on_client(client, fn: Callable, context: Any, items: list[tuple[int, Any]], *, retries: int = 2,

@@ -39,6 +39,7 @@ import hashlib
 import os
 import pickle
 import signal
+import threading
 import zlib
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -53,7 +54,8 @@ from .errors import InputError
 from .progress import Progress, silent
 
 _CONTEXT: dict[int, Any] = {}
-_IN_WORKER = False
+_IN_WORKER = False                 # this whole process is a worker (local pool)
+_LOCAL = threading.local()         # this thread runs a task (a Dask worker thread, maybe in-process)
 
 
 class WorkerCrashed(RuntimeError):
@@ -92,7 +94,18 @@ def default_workers() -> int:
 
 def in_worker() -> bool:
     """True inside a task running on a worker (local process or Dask worker)."""
-    return _IN_WORKER
+    return _IN_WORKER or getattr(_LOCAL, "in_task", False)
+
+
+@contextlib.contextmanager
+def running_task() -> Iterator[None]:
+    """Mark this thread as running a task (nested map_tasks calls then run serially)."""
+    old = getattr(_LOCAL, "in_task", False)
+    _LOCAL.in_task = True
+    try:
+        yield
+    finally:
+        _LOCAL.in_task = old
 
 
 # ---------------------------------------------------------------------------------------------
@@ -223,7 +236,7 @@ def parallel_from_args(args: argparse.Namespace):
 
 def resolve_backend(backend: str | None = None) -> str:
     """Which backend a `map_tasks` call with this `backend=` argument uses now."""
-    if _IN_WORKER:
+    if in_worker():
         return "serial"
     if backend:
         return backend
