@@ -110,11 +110,15 @@ class SlopeSet:
         return sigma * (d[:, 0] * self.sx[j] + d[:, 1] * self.sy[j] - d[:, 2])
 
 
-def _draw_facets(slopes: SlopeSet, d: np.ndarray, sigma: np.ndarray, rng, max_tries: int = 400):
+def _draw_facets(slopes: SlopeSet, d: np.ndarray, sigma: np.ndarray, rng, max_tries: int = 400,
+                 same_direction: bool = False):
     """Facet index per ray by rejection; -1 where no facet faces the ray (or sampling gave up)."""
     n = d.shape[0]
     out = np.full(n, -1, np.int64)
-    cmax = slopes.cross_section(d, sigma)
+    if same_direction:                   # first hit: one incident direction for the whole beam
+        cmax = np.full(n, slopes.cross_section(d[:1], sigma[:1])[0])
+    else:
+        cmax = slopes.cross_section(d, sigma)
     todo = np.nonzero(cmax > 1e-15)[0]
     M = slopes.sx.size
     for _ in range(max_tries):
@@ -204,7 +208,7 @@ def trace_normals(slopes: SlopeSet, wi: np.ndarray, n_a: complex, n_b: complex, 
             d, med, sigma = d[need], med[need], sigma[need]
             if d.shape[0] == 0:
                 break
-            j = _draw_facets(slopes, d, sigma, rng)
+            j = _draw_facets(slopes, d, sigma, rng, same_direction=bounce == 0)
             none = j < 0
             if none.any():
                 tally["no_facet"] += int(none.sum())
