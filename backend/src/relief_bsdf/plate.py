@@ -42,6 +42,7 @@ lit spot), discretisation error of the order of the table's cell size (1 deg by 
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
@@ -52,6 +53,16 @@ from .errors import InputError
 from .optics import ConstantIndex, IndexModel, Material, mueller_interface
 
 _DEPOL = np.diag([1.0, 0.0, 0.0, 0.0])
+
+
+def _blas_single_thread():
+    """The plate's matrices are small (N ~ 90): BLAS threads only add wake-up cost, and on a loaded
+    machine OpenBLAS's spinning threads make a 5 ms batched solve take seconds.  One thread."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - pinned in requirements/runtime.txt
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
 SOURCE_STOKES = {"unpolarized": np.array([1.0, 0.0, 0.0, 0.0]),
                  "s": np.array([1.0, 1.0, 0.0, 0.0]),
                  "p": np.array([1.0, -1.0, 0.0, 0.0])}
@@ -209,7 +220,7 @@ def _periodic_matrix(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 def _apply(W: np.ndarray, arr: np.ndarray, axis: int) -> np.ndarray:
     """Contract interpolation matrix W (new, old) with `arr` along `axis`."""
-    if W.shape[0] == W.shape[1] and np.array_equal(W, np.eye(W.shape[0])):
+    if W.shape[0] == W.shape[1] and np.all(np.diagonal(W) == 1.0):   # rows sum to 1: identity
         return arr
     return np.moveaxis(np.tensordot(W, arr, axes=([1], [axis])), 0, axis)
 
@@ -368,6 +379,8 @@ class PlateSolver:
         if c == 4:
             G = G[..., 0, :]                                                                # detector: S0 row
         Gh = np.fft.rfft(G, axis=2)                                                         # (J, O, M[,4])
+        GhT = (np.moveaxis(Gh, 2, 0) if c == 1 else np.moveaxis(Gh, (2, 3), (0, 2))).reshape(Gh.shape[2], -1,
+                                                                                            Gh.shape[1])
         # exit through the flat face: Snell map from outgoing grid theta (air) to internal theta
         # conservative remap: each outgoing cell is cut into 16 equal projected-solid-angle slices,
         # each slice's Snell pre-image falls in one internal cell (piecewise-constant radiance there)
@@ -384,13 +397,17 @@ class PlateSolver:
         Wi = _lin_matrix(tc[below], th_int.ravel())                                          # (O ns, Nb)
         Wflat = np.zeros((N, N, c))
         Wflat[:, below, :] = np.einsum("osj,osc->ojc", Wi.reshape(N, ns, -1), tf)
-        ops = dict(n=n, n0=n0, vin=vin, vout=vout, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, Gh=Gh,
+        ops = dict(n=n, n0=n0, vin=vin, vout=vout, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
                    Wflat=Wflat, c=c, M=Mk)
         self._ops[wl] = ops
         return ops
 
     def solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
         """Plate BSDF for each incidence angle (degrees) at one wavelength."""
+        with _blas_single_thread():
+            return self._solve(wavelength_nm, theta_i_deg, phi_i_deg)
+
+    def _solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
         m = self.model
         ops = self._operators(float(wavelength_nm))
         n, n0, c, Mk = ops["n"], ops["n0"], ops["c"], ops["M"]
@@ -463,14 +480,13 @@ class PlateSolver:
             U = np.einsum("jab,qjkb->qjka", ops["RF"], at_flat) * absorb[None, :, None, None]
         # rough-face exit: circular convolution over azimuth with the inside T kernel
         Uh = np.fft.rfft(U, axis=2)                                        # (nI, J, M, c)
-        if c == 1:
-            Oh = np.einsum("jom,qjm->qom", ops["Gh"], Uh[..., 0])
-        else:
-            Oh = np.einsum("jomb,qjmb->qom", ops["Gh"], Uh)
+        Um = np.moveaxis(Uh, 2, 0).reshape(Mk, nI, N * c)                  # (M, q, J c)
+        Oh = np.moveaxis(Um @ ops["GhT"], 0, 2)                             # (q, O, M)
         out_rough = np.fft.irfft(Oh, n=A, axis=2) + direct_rough
         # flat-face exit: internal radiance (Stokes) interpolated at the Snell pre-image of each outgoing
         # direction, times the exact Fresnel transmission there, divided by (n/n0)^2 (radiance law)
-        out_flat = np.einsum("onc,qnac->qoa", ops["Wflat"], at_flat / psa[None, :, None, None]) * (n0 / n) ** 2
+        L = np.moveaxis(at_flat / psa[None, :, None, None], 2, 3).reshape(nI, N * c, A)    # (q, N c, A)
+        out_flat = (ops["Wflat"].reshape(N, N * c) @ L) * (n0 / n) ** 2                   # (q, O, A)
         results = []
         for q, ti in enumerate(thetas):
             gR = direct_R[q] + (out_rough[q] if front else out_flat[q])
@@ -531,10 +547,14 @@ def rows_from_result(res: PlateResult, side: np.ndarray, theta_s: np.ndarray, ph
         g = np.concatenate([grid, grid[:, :1]], axis=1)                  # periodic closure
         t_ = th[sel].ravel()
         d_ = np.mod(dl[sel].ravel(), 360.0)
-        it = _lin_matrix(res.theta_out_deg, t_)
+        tg = res.theta_out_deg
+        tc_ = np.clip(t_, tg[0], tg[-1])
+        i1 = np.clip(np.searchsorted(tg, tc_, side="right"), 1, tg.size - 1)
+        ft = (tc_ - tg[i1 - 1]) / (tg[i1] - tg[i1 - 1])
         ia = np.clip(np.searchsorted(ext, d_, side="right"), 1, ext.size - 1)
         fa = (d_ - ext[ia - 1]) / (ext[ia] - ext[ia - 1])
-        v = ((it @ g)[np.arange(t_.size), ia - 1] * (1 - fa) + (it @ g)[np.arange(t_.size), ia] * fa)
+        v = ((g[i1 - 1, ia - 1] * (1 - fa) + g[i1 - 1, ia] * fa) * (1 - ft)
+             + (g[i1, ia - 1] * (1 - fa) + g[i1, ia] * fa) * ft)
         out[sel] = v.reshape(-1, off.shape[0]).mean(axis=1)
     # delta beams: the fraction of the (blurred) cone quadrature that contains the beam direction
     h = np.radians(model.detector_half_angle_deg)
