@@ -426,11 +426,12 @@ def map_tasks(fn: Callable[[Any, Any], Any], tasks: Sequence[Any], context: Any 
     if backend == "processes" and (nworkers == 1 or n == 1):
         backend = "serial"
 
-    ckdir = checkpoint_dir if checkpoint_dir is not None else _SETTINGS.checkpoint_dir
+    # the configured checkpoint folder is for the top-level run; a nested call only uses an explicit one
+    ckdir = checkpoint_dir if checkpoint_dir is not None or in_worker() else _SETTINGS.checkpoint_dir
     results: list = [None] * n
-    done = 0
     items = list(enumerate(tasks))
     paths: list[Path] | None = None
+    stats = {"backend": backend, "total": n, "loaded": 0, "computed": 0}
     if ckdir is not None:
         ckdir = Path(ckdir)
         ckdir.mkdir(parents=True, exist_ok=True)
@@ -440,25 +441,26 @@ def map_tasks(fn: Callable[[Any, Any], Any], tasks: Sequence[Any], context: Any 
             ok, r = _load_checkpoint(paths[i])
             if ok:
                 results[i] = r
-                done += 1
+                stats["loaded"] += 1
             else:
                 todo.append((i, t))
         items = todo
-        if done:
-            progress(done, n, f"{label} (resumed)")
-    _LAST_RUN.update(backend=backend, total=n, loaded=done, computed=0)
-    if not items:
-        return results
-    runner = _RUNNERS[backend](fn, context, items, workers=workers if backend == "dask" else nworkers,
-                               retries=retries, label=label)
-    with contextlib.closing(runner):
-        for i, r in runner:
-            results[i] = r
-            if paths is not None:
-                _save_checkpoint(paths[i], r)
-            done += 1
-            _LAST_RUN["computed"] += 1
-            progress(done, n, label)
+        if stats["loaded"]:
+            progress(stats["loaded"], n, f"{label} (resumed)")
+    try:
+        if items:
+            runner = _RUNNERS[backend](fn, context, items, workers=workers if backend == "dask" else nworkers,
+                                       retries=retries, label=label)
+            with contextlib.closing(runner):
+                for i, r in runner:
+                    results[i] = r
+                    if paths is not None:
+                        _save_checkpoint(paths[i], r)
+                    stats["computed"] += 1
+                    progress(stats["loaded"] + stats["computed"], n, label)
+    finally:
+        _LAST_RUN.clear()
+        _LAST_RUN.update(stats)
     return results
 
 
