@@ -1,0 +1,254 @@
+"""Candidate effects: each a small physical model plugged into the plate forward model.
+
+The forward model (`PlateForward`) is the photon plate of `photon_plate.py` with the rough
+face as the *measured facet-normal distribution* of the relief (`NormalsFace`), Stokes
+vectors tracked through every interface, run for an s- and a p-polarised source with fixed
+seeds (common random numbers: the same photons for every parameter value, so the misfit
+varies smoothly with continuous parameters).  Its baseline is the plate exactly as
+sample.toml states it: relief as measured (plane-levelled), index, thickness, known
+absorption (0 when not known), flat back face, source polarisation, nominal detector cone.
+
+Effects, each with its parameters, bounds and physics (the name is the formats.md name):
+
+- bulk_absorption (absorption_per_mm): Beer-Lambert, every detected photon's weight times
+  exp(-a L) with L its total path in the glass (exact reweighting of the recorded paths).
+- volume_scattering (scatter_per_mm, hg_g): free paths ~ Exp(mu_s) and Henyey-Greenstein
+  phase function in the bulk (photons re-traced).
+- back_face_roughness (back_alpha): Beckmann microfacet back face (Walter et al. 2007) with
+  roughness alpha (re-traced).
+- sample_tilt (tilt_deg): the sample frame rotated about y (in the plane of incidence):
+  incidence and exit directions transformed (re-traced).
+- instrument_blur (blur_deg): beam divergence and detector aperture as a Gaussian angular
+  convolution (1-sigma per axis) of the detector cone (re-detected from recorded exits).
+- polarization (polarization_q): source Stokes (1, q, 0, 0), q = +1 s, -1 p; by linearity
+  I = ((1 + q) I_s + (1 - q) I_p) / 2 from the two recorded source runs.
+- stray_light (background_per_sr): additive background in every row.
+- relief_scale (height_scale): heights times s, facet normals re-derived (re-traced).
+- relief_smoothing (filter_sigma_um): Gaussian low-pass of the relief (Relief.gaussian_filtered),
+  facet normals re-derived (re-traced).
+- dispersion (cauchy_B_nm2): n(l) = n_stated(l) + B (1/l^2 - 1/l_ref^2), l_ref the middle
+  recorded wavelength (re-traced per wavelength); only for spectral recordings.
+
+Not modelled here (left to wave-optics / height-field solvers): interreflection,
+diffraction, partial_coherence.  Validity: geometric optics, as photon_plate.py.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize
+
+from .parallel import task_rng
+from .photon_plate import NormalsFace, PlatePhysics, detect, run_photons
+
+TRANSPORT_KEYS = ("scatter_per_mm", "hg_g", "back_alpha", "tilt_deg", "height_scale", "filter_sigma_um",
+                  "cauchy_B_nm2")
+POST_KEYS = ("absorption_per_mm", "blur_deg", "polarization_q", "background_per_sr")
+SOURCE_Q = {"unpolarized": 0.0, "s": 1.0, "p": -1.0}
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A candidate: its parameters as (name, lower bound, upper bound, neutral value)."""
+
+    name: str
+    params: tuple
+    description: str
+    spectral_only: bool = False
+
+
+EFFECTS: dict[str, Effect] = {e.name: e for e in (
+    Effect("bulk_absorption", (("absorption_per_mm", 0.0, 3.0, 0.0),),
+           "light is absorbed in the glass (Beer-Lambert), more on longer paths"),
+    Effect("volume_scattering", (("scatter_per_mm", 0.0, 3.0, 0.0), ("hg_g", 0.0, 0.95, 0.7)),
+           "the glass bulk scatters light (Henyey-Greenstein volume scattering)"),
+    Effect("back_face_roughness", (("back_alpha", 0.0, 0.5, 0.0),),
+           "the back face is not optically flat (Beckmann microfacet surface)"),
+    Effect("sample_tilt", (("tilt_deg", -8.0, 8.0, 0.0),),
+           "the sample was mounted tilted in the plane of incidence"),
+    Effect("instrument_blur", (("blur_deg", 0.0, 8.0, 0.0),),
+           "beam divergence / detector aperture wider than stated (angular blur)"),
+    Effect("polarization", (("polarization_q", -1.0, 1.0, 0.0),),
+           "the source is polarised (q = +1 s, -1 p) unlike stated"),
+    Effect("stray_light", (("background_per_sr", 0.0, 2.0, 0.0),),
+           "stray light adds a constant background to every reading"),
+    Effect("relief_scale", (("height_scale", 0.3, 2.5, 1.0),),
+           "the relief's heights are off by a factor (instrument calibration)"),
+    Effect("relief_smoothing", (("filter_sigma_um", 0.0, 8.0, 0.0),),
+           "the real surface is smoother than measured (measurement noise / tip artefacts)"),
+    Effect("dispersion", (("cauchy_B_nm2", -40000.0, 80000.0, 0.0),),
+           "the glass index depends on wavelength (Cauchy B) unlike stated", spectral_only=True),
+)}
+
+
+@dataclass
+class RowSet:
+    """The rows to simulate (recording geometry) with measured values and sigmas."""
+
+    wavelength_nm: np.ndarray
+    theta_i_deg: np.ndarray
+    phi_i_deg: np.ndarray
+    side: np.ndarray
+    theta_s_deg: np.ndarray
+    phi_s_deg: np.ndarray
+    value: np.ndarray
+    sigma: np.ndarray
+
+    @staticmethod
+    def from_recording(rec) -> "RowSet":
+        sig = np.asarray(rec.sigma_sr, float).copy()
+        bad = ~np.isfinite(sig) | (sig <= 0)
+        if bad.any():  # unknown sigma: 3 % of the value plus a floor (documented fallback)
+            y = np.abs(rec.bsdf_sr)
+            floor = max(1e-3 * float(np.max(y)) if y.size else 1e-3, 1e-6)
+            sig[bad] = np.sqrt((0.03 * y[bad]) ** 2 + floor**2)
+        return RowSet(rec.wavelength_nm, rec.theta_i_deg, rec.phi_i_deg, rec.side, rec.theta_s_deg,
+                      rec.phi_s_deg, np.asarray(rec.bsdf_sr, float), sig)
+
+    def __len__(self) -> int:
+        return len(self.value)
+
+
+@dataclass
+class PlateForward:
+    """Forward model of the recording for given effect parameters (see module docstring)."""
+
+    heights_m: np.ndarray
+    dx_m: float
+    dy_m: float
+    periodic: bool
+    rows: RowSet
+    thickness_mm: float
+    index: object                    # IndexModel of the glass (stated)
+    half_angle_deg: float
+    source_q: float = 0.0
+    known_absorption_per_mm: float = 0.0
+    photons: int = 100_000
+    seed: int = 0
+    _cache_key: tuple | None = field(default=None, repr=False)
+    _cache: dict = field(default_factory=dict, repr=False)
+    evaluations: int = field(default=0, repr=False)
+
+    def _faces(self, p: dict) -> NormalsFace:
+        h = self.heights_m
+        if p.get("filter_sigma_um", 0.0) > 0:
+            from scipy import ndimage
+            s = p["filter_sigma_um"] * 1e-6
+            mode = "wrap" if self.periodic else "reflect"
+            h = ndimage.gaussian_filter(np.nan_to_num(h, nan=float(np.nanmean(h))), (s / self.dy_m, s / self.dx_m),
+                                        mode=mode)
+        h = h * p.get("height_scale", 1.0)
+        return NormalsFace.from_heights(h, self.dx_m, self.dy_m, self.periodic)
+
+    def _transport(self, p: dict) -> dict:
+        key = tuple(round(float(p.get(k, EFFECT_NEUTRAL[k])), 10) for k in TRANSPORT_KEYS)
+        if key == self._cache_key:
+            return self._cache
+        face = self._faces(p)
+        rows = self.rows
+        wls = np.unique(rows.wavelength_nm)
+        lref = float(np.median(wls))
+        recs = {}
+        for iw, wl in enumerate(wls):
+            n = float(np.real(self.index.n(wl))) + p.get("cauchy_B_nm2", 0.0) * (1 / wl**2 - 1 / lref**2)
+            phys = PlatePhysics(thickness_mm=self.thickness_mm, n_glass=n, scatter_per_mm=p.get("scatter_per_mm", 0.0),
+                                hg_g=p.get("hg_g", 0.0), back_alpha=p.get("back_alpha", 0.0),
+                                tilt_deg=p.get("tilt_deg", 0.0))
+            for (ti, pi) in sorted(set(zip(rows.theta_i_deg[rows.wavelength_nm == wl],
+                                           rows.phi_i_deg[rows.wavelength_nm == wl]))):
+                idx = np.nonzero((rows.wavelength_nm == wl) & (rows.theta_i_deg == ti) & (rows.phi_i_deg == pi))[0]
+                ex = []
+                for src, st in enumerate(((1.0, 1.0, 0.0, 0.0), (1.0, -1.0, 0.0, 0.0))):
+                    rng = task_rng(self.seed, int(round(wl * 10)), int(round(ti * 100)), int(round(pi * 100)), src)
+                    ex.append(run_photons(face, phys, ti, pi, st, self.photons // 2, rng))
+                recs[(wl, ti, pi)] = (idx, ex)
+        self._cache_key, self._cache = key, recs
+        return recs
+
+    def simulate(self, params: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(values, Monte-Carlo sigma) per row for the given effect parameters."""
+        p = dict(params or {})
+        self.evaluations += 1
+        recs = self._transport(p)
+        a = self.known_absorption_per_mm + p.get("absorption_per_mm", 0.0)
+        q = float(np.clip(p.get("polarization_q", self.source_q), -1, 1))
+        blur = p.get("blur_deg", 0.0)
+        rows = self.rows
+        val = np.zeros(len(rows))
+        var = np.zeros(len(rows))
+        for (_wl, _ti, _pi), (idx, ex) in recs.items():
+            parts = []
+            for e in ex:
+                w = e.w * np.exp(-a * e.path_mm) if a > 0 else e.w
+                parts.append(detect(e, rows.side[idx], rows.theta_s_deg[idx], rows.phi_s_deg[idx],
+                                    self.half_angle_deg, weights=w, blur_sigma_deg=blur))
+            (vs, ss), (vp, sp) = parts
+            val[idx] = 0.5 * ((1 + q) * vs + (1 - q) * vp)
+            var[idx] = 0.25 * ((1 + q) ** 2 * ss**2 + (1 - q) ** 2 * sp**2)
+        val += p.get("background_per_sr", 0.0)
+        return val, np.sqrt(var)
+
+
+EFFECT_NEUTRAL = {"scatter_per_mm": 0.0, "hg_g": 0.0, "back_alpha": 0.0, "tilt_deg": 0.0, "height_scale": 1.0,
+                  "filter_sigma_um": 0.0, "cauchy_B_nm2": 0.0, "absorption_per_mm": 0.0, "blur_deg": 0.0,
+                  "polarization_q": 0.0, "background_per_sr": 0.0}
+
+
+def chi2(rows: RowSet, model: np.ndarray, model_sigma: np.ndarray) -> float:
+    """Noise-weighted misfit sum(((y - m) / s)^2), s^2 = sigma_recording^2 + sigma_model^2."""
+    s2 = rows.sigma**2 + model_sigma**2
+    return float(np.sum((rows.value - model) ** 2 / s2))
+
+
+def _fit_1d(f, lo: float, hi: float, grid: int, refine: int, neutral: float | None = None) -> tuple[float, float]:
+    """Coarse grid (always including the neutral value) then bounded Brent refinement
+    between the best grid point's neighbours."""
+    xs = np.linspace(lo, hi, grid)
+    if neutral is not None:
+        xs = np.unique(np.append(xs, neutral))
+    ys = [f(x) for x in xs]
+    k = int(np.argmin(ys))
+    a, b = xs[max(k - 1, 0)], xs[min(k + 1, len(xs) - 1)]
+    best_x, best_y = xs[k], ys[k]
+    if refine > 0 and b > a:
+        r = optimize.minimize_scalar(f, bounds=(a, b), method="bounded",
+                                     options={"maxiter": refine, "xatol": (hi - lo) * 1e-3})
+        if r.fun < best_y:
+            best_x, best_y = float(r.x), float(r.fun)
+    return float(best_x), float(best_y)
+
+
+def fit_effect(model: PlateForward, effect: str, progress=None) -> dict:
+    """Fit one effect's parameters by least chi^2; returns name, parameters, chi2, values."""
+    eff = EFFECTS[effect]
+    base = {"polarization_q": model.source_q}
+
+    def run(pars: dict) -> tuple[float, np.ndarray, np.ndarray]:
+        v, s = model.simulate({**base, **pars})
+        return chi2(model.rows, v, s), v, s
+
+    post = all(name in POST_KEYS for name, *_ in eff.params)
+    grid, refine = (9, 10) if post else (4, 4)
+    pars: dict = {}
+    if effect == "stray_light":     # linear in the background: closed-form weighted mean, clipped
+        v0, s0 = model.simulate(base)
+        w = 1.0 / (model.rows.sigma**2 + s0**2)
+        b = max(0.0, float(np.sum(w * (model.rows.value - v0)) / np.sum(w)))
+        pars = {"background_per_sr": b}
+    elif len(eff.params) == 1:
+        name, lo, hi, neutral = eff.params[0]
+        x, _ = _fit_1d(lambda x: run({name: x})[0], lo, hi, grid, refine, neutral)
+        pars = {name: x}
+    else:  # volume scattering: coefficient at a typical forward g, then g, then the coefficient again
+        (n1, lo1, hi1, _), (n2, lo2, hi2, g0) = eff.params
+        x1, _ = _fit_1d(lambda x: run({n1: x, n2: g0})[0], lo1, hi1, 4, 4, 0.0)
+        if x1 > 0:
+            x2, _ = _fit_1d(lambda x: run({n1: x1, n2: x})[0], lo2, hi2, 4, 3)
+            x1, _ = _fit_1d(lambda x: run({n1: x, n2: x2})[0], 0.5 * x1, min(hi1, 1.5 * x1), 3, 2)
+        else:
+            x2 = g0
+        pars = {n1: x1, n2: x2}
+    c, v, s = run(pars)
+    return {"effect": effect, "parameters": {k: float(v_) for k, v_ in pars.items()}, "chi2": c,
+            "k": len(eff.params), "values": v, "model_sigma": s}

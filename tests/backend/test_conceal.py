@@ -1,0 +1,87 @@
+"""Concealed-case generator: files, secrecy of the effect, and the ray-traced relief's physics."""
+import json
+import tomllib
+
+import numpy as np
+import pytest
+
+from relief_bsdf.conceal import CaseSpec, HeightFieldFace, default_cases, gaussian_relief, make_case
+from relief_bsdf.photon_plate import NormalsFace, PlatePhysics, detect, run_photons
+from relief_bsdf.recording import read_recording, read_sample
+
+
+def _tiny(effect, params, seed=11):
+    return CaseSpec(name="t", effect=effect, parameters=params, seed=seed, relief_n=32, photons=20000,
+                    theta_i_deg=(0.0, 40.0), theta_s_deg=tuple(float(x) for x in range(0, 90, 10)))
+
+
+def test_flat_height_field_equals_fresnel_plate():
+    hf = HeightFieldFace(np.zeros((8, 8)), 1e-6, 1e-6)
+    ex = run_photons(hf, PlatePhysics(), 40.0, 0.0, (1, 0, 0, 0), 20000, np.random.default_rng(0))
+    fl = run_photons(NormalsFace(np.array([[0, 0, 1.0]])), PlatePhysics(), 40.0, 0.0, (1, 0, 0, 0), 20000,
+                     np.random.default_rng(0))
+    R = np.mean(ex.d[:, 2] > 0) * len(ex.d) / 20000
+    Rf = np.mean(fl.d[:, 2] > 0) * len(fl.d) / 20000
+    assert R == pytest.approx(Rf, abs=0.006)
+    assert ex.lost == 0
+
+
+def test_height_field_conserves_energy_and_agrees_with_facet_normals_for_gentle_relief():
+    h = gaussian_relief(48, 1e-6, 0.25e-6, 5e-6, 2)
+    hf = HeightFieldFace(h, 1e-6, 1e-6)
+    nf = NormalsFace.from_heights(h, 1e-6, 1e-6)
+    th = np.arange(0.0, 40.0, 5.0)
+    side = np.array(["T"] * th.size)
+    a = run_photons(hf, PlatePhysics(), 20.0, 0.0, (1, 0, 0, 0), 60000, np.random.default_rng(1))
+    b = run_photons(nf, PlatePhysics(), 20.0, 0.0, (1, 0, 0, 0), 60000, np.random.default_rng(2))
+    assert (len(a.d) + a.lost) == 60000          # every photon is accounted for (no absorption)
+    assert a.lost < 60
+    va, sa = detect(a, side, th, np.full(th.size, 180.0), 3.0)
+    vb, sb = detect(b, side, th, np.full(th.size, 180.0), 3.0)
+    ok = va > 0.5
+    z = (va[ok] - vb[ok]) / np.sqrt(sa[ok] ** 2 + sb[ok] ** 2)
+    assert np.mean(z**2) < 4.0
+
+
+def test_case_files_are_readable_and_do_not_reveal_the_effect(tmp_path):
+    key = make_case(_tiny("bulk_absorption", {"absorption_per_mm": 0.3}), tmp_path / "a")
+    key0 = make_case(_tiny("none", {}), tmp_path / "b")
+    assert key["effect"] == "bulk_absorption" and key0["effect"] == "none"
+    for d in ("a", "b"):
+        s = read_sample(tmp_path / d / "sample.toml")
+        rec = read_recording(s.recording_path)
+        assert np.all(np.isfinite(rec.sigma_sr)) and np.all(rec.sigma_sr > 0)
+        assert s.plate.absorption_per_mm is None
+        assert not (tmp_path / d / "key.json").exists()
+    ta = tomllib.loads((tmp_path / "a" / "sample.toml").read_text())
+    tb = tomllib.loads((tmp_path / "b" / "sample.toml").read_text())
+    assert ta == tb                                 # identical descriptions, whatever is concealed
+    ra = read_recording(tmp_path / "a" / "recording.csv")
+    rb = read_recording(tmp_path / "b" / "recording.csv")
+    T = (ra.side == "T") & (ra.theta_i_deg == 0.0) & (ra.theta_s_deg == 0.0)
+    # absorption shows up in the data as a loss of about exp(-a t)
+    assert ra.bsdf_sr[T].mean() / rb.bsdf_sr[T].mean() == pytest.approx(np.exp(-0.6), rel=0.15)
+
+
+def test_noise_is_consistent_with_sigma():
+    spec = _tiny("none", {}, seed=5)
+    import tempfile
+    from pathlib import Path
+    with tempfile.TemporaryDirectory() as d:
+        make_case(spec, Path(d) / "x")
+        spec2 = _tiny("none", {}, seed=5)
+        spec2.photons = 20000
+        rec = read_recording(Path(d) / "x" / "recording.csv")
+    assert rec.sigma_sr.min() >= spec.floor_sr
+
+
+def test_default_cases_cover_every_effect_twice_and_none_thrice():
+    cases = default_cases()
+    names = [c.effect for c in cases]
+    assert len(cases) >= 24
+    for e in set(names) - {"none"}:
+        assert names.count(e) >= 2
+    assert names.count("none") >= 3
+    assert len({c.seed for c in cases}) == len(cases)
+    assert all(len(c.wavelengths_nm) > 1 for c in cases if c.effect == "dispersion")
+    json.dumps([c.parameters for c in cases])

@@ -1,0 +1,161 @@
+"""Physics of the photon plate and of each candidate effect (small, fast Monte-Carlo runs)."""
+import numpy as np
+import pytest
+
+from relief_bsdf.effects import EFFECTS, PlateForward, RowSet, fit_effect
+from relief_bsdf.optics import ConstantIndex, fresnel_power
+from relief_bsdf.photon_plate import NormalsFace, PlatePhysics, _hg_cos, beckmann_normals, detect, run_photons
+
+FLAT = NormalsFace(np.array([[0.0, 0.0, 1.0]]))
+N = 20000
+
+
+def _plate_RT(theta_deg, n, t_mm, a_per_mm, pol):
+    """Incoherent flat plate (Stokes channel s or p): multiple reflections summed exactly."""
+    ci = np.cos(np.radians(theta_deg))
+    Rs, Rp, _, _ = fresnel_power(ci, 1.0, n)
+    R = float(Rs if pol == "s" else Rp)
+    ct = np.sqrt(1 - (np.sin(np.radians(theta_deg)) / n) ** 2)
+    att = np.exp(-a_per_mm * t_mm / ct)
+    T = (1 - R) ** 2 * att / (1 - R**2 * att**2)
+    Rt = R + (1 - R) ** 2 * R * att**2 / (1 - R**2 * att**2)
+    return Rt, T
+
+
+def _fractions(ex):
+    up = ex.d[:, 2] > 0
+    return ex.w[up].sum() / ex.n_launched, ex.w[~up].sum() / ex.n_launched
+
+
+@pytest.mark.parametrize("pol,stokes", [("s", (1, 1, 0, 0)), ("p", (1, -1, 0, 0))])
+@pytest.mark.parametrize("theta", [0.0, 56.31, 70.0])
+def test_flat_plate_matches_incoherent_fresnel_series(pol, stokes, theta):
+    ex = run_photons(FLAT, PlatePhysics(thickness_mm=2.0, n_glass=1.5, absorption_per_mm=0.2), theta, 0.0,
+                     stokes, N, np.random.default_rng(1))
+    R, T = _fractions(ex)
+    Rt, Tt = _plate_RT(theta, 1.5, 2.0, 0.2, pol)
+    tol = 4 * np.sqrt(Rt * (1 - Rt) / N) + 1e-4
+    assert R == pytest.approx(Rt, abs=tol)
+    assert T == pytest.approx(Tt, abs=4 * np.sqrt(Tt * (1 - Tt) / N) + 1e-4)
+
+
+def test_brewster_angle_p_source_reflects_almost_nothing():
+    ex_p = run_photons(FLAT, PlatePhysics(), np.degrees(np.arctan(1.5)), 0.0, (1, -1, 0, 0), N, np.random.default_rng(2))
+    ex_s = run_photons(FLAT, PlatePhysics(), np.degrees(np.arctan(1.5)), 0.0, (1, 1, 0, 0), N, np.random.default_rng(2))
+    assert _fractions(ex_p)[0] < 2e-3
+    assert _fractions(ex_s)[0] > 0.2
+
+
+def test_tilt_rotates_the_specular_reflection_by_twice_the_tilt():
+    ex = run_photons(FLAT, PlatePhysics(tilt_deg=3.0), 30.0, 0.0, (1, 0, 0, 0), 2000, np.random.default_rng(3))
+    up = ex.d[ex.d[:, 2] > 0]
+    th = np.degrees(np.arccos(up[:, 2]))
+    assert np.allclose(th, 30.0 + 6.0, atol=1e-6) or np.allclose(th, 30.0 - 6.0, atol=1e-6)
+    # transmission through a tilted parallel plate stays undeviated
+    dn = ex.d[ex.d[:, 2] < 0]
+    assert np.allclose(np.degrees(np.arccos(-dn[:, 2])), 30.0, atol=1e-6)
+
+
+def test_henyey_greenstein_sampler_mean_cosine_is_g():
+    u = np.random.default_rng(4).random(200000)
+    for g in (0.0, 0.5, 0.9):
+        assert np.mean(_hg_cos(g, u)) == pytest.approx(g, abs=5e-3)
+
+
+def test_volume_scattering_removes_the_direct_beam_as_exp_minus_mu_t():
+    mu, t = 0.3, 2.0
+    ex = run_photons(FLAT, PlatePhysics(thickness_mm=t, scatter_per_mm=mu, hg_g=0.5), 0.0, 0.0, (1, 0, 0, 0), N,
+                     np.random.default_rng(5))
+    direct = np.sum(ex.d[:, 2] < -1 + 1e-9) / N
+    T0 = _plate_RT(0.0, 1.5, t, 0.0, "s")[1]
+    # first-pass direct transmission dominates T0; multiple passes add (R^2 e^{-2 mu t}) corrections
+    expect = (1 - 0.04) ** 2 * np.exp(-mu * t)
+    assert direct == pytest.approx(expect, abs=0.02)
+    assert direct < T0
+
+
+def test_rough_back_face_spreads_transmission_with_roughness():
+    spread = []
+    for alpha in (0.05, 0.15):
+        ex = run_photons(FLAT, PlatePhysics(back_alpha=alpha), 0.0, 0.0, (1, 0, 0, 0), 5000, np.random.default_rng(6))
+        dn = ex.d[ex.d[:, 2] < 0]
+        spread.append(np.sqrt(np.mean(np.arccos(-dn[:, 2]) ** 2)))
+    assert spread[1] > 2.0 * spread[0]
+    # Beckmann normals: mean square slope = alpha^2
+    m = beckmann_normals(0.2, 100000, np.random.default_rng(0))
+    assert np.mean((m[:, 0] ** 2 + m[:, 1] ** 2) / m[:, 2] ** 2) == pytest.approx(0.04, rel=0.03)
+
+
+def _small_forward(photons=20000, periodic=True):
+    rng = np.random.default_rng(0)
+    from relief_bsdf.conceal import gaussian_relief
+    h = gaussian_relief(48, 1e-6, 0.3e-6, 4e-6, 5)
+    th = np.arange(0.0, 90.0, 10.0)
+    W, TI, SD, TS, PS = [], [], [], [], []
+    for ti in (0.0, 40.0):
+        for sd in ("R", "T"):
+            for ps in (0.0, 180.0):
+                for t in th:
+                    W.append(550.0); TI.append(ti); SD.append(sd); TS.append(t); PS.append(ps)
+    n = len(W)
+    rows = RowSet(np.array(W), np.array(TI), np.zeros(n), np.array(SD), np.array(TS), np.array(PS),
+                  np.zeros(n), np.full(n, 0.01))
+    return PlateForward(h, 1e-6, 1e-6, periodic, rows, 2.0, ConstantIndex(1.5), 3.0, photons=photons, seed=1)
+
+
+def test_absorption_reweighting_equals_beer_lambert_in_the_run():
+    fwd = _small_forward()
+    v, _ = fwd.simulate({"absorption_per_mm": 0.3})
+    v0, _ = fwd.simulate({})
+    T = fwd.rows.side == "T"
+    # normal-ish transmission loses at least exp(-a t) and the ratio is the same for every angle family
+    ratio = v[T & (v0 > 1)] / v0[T & (v0 > 1)]
+    assert np.all(ratio < np.exp(-0.3 * 2.0) * 1.001)
+    assert np.all(ratio > np.exp(-0.3 * 2.0 / 0.6))
+
+
+def test_each_effect_moves_the_simulation_and_is_neutral_at_its_neutral_value():
+    fwd = _small_forward()
+    v0, _ = fwd.simulate({})
+    for name, eff in EFFECTS.items():
+        if eff.spectral_only:
+            continue
+        pars_neutral = {p: neutral for p, lo, hi, neutral in eff.params}
+        if name == "volume_scattering":
+            pars_neutral["scatter_per_mm"] = 0.0
+        vn, _ = fwd.simulate(pars_neutral)
+        assert np.allclose(vn, v0), name
+        pars = {p: (neutral + 0.3 * (hi - neutral) if hi > neutral else lo) for p, lo, hi, neutral in eff.params}
+        v1, _ = fwd.simulate(pars)
+        assert np.max(np.abs(v1 - v0) / (np.abs(v0) + 0.05)) > 0.05, name
+
+
+def test_relief_scale_broadens_and_smoothing_narrows_the_transmitted_lobe():
+    fwd = _small_forward()
+    T0 = (fwd.rows.side == "T") & (fwd.rows.theta_i_deg == 0.0) & (fwd.rows.theta_s_deg == 0.0)
+    peak = lambda p: fwd.simulate(p)[0][T0].mean()  # noqa: E731
+    p0 = peak({})
+    assert peak({"height_scale": 1.5}) < 0.7 * p0
+    assert peak({"filter_sigma_um": 2.0}) > 1.3 * p0
+
+
+def test_fit_recovers_a_background_and_an_absorption():
+    fwd = _small_forward()
+    truth, _ = fwd.simulate({"absorption_per_mm": 0.25})
+    fwd.rows.value = truth
+    fwd.rows.sigma = 0.02 * truth + 1e-3
+    f = fit_effect(fwd, "bulk_absorption")
+    assert f["parameters"]["absorption_per_mm"] == pytest.approx(0.25, abs=0.01)
+    truth2, _ = fwd.simulate({"background_per_sr": 0.05})
+    fwd.rows.value = truth2
+    f = fit_effect(fwd, "stray_light")
+    assert f["parameters"]["background_per_sr"] == pytest.approx(0.05, abs=0.005)
+
+
+def test_detector_blur_keeps_the_integral_and_lowers_a_sharp_peak():
+    ex = run_photons(NormalsFace(beckmann_normals(0.05, 20000, np.random.default_rng(1))), PlatePhysics(), 0.0, 0.0,
+                     (1, 0, 0, 0), N, np.random.default_rng(7))
+    th = np.array([0.0])
+    sharp, _ = detect(ex, np.array(["T"]), th, th, 2.0)
+    wide, _ = detect(ex, np.array(["T"]), th, th, 2.0, blur_sigma_deg=3.0)
+    assert wide[0] < 0.8 * sharp[0]
