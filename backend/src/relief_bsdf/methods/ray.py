@@ -536,52 +536,73 @@ class ReliefTracer:
             pR[tir] = 1
         absorbed_T = (~bh) if absorbing_below else None
         split = h.pending
-        any_split = bool(split.any())
-        refl = rng.random(ci.size, dtype=F32) < pR
-        if any_split:
-            refl |= split
+        n_split = int(np.count_nonzero(split))
+        all_split = n_split == ci.size
+        if all_split:
+            refl = None                                   # every ray keeps the reflected branch
+        else:
+            refl = rng.random(ci.size, dtype=F32) < pR
+            if n_split:
+                refl |= split
+        p_hit = k * t_hit[:, None]
+        p_hit += h.o
         parts = []
         # transmitted copies of split rays (the reflected branch keeps the ray)
-        if any_split:
-            j = np.flatnonzero(split & ~tir & (pR < 1))
+        if n_split:
+            j_ok = ~tir & (pR < 1)
+            if not all_split:
+                j_ok &= split
+            j = np.flatnonzero(j_ok)
             if j.size:
-                tr = h.take(j)
-                tr.ids = tr.ids + n0
-                tr.w = tr.w * (1 - pR[j])
-                etaj, cij, ctj = eta[j], ci[j], ct[j]
-                kt = etaj[:, None] * tr.k + (etaj * cij - ctj)[:, None] * nf[j]
+                full = j.size == ci.size
+                tr = _RayState(o=None, k=None, below=~bh if full else ~bh[j], ids=(h.ids if full else h.ids[j]) + n0,
+                               w=(h.w if full else h.w[j]) * (1 - (pR if full else pR[j])), nb=h.nb if full else h.nb[j],
+                               pending=np.zeros(j.size, bool), A=None, s=None)
+                etaj, cij, ctj = (eta, ci, ct) if full else (eta[j], ci[j], ct[j])
+                kj, nfj = (k, nf) if full else (np.take(k, j, axis=0), np.take(nf, j, axis=0))
+                kt = kj * etaj[:, None]
+                kt += (etaj * cij - ctj)[:, None] * nfj
                 kt /= np.sqrt(np.einsum("ij,ij->i", kt, kt))[:, None]
-                tr.o = tr.o + t_hit[j][:, None] * tr.k - eps * nf[j]
+                tr.o = (p_hit if full else np.take(p_hit, j, axis=0)) - eps * nfj
                 tr.k = kt
-                tr.below = ~tr.below
-                tr.pending = np.zeros(j.size, bool)
                 if K:
-                    tr.A = tr.A.copy()
-                    _apply_mueller(tr.A, aT[j], bT[j], cT[j], dT[j], 1 / np.maximum(1 - pR[j], F32(1e-30)))
-                    tr.s = s_new[j]
+                    tr.A = np.take(h.A, j, axis=2)
+                    pj = pR if full else pR[j]
+                    sel = (lambda x: x) if full else (lambda x: x[j])
+                    _apply_mueller(tr.A, sel(aT), sel(bT), sel(cT), sel(dT), 1 / np.maximum(1 - pj, F32(1e-30)))
+                    tr.s = s_new if full else s_new[j]
                 if absorbed_T is not None and absorbed_T[j].any():
                     a_ = absorbed_T[j]
                     finish(tr.take(np.flatnonzero(a_), exit_only=True), LOST_ABSORBED)
                     tr = tr.take(np.flatnonzero(~a_))
                 parts.append(tr)
-            h.w = np.where(split, h.w * pR, h.w)
-        # the ray itself: reflect or refract
-        a = np.where(refl, F32(1), eta)
-        b = np.where(refl, 2 * ci, eta * ci - ct)
-        knew = a[:, None] * k + b[:, None] * nf
-        knew /= np.sqrt(np.einsum("ij,ij->i", knew, knew))[:, None]
-        h.o = h.o + t_hit[:, None] * k + (np.where(refl, eps, -eps))[:, None] * nf
-        h.k = knew
-        h.below = bh ^ ~refl
-        if any_split:
+            h.w = h.w * pR if all_split else np.where(split, h.w * pR, h.w)
+        # the ray itself: reflect (norm preserved) or refract (renormalised)
+        if all_split:
+            knew = nf * (2 * ci)[:, None]
+            knew += k
+            h.o = p_hit + eps * nf
             h.pending = np.zeros(ci.size, bool)
+        else:
+            a = np.where(refl, F32(1), eta)
+            b = np.where(refl, 2 * ci, eta * ci - ct)
+            knew = a[:, None] * k + b[:, None] * nf
+            knew /= np.sqrt(np.einsum("ij,ij->i", knew, knew))[:, None]
+            h.o = p_hit + (np.where(refl, eps, -eps))[:, None] * nf
+            h.below = bh ^ ~refl
+            if n_split:
+                h.pending = np.zeros(ci.size, bool)
+        h.k = knew
         if K:
-            pc = np.where(refl, pR, 1 - pR)
-            _apply_mueller(h.A, np.where(refl, aR, aT), np.where(refl, bR, bT), np.where(refl, cR, cT),
-                           np.where(refl, dR, dT), 1 / np.maximum(pc, F32(1e-30)))
+            if all_split:
+                _apply_mueller(h.A, aR, bR, cR, dR, 1 / np.maximum(pR, F32(1e-30)))
+            else:
+                pc = np.where(refl, pR, 1 - pR)
+                _apply_mueller(h.A, np.where(refl, aR, aT), np.where(refl, bR, bT), np.where(refl, cR, cT),
+                               np.where(refl, dR, dT), 1 / np.maximum(pc, F32(1e-30)))
             h.s = s_new
         end = None
-        if absorbed_T is not None:
+        if absorbed_T is not None and refl is not None:
             end = ~refl & absorbed_T
             if end.any():
                 finish(h.take(np.flatnonzero(end), exit_only=True), LOST_ABSORBED)
@@ -872,23 +893,39 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, te_sin2, p
 
 
 def _theta_bins(kz: np.ndarray, te_sin2: np.ndarray) -> np.ndarray:
-    """Ring index of each direction (edges given as sin^2 theta); -1 / S outside."""
+    """Ring index of each direction (edges given as sin^2 theta); -1 or S when outside the edges.
+
+    Uniform edges in theta: arithmetic on arccos (float32); otherwise a search on sin^2.
+    """
+    te = np.degrees(np.arcsin(np.sqrt(np.clip(te_sin2, 0.0, 1.0))))
+    d = np.diff(te)
+    S = d.size
+    if np.allclose(d, d[0], rtol=1e-9, atol=1e-9):
+        th = np.degrees(np.arccos(np.minimum(np.abs(kz), F32(1))))
+        x = (th - F32(te[0])) * F32(1.0 / d[0])
+        ib = np.floor(x).astype(np.int64)
+        if te[-1] >= 90.0 - 1e-9:
+            ib[ib == S] = S - 1                        # theta = 90 exactly belongs to the last ring
+        ib[x < 0] = -1
+        return ib
     sin2 = np.maximum(F32(0), 1 - kz * kz).astype(np.float64)
     ib = np.searchsorted(te_sin2, sin2, side="right") - 1
-    ib[sin2 >= te_sin2[-1]] = te_sin2.size - 2 if te_sin2[-1] >= 1.0 else te_sin2.size - 1
+    ib[sin2 >= te_sin2[-1]] = S - 1 if te_sin2[-1] >= 1.0 else S
     return ib
 
 
 def _phi_bins(k: np.ndarray, pe: np.ndarray) -> np.ndarray:
-    """Azimuth cell of each direction; uniform edges by arithmetic, others by search."""
-    phi = np.degrees(np.arctan2(k[:, 1], k[:, 0]).astype(np.float64))
-    phi -= pe[0]
-    np.mod(phi, 360.0, out=phi)
+    """Azimuth cell of each direction; uniform edges by arithmetic (float32), others by search."""
     d = np.diff(pe)
     if np.allclose(d, d[0]):
-        ia = np.floor(phi / d[0]).astype(np.int64)
+        phi = np.arctan2(k[:, 1], k[:, 0])
+        phi *= F32(180.0 / np.pi)
+        phi -= F32(pe[0])
+        np.mod(phi, F32(360.0), out=phi)
+        ia = np.floor(phi * F32(1.0 / d[0])).astype(np.int64)
         ia[ia >= d.size] = d.size                    # beyond the last edge (span < 360): outside
         return ia
+    phi = np.mod(np.degrees(np.arctan2(k[:, 1], k[:, 0]).astype(np.float64)) - pe[0], 360.0)
     return np.searchsorted(pe - pe[0], phi, side="right") - 1
 
 
