@@ -13,6 +13,10 @@ the ratios are the meaningful numbers):
 - embree_only: the very segment batches the engine traced (recorded), replayed through
   `scene.run` on the same number of threads: segments per second Embree alone reaches on
   that work.  ratio_to_embree = engine segments/s / Embree-alone segments/s (target >= 0.7).
+- ratio_to_embree_cpu: the same ratio in CPU seconds (user + system of the process), less
+  sensitive to other work sharing the cores.
+- the scalar engine again without the first-hit split (one outcome per ray, like the
+  minimal loop; the split costs one more segment per path and gives the BRDF every ray).
 - minimal_loop: a minimal numpy + embreex bounce loop with no physics beyond a Fresnel
   reflect/refract choice (no wrap, no polarisation, no binning), two threads over raster-
   ordered rays: paths/s.  ratio_to_minimal = engine paths/s / minimal paths/s (target >= 0.5).
@@ -52,15 +56,23 @@ def run_threads(fn, parts):
     return time.perf_counter() - t0
 
 
+def cpu_s() -> float:
+    """CPU seconds (user + system) of this process, all threads."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def embree_replay(scene, batches, threads):
-    """Wall time for Embree alone to intersect the recorded (origins, dirs, tfar) batches."""
+    """(wall, cpu) seconds for Embree alone to intersect the recorded (origins, dirs, tfar) batches."""
     parts = [batches[i::threads] for i in range(threads)]
 
     def work(bs):
         for o, k, t in bs:
             scene.run(o, k, dists=t.copy(), output=1)
 
-    return run_threads(work, parts)
+    c0 = cpu_s()
+    wall = run_threads(work, parts)
+    return wall, cpu_s() - c0
 
 
 def _minimal_work(tracer, o, k, seed, n_in, segs_out, ti):
@@ -127,25 +139,28 @@ def main(argv=None) -> int:
     print(f"relief {a.size}^2 ({tracer.mesh.n_triangles} triangles): synth {t_synth:.2f} s, "
           f"mesh + BVH build {tracer.build_s:.2f} s", flush=True)
 
-    def engine(polarized: bool, record: bool):
+    def engine(polarized: bool, record: bool, split: bool = True):
         req = Request(theta_i_deg=(a.theta,), samples=a.rays, seed=3,
-                      options={"polarized": polarized, "threads": a.threads})
+                      options={"polarized": polarized, "threads": a.threads, "first_hit_split": split})
         tracer.record_segments = [] if record else None
+        c0 = cpu_s()
         t = time.perf_counter()
         tab = ray.reconstruct_with(tracer, relief, mat, req)[0]
         wall = time.perf_counter() - t
+        cpu = cpu_s() - c0
         rec, tracer.record_segments = tracer.record_segments, None
         d = tab.metadata["tasks"][0]
         h = tab.hemispherical()
-        return {"wall_s": wall, "paths": d["rays"], "segments": d["segments"],
+        return {"wall_s": wall, "cpu_s": cpu, "paths": d["rays"], "segments": d["segments"],
                 "R": float(h["R"][0, 0, 0]), "T": float(h["T"][0, 0, 0]), "lost": float(h["lost"][0, 0, 0]),
                 "mean_bounces": d["mean_bounces"]}, rec
 
     engine(False, False)                          # warm-up (page faults, caches)
     scal, rec = engine(False, True)
-    t_emb = embree_replay(tracer.scene, rec, a.threads)
+    t_emb, cpu_emb = embree_replay(tracer.scene, rec, a.threads)
     emb_seg_s = scal["segments"] / t_emb
     del rec
+    nosplit, _ = engine(False, False, split=False)
     pol, _ = engine(True, False)
     min_pps, min_spp = minimal_paths_per_s(tracer, a.rays, a.theta, a.threads)
     pps_s = scal["paths"] / scal["wall_s"]
@@ -156,13 +171,19 @@ def main(argv=None) -> int:
           f"{seg_s / 1e6:.2f} M segments/s, R {scal['R']:.4f} T {scal['T']:.4f} lost {scal['lost']:.2e}")
     print(f"engine polarised: {pps_p / 1e6:.3f} M paths/s (Mueller 4x4 per ray: {pps_s / pps_p:.2f}x the scalar "
           f"time), R {pol['R']:.4f} T {pol['T']:.4f}")
-    print(f"embree alone on the same batches: {emb_seg_s / 1e6:.2f} M segments/s -> ratio {seg_s / emb_seg_s:.2f}")
+    pps_ns = nosplit["paths"] / nosplit["wall_s"]
+    print(f"engine scalar without the first-hit split: {pps_ns / 1e6:.3f} M paths/s, "
+          f"{nosplit['segments'] / nosplit['paths']:.3f} segments/path")
+    print(f"embree alone on the same batches: {emb_seg_s / 1e6:.2f} M segments/s -> ratio {seg_s / emb_seg_s:.2f} "
+          f"(CPU-time ratio {cpu_emb / scal['cpu_s']:.2f}: engine CPU {scal['cpu_s']:.2f} s, "
+          f"embree CPU {cpu_emb:.2f} s)")
     print(f"minimal numpy+embree loop: {min_pps / 1e6:.3f} M paths/s ({min_spp:.2f} segments/path) -> "
           f"engine/minimal {pps_s / min_pps:.2f} (scalar), {pps_p / min_pps:.2f} (polarised)")
     print(f"peak RSS {peak:.0f} MB, threads {a.threads}")
     out = {"paths_per_s": pps_s, "paths_per_s_polarized": pps_p, "segments_per_path": scal["segments"] / scal["paths"],
            "segments_per_s": seg_s, "embree_segments_per_s": emb_seg_s, "ratio_to_embree": seg_s / emb_seg_s,
-           "minimal_loop_paths_per_s": min_pps, "ratio_to_minimal": pps_s / min_pps,
+           "ratio_to_embree_cpu": cpu_emb / scal["cpu_s"], "paths_per_s_no_split": pps_ns,
+           "minimal_loop_paths_per_s": min_pps, "ratio_to_minimal_no_split": pps_ns / min_pps, "ratio_to_minimal": pps_s / min_pps,
            "ratio_to_minimal_polarized": pps_p / min_pps, "polarized_cost_factor": pps_s / pps_p,
            "R": scal["R"], "T": scal["T"], "lost": scal["lost"], "rays": scal["paths"], "size": a.size,
            "threads": a.threads, "build_s": tracer.build_s, "peak_rss_mb": peak}
