@@ -103,3 +103,37 @@ def test_redder_is_sharper(relief):
         v = tab.values_per_sr[iw, 0, 0, 0, :, 0]
         widths.append(np.sqrt(np.sum(v * np.sin(np.radians(ts)) ** 3) / np.sum(v * np.sin(np.radians(ts)))))
     assert widths[1] > 1.3 * widths[0]   # lobe width scales with lambda (650/450 = 1.44)
+
+
+def test_mueller_matches_scatmech_and_flat_interface():
+    """Full Mueller BSDF: SCATMECH's psps matrices (basis handedness aside) and the specular limit."""
+    from pySCATMECH.brdf import BRDF_Model
+    from relief_bsdf.optics import cos_transmitted, mueller_interface
+    psd = _exact_psd()
+    D = np.diag([1.0, 1.0, -1.0, -1.0])
+    for kind, (n1, n2, side) in enumerate([(1, 1.5, "R"), (1, 1.5, "T"), (1.5, 1, "R"), (1.5, 1, "T")]):
+        m = BRDF_Model("Microroughness_BRDF_Model", wavelength=0.55, substrate=1.5, type=kind,
+                       psd={None: "Gaussian_PSD_Function", "sigma": RMS * 1e6, "length": CORR * 1e6})
+        for ti, ts, ps in [(30, 20, 230), (10, 25, 100), (50, 40, 200)]:
+            ref = np.array(m.MuellerBRDF(np.radians(ti), np.radians(ts), np.radians(ps - 180)))
+            ours = rr.rr_mueller(np.radians(ti), 0.0, np.radians(ts), np.radians(ps), side, n1, n2, LAM * 1e-9, psd)
+            if kind < 2:
+                ours = D @ ours @ D
+            np.testing.assert_allclose(ours, ref, rtol=1e-5, atol=1e-7 * ref[0, 0])
+        # towards the specular / undeviated direction the cell Mueller matrix tends to the interface's
+        ti = 25.0
+        ct = np.real(cos_transmitted(np.cos(np.radians(ti)), n1, n2))
+        ts = ti if side == "R" else np.degrees(np.arccos(ct))
+        M = rr.rr_mueller(np.radians(ti), 0.0, np.radians(ts), np.pi, side, n1, n2, LAM * 1e-9, psd)
+        F = mueller_interface(np.cos(np.radians(ti)), n1, n2, side)
+        np.testing.assert_allclose(M / M[0, 0], F / F[0, 0], atol=1e-9)
+
+
+def test_polarized_request_values(relief):
+    base = dict(wavelengths_nm=(LAM,), theta_i_deg=(40.0,), phi_s_edges_deg=PHI_EDGES)
+    (u,) = reconstruct(relief, MAT, Request(**base), "rayleigh-rice")
+    (s,) = reconstruct(relief, MAT, Request(**base, polarization="s"), "rayleigh-rice")
+    (p,) = reconstruct(relief, MAT, Request(**base, polarization="p"), "rayleigh-rice")
+    np.testing.assert_allclose(0.5 * (s.values_per_sr + p.values_per_sr), u.values_per_sr, rtol=1e-12)
+    assert s.specular_R[0, 0, 0] > p.specular_R[0, 0, 0]            # R_s > R_p at 40 deg
+    assert s.hemispherical()["diffuse_R"][0, 0, 0] > p.hemispherical()["diffuse_R"][0, 0, 0]

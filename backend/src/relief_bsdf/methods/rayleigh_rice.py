@@ -31,8 +31,13 @@ and the formulas continue analytically (complex cosines): the field at the inter
 then enhanced, which is why inside scattering at 60 deg is ~5x that at 30 deg.
 
 Polarisation: the Jones matrix J[b, a] (b, a in s, p) gives the Mueller matrix per cell
-(`mueller_per_sr`, Stokes in the s/p bases of BsdfTable's module doc; p = s x propagation
-direction).  The unpolarised BSDF is M00 = sum |J|^2 / 2.
+(`mueller_per_sr`, Stokes in the s/p bases of BsdfTable's module doc, p = s x propagation
+direction, S1 = I_s - I_p, the convention of optics.mueller_interface: towards the specular /
+undeviated direction the normalised cell Mueller matrix tends to the flat interface's, so
+diffuse and specular parts of one table agree).  Against SCATMECH's "psps" Mueller matrices:
+identical for light from inside; for light from outside identical up to the sign of S2 and
+S3 (conjugation by diag(1, 1, -1, -1): the handedness of its basis).  `values_per_sr` is M00
+for unpolarised light, M00 + M01 / M00 - M01 for request.polarization "s" / "p".
 
 Specular parts: the Fresnel reflectance / transmittance of the mean plane times the
 Debye-Waller factors exp(-(4 pi sigma n1 cos t_i / lambda)^2) and
@@ -212,10 +217,14 @@ def rr_jones(theta_i, phi_i, theta_s, phi_s, side: str, n1, n2) -> np.ndarray:
         return (eps2 - eps1) * (a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2] / (eps1 * eps2))
 
     J = np.empty(np.broadcast(np.asarray(theta_i), np.asarray(theta_s), np.asarray(phi_s)).shape + (2, 2), complex)
+    # outgoing p = s x w_s (w_s = propagation direction of the scattered wave).  The reverse
+    # (detection) wave's p vector is -(s x w_s) for R; for T it was built in the mirrored frame,
+    # where mirroring the cross product flips it to +(s x w_s).
+    sp = -1.0 if side == "R" else 1.0
     J[..., 0, 0] = amp(a_s, b_s)
     J[..., 0, 1] = amp(a_p, b_s)
-    J[..., 1, 0] = -amp(a_s, b_p)      # reverse wave's p is -(s x w_s)
-    J[..., 1, 1] = -amp(a_p, b_p)
+    J[..., 1, 0] = sp * amp(a_s, b_p)
+    J[..., 1, 1] = sp * amp(a_p, b_p)
     return J
 
 
@@ -273,7 +282,7 @@ def _task(ctx, task):
             M = np.zeros(cells.alpha.shape[:2] + (4, 4))
         else:
             M = rr_mueller(ti, pi_, cells.theta, cells.phi, side, n1, n2, wl_nm * 1e-9, psd).mean(axis=2)
-        out[side] = M if polarized else M[..., 0, 0]
+        out[side] = M if polarized else _intensity(M, ctx["polarization"])
     # specular parts with Debye-Waller factors
     lam = wl_nm * 1e-9
     ci = np.cos(ti)
@@ -285,6 +294,15 @@ def _task(ctx, task):
     MR = mueller_interface(ci, n1, n2, "R") * dw_r
     MT = mueller_interface(ci, n1, n2, "T") * dw_t if np.imag(n2) == 0 else np.zeros((4, 4))
     return out, MR, MT
+
+
+def _intensity(M: np.ndarray, polarization: str) -> np.ndarray:
+    """BSDF for the request's incident polarisation: unpolarised M00, s: M00 + M01, p: M00 - M01."""
+    if polarization == "s":
+        return M[..., 0, 0] + M[..., 0, 1]
+    if polarization == "p":
+        return M[..., 0, 0] - M[..., 0, 1]
+    return M[..., 0, 0]
 
 
 def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
@@ -303,7 +321,7 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
         for fr in request.incident_from:
             frame_n[(iw, fr)] = material.n_pair(wl, fr)
     ctx = {"psd": psd, "cells": cells, "n": frame_n, "wavelengths": wls, "theta_i": request.theta_i_deg,
-           "phi_i": request.phi_i_deg, "polarized": polarized}
+           "phi_i": request.phi_i_deg, "polarized": polarized, "polarization": request.polarization}
     tables = []
     W, I, P = len(wls), len(request.theta_i_deg), len(request.phi_i_deg)
     S, A = cells.alpha.shape[:2]
@@ -319,11 +337,11 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
             for k, side in enumerate(("R", "T")):
                 if polarized:
                     mu[iw, it, ip, k] = out[side]
-                    vals[iw, it, ip, k] = out[side][..., 0, 0]
+                    vals[iw, it, ip, k] = _intensity(out[side], request.polarization)
                 else:
                     vals[iw, it, ip, k] = out[side]
             mR[iw, it, ip], mT[iw, it, ip] = MR, MT
-            sR[iw, it, ip], sT[iw, it, ip] = MR[0, 0], MT[0, 0]
+            sR[iw, it, ip], sT[iw, it, ip] = _intensity(MR, request.polarization), _intensity(MT, request.polarization)
         tables.append(BsdfTable(
             wavelength_nm=wls, theta_i_deg=request.theta_i_deg, phi_i_deg=request.phi_i_deg,
             theta_s_edges_deg=request.theta_s_edges_deg, phi_s_edges_deg=request.phi_s_edges_deg,
