@@ -101,3 +101,15 @@ def test_bad_relief_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all("error" in e for e in err)
     assert main(["plot", str(tmp_path / "missing.h5")]) == 2
+
+
+def test_plot_compare_overlays_tables(tmp_path):
+    relief = _write_relief(tmp_path / "r.npz")
+    a, b = tmp_path / "a.h5", tmp_path / "b.h5"
+    assert main(["reconstruct", str(relief), "--method", "microfacet", "--n", "1.5", "-o", str(a)] + COMMON) == 0
+    assert main(["reconstruct", str(relief), "--method", "normals", "--n", "1.5", "--samples", "20000",
+                 "-o", str(b)] + COMMON) == 0
+    png = tmp_path / "cmp.png"
+    assert main(["plot", str(a), "--compare", str(b), "-o", str(png)]) == 0
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    assert main(["plot", str(a), "--compare", str(tmp_path / "missing.h5"), "-o", str(png)]) == 2

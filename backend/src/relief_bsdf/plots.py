@@ -102,6 +102,25 @@ def table_figure(table: BsdfTable, sides=("R", "T"), iw: int = 0, ip: int = 0, m
     return fig
 
 
+def compare_figure(tables: list, labels: list, sides=("R", "T"), iw: int = 0, ip: int = 0):
+    """In-plane curves of several tables overlaid (one line style per table, one colour per incidence).
+
+    Tables are matched by incidence angle index; e.g. `ray`, `normals` and `microfacet` tables of
+    one relief, or a simulation against a measurement converted to a table.
+    """
+    styles = ["-", "--", ":", "-."]
+    sides = list(sides)
+    fig, axs = plt.subplots(1, len(sides), figsize=(6.5 * len(sides), 5.0), squeeze=False)
+    for s, side in enumerate(sides):
+        ax = axs[0, s]
+        for k, (t, lab) in enumerate(zip(tables, labels)):
+            plot_in_plane(ax, t.select(tables[0].wavelength_nm[iw]), side, 0, ip, linestyle=styles[k % len(styles)],
+                          label_prefix=f"{lab} ", show_specular=False)
+        ax.legend(fontsize=6, ncol=len(tables))
+    fig.suptitle(" vs ".join(f"{lab} ({st})" for lab, st in zip(labels, styles * 4)), fontsize=9)
+    return fig
+
+
 def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
     """Write `fig` to `path` (PNG) atomically and close it."""
     path = Path(path)

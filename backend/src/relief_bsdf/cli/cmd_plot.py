@@ -14,6 +14,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--from", dest="incident_from", choices=("outside", "inside"), default=None,
                    help="which table of the file (default: the first)")
     p.add_argument("--wavelength-nm", type=float, default=None, help="wavelength to show (nearest tabulated)")
+    p.add_argument("--compare", action="append", default=[], metavar="OTHER.h5",
+                   help="overlay the in-plane curves of another table (repeatable; same --from side)")
     return p
 
 
@@ -31,6 +33,15 @@ def run(args) -> int:
     if out.suffix.lower() != ".png":
         raise InputError(out, "the plot is written as PNG; give a .png file name")
     sides = (args.side,) if args.side else ("R", "T")
-    save_figure(table_figure(table, sides), out)
+    if args.compare:
+        from ..plots import compare_figure
+        others = []
+        for o in args.compare:
+            ts = load_tables(o)
+            others.append(table_for(ts, table.incident_from, o))
+        labels = [path.stem] + [Path(o).stem for o in args.compare]
+        save_figure(compare_figure([table] + others, labels, sides), out)
+    else:
+        save_figure(table_figure(table, sides), out)
     print(f"wrote {out}")
     return 0
