@@ -193,10 +193,11 @@ def stage(stage_dir: Path, wheels: list[Path], platforms: list[str]) -> Path:
         shutil.copy2(w, stage_dir / "wheels" / w.name)
     text = (ROOT / "blender_manifest.toml").read_text()
     text = re.sub(r"(?m)^platforms\s*=.*$", "platforms = " + json.dumps(platforms), text)
-    wheel_list = ",\n".join(f'  "./wheels/{w.name}"' for w in wheels)
-    # `wheels` must be a top-level key: insert it before the first table header
-    head, sep, tail = text.partition("\n[")
-    text = head.rstrip() + f"\n\nwheels = [\n{wheel_list},\n]\n" + (sep + tail if sep else "")
+    if wheels:
+        wheel_list = ",\n".join(f'  "./wheels/{w.name}"' for w in wheels)
+        # `wheels` must be a top-level key: insert it before the first table header
+        head, sep, tail = text.partition("\n[")
+        text = head.rstrip() + f"\n\nwheels = [\n{wheel_list},\n]\n" + (sep + tail if sep else "")
     (stage_dir / "blender_manifest.toml").write_text(text)
     return stage_dir
 

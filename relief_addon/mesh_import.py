@@ -106,12 +106,17 @@ def _id_safe(v):
 def import_relief(relief, name: str | None = None, z_scale: float = 1.0,
                   collection: bpy.types.Collection | None = None) -> bpy.types.Object:
     """Create the relief object (mesh + properties) in `collection` (default: the scene's)."""
+    from concurrent.futures import ThreadPoolExecutor
     name = name or Path(relief.source or "relief").stem
-    me = build_mesh(name, relief.heights_m, relief.dx_m, relief.dy_m, z_scale)
+    # statistics (numpy FFTs, no bpy) on a worker thread while the mesh is built here
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        stats = pool.submit(relief_stats, relief)
+        me = build_mesh(name, relief.heights_m, relief.dx_m, relief.dy_m, z_scale)
+        stats = stats.result()
     obj = bpy.data.objects.new(name, me)
     (collection or bpy.context.scene.collection).objects.link(obj)
     obj["relief_source"] = str(relief.source)
     obj["relief_pitch_m"] = [float(relief.dx_m), float(relief.dy_m)]
-    obj["relief_stats"] = {k: _id_safe(v) for k, v in relief_stats(relief).items()}
+    obj["relief_stats"] = {k: _id_safe(v) for k, v in stats.items()}
     obj.relief_z_scale = z_scale
     return obj

@@ -1,0 +1,62 @@
+"""The extension: manifest validation, a built linux zip installs into the bpy module and enables."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import zipfile
+
+import pytest
+
+from conftest import REPO
+
+sys.path.insert(0, str(REPO / "relief_addon"))
+import build_extension as bx  # noqa: E402
+
+WHEEL_CACHE = REPO / "build" / "wheels"        # gitignored; filled from PyPI on first use
+
+
+def test_manifest_validates_with_blenders_validator(tmp_path):
+    stage = bx.stage(tmp_path / "stage", [], ["linux-x64"])
+    r = subprocess.run([sys.executable, str(bx.blender_ext_script()), "validate", str(stage)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+    text = (stage / "blender_manifest.toml").read_text()
+    assert 'id = "relief_addon"' in text and 'platforms = ["linux-x64"]' in text
+
+
+def test_bundle_excludes_numpy_and_includes_backend_deps():
+    deps = bx.dependency_closure()
+    assert "numpy" not in deps and "bpy" not in deps
+    assert {"scipy", "h5py", "surfacetopography", "embreex", "mufft"} <= set(deps)
+
+
+@pytest.mark.slow
+def test_linux_zip_installs_and_enables(tmp_path):
+    zips = bx.build(tmp_path / "dist", ["linux-x64"], WHEEL_CACHE)
+    assert [z.name for z in zips] == ["relief_addon-0.1.0-linux_x64.zip"]
+    with zipfile.ZipFile(zips[0]) as zf:
+        names = zf.namelist()
+    wheels = [n.split("/")[-1] for n in names if n.endswith(".whl")]
+    assert any(w.startswith("relief_bsdf-") for w in wheels)
+    assert any(w.startswith("embreex-") and "manylinux" in w for w in wheels)
+    assert not any(w.startswith("numpy-") for w in wheels)
+    assert "__init__.py" in names and "blender_manifest.toml" in names
+    script = (
+        "import json, sys, bpy\n"
+        "bpy.ops.extensions.package_install_files(filepath=sys.argv[-1], repo='user_default', enable_on_install=True)\n"
+        "mods = sorted(bpy.context.preferences.addons.keys())\n"
+        "ok = 'RELIEF_PT_relief' in dir(bpy.types) and 'relief' in dir(bpy.ops)\n"
+        "import importlib; m = importlib.import_module('bl_ext.user_default.relief_addon')\n"
+        "print('RESULT ' + json.dumps({'addons': mods, 'panel': ok, 'file': m.__file__,\n"
+        "     'ops': sorted(dir(bpy.ops.relief))}))\n")
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp_path / "user"))
+    r = subprocess.run([sys.executable, "-c", script, str(zips[0])], capture_output=True, text=True, env=env,
+                       timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    line = [x for x in r.stdout.splitlines() if x.startswith("RESULT ")][-1]
+    res = json.loads(line[7:])
+    assert "bl_ext.user_default.relief_addon" in res["addons"]
+    assert res["panel"] and str(tmp_path / "user") in res["file"]
+    assert {"import_heightmap", "reconstruct", "bake_bsdf", "render_plate"} <= set(res["ops"])
