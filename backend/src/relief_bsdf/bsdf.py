@@ -19,7 +19,9 @@ per cell with element [0, 0] equal to `values_per_sr`.  Stokes vectors
 (S0, S1 = I_s - I_p, S2, S3) are referred to the s/p basis of the plane that holds
 the direction and the macroscopic normal z: for the incident light the plane of
 (w_i, z), for the scattered light the plane of (w_s, z), with s = z x w / |z x w|
-(for w along z, s = (-sin phi, cos phi, 0) from the cell's azimuth).  `specular_mueller_R/T`
+(for w along z, s = (-sin phi, cos phi, 0) from the cell's azimuth), and
+p = s x k with k the propagation direction of the light (k = -w_i before the
+interaction, k = w_s after it), so (s, p, k) is right-handed.  `specular_mueller_R/T`
 (W, I, P, 4, 4) do the same for the delta parts.  A plate model that tracks Stokes
 vectors through both faces uses these; an unpolarised table leaves them None.
 
