@@ -54,6 +54,24 @@ exactly within that model; interference between rays is ignored.
   facets) go to the delta parts `specular_R/T`.  Max bounces, absorption and numerical
   leaks (a ray found on the wrong side of the surface) are counted in `lost` with the
   detail in metadata; nothing is dropped silently.
+
+Engine (speed, see benchmarks/bench_ray.py)
+-------------------------------------------
+One Embree BVH per relief (`ReliefTracer`, ~1.5 s at 1024^2 here), reused for every
+wavelength, incidence and side (`reconstruct_with` reuses it across requests too).  Rays
+are traced in fixed chunks of 65536 (own seed each: `parallel.task_rng(seed, side,
+wavelength, theta, phi, chunk)`, so results do not depend on the thread count) over a
+thread pool of `parallel.default_workers()` threads: Embree queries and large numpy ufuncs
+release the GIL.  Beam entry points are stratified over the tile and sorted by 32 x 32 px
+blocks (BVH coherence).  Each bounce is a handful of float32 numpy passes over a structure
+of arrays; finished rays are binned per chunk with np.bincount.  Process pools
+(`parallel.map_tasks`) are not used: every worker process would rebuild the BVH.
+Polarised tables (Mueller matrices, the default) cost about 1.5-2x the scalar ones.
+
+Options (request.options): polarized (True), max_bounces (100), first_hit_split (True),
+specular_tol_rad (1e-5), fill_holes (None: NaN refused; True or a max gap in px), threads.
+`request.samples` rays per (wavelength, incidence, side).  Tables store the unpolarised
+BSDF (M00) whatever `request.polarization` says; the Mueller matrices carry the rest.
 """
 from __future__ import annotations
 
