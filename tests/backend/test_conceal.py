@@ -63,15 +63,18 @@ def test_case_files_are_readable_and_do_not_reveal_the_effect(tmp_path):
     assert ra.bsdf_sr[T].mean() / rb.bsdf_sr[T].mean() == pytest.approx(np.exp(-0.6), rel=0.15)
 
 
-def test_noise_is_consistent_with_sigma():
+def test_noise_is_consistent_with_sigma(tmp_path):
+    """Recorded values scatter about an independent high-photon truth as their sigma says."""
+    from dataclasses import replace
+
+    from relief_bsdf.conceal import _true_signal
     spec = _tiny("none", {}, seed=5)
-    import tempfile
-    from pathlib import Path
-    with tempfile.TemporaryDirectory() as d:
-        make_case(spec, Path(d) / "x")
-        spec2 = _tiny("none", {}, seed=5)
-        spec2.photons = 20000
-        rec = read_recording(Path(d) / "x" / "recording.csv")
+    make_case(spec, tmp_path / "x")
+    rec = read_recording(tmp_path / "x" / "recording.csv")
+    heights = gaussian_relief(spec.relief_n, spec.pitch_um * 1e-6, spec.rms_um * 1e-6, spec.corr_um * 1e-6, spec.seed)
+    truth, tsig = _true_signal(replace(spec, seed=999, photons=80000), heights, rec)
+    z = (rec.bsdf_sr - truth) / np.sqrt(rec.sigma_sr**2 + tsig**2)
+    assert 0.6 < np.mean(z**2) < 1.6
     assert rec.sigma_sr.min() >= spec.floor_sr
 
 
@@ -85,3 +88,33 @@ def test_default_cases_cover_every_effect_twice_and_none_thrice():
     assert len({c.seed for c in cases}) == len(cases)
     assert all(len(c.wavelengths_nm) > 1 for c in cases if c.effect == "dispersion")
     json.dumps([c.parameters for c in cases])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("theta_i,pol,q", [(30.0, "unpolarized", 0.0), (55.0, "s", 1.0), (55.0, "p", -1.0)])
+def test_generator_agrees_with_the_independent_plate_mc(theta_i, pol, q):
+    """Cross-check against relief_bsdf.plate_mc (another team's code: ReliefTracer, own Stokes frames,
+    flat-face and detection code): the concealed-data physics must match it to the Monte-Carlo noise."""
+    from types import SimpleNamespace
+
+    from relief_bsdf.optics import ConstantIndex
+    from relief_bsdf.plate import PlateModel
+    from relief_bsdf.plate_mc import simulate_rows_mc
+    from relief_bsdf.relief import Relief
+    h = gaussian_relief(48, 1e-6, 0.3e-6, 5e-6, 4)
+    th = np.arange(0.0, 90.0, 5.0)
+    side = np.array(["R"] * 36 + ["T"] * 36)
+    ts = np.concatenate([th] * 4)
+    ps = np.concatenate([np.zeros(18), np.full(18, 180.0)] * 2)
+    n = ts.size
+    rows = SimpleNamespace(wavelength_nm=np.full(n, 550.0), theta_i_deg=np.full(n, theta_i), phi_i_deg=np.zeros(n),
+                           side=side, theta_s_deg=ts, phi_s_deg=ps)
+    model = PlateModel(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=3.0, polarization=pol)
+    v1, e1, _ = simulate_rows_mc(Relief(h, 1e-6, 1e-6, periodic=True), model, rows, photons=80000, seed=3)
+    ex = run_photons(HeightFieldFace(h, 1e-6, 1e-6), PlatePhysics(), theta_i, 0.0, (1, q, 0, 0), 80000,
+                     np.random.default_rng(5))
+    v2, e2 = detect(ex, side, ts, ps, 3.0)
+    ok = (e1 > 0) & (e2 > 0)
+    assert ok.sum() >= 15
+    z = (v1 - v2)[ok] / np.sqrt(e1**2 + e2**2)[ok]
+    assert np.mean(z**2) < 2.5
