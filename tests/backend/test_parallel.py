@@ -263,3 +263,23 @@ def test_grouped_tasks_checkpoint_and_resume_one_by_one(tmp_path, monkeypatch):
     assert _same(out, parallel.map_tasks(synthetic_task, TASKS, _ctx(), backend="serial"))
     assert len(list(ck.glob("*.pkl.z"))) == N
     assert seen[-1] == N and seen == sorted(seen)
+
+
+def test_cancel_from_progress_stops_the_pool_at_once(tmp_path):
+    from relief_bsdf.progress import Cancelled
+
+    ctx = _ctx(tmp_path, sleep_s=0.5)
+    tasks = [(k,) for k in range(40)]                       # 10 s of work on 2 workers
+
+    def progress(done, total, what):
+        if done == 2:
+            raise Cancelled()
+
+    t0 = time.monotonic()
+    with pytest.raises(Cancelled):
+        parallel.map_tasks(synthetic_task, tasks, ctx, backend="processes", workers=2, progress=progress)
+    assert time.monotonic() - t0 < 5
+    time.sleep(0.6)
+    ran = len(_executions(ctx))
+    time.sleep(1.0)
+    assert len(_executions(ctx)) == ran and ran < 10          # nothing runs on after the cancel

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from pathlib import Path
 
 import numpy as np
@@ -284,3 +285,21 @@ def test_in_process_threaded_cluster_leaves_the_client_process_usable():
 
 def _nested_backend(context, task):
     return parallel.resolve_backend("processes")
+
+
+def test_cancel_from_progress_cancels_the_cluster_work(client, tmp_path):
+    from relief_bsdf.progress import Cancelled
+
+    ctx = _ctx(tmp_path, sleep_s=0.3)
+    tasks = [(k,) for k in range(40)]
+
+    def progress(done, total, what):
+        if done == 2:
+            raise Cancelled()
+
+    with pytest.raises(Cancelled):
+        parallel.map_tasks(synthetic_task, tasks, ctx, progress=progress)
+    time.sleep(1.0)
+    ran = len(_executions(ctx))
+    assert ran < 12                                          # the other 28+ tasks never started
+    assert not any(client.processing().values())
