@@ -17,9 +17,9 @@ from random rough surfaces*, 1991, eqs. 4.13-4.20)
 Normalisation.  In direction cosines (alpha, beta) d alpha d beta = cos t d omega, so the
 BSDF equals the scattered power fraction per unit d alpha d beta.  The phase-only
 integral is a 2-D FFT (nu_xy = 2 pi f on the FFT grid) and by Parseval its power, divided
-by N sum(w^2), is a fraction of the incident power; the power density per d alpha d beta
-is that per FFT sample times (k_s / 2 pi)^2 / (df_x df_y) ... i.e. sample power / (d alpha d beta of
-the sample).  Two factors multiply it:
+by N sum(w^2), is a fraction of the incident power; dividing that fraction by the sample's
+area in direction cosines, (lambda / (n_s L_x)) (lambda / (n_s L_y)), gives the BSDF.
+Two factors multiply it:
 - Fresnel: the unpolarised (or s / p, request.polarization) power reflectance F of the
   *local tangent plane at the stationary-phase facet*, whose normal is h = nu / |nu|, at
   the local incidence cos = |w_i . h|; transmission gets 1 - F (0 past the local critical
@@ -177,7 +177,7 @@ def _gaussian_screen(shape, pitch, corr_m, rms, rng) -> np.ndarray:
     """Periodic Gaussian random field, autocovariance rms^2 exp(-r^2 / corr^2) (FFT filtering)."""
     ny, nx = shape
     fx = np.fft.fftfreq(nx, pitch[0])
-    fy = np.fft.rfftfreq(ny, pitch[1]) if False else np.fft.fftfreq(ny, pitch[1])
+    fy = np.fft.fftfreq(ny, pitch[1])
     amp = np.sqrt(np.pi * corr_m ** 2 * np.exp(-(np.pi * corr_m) ** 2 * (fx[None, :] ** 2 + fy[:, None] ** 2)))
     amp *= np.sqrt(1.0 / (pitch[0] * pitch[1]))
     noise = rng.standard_normal(shape)
