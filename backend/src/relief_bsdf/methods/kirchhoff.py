@@ -456,26 +456,33 @@ def solve_incidence(h, w, pitch, periodic, wavelength_nm, theta_i_deg, phi_i_deg
         grids = [[] for _ in range(halves)]
         m_spec = 0.0
         for nu in nodes:
-            ph = h32 * np.float32(nu)
+            ph = h32 * np.float32(-nu)
             u = np.empty((ny, nx), np.complex64)
             np.cos(ph, out=u.real)
-            np.sin(ph, out=u.imag)
-            np.negative(u.imag, out=u.imag)                 # u = exp(-i nu h)
-            m = (np.sum(u) / ntot) if w32 is None else (np.sum(u * w32) / sw)
-            if nu_spec is not None and np.isclose(nu, nu_spec):
-                m_spec = complex(m)
-            u -= np.complex64(m)
-            if w32 is not None:
-                u *= w32
+            np.sin(ph, out=u.imag)                           # u = exp(-i nu h)
+            direct = w32 is None and not screens
+            if direct:
+                # periodic and coherent: the mean field is the DC coefficient; remove it there
+                m = None
+            else:
+                m = (np.sum(u) / ntot) if w32 is None else (np.sum(u * w32) / sw)
+                u -= np.complex64(m)
+                if w32 is not None:
+                    u *= w32
             acc = [None] * halves
             for k, e in enumerate(screens or [None]):
                 v = u * e if e is not None else u
-                F = sfft.fft2(v, workers=workers, overwrite_x=e is not None)
+                F = sfft.fft2(v, workers=workers, overwrite_x=True)
                 n_fft += 1
+                if direct:
+                    m = complex(F[0, 0]) / ntot
+                    F[0, 0] = 0.0
                 p = F.real * F.real
                 p += F.imag * F.imag
                 p = _pool(p, by, bx)
                 acc[k % halves] = p if acc[k % halves] is None else acc[k % halves] + p
+            if nu_spec is not None and np.isclose(nu, nu_spec):
+                m_spec = complex(m)
             for k in range(halves):
                 cnt = len(screens[k::2]) if screens else 1
                 grids[k].append(np.fft.fftshift(acc[k])[nb].astype(float) / (cnt * ntot * sw2 * dF))
