@@ -283,3 +283,11 @@ def test_cancel_from_progress_stops_the_pool_at_once(tmp_path):
     ran = len(_executions(ctx))
     time.sleep(1.0)
     assert len(_executions(ctx)) == ran and ran < 10          # nothing runs on after the cancel
+
+
+def test_parallel_flags_keep_a_subcommands_own_workers_flag():
+    p = argparse.ArgumentParser()
+    p.add_argument("--workers", type=int, default=None, help="the subcommand's own")
+    parallel.add_parallel_args(p)
+    args = p.parse_args(["--workers", "3", "--dask", "local"])
+    assert args.workers == 3 and args.dask == "local" and args.checkpoint_dir is None

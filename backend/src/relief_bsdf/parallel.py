@@ -192,20 +192,26 @@ def parallel_settings(**kwargs: Any) -> Iterator[Settings]:
 
 
 def add_parallel_args(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add `--dask`, `--workers`, `--checkpoint-dir`, `--retries` to a subcommand's parser.
+    """Add `--dask`, `--workers`, `--checkpoint-dir`, `--retries` to a subcommand's parser
+    (those it does not define already).
 
     Use with `apply_parallel_args(args)` (or `with parallel_from_args(args):`) in `run`.
     """
+    have = set(getattr(parser, "_option_string_actions", {}))   # a subcommand's own --workers stays its own
     g = parser.add_argument_group("where the work runs")
-    g.add_argument("--dask", metavar="ADDRESS|local", default=None,
-                   help="run tasks on a Dask cluster: tcp://HOST:PORT of a running scheduler, or 'local' "
-                        "to start a LocalCluster (default: local processes, or $RELIEF_DASK_SCHEDULER)")
-    g.add_argument("--workers", type=int, default=None, metavar="N",
-                   help="local worker processes (default: every core, or $RELIEF_WORKERS)")
-    g.add_argument("--checkpoint-dir", default=None, metavar="DIR",
-                   help="save each finished task here; a rerun with the same inputs resumes from it")
-    g.add_argument("--retries", type=int, default=None, metavar="K",
-                   help="run a failed or lost task again up to K times (default 2)")
+    if "--dask" not in have:
+        g.add_argument("--dask", metavar="ADDRESS|local", default=None,
+                       help="run tasks on a Dask cluster: tcp://HOST:PORT of a running scheduler, or 'local' "
+                            "to start a LocalCluster (default: local processes, or $RELIEF_DASK_SCHEDULER)")
+    if "--workers" not in have:
+        g.add_argument("--workers", type=int, default=None, metavar="N",
+                       help="local worker processes (default: every core, or $RELIEF_WORKERS)")
+    if "--checkpoint-dir" not in have:
+        g.add_argument("--checkpoint-dir", default=None, metavar="DIR",
+                       help="save each finished task here; a rerun with the same inputs resumes from it")
+    if "--retries" not in have:
+        g.add_argument("--retries", type=int, default=None, metavar="K",
+                       help="run a failed or lost task again up to K times (default 2)")
     return parser
 
 
@@ -363,16 +369,28 @@ def _run_processes(fn: Callable, context: Any, items: list[tuple[int, Any]], *, 
             todo = list(pending.items())
             b = group_size(len(todo), workers)
             groups = [todo[k:k + b] for k in range(0, len(todo), b)]
-            futs = {pool.submit(_run_in_worker, fn, token, [t for _, t in g]): [i for i, _ in g] for g in groups}
-            for f in as_completed(futs):
-                try:
-                    rs = f.result()
-                except BrokenProcessPool:
-                    broken = True
-                    break
-                for i, r in zip(futs[f], rs):
-                    del pending[i]
-                    yield i, r
+            futs = {}
+            try:
+                for g in groups:
+                    futs[pool.submit(_run_in_worker, fn, token, [t for _, t in g])] = [i for i, _ in g]
+            except BrokenProcessPool:          # a worker died while tasks were still being handed out
+                broken = True
+            if not broken:
+                for f in as_completed(futs):
+                    try:
+                        rs = f.result()
+                    except BrokenProcessPool:
+                        broken = True
+                        break
+                    for i, r in zip(futs[f], rs):
+                        del pending[i]
+                        yield i, r
+            if broken:                         # keep whatever else finished before the pool broke
+                for f, idx in futs.items():
+                    if f.done() and not f.cancelled() and f.exception() is None and idx[0] in pending:
+                        for i, r in zip(idx, f.result()):
+                            del pending[i]
+                            yield i, r
             clean = not broken
         finally:
             _stop_pool(pool, kill=not clean)
