@@ -35,7 +35,7 @@ from .atomic import write_text_atomic
 from .bsdf import BsdfTable
 from .errors import InputError
 from .optics import Material, fresnel_power, mueller_interface
-from .plate import PlateModel, check_rows, simulate_rows
+from .plate import PlateModel, _blas_single_thread, check_rows, simulate_rows
 from .progress import Progress, silent
 from .relief import Relief
 from .request import Request
@@ -154,8 +154,9 @@ class Forward:
                                  need_outside=self.model.rough_face == "front")
 
     def simulate(self, height_scale: float, filter_sigma_um: float) -> np.ndarray:
-        _, out, ins = self.tables(height_scale, filter_sigma_um)
-        return simulate_rows(self.model, ins, out, self.rows, where=self.where)
+        with _blas_single_thread():      # small matrices everywhere: BLAS threads only spin (plate.py)
+            _, out, ins = self.tables(height_scale, filter_sigma_um)
+            return simulate_rows(self.model, ins, out, self.rows, where=self.where)
 
 
 class _Stop(Exception):
