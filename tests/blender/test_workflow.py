@@ -1,0 +1,49 @@
+"""The sidebar workflow through the operators (synchronous execute, as in background batches)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+
+import bpy
+
+SAMPLE = REPO / "scenes" / "demo" / "sample.toml"
+
+
+def test_bake_operator_assigns_group_to_rough_face(addon, tmp_path):
+    from relief_bsdf.bsdf_h5 import save_tables
+    from relief_bsdf.optics import ConstantIndex, Material
+    from relief_bsdf.plate import flat_tables
+    th = np.arange(0.0, 90.0, 10.0)
+    save_tables(tmp_path / "flat.h5", list(flat_tables(Material(ConstantIndex(1.5)), [550.0], th, th,
+                                                       np.linspace(0, 90, 10), np.arange(-15.0, 360, 30))))
+    bpy.ops.mesh.primitive_cube_add(size=0.05)
+    cube = bpy.context.active_object
+    assert bpy.ops.relief.bake_bsdf(filepath=str(tmp_path / "flat.h5"), name="flat") == {"FINISHED"}
+    assert "Relief BSDF: flat" in bpy.data.node_groups and "Relief LUT: flat" in bpy.data.images
+    top = [p.material_index for p in cube.data.polygons if p.normal.z > 0.5]
+    others = [p.material_index for p in cube.data.polygons if p.normal.z <= 0.5]
+    assert top == [1] and set(others) == {0}
+    assert cube.data.materials[1].node_tree.nodes[0].node_tree.name == "Relief BSDF: flat"
+
+
+@pytest.mark.slow
+def test_simulate_fit_render_from_operators(addon, tmp_path):
+    s = bpy.context.scene.relief
+    s.sample_path = str(SAMPLE)
+    s.output_dir = str(tmp_path)
+    assert bpy.ops.relief.simulate_plate() == {"FINISHED"}
+    sim = (tmp_path / "simulate" / "simulated.csv").read_text().splitlines()
+    assert sim[0] == "# relief-recording/1"
+    rec = (SAMPLE.parent / "recording.csv").read_text().splitlines()
+    assert len([x for x in sim if not x.startswith("#")]) == len([x for x in rec if not x.startswith("#")])
+    assert bpy.ops.relief.fit(max_iter=1) == {"FINISHED"}
+    doc = json.loads((tmp_path / "fit" / "fit.json").read_text())
+    assert doc["format"] == "relief-fit/1" and doc["rms_after"] <= doc["rms_before"]
+    assert s.fit_dir == str(tmp_path / "fit")
+    out = tmp_path / "plate.png"
+    assert bpy.ops.relief.render_plate(filepath=str(out), width=32, samples=2) == {"FINISHED"}
+    assert out.stat().st_size > 0
