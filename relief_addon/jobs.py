@@ -62,6 +62,10 @@ class JobOperator:
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
             return self.execute(context)
+        return self.invoke_threaded(context)
+
+    def invoke_threaded(self, context):
+        """Start `work` on a worker thread; `modal` polls it (see module doc)."""
         try:
             payload = self.prepare(context)
         except Exception as exc:  # noqa: BLE001
