@@ -82,8 +82,14 @@ request, from the coarsest speckle grain and the finest cell).  FFT samples are 
 summed in blocks (power conserving) to a grid spacing of at most 0.7 of that width (the block
 sum is a box filter that adds < 4 % to the Gaussian's variance).
 
+Polarisation (options["polarized"] = True, CLI --polarized): the scalar Fresnel factor is
+replaced by the Fresnel Mueller matrix of the stationary-phase facet, rotated from the
+table's incident s/p basis into the facet's plane of incidence and out into the scattered
+basis (bsdf.py frames; the vector tangent-plane approximation in its single-facet form, as
+microfacet.walter_mueller), giving `mueller_per_sr` with M00 = the unpolarised values.
+
 Options (request.options): qz_tolerance (default: one node), max_qz_nodes (default 16), fft_workers,
-band_limited, coherence_instances, smoothing_dcos.
+band_limited, coherence_instances, smoothing_dcos, polarized.
 """
 from __future__ import annotations
 
@@ -95,7 +101,7 @@ from scipy import ndimage
 
 from ..bsdf import BsdfTable
 from ..errors import RequestError
-from ..optics import Material, cos_transmitted, fresnel_power
+from ..optics import Material, cos_transmitted, fresnel_power, mueller_interface
 from ..parallel import map_tasks, task_rng
 from ..wave_filter import DcosGrid, cell_samples, cell_average, smoothing_width_dcos
 from .rayleigh_rice import prepared_heights
@@ -315,6 +321,48 @@ def _obliquity_fresnel(geo, wi, n1, n2, side, polarization):
     return out
 
 
+def _facet_mueller(geo, wi, n1, n2, side, phi_i_rad):
+    """Rotated Fresnel Mueller matrix of the stationary-phase facet, normalised by its [0, 0].
+
+    The facet normal is h = +-nu / |nu| (toward the incident side); its Fresnel Mueller matrix
+    (optics.mueller_interface, s/p of the facet's plane of incidence (w_i, h)) is rotated from
+    the table's incident basis (s = z x w_i) and into the scattered basis (s = z x w_s), with
+    p = s x k (bsdf.py).  Shape (ny, nx, 4, 4); zeros where not propagating.
+    """
+    from .microfacet import stokes_rotation
+    prop = geo["prop"]
+    a = np.broadcast_to(geo["a"], prop.shape)[prop]
+    b = np.broadcast_to(geo["b"], prop.shape)[prop]
+    cs = geo["cs"][prop]
+    k1, ks, sgn = geo["k1"], geo["ks"], geo["sgn"]
+    wo = np.stack([a, b, sgn * cs], axis=-1)
+    nu = k1 * np.asarray(wi)[None, :] + ks * wo
+    h = nu / np.maximum(np.linalg.norm(nu, axis=-1, keepdims=True), 1e-300)
+    h = h * np.where(h @ np.asarray(wi) < 0, -1.0, 1.0)[:, None]
+    wi_b = np.broadcast_to(np.asarray(wi, float), wo.shape)
+
+    def s_vec(w, phi):
+        v = np.stack([-w[..., 1], w[..., 0], np.zeros(w.shape[:-1])], axis=-1)
+        nv = np.linalg.norm(v, axis=-1, keepdims=True)
+        fb = np.stack(np.broadcast_arrays(-np.sin(phi), np.cos(phi), 0.0 * phi), axis=-1)
+        return np.where(nv > 1e-12, v / np.where(nv > 1e-12, nv, 1.0), fb)
+
+    s_i = s_vec(wi_b, np.full(a.shape, phi_i_rad))
+    s_o = s_vec(wo, np.arctan2(b, a))
+    s_m = np.cross(h, wi_b)
+    nm = np.linalg.norm(s_m, axis=-1, keepdims=True)
+    s_m = np.where(nm > 1e-12, s_m / np.where(nm > 1e-12, nm, 1.0), s_i)
+    cos_ih = np.clip(h @ np.asarray(wi), 0.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        MF = np.nan_to_num(mueller_interface(cos_ih, n1, n2, side))
+    M = stokes_rotation(wo, s_m, s_o) @ MF @ stokes_rotation(-wi_b, s_i, s_m)
+    m00 = MF[:, 0, 0]
+    Mn = np.where(m00[:, None, None] > 0, M / np.where(m00 > 0, m00, 1.0)[:, None, None], 0.0)
+    out = np.zeros(prop.shape + (4, 4))
+    out[prop] = Mn
+    return out
+
+
 def _interp_nodes(nodes, grids, geo, sigma, f0, df, f0n):
     """Density in nu_xy on the target grid (origin f0) at each point's own nu_z (similarity
     interpolation); node grids have origin f0n and the same spacing df."""
@@ -359,7 +407,8 @@ def _interp_nodes(nodes, grids, geo, sigma, f0, df, f0n):
 
 def solve_incidence(h, w, pitch, periodic, wavelength_nm, theta_i_deg, phi_i_deg, n1, n2, cells, width_dcos,
                     polarization="unpolarized", coherence_length_m=None, instances=8, seed=0, key=(0,),
-                    tau=np.inf, max_nodes=16, workers=2, sides=("R", "T"), theta_s_range_deg=(0.0, 90.0)):
+                    tau=np.inf, max_nodes=16, workers=2, sides=("R", "T"), theta_s_range_deg=(0.0, 90.0),
+                    polarized=False):
     """Kirchhoff tables for one incidence: {'R': (S, A), 'T': (S, A), 'spec_R', 'spec_T', 'info'}.
 
     h: heights in the frame of the incident medium (already sign-flipped for inside), w: window.
@@ -399,6 +448,8 @@ def solve_incidence(h, w, pitch, periodic, wavelength_nm, theta_i_deg, phi_i_deg
         if side == "T" and np.imag(n2) > 0:
             out["T"] = np.zeros(cells.alpha.shape[:2])
             out["spec_T"] = 0.0
+            out["mueller_T"] = np.zeros(cells.alpha.shape[:2] + (4, 4))
+            out["spec_mueller_T"] = np.zeros((4, 4))
             continue
         k1, ks = k0 * np.real(n1), k0 * ns
         sgn = 1.0 if side == "R" else -1.0
@@ -505,9 +556,21 @@ def solve_incidence(h, w, pitch, periodic, wavelength_nm, theta_i_deg, phi_i_deg
                 dens[k] = dens[k] + abs(m_spec) ** 2 * lobe
             out["info"][f"coherent_specular_{side}"] = spec
             spec = 0.0
-        fac = ks * ks * _obliquity_fresnel(geo, wi, n1, n2, side, polarization)
-        vals = [cell_average(DcosGrid(d * fac, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"])
-                             .smoothed(width_dcos), cells) for d in dens]
+        grid_of = lambda d: DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"])  # noqa: E731
+        if polarized:
+            fac = ks * ks * _obliquity_fresnel(geo, wi, n1, n2, side, "unpolarized")
+            Mn = _facet_mueller(geo, wi, n1, n2, side, pi_)
+            mus = [np.stack([cell_average(grid_of(d * fac * Mn[..., r, c]).smoothed(width_dcos), cells)
+                             for r in range(4) for c in range(4)], axis=-1).reshape(cells.alpha.shape[:2] + (4, 4))
+                   for d in dens]
+            out[f"mueller_{side}"] = sum(mus) / len(mus)
+            sgn_pol = {"s": 1.0, "p": -1.0}.get(polarization, 0.0)
+            vals = [m[..., 0, 0] + sgn_pol * m[..., 0, 1] for m in mus]
+            ms = mueller_interface(ci, n1, n2, side) if F_spec > 0 else np.zeros((4, 4))
+            out[f"spec_mueller_{side}"] = np.nan_to_num(ms) * (spec / F_spec if F_spec > 0 else 0.0)
+        else:
+            fac = ks * ks * _obliquity_fresnel(geo, wi, n1, n2, side, polarization)
+            vals = [cell_average(grid_of(d * fac).smoothed(width_dcos), cells) for d in dens]
         out[side] = sum(vals) / len(vals)
         if screens:
             big = out[side] > 0.01 * out[side].max()
@@ -534,7 +597,7 @@ def _task(ctx, task):
     return solve_incidence(h, ctx["w"], ctx["pitch"], ctx["periodic"], wl, ctx["theta_i"][it], ctx["phi_i"][ip],
                            n1, n2, ctx["cells"], ctx["width"], ctx["polarization"], ctx["lc"], ctx["instances"],
                            ctx["seed"], (iw, it, ip, 0 if fr == "outside" else 1), ctx["tau"], ctx["max_nodes"],
-                           ctx["workers"], theta_s_range_deg=ctx["theta_range"])
+                           ctx["workers"], theta_s_range_deg=ctx["theta_range"], polarized=ctx["polarized"])
 
 
 def speckle_dcos(relief, material: Material, request) -> float:
@@ -572,7 +635,8 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
            "width": width, "polarization": request.polarization, "lc": lc, "instances": instances,
            "seed": request.seed, "tau": float(opts.get("qz_tolerance", np.inf)),
            "max_nodes": int(opts.get("max_qz_nodes", 16)), "workers": int(opts.get("fft_workers", 2)),
-           "theta_range": (request.theta_s_edges_deg[0], request.theta_s_edges_deg[-1])}
+           "theta_range": (request.theta_s_edges_deg[0], request.theta_s_edges_deg[-1]),
+           "polarized": bool(opts.get("polarized", False))}
     W, I, P = len(wls), len(request.theta_i_deg), len(request.phi_i_deg)
     S, A = cells.alpha.shape[:2]
     tables = []
@@ -582,10 +646,17 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
                         backend=opts.get("backend"))
         vals = np.zeros((W, I, P, 2, S, A))
         sR, sT = np.zeros((W, I, P)), np.zeros((W, I, P))
+        pol = ctx["polarized"]
+        mu = np.zeros((W, I, P, 2, S, A, 4, 4)) if pol else None
+        smR = np.zeros((W, I, P, 4, 4)) if pol else None
+        smT = np.zeros((W, I, P, 4, 4)) if pol else None
         infos = []
         for (iw, it, ip, _), r in zip(tasks, res):
             vals[iw, it, ip, 0] = r["R"]
             vals[iw, it, ip, 1] = r["T"]
+            if pol:
+                mu[iw, it, ip, 0], mu[iw, it, ip, 1] = r["mueller_R"], r["mueller_T"]
+                smR[iw, it, ip], smT[iw, it, ip] = r["spec_mueller_R"], r["spec_mueller_T"]
             sR[iw, it, ip], sT[iw, it, ip] = r["spec_R"], r["spec_T"]
             infos.append({"wavelength_nm": float(wls[iw]), "theta_i_deg": float(request.theta_i_deg[it]),
                           "phi_i_deg": float(request.phi_i_deg[ip]), **r["info"]})
@@ -593,6 +664,7 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
             wavelength_nm=wls, theta_i_deg=request.theta_i_deg, phi_i_deg=request.phi_i_deg,
             theta_s_edges_deg=request.theta_s_edges_deg, phi_s_edges_deg=request.phi_s_edges_deg,
             values_per_sr=vals, incident_from=fr, specular_R=sR, specular_T=sT, method="kirchhoff",
+            mueller_per_sr=mu, specular_mueller_R=smR, specular_mueller_T=smT,
             material=material.describe(), relief=relief.describe(),
             metadata={"smoothing_dcos": width, "window": "none (periodic)" if relief.periodic else "2-D Hann",
                       "aliased_step_fraction": alias, "coherence_length_m": lc,
