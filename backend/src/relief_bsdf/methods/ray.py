@@ -337,9 +337,13 @@ class ReliefTracer:
             st = np.asarray(stokes, dtype=np.float64)
             if st.shape != (n, 4):
                 raise RequestError(f"stokes must have shape ({n}, 4), got {st.shape}", "stokes")
-            if np.any(st[:, 0] <= 0):
-                raise RequestError("Stokes S0 must be > 0", "stokes")
+            if np.any(~np.isfinite(st)) or np.any(st[:, 0] < 0):
+                raise RequestError("Stokes vectors must be finite with S0 >= 0", "stokes")
             weight = st[:, 0].copy()
+            zero = weight == 0                       # e.g. absorbed to nothing: traced, weight 0
+            if zero.any():
+                st = st.copy()
+                st[zero] = (1.0, 0.0, 0.0, 0.0)
             K = 1
         elif polarized:
             st = np.zeros((n, 4))
