@@ -61,7 +61,7 @@ def get_client(spec: Any, workers: int | None = None):
         except (OSError, TimeoutError) as e:
             raise InputError("--dask", f"cannot reach a Dask scheduler at {spec} ({type(e).__name__}: {e})") from None
         try:
-            check_workers(client, spec)
+            check_workers(client)
         except BaseException:
             client.close()
             raise
