@@ -291,3 +291,22 @@ def test_parallel_flags_keep_a_subcommands_own_workers_flag():
     parallel.add_parallel_args(p)
     args = p.parse_args(["--workers", "3", "--dask", "local"])
     assert args.workers == 3 and args.dask == "local" and args.checkpoint_dir is None
+
+
+def test_on_result_streams_results_into_the_callers_array(tmp_path):
+    ref = parallel.map_tasks(synthetic_task, TASKS, _ctx(), backend="serial")
+    table = np.full((N, 32), np.nan, np.float32)
+    order = []
+
+    def put(i, r):
+        table[i] = r
+        order.append(i)
+
+    ck = tmp_path / "ck"
+    parallel.map_tasks(synthetic_task, TASKS[:5], _ctx(), backend="serial", checkpoint_dir=ck)
+    out = parallel.map_tasks(synthetic_task, TASKS, _ctx(), backend="processes", workers=2, checkpoint_dir=ck,
+                             on_result=put)
+    assert out == [None] * N                                  # nothing kept beyond the caller's array
+    assert sorted(order) == list(range(N))
+    assert np.array_equal(table, np.stack(ref).astype(np.float32))
+    assert parallel.last_run()["loaded"] == 5

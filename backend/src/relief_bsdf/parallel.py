@@ -421,7 +421,7 @@ _RUNNERS = {"serial": _run_serial, "processes": _run_processes, "dask": _run_das
 def map_tasks(fn: Callable[[Any, Any], Any], tasks: Sequence[Any], context: Any = None, *,
               progress: Progress | None = None, label: str = "task", backend: str | None = None,
               workers: int | None = None, checkpoint_dir: str | os.PathLike | None = None,
-              retries: int | None = None) -> list:
+              retries: int | None = None, on_result: Callable[[int, Any], None] | None = None) -> list:
     """Run `fn(context, task)` for every task and return the results in task order.
 
     `fn` must be a module-level function (picklable); `context` is shipped to each worker
@@ -430,6 +430,11 @@ def map_tasks(fn: Callable[[Any, Any], Any], tasks: Sequence[Any], context: Any 
     configured, see the module doc).  `checkpoint_dir` (default: as configured) saves each
     result as it arrives and reuses saved ones.  `retries` (default 2): how often a failed
     (dask) or crashed (processes) task is run again.
+
+    `on_result(index, result)`: called in this process as each result arrives (or is loaded
+    from a checkpoint), in completion order; the returned list then holds None, so a big
+    request can write each task's values straight into its table (float32) instead of
+    keeping every task's result until the end.
     """
     progress = progress or silent
     tasks = list(tasks)
@@ -458,7 +463,10 @@ def map_tasks(fn: Callable[[Any, Any], Any], tasks: Sequence[Any], context: Any 
         for i, t in items:
             ok, r = _load_checkpoint(paths[i])
             if ok:
-                results[i] = r
+                if on_result is None:
+                    results[i] = r
+                else:
+                    on_result(i, r)
                 stats["loaded"] += 1
             else:
                 todo.append((i, t))
@@ -471,9 +479,13 @@ def map_tasks(fn: Callable[[Any, Any], Any], tasks: Sequence[Any], context: Any 
                                        retries=retries, label=label)
             with contextlib.closing(runner):
                 for i, r in runner:
-                    results[i] = r
                     if paths is not None:
                         _save_checkpoint(paths[i], r)
+                    if on_result is None:
+                        results[i] = r
+                    else:
+                        on_result(i, r)
+                    del r
                     stats["computed"] += 1
                     progress(stats["loaded"] + stats["computed"], n, label)
     finally:
