@@ -184,6 +184,22 @@ def test_sampling_limits_raise_before_work():
                                         options={"band_limited": True}), "kirchhoff")
     with pytest.raises(RequestError):
         reconstruct(rel, MAT, Request(theta_i_deg=(90.0,)), "kirchhoff")
+    metal = Material(inside=ConstantIndex(0.2, 3.0))
+    for method in ("kirchhoff", "rayleigh-rice"):
+        with pytest.raises(RequestError, match="absorbing"):
+            reconstruct(rel, metal, Request(theta_i_deg=(0.0,), incident_from=("inside",)), method)
+
+
+def test_metal_reflects_fresnel_and_absorbs_the_rest():
+    rel = gaussian_relief(256, 0.1e-6, 10e-9, 2e-6, seed=1)
+    metal = Material(inside=ConstantIndex(0.2, 3.0))
+    req = Request(wavelengths_nm=(650.0,), theta_i_deg=(0.0, 45.0), theta_s_edges_deg=tuple(np.linspace(0, 90, 31)),
+                  phi_s_edges_deg=tuple(np.arange(-7.5, 360, 15.0)), options={"band_limited": True})
+    (t,) = reconstruct(rel, metal, req, "kirchhoff")
+    h = t.hemispherical()
+    np.testing.assert_allclose(h["R"][0, :, 0], fresnel_unpolarized(np.cos(np.radians([0.0, 45.0])), 1.0, 0.2 + 3j),
+                               rtol=0.01)
+    assert np.all(h["T"] == 0) and np.all(t.lost > 0.05)
 
 
 def test_qz_nodes_rule():

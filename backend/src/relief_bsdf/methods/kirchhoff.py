@@ -103,7 +103,7 @@ from ..bsdf import BsdfTable
 from ..errors import RequestError
 from ..optics import Material, cos_transmitted, fresnel_power, mueller_interface
 from ..parallel import map_tasks, task_rng
-from ..wave_filter import DcosGrid, cell_samples, cell_average, smoothing_width_dcos
+from ..wave_filter import DcosGrid, cell_average, cell_samples, check_sides, smoothing_width_dcos
 from .rayleigh_rice import prepared_heights
 
 # ------------------------------------------------------------------ helpers
@@ -225,8 +225,11 @@ def check_sampling(relief, material: Material, request, width_dcos: float, opts:
     for wl in request.wavelengths_nm:
         lam = wl * 1e-9
         for fr in request.incident_from:
-            n1, n2 = (np.real(v) for v in material.n_pair(wl, fr))
+            c1, c2 = material.n_pair(wl, fr)
+            n1, n2 = np.real(c1), np.real(c2)
             for side, ns in (("R", n1), ("T", n2)):
+                if side == "T" and np.imag(c2) > 0:
+                    continue                      # absorbed: nothing to resolve
                 need = n1 * np.sin(t_max) + ns * s_max           # |nu_x| / k0 at the worst direction
                 have = lam / (2 * max(dx, dy))
                 if need > have and not band:
@@ -608,13 +611,15 @@ def speckle_dcos(relief, material: Material, request) -> float:
     for wl in request.wavelengths_nm:
         for fr in request.incident_from:
             for n in material.n_pair(wl, fr):
-                worst = max(worst, wl * 1e-9 / (np.real(n) * L))
+                if np.imag(n) == 0:
+                    worst = max(worst, wl * 1e-9 / (np.real(n) * L))
     return worst
 
 
 def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
     """Kirchhoff tables, one per side of incidence in request.incident_from (module doc)."""
     request.validate()
+    check_sides(material, request, "kirchhoff")
     opts = dict(request.options or {})
     width = smoothing_width_dcos(speckle_dcos(relief, material, request), request.theta_s_edges_deg, opts)
     check_sampling(relief, material, request, width, opts)
@@ -672,6 +677,6 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
                       "validity": "tangent-plane approximation: radius of curvature >> lambda, no shadowing, "
                                   "single scattering"})
         h_ = tab.hemispherical()
-        tab.lost = np.clip(1.0 - h_["R"] - h_["T"], 0.0, None) if not material.inside.is_absorbing(wls) else tab.lost
+        tab.lost = np.clip(1.0 - h_["R"] - h_["T"], 0.0, None)   # absorbed (metal), evanescent or beyond the cells
         tables.append(tab)
     return tables

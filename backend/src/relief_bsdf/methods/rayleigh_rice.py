@@ -71,7 +71,7 @@ from ..bsdf import BsdfTable
 from ..errors import RequestError
 from ..optics import Material, cos_transmitted, fresnel_amplitudes, mueller_interface
 from ..parallel import map_tasks
-from ..wave_filter import cell_samples, smoothing_width_dcos
+from ..wave_filter import cell_samples, check_sides, smoothing_width_dcos
 
 # ------------------------------------------------------------------ PSD
 
@@ -308,6 +308,7 @@ def _intensity(M: np.ndarray, polarization: str) -> np.ndarray:
 def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
     """Rayleigh-Rice tables, one per side of incidence in request.incident_from (module doc)."""
     request.validate()
+    check_sides(material, request, "rayleigh-rice")
     opts = dict(request.options or {})
     wls = np.asarray(request.wavelengths_nm, float)
     # filter width: cell scale (no speckle here; the PSD is smoothed instead)
@@ -342,7 +343,7 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
                     vals[iw, it, ip, k] = out[side]
             mR[iw, it, ip], mT[iw, it, ip] = MR, MT
             sR[iw, it, ip], sT[iw, it, ip] = _intensity(MR, request.polarization), _intensity(MT, request.polarization)
-        tables.append(BsdfTable(
+        tab = BsdfTable(
             wavelength_nm=wls, theta_i_deg=request.theta_i_deg, phi_i_deg=request.phi_i_deg,
             theta_s_edges_deg=request.theta_s_edges_deg, phi_s_edges_deg=request.phi_s_edges_deg,
             values_per_sr=vals, incident_from=fr, specular_R=sR, specular_T=sT,
@@ -352,5 +353,8 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
             metadata={"psd_estimate": psd.description, "psd_isotropic": psd.isotropic,
                       "rms_height_m": psd.sigma_m, "smoothing_dcos": w,
                       "rayleigh_parameter_max": float((4 * np.pi * sigma_ratio) ** 2),
-                      "validity": "first-order perturbation: valid for (4 pi sigma cos t / lambda)^2 << 1"}))
+                      "validity": "first-order perturbation: valid for (4 pi sigma cos t / lambda)^2 << 1"})
+        h = tab.hemispherical()
+        tab.lost = np.clip(1.0 - h["R"] - h["T"], 0.0, None)     # absorbed (metal) or beyond the cells
+        tables.append(tab)
     return tables
