@@ -147,3 +147,17 @@ def test_dispersive_index_changes_the_plate():
     r_blue = s.solve(450.0, [45.0])[0].hemispherical()["R"]
     r_red = s.solve(650.0, [45.0])[0].hemispherical()["R"]
     assert r_blue > r_red
+
+
+def test_tilted_flat_plate_moves_the_specular_peak_by_twice_the_tilt():
+    o, i = flat_tables(Material(ConstantIndex(N_GLASS)), [550.0], np.arange(0, 90, 1.0), np.arange(0, 90, 0.5))
+    tilt = 3.0
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), detector_half_angle_deg=1.0, tilt_deg=tilt)
+    ts = np.arange(20.0, 50.0, 0.5)
+    rows = Rows(np.full(ts.size, 550.0), np.full(ts.size, 30.0), np.zeros(ts.size), ["R"] * ts.size, ts,
+                np.full(ts.size, 180.0))
+    v = simulate_rows(m, i, o, rows)
+    lit = ts[v > 0]
+    # normal tilted toward the source (+x): incidence 30 - tilt on the sample, mirror at 30 - 2 tilt
+    assert lit.min() >= 30 - 2 * tilt - 1.0 - 1e-9 and lit.max() <= 30 - 2 * tilt + 1.0 + 1e-9
+    assert (v > 0).sum() >= 3

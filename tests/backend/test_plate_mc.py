@@ -58,3 +58,19 @@ def test_mc_plate_agrees_with_deterministic_plate_in_lobe():
     assert abs(det[lobe].sum() / mc[lobe].sum() - 1) < 0.03
     assert np.abs(rel).max() < 0.06
     assert max(info["lost_fraction"].values()) < 1e-3
+
+
+def test_tilted_flat_plate_mc_puts_the_specular_peak_where_the_deterministic_plate_does():
+    from relief_bsdf.plate import Rows, flat_tables
+    from relief_bsdf.optics import Material
+    tilt = 3.0
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=1.0, tilt_deg=tilt)
+    ts = np.arange(20.25, 40.0, 0.5)      # no row exactly one cone radius from the beam
+    rows = Rows(np.full(ts.size, 550.0), np.full(ts.size, 30.0), np.zeros(ts.size), ["R"] * ts.size, ts,
+                np.full(ts.size, 180.0))
+    mc, err, _ = simulate_rows_mc(FLAT, m, rows, photons=20_000, seed=1)
+    o, i = flat_tables(Material(ConstantIndex(1.5)), [550.0], np.arange(0, 90, 1.0), np.arange(0, 90, 0.5))
+    det = simulate_rows(m, i, o, rows)
+    np.testing.assert_array_equal(mc > 0, det > 0)
+    lit = det > 0
+    np.testing.assert_allclose(mc[lit], det[lit], rtol=0.05)

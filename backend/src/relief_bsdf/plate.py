@@ -77,7 +77,10 @@ class PlateModel:
     "p"), background_per_sr (stray light added to every row), blur_deg (Gaussian
     instrument blur, 1-sigma, added to the detector cone), tilt_deg (sample tilt about the
     y axis: incidence seen by the sample is theta_i + tilt in the plane of incidence),
-    back_table (reserved: a BSDF for the second face; None = flat).
+    The second face is flat (a BSDF table for it is not implemented yet).  Tilt: the sample
+    normal is rotated by tilt_deg about the y axis of the instrument; rows are transformed into
+    the sample frame and the reading converted back with f = f' cos theta_s' / cos theta_s (the
+    instrument divides by its own cos theta_s).
     """
 
     thickness_m: float
@@ -416,7 +419,7 @@ class PlateSolver:
         N, A = tc.size, delta.size
         s_inc = SOURCE_STOKES[m.polarization]
         front = m.rough_face == "front"
-        thetas = np.atleast_1d(np.asarray(theta_i_deg, float)) + m.tilt_deg
+        thetas = np.atleast_1d(np.asarray(theta_i_deg, float))
         nI = thetas.size
         S = np.zeros((nI, N, A, c))              # power per cell leaving the rough face into the plate
         direct_rough = np.zeros((nI, N, A))      # BSDF on the outgoing grid through the rough face (no loop)
@@ -607,6 +610,13 @@ def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | Non
     side = np.asarray(rows.side).astype(str)
     ts = np.asarray(rows.theta_s_deg, float)
     ps = np.asarray(rows.phi_s_deg, float)
+    factor = 1.0
+    if model.tilt_deg:
+        ti, pi = to_sample_frame(ti, pi, np.full(ti.shape, "R"), model.tilt_deg)
+        ts0 = ts
+        ts, ps = to_sample_frame(ts, ps, side, model.tilt_deg)
+        factor = np.cos(np.radians(ts)) / np.cos(np.radians(ts0))
+        ti, pi, ts, ps = (np.round(a, 9) for a in (ti, pi, ts, ps))
     out = np.zeros(wl.size)
     for w in np.unique(wl):
         mw = wl == w
@@ -618,7 +628,25 @@ def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | Non
             r = res[float(t)]
             r = replace(r, phi_i_deg=float(p))
             out[sel] = rows_from_result(r, side[sel], ts[sel], ps[sel], model)
-    return out
+    return (out - model.background_per_sr) * factor + model.background_per_sr
+
+
+def rot_y(tilt_deg: float) -> np.ndarray:
+    """Rotation taking sample-frame vectors to the instrument frame (normal tilted about y)."""
+    a = np.radians(tilt_deg)
+    return np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+
+
+def to_sample_frame(theta_deg: Any, phi_deg: Any, side: Any, tilt_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(theta, phi) of instrument-frame directions (R: above, T: below) seen in the tilted sample's frame."""
+    t = np.radians(np.asarray(theta_deg, float))
+    p = np.radians(np.asarray(phi_deg, float))
+    sgn = np.where(np.asarray(side) == "T", -1.0, 1.0)
+    w = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), sgn * np.cos(t)], -1)
+    w2 = w @ rot_y(tilt_deg)            # R^T w for each row
+    th = np.degrees(np.arccos(np.clip(np.abs(w2[..., 2]), 0.0, 1.0)))
+    ph = np.mod(np.degrees(np.arctan2(w2[..., 1], w2[..., 0])), 360.0)
+    return th, ph
 
 
 # ---------------------------------------------------------------- analytic boundary tables for tests / checks

@@ -17,8 +17,8 @@ Detection (formats.md): a row's value is sum(weights of photons leaving inside i
 cone) / (N Omega cos theta_s), Omega = 2 pi (1 - cos half_angle); its 1-sigma error is
 sqrt(sum w^2) / (N Omega cos theta_s).  Laterally infinite plate, incoherent paths.
 
-Effects (the hook the diagnosis uses): PlateModel.absorption_per_m and .polarization (source
-Stokes) are honoured; background_per_sr is added to every row; blur_deg jitters the exit
+Effects (the hook the diagnosis uses): PlateModel.absorption_per_m, .polarization (source
+Stokes) and .tilt_deg (sample normal rotated about y; source and exits rotated) are honoured; background_per_sr is added to every row; blur_deg jitters the exit
 directions by a 2-D Gaussian (instrument blur).  Photons still inside after `max_round_trips`
 are counted as lost (reported).
 """
@@ -31,7 +31,7 @@ import numpy as np
 
 from .errors import InputError
 from .optics import mueller_interface
-from .plate import SOURCE_STOKES, PlateModel, check_rows
+from .plate import SOURCE_STOKES, PlateModel, check_rows, rot_y
 from .relief import Relief
 
 
@@ -86,9 +86,11 @@ def trace_plate(tracer: Any, model: PlateModel, wavelength_nm: float, theta_i_de
     """Trace `n_photons` through the plate for one incidence; return what left it."""
     n = float(np.real(model.index.n(wavelength_nm)))
     n0 = float(np.real(model.outside_index.n(wavelength_nm)))
-    t = np.radians(theta_i_deg + model.tilt_deg)
+    t = np.radians(theta_i_deg)
     p = np.radians(phi_i_deg)
-    k = np.tile([-np.sin(t) * np.cos(p), -np.sin(t) * np.sin(p), -np.cos(t)], (n_photons, 1))
+    # propagation direction of the source, in the (possibly tilted) sample's frame
+    k0 = rot_y(model.tilt_deg).T @ np.array([-np.sin(t) * np.cos(p), -np.sin(t) * np.sin(p), -np.cos(t)])
+    k = np.tile(k0, (n_photons, 1))
     S = np.tile(SOURCE_STOKES[model.polarization], (n_photons, 1)).astype(float)
     out_side, out_dirs, out_w = [], [], []
     front = model.rough_face == "front"
@@ -136,7 +138,10 @@ def trace_plate(tracer: Any, model: PlateModel, wavelength_nm: float, theta_i_de
     lost += float(np.sum(S[:, 0])) if k.shape[0] else 0.0
     if not out_side:
         return Exits(np.zeros(0, np.int8), np.zeros((0, 3)), np.zeros(0), n_photons, lost)
-    return Exits(np.concatenate(out_side), np.concatenate(out_dirs), np.concatenate(out_w), n_photons, lost)
+    dirs = np.concatenate(out_dirs)
+    if model.tilt_deg:
+        dirs = dirs @ rot_y(model.tilt_deg).T          # back to the instrument frame
+    return Exits(np.concatenate(out_side), dirs, np.concatenate(out_w), n_photons, lost)
 
 
 def detect(exits: Exits, side: np.ndarray, theta_s_deg: np.ndarray, phi_s_deg: np.ndarray, model: PlateModel,
