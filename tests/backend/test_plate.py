@@ -161,3 +161,20 @@ def test_tilted_flat_plate_moves_the_specular_peak_by_twice_the_tilt():
     # normal tilted toward the source (+x): incidence 30 - tilt on the sample, mirror at 30 - 2 tilt
     assert lit.min() >= 30 - 2 * tilt - 1.0 - 1e-9 and lit.max() <= 30 - 2 * tilt + 1.0 + 1e-9
     assert (v > 0).sum() >= 3
+
+
+def test_stokes_loop_with_depolarising_mueller_tables_equals_the_scalar_loop():
+    from dataclasses import replace
+    o = lambert("outside", 0.1, 0.9, [0, 30, 60], spec_R=0.02)
+    i = lambert("inside", 0.6, 0.35, np.arange(0, 90, 5.0), spec_T=0.03)
+    dep = np.diag([1.0, 0, 0, 0])
+    op = replace(o, mueller_per_sr=o.values_per_sr[..., None, None] * dep)
+    ip = replace(i, mueller_per_sr=i.values_per_sr[..., None, None] * dep)
+    for pol in ("unpolarized", "s"):
+        m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), polarization=pol, absorption_per_m=50.0)
+        rows = in_plane_rows(550.0, [0, 30, 60], np.arange(0.5, 90, 3.0))
+        scalar = simulate_rows(m, i, o, rows)
+        stokes_solver = PlateSolver(m, ip, op)
+        assert stokes_solver.mueller
+        stokes = simulate_rows(m, ip, op, rows, solver=stokes_solver)
+        np.testing.assert_allclose(stokes, scalar, rtol=1e-9, atol=1e-12)
