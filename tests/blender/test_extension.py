@@ -9,7 +9,9 @@ import zipfile
 
 import pytest
 
-from conftest import REPO
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
 
 sys.path.insert(0, str(REPO / "relief_addon"))
 import build_extension as bx  # noqa: E402

@@ -9,7 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import REPO
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
 
 WIDTH = 96
 

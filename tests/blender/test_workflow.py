@@ -6,7 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from conftest import REPO
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
 
 import bpy
 
