@@ -173,9 +173,17 @@ def _per_incidence(table: BsdfTable) -> dict[str, np.ndarray]:
     return {k: np.asarray(h[k], float).mean(axis=2) for k in ("specular_R", "diffuse_R", "specular_T", "diffuse_T")}
 
 
-def _fit_roughness(table: BsdfTable, wl_nm: float, subsamples: int = 1) -> np.ndarray:
-    """(I, 2) Cycles roughness of one GGX lobe per incidence and side (R, T) at one wavelength."""
+def _fit_roughness(table: BsdfTable, wl_nm: float, subsamples: int | None = None) -> np.ndarray:
+    """(I, 2) Cycles roughness of one GGX lobe per incidence and side (R, T) at one wavelength.
+
+    The model lobe is averaged over each cell like the table (`subsamples` per cell axis;
+    default 1 for cells of at most 1 x 5 degrees, else 2: coarse cells need the average, or a
+    narrow transmitted lobe at grazing incidence is fitted a few per cent too rough).
+    """
     from .methods.microfacet import fit_table
+    if subsamples is None:
+        fine = np.max(np.diff(table.theta_s_edges_deg)) <= 1.01 and np.max(np.diff(table.phi_s_edges_deg)) <= 5.01
+        subsamples = 1 if fine else 2
     t = table.select(wl_nm)
     diffuse = _per_incidence(t)
     fit = fit_table(t, n_lobes=1, distribution="ggx", subsamples=subsamples)
