@@ -14,10 +14,12 @@ L = integral f(l -> v) cos(theta_l) d omega_l = A(v).  The lit hemisphere is the
 (glossy) or the opposite one (refraction).  One render per (closure, IOR, theta) holds a strip
 of patches, one per roughness.
 
-Run (about a minute on 2 cores):  python relief_addon/cycles_calibration.py [--out FILE]
-Output: relief_addon/data/cycles_albedo.npz with axes `theta_deg`, `roughness`, `ior` and
-arrays `glossy` (R, theta), `refraction_front` and `refraction_back` (ior, R, theta), plus the
-Blender version it was measured with.
+Run (a few minutes on 2 cores):  python relief_addon/cycles_calibration.py [--out FILE]
+Output: relief_addon/data/cycles_albedo.npz with axes `theta_deg`, `roughness`, `ior`,
+`ior_metallic` and arrays `glossy` (R, theta; Multiscatter GGX), `metallic` (ior_metallic, R,
+theta; physical-conductor Fresnel with extinction 0, GGX), `refraction_front` and
+`refraction_back` (ior, R, theta; GGX), plus the Blender version it was measured with
+(5.0.1 for the file shipped).  `--kinds` re-measures some closures and keeps the others.
 """
 from __future__ import annotations
 

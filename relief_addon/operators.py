@@ -117,7 +117,11 @@ class RELIEF_FH_heightmap(bpy.types.FileHandler):
     bl_idname = "RELIEF_FH_heightmap"
     bl_label = "Surface height map"
     bl_import_operator = "relief.import_heightmap"
-    bl_file_extensions = ";".join(f".{e}" for e in BASE_SUFFIXES + ("plu", "opd", "datx", "nid", "mi", "vk4"))
+    # instrument formats only: generic suffixes the readers also try (.txt, .csv, .h5, .zip,
+    # .npy, .mat, .xlsx) would capture unrelated drops
+    bl_file_extensions = ";".join(f".{e}" for e in BASE_SUFFIXES + (
+        "plu", "plux", "opd", "opdx", "datx", "frt", "nid", "mi", "ibw", "spm", "vk3", "vk4", "vk6", "vk7", "lext",
+        "oir", "poir", "al3d", "bcr", "bcrf", "ezd", "hfm", "nc", "zon", "tom", "top", "stp", "cur", "jpk", "apx"))
 
     @classmethod
     def poll_drop(cls, context):

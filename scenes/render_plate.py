@@ -16,9 +16,28 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-for p in (ROOT, ROOT / "backend" / "src"):
-    if str(p) not in sys.path:
-        sys.path.append(str(p))
+
+
+def _paths() -> None:
+    """Make the add-on and the backend importable inside a Blender binary too.
+
+    Under `blender --python` the backend's dependencies come from the installed extension's
+    bundled wheels or, in a checkout prepared with `make venv`, from .venv (appended last,
+    so Blender's own numpy and bpy stay first).
+    """
+    for p in (ROOT, ROOT / "backend" / "src"):
+        if str(p) not in sys.path:
+            sys.path.append(str(p))
+    try:
+        import h5py  # noqa: F401
+        import scipy  # noqa: F401
+    except ImportError:
+        for sp in sorted((ROOT / ".venv" / "lib").glob("python3.*/site-packages")):
+            if str(sp) not in sys.path:
+                sys.path.append(str(sp))
+
+
+_paths()
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -44,7 +44,8 @@ def test_linux_zip_installs_and_enables(tmp_path):
     assert any(w.startswith("relief_bsdf-") for w in wheels)
     assert any(w.startswith("embreex-") and "manylinux" in w for w in wheels)
     assert not any(w.startswith("numpy-") for w in wheels)
-    assert "__init__.py" in names and "blender_manifest.toml" in names
+    assert {"__init__.py", "blender_manifest.toml", "bake_nodes.py", "data/cycles_albedo.npz"} <= set(names)
+    assert "build_extension.py" not in names
     script = (
         "import json, sys, bpy\n"
         "bpy.ops.extensions.package_install_files(filepath=sys.argv[-1], repo='user_default', enable_on_install=True)\n"
