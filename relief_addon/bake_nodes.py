@@ -206,6 +206,8 @@ def build_node_group(lut, img: bpy.types.Image | None = None) -> bpy.types.Shade
     g["relief_ior"] = float(lut.ior)
     g["relief_rgb_nm"] = list(lut.rgb_nm)
     g["relief_image"] = img.name
+    g["relief_reflection_closure"] = lut.reflection_closure
+    g["relief_closure_albedo"] = str(lut.info.get("closure_albedo", ""))
     return g
 
 

@@ -8,6 +8,9 @@ back as float32 (Standard view transform, no denoising, no adaptive sampling):
   W/m^2 across its beam, angle 0) lights the patch from (theta_i, phi_i = 0); the camera looks
   from (theta_s, phi_s) on side R (z > 0) or T (z < 0).  The pixel radiance is
   L = f(i -> s) E cos(theta_i), hence f = L / (E cos theta_i) (formats.md, Nicodemus BSDF).
+  Cycles does not scale radiance by n^2 across a refraction (it renders basic radiance
+  L / n^2), so for side T with the camera inside a medium of index n_s the physical radiance
+  BTDF is the returned value times n_s^2 / n_i^2.
 - `directional(material, theta, side)`: the environment has radiance 1 over one hemisphere
   (the viewer's for R, the opposite one for T) and 0 over the other; the camera looks from
   theta above the patch.  The pixel is L = integral f(l -> v) cos(theta_l) d omega_l, which
