@@ -2,7 +2,9 @@
 
 Geometry (formats.md frame): the plate fills -t < z < 0, the lit face is z = 0, light comes
 from z > 0.  The relief sits on the front (lit) face or on the back face; the other face is
-flat (Fresnel).  Bulk absorption follows Beer-Lambert along each path: a traversal at internal
+flat (Fresnel), or, with the relief in front, the back face may carry its own table (light from
+inside; its delta part replaces Fresnel and its cells add a second diffuse kernel K_B, so a
+round trip is K A (K_B + R_B) A).  Bulk absorption follows Beer-Lambert along each path: a traversal at internal
 angle theta keeps exp(-a t / cos theta).  The boundary is described by two `BsdfTable`s of the
 relief (light from outside, light from inside); each must be isotropic (one phi_i).
 
@@ -77,7 +79,8 @@ class PlateModel:
     "p"), background_per_sr (stray light added to every row), blur_deg (Gaussian
     instrument blur, 1-sigma, added to the detector cone), tilt_deg (sample tilt about the
     y axis: incidence seen by the sample is theta_i + tilt in the plane of incidence),
-    The second face is flat (a BSDF table for it is not implemented yet).  Tilt: the sample
+    The second face is flat unless a table is given to PlateSolver / simulate_rows (`back`,
+    relief on the front only).  Tilt: the sample
     normal is rotated by tilt_deg about the y axis of the instrument; rows are transformed into
     the sample frame and the reading converted back with f = f' cos theta_s' / cos theta_s (the
     instrument divides by its own cos theta_s).
@@ -266,9 +269,32 @@ class _TableView:
 
     def specular(self, side: str, theta_in: float) -> np.ndarray:
         """4x4 Mueller matrix (or scalar power fraction times I) of the delta part."""
+        return self.specular_many(side, [theta_in])[0]
+
+    def specular_many(self, side: str, theta_in: Any) -> np.ndarray:
+        """(n, 4, 4) delta-part Mueller matrices at several incidence angles."""
         p, pm = self.spec[side]
-        w = _lin_matrix(self.table.theta_i_deg, [theta_in])[0]
-        return np.tensordot(w, pm, axes=(0, 0))
+        W = _lin_matrix(self.table.theta_i_deg, np.ravel(theta_in))
+        return np.tensordot(W, pm, axes=(1, 0))
+
+
+def _blocks(Xh: np.ndarray, c: int) -> np.ndarray:
+    """(T, J, M[, 4, 4]) kernel in Fourier space -> (M, T c, J c) matrices."""
+    if c == 1:
+        return np.moveaxis(Xh, 2, 0)
+    T, J, M = Xh.shape[:3]
+    return np.transpose(Xh, (2, 0, 3, 1, 4)).reshape(M, T * 4, J * 4)
+
+
+def _block_diag(D: np.ndarray, c: int) -> np.ndarray:
+    """(N, 4, 4) per-cell Mueller matrices -> (N c, N c) block-diagonal (c = 1: the M00 diagonal)."""
+    N = D.shape[0]
+    if c == 1:
+        return np.diag(D[:, 0, 0])
+    out = np.zeros((N, 4, N, 4))
+    idx = np.arange(N)
+    out[idx, :, idx, :] = D
+    return out.reshape(N * 4, N * 4)
 
 
 def _fresnel(cos_i: np.ndarray, n1: float, n2: float, kind: str) -> np.ndarray:
@@ -321,7 +347,16 @@ class PlateSolver:
     Per wavelength the round-trip system is factorised once and reused for every incidence.
     """
 
-    def __init__(self, model: PlateModel, inside: BsdfTable, outside: BsdfTable | None = None):
+    def __init__(self, model: PlateModel, inside: BsdfTable, outside: BsdfTable | None = None,
+                 back: BsdfTable | None = None):
+        """`back`: optional BSDF table (light from inside) of the second, back face; None = flat."""
+        if back is not None:
+            if model.rough_face != "front":
+                raise InputError("plate", "a BSDF table for the second face is supported when the relief is on "
+                                 "the front face (the back face is then the second face)")
+            if back.incident_from != "inside":
+                raise InputError("plate", "the back-face table must have incident_from = 'inside'")
+        self.back = back
         if inside.incident_from != "inside":
             raise InputError("plate", "the inside table must have incident_from = 'inside'")
         if model.rough_face == "front":
@@ -332,7 +367,8 @@ class PlateSolver:
         self.model = model
         self.inside = inside
         self.outside = outside
-        self.mueller = inside.is_polarized or (outside is not None and outside.is_polarized)
+        self.mueller = (inside.is_polarized or (outside is not None and outside.is_polarized)
+                        or (back is not None and back.is_polarized))
         self.theta_edges = np.asarray(inside.theta_s_edges_deg, float)
         self.theta_c = 0.5 * (self.theta_edges[1:] + self.theta_edges[:-1])
         A = int(model.azimuth_cells)
@@ -362,6 +398,10 @@ class PlateSolver:
              * (np.sin(e[1:]) ** 2 - np.sin(e[:-1]) ** 2)[:, None])
         cos_sub = np.sqrt(np.clip(1.0 - u, 0.0, 1.0))
         RF = _fresnel(cos_sub, n, n0, "R").mean(axis=1)                                     # (N, 4, 4)
+        vB = _TableView(self.back, wl, self.mueller, "back-face table") if self.back is not None else None
+        if vB is not None:
+            th_sub = np.degrees(np.arccos(cos_sub))                                         # cell average too
+            RF = vB.specular_many("R", th_sub).reshape(N, nsub, 4, 4).mean(axis=1)            # its delta part
         # kernel K[t, j, a] from the inside table's R cells, times the receiving cell's projected solid angle
         K = vin.diffuse("R", tc, tc, self.delta)                                           # (J, T, A[,4,4])
         K = np.moveaxis(K, 0, 1) * (self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None])
@@ -377,6 +417,21 @@ class PlateSolver:
             Mk = Kh.shape[2]
             KD = np.einsum("tjmab,jbc->mtajc", Kh, Dj)
             sysm = np.eye(N * 4)[None] - KD.reshape(Mk, N * 4, N * 4)
+        Kb = Rtrip = GBT = None
+        if vB is not None:
+            # second face with its own table: round trip K A (K_B + R_B,delta) A as full matrices per m
+            KB = vB.diffuse("R", tc, tc, self.delta)
+            KB = np.moveaxis(KB, 0, 1) * (self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None])
+            Kb = _blocks(Kh, c)
+            Aa = np.repeat(absorb, c)
+            Rtrip = (_blocks(np.fft.rfft(KB, axis=2), c) + _block_diag(RF, c)[None]) * Aa[None, :, None] * Aa[None, None, :]
+            sysm = np.eye(N * c)[None] - Kb @ Rtrip
+            GB = vB.diffuse("T", tc, tc, self.delta)
+            if c == 4:
+                GB = GB[..., 0, :]
+            GBh = np.fft.rfft(GB, axis=2)
+            GBT = (np.moveaxis(GBh, 2, 0) if c == 1 else np.moveaxis(GBh, (2, 3), (0, 2))).reshape(
+                GBh.shape[2], -1, GBh.shape[1])
         # exit through the rough face from inside: inside table T cells, onto the outgoing grid (theta_c in air)
         G = vin.diffuse("T", tc, tc, self.delta)                                           # (J, O, A[,4,4])
         if c == 4:
@@ -392,7 +447,10 @@ class PlateSolver:
         u = (np.sin(e[:-1])[:, None] ** 2 + (np.arange(ns) + 0.5)[None] / ns
              * (np.sin(e[1:]) ** 2 - np.sin(e[:-1]) ** 2)[:, None])                           # (O, ns)
         th_int = _snell_deg(np.degrees(np.arcsin(np.sqrt(u))), n0, n)
-        tf = _fresnel(np.cos(np.radians(th_int)), n, n0, "T")[..., 0, :c] / ns               # (O, ns, c)
+        if vB is None:
+            tf = _fresnel(np.cos(np.radians(th_int)), n, n0, "T")[..., 0, :c] / ns           # (O, ns, c)
+        else:
+            tf = vB.specular_many("T", th_int).reshape(N, ns, 4, 4)[..., 0, :c] / ns
         # internal radiance linearly interpolated between cell centres, held constant across the
         # critical angle (trapped cells never feed the exit) and at the grid ends
         th_c = np.degrees(np.arcsin(min(n0 / n, 1.0)))
@@ -400,8 +458,8 @@ class PlateSolver:
         Wi = _lin_matrix(tc[below], th_int.ravel())                                          # (O ns, Nb)
         Wflat = np.zeros((N, N, c))
         Wflat[:, below, :] = np.einsum("osj,osc->ojc", Wi.reshape(N, ns, -1), tf)
-        ops = dict(n=n, n0=n0, vin=vin, vout=vout, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
-                   Wflat=Wflat, c=c, M=Mk)
+        ops = dict(n=n, n0=n0, vin=vin, vout=vout, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
+                   Wflat=Wflat, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT)
         self._ops[wl] = ops
         return ops
 
@@ -424,13 +482,19 @@ class PlateSolver:
         S = np.zeros((nI, N, A, c))              # power per cell leaving the rough face into the plate
         direct_rough = np.zeros((nI, N, A))      # BSDF on the outgoing grid through the rough face (no loop)
         direct_R = np.zeros((nI, N, A))          # outside table R (front relief)
+        direct_flat = np.zeros((nI, N, A))       # diffuse exit of the delta beam through a back-face table
+        U_extra = np.zeros((nI, N, A, c))        # delta beam scattered diffusely by a back-face table
+        vB = ops["vB"]
         deltas_all = []
         for q, ti in enumerate(thetas):
             ti = abs(float(ti))
             tt = float(_snell_deg(ti, n0, n))
             a_t = float(np.exp(-m.absorption_per_m * m.thickness_m / max(np.cos(np.radians(tt)), 1e-6)))
-            RFt = _fresnel(np.cos(np.radians(tt)), n, n0, "R")
-            TFt = _fresnel(np.cos(np.radians(tt)), n, n0, "T")
+            if vB is None:
+                RFt = _fresnel(np.cos(np.radians(tt)), n, n0, "R")
+                TFt = _fresnel(np.cos(np.radians(tt)), n, n0, "T")
+            else:
+                RFt, TFt = vB.specular("R", tt), vB.specular("T", tt)
             deltas = []
             if front:
                 f_r = vout.diffuse("R", [ti], tc, delta)[0]
@@ -460,6 +524,16 @@ class PlateSolver:
             deltas.append(("R" if front else "T", ti, 0.0, p_rough))
             deltas.append(("T" if front else "R", ti, 0.0, p_flat))
             deltas_all.append(deltas)
+            if vB is not None:   # the delta beam y, at the back face, scatters diffusely there
+                yb = a_t * y
+                fbr = vB.diffuse("R", [tt], tc, delta)[0]
+                fbt = vB.diffuse("T", [tt], tc, delta)[0]
+                if c == 1:
+                    U_extra[q, :, :, 0] = fbr * (psa * ops["absorb"])[:, None] * yb[0]
+                    direct_flat[q] = fbt * yb[0]
+                else:
+                    U_extra[q] = (fbr @ yb) * (psa * ops["absorb"])[:, None, None]
+                    direct_flat[q] = fbt[..., 0, :] @ yb
             # what the delta beam z scatters diffusely at the rough face
             fr = vin.diffuse("R", [tt], tc, delta)[0]
             ft = vin.diffuse("T", [tt], tc, delta)[0]
@@ -471,8 +545,12 @@ class PlateSolver:
                 direct_rough[q] += ft[..., 0, :] @ z
         # diffuse loop in the azimuthal Fourier domain
         Sh = np.fft.rfft(S, axis=2)                                        # (nI, N, M, c)
-        rhs = np.moveaxis(Sh, 2, 1).reshape(nI, Mk, N * c)                 # (nI, M, N c)
-        Xh = np.linalg.solve(ops["sys"], np.moveaxis(rhs, 0, 2))            # (M, N c, nI)
+        rhs = np.moveaxis(np.moveaxis(Sh, 2, 1).reshape(nI, Mk, N * c), 0, 2)   # (M, N c, nI)
+        if vB is not None:
+            Uxh = np.moveaxis(np.moveaxis(np.fft.rfft(U_extra, axis=2), 2, 1).reshape(nI, Mk, N * c), 0, 2)
+            rhs = rhs + ops["Kb"] @ Uxh
+        Xh = np.linalg.solve(ops["sys"], rhs)                               # (M, N c, nI)
+        XhM = Xh
         Xh = np.moveaxis(Xh, 2, 0).reshape(nI, Mk, N, c)
         X = np.fft.irfft(np.moveaxis(Xh, 1, 2), n=A, axis=2)               # (nI, N, A, c)
         absorb = ops["absorb"]
@@ -482,14 +560,20 @@ class PlateSolver:
         else:
             U = np.einsum("jab,qjkb->qjka", ops["RF"], at_flat) * absorb[None, :, None, None]
         # rough-face exit: circular convolution over azimuth with the inside T kernel
-        Uh = np.fft.rfft(U, axis=2)                                        # (nI, J, M, c)
-        Um = np.moveaxis(Uh, 2, 0).reshape(Mk, nI, N * c)                  # (M, q, J c)
+        if vB is None:
+            Uh = np.fft.rfft(U, axis=2)                                    # (nI, J, M, c)
+            Um = np.moveaxis(Uh, 2, 0).reshape(Mk, nI, N * c)              # (M, q, J c)
+        else:
+            Um = np.moveaxis(ops["Rtrip"] @ XhM + Uxh, 2, 1)                # (M, q, J c)
         Oh = np.moveaxis(Um @ ops["GhT"], 0, 2)                             # (q, O, M)
         out_rough = np.fft.irfft(Oh, n=A, axis=2) + direct_rough
         # flat-face exit: internal radiance (Stokes) interpolated at the Snell pre-image of each outgoing
         # direction, times the exact Fresnel transmission there, divided by (n/n0)^2 (radiance law)
         L = np.moveaxis(at_flat / psa[None, :, None, None], 2, 3).reshape(nI, N * c, A)    # (q, N c, A)
         out_flat = (ops["Wflat"].reshape(N, N * c) @ L) * (n0 / n) ** 2                   # (q, O, A)
+        if vB is not None:   # diffuse exit through the back-face table, from the light arriving there
+            AX = np.moveaxis(XhM * np.repeat(absorb, c)[None, :, None], 2, 1)          # (M, q, N c)
+            out_flat = out_flat + np.fft.irfft(np.moveaxis(AX @ ops["GBT"], 0, 2), n=A, axis=2) + direct_flat
         results = []
         for q, ti in enumerate(thetas):
             gR = direct_R[q] + (out_rough[q] if front else out_flat[q])
@@ -600,10 +684,14 @@ def _blurred_fraction(ang: np.ndarray, h: float, b: float, n: int = 64) -> np.nd
 
 
 def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | None, rows: Any,
-                  solver: PlateSolver | None = None, where: str = "recording") -> np.ndarray:
-    """Plate BSDF (1/sr) on every row of a recording (same order), detector cone included."""
+                  solver: PlateSolver | None = None, where: str = "recording",
+                  back: BsdfTable | None = None) -> np.ndarray:
+    """Plate BSDF (1/sr) on every row of a recording (same order), detector cone included.
+
+    `back`: optional table (light from inside) of the second face when the relief is on the front.
+    """
     check_rows(model, rows, where)
-    solver = solver or PlateSolver(model, inside, outside)
+    solver = solver or PlateSolver(model, inside, outside, back)
     wl = np.asarray(rows.wavelength_nm, float)
     ti = np.asarray(rows.theta_i_deg, float)
     pi = np.asarray(rows.phi_i_deg, float)
