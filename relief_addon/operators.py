@@ -65,8 +65,13 @@ def _require(module: str, what: str):
 def _import_file(context, path: Path, pitch_um: float, z_scale: float):
     from relief_bsdf.readers import read_relief
     from .mesh_import import import_relief
+    from relief_bsdf.errors import InputError
     pitch = (pitch_um * 1e-6, pitch_um * 1e-6) if pitch_um > 0 else None
-    relief = read_relief(path, pitch_m=pitch)
+    try:
+        relief = read_relief(path, pitch_m=pitch)
+    except ImportError as e:                # e.g. no SurfaceTopography wheel for this platform
+        raise InputError(path, f"this format needs {e.name or e}, which is not available in this "
+                         "Blender (npz, TIFF, EXR and SDF files still work)") from None
     obj = import_relief(relief, z_scale=z_scale, collection=context.collection)
     for o in context.view_layer.objects:
         o.select_set(False)
