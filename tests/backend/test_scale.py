@@ -303,3 +303,43 @@ def test_cancel_from_progress_cancels_the_cluster_work(client, tmp_path):
     ran = len(_executions(ctx))
     assert ran < 12                                          # the other 28+ tasks never started
     assert not any(client.processing().values())
+
+
+def test_ctrl_c_on_a_local_dask_run_exits_cleanly(tmp_path):
+    """Ctrl-C in a terminal (SIGINT to the process group) during `--dask local`: exit code 130,
+    one line on stderr, no worker process left behind."""
+    import subprocess
+    import sys
+
+    import psutil
+
+    from relief_bsdf.synth import random_relief
+
+    r = random_relief(64, 1e-6, 0.4e-6, 8e-6, seed=4)
+    np.savez(tmp_path / "r.npz", heights=r.heights_m, dx=r.dx_m, dy=r.dy_m)
+    cmd = [sys.executable, "-m", "relief_bsdf.cli", "reconstruct", str(tmp_path / "r.npz"), "--method", "normals",
+           "--n", "1.5", "--wavelengths-nm", ",".join(str(400 + 10 * i) for i in range(31)), "--theta-i-deg", "0,30,60",
+           "--samples", "200000", "--theta-step-deg", "5", "--phi-step-deg", "30", "--dask", "local", "--workers", "2",
+           "-o", str(tmp_path / "t.h5")]
+    env = {k: v for k, v in os.environ.items() if k not in ("RELIEF_DASK_SCHEDULER", "RELIEF_BACKEND")}
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         env=env)
+    try:
+        t0 = time.monotonic()
+        kids: list = []
+        while len(kids) < 2:                                  # both workers started
+            assert p.poll() is None and time.monotonic() - t0 < 60
+            time.sleep(0.1)
+            kids = [c.pid for c in psutil.Process(p.pid).children(recursive=True)]
+        time.sleep(1.5)                                       # tasks under way
+        kids = [c.pid for c in psutil.Process(p.pid).children(recursive=True)]
+        os.killpg(p.pid, signal.SIGINT)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert p.returncode == 130, err
+    assert err.strip().splitlines() == ["relief reconstruct: interrupted"], err
+    time.sleep(1.0)
+    alive = [k for k in kids if psutil.pid_exists(k) and psutil.Process(k).status() != psutil.STATUS_ZOMBIE]
+    assert alive == []

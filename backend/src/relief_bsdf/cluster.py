@@ -21,6 +21,8 @@ import atexit
 import contextlib
 import logging
 import os
+import signal
+import threading
 import time
 import uuid
 from typing import Any, Callable, Iterator
@@ -35,6 +37,22 @@ _CLIENTS: dict[str, Any] = {}
 def open_clients() -> list[str]:
     """Specs of the clients this process holds open."""
     return list(_CLIENTS)
+
+
+@contextlib.contextmanager
+def _sigint_ignored_by_children() -> Iterator[None]:
+    """Start worker processes with SIGINT ignored (the disposition survives their exec), so
+    Ctrl-C in a terminal reaches only this process, which cancels the work and closes the
+    cluster cleanly instead of every worker printing a KeyboardInterrupt traceback.  (This
+    process ignores Ctrl-C for the second or two the workers take to start.)"""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def get_client(spec: Any, workers: int | None = None):
@@ -52,8 +70,9 @@ def get_client(spec: Any, workers: int | None = None):
         from .parallel import default_workers
 
         n = int(workers or default_workers())
-        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                           dashboard_address=":0", silence_logs=logging.ERROR)
+        with _sigint_ignored_by_children():
+            cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                               dashboard_address=":0", silence_logs=logging.ERROR)
         client = distributed.Client(cluster)
     else:
         try:
@@ -123,6 +142,18 @@ def run_on_client(client, fn: Callable, context: Any, items: list[tuple[int, Any
     in completion order.  The context travels to each worker once; consecutive tasks are
     grouped (`parallel.group_size`); on exit (normal, error, Ctrl-C, or the consumer stopping) the
     unfinished futures are cancelled."""
+    try:
+        yield from _run_on_client(client, fn, context, items, retries=retries, label=label)
+    except KeyboardInterrupt:
+        # the operations cut short by Ctrl-C (a scatter, a gather) would each log an error from
+        # the in-process scheduler; the user asked to stop: one line from the CLI is enough
+        for name in ("distributed", "asyncio"):     # asyncio: "Task exception was never retrieved"
+            logging.getLogger(name).setLevel(logging.CRITICAL)
+        raise
+
+
+def _run_on_client(client, fn: Callable, context: Any, items: list[tuple[int, Any]], *, retries: int,
+                   label: str) -> Iterator[tuple[int, Any]]:
     import distributed
 
     from .parallel import group_size
