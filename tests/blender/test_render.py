@@ -72,14 +72,14 @@ def test_scene_script_on_fit_folder(clean_bpy, tmp_path):
     fit.mkdir()
     (fit / "fit.json").write_text(json.dumps({
         "format": "relief-fit/1", "sample": str(REPO / "scenes/demo/sample.toml"), "method": "microfacet+dw",
-        "parameters": {"height_scale": 3.0, "filter_sigma_um": 0.0}, "rms_before": 1.0, "rms_after": 0.5}))
+        "parameters": {"height_scale": 6.0, "filter_sigma_um": 0.0}, "rms_before": 1.0, "rms_after": 0.5}))
     spec = importlib.util.spec_from_file_location("render_plate_script", REPO / "scenes/render_plate.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     out = tmp_path / "fit.png"
     assert mod.main([str(fit), "-o", str(out), "--width", str(WIDTH), "--samples", "16"]) == 0
     left, right = _check_pair(_read(out))
-    # the fit roughened the relief 3x: the checkerboard seen through the plate loses contrast
+    # the fit roughened the relief 6x: the checkerboard seen through the plate loses contrast
     assert _contrast(right, WIDTH) < 0.8 * _contrast(left, WIDTH)
     # bad input: one line, exit code 2
     assert mod.main([str(tmp_path), "-o", str(out)]) == 2
