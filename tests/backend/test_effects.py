@@ -159,3 +159,18 @@ def test_detector_blur_keeps_the_integral_and_lowers_a_sharp_peak():
     sharp, _ = detect(ex, np.array(["T"]), th, th, 2.0)
     wide, _ = detect(ex, np.array(["T"]), th, th, 2.0, blur_sigma_deg=3.0)
     assert wide[0] < 0.8 * sharp[0]
+
+
+def test_chi2_treats_zero_readings_as_clipped_and_is_unbiased_for_a_background():
+    """A flat zero signal with Gaussian noise clipped at 0 must not look like a background."""
+    from relief_bsdf.effects import chi2
+    rng = np.random.default_rng(8)
+    n = 4000
+    y = np.maximum(0.002 * rng.normal(size=n), 0.0)
+    rows = RowSet(*(np.zeros(n),) * 3, np.array(["R"] * n), *(np.zeros(n),) * 2, y, np.full(n, 0.002))
+    bs = np.linspace(-0.001, 0.001, 41)
+    c = [chi2(rows, np.full(n, b), np.zeros(n)) for b in bs]
+    assert abs(bs[int(np.argmin(c))]) <= 1e-4
+    # the plain chi2 of the clipped data would be minimised at a clearly positive background
+    plain = [np.sum(((y - b) / 0.002) ** 2) for b in bs]
+    assert bs[int(np.argmin(plain))] > 5e-4

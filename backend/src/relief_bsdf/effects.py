@@ -196,9 +196,22 @@ EFFECT_NEUTRAL = {"scatter_per_mm": 0.0, "hg_g": 0.0, "back_alpha": 0.0, "tilt_d
 
 
 def chi2(rows: RowSet, model: np.ndarray, model_sigma: np.ndarray) -> float:
-    """Noise-weighted misfit sum(((y - m) / s)^2), s^2 = sigma_recording^2 + sigma_model^2."""
-    s2 = rows.sigma**2 + model_sigma**2
-    return float(np.sum((rows.value - model) ** 2 / s2))
+    """Noise-weighted misfit, s^2 = sigma_recording^2 + sigma_model^2.
+
+    Rows with a measured value > 0 contribute ((y - m) / s)^2.  recording.csv holds no
+    negative BSDF values, so a reading at exactly 0 is a reading clipped at zero (a
+    censored Gaussian, Tobit likelihood): it contributes -2 ln(2 Phi(-m / s)), the
+    log-probability of reading <= 0, shifted so that m = 0 costs nothing (as z^2 would).
+    Without this, clipped noise reads as a positive background.
+    """
+    s = np.sqrt(rows.sigma**2 + model_sigma**2)
+    y = rows.value
+    cens = y <= 0
+    z2 = ((y - model) / s) ** 2
+    if cens.any():
+        from scipy.special import log_ndtr
+        z2[cens] = np.maximum(-2.0 * (log_ndtr(-model[cens] / s[cens]) + np.log(2.0)), 0.0)
+    return float(np.sum(z2))
 
 
 def _fit_1d(f, lo: float, hi: float, grid: int, refine: int, neutral: float | None = None) -> tuple[float, float]:
@@ -231,11 +244,13 @@ def fit_effect(model: PlateForward, effect: str, progress=None) -> dict:
     post = all(name in POST_KEYS for name, *_ in eff.params)
     grid, refine = (9, 10) if post else (4, 4)
     pars: dict = {}
-    if effect == "stray_light":     # linear in the background: closed-form weighted mean, clipped
+    if effect == "stray_light":     # linear in the background: weighted mean as a start, then the censored chi2
         v0, s0 = model.simulate(base)
         w = 1.0 / (model.rows.sigma**2 + s0**2)
-        b = max(0.0, float(np.sum(w * (model.rows.value - v0)) / np.sum(w)))
-        pars = {"background_per_sr": b}
+        b0 = max(0.0, float(np.sum(w * (model.rows.value - v0)) / np.sum(w)))
+        r = optimize.minimize_scalar(lambda b: run({"background_per_sr": b})[0], bounds=(0.0, max(3 * b0, 1e-3)),
+                                     method="bounded", options={"maxiter": 12})
+        pars = {"background_per_sr": float(r.x) if r.fun < run({"background_per_sr": 0.0})[0] else 0.0}
     elif len(eff.params) == 1:
         name, lo, hi, neutral = eff.params[0]
         x, _ = _fit_1d(lambda x: run({name: x})[0], lo, hi, grid, refine, neutral)
