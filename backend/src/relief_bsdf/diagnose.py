@@ -264,6 +264,7 @@ def write_report(path: Path, rows, v0, s0, v1, s1, result: dict) -> Path:
     for ax in axs.ravel()[len(groups):]:
         ax.axis("off")
     axs.ravel()[0].legend(fontsize=7)
+    fig.tight_layout()
     curves = _png(fig)
     esc = lambda s: (str(s).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;"))  # noqa: E731
     cand_rows = "".join(f"<tr><td>{esc(c['effect'])}</td><td>{c['rms_after']:.3f}</td><td>{c['score']:.1f}</td>"
