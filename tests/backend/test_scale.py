@@ -244,8 +244,8 @@ def test_cli_reconstruct_on_a_local_dask_cluster_matches_default(tmp_path):
 
     r = random_relief(64, 1e-6, 0.4e-6, 8e-6, seed=4)
     np.savez(tmp_path / "r.npz", heights=r.heights_m, dx=r.dx_m, dy=r.dy_m)
-    relief_cli = [sys.executable, "-m", "relief_bsdf.cli", "reconstruct", str(tmp_path / "r.npz"), "--method", "normals",
-                  "--n", "1.5", "--wavelengths-nm", "500,600", "--theta-i-deg", "0,40", "--phi-i-deg", "0,90",
+    relief_cli = [sys.executable, "-m", "relief_bsdf.cli", "reconstruct", str(tmp_path / "r.npz"),
+                  "--method", "normals", "--n", "1.5", "--wavelengths-nm", "500,600", "--theta-i-deg", "0,40", "--phi-i-deg", "0,90",
                   "--samples", "3000", "--theta-step-deg", "5", "--phi-step-deg", "30", "--seed", "3"]
     env = {k: v for k, v in os.environ.items() if k not in ("RELIEF_DASK_SCHEDULER", "RELIEF_BACKEND")}
     a = subprocess.run(relief_cli + ["-o", str(tmp_path / "a.h5")], capture_output=True, text=True, env=env)
