@@ -40,7 +40,7 @@ class RELIEF_PT_relief(_ReliefPanel, bpy.types.Panel):
         stats = obj.get("relief_stats", {})
         for k in stats.keys():
             row = box.row()
-            row.label(text=k.replace("_", " "))
+            row.label(text=(k[:-2] if k.endswith("_m") else k).replace("_", " "))
             row.label(text=_fmt(k, stats[k]))
         s = context.scene.relief
         if s.job_status:
