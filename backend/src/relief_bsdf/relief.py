@@ -108,7 +108,8 @@ class Relief:
         m = self.valid
         cols = [xs**i * ys**j for i in range(order + 1) for j in range(order + 1 - i)]
         A = np.stack([c[m] for c in cols], axis=1)
-        coef, *_ = np.linalg.lstsq(A, self.heights_m[m], rcond=None)
+        # normal equations: A has few columns of scaled monomials, so A^T A is small and well conditioned
+        coef = np.linalg.lstsq(A.T @ A, A.T @ self.heights_m[m], rcond=None)[0]
         surf = sum(c * k for c, k in zip(cols, coef))
         name = {0: "mean", 1: "plane"}.get(order, f"polynomial order {order}")
         return self.with_heights(self.heights_m - surf, f"levelled: subtracted least-squares {name}",

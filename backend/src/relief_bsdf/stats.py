@@ -34,6 +34,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
+import scipy.fft as sfft
 
 from .relief import Relief
 
@@ -134,18 +135,24 @@ def acf_2d(relief: Relief, level: bool = True) -> tuple[np.ndarray, np.ndarray, 
     z = np.where(m, h, 0.0)
     ny, nx = h.shape
     if relief.periodic and m.all():
-        F = np.fft.rfft2(z)
-        acf = np.fft.irfft2(np.abs(F) ** 2, s=(ny, nx)) / (nx * ny)
+        F = sfft.rfft2(z, workers=-1)
+        acf = sfft.irfft2(np.abs(F) ** 2, s=(ny, nx), workers=-1) / (nx * ny)
         acf = np.fft.fftshift(acf)
         lx = (np.arange(nx) - nx // 2) * relief.dx_m
         ly = (np.arange(ny) - ny // 2) * relief.dy_m
         return lx, ly, acf
     sy, sx = 2 * ny - 1, 2 * nx - 1
     fy, fx = _fast_len(sy), _fast_len(sx)
-    Fz = np.fft.rfft2(z, s=(fy, fx))
-    Fm = np.fft.rfft2(m.astype(float), s=(fy, fx))
-    num = np.fft.irfft2(np.abs(Fz) ** 2, s=(fy, fx))
-    cnt = np.fft.irfft2(np.abs(Fm) ** 2, s=(fy, fx))
+    Fz = sfft.rfft2(z, s=(fy, fx), workers=-1)
+    num = sfft.irfft2(np.abs(Fz) ** 2, s=(fy, fx), workers=-1)
+    if m.all():
+        # every point valid: the number of pairs at lag (ty, tx) is (ny - |ty|)(nx - |tx|)
+        cy = ny - np.abs(np.fft.fftfreq(fy, 1.0 / fy)).astype(int)
+        cx = nx - np.abs(np.fft.fftfreq(fx, 1.0 / fx)).astype(int)
+        cnt = np.clip(cy, 0, None)[:, None] * np.clip(cx, 0, None)[None, :].astype(float)
+    else:
+        Fm = sfft.rfft2(m.astype(float), s=(fy, fx), workers=-1)
+        cnt = sfft.irfft2(np.abs(Fm) ** 2, s=(fy, fx), workers=-1)
     # rearrange lags -(n-1)..(n-1) to the centre
     idx_y = np.r_[fy - (ny - 1):fy, 0:ny]
     idx_x = np.r_[fx - (nx - 1):fx, 0:nx]
@@ -195,9 +202,14 @@ def _axis_one_over_e(lags: np.ndarray, acf_line: np.ndarray, tile_m: float) -> f
 
 
 def _radial_one_over_e(lx: np.ndarray, ly: np.ndarray, acf: np.ndarray, relief: Relief) -> float:
-    r_centres, c = radial_average(lx, ly, acf)
-    c = c / acf[np.argmin(np.abs(ly)), np.argmin(np.abs(lx))]
     lxmax, lymax = relief.size_m
+    # only lags up to half the tile are used: average over that window, not the whole ACF
+    half = 0.5 * min(lxmax, lymax) * (1 + 1e-9)
+    kx = np.abs(lx) <= half + abs(lx[1] - lx[0]) if lx.size > 1 else np.ones(lx.size, bool)
+    ky = np.abs(ly) <= half + abs(ly[1] - ly[0]) if ly.size > 1 else np.ones(ly.size, bool)
+    c0 = acf[np.argmin(np.abs(ly)), np.argmin(np.abs(lx))]
+    r_centres, c = radial_average(lx[kx], ly[ky], acf[np.ix_(ky, kx)])
+    c = c / c0
     keep = r_centres <= 0.5 * min(lxmax, lymax)
     return _first_crossing(r_centres[keep], c[keep], np.exp(-1.0))
 
