@@ -56,7 +56,7 @@ in-lobe cell error is 0.1-1.1 % (largest 6-15 % at the lobe's 1 % edge) and R + 
 of x between a node and the points it serves is at most tau max(1, x^2 / 2) (never blending
 across nu_z = 0, where the pattern mirrors); tau = 0.3 brings the median error to ~0.4 %
 for 2-20 nodes per side.  FFTs are single precision (complex64) with scipy.fft, workers =
-options["fft_workers"] (default 2).
+options["fft_workers"] (default 2; 1 inside a pool worker, where the pool already fills the cores).
 
 Partial coherence (request.coherence_length_m = Lc).  The incident field is multiplied by
 exp(i psi), psi a Gaussian random phase screen of rms pi rad and Gaussian correlation length
@@ -102,7 +102,7 @@ from scipy import ndimage
 from ..bsdf import BsdfTable
 from ..errors import RequestError
 from ..optics import Material, cos_transmitted, fresnel_power, mueller_interface
-from ..parallel import map_tasks, task_rng
+from ..parallel import in_worker, map_tasks, task_rng
 from ..wave_filter import DcosGrid, cell_average, cell_samples, check_sides, smoothing_width_dcos
 from .rayleigh_rice import prepared_heights
 
@@ -600,7 +600,8 @@ def _task(ctx, task):
     return solve_incidence(h, ctx["w"], ctx["pitch"], ctx["periodic"], wl, ctx["theta_i"][it], ctx["phi_i"][ip],
                            n1, n2, ctx["cells"], ctx["width"], ctx["polarization"], ctx["lc"], ctx["instances"],
                            ctx["seed"], (iw, it, ip, 0 if fr == "outside" else 1), ctx["tau"], ctx["max_nodes"],
-                           ctx["workers"], theta_s_range_deg=ctx["theta_range"], polarized=ctx["polarized"])
+                           1 if in_worker() else ctx["workers"], theta_s_range_deg=ctx["theta_range"],
+                           polarized=ctx["polarized"])
 
 
 def speckle_dcos(relief, material: Material, request) -> float:

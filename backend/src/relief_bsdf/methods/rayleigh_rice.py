@@ -328,7 +328,8 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
     S, A = cells.alpha.shape[:2]
     for fr in request.incident_from:
         tasks = [(iw, it, ip, fr) for iw in range(W) for it in range(I) for ip in range(P)]
-        res = map_tasks(_task, tasks, ctx, progress=progress, label=f"rayleigh-rice {fr}", backend="serial")
+        res = map_tasks(_task, tasks, ctx, progress=progress, label=f"rayleigh-rice {fr}",
+                        backend=opts.get("backend"))
         shape = (W, I, P, 2, S, A)
         mu = np.zeros(shape + (4, 4)) if polarized else None
         vals = np.zeros(shape)
