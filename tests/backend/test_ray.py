@@ -330,3 +330,43 @@ def test_bad_requests_are_refused_before_work():
         ray.reconstruct(Relief(np.zeros((32, 32)), 1e-6, 1e-6, periodic=True), GLASS, Request())
     with pytest.raises(RequestError, match="wavelengths"):
         ray.reconstruct(Relief(np.zeros((64, 64)), 5e-8, 5e-8, periodic=True), GLASS, Request(**coarse))
+
+
+# ----------------------------------------------------------------------------- scale-out
+
+@pytest.mark.slow
+def test_identical_tables_serial_processes_and_dask_local():
+    """Each incidence is a map_tasks task with its own seeds: the same bits whatever runs it
+    (this process with 2 or 1 threads, local worker processes, a local Dask cluster), and a
+    task's rows do not depend on which other incidences share the request."""
+    from relief_bsdf import parallel
+
+    relief = gaussian_relief(0.35, n=64, corr_px=6.0)
+    kw = dict(wavelengths_nm=(500.0, 600.0), theta_i_deg=(0.0, 50.0), phi_i_deg=(0.0, 30.0),
+              incident_from=("outside", "inside"), samples=70000, seed=4,      # 2 chunks per incidence
+              theta_s_edges_deg=TE, phi_s_edges_deg=PE)
+    from relief_bsdf.optics import CauchyIndex
+    mat = Material(CauchyIndex(1.5046, 4200.0))
+    runs = {}
+    for name, opts in (("serial2", {"backend": "serial", "threads": 2}), ("serial1", {"backend": "serial", "threads": 1}),
+                       ("processes", {"backend": "processes"})):
+        runs[name] = ray.reconstruct(relief, mat, Request(options=opts, **kw))
+        assert parallel.last_run()["backend"] == name.rstrip("12") and parallel.last_run()["total"] == 16
+    with parallel.parallel_settings(dask="local", workers=2):
+        runs["dask"] = ray.reconstruct(relief, mat, Request(**kw))
+        assert parallel.last_run()["backend"] == "dask"
+    ref = runs.pop("serial2")
+    for name, tabs in runs.items():
+        for a, b in zip(ref, tabs):
+            for f in ("values_per_sr", "sigma_per_sr", "mueller_per_sr", "specular_R", "specular_T", "lost",
+                      "specular_mueller_R", "specular_mueller_T"):
+                assert np.array_equal(getattr(a, f), getattr(b, f)), (name, a.incident_from, f)
+    h = ref[0].hemispherical()
+    assert np.all(h["diffuse_R"] > 0.01) and np.all(h["diffuse_T"] > 0.3)        # a real scatter was compared
+    # the first incidence alone (same task key; a single task runs here on both threads): the same rows
+    one = ray.reconstruct(relief, mat, Request(**{**kw, "wavelengths_nm": (500.0,), "theta_i_deg": (0.0,),
+                                                  "phi_i_deg": (0.0,), "incident_from": ("outside",)}))[0]
+    assert parallel.last_run()["backend"] == "serial"
+    assert np.array_equal(one.values_per_sr[0, 0, 0], ref[0].values_per_sr[0, 0, 0])
+    assert np.array_equal(one.mueller_per_sr[0, 0, 0], ref[0].mueller_per_sr[0, 0, 0])
+    assert ref[1].values_per_sr.dtype == np.float32 and ref[1].mueller_per_sr.dtype == np.float32

@@ -84,6 +84,11 @@ def worker_cached(key: Any, build: Callable[[], Any]) -> Any:
     return _WORKER_CACHE[key]
 
 
+def forget_worker_cached(key: Any) -> None:
+    """Drop one `worker_cached` object from this process (e.g. a BVH built for a serial run)."""
+    _WORKER_CACHE.pop(key, None)
+
+
 def default_workers() -> int:
     """Worker count: RELIEF_WORKERS if set, else every core."""
     env = os.environ.get("RELIEF_WORKERS")

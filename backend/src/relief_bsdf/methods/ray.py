@@ -58,23 +58,29 @@ exactly within that model; interference between rays is ignored.
 Engine (speed, see benchmarks/bench_ray.py)
 -------------------------------------------
 One Embree BVH per relief (`ReliefTracer`, ~1.5 s at 1024^2 here), reused for every
-wavelength, incidence and side (`reconstruct_with` reuses it across requests too).  Rays
-are traced in fixed chunks of 65536 (own seed each: `parallel.task_rng(seed, side,
-wavelength, theta, phi, chunk)`, so results do not depend on the thread count) over a
-thread pool of `parallel.default_workers()` threads: Embree queries and large numpy ufuncs
-release the GIL.  Beam entry points are stratified over the tile and sorted by 32 x 32 px
+wavelength, incidence and side (`reconstruct_with` reuses it across requests too).  Each
+(side, wavelength, incidence) is one `parallel.map_tasks` task (`_incidence_task`), so local
+processes and `--dask` spread them; a worker builds the BVH once (`parallel.worker_cached`,
+keyed by a digest of the heights and mesh options) and traces with one thread, while in this
+process (serial backend, or a single incidence) the task's chunks use every core.  Rays are
+traced in fixed chunks of 65536 (own seed each: `parallel.task_rng(seed, side, wavelength,
+theta, phi, chunk)`) whose sums are added in chunk order, so the numbers do not depend on the
+backend, worker or thread count.  A task returns its finished float32 table rows, written
+straight into the tables (`map_tasks(on_result=...)`): memory is the tables plus one
+incidence's accumulators per worker.  Beam entry points are stratified over the tile and sorted by 32 x 32 px
 blocks (BVH coherence).  Each bounce is a handful of float32 numpy passes over a structure
-of arrays; finished rays are binned per chunk with np.bincount.  Process pools
-(`parallel.map_tasks`) are not used: every worker process would rebuild the BVH.
+of arrays; finished rays are binned per chunk with np.bincount.
 Polarised tables (Mueller matrices, the default) cost about 1.5-2x the scalar ones.
 
 Options (request.options): polarized (True), max_bounces (100), first_hit_split (True),
-specular_tol_rad (1e-5), fill_holes (None: NaN refused; True or a max gap in px), threads.
+specular_tol_rad (1e-5), fill_holes (None: NaN refused; True or a max gap in px), threads
+(in this process; a pool worker uses one), backend (map_tasks backend, default as configured).
 `request.samples` rays per (wavelength, incidence, side).  Tables store the unpolarised
 BSDF (M00) whatever `request.polarization` says; the Mueller matrices carry the rest.
 """
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import threading
@@ -88,7 +94,8 @@ from ..bsdf import BsdfTable, direction, projected_solid_angle
 from ..errors import RequestError
 from ..mesh import TileMesh, build_tile_mesh
 from ..optics import fresnel_amplitudes
-from ..parallel import default_workers, task_rng
+from ..parallel import (default_workers, forget_worker_cached, in_worker, last_run, map_tasks, task_rng,
+                        worker_cached)
 from ..progress import silent
 from ..relief import Relief
 
@@ -743,11 +750,11 @@ def _block_order(xy: np.ndarray, hx: float, hy: float, block: float = 32.0) -> n
 def _options(request) -> dict:
     o = dict(request.options or {})
     known = {"polarized", "max_bounces", "first_hit_split", "specular_tol_rad", "fill_holes", "threads",
-             "block_px"}
+             "block_px", "backend"}
     out = {"polarized": bool(o.get("polarized", True)), "max_bounces": int(o.get("max_bounces", 100)),
            "first_hit_split": bool(o.get("first_hit_split", True)),
            "specular_tol_rad": float(o.get("specular_tol_rad", 1e-5)), "fill_holes": o.get("fill_holes"),
-           "threads": o.get("threads")}
+           "threads": o.get("threads"), "backend": o.get("backend")}
     out["unknown"] = sorted(set(o) - known)
     if out["max_bounces"] < 1:
         raise RequestError(f"max_bounces must be >= 1, got {out['max_bounces']}", "max_bounces")
@@ -963,56 +970,95 @@ def _incident_state(K: int, n: int) -> np.ndarray | None:
     return A
 
 
-def reconstruct(relief: Relief, material, request, progress=None) -> list[BsdfTable]:
-    """Ray-trace the relief for every (wavelength, incidence, side) of the request (module doc).
+class _RayContext:
+    """What every incidence task needs, shipped once per worker (`parallel.map_tasks` context).
 
-    Options (request.options): polarized (True: Mueller matrices per cell, see module doc),
-    max_bounces (100), first_hit_split (True), specular_tol_rad (1e-5), fill_holes (None:
-    refuse NaN; True or max gap in px: Laplace filling), threads (default: every core).
-    One BVH is built for the relief and reused for every task; the tasks' ray chunks share
-    one thread pool (Embree releases the GIL).  `request.samples` rays per incidence.
+    `tracer` (an already built `ReliefTracer`, e.g. from `reconstruct_with`) is used where the
+    tasks run in this process; it is not pickled: a worker process or Dask worker builds its own
+    once (`parallel.worker_cached`, keyed by `tracer_key`).  `digest()` names everything that
+    changes the numbers (checkpoint keys); the refractive indices travel with each task.
     """
-    opts = check_request(relief, material, request)
-    tracer = ReliefTracer(relief, opts["max_bounces"], opts["fill_holes"], threads=opts["threads"])
-    return reconstruct_with(tracer, relief, material, request, progress)
+
+    def __init__(self, relief: Relief, opts: dict, request, tracer: "ReliefTracer | None" = None):
+        self.relief = relief
+        self.max_bounces = int(opts["max_bounces"])
+        self.fill_holes = opts["fill_holes"]
+        self.polarized = bool(opts["polarized"])
+        self.first_hit_split = bool(opts["first_hit_split"])
+        self.cos_tol = math.cos(opts["specular_tol_rad"])
+        self.threads = opts["threads"]
+        self.seed = int(request.seed)
+        self.samples = int(request.samples)
+        self.te = np.asarray(request.theta_s_edges_deg, float)
+        self.pe = np.asarray(request.phi_s_edges_deg, float)
+        self.tracer = tracer
+        h = hashlib.sha256()
+        hm = np.ascontiguousarray(relief.heights_m, dtype=np.float64)
+        h.update(hm.tobytes())
+        h.update(repr((hm.shape, float(relief.dx_m), float(relief.dy_m), bool(relief.periodic),
+                       self.max_bounces, repr(self.fill_holes))).encode())
+        self.tracer_key = ("ray.ReliefTracer", h.hexdigest())
+        h.update(repr((self.polarized, self.first_hit_split, float(opts["specular_tol_rad"]), self.seed,
+                       self.samples, self.te.tolist(), self.pe.tolist())).encode())
+        self._digest = h.hexdigest()
+
+    def digest(self) -> str:
+        return self._digest
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        d["tracer"] = None                       # an Embree scene does not travel: rebuilt per worker
+        return d
+
+    def get_tracer(self) -> "ReliefTracer":
+        if self.tracer is not None:
+            return self.tracer
+        return worker_cached(self.tracer_key, lambda: ReliefTracer(self.relief, self.max_bounces, self.fill_holes,
+                                                                    threads=1 if in_worker() else self.threads))
 
 
-def reconstruct_with(tracer: ReliefTracer, relief: Relief, material, request, progress=None) -> list[BsdfTable]:
-    """`reconstruct` with an already built tracer (reuse one BVH across requests, e.g. in fits)."""
-    progress = progress or silent
-    opts = check_request(relief, material, request)
-    if opts["threads"]:
-        tracer.threads = int(opts["threads"])
-    t0 = time.perf_counter()
-    K = 4 if opts["polarized"] else 0
-    te = np.asarray(request.theta_s_edges_deg, float)
-    pe = np.asarray(request.phi_s_edges_deg, float)
+def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
+    """Trace one (side, wavelength, incidence) with `ctx.samples` rays; its finished table rows.
+
+    Module-level `map_tasks` function.  The rays go in fixed chunks of CHUNK, each with its own
+    generator `task_rng(seed, side, wavelength, theta, phi, chunk)`, over one Embree thread in a
+    pool worker and `threads` (default every core) in this process; chunk results are summed in
+    chunk order, so the numbers do not depend on the backend or the thread count.
+    Returns float32 arrays (vals, sig: (2, S, A); mue: (2, S, A, 4, 4) in the table's frame)
+    and float scalars / (4, 4) float64 specular parts.
+    """
+    si, side, iw, ii, ip, n_out, n_in, ti, pi_ = task
+    tracer = ctx.get_tracer()
+    threads = 1 if in_worker() else int(ctx.threads or tracer.threads or default_workers())
+    K = 4 if ctx.polarized else 0
+    te, pe = ctx.te, ctx.pe
     S, A_ = te.size - 1, pe.size - 1
     te_sin2 = np.sin(np.radians(te)) ** 2
-    psa = projected_solid_angle(te, pe)
-    nxs, nys, strata_order = _beam_strata(int(request.samples), float(tracer.Lx), float(tracer.Ly))
+    Lx, Ly = float(tracer.Lx), float(tracer.Ly)
+    nxs, nys, strata_order = worker_cached(("ray.strata", ctx.samples, Lx, Ly),
+                                           lambda: _beam_strata(ctx.samples, Lx, Ly))
     N = nxs * nys
     chunks = [(lo, min(N, lo + CHUNK)) for lo in range(0, N, CHUNK)]
-    cos_tol = math.cos(opts["specular_tol_rad"])
-    W, I, P = len(request.wavelengths_nm), len(request.theta_i_deg), len(request.phi_i_deg)
+    wi = direction(ti, pi_)                                    # table frame, toward the source
+    k_in = -wi if side == "outside" else np.array([-wi[0], -wi[1], wi[2]])
+    from_below = side == "inside"
+    n_above = n_out.real
+    n_below = n_in if n_in.imag > 0 else n_in.real
+    s_init = _frame_s(k_in[None, :], math.radians(pi_))[0] if K else None
+    # ideal directions of the flat mean plane (physical), for the delta parts
+    spec_R = np.array([k_in[0], k_in[1], -k_in[2]])
+    n1, n2 = (n_above, n_below) if not from_below else (n_below, n_above)
+    eta = float(np.real(n1) / np.real(n2))
+    sin2t = eta**2 * (1 - k_in[2] ** 2)
+    spec_T = None
+    if sin2t < 1 and not (np.iscomplexobj(n2) and np.imag(n2) > 0):
+        spec_T = np.array([eta * k_in[0], eta * k_in[1], math.copysign(math.sqrt(1 - sin2t), k_in[2])])
+    side_of_state = (0, 1) if side == "outside" else (1, 0)     # (ABOVE ->, BELOW ->) table side
+    phi_exit = math.radians(pi_ + 180.0)
 
-    tasks = []
-    for si, side in enumerate(request.incident_from):
-        for iw, wl in enumerate(request.wavelengths_nm):
-            n_from, n_to = material.n_pair(wl, side)
-            n_out, n_in = (n_from, n_to) if side == "outside" else (n_to, n_from)
-            for ii, ti in enumerate(request.theta_i_deg):
-                for ip, pi_ in enumerate(request.phi_i_deg):
-                    tasks.append((si, side, iw, ii, ip, complex(n_out), complex(n_in), float(ti), float(pi_)))
-
-    def job(args):
-        t, ci = args
-        si, side, iw, ii, ip, n_out, n_in, ti, pi_ = tasks[t]
+    def job(ci):
         lo, hi = chunks[ci]
-        rng = task_rng(request.seed, si, iw, ii, ip, ci)
-        wi = direction(ti, pi_)                                    # table frame, toward the source
-        k_in = -wi if side == "outside" else np.array([-wi[0], -wi[1], wi[2]])
-        from_below = side == "inside"
+        rng = task_rng(ctx.seed, si, iw, ii, ip, ci)
         st = strata_order[lo:hi]
         iy, ix = np.divmod(st, nxs)
         jit = rng.random((hi - lo, 2))
@@ -1022,100 +1068,149 @@ def reconstruct_with(tracer: ReliefTracer, relief: Relief, material, request, pr
         o[:, 2] = tracer.z_bot if from_below else tracer.z_top
         k = np.broadcast_to(k_in.astype(F32), o.shape).copy()
         below = np.full(hi - lo, from_below)
-        s_init = _frame_s(k_in[None, :], math.radians(pi_))[0] if K else None
-        n_above = n_out.real
-        n_below = n_in if n_in.imag > 0 else n_in.real
         out = tracer._trace_chunk(o, k, below, _incident_state(K, hi - lo), rng, n_above, n_below,
-                                  opts["first_hit_split"], s_init=s_init, phi_exit_rad=math.radians(pi_ + 180.0))
-        # ideal directions of the flat mean plane (physical), for the delta parts
-        spec_R = np.array([k_in[0], k_in[1], -k_in[2]])
-        n1, n2 = (n_above, n_below) if not from_below else (n_below, n_above)
-        eta = float(np.real(n1) / np.real(n2))
-        sin2t = eta**2 * (1 - k_in[2] ** 2)
-        spec_T = None
-        if sin2t < 1 and not (np.iscomplexobj(n2) and np.imag(n2) > 0):
-            spec_T = np.array([eta * k_in[0], eta * k_in[1], math.copysign(math.sqrt(1 - sin2t), k_in[2])])
-        side_of_state = (0, 1) if side == "outside" else (1, 0)     # (ABOVE ->, BELOW ->) table side
+                                  ctx.first_hit_split, s_init=s_init, phi_exit_rad=phi_exit)
         acc = _Accumulator(S, A_, bool(K))
-        _bin_chunk(acc, out, side_of_state, te_sin2, pe, (spec_R, spec_T), cos_tol)
-        return t, acc
+        _bin_chunk(acc, out, side_of_state, te_sin2, pe, (spec_R, spec_T), ctx.cos_tol)
+        return acc
 
-    jobs = [(t, ci) for t in range(len(tasks)) for ci in range(len(chunks))]
-    accs = [_Accumulator(S, A_, bool(K)) for _ in tasks]
-    left = [len(chunks)] * len(tasks)
-    done_tasks = 0
+    t0 = time.perf_counter()
+    total = _Accumulator(S, A_, bool(K))
+    if threads > 1 and len(chunks) > 1:
+        with ThreadPoolExecutor(max_workers=min(threads, len(chunks))) as ex:
+            for acc in ex.map(job, range(len(chunks))):       # chunk order: deterministic sums
+                total.add(acc)
+    else:
+        for ci in range(len(chunks)):
+            total.add(job(ci))
+    psa = projected_solid_angle(te, pe)
+    n = float(total.paths)
+    mean = total.sum_w / n
+    var = np.maximum(total.sum_w2 / n - mean**2, 0.0) / n
+    out = {"vals": (mean.reshape(2, S, A_) / psa).astype(F32), "sig": (np.sqrt(var).reshape(2, S, A_) / psa).astype(F32),
+           "specR": float(total.spec[0] / n), "specT": float(total.spec[1] / n),
+           "lost": float((sum(total.lost.values()) + total.outside_table) / n),
+           "mue": None, "smR": None, "smT": None}
+    if K:
+        # light from inside: the table's frame is mirrored (z -> -z); a mirror maps the physical
+        # basis (s, p = s x k) to (s', -p'), so S2, S3 change sign: M_table = D M D, D = diag(1,1,-1,-1)
+        dd = _MIRROR_DD if side == "inside" else 1.0
+        m = (total.sum_M / n).reshape(4, 4, 2, S, A_).transpose(2, 3, 4, 0, 1)
+        out["mue"] = (m / psa[None, :, :, None, None] * dd).astype(F32)
+        out["smR"] = (total.spec_M[0] / n).reshape(4, 4) * dd
+        out["smT"] = (total.spec_M[1] / n).reshape(4, 4) * dd
+        out["vals"] = out["mue"][..., 0, 0].copy()
+    out["diag"] = {"wavelength_nm": None, "theta_i_deg": float(ti), "phi_i_deg": float(pi_),
+                   "rays": int(total.paths), "segments": int(total.segments),
+                   "mean_bounces": total.bounce_sum / max(total.exits, 1),
+                   "lost": {k_: v / n for k_, v in total.lost.items()},
+                   "outside_table": total.outside_table / n,
+                   "trace_s": time.perf_counter() - t0, "build_s": tracer.build_s}
+    m = tracer.mesh
+    out["mesh"] = {"rays": int(N), "triangles": m.n_triangles, "tile_samples": list(m.shape),
+                   "mirror_extended": m.mirrored, "history": list(m.history)}
+    return out
+
+
+def reconstruct(relief: Relief, material, request, progress=None) -> list[BsdfTable]:
+    """Ray-trace the relief for every (wavelength, incidence, side) of the request (module doc).
+
+    Options (request.options): polarized (True: Mueller matrices per cell, see module doc),
+    max_bounces (100), first_hit_split (True), specular_tol_rad (1e-5), fill_holes (None:
+    refuse NaN; True or max gap in px: Laplace filling), threads (this process; default every
+    core), backend (map_tasks backend; default as configured).  Each incidence is one
+    `parallel.map_tasks` task; one BVH is built per worker process (or once here when the
+    tasks run in this process).  `request.samples` rays per incidence.
+    """
+    opts = check_request(relief, material, request)
+    return _reconstruct(None, relief, material, request, progress, opts)
+
+
+def reconstruct_with(tracer: ReliefTracer, relief: Relief, material, request, progress=None) -> list[BsdfTable]:
+    """`reconstruct` with an already built tracer (reuse one BVH across requests, e.g. in fits).
+
+    The tracer is used for the tasks that run in this process (serial backend, a single
+    incidence); worker processes build their own.
+    """
+    opts = check_request(relief, material, request)
+    if opts["threads"]:
+        tracer.threads = int(opts["threads"])
+    return _reconstruct(tracer, relief, material, request, progress, opts)
+
+
+def _reconstruct(tracer, relief, material, request, progress, opts) -> list[BsdfTable]:
+    t0 = time.perf_counter()
+    K = 4 if opts["polarized"] else 0
+    te = np.asarray(request.theta_s_edges_deg, float)
+    pe = np.asarray(request.phi_s_edges_deg, float)
+    S, A_ = te.size - 1, pe.size - 1
+    W, I, P = len(request.wavelengths_nm), len(request.theta_i_deg), len(request.phi_i_deg)
+    ctx = _RayContext(relief, opts, request, tracer)
+    tasks = []
+    for si, side in enumerate(request.incident_from):
+        for iw, wl in enumerate(request.wavelengths_nm):
+            n_from, n_to = material.n_pair(wl, side)
+            n_out, n_in = (n_from, n_to) if side == "outside" else (n_to, n_from)
+            for ii, ti in enumerate(request.theta_i_deg):
+                for ip, pi_ in enumerate(request.phi_i_deg):
+                    tasks.append((si, side, iw, ii, ip, complex(n_out), complex(n_in), float(ti), float(pi_)))
+    # the finished rows go straight into the tables (float32 for the big arrays)
+    sides = []
+    for _ in request.incident_from:
+        sides.append({"vals": np.zeros((W, I, P, 2, S, A_), F32), "sig": np.zeros((W, I, P, 2, S, A_), F32),
+                      "mue": np.zeros((W, I, P, 2, S, A_, 4, 4), F32) if K else None,
+                      "specR": np.zeros((W, I, P)), "specT": np.zeros((W, I, P)), "lost": np.zeros((W, I, P)),
+                      "smR": np.zeros((W, I, P, 4, 4)) if K else None, "smT": np.zeros((W, I, P, 4, 4)) if K else None,
+                      "diag": {}})
+    build_s = [tracer.build_s] if tracer is not None else []
+    mesh_seen: list = []
+
+    def collect(i, r):
+        si, _, iw, ii, ip = tasks[i][:5]
+        d = sides[si]
+        for name in ("vals", "sig", "mue", "specR", "specT", "lost", "smR", "smT"):
+            if d[name] is not None:
+                d[name][iw, ii, ip] = r[name]
+        diag = dict(r["diag"])
+        diag["wavelength_nm"] = float(request.wavelengths_nm[iw])
+        build_s.append(diag.pop("build_s"))
+        if not mesh_seen:
+            mesh_seen.append(r["mesh"])
+        d["diag"][(iw, ii, ip)] = diag
+
     t_trace = time.perf_counter()
-    ex = ThreadPoolExecutor(max_workers=tracer.threads) if tracer.threads > 1 and len(jobs) > 1 else None
     try:
-        for t, acc in (ex.map(job, jobs) if ex else map(job, jobs)):
-            accs[t].add(acc)
-            left[t] -= 1
-            if left[t] == 0:
-                done_tasks += 1
-                progress(done_tasks, len(tasks), "ray tracing")
+        map_tasks(_incidence_task, tasks, ctx, progress=progress or silent, label="ray tracing",
+                  backend=opts.get("backend"), on_result=collect)
     finally:
-        if ex:
-            ex.shutdown(cancel_futures=True)
+        if tracer is None:
+            forget_worker_cached(ctx.tracer_key)      # a BVH built here is not kept past the request
     t_trace = time.perf_counter() - t_trace
 
     tables = []
     for si, side in enumerate(request.incident_from):
-        vals = np.zeros((W, I, P, 2, S, A_))
-        sig = np.zeros_like(vals)
-        mue = np.zeros(vals.shape + (4, 4)) if K else None
-        specR = np.zeros((W, I, P))
-        specT = np.zeros((W, I, P))
-        lost = np.zeros((W, I, P))
-        smR = np.zeros((W, I, P, 4, 4)) if K else None
-        smT = np.zeros((W, I, P, 4, 4)) if K else None
-        diag = []
-        for t, task in enumerate(tasks):
-            if task[0] != si:
-                continue
-            _, _, iw, ii, ip, *_ = task
-            acc = accs[t]
-            n = float(acc.paths)
-            mean = acc.sum_w / n
-            var = np.maximum(acc.sum_w2 / n - mean**2, 0.0) / n
-            vals[iw, ii, ip] = mean.reshape(2, S, A_) / psa
-            sig[iw, ii, ip] = np.sqrt(var).reshape(2, S, A_) / psa
-            specR[iw, ii, ip], specT[iw, ii, ip] = acc.spec / n
-            lost[iw, ii, ip] = (sum(acc.lost.values()) + acc.outside_table) / n
-            if K:
-                # light from inside: the table's frame is mirrored (z -> -z); a mirror maps the physical
-                # basis (s, p = s x k) to (s', -p'), so S2, S3 change sign: M_table = D M D, D = diag(1,1,-1,-1)
-                dd = _MIRROR_DD if side == "inside" else 1.0
-                m = (acc.sum_M / n).reshape(4, 4, 2, S, A_).transpose(2, 3, 4, 0, 1)
-                mue[iw, ii, ip] = m / psa[None, :, :, None, None] * dd
-                smR[iw, ii, ip] = (acc.spec_M[0] / n).reshape(4, 4) * dd
-                smT[iw, ii, ip] = (acc.spec_M[1] / n).reshape(4, 4) * dd
-                vals[iw, ii, ip] = mue[iw, ii, ip][..., 0, 0]
-            diag.append({"wavelength_nm": float(request.wavelengths_nm[iw]),
-                         "theta_i_deg": float(request.theta_i_deg[ii]), "phi_i_deg": float(request.phi_i_deg[ip]),
-                         "rays": int(acc.paths), "segments": int(acc.segments),
-                         "mean_bounces": acc.bounce_sum / max(acc.exits, 1),
-                         "lost": {k_: v / n for k_, v in acc.lost.items()},
-                         "outside_table": acc.outside_table / n})
-        mesh = tracer.mesh
-        meta = {"request": {"samples_requested": int(request.samples), "rays_per_incidence": int(N),
+        d = sides[si]
+        diag = [d["diag"][key] for key in sorted(d["diag"])]
+        mesh_info = dict(mesh_seen[0]) if mesh_seen else {}
+        meta = {"request": {"samples_requested": int(request.samples), "rays_per_incidence": mesh_info.pop("rays", 0),
                             "seed": int(request.seed), "options": {k_: v for k_, v in opts.items()
                                                                    if k_ != "unknown"}},
                 "unknown_options": opts["unknown"],
-                "mesh": {"triangles": mesh.n_triangles, "tile_samples": list(mesh.shape),
-                         "mirror_extended": mesh.mirrored, "history": list(mesh.history)},
-                "max_bounces": tracer.max_bounces,
-                "timing_s": {"build": tracer.build_s, "trace_all_sides": t_trace,
+                "mesh": mesh_info,
+                "max_bounces": int(opts["max_bounces"]),
+                "timing_s": {"build": max(build_s) if build_s else 0.0, "trace_all_sides": t_trace,
                              "total": time.perf_counter() - t0},
+                "parallel": last_run(),
                 "tasks": diag,
                 "notes": ["geometric optics: valid when relief features >> wavelength",
                           "Stokes bases: s = z x k / |z x k|, p = s x k with k the propagation direction, "
                           "in the table's frame (mirrored for light from inside, as bsdf.py)",
                           "lost = max bounces + numerical leaks + absorbed + exits outside the table's cells"]}
-        rel = relief.describe()
         tables.append(BsdfTable(
             wavelength_nm=np.asarray(request.wavelengths_nm, float), theta_i_deg=np.asarray(request.theta_i_deg),
             phi_i_deg=np.asarray(request.phi_i_deg), theta_s_edges_deg=te, phi_s_edges_deg=pe,
-            values_per_sr=vals, incident_from=side, specular_R=specR, specular_T=specT, lost=lost,
-            sigma_per_sr=sig, mueller_per_sr=mue, specular_mueller_R=smR, specular_mueller_T=smT,
-            method="ray", material=material.describe(), relief=rel, metadata=meta))
+            values_per_sr=d["vals"], incident_from=side, specular_R=d["specR"], specular_T=d["specT"],
+            lost=d["lost"], sigma_per_sr=d["sig"], mueller_per_sr=d["mue"], specular_mueller_R=d["smR"],
+            specular_mueller_T=d["smT"], method="ray", material=material.describe(), relief=relief.describe(),
+            metadata=meta))
     return tables
