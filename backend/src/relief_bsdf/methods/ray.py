@@ -178,13 +178,22 @@ def _rotate_stokes(A: np.ndarray, s_old: np.ndarray, k: np.ndarray, s_new: np.nd
     """
     c = np.einsum("ij,ij->i", s_old, s_new)
     d = np.einsum("ij,ij->i", _cross(s_old, k), s_new)          # p_old . s_new, p_old = s_old x k
-    r = c * c + d * d
+    c2, d2 = c * c, d * d
+    r = c2 + d2
     r[r == 0] = 1
-    cos2 = (c * c - d * d) / r
-    sin2 = 2 * c * d / r
-    a1 = A[1].copy()
-    A[1] = cos2 * a1 + sin2 * A[2]
-    A[2] = -sin2 * a1 + cos2 * A[2]
+    cos2 = c2 - d2
+    cos2 /= r
+    sin2 = 2 * c * d
+    sin2 /= r
+    # in place, same float32 roundings as cos2 a1 + sin2 a2 and -sin2 a1 + cos2 a2
+    a1 = A[1]
+    a2 = A[2]
+    new1 = cos2 * a1
+    new1 += sin2 * a2
+    a2 *= cos2
+    a1 *= sin2
+    a2 -= a1
+    A[1] = new1
 
 
 def interface_coefficients(cos_i: np.ndarray, n1: np.ndarray, n2: np.ndarray):
@@ -258,11 +267,19 @@ def _apply_mueller(A: np.ndarray, a, b, c, d, inv_p) -> None:
     b = b * inv_p
     c = c * inv_p
     d = d * inv_p
-    r0, r1, r2, r3 = A[0].copy(), A[1].copy(), A[2].copy(), A[3]
-    A[0] = a * r0 + b * r1
-    A[1] = b * r0 + a * r1
-    A[2] = c * r2 + d * r3
-    A[3] = c * r3 - d * r2
+    r0, r1, r2, r3 = A[0], A[1], A[2], A[3]
+    n0 = a * r0
+    n0 += b * r1                   # a r0 + b r1
+    r0 *= b
+    r1 *= a
+    r1 += r0                       # b r0 + a r1 (same roundings as the expression)
+    r0[...] = n0
+    n2 = c * r2
+    n2 += d * r3                   # c r2 + d r3
+    r3 *= c
+    r2 *= d
+    r3 -= r2                       # c r3 - d r2
+    r2[...] = n2
 
 
 # ----------------------------------------------------------------------------- the tracer
@@ -912,11 +929,11 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, te_sin2, p
     acc.sum_w2 += np.bincount(c_in, weights=w_in * w_in, minlength=nc)
     if acc.sum_M is not None:
         M16 = ex.A.reshape(16, -1)
-        if not all_done:
-            M16 = np.take(M16, done, axis=1)
-        if not full:
-            M16 = np.take(M16, np.flatnonzero(inside), axis=1)
-        M16 = M16 * w_in.astype(F32)
+        if not (all_done and full):                  # one gather of the binned rays' columns
+            M16 = np.take(M16, done if full else done[inside], axis=1)
+            M16 *= w_in.astype(F32)
+        else:
+            M16 = M16 * w_in.astype(F32)
         for e in range(16):
             acc.sum_M[e] += np.bincount(c_in, weights=M16[e], minlength=nc)
 
