@@ -58,6 +58,11 @@ def test_fit_cli_writes_fit_json_and_resumes(tmp_path, capsys):
     for f in ("checkpoint.json", "boundary.h5", "relief_optimised.npz", "report.html", "in_plane_after.png",
               "residual_before.png", "simulated.csv"):
         assert (out / f).exists(), f
+    # the saved boundary tables reproduce the fitted simulation through `relief simulate --table`
+    assert main(["simulate", str(s), "-o", str(tmp_path / "sim"), "--table", str(out / "boundary.h5")]) == 0
+    a = read_recording(out / "simulated.csv").bsdf_sr
+    b = read_recording(tmp_path / "sim" / "simulated.csv").bsdf_sr
+    np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-9)   # tables are stored as float32
     n_ck = len(json.loads((out / "checkpoint.json").read_text())["evaluations"])
     assert main(args) == 0               # replayed from the checkpoint: same answer
     doc2 = json.loads((out / "fit.json").read_text())

@@ -39,14 +39,14 @@ def in_plane_figure(path: str | Path, rec: Any, sims: dict, title: str = "") -> 
     colors = plt.cm.viridis(np.linspace(0, 0.9, max(len(incid), 1)))
     styles = ["--", ":", "-."]
     for ax, sd in zip(axes[0], sides):
-        for c, ti in zip(colors, incid):
+        for k_inc, (c, ti) in enumerate(zip(colors, incid)):
             m = (np.asarray(rec.side) == sd) & (rec.theta_i_deg == ti)
             o = np.argsort(x[m])
             ax.semilogy(x[m][o], np.maximum(rec.bsdf_sr[m][o], 1e-12), "-", color=c, lw=1.2,
                         label=f"{ti:g} deg measured")
             for k, (name, v) in enumerate(sims.items()):
                 ax.semilogy(x[m][o], np.maximum(np.asarray(v)[m][o], 1e-12), styles[k % 3], color=c, lw=1.0,
-                            label=f"{ti:g} deg {name}" if c is colors[0] else None)
+                            label=f"{name} (dashed)" if k_inc == 0 else None)
         ax.set_xlabel("signed scatter angle (deg)")
         ax.set_ylabel(f"plate BSDF {sd} (1/sr)")
         ax.set_title(f"{title} side {sd}")
