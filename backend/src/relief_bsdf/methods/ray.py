@@ -446,6 +446,9 @@ class ReliefTracer:
         bounces (m,) int16, segments) with m = n or 2 n; rays' Stokes columns are returned in
         their exit frames (s = z x k).
         """
+        complex_idx = np.iscomplexobj(n_above) or np.iscomplexobj(n_below)
+        if A is None and not complex_idx:
+            return self._trace_chunk_scalar(o, k, below, rng, float(n_above), float(n_below), split_first)
         n0 = o.shape[0]
         K = 0 if A is None else A.shape[1]
         exits: list = []
@@ -661,6 +664,237 @@ class ReliefTracer:
             h = h.take(np.flatnonzero(~end))
         return [h] + parts
 
+    # ------------------------------------------------------------------ scalar fast path
+    def _trace_chunk_scalar(self, o, k, below, rng, n_above: float, n_below: float, split_first: bool) -> "_Exits":
+        with np.errstate(divide="ignore", invalid="ignore"):     # once per chunk (errstate is not free)
+            return self._trace_chunk_scalar_(o, k, below, rng, n_above, n_below, split_first)
+
+    def _trace_chunk_scalar_(self, o, k, below, rng, n_above: float, n_below: float, split_first: bool) -> "_Exits":
+        """`_trace_chunk` without polarisation and with real indices: the same physics, leaner.
+
+        Same model as the general path (unpolarised Fresnel reflectance, Snell, TIR, periodic
+        wrap, deterministic first-hit split, roulette afterwards), organised for speed: finished
+        rays are written once into preallocated exit buffers (no per-bounce lists), the rays in
+        flight are gathered once per bounce (the ones that hit), and the interaction works on
+        contiguous float32 component arrays (no (n, 3) einsum or temporaries of the general path).
+        The first interaction of every ray (split) is done in its own pass before the roulette
+        bounces, so the random draws are one `rng.random` per roulette bounce, in a fixed order.
+        """
+        n0 = o.shape[0]
+        m = 2 * n0 if split_first else n0
+        ex = _ExitBuffer(m)
+        hx, hy, eps = self.hx, self.hy, self.eps
+        z_top, z_bot = self.z_top, self.z_bot
+        na, nbl = F32(n_above), F32(n_below)
+        eta_dn, eta_up = na / nbl, nbl / na          # n1 / n2 for a ray above / below the surface
+        scene = self.scene
+        max_b = self.max_bounces
+        rec = self.record_segments
+        segments = 0
+        # (o, k, below, w, nb, ids) of the rays in flight
+        cur = (o, k, below, np.ones(n0, F32), np.zeros(n0, np.int16), np.arange(n0, dtype=np.int64))
+        nxt = []                                      # rays made by the first interaction (split)
+        pending = split_first
+        while True:
+            o, k, below, w, nb, ids = cur
+            n = ids.size
+            if n == 0:
+                if pending:
+                    pending = False
+                    if not nxt:
+                        break
+                    cur = nxt[0] if len(nxt) == 1 else tuple(np.concatenate(a) for a in zip(*nxt))
+                    nxt = []
+                    continue
+                break
+            segments += n
+            kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
+            tx = np.copysign(hx, kx)
+            tx -= o[:, 0]
+            tx /= kx
+            ty = np.copysign(hy, ky)
+            ty -= o[:, 1]
+            ty /= ky
+            up = kz > 0
+            tz = np.where(up, z_top, z_bot)
+            tz -= o[:, 2]
+            tz /= kz
+            t_lat = np.fmin(tx, ty)
+            tfar = np.fmin(t_lat, tz)
+            np.maximum(tfar, 0, out=tfar)
+            if rec is not None:                       # benchmark hook: replay the same batches
+                rec.append((o.copy(), k.copy(), tfar.copy()))
+            res = scene.run(o, k, dists=tfar, output=1)
+            hit = res["primID"] >= 0
+            hi = np.flatnonzero(hit)
+            nh = hi.size
+            wrapped = None
+            if nh < n:
+                mi = np.flatnonzero(~hit)
+                lat = t_lat[mi] < tz[mi]
+                if lat.any():
+                    wi = mi[lat]
+                    mi = mi[~lat]
+                    t = t_lat[wi]
+                    ow = np.take(o, wi, axis=0)
+                    kw_ = np.take(k, wi, axis=0)
+                    ow += t[:, None] * kw_
+                    bx = tx[wi] <= t
+                    by = ty[wi] <= t
+                    ow[bx, 0] = -np.copysign(hx, kw_[bx, 0])
+                    ow[by, 1] = -np.copysign(hy, kw_[by, 1])
+                    wrapped = (ow, kw_, below[wi], w[wi], nb[wi], ids[wi])
+                if mi.size:
+                    # left the slab: upward from above or downward from below; else a leak
+                    st = np.where(up[mi], np.int8(ABOVE), np.int8(BELOW))
+                    st[up[mi] == below[mi]] = LOST_LEAK
+                    ex.put(k, mi, w, nb, ids, st)
+            parts = []
+            if nh:
+                if nh == n:
+                    ng, th = res["Ng"], res["tfar"]
+                else:
+                    o, k, below, w, nb, ids = (np.take(o, hi, axis=0), np.take(k, hi, axis=0), below[hi], w[hi],
+                                               nb[hi], ids[hi])
+                    ng, th = np.take(res["Ng"], hi, axis=0), res["tfar"][hi]
+                kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
+                gx, gy, gz = ng[:, 0], ng[:, 1], ng[:, 2]
+                # unit facet normal oriented up (+z): g / |g| with the sign of g_z
+                inv = gx * gx
+                inv += gy * gy
+                inv += gz * gz
+                np.sqrt(inv, out=inv)
+                np.divide(F32(1), inv, out=inv)
+                np.copysign(inv, gz, out=inv)
+                dot = kx * gx
+                dot += ky * gy
+                dot += kz * gz
+                dot *= inv                                # k . n_up
+                leak = (dot > 0) != below                 # above must hit from above, below from below
+                if leak.any():
+                    li = np.flatnonzero(leak)
+                    ex.put(k, li, w, nb, ids, np.full(li.size, LOST_LEAK, np.int8))
+                    g = np.flatnonzero(~leak)
+                    o, k, below, w, nb, ids = (np.take(o, g, axis=0), np.take(k, g, axis=0), below[g], w[g],
+                                               nb[g], ids[g])
+                    ng, th, inv, dot = np.take(ng, g, axis=0), th[g], inv[g], dot[g]
+                    kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
+                    gx, gy, gz = ng[:, 0], ng[:, 1], ng[:, 2]
+                nh = ids.size
+                if nh:
+                    parts = self._scalar_interact(o, k, below, w, nb, ids, gx, gy, gz, th, inv, dot, eta_dn, eta_up,
+                                                  eps, pending, rng, n0, ex, max_b)
+            if pending:
+                # the first interaction's outputs wait for the roulette phase; the wrapped stay pending
+                nxt.extend(parts)
+                cur = wrapped if wrapped is not None else _EMPTY_SCALAR
+            else:
+                if wrapped is not None:
+                    parts.append(wrapped)
+                cur = parts[0] if len(parts) == 1 else (tuple(np.concatenate(a) for a in zip(*parts)) if parts
+                                                         else _EMPTY_SCALAR)
+        return ex.exits(segments, n0, m)
+
+    @staticmethod
+    def _scalar_interact(o, k, below, w, nb, ids, gx, gy, gz, th, inv, dot, eta_dn, eta_up, eps, pending, rng, n0,
+                         ex, max_b):
+        """One unpolarised interaction for rays that all hit (see `_trace_chunk_scalar`)."""
+        nh = ids.size
+        kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
+        # nf = unit normal on the incident side: n_up for a ray above, -n_up below
+        s = np.where(below, -inv, inv)
+        nfx, nfy, nfz = gx * s, gy * s, gz * s
+        ci = np.abs(dot)
+        eta = np.where(below, eta_up, eta_dn)
+        # Snell: sin^2 t = eta^2 (1 - cos^2 i); TIR when >= 1
+        sin2t = ci * ci
+        np.subtract(F32(1), sin2t, out=sin2t)
+        sin2t *= eta * eta
+        tir = sin2t >= 1
+        ct = np.subtract(F32(1), sin2t, out=sin2t)
+        np.maximum(ct, 0, out=ct)
+        np.sqrt(ct, out=ct)
+        # unpolarised Fresnel reflectance (Born & Wolf 1.5.20-21 divided through by n1):
+        # r_s = (eta ci - ct) / (eta ci + ct), r_p = (ci - eta ct) / (ci + eta ct)
+        eci = eta * ci
+        ect = eta * ct
+        rs = (eci - ct) / (eci + ct)                  # 0/0 (grazing) -> NaN -> reflectance 1 below
+        rp = (ci - ect) / (ci + ect)
+        rs *= rs
+        rp *= rp
+        rs += rp
+        pR = np.multiply(rs, F32(0.5), out=rs)
+        np.nan_to_num(pR, copy=False, nan=1.0)
+        pR[tir] = 1
+        nb = nb + np.int16(1)
+        # hit point
+        p = k * th[:, None]
+        p += o
+        # refraction coefficient b_t = eta ci - ct (k_t = eta k + b_t nf), reflection b_r = 2 ci
+        bt = eci
+        bt -= ct
+        parts = []
+        if pending:
+            # deterministic split: the reflected branch keeps the ray (weight w pR), the transmitted
+            # copy gets id + n0 and weight w (1 - pR) where transmission exists
+            j = np.flatnonzero(pR < 1)
+            if j.size:
+                full = j.size == nh
+                sel = (lambda a: a) if full else (lambda a: a[j])
+                etj, btj = sel(eta), sel(bt)
+                fx, fy, fz = sel(nfx), sel(nfy), sel(nfz)
+                kt = np.empty((j.size, 3), F32)
+                kt[:, 0] = etj * sel(kx) + btj * fx
+                kt[:, 1] = etj * sel(ky) + btj * fy
+                kt[:, 2] = etj * sel(kz) + btj * fz
+                nr = np.sqrt(np.einsum("ij,ij->i", kt, kt))
+                kt /= nr[:, None]
+                ot = np.take(p, j, axis=0) if not full else p.copy()
+                ot[:, 0] -= eps * fx
+                ot[:, 1] -= eps * fy
+                ot[:, 2] -= eps * fz
+                wt = sel(w) * (1 - sel(pR))
+                parts.append((ot, kt, ~sel(below), wt, sel(nb), sel(ids) + n0))
+            w = w * pR
+            a = None
+            b = 2 * ci
+            off = eps
+        else:
+            refl = rng.random(nh, dtype=F32) < pR
+            a = np.where(refl, F32(1), eta)
+            b = np.where(refl, 2 * ci, bt)
+            off = np.where(refl, eps, -eps)
+            below = below ^ ~refl
+        knew = np.empty((nh, 3), F32)
+        if a is None:
+            np.multiply(b, nfx, out=knew[:, 0])
+            knew[:, 0] += kx
+            np.multiply(b, nfy, out=knew[:, 1])
+            knew[:, 1] += ky
+            np.multiply(b, nfz, out=knew[:, 2])
+            knew[:, 2] += kz
+        else:
+            knew[:, 0] = a * kx + b * nfx
+            knew[:, 1] = a * ky + b * nfy
+            knew[:, 2] = a * kz + b * nfz
+            nr = knew[:, 0] * knew[:, 0]
+            nr += knew[:, 1] * knew[:, 1]
+            nr += knew[:, 2] * knew[:, 2]
+            np.sqrt(nr, out=nr)
+            knew /= nr[:, None]
+        p[:, 0] += off * nfx
+        p[:, 1] += off * nfy
+        p[:, 2] += off * nfz
+        over = nb >= max_b
+        if over.any():
+            oi = np.flatnonzero(over)
+            ex.put(knew, oi, w, nb, ids, np.full(oi.size, LOST_BOUNCES, np.int8))
+            g = np.flatnonzero(~over)
+            if g.size == 0:
+                return parts
+            p, knew, below, w, nb, ids = np.take(p, g, axis=0), np.take(knew, g, axis=0), below[g], w[g], nb[g], ids[g]
+        return [(p, knew, below, w, nb, ids)] + parts
+
 
 @dataclass
 class _Exits:
@@ -692,6 +926,37 @@ class _Exits:
             A = np.zeros((4, self.A.shape[1], m), F32)
             A[:, :, self.ids] = self.A
         return k, A, w, state, nb
+
+
+class _ExitBuffer:
+    """Preallocated exit records of one chunk (each output ray ends once)."""
+
+    def __init__(self, m: int):
+        self.k = np.empty((m, 3), F32)
+        self.w = np.empty(m, F32)
+        self.state = np.empty(m, np.int8)
+        self.nb = np.empty(m, np.int16)
+        self.ids = np.empty(m, np.int64)
+        self.n = 0
+
+    def put(self, k, idx, w, nb, ids, state) -> None:
+        a, b = self.n, self.n + idx.size
+        # mode="clip": no bounds-check buffer (idx comes from flatnonzero, always in range)
+        np.take(k, idx, axis=0, out=self.k[a:b], mode="clip")
+        np.take(w, idx, out=self.w[a:b], mode="clip")
+        np.take(nb, idx, out=self.nb[a:b], mode="clip")
+        np.take(ids, idx, out=self.ids[a:b], mode="clip")
+        self.state[a:b] = state
+        self.n = b
+
+    def exits(self, segments: int, n_paths: int, m: int) -> "_Exits":
+        e = self.n
+        return _Exits(ids=self.ids[:e], k=self.k[:e], A=None, w=self.w[:e], state=self.state[:e], nb=self.nb[:e],
+                      segments=segments, n_paths=n_paths, m=m)
+
+
+_EMPTY_SCALAR = (np.zeros((0, 3), F32), np.zeros((0, 3), F32), np.zeros(0, bool), np.zeros(0, F32),
+                 np.zeros(0, np.int16), np.zeros(0, np.int64))
 
 
 @dataclass
@@ -947,9 +1212,13 @@ def _theta_bins(kz: np.ndarray, te_sin2: np.ndarray) -> np.ndarray:
     d = np.diff(te)
     S = d.size
     if np.allclose(d, d[0], rtol=1e-9, atol=1e-9):
-        th = np.degrees(np.arccos(np.minimum(np.abs(kz), F32(1))))
-        x = (th - F32(te[0])) * F32(1.0 / d[0])
-        ib = np.floor(x).astype(np.int64)
+        x = np.abs(kz)
+        np.minimum(x, F32(1), out=x)
+        np.arccos(x, out=x)
+        x *= F32(180.0 / np.pi / d[0])               # theta in units of the ring width from te[0]
+        x -= F32(te[0] / d[0])
+        np.floor(x, out=x)
+        ib = x.astype(np.int32)
         if te[-1] >= 90.0 - 1e-9:
             ib[ib == S] = S - 1                        # theta = 90 exactly belongs to the last ring
         ib[x < 0] = -1
@@ -963,6 +1232,18 @@ def _theta_bins(kz: np.ndarray, te_sin2: np.ndarray) -> np.ndarray:
 def _phi_bins(k: np.ndarray, pe: np.ndarray) -> np.ndarray:
     """Azimuth cell of each direction; uniform edges by arithmetic (float32), others by search."""
     d = np.diff(pe)
+    n_full = 360.0 / d[0]
+    if np.allclose(d, d[0]) and abs(n_full - round(n_full)) < 1e-9:
+        # cells tile the circle: the cell count from the edge pe[0] in bin units, floor, and an
+        # integer modulo (float np.mod is ~10x slower than the rest of the binning)
+        x = np.arctan2(k[:, 1], k[:, 0])
+        x *= F32(180.0 / np.pi / d[0])
+        x -= F32(pe[0] / d[0])
+        np.floor(x, out=x)
+        ia = x.astype(np.int32)
+        ia %= np.int32(round(n_full))
+        ia[ia >= d.size] = d.size                    # beyond the last edge (span < 360): outside
+        return ia
     if np.allclose(d, d[0]):
         phi = np.arctan2(k[:, 1], k[:, 0])
         phi *= F32(180.0 / np.pi)
