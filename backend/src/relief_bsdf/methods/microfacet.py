@@ -332,12 +332,26 @@ def cell_directions(theta_edges_deg: Any, phi_edges_deg: Any, side: str, subsamp
 
 def _subset_directions(theta_edges_deg: Any, phi_edges_deg: Any, side: str, k: int, s_idx: np.ndarray,
                        a_idx: np.ndarray):
-    """Sub-sample directions (n, K*K, 3) and azimuths (n, K*K) for the listed cells (s_idx, a_idx)."""
+    """Sub-sample directions (n, K*K, 3), azimuths (n, K*K) and quadrature weights (n, K*K, summing
+    to 1 per cell) for the listed cells (s_idx, a_idx).
+
+    Midpoints in sin^2 theta (equal weights), except in polar-cap cells (lower edge at theta = 0):
+    there a lobe centred on the pole (normal incidence) decays within the first sin^2 theta step
+    and the midpoint rule in sin^2 theta misses it (96 % of a 0.2 degree wide T lobe in 3 degree
+    cells), so those cells use midpoints in sin theta with weights proportional to sin theta (the
+    projected solid angle of each ring, 2 s ds / s_hi^2).
+    """
     te = np.radians(np.asarray(theta_edges_deg, float))
     pe = np.radians(np.asarray(phi_edges_deg, float))
     frac = (np.arange(k) + 0.5) / k
     u_lo, u_hi = np.sin(te[s_idx]) ** 2, np.sin(te[s_idx + 1]) ** 2
     u = u_lo[:, None] + (u_hi - u_lo)[:, None] * frac[None, :]                 # (n, K)
+    wt = np.full(u.shape, 1.0 / k)
+    cap = u_lo == 0.0
+    if np.any(cap):
+        s_cap = np.sqrt(u_hi[cap])[:, None] * frac[None, :]
+        u[cap] = s_cap ** 2
+        wt[cap] = 2.0 * frac[None, :] / k * np.ones((int(cap.sum()), 1))   # 2 s_j ds / s_hi^2
     ph = pe[a_idx][:, None] + (pe[a_idx + 1] - pe[a_idx])[:, None] * frac[None, :]
     st = np.sqrt(u)[:, :, None]
     ct = np.sqrt(np.maximum(0.0, 1.0 - u))[:, :, None]
@@ -346,7 +360,8 @@ def _subset_directions(theta_edges_deg: Any, phi_edges_deg: Any, side: str, k: i
     z = np.broadcast_to(-ct if side == "T" else ct, x.shape)
     n = s_idx.size
     d = np.stack([x, y, z], axis=-1).reshape(n, k * k, 3)
-    return d, np.broadcast_to(phb, x.shape).reshape(n, k * k)
+    w = np.broadcast_to(wt[:, :, None] / k, x.shape).reshape(n, k * k)
+    return d, np.broadcast_to(phb, x.shape).reshape(n, k * k), w
 
 
 def cell_average(fn: Callable, theta_edges_deg: Any, phi_edges_deg: Any, side: str, subsamples: int = 4,
@@ -355,7 +370,8 @@ def cell_average(fn: Callable, theta_edges_deg: Any, phi_edges_deg: Any, side: s
 
     `fn` takes (M, 3) directions (and their (M,) azimuths in radians when `with_phi`) and
     returns (M,) or (M, ...) values, e.g. `lambda wo: walter_bsdf(wi, wo, 1.0, 1.5, 0.1)`.
-    Midpoint rule on a K x K grid in (sin^2 theta, phi) per cell.  `refine = (K_fine, frac)`
+    Midpoint rule on a K x K grid in (sin^2 theta, phi) per cell (in (sin theta, phi) with
+    sin theta weights for polar-cap cells, see `_subset_directions`).  `refine = (K_fine, frac)`
     recomputes with K_fine the cells holding more than `frac` of the side's total energy
     (f * projected solid angle of the first value), where a narrow lobe needs it.  Analytic
     tables averaged this way compare cell for cell with Monte-Carlo tables that bin exit
@@ -366,10 +382,11 @@ def cell_average(fn: Callable, theta_edges_deg: Any, phi_edges_deg: Any, side: s
     S, A = te.size - 1, pe.size - 1
 
     def run(k, s_idx, a_idx):
-        d, ph = _subset_directions(te, pe, side, k, s_idx, a_idx)
+        d, ph, wq = _subset_directions(te, pe, side, k, s_idx, a_idx)
         n, K = ph.shape
         v = np.asarray(fn(d.reshape(-1, 3), ph.reshape(-1)) if with_phi else fn(d.reshape(-1, 3)))
-        return v.reshape((n, K) + v.shape[1:]).mean(axis=1)
+        v = v.reshape((n, K) + v.shape[1:])
+        return np.einsum("nk,nk...->n...", wq, v)
 
     s_all, a_all = (g.ravel() for g in np.meshgrid(np.arange(S), np.arange(A), indexing="ij"))
     v = run(int(subsamples), s_all, a_all)
