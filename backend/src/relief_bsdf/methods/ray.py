@@ -690,6 +690,7 @@ class ReliefTracer:
         scene = self.scene
         max_b = self.max_bounces
         rec = self.record_segments
+        bnd_hi, bnd_c = self._slab_bounds(m)
         segments = 0
         # (o, k, below, w, nb, ids) of the rays in flight
         cur = (o, k, below, np.ones(n0, F32), np.zeros(n0, np.int16), np.arange(n0, dtype=np.int64))
@@ -708,17 +709,15 @@ class ReliefTracer:
                     continue
                 break
             segments += n
-            kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
-            tx = np.copysign(hx, kx)
-            tx -= o[:, 0]
-            tx /= kx
-            ty = np.copysign(hy, ky)
-            ty -= o[:, 1]
-            ty /= ky
-            up = kz > 0
-            tz = np.where(up, z_top, z_bot)
-            tz -= o[:, 2]
-            tz /= kz
+            # distances to the tile's sides and the slab's faces along k, on the flat (3 n) views:
+            # ((+-hx, +-hy, +-zh) by the sign of k - (o - (0, 0, zc))) / k, zc, zh: slab centre, half height
+            m3 = 3 * n
+            T = np.copysign(bnd_hi[:m3], k.reshape(-1))
+            T -= o.reshape(-1)
+            T += bnd_c[:m3]
+            T /= k.reshape(-1)
+            T = T.reshape(n, 3)
+            tx, ty, tz = T[:, 0], T[:, 1], T[:, 2]
             t_lat = np.fmin(tx, ty)
             tfar = np.fmin(t_lat, tz)
             np.maximum(tfar, 0, out=tfar)
@@ -746,8 +745,9 @@ class ReliefTracer:
                     wrapped = (ow, kw_, below[wi], w[wi], nb[wi], ids[wi])
                 if mi.size:
                     # left the slab: upward from above or downward from below; else a leak
-                    st = np.where(up[mi], np.int8(ABOVE), np.int8(BELOW))
-                    st[up[mi] == below[mi]] = LOST_LEAK
+                    upm = np.take(k[:, 2], mi) > 0
+                    st = np.where(upm, np.int8(ABOVE), np.int8(BELOW))
+                    st[upm == below[mi]] = LOST_LEAK
                     ex.put(k, mi, w, nb, ids, st)
             parts = []
             if nh:
@@ -794,6 +794,15 @@ class ReliefTracer:
                 cur = parts[0] if len(parts) == 1 else (tuple(np.concatenate(a) for a in zip(*parts)) if parts
                                                          else _EMPTY_SCALAR)
         return ex.exits(segments, n0, m)
+
+    def _slab_bounds(self, m: int):
+        """Flat float32 arrays (hx, hy, zh) and (0, 0, zc) repeated m times (cached per size)."""
+        cache = self.__dict__.setdefault("_bounds_cache", {})
+        if m not in cache:
+            zh = (self.z_top - self.z_bot) / F32(2)
+            zc = (self.z_top + self.z_bot) / F32(2)
+            cache[m] = (np.tile(np.array([self.hx, self.hy, zh], F32), m), np.tile(np.array([0, 0, zc], F32), m))
+        return cache[m]
 
     @staticmethod
     def _scalar_interact(o, k, below, w, nb, ids, gx, gy, gz, th, inv, dot, eta_dn, eta_up, eps, pending, rng, n0,
@@ -1132,25 +1141,97 @@ class _Accumulator:
         self.exits += other.exits
 
 
-def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, te_sin2, pe, spec_dirs, cos_tol):
+class _CellIndex:
+    """Scatter cell of exit directions for the request's (theta_s, phi_s) edges, built once per task.
+
+    Uniform edges (the default 1-degree rings x 5-degree azimuths, and any uniform grid): float32
+    arithmetic on arccos |k_z| and atan2(k_y, k_x) in units of the cell width, truncation, and
+    small lookup tables that fold the azimuth modulo 360 degrees and mark cells beyond the edges
+    (no float modulo, no search).  Other edges: `_theta_bins` / `_phi_bins` (search).
+    `__call__(k)` returns int32 cell = ring * A + azimuth, or -1 outside the table.
+    """
+
+    def __init__(self, te: np.ndarray, pe: np.ndarray):
+        self.S, self.A = te.size - 1, pe.size - 1
+        self.te, self.pe = te, pe
+        self.te_sin2 = np.sin(np.radians(te)) ** 2
+        dt, dp = np.diff(te), np.diff(pe)
+        n_full = 360.0 / dp[0]
+        self.fast = bool(np.allclose(dt, dt[0], rtol=1e-9, atol=1e-9) and np.allclose(dp, dp[0])
+                         and abs(n_full - round(n_full)) < 1e-9)
+        if not self.fast:
+            return
+        S, A = self.S, self.A
+        # ring: x = (theta - te0) / dt, shifted by one ring so that truncation == floor for x > -1
+        self.t_scale = F32(180.0 / np.pi / dt[0])
+        self.t_off = F32(1.0 - te[0] / dt[0])
+        nt = int(math.ceil(90.0 / dt[0] + 1.0 - te[0] / dt[0])) + 2
+        ring = np.arange(nt) - 1                       # truncated value j -> ring j - 1
+        if te[-1] >= 90.0 - 1e-9:
+            ring[ring == S] = S - 1                    # theta = 90 exactly belongs to the last ring
+        ring[(ring < 0) | (ring >= S)] = -1
+        self.ring_lut = ring.astype(np.int32)
+        # azimuth: x = (phi - pe0) / dp + shift with shift a multiple of the full turn making x >= 0
+        nf = int(round(n_full))
+        lo = -180.0 / dp[0] - pe[0] / dp[0]
+        shift = nf * int(math.ceil(max(0.0, -lo) / nf + 1e-9))
+        self.p_scale = F32(180.0 / np.pi / dp[0])
+        self.p_off = F32(shift - pe[0] / dp[0])
+        npl = int(math.ceil(180.0 / dp[0] - pe[0] / dp[0] + shift)) + 2
+        az = np.arange(npl) % nf
+        az[az >= A] = -1                               # beyond the last edge (span < 360)
+        self.az_lut = az.astype(np.int32)
+
+    def __call__(self, k: np.ndarray) -> np.ndarray:
+        S, A = self.S, self.A
+        if not self.fast:
+            ib = _theta_bins(k[:, 2], self.te_sin2)
+            ia = _phi_bins(k, self.pe)
+            cell = (ib * A + ia).astype(np.int32)
+            cell[(ib < 0) | (ib >= S) | (ia < 0) | (ia >= A)] = -1
+            return cell
+        x = np.abs(k[:, 2])
+        np.minimum(x, F32(1), out=x)
+        np.arccos(x, out=x)
+        x *= self.t_scale
+        x += self.t_off
+        np.maximum(x, F32(0), out=x)
+        ib = np.take(self.ring_lut, x.astype(np.int32), mode="clip")
+        y = np.arctan2(k[:, 1], k[:, 0])
+        y *= self.p_scale
+        y += self.p_off
+        ia = np.take(self.az_lut, y.astype(np.int32), mode="clip")
+        cell = ib * np.int32(A)
+        cell += ia
+        cell[(ib < 0) | (ia < 0)] = -1
+        return cell
+
+
+def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, cells: _CellIndex, spec_dirs, cos_tol):
     """Bin one chunk's exits into the accumulator (vectorised, np.bincount)."""
     acc.segments += ex.segments
     acc.paths += ex.n_paths
     w = ex.w
     state = ex.state
-    for code, name in STATE_NAMES.items():
-        sel = state == code
-        if sel.any():
-            acc.lost[name] += float(w[sel].sum(dtype=np.float64))
-    done = np.flatnonzero(state <= BELOW)
-    acc.exits += done.size
-    acc.bounce_sum += float(ex.nb[done].sum(dtype=np.float64))
-    if done.size == 0:
+    if state.size and state.max() > BELOW:
+        for code, name in STATE_NAMES.items():
+            sel = state == code
+            if sel.any():
+                acc.lost[name] += float(w[sel].sum(dtype=np.float64))
+        done = np.flatnonzero(state <= BELOW)
+        all_done = done.size == state.size
+    else:
+        done, all_done = None, True
+    n_done = state.size if all_done else done.size
+    acc.exits += n_done
+    acc.bounce_sum += float(ex.nb.sum(dtype=np.float64) if all_done else ex.nb[done].sum(dtype=np.float64))
+    if n_done == 0:
         return
-    all_done = done.size == state.size
     k = ex.k if all_done else ex.k[done]
     wd = w if all_done else w[done]
-    side = np.where(state[done] == ABOVE, side_of_state[0], side_of_state[1]).astype(np.int64)
+    st = state if all_done else state[done]
+    # table side per exit: 0 (incidence side) or 1; state ABOVE = 0, BELOW = 1
+    side = st if side_of_state[0] == 0 else (1 - st)
     # delta parts: exits along the mean plane's mirror / refraction direction.  A float32 prefilter,
     # then float64 with renormalisation (a float32 unit vector's norm is off by ~1e-8 >> 1 - cos(tol))
     spec = None
@@ -1166,10 +1247,10 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, te_sin2, p
                     if spec is None:
                         spec = np.zeros(k.shape[0], bool)
                     spec[cand[ok]] = True
-    ib = _theta_bins(k[:, 2], te_sin2)
-    ia = _phi_bins(k, pe)
     S, A_ = acc.S, acc.A
-    inside = (ib >= 0) & (ib < S) & (ia >= 0) & (ia < A_)
+    cell = cells(k)
+    inside = cell >= 0
+    cell += side.astype(np.int32) * np.int32(S * A_)
     if spec is not None:
         inside &= ~spec
         for sd in (0, 1):
@@ -1186,7 +1267,6 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, te_sin2, p
     if outside:
         acc.outside_table += float(wd[~inside & (True if spec is None else ~spec)].sum(dtype=np.float64))
     full = n_in == wd.size
-    cell = (side * S + ib) * A_ + ia
     c_in = cell if full else cell[inside]
     w_in = (wd if full else wd[inside]).astype(np.float64)
     nc = acc.sum_w.size
@@ -1195,7 +1275,8 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, te_sin2, p
     if acc.sum_M is not None:
         M16 = ex.A.reshape(16, -1)
         if not (all_done and full):                  # one gather of the binned rays' columns
-            M16 = np.take(M16, done if full else done[inside], axis=1)
+            sel = (np.flatnonzero(inside) if all_done else (done if full else done[inside]))
+            M16 = np.take(M16, sel, axis=1)
             M16 *= w_in.astype(F32)
         else:
             M16 = M16 * w_in.astype(F32)
@@ -1331,7 +1412,7 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
     K = 4 if ctx.polarized else 0
     te, pe = ctx.te, ctx.pe
     S, A_ = te.size - 1, pe.size - 1
-    te_sin2 = np.sin(np.radians(te)) ** 2
+    cells = _CellIndex(te, pe)
     Lx, Ly = float(tracer.Lx), float(tracer.Ly)
     nxs, nys, strata_order = worker_cached(("ray.strata", ctx.samples, Lx, Ly),
                                            lambda: _beam_strata(ctx.samples, Lx, Ly))
@@ -1369,7 +1450,7 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
         out = tracer._trace_chunk(o, k, below, _incident_state(K, hi - lo), rng, n_above, n_below,
                                   ctx.first_hit_split, s_init=s_init, phi_exit_rad=phi_exit)
         acc = _Accumulator(S, A_, bool(K))
-        _bin_chunk(acc, out, side_of_state, te_sin2, pe, (spec_R, spec_T), ctx.cos_tol)
+        _bin_chunk(acc, out, side_of_state, cells, (spec_R, spec_T), ctx.cos_tol)
         return acc
 
     t0 = time.perf_counter()
