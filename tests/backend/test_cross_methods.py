@@ -93,7 +93,8 @@ def rough():
     rel = synth.random_relief(512, 0.25e-6, 1.2e-6, 16e-6, seed=5)
     kw = dict(theta_i_deg=(0.0, 30.0), phi_i_deg=(0.0,), samples=100_000,
               theta_s_edges_deg=tuple(np.linspace(0.0, 90.0, 46)))
-    return {"kirchhoff": _run(rel, "kirchhoff", {"band_limited": True, "polarized": True, "smoothing_dcos": 0.009}, **kw),
+    kir = {"band_limited": True, "polarized": True, "smoothing_dcos": 0.009}
+    return {"kirchhoff": _run(rel, "kirchhoff", kir, **kw),
             "ray": _run(rel, "ray", {"polarized": True}, **kw),
             "microfacet": _run(rel, "microfacet", {"polarized": True}, **kw)}
 
@@ -232,7 +233,8 @@ def test_kirchhoff_large_roughness_is_geometric(rough):
     """sigma ~ 2 lambda: the Kirchhoff lobe has the ray / microfacet centroid (within 0.005) and
     rms width (within 12 %: kirchhoff's values are Gaussian-filtered in direction cosines on top of
     the cell average; its default width, half the finest cell = 0.017 here, alone widens the 0.041-wide
-    T lobe by 9 %, so it is set to 2 speckle grains, 0.009, and what is left is cell quantisation); R and T within 0.01 + kirchhoff's `lost` (its band limit)."""
+    T lobe by 9 %, so it is set to 2 speckle grains, 0.009, and what is left is cell quantisation);
+    R and T within 0.01 + kirchhoff's `lost` (its band limit)."""
     for frm in BOTH:
         kr = rough["kirchhoff"][frm]
         hk = kr.hemispherical()
@@ -340,7 +342,8 @@ def test_btdf_reciprocity_across_methods():
     # 1.5x more spatial frequency in glass than in air, so where the cells are not small against the
     # pair's spatial frequency |f| the two frames' cell averages of the PSD differ (8 % with 3 degree
     # cells at 1.5 deg, 5 % with 1.5 degree cells at 9.75 deg: quadrature, not physics)
-    for method, tol, edges, th in (("rayleigh-rice", 0.03, np.linspace(0.0, 90.0, 121), (9.375, 20.625, 30.375, 40.125)),
+    for method, tol, edges, th in (("rayleigh-rice", 0.03, np.linspace(0.0, 90.0, 121),
+                                    (9.375, 20.625, 30.375, 40.125)),
                                    ("kirchhoff", 0.10, fine, (9.5, 20.5, 30.5, 40.5))):   # its speckle: >= 0.77 deg
         tabs = {frm: _run(small, method, {}, theta_i_deg=th, incident_from=(frm,), theta_s_edges_deg=tuple(edges),
                           phi_i_deg=(0.0 if frm == "outside" else 180.0,))[frm]
@@ -494,7 +497,8 @@ def test_flat_limit_equals_mueller_interface():
             n1, n2 = _n_pair(frm)
             for i, ti in enumerate(th):
                 ci = np.cos(np.radians(ti))
-                for side, sm, sp in (("R", t.specular_mueller_R, t.specular_R), ("T", t.specular_mueller_T, t.specular_T)):
+                for side, sm, sp in (("R", t.specular_mueller_R, t.specular_R),
+                                     ("T", t.specular_mueller_T, t.specular_T)):
                     ref = np.nan_to_num(mueller_interface(ci, n1, n2, side))
                     assert sm is not None, (method, side)
                     assert np.allclose(sm[0, i, 0], ref, atol=1e-9), (method, frm, ti, side, sm[0, i, 0], ref)
