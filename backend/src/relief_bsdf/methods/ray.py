@@ -1371,11 +1371,7 @@ class _RayContext:
         self.te = np.asarray(request.theta_s_edges_deg, float)
         self.pe = np.asarray(request.phi_s_edges_deg, float)
         self.tracer = tracer
-        h = hashlib.sha256()
-        hm = np.ascontiguousarray(relief.heights_m, dtype=np.float64)
-        h.update(hm.tobytes())
-        h.update(repr((hm.shape, float(relief.dx_m), float(relief.dy_m), bool(relief.periodic),
-                       self.max_bounces, repr(self.fill_holes))).encode())
+        h = self._relief_hash(relief, tracer)
         self.tracer_key = ("ray.ReliefTracer", h.hexdigest())
         h.update(repr((self.polarized, self.first_hit_split, float(opts["specular_tol_rad"]), self.seed,
                        self.samples, self.te.tolist(), self.pe.tolist())).encode())
@@ -1383,6 +1379,24 @@ class _RayContext:
 
     def digest(self) -> str:
         return self._digest
+
+    def _relief_hash(self, relief: Relief, tracer):
+        """sha256 of the heights and mesh options; kept on a tracer built for this very relief
+        (hashing 8 MB of heights costs ~30 ms per request, e.g. in fits that reuse the tracer)."""
+        key = (self.max_bounces, repr(self.fill_holes))
+        cache = None
+        if tracer is not None and tracer.relief is relief:
+            cache = tracer.__dict__.setdefault("_relief_hash_cache", {})
+            if key in cache:
+                return cache[key].copy()
+        h = hashlib.sha256()
+        hm = np.ascontiguousarray(relief.heights_m, dtype=np.float64)
+        h.update(hm)
+        h.update(repr((hm.shape, float(relief.dx_m), float(relief.dy_m), bool(relief.periodic),
+                       self.max_bounces, repr(self.fill_holes))).encode())
+        if cache is not None:
+            cache[key] = h.copy()
+        return h
 
     def __getstate__(self):
         d = dict(self.__dict__)
