@@ -782,8 +782,13 @@ class ReliefTracer:
                     gx, gy, gz = ng[:, 0], ng[:, 1], ng[:, 2]
                 nh = ids.size
                 if nh:
-                    parts = self._scalar_interact(o, k, below, w, nb, ids, gx, gy, gz, th, inv, dot, eta_dn, eta_up,
-                                                  eps, pending, rng, n0, ex, max_b)
+                    one_side = pending and max_b > 1 and (below.all() if below[0] else not below.any())
+                    if one_side:
+                        parts = [self._scalar_split(o, k, bool(below[0]), w, nb, ids, ng, th, inv, dot,
+                                                    eta_up if below[0] else eta_dn, eps, n0)]
+                    else:
+                        parts = self._scalar_interact(o, k, below, w, nb, ids, gx, gy, gz, th, inv, dot, eta_dn,
+                                                      eta_up, eps, pending, rng, n0, ex, max_b)
             if pending:
                 # the first interaction's outputs wait for the roulette phase; the wrapped stay pending
                 nxt.extend(parts)
@@ -803,6 +808,84 @@ class ReliefTracer:
             zc = (self.z_top + self.z_bot) / F32(2)
             cache[m] = (np.tile(np.array([self.hx, self.hy, zh], F32), m), np.tile(np.array([0, 0, zc], F32), m))
         return cache[m]
+
+    @staticmethod
+    def _scalar_split(o, k, from_below: bool, w, nb, ids, ng, th, inv, dot, eta, eps, n0):
+        """First interaction of rays that all arrive from one side: both branches, one output batch.
+
+        The same physics as `_scalar_interact(pending=True)` (unpolarised Fresnel reflectance, Snell,
+        TIR) with the medium pair fixed (eta = n1 / n2 a scalar), written straight into one
+        (reflected rows, then transmitted rows) batch: reflected ray i keeps id i and weight w pR,
+        its transmitted copy gets id i + n0 and weight w (1 - pR); copies with pR = 1 (TIR) are dropped.
+        Needs max_bounces > 1 (the caller checks).
+        """
+        nh = ids.size
+        eta = F32(eta)
+        # unit normal on the incident side: nf = sigma g / |g| (inv carries 1/|g| with the sign of g_z)
+        s = inv if not from_below else np.negative(inv, out=inv)
+        ci = np.abs(dot)
+        ct = ci * ci
+        np.subtract(F32(1), ct, out=ct)
+        ct *= eta * eta                                  # sin^2 t
+        tir = ct >= 1
+        np.subtract(F32(1), ct, out=ct)
+        np.maximum(ct, 0, out=ct)
+        np.sqrt(ct, out=ct)                              # cos t
+        eci = eta * ci
+        ect = eta * ct
+        rs = eci - ct
+        rs /= eci + ct
+        rp = ci - ect
+        rp /= ci + ect
+        rs *= rs
+        rp *= rp
+        rs += rp
+        rs *= F32(0.5)
+        pR = np.fmin(rs, F32(1), out=rs)                 # 0/0 (grazing) -> NaN -> 1
+        pR[tir] = 1
+        bt = np.subtract(eci, ct, out=eci)               # k_t = eta k + (eta ci - ct) nf
+        two_ci = np.add(ci, ci, out=ci)                  # k_r = k + 2 ci nf
+        O2 = np.empty((2 * nh, 3), F32)
+        K2 = np.empty((2 * nh, 3), F32)
+        tmp = np.empty(nh, F32)
+        for c in range(3):
+            nfc = ng[:, c] * s
+            kc = k[:, c]
+            pc = kc * th
+            pc += o[:, c]
+            np.multiply(nfc, eps, out=tmp)
+            np.add(pc, tmp, out=O2[:nh, c])
+            np.subtract(pc, tmp, out=O2[nh:, c])
+            np.multiply(two_ci, nfc, out=tmp)
+            np.add(kc, tmp, out=K2[:nh, c])
+            np.multiply(bt, nfc, out=nfc)
+            np.multiply(kc, eta, out=tmp)
+            np.add(tmp, nfc, out=K2[nh:, c])
+        kt = K2[nh:]
+        nr = kt[:, 0] * kt[:, 0]
+        nr += kt[:, 1] * kt[:, 1]
+        nr += kt[:, 2] * kt[:, 2]
+        np.sqrt(nr, out=nr)
+        for c in range(3):
+            kt[:, c] /= nr
+        W2 = np.empty(2 * nh, F32)
+        np.multiply(w, pR, out=W2[:nh])
+        np.subtract(F32(1), pR, out=pR)
+        np.multiply(w, pR, out=W2[nh:])
+        NB2 = np.empty(2 * nh, np.int16)
+        np.add(nb, np.int16(1), out=NB2[:nh])
+        NB2[nh:] = NB2[:nh]
+        I2 = np.empty(2 * nh, np.int64)
+        I2[:nh] = ids
+        np.add(ids, n0, out=I2[nh:])
+        B2 = np.empty(2 * nh, bool)
+        B2[:nh] = from_below
+        B2[nh:] = not from_below
+        if tir.any():                                    # no transmitted copy past the critical angle
+            keep = np.concatenate([np.ones(nh, bool), ~tir])
+            g = np.flatnonzero(keep)
+            return np.take(O2, g, axis=0), np.take(K2, g, axis=0), B2[g], W2[g], NB2[g], I2[g]
+        return O2, K2, B2, W2, NB2, I2
 
     @staticmethod
     def _scalar_interact(o, k, below, w, nb, ids, gx, gy, gz, th, inv, dot, eta_dn, eta_up, eps, pending, rng, n0,
@@ -1454,10 +1537,16 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
         rng = task_rng(ctx.seed, si, iw, ii, ip, ci)
         st = strata_order[lo:hi]
         iy, ix = np.divmod(st, nxs)
-        jit = rng.random((hi - lo, 2))
+        jit = rng.random((2, hi - lo), dtype=F32)            # float32: ~1e-4 px resolution at 1024 px
         o = np.empty((hi - lo, 3), F32)
-        o[:, 0] = (ix + jit[:, 0]) * (tracer.Lx / nxs) - tracer.hx
-        o[:, 1] = (iy + jit[:, 1]) * (tracer.Ly / nys) - tracer.hy
+        jit[0] += ix
+        jit[1] += iy
+        jit[0] *= F32(tracer.Lx / nxs)
+        jit[1] *= F32(tracer.Ly / nys)
+        jit[0] -= tracer.hx
+        jit[1] -= tracer.hy
+        o[:, 0] = jit[0]
+        o[:, 1] = jit[1]
         o[:, 2] = tracer.z_bot if from_below else tracer.z_top
         k = np.broadcast_to(k_in.astype(F32), o.shape).copy()
         below = np.full(hi - lo, from_below)
