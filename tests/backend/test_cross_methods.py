@@ -297,8 +297,7 @@ def _btdf_reciprocity(tables, tol):
 
     Exact partners: light from outside at (a, phi 0) leaving at (T, b, 180) is reversed by light
     from inside arriving along that direction; in the mirrored inside frame (z -> -z) that is
-    (b, phi 180), leaving at (T, a, 0).  (`bsdf.reciprocity_error` pairs (b, 0) -> (a, 180), the
-    same thing only for a rotation-invariant boundary, not for one relief realisation.)
+    (b, phi 180), leaving at (T, a, 0); `bsdf.reciprocity_error` uses the same pairing.
     """
     out, ins = tables["outside"], tables["inside"]
     rows = []

@@ -290,8 +290,11 @@ def reciprocity_error(table: BsdfTable, other: BsdfTable | None = None, n_a: flo
     side 'T': `table` is light from medium a (index n_a) and `other` from medium b;
     radiance BTDFs obey f_T^a(i -> o) / n_b^2 = f_T^b(o -> i) / n_a^2  (formats.md),
     where the transmitted direction o seen from b's frame is the incidence there.
-    Pairs are taken from the theta_i grid, azimuths phi_o = phi_i + 180 (the plane of
-    incidence, across).  Returns the pairs and the largest relative deviation.
+    Pairs are taken from the theta_i grid in the plane of incidence: the forward path goes
+    from (a, phi=0) to (b, phi=180); the reverse path from (b, 180) to (a, 0).  Both frames
+    keep x and y (the inside frame only flips z), so this pairing is exact for anisotropic
+    tables too, not only rotation-invariant ones.  Returns the pairs and the largest
+    relative deviation.
     """
     other = table if other is None else other
     th = table.theta_i_deg
@@ -302,7 +305,7 @@ def reciprocity_error(table: BsdfTable, other: BsdfTable | None = None, n_a: flo
             if side == "R" and b <= a:
                 continue
             f_ab = float(table.eval(wl, a, 0.0, side, b, 180.0))
-            f_ba = float(other.eval(wl, b, 0.0, side, a, 180.0))
+            f_ba = float(other.eval(wl, b, 180.0, side, a, 0.0))
             if side == "T":
                 f_ab, f_ba = f_ab / n_b**2, f_ba / n_a**2
             mean = 0.5 * (f_ab + f_ba)
