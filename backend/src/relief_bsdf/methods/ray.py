@@ -1321,10 +1321,16 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, cells: _Ce
     for sd in (0, 1):
         if spec_dirs[sd] is not None:
             d = np.asarray(spec_dirs[sd], np.float64)
-            cand = np.flatnonzero((k @ d.astype(F32)) > F32(0.9999))
+            # explicit multiply-adds, not `k @ d`: a BLAS matrix-vector product wakes OpenBLAS's
+            # thread pool, whose spinning threads cost as much CPU as the whole binning
+            d32 = d.astype(F32)
+            c = k[:, 0] * d32[0]
+            c += k[:, 1] * d32[1]
+            c += k[:, 2] * d32[2]
+            cand = np.flatnonzero(c > F32(0.9999))
             if cand.size:
                 kc = k[cand].astype(np.float64)
-                ok = (kc @ d) > cos_tol * np.sqrt(np.einsum("ij,ij->i", kc, kc))
+                ok = np.einsum("ij,j->i", kc, d) > cos_tol * np.sqrt(np.einsum("ij,ij->i", kc, kc))
                 ok &= side[cand] == sd
                 if ok.any():
                     if spec is None:
