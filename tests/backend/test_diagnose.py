@@ -76,3 +76,13 @@ def test_end_to_end_absorption_named_and_none_called_none(tmp_path):
 def test_bad_input_exits_2(tmp_path):
     assert cli_main(["diagnose", str(tmp_path / "missing.toml"), "-o", str(tmp_path / "o")]) == 2
     assert cli_main(["conceal", "-o", str(tmp_path / "c"), "--effects", "warp_drive"]) == 2
+
+
+def test_an_overwhelming_gain_overrides_a_globally_consistent_baseline():
+    from relief_bsdf.diagnose import BIC_OVERWHELMING
+    n = 400
+    chi0 = 1.05 * n                      # passes the global noise test
+    eff, _, consistent = select(chi0, n, [_fit("dispersion", chi0 - math.log(n) - BIC_OVERWHELMING - 5)])
+    assert consistent and eff == "dispersion"
+    eff, _, _ = select(chi0, n, [_fit("dispersion", chi0 - math.log(n) - BIC_OVERWHELMING + 5)])
+    assert eff == "none"

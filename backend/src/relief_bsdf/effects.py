@@ -242,7 +242,7 @@ def fit_effect(model: PlateForward, effect: str, progress=None) -> dict:
         return chi2(model.rows, v, s), v, s
 
     post = all(name in POST_KEYS for name, *_ in eff.params)
-    grid, refine = (9, 10) if post else (4, 4)
+    grid, refine = (9, 10) if post else (5, 6)
     pars: dict = {}
     if effect == "stray_light":     # linear in the background: weighted mean as a start, then the censored chi2
         v0, s0 = model.simulate(base)
