@@ -158,6 +158,14 @@ def _frame_s(k: np.ndarray, phi_ref_rad: float | np.ndarray = 0.0) -> np.ndarray
     return s
 
 
+def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot product of (n, 3) arrays by column multiply-adds (about 2x faster than einsum)."""
+    out = a[:, 0] * b[:, 0]
+    out += a[:, 1] * b[:, 1]
+    out += a[:, 2] * b[:, 2]
+    return out
+
+
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of (n, 3) arrays (np.cross is generic and slower)."""
     out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
@@ -176,8 +184,8 @@ def _rotate_stokes(A: np.ndarray, s_old: np.ndarray, k: np.ndarray, s_new: np.nd
     transform as E_s' = c E_s + d E_p, E_p' = -d E_s + c E_p, hence
     S1' = (c^2 - d^2) S1 + 2cd S2, S2' = -2cd S1 + (c^2 - d^2) S2 (S0, S3 unchanged).
     """
-    c = np.einsum("ij,ij->i", s_old, s_new)
-    d = np.einsum("ij,ij->i", _cross(s_old, k), s_new)          # p_old . s_new, p_old = s_old x k
+    c = _rowdot(s_old, s_new)
+    d = _rowdot(_cross(s_old, k), s_new)          # p_old . s_new, p_old = s_old x k
     c2, d2 = c * c, d * d
     r = c2 + d2
     r[r == 0] = 1
@@ -544,9 +552,9 @@ class ReliefTracer:
         k = h.k
         bh = h.below
         # unit facet normal oriented up (+z), then toward the incident side
-        nrm = np.sqrt(np.einsum("ij,ij->i", ng, ng))
+        nrm = np.sqrt(_rowdot(ng, ng))
         np.copysign(nrm, ng[:, 2], out=nrm)
-        dot = np.einsum("ij,ij->i", k, ng) / nrm
+        dot = _rowdot(k, ng) / nrm
         # a ray above the surface must hit it from above (dot < 0), a ray below from below
         leak = (dot > 0) != bh
         if leak.any():
@@ -572,7 +580,7 @@ class ReliefTracer:
         if K:
             (aR, bR, cR, dR), (aT, bT, cT, dT) = interface_coefficients(ci, n1, n2)
             s_new = _cross(nf, k)
-            sn = np.sqrt(np.einsum("ij,ij->i", s_new, s_new))
+            sn = np.sqrt(_rowdot(s_new, s_new))
             degenerate = sn < 1e-6
             s_new /= np.where(degenerate, 1, sn)[:, None]
             if degenerate.any():
@@ -611,7 +619,7 @@ class ReliefTracer:
                 kj, nfj = (k, nf) if full else (np.take(k, j, axis=0), np.take(nf, j, axis=0))
                 kt = kj * etaj[:, None]
                 kt += (etaj * cij - ctj)[:, None] * nfj
-                kt /= np.sqrt(np.einsum("ij,ij->i", kt, kt))[:, None]
+                kt /= np.sqrt(_rowdot(kt, kt))[:, None]
                 tr.o = (p_hit if full else np.take(p_hit, j, axis=0)) - eps * nfj
                 tr.k = kt
                 if K:
@@ -636,7 +644,7 @@ class ReliefTracer:
             a = np.where(refl, F32(1), eta)
             b = np.where(refl, 2 * ci, eta * ci - ct)
             knew = a[:, None] * k + b[:, None] * nf
-            knew /= np.sqrt(np.einsum("ij,ij->i", knew, knew))[:, None]
+            knew /= np.sqrt(_rowdot(knew, knew))[:, None]
             h.o = p_hit + (np.where(refl, eps, -eps))[:, None] * nf
             h.below = bh ^ ~refl
             if n_split:
@@ -939,7 +947,7 @@ class ReliefTracer:
                 kt[:, 0] = etj * sel(kx) + btj * fx
                 kt[:, 1] = etj * sel(ky) + btj * fy
                 kt[:, 2] = etj * sel(kz) + btj * fz
-                nr = np.sqrt(np.einsum("ij,ij->i", kt, kt))
+                nr = np.sqrt(_rowdot(kt, kt))
                 kt /= nr[:, None]
                 ot = np.take(p, j, axis=0) if not full else p.copy()
                 ot[:, 0] -= eps * fx
@@ -1543,16 +1551,10 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
         rng = task_rng(ctx.seed, si, iw, ii, ip, ci)
         st = strata_order[lo:hi]
         iy, ix = np.divmod(st, nxs)
-        jit = rng.random((2, hi - lo), dtype=F32)            # float32: ~1e-4 px resolution at 1024 px
+        jit = rng.random((hi - lo, 2))
         o = np.empty((hi - lo, 3), F32)
-        jit[0] += ix
-        jit[1] += iy
-        jit[0] *= F32(tracer.Lx / nxs)
-        jit[1] *= F32(tracer.Ly / nys)
-        jit[0] -= tracer.hx
-        jit[1] -= tracer.hy
-        o[:, 0] = jit[0]
-        o[:, 1] = jit[1]
+        o[:, 0] = (ix + jit[:, 0]) * (tracer.Lx / nxs) - tracer.hx
+        o[:, 1] = (iy + jit[:, 1]) * (tracer.Ly / nys) - tracer.hy
         o[:, 2] = tracer.z_bot if from_below else tracer.z_top
         k = np.broadcast_to(k_in.astype(F32), o.shape).copy()
         below = np.full(hi - lo, from_below)
