@@ -1370,15 +1370,15 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, cells: _Ce
     acc.sum_w += np.bincount(c_in, weights=w_in, minlength=nc)
     acc.sum_w2 += np.bincount(c_in, weights=w_in * w_in, minlength=nc)
     if acc.sum_M is not None:
+        # sum_M[e, cell] += sum over binned rays of w M_e: one sparse product (cells x rays, one weight
+        # per ray column) @ (rays x 16), ~1.7x faster than 16 np.bincount passes
+        from scipy.sparse import csc_matrix
         M16 = ex.A.reshape(16, -1)
         if not (all_done and full):                  # one gather of the binned rays' columns
-            sel = (np.flatnonzero(inside) if all_done else (done if full else done[inside]))
-            M16 = np.take(M16, sel, axis=1)
-            M16 *= w_in.astype(F32)
-        else:
-            M16 = M16 * w_in.astype(F32)
-        for e in range(16):
-            acc.sum_M[e] += np.bincount(c_in, weights=M16[e], minlength=nc)
+            M16 = np.take(M16, np.flatnonzero(inside) if all_done else (done if full else done[inside]), axis=1)
+        nr = c_in.size
+        per_ray = csc_matrix((w_in, c_in, np.arange(nr + 1)), shape=(nc, nr))
+        acc.sum_M += np.asarray(per_ray @ np.ascontiguousarray(M16.T, dtype=np.float64)).T
 
 
 def _theta_bins(kz: np.ndarray, te_sin2: np.ndarray) -> np.ndarray:
