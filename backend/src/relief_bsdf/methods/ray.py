@@ -740,30 +740,42 @@ class ReliefTracer:
                 rec.append((o.copy(), k.copy(), tfar.copy()))
             res = scene.run(o, k, dists=tfar, output=1)
             hit = res["primID"] >= 0
-            hi = np.flatnonzero(hit)
-            nh = hi.size
+            nh = int(np.count_nonzero(hit))
+            hi = np.flatnonzero(hit) if 0 < nh < n else None
             wrapped = None
             if nh < n:
-                mi = np.flatnonzero(~hit)
-                lat = t_lat[mi] < tz[mi]
-                if lat.any():
-                    wi = mi[lat]
-                    mi = mi[~lat]
-                    t = t_lat[wi]
-                    ow = np.take(o, wi, axis=0)
-                    kw_ = np.take(k, wi, axis=0)
-                    ow += t[:, None] * kw_
-                    bx = tx[wi] <= t
-                    by = ty[wi] <= t
-                    ow[bx, 0] = -np.copysign(hx, kw_[bx, 0])
-                    ow[by, 1] = -np.copysign(hy, kw_[by, 1])
-                    wrapped = (ow, kw_, below[wi], w[wi], nb[wi], ids[wi])
-                if mi.size:
-                    # left the slab: upward from above or downward from below; else a leak
-                    upm = np.take(k[:, 2], mi) > 0
+                side_exit = ~(t_lat < tz)                 # a miss that reached the slab face, not a tile side
+                if nh == 0 and side_exit.all():
+                    # every ray left the slab (the usual end of a roulette phase): no gathers
+                    upm = k[:, 2] > 0
                     st = np.where(upm, np.int8(ABOVE), np.int8(BELOW))
-                    st[upm == below[mi]] = LOST_LEAK
-                    ex.put(k, mi, w, nb, ids, st)
+                    bad = upm == below
+                    if bad.any():
+                        st[bad] = LOST_LEAK
+                    ex.put_all(k, w, nb, ids, st)
+                else:
+                    mi = np.flatnonzero(~hit)
+                    lat = ~side_exit[mi]
+                    if lat.any():
+                        wi = mi[lat]
+                        mi = mi[~lat]
+                        t = t_lat[wi]
+                        ow = np.take(o, wi, axis=0)
+                        kw_ = np.take(k, wi, axis=0)
+                        ow += t[:, None] * kw_
+                        bx = tx[wi] <= t
+                        by = ty[wi] <= t
+                        ow[bx, 0] = -np.copysign(hx, kw_[bx, 0])
+                        ow[by, 1] = -np.copysign(hy, kw_[by, 1])
+                        wrapped = (ow, kw_, below[wi], w[wi], nb[wi], ids[wi])
+                    if mi.size:
+                        # left the slab: upward from above or downward from below; else a leak
+                        upm = np.take(k[:, 2], mi) > 0
+                        st = np.where(upm, np.int8(ABOVE), np.int8(BELOW))
+                        bad = upm == below[mi]
+                        if bad.any():
+                            st[bad] = LOST_LEAK
+                        ex.put(k, mi, w, nb, ids, st)
             parts = []
             if nh:
                 if nh == n:
@@ -1056,6 +1068,15 @@ class _ExitBuffer:
         self.state[a:b] = state
         self.n = b
 
+    def put_all(self, k, w, nb, ids, state) -> None:
+        a, b = self.n, self.n + ids.size
+        self.k[a:b] = k
+        self.w[a:b] = w
+        self.nb[a:b] = nb
+        self.ids[a:b] = ids
+        self.state[a:b] = state
+        self.n = b
+
     def exits(self, segments: int, n_paths: int, m: int) -> "_Exits":
         e = self.n
         return _Exits(ids=self.ids[:e], k=self.k[:e], A=None, w=self.w[:e], state=self.state[:e], nb=self.nb[:e],
@@ -1342,8 +1363,9 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, cells: _Ce
             c = k[:, 0] * d32[0]
             c += k[:, 1] * d32[1]
             c += k[:, 2] * d32[2]
-            cand = np.flatnonzero(c > F32(0.9999))
-            if cand.size:
+            near = c > F32(0.9999)
+            cand = np.flatnonzero(near) if near.any() else ()
+            if len(cand):
                 kc = k[cand].astype(np.float64)
                 ok = np.einsum("ij,j->i", kc, d) > cos_tol * np.sqrt(np.einsum("ij,ij->i", kc, kc))
                 ok &= side[cand] == sd
