@@ -1400,13 +1400,14 @@ def _bin_chunk(acc: _Accumulator, ex: "_Exits", side_of_state: tuple, cells: _Ce
     acc.sum_w2 += np.bincount(c_in, weights=w_in * w_in, minlength=nc)
     if acc.sum_M is not None:
         M16 = ex.A.reshape(16, -1)
+        wf = w_in.astype(F32)
         if not (all_done and full):                  # one gather of the binned rays' columns
             M16 = np.take(M16, np.flatnonzero(inside) if all_done else (done if full else done[inside]), axis=1)
-        # w M_e in float64 once (np.bincount would convert float32 weights on each of its 16 calls)
-        M64 = M16.astype(np.float64)
-        M64 *= w_in
+            M16 *= wf
+        else:
+            M16 = M16 * wf
         for e in range(16):
-            acc.sum_M[e] += np.bincount(c_in, weights=M64[e], minlength=nc)
+            acc.sum_M[e] += np.bincount(c_in, weights=M16[e], minlength=nc)
 
 
 def _theta_bins(kz: np.ndarray, te_sin2: np.ndarray) -> np.ndarray:
