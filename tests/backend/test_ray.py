@@ -348,7 +348,8 @@ def test_identical_tables_serial_processes_and_dask_local():
     from relief_bsdf.optics import CauchyIndex
     mat = Material(CauchyIndex(1.5046, 4200.0))
     runs = {}
-    for name, opts in (("serial2", {"backend": "serial", "threads": 2}), ("serial1", {"backend": "serial", "threads": 1}),
+    for name, opts in (("serial2", {"backend": "serial", "threads": 2}),
+                       ("serial1", {"backend": "serial", "threads": 1}),
                        ("processes", {"backend": "processes"})):
         runs[name] = ray.reconstruct(relief, mat, Request(options=opts, **kw))
         assert parallel.last_run()["backend"] == name.rstrip("12") and parallel.last_run()["total"] == 16

@@ -620,7 +620,8 @@ class ReliefTracer:
             if j.size:
                 full = j.size == ci.size
                 tr = _RayState(o=None, k=None, below=~bh if full else ~bh[j], ids=(h.ids if full else h.ids[j]) + n0,
-                               w=(h.w if full else h.w[j]) * (1 - (pR if full else pR[j])), nb=h.nb if full else h.nb[j],
+                               w=(h.w if full else h.w[j]) * (1 - (pR if full else pR[j])),
+                               nb=h.nb if full else h.nb[j],
                                pending=np.zeros(j.size, bool), A=None, s=None)
                 etaj, cij, ctj = (eta, ci, ct) if full else (eta[j], ci[j], ct[j])
                 kj, nfj = (k, nf) if full else (np.take(k, j, axis=0), np.take(nf, j, axis=0))
@@ -699,7 +700,6 @@ class ReliefTracer:
         m = 2 * n0 if split_first else n0
         ex = _ExitBuffer(m)
         hx, hy, eps = self.hx, self.hy, self.eps
-        z_top, z_bot = self.z_top, self.z_bot
         na, nbl = F32(n_above), F32(n_below)
         eta_dn, eta_up = na / nbl, nbl / na          # n1 / n2 for a ray above / below the surface
         scene = self.scene
@@ -1606,7 +1606,8 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
     n = float(total.paths)
     mean = total.sum_w / n
     var = np.maximum(total.sum_w2 / n - mean**2, 0.0) / n
-    out = {"vals": (mean.reshape(2, S, A_) / psa).astype(F32), "sig": (np.sqrt(var).reshape(2, S, A_) / psa).astype(F32),
+    out = {"vals": (mean.reshape(2, S, A_) / psa).astype(F32),
+           "sig": (np.sqrt(var).reshape(2, S, A_) / psa).astype(F32),
            "specR": float(total.spec[0] / n), "specT": float(total.spec[1] / n),
            "lost": float((sum(total.lost.values()) + total.outside_table) / n),
            "mue": None, "smR": None, "smT": None}
