@@ -1,0 +1,83 @@
+"""CPU time of the `ray` engine's numpy side alone, against Embree's, on one thread.
+
+Runs one `ray.reconstruct_with` (the issue-3 scene: Gaussian relief, rms slope magnitude 0.3,
+n = 1.5, beam at 30 degrees) recording every Embree result, then replays the same computation
+with the recorded results (no Embree) and reports the calling thread's CPU seconds: numpy
+ns per segment and numpy / Embree.  Less sensitive to a shared machine than wall-clock
+figures (thread CPU time, best of 5).  engine/embree ~ embree / (embree + numpy) is the
+ratio `bench_ray.py` reaches when nothing else costs CPU.
+
+    .venv/bin/python benchmarks/profile_ray_numpy.py [--size 1024] [--rays 1048576] [--polarized] [--profile]
+"""
+from __future__ import annotations
+
+import argparse
+import cProfile
+import pstats
+import sys
+import time
+
+import numpy as np
+
+from relief_bsdf.methods import ray
+from relief_bsdf.optics import ConstantIndex, Material
+from relief_bsdf.request import Request
+from relief_bsdf.synth import random_relief
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=1024)
+    ap.add_argument("--rays", type=int, default=1 << 20)
+    ap.add_argument("--polarized", action="store_true")
+    ap.add_argument("--profile", action="store_true", help="cProfile one replay")
+    a = ap.parse_args(argv)
+    L = 8e-6
+    relief = random_relief(a.size, 1e-6, 0.3 * L / 2, L, seed=7)
+    tracer = ray.ReliefTracer(relief, threads=1)
+    mat = Material(ConstantIndex(1.5))
+    req = Request(theta_i_deg=(30.0,), samples=a.rays, seed=3, options={"polarized": a.polarized, "threads": 1})
+    real = tracer.scene
+    log: list = []
+
+    class Record:
+        def run(self, o, k, dists=None, output=1):
+            t = time.thread_time()
+            r = real.run(o, k, dists=dists, output=output)
+            log.append((r, time.thread_time() - t))
+            return r
+
+    class Replay:
+        def __init__(self):
+            self.i = 0
+
+        def run(self, o, k, dists=None, output=1):
+            self.i += 1
+            return log[self.i - 1][0]
+
+    tracer.scene = Record()
+    ref = ray.reconstruct_with(tracer, relief, mat, req)[0]
+    emb = sum(x[1] for x in log)
+    best = float("inf")
+    for _ in range(5):
+        tracer.scene = Replay()
+        t = time.thread_time()
+        tab = ray.reconstruct_with(tracer, relief, mat, req)[0]
+        best = min(best, time.thread_time() - t)
+    assert np.array_equal(ref.values_per_sr, tab.values_per_sr)      # the replay is the same computation
+    segs = ref.metadata["tasks"][0]["segments"]
+    print(f"{'polarised' if a.polarized else 'scalar'}: embree CPU {emb:.3f} s, numpy CPU {best:.3f} s "
+          f"({best / segs * 1e9:.0f} ns/segment), numpy/embree {best / emb:.2f}, "
+          f"engine/embree ~ {emb / (emb + best):.2f}")
+    if a.profile:
+        tracer.scene = Replay()
+        pr = cProfile.Profile()
+        pr.enable()
+        ray.reconstruct_with(tracer, relief, mat, req)
+        pr.disable()
+        pstats.Stats(pr).sort_stats("tottime").print_stats(15)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
