@@ -36,6 +36,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import hashlib
+import multiprocessing
+import multiprocessing.context
 import os
 import pickle
 import signal
@@ -360,6 +362,24 @@ def _stop_pool(pool: ProcessPoolExecutor, kill: bool) -> None:
                 p.join(timeout=5)
 
 
+def _pool_context() -> multiprocessing.context.BaseContext:
+    """Start method of the local worker pool: "forkserver", never plain "fork".
+
+    Forking a process that already runs native thread pools (Embree's task threads after a
+    BVH build in this process, OpenBLAS, a Dask client's event loop) copies their locks but
+    not their threads, and the child can hang forever in its first call into that library
+    (seen: a worker stuck creating its Embree device).  The fork server is a fresh interpreter
+    that imports this module once and forks workers from that clean state, so starting a
+    worker stays cheap.  Like "spawn", it needs `if __name__ == "__main__":` in user scripts.
+    `RELIEF_START_METHOD` overrides it (e.g. "spawn").
+    """
+    method = os.environ.get("RELIEF_START_METHOD", "forkserver")
+    ctx = multiprocessing.get_context(method)
+    if method == "forkserver":
+        ctx.set_forkserver_preload([__name__])
+    return ctx
+
+
 def _run_processes(fn: Callable, context: Any, items: list[tuple[int, Any]], *, workers: int, retries: int,
                    label: str, **_: Any) -> Iterator[tuple[int, Any]]:
     token = id(context)
@@ -367,7 +387,7 @@ def _run_processes(fn: Callable, context: Any, items: list[tuple[int, Any]], *, 
     restarts = 0
     while pending:
         pool = ProcessPoolExecutor(max_workers=max(1, min(workers, len(pending))), initializer=_init_worker,
-                                   initargs=(token, context))
+                                   initargs=(token, context), mp_context=_pool_context())
         clean = False
         broken = False
         try:

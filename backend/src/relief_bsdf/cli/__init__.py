@@ -42,8 +42,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     debug = getattr(args, "debug", False)
+    from ..parallel import parallel_settings
+
     try:
-        return int(args._run(args) or 0)
+        # a command may configure where tasks run (--workers, --dask): restore the settings and
+        # close any LocalCluster it started when it returns, so main() leaves no global state
+        with parallel_settings():
+            return int(args._run(args) or 0)
     except InputError as e:
         if debug:
             traceback.print_exc()
