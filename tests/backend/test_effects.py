@@ -174,3 +174,105 @@ def test_chi2_treats_zero_readings_as_clipped_and_is_unbiased_for_a_background()
     # the plain chi2 of the clipped data would be minimised at a clearly positive background
     plain = [np.sum(((y - b) / 0.002) ** 2) for b in bs]
     assert bs[int(np.argmin(plain))] > 5e-4
+
+
+# ------------------------------------------------------------------ wave-optics and interreflection candidates
+
+def _forward_on(h, photons=20000, tis=(0.0, 40.0, 70.0), dx_m=1e-6):
+    th = np.arange(0.0, 90.0, 10.0)
+    W, TI, SD, TS, PS = [], [], [], [], []
+    for ti in tis:
+        for sd in ("R", "T"):
+            for ps in (0.0, 180.0):
+                for t in th:
+                    W.append(550.0); TI.append(ti); SD.append(sd); TS.append(t); PS.append(ps)
+    n = len(W)
+    rows = RowSet(np.array(W), np.array(TI), np.zeros(n), np.array(SD), np.array(TS), np.array(PS),
+                  np.zeros(n), np.full(n, 0.01))
+    return PlateForward(h, dx_m, dx_m, True, rows, 2.0, ConstantIndex(1.5), 3.0, photons=photons, seed=3)
+
+
+def _names_it(fwd, truth_params, effect, rivals, noise_rel=0.03):
+    """Noisy synthetic recording from `truth_params`; fit `effect` and rivals; select by BIC."""
+    from relief_bsdf.diagnose import select
+    from relief_bsdf.effects import chi2
+    truth, _ = fwd.simulate(truth_params)
+    rng = np.random.default_rng(11)
+    sig = noise_rel * np.abs(truth) + 2e-3
+    fwd.rows.value = np.maximum(truth + sig * rng.normal(size=truth.size), 0.0)
+    fwd.rows.sigma = sig
+    v0, s0 = fwd.simulate({})
+    fits = [fit_effect(fwd, e) for e in (effect, *rivals)]
+    name, cands, _ = select(chi2(fwd.rows, v0, s0), len(fwd.rows), fits)
+    return name, fits[0]["parameters"]
+
+
+def test_debye_waller_fraction_is_the_kirchhoff_value():
+    from relief_bsdf.conceal import gaussian_relief
+    h = gaussian_relief(32, 1e-6, 0.05e-6, 4e-6, 2)
+    fwd = _forward_on(h, photons=2000)
+    C = fwd.debye_waller({})
+    sig = np.std(h)
+    r = fwd.rows
+    ci = np.cos(np.radians(r.theta_i_deg))
+    R = r.side == "R"
+    assert np.allclose(C[R], np.exp(-(4 * np.pi * sig * ci[R] / 550e-9) ** 2))
+    ct = np.sqrt(1 - (1 - ci**2) / 1.5**2)
+    assert np.allclose(C[~R], np.exp(-(2 * np.pi * sig * (1.5 * ct[~R] - ci[~R]) / 550e-9) ** 2))
+    # near normal incidence transmission keeps far more coherence than reflection (phase (n - 1) vs 2);
+    # at grazing incidence reflection becomes the more coherent one (cos theta_i -> 0)
+    lo, hi = r.theta_i_deg <= 40, r.theta_i_deg == 70
+    assert C[~R & lo].min() > C[R & lo].max()
+    assert C[R & hi].min() > C[~R & hi].max()
+    # a rougher relief (height scale) is less coherent
+    assert np.all(fwd.debye_waller({"height_scale": 2.0}) <= C)
+
+
+def test_diffraction_restores_the_specular_beam_of_a_smooth_relief_and_is_named():
+    from relief_bsdf.conceal import gaussian_relief
+    # sigma = lambda / 11 (mostly coherent), slopes ~ 0.12 rad: a geometric lobe wider than the detector
+    h = gaussian_relief(48, 0.2e-6, 0.05e-6, 0.6e-6, 4)
+    fwd = _forward_on(h, tis=(0.0, 40.0), dx_m=0.2e-6)
+    spec = (fwd.rows.side == "R") & (fwd.rows.theta_s_deg == fwd.rows.theta_i_deg) & (fwd.rows.phi_s_deg == 180.0)
+    spec |= (fwd.rows.side == "R") & (fwd.rows.theta_i_deg == 0) & (fwd.rows.theta_s_deg == 0)
+    v0, _ = fwd.simulate({})
+    v1, _ = fwd.simulate({"coherent_scale": 1.0})
+    # the coherent part concentrates the specular reflection into the detector cone
+    assert np.all(v1[spec] > 1.2 * v0[spec])
+    name, pars = _names_it(fwd, {"coherent_scale": 1.0}, "diffraction", ("instrument_blur", "relief_smoothing"))
+    assert name == "diffraction"
+    assert pars["coherent_scale"] == pytest.approx(1.0, abs=0.15)
+
+
+def test_partial_coherence_broadens_the_coherent_lobe_and_is_named():
+    from relief_bsdf.conceal import gaussian_relief
+    h = gaussian_relief(48, 0.2e-6, 0.05e-6, 0.6e-6, 4)
+    fwd = _forward_on(h, tis=(0.0, 40.0), dx_m=0.2e-6)
+    r = fwd.rows
+    spec = (r.side == "T") & (r.theta_i_deg == 0) & (r.theta_s_deg == 0)
+    near = (r.side == "T") & (r.theta_i_deg == 0) & (r.theta_s_deg == 10)
+    long_, _ = fwd.simulate({"coherence_length_um": 30.0})
+    short, _ = fwd.simulate({"coherence_length_um": 0.8})
+    # a shorter coherence length moves coherent light from the regular beam to its neighbourhood
+    assert np.all(short[spec] < 0.8 * long_[spec])
+    assert np.all(short[near] > long_[near])
+    name, pars = _names_it(fwd, {"coherence_length_um": 1.5}, "partial_coherence",
+                           ("diffraction", "instrument_blur"))
+    assert name == "partial_coherence"
+    assert pars["coherence_length_um"] == pytest.approx(1.5, rel=0.3)
+
+
+def test_interreflection_matters_on_a_steep_relief_and_is_named():
+    from relief_bsdf.conceal import gaussian_relief
+    h = gaussian_relief(48, 1e-6, 2e-6, 2e-6, 6)    # rms slope ~ 1.3: shadowing and multiple bounces
+    fwd = _forward_on(h, tis=(0.0, 70.0))
+    v0, s0 = fwd.simulate({})
+    v1, s1 = fwd.simulate({"interreflection_weight": 1.0})
+    z = (v1 - v0) / np.sqrt(s0**2 + s1**2 + 1e-6)
+    assert np.sum(z**2) > 4 * len(z)      # far beyond Monte-Carlo noise
+    # at grazing incidence the real relief shadows and traps light the single-scatter model reflects
+    g = (fwd.rows.side == "R") & (fwd.rows.theta_i_deg == 70.0)
+    assert v1[g].sum() < 0.6 * v0[g].sum()
+    name, pars = _names_it(fwd, {"interreflection_weight": 1.0}, "interreflection", ("relief_scale", "instrument_blur"))
+    assert name == "interreflection"
+    assert pars["interreflection_weight"] > 0.8

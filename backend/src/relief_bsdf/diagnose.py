@@ -63,6 +63,12 @@ def _param_text(effect: str, p: dict) -> str:
         "relief_scale": lambda: f"heights scaled by {p['height_scale']:.3f}",
         "relief_smoothing": lambda: f"the relief smoothed by a Gaussian of {p['filter_sigma_um']:.2f} um",
         "dispersion": lambda: f"a Cauchy B of {p['cauchy_B_nm2']:.4g} nm^2 added to the stated index",
+        "interreflection": lambda: (f"the ray-traced relief (shadowing, multiple bounces) at weight "
+                                    f"{p['interreflection_weight']:.2f} against the single-scatter facet model"),
+        "diffraction": lambda: (f"a coherent specular fraction of {p['coherent_scale']:.2f} times the "
+                                f"Debye-Waller (Kirchhoff) value"),
+        "partial_coherence": lambda: (f"a source coherence length of {p['coherence_length_um']:.3g} um "
+                                      f"(coherent lobe broadened accordingly)"),
     }.get(effect)
     return f() if f else ""
 

@@ -29,8 +29,35 @@ Effects, each with its parameters, bounds and physics (the name is the formats.m
 - dispersion (cauchy_B_nm2): n(l) = n_stated(l) + B (1/l^2 - 1/l_ref^2), l_ref the middle
   recorded wavelength (re-traced per wavelength); only for spectral recordings.
 
-Not modelled here (left to wave-optics / height-field solvers): interreflection,
-diffraction, partial_coherence.  Validity: geometric optics, as photon_plate.py.
+- interreflection (interreflection_weight w): the single-scatter facet-normal front face is
+  replaced by exact ray tracing through the triangulated relief (`conceal.HeightFieldFace`,
+  Embree; paper sec. 2.3): shadowing, masking and multiple bounces on the relief.  Both
+  rough-face runs are linear in the photons, so the simulation is the convex mixture
+  (1 - w) I_normals + w I_heightfield (exact for the two pure models, w = 1 the ray-traced
+  relief; intermediate w is a relaxation, e.g. for a relief only partly resolved by the
+  profilometer).  Matters on steep reliefs (rms slope >~ 0.3) at grazing angles.
+  Validity: geometric optics; the height map is tiled periodically (3 x 3) for the tracer.
+- diffraction (coherent_scale s): first-order Kirchhoff correction (Beckmann & Spizzichino
+  1963, ch. 5; Debye-Waller factor).  A fraction C of the light leaving the rough front face
+  stays coherent (specular reflection / regular transmission of the mean plane), the rest is
+  the geometric (diffuse) lobe:  I = (1 - C) I_rough + C I_flat, with
+      C_R = s exp(-(4 pi sigma cos(theta_i) / lambda)^2)                (reflection)
+      C_T = s exp(-(2 pi sigma (n cos(theta_t) - cos(theta_i)) / lambda)^2)  (transmission)
+  (clipped to [0, 1]), sigma the rms height of the relief (after any scale / smoothing), I_flat
+  the same plate with a flat front face.  s = 1 is the Kirchhoff value, s = 0 (neutral)
+  geometric optics.  Approximation: C is set by the first front-face event of each side (the
+  row's side, at its incidence); later passes through the front face keep the geometric
+  lobe.  Valid for Gaussian-like height statistics, lateral scales >> lambda.
+- partial_coherence (coherence_length_um l_c): the coherent (Debye-Waller, s = 1) part above
+  is not a sharp specular beam but a lobe of angular 1-sigma width lambda / (2 pi l_c) (the far
+  field of a source whose spatial coherence is Gaussian with length l_c; van Cittert-Zernike),
+  implemented as the detector convolution of the flat-face run.  The coherent fraction is
+  C_DW (1 - exp(-(l_c / lambda)^2)): a source coherent over less than a wavelength produces
+  no coherent specular part (l_c = 0 is the neutral, geometric-optics value).  Large l_c
+  approaches `diffraction` with s = 1.
+
+Validity: geometric optics, as photon_plate.py, except for the two wave-optics corrections
+above (first order, scalar Kirchhoff fraction applied to the Stokes-tracked runs).
 """
 from __future__ import annotations
 
@@ -44,7 +71,9 @@ from .photon_plate import NormalsFace, PlatePhysics, detect, run_photons
 
 TRANSPORT_KEYS = ("scatter_per_mm", "hg_g", "back_alpha", "tilt_deg", "height_scale", "filter_sigma_um",
                   "cauchy_B_nm2")
-POST_KEYS = ("absorption_per_mm", "blur_deg", "polarization_q", "background_per_sr")
+POST_KEYS = ("absorption_per_mm", "blur_deg", "polarization_q", "background_per_sr", "interreflection_weight",
+             "coherent_scale", "coherence_length_um")
+MAX_COHERENT_BLUR_DEG = 30.0
 SOURCE_Q = {"unpolarized": 0.0, "s": 1.0, "p": -1.0}
 
 
@@ -77,6 +106,12 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
            "the relief's heights are off by a factor (instrument calibration)"),
     Effect("relief_smoothing", (("filter_sigma_um", 0.0, 8.0, 0.0),),
            "the real surface is smoother than measured (measurement noise / tip artefacts)"),
+    Effect("interreflection", (("interreflection_weight", 0.0, 1.0, 0.0),),
+           "light bounces more than once on the relief and is shadowed by it (ray-traced real relief)"),
+    Effect("diffraction", (("coherent_scale", 0.0, 3.0, 0.0),),
+           "part of the light stays coherent and specular (wave optics, Debye-Waller factor)"),
+    Effect("partial_coherence", (("coherence_length_um", 0.0, 30.0, 0.0),),
+           "the coherent specular part is broadened by the source's finite coherence length"),
     Effect("dispersion", (("cauchy_B_nm2", -40000.0, 80000.0, 0.0),),
            "the glass index depends on wavelength (Cauchy B) unlike stated", spectral_only=True),
 )}
@@ -126,11 +161,11 @@ class PlateForward:
     known_absorption_per_mm: float = 0.0
     photons: int = 100_000
     seed: int = 0
-    _cache_key: tuple | None = field(default=None, repr=False)
+    _cache_key: dict = field(default_factory=dict, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
     evaluations: int = field(default=0, repr=False)
 
-    def _faces(self, p: dict) -> NormalsFace:
+    def _heights(self, p: dict) -> np.ndarray:
         h = self.heights_m
         if p.get("filter_sigma_um", 0.0) > 0:
             from scipy import ndimage
@@ -138,20 +173,35 @@ class PlateForward:
             mode = "wrap" if self.periodic else "reflect"
             h = ndimage.gaussian_filter(np.nan_to_num(h, nan=float(np.nanmean(h))), (s / self.dy_m, s / self.dx_m),
                                         mode=mode)
-        h = h * p.get("height_scale", 1.0)
+        return h * p.get("height_scale", 1.0)
+
+    def _faces(self, p: dict, kind: str = "normals"):
+        """The front face: measured facet normals, a flat face, or the ray-traced height field."""
+        if kind == "flat":
+            return NormalsFace(np.array([[0.0, 0.0, 1.0]]))
+        h = self._heights(p)
+        if kind == "heightfield":
+            from .conceal import HeightFieldFace
+            return HeightFieldFace(np.nan_to_num(h, nan=float(np.nanmean(h))), self.dx_m, self.dy_m)
         return NormalsFace.from_heights(h, self.dx_m, self.dy_m, self.periodic)
 
-    def _transport(self, p: dict) -> dict:
+    def _n_glass(self, wl: float, p: dict) -> float:
+        lref = float(np.median(np.unique(self.rows.wavelength_nm)))
+        return float(np.real(self.index.n(wl))) + p.get("cauchy_B_nm2", 0.0) * (1 / wl**2 - 1 / lref**2)
+
+    def _transport(self, p: dict, kind: str = "normals") -> dict:
         key = tuple(round(float(p.get(k, EFFECT_NEUTRAL[k])), 10) for k in TRANSPORT_KEYS)
-        if key == self._cache_key:
-            return self._cache
-        face = self._faces(p)
+        if key == self._cache_key.get(kind):
+            return self._cache[kind]
+        face = self._faces(p, kind)
         rows = self.rows
         wls = np.unique(rows.wavelength_nm)
-        lref = float(np.median(wls))
         recs = {}
+        # the flat face's exits are (nearly) deterministic directions: fewer photons suffice
+        n_ph = max(self.photons // 4, 2000) if kind == "flat" else self.photons
+        salt = {"normals": (), "flat": (1,), "heightfield": (2,)}[kind]
         for iw, wl in enumerate(wls):
-            n = float(np.real(self.index.n(wl))) + p.get("cauchy_B_nm2", 0.0) * (1 / wl**2 - 1 / lref**2)
+            n = self._n_glass(wl, p)
             phys = PlatePhysics(thickness_mm=self.thickness_mm, n_glass=n, scatter_per_mm=p.get("scatter_per_mm", 0.0),
                                 hg_g=p.get("hg_g", 0.0), back_alpha=p.get("back_alpha", 0.0),
                                 tilt_deg=p.get("tilt_deg", 0.0))
@@ -160,11 +210,29 @@ class PlateForward:
                 idx = np.nonzero((rows.wavelength_nm == wl) & (rows.theta_i_deg == ti) & (rows.phi_i_deg == pi))[0]
                 ex = []
                 for src, st in enumerate(((1.0, 1.0, 0.0, 0.0), (1.0, -1.0, 0.0, 0.0))):
-                    rng = task_rng(self.seed, int(round(wl * 10)), int(round(ti * 100)), int(round(pi * 100)), src)
-                    ex.append(run_photons(face, phys, ti, pi, st, self.photons // 2, rng))
+                    rng = task_rng(self.seed, int(round(wl * 10)), int(round(ti * 100)), int(round(pi * 100)), src,
+                                   *salt)
+                    ex.append(run_photons(face, phys, ti, pi, st, n_ph // 2, rng))
                 recs[(wl, ti, pi)] = (idx, ex)
-        self._cache_key, self._cache = key, recs
+        self._cache_key[kind], self._cache[kind] = key, recs
         return recs
+
+    def debye_waller(self, p: dict) -> np.ndarray:
+        """Coherent (specular) fraction per row, Kirchhoff / Debye-Waller (module docstring),
+        without the scale s: exp(-g) with g the phase variance for the row's side."""
+        rows = self.rows
+        h = self._heights(p)
+        sig_m = float(np.nanstd(h))
+        out = np.zeros(len(rows))
+        for wl in np.unique(rows.wavelength_nm):
+            sel = rows.wavelength_nm == wl
+            n = self._n_glass(wl, p)
+            ci = np.cos(np.radians(rows.theta_i_deg[sel]))
+            ct = np.sqrt(np.maximum(0.0, 1.0 - (1.0 - ci**2) / n**2))
+            k = 2 * np.pi * sig_m / (wl * 1e-9)
+            g = np.where(rows.side[sel] == "R", (2 * k * ci) ** 2, (k * (n * ct - ci)) ** 2)
+            out[sel] = np.exp(-g)
+        return out
 
     def simulate(self, params: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(values, Monte-Carlo sigma) per row for the given effect parameters."""
@@ -175,24 +243,56 @@ class PlateForward:
         q = float(np.clip(p.get("polarization_q", self.source_q), -1, 1))
         blur = p.get("blur_deg", 0.0)
         rows = self.rows
-        val = np.zeros(len(rows))
-        var = np.zeros(len(rows))
-        for (_wl, _ti, _pi), (idx, ex) in recs.items():
-            parts = []
-            for e in ex:
-                w = e.w * np.exp(-a * e.path_mm) if a > 0 else e.w
-                parts.append(detect(e, rows.side[idx], rows.theta_s_deg[idx], rows.phi_s_deg[idx],
-                                    self.half_angle_deg, weights=w, blur_sigma_deg=blur))
-            (vs, ss), (vp, sp) = parts
-            val[idx] = 0.5 * ((1 + q) * vs + (1 - q) * vp)
-            var[idx] = 0.25 * ((1 + q) ** 2 * ss**2 + (1 - q) ** 2 * sp**2)
+        val, var = self._detect_all(recs, a, q, blur)
+        w_ir = float(np.clip(p.get("interreflection_weight", 0.0), 0.0, 1.0))
+        if w_ir > 0:
+            v2, var2 = self._detect_all(self._transport(p, "heightfield"), a, q, blur)
+            val, var = (1 - w_ir) * val + w_ir * v2, (1 - w_ir) ** 2 * var + w_ir**2 * var2
+        s_coh = float(p.get("coherent_scale", 0.0))
+        l_c = float(p.get("coherence_length_um", 0.0))
+        if s_coh > 0 or l_c > 0:
+            C = self.debye_waller(p)
+            blur_c = blur
+            if l_c > 0:   # partial coherence: fraction and angular width set by l_c (module docstring)
+                wl_um = rows.wavelength_nm * 1e-3
+                C = C * (1.0 - np.exp(-(l_c / wl_um) ** 2))
+                width = np.degrees(wl_um / (2 * np.pi * l_c))
+                blur_c = np.sqrt(blur**2 + np.minimum(width, MAX_COHERENT_BLUR_DEG) ** 2)
+            if s_coh > 0:
+                C = C * s_coh
+            C = np.clip(C, 0.0, 1.0)
+            if np.any(C > 0):
+                vf, varf = self._detect_all(self._transport(p, "flat"), a, q, blur_c)
+                val, var = (1 - C) * val + C * vf, (1 - C) ** 2 * var + C**2 * varf
         val += p.get("background_per_sr", 0.0)
         return val, np.sqrt(var)
+
+    def _detect_all(self, recs: dict, a: float, q: float, blur) -> tuple[np.ndarray, np.ndarray]:
+        """Detected values and MC variances per row of one set of photon runs; `blur` a scalar
+        or a per-row array (deg)."""
+        rows = self.rows
+        val = np.zeros(len(rows))
+        var = np.zeros(len(rows))
+        blur_rows = np.broadcast_to(np.asarray(blur, float), (len(rows),))
+        for (_wl, _ti, _pi), (idx, ex) in recs.items():
+            # rows of one incidence share a blur unless it depends on the wavelength (same here)
+            for b in np.unique(blur_rows[idx]):
+                sub = idx[blur_rows[idx] == b]
+                parts = []
+                for e in ex:
+                    w = e.w * np.exp(-a * e.path_mm) if a > 0 else e.w
+                    parts.append(detect(e, rows.side[sub], rows.theta_s_deg[sub], rows.phi_s_deg[sub],
+                                        self.half_angle_deg, weights=w, blur_sigma_deg=float(b)))
+                (vs, ss), (vp, sp) = parts
+                val[sub] = 0.5 * ((1 + q) * vs + (1 - q) * vp)
+                var[sub] = 0.25 * ((1 + q) ** 2 * ss**2 + (1 - q) ** 2 * sp**2)
+        return val, var
 
 
 EFFECT_NEUTRAL = {"scatter_per_mm": 0.0, "hg_g": 0.0, "back_alpha": 0.0, "tilt_deg": 0.0, "height_scale": 1.0,
                   "filter_sigma_um": 0.0, "cauchy_B_nm2": 0.0, "absorption_per_mm": 0.0, "blur_deg": 0.0,
-                  "polarization_q": 0.0, "background_per_sr": 0.0}
+                  "polarization_q": 0.0, "background_per_sr": 0.0,
+                  "interreflection_weight": 0.0, "coherent_scale": 0.0, "coherence_length_um": 0.0}
 
 
 def chi2(rows: RowSet, model: np.ndarray, model_sigma: np.ndarray) -> float:
@@ -251,6 +351,11 @@ def fit_effect(model: PlateForward, effect: str, progress=None) -> dict:
         r = optimize.minimize_scalar(lambda b: run({"background_per_sr": b})[0], bounds=(0.0, max(3 * b0, 1e-3)),
                                      method="bounded", options={"maxiter": 12})
         pars = {"background_per_sr": float(r.x) if r.fun < run({"background_per_sr": 0.0})[0] else 0.0}
+    elif effect == "partial_coherence":  # the lobe width ~ 1 / l_c: fit on a log scale (0.3 um .. hi), plus l_c = 0
+        name, lo, hi, neutral = eff.params[0]
+        f = lambda u: run({name: 10.0**u})[0]  # noqa: E731
+        u, cu = _fit_1d(f, np.log10(0.3), np.log10(hi), grid, refine)
+        pars = {name: 10.0**u if cu < run({name: neutral})[0] else neutral}
     elif len(eff.params) == 1:
         name, lo, hi, neutral = eff.params[0]
         x, _ = _fit_1d(lambda x: run({name: x})[0], lo, hi, grid, refine, neutral)
