@@ -27,11 +27,11 @@ venv: $(VENV)/.runtime-stamp
 venv-test: $(VENV)/.test-stamp
 
 demo: venv
-	$(VENV)/bin/relief synth --kind gaussian --rms-height-um 0.5 --corr-length-um 10 --size 256 --pitch-um 1 --seed 1 -o $(OUT)/demo/relief.npz
-	$(VENV)/bin/relief info $(OUT)/demo/relief.npz
+	$(VENV)/bin/relief info scenes/demo/relief.x3p
+	$(VENV)/bin/relief info scenes/demo/sample.toml
 	$(VENV)/bin/relief fit scenes/demo/sample.toml -o $(OUT)/demo/fit --max-iter 40
-	@if [ -f $(OUT)/demo/fit/fit.json ]; then src=$(OUT)/demo/fit; else src=scenes/demo/sample.toml; fi; \
-	  echo "relief render $$src -o $(OUT)/demo/plate.png"; $(VENV)/bin/relief render $$src -o $(OUT)/demo/plate.png
+	$(VENV)/bin/relief render $(OUT)/demo/fit -o $(OUT)/demo/plate.png
+	@echo "demo done: $(OUT)/demo/fit/report.html (fit), $(OUT)/demo/plate.png (before | after)"
 
 test: venv-test
 	$(PY) -m pytest
