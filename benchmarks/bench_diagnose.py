@@ -27,7 +27,8 @@ from relief_bsdf.parallel import map_tasks
 KEY_PARAM = {"bulk_absorption": "absorption_per_mm", "volume_scattering": "scatter_per_mm",
              "back_face_roughness": "back_alpha", "sample_tilt": "tilt_deg", "instrument_blur": "blur_deg",
              "polarization": "polarization_q", "stray_light": "background_per_sr", "relief_scale": "height_scale",
-             "relief_smoothing": "filter_sigma_um", "dispersion": "cauchy_B_nm2"}
+             "relief_smoothing": "filter_sigma_um", "dispersion": "cauchy_B_nm2",
+             "interreflection": "interreflection_weight"}
 
 
 def _diag(context, name):

@@ -16,6 +16,13 @@ parameters).  The physics is an *independent* Monte-Carlo photon simulation:
   noise per row (`gain_noise`), a noise floor (`floor_sr`), plus the Monte-Carlo's own
   variance; `sigma_sr` is the quadrature sum of those.
 
+`interreflection` cases need no extra physics here (the generator always traces the real
+relief): they are cases on a *steep* relief (rms slope ~ 1, `STEEP_RELIEF`), where shadowing
+and multiple bounces, which the diagnosis's single-scatter baseline leaves out, matter; their
+key parameter is interreflection_weight = 1 (pure ray-traced relief).  `diffraction` and
+`partial_coherence` are not generated: an honest generator would need an independent
+wave-optics simulation of the plate, which this Monte-Carlo is not.
+
 Assumptions: geometric optics, periodic synthetic relief tile (Gaussian autocovariance),
 in-plane goniophotometer scans (phi_i = 0, phi_s in {0, 180}).
 """
@@ -35,7 +42,8 @@ from .relief import Relief
 
 EFFECTS_CONCEALABLE = ("none", "bulk_absorption", "volume_scattering", "back_face_roughness", "sample_tilt",
                        "instrument_blur", "polarization", "stray_light", "relief_scale", "relief_smoothing",
-                       "dispersion")
+                       "dispersion", "interreflection")
+STEEP_RELIEF = {"rms_um": (1.6, 2.2), "corr_um": 2.5}   # interreflection cases: rms slope ~ 0.9 - 1.3
 
 
 # ------------------------------------------------------------------ height-field face
@@ -197,6 +205,8 @@ def default_cases(n_per_effect: int = 2, n_none: int = 4, seed: int = 1) -> list
             return {"filter_sigma_um": float(1.5 + 1.0 * u)}
         if effect == "dispersion":
             return {"cauchy_B_nm2": float(15000 + 10000 * u)}
+        if effect == "interreflection":
+            return {"interreflection_weight": 1.0}
         return {}
 
     k = 0
@@ -208,6 +218,10 @@ def default_cases(n_per_effect: int = 2, n_none: int = 4, seed: int = 1) -> list
             if effect == "dispersion" or (effect == "none" and j == reps - 1):
                 spec.wavelengths_nm = (450.0, 550.0, 650.0)
                 spec.theta_i_deg = (0.0, 45.0)
+            if effect == "interreflection":
+                lo, hi = STEEP_RELIEF["rms_um"]
+                spec.rms_um = float(lo + (hi - lo) * rng.random())
+                spec.corr_um = STEEP_RELIEF["corr_um"]
             cases.append(spec)
     return cases
 
