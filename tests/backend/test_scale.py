@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-distributed = pytest.importorskip("distributed")  # a runtime dependency: always installed
+import distributed  # noqa: E402,F401  (a runtime dependency: a missing one must fail, not skip)
 
 from relief_bsdf import parallel  # noqa: E402
 from relief_bsdf.cluster import synthetic_task  # noqa: E402
