@@ -90,3 +90,13 @@ def test_index_models_and_range():
     m = Material(inside=ConstantIndex(1.5))
     assert m.n_pair(550, "inside") == (1.5, 1.0)
     assert Material.from_dict(m.describe()) == m
+
+
+def test_check_incidence_refuses_light_from_inside_a_metal():
+    from relief_bsdf.errors import RequestError
+
+    metal = Material(inside=ConstantIndex(0.96, 6.69))
+    metal.check_incidence([550.0], ("outside",))             # reflection off a metal is fine
+    with pytest.raises(RequestError, match="kirchhoff: light cannot arrive from inside an absorbing"):
+        metal.check_incidence([550.0], ("outside", "inside"), "kirchhoff")
+    Material(inside=ConstantIndex(1.5)).check_incidence([450.0, 650.0], ("outside", "inside"))

@@ -186,7 +186,7 @@ def block_from_table(table: BsdfTable, side: str, iw: int = 0) -> IsBsdfBlock:
                 f"relief: wavelength_nm = {wl!r}",
                 f"relief: incident_from = {table.incident_from}",
                 f"relief: method = {table.method}",
-                f"relief: btdf_centre = undeviated" if side == "T" else "relief: brdf_centre = mirror",
+                "relief: btdf_centre = undeviated" if side == "T" else "relief: brdf_centre = mirror",
                 "relief: values = Nicodemus BSDF in 1/sr (not cosine-corrected); specular part excluded"]
     return IsBsdfBlock(scatter_type=SIDE_TYPE[side], symmetry="PlaneSymmetrical" if symmetric else "Asymmetrical",
                        sample_rotation_deg=table.phi_i_deg.copy(), angle_of_incidence_deg=table.theta_i_deg.copy(),
@@ -421,7 +421,6 @@ def import_isbsdf(paths: str | Path | Sequence[str | Path], theta_s_edges_deg: A
         if not tagged:
             raise InputError(blocks[0].path, f"no block for wavelength {wavelength_nm:g} nm")
         blocks = tagged
-    first = blocks[0]
     wl_tags = sorted({b.relief_tag("wavelength_nm") or "" for b in blocks}, key=lambda t: float(t) if t else 0.0)
     if len(wl_tags) > 1:
         # several wavelengths: one table per wavelength, then stacked along the wavelength axis

@@ -34,7 +34,7 @@ import numpy as np
 from .atomic import write_text_atomic
 from .bsdf import BsdfTable
 from .errors import InputError
-from .optics import Material, fresnel_power, mueller_interface
+from .optics import Material, mueller_interface
 from .plate import PlateModel, _blas_single_thread, check_rows, simulate_rows
 from .progress import Progress, silent
 from .relief import Relief

@@ -153,6 +153,25 @@ class Material:
         if np.any(np.imag(self.outside.n(wavelengths_nm)) > 0):
             raise InputError(where, "the outside medium must be transparent (real index)")
 
+    def check_incidence(self, wavelengths_nm: Any, incident_from: Any, method: str = "") -> None:
+        """RequestError for an unphysical index at a requested wavelength, or light from inside a metal.
+
+        Every method calls this before work starts: indices need a positive real part and
+        k >= 0, and light cannot arrive from inside an absorbing (k > 0) medium.
+        """
+        from .errors import RequestError
+
+        prefix = f"{method}: " if method else ""
+        for wl in np.atleast_1d(np.asarray(wavelengths_nm, float)):
+            for side in incident_from:
+                n1, n2 = self.n_pair(float(wl), side)
+                for v in (n1, n2):
+                    if not (np.isfinite(v) and np.real(v) > 0 and np.imag(v) >= 0):
+                        raise RequestError(f"{prefix}unphysical refractive index {v} at {wl:g} nm", "--n/--cauchy")
+                if np.imag(n1) > 0:
+                    raise RequestError(f"{prefix}light cannot arrive from inside an absorbing medium "
+                                       "(complex index); use --from outside", "--from")
+
     def describe(self) -> dict:
         return {"inside": self.inside.describe(), "outside": self.outside.describe()}
 

@@ -384,7 +384,7 @@ class PlateSolver:
         n = float(np.real(m.index.n(wl)))
         n0 = float(np.real(m.outside_index.n(wl)))
         tc = self.theta_c
-        N, A = tc.size, self.delta.size
+        N = tc.size
         c = 4 if self.mueller else 1
         vin = _TableView(self.inside, wl, self.mueller, "inside table")
         vout = _TableView(self.outside, wl, self.mueller, "outside table") if self.outside is not None else None
@@ -683,6 +683,13 @@ def _blurred_fraction(ang: np.ndarray, h: float, b: float, n: int = 64) -> np.nd
     return np.mean(x**2 + y**2 <= h**2, axis=1)
 
 
+def row_arrays(rows):
+    """(wavelength_nm, theta_i_deg, phi_i_deg, side, theta_s_deg, phi_s_deg) of any row set as arrays."""
+    return (np.asarray(rows.wavelength_nm, float), np.asarray(rows.theta_i_deg, float),
+            np.asarray(rows.phi_i_deg, float), np.asarray(rows.side).astype(str),
+            np.asarray(rows.theta_s_deg, float), np.asarray(rows.phi_s_deg, float))
+
+
 def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | None, rows: Any,
                   solver: PlateSolver | None = None, where: str = "recording",
                   back: BsdfTable | None = None) -> np.ndarray:
@@ -692,12 +699,7 @@ def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | Non
     """
     check_rows(model, rows, where)
     solver = solver or PlateSolver(model, inside, outside, back)
-    wl = np.asarray(rows.wavelength_nm, float)
-    ti = np.asarray(rows.theta_i_deg, float)
-    pi = np.asarray(rows.phi_i_deg, float)
-    side = np.asarray(rows.side).astype(str)
-    ts = np.asarray(rows.theta_s_deg, float)
-    ps = np.asarray(rows.phi_s_deg, float)
+    wl, ti, pi, side, ts, ps = row_arrays(rows)
     factor = 1.0
     if model.tilt_deg:
         ti, pi = to_sample_frame(ti, pi, np.full(ti.shape, "R"), model.tilt_deg)

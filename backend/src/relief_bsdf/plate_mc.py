@@ -31,7 +31,7 @@ import numpy as np
 
 from .errors import InputError
 from .optics import mueller_interface
-from .plate import SOURCE_STOKES, PlateModel, check_rows, rot_y
+from .plate import SOURCE_STOKES, PlateModel, check_rows, rot_y, row_arrays
 from .relief import Relief
 
 
@@ -189,12 +189,7 @@ def simulate_rows_mc(relief: Relief, model: PlateModel, rows: Any, photons: int 
     if photons < 1:
         raise InputError("photons", f"need at least one photon, got {photons}")
     tracer = tracer or make_tracer(relief, model.rough_face)
-    wl = np.asarray(rows.wavelength_nm, float)
-    ti = np.asarray(rows.theta_i_deg, float)
-    pi = np.asarray(rows.phi_i_deg, float)
-    side = np.asarray(rows.side).astype(str)
-    ts = np.asarray(rows.theta_s_deg, float)
-    ps = np.asarray(rows.phi_s_deg, float)
+    wl, ti, pi, side, ts, ps = row_arrays(rows)
     val = np.zeros(wl.size)
     err = np.zeros(wl.size)
     info = {"lost_fraction": {}}

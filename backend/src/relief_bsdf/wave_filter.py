@@ -140,7 +140,5 @@ def cell_average(grid: DcosGrid, cells: CellSamples, extra=None) -> np.ndarray:
 
 
 def check_sides(material, request, method: str) -> None:
-    """RequestError when light is asked to arrive from inside an absorbing (metal) material."""
-    if "inside" in request.incident_from and material.inside.is_absorbing(request.wavelengths_nm):
-        raise RequestError(f"{method}: light cannot arrive from inside an absorbing material (k > 0); "
-                           "use --from outside", "--from")
+    """RequestError for an unphysical index, or light asked to arrive from inside an absorbing material."""
+    material.check_incidence(request.wavelengths_nm, request.incident_from, method)

@@ -286,14 +286,7 @@ def check_request(relief, material, request) -> dict:
     if relief is None:
         raise RequestError("the normals method needs a relief", "RELIEF")
     relief.require_valid()
-    for wl in request.wavelengths_nm:
-        for side in request.incident_from:
-            n1, n2 = material.n_pair(wl, side)
-            for v in (n1, n2):
-                if not (np.isfinite(v) and np.real(v) > 0 and np.imag(v) >= 0):
-                    raise RequestError(f"unphysical refractive index {v} at {wl:g} nm", "--n/--cauchy")
-            if np.imag(n1) > 0:
-                raise RequestError("light cannot arrive from inside an absorbing medium (complex index)", "--from")
+    material.check_incidence(request.wavelengths_nm, request.incident_from)
     return opts
 
 

@@ -89,8 +89,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import os
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -475,7 +473,6 @@ class ReliefTracer:
         complex_idx = np.iscomplexobj(n_above) or np.iscomplexobj(n_below)
         absorbing_below = complex_idx and np.imag(n_below) > 0
         hx, hy = self.hx, self.hy
-        eps = self.eps
         z_top, z_bot = self.z_top, self.z_bot
         segments = 0
         scene = self.scene
@@ -1202,14 +1199,7 @@ def check_request(relief: Relief, material, request) -> dict:
     if facets < n_cells:
         raise RequestError(f"relief {where} is too coarse for the request: its {facets} facets cannot fill "
                            f"{n_cells} scatter cells; use a larger map or coarser theta_s/phi_s cells", where)
-    for wl in request.wavelengths_nm:
-        for side in request.incident_from:
-            n1, n2 = material.n_pair(wl, side)
-            for v in (n1, n2):
-                if not (np.isfinite(v) and np.real(v) > 0 and np.imag(v) >= 0):
-                    raise RequestError(f"unphysical refractive index {v} at {wl:g} nm", "--n/--cauchy")
-            if np.imag(n1) > 0:
-                raise RequestError("light cannot arrive from inside an absorbing medium (complex index)", "--from")
+    material.check_incidence(request.wavelengths_nm, request.incident_from)
     return opts
 
 

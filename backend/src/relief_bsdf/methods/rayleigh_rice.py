@@ -68,7 +68,6 @@ import numpy as np
 from scipy import ndimage
 
 from ..bsdf import BsdfTable
-from ..errors import RequestError
 from ..optics import Material, cos_transmitted, fresnel_amplitudes, mueller_interface
 from ..parallel import map_tasks
 from ..wave_filter import cell_samples, check_sides, smoothing_width_dcos
