@@ -363,16 +363,11 @@ class RELIEF_OT_diagnose(JobOperator, bpy.types.Operator):
     @staticmethod
     def work(p, progress):
         diag = _require("relief_bsdf.diagnose", "diagnose")
-        res = diag.diagnose(p["sample"], p["out"], progress=progress)
-        path = Path(p["out"]) / "diagnosis.json"
-        if not isinstance(res, dict) and path.is_file():
-            res = json.loads(path.read_text())
-        return res
+        return diag.diagnose(p["sample"], p["out"], progress=progress)      # the diagnosis.json document
 
     def finish(self, context, res):
-        if isinstance(res, dict):
-            self.report({"INFO"}, f"Diagnosis: {res.get('effect')} (rms {res.get('rms_before', float('nan')):.4g} "
-                                  f"-> {res.get('rms_after', float('nan')):.4g}): {res.get('explanation', '')}")
+        self.report({"INFO"}, f"Diagnosis: {res['effect']} (rms {res['rms_before']:.4g} -> {res['rms_after']:.4g}): "
+                              f"{res['explanation']}")
 
 
 # ====================================================================== render

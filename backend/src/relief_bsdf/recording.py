@@ -125,15 +125,20 @@ def _parse_float(text: str, where: str, column: str) -> float:
     return v
 
 
+def _read_bytes(path: Path, what: str) -> bytes:
+    """The file's bytes, or an InputError naming the file ("<what> file not found", ...)."""
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(path, f"{what} file not found") from None
+    except OSError as e:
+        raise InputError(path, f"cannot read {what} file: {e.strerror or e}") from None
+
+
 def read_recording(path: str | Path) -> Recording:
     """Read a recording.csv strictly (see module docstring for every check)."""
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError(path, "recording file not found") from None
-    except OSError as e:
-        raise InputError(path, f"cannot read recording: {e.strerror or e}") from None
+    raw = _read_bytes(path, "recording")
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
@@ -407,12 +412,7 @@ def _sample_from_doc(doc: dict, path: Path, check_files: bool) -> Sample:
 def read_sample(path: str | Path, check_files: bool = True) -> Sample:
     """Read and validate a sample.toml; with `check_files` the relief and recording must exist."""
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError(path, "sample file not found") from None
-    except OSError as e:
-        raise InputError(path, f"cannot read sample file: {e.strerror or e}") from None
+    raw = _read_bytes(path, "sample")
     try:
         doc = tomllib.loads(raw.decode("utf-8"))
     except UnicodeDecodeError:
