@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from relief_bsdf.effects import EFFECTS, PlateForward, RowSet, fit_effect
+from relief_bsdf.effects import EFFECTS, PlateForward, fit_effect
+from relief_bsdf.recording import Recording
 from relief_bsdf.optics import ConstantIndex, fresnel_power
 from relief_bsdf.photon_plate import NormalsFace, PlatePhysics, _hg_cos, beckmann_normals, detect, run_photons
 
@@ -98,7 +99,7 @@ def _small_forward(photons=20000, periodic=True):
                 for t in th:
                     W.append(550.0); TI.append(ti); SD.append(sd); TS.append(t); PS.append(ps)
     n = len(W)
-    rows = RowSet(np.array(W), np.array(TI), np.zeros(n), np.array(SD), np.array(TS), np.array(PS),
+    rows = Recording(np.array(W), np.array(TI), np.zeros(n), np.array(SD), np.array(TS), np.array(PS),
                   np.zeros(n), np.full(n, 0.01))
     return PlateForward(h, 1e-6, 1e-6, periodic, rows, 2.0, ConstantIndex(1.5), 3.0, photons=photons, seed=1)
 
@@ -142,12 +143,12 @@ def test_relief_scale_broadens_and_smoothing_narrows_the_transmitted_lobe():
 def test_fit_recovers_a_background_and_an_absorption():
     fwd = _small_forward()
     truth, _ = fwd.simulate({"absorption_per_mm": 0.25})
-    fwd.rows.value = truth
-    fwd.rows.sigma = 0.02 * truth + 1e-3
+    fwd.rows.bsdf_sr = truth
+    fwd.rows.sigma_sr = 0.02 * truth + 1e-3
     f = fit_effect(fwd, "bulk_absorption")
     assert f["parameters"]["absorption_per_mm"] == pytest.approx(0.25, abs=0.01)
     truth2, _ = fwd.simulate({"background_per_sr": 0.05})
-    fwd.rows.value = truth2
+    fwd.rows.bsdf_sr = truth2
     f = fit_effect(fwd, "stray_light")
     assert f["parameters"]["background_per_sr"] == pytest.approx(0.05, abs=0.005)
 
@@ -167,7 +168,7 @@ def test_chi2_treats_zero_readings_as_clipped_and_is_unbiased_for_a_background()
     rng = np.random.default_rng(8)
     n = 4000
     y = np.maximum(0.002 * rng.normal(size=n), 0.0)
-    rows = RowSet(*(np.zeros(n),) * 3, np.array(["R"] * n), *(np.zeros(n),) * 2, y, np.full(n, 0.002))
+    rows = Recording(*(np.zeros(n),) * 3, np.array(["R"] * n), *(np.zeros(n),) * 2, y, np.full(n, 0.002))
     bs = np.linspace(-0.001, 0.001, 41)
     c = [chi2(rows, np.full(n, b), np.zeros(n)) for b in bs]
     assert abs(bs[int(np.argmin(c))]) <= 1e-4
@@ -187,7 +188,7 @@ def _forward_on(h, photons=20000, tis=(0.0, 40.0, 70.0), dx_m=1e-6):
                 for t in th:
                     W.append(550.0); TI.append(ti); SD.append(sd); TS.append(t); PS.append(ps)
     n = len(W)
-    rows = RowSet(np.array(W), np.array(TI), np.zeros(n), np.array(SD), np.array(TS), np.array(PS),
+    rows = Recording(np.array(W), np.array(TI), np.zeros(n), np.array(SD), np.array(TS), np.array(PS),
                   np.zeros(n), np.full(n, 0.01))
     return PlateForward(h, dx_m, dx_m, True, rows, 2.0, ConstantIndex(1.5), 3.0, photons=photons, seed=3)
 
@@ -199,8 +200,8 @@ def _names_it(fwd, truth_params, effect, rivals, noise_rel=0.03):
     truth, _ = fwd.simulate(truth_params)
     rng = np.random.default_rng(11)
     sig = noise_rel * np.abs(truth) + 2e-3
-    fwd.rows.value = np.maximum(truth + sig * rng.normal(size=truth.size), 0.0)
-    fwd.rows.sigma = sig
+    fwd.rows.bsdf_sr = np.maximum(truth + sig * rng.normal(size=truth.size), 0.0)
+    fwd.rows.sigma_sr = sig
     v0, s0 = fwd.simulate({})
     fits = [fit_effect(fwd, e) for e in (effect, *rivals)]
     name, cands, _ = select(chi2(fwd.rows, v0, s0), len(fwd.rows), fits)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from relief_bsdf.effects import RowSet
+from relief_bsdf.recording import Recording
 from relief_bsdf.mismatch import classify, locate, residual_z
 
 
@@ -15,7 +15,7 @@ def _rows(value, sigma, theta_i=(0.0, 40.0), sides=("R", "T")):
                 for t in th:
                     W.append(550.0); TI.append(ti); SD.append(sd); TS.append(t); PS.append(ps)
     n = len(W)
-    rs = RowSet(np.array(W), np.array(TI), np.zeros(n), np.array(SD), np.array(TS), np.array(PS),
+    rs = Recording(np.array(W), np.array(TI), np.zeros(n), np.array(SD), np.array(TS), np.array(PS),
                 np.zeros(n), np.full(n, sigma))
     return rs
 
@@ -29,7 +29,7 @@ def _lobe(rows, centre_shift=0.0, width=8.0, level=1.0):
 def test_offset_is_recognised_as_offset():
     rows = _rows(0, 0.002)
     m = _lobe(rows)
-    rows.value = m + 0.02
+    rows.bsdf_sr = m + 0.02
     shapes = classify(rows, m)
     assert shapes[0]["shape"] == "offset"
     assert shapes[0]["explained"] > 0.95
@@ -39,9 +39,9 @@ def test_offset_is_recognised_as_offset():
 def test_shift_and_broadening_are_told_apart():
     rows = _rows(0, 0.002)
     m = _lobe(rows)
-    rows.value = _lobe(rows, centre_shift=0.6)
+    rows.bsdf_sr = _lobe(rows, centre_shift=0.6)
     assert classify(rows, m)[0]["shape"] == "shift"
-    rows.value = _lobe(rows, width=8.6, level=8.0 / 8.6)
+    rows.bsdf_sr = _lobe(rows, width=8.6, level=8.0 / 8.6)
     assert classify(rows, m)[0]["shape"] in ("broadening",)
 
 
@@ -49,17 +49,17 @@ def test_path_deficit_grows_with_glass_path():
     rows = _rows(0, 0.002, sides=("T",))
     m = _lobe(rows)
     sin_g = np.sin(np.radians(rows.theta_s_deg)) / 1.5
-    rows.value = m * np.exp(-0.1 / np.sqrt(1 - sin_g**2))
+    rows.bsdf_sr = m * np.exp(-0.1 / np.sqrt(1 - sin_g**2))
     assert classify(rows, m, n_glass=1.5)[0]["shape"] == "path_deficit"
 
 
 def test_locate_finds_the_region_and_shares_sum_to_at_most_one():
     rows = _rows(0, 0.01)
     m = _lobe(rows)
-    rows.value = m.copy()
+    rows.bsdf_sr = m.copy()
     hit = (rows.side == "T") & (rows.theta_i_deg == 40.0) & (rows.phi_s_deg == 180.0) & \
           (rows.theta_s_deg >= 30) & (rows.theta_s_deg <= 50)
-    rows.value[hit] += 0.2
+    rows.bsdf_sr[hit] += 0.2
     regs = locate(rows, m)
     assert regs[0]["side"] == "T" and regs[0]["theta_i_deg"] == 40.0 and regs[0]["phi_s_deg"] == 180.0
     assert regs[0]["theta_s_deg"] == [30.0, 50.0]
@@ -72,7 +72,7 @@ def test_pure_noise_has_no_dominant_region():
     rng = np.random.default_rng(3)
     rows = _rows(0, 0.01)
     m = _lobe(rows)
-    rows.value = m + 0.01 * rng.normal(size=m.size)
+    rows.bsdf_sr = m + 0.01 * rng.normal(size=m.size)
     z = residual_z(rows, m)
     assert abs(np.mean(z**2) - 1) < 0.2
     regs = locate(rows, m, threshold=2.0)

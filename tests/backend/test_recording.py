@@ -110,6 +110,22 @@ def test_missing_and_binary(tmp_path):
         read_recording(p)
 
 
+def test_sigma_fallback_fills_only_unknown_sigmas(tmp_path):
+    """Unknown sigma -> sqrt((3 % of the value)^2 + floor^2), floor = 1e-3 of the peak; known kept."""
+    rec = read_recording(write(tmp_path, ["# relief-recording/1", HEADER, *GOOD_ROWS]))
+    out = rec.with_sigma_fallback()
+    assert np.isnan(rec.sigma_sr[1]) and np.isnan(rec.sigma_sr[3])      # the original is not modified
+    assert out.sigma_sr[0] == 0.3 and out.sigma_sr[2] == 0.01
+    floor = 1e-3 * 25.0
+    assert out.sigma_sr[1] == pytest.approx(np.hypot(0.03 * 0.02, floor), rel=1e-12)
+    assert out.sigma_sr[3] == pytest.approx(np.hypot(0.03 * 25.0, floor), rel=1e-12)
+    assert np.array_equal(out.bsdf_sr, rec.bsdf_sr) and np.array_equal(out.side, rec.side)
+    assert out.path == rec.path and out.comments == rec.comments
+    # zero or negative sigma counts as unknown too; an all-zero recording gets the absolute floor
+    zero = rec.with_values(np.zeros(len(rec)), np.zeros(len(rec))).with_sigma_fallback()
+    assert np.all(zero.sigma_sr == 1e-6)
+
+
 def test_writer_refuses_invalid():
     rec = Recording([550, 550], [0, 0], [0, 0], ["R", "R"], [10, 10], [0, 0], [1, 2], [np.nan, np.nan])
     with pytest.raises(ValueError, match="duplicate"):

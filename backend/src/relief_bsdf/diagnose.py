@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import write_text_atomic
-from .effects import EFFECTS, SOURCE_Q, PlateForward, RowSet, chi2, fit_effect
+from .effects import EFFECTS, SOURCE_Q, PlateForward, chi2, fit_effect
 from .errors import InputError
 from .mismatch import classify, locate, residual_z
 from .parallel import map_tasks
@@ -115,7 +115,7 @@ def build_forward(sample_path: str | Path, photons: int = 100_000, seed: int = 0
     rec = read_recording(sample.recording_path)
     if len(rec) < 4:
         raise InputError(sample.recording_path, f"only {len(rec)} rows; a diagnosis needs a scan")
-    rows = RowSet.from_recording(rec)
+    rows = rec.with_sigma_fallback()   # unknown sigma: documented fallback (recording.py)
     idx = sample.plate.index
     sample.material.check(np.unique(rows.wavelength_nm), str(sample.path))
     fwd = PlateForward(heights_m=relief.heights_m, dx_m=relief.dx_m, dy_m=relief.dy_m, periodic=periodic,
@@ -267,7 +267,7 @@ def write_report(path: Path, rows, v0, s0, v1, s1, result: dict) -> Path:
         x = np.where(np.abs(((rows.phi_s_deg[sel] + 90) % 360) - 90) < 90, 1, -1) * rows.theta_s_deg[sel]
         o = np.argsort(x)
         sel, x = sel[o], x[o]
-        ax.errorbar(x, rows.value[sel], rows.sigma[sel], fmt=".", ms=3, color="k", label="recording")
+        ax.errorbar(x, rows.bsdf_sr[sel], rows.sigma_sr[sel], fmt=".", ms=3, color="k", label="recording")
         ax.plot(x, v0[sel], "-", color="tab:red", label="baseline")
         ax.plot(x, v1[sel], "-", color="tab:blue", label=result["effect"])
         ax.set_yscale("symlog", linthresh=1e-2)

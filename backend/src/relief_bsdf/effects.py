@@ -68,6 +68,7 @@ from scipy import optimize
 
 from .parallel import task_rng
 from .photon_plate import NormalsFace, PlatePhysics, detect, run_photons
+from .recording import Recording
 
 TRANSPORT_KEYS = ("scatter_per_mm", "hg_g", "back_alpha", "tilt_deg", "height_scale", "filter_sigma_um",
                   "cauchy_B_nm2")
@@ -118,34 +119,6 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
 
 
 @dataclass
-class RowSet:
-    """The rows to simulate (recording geometry) with measured values and sigmas."""
-
-    wavelength_nm: np.ndarray
-    theta_i_deg: np.ndarray
-    phi_i_deg: np.ndarray
-    side: np.ndarray
-    theta_s_deg: np.ndarray
-    phi_s_deg: np.ndarray
-    value: np.ndarray
-    sigma: np.ndarray
-
-    @staticmethod
-    def from_recording(rec) -> "RowSet":
-        sig = np.asarray(rec.sigma_sr, float).copy()
-        bad = ~np.isfinite(sig) | (sig <= 0)
-        if bad.any():  # unknown sigma: 3 % of the value plus a floor (documented fallback)
-            y = np.abs(rec.bsdf_sr)
-            floor = max(1e-3 * float(np.max(y)) if y.size else 1e-3, 1e-6)
-            sig[bad] = np.sqrt((0.03 * y[bad]) ** 2 + floor**2)
-        return RowSet(rec.wavelength_nm, rec.theta_i_deg, rec.phi_i_deg, rec.side, rec.theta_s_deg,
-                      rec.phi_s_deg, np.asarray(rec.bsdf_sr, float), sig)
-
-    def __len__(self) -> int:
-        return len(self.value)
-
-
-@dataclass
 class PlateForward:
     """Forward model of the recording for given effect parameters (see module docstring)."""
 
@@ -153,7 +126,7 @@ class PlateForward:
     dx_m: float
     dy_m: float
     periodic: bool
-    rows: RowSet
+    rows: Recording                  # geometry, bsdf_sr, sigma_sr (finite: Recording.with_sigma_fallback())
     thickness_mm: float
     index: object                    # IndexModel of the glass (stated)
     half_angle_deg: float
@@ -295,7 +268,7 @@ EFFECT_NEUTRAL = {"scatter_per_mm": 0.0, "hg_g": 0.0, "back_alpha": 0.0, "tilt_d
                   "interreflection_weight": 0.0, "coherent_scale": 0.0, "coherence_length_um": 0.0}
 
 
-def chi2(rows: RowSet, model: np.ndarray, model_sigma: np.ndarray) -> float:
+def chi2(rows: Recording, model: np.ndarray, model_sigma: np.ndarray) -> float:
     """Noise-weighted misfit, s^2 = sigma_recording^2 + sigma_model^2.
 
     Rows with a measured value > 0 contribute ((y - m) / s)^2.  recording.csv holds no
@@ -304,8 +277,8 @@ def chi2(rows: RowSet, model: np.ndarray, model_sigma: np.ndarray) -> float:
     log-probability of reading <= 0, shifted so that m = 0 costs nothing (as z^2 would).
     Without this, clipped noise reads as a positive background.
     """
-    s = np.sqrt(rows.sigma**2 + model_sigma**2)
-    y = rows.value
+    s = np.sqrt(rows.sigma_sr**2 + model_sigma**2)
+    y = rows.bsdf_sr
     cens = y <= 0
     z2 = ((y - model) / s) ** 2
     if cens.any():
@@ -346,8 +319,8 @@ def fit_effect(model: PlateForward, effect: str, progress=None) -> dict:
     pars: dict = {}
     if effect == "stray_light":     # linear in the background: weighted mean as a start, then the censored chi2
         v0, s0 = model.simulate(base)
-        w = 1.0 / (model.rows.sigma**2 + s0**2)
-        b0 = max(0.0, float(np.sum(w * (model.rows.value - v0)) / np.sum(w)))
+        w = 1.0 / (model.rows.sigma_sr**2 + s0**2)
+        b0 = max(0.0, float(np.sum(w * (model.rows.bsdf_sr - v0)) / np.sum(w)))
         r = optimize.minimize_scalar(lambda b: run({"background_per_sr": b})[0], bounds=(0.0, max(3 * b0, 1e-3)),
                                      method="bounded", options={"maxiter": 12})
         pars = {"background_per_sr": float(r.x) if r.fun < run({"background_per_sr": 0.0})[0] else 0.0}

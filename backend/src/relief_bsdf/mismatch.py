@@ -1,6 +1,7 @@
 """Where a simulation misses a recording, and what the miss looks like.
 
-Input: recording rows (geometry, measured values y, sigmas), simulated values m and the
+Input: recording rows (a `recording.Recording`: geometry, measured values y = bsdf_sr and
+sigmas sigma_sr, all finite, see `Recording.with_sigma_fallback`), simulated values m and the
 model's own sigma.  Everything works on the noise-normalised residual
 z = (y - m) / s with s^2 = sigma_recording^2 + sigma_model^2, so a region "matters" when it
 carries a large share of chi^2 = sum z^2, not when its raw values are large.
@@ -34,7 +35,7 @@ SHAPES = ("offset", "gain", "shift", "broadening", "path_deficit", "asymmetry", 
 
 def _scans(rows) -> dict:
     keys = {}
-    for k in range(len(rows.value)):
+    for k in range(len(rows.bsdf_sr)):
         key = (float(rows.wavelength_nm[k]), str(rows.side[k]), float(rows.theta_i_deg[k]),
                float(rows.phi_i_deg[k]), float(rows.phi_s_deg[k]))
         keys.setdefault(key, []).append(k)
@@ -48,7 +49,7 @@ def _scans(rows) -> dict:
 def residual_z(rows, model: np.ndarray, model_sigma: np.ndarray | None = None) -> np.ndarray:
     """Noise-normalised residual (y - m) / sqrt(sigma^2 + sigma_model^2)."""
     ms = np.zeros_like(model) if model_sigma is None else model_sigma
-    return (rows.value - model) / np.sqrt(rows.sigma**2 + ms**2)
+    return (rows.bsdf_sr - model) / np.sqrt(rows.sigma_sr**2 + ms**2)
 
 
 def templates(rows, model: np.ndarray, n_glass: float = 1.5) -> dict[str, np.ndarray]:
@@ -81,8 +82,8 @@ def templates(rows, model: np.ndarray, n_glass: float = 1.5) -> dict[str, np.nda
 def classify(rows, model: np.ndarray, model_sigma: np.ndarray | None = None, n_glass: float = 1.5,
              subset: np.ndarray | None = None) -> list[dict]:
     """Explained chi^2 fraction of each shape template (best first), on `subset` rows if given."""
-    s = np.sqrt(rows.sigma**2 + (0 if model_sigma is None else model_sigma) ** 2)
-    r = rows.value - model
+    s = np.sqrt(rows.sigma_sr**2 + (0 if model_sigma is None else model_sigma) ** 2)
+    r = rows.bsdf_sr - model
     sel = np.arange(len(r)) if subset is None else np.asarray(subset)
     c0 = float(np.sum((r[sel] / s[sel]) ** 2))
     out = []

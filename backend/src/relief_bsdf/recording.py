@@ -40,6 +40,10 @@ RECORDING_MAGIC = "# relief-recording/1"
 RECORDING_COLUMNS = ("wavelength_nm", "theta_i_deg", "phi_i_deg", "side",
                      "theta_s_deg", "phi_s_deg", "bsdf_sr", "sigma_sr")
 SAMPLE_FORMAT = "relief-sample/1"
+# unknown sigma_sr -> Recording.with_sigma_fallback(): 3 % of the value plus a floor
+SIGMA_FALLBACK_REL = 0.03
+SIGMA_FALLBACK_FLOOR_REL = 1e-3
+SIGMA_FALLBACK_FLOOR_MIN_SR = 1e-6
 
 
 # ====================================================================== recording
@@ -98,6 +102,31 @@ class Recording:
         fields = {name: getattr(self, name).copy() for name in self._FLOAT_FIELDS + ("side",)}
         fields.update(bsdf_sr=b, sigma_sr=s)
         return Recording(**fields, path=None, comments=list(self.comments))
+
+    def with_sigma_fallback(self, rel: float = SIGMA_FALLBACK_REL,
+                            floor_rel: float = SIGMA_FALLBACK_FLOOR_REL,
+                            floor_min_sr: float = SIGMA_FALLBACK_FLOOR_MIN_SR) -> "Recording":
+        """Same rows, every unknown sigma (NaN, or <= 0) replaced by the documented fallback.
+
+        A fit or a diagnosis weights each row by 1 / sigma^2, so it needs a finite,
+        positive sigma everywhere.  Where the recording gives none, the fallback is a
+        relative error plus a floor, added in quadrature:
+            sigma = sqrt((rel |bsdf|)^2 + floor^2),
+            floor = max(floor_rel * max |bsdf| (over all rows), floor_min_sr)
+        (defaults 3 %, 1e-3 of the peak, 1e-6 1/sr: a typical goniophotometer's
+        relative repeatability, and a dark-signal floor so zero readings keep a finite
+        weight).  Known sigmas are kept unchanged; the result is a new Recording (same
+        path and comments), this one is not modified.
+        """
+        sig = np.asarray(self.sigma_sr, float).copy()
+        bad = ~np.isfinite(sig) | (sig <= 0)
+        if bad.any():
+            y = np.abs(self.bsdf_sr)
+            floor = max(floor_rel * float(np.max(y)) if y.size else floor_rel, floor_min_sr)
+            sig[bad] = np.sqrt((rel * y[bad]) ** 2 + floor**2)
+        fields = {name: getattr(self, name).copy() for name in self._FLOAT_FIELDS + ("side",)}
+        fields["sigma_sr"] = sig
+        return Recording(**fields, path=self.path, comments=list(self.comments))
 
     # small conveniences for summaries
     def incidences(self) -> list[tuple[float, float]]:
