@@ -173,3 +173,60 @@ def test_console_script_subprocess(tmp_path):
     assert r.periodic and r.shape == (128, 128)
     p = subprocess.run([str(exe), "info", str(tmp_path / "missing.x3p")], capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and "missing.x3p" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_synth_dots_geometry_read_back(tmp_path, capsys):
+    """--kind dots: the written file holds caps of the requested height covering the requested area fraction."""
+    out = tmp_path / "dots.npz"
+    # tile 256 um; fill 0.2 with a = 8 um asks for a spacing of 31.7 um -> 8 x 8 dots at 32 um (fill 0.196)
+    rc, o, e = run_cli(capsys, "synth", "--kind", "dots", "--size", 512, "--pitch-um", 0.5, "--dot-radius-um", 8,
+                       "--dot-height-um", 2, "--fill-factor", 0.2, "--jitter", 0.3, "--seed", 4, "-o", out)
+    assert rc == 0, e
+    assert "64 cap dots" in o and "fill factor" in o
+    r = read_relief(out)
+    h = r.heights_m
+    assert r.periodic and r.shape == (512, 512) and r.dx_m == pytest.approx(0.5e-6)
+    assert h.min() == 0.0 and h.max() == pytest.approx(2e-6, rel=0.02)
+    assert (h > 0).mean() == pytest.approx(0.2, rel=0.05)
+    assert (h > 0).mean() == pytest.approx(64 * np.pi * 8.0**2 / 256.0**2, rel=0.03)   # 64 caps of radius a
+    # spherical-cap volume pi h (3 a^2 + h^2) / 6 per dot
+    vol = h.sum() * r.dx_m * r.dy_m
+    assert vol == pytest.approx(64 * np.pi * 2e-6 * (3 * 8e-6**2 + 2e-6**2) / 6, rel=0.02)
+
+    # pits with a Gaussian profile at an explicit spacing
+    out2 = tmp_path / "pits.npz"
+    # (jitter 0: dot centres sit 0.25 um from the nearest pixel centres, peak sampled at exp(-1/288) = 0.9965)
+    rc, o, e = run_cli(capsys, "synth", "--kind", "dots", "--size", 512, "--pitch-um", 0.5, "--dot-radius-um", 6,
+                       "--dot-height-um", -1.5, "--dot-pitch-um", 64, "--dot-shape", "gaussian", "--jitter", 0,
+                       "-o", out2)
+    assert rc == 0, e
+    h2 = read_relief(out2).heights_m
+    assert h2.max() == 0.0 and h2.min() == pytest.approx(-1.5e-6, rel=0.02)
+    assert (h2 < 0).mean() == pytest.approx(16 * np.pi * 12.0**2 / 256.0**2, rel=0.05)  # cut at 2a
+
+
+@pytest.mark.parametrize("extra,option", [
+    ([], "--dot-radius-um"),                                                       # missing radius
+    (["--dot-radius-um", 8, "--dot-height-um", 2], "--dot-pitch-um"),              # neither spacing nor fill
+    (["--dot-radius-um", 8, "--dot-height-um", 2, "--dot-pitch-um", 32, "--fill-factor", 0.2], "--dot-pitch-um"),
+    (["--dot-radius-um", 8, "--dot-height-um", 2, "--fill-factor", 1.5], "--fill-factor"),
+    (["--dot-radius-um", 8, "--dot-height-um", 2, "--fill-factor", 0.7], "--dot-radius-um"),   # dots overlap
+    (["--dot-radius-um", 8, "--dot-height-um", 0, "--dot-pitch-um", 32], "--dot-height-um"),
+    (["--dot-radius-um", 8, "--dot-height-um", 2, "--dot-pitch-um", 32, "--jitter", 1.2], "--jitter"),
+    (["--dot-radius-um", 0.5, "--dot-height-um", 2, "--dot-pitch-um", 32], "--dot-radius-um"),  # under 2 px
+    (["--dot-radius-um", 8, "--dot-height-um", 2, "--dot-pitch-um", 32, "--rms-height-um", 0.1], "--rms-height-um"),
+])
+def test_synth_dots_bad_options_exit_2_naming_the_option(tmp_path, capsys, extra, option):
+    out = tmp_path / "d.npz"
+    rc, o, e = run_cli(capsys, "synth", "--kind", "dots", "--size", 256, "--pitch-um", 0.5, *extra, "-o", out)
+    assert rc == 2 and option in e and len(e.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_synth_random_kind_rejects_dot_options_and_needs_its_own(tmp_path, capsys):
+    rc, o, e = run_cli(capsys, "synth", "--kind", "gaussian", "--rms-height-um", 0.05, "--corr-length-um", 4,
+                       "--size", 64, "--pitch-um", 0.5, "--dot-radius-um", 3, "-o", tmp_path / "g.npz")
+    assert rc == 2 and "--dot-radius-um" in e and "--kind dots" in e
+    rc, o, e = run_cli(capsys, "synth", "--corr-length-um", 4, "--size", 64, "--pitch-um", 0.5, "-o", tmp_path / "g.npz")
+    assert rc == 2 and "--rms-height-um" in e and "required" in e
+    assert not (tmp_path / "g.npz").exists()
