@@ -137,3 +137,60 @@ def test_polarized_request_values(relief):
     np.testing.assert_allclose(0.5 * (s.values_per_sr + p.values_per_sr), u.values_per_sr, rtol=1e-12)
     assert s.specular_R[0, 0, 0] > p.specular_R[0, 0, 0]            # R_s > R_p at 40 deg
     assert s.hemispherical()["diffuse_R"][0, 0, 0] > p.hemispherical()["diffuse_R"][0, 0, 0]
+
+
+# ------------------------------------------------------------------ regime of validity
+
+def _rr_tables(rms_m, incident_from=("outside",), wavelengths=(450.0, 650.0), corr_m=CORR):
+    small = gaussian_relief(256, 0.1e-6, rms_m, corr_m, seed=5)
+    req = Request(wavelengths_nm=wavelengths, theta_i_deg=(0.0, 60.0), incident_from=incident_from,
+                  theta_s_edges_deg=tuple(np.arange(0.0, 91.0, 10.0)), phi_s_edges_deg=PHI_EDGES)
+    return small, reconstruct(small, MAT, req, "rayleigh-rice")
+
+
+def test_validity_metadata_inside_the_regime_and_no_warning():
+    import warnings
+    from relief_bsdf.stats import relief_stats
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")            # any warning fails the test
+        small, (tab,) = _rr_tables(5e-9)
+    v = tab.metadata["validity"]
+    st = relief_stats(small)
+    assert v["valid"] and v["rayleigh_ok"] and v["slope_ok"]
+    assert v["rms_height_m"] == pytest.approx(st.rms_height_m, rel=1e-9)
+    assert v["rms_slope"] == pytest.approx(st.rms_slope, rel=1e-9)
+    # g = (4 pi n1 sigma cos theta_i / lambda)^2 per [wavelength][incidence], from outside n1 = 1
+    g = np.array(v["rayleigh_parameter"])
+    expect = (4 * np.pi * 5e-9 * np.cos(np.radians([[0.0, 60.0]])) / (np.array([[450e-9], [650e-9]]))) ** 2
+    np.testing.assert_allclose(g, expect, rtol=1e-9)
+    assert g[0, 0] > g[1, 0] and g[0, 0] == pytest.approx(4 * g[0, 1])      # bluer and more normal is worse
+    assert tab.metadata["rayleigh_parameter_max"] == pytest.approx(g.max())
+    assert np.all(v["valid_per_incidence"])
+
+
+def test_validity_flags_the_pairs_outside_the_regime_and_warns():
+    # sigma = 12 nm: g = 0.112 at 450 nm, normal incidence (>= 0.1); 0.028 at 60 deg; 0.054 at 650 nm
+    with pytest.warns(RuntimeWarning, match=r"outside its regime.*450 nm, theta_i = 0 deg") as rec:
+        small, (tab,) = _rr_tables(12e-9)
+    assert len(rec) == 1 and "1 of 4" in str(rec[0].message)
+    v = tab.metadata["validity"]
+    assert not v["valid"] and not v["rayleigh_ok"] and v["slope_ok"]
+    assert v["valid_per_incidence"] == [[False, True], [True, True]]
+    assert v["rayleigh_parameter"][0][0] == pytest.approx((4 * np.pi * v["rms_height_m"] / 450e-9) ** 2)
+    # the same relief lit from inside the glass (n1 = 1.5): the phase variance is 1.5^2 larger
+    with pytest.warns(RuntimeWarning, match="light from inside"):
+        _, (ins,) = _rr_tables(12e-9, incident_from=("inside",))
+    gi = np.array(ins.metadata["validity"]["rayleigh_parameter"])
+    np.testing.assert_allclose(gi, 2.25 * np.array(v["rayleigh_parameter"]), rtol=1e-9)
+    assert ins.metadata["validity"]["valid_per_incidence"] == [[False, True], [False, True]]
+
+
+def test_validity_flags_steep_slopes():
+    # 3 nm rms over a 30 nm correlation length: tiny Rayleigh parameter (0.005), rms slope 2 s / L = 0.2
+    small = gaussian_relief(256, 5e-9, 3e-9, 30e-9, seed=2)
+    req = Request(wavelengths_nm=(550.0,), theta_i_deg=(0.0,), theta_s_edges_deg=tuple(np.arange(0.0, 91.0, 10.0)),
+                  phi_s_edges_deg=PHI_EDGES)
+    with pytest.warns(RuntimeWarning, match="rms slope"):
+        (tab,) = reconstruct(small, MAT, req, "rayleigh-rice")
+    v = tab.metadata["validity"]
+    assert v["rayleigh_ok"] and not v["slope_ok"] and not v["valid"] and v["rms_slope"] > 0.15

@@ -45,7 +45,13 @@ exp(-(2 pi sigma (n1 cos t_i - n2 cos t_t) / lambda)^2) (first-order energy book
 Stover eq. 2.xx / Beckmann), so R + T close to 1 is a genuine check, not a definition.
 
 Regime of validity: (4 pi sigma cos t_i / lambda)^2 << 1 (sigma << lambda/10) and slopes
-small; any lateral scale.  No multiple scattering (second order) terms.
+small; any lateral scale.  No multiple scattering (second order) terms.  Every table carries
+the check (`regime_check`) in metadata["validity"]: the Rayleigh parameter
+g = (4 pi n1 sigma cos t_i / lambda0)^2 per wavelength and incidence (n1 the index of the
+light's side, sigma the rms height of the levelled relief), the rms slope m, and booleans
+for g < 0.1 (Stover, *Optical Scattering*, sec. 4: the neglected second order is ~ g; 0.1
+keeps it near 5 %) and m < 0.15 -- the limits `methods/auto.py` applies.  When a table falls
+outside them a RuntimeWarning (warnings module) names the worst wavelength and incidence.
 
 PSD estimate (`estimate_psd`): periodogram |FFT(h w)|^2 dx dy / sum(w^2) after levelling
 (plane; mean only for periodic reliefs), w = 1 for periodic reliefs and a 2-D Hann window
@@ -62,6 +68,7 @@ default True: fill mueller_per_sr).
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -263,6 +270,68 @@ def rr_bsdf(theta_i, phi_i, theta_s, phi_s, side: str, n1, n2, wavelength_m: flo
     return rr_mueller(theta_i, phi_i, theta_s, phi_s, side, n1, n2, wavelength_m, psd)[..., 0, 0]
 
 
+# ------------------------------------------------------------------ regime of validity
+
+RAYLEIGH_LIMIT = 0.1      # g = (4 pi n1 sigma cos t_i / lambda0)^2 below this (module doc)
+SLOPE_LIMIT = 0.15        # rms slope magnitude below this
+
+
+def rayleigh_parameter(sigma_m: float, n1, theta_i_deg, wavelength_nm) -> np.ndarray:
+    """g = (4 pi n1 sigma cos t_i / lambda0)^2: the phase variance of the specular reflection
+    (Debye-Waller exponent); broadcast over incidence and wavelength."""
+    ci = np.cos(np.radians(np.asarray(theta_i_deg, float)))
+    return (4 * np.pi * np.real(n1) * sigma_m * ci / (np.asarray(wavelength_nm, float) * 1e-9)) ** 2
+
+
+def relief_sigma_slope(relief) -> tuple[float, float]:
+    """rms height and rms slope magnitude of the levelled relief, valid points only (the
+    figures of relief_bsdf.stats, which methods/auto.py decides on)."""
+    from ..stats import levelled, slopes
+    lv = levelled(relief)
+    z = lv.heights_m[lv.valid]
+    sx, sy = slopes(lv)
+    rms = [float(np.sqrt(np.mean(a[np.isfinite(a)] ** 2))) if np.isfinite(a).any() else 0.0 for a in (sx, sy)]
+    return float(np.sqrt(np.mean(z * z))) if z.size else 0.0, float(np.hypot(*rms))
+
+
+def regime_check(sigma_m: float, rms_slope: float, n1_per_wavelength, wavelengths_nm, theta_i_deg) -> dict:
+    """metadata["validity"] of a table (module doc): Rayleigh parameter [wavelength][incidence],
+    rms slope, the limits and whether each holds."""
+    wl = np.asarray(wavelengths_nm, float)
+    n1 = np.real(np.asarray(n1_per_wavelength, complex))
+    g = rayleigh_parameter(sigma_m, n1[:, None], np.asarray(theta_i_deg, float)[None, :], wl[:, None])
+    ok_g = g < RAYLEIGH_LIMIT
+    ok_m = bool(rms_slope < SLOPE_LIMIT)
+    return {"criterion": f"first-order perturbation: Rayleigh parameter (4 pi n1 sigma cos theta_i / lambda)^2 "
+                         f"< {RAYLEIGH_LIMIT:g} and rms slope < {SLOPE_LIMIT:g}",
+            "rms_height_m": float(sigma_m), "rms_slope": float(rms_slope),
+            "wavelength_nm": wl.tolist(), "theta_i_deg": [float(t) for t in theta_i_deg],
+            "n_incident": n1.tolist(),
+            "rayleigh_parameter": g.tolist(), "rayleigh_parameter_max": float(g.max()),
+            "rayleigh_limit": RAYLEIGH_LIMIT, "slope_limit": SLOPE_LIMIT,
+            "valid_per_incidence": (ok_g & ok_m).tolist(), "rayleigh_ok": bool(ok_g.all()), "slope_ok": ok_m,
+            "valid": bool(ok_g.all() and ok_m)}
+
+
+def _regime_warning(v: dict, incident_from: str) -> str | None:
+    """One line naming the worst case when the table is outside the regime, else None."""
+    if v["valid"]:
+        return None
+    g = np.asarray(v["rayleigh_parameter"])
+    iw, it = np.unravel_index(int(np.argmax(g)), g.shape)
+    parts = []
+    if not v["rayleigh_ok"]:
+        parts.append(f"Rayleigh parameter (4 pi n1 sigma cos theta_i / lambda)^2 = {g[iw, it]:.3g} at "
+                     f"{v['wavelength_nm'][iw]:g} nm, theta_i = {v['theta_i_deg'][it]:g} deg "
+                     f"(>= {RAYLEIGH_LIMIT:g} at {int(np.sum(g >= RAYLEIGH_LIMIT))} of {g.size} wavelength x "
+                     f"incidence pairs; rms height {v['rms_height_m'] * 1e9:.3g} nm)")
+    if not v["slope_ok"]:
+        parts.append(f"rms slope {v['rms_slope']:.3g} (>= {SLOPE_LIMIT:g})")
+    return (f"rayleigh-rice (light from {incident_from}) outside its regime of validity: " + "; ".join(parts)
+            + ". The first-order result is unreliable there (use kirchhoff or ray, or --method auto); "
+              "see metadata['validity'].")
+
+
 # ------------------------------------------------------------------ method
 
 
@@ -315,7 +384,7 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
     cells = cell_samples(request.theta_s_edges_deg, request.phi_s_edges_deg, w, max_per_axis=6)
     psd = estimate_psd(relief, smoothing_df=w / (wls.min() * 1e-9), isotropic=opts.get("psd_isotropic"))
     polarized = bool(opts.get("polarized", True))
-    sigma_ratio = psd.sigma_m / (wls.min() * 1e-9)
+    sigma_rel, slope_rel = relief_sigma_slope(relief)
     frame_n = {}
     for iw, wl in enumerate(wls):
         for fr in request.incident_from:
@@ -326,6 +395,11 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
     W, I, P = len(wls), len(request.theta_i_deg), len(request.phi_i_deg)
     S, A = cells.alpha.shape[:2]
     for fr in request.incident_from:
+        validity = regime_check(sigma_rel, slope_rel, [frame_n[(iw, fr)][0] for iw in range(W)], wls,
+                                request.theta_i_deg)
+        msg = _regime_warning(validity, fr)
+        if msg:
+            warnings.warn(msg, RuntimeWarning, stacklevel=2)
         tasks = [(iw, it, ip, fr) for iw in range(W) for it in range(I) for ip in range(P)]
         res = map_tasks(_task, tasks, ctx, progress=progress, label=f"rayleigh-rice {fr}",
                         backend=opts.get("backend"))
@@ -352,8 +426,8 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
             material=material.describe(), relief=relief.describe(),
             metadata={"psd_estimate": psd.description, "psd_isotropic": psd.isotropic,
                       "rms_height_m": psd.sigma_m, "smoothing_dcos": w,
-                      "rayleigh_parameter_max": float((4 * np.pi * sigma_ratio) ** 2),
-                      "validity": "first-order perturbation: valid for (4 pi sigma cos t / lambda)^2 << 1"})
+                      "rayleigh_parameter_max": validity["rayleigh_parameter_max"],
+                      "validity": validity})
         h = tab.hemispherical()
         tab.lost = np.clip(1.0 - h["R"] - h["T"], 0.0, None)     # absorbed (metal) or beyond the cells
         tables.append(tab)
