@@ -50,7 +50,9 @@ class JobOperator:
     def execute(self, context):
         try:
             payload = self.prepare(context)
-            result = type(self).work(payload, lambda done, total, what="": None)
+            # synchronous runs (blender --background, scripts): progress as log lines on stderr
+            from relief_bsdf.progress import TerminalBar
+            result = type(self).work(payload, TerminalBar(self.job_label))
             self.finish(context, result)
         except Exception as exc:  # noqa: BLE001 - every failure becomes a report
             traceback.print_exc()

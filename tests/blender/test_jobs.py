@@ -120,3 +120,11 @@ def test_execute_runs_synchronously_and_reports_errors():
     op = Job("error")
     assert op.execute(ctx) == {"CANCELLED"}
     assert op.reports[-1][1] == "Test: sample.toml: bad key"
+
+
+def test_execute_logs_progress_lines_off_a_terminal(capsys):
+    # background batches (blender --background) have no status bar: the work's progress goes to stderr
+    assert Job("ok").execute(_context()) == {"FINISHED"}
+    err = capsys.readouterr().err
+    assert "Test" in err and "\r" not in err
+    assert any(line.strip() and "/" in line for line in err.splitlines())
