@@ -181,6 +181,25 @@ def test_x3p_is_valid_iso_container(tmp_path):
     assert t.physical_sizes == pytest.approx(r.size_m, rel=1e-15)
 
 
+
+def test_x3p_float32_data_type(tmp_path):
+    import xml.etree.ElementTree as ET
+
+    import SurfaceTopography as ST
+    r = _relief(nan=True)
+    p = write_relief(tmp_path / "f.x3p", r, x3p_data_type="F")
+    with zipfile.ZipFile(p) as z:
+        assert ET.fromstring(z.read("main.xml")).find("Record1/Axes/CZ/DataType").text == "F"
+        assert len(z.read("bindata/data.bin")) == 4 * r.heights_m.size
+    back = read_relief(p)
+    ok = np.isfinite(r.heights_m)
+    np.testing.assert_array_equal(np.isfinite(back.heights_m), ok)
+    np.testing.assert_allclose(back.heights_m[ok], r.heights_m[ok], rtol=1e-7, atol=0)
+    assert np.array_equal(ST.open_topography(str(p)).topography().heights().T[ok],
+                          r.heights_m.astype(np.float32)[ok])
+    with pytest.raises(InputError, match="x3p_data_type"):
+        write_relief(tmp_path / "g.x3p", r, x3p_data_type="I")
+
 def test_npz_errors(tmp_path):
     p = tmp_path / "a.npz"
     np.savez(p, heights=np.full((8, 8), np.nan), dx=1e-6, dy=1e-6)

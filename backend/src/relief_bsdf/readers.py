@@ -473,11 +473,11 @@ def _provenance(relief: Relief) -> dict:
             "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
 
 
-def write_relief(path: str | Path, relief: Relief) -> Path:
+def write_relief(path: str | Path, relief: Relief, x3p_data_type: str = "D") -> Path:
     """Write a relief (atomically) as .npz, .x3p, .exr or .tif (float32 + sidecar JSON).
 
     .npz keeps float64 heights, pitch, the periodic flag and provenance; .x3p is an
-    ISO 25178-72 container with float64 ("D") heights in metres (NaN = invalid);
+    ISO 25178-72 container with float64 ("D", or "F" = float32 with x3p_data_type) heights in metres (NaN = invalid);
     .exr/.tif store float32 heights in metres, one channel "Z", with the pitch in a
     sidecar ``<name>.json`` (and, for EXR, in the header as relief:dx_m/dy_m).
     """
@@ -489,7 +489,7 @@ def write_relief(path: str | Path, relief: Relief) -> Path:
                             periodic=np.bool_(relief.periodic), info_json=np.str_(json.dumps(_provenance(relief))))
         return write_bytes_atomic(path, buf.getvalue())
     if suffix == ".x3p":
-        return write_bytes_atomic(path, _x3p_bytes(relief))
+        return write_bytes_atomic(path, _x3p_bytes(relief, x3p_data_type))
     if suffix in IMAGE_SUFFIXES:
         return _write_image(path, relief)
     raise InputError(path, f"cannot write {suffix or 'files without suffix'}; "
@@ -523,10 +523,18 @@ def _write_image(path: Path, relief: Relief) -> Path:
     return path
 
 
-def _x3p_bytes(relief: Relief) -> bytes:
-    """ISO 25178-72 X3P: zip with main.xml, bindata/data.bin (float64, x fastest) and md5checksum.hex."""
+_X3P_FLOAT_TYPES = {"D": "<f8", "F": "<f4"}
+
+
+def _x3p_bytes(relief: Relief, data_type: str = "D") -> bytes:
+    """ISO 25178-72 X3P: zip with main.xml, bindata/data.bin (x fastest) and md5checksum.hex.
+
+    data_type "D" (float64, default) or "F" (float32: half the size, 7 significant digits, i.e.
+    sub-picometre on micrometre reliefs)."""
+    if data_type not in _X3P_FLOAT_TYPES:
+        raise InputError("x3p_data_type", f"{data_type!r} is not a float X3P data type (expected 'D' or 'F')")
     ny, nx = relief.shape
-    data = np.ascontiguousarray(relief.heights_m, dtype="<f8").tobytes()   # row y, x fastest
+    data = np.ascontiguousarray(relief.heights_m, dtype=_X3P_FLOAT_TYPES[data_type]).tobytes()   # row y, x fastest
     data_md5 = hashlib.md5(data).hexdigest().upper()
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S+00:00")
     comment = (f"written by relief_bsdf; periodic={'true' if relief.periodic else 'false'}; "
@@ -553,7 +561,7 @@ def _x3p_bytes(relief: Relief) -> bytes:
       </CY>
       <CZ>
         <AxisType>A</AxisType>
-        <DataType>D</DataType>
+        <DataType>{data_type}</DataType>
         <Increment>1.0</Increment>
         <Offset>0.0</Offset>
       </CZ>
