@@ -2,14 +2,19 @@
 
     python scenes/make_demo.py [--out scenes/demo] [--seed 1]
 
+The relief is a matte (anti-glare-like) acrylic surface: Gaussian heights, rms 100 nm,
+correlation length 1 um, 1024 x 1024 points at 0.125 um (a 128 um periodic tile, about 16 000
+independent bumps, so a 1-degree detector cone sees the relief's statistics rather than its
+individual facets); stored as float32 X3P.  At 550 nm its transmission keeps a coherent part
+(Debye-Waller factor ~0.7 at normal incidence) above a ~4-degree lobe; reflection is diffuse.
+
 The "measured" recording is the plate simulated through a *modified* relief (heights x 1.25,
 Gaussian filter sigma 0.3 um) with 3 % multiplicative noise, so `relief fit` on the sample should
 find height_scale ~ 1.25 and filter_sigma_um ~ 0.3.  The plate is simulated with the
-deterministic model (plate.py) and the microfacet+dw boundary method on the fit's default table
-grid (1 deg x 5 deg): this relief's transmission lobe is only ~2 deg wide, so a recording made on
-a finer grid differs from the fit's discretisation by more than the 3 % noise (see the report).
-The Monte-Carlo plate (plate_mc.py) is the independent check of the forward model, on a rougher
-relief whose lobes the tables resolve (tests/backend/test_plate_mc.py).
+deterministic model (plate.py) and the fit's default boundary method (microfacet+dw) on its
+default table grid: a synthetic recording that the fit's own model can reach exactly.  The
+independent check of that plate model is the Monte-Carlo plate (plate_mc.py) on this same
+sample (tests/backend/test_plate_mc.py: within 3 % in-lobe with ray-traced tables).
 """
 from __future__ import annotations
 
@@ -32,13 +37,14 @@ def main(argv=None) -> int:
     from relief_bsdf.optics import ConstantIndex
     from relief_bsdf.parallel import task_rng
     from relief_bsdf.plate import PlateModel, in_plane_rows
-    from relief_bsdf.readers import write_relief
+    from relief_bsdf.readers import read_relief, write_relief
     from relief_bsdf.recording import Recording, write_recording, write_sample
     from relief_bsdf.synth import random_relief
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    relief = random_relief(128, 0.125e-6, 30e-9, 1.0e-6, "gaussian", seed=a.seed)
-    write_relief(out / "relief.x3p", relief)
+    relief = random_relief(1024, 0.125e-6, 100e-9, 1.0e-6, "gaussian", seed=a.seed)
+    write_relief(out / "relief.x3p", relief, x3p_data_type="F")
+    relief = read_relief(out / "relief.x3p")      # what users (and the fit) read: float32 heights
     model = PlateModel(thickness_m=2e-3, index=ConstantIndex(1.49), detector_half_angle_deg=1.0)
     rows = in_plane_rows(550.0, [0, 15, 30, 45, 60, 75], np.arange(1.0, 89.0, 2.0))
     fwd = Forward(relief, model, rows, grid=TableGrid())

@@ -1,12 +1,14 @@
 """Monte-Carlo plate (plate_mc.py): flat-plate series per polarisation, absorption, and agreement
 with the deterministic plate (plate.py) fed with ray-traced boundary tables of the same relief."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from relief_bsdf.fit import TableGrid
 from relief_bsdf.methods import reconstruct
 from relief_bsdf.optics import ConstantIndex, fresnel_power
-from relief_bsdf.plate import PlateModel, in_plane_rows, simulate_rows
+from relief_bsdf.plate import PlateModel, Rows, in_plane_rows, simulate_rows
 from relief_bsdf.plate_mc import hemispherical, make_tracer, simulate_rows_mc, trace_plate
 from relief_bsdf.relief import Relief
 from relief_bsdf.synth import random_relief
@@ -36,6 +38,56 @@ def test_absorption_follows_beer_lambert_on_flat_plate():
     T = (1 - R1) ** 2 * k / (1 - R1**2 * k**2)
     assert h["T"] == pytest.approx(T, rel=0.01)
     assert h["R"] + h["T"] < 0.75
+
+
+
+@pytest.mark.slow
+def test_mc_and_deterministic_plates_agree_within_3_percent_in_lobe_on_the_demo_plate():
+    """Issue 5: the demo sample as stated (relief as measured, 2 mm n = 1.49, 1-degree detector cone),
+    on the demo recording's own rows at three incidences.  Both plates get the same boundary physics
+    (ray optics through the real relief): the deterministic one through ray-traced tables, the
+    Monte-Carlo one tracing photons through the relief itself.  The tables are finer than the fit's
+    default (0.5 deg x 2 deg cells, inside incidences every 1 deg) because the transmitted lobe is
+    only ~4 deg wide; "within 3 %" is judged on the systematic part (the Monte-Carlo's own
+    per-row variance removed) and on the lobe total."""
+    from dataclasses import replace
+
+    from relief_bsdf.readers import read_relief
+    from relief_bsdf.recording import read_recording, read_sample
+    demo = Path(__file__).resolve().parents[2] / "scenes" / "demo"
+    sample = read_sample(demo / "sample.toml")
+    relief = read_relief(demo / "relief.x3p")
+    m = replace(PlateModel.from_sample(sample), azimuth_cells=180)
+    assert m.detector_half_angle_deg == 1.0 and m.rough_face == "front"
+    rec = read_recording(demo / "recording.csv")
+    keep = np.isin(rec.theta_i_deg, [0.0, 30.0, 60.0])
+    rows = Rows(rec.wavelength_nm[keep], rec.theta_i_deg[keep], rec.phi_i_deg[keep], np.asarray(rec.side)[keep],
+                rec.theta_s_deg[keep], rec.phi_s_deg[keep])
+    g = TableGrid(0.5, 2.0, 1.0)
+    (out,) = reconstruct(relief, m.material, g.request([550.0], [0.0, 30.0, 60.0], "outside", "ray", 4_000_000, 1),
+                         "ray")
+    (ins,) = reconstruct(relief, m.material, g.request([550.0], np.arange(0, 90, 1.0), "inside", "ray", 800_000, 2),
+                         "ray")
+    det = simulate_rows(m, ins, out, rows)
+    mc, err, info = simulate_rows_mc(relief, m, rows, photons=4_000_000, seed=2)
+    assert max(info["lost_fraction"].values()) < 1e-3
+    report, bad = [], []
+    for ti in (0.0, 30.0, 60.0):
+        for side in ("R", "T"):
+            sel = (rows.theta_i_deg == ti) & (rows.side == side)
+            d, c, e = det[sel], mc[sel], err[sel]
+            lobe = d > 0.3 * d.max()              # rows every 2 deg: the 4-deg T lobe at normal has 6
+            rel = (d - c)[lobe] / c[lobe]
+            noise = e[lobe] / c[lobe]
+            systematic = np.sqrt(max(np.mean(rel**2) - np.mean(noise**2), 0.0))
+            total = d[lobe].sum() / c[lobe].sum() - 1
+            worst = np.max(np.abs(rel) - 3 * noise)
+            report.append(f"{ti:4.0f} {side} rows {lobe.sum():2d} systematic {systematic:.3f} total {total:+.3f} "
+                          f"worst excess {worst:+.3f}")
+            if lobe.sum() < 5 or systematic >= 0.03 or abs(total) >= 0.03 or worst >= 0.03:
+                bad.append(report[-1])
+    print("\n".join(report))
+    assert not bad, bad
 
 
 @pytest.mark.slow
