@@ -200,3 +200,46 @@ def test_back_face_table_lambertian_closed_form_and_flat_table_limit():
     # (linearly interpolated) transmission cannot follow the exact one
     ok = (rows.side == "R") | (rows.theta_s_deg < 80)
     np.testing.assert_allclose(got[ok], ref[ok], rtol=5e-3)
+
+
+def _lossless_inside(th, aR, aT, spec_T_below_critical, n=N_GLASS):
+    """Lambertian inside table with a delta part: specular T only below the critical angle (as a flat
+    interface would allow), specular R taking the rest, so R + T = 1 at every incidence."""
+    from dataclasses import replace
+    t = lambert("inside", aR, aT, th)
+    crit = np.degrees(np.arcsin(1.0 / n))
+    sT = np.where(np.asarray(th) < crit, spec_T_below_critical, 0.0)[None, :, None]
+    return replace(t, specular_T=sT, specular_R=1.0 - aR - aT - sT)
+
+
+@pytest.mark.parametrize("mueller", [False, True])
+def test_lossless_plate_with_specular_parts_conserves_energy(mueller):
+    # diffuse light inside meets the rough face's delta part too: specular reflection keeps it in the
+    # loop, specular transmission lets it out (dropping either loses energy)
+    from dataclasses import replace
+    o = lambert("outside", 0.05, 0.65, [0, 30, 60], spec_R=0.04, spec_T=0.26)
+    i = _lossless_inside(np.arange(0, 90, 1.0), 0.25, 0.35, 0.3)
+    if mueller:
+        dep = np.diag([1.0, 0, 0, 0])
+        o = replace(o, mueller_per_sr=o.values_per_sr[..., None, None] * dep)
+        i = replace(i, mueller_per_sr=i.values_per_sr[..., None, None] * dep)
+    for face in ("front", "back"):
+        m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), rough_face=face)
+        for h in PlateSolver(m, i, o if face == "front" else None).solve(550.0, [0.0, 30.0, 60.0]):
+            h = h.hemispherical()
+            assert h["R"] + h["T"] == pytest.approx(1.0, abs=2e-3), (face, h)
+
+
+def test_back_relief_with_a_flat_front_face_table_equals_the_fresnel_front_face():
+    i = lambert("inside", 0.3, 0.5, np.arange(0, 90, 5.0))
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), rough_face="back", absorption_per_m=30.0)
+    f_out, f_in = flat_tables(Material(ConstantIndex(N_GLASS)), [550.0], [0.0, 30.0], np.arange(0, 90.01, 0.25))
+    rows = in_plane_rows(550.0, [0, 30], np.arange(0.5, 90, 3.0))
+    ref = simulate_rows(m, i, None, rows)
+    got = simulate_rows(m, i, None, rows, front=(f_out, f_in))
+    assert ref.max() > 0.05
+    # past 80 deg in air the exit samples Fresnel T next to the critical angle (tabulated, interpolated)
+    ok = rows.theta_s_deg < 80
+    np.testing.assert_allclose(got[ok], ref[ok], rtol=5e-3)
+    with pytest.raises(InputError, match="front face"):
+        PlateSolver(PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS)), i, None, front=(f_out, f_in))

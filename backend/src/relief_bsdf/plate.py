@@ -6,7 +6,9 @@ flat (Fresnel), or, with the relief in front, the back face may carry its own ta
 inside; its delta part replaces Fresnel and its cells add a second diffuse kernel K_B, so a
 round trip is K A (K_B + R_B) A).  Bulk absorption follows Beer-Lambert along each path: a traversal at internal
 angle theta keeps exp(-a t / cos theta).  The boundary is described by two `BsdfTable`s of the
-relief (light from outside, light from inside); each must be isotropic (one phi_i).
+relief (light from outside, light from inside); each must be isotropic (one phi_i).  With the
+relief on the back face, the front face may carry its own pair of tables (`front=`): the system is
+then the same as a front face with tables and a second face with a table, roles swapped.
 
 Method (radiative transfer between two faces, discrete ordinates):
 
@@ -348,8 +350,24 @@ class PlateSolver:
     """
 
     def __init__(self, model: PlateModel, inside: BsdfTable, outside: BsdfTable | None = None,
-                 back: BsdfTable | None = None):
-        """`back`: optional BSDF table (light from inside) of the second, back face; None = flat."""
+                 back: BsdfTable | None = None, front: tuple[BsdfTable, BsdfTable] | None = None):
+        """`back`: optional BSDF table (light from inside) of the second, back face; None = flat.
+
+        `front`: optional (outside, inside) tables of the FRONT face when the relief is on the back
+        (None = flat).  The plate is then solved with the roles swapped: the front face is the first
+        face (both tables) and the relief the second face, which light reaches only from inside
+        (`inside` is the relief's inside table), i.e. exactly the front-relief-plus-back-table system.
+        """
+        if front is not None:
+            if model.rough_face != "back":
+                raise InputError("plate", "a BSDF table for the front face needs the relief on the back face "
+                                 "(with the relief in front, give the second face as `back`)")
+            if back is not None:
+                raise InputError("plate", "with the relief on the back face, the second face is the relief: "
+                                 "give the front face as `front`, not `back`")
+            f_out, f_in = front
+            model, back = replace(model, rough_face="front"), inside
+            outside, inside = f_out, f_in
         if back is not None:
             if model.rough_face != "front":
                 raise InputError("plate", "a BSDF table for the second face is supported when the relief is on "
@@ -399,9 +417,14 @@ class PlateSolver:
         cos_sub = np.sqrt(np.clip(1.0 - u, 0.0, 1.0))
         RF = _fresnel(cos_sub, n, n0, "R").mean(axis=1)                                     # (N, 4, 4)
         vB = _TableView(self.back, wl, self.mueller, "back-face table") if self.back is not None else None
+        th_sub = np.degrees(np.arccos(cos_sub))                                             # cell average too
         if vB is not None:
-            th_sub = np.degrees(np.arccos(cos_sub))                                         # cell average too
             RF = vB.specular_many("R", th_sub).reshape(N, nsub, 4, 4).mean(axis=1)            # its delta part
+        # the rough face's own delta part acting on diffuse light from inside: specular reflection
+        # keeps the cell (and the propagation azimuth), so it is diagonal in every azimuthal mode
+        # (times 1 - 1e-9: between two lossless specular faces a totally reflected cell would make the
+        # loop singular; it is fed nothing, and 1e-9 per round trip stands for the plate's finite size)
+        SR = vin.specular_many("R", th_sub).reshape(N, nsub, 4, 4).mean(axis=1) * (1 - 1e-9)  # (N, 4, 4)
         # kernel K[t, j, a] from the inside table's R cells, times the receiving cell's projected solid angle
         K = vin.diffuse("R", tc, tc, self.delta)                                           # (J, T, A[,4,4])
         K = np.moveaxis(K, 0, 1) * (self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None])
@@ -410,19 +433,21 @@ class PlateSolver:
         if c == 1:
             Dj = absorb**2 * RF[:, 0, 0]
             Mk = Kh.shape[2]
-            Kmat = np.moveaxis(Kh, 2, 0)                                                   # (M, T, J)
+            Kmat = np.moveaxis(Kh, 2, 0) + np.diag(SR[:, 0, 0])[None]                      # (M, T, J)
             sysm = np.eye(N)[None] - Kmat * Dj[None, None, :]
         else:
             Dj = absorb[:, None, None] ** 2 * RF                                            # (N, 4, 4)
             Mk = Kh.shape[2]
             KD = np.einsum("tjmab,jbc->mtajc", Kh, Dj)
+            idx = np.arange(N)
+            KD[:, idx, :, idx, :] += np.einsum("jab,jbc->jac", SR, Dj)[:, None]
             sysm = np.eye(N * 4)[None] - KD.reshape(Mk, N * 4, N * 4)
         Kb = Rtrip = GBT = None
         if vB is not None:
             # second face with its own table: round trip K A (K_B + R_B,delta) A as full matrices per m
             KB = vB.diffuse("R", tc, tc, self.delta)
             KB = np.moveaxis(KB, 0, 1) * (self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None])
-            Kb = _blocks(Kh, c)
+            Kb = _blocks(Kh, c) + _block_diag(SR, c)[None]
             Aa = np.repeat(absorb, c)
             Rtrip = (_blocks(np.fft.rfft(KB, axis=2), c) + _block_diag(RF, c)[None]) * Aa[None, :, None] * Aa[None, None, :]
             sysm = np.eye(N * c)[None] - Kb @ Rtrip
@@ -458,8 +483,13 @@ class PlateSolver:
         Wi = _lin_matrix(tc[below], th_int.ravel())                                          # (O ns, Nb)
         Wflat = np.zeros((N, N, c))
         Wflat[:, below, :] = np.einsum("osj,osc->ojc", Wi.reshape(N, ns, -1), tf)
+        # exit of diffuse internal light through the rough face's delta part (its specular
+        # transmission from inside): the same Snell remap, with the table's delta Mueller row 0
+        ts_ = vin.specular_many("T", th_int).reshape(N, ns, 4, 4)[..., 0, :c] / ns
+        Wspec = np.zeros((N, N, c))
+        Wspec[:, below, :] = np.einsum("osj,osc->ojc", Wi.reshape(N, ns, -1), ts_)
         ops = dict(n=n, n0=n0, vin=vin, vout=vout, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
-                   Wflat=Wflat, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT)
+                   Wflat=Wflat, Wspec=Wspec, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT)
         self._ops[wl] = ops
         return ops
 
@@ -567,6 +597,11 @@ class PlateSolver:
             Um = np.moveaxis(ops["Rtrip"] @ XhM + Uxh, 2, 1)                # (M, q, J c)
         Oh = np.moveaxis(Um @ ops["GhT"], 0, 2)                             # (q, O, M)
         out_rough = np.fft.irfft(Oh, n=A, axis=2) + direct_rough
+        if np.any(ops["Wspec"]):   # specular exit of the diffuse light arriving at the rough face from inside
+            if vB is not None:
+                U = np.fft.irfft(np.moveaxis(Um.reshape(Mk, nI, N, c), 0, 2), n=A, axis=2)   # (q, J, A, c)
+            LU = np.moveaxis(U / psa[None, :, None, None], 2, 3).reshape(nI, N * c, A)
+            out_rough = out_rough + (ops["Wspec"].reshape(N, N * c) @ LU) * (n0 / n) ** 2
         # flat-face exit: internal radiance (Stokes) interpolated at the Snell pre-image of each outgoing
         # direction, times the exact Fresnel transmission there, divided by (n/n0)^2 (radiance law)
         L = np.moveaxis(at_flat / psa[None, :, None, None], 2, 3).reshape(nI, N * c, A)    # (q, N c, A)
@@ -692,13 +727,14 @@ def row_arrays(rows):
 
 def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | None, rows: Any,
                   solver: PlateSolver | None = None, where: str = "recording",
-                  back: BsdfTable | None = None) -> np.ndarray:
+                  back: BsdfTable | None = None, front: tuple[BsdfTable, BsdfTable] | None = None) -> np.ndarray:
     """Plate BSDF (1/sr) on every row of a recording (same order), detector cone included.
 
-    `back`: optional table (light from inside) of the second face when the relief is on the front.
+    `back`: optional table (light from inside) of the second face when the relief is on the front;
+    `front`: optional (outside, inside) tables of the front face when the relief is on the back.
     """
     check_rows(model, rows, where)
-    solver = solver or PlateSolver(model, inside, outside, back)
+    solver = solver or PlateSolver(model, inside, outside, back, front)
     wl, ti, pi, side, ts, ps = row_arrays(rows)
     factor = 1.0
     if model.tilt_deg:
