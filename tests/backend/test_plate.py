@@ -223,11 +223,13 @@ def test_lossless_plate_with_specular_parts_conserves_energy(mueller):
         dep = np.diag([1.0, 0, 0, 0])
         o = replace(o, mueller_per_sr=o.values_per_sr[..., None, None] * dep)
         i = replace(i, mueller_per_sr=i.values_per_sr[..., None, None] * dep)
-    for face in ("front", "back"):
+    b = _lossless_inside(np.arange(0, 90, 1.0), 0.2, 0.3, 0.4)       # a second face with its own table
+    for face, back in (("front", None), ("back", None), ("front", b)):
         m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), rough_face=face)
-        for h in PlateSolver(m, i, o if face == "front" else None).solve(550.0, [0.0, 30.0, 60.0]):
+        solver = PlateSolver(m, i, o if face == "front" else None, back=back)
+        for h in solver.solve(550.0, [0.0, 30.0, 60.0]):
             h = h.hemispherical()
-            assert h["R"] + h["T"] == pytest.approx(1.0, abs=2e-3), (face, h)
+            assert h["R"] + h["T"] == pytest.approx(1.0, abs=2e-3), (face, back is not None, h)
 
 
 def test_back_relief_with_a_flat_front_face_table_equals_the_fresnel_front_face():
