@@ -28,7 +28,8 @@ KEY_PARAM = {"bulk_absorption": "absorption_per_mm", "volume_scattering": "scatt
              "back_face_roughness": "back_alpha", "sample_tilt": "tilt_deg", "instrument_blur": "blur_deg",
              "polarization": "polarization_q", "stray_light": "background_per_sr", "relief_scale": "height_scale",
              "relief_smoothing": "filter_sigma_um", "dispersion": "cauchy_B_nm2",
-             "interreflection": "interreflection_weight"}
+             "interreflection": "interreflection_weight", "diffraction": "coherent_scale",
+             "partial_coherence": "coherence_length_um"}
 
 
 def _diag(context, name):

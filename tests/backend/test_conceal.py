@@ -118,3 +118,48 @@ def test_generator_agrees_with_the_independent_plate_mc(theta_i, pol, q):
     assert ok.sum() >= 15
     z = (v1 - v2)[ok] / np.sqrt(e1**2 + e2**2)[ok]
     assert np.mean(z**2) < 2.5
+
+
+def test_wave_case_key_and_secrecy(tmp_path):
+    """A small diffraction case (phase-screen face): its key, identical sample.toml to a ray case's,
+    and the coherent transmitted peak the wave physics puts in the specular row."""
+    from dataclasses import replace
+
+    from relief_bsdf.conceal import WAVE_RELIEF
+    spec = replace(_tiny("diffraction", {"coherent_scale": 1.0}), relief_n=64, pitch_um=WAVE_RELIEF["pitch_um"],
+                   rms_um=0.14, corr_um=WAVE_RELIEF["corr_um"], photons=20000)
+    key = make_case(spec, tmp_path / "w")
+    key0 = make_case(replace(spec, effect="none", parameters={}), tmp_path / "r")
+    assert key["effect"] == "diffraction" and key["parameters"] == {"coherent_scale": 1.0}
+    assert not (tmp_path / "w" / "key.json").exists()
+    tw = tomllib.loads((tmp_path / "w" / "sample.toml").read_text())
+    tr = tomllib.loads((tmp_path / "r" / "sample.toml").read_text())
+    assert tw == tr
+    assert "diffraction" not in (tmp_path / "w" / "sample.toml").read_text()
+    assert "diffraction" not in (tmp_path / "w" / "recording.csv").read_text()
+    rw = read_recording(tmp_path / "w" / "recording.csv")
+    rr = read_recording(tmp_path / "r" / "recording.csv")
+    spec_row = (rw.side == "T") & (rw.theta_i_deg == 0.0) & (rw.theta_s_deg == 0.0)
+    # ray optics spreads the transmitted lobe (~3 deg) beyond the 2.5 deg detector; the coherent
+    # (Debye-Waller ~0.5) part of the wave case stays in it: the specular row is brighter
+    assert rw.bsdf_sr[spec_row].mean() > 1.3 * rr.bsdf_sr[spec_row].mean()
+
+
+def test_default_cases_include_the_wave_effects_on_a_thin_screen_relief():
+    from relief_bsdf.conceal import WAVE_RELIEF
+    cases = [c for c in default_cases() if c.effect in ("diffraction", "partial_coherence")]
+    assert sorted({c.effect for c in cases}) == ["diffraction", "partial_coherence"] and len(cases) == 4
+    for c in cases:
+        assert c.relief_n * c.pitch_um >= 100.0                     # tile >~ 100 um
+        assert 2 * c.rms_um / c.corr_um < 0.2                       # small slopes
+        k0s = 2 * np.pi / 0.55 * c.rms_um
+        for t in c.theta_i_deg:
+            ci = np.cos(np.radians(t))
+            ct = np.sqrt(1 - (1 - ci**2) / 1.5**2)
+            assert 0.15 < np.exp(-(k0s * (1.5 * ct - ci)) ** 2) < 0.7  # transmitted coherent fraction
+            assert np.exp(-(2 * k0s * ci) ** 2) < 0.1                   # reflection mostly diffuse
+        if c.effect == "partial_coherence":
+            width_deg = np.degrees(0.55 / (2 * np.pi * c.parameters["coherence_length_um"]))
+            assert width_deg > c.half_angle_deg
+        else:
+            assert c.parameters == {"coherent_scale": 1.0}

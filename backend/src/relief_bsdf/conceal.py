@@ -19,12 +19,27 @@ parameters).  The physics is an *independent* Monte-Carlo photon simulation:
 `interreflection` cases need no extra physics here (the generator always traces the real
 relief): they are cases on a *steep* relief (rms slope ~ 1, `STEEP_RELIEF`), where shadowing
 and multiple bounces, which the diagnosis's single-scatter baseline leaves out, matter; their
-key parameter is interreflection_weight = 1 (pure ray-traced relief).  `diffraction` and
-`partial_coherence` are not generated: an honest generator would need an independent
-wave-optics simulation of the plate, which this Monte-Carlo is not.
+key parameter is interreflection_weight = 1 (pure ray-traced relief).
 
-Assumptions: geometric optics, periodic synthetic relief tile (Gaussian autocovariance),
-in-plane goniophotometer scans (phi_i = 0, phi_s in {0, 180}).
+`diffraction` and `partial_coherence` cases are wave optics: the rough face is the scalar
+Kirchhoff thin phase screen of the real relief (`phase_screen.PhaseScreenFace`: the far field
+of exp(i k0 dn h(x)) by FFT, Welch-averaged; the coherent specular part is the f = 0 order of
+the relief's own phase, not a Debye-Waller formula), the whole plate still run by
+`run_photons` (thick plate: faces add incoherently).  `partial_coherence` adds a Gaussian
+Schell-model source (a random incident phase field of coherence length l_c, averaged over
+realisations).  Key parameters: diffraction {"coherent_scale": 1.0} (the Kirchhoff value),
+partial_coherence {"coherence_length_um": l_c}, l_c drawn in 0.8 - 1.5 um, so the coherent
+peak's broadening lambda / (2 pi l_c) = 3.3 - 6.3 deg is wider than the detector half-angle
+(2.5 deg) while the peak still stands out.  Relief of these cases (`WAVE_RELIEF`): rms
+0.12 - 0.16 um, correlation length 2.5 um, pitch 0.5 um, 256 x 256 (a 128 um tile, 50
+correlation lengths): rms slope 2 s / l = 0.10 - 0.13 (the thin-screen regime, and a relief
+whose ray-optics lobes are the user's natural baseline); at 550 nm the transmitted coherent
+fraction exp(-(k0 s (n cos t_t - cos t_i))^2) is 0.21 - 0.63 at the recorded incidences
+0 / 30 / 55 deg, while reflection (phase rms 2 k0 s cos t_i = 1.6 - 3.7 rad, coherent
+fraction <= 0.08) is mostly diffuse.
+
+Assumptions: geometric optics except the wave cases above, periodic synthetic relief tile
+(Gaussian autocovariance), in-plane goniophotometer scans (phi_i = 0, phi_s in {0, 180}).
 """
 from __future__ import annotations
 
@@ -42,8 +57,11 @@ from .relief import Relief
 
 EFFECTS_CONCEALABLE = ("none", "bulk_absorption", "volume_scattering", "back_face_roughness", "sample_tilt",
                        "instrument_blur", "polarization", "stray_light", "relief_scale", "relief_smoothing",
-                       "dispersion", "interreflection")
+                       "dispersion", "interreflection", "diffraction", "partial_coherence")
 STEEP_RELIEF = {"rms_um": (1.6, 2.2), "corr_um": 2.5}   # interreflection cases: rms slope ~ 0.9 - 1.3
+# wave-optics cases (module docstring): transmitted coherent fraction 0.21 - 0.63, reflection mostly diffuse
+WAVE_RELIEF = {"rms_um": (0.12, 0.16), "corr_um": 2.5, "pitch_um": 0.5, "relief_n": 256}
+WAVE_EFFECTS = ("diffraction", "partial_coherence")
 
 
 # ------------------------------------------------------------------ height-field face
@@ -207,6 +225,10 @@ def default_cases(n_per_effect: int = 2, n_none: int = 4, seed: int = 1) -> list
             return {"cauchy_B_nm2": float(15000 + 10000 * u)}
         if effect == "interreflection":
             return {"interreflection_weight": 1.0}
+        if effect == "diffraction":
+            return {"coherent_scale": 1.0}
+        if effect == "partial_coherence":
+            return {"coherence_length_um": float(0.8 + 0.7 * u)}
         return {}
 
     k = 0
@@ -222,6 +244,12 @@ def default_cases(n_per_effect: int = 2, n_none: int = 4, seed: int = 1) -> list
                 lo, hi = STEEP_RELIEF["rms_um"]
                 spec.rms_um = float(lo + (hi - lo) * rng.random())
                 spec.corr_um = STEEP_RELIEF["corr_um"]
+            if effect in WAVE_EFFECTS:
+                lo, hi = WAVE_RELIEF["rms_um"]
+                spec.rms_um = float(lo + (hi - lo) * rng.random())
+                spec.corr_um = WAVE_RELIEF["corr_um"]
+                spec.pitch_um = WAVE_RELIEF["pitch_um"]
+                spec.relief_n = WAVE_RELIEF["relief_n"]
             cases.append(spec)
     return cases
 
@@ -251,7 +279,8 @@ def _true_signal(spec: CaseSpec, heights_m: np.ndarray, rec: Recording):
     elif spec.effect == "relief_smoothing":
         from scipy import ndimage
         h = ndimage.gaussian_filter(h, p["filter_sigma_um"] * 1e-6 / dx, mode="wrap")
-    face = HeightFieldFace(h, dx, dx)
+    wave = spec.effect in WAVE_EFFECTS
+    face = None if wave else HeightFieldFace(h, dx, dx)
     phys = PlatePhysics(thickness_mm=spec.thickness_mm, n_glass=spec.n_glass,
                         absorption_per_mm=p.get("absorption_per_mm", 0.0),
                         scatter_per_mm=p.get("scatter_per_mm", 0.0), hg_g=p.get("hg_g", 0.0),
@@ -265,6 +294,10 @@ def _true_signal(spec: CaseSpec, heights_m: np.ndarray, rec: Recording):
         if spec.effect == "dispersion":
             ng = spec.n_glass + p["cauchy_B_nm2"] * (1 / wl**2 - 1 / 550.0**2)
         phys.n_glass = ng
+        if wave:   # wave optics: one phase screen per wavelength (phase_screen.py)
+            from .phase_screen import PhaseScreenFace
+            face = PhaseScreenFace(h, dx, dx, wl, n_max=max(1.6, ng),
+                                   coherence_length_um=p.get("coherence_length_um"))
         for it, ti in enumerate(spec.theta_i_deg):
             rows = np.nonzero((rec.wavelength_nm == wl) & (rec.theta_i_deg == ti))[0]
             rng = task_rng(spec.seed, iw, it)

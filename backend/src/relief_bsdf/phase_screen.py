@@ -104,6 +104,15 @@ def fourier_upsample(h: np.ndarray, m: int) -> np.ndarray:
     return np.real(np.fft.ifft2(out)) * m * m
 
 
+def _compact(coh: float, diff: np.ndarray) -> tuple:
+    """(coherent weight, float32 CDF, flat bin indices) over the bins of probability > 1e-10."""
+    p = diff.ravel()
+    bins = np.flatnonzero(p > 1e-10).astype(np.int32)
+    if bins.size == 0:
+        bins = np.array([0], np.int32)
+    return coh, np.cumsum(p[bins]).astype(np.float32), bins
+
+
 def _hann(n: int) -> np.ndarray:
     return 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(n) / n)
 
@@ -131,13 +140,16 @@ class PhaseScreenFace:
     wavelength (one face per wavelength); n_max: largest glass index the face will see (sets
     the sampling grid); coherence_length_um: None = fully coherent source, else the Gaussian
     Schell-model coherence length; realisations: illumination instances per outer event;
-    upsample: grid refinement factor (None = automatic, at most 4); cache_size: P(f) tables
-    kept (LRU).
+    upsample: grid refinement factor (None = automatic, at most 4); cache_mb: memory for the
+    cached P(f) tables (LRU).  A table keeps only the bins of probability > 1e-10 (their
+    indices and a float32 CDF; the dropped mass, < 1e-10 per bin, is renormalised away): photons
+    trapped in the plate revisit hundreds of phase factors on every event of run_photons, and the
+    cache must hold them all.
     """
 
     def __init__(self, heights_m: np.ndarray, dx_m: float, dy_m: float, wavelength_nm: float,
                  n_max: float = 1.6, coherence_length_um: float | None = None, realisations: int = 16,
-                 upsample: int | None = None, cache_size: int = 64):
+                 upsample: int | None = None, cache_mb: float = 200.0):
         h = np.asarray(heights_m, float)
         if not np.all(np.isfinite(h)):
             raise ValueError("PhaseScreenFace needs a height map without holes (fill NaNs first)")
@@ -168,12 +180,14 @@ class PhaseScreenFace:
         self.patch = (ny // 2, nx // 2)
         self.fy = np.fft.fftfreq(self.patch[0], d=self.pitch_m)
         self.fx = np.fft.fftfreq(self.patch[1], d=self.pitch_m)
-        self.window = np.outer(_hann(self.patch[0]), _hann(self.patch[1]))
+        self.window32 = np.outer(_hann(self.patch[0]), _hann(self.patch[1])).astype(np.float32)
+        self.h32 = self.h.astype(np.float32)
         hmax = float(np.abs(self.h).max())
         self.da = PHASE_QUANTUM_RAD / max(hmax, 1e-12)
         self.max_h_m = hmax
         self._cache: OrderedDict = OrderedDict()
-        self.cache_size = int(cache_size)
+        self.cache_bytes = int(cache_mb * 2**20)
+        self._cached_bytes = 0
         self.tables_built = 0
 
     # ---------------------------------------------------------------- the screen's spectrum
@@ -181,22 +195,27 @@ class PhaseScreenFace:
     def spectrum(self, a: float, psi: np.ndarray | None = None) -> tuple[float, np.ndarray]:
         """(coherent weight |<u>|^2, diffuse probabilities D(f) over the patch's FFT grid, sum
         1 - |<u>|^2) of u = exp(i (a h + psi)); Welch estimate as in the module docstring."""
-        ph = a * self.h if psi is None else a * self.h + psi
-        u = np.empty(ph.shape, np.complex64)
-        u.real = np.cos(ph)
-        u.imag = np.sin(ph)
-        mean = complex(np.mean(np.cos(ph)), np.mean(np.sin(ph)))
-        u -= np.complex64(mean)
+        ph = np.float32(a) * self.h32
+        if psi is not None:
+            ph += psi.astype(np.float32)
+        c = np.cos(ph)
+        sn = np.sin(ph)
+        mean = complex(c.mean(dtype=np.float64), sn.mean(dtype=np.float64))
         coh = float(min(abs(mean) ** 2, 1.0))
+        u = np.empty(ph.shape, np.complex64)
+        u.real = c - np.float32(mean.real)
+        u.imag = sn - np.float32(mean.imag)
         ny, nx = self.shape
         my, mx = self.patch
-        big = np.tile(u, (2, 2))
-        acc = np.zeros(self.patch)
-        w = self.window.astype(np.float32)
+        big = np.pad(u, ((0, my // 2), (0, mx // 2)), mode="wrap")     # periodic tile, wrapped patches
+        buf = np.empty((4, my, mx), np.complex64)
+        acc = np.zeros(self.patch, np.float32)
         for oy in range(0, ny, my // 2):
-            stack = np.stack([big[oy:oy + my, ox:ox + mx] * w for ox in range(0, nx, mx // 2)])
-            spec = sp_fft.fft2(stack, axes=(-2, -1), overwrite_x=True)
+            for k, ox in enumerate(range(0, nx, mx // 2)):
+                np.multiply(big[oy:oy + my, ox:ox + mx], self.window32, out=buf[k])
+            spec = sp_fft.fft2(buf, axes=(-2, -1), overwrite_x=True)
             acc += (spec.real ** 2 + spec.imag ** 2).sum(axis=0)
+        acc = acc.astype(np.float64)
         tot = acc.sum()
         diff = acc * ((1.0 - coh) / tot) if tot > 0 else acc
         self.tables_built += 1
@@ -207,24 +226,26 @@ class PhaseScreenFace:
         t = self._cache.get(key)
         if t is None:
             coh, diff = self.spectrum(key * self.da)
-            t = (coh, np.cumsum(diff.ravel()))
+            t = _compact(coh, diff)
             self._cache[key] = t
-            if len(self._cache) > self.cache_size:
-                self._cache.popitem(last=False)
+            self._cached_bytes += t[1].nbytes + t[2].nbytes
+            while self._cached_bytes > self.cache_bytes and len(self._cache) > 1:
+                _, old = self._cache.popitem(last=False)
+                self._cached_bytes -= old[1].nbytes + old[2].nbytes
         else:
             self._cache.move_to_end(key)
         return t
 
-    def _draw(self, coh: float, cdf: np.ndarray, n: int, rng: np.random.Generator):
+    def _draw(self, coh: float, cdf: np.ndarray, bins: np.ndarray, n: int, rng: np.random.Generator):
         """n draws of (fx, fy) (cycles / m); the coherent order is f = 0 exactly."""
         u = rng.random(n)
         fx = np.zeros(n)
         fy = np.zeros(n)
         dif = u >= coh
         if dif.any():
-            target = (u[dif] - coh) / max(1.0 - coh, 1e-300) * cdf[-1]
+            target = ((u[dif] - coh) / max(1.0 - coh, 1e-300) * float(cdf[-1])).astype(np.float32)
             k = np.searchsorted(cdf, target, side="right")
-            k = np.minimum(k, cdf.size - 1)
+            k = bins[np.minimum(k, cdf.size - 1)]
             iy, ix = np.divmod(k, self.patch[1])
             dfy = 1.0 / (self.patch[0] * self.pitch_m)
             dfx = 1.0 / (self.patch[1] * self.pitch_m)
@@ -275,10 +296,10 @@ class PhaseScreenFace:
                 tables = {}
                 for key in np.unique(a_q[part]):
                     coh, diff = self.spectrum(key * self.da, psi_cache[real])
-                    tables[key] = (coh, np.cumsum(diff.ravel()))
-            for key, (coh, cdf) in tables.items():
+                    tables[key] = _compact(coh, diff)
+            for key, (coh, cdf, bins) in tables.items():
                 sel = part[a_q[part] == key]
-                self._kick(sel, din, dnew, n1, n_out, coh, cdf, alive, rng)
+                self._kick(sel, din, dnew, n1, n_out, coh, cdf, bins, alive, rng)
         # polarisation kept, s-axis re-orthogonalised to the new direction
         en = en - np.einsum("ij,ij->i", en, dnew)[:, None] * dnew
         bad = np.linalg.norm(en, axis=1) < 1e-9
@@ -288,14 +309,14 @@ class PhaseScreenFace:
         ins_new = np.where(refl, inside, ~inside)
         return dnew, Sn, en, ins_new, alive
 
-    def _kick(self, sel, din, dnew, n1, n_out, coh, cdf, alive, rng):
+    def _kick(self, sel, din, dnew, n1, n_out, coh, cdf, bins, alive, rng):
         """Draw propagating orders for photons `sel` and set their directions (in place)."""
         todo = sel
         lam = self.wavelength_m
         for _ in range(MAX_DRAWS):
             if todo.size == 0:
                 break
-            fx, fy = self._draw(coh, cdf, todo.size, rng)
+            fx, fy = self._draw(coh, cdf, bins, todo.size, rng)
             qx = n1[todo] * din[todo, 0] + lam * fx
             qy = n1[todo] * din[todo, 1] + lam * fy
             no = n_out[todo]
