@@ -95,3 +95,10 @@ def test_bad_input_exits_2_naming_file_and_key(tmp_path, capsys, case, needle):
     assert rc == 2
     assert len(err) == 1 and needle in err[0]
     assert ("sample.toml" in err[0]) or ("recording.csv" in err[0])
+
+
+def test_fit_cli_rejects_a_bad_inside_step(tmp_path, capsys):
+    s = make_sample(tmp_path)
+    assert main(["fit", str(s), "-o", str(tmp_path / "f"), "--inside-step-deg", "0"]) == 2
+    assert "--inside-step-deg" in capsys.readouterr().err
+    assert not (tmp_path / "f" / "fit.json").exists()

@@ -146,6 +146,8 @@ class Forward:
 
     def __post_init__(self) -> None:
         check_rows(self.model, self.rows, self.where)   # bad rows fail before any table is derived
+        # the plate's azimuth grid follows the tables' azimuth cells (finer cells would be wasted otherwise)
+        self.model = replace(self.model, azimuth_cells=int(round(360.0 / self.grid.phi_step_deg)))
 
     def tables(self, height_scale: float, filter_sigma_um: float):
         r = process_relief(self.relief, height_scale, filter_sigma_um)
@@ -284,7 +286,7 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, method: str = "mic
     res = fit_relief(fwd, rec.bsdf_sr, rec.sigma_sr, threshold=threshold, max_iter=max_iter,
                      checkpoint=out / "checkpoint.json", progress=progress)
     best_relief, t_out, t_in = fwd.tables(res.height_scale, res.filter_sigma_um)
-    sim_after = simulate_rows(model, t_in, t_out, rec)
+    sim_after = simulate_rows(fwd.model, t_in, t_out, rec)
     sim_before = fwd.simulate(1.0, 0.0)
     tables = [t for t in (t_out, t_in) if t is not None]
     save_tables(out / "boundary.h5", tables)

@@ -16,7 +16,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--max-iter", type=int, default=60, help="most forward evaluations")
     p.add_argument("--threshold", type=float, default=0.0, help="stop once the metric is at or below this")
     p.add_argument("--theta-step-deg", type=float, default=1.0, help="boundary table theta cell size")
-    p.add_argument("--phi-step-deg", type=float, default=5.0, help="boundary table azimuth cell size")
+    p.add_argument("--phi-step-deg", type=float, default=5.0,
+                   help="boundary table azimuth cell size (also the plate's azimuth grid)")
+    p.add_argument("--inside-step-deg", type=float, default=5.0,
+                   help="step between the incidences of the inside table (narrow lobes: 1-2)")
     p.add_argument("--progress", action="store_true", help="force the progress bar")
     from ..parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
@@ -33,7 +36,9 @@ def run(args) -> int:
         raise InputError("--max-iter", "must be >= 1")
     if not (0 < args.theta_step_deg <= 10 and 0 < args.phi_step_deg <= 30 and 360 % args.phi_step_deg == 0):
         raise InputError("--theta-step-deg/--phi-step-deg", "theta step in (0, 10], phi step in (0, 30] dividing 360")
-    grid = TableGrid(args.theta_step_deg, args.phi_step_deg, 5.0)
+    if not 0 < args.inside_step_deg <= 15:
+        raise InputError("--inside-step-deg", f"must be in (0, 15], got {args.inside_step_deg:g}")
+    grid = TableGrid(args.theta_step_deg, args.phi_step_deg, args.inside_step_deg)
     doc = run_fit_job(args.sample, args.out, method=args.method, samples=args.samples, seed=args.seed,
                       max_iter=args.max_iter, threshold=args.threshold, grid=grid,
                       progress=TerminalBar("fit", force=args.progress))

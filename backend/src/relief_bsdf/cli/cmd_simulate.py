@@ -21,6 +21,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
+    from dataclasses import replace
     from ..parallel import apply_parallel_args
     apply_parallel_args(args)
     from ..bsdf_h5 import load_tables, table_for
@@ -36,6 +37,8 @@ def run(args) -> int:
         tabs = load_tables(args.table)
         ins = table_for(tabs, "inside", args.table)
         out = table_for(tabs, "outside", args.table) if model.rough_face == "front" else None
+        # the plate's azimuth grid follows the table's azimuth cells (as in `relief fit`)
+        model = replace(model, azimuth_cells=int(ins.phi_s_deg.size))
         sim = simulate_rows(model, ins, out, rec, where=str(sample.recording_path))
     else:
         relief = read_relief(sample.relief_path)
