@@ -242,13 +242,17 @@ class _TableView:
         self.table = table
         ww = _lin_matrix(table.wavelength_nm, [wavelength_nm])[0]
         self.mueller = mueller
+
+        def at_wavelength(arr):          # a view when the wavelength is on the grid (no copy of a big table)
+            hit = np.nonzero(ww == 1.0)[0]
+            return arr[hit[0], :, 0] if hit.size else np.tensordot(ww, arr[:, :, 0], axes=(0, 0))
         if mueller:
             if table.mueller_per_sr is not None:
-                v = np.tensordot(ww, table.mueller_per_sr[:, :, 0], axes=(0, 0))          # (I, 2, S, P, 4, 4)
+                v = at_wavelength(table.mueller_per_sr)                                         # (I, 2, S, P, 4, 4)
             else:
-                v = np.tensordot(ww, table.values_per_sr[:, :, 0], axes=(0, 0))[..., None, None] * _DEPOL
+                v = at_wavelength(table.values_per_sr)[..., None, None] * _DEPOL
         else:
-            v = np.tensordot(ww, table.values_per_sr[:, :, 0], axes=(0, 0))               # (I, 2, S, P)
+            v = at_wavelength(table.values_per_sr)                                              # (I, 2, S, P)
         self.v = v
         self.spec = {}
         for k, name_ in ((0, "R"), (1, "T")):
@@ -429,6 +433,7 @@ class PlateSolver:
         K = vin.diffuse("R", tc, tc, self.delta)                                           # (J, T, A[,4,4])
         K = np.moveaxis(K, 0, 1) * (self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None])
         Kh = np.fft.rfft(K, axis=2)                                                         # (T, J, M[,4,4])
+        del K                                                    # big tables: keep one kernel copy at a time
         # round trip diagonal D_j = A_j R_F,j A_j (4x4 or scalar R_F,00)
         if c == 1:
             Dj = absorb**2 * RF[:, 0, 0]
@@ -441,7 +446,10 @@ class PlateSolver:
             KD = np.einsum("tjmab,jbc->mtajc", Kh, Dj)
             idx = np.arange(N)
             KD[:, idx, :, idx, :] += np.einsum("jab,jbc->jac", SR, Dj)[:, None]
-            sysm = np.eye(N * 4)[None] - KD.reshape(Mk, N * 4, N * 4)
+            sysm = KD.reshape(Mk, N * 4, N * 4)
+            sysm *= -1.0                                                                    # I - K D in place
+            sysm[:, np.arange(N * 4), np.arange(N * 4)] += 1.0
+            del KD
         Kb = Rtrip = GBT = None
         if vB is not None:
             # second face with its own table: round trip K A (K_B + R_B,delta) A as full matrices per m
@@ -460,8 +468,9 @@ class PlateSolver:
         # exit through the rough face from inside: inside table T cells, onto the outgoing grid (theta_c in air)
         G = vin.diffuse("T", tc, tc, self.delta)                                           # (J, O, A[,4,4])
         if c == 4:
-            G = G[..., 0, :]                                                                # detector: S0 row
+            G = np.ascontiguousarray(G[..., 0, :])                                          # detector: S0 row
         Gh = np.fft.rfft(G, axis=2)                                                         # (J, O, M[,4])
+        del G
         GhT = (np.moveaxis(Gh, 2, 0) if c == 1 else np.moveaxis(Gh, (2, 3), (0, 2))).reshape(Gh.shape[2], -1,
                                                                                             Gh.shape[1])
         # exit through the flat face: Snell map from outgoing grid theta (air) to internal theta
