@@ -185,6 +185,19 @@ def test_validity_flags_the_pairs_outside_the_regime_and_warns():
     assert ins.metadata["validity"]["valid_per_incidence"] == [[False, True], [False, True]]
 
 
+def test_relief_info_shows_the_validity_of_a_saved_table(tmp_path, capsys):
+    from relief_bsdf.bsdf_h5 import save_tables
+    from relief_bsdf.cli import main
+    with pytest.warns(RuntimeWarning):
+        _, (bad,) = _rr_tables(12e-9)
+    _, (good,) = _rr_tables(3e-9)
+    for name, t, needle in (("bad.h5", bad, "OUTSIDE the method's regime at 450 nm / 0 deg"),
+                            ("good.h5", good, "within the method's regime")):
+        save_tables(tmp_path / name, [t])
+        assert main(["info", str(tmp_path / name)]) == 0
+        assert needle in capsys.readouterr().out
+
+
 def test_validity_flags_steep_slopes():
     # 3 nm rms over a 30 nm correlation length: tiny Rayleigh parameter (0.005), rms slope 2 s / L = 0.2
     small = gaussian_relief(256, 5e-9, 3e-9, 30e-9, seed=2)

@@ -6,6 +6,8 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
+
 
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("info", help="summarise a height map, BSDF table (.h5), recording (.csv) or sample (.toml)",
@@ -158,6 +160,15 @@ def run(args) -> int:
             print(f"  light from {t.incident_from}: {len(s['wavelength_nm'])} wavelength(s) {s['wavelength_nm']} nm, "
                   f"theta_i {s['theta_i_deg']} deg, phi_i {s['phi_i_deg']} deg, "
                   f"{s['theta_s_cells']} x {s['phi_s_cells']} scatter cells")
+            v = t.metadata.get("validity") if isinstance(t.metadata, dict) else None
+            if isinstance(v, dict) and "valid" in v:
+                where = ""
+                if not v["valid"] and "valid_per_incidence" in v:
+                    bad = np.argwhere(~np.asarray(v["valid_per_incidence"], bool))
+                    where = " at " + ", ".join(f"{v['wavelength_nm'][i]:g} nm / {v['theta_i_deg'][j]:g} deg"
+                                               for i, j in bad[:4]) + (" ..." if len(bad) > 4 else "")
+                print(f"    validity: {'within' if v['valid'] else 'OUTSIDE'} the method's regime{where} "
+                      f"({v.get('criterion', '')})")
         print("  hemispherical integrals per incidence (R, T include the specular parts):")
         print(f"    {'from':8s} {'lambda/nm':>9s} {'theta_i':>7s} {'phi_i':>6s} {'R':>8s} {'T':>8s} "
               f"{'spec R':>8s} {'spec T':>8s} {'lost':>8s}")
