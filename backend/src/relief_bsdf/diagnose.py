@@ -65,10 +65,11 @@ def _param_text(effect: str, p: dict) -> str:
         "dispersion": lambda: f"a Cauchy B of {p['cauchy_B_nm2']:.4g} nm^2 added to the stated index",
         "interreflection": lambda: (f"the ray-traced relief (shadowing, multiple bounces) at weight "
                                     f"{p['interreflection_weight']:.2f} against the single-scatter facet model"),
-        "diffraction": lambda: (f"a coherent specular fraction of {p['coherent_scale']:.2f} times the "
-                                f"Debye-Waller (Kirchhoff) value"),
-        "partial_coherence": lambda: (f"a source coherence length of {p['coherence_length_um']:.3g} um "
-                                      f"(coherent lobe broadened accordingly)"),
+        "diffraction": lambda: (f"scalar Kirchhoff scattering at the relief instead of ray optics, with a coherent "
+                                f"specular fraction of {p['coherent_scale']:.2f} times the Debye-Waller value"),
+        "partial_coherence": lambda: (f"Kirchhoff scattering lit by a source of coherence length "
+                                      f"{p['coherence_length_um']:.3g} um (the scattered field blurred by "
+                                      f"lambda / (2 pi l_c))"),
     }.get(effect)
     return f() if f else ""
 

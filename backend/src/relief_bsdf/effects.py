@@ -37,27 +37,30 @@ Effects, each with its parameters, bounds and physics (the name is the formats.m
   relief; intermediate w is a relaxation, e.g. for a relief only partly resolved by the
   profilometer).  Matters on steep reliefs (rms slope >~ 0.3) at grazing angles.
   Validity: geometric optics; the height map is tiled periodically (3 x 3) for the tracer.
-- diffraction (coherent_scale s): first-order Kirchhoff correction (Beckmann & Spizzichino
-  1963, ch. 5; Debye-Waller factor).  A fraction C of the light leaving the rough front face
-  stays coherent (specular reflection / regular transmission of the mean plane), the rest is
-  the geometric (diffuse) lobe:  I = (1 - C) I_rough + C I_flat, with
-      C_R = s exp(-(4 pi sigma cos(theta_i) / lambda)^2)                (reflection)
-      C_T = s exp(-(2 pi sigma (n cos(theta_t) - cos(theta_i)) / lambda)^2)  (transmission)
-  (clipped to [0, 1]), sigma the rms height of the relief (after any scale / smoothing), I_flat
-  the same plate with a flat front face.  s = 1 is the Kirchhoff value, s = 0 (neutral)
-  geometric optics.  Approximation: C is set by the first front-face event of each side (the
-  row's side, at its incidence); later passes through the front face keep the geometric
-  lobe.  Valid for Gaussian-like height statistics, lateral scales >> lambda.
-- partial_coherence (coherence_length_um l_c): the coherent (Debye-Waller, s = 1) part above
-  is not a sharp specular beam but a lobe of angular 1-sigma width lambda / (2 pi l_c) (the far
-  field of a source whose spatial coherence is Gaussian with length l_c; van Cittert-Zernike),
-  implemented as the detector convolution of the flat-face run.  The coherent fraction is
-  C_DW (1 - exp(-(l_c / lambda)^2)): a source coherent over less than a wavelength produces
-  no coherent specular part (l_c = 0 is the neutral, geometric-optics value).  Large l_c
-  approaches `diffraction` with s = 1.
+- diffraction (coherent_scale s): wave optics at the rough face instead of ray optics: every
+  front-face event follows the scalar Kirchhoff (Beckmann) model of a Gaussian-correlated
+  surface (`photon_plate.KirchhoffFace`; Beckmann & Spizzichino 1963, ch. 5): with probability
+  s exp(-g) the photon stays coherent (specular direction of the mean plane), g the event's
+  phase variance (Debye-Waller exponent: (2 k n1 sigma cos theta_1)^2 in reflection,
+  (k sigma (n1 cos theta_1 - n2 cos theta_2))^2 in transmission); otherwise it takes the
+  incoherent Beckmann series (m ~ Poisson(g) given m >= 1 phase "orders", a transverse wave-vector
+  change of variance 2 m / T^2 per axis), which is wider than the ray lobe when g is small and
+  tends to it for g >> 1 (T from the measured rms height and slope).  Because it acts on every
+  event, light crossing the face twice (in, reflected by the back face, out) keeps a coherent
+  part ~ C_T^2 in the reflected rows.  s = 1 is the Kirchhoff value; s = 0 is the ray-optics
+  baseline.  Valid for Gaussian-like statistics, slopes << 1, lateral scales >~ lambda.
+- partial_coherence (coherence_length_um l_c): the same Kirchhoff face (s = 1) lit by a
+  partially coherent source (Gaussian Schell model; van Cittert-Zernike): the whole field
+  leaving the first (illuminated) event, coherent and diffuse, is convolved with a Gaussian
+  of angular 1-sigma width lambda / (2 pi l_c) (paper: "BSDF ... filtered over an angular
+  spread about lambda / l"), done per photon as a transverse wave-vector kick N(0, 1 / l_c^2)
+  per axis.  Later events keep the beam's coherence (approximation).  l_c = 0 is the neutral
+  (ray-optics) value; large l_c approaches `diffraction` with s = 1, so l_c is fitted only up to
+  lambda / (pi h) (h the detector half-angle): a blur below h / 2 is not resolved by the
+  instrument and the case is `diffraction`.
 
-Validity: geometric optics, as photon_plate.py, except for the two wave-optics corrections
-above (first order, scalar Kirchhoff fraction applied to the Stokes-tracked runs).
+Validity: geometric optics, as photon_plate.py, except for the two wave-optics candidates
+above (scalar Kirchhoff per event, Stokes vectors carried through).
 """
 from __future__ import annotations
 
@@ -67,14 +70,12 @@ import numpy as np
 from scipy import optimize
 
 from .parallel import task_rng
-from .photon_plate import NormalsFace, PlatePhysics, detect, run_photons
+from .photon_plate import KirchhoffFace, NormalsFace, PlatePhysics, detect, run_photons
 from .recording import Recording
 
 TRANSPORT_KEYS = ("scatter_per_mm", "hg_g", "back_alpha", "tilt_deg", "height_scale", "filter_sigma_um",
-                  "cauchy_B_nm2")
-POST_KEYS = ("absorption_per_mm", "blur_deg", "polarization_q", "background_per_sr", "interreflection_weight",
-             "coherent_scale", "coherence_length_um")
-MAX_COHERENT_BLUR_DEG = 30.0
+                  "cauchy_B_nm2", "coherent_scale", "coherence_length_um")
+POST_KEYS = ("absorption_per_mm", "blur_deg", "polarization_q", "background_per_sr", "interreflection_weight")
 SOURCE_Q = {"unpolarized": 0.0, "s": 1.0, "p": -1.0}
 
 
@@ -110,9 +111,9 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("interreflection", (("interreflection_weight", 0.0, 1.0, 0.0),),
            "light bounces more than once on the relief and is shadowed by it (ray-traced real relief)"),
     Effect("diffraction", (("coherent_scale", 0.0, 3.0, 0.0),),
-           "part of the light stays coherent and specular (wave optics, Debye-Waller factor)"),
+           "the relief scatters as a wave (Kirchhoff): part of the light stays coherent and specular"),
     Effect("partial_coherence", (("coherence_length_um", 0.0, 30.0, 0.0),),
-           "the coherent specular part is broadened by the source's finite coherence length"),
+           "wave scattering lit by a partially coherent source: the specular peak is broadened"),
     Effect("dispersion", (("cauchy_B_nm2", -40000.0, 80000.0, 0.0),),
            "the glass index depends on wavelength (Cauchy B) unlike stated", spectral_only=True),
 )}
@@ -153,6 +154,10 @@ class PlateForward:
         if kind == "flat":
             return NormalsFace(np.array([[0.0, 0.0, 1.0]]))
         h = self._heights(p)
+        if kind == "kirchhoff":
+            s = float(p.get("coherent_scale", 0.0)) or 1.0          # partial coherence: the Kirchhoff value
+            return KirchhoffFace.from_heights(h, self.dx_m, self.dy_m, coherent_scale=s,
+                                              coherence_length_m=float(p.get("coherence_length_um", 0.0)) * 1e-6)
         if kind == "heightfield":
             from .conceal import HeightFieldFace
             return HeightFieldFace(np.nan_to_num(h, nan=float(np.nanmean(h))), self.dx_m, self.dy_m)
@@ -172,8 +177,10 @@ class PlateForward:
         recs = {}
         # the flat face's exits are (nearly) deterministic directions: fewer photons suffice
         n_ph = max(self.photons // 4, 2000) if kind == "flat" else self.photons
-        salt = {"normals": (), "flat": (1,), "heightfield": (2,)}[kind]
+        salt = {"normals": (), "flat": (1,), "heightfield": (2,), "kirchhoff": (3,)}[kind]
         for iw, wl in enumerate(wls):
+            if kind == "kirchhoff":
+                face.wavelength_nm = float(wl)
             n = self._n_glass(wl, p)
             phys = PlatePhysics(thickness_mm=self.thickness_mm, n_glass=n, scatter_per_mm=p.get("scatter_per_mm", 0.0),
                                 hg_g=p.get("hg_g", 0.0), back_alpha=p.get("back_alpha", 0.0),
@@ -211,32 +218,16 @@ class PlateForward:
         """(values, Monte-Carlo sigma) per row for the given effect parameters."""
         p = dict(params or {})
         self.evaluations += 1
-        recs = self._transport(p)
+        wave = float(p.get("coherent_scale", 0.0)) > 0 or float(p.get("coherence_length_um", 0.0)) > 0
+        recs = self._transport(p, "kirchhoff" if wave else "normals")
         a = self.known_absorption_per_mm + p.get("absorption_per_mm", 0.0)
         q = float(np.clip(p.get("polarization_q", self.source_q), -1, 1))
         blur = p.get("blur_deg", 0.0)
-        rows = self.rows
         val, var = self._detect_all(recs, a, q, blur)
         w_ir = float(np.clip(p.get("interreflection_weight", 0.0), 0.0, 1.0))
         if w_ir > 0:
             v2, var2 = self._detect_all(self._transport(p, "heightfield"), a, q, blur)
             val, var = (1 - w_ir) * val + w_ir * v2, (1 - w_ir) ** 2 * var + w_ir**2 * var2
-        s_coh = float(p.get("coherent_scale", 0.0))
-        l_c = float(p.get("coherence_length_um", 0.0))
-        if s_coh > 0 or l_c > 0:
-            C = self.debye_waller(p)
-            blur_c = blur
-            if l_c > 0:   # partial coherence: fraction and angular width set by l_c (module docstring)
-                wl_um = rows.wavelength_nm * 1e-3
-                C = C * (1.0 - np.exp(-(l_c / wl_um) ** 2))
-                width = np.degrees(wl_um / (2 * np.pi * l_c))
-                blur_c = np.sqrt(blur**2 + np.minimum(width, MAX_COHERENT_BLUR_DEG) ** 2)
-            if s_coh > 0:
-                C = C * s_coh
-            C = np.clip(C, 0.0, 1.0)
-            if np.any(C > 0):
-                vf, varf = self._detect_all(self._transport(p, "flat"), a, q, blur_c)
-                val, var = (1 - C) * val + C * vf, (1 - C) ** 2 * var + C**2 * varf
         val += p.get("background_per_sr", 0.0)
         return val, np.sqrt(var)
 
@@ -326,6 +317,10 @@ def fit_effect(model: PlateForward, effect: str, progress=None) -> dict:
         pars = {"background_per_sr": float(r.x) if r.fun < run({"background_per_sr": 0.0})[0] else 0.0}
     elif effect == "partial_coherence":  # the lobe width ~ 1 / l_c: fit on a log scale (0.3 um .. hi), plus l_c = 0
         name, lo, hi, neutral = eff.params[0]
+        # identifiable only where the instrument resolves the blur: lambda / (2 pi l_c) >= half the detector's
+        # half-angle; a longer coherence length looks like a coherent source to it, i.e. `diffraction`
+        wl_um = float(np.median(model.rows.wavelength_nm)) * 1e-3
+        hi = min(hi, wl_um / (np.pi * np.radians(model.half_angle_deg)))
         f = lambda u: run({name: 10.0**u})[0]  # noqa: E731
         u, cu = _fit_1d(f, np.log10(0.3), np.log10(hi), grid, refine)
         pars = {name: 10.0**u if cu < run({name: neutral})[0] else neutral}

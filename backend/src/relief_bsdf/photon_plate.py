@@ -219,6 +219,95 @@ class NormalsFace:
         return d, S, e, inside, alive
 
 
+
+@dataclass
+class KirchhoffFace:
+    """Scalar Kirchhoff (Beckmann) rough face, event by event, for the wave-optics candidates.
+
+    Each photon arriving at the face is reflected or transmitted at the MEAN plane (Fresnel with
+    Stokes, `interface_event` with the normal +-z), which sets the specular direction.  The
+    relief's phase variance for that event is g = (a sigma)^2, a = 2 k0 n1 cos(theta1) in
+    reflection and k0 |n1 cos(theta1) - n2 cos(theta2)| in transmission (the Debye-Waller
+    exponent).  With probability s exp(-g) (s = `coherent_scale`, 1 = Kirchhoff) the photon stays
+    specular (the coherent part); otherwise it takes the incoherent part of the Beckmann series
+    for a Gaussian-correlated surface (Beckmann & Spizzichino 1963, ch. 5, eq. for a Gaussian
+    correlation coefficient exp(-r^2 / T^2)):
+
+        sum over m >= 1 of  exp(-g) g^m / m!  x  Gaussian in the transverse wave-vector change q
+        with variance 2 m / T^2 per axis,
+
+    i.e. m ~ Poisson(g) conditioned on m >= 1, then q ~ N(0, 2 m / T^2) per axis.  For g >> 1
+    this is the geometric-optics lobe of Gaussian slopes with per-axis variance 2 sigma^2 / T^2;
+    T is therefore taken as sqrt(2) sigma / m_axis from the measured rms height and per-axis rms
+    slope, so the rough limit has the measured slope width.  A partially coherent source
+    (Gaussian Schell model, coherence length l_c; van Cittert-Zernike) adds q ~ N(0, 1 / l_c^2)
+    per axis to photons arriving from outside (the source's beam; later events keep the beam's
+    coherence, an approximation).  Transverse wave vectors beyond the outgoing medium's k are
+    evanescent and redrawn (the propagating orders share the event's Fresnel power); after
+    `max_tries` the photon is lost.  The Stokes vector is kept (near-specular scattering) and
+    its s-axis re-orthogonalised.
+
+    Assumptions / validity: Gaussian height statistics and correlation, no shadowing, no
+    obliquity factor, slopes << 1, lateral scales >~ lambda.  `wavelength_nm` is set per run.
+    """
+
+    sigma_m: float
+    corr_m: float
+    wavelength_nm: float = 550.0
+    coherent_scale: float = 1.0
+    coherence_length_m: float = 0.0
+    max_tries: int = 32
+
+    @staticmethod
+    def from_heights(heights_m: np.ndarray, dx_m: float, dy_m: float, **kw) -> "KirchhoffFace":
+        h = np.asarray(heights_m, float)
+        h = np.nan_to_num(h - np.nanmean(h), nan=0.0)
+        gx = (np.roll(h, -1, 1) - h) / dx_m
+        gy = (np.roll(h, -1, 0) - h) / dy_m
+        sigma = float(np.sqrt(np.mean(h**2)))
+        m_axis = float(np.sqrt(0.5 * (np.mean(gx**2) + np.mean(gy**2))))
+        return KirchhoffFace(sigma, np.sqrt(2.0) * sigma / max(m_axis, 1e-12), **kw)
+
+    def interact(self, d, S, e, inside, n_glass, rng):
+        from scipy.stats import poisson
+        n = len(d)
+        down = d[:, 2] < 0
+        nf = np.zeros((n, 3))
+        nf[:, 2] = np.where(down, 1.0, -1.0)                 # mean-plane normal facing the incident medium
+        n1 = np.where(inside, n_glass, 1.0)
+        n2 = np.where(inside, 1.0, n_glass)
+        dn, Sn, en, refl = interface_event(d, S, e, nf, n1, n2, rng.random(n))
+        k0 = 2 * np.pi / (self.wavelength_nm * 1e-9)
+        c1 = np.abs(d[:, 2])
+        a = np.where(refl, 2 * k0 * n1 * c1, k0 * np.abs(n1 * c1 - n2 * np.abs(dn[:, 2])))
+        g = (a * self.sigma_m) ** 2
+        coh = rng.random(n) < np.clip(self.coherent_scale * np.exp(-g), 0.0, 1.0)
+        p0 = np.exp(-g)
+        m = np.maximum(poisson.ppf(p0 + rng.random(n) * (1 - p0), g), 1.0)    # Poisson(g) given m >= 1
+        q_sd = np.where(coh, 0.0, np.sqrt(2 * m) / self.corr_m)
+        if self.coherence_length_m > 0:
+            q_sd = np.where(inside, q_sd, np.sqrt(q_sd**2 + 1.0 / self.coherence_length_m**2))
+        n_out = np.where(refl, n1, n2)
+        kt = dn[:, :2] * (n_out * k0)[:, None]
+        out = dn.copy()
+        todo = np.nonzero(q_sd > 0)[0]
+        alive = np.ones(n, bool)
+        for _ in range(self.max_tries):
+            if todo.size == 0:
+                break
+            st = (kt[todo] + q_sd[todo, None] * rng.standard_normal((todo.size, 2))) / (n_out[todo] * k0)[:, None]
+            s2 = np.sum(st**2, axis=1)
+            ok = s2 < 1.0
+            j = todo[ok]
+            out[j, :2] = st[ok]
+            out[j, 2] = np.sign(dn[j, 2]) * np.sqrt(1.0 - s2[ok])
+            todo = todo[~ok]
+        alive[todo] = False
+        en = en - _dot(en, out)[:, None] * out
+        en = _normalize(np.where(np.linalg.norm(en, axis=1, keepdims=True) > 1e-9, en, _perp_any(out)))
+        inside_new = np.where(refl, inside, ~inside)
+        return out, Sn, en, inside_new, alive
+
 def beckmann_normals(alpha: float, n: int, rng: np.random.Generator) -> np.ndarray:
     """Normals of a Beckmann surface: slopes Gaussian with per-axis std alpha / sqrt(2)."""
     sl = rng.normal(0.0, alpha / np.sqrt(2.0), (n, 2))
