@@ -4,9 +4,10 @@
 `interact(d, S, e, inside, n_glass, rng) -> (d, S, e, inside, alive)`, so the whole plate is
 still run by `photon_plate.run_photons`; only the front-face event is wave optics.  It is the
 wave-optics generator of the concealed `diffraction` / `partial_coherence` cases
-(`conceal.py`) and is independent of the diagnosis's model of those effects (a Debye-Waller
-fraction of a flat-face run, `effects.py`): nothing here uses the Gaussian formula, the
-coherent part comes out of the Fourier transform of the real relief's phase.
+(`conceal.py`) and is independent of the diagnosis's model of those effects
+(`photon_plate.KirchhoffFace`: the Beckmann series of a Gaussian-correlated surface built from
+the relief's rms height and slope only): nothing here uses the Gaussian formulas, the coherent
+and diffuse parts come out of the Fourier transform of the real relief's phase.
 
 Physics of one event (photon arriving with propagation direction d in medium n1 at the mean
 plane z = 0; exp(-i w t) convention; heights h(x) towards +z, air side):
