@@ -79,10 +79,15 @@ def test_bad_input_exits_2(tmp_path):
 
 
 def test_an_overwhelming_gain_overrides_a_globally_consistent_baseline():
-    from relief_bsdf.diagnose import BIC_OVERWHELMING
-    n = 400
-    chi0 = 1.05 * n                      # passes the global noise test
-    eff, _, consistent = select(chi0, n, [_fit("dispersion", chi0 - math.log(n) - BIC_OVERWHELMING - 5)])
-    assert consistent and eff == "dispersion"
-    eff, _, _ = select(chi0, n, [_fit("dispersion", chi0 - math.log(n) - BIC_OVERWHELMING + 5)])
+    from relief_bsdf.diagnose import BIC_OVERWHELMING, CONSISTENCY_Z
+    # the bar is max(40, 3 sqrt(2 n)): the floor for short scans, the chi^2 spread for long ones
+    for n, bar in ((50, BIC_OVERWHELMING), (400, CONSISTENCY_Z * math.sqrt(2 * 400))):
+        chi0 = 1.05 * n                      # passes the global noise test
+        eff, _, consistent = select(chi0, n, [_fit("dispersion", chi0 - math.log(n) - bar - 5)])
+        assert consistent and eff == "dispersion"
+        eff, _, _ = select(chi0, n, [_fit("dispersion", chi0 - math.log(n) - bar + 5)])
+        assert eff == "none"
+    # a clean 420-row spectral scan whose baseline fits to the noise: a 44 gain is not an effect
+    n = 420
+    eff, _, _ = select(0.81 * n, n, [_fit("interreflection", 0.81 * n - 44 - math.log(n))])
     assert eff == "none"
