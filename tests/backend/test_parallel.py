@@ -142,7 +142,9 @@ def test_killed_run_resumes_from_checkpoints(tmp_path):
             parallel.map_tasks(synthetic_task, {TASKS!r}, {ctx!r}, backend="processes", workers=2,
                                checkpoint_dir={str(ck)!r})
     """)
-    proc = subprocess.Popen([sys.executable, "-c", script], start_new_session=True)
+    # the default SIGINT disposition even when this runner was started in the background (SIGINT ignored)
+    proc = subprocess.Popen([sys.executable, "-c", script], start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         t0 = time.monotonic()
         while len(list(ck.glob("*.pkl.z"))) < 4:
@@ -192,7 +194,9 @@ def test_ctrl_c_stops_workers_cleanly(tmp_path):
             except KeyboardInterrupt:
                 sys.exit(130)
     """)
-    proc = subprocess.Popen([sys.executable, "-c", script], start_new_session=True)
+    # the default SIGINT disposition even when this runner was started in the background (SIGINT ignored)
+    proc = subprocess.Popen([sys.executable, "-c", script], start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         t0 = time.monotonic()
         while len(_executions(ctx)) < 2:

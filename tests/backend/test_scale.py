@@ -322,8 +322,10 @@ def test_ctrl_c_on_a_local_dask_run_exits_cleanly(tmp_path):
            "--samples", "200000", "--theta-step-deg", "5", "--phi-step-deg", "30", "--dask", "local", "--workers", "2",
            "-o", str(tmp_path / "t.h5")]
     env = {k: v for k, v in os.environ.items() if k not in ("RELIEF_DASK_SCHEDULER", "RELIEF_BACKEND")}
+    # a runner started in the background (`cmd &` in a script) hands SIGINT down ignored: give the child
+    # the default disposition, as a terminal would
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                         env=env)
+                         env=env, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     import threading
     lines: list = []
     reader = threading.Thread(target=lambda: lines.extend(iter(p.stderr.readline, "")), daemon=True)
