@@ -11,6 +11,16 @@ FLAT = NormalsFace(np.array([[0.0, 0.0, 1.0]]))
 N = 20000
 
 
+
+def _rows(tis):
+    """In-plane rows at 550 nm (theta_s every 10 deg, phi_s 0 and 180, R and T), sigma 0.01."""
+    g = [(550.0, ti, sd, t, ps) for ti in tis for sd in ("R", "T") for ps in (0.0, 180.0)
+         for t in np.arange(0.0, 90.0, 10.0)]
+    W, TI, SD, TS, PS = (np.array(c) for c in zip(*g))
+    n = len(W)
+    return Recording(W.astype(float), TI.astype(float), np.zeros(n), SD, TS.astype(float), PS.astype(float),
+                     np.zeros(n), np.full(n, 0.01))
+
 def _plate_RT(theta_deg, n, t_mm, a_per_mm, pol):
     """Incoherent flat plate (Stokes channel s or p): multiple reflections summed exactly."""
     ci = np.cos(np.radians(theta_deg))
@@ -88,20 +98,10 @@ def test_rough_back_face_spreads_transmission_with_roughness():
 
 
 def _small_forward(photons=20000, periodic=True):
-    rng = np.random.default_rng(0)
     from relief_bsdf.conceal import gaussian_relief
     h = gaussian_relief(48, 1e-6, 0.3e-6, 4e-6, 5)
-    th = np.arange(0.0, 90.0, 10.0)
-    W, TI, SD, TS, PS = [], [], [], [], []
-    for ti in (0.0, 40.0):
-        for sd in ("R", "T"):
-            for ps in (0.0, 180.0):
-                for t in th:
-                    W.append(550.0); TI.append(ti); SD.append(sd); TS.append(t); PS.append(ps)
-    n = len(W)
-    rows = Recording(np.array(W), np.array(TI), np.zeros(n), np.array(SD), np.array(TS), np.array(PS),
-                  np.zeros(n), np.full(n, 0.01))
-    return PlateForward(h, 1e-6, 1e-6, periodic, rows, 2.0, ConstantIndex(1.5), 3.0, photons=photons, seed=1)
+    return PlateForward(h, 1e-6, 1e-6, periodic, _rows((0.0, 40.0)), 2.0, ConstantIndex(1.5), 3.0, photons=photons,
+                        seed=1)
 
 
 def test_absorption_reweighting_equals_beer_lambert_in_the_run():
@@ -180,17 +180,7 @@ def test_chi2_treats_zero_readings_as_clipped_and_is_unbiased_for_a_background()
 # ------------------------------------------------------------------ wave-optics and interreflection candidates
 
 def _forward_on(h, photons=20000, tis=(0.0, 40.0, 70.0), dx_m=1e-6):
-    th = np.arange(0.0, 90.0, 10.0)
-    W, TI, SD, TS, PS = [], [], [], [], []
-    for ti in tis:
-        for sd in ("R", "T"):
-            for ps in (0.0, 180.0):
-                for t in th:
-                    W.append(550.0); TI.append(ti); SD.append(sd); TS.append(t); PS.append(ps)
-    n = len(W)
-    rows = Recording(np.array(W), np.array(TI), np.zeros(n), np.array(SD), np.array(TS), np.array(PS),
-                  np.zeros(n), np.full(n, 0.01))
-    return PlateForward(h, dx_m, dx_m, True, rows, 2.0, ConstantIndex(1.5), 3.0, photons=photons, seed=3)
+    return PlateForward(h, dx_m, dx_m, True, _rows(tis), 2.0, ConstantIndex(1.5), 3.0, photons=photons, seed=3)
 
 
 def _names_it(fwd, truth_params, effect, rivals, noise_rel=0.03):
