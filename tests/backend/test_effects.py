@@ -198,27 +198,6 @@ def _names_it(fwd, truth_params, effect, rivals, noise_rel=0.03):
     return name, fits[0]["parameters"]
 
 
-def test_debye_waller_fraction_is_the_kirchhoff_value():
-    from relief_bsdf.conceal import gaussian_relief
-    h = gaussian_relief(32, 1e-6, 0.05e-6, 4e-6, 2)
-    fwd = _forward_on(h, photons=2000)
-    C = fwd.debye_waller({})
-    sig = np.std(h)
-    r = fwd.rows
-    ci = np.cos(np.radians(r.theta_i_deg))
-    R = r.side == "R"
-    assert np.allclose(C[R], np.exp(-(4 * np.pi * sig * ci[R] / 550e-9) ** 2))
-    ct = np.sqrt(1 - (1 - ci**2) / 1.5**2)
-    assert np.allclose(C[~R], np.exp(-(2 * np.pi * sig * (1.5 * ct[~R] - ci[~R]) / 550e-9) ** 2))
-    # near normal incidence transmission keeps far more coherence than reflection (phase (n - 1) vs 2);
-    # at grazing incidence reflection becomes the more coherent one (cos theta_i -> 0)
-    lo, hi = r.theta_i_deg <= 40, r.theta_i_deg == 70
-    assert C[~R & lo].min() > C[R & lo].max()
-    assert C[R & hi].min() > C[~R & hi].max()
-    # a rougher relief (height scale) is less coherent
-    assert np.all(fwd.debye_waller({"height_scale": 2.0}) <= C)
-
-
 def test_diffraction_restores_the_specular_beam_of_a_smooth_relief_and_is_named():
     from relief_bsdf.conceal import gaussian_relief
     # sigma = lambda / 11 (mostly coherent), slopes ~ 0.12 rad: a geometric lobe wider than the detector

@@ -23,8 +23,10 @@ def _specular(theta_deg, n1, n2):
     return -n1 * np.sin(np.radians(theta_deg)) / n2
 
 
-@pytest.mark.parametrize("theta, inside", [(0.0, False), (50.0, False), (20.0, True)])
+@pytest.mark.parametrize("theta, inside", [(0.0, False), (50.0, False), (70.0, False), (20.0, True)])
 def test_coherent_fraction_is_the_debye_waller_value_per_side(theta, inside):
+    # near normal incidence transmission keeps more coherence than reflection (phase (n - 1) vs 2);
+    # at grazing incidence (70 deg) reflection becomes the more coherent one (cos theta_i -> 0)
     sigma = 0.1e-6
     face = KirchhoffFace(sigma, 2.0e-6, WL_NM)
     n = 200_000

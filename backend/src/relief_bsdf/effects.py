@@ -150,9 +150,7 @@ class PlateForward:
         return h * p.get("height_scale", 1.0)
 
     def _faces(self, p: dict, kind: str = "normals"):
-        """The front face: measured facet normals, a flat face, or the ray-traced height field."""
-        if kind == "flat":
-            return NormalsFace(np.array([[0.0, 0.0, 1.0]]))
+        """The front face: measured facet normals, the Kirchhoff wave face, or the ray-traced height field."""
         h = self._heights(p)
         if kind == "kirchhoff":
             s = float(p.get("coherent_scale", 0.0)) or 1.0          # partial coherence: the Kirchhoff value
@@ -175,9 +173,7 @@ class PlateForward:
         rows = self.rows
         wls = np.unique(rows.wavelength_nm)
         recs = {}
-        # the flat face's exits are (nearly) deterministic directions: fewer photons suffice
-        n_ph = max(self.photons // 4, 2000) if kind == "flat" else self.photons
-        salt = {"normals": (), "flat": (1,), "heightfield": (2,), "kirchhoff": (3,)}[kind]
+        salt = {"normals": (), "heightfield": (2,), "kirchhoff": (3,)}[kind]
         for iw, wl in enumerate(wls):
             if kind == "kirchhoff":
                 face.wavelength_nm = float(wl)
@@ -192,27 +188,10 @@ class PlateForward:
                 for src, st in enumerate(((1.0, 1.0, 0.0, 0.0), (1.0, -1.0, 0.0, 0.0))):
                     rng = task_rng(self.seed, int(round(wl * 10)), int(round(ti * 100)), int(round(pi * 100)), src,
                                    *salt)
-                    ex.append(run_photons(face, phys, ti, pi, st, n_ph // 2, rng))
+                    ex.append(run_photons(face, phys, ti, pi, st, self.photons // 2, rng))
                 recs[(wl, ti, pi)] = (idx, ex)
         self._cache_key[kind], self._cache[kind] = key, recs
         return recs
-
-    def debye_waller(self, p: dict) -> np.ndarray:
-        """Coherent (specular) fraction per row, Kirchhoff / Debye-Waller (module docstring),
-        without the scale s: exp(-g) with g the phase variance for the row's side."""
-        rows = self.rows
-        h = self._heights(p)
-        sig_m = float(np.nanstd(h))
-        out = np.zeros(len(rows))
-        for wl in np.unique(rows.wavelength_nm):
-            sel = rows.wavelength_nm == wl
-            n = self._n_glass(wl, p)
-            ci = np.cos(np.radians(rows.theta_i_deg[sel]))
-            ct = np.sqrt(np.maximum(0.0, 1.0 - (1.0 - ci**2) / n**2))
-            k = 2 * np.pi * sig_m / (wl * 1e-9)
-            g = np.where(rows.side[sel] == "R", (2 * k * ci) ** 2, (k * (n * ct - ci)) ** 2)
-            out[sel] = np.exp(-g)
-        return out
 
     def simulate(self, params: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(values, Monte-Carlo sigma) per row for the given effect parameters."""

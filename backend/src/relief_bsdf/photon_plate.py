@@ -219,7 +219,6 @@ class NormalsFace:
         return d, S, e, inside, alive
 
 
-
 @dataclass
 class KirchhoffFace:
     """Scalar Kirchhoff (Beckmann) rough face, event by event, for the wave-optics candidates.
@@ -281,8 +280,8 @@ class KirchhoffFace:
         c1 = np.abs(d[:, 2])
         a = np.where(refl, 2 * k0 * n1 * c1, k0 * np.abs(n1 * c1 - n2 * np.abs(dn[:, 2])))
         g = (a * self.sigma_m) ** 2
-        coh = rng.random(n) < np.clip(self.coherent_scale * np.exp(-g), 0.0, 1.0)
-        p0 = np.exp(-g)
+        p0 = np.exp(-g)                                      # Debye-Waller factor of the event
+        coh = rng.random(n) < np.clip(self.coherent_scale * p0, 0.0, 1.0)
         m = np.maximum(poisson.ppf(p0 + rng.random(n) * (1 - p0), g), 1.0)    # Poisson(g) given m >= 1
         q_sd = np.where(coh, 0.0, np.sqrt(2 * m) / self.corr_m)
         if self.coherence_length_m > 0:
@@ -307,6 +306,7 @@ class KirchhoffFace:
         en = _normalize(np.where(np.linalg.norm(en, axis=1, keepdims=True) > 1e-9, en, _perp_any(out)))
         inside_new = np.where(refl, inside, ~inside)
         return out, Sn, en, inside_new, alive
+
 
 def beckmann_normals(alpha: float, n: int, rng: np.random.Generator) -> np.ndarray:
     """Normals of a Beckmann surface: slopes Gaussian with per-axis std alpha / sqrt(2)."""

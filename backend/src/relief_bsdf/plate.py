@@ -489,14 +489,17 @@ class PlateSolver:
         # critical angle (trapped cells never feed the exit) and at the grid ends
         th_c = np.degrees(np.arcsin(min(n0 / n, 1.0)))
         below = tc < th_c
-        Wi = _lin_matrix(tc[below], th_int.ravel())                                          # (O ns, Nb)
-        Wflat = np.zeros((N, N, c))
-        Wflat[:, below, :] = np.einsum("osj,osc->ojc", Wi.reshape(N, ns, -1), tf)
+        Wi = _lin_matrix(tc[below], th_int.ravel()).reshape(N, ns, -1)                       # (O, ns, Nb)
+
+        def exit_remap(t_slices: np.ndarray) -> np.ndarray:
+            """(O, N, c): internal radiance -> outgoing cells, through transmission t per slice."""
+            W = np.zeros((N, N, c))
+            W[:, below, :] = np.einsum("osj,osc->ojc", Wi, t_slices)
+            return W
+        Wflat = exit_remap(tf)
         # exit of diffuse internal light through the rough face's delta part (its specular
         # transmission from inside): the same Snell remap, with the table's delta Mueller row 0
-        ts_ = vin.specular_many("T", th_int).reshape(N, ns, 4, 4)[..., 0, :c] / ns
-        Wspec = np.zeros((N, N, c))
-        Wspec[:, below, :] = np.einsum("osj,osc->ojc", Wi.reshape(N, ns, -1), ts_)
+        Wspec = exit_remap(vin.specular_many("T", th_int).reshape(N, ns, 4, 4)[..., 0, :c] / ns)
         ops = dict(n=n, n0=n0, vin=vin, vout=vout, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
                    Wflat=Wflat, Wspec=Wspec, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT)
         self._ops[wl] = ops
