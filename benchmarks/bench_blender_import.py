@@ -47,8 +47,8 @@ def main(argv=None) -> int:
     n = a.size
     import relief_addon
     from relief_addon.mesh_import import build_mesh, grid_faces
-    from relief_bsdf.readers import write_relief
-    from relief_bsdf.relief import Relief
+    from relief_bsdf.io.heightmaps import write_relief
+    from relief_bsdf.surface.relief import Relief
     bpy.ops.wm.read_factory_settings(use_empty=True)
     relief_addon.register()
     rng = np.random.default_rng(0)

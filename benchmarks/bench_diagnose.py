@@ -1,8 +1,8 @@
 """Blind diagnosis of concealed-effect cases (issue 6 proof).
 
-Generates seeded cases with `relief_bsdf.conceal` (independent Monte-Carlo photon plate
+Generates seeded cases with `relief_bsdf.validation.conceal` (independent Monte-Carlo photon plate
 through the ray-traced height field, realistic noise; one concealed effect or none per
-case, the key kept apart), runs `relief_bsdf.diagnose.diagnose` on each without the key,
+case, the key kept apart), runs `relief_bsdf.diagnose.run.diagnose` on each without the key,
 then compares.  Prints one line per case, a summary, and as last line one JSON object with
 `cases`, `named_right`, `none_right`, `median_rms_ratio` (over effect cases), parameter
 errors and timings.
@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from relief_bsdf.conceal import default_cases, generate
-from relief_bsdf.diagnose import diagnose
-from relief_bsdf.parallel import map_tasks
+from relief_bsdf.validation.conceal import default_cases, generate
+from relief_bsdf.diagnose.run import diagnose
+from relief_bsdf.parallel.tasks import map_tasks
 
 KEY_PARAM = {"bulk_absorption": "absorption_per_mm", "volume_scattering": "scatter_per_mm",
              "back_face_roughness": "back_alpha", "sample_tilt": "tilt_deg", "instrument_blur": "blur_deg",

@@ -25,10 +25,10 @@ import scipy.fft as sfft
 
 from relief_bsdf.methods import kirchhoff
 from relief_bsdf.methods.rayleigh_rice import prepared_heights
-from relief_bsdf.optics import ConstantIndex, Material
-from relief_bsdf.relief import Relief
-from relief_bsdf.request import Request
-from relief_bsdf.wave_filter import cell_samples, smoothing_width_dcos
+from relief_bsdf.core.optics import ConstantIndex, Material
+from relief_bsdf.surface.relief import Relief
+from relief_bsdf.methods.request import Request
+from relief_bsdf.methods.wave_filter import cell_samples, smoothing_width_dcos
 
 
 def gaussian_relief(n, pitch, rms, corr, seed=0):

@@ -28,10 +28,10 @@ def main() -> int:
     ap.add_argument("--skip-fit", action="store_true")
     ap.add_argument("--max-iter", type=int, default=40)
     a = ap.parse_args()
-    from relief_bsdf.fit import TableGrid, derive_tables, run_fit_job
-    from relief_bsdf.optics import ConstantIndex
-    from relief_bsdf.plate import PlateModel, PlateSolver, _blas_single_thread, in_plane_rows, simulate_rows
-    from relief_bsdf.synth import random_relief
+    from relief_bsdf.fit.optimise import TableGrid, derive_tables, run_fit_job
+    from relief_bsdf.core.optics import ConstantIndex
+    from relief_bsdf.plate.solver import PlateModel, PlateSolver, _blas_single_thread, in_plane_rows, simulate_rows
+    from relief_bsdf.surface.synth import random_relief
 
     relief = random_relief(128, 0.125e-6, 30e-9, 1.0e-6, "gaussian", seed=1)
     model = PlateModel(thickness_m=2e-3, index=ConstantIndex(1.49))

@@ -40,13 +40,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 def _synthetic(args):
-    from relief_bsdf.cluster import synthetic_task
+    from relief_bsdf.parallel.cluster import synthetic_task
 
     ctx = {"seed": 1, "size": args.size, "work": args.work}
     tasks = [(k,) for k in range(args.tasks)]
 
     def run(backend=None, workers=None):
-        from relief_bsdf import parallel
+        from relief_bsdf.parallel import tasks as parallel
         return parallel.map_tasks(synthetic_task, tasks, ctx, backend=backend, workers=workers, label="bench")
 
     return run, len(tasks), {"workload": "synthetic", "size": args.size, "work_rounds": args.work}
@@ -78,8 +78,8 @@ def _gaussian_relief(n, pitch_m, rms_m, corr_m, seed):
     """Periodic Gaussian relief: white noise filtered to the spectrum of s^2 exp(-r^2/L^2)."""
     import numpy as np
 
-    from relief_bsdf.parallel import task_rng
-    from relief_bsdf.relief import Relief
+    from relief_bsdf.parallel.tasks import task_rng
+    from relief_bsdf.surface.relief import Relief
 
     f = np.fft.fftfreq(n, pitch_m)
     fx, fy = np.meshgrid(f, f)
@@ -92,10 +92,10 @@ def _gaussian_relief(n, pitch_m, rms_m, corr_m, seed):
 def _method(args):
     import numpy as np
 
-    from relief_bsdf import parallel
+    from relief_bsdf.parallel import tasks as parallel
     from relief_bsdf.methods import reconstruct
-    from relief_bsdf.optics import ConstantIndex, Material
-    from relief_bsdf.request import Request
+    from relief_bsdf.core.optics import ConstantIndex, Material
+    from relief_bsdf.methods.request import Request
 
     relief = _gaussian_relief(args.relief_size, 1e-6, 0.5e-6, 10e-6, seed=1)
     material = Material(inside=ConstantIndex(1.5))
@@ -144,8 +144,8 @@ def main(argv=None) -> dict:
 
     logging.getLogger("distributed").setLevel(logging.ERROR)
 
-    from relief_bsdf import parallel
-    from relief_bsdf.cluster import trivial_task
+    from relief_bsdf.parallel import tasks as parallel
+    from relief_bsdf.parallel.cluster import trivial_task
 
     run, n_tasks, info = (_method if args.method else _synthetic)(args)
 

@@ -32,11 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
-from relief_bsdf import plots, synth
+from relief_bsdf.report import plots
+
+from relief_bsdf.surface import synth
 from relief_bsdf.errors import InputError, RequestError
 from relief_bsdf.methods import reconstruct
-from relief_bsdf.optics import ConstantIndex, Material
-from relief_bsdf.request import Request
+from relief_bsdf.core.optics import ConstantIndex, Material
+from relief_bsdf.methods.request import Request
 
 METHODS = ("microfacet", "normals", "ray", "kirchhoff", "rayleigh-rice")
 OPTIONS = {"microfacet": {}, "normals": {}, "ray": {"polarized": False}, "kirchhoff": {"band_limited": True},

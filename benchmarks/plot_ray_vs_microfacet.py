@@ -18,12 +18,12 @@ import json
 
 import numpy as np
 
-from relief_bsdf.mesh import build_tile_mesh
+from relief_bsdf.surface.mesh import build_tile_mesh
 from relief_bsdf.methods import microfacet as mf
 from relief_bsdf.methods import ray
-from relief_bsdf.optics import ConstantIndex, Material
-from relief_bsdf.request import Request
-from relief_bsdf.synth import random_relief
+from relief_bsdf.core.optics import ConstantIndex, Material
+from relief_bsdf.methods.request import Request
+from relief_bsdf.surface.synth import random_relief
 
 TE = tuple(np.linspace(0.0, 90.0, 31))
 PE = tuple(np.arange(-7.5, 360.0, 15.0))

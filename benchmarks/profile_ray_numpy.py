@@ -20,9 +20,9 @@ import time
 import numpy as np
 
 from relief_bsdf.methods import ray
-from relief_bsdf.optics import ConstantIndex, Material
-from relief_bsdf.request import Request
-from relief_bsdf.synth import random_relief
+from relief_bsdf.core.optics import ConstantIndex, Material
+from relief_bsdf.methods.request import Request
+from relief_bsdf.surface.synth import random_relief
 
 
 def main(argv=None) -> int:

@@ -1,7 +1,7 @@
 """Baked BSDF -> packed float32 lookup image + reusable shader node group (bpy only here).
 
 The physics (what the rows mean, why they are indexed by the view angle, how weights
-account for the closures' own albedo) is in the backend: `relief_bsdf.bake`.  This module
+account for the closures' own albedo) is in the backend: `relief_bsdf.bsdf.bake`.  This module
 only builds Blender data:
 
 - image "Relief LUT: <name>": C x (2 * 5) float32 RGBA, non-colour data, packed, fake user;
@@ -26,7 +26,7 @@ CALIBRATION = Path(__file__).resolve().parent / "data" / "cycles_albedo.npz"
 
 def closure_albedo():
     """The measured Cycles closure albedo shipped with the add-on (None if missing)."""
-    from relief_bsdf.bake import ClosureAlbedo
+    from relief_bsdf.bsdf.bake import ClosureAlbedo
     return ClosureAlbedo.load(CALIBRATION) if CALIBRATION.exists() else None
 
 
@@ -153,8 +153,8 @@ def _metallic_lobe(g, lut, tex, roughness_socket, geo, loc):
 
 
 def build_node_group(lut, img: bpy.types.Image | None = None) -> bpy.types.ShaderNodeTree:
-    """The reusable node group "Relief BSDF: <name>" for a `relief_bsdf.bake.BakedLut`."""
-    from relief_bsdf.bake import ROW_NAMES, ROWS_PER_SIDE
+    """The reusable node group "Relief BSDF: <name>" for a `relief_bsdf.bsdf.bake.BakedLut`."""
+    from relief_bsdf.bsdf.bake import ROW_NAMES, ROWS_PER_SIDE
     img = img or lut_image(lut)
     name = GROUP_PREFIX + lut.name
     old = bpy.data.node_groups.get(name)
@@ -218,7 +218,7 @@ def has_metallic_bsdf() -> bool:
 
 def bake_tables(tables, name: str, albedo="calibrated"):
     """BsdfTables -> (BakedLut, image, node group)."""
-    from relief_bsdf.bake import bake_lut
+    from relief_bsdf.bsdf.bake import bake_lut
     alb = closure_albedo() if albedo == "calibrated" else albedo
     closure = "metallic" if has_metallic_bsdf() and (alb is None or getattr(alb, "metallic", 1) is not None) \
         else "glossy"

@@ -75,11 +75,11 @@ def set_z_scale(obj: bpy.types.Object, z_scale: float) -> None:
 
 
 def relief_stats(relief) -> dict:
-    """Statistics for the panel: the backend's `relief_bsdf.stats` when present, else a
+    """Statistics for the panel: the backend's `relief_bsdf.surface.stats` when present, else a
     minimal set (rms height after plane levelling; rms slope magnitude from central
     differences on valid points)."""
     try:
-        from relief_bsdf.stats import relief_stats as backend_stats
+        from relief_bsdf.surface.stats import relief_stats as backend_stats
     except ImportError:
         backend_stats = None
     if backend_stats is not None:

@@ -63,7 +63,7 @@ def _require(module: str, what: str):
 
 
 def _import_file(context, path: Path, pitch_um: float, z_scale: float):
-    from relief_bsdf.readers import read_relief
+    from relief_bsdf.io.heightmaps import read_relief
     from .mesh_import import import_relief
     from relief_bsdf.errors import InputError
     pitch = (pitch_um * 1e-6, pitch_um * 1e-6) if pitch_um > 0 else None
@@ -178,8 +178,8 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
         return JobOperator.invoke(self, context, event)
 
     def prepare(self, context):
-        from relief_bsdf.optics import ConstantIndex, Material
-        from relief_bsdf.request import Request
+        from relief_bsdf.core.optics import ConstantIndex, Material
+        from relief_bsdf.methods.request import Request
         s = context.scene.relief
         if self.relief_path:
             src, pitch = str(abspath(self.relief_path)), None
@@ -201,15 +201,15 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
 
     @staticmethod
     def work(p, progress):
-        from relief_bsdf.bsdf_h5 import save_tables
+        from relief_bsdf.io.hdf5 import save_tables
         from relief_bsdf.methods import reconstruct
-        from relief_bsdf.readers import read_relief
+        from relief_bsdf.io.heightmaps import read_relief
         relief = read_relief(p["relief"], pitch_m=p["pitch"])
         tables = reconstruct(relief, p["material"], p["request"], p["method"], progress=progress)
         save_tables(p["out"], tables)
         lut = None
         if p["bake"]:
-            from relief_bsdf.bake import bake_lut
+            from relief_bsdf.bsdf.bake import bake_lut
             lut = bake_lut(tables, p["name"], albedo=p["albedo"], reflection_closure=p["closure"])
         return {"tables": tables, "out": p["out"], "lut": lut}
 
@@ -259,8 +259,8 @@ class RELIEF_OT_bake_bsdf(JobOperator, bpy.types.Operator):
 
     @staticmethod
     def work(p, progress):
-        from relief_bsdf.bake import bake_lut
-        from relief_bsdf.bsdf_h5 import load_tables
+        from relief_bsdf.bsdf.bake import bake_lut
+        from relief_bsdf.io.hdf5 import load_tables
         tables = load_tables(p["path"])
         progress(0, 1, "fitting lobes")
         lut = bake_lut(tables, p["name"], albedo=p["albedo"], reflection_closure=p["closure"])
@@ -335,7 +335,7 @@ class RELIEF_OT_fit(JobOperator, bpy.types.Operator):
 
     @staticmethod
     def work(p, progress):
-        fit = _require("relief_bsdf.fit", "fit")
+        fit = _require("relief_bsdf.fit.optimise", "fit")
         doc = fit.run_fit_job(p["sample"], p["out"], method=p["method"], max_iter=p["max_iter"], progress=progress)
         return {"doc": doc, "out": p["out"]}
 
@@ -362,7 +362,7 @@ class RELIEF_OT_diagnose(JobOperator, bpy.types.Operator):
 
     @staticmethod
     def work(p, progress):
-        diag = _require("relief_bsdf.diagnose", "diagnose")
+        diag = _require("relief_bsdf.diagnose.run", "diagnose")
         return diag.diagnose(p["sample"], p["out"], progress=progress)      # the diagnosis.json document
 
     def finish(self, context, res):

@@ -5,7 +5,7 @@ or a sample.toml, derives the boundary tables of the relief as measured and as f
 for a bare sample, a smooth plate and the measured relief) and bakes their lookup rows.
 `render_side_by_side(plates, out)` builds one Cycles scene per plate on the main thread,
 renders it, and writes the images side by side (left: before, right: after) through
-OpenImageIO (`relief_bsdf.oiio`).
+OpenImageIO (`relief_bsdf.io.oiio`).
 
 Scene (metres): a checkerboard (5 mm squares, diffuse, albedo 0.05 / 0.8) on z = 0; the
 plate (50 x 50 mm, the sample's thickness) 30 mm above it, so that the scattering visibly
@@ -37,7 +37,7 @@ def _sample_path_from_fit(fit_dir: Path, doc: dict) -> Path:
 
 
 def _tables(relief, material, method: str, progress=None):
-    from relief_bsdf.fit import TableGrid, derive_tables
+    from relief_bsdf.fit.optimise import TableGrid, derive_tables
     theta_out = np.array([0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 89.0])
     out, ins = derive_tables(relief, material, method, [550.0], theta_out, TableGrid(2.0, 10.0, 10.0),
                              samples=100_000, seed=0, need_outside=True, progress=progress)
@@ -46,12 +46,12 @@ def _tables(relief, material, method: str, progress=None):
 
 def prepare_plates(source, albedo=None, closure: str = "metallic", progress=None) -> list[dict]:
     """[before, after] plates: {"label", "lut", "thickness_m", "rough_face", "ior"} (no bpy)."""
-    from relief_bsdf.bake import bake_lut
+    from relief_bsdf.bsdf.bake import bake_lut
     from relief_bsdf.errors import InputError
-    from relief_bsdf.fit import process_relief
-    from relief_bsdf.plate import flat_tables
-    from relief_bsdf.readers import read_relief
-    from relief_bsdf.recording import read_sample
+    from relief_bsdf.fit.optimise import process_relief
+    from relief_bsdf.plate.solver import flat_tables
+    from relief_bsdf.io.heightmaps import read_relief
+    from relief_bsdf.io.recording import read_sample
     src = Path(source)
     if src.is_dir():
         fj = src / "fit.json"
@@ -193,7 +193,7 @@ def _srgb(lin: np.ndarray) -> np.ndarray:
 def write_image(path: Path, rgb_display: np.ndarray) -> Path:
     """Write an RGB image (display-encoded floats in [0, 1], top row first) with OpenImageIO, atomically."""
     from relief_bsdf import oiio as oiio_loader
-    from relief_bsdf.atomic import atomic_path
+    from relief_bsdf.io.atomic import atomic_path
     oiio = oiio_loader.load()
     path = Path(path)
     data = np.ascontiguousarray(rgb_display, dtype=np.float32)

@@ -33,13 +33,13 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(Path(__file__).parent / "demo"))
     ap.add_argument("--seed", type=int, default=1)
     a = ap.parse_args(argv)
-    from relief_bsdf.fit import Forward, TableGrid
-    from relief_bsdf.optics import ConstantIndex
-    from relief_bsdf.parallel import task_rng
-    from relief_bsdf.plate import PlateModel, in_plane_rows
-    from relief_bsdf.readers import read_relief, write_relief
-    from relief_bsdf.recording import Recording, write_recording, write_sample
-    from relief_bsdf.synth import random_relief
+    from relief_bsdf.fit.optimise import Forward, TableGrid
+    from relief_bsdf.core.optics import ConstantIndex
+    from relief_bsdf.parallel.tasks import task_rng
+    from relief_bsdf.plate.solver import PlateModel, in_plane_rows
+    from relief_bsdf.io.heightmaps import read_relief, write_relief
+    from relief_bsdf.io.recording import Recording, write_recording, write_sample
+    from relief_bsdf.surface.synth import random_relief
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     relief = random_relief(1024, 0.125e-6, 100e-9, 1.0e-6, "gaussian", seed=a.seed)

@@ -1,17 +1,17 @@
 """Synthetic reliefs for the wave-optics tests (periodic, isotropic, Gaussian autocovariance).
 
-Uses relief_bsdf.synth.random_relief when it exists; otherwise FFT-filtered white Gaussian
+Uses relief_bsdf.surface.synth.random_relief when it exists; otherwise FFT-filtered white Gaussian
 noise with autocovariance s^2 exp(-r^2/L^2), i.e. PSD pi s^2 L^2 exp(-(pi L f)^2), the
 convention of NIST SCATMECH's Gaussian_PSD_Function.  Heights are rescaled to the exact rms.
 """
 import numpy as np
 
-from relief_bsdf.relief import Relief
+from relief_bsdf.surface.relief import Relief
 
 
 def gaussian_relief(n: int, pitch_m: float, rms_m: float, corr_m: float, seed: int = 0) -> Relief:
     try:  # the project's generator, when it has landed
-        from relief_bsdf.synth import random_relief
+        from relief_bsdf.surface.synth import random_relief
         return random_relief(n, pitch_m, rms_m, corr_m, "gaussian", seed)
     except ImportError:
         pass

@@ -9,8 +9,8 @@ import pytest
 
 from _wave_reliefs import gaussian_relief
 from relief_bsdf.methods import auto, reconstruct
-from relief_bsdf.optics import ConstantIndex, Material
-from relief_bsdf.request import Request
+from relief_bsdf.core.optics import ConstantIndex, Material
+from relief_bsdf.methods.request import Request
 
 MAT = Material(inside=ConstantIndex(1.5))
 SMALL = dict(theta_i_deg=(0.0, 30.0), theta_s_edges_deg=tuple(np.linspace(0, 60, 31)),

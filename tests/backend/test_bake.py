@@ -1,13 +1,13 @@
-"""relief_bsdf.bake: lookup rows for renderer closures (no bpy)."""
+"""relief_bsdf.bsdf.bake: lookup rows for renderer closures (no bpy)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from relief_bsdf.bake import ClosureAlbedo, bake_lut, unit_albedo
+from relief_bsdf.bsdf.bake import ClosureAlbedo, bake_lut, unit_albedo
 from relief_bsdf.errors import InputError
-from relief_bsdf.optics import CauchyIndex, ConstantIndex, Material, critical_angle_deg, fresnel_unpolarized
-from relief_bsdf.plate import flat_tables
+from relief_bsdf.core.optics import CauchyIndex, ConstantIndex, Material, critical_angle_deg, fresnel_unpolarized
+from relief_bsdf.plate.solver import flat_tables
 
 TH = np.arange(0.0, 90.0, 5.0)
 
@@ -76,7 +76,7 @@ def test_weights_divide_by_the_closure_albedo():
 
 def test_rough_table_energy_and_roughness():
     from relief_bsdf.methods import reconstruct
-    from relief_bsdf.request import Request
+    from relief_bsdf.methods.request import Request
     mat = Material(ConstantIndex(1.5))
     req = Request(theta_i_deg=(0.0, 30.0, 60.0), incident_from=("outside",), theta_s_edges_deg=tuple(np.linspace(0, 90, 91)),
                   phi_s_edges_deg=tuple(np.arange(-2.5, 360, 5)), options={"alpha": 0.2, "distribution": "ggx"})

@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from relief_bsdf.bsdf import BsdfTable, projected_solid_angle, reciprocity_error
-from relief_bsdf.bsdf_h5 import load_tables, save_tables
+from relief_bsdf.bsdf.table import BsdfTable, projected_solid_angle, reciprocity_error
+from relief_bsdf.io.hdf5 import load_tables, save_tables
 from relief_bsdf.errors import InputError
-from relief_bsdf.request import Request
+from relief_bsdf.methods.request import Request
 
 
 def lambert_table(albedo_R=0.3, albedo_T=0.6, spec=0.05):

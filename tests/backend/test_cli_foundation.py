@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from relief_bsdf.bsdf import BsdfTable
-from relief_bsdf.bsdf_h5 import load_tables, save_tables
-from relief_bsdf.bsdf_isbsdf import read_isbsdf
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.io.hdf5 import load_tables, save_tables
+from relief_bsdf.io.isbsdf import read_isbsdf
 from relief_bsdf.cli import main
-from relief_bsdf.readers import read_relief
-from relief_bsdf.recording import read_recording, write_sample
+from relief_bsdf.io.heightmaps import read_relief
+from relief_bsdf.io.recording import read_recording, write_sample
 
 TOPO = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "topography"
 

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from relief_bsdf.cli import main
-from relief_bsdf.readers import write_relief
-from relief_bsdf.recording import Recording, read_recording, write_recording, write_sample
-from relief_bsdf.synth import random_relief
+from relief_bsdf.io.heightmaps import write_relief
+from relief_bsdf.io.recording import Recording, read_recording, write_recording, write_sample
+from relief_bsdf.surface.synth import random_relief
 
 
 def make_sample(tmp_path, *, cauchy=None, theta_s_max=89.0, half_angle=1.0, relief=True, recording=True):

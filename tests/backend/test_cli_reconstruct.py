@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from relief_bsdf.bsdf_h5 import load_tables
+from relief_bsdf.io.hdf5 import load_tables
 from relief_bsdf.cli import main
 
 

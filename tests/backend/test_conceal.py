@@ -5,9 +5,9 @@ import tomllib
 import numpy as np
 import pytest
 
-from relief_bsdf.conceal import CaseSpec, HeightFieldFace, default_cases, gaussian_relief, make_case
-from relief_bsdf.photon_plate import NormalsFace, PlatePhysics, detect, run_photons
-from relief_bsdf.recording import read_recording, read_sample
+from relief_bsdf.validation.conceal import CaseSpec, HeightFieldFace, default_cases, gaussian_relief, make_case
+from relief_bsdf.validation.photon import NormalsFace, PlatePhysics, detect, run_photons
+from relief_bsdf.io.recording import read_recording, read_sample
 
 
 def _tiny(effect, params, seed=11):
@@ -67,7 +67,7 @@ def test_noise_is_consistent_with_sigma(tmp_path):
     """Recorded values scatter about an independent high-photon truth as their sigma says."""
     from dataclasses import replace
 
-    from relief_bsdf.conceal import _true_signal
+    from relief_bsdf.validation.conceal import _true_signal
     spec = _tiny("none", {}, seed=5)
     make_case(spec, tmp_path / "x")
     rec = read_recording(tmp_path / "x" / "recording.csv")
@@ -93,14 +93,14 @@ def test_default_cases_cover_every_effect_twice_and_none_thrice():
 @pytest.mark.slow
 @pytest.mark.parametrize("theta_i,pol,q", [(30.0, "unpolarized", 0.0), (55.0, "s", 1.0), (55.0, "p", -1.0)])
 def test_generator_agrees_with_the_independent_plate_mc(theta_i, pol, q):
-    """Cross-check against relief_bsdf.plate_mc (another team's code: ReliefTracer, own Stokes frames,
+    """Cross-check against relief_bsdf.plate.photon (another team's code: ReliefTracer, own Stokes frames,
     flat-face and detection code): the concealed-data physics must match it to the Monte-Carlo noise."""
     from types import SimpleNamespace
 
-    from relief_bsdf.optics import ConstantIndex
-    from relief_bsdf.plate import PlateModel
-    from relief_bsdf.plate_mc import simulate_rows_mc
-    from relief_bsdf.relief import Relief
+    from relief_bsdf.core.optics import ConstantIndex
+    from relief_bsdf.plate.solver import PlateModel
+    from relief_bsdf.plate.photon import simulate_rows_mc
+    from relief_bsdf.surface.relief import Relief
     h = gaussian_relief(48, 1e-6, 0.3e-6, 5e-6, 4)
     th = np.arange(0.0, 90.0, 5.0)
     side = np.array(["R"] * 36 + ["T"] * 36)
@@ -125,7 +125,7 @@ def test_wave_case_key_and_secrecy(tmp_path):
     and the coherent transmitted peak the wave physics puts in the specular row."""
     from dataclasses import replace
 
-    from relief_bsdf.conceal import WAVE_RELIEF
+    from relief_bsdf.validation.conceal import WAVE_RELIEF
     spec = replace(_tiny("diffraction", {"coherent_scale": 1.0}), relief_n=64, pitch_um=WAVE_RELIEF["pitch_um"],
                    rms_um=0.14, corr_um=WAVE_RELIEF["corr_um"], photons=20000)
     key = make_case(spec, tmp_path / "w")
@@ -146,7 +146,7 @@ def test_wave_case_key_and_secrecy(tmp_path):
 
 
 def test_default_cases_include_the_wave_effects_on_a_thin_screen_relief():
-    from relief_bsdf.conceal import WAVE_RELIEF
+    from relief_bsdf.validation.conceal import WAVE_RELIEF
     cases = [c for c in default_cases() if c.effect in ("diffraction", "partial_coherence")]
     assert sorted({c.effect for c in cases}) == ["diffraction", "partial_coherence"] and len(cases) == 4
     for c in cases:

@@ -23,15 +23,15 @@ import json
 import numpy as np
 import pytest
 
-from relief_bsdf import synth
-from relief_bsdf.bsdf import reciprocity_error
-from relief_bsdf.bsdf_h5 import load_tables, save_tables
+from relief_bsdf.surface import synth
+from relief_bsdf.bsdf.table import reciprocity_error
+from relief_bsdf.io.hdf5 import load_tables, save_tables
 from relief_bsdf.cli import main as cli_main
 from relief_bsdf.methods import reconstruct
-from relief_bsdf.optics import ConstantIndex, Material, fresnel_unpolarized, mueller_interface
-from relief_bsdf.recording import read_recording
-from relief_bsdf.relief import Relief
-from relief_bsdf.request import Request
+from relief_bsdf.core.optics import ConstantIndex, Material, fresnel_unpolarized, mueller_interface
+from relief_bsdf.io.recording import read_recording
+from relief_bsdf.surface.relief import Relief
+from relief_bsdf.methods.request import Request
 
 N_GLASS = 1.5
 WL_NM = 550.0
@@ -523,7 +523,7 @@ def test_flat_limit_equals_mueller_interface():
 def test_every_method_table_through_files_and_cli(tmp_path, capsys, geo, rough, smooth):
     """HDF5 round trip, `relief info --json` albedo rows, recording-csv rows == table.eval at the
     cell centre, and IS-BSDF export read back near the lobe, for one table of every method."""
-    from relief_bsdf.bsdf_isbsdf import export_isbsdf, import_isbsdf
+    from relief_bsdf.io.isbsdf import export_isbsdf, import_isbsdf
     picks = [geo["ray"], geo["normals"], geo["microfacet"], rough["kirchhoff"], smooth["rayleigh-rice"]]
     for n, tabs in enumerate(picks):
         path = tmp_path / f"t{n}.h5"

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from relief_bsdf.cli import main as cli_main
-from relief_bsdf.conceal import CaseSpec, make_case
-from relief_bsdf.diagnose import BIC_MARGIN, diagnose, select
+from relief_bsdf.validation.conceal import CaseSpec, make_case
+from relief_bsdf.diagnose.run import BIC_MARGIN, diagnose, select
 
 
 def _fit(name, chi2, k=1):
@@ -79,7 +79,7 @@ def test_bad_input_exits_2(tmp_path):
 
 
 def test_an_overwhelming_gain_overrides_a_globally_consistent_baseline():
-    from relief_bsdf.diagnose import BIC_OVERWHELMING, CONSISTENCY_Z
+    from relief_bsdf.diagnose.run import BIC_OVERWHELMING, CONSISTENCY_Z
     # the bar is max(40, 3 sqrt(2 n)): the floor for short scans, the chi^2 spread for long ones
     for n, bar in ((50, BIC_OVERWHELMING), (400, CONSISTENCY_Z * math.sqrt(2 * 400))):
         chi0 = 1.05 * n                      # passes the global noise test

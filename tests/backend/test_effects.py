@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from relief_bsdf.effects import EFFECTS, PlateForward, fit_effect
-from relief_bsdf.recording import Recording
-from relief_bsdf.optics import ConstantIndex, fresnel_power
-from relief_bsdf.photon_plate import NormalsFace, PlatePhysics, _hg_cos, beckmann_normals, detect, run_photons
+from relief_bsdf.diagnose.effects import EFFECTS, PlateForward, fit_effect
+from relief_bsdf.io.recording import Recording
+from relief_bsdf.core.optics import ConstantIndex, fresnel_power
+from relief_bsdf.validation.photon import NormalsFace, PlatePhysics, _hg_cos, beckmann_normals, detect, run_photons
 
 FLAT = NormalsFace(np.array([[0.0, 0.0, 1.0]]))
 N = 20000
@@ -98,7 +98,7 @@ def test_rough_back_face_spreads_transmission_with_roughness():
 
 
 def _small_forward(photons=20000, periodic=True):
-    from relief_bsdf.conceal import gaussian_relief
+    from relief_bsdf.validation.conceal import gaussian_relief
     h = gaussian_relief(48, 1e-6, 0.3e-6, 4e-6, 5)
     return PlateForward(h, 1e-6, 1e-6, periodic, _rows((0.0, 40.0)), 2.0, ConstantIndex(1.5), 3.0, photons=photons,
                         seed=1)
@@ -164,7 +164,7 @@ def test_detector_blur_keeps_the_integral_and_lowers_a_sharp_peak():
 
 def test_chi2_treats_zero_readings_as_clipped_and_is_unbiased_for_a_background():
     """A flat zero signal with Gaussian noise clipped at 0 must not look like a background."""
-    from relief_bsdf.effects import chi2
+    from relief_bsdf.diagnose.effects import chi2
     rng = np.random.default_rng(8)
     n = 4000
     y = np.maximum(0.002 * rng.normal(size=n), 0.0)
@@ -185,8 +185,8 @@ def _forward_on(h, photons=20000, tis=(0.0, 40.0, 70.0), dx_m=1e-6):
 
 def _names_it(fwd, truth_params, effect, rivals, noise_rel=0.03):
     """Noisy synthetic recording from `truth_params`; fit `effect` and rivals; select by BIC."""
-    from relief_bsdf.diagnose import select
-    from relief_bsdf.effects import chi2
+    from relief_bsdf.diagnose.run import select
+    from relief_bsdf.diagnose.effects import chi2
     truth, _ = fwd.simulate(truth_params)
     rng = np.random.default_rng(11)
     sig = noise_rel * np.abs(truth) + 2e-3
@@ -199,7 +199,7 @@ def _names_it(fwd, truth_params, effect, rivals, noise_rel=0.03):
 
 
 def test_diffraction_restores_the_specular_beam_of_a_smooth_relief_and_is_named():
-    from relief_bsdf.conceal import gaussian_relief
+    from relief_bsdf.validation.conceal import gaussian_relief
     # sigma = lambda / 11 (mostly coherent), slopes ~ 0.12 rad: a geometric lobe wider than the detector
     h = gaussian_relief(48, 0.2e-6, 0.05e-6, 0.6e-6, 4)
     fwd = _forward_on(h, tis=(0.0, 40.0), dx_m=0.2e-6)
@@ -215,7 +215,7 @@ def test_diffraction_restores_the_specular_beam_of_a_smooth_relief_and_is_named(
 
 
 def test_partial_coherence_broadens_the_coherent_lobe_and_is_named():
-    from relief_bsdf.conceal import gaussian_relief
+    from relief_bsdf.validation.conceal import gaussian_relief
     h = gaussian_relief(48, 0.2e-6, 0.05e-6, 0.6e-6, 4)
     fwd = _forward_on(h, tis=(0.0, 40.0), dx_m=0.2e-6)
     r = fwd.rows
@@ -233,7 +233,7 @@ def test_partial_coherence_broadens_the_coherent_lobe_and_is_named():
 
 
 def test_interreflection_matters_on_a_steep_relief_and_is_named():
-    from relief_bsdf.conceal import gaussian_relief
+    from relief_bsdf.validation.conceal import gaussian_relief
     h = gaussian_relief(48, 1e-6, 2e-6, 2e-6, 6)    # rms slope ~ 1.3: shadowing and multiple bounces
     fwd = _forward_on(h, tis=(0.0, 70.0))
     v0, s0 = fwd.simulate({})

@@ -4,10 +4,10 @@ import json
 import numpy as np
 import pytest
 
-from relief_bsdf.fit import Forward, TableGrid, fit_relief, process_relief, relief_rms
-from relief_bsdf.optics import ConstantIndex
-from relief_bsdf.plate import PlateModel, in_plane_rows
-from relief_bsdf.synth import random_relief
+from relief_bsdf.fit.optimise import Forward, TableGrid, fit_relief, process_relief, relief_rms
+from relief_bsdf.core.optics import ConstantIndex
+from relief_bsdf.plate.solver import PlateModel, in_plane_rows
+from relief_bsdf.surface.synth import random_relief
 
 
 @pytest.mark.slow

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from relief_bsdf.bsdf import BsdfTable, direction
-from relief_bsdf.bsdf_isbsdf import (export_isbsdf, from_specular_coords, import_isbsdf, read_isbsdf,
+from relief_bsdf.bsdf.table import BsdfTable, direction
+from relief_bsdf.io.isbsdf import (export_isbsdf, from_specular_coords, import_isbsdf, read_isbsdf,
                                      read_isbsdf_all, to_specular_coords, write_isbsdf)
 from relief_bsdf.errors import InputError
 

@@ -3,13 +3,13 @@ import numpy as np
 import pytest
 
 from _wave_reliefs import gaussian_relief
-from relief_bsdf.bsdf import direction, projected_solid_angle
+from relief_bsdf.bsdf.table import direction, projected_solid_angle
 from relief_bsdf.errors import RequestError
 from relief_bsdf.methods import kirchhoff, reconstruct
 from relief_bsdf.methods.microfacet import walter_bsdf
-from relief_bsdf.optics import ConstantIndex, Material, fresnel_unpolarized
-from relief_bsdf.relief import Relief
-from relief_bsdf.request import Request
+from relief_bsdf.core.optics import ConstantIndex, Material, fresnel_unpolarized
+from relief_bsdf.surface.relief import Relief
+from relief_bsdf.methods.request import Request
 
 MAT = Material(inside=ConstantIndex(1.5))
 EDGES60 = tuple(np.linspace(0, 60, 61))

@@ -3,8 +3,8 @@ geometric-optics limit, partial-coherence width, energy bookkeeping, reproducibi
 import numpy as np
 import pytest
 
-from relief_bsdf.optics import fresnel_power
-from relief_bsdf.photon_plate import KirchhoffFace, direction
+from relief_bsdf.core.optics import fresnel_power
+from relief_bsdf.validation.photon import KirchhoffFace, direction
 
 WL_NM = 550.0
 K0 = 2 * np.pi / (WL_NM * 1e-9)

@@ -4,12 +4,12 @@ import pytest
 
 import mitsuba as mi
 
-from relief_bsdf.bsdf import direction
+from relief_bsdf.bsdf.table import direction
 from relief_bsdf.methods.microfacet import (cell_average, cook_torrance_brdf, distribution_D, fit_lobes, fit_table,
                                             reconstruct, smith_G1, walter_bsdf, walter_terms)
-from relief_bsdf.optics import ConstantIndex, Material, fresnel_unpolarized
-from relief_bsdf.relief import Relief
-from relief_bsdf.request import Request
+from relief_bsdf.core.optics import ConstantIndex, Material, fresnel_unpolarized
+from relief_bsdf.surface.relief import Relief
+from relief_bsdf.methods.request import Request
 
 mi.set_variant("scalar_rgb")
 N_GLASS = 1.5
@@ -272,7 +272,7 @@ def test_mueller_frames_agree_with_ray_tracing():
     Mueller table of its rms slope agree element by element (signs of the frame rotations included)."""
     from relief_bsdf.methods import reconstruct as run_method
     from relief_bsdf.methods.microfacet import relief_slopes
-    from relief_bsdf.synth import random_relief
+    from relief_bsdf.surface.synth import random_relief
     relief = random_relief(128, 1e-6, 0.25e-6, 5e-6, kind="gaussian", seed=2)
     sx, sy = relief_slopes(relief)
     alpha = float(np.sqrt(np.mean(sx**2 + sy**2)))

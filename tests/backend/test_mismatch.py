@@ -1,9 +1,9 @@
-"""Residual localisation and shape classification (relief_bsdf.mismatch) on synthetic scans."""
+"""Residual localisation and shape classification (relief_bsdf.diagnose.mismatch) on synthetic scans."""
 import numpy as np
 import pytest
 
-from relief_bsdf.recording import Recording
-from relief_bsdf.mismatch import classify, locate, residual_z
+from relief_bsdf.io.recording import Recording
+from relief_bsdf.diagnose.mismatch import classify, locate, residual_z
 
 
 def _rows(value, sigma, theta_i=(0.0, 40.0), sides=("R", "T")):

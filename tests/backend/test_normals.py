@@ -2,13 +2,13 @@
 import numpy as np
 import pytest
 
-from relief_bsdf.bsdf import direction, projected_solid_angle
+from relief_bsdf.bsdf.table import direction, projected_solid_angle
 from relief_bsdf.errors import InputError
 from relief_bsdf.methods.microfacet import cell_average, walter_bsdf
 from relief_bsdf.methods.normals import SlopeSet, reconstruct, trace_normals, triangle_slopes
-from relief_bsdf.optics import ConstantIndex, Material, fresnel_unpolarized
-from relief_bsdf.relief import Relief
-from relief_bsdf.request import Request
+from relief_bsdf.core.optics import ConstantIndex, Material, fresnel_unpolarized
+from relief_bsdf.surface.relief import Relief
+from relief_bsdf.methods.request import Request
 
 TE = np.linspace(0, 90, 46)
 PE = np.arange(-5.0, 360.0, 10.0)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from relief_bsdf.errors import InputError
-from relief_bsdf.optics import (CauchyIndex, ConstantIndex, Material, SellmeierIndex, critical_angle_deg,
+from relief_bsdf.core.optics import (CauchyIndex, ConstantIndex, Material, SellmeierIndex, critical_angle_deg,
                                 fresnel_power, fresnel_unpolarized, mueller_interface, reflect, refract)
 
 

@@ -15,8 +15,8 @@ import numpy as np
 import psutil
 import pytest
 
-from relief_bsdf import parallel
-from relief_bsdf.cluster import synthetic_task
+from relief_bsdf.parallel import tasks as parallel
+from relief_bsdf.parallel.cluster import synthetic_task
 from relief_bsdf.errors import InputError
 
 N = 12
@@ -136,8 +136,8 @@ def test_killed_run_resumes_from_checkpoints(tmp_path):
     ck = tmp_path / "ck"
     ctx = _ctx(tmp_path, sleep_s=0.25)
     script = textwrap.dedent(f"""
-        from relief_bsdf import parallel
-        from relief_bsdf.cluster import synthetic_task
+        from relief_bsdf.parallel import tasks as parallel
+        from relief_bsdf.parallel.cluster import synthetic_task
         if __name__ == "__main__":
             parallel.map_tasks(synthetic_task, {TASKS!r}, {ctx!r}, backend="processes", workers=2,
                                checkpoint_dir={str(ck)!r})
@@ -186,8 +186,8 @@ def test_ctrl_c_stops_workers_cleanly(tmp_path):
     ctx = _ctx(tmp_path, sleep_s=30.0)
     script = textwrap.dedent(f"""
         import sys
-        from relief_bsdf import parallel
-        from relief_bsdf.cluster import synthetic_task
+        from relief_bsdf.parallel import tasks as parallel
+        from relief_bsdf.parallel.cluster import synthetic_task
         if __name__ == "__main__":
             try:
                 parallel.map_tasks(synthetic_task, {TASKS!r}, {ctx!r}, backend="processes", workers=2)

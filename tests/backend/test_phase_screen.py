@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.special import ndtri
 
-from relief_bsdf.conceal import gaussian_relief
-from relief_bsdf.optics import fresnel_amplitudes
-from relief_bsdf.phase_screen import PhaseScreenFace
-from relief_bsdf.photon_plate import NormalsFace, PlatePhysics, direction, run_photons
+from relief_bsdf.validation.conceal import gaussian_relief
+from relief_bsdf.core.optics import fresnel_amplitudes
+from relief_bsdf.validation.phase_screen import PhaseScreenFace
+from relief_bsdf.validation.photon import NormalsFace, PlatePhysics, direction, run_photons
 
 WL_NM = 550.0
 K0 = 2 * np.pi / (WL_NM * 1e-3)     # 1/um

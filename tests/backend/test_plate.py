@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 
-from relief_bsdf.bsdf import BsdfTable
+from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
-from relief_bsdf.optics import CauchyIndex, ConstantIndex, Material, fresnel_power
-from relief_bsdf.plate import PlateModel, PlateSolver, Rows, flat_tables, in_plane_rows, simulate_rows
-from relief_bsdf.request import Request
+from relief_bsdf.core.optics import CauchyIndex, ConstantIndex, Material, fresnel_power
+from relief_bsdf.plate.solver import PlateModel, PlateSolver, Rows, flat_tables, in_plane_rows, simulate_rows
+from relief_bsdf.methods.request import Request
 
 N_GLASS = 1.5
 

@@ -5,13 +5,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from relief_bsdf.fit import TableGrid
+from relief_bsdf.fit.optimise import TableGrid
 from relief_bsdf.methods import reconstruct
-from relief_bsdf.optics import ConstantIndex, fresnel_power
-from relief_bsdf.plate import PlateModel, Rows, in_plane_rows, simulate_rows
-from relief_bsdf.plate_mc import hemispherical, make_tracer, simulate_rows_mc, trace_plate
-from relief_bsdf.relief import Relief
-from relief_bsdf.synth import random_relief
+from relief_bsdf.core.optics import ConstantIndex, fresnel_power
+from relief_bsdf.plate.solver import PlateModel, Rows, in_plane_rows, simulate_rows
+from relief_bsdf.plate.photon import hemispherical, make_tracer, simulate_rows_mc, trace_plate
+from relief_bsdf.surface.relief import Relief
+from relief_bsdf.surface.synth import random_relief
 
 FLAT = Relief(np.zeros((16, 16)), 1e-6, 1e-6, periodic=True, source="flat")
 
@@ -52,8 +52,8 @@ def test_mc_and_deterministic_plates_agree_within_3_percent_in_lobe_on_the_demo_
     per-row variance removed) and on the lobe total."""
     from dataclasses import replace
 
-    from relief_bsdf.readers import read_relief
-    from relief_bsdf.recording import read_recording, read_sample
+    from relief_bsdf.io.heightmaps import read_relief
+    from relief_bsdf.io.recording import read_recording, read_sample
     demo = Path(__file__).resolve().parents[2] / "scenes" / "demo"
     sample = read_sample(demo / "sample.toml")
     relief = read_relief(demo / "relief.x3p")
@@ -113,8 +113,8 @@ def test_mc_plate_agrees_with_deterministic_plate_in_lobe():
 
 
 def test_tilted_flat_plate_mc_puts_the_specular_peak_where_the_deterministic_plate_does():
-    from relief_bsdf.plate import Rows, flat_tables
-    from relief_bsdf.optics import Material
+    from relief_bsdf.plate.solver import Rows, flat_tables
+    from relief_bsdf.core.optics import Material
     tilt = 3.0
     m = PlateModel(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=1.0, tilt_deg=tilt)
     ts = np.arange(20.25, 40.0, 0.5)      # no row exactly one cone radius from the beam

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 from relief_bsdf.errors import InputError, RequestError
-from relief_bsdf.mesh import build_tile_mesh
+from relief_bsdf.surface.mesh import build_tile_mesh
 from relief_bsdf.methods import microfacet as mf
 from relief_bsdf.methods import ray
-from relief_bsdf.optics import ConstantIndex, Material, fresnel_unpolarized, mueller_interface
-from relief_bsdf.relief import Relief
-from relief_bsdf.request import Request
-from relief_bsdf.synth import random_relief
+from relief_bsdf.core.optics import ConstantIndex, Material, fresnel_unpolarized, mueller_interface
+from relief_bsdf.surface.relief import Relief
+from relief_bsdf.methods.request import Request
+from relief_bsdf.surface.synth import random_relief
 
 N_GLASS = 1.5
 GLASS = Material(ConstantIndex(N_GLASS))
@@ -78,7 +78,7 @@ def test_flat_relief_mueller_matches_interface_including_tir_phase():
 
 
 def test_spectral_index_and_thread_count_do_not_change_results():
-    from relief_bsdf.optics import CauchyIndex
+    from relief_bsdf.core.optics import CauchyIndex
     cauchy = Material(CauchyIndex(1.5046, 4200.0))
     wl = (400.0, 700.0)
     req = Request(wavelengths_nm=wl, theta_i_deg=(50.0,), samples=2048, theta_s_edges_deg=TE, phi_s_edges_deg=PE,
@@ -236,7 +236,7 @@ def test_mueller_matrices_agree_with_walter_mueller_at_low_slope_both_sides():
     must equal W07's facet Mueller matrices (microfacet.walter_mueller); 40 degrees from inside is
     near the critical angle, where TIR phases give large M23 and off-plane cells large M12, M13.
     """
-    from relief_bsdf.bsdf import direction
+    from relief_bsdf.bsdf.table import direction
     relief = gaussian_relief(0.1, n=256, corr_px=8.0)
     alpha = mesh_alpha(relief)
     te = tuple(np.linspace(0, 90, 46))
@@ -339,13 +339,13 @@ def test_identical_tables_serial_processes_and_dask_local():
     """Each incidence is a map_tasks task with its own seeds: the same bits whatever runs it
     (this process with 2 or 1 threads, local worker processes, a local Dask cluster), and a
     task's rows do not depend on which other incidences share the request."""
-    from relief_bsdf import parallel
+    from relief_bsdf.parallel import tasks as parallel
 
     relief = gaussian_relief(0.35, n=64, corr_px=6.0)
     kw = dict(wavelengths_nm=(500.0, 600.0), theta_i_deg=(0.0, 50.0), phi_i_deg=(0.0, 30.0),
               incident_from=("outside", "inside"), samples=70000, seed=4,      # 2 chunks per incidence
               theta_s_edges_deg=TE, phi_s_edges_deg=PE)
-    from relief_bsdf.optics import CauchyIndex
+    from relief_bsdf.core.optics import CauchyIndex
     mat = Material(CauchyIndex(1.5046, 4200.0))
     runs = {}
     for name, opts in (("serial2", {"backend": "serial", "threads": 2}),

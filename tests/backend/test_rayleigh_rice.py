@@ -5,8 +5,8 @@ import pytest
 from _wave_reliefs import gaussian_relief, scatmech_psd_bsdf
 from relief_bsdf.methods import rayleigh_rice as rr
 from relief_bsdf.methods import reconstruct
-from relief_bsdf.optics import ConstantIndex, Material
-from relief_bsdf.request import Request
+from relief_bsdf.core.optics import ConstantIndex, Material
+from relief_bsdf.methods.request import Request
 
 RMS, CORR, LAM = 5e-9, 1e-6, 550.0
 MAT = Material(inside=ConstantIndex(1.5))
@@ -89,7 +89,7 @@ def test_reciprocity_and_energy(relief):
 
 
 def rr_rel(a, b, side):
-    from relief_bsdf.bsdf import reciprocity_error
+    from relief_bsdf.bsdf.table import reciprocity_error
     return reciprocity_error(a, b, side=side)["max_rel"]
 
 
@@ -108,7 +108,7 @@ def test_redder_is_sharper(relief):
 def test_mueller_matches_scatmech_and_flat_interface():
     """Full Mueller BSDF: SCATMECH's psps matrices (basis handedness aside) and the specular limit."""
     from pySCATMECH.brdf import BRDF_Model
-    from relief_bsdf.optics import cos_transmitted, mueller_interface
+    from relief_bsdf.core.optics import cos_transmitted, mueller_interface
     psd = _exact_psd()
     D = np.diag([1.0, 1.0, -1.0, -1.0])
     for kind, (n1, n2, side) in enumerate([(1, 1.5, "R"), (1, 1.5, "T"), (1.5, 1, "R"), (1.5, 1, "T")]):
@@ -150,7 +150,7 @@ def _rr_tables(rms_m, incident_from=("outside",), wavelengths=(450.0, 650.0), co
 
 def test_validity_metadata_inside_the_regime_and_no_warning():
     import warnings
-    from relief_bsdf.stats import relief_stats
+    from relief_bsdf.surface.stats import relief_stats
     with warnings.catch_warnings():
         warnings.simplefilter("error")            # any warning fails the test
         small, (tab,) = _rr_tables(5e-9)
@@ -186,7 +186,7 @@ def test_validity_flags_the_pairs_outside_the_regime_and_warns():
 
 
 def test_relief_info_shows_the_validity_of_a_saved_table(tmp_path, capsys):
-    from relief_bsdf.bsdf_h5 import save_tables
+    from relief_bsdf.io.hdf5 import save_tables
     from relief_bsdf.cli import main
     with pytest.warns(RuntimeWarning):
         _, (bad,) = _rr_tables(12e-9)

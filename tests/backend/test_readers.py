@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from relief_bsdf import oiio
+from relief_bsdf.io import oiio
 from relief_bsdf.errors import InputError
-from relief_bsdf.readers import read_relief, write_relief
-from relief_bsdf.relief import Relief
+from relief_bsdf.io.heightmaps import read_relief, write_relief
+from relief_bsdf.surface.relief import Relief
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 TOPO = SHARED / "data" / "topography"

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from relief_bsdf.errors import InputError
-from relief_bsdf.optics import CauchyIndex, ConstantIndex
-from relief_bsdf.recording import (RECORDING_COLUMNS, InstrumentSpec, PlateSpec, Recording, Sample,
+from relief_bsdf.core.optics import CauchyIndex, ConstantIndex
+from relief_bsdf.io.recording import (RECORDING_COLUMNS, InstrumentSpec, PlateSpec, Recording, Sample,
                                    read_recording, read_sample, write_recording, write_sample)
 
 HEADER = ",".join(RECORDING_COLUMNS)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from relief_bsdf.residual import LogChiMetric, mismatch_share
+from relief_bsdf.fit.residual import LogChiMetric, mismatch_share
 
 
 def test_metric_is_about_one_for_data_within_their_noise():

@@ -13,8 +13,8 @@ import pytest
 
 import distributed  # noqa: E402,F401  (a runtime dependency: a missing one must fail, not skip)
 
-from relief_bsdf import parallel  # noqa: E402
-from relief_bsdf.cluster import synthetic_task  # noqa: E402
+from relief_bsdf.parallel import tasks as parallel  # noqa: E402
+from relief_bsdf.parallel.cluster import synthetic_task  # noqa: E402
 
 pytestmark = pytest.mark.slow
 N = 16
@@ -172,8 +172,8 @@ def test_spectral_anisotropic_request_as_one_chunked_table(client, tmp_path):
     import cloudpickle
     import sys
 
-    from relief_bsdf.bsdf import BsdfTable
-    from relief_bsdf.bsdf_h5 import load_tables, save_tables
+    from relief_bsdf.bsdf.table import BsdfTable
+    from relief_bsdf.io.hdf5 import load_tables, save_tables
 
     te, pe = np.linspace(0, 90, 19), np.arange(-5.0, 360.0, 10.0)
     ctx = {"seed": 5, "wavelength": np.linspace(400, 700, 31), "theta_i": np.arange(0, 90, 5.0),
@@ -210,9 +210,9 @@ def test_monte_carlo_method_identical_on_dask_and_locally(client):
     """A real seeded Monte-Carlo method (normals) gives bit-identical tables on the cluster,
     on local processes and in this process."""
     from relief_bsdf.methods import reconstruct
-    from relief_bsdf.optics import ConstantIndex, Material
-    from relief_bsdf.request import Request
-    from relief_bsdf.synth import random_relief
+    from relief_bsdf.core.optics import ConstantIndex, Material
+    from relief_bsdf.methods.request import Request
+    from relief_bsdf.surface.synth import random_relief
 
     relief = random_relief(64, 1e-6, 0.4e-6, 8e-6, seed=2)
     req = Request(wavelengths_nm=(450.0, 650.0), theta_i_deg=(0.0, 40.0, 70.0), phi_i_deg=(0.0, 90.0),
@@ -239,8 +239,8 @@ def test_cli_reconstruct_on_a_local_dask_cluster_matches_default(tmp_path):
     import subprocess
     import sys
 
-    from relief_bsdf.bsdf_h5 import load_tables
-    from relief_bsdf.synth import random_relief
+    from relief_bsdf.io.hdf5 import load_tables
+    from relief_bsdf.surface.synth import random_relief
 
     r = random_relief(64, 1e-6, 0.4e-6, 8e-6, seed=4)
     np.savez(tmp_path / "r.npz", heights=r.heights_m, dx=r.dx_m, dy=r.dy_m)
@@ -262,7 +262,7 @@ def test_cli_reconstruct_on_a_local_dask_cluster_matches_default(tmp_path):
 
 
 def test_workers_with_another_relief_version_are_refused(client, monkeypatch):
-    from relief_bsdf import cluster
+    from relief_bsdf.parallel import cluster
     from relief_bsdf.errors import InputError
 
     cluster.check_workers(client)                             # same installation: accepted
@@ -313,7 +313,7 @@ def test_ctrl_c_on_a_local_dask_run_exits_cleanly(tmp_path):
 
     import psutil
 
-    from relief_bsdf.synth import random_relief
+    from relief_bsdf.surface.synth import random_relief
 
     r = random_relief(64, 1e-6, 0.4e-6, 8e-6, seed=4)
     np.savez(tmp_path / "r.npz", heights=r.heights_m, dx=r.dx_m, dy=r.dy_m)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from relief_bsdf.errors import InputError
-from relief_bsdf.relief import Relief
-from relief_bsdf.stats import (acf_2d, facet_normals, psd_2d, radial_psd, relief_stats, slope_histogram,
+from relief_bsdf.surface.relief import Relief
+from relief_bsdf.surface.stats import (acf_2d, facet_normals, psd_2d, radial_psd, relief_stats, slope_histogram,
                                slopes)
 
 A = 40e-9          # amplitude (m)

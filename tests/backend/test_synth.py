@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from relief_bsdf.errors import InputError
-from relief_bsdf.stats import psd_2d, relief_stats
-from relief_bsdf.synth import lgp_dots, psd_model, random_relief
+from relief_bsdf.surface.stats import psd_2d, relief_stats
+from relief_bsdf.surface.synth import lgp_dots, psd_model, random_relief
 
 S, L, D = 50e-9, 5e-6, 0.5e-6       # rms height, correlation length (10 px), pitch
 

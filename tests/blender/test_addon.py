@@ -54,7 +54,7 @@ def test_file_handler_covers_backend_formats(addon):
 
 @pytest.mark.parametrize("name", ["ST_x3p-2.x3p", "ST_frt-1.frt"])
 def test_import_real_file_true_heights(addon, name):
-    from relief_bsdf.readers import read_relief
+    from relief_bsdf.io.heightmaps import read_relief
     path = SHARED / "data" / "topography" / name
     relief = read_relief(path)
     assert bpy.ops.relief.import_heightmap(filepath=str(path), z_scale=10.0) == {"FINISHED"}
@@ -76,7 +76,7 @@ def test_import_real_file_true_heights(addon, name):
     n_quads = int((valid[:-1, :-1] & valid[1:, :-1] & valid[:-1, 1:] & valid[1:, 1:]).sum())
     assert len(me.polygons) == n_quads
     # statistics in the object (panel): rms height after plane levelling, as the backend computes it
-    from relief_bsdf.stats import relief_stats
+    from relief_bsdf.surface.stats import relief_stats
     st = relief_stats(relief).as_dict()
     assert obj["relief_stats"]["rms_height_m"] == pytest.approx(st["rms_height_m"], rel=1e-9)
     # changing the exaggeration rewrites z from the stored true heights
@@ -103,9 +103,9 @@ def test_operators_without_input_report_errors(addon):
 
 
 def test_reconstruct_operator_writes_table_and_bakes(addon, tmp_path):
-    from relief_bsdf.bsdf_h5 import load_tables
-    from relief_bsdf.readers import write_relief
-    from relief_bsdf.relief import Relief
+    from relief_bsdf.io.hdf5 import load_tables
+    from relief_bsdf.io.heightmaps import write_relief
+    from relief_bsdf.surface.relief import Relief
     rng = np.random.default_rng(1)
     h = 0.2e-6 * rng.standard_normal((64, 64))
     path = write_relief(tmp_path / "r.npz", Relief(h, 1e-6, 1e-6))

@@ -11,8 +11,8 @@ import bpy
 
 def _microfacet_tables(alpha=0.3, n=1.5):
     from relief_bsdf.methods import reconstruct
-    from relief_bsdf.optics import ConstantIndex, Material
-    from relief_bsdf.request import Request
+    from relief_bsdf.core.optics import ConstantIndex, Material
+    from relief_bsdf.methods.request import Request
     req = Request(theta_i_deg=(0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 89.0),
                   incident_from=("outside", "inside"),
                   # cells fine enough (1 x 5 deg) that cell averages resolve the transmitted lobe's peak
@@ -28,7 +28,7 @@ def tables():
 
 def test_node_group_structure(clean_bpy, tables):
     from relief_addon import bake_nodes
-    from relief_bsdf.bake import ROW_NAMES
+    from relief_bsdf.bsdf.bake import ROW_NAMES
     lut, img, group = bake_nodes.bake_tables(tables, "probe")
     assert group.name == "Relief BSDF: probe" and group.use_fake_user
     outs = [s for s in group.interface.items_tree if getattr(s, "in_out", "") == "OUTPUT"]
@@ -63,7 +63,7 @@ def test_node_group_structure(clean_bpy, tables):
 def test_lookup_through_cycles_matches_interpolation(clean_bpy):
     """The texel-centred coordinate math read back through a Cycles render, front and back faces."""
     from relief_addon import bake_nodes, goniophotometer as G
-    from relief_bsdf.bake import ROWS_PER_SIDE, BakedLut
+    from relief_bsdf.bsdf.bake import ROWS_PER_SIDE, BakedLut
     cols = np.linspace(0.0, 90.0, 91)
     rows = np.zeros((2 * ROWS_PER_SIDE, cols.size, 4), np.float32)
     for k in range(rows.shape[0]):
@@ -79,7 +79,7 @@ def test_lookup_through_cycles_matches_interpolation(clean_bpy):
         nt.nodes.clear()
         cg = nt.nodes.new("ShaderNodeGroup")
         cg.node_tree = coord
-        from relief_bsdf.bake import ROW_NAMES
+        from relief_bsdf.bsdf.bake import ROW_NAMES
         cg.inputs["Row"].default_value = float(ROW_NAMES.index(row))
         tex = nt.nodes.new("ShaderNodeTexImage")
         tex.image, tex.interpolation, tex.extension = img, "Linear", "EXTEND"
@@ -97,8 +97,8 @@ def test_lookup_through_cycles_matches_interpolation(clean_bpy):
 def test_flat_interface_bake_reproduces_fresnel(clean_bpy):
     """Delta rows: a flat boundary's specular R and T (Fresnel) come back from Cycles."""
     from relief_addon import bake_nodes, goniophotometer as G
-    from relief_bsdf.optics import ConstantIndex, Material
-    from relief_bsdf.plate import flat_tables
+    from relief_bsdf.core.optics import ConstantIndex, Material
+    from relief_bsdf.plate.solver import flat_tables
     mat = Material(ConstantIndex(1.5))
     th = np.arange(0.0, 90.0, 10.0)
     tabs = flat_tables(mat, [550.0], th, th, np.linspace(0, 90, 10), np.arange(-15.0, 360.0, 30.0))

@@ -11,7 +11,7 @@ import importlib
 import sys
 import traceback
 
-from ..errors import InputError
+from relief_bsdf.errors import InputError
 
 COMMANDS = ["info", "synth", "reconstruct", "export", "plot", "simulate", "fit",
             "diagnose", "conceal", "render"]
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     debug = getattr(args, "debug", False)
-    from ..parallel import parallel_settings
+    from relief_bsdf.parallel.tasks import parallel_settings
 
     try:
         # a command may configure where tasks run (--workers, --dask): restore the settings and

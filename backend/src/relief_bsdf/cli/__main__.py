@@ -1,3 +1,3 @@
-from . import entry
+from relief_bsdf.cli import entry
 
 entry()

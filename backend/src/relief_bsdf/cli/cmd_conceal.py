@@ -20,9 +20,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from ..conceal import EFFECTS_CONCEALABLE, default_cases, generate
-    from ..errors import InputError
-    from ..progress import TerminalBar
+    from relief_bsdf.validation.conceal import EFFECTS_CONCEALABLE, default_cases, generate
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.progress import TerminalBar
     if args.per_effect < 0 or args.none < 0:
         raise InputError("--per-effect/--none", "case counts must be >= 0")
     cases = default_cases(args.per_effect, args.none, args.seed)

@@ -19,17 +19,17 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--effects", default=None, help="comma-separated subset of candidate effects")
     p.add_argument("--workers", type=int, default=None, help="worker processes (default: every core)")
     p.add_argument("--json", action="store_true", help="print diagnosis.json on stdout")
-    from ..parallel import add_parallel_args
+    from relief_bsdf.parallel.tasks import add_parallel_args
     add_parallel_args(p)            # --dask, --checkpoint-dir, --retries (issue 8); --workers is its own
     return p
 
 
 def run(args) -> int:
-    from ..parallel import apply_parallel_args
+    from relief_bsdf.parallel.tasks import apply_parallel_args
     apply_parallel_args(args)
-    from ..diagnose import diagnose
-    from ..errors import InputError
-    from ..progress import TerminalBar
+    from relief_bsdf.diagnose.run import diagnose
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.progress import TerminalBar
     if args.photons < 1000:
         raise InputError("--photons", f"need at least 1000 photons per incidence, got {args.photons}")
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None

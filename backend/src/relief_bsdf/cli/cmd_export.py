@@ -23,7 +23,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def table_rows(table):
     """Recording with one row per (wavelength, incidence, side, scatter cell) of the table."""
-    from ..recording import Recording
+    from relief_bsdf.io.recording import Recording
     W, I, P, K, S, A = table.values_per_sr.shape
     grids = np.meshgrid(table.wavelength_nm, table.theta_i_deg, table.phi_i_deg % 360.0, np.arange(K),
                         table.theta_s_deg, table.phi_s_deg % 360.0, indexing="ij")
@@ -35,8 +35,8 @@ def table_rows(table):
 
 
 def run(args) -> int:
-    from ..bsdf_h5 import load_tables, table_for
-    from ..errors import InputError
+    from relief_bsdf.io.hdf5 import load_tables, table_for
+    from relief_bsdf.errors import InputError
     tables = load_tables(args.table)
     if args.incident_from:
         table = table_for(tables, args.incident_from, args.table)
@@ -44,7 +44,7 @@ def run(args) -> int:
         table = next((t for t in tables if t.incident_from == "outside"), tables[0])
     out = Path(args.out)
     if args.format == "recording-csv":
-        from ..recording import write_recording
+        from relief_bsdf.io.recording import write_recording
         rec = table_rows(table)
         if np.any(~np.isfinite(rec.bsdf_sr)) or np.any(rec.bsdf_sr < 0):
             raise InputError(args.table, "table holds negative or non-finite BSDF values; cannot write a recording")
@@ -60,7 +60,7 @@ def run(args) -> int:
         print(f"wrote {out}: {len(rec)} rows ({table.wavelength_nm.size} wavelength(s), "
               f"{table.theta_i_deg.size * table.phi_i_deg.size} incidence(s), light from {table.incident_from})")
         return 0
-    from ..bsdf_isbsdf import export_isbsdf
+    from relief_bsdf.io.isbsdf import export_isbsdf
     paths = export_isbsdf(table, out)
     for p in paths:
         print(f"wrote {p}")

@@ -21,17 +21,17 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--inside-step-deg", type=float, default=5.0,
                    help="step between the incidences of the inside table (narrow lobes: 1-2)")
     p.add_argument("--progress", action="store_true", help="force the progress bar")
-    from ..parallel import add_parallel_args
+    from relief_bsdf.parallel.tasks import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
     return p
 
 
 def run(args) -> int:
-    from ..parallel import apply_parallel_args
+    from relief_bsdf.parallel.tasks import apply_parallel_args
     apply_parallel_args(args)
-    from ..errors import InputError
-    from ..fit import TableGrid, run_fit_job
-    from ..progress import TerminalBar
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.fit.optimise import TableGrid, run_fit_job
+    from relief_bsdf.progress import TerminalBar
     if args.max_iter < 1:
         raise InputError("--max-iter", "must be >= 1")
     if not (0 < args.theta_step_deg <= 10 and 0 < args.phi_step_deg <= 30 and 360 % args.phi_step_deg == 0):

@@ -31,7 +31,7 @@ def _kind(path: Path) -> str:
     if suffix in (".h5", ".hdf5"):
         try:
             import h5py
-            from ..bsdf_h5 import FORMAT
+            from relief_bsdf.io.hdf5 import FORMAT
             with h5py.File(path, "r") as f:
                 if f.attrs.get("format") == FORMAT:
                     return "bsdf"
@@ -53,7 +53,7 @@ def _kind(path: Path) -> str:
 def _pitch(arg: str | None):
     if not arg:
         return None
-    from ..errors import InputError
+    from relief_bsdf.errors import InputError
     try:
         parts = [float(v) * 1e-6 for v in arg.split(",")]
     except ValueError:
@@ -67,7 +67,7 @@ def _pitch(arg: str | None):
 
 def relief_info(relief) -> dict:
     """The JSON object of `relief info` for a height map (formats.md keys first)."""
-    from ..stats import relief_stats
+    from relief_bsdf.surface.stats import relief_stats
     s = relief_stats(relief).as_dict()
     out = {"kind": "relief", "shape": s["shape"], "pitch_m": s["pitch_m"], "valid_fraction": s["valid_fraction"],
            "rms_height_m": s["rms_height_m"], "rms_slope": s["rms_slope"],
@@ -131,13 +131,13 @@ def _print_relief(d: dict) -> None:
 
 
 def run(args) -> int:
-    from ..errors import InputError
+    from relief_bsdf.errors import InputError
     path = Path(args.file)
     if not path.exists():
         raise InputError(path, "file not found")
     kind = _kind(path)
     if kind == "relief":
-        from ..readers import read_relief
+        from relief_bsdf.io.heightmaps import read_relief
         relief = read_relief(path, pitch_m=_pitch(args.pitch_um), channel=args.channel)
         d = relief_info(relief)
         if args.json:
@@ -146,7 +146,7 @@ def run(args) -> int:
             _print_relief(d)
         return 0
     if kind == "bsdf":
-        from ..bsdf_h5 import load_tables
+        from relief_bsdf.io.hdf5 import load_tables
         tables = load_tables(path)
         rows = [r for t in tables for r in t.albedo_rows()]
         d = {"kind": "bsdf", "method": tables[0].method if tables else None, "albedo": rows,
@@ -177,7 +177,7 @@ def run(args) -> int:
                   f"{r['R']:8.4f} {r['T']:8.4f} {r['specular_R']:8.4f} {r['specular_T']:8.4f} {r['lost']:8.4f}")
         return 0
     if kind == "recording":
-        from ..recording import read_recording
+        from relief_bsdf.io.recording import read_recording
         rec = read_recording(path)
         d = rec.summary()
         if args.json:
@@ -193,7 +193,7 @@ def run(args) -> int:
             print(f"  # {c}")
         return 0
     if kind == "sample":
-        from ..recording import read_sample
+        from relief_bsdf.io.recording import read_sample
         s = read_sample(path)
         d = s.summary()
         if args.json:
@@ -213,7 +213,7 @@ def run(args) -> int:
         print(f"  recording  {d['recording']}")
         return 0
     # IS-BSDF
-    from ..bsdf_isbsdf import read_isbsdf
+    from relief_bsdf.io.isbsdf import read_isbsdf
     b = read_isbsdf(path)
     d = {"kind": "is-bsdf", "scatter_type": b.scatter_type, "symmetry": b.symmetry,
          "sample_rotation_deg": b.sample_rotation_deg.tolist(), "angle_of_incidence_deg": b.angle_of_incidence_deg.tolist(),

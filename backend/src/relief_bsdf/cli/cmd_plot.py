@@ -22,9 +22,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def run(args) -> int:
     from pathlib import Path
 
-    from ..bsdf_h5 import load_tables, table_for
-    from ..errors import InputError
-    from ..plots import save_figure, table_figure
+    from relief_bsdf.io.hdf5 import load_tables, table_for
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.report.plots import save_figure, table_figure
     path = Path(args.table)
     tables = load_tables(path)
     table = table_for(tables, args.incident_from, path) if args.incident_from else tables[0]
@@ -34,7 +34,7 @@ def run(args) -> int:
         raise InputError(out, "the plot is written as PNG; give a .png file name")
     sides = (args.side,) if args.side else ("R", "T")
     if args.compare:
-        from ..plots import compare_figure
+        from relief_bsdf.report.plots import compare_figure
         others = []
         for o in args.compare:
             ts = load_tables(o)

@@ -35,13 +35,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="method option (value parsed as JSON when possible), e.g. distribution=\"ggx\", alpha=0.2, "
                         "grazing_heuristic=smith; repeatable")
     p.add_argument("-o", "--out", required=True, help="output table (.h5)")
-    from ..parallel import add_parallel_args
+    from relief_bsdf.parallel.tasks import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
     return p
 
 
 def parse_floats(text: str, flag: str) -> tuple:
-    from ..errors import InputError
+    from relief_bsdf.errors import InputError
     try:
         vals = tuple(float(v) for v in str(text).split(",") if v.strip() != "")
     except ValueError:
@@ -53,8 +53,8 @@ def parse_floats(text: str, flag: str) -> tuple:
 
 def material_from_args(args):
     """Material from --n / --cauchy (formats.md); InputError when missing or unphysical."""
-    from ..errors import InputError
-    from ..optics import CauchyIndex, ConstantIndex, Material
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.core.optics import CauchyIndex, ConstantIndex, Material
     if args.n is None and args.cauchy is None:
         raise InputError("--n/--cauchy", "the refractive index of the material is required (e.g. --n 1.5 or "
                          "--cauchy 1.5046,4200)")
@@ -72,7 +72,7 @@ def material_from_args(args):
 
 
 def edges_from_steps(theta_step: float, phi_step: float) -> tuple[tuple, tuple]:
-    from ..errors import InputError
+    from relief_bsdf.errors import InputError
     for name, step, span in (("--theta-step-deg", theta_step, 90.0), ("--phi-step-deg", phi_step, 360.0)):
         n = span / step if step > 0 else 0
         if not (step > 0) or abs(n - round(n)) > 1e-9 or round(n) < 1:
@@ -85,7 +85,7 @@ def edges_from_steps(theta_step: float, phi_step: float) -> tuple[tuple, tuple]:
 
 
 def parse_options(items: list[str]) -> dict:
-    from ..errors import InputError
+    from relief_bsdf.errors import InputError
     out = {}
     for it in items:
         if "=" not in it:
@@ -99,7 +99,7 @@ def parse_options(items: list[str]) -> dict:
 
 
 def build_request(args):
-    from ..request import Request
+    from relief_bsdf.methods.request import Request
     te, pe = edges_from_steps(args.theta_step_deg, args.phi_step_deg)
     sides = ("outside", "inside") if args.incident_from == "both" else (args.incident_from,)
     opts = parse_options(args.option)
@@ -117,15 +117,15 @@ def build_request(args):
 
 
 def run(args) -> int:
-    from ..parallel import apply_parallel_args
+    from relief_bsdf.parallel.tasks import apply_parallel_args
     apply_parallel_args(args)
     from pathlib import Path
 
-    from ..bsdf_h5 import save_tables
-    from ..errors import InputError
-    from ..methods import get_method, reconstruct
-    from ..progress import TerminalBar
-    from ..readers import read_relief
+    from relief_bsdf.io.hdf5 import save_tables
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.methods import get_method, reconstruct
+    from relief_bsdf.progress import TerminalBar
+    from relief_bsdf.io.heightmaps import read_relief
     out = Path(args.out)
     if out.suffix.lower() not in (".h5", ".hdf5"):
         raise InputError(out, "the output table must be an HDF5 file (.h5)")

@@ -10,7 +10,7 @@ import argparse
 import importlib.util
 from pathlib import Path
 
-from ..errors import InputError
+from relief_bsdf.errors import InputError
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -44,7 +44,7 @@ def run(args) -> int:
     spec = importlib.util.spec_from_file_location("relief_render_plate", script)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    from ..progress import TerminalBar
+    from relief_bsdf.progress import TerminalBar
     out = mod.render(src, args.out, args.width, args.samples, progress=TerminalBar("render"))
     print(f"wrote {out}")
     return 0

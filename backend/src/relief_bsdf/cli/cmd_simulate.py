@@ -15,21 +15,21 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--height-scale", type=float, default=1.0, help="relief height scale")
     p.add_argument("--filter-sigma-um", type=float, default=0.0, help="Gaussian filter sigma (um)")
     p.add_argument("--table", help="use this boundary table file (HDF5, outside+inside) instead of deriving one")
-    from ..parallel import add_parallel_args
+    from relief_bsdf.parallel.tasks import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
     return p
 
 
 def run(args) -> int:
     from dataclasses import replace
-    from ..parallel import apply_parallel_args
+    from relief_bsdf.parallel.tasks import apply_parallel_args
     apply_parallel_args(args)
-    from ..bsdf_h5 import load_tables, table_for
-    from ..fit import Forward
-    from ..plate import PlateModel, simulate_rows
-    from ..readers import read_relief
-    from ..recording import read_recording, read_sample, write_recording
-    from ..residual import DEFAULT_METRIC
+    from relief_bsdf.io.hdf5 import load_tables, table_for
+    from relief_bsdf.fit.optimise import Forward
+    from relief_bsdf.plate.solver import PlateModel, simulate_rows
+    from relief_bsdf.io.heightmaps import read_relief
+    from relief_bsdf.io.recording import read_recording, read_sample, write_recording
+    from relief_bsdf.fit.residual import DEFAULT_METRIC
     sample = read_sample(args.sample)
     rec = read_recording(sample.recording_path)
     model = PlateModel.from_sample(sample)

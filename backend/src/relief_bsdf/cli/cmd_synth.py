@@ -67,7 +67,7 @@ def _given(args, names) -> list[str]:
 
 
 def _check_family(args) -> None:
-    from ..errors import InputError
+    from relief_bsdf.errors import InputError
     if args.kind == "dots":
         wrong = _given(args, RANDOM_ONLY)
         if wrong:
@@ -92,7 +92,7 @@ def _check_family(args) -> None:
 def dot_spacing_um(dot_radius_um: float, fill_factor: float, shape: str) -> float:
     """Dot spacing (um) giving an area fill factor f: one dot of footprint pi r^2 per spacing^2,
     r = a for a cap, 2a for a Gaussian bump (cut at 2a)."""
-    from ..errors import InputError
+    from relief_bsdf.errors import InputError
     if not (math.isfinite(fill_factor) and 0 < fill_factor < 1):
         raise InputError("--fill-factor", f"must be in (0, 1), got {fill_factor!r}")
     if not (math.isfinite(dot_radius_um) and dot_radius_um > 0):
@@ -102,8 +102,8 @@ def dot_spacing_um(dot_radius_um: float, fill_factor: float, shape: str) -> floa
 
 
 def _dots(args):
-    from ..errors import InputError
-    from ..synth import lgp_dots
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.surface.synth import lgp_dots
     shape = args.dot_shape or "cap"
     if args.size < 4:
         raise InputError("--size", f"grid size must be at least 4 pixels, got {args.size}")
@@ -129,10 +129,10 @@ def _dots(args):
 
 
 def run(args) -> int:
-    from ..errors import InputError
-    from ..readers import WRITE_SUFFIXES, write_relief
-    from ..stats import relief_stats
-    from ..synth import random_relief
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.io.heightmaps import WRITE_SUFFIXES, write_relief
+    from relief_bsdf.surface.stats import relief_stats
+    from relief_bsdf.surface.synth import random_relief
     from pathlib import Path
     out = Path(args.out)
     if out.suffix.lower() not in WRITE_SUFFIXES:

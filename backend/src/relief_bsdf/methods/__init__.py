@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 
-from ..errors import RequestError
+from relief_bsdf.errors import RequestError
 
 METHODS = {
     "microfacet": "microfacet",

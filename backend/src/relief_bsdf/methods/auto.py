@@ -1,6 +1,6 @@
 """`auto`: choose ray, kirchhoff or rayleigh-rice from the relief's statistics and the request.
 
-Quantities (relief_bsdf.stats.relief_stats, levelled heights): rms height sigma, rms slope
+Quantities (relief_bsdf.surface.stats.relief_stats, levelled heights): rms height sigma, rms slope
 magnitude m, correlation length l (1/e of the radial autocovariance), and the rms mean
 curvature kappa from second differences ((h_xx + h_yy) / 2, rms over valid points), radius of
 curvature R_c = 1 / kappa.  With n the largest index the light travels in (1 from
@@ -41,8 +41,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import RequestError
-from ..stats import relief_stats
+from relief_bsdf.errors import RequestError
+from relief_bsdf.surface.stats import relief_stats
 
 log = logging.getLogger("relief_bsdf.auto")
 
@@ -58,7 +58,7 @@ class Choice:
 
 def rms_curvature(relief) -> float:
     """rms mean curvature (1/m) of the levelled relief from second differences, valid points only."""
-    from ..stats import levelled
+    from relief_bsdf.surface.stats import levelled
     lv = levelled(relief)
     h = lv.heights_m
     dx, dy = relief.dx_m, relief.dy_m
@@ -76,7 +76,7 @@ def rms_curvature(relief) -> float:
 
 def choose(relief, material, request) -> Choice:
     """Decide the method (module doc); no reconstruction is run."""
-    from . import kirchhoff
+    from relief_bsdf.methods import kirchhoff
     st = relief_stats(relief)
     sigma, m, ell = st.rms_height_m, st.rms_slope, st.correlation_length_m
     kappa = rms_curvature(relief)
@@ -105,7 +105,7 @@ def choose(relief, material, request) -> Choice:
     opts = dict(request.options or {})
     width = None
     try:
-        from ..wave_filter import smoothing_width_dcos
+        from relief_bsdf.methods.wave_filter import smoothing_width_dcos
         width = smoothing_width_dcos(kirchhoff.speckle_dcos(relief, material, request), request.theta_s_edges_deg, opts)
         kirchhoff.check_sampling(relief, material, request, width, opts)
     except RequestError as e:
@@ -122,7 +122,7 @@ def choose(relief, material, request) -> Choice:
         else:
             feasible_k, why_k = False, why_k + f"; not feasible: {msg}"
     if feasible_k:
-        from .rayleigh_rice import prepared_heights
+        from relief_bsdf.methods.rayleigh_rice import prepared_heights
         try:
             h, w = prepared_heights(relief)
             kirchhoff.check_aliasing(h, w, 2 * n * 2 * np.pi / lam)
@@ -155,7 +155,7 @@ def choose(relief, material, request) -> Choice:
 
 def reconstruct(relief, material, request, progress=None):
     """Tables of the chosen method, with metadata auto_reason / auto_method / auto_figures."""
-    from . import get_method
+    from relief_bsdf.methods import get_method
     request.validate()
     c = choose(relief, material, request)
     quiet = bool((request.options or {}).get("quiet", False))

@@ -99,12 +99,12 @@ import numpy as np
 import scipy.fft as sfft
 from scipy import ndimage
 
-from ..bsdf import BsdfTable
-from ..errors import RequestError
-from ..optics import Material, cos_transmitted, fresnel_power, mueller_interface
-from ..parallel import in_worker, map_tasks, task_rng
-from ..wave_filter import DcosGrid, cell_average, cell_samples, check_sides, smoothing_width_dcos
-from .rayleigh_rice import prepared_heights
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.errors import RequestError
+from relief_bsdf.core.optics import Material, cos_transmitted, fresnel_power, mueller_interface
+from relief_bsdf.parallel.tasks import in_worker, map_tasks, task_rng
+from relief_bsdf.methods.wave_filter import DcosGrid, cell_average, cell_samples, check_sides, smoothing_width_dcos
+from relief_bsdf.methods.rayleigh_rice import prepared_heights
 
 # ------------------------------------------------------------------ helpers
 
@@ -332,7 +332,7 @@ def _facet_mueller(geo, wi, n1, n2, side, phi_i_rad):
     the table's incident basis (s = z x w_i) and into the scattered basis (s = z x w_s), with
     p = s x k (bsdf.py).  Shape (ny, nx, 4, 4); zeros where not propagating.
     """
-    from .microfacet import stokes_rotation
+    from relief_bsdf.methods.microfacet import stokes_rotation
     prop = geo["prop"]
     a = np.broadcast_to(geo["a"], prop.shape)[prop]
     b = np.broadcast_to(geo["b"], prop.shape)[prop]

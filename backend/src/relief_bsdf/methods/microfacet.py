@@ -46,10 +46,10 @@ from typing import Any, Callable
 import numpy as np
 from scipy import optimize, special
 
-from ..bsdf import BsdfTable, direction, projected_solid_angle
-from ..errors import InputError, RequestError
-from ..optics import Material, fresnel_unpolarized, mueller_interface
-from ..parallel import map_tasks
+from relief_bsdf.bsdf.table import BsdfTable, direction, projected_solid_angle
+from relief_bsdf.errors import InputError, RequestError
+from relief_bsdf.core.optics import Material, fresnel_unpolarized, mueller_interface
+from relief_bsdf.parallel.tasks import map_tasks
 
 DISTRIBUTIONS = ("beckmann", "ggx")
 SHADOWING = ("smith", "vcavity", "incident", "none")

@@ -53,11 +53,11 @@ import time
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from ..bsdf import BsdfTable, direction, projected_solid_angle
-from ..errors import InputError, RequestError
-from ..optics import fresnel_unpolarized, refract
-from ..parallel import map_tasks, task_rng
-from .microfacet import smith_G1
+from relief_bsdf.bsdf.table import BsdfTable, direction, projected_solid_angle
+from relief_bsdf.errors import InputError, RequestError
+from relief_bsdf.core.optics import fresnel_unpolarized, refract
+from relief_bsdf.parallel.tasks import map_tasks, task_rng
+from relief_bsdf.methods.microfacet import smith_G1
 
 MIN_FACETS = 64
 HEURISTICS = ("smith", "cosine")

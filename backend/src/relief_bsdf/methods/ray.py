@@ -8,7 +8,7 @@ facet reflects and refracts like a flat interface and diffraction is negligible
 (Beckmann & Spizzichino 1963, ch. 2; Ogilvy 1991 sec. 4).  Polarisation is tracked
 exactly within that model; interference between rays is ignored.
 
-- Surface: the height map as a piecewise-linear periodic mesh (`relief_bsdf.mesh`): a
+- Surface: the height map as a piecewise-linear periodic mesh (`relief_bsdf.surface.mesh`): a
   ray leaving the tile sideways re-enters from the opposite side (the tile is one
   period of an infinite surface), which removes the paper's boundary losses at
   grazing incidence.  Non-periodic maps are mirror-extended (see mesh.py).
@@ -95,14 +95,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..bsdf import BsdfTable, direction, projected_solid_angle
-from ..errors import RequestError
-from ..mesh import TileMesh, build_tile_mesh
-from ..optics import fresnel_amplitudes
-from ..parallel import (default_workers, forget_worker_cached, in_worker, last_run, map_tasks, task_rng,
+from relief_bsdf.bsdf.table import BsdfTable, direction, projected_solid_angle
+from relief_bsdf.errors import RequestError
+from relief_bsdf.surface.mesh import TileMesh, build_tile_mesh
+from relief_bsdf.core.optics import fresnel_amplitudes
+from relief_bsdf.parallel.tasks import (default_workers, forget_worker_cached, in_worker, last_run, map_tasks, task_rng,
                         worker_cached)
-from ..progress import silent
-from ..relief import Relief
+from relief_bsdf.progress import silent
+from relief_bsdf.surface.relief import Relief
 
 F32 = np.float32
 CHUNK = 1 << 16                # rays per independent chunk (its own seed, one thread at a time)

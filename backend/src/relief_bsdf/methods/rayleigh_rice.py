@@ -74,10 +74,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..bsdf import BsdfTable
-from ..optics import Material, cos_transmitted, fresnel_amplitudes, mueller_interface
-from ..parallel import map_tasks
-from ..wave_filter import cell_samples, check_sides, smoothing_width_dcos
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.core.optics import Material, cos_transmitted, fresnel_amplitudes, mueller_interface
+from relief_bsdf.parallel.tasks import map_tasks
+from relief_bsdf.methods.wave_filter import cell_samples, check_sides, smoothing_width_dcos
 
 # ------------------------------------------------------------------ PSD
 
@@ -285,8 +285,8 @@ def rayleigh_parameter(sigma_m: float, n1, theta_i_deg, wavelength_nm) -> np.nda
 
 def relief_sigma_slope(relief) -> tuple[float, float]:
     """rms height and rms slope magnitude of the levelled relief, valid points only (the
-    figures of relief_bsdf.stats, which methods/auto.py decides on)."""
-    from ..stats import levelled, slopes
+    figures of relief_bsdf.surface.stats, which methods/auto.py decides on)."""
+    from relief_bsdf.surface.stats import levelled, slopes
     lv = levelled(relief)
     z = lv.heights_m[lv.valid]
     sx, sy = slopes(lv)

@@ -1,0 +1,288 @@
+"""Bake a `BsdfTable` into lookup rows for a renderer's microfacet closures (bpy-free).
+
+The Blender layer (relief_addon/bake_nodes.py) turns the rows into a packed float32 image
+and a shader node group of four Cycles closures per view side:
+
+    Glossy(roughness 0)        x w_specR(theta_v)      the table's specular (delta) reflection
+    Metallic(GGX, r_R(theta_v), dielectric Fresnel of index n (front) or 1/n (back))
+                               x w_diffR(theta_v)      its diffuse reflection cells
+    Refraction(roughness 0)    x w_specT(theta_v)      specular (undeviated) transmission
+    Refraction(GGX, r_T)       x w_diffT(theta_v)      diffuse transmission cells
+
+Indexing by the *view* angle.  A shading node only knows the direction toward the viewer
+(theta_v), not the light's.  Helmholtz reciprocity, f_R(i -> v) = f_R(v -> i), makes the
+reflection lobe seen from v the table's lobe for incidence theta_i = theta_v; its cosine
+integral is the directional reflectance R(theta_v).  For transmission the renderer's closure
+carries the light across the boundary toward v; with Cycles' convention (a smooth refraction
+closure transmits radiance unchanged) the lobe seen from v is again the table's lobe for
+incidence from v's side, T(theta_v).  Only the view angle is known, so a weight cannot follow
+the Fresnel factor F(i . h), which depends on the light direction and changes fast toward
+grazing; the diffuse reflection lobe therefore uses a closure with the microfacet Fresnel of
+the dielectric built in (Cycles' Metallic BSDF, physical-conductor Fresnel with extinction 0,
+i.e. Walter et al. 2007 eq. 20 with GGX D and Smith G) and a view-indexed weight near 1; with
+`reflection_closure="glossy"` (Blender < 4.3 has no Metallic BSDF) a Fresnel-free Glossy lobe
+is weighted instead, exact in energy but off in shape where F varies across the lobe.  Note
+also that Cycles does not scale radiance by n^2 across a refraction (a smooth refraction
+closure passes radiance unchanged), i.e. it renders "basic radiance" L / n^2: a camera inside
+the medium sees f_phys * n_i^2 / n_s^2.  The per-side tables ("outside", "inside") fill the
+front-facing and back-facing rows.
+
+Weights: w = table integral / A(closure, roughness, theta_v), where A is the closure's own
+directional albedo *in the renderer* (Cycles compensates multiple scattering with internal
+tables, so A is measured, see relief_addon/cycles_calibration.py; `ClosureAlbedo`).  Hence
+the rendered directional R and T equal the table's by construction, up to the lookup
+interpolation.  Roughness: one GGX lobe per side and incidence fitted to the table's diffuse
+cells (`methods.microfacet.fit_table`, energy-weighted least squares); Cycles roughness is
+sqrt(alpha).
+
+Spectral tables: the RGB channels carry the weights at three wavelengths (default 610, 550,
+465 nm, interpolated linearly between tabulated wavelengths and held outside them);
+roughness and IOR are scalar in Cycles and use the green wavelength.
+
+Assumptions and limits: isotropic boundary (one incidence azimuth is used; several are
+averaged); lobe shapes are GGX (Walter et al. 2007, eqs. 20-21, 33) so tables of another
+shape match in energy exactly and in shape approximately; a missing "inside" table is
+replaced by a smooth interface seen from inside (Fresnel, total internal reflection),
+an approximation stated in `info`; a closure albedo below `albedo_floor` is clamped there so
+weights stay finite (grazing back-facing views past the critical angle).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.errors import InputError
+from relief_bsdf.core.optics import Material, fresnel_unpolarized
+
+ROW_NAMES = ("specular_R", "diffuse_R", "specular_T", "diffuse_T", "roughness")
+ROWS_PER_SIDE = len(ROW_NAMES)
+SIDES = ("outside", "inside")          # row block 0: front-facing view, 1: back-facing view
+DEFAULT_RGB_NM = (610.0, 550.0, 465.0)
+
+Albedo = Callable[[str, np.ndarray, np.ndarray, float], np.ndarray]
+
+
+def unit_albedo(kind: str, roughness: np.ndarray, theta_deg: np.ndarray, ior: float) -> np.ndarray:
+    """Ideal closures when no renderer calibration is given: albedo 1, or for "metallic" the
+    smooth-interface Fresnel reflectance (Born & Wolf 1.5.2), its albedo in the smooth limit."""
+    shape = np.broadcast(roughness, theta_deg).shape
+    if kind == "metallic":
+        cos_i = np.cos(np.radians(np.broadcast_to(np.asarray(theta_deg, float), shape)))
+        return fresnel_unpolarized(cos_i, 1.0, ior)
+    return np.ones(shape)
+
+
+@dataclass
+class ClosureAlbedo:
+    """Measured directional albedo A(kind, roughness, theta_v, ior) of a renderer's closures.
+
+    kind: "glossy", "refraction_front" (view from the side the normal points to) or
+    "refraction_back".  Multilinear interpolation on the measured grid (held at its ends).
+    """
+
+    theta_deg: np.ndarray
+    roughness: np.ndarray
+    ior: np.ndarray
+    glossy: np.ndarray                 # (R, Th)
+    refraction_front: np.ndarray       # (N, R, Th)
+    refraction_back: np.ndarray        # (N, R, Th)
+    ior_metallic: np.ndarray | None = None
+    metallic: np.ndarray | None = None  # (Nm, R, Th)
+    source: str = ""
+
+    @staticmethod
+    def load(path) -> "ClosureAlbedo":
+        d = np.load(path)
+        return ClosureAlbedo(d["theta_deg"], d["roughness"], d["ior"], d["glossy"], d["refraction_front"],
+                             d["refraction_back"], d["ior_metallic"] if "metallic" in d else None,
+                             d["metallic"] if "metallic" in d else None,
+                             f"{path} (Blender {d['blender_version']})")
+
+    def __call__(self, kind: str, roughness, theta_deg, ior: float) -> np.ndarray:
+        from scipy.interpolate import RegularGridInterpolator
+        r, t = np.broadcast_arrays(np.asarray(roughness, float), np.asarray(theta_deg, float))
+        r = np.clip(r, self.roughness[0], self.roughness[-1])
+        t = np.clip(t, self.theta_deg[0], self.theta_deg[-1])
+        if kind == "glossy":
+            f = RegularGridInterpolator((self.roughness, self.theta_deg), self.glossy)
+            return f(np.stack([r, t], -1))
+        if kind == "metallic":
+            if self.metallic is None:
+                raise InputError(self.source or "closure albedo", "no Metallic BSDF calibration in this file")
+            grid, arr = self.ior_metallic, self.metallic
+        else:
+            grid = self.ior
+            arr = {"refraction_front": self.refraction_front, "refraction_back": self.refraction_back}[kind]
+        f = RegularGridInterpolator((grid, self.roughness, self.theta_deg), arr)
+        n = np.full(r.shape, np.clip(ior, grid[0], grid[-1]))
+        return f(np.stack([n, r, t], -1))
+
+
+@dataclass
+class BakedLut:
+    """Lookup rows of one baked BSDF (see module doc).
+
+    rows: (2 * ROWS_PER_SIDE, C, 4) float32; row block s (0 front/outside, 1 back/inside)
+    holds ROW_NAMES in order; colour rows are (R, G, B, 1) weights, the roughness row is
+    (r_R, r_T, 0, 1) in Cycles' roughness (sqrt of GGX alpha).  Columns sample theta_v
+    uniformly from 0 to 90 degrees.
+    """
+
+    name: str
+    theta_deg: np.ndarray
+    rows: np.ndarray
+    ior: float                                   # n_inside / n_outside at the green wavelength
+    rgb_nm: tuple
+    ior_rgb: tuple = (1.5, 1.5, 1.5)             # n_inside / n_outside at the three wavelengths
+    reflection_closure: str = "metallic"
+    info: dict = field(default_factory=dict)
+
+    @property
+    def n_rows(self) -> int:
+        return self.rows.shape[0]
+
+    def row_index(self, side: str, row: str) -> int:
+        return SIDES.index(side) * ROWS_PER_SIDE + ROW_NAMES.index(row)
+
+    def image_pixels(self) -> np.ndarray:
+        """Flat float32 RGBA pixels of a (C x n_rows) image, image row 0 = LUT row 0 (bottom)."""
+        return np.ascontiguousarray(self.rows, dtype=np.float32).ravel()
+
+    def lookup(self, side: str, row: str, theta_deg) -> np.ndarray:
+        """Reference lookup (linear between columns, held at the ends): (..., 4)."""
+        k = self.row_index(side, row)
+        t = np.asarray(theta_deg, float)
+        return np.stack([np.interp(t, self.theta_deg, self.rows[k, :, c]) for c in range(4)], axis=-1)
+
+    def texture_u(self, theta_deg) -> np.ndarray:
+        """Texel-centred horizontal coordinate of theta_v (what the node group computes)."""
+        c = self.theta_deg.size
+        x = np.asarray(theta_deg, float) / 90.0
+        return x * (c - 1) / c + 0.5 / c
+
+    def texture_v(self, row_index: int) -> float:
+        return (row_index + 0.5) / self.n_rows
+
+
+def _per_incidence(table: BsdfTable) -> dict[str, np.ndarray]:
+    """Hemispherical integrals (W, I), averaged over incidence azimuths (isotropy)."""
+    h = table.hemispherical()
+    return {k: np.asarray(h[k], float).mean(axis=2) for k in ("specular_R", "diffuse_R", "specular_T", "diffuse_T")}
+
+
+def _fit_roughness(table: BsdfTable, wl_nm: float, subsamples: int | None = None) -> np.ndarray:
+    """(I, 2) Cycles roughness of one GGX lobe per incidence and side (R, T) at one wavelength.
+
+    The model lobe is averaged over each cell like the table (`subsamples` per cell axis;
+    default 1 for cells of at most 1 x 5 degrees, else 2: coarse cells need the average, or a
+    narrow transmitted lobe at grazing incidence is fitted a few per cent too rough).
+    """
+    from relief_bsdf.methods.microfacet import fit_table
+    if subsamples is None:
+        fine = np.max(np.diff(table.theta_s_edges_deg)) <= 1.01 and np.max(np.diff(table.phi_s_edges_deg)) <= 5.01
+        subsamples = 1 if fine else 2
+    t = table.select(wl_nm)
+    diffuse = _per_incidence(t)
+    fit = fit_table(t, n_lobes=1, distribution="ggx", subsamples=subsamples)
+    alpha = fit.alpha[0, :, :, :, 0].mean(axis=1)                  # (I, 2)
+    r = np.sqrt(np.clip(alpha, 0.0, None))
+    for k, key in enumerate(("diffuse_R", "diffuse_T")):
+        r[diffuse[key][0] <= 0, k] = 0.0
+    return np.clip(r, 0.0, 1.0)
+
+
+def _interp_wl(values: np.ndarray, wl_axis: np.ndarray, targets: Sequence[float]) -> np.ndarray:
+    """(W, ...) -> (3, ...) linear in wavelength, held outside the tabulated range."""
+    if wl_axis.size == 1:
+        return np.repeat(values[:1], len(targets), axis=0)
+    out = []
+    for t in targets:
+        k = int(np.clip(np.searchsorted(wl_axis, t) - 1, 0, wl_axis.size - 2))
+        f = float(np.clip((t - wl_axis[k]) / (wl_axis[k + 1] - wl_axis[k]), 0.0, 1.0))
+        out.append((1 - f) * values[k] + f * values[k + 1])
+    return np.stack(out)
+
+
+def _side_rows(table: BsdfTable, cols: np.ndarray, rgb_nm, green_nm: float, ior: float, albedo: Albedo,
+               back: bool, floor: float, reflection_closure: str, ior_rgb) -> tuple[np.ndarray, dict]:
+    integ = _per_incidence(table)
+    ti = table.theta_i_deg
+    rough = _fit_roughness(table, green_nm)                          # (I, 2)
+    r_R = np.interp(cols, ti, rough[:, 0])
+    r_T = np.interp(cols, ti, rough[:, 1])
+    rows = np.zeros((ROWS_PER_SIDE, cols.size, 4))
+    rows[..., 3] = 1.0
+    kinds = {"specular_R": ("glossy", np.zeros_like(cols)), "diffuse_R": (reflection_closure, r_R),
+             "specular_T": ("refraction_back" if back else "refraction_front", np.zeros_like(cols)),
+             "diffuse_T": ("refraction_back" if back else "refraction_front", r_T)}
+    clamped = 0
+    for j, name in enumerate(ROW_NAMES[:4]):
+        per_wl = integ[name]                                         # (W, I)
+        rgb = _interp_wl(per_wl, table.wavelength_nm, rgb_nm)        # (3, I)
+        kind, r = kinds[name]
+        for c in range(3):
+            n_c = ior if kind != "metallic" else (1.0 / ior_rgb[c] if back else ior_rgb[c])
+            a = np.asarray(albedo(kind, r, cols, n_c), float)
+            clamped += int(np.sum(a < floor))
+            rows[j, :, c] = np.interp(cols, ti, rgb[c]) / np.maximum(a, floor)
+    rows[4, :, 0] = r_R
+    rows[4, :, 1] = r_T
+    return rows, {"roughness_R_at_table": rough[:, 0].tolist(), "roughness_T_at_table": rough[:, 1].tolist(),
+                  "albedo_clamped_columns": clamped}
+
+
+def _smooth_inside_rows(material: Material, cols: np.ndarray, rgb_nm, green_nm: float, albedo: Albedo,
+                        ior: float, floor: float) -> np.ndarray:
+    """Rows for a smooth interface seen from inside (used when no inside table exists)."""
+    rows = np.zeros((ROWS_PER_SIDE, cols.size, 4))
+    rows[..., 3] = 1.0
+    cos_i = np.cos(np.radians(cols))
+    for c, wl in enumerate(rgb_nm):
+        n_out, n_in = material.n_pair(float(wl), "outside")
+        F = fresnel_unpolarized(cos_i, np.real(n_in), np.real(n_out))
+        rows[0, :, c] = F / np.maximum(albedo("glossy", np.zeros_like(cols), cols, ior), floor)
+        rows[2, :, c] = (1 - F) / np.maximum(albedo("refraction_back", np.zeros_like(cols), cols, ior), floor)
+    return rows
+
+
+def bake_lut(tables: Sequence[BsdfTable], name: str, albedo: Albedo | None = None, n_columns: int = 91,
+             rgb_nm: Sequence[float] = DEFAULT_RGB_NM, albedo_floor: float = 0.02,
+             reflection_closure: str = "metallic") -> BakedLut:
+    """Lookup rows for the node group of `tables` (one per side of incidence; "outside" required).
+
+    reflection_closure: "metallic" (Fresnel-weighted GGX lobe, Blender 4.3+) or "glossy".
+    """
+    if reflection_closure not in ("metallic", "glossy"):
+        raise InputError("reflection_closure", f"must be metallic or glossy, got {reflection_closure!r}")
+    albedo = albedo or unit_albedo
+    by_side = {t.incident_from: t for t in tables}
+    if "outside" not in by_side:
+        raise InputError("table", "the bake needs the table for light arriving from outside "
+                         "(reconstruct with --from outside or both)")
+    out = by_side["outside"]
+    if not out.material:
+        raise InputError("table", "the table records no material; the bake needs the refractive index")
+    if n_columns < 2:
+        raise InputError("n_columns", f"need at least 2 lookup columns, got {n_columns}")
+    mat = Material.from_dict(out.material)
+    rgb = tuple(float(w) for w in rgb_nm)
+    green = rgb[1]
+    n_out, n_in = mat.n_pair(green, "outside")
+    ior = float(np.real(n_in) / np.real(n_out))
+    ior_rgb = tuple(float(np.real(mat.n_pair(w, "outside")[1]) / np.real(mat.n_pair(w, "outside")[0])) for w in rgb)
+    cols = np.linspace(0.0, 90.0, n_columns)
+    kw = dict(floor=albedo_floor, reflection_closure=reflection_closure, ior_rgb=ior_rgb)
+    front, info_f = _side_rows(out, cols, rgb, green, ior, albedo, back=False, **kw)
+    info = {"outside": info_f, "method": out.method, "closure_albedo": getattr(albedo, "source", "ideal (1)")}
+    if "inside" in by_side:
+        back, info_b = _side_rows(by_side["inside"], cols, rgb, green, ior, albedo, back=True, **kw)
+        info["inside"] = info_b
+    else:
+        back = _smooth_inside_rows(mat, cols, rgb, green, albedo, ior, albedo_floor)
+        info["inside"] = "no inside table: smooth interface seen from inside (Fresnel, total internal reflection)"
+    rows = np.concatenate([front, back]).astype(np.float32)
+    return BakedLut(name=name, theta_deg=cols, rows=rows, ior=ior, rgb_nm=rgb, ior_rgb=ior_rgb,
+                    reflection_closure=reflection_closure, info=info)

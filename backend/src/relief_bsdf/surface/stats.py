@@ -1,0 +1,336 @@
+"""Statistics of a height map: rms height and slope, autocorrelation, PSD, facet normals.
+
+Conventions (all SI; x = columns with pitch dx, y = rows with pitch dy):
+
+- **rms height** sigma: standard deviation of the heights after least-squares plane
+  levelling (valid points only), as Gwyddion's mean-plane levelling (ISO 25178 Sq).
+  Periodic reliefs are only mean-levelled (a plane is not periodic).
+- **rms slope** (per axis): root mean square of forward differences between
+  horizontally (vertically) adjacent valid pixels, (z[i, j+1] - z[i, j]) / dx; periodic
+  reliefs include the wrap-around pair.  The magnitude is
+  rms_slope = sqrt(rms_slope_x^2 + rms_slope_y^2) (= 2 sigma / L for the Gaussian
+  autocovariance sigma^2 exp(-r^2/L^2)).  A forward difference at pitch d sees the
+  structure function D(d)/d^2 = 2 (C(0) - C(d)) / d^2, which underestimates the true rms
+  slope by a relative d^2 / (4 L^2) for a Gaussian ACF (0.25 % at L = 10 d).  On AFM data
+  the pixel-scale slope is noise and tip dominated: rms slope depends on the band limit.
+- **autocorrelation** C(tx, ty) = <z(x, y) z(x + tx, y + ty)> of the levelled heights:
+  circular for periodic reliefs, otherwise zero-padded FFT correlation divided by the
+  number of overlapping valid pairs at each lag (unbiased estimator).
+- **correlation length**: smallest radius at which the radially averaged C(r) / C(0)
+  falls to 1/e (linear interpolation between annuli), searched up to half the smaller
+  tile side; NaN if it never falls that low (the tile is too small for the relief).
+  For C = s^2 exp(-r^2/L^2) or s^2 exp(-r/L) it returns L.
+- **PSD** (2-D, m^4): psd = |FFT(w z)|^2 dx dy / (N sum-normalised window power), so that
+  sum(psd) * dfx * dfy = sigma^2 (exact without window; the window-weighted variance
+  with one), dfx = 1 / (nx dx).  Frequencies in cycles per metre (numpy FFT order).
+- **facets**: one facet per grid cell (2 x 2 pixels; wrap-around cells too when
+  periodic), slope = mean of the cell's two forward differences along each axis;
+  every facet covers the same projected area dx dy.  Cells with an invalid corner
+  are NaN.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import scipy.fft as sfft
+
+from relief_bsdf.surface.relief import Relief
+
+
+@dataclass(frozen=True)
+class ReliefStats:
+    """Summary statistics of a relief (see the module docstring for each estimator)."""
+
+    shape: tuple[int, int]            # (ny, nx)
+    pitch_m: tuple[float, float]      # (dx, dy)
+    valid_fraction: float
+    rms_height_m: float
+    rms_slope_x: float
+    rms_slope_y: float
+    rms_slope: float
+    correlation_length_m: float
+    correlation_length_x_m: float
+    correlation_length_y_m: float
+    skewness: float
+    kurtosis: float                   # not excess: 3 for Gaussian heights
+    mean_height_m: float              # mean before levelling
+    peak_to_valley_m: float           # after levelling
+
+    def as_dict(self) -> dict:
+        """JSON-ready dict (formats.md keys; NaN becomes None)."""
+        d = asdict(self)
+        d["shape"] = list(self.shape)
+        d["pitch_m"] = list(self.pitch_m)
+        for k, v in d.items():
+            if isinstance(v, float) and not np.isfinite(v):
+                d[k] = None
+        return d
+
+
+def levelled(relief: Relief) -> Relief:
+    """Plane-levelled relief (mean-levelled when periodic), the basis of every statistic."""
+    return relief.level(0 if relief.periodic else 1)
+
+
+def _forward_differences(h: np.ndarray, periodic: bool, axis: int) -> np.ndarray:
+    """Differences z[k+1] - z[k] along `axis`, NaN where either point is invalid."""
+    if periodic:
+        return np.roll(h, -1, axis=axis) - h
+    return np.diff(h, axis=axis)
+
+
+def slopes(relief: Relief) -> tuple[np.ndarray, np.ndarray]:
+    """Forward-difference slopes (dz/dx on x-pairs, dz/dy on y-pairs); NaN where invalid."""
+    h = relief.heights_m
+    return (_forward_differences(h, relief.periodic, 1) / relief.dx_m,
+            _forward_differences(h, relief.periodic, 0) / relief.dy_m)
+
+
+def _rms(a: np.ndarray) -> float:
+    a = a[np.isfinite(a)]
+    return float(np.sqrt(np.mean(a * a))) if a.size else float("nan")
+
+
+def relief_stats(relief: Relief) -> ReliefStats:
+    """rms height, slopes, correlation lengths and moments of `relief` (valid points only)."""
+    relief.require_valid()
+    mean = float(np.nanmean(relief.heights_m))
+    lv = levelled(relief)
+    z = lv.heights_m[lv.valid]
+    sigma = float(np.sqrt(np.mean(z * z)))
+    if sigma > 0:
+        skew = float(np.mean(z**3) / sigma**3)
+        kurt = float(np.mean(z**4) / sigma**4)
+    else:
+        skew = kurt = float("nan")
+    sx, sy = slopes(lv)
+    rx, ry = _rms(sx), _rms(sy)
+    lags_x, lags_y, acf = acf_2d(lv, level=False)
+    return ReliefStats(shape=relief.shape, pitch_m=(relief.dx_m, relief.dy_m),
+                       valid_fraction=relief.valid_fraction, rms_height_m=sigma,
+                       rms_slope_x=rx, rms_slope_y=ry, rms_slope=float(np.hypot(rx, ry)),
+                       correlation_length_m=_radial_one_over_e(lags_x, lags_y, acf, relief),
+                       correlation_length_x_m=_axis_one_over_e(lags_x, acf[int(np.argmin(np.abs(lags_y))), :], relief.size_m[0]),
+                       correlation_length_y_m=_axis_one_over_e(lags_y, acf[:, int(np.argmin(np.abs(lags_x)))], relief.size_m[1]),
+                       skewness=skew, kurtosis=kurt, mean_height_m=mean,
+                       peak_to_valley_m=float(np.ptp(z)) if z.size else float("nan"))
+
+
+# ---------------------------------------------------------------- autocorrelation
+
+
+def acf_2d(relief: Relief, level: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Autocovariance C(tx, ty) in m^2, centred: returns (lags_x_m, lags_y_m, acf[ny_l, nx_l]).
+
+    Periodic reliefs: circular correlation, lags -n/2 .. n/2-1 (acf shape = relief shape).
+    Otherwise: zero-padded FFT correlation of the valid points divided by the number
+    of valid pairs at each lag, lags -(n-1) .. n-1; lags with no pair are NaN.
+    acf at zero lag (the centre) is the variance of the levelled heights.
+    """
+    lv = levelled(relief) if level else relief
+    h = lv.heights_m
+    m = lv.valid
+    z = np.where(m, h, 0.0)
+    ny, nx = h.shape
+    if relief.periodic and m.all():
+        F = sfft.rfft2(z, workers=-1)
+        acf = sfft.irfft2(np.abs(F) ** 2, s=(ny, nx), workers=-1) / (nx * ny)
+        acf = np.fft.fftshift(acf)
+        lx = (np.arange(nx) - nx // 2) * relief.dx_m
+        ly = (np.arange(ny) - ny // 2) * relief.dy_m
+        return lx, ly, acf
+    sy, sx = 2 * ny - 1, 2 * nx - 1
+    fy, fx = _fast_len(sy), _fast_len(sx)
+    Fz = sfft.rfft2(z, s=(fy, fx), workers=-1)
+    num = sfft.irfft2(np.abs(Fz) ** 2, s=(fy, fx), workers=-1)
+    if m.all():
+        # every point valid: the number of pairs at lag (ty, tx) is (ny - |ty|)(nx - |tx|)
+        cy = ny - np.abs(np.fft.fftfreq(fy, 1.0 / fy)).astype(int)
+        cx = nx - np.abs(np.fft.fftfreq(fx, 1.0 / fx)).astype(int)
+        cnt = np.clip(cy, 0, None)[:, None] * np.clip(cx, 0, None)[None, :].astype(float)
+    else:
+        Fm = sfft.rfft2(m.astype(float), s=(fy, fx), workers=-1)
+        cnt = sfft.irfft2(np.abs(Fm) ** 2, s=(fy, fx), workers=-1)
+    # rearrange lags -(n-1)..(n-1) to the centre
+    idx_y = np.r_[fy - (ny - 1):fy, 0:ny]
+    idx_x = np.r_[fx - (nx - 1):fx, 0:nx]
+    num = num[np.ix_(idx_y, idx_x)]
+    cnt = np.rint(cnt[np.ix_(idx_y, idx_x)])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        acf = np.where(cnt >= 1, num / np.maximum(cnt, 1), np.nan)
+    lx = np.arange(-(nx - 1), nx) * relief.dx_m
+    ly = np.arange(-(ny - 1), ny) * relief.dy_m
+    return lx, ly, acf
+
+
+def _fast_len(n: int) -> int:
+    """Smallest 2^a 3^b 5^c >= n (fast FFT size)."""
+    best = 1 << (int(n) - 1).bit_length()
+    p5 = 1
+    while p5 < 2 * n:
+        p35 = p5
+        while p35 < 2 * n:
+            p = p35
+            while p < n:
+                p *= 2
+            best = min(best, p)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
+def _first_crossing(r: np.ndarray, c: np.ndarray, level: float) -> float:
+    """Linear interpolation of the first r where c drops below `level` (c[0] = 1 expected)."""
+    ok = np.isfinite(c)
+    r, c = r[ok], c[ok]
+    below = np.nonzero(c < level)[0]
+    if below.size == 0 or below[0] == 0:
+        return float("nan")
+    k = below[0]
+    r0, r1, c0, c1 = r[k - 1], r[k], c[k - 1], c[k]
+    return float(r0 + (c0 - level) * (r1 - r0) / (c0 - c1))
+
+
+def _axis_one_over_e(lags: np.ndarray, acf_line: np.ndarray, tile_m: float) -> float:
+    """1/e point of a 1-D cut through the centred ACF (positive lags up to half the tile)."""
+    c0 = int(np.argmin(np.abs(lags)))
+    pos = lags[c0:]
+    keep = pos <= 0.5 * tile_m
+    return _first_crossing(pos[keep], acf_line[c0:][keep] / acf_line[c0], np.exp(-1.0))
+
+
+def _radial_one_over_e(lx: np.ndarray, ly: np.ndarray, acf: np.ndarray, relief: Relief) -> float:
+    lxmax, lymax = relief.size_m
+    # only lags up to half the tile are used: average over that window, not the whole ACF
+    half = 0.5 * min(lxmax, lymax) * (1 + 1e-9)
+    kx = np.abs(lx) <= half + abs(lx[1] - lx[0]) if lx.size > 1 else np.ones(lx.size, bool)
+    ky = np.abs(ly) <= half + abs(ly[1] - ly[0]) if ly.size > 1 else np.ones(ly.size, bool)
+    c0 = acf[np.argmin(np.abs(ly)), np.argmin(np.abs(lx))]
+    r_centres, c = radial_average(lx[kx], ly[ky], acf[np.ix_(ky, kx)])
+    c = c / c0
+    keep = r_centres <= 0.5 * min(lxmax, lymax)
+    return _first_crossing(r_centres[keep], c[keep], np.exp(-1.0))
+
+
+def radial_average(kx: np.ndarray, ky: np.ndarray, values: np.ndarray,
+                   bin_width: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Average `values[ny, nx]` on a (ky, kx) grid over annuli of |k|; first bin is k = 0.
+
+    Returns (mean radius of each annulus, mean value); empty annuli are dropped.  The
+    default bin width is the coarser grid step, so each annulus holds points on the
+    finer axis too.
+    """
+    KX, KY = np.meshgrid(kx, ky)
+    r = np.hypot(KX, KY)
+    if bin_width is None:
+        steps = [abs(a[1] - a[0]) for a in (kx, ky) if len(a) > 1]
+        bin_width = max(steps)
+    idx = np.floor(r / bin_width + 0.5).astype(int).ravel()
+    v = values.ravel()
+    ok = np.isfinite(v)
+    n = np.bincount(idx[ok], minlength=idx.max() + 1)
+    s = np.bincount(idx[ok], weights=v[ok], minlength=idx.max() + 1)
+    sr = np.bincount(idx[ok], weights=r.ravel()[ok], minlength=idx.max() + 1)
+    has = n > 0
+    return sr[has] / n[has], s[has] / n[has]
+
+
+# ---------------------------------------------------------------- power spectral density
+
+
+def psd_2d(relief: Relief, window: str | None = "auto") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two-sided 2-D PSD of the levelled heights: (fx, fy, psd[ny, nx]) in 1/m and m^4.
+
+    window: "hann" (separable Hann, for measured non-periodic maps, suppresses the
+        edge discontinuity), None (no window; right for periodic tiles) or "auto"
+        (None when periodic, else "hann").
+    Normalisation: sum(psd) * dfx * dfy equals the mean of (w z)^2 over the valid
+    points divided by the mean of w^2 there: exactly sigma^2 with no window.  Invalid
+    points are set to zero after levelling and the normalisation uses only the valid
+    ones (fine for scattered holes; large gaps bias the spectrum).
+    fx, fy are in numpy FFT order (np.fft.fftfreq); use np.fft.fftshift to plot.
+    """
+    if window == "auto":
+        window = None if relief.periodic else "hann"
+    if window not in (None, "hann"):
+        raise ValueError(f"psd_2d: window must be 'hann', None or 'auto', got {window!r}")
+    lv = levelled(relief)
+    ny, nx = lv.shape
+    m = lv.valid
+    z = np.where(m, lv.heights_m, 0.0)
+    if window == "hann":
+        w = np.outer(np.hanning(ny + 2)[1:-1], np.hanning(nx + 2)[1:-1])
+    else:
+        w = np.ones((ny, nx))
+    power = np.mean((w * w)[m])
+    n_valid = m.sum()
+    F = np.fft.fft2(z * w)
+    psd = np.abs(F) ** 2 * lv.dx_m * lv.dy_m / (n_valid * power)
+    fx = np.fft.fftfreq(nx, lv.dx_m)
+    fy = np.fft.fftfreq(ny, lv.dy_m)
+    return fx, fy, psd
+
+
+def radial_psd(relief: Relief, window: str | None = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """Radially averaged 2-D PSD: (f in cycles/m, psd in m^4).
+
+    For an isotropic relief sum over annuli of 2 pi f psd(f) df approximates sigma^2.
+    """
+    fx, fy, psd = psd_2d(relief, window)
+    return radial_average(np.fft.fftshift(fx), np.fft.fftshift(fy), np.fft.fftshift(psd))
+
+
+# ---------------------------------------------------------------- facets and slope histogram
+
+
+def facet_slopes(relief: Relief) -> tuple[np.ndarray, np.ndarray]:
+    """Slopes (dz/dx, dz/dy) of the grid-cell facets, shape (ny-1, nx-1) or (ny, nx) if periodic."""
+    h = relief.heights_m
+    if relief.periodic:
+        h10 = np.roll(h, -1, axis=0)
+        h01 = np.roll(h, -1, axis=1)
+        h11 = np.roll(h10, -1, axis=1)
+        h00 = h
+    else:
+        h00, h01, h10, h11 = h[:-1, :-1], h[:-1, 1:], h[1:, :-1], h[1:, 1:]
+    sx = 0.5 * ((h01 - h00) + (h11 - h10)) / relief.dx_m
+    sy = 0.5 * ((h10 - h00) + (h11 - h01)) / relief.dy_m
+    return sx, sy
+
+
+def facet_normals(relief: Relief) -> np.ndarray:
+    """Unit normals (..., 3) of the grid-cell facets, (-sx, -sy, 1) / sqrt(1 + sx^2 + sy^2).
+
+    Each facet covers the projected area dx * dy; its true area is that times
+    sqrt(1 + sx^2 + sy^2) = 1 / n_z.  NaN for cells with an invalid corner.
+    """
+    sx, sy = facet_slopes(relief)
+    n = np.stack([-sx, -sy, np.ones_like(sx)], axis=-1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def slope_histogram(relief: Relief, bins: Any = 64, max_slope: float | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """2-D histogram of facet slopes: (edges_sx, edges_sy, density[n_sx, n_sy]).
+
+    density is per unit slope-plane area and per unit projected surface area:
+    sum(density) * dsx * dsy = fraction of valid facets inside the range (1 if none
+    is outside).  Range: +-max_slope on both axes (default: 4 times the larger rms
+    facet slope, at least covering the largest slope when it is smaller).
+    """
+    sx, sy = facet_slopes(relief)
+    ok = np.isfinite(sx) & np.isfinite(sy)
+    if not ok.any():
+        relief.require_valid(1.0)
+        raise ValueError("no valid facet")
+    a, b = sx[ok], sy[ok]
+    if max_slope is None:
+        rms = max(np.sqrt(np.mean(a * a)), np.sqrt(np.mean(b * b)))
+        max_slope = float(min(4 * rms, max(np.abs(a).max(), np.abs(b).max()))) or 1e-12
+        max_slope = max(max_slope, 1e-12)
+    rng = [[-max_slope, max_slope], [-max_slope, max_slope]]
+    counts, ex, ey = np.histogram2d(a, b, bins=bins, range=rng)
+    area = np.outer(np.diff(ex), np.diff(ey))
+    return ex, ey, counts / (ok.sum() * area)

@@ -1,0 +1,367 @@
+"""Concealed-effect cases: recordings in which one physical effect (or none) is hidden.
+
+Each case is a folder with `relief.x3p`, `recording.csv` and `sample.toml` (nothing in it
+reveals the effect: absorption is always "not known", the index is the nominal one, the
+instrument is the nominal one) plus `key.json` kept apart (the effect and its true
+parameters).  The physics is an *independent* Monte-Carlo photon simulation:
+
+- the rough face is the real relief, triangulated and ray traced with Embree
+  (`HeightFieldFace`: shadowing, masking and interreflection on the relief are all there),
+  not the facet-normal sampling that the diagnosis's forward model uses;
+- every concealed effect is done as physics inside the photon run: Beer-Lambert weights
+  along the glass path, Henyey-Greenstein scattering events, a Beckmann back face, a tilted
+  sample frame, a divergent beam, a polarised source, a background added to the detector,
+  a rescaled or filtered relief, a Cauchy-dispersive glass (n depends on wavelength);
+- noise: Poisson shot noise on the detected counts (gain `counts_per_sr`), a relative gain
+  noise per row (`gain_noise`), a noise floor (`floor_sr`), plus the Monte-Carlo's own
+  variance; `sigma_sr` is the quadrature sum of those.
+
+`interreflection` cases need no extra physics here (the generator always traces the real
+relief): they are cases on a *steep* relief (rms slope ~ 1, `STEEP_RELIEF`), where shadowing
+and multiple bounces, which the diagnosis's single-scatter baseline leaves out, matter; their
+key parameter is interreflection_weight = 1 (pure ray-traced relief).
+
+`diffraction` and `partial_coherence` cases are wave optics: the rough face is the scalar
+Kirchhoff thin phase screen of the real relief (`phase_screen.PhaseScreenFace`: the far field
+of exp(i k0 dn h(x)) by FFT, Welch-averaged; the coherent specular part is the f = 0 order of
+the relief's own phase, not a Debye-Waller formula), the whole plate still run by
+`run_photons` (thick plate: faces add incoherently).  `partial_coherence` adds a Gaussian
+Schell-model source (a random incident phase field of coherence length l_c, averaged over
+realisations).  Key parameters: diffraction {"coherent_scale": 1.0} (the Kirchhoff value),
+partial_coherence {"coherence_length_um": l_c}, l_c drawn in 0.8 - 1.5 um, so the coherent
+peak's broadening lambda / (2 pi l_c) = 3.3 - 6.3 deg is wider than the detector half-angle
+(2.5 deg) while the peak still stands out.  Relief of these cases (`WAVE_RELIEF`): rms
+0.12 - 0.16 um, correlation length 2.5 um, pitch 0.5 um, 256 x 256 (a 128 um tile, 50
+correlation lengths): rms slope 2 s / l = 0.10 - 0.13 (the thin-screen regime, and a relief
+whose ray-optics lobes are the user's natural baseline); at 550 nm the transmitted coherent
+fraction exp(-(k0 s (n cos t_t - cos t_i))^2) is 0.21 - 0.63 at the recorded incidences
+0 / 30 / 55 deg, while reflection (phase rms 2 k0 s cos t_i = 1.6 - 3.7 rad, coherent
+fraction <= 0.08) is mostly diffuse.
+
+Assumptions: geometric optics except the wave cases above, periodic synthetic relief tile
+(Gaussian autocovariance), in-plane goniophotometer scans (phi_i = 0, phi_s in {0, 180}).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from relief_bsdf.io.atomic import write_text_atomic
+from relief_bsdf.parallel.tasks import task_rng
+from relief_bsdf.validation.photon import PlatePhysics, _dot, _normalize, detect, interface_event, run_photons
+from relief_bsdf.io.recording import Recording, write_recording, write_sample
+from relief_bsdf.surface.relief import Relief
+
+EFFECTS_CONCEALABLE = ("none", "bulk_absorption", "volume_scattering", "back_face_roughness", "sample_tilt",
+                       "instrument_blur", "polarization", "stray_light", "relief_scale", "relief_smoothing",
+                       "dispersion", "interreflection", "diffraction", "partial_coherence")
+STEEP_RELIEF = {"rms_um": (1.6, 2.2), "corr_um": 2.5}   # interreflection cases: rms slope ~ 0.9 - 1.3
+# wave-optics cases (module docstring): transmitted coherent fraction 0.21 - 0.63, reflection mostly diffuse
+WAVE_RELIEF = {"rms_um": (0.12, 0.16), "corr_um": 2.5, "pitch_um": 0.5, "relief_n": 256}
+WAVE_EFFECTS = ("diffraction", "partial_coherence")
+
+
+# ------------------------------------------------------------------ height-field face
+
+
+class HeightFieldFace:
+    """Exact ray tracing through a periodic height field (3 x 3 tiles, Embree triangles).
+
+    Photons enter the relief layer at a uniformly random lateral position (an extended
+    beam), bounce on the triangles with Fresnel/Stokes events (`interface_event`) until
+    they leave the layer (above its highest point in air, or below its lowest in glass).
+    Coordinates in micrometres for float32 precision.
+    """
+
+    def __init__(self, heights_m: np.ndarray, dx_m: float, dy_m: float, max_hits: int = 20):
+        from embreex import rtcore_scene as rtcs
+        from embreex.mesh_construction import TriangleMesh
+
+        h = np.asarray(heights_m, float) * 1e6
+        h = h - np.nanmean(h)
+        ny, nx = h.shape
+        dx, dy = dx_m * 1e6, dy_m * 1e6
+        self.Lx, self.Ly = nx * dx, ny * dy
+        ii = np.arange(-nx, 2 * nx + 1)
+        jj = np.arange(-ny, 2 * ny + 1)
+        X, Y = np.meshgrid(ii * dx, jj * dy)
+        Z = h[np.mod(jj, ny)][:, np.mod(ii, nx)]
+        V = np.stack([X, Y, Z], axis=-1)
+        a = V[:-1, :-1].reshape(-1, 3)
+        b = V[:-1, 1:].reshape(-1, 3)
+        c = V[1:, :-1].reshape(-1, 3)
+        d = V[1:, 1:].reshape(-1, 3)
+        tris = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)], 0)
+        nrm = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+        nrm = nrm * np.sign(nrm[:, 2:3])
+        self.normals = _normalize(nrm)
+        self.scene = rtcs.EmbreeScene()
+        TriangleMesh(self.scene, tris.astype(np.float32))
+        self.zmax = float(h.max()) + 1e-3
+        self.zmin = float(h.min()) - 1e-3
+        self.max_hits = max_hits
+
+    def interact(self, d, S, e, inside, n_glass, rng):
+        n = len(d)
+        o = np.empty((n, 3))
+        o[:, 0] = rng.random(n) * self.Lx
+        o[:, 1] = rng.random(n) * self.Ly
+        o[:, 2] = np.where(d[:, 2] < 0, self.zmax, self.zmin)
+        alive = np.ones(n, bool)
+        active = np.arange(n)
+        for _ in range(self.max_hits + 1):
+            if active.size == 0:
+                break
+            r = self.scene.run(o[active].astype(np.float32), d[active].astype(np.float32), output=1)
+            prim = r["primID"]
+            miss = prim < 0
+            mi = active[miss]
+            # a miss is an exit if the photon travels away on its medium's side, else lost
+            good = np.where(inside[mi], d[mi, 2] < 0, d[mi, 2] > 0)
+            alive[mi[~good]] = False
+            hit = active[~miss]
+            if hit.size == 0:
+                active = hit
+                break
+            t = r["tfar"][~miss].astype(float)
+            p = o[hit] + t[:, None] * d[hit]
+            m = self.normals[prim[~miss]]
+            ins = inside[hit]
+            nf = np.where(ins[:, None], -m, m)
+            bad = _dot(d[hit], nf) >= 0                # grazing numerical cases: flip
+            nf[bad] = -nf[bad]
+            n1 = np.where(ins, n_glass, 1.0)
+            n2 = np.where(ins, 1.0, n_glass)
+            dn, Sn, en, refl = interface_event(d[hit], S[hit], e[hit], nf, n1, n2, rng.random(hit.size))
+            d[hit], S[hit], e[hit] = dn, Sn, en
+            inside[hit] = np.where(refl, ins, ~ins)
+            p[:, 0] = np.mod(p[:, 0], self.Lx)
+            p[:, 1] = np.mod(p[:, 1], self.Ly)
+            o[hit] = p + 2e-4 * dn
+            active = hit
+        alive[active] = False
+        return d, S, e, inside, alive
+
+
+# ------------------------------------------------------------------ synthetic relief
+
+
+def gaussian_relief(n: int, pitch_m: float, rms_m: float, corr_m: float, seed: int) -> np.ndarray:
+    """Periodic Gaussian random surface with autocovariance s^2 exp(-r^2 / l^2).
+
+    Spectral synthesis: white noise filtered by the square root of the Gaussian PSD
+    pi s^2 l^2 exp(-(pi l f)^2), then rescaled to the exact rms.
+    """
+    rng = task_rng(seed, 7)
+    f = np.fft.fftfreq(n, d=pitch_m)
+    k2 = f[:, None] ** 2 + f[None, :] ** 2
+    amp = np.exp(-((np.pi * corr_m) ** 2) * k2 / 2)
+    h = np.real(np.fft.ifft2(np.fft.fft2(rng.normal(size=(n, n))) * amp))
+    h -= h.mean()
+    return h * (rms_m / h.std())
+
+
+# ------------------------------------------------------------------ cases
+
+
+@dataclass
+class CaseSpec:
+    """One concealed case: the effect, its true parameters, geometry and noise."""
+
+    name: str
+    effect: str
+    parameters: dict
+    seed: int
+    n_glass: float = 1.5
+    thickness_mm: float = 2.0
+    half_angle_deg: float = 2.5
+    theta_i_deg: tuple = (0.0, 30.0, 55.0)
+    theta_s_deg: tuple = tuple(float(x) for x in range(0, 90, 5))
+    wavelengths_nm: tuple = (550.0,)
+    relief_n: int = 96
+    pitch_um: float = 1.0
+    rms_um: float = 0.4
+    corr_um: float = 5.0
+    photons: int = 600_000
+    counts_per_sr: float = 4.0e5      # detector counts per unit BSDF (shot noise scale)
+    gain_noise: float = 0.02
+    floor_sr: float = 2e-3
+
+
+def default_cases(n_per_effect: int = 2, n_none: int = 4, seed: int = 1) -> list[CaseSpec]:
+    """A seeded list of cases: `n_per_effect` per concealed effect and `n_none` clean ones.
+
+    Parameter values are drawn per case (seeded) from ranges large enough to matter and
+    within each effect's plausible physical range.
+    """
+    rng = task_rng(seed, 99)
+    cases = []
+
+    def draw(effect: str):
+        u = rng.random()
+        if effect == "bulk_absorption":
+            return {"absorption_per_mm": float(0.1 + 0.25 * u)}
+        if effect == "volume_scattering":
+            return {"scatter_per_mm": float(0.15 + 0.25 * u), "hg_g": float(0.6 + 0.2 * rng.random())}
+        if effect == "back_face_roughness":
+            return {"back_alpha": float(0.08 + 0.1 * u)}
+        if effect == "sample_tilt":
+            return {"tilt_deg": float((2.0 + 2.0 * u) * (1 if rng.random() < 0.5 else -1))}
+        if effect == "instrument_blur":
+            return {"blur_deg": float(2.0 + 1.5 * u)}
+        if effect == "polarization":
+            return {"polarization_q": float((0.7 + 0.3 * u) * (1 if rng.random() < 0.5 else -1))}
+        if effect == "stray_light":
+            return {"background_per_sr": float(0.02 + 0.03 * u)}
+        if effect == "relief_scale":
+            # scaled *up*: a scale-down of a Gaussian relief is degenerate with smoothing in ray optics
+            return {"height_scale": float(1.2 + 0.25 * u)}
+        if effect == "relief_smoothing":
+            return {"filter_sigma_um": float(1.5 + 1.0 * u)}
+        if effect == "dispersion":
+            return {"cauchy_B_nm2": float(15000 + 10000 * u)}
+        if effect == "interreflection":
+            return {"interreflection_weight": 1.0}
+        if effect == "diffraction":
+            return {"coherent_scale": 1.0}
+        if effect == "partial_coherence":
+            return {"coherence_length_um": float(0.8 + 0.7 * u)}
+        return {}
+
+    k = 0
+    for effect in EFFECTS_CONCEALABLE:
+        reps = n_none if effect == "none" else n_per_effect
+        for j in range(reps):
+            k += 1
+            spec = CaseSpec(name=f"case{k:02d}", effect=effect, parameters=draw(effect), seed=seed * 1000 + k)
+            if effect == "dispersion" or (effect == "none" and j == reps - 1):
+                spec.wavelengths_nm = (450.0, 550.0, 650.0)
+                spec.theta_i_deg = (0.0, 45.0)
+            if effect == "interreflection":
+                lo, hi = STEEP_RELIEF["rms_um"]
+                spec.rms_um = float(lo + (hi - lo) * rng.random())
+                spec.corr_um = STEEP_RELIEF["corr_um"]
+            if effect in WAVE_EFFECTS:
+                lo, hi = WAVE_RELIEF["rms_um"]
+                spec.rms_um = float(lo + (hi - lo) * rng.random())
+                spec.corr_um = WAVE_RELIEF["corr_um"]
+                spec.pitch_um = WAVE_RELIEF["pitch_um"]
+                spec.relief_n = WAVE_RELIEF["relief_n"]
+            cases.append(spec)
+    return cases
+
+
+def _rows(spec: CaseSpec) -> Recording:
+    w, ti, side, ts, ps = [], [], [], [], []
+    for wl in spec.wavelengths_nm:
+        for t in spec.theta_i_deg:
+            for sd in ("R", "T"):
+                for p in (0.0, 180.0):
+                    for s in spec.theta_s_deg:
+                        if s == 0.0 and p == 180.0:
+                            continue
+                        w.append(wl); ti.append(t); side.append(sd); ts.append(s); ps.append(p)
+    n = len(w)
+    return Recording(wavelength_nm=w, theta_i_deg=ti, phi_i_deg=np.zeros(n), side=side, theta_s_deg=ts,
+                     phi_s_deg=ps, bsdf_sr=np.zeros(n), sigma_sr=np.full(n, np.nan))
+
+
+def _true_signal(spec: CaseSpec, heights_m: np.ndarray, rec: Recording):
+    """Monte-Carlo plate signal with the concealed effect, per row: (value, mc_sigma)."""
+    p = spec.parameters
+    h = heights_m
+    dx = spec.pitch_um * 1e-6
+    if spec.effect == "relief_scale":
+        h = h * p["height_scale"]
+    elif spec.effect == "relief_smoothing":
+        from scipy import ndimage
+        h = ndimage.gaussian_filter(h, p["filter_sigma_um"] * 1e-6 / dx, mode="wrap")
+    wave = spec.effect in WAVE_EFFECTS
+    face = None if wave else HeightFieldFace(h, dx, dx)
+    phys = PlatePhysics(thickness_mm=spec.thickness_mm, n_glass=spec.n_glass,
+                        absorption_per_mm=p.get("absorption_per_mm", 0.0),
+                        scatter_per_mm=p.get("scatter_per_mm", 0.0), hg_g=p.get("hg_g", 0.0),
+                        back_alpha=p.get("back_alpha", 0.0), tilt_deg=p.get("tilt_deg", 0.0),
+                        beam_sigma_deg=p.get("blur_deg", 0.0))
+    q = p.get("polarization_q", 0.0)
+    val = np.zeros(len(rec))
+    sig = np.zeros(len(rec))
+    for iw, wl in enumerate(spec.wavelengths_nm):
+        ng = spec.n_glass
+        if spec.effect == "dispersion":
+            ng = spec.n_glass + p["cauchy_B_nm2"] * (1 / wl**2 - 1 / 550.0**2)
+        phys.n_glass = ng
+        if wave:   # wave optics: one phase screen per wavelength (phase_screen.py)
+            from relief_bsdf.validation.phase_screen import PhaseScreenFace
+            face = PhaseScreenFace(h, dx, dx, wl, n_max=max(1.6, ng),
+                                   coherence_length_um=p.get("coherence_length_um"))
+        for it, ti in enumerate(spec.theta_i_deg):
+            rows = np.nonzero((rec.wavelength_nm == wl) & (rec.theta_i_deg == ti))[0]
+            rng = task_rng(spec.seed, iw, it)
+            ex = run_photons(face, phys, ti, 0.0, (1.0, q, 0.0, 0.0), spec.photons, rng)
+            v, s = detect(ex, rec.side[rows], rec.theta_s_deg[rows], rec.phi_s_deg[rows], spec.half_angle_deg)
+            val[rows] = v
+            sig[rows] = s
+    val += p.get("background_per_sr", 0.0)
+    return val, sig
+
+
+def make_case(spec: CaseSpec, out_dir: str | Path) -> dict:
+    """Write one case folder (relief.x3p, recording.csv, sample.toml, key.json); return the key."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    heights = gaussian_relief(spec.relief_n, spec.pitch_um * 1e-6, spec.rms_um * 1e-6, spec.corr_um * 1e-6,
+                              spec.seed)
+    relief = Relief(heights, spec.pitch_um * 1e-6, spec.pitch_um * 1e-6, periodic=True,
+                    source=f"synthetic gaussian, seed {spec.seed}")
+    relief_name = _write_relief(out, relief)
+    rec = _rows(spec)
+    val, mc_sig = _true_signal(spec, heights, rec)
+    rng = task_rng(spec.seed, 12345)
+    counts = rng.poisson(np.maximum(val, 0) * spec.counts_per_sr) / spec.counts_per_sr
+    gain = 1.0 + spec.gain_noise * rng.normal(size=len(val))
+    noisy = np.maximum(counts * gain + spec.floor_sr * rng.normal(size=len(val)), 0.0)
+    sigma = np.sqrt(np.maximum(val, 0) / spec.counts_per_sr + (spec.gain_noise * val) ** 2
+                    + spec.floor_sr**2 + mc_sig**2)
+    write_recording(out / "recording.csv", rec.with_values(noisy, sigma),
+                    comments=[f"concealed case {spec.name} (see key file kept apart)"])
+    write_sample(out / "sample.toml", {
+        "plate": {"thickness_mm": spec.thickness_mm, "refractive_index": spec.n_glass, "rough_face": "front"},
+        "relief": {"file": relief_name},
+        "instrument": {"detector_half_angle_deg": spec.half_angle_deg, "polarization": "unpolarized"},
+        "recording": {"file": "recording.csv"}})
+    key = {"case": spec.name, "effect": spec.effect, "parameters": spec.parameters, "seed": spec.seed,
+           "photons_per_incidence": spec.photons,
+           "noise": {"counts_per_sr": spec.counts_per_sr, "gain_noise": spec.gain_noise, "floor_sr": spec.floor_sr}}
+    return key
+
+
+def _write_relief(out: Path, relief: Relief) -> str:
+    try:
+        from relief_bsdf.io.heightmaps import write_relief
+        write_relief(out / "relief.x3p", relief)
+        return "relief.x3p"
+    except ImportError:  # readers not available: npz is a format the project reads too
+        with open(out / "relief.npz", "wb") as fh:
+            np.savez(fh, heights=relief.heights_m, dx=relief.dx_m, dy=relief.dy_m)
+        return "relief.npz"
+
+
+def _case_task(context, spec: CaseSpec) -> dict:
+    root = Path(context)
+    key = make_case(spec, root / spec.name)
+    return key
+
+
+def generate(out_root: str | Path, cases: list[CaseSpec] | None = None, progress=None) -> Path:
+    """Generate every case under out_root (in parallel); keys go to out_root/key.json."""
+    from relief_bsdf.parallel.tasks import map_tasks
+    root = Path(out_root)
+    root.mkdir(parents=True, exist_ok=True)
+    cases = cases if cases is not None else default_cases()
+    keys = map_tasks(_case_task, cases, str(root), progress=progress, label="concealed cases")
+    write_text_atomic(root / "key.json", json.dumps({"format": "relief-conceal-key/1", "cases": keys}, indent=1))
+    return root / "key.json"
