@@ -25,7 +25,7 @@ import scipy.fft as sfft
 
 from relief_bsdf.methods import kirchhoff
 from relief_bsdf.methods.rayleigh_rice import prepared_heights
-from relief_bsdf.core.optics import ConstantIndex, Material
+from relief_bsdf.core.index import ConstantIndex, Material
 from relief_bsdf.surface.relief import Relief
 from relief_bsdf.methods.request import Request
 from relief_bsdf.methods.wave_filter import cell_samples, smoothing_width_dcos

@@ -4,7 +4,8 @@
 
 1. One plate evaluation with the boundary tables already derived (cached): 6 incidences x 2 sides x
    90 scatter angles x 2 azimuths (2160 rows, 1-degree / 5-degree tables, detector cone 1 deg), from a
-   fresh PlateSolver (per-wavelength operator built from the tables + solve + detector read-out).
+   `plate.simulate` of the Experiment (per-wavelength operator built from the cached tables + solve +
+   detector read-out).
    Target <= 0.2 s.  Reference in the same run: the raw numpy batched solve of the same linear
    systems (the library floor of the round-trip sum).
 2. The whole demo fit (`relief fit scenes/demo/sample.toml`), target a few minutes on 2 cores.
@@ -28,27 +29,32 @@ def main() -> int:
     ap.add_argument("--skip-fit", action="store_true")
     ap.add_argument("--max-iter", type=int, default=40)
     a = ap.parse_args()
-    from relief_bsdf.fit.optimise import TableGrid, derive_tables, run_fit_job
-    from relief_bsdf.core.optics import ConstantIndex
-    from relief_bsdf.plate.solver import PlateModel, PlateSolver, _blas_single_thread, in_plane_rows, simulate_rows
+    from relief_bsdf.core.index import ConstantIndex
+    from relief_bsdf.fit.optimise import FitJob, run_fit_job
+    from relief_bsdf.plate import (TABLE_CACHE, Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid,
+                                   in_plane_rows, simulate)
+    from relief_bsdf.plate.deterministic import _blas_single_thread, solver_of
     from relief_bsdf.surface.synth import random_relief
 
     relief = random_relief(128, 0.125e-6, 30e-9, 1.0e-6, "gaussian", seed=1)
-    model = PlateModel(thickness_m=2e-3, index=ConstantIndex(1.49))
+    exp = Experiment(Plate(thickness_m=2e-3, index=ConstantIndex(1.49), front=ReliefFace(relief, "microfacet+dw"),
+                           back=FlatFace()), Instrument(detector_half_angle_deg=1.0))
+    grid = TableGrid()
     thetas = [0, 15, 30, 45, 60, 75]
     rows = in_plane_rows(550.0, thetas, np.arange(0.5, 90.0, 1.0))
     assert len(rows) == 6 * 2 * 90 * 2
+    TABLE_CACHE.clear()
     t0 = time.perf_counter()
-    out, ins = derive_tables(relief, model.material, "microfacet+dw", [550.0], thetas, TableGrid())
+    simulate(exp, rows, grid=grid)              # derives (and caches) the faces' tables
     t_tables = time.perf_counter() - t0
     times = []
-    for _ in range(5):
+    for _ in range(5):                          # tables cached: operator build + solve + detector read-out
         t0 = time.perf_counter()
-        v = simulate_rows(model, ins, out, rows, solver=PlateSolver(model, ins, out))
+        v = simulate(exp, rows, grid=grid).values_per_sr
         times.append(time.perf_counter() - t0)
     plate_s = min(times)
-    solver = PlateSolver(model, ins, out)
-    ops = solver._operators(550.0)
+    t_tables -= plate_s
+    ops = solver_of(exp, rows, grid)._operators(550.0)
     rhs = np.random.default_rng(0).standard_normal(ops["sys"].shape[:2] + (6,)) + 0j
     t_raw = []
     with _blas_single_thread():
@@ -67,7 +73,7 @@ def main() -> int:
     if not a.skip_fit:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
-            doc = run_fit_job(ROOT / "scenes" / "demo" / "sample.toml", d, max_iter=a.max_iter)
+            doc = run_fit_job(ROOT / "scenes" / "demo" / "sample.toml", d, FitJob(max_iter=a.max_iter))
             fit_s = time.perf_counter() - t0
             fit_info = {"fit_rms_before": doc["rms_before"], "fit_rms_after": doc["rms_after"],
                         "fit_parameters": doc["parameters"], "fit_evaluations": len(doc["iterations"])}

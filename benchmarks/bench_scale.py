@@ -46,7 +46,7 @@ def _synthetic(args):
     tasks = [(k,) for k in range(args.tasks)]
 
     def run(backend=None, workers=None):
-        from relief_bsdf.parallel import tasks as parallel
+        from relief_bsdf import parallel
         return parallel.map_tasks(synthetic_task, tasks, ctx, backend=backend, workers=workers, label="bench")
 
     return run, len(tasks), {"workload": "synthetic", "size": args.size, "work_rounds": args.work}
@@ -78,7 +78,7 @@ def _gaussian_relief(n, pitch_m, rms_m, corr_m, seed):
     """Periodic Gaussian relief: white noise filtered to the spectrum of s^2 exp(-r^2/L^2)."""
     import numpy as np
 
-    from relief_bsdf.parallel.tasks import task_rng
+    from relief_bsdf.parallel import task_rng
     from relief_bsdf.surface.relief import Relief
 
     f = np.fft.fftfreq(n, pitch_m)
@@ -92,9 +92,9 @@ def _gaussian_relief(n, pitch_m, rms_m, corr_m, seed):
 def _method(args):
     import numpy as np
 
-    from relief_bsdf.parallel import tasks as parallel
+    from relief_bsdf import parallel
     from relief_bsdf.methods import reconstruct
-    from relief_bsdf.core.optics import ConstantIndex, Material
+    from relief_bsdf.core.index import ConstantIndex, Material
     from relief_bsdf.methods.request import Request
 
     relief = _gaussian_relief(args.relief_size, 1e-6, 0.5e-6, 10e-6, seed=1)
@@ -144,7 +144,7 @@ def main(argv=None) -> dict:
 
     logging.getLogger("distributed").setLevel(logging.ERROR)
 
-    from relief_bsdf.parallel import tasks as parallel
+    from relief_bsdf import parallel
     from relief_bsdf.parallel.cluster import trivial_task
 
     run, n_tasks, info = (_method if args.method else _synthetic)(args)

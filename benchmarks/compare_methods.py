@@ -37,7 +37,7 @@ from relief_bsdf.report import plots
 from relief_bsdf.surface import synth
 from relief_bsdf.errors import InputError, RequestError
 from relief_bsdf.methods import reconstruct
-from relief_bsdf.core.optics import ConstantIndex, Material
+from relief_bsdf.core.index import ConstantIndex, Material
 from relief_bsdf.methods.request import Request
 
 METHODS = ("microfacet", "normals", "ray", "kirchhoff", "rayleigh-rice")
@@ -107,7 +107,7 @@ def main(argv=None) -> int:
                                  "lost": t.lost[:, ip:ip + 1], "sigma_per_sr": None, "mueller_per_sr": None,
                                  "specular_mueller_R": None, "specular_mueller_T": None})
             c, ls = STYLE[m]
-            plots.plot_in_plane(ax, one, side, linestyle=ls, colors=[c], label_prefix=f"{m} ")
+            plots.plot_in_plane(ax, one, side, style=plots.CurveStyle(linestyle=ls, label_prefix=f"{m} ", colors=(c,)))
         ax.legend(fontsize=7)
     for col, (frm, key) in enumerate((("outside", "R"), ("outside", "T"), ("inside", "R"), ("inside", "T"))):
         ax = axs[1, col]

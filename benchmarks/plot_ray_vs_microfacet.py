@@ -21,7 +21,7 @@ import numpy as np
 from relief_bsdf.surface.mesh import build_tile_mesh
 from relief_bsdf.methods import microfacet as mf
 from relief_bsdf.methods import ray
-from relief_bsdf.core.optics import ConstantIndex, Material
+from relief_bsdf.core.index import ConstantIndex, Material
 from relief_bsdf.methods.request import Request
 from relief_bsdf.surface.synth import random_relief
 
@@ -57,7 +57,7 @@ def main(argv=None) -> int:
             n_i, n_t = (1.0, 1.5) if tab.incident_from == "outside" else (1.5, 1.0)
             psa = tab.projected_solid_angle_sr
             for k, side in enumerate("RT"):
-                ref = mf.cell_average(lambda wo: mf.walter_bsdf(wi, wo, n_i, n_t, alpha), TE, PE, side, 6)
+                ref = mf.cell_average(lambda wo: mf.walter_bsdf(wi, wo, n_i, n_t, mf.Roughness(alpha)), TE, PE, side, 6)
                 v = tab.values_per_sr[0, 0, 0, k]
                 c = curves[f"{tab.incident_from}_{side}"]
                 if np.sum(ref * psa) < 0.01:              # no lobe to compare (e.g. T past the critical angle)

@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from relief_bsdf.methods import ray
-from relief_bsdf.core.optics import ConstantIndex, Material
+from relief_bsdf.core.index import ConstantIndex, Material
 from relief_bsdf.methods.request import Request
 from relief_bsdf.surface.synth import random_relief
 

@@ -14,6 +14,7 @@ Every error becomes a Blender report (one line); the traceback goes to the conso
 """
 from __future__ import annotations
 
+import contextvars
 import threading
 import traceback
 
@@ -93,7 +94,10 @@ class JobOperator:
             finally:
                 state["finished"] = True
 
-        self._thread = threading.Thread(target=run, name=f"relief-{self.bl_idname}", daemon=True)
+        # the worker thread runs in a copy of this thread's context, so parallel settings in force
+        # here (`relief_bsdf.parallel.parallel_settings`, a ContextVar) reach the backend's map_tasks
+        ctx = contextvars.copy_context()
+        self._thread = threading.Thread(target=ctx.run, args=(run,), name=f"relief-{self.bl_idname}", daemon=True)
         wm = context.window_manager
         wm.progress_begin(0, 1000)
         self._timer = wm.event_timer_add(0.2, window=context.window)

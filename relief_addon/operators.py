@@ -178,7 +178,7 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
         return JobOperator.invoke(self, context, event)
 
     def prepare(self, context):
-        from relief_bsdf.core.optics import ConstantIndex, Material
+        from relief_bsdf.core.index import ConstantIndex, Material
         from relief_bsdf.methods.request import Request
         s = context.scene.relief
         if self.relief_path:
@@ -336,7 +336,8 @@ class RELIEF_OT_fit(JobOperator, bpy.types.Operator):
     @staticmethod
     def work(p, progress):
         fit = _require("relief_bsdf.fit.optimise", "fit")
-        doc = fit.run_fit_job(p["sample"], p["out"], method=p["method"], max_iter=p["max_iter"], progress=progress)
+        doc = fit.run_fit_job(p["sample"], p["out"], fit.FitJob(method=p["method"], max_iter=p["max_iter"]),
+                              progress=progress)
         return {"doc": doc, "out": p["out"]}
 
     def finish(self, context, r):

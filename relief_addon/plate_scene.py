@@ -37,10 +37,10 @@ def _sample_path_from_fit(fit_dir: Path, doc: dict) -> Path:
 
 
 def _tables(relief, material, method: str, progress=None):
-    from relief_bsdf.fit.optimise import TableGrid, derive_tables
+    from relief_bsdf.plate import ReliefFace, TableGrid
     theta_out = np.array([0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 89.0])
-    out, ins = derive_tables(relief, material, method, [550.0], theta_out, TableGrid(2.0, 10.0, 10.0),
-                             samples=100_000, seed=0, need_outside=True, progress=progress)
+    face = ReliefFace(relief, method=method, samples=100_000, seed=0)
+    out, ins = face.tables(material, TableGrid(2.0, 10.0, 10.0), [550.0], theta_out, True, progress)
     return [t for t in (out, ins) if t is not None]
 
 
@@ -49,7 +49,7 @@ def prepare_plates(source, albedo=None, closure: str = "metallic", progress=None
     from relief_bsdf.bsdf.bake import bake_lut
     from relief_bsdf.errors import InputError
     from relief_bsdf.fit.optimise import process_relief
-    from relief_bsdf.plate.solver import flat_tables
+    from relief_bsdf.plate import flat_tables
     from relief_bsdf.io.heightmaps import read_relief
     from relief_bsdf.io.recording import read_sample
     src = Path(source)
@@ -192,7 +192,7 @@ def _srgb(lin: np.ndarray) -> np.ndarray:
 
 def write_image(path: Path, rgb_display: np.ndarray) -> Path:
     """Write an RGB image (display-encoded floats in [0, 1], top row first) with OpenImageIO, atomically."""
-    from relief_bsdf import oiio as oiio_loader
+    from relief_bsdf.io import oiio as oiio_loader
     from relief_bsdf.io.atomic import atomic_path
     oiio = oiio_loader.load()
     path = Path(path)

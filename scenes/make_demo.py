@@ -34,9 +34,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     a = ap.parse_args(argv)
     from relief_bsdf.fit.optimise import Forward, TableGrid
-    from relief_bsdf.core.optics import ConstantIndex
-    from relief_bsdf.parallel.tasks import task_rng
-    from relief_bsdf.plate.solver import PlateModel, in_plane_rows
+    from relief_bsdf.core.index import ConstantIndex
+    from relief_bsdf.parallel import task_rng
+    from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, in_plane_rows
     from relief_bsdf.io.heightmaps import read_relief, write_relief
     from relief_bsdf.io.recording import Recording, write_recording, write_sample
     from relief_bsdf.surface.synth import random_relief
@@ -45,7 +45,8 @@ def main(argv=None) -> int:
     relief = random_relief(1024, 0.125e-6, 100e-9, 1.0e-6, "gaussian", seed=a.seed)
     write_relief(out / "relief.x3p", relief, x3p_data_type="F")
     relief = read_relief(out / "relief.x3p")      # what users (and the fit) read: float32 heights
-    model = PlateModel(thickness_m=2e-3, index=ConstantIndex(1.49), detector_half_angle_deg=1.0)
+    model = Experiment(Plate(2e-3, ConstantIndex(1.49), ReliefFace(relief), FlatFace()),
+                       Instrument(detector_half_angle_deg=1.0))
     rows = in_plane_rows(550.0, [0, 15, 30, 45, 60, 75], np.arange(1.0, 89.0, 2.0))
     fwd = Forward(relief, model, rows, grid=TableGrid())
     clean = fwd.simulate(TRUE_SCALE, TRUE_FILTER_UM)

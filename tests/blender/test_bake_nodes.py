@@ -11,7 +11,7 @@ import bpy
 
 def _microfacet_tables(alpha=0.3, n=1.5):
     from relief_bsdf.methods import reconstruct
-    from relief_bsdf.core.optics import ConstantIndex, Material
+    from relief_bsdf.core.index import ConstantIndex, Material
     from relief_bsdf.methods.request import Request
     req = Request(theta_i_deg=(0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 89.0),
                   incident_from=("outside", "inside"),
@@ -97,8 +97,8 @@ def test_lookup_through_cycles_matches_interpolation(clean_bpy):
 def test_flat_interface_bake_reproduces_fresnel(clean_bpy):
     """Delta rows: a flat boundary's specular R and T (Fresnel) come back from Cycles."""
     from relief_addon import bake_nodes, goniophotometer as G
-    from relief_bsdf.core.optics import ConstantIndex, Material
-    from relief_bsdf.plate.solver import flat_tables
+    from relief_bsdf.core.index import ConstantIndex, Material
+    from relief_bsdf.plate import flat_tables
     mat = Material(ConstantIndex(1.5))
     th = np.arange(0.0, 90.0, 10.0)
     tabs = flat_tables(mat, [550.0], th, th, np.linspace(0, 90, 10), np.arange(-15.0, 360.0, 30.0))

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 
@@ -17,7 +18,7 @@ WIDTH = 96
 
 
 def _read(path):
-    from relief_bsdf import oiio as loader
+    from relief_bsdf.io import oiio as loader
     oiio = loader.load()
     buf = oiio.ImageBuf(str(path))
     assert not buf.has_error, buf.geterror()
@@ -83,3 +84,31 @@ def test_scene_script_on_fit_folder(clean_bpy, tmp_path):
     assert _contrast(right, WIDTH) < 0.8 * _contrast(left, WIDTH)
     # bad input: one line, exit code 2
     assert mod.main([str(tmp_path), "-o", str(out)]) == 2
+
+
+@pytest.mark.slow
+def test_render_scene_code_ships_in_the_installed_distribution(tmp_path):
+    """`relief render` works from an installed package: the backend wheel carries `relief_addon`
+    (the scene code) beside `relief_bsdf`, and the command finds it there, not in a checkout."""
+    sys.path.insert(0, str(REPO / "relief_addon"))
+    try:
+        import build_extension as bx
+    finally:
+        sys.path.remove(str(REPO / "relief_addon"))
+    wheel = bx.build_backend_wheel(tmp_path / "cache")
+    site = tmp_path / "site"
+    r = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--target", str(site),
+                        str(wheel)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (site / "relief_addon" / "render_plate.py").is_file()
+    assert (site / "relief_addon" / "data" / "cycles_albedo.npz").is_file()
+    probe = ("import relief_bsdf, relief_bsdf.cli.cmd_render as c; m = c._scene_module(); "
+             "print(relief_bsdf.__file__); print(m.__file__)")
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path, env=env,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert all(line.startswith(str(site)) for line in r.stdout.split())
+    bad = subprocess.run([sys.executable, "-m", "relief_bsdf.cli", "render", str(tmp_path / "missing.toml"), "-o",
+                          str(tmp_path / "x.png")], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)
+    assert bad.returncode == 2 and "missing.toml" in bad.stderr

@@ -17,8 +17,8 @@ SAMPLE = REPO / "scenes" / "demo" / "sample.toml"
 
 def test_bake_operator_assigns_group_to_rough_face(addon, tmp_path):
     from relief_bsdf.io.hdf5 import save_tables
-    from relief_bsdf.core.optics import ConstantIndex, Material
-    from relief_bsdf.plate.solver import flat_tables
+    from relief_bsdf.core.index import ConstantIndex, Material
+    from relief_bsdf.plate import flat_tables
     th = np.arange(0.0, 90.0, 10.0)
     save_tables(tmp_path / "flat.h5", list(flat_tables(Material(ConstantIndex(1.5)), [550.0], th, th,
                                                        np.linspace(0, 90, 10), np.arange(-15.0, 360, 30))))

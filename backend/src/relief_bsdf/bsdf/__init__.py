@@ -1,1 +1,29 @@
-"""bsdf"""
+"""The tabulated BSDF of one boundary and what is derived from it.
+
+    table  BsdfTable: values per projected solid angle on (wavelength, theta_i, phi_i, side R/T,
+           theta_s, phi_s) cells, optional Mueller matrices and the delta-like specular parts;
+           reciprocity_error (cell measures: core.frames)
+    bake   bake_lut / BakedLut / ClosureAlbedo: the per-angle lookup table the Blender layer renders
+    builder  the ONE builder of table cells from sampled exit directions and weights (CellIndex,
+             ExitSamples, TableCells, CellAccumulator, specular_flags), used by every sampling method
+File formats: relief_bsdf.io (hdf5, isbsdf).
+"""
+import importlib
+
+# name -> sub-module; loaded on first use (PEP 562), so `import relief_bsdf.bsdf.table` stays cheap
+_EXPORTS = {
+    "BsdfTable": "table", "SIDES": "table", "reciprocity_error": "table",
+    "CellIndex": "builder", "ExitSamples": "builder", "TableCells": "builder", "CellAccumulator": "builder",
+    "specular_flags": "builder", "BakedLut": "bake", "ClosureAlbedo": "bake", "bake_lut": "bake", "unit_albedo": "bake",
+}
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

@@ -55,7 +55,8 @@ import numpy as np
 
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
-from relief_bsdf.core.optics import Material, fresnel_unpolarized
+from relief_bsdf.core.fresnel import fresnel_unpolarized
+from relief_bsdf.core.index import Material
 
 ROW_NAMES = ("specular_R", "diffuse_R", "specular_T", "diffuse_T", "roughness")
 ROWS_PER_SIDE = len(ROW_NAMES)
@@ -206,8 +207,22 @@ def _interp_wl(values: np.ndarray, wl_axis: np.ndarray, targets: Sequence[float]
     return np.stack(out)
 
 
-def _side_rows(table: BsdfTable, cols: np.ndarray, rgb_nm, green_nm: float, ior: float, albedo: Albedo,
-               back: bool, floor: float, reflection_closure: str, ior_rgb) -> tuple[np.ndarray, dict]:
+@dataclass(frozen=True)
+class _BakeColours:
+    """What every side of the bake shares: the RGB wavelengths, relative indices and closure albedo."""
+
+    rgb_nm: tuple
+    green_nm: float
+    ior: float                   # relative index inside / outside at the green wavelength
+    ior_rgb: tuple               # the same per RGB wavelength
+    albedo: Albedo
+    floor: float                 # smallest closure albedo divided by
+    reflection_closure: str
+
+
+def _side_rows(table: BsdfTable, cols: np.ndarray, bc: _BakeColours, back: bool) -> tuple[np.ndarray, dict]:
+    rgb_nm, green_nm, ior, albedo = bc.rgb_nm, bc.green_nm, bc.ior, bc.albedo
+    floor, reflection_closure, ior_rgb = bc.floor, bc.reflection_closure, bc.ior_rgb
     integ = _per_incidence(table)
     ti = table.theta_i_deg
     rough = _fit_roughness(table, green_nm)                          # (I, 2)
@@ -274,11 +289,12 @@ def bake_lut(tables: Sequence[BsdfTable], name: str, albedo: Albedo | None = Non
     ior = float(np.real(n_in) / np.real(n_out))
     ior_rgb = tuple(float(np.real(mat.n_pair(w, "outside")[1]) / np.real(mat.n_pair(w, "outside")[0])) for w in rgb)
     cols = np.linspace(0.0, 90.0, n_columns)
-    kw = dict(floor=albedo_floor, reflection_closure=reflection_closure, ior_rgb=ior_rgb)
-    front, info_f = _side_rows(out, cols, rgb, green, ior, albedo, back=False, **kw)
+    bc = _BakeColours(rgb_nm=rgb, green_nm=green, ior=ior, ior_rgb=ior_rgb, albedo=albedo, floor=albedo_floor,
+                      reflection_closure=reflection_closure)
+    front, info_f = _side_rows(out, cols, bc, back=False)
     info = {"outside": info_f, "method": out.method, "closure_albedo": getattr(albedo, "source", "ideal (1)")}
     if "inside" in by_side:
-        back, info_b = _side_rows(by_side["inside"], cols, rgb, green, ior, albedo, back=True, **kw)
+        back, info_b = _side_rows(by_side["inside"], cols, bc, back=True)
         info["inside"] = info_b
     else:
         back = _smooth_inside_rows(mat, cols, rgb, green, albedo, ior, albedo_floor)

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from relief_bsdf.core.frames import projected_solid_angle
 from relief_bsdf.errors import InputError
 
 SIDES = ("R", "T")
@@ -47,30 +48,6 @@ def _edges_from_centres(c: np.ndarray, lo: float, hi: float) -> np.ndarray:
         return np.array([lo, hi])
     mid = 0.5 * (c[1:] + c[:-1])
     return np.concatenate([[max(lo, c[0] - (mid[0] - c[0]))], mid, [min(hi, c[-1] + (c[-1] - mid[-1]))]])
-
-
-def projected_solid_angle(theta_edges_deg: Any, phi_edges_deg: Any) -> np.ndarray:
-    """(S, A) projected solid angles of the cells bounded by the given edges (sr)."""
-    t = np.radians(np.asarray(theta_edges_deg, float))
-    p = np.radians(np.asarray(phi_edges_deg, float))
-    ring = 0.5 * np.diff(np.sin(t) ** 2)
-    return ring[:, None] * np.diff(p)[None, :]
-
-
-def solid_angle(theta_edges_deg: Any, phi_edges_deg: Any) -> np.ndarray:
-    """(S, A) solid angles of the cells (sr)."""
-    t = np.radians(np.asarray(theta_edges_deg, float))
-    p = np.radians(np.asarray(phi_edges_deg, float))
-    ring = -np.diff(np.cos(t))
-    return ring[:, None] * np.diff(p)[None, :]
-
-
-def direction(theta_deg: Any, phi_deg: Any) -> np.ndarray:
-    """Unit vector(s) w(theta, phi) = (sin t cos p, sin t sin p, cos t), shape (..., 3)."""
-    t = np.radians(np.asarray(theta_deg, float))
-    p = np.radians(np.asarray(phi_deg, float))
-    st = np.sin(t)
-    return np.stack(np.broadcast_arrays(st * np.cos(p), st * np.sin(p), np.cos(t)), axis=-1)
 
 
 @dataclass

@@ -42,12 +42,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     debug = getattr(args, "debug", False)
-    from relief_bsdf.parallel.tasks import parallel_settings
+    from relief_bsdf.parallel import parallel_from_args
 
     try:
-        # a command may configure where tasks run (--workers, --dask): restore the settings and
-        # close any LocalCluster it started when it returns, so main() leaves no global state
-        with parallel_settings():
+        # where the command's tasks run: its --dask/--workers/--checkpoint-dir/--retries (parallel's
+        # `add_parallel_args`) over the settings in force, for the command only; a LocalCluster it
+        # starts is closed when it returns, so main() leaves no state behind
+        with parallel_from_args(args):
             return int(args._run(args) or 0)
     except InputError as e:
         if debug:

@@ -8,33 +8,41 @@ import json
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("diagnose", help="locate the simulation/recording mismatch and name the missing physics",
                        description="Simulates the plate as sample.toml describes it, locates where it misses the "
-                                   "recording, fits every candidate effect (absorption, volume scattering, back-face "
-                                   "roughness, tilt, blur, polarisation, stray light, relief scale/smoothing, "
-                                   "dispersion) and selects by BIC with a noise-consistency gate. Writes "
-                                   "OUTDIR/diagnosis.json and OUTDIR/report.html.")
+                                   "recording, fits every candidate effect (one module each in "
+                                   "relief_bsdf.diagnose.effects: absorption, back-face roughness, tilt, blur, "
+                                   "polarisation, stray light, relief scale/smoothing, index, dispersion, "
+                                   "interreflection, diffraction, partial coherence, ...) on the one plate model and "
+                                   "selects by BIC with a noise-consistency gate. Writes OUTDIR/diagnosis.json and "
+                                   "OUTDIR/report.html.")
     p.add_argument("sample", help="sample.toml")
     p.add_argument("-o", "--out", required=True, help="output folder")
-    p.add_argument("--photons", type=int, default=100_000, help="forward-model photons per incidence (default 100000)")
+    p.add_argument("--method", default=None,
+                   help="boundary BSDF method of the baseline's relief face (default: that of `relief fit`, "
+                        "microfacet+dw; or any `relief reconstruct` method)")
+    p.add_argument("--photons", type=int, default=200_000,
+                   help="Monte-Carlo samples per incidence of a sampling boundary method (ray, normals; "
+                        "default 200000)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--effects", default=None, help="comma-separated subset of candidate effects")
     p.add_argument("--workers", type=int, default=None, help="worker processes (default: every core)")
     p.add_argument("--json", action="store_true", help="print diagnosis.json on stdout")
-    from relief_bsdf.parallel.tasks import add_parallel_args
+    from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --checkpoint-dir, --retries (issue 8); --workers is its own
     return p
 
 
 def run(args) -> int:
-    from relief_bsdf.parallel.tasks import apply_parallel_args
+    from relief_bsdf.parallel import apply_parallel_args
     apply_parallel_args(args)
+    from relief_bsdf.diagnose.forward import DEFAULT_METHOD
     from relief_bsdf.diagnose.run import diagnose
     from relief_bsdf.errors import InputError
     from relief_bsdf.progress import TerminalBar
     if args.photons < 1000:
         raise InputError("--photons", f"need at least 1000 photons per incidence, got {args.photons}")
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
-    r = diagnose(args.sample, args.out, TerminalBar("diagnose"), photons=args.photons, seed=args.seed,
-                 effects=effects, workers=args.workers)
+    r = diagnose(args.sample, args.out, TerminalBar("diagnose"), method=args.method or DEFAULT_METHOD,
+                 photons=args.photons, seed=args.seed, effects=effects, workers=args.workers)
     if args.json:
         print(json.dumps(r, indent=1))
     else:

@@ -21,16 +21,15 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--inside-step-deg", type=float, default=5.0,
                    help="step between the incidences of the inside table (narrow lobes: 1-2)")
     p.add_argument("--progress", action="store_true", help="force the progress bar")
-    from relief_bsdf.parallel.tasks import add_parallel_args
+    from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
     return p
 
 
 def run(args) -> int:
-    from relief_bsdf.parallel.tasks import apply_parallel_args
-    apply_parallel_args(args)
     from relief_bsdf.errors import InputError
-    from relief_bsdf.fit.optimise import TableGrid, run_fit_job
+    from relief_bsdf.fit.optimise import FitJob, run_fit_job
+    from relief_bsdf.plate import TableGrid
     from relief_bsdf.progress import TerminalBar
     if args.max_iter < 1:
         raise InputError("--max-iter", "must be >= 1")
@@ -39,8 +38,8 @@ def run(args) -> int:
     if not 0 < args.inside_step_deg <= 15:
         raise InputError("--inside-step-deg", f"must be in (0, 15], got {args.inside_step_deg:g}")
     grid = TableGrid(args.theta_step_deg, args.phi_step_deg, args.inside_step_deg)
-    doc = run_fit_job(args.sample, args.out, method=args.method, samples=args.samples, seed=args.seed,
-                      max_iter=args.max_iter, threshold=args.threshold, grid=grid,
-                      progress=TerminalBar("fit", force=args.progress))
+    job = FitJob(method=args.method, samples=args.samples, seed=args.seed, max_iter=args.max_iter,
+                 threshold=args.threshold, grid=grid)
+    doc = run_fit_job(args.sample, args.out, job, progress=TerminalBar("fit", force=args.progress))
     print(json.dumps({k: doc[k] for k in ("rms_before", "rms_after", "parameters", "stopped")}))
     return 0

@@ -135,84 +135,100 @@ def run(args) -> int:
     path = Path(args.file)
     if not path.exists():
         raise InputError(path, "file not found")
-    kind = _kind(path)
-    if kind == "relief":
-        from relief_bsdf.io.heightmaps import read_relief
-        relief = read_relief(path, pitch_m=_pitch(args.pitch_um), channel=args.channel)
-        d = relief_info(relief)
-        if args.json:
-            print(json.dumps(d, default=str))
-        else:
-            _print_relief(d)
+    show = {"relief": _info_relief, "bsdf": _info_bsdf, "recording": _info_recording, "sample": _info_sample,
+            "is-bsdf": _info_isbsdf}[_kind(path)]
+    return show(path, args)
+
+
+def _info_relief(path: Path, args) -> int:
+    from relief_bsdf.io.heightmaps import read_relief
+    relief = read_relief(path, pitch_m=_pitch(args.pitch_um), channel=args.channel)
+    d = relief_info(relief)
+    if args.json:
+        print(json.dumps(d, default=str))
+    else:
+        _print_relief(d)
+    return 0
+
+
+def _info_bsdf(path: Path, args) -> int:
+    from relief_bsdf.io.hdf5 import load_tables
+    tables = load_tables(path)
+    rows = [r for t in tables for r in t.albedo_rows()]
+    d = {"kind": "bsdf", "method": tables[0].method if tables else None, "albedo": rows,
+         "tables": [{k: v for k, v in t.summary().items() if k != "albedo"} for t in tables]}
+    if args.json:
+        print(json.dumps(d, default=str))
         return 0
-    if kind == "bsdf":
-        from relief_bsdf.io.hdf5 import load_tables
-        tables = load_tables(path)
-        rows = [r for t in tables for r in t.albedo_rows()]
-        d = {"kind": "bsdf", "method": tables[0].method if tables else None, "albedo": rows,
-             "tables": [{k: v for k, v in t.summary().items() if k != "albedo"} for t in tables]}
-        if args.json:
-            print(json.dumps(d, default=str))
-            return 0
-        print(f"BSDF table   {path}  (method {d['method']})")
-        for t in tables:
-            s = t.summary()
-            print(f"  light from {t.incident_from}: {len(s['wavelength_nm'])} wavelength(s) {s['wavelength_nm']} nm, "
-                  f"theta_i {s['theta_i_deg']} deg, phi_i {s['phi_i_deg']} deg, "
-                  f"{s['theta_s_cells']} x {s['phi_s_cells']} scatter cells")
-            v = t.metadata.get("validity") if isinstance(t.metadata, dict) else None
-            if isinstance(v, dict) and "valid" in v:
-                where = ""
-                if not v["valid"] and "valid_per_incidence" in v:
-                    bad = np.argwhere(~np.asarray(v["valid_per_incidence"], bool))
-                    where = " at " + ", ".join(f"{v['wavelength_nm'][i]:g} nm / {v['theta_i_deg'][j]:g} deg"
-                                               for i, j in bad[:4]) + (" ..." if len(bad) > 4 else "")
-                print(f"    validity: {'within' if v['valid'] else 'OUTSIDE'} the method's regime{where} "
-                      f"({v.get('criterion', '')})")
-        print("  hemispherical integrals per incidence (R, T include the specular parts):")
-        print(f"    {'from':8s} {'lambda/nm':>9s} {'theta_i':>7s} {'phi_i':>6s} {'R':>8s} {'T':>8s} "
-              f"{'spec R':>8s} {'spec T':>8s} {'lost':>8s}")
-        for r in rows:
-            print(f"    {r['from']:8s} {r['wavelength_nm']:9.4g} {r['theta_i_deg']:7.3g} {r['phi_i_deg']:6.3g} "
-                  f"{r['R']:8.4f} {r['T']:8.4f} {r['specular_R']:8.4f} {r['specular_T']:8.4f} {r['lost']:8.4f}")
+    print(f"BSDF table   {path}  (method {d['method']})")
+    for t in tables:
+        s = t.summary()
+        print(f"  light from {t.incident_from}: {len(s['wavelength_nm'])} wavelength(s) {s['wavelength_nm']} nm, "
+              f"theta_i {s['theta_i_deg']} deg, phi_i {s['phi_i_deg']} deg, "
+              f"{s['theta_s_cells']} x {s['phi_s_cells']} scatter cells")
+        _print_validity(t)
+    print("  hemispherical integrals per incidence (R, T include the specular parts):")
+    print(f"    {'from':8s} {'lambda/nm':>9s} {'theta_i':>7s} {'phi_i':>6s} {'R':>8s} {'T':>8s} "
+          f"{'spec R':>8s} {'spec T':>8s} {'lost':>8s}")
+    for r in rows:
+        print(f"    {r['from']:8s} {r['wavelength_nm']:9.4g} {r['theta_i_deg']:7.3g} {r['phi_i_deg']:6.3g} "
+              f"{r['R']:8.4f} {r['T']:8.4f} {r['specular_R']:8.4f} {r['specular_T']:8.4f} {r['lost']:8.4f}")
+    return 0
+
+
+def _print_validity(table) -> None:
+    v = table.metadata.get("validity") if isinstance(table.metadata, dict) else None
+    if isinstance(v, dict) and "valid" in v:
+        where = ""
+        if not v["valid"] and "valid_per_incidence" in v:
+            bad = np.argwhere(~np.asarray(v["valid_per_incidence"], bool))
+            where = " at " + ", ".join(f"{v['wavelength_nm'][i]:g} nm / {v['theta_i_deg'][j]:g} deg"
+                                       for i, j in bad[:4]) + (" ..." if len(bad) > 4 else "")
+        print(f"    validity: {'within' if v['valid'] else 'OUTSIDE'} the method's regime{where} "
+              f"({v.get('criterion', '')})")
+
+
+def _info_recording(path: Path, args) -> int:
+    from relief_bsdf.io.recording import read_recording
+    rec = read_recording(path)
+    d = rec.summary()
+    if args.json:
+        print(json.dumps(d))
         return 0
-    if kind == "recording":
-        from relief_bsdf.io.recording import read_recording
-        rec = read_recording(path)
-        d = rec.summary()
-        if args.json:
-            print(json.dumps(d))
-            return 0
-        print(f"recording    {path}")
-        print(f"  rows       {d['rows']} ({d['rows_per_side']['R']} reflected, {d['rows_per_side']['T']} transmitted)")
-        print(f"  wavelength {', '.join(f'{w:g}' for w in d['wavelengths_nm'])} nm")
-        print(f"  incidences {', '.join(f'({t:g}, {p:g})' for t, p in d['incidences_deg'])} deg (theta_i, phi_i)")
-        print(f"  BSDF range {d['bsdf_range_sr'][0]:.4g} .. {d['bsdf_range_sr'][1]:.4g} 1/sr; "
-              f"uncertainty given for {d['sigma_known_fraction']:.0%} of the rows")
-        for c in rec.comments[:5]:
-            print(f"  # {c}")
+    print(f"recording    {path}")
+    print(f"  rows       {d['rows']} ({d['rows_per_side']['R']} reflected, {d['rows_per_side']['T']} transmitted)")
+    print(f"  wavelength {', '.join(f'{w:g}' for w in d['wavelengths_nm'])} nm")
+    print(f"  incidences {', '.join(f'({t:g}, {p:g})' for t, p in d['incidences_deg'])} deg (theta_i, phi_i)")
+    print(f"  BSDF range {d['bsdf_range_sr'][0]:.4g} .. {d['bsdf_range_sr'][1]:.4g} 1/sr; "
+          f"uncertainty given for {d['sigma_known_fraction']:.0%} of the rows")
+    for c in rec.comments[:5]:
+        print(f"  # {c}")
+    return 0
+
+
+def _info_sample(path: Path, args) -> int:
+    from relief_bsdf.io.recording import read_sample
+    s = read_sample(path)
+    d = s.summary()
+    if args.json:
+        print(json.dumps(d, default=str))
         return 0
-    if kind == "sample":
-        from relief_bsdf.io.recording import read_sample
-        s = read_sample(path)
-        d = s.summary()
-        if args.json:
-            print(json.dumps(d, default=str))
-            return 0
-        pl = d["plate"]
-        idx = pl["index"]
-        n = (f"n = {idx['n']}" if idx.get("model") == "constant" else
-             f"Cauchy A={idx.get('A')}, B={idx.get('B_nm2')} nm^2, C={idx.get('C_nm4')} nm^4")
-        print(f"sample       {path}")
-        print(f"  plate      {pl['thickness_mm']} mm, {n}, relief on the {pl['rough_face']} face, absorption "
-              + ("not known" if pl["absorption_per_mm"] is None else f"{pl['absorption_per_mm']} /mm"))
-        ins = d["instrument"]
-        print(f"  instrument detector half-angle {ins['detector_half_angle_deg']} deg "
-              f"({ins['detector_solid_angle_sr']:.3g} sr), {ins['polarization']} light")
-        print(f"  relief     {d['relief']}")
-        print(f"  recording  {d['recording']}")
-        return 0
-    # IS-BSDF
+    pl = d["plate"]
+    idx = pl["index"]
+    n = (f"n = {idx['n']}" if idx.get("model") == "constant" else
+         f"Cauchy A={idx.get('A')}, B={idx.get('B_nm2')} nm^2, C={idx.get('C_nm4')} nm^4")
+    print(f"sample       {path}")
+    print(f"  plate      {pl['thickness_mm']} mm, {n}, relief on the {pl['rough_face']} face, absorption "
+          + ("not known" if pl["absorption_per_mm"] is None else f"{pl['absorption_per_mm']} /mm"))
+    ins = d["instrument"]
+    print(f"  instrument detector half-angle {ins['detector_half_angle_deg']} deg "
+          f"({ins['detector_solid_angle_sr']:.3g} sr), {ins['polarization']} light")
+    print(f"  relief     {d['relief']}")
+    print(f"  recording  {d['recording']}")
+    return 0
+
+
+def _info_isbsdf(path: Path, args) -> int:
     from relief_bsdf.io.isbsdf import read_isbsdf
     b = read_isbsdf(path)
     d = {"kind": "is-bsdf", "scatter_type": b.scatter_type, "symmetry": b.symmetry,

@@ -14,7 +14,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                                    "of the material below the relief is required (--n or --cauchy); the lit "
                                    "medium is air (n = 1).")
     p.add_argument("relief", metavar="RELIEF", help="height map (.x3p, .gwy, .sur, .sdf, .tif, .exr, .npz)")
-    p.add_argument("--method", required=True, help="microfacet | normals | ray | kirchhoff | rayleigh-rice | auto")
+    from relief_bsdf.methods.registry import method_names
+    p.add_argument("--method", required=True, help=" | ".join(method_names()) + " (methods.registry: each method's "
+                   "physics, regime of validity and options)")
     p.add_argument("--wavelengths-nm", default="550", help="comma-separated vacuum wavelengths (default 550)")
     p.add_argument("--theta-i-deg", default="0,15,30,45,60,75", help="incidence angles, degrees in [0, 90)")
     p.add_argument("--phi-i-deg", default="0", help="incidence azimuths (one value: isotropic table)")
@@ -33,9 +35,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--polarized", action="store_true", help="also compute Mueller matrices (ray, microfacet)")
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="method option (value parsed as JSON when possible), e.g. distribution=\"ggx\", alpha=0.2, "
-                        "grazing_heuristic=smith; repeatable")
+                        "grazing_heuristic=smith; repeatable; an option the method does not know is an error")
     p.add_argument("-o", "--out", required=True, help="output table (.h5)")
-    from relief_bsdf.parallel.tasks import add_parallel_args
+    from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
     return p
 
@@ -54,7 +56,7 @@ def parse_floats(text: str, flag: str) -> tuple:
 def material_from_args(args):
     """Material from --n / --cauchy (formats.md); InputError when missing or unphysical."""
     from relief_bsdf.errors import InputError
-    from relief_bsdf.core.optics import CauchyIndex, ConstantIndex, Material
+    from relief_bsdf.core.index import CauchyIndex, ConstantIndex, Material
     if args.n is None and args.cauchy is None:
         raise InputError("--n/--cauchy", "the refractive index of the material is required (e.g. --n 1.5 or "
                          "--cauchy 1.5046,4200)")
@@ -99,6 +101,7 @@ def parse_options(items: list[str]) -> dict:
 
 
 def build_request(args):
+    """The Request of the command line; its options are checked against the method's options class."""
     from relief_bsdf.methods.request import Request
     te, pe = edges_from_steps(args.theta_step_deg, args.phi_step_deg)
     sides = ("outside", "inside") if args.incident_from == "both" else (args.incident_from,)
@@ -108,17 +111,17 @@ def build_request(args):
     kw = {}
     if args.samples is not None:
         kw["samples"] = int(args.samples)
-    return Request(wavelengths_nm=parse_floats(args.wavelengths_nm, "--wavelengths-nm"),
-                   theta_i_deg=parse_floats(args.theta_i_deg, "--theta-i-deg"),
-                   phi_i_deg=parse_floats(args.phi_i_deg, "--phi-i-deg"), incident_from=sides,
-                   theta_s_edges_deg=te, phi_s_edges_deg=pe, seed=int(args.seed),
-                   coherence_length_m=None if args.coherence_length_um is None else args.coherence_length_um * 1e-6,
-                   options=opts, **kw).validate()
+    request = Request(wavelengths_nm=parse_floats(args.wavelengths_nm, "--wavelengths-nm"),
+                      theta_i_deg=parse_floats(args.theta_i_deg, "--theta-i-deg"),
+                      phi_i_deg=parse_floats(args.phi_i_deg, "--phi-i-deg"), incident_from=sides,
+                      theta_s_edges_deg=te, phi_s_edges_deg=pe, seed=int(args.seed),
+                      coherence_length_m=None if args.coherence_length_um is None else args.coherence_length_um * 1e-6,
+                      options=opts, **kw).validate()
+    request.options_for(args.method)                 # unknown / mistyped option: exit 2 naming it
+    return request
 
 
 def run(args) -> int:
-    from relief_bsdf.parallel.tasks import apply_parallel_args
-    apply_parallel_args(args)
     from pathlib import Path
 
     from relief_bsdf.io.hdf5 import save_tables

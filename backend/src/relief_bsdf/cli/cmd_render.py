@@ -1,13 +1,16 @@
 """`relief render (SAMPLE.toml | FITDIR) -o OUT.png`: plate renders before / after, side by side.
 
-Runs the scene script `scenes/render_plate.py` of this checkout through the bpy module
-(Cycles, CPU).  The only backend command that needs bpy; the Blender layer itself lives
-in relief_addon/ (see the script's docstring for the scene).
+Runs the scene code `relief_addon.render_plate` through the bpy module (Cycles, CPU).  The
+`relief_addon` package (the Blender layer) ships in the same installed distribution as this
+backend (backend/pyproject.toml maps it beside `relief_bsdf`), so the command works from an
+installed package; an editable install of a checkout finds it in the checkout.  The only
+backend command that needs bpy, and bpy is imported only when it runs.
 """
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import importlib
+import sys
 from pathlib import Path
 
 from relief_bsdf.errors import InputError
@@ -22,14 +25,27 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-def _scene_script() -> Path:
-    here = Path(__file__).resolve()
-    for root in here.parents:
-        cand = root / "scenes" / "render_plate.py"
-        if cand.is_file() and (root / "relief_addon").is_dir():
-            return cand
-    raise InputError("relief render", "scenes/render_plate.py and relief_addon/ not found: "
-                     "`relief render` runs from a source checkout of relief-bsdf")
+def _checkout_root() -> Path | None:
+    """The source checkout holding this backend (editable installs), if any."""
+    for root in Path(__file__).resolve().parents:
+        if (root / "relief_addon" / "render_plate.py").is_file() and (root / "backend").is_dir():
+            return root
+    return None
+
+
+def _scene_module():
+    """`relief_addon.render_plate`: from the installed distribution, else from the checkout."""
+    try:
+        return importlib.import_module("relief_addon.render_plate")
+    except ModuleNotFoundError as e:
+        if e.name not in ("relief_addon", "relief_addon.render_plate"):
+            raise
+    root = _checkout_root()
+    if root is None:
+        raise InputError("relief render", "the relief_addon package (the Blender layer) is not installed: "
+                                          "reinstall relief-bsdf (it ships relief_addon beside relief_bsdf)")
+    sys.path.append(str(root))
+    return importlib.import_module("relief_addon.render_plate")
 
 
 def run(args) -> int:
@@ -40,11 +56,7 @@ def run(args) -> int:
         import bpy  # noqa: F401
     except ImportError as e:
         raise InputError("relief render", f"needs the bpy module (pip install bpy): {e}") from None
-    script = _scene_script()
-    spec = importlib.util.spec_from_file_location("relief_render_plate", script)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
     from relief_bsdf.progress import TerminalBar
-    out = mod.render(src, args.out, args.width, args.samples, progress=TerminalBar("render"))
+    out = _scene_module().render(src, args.out, args.width, args.samples, progress=TerminalBar("render"))
     print(f"wrote {out}")
     return 0

@@ -15,40 +15,61 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--height-scale", type=float, default=1.0, help="relief height scale")
     p.add_argument("--filter-sigma-um", type=float, default=0.0, help="Gaussian filter sigma (um)")
     p.add_argument("--table", help="use this boundary table file (HDF5, outside+inside) instead of deriving one")
-    from relief_bsdf.parallel.tasks import add_parallel_args
+    from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
     return p
 
 
 def run(args) -> int:
-    from dataclasses import replace
-    from relief_bsdf.parallel.tasks import apply_parallel_args
-    apply_parallel_args(args)
-    from relief_bsdf.io.hdf5 import load_tables, table_for
-    from relief_bsdf.fit.optimise import Forward
-    from relief_bsdf.plate.solver import PlateModel, simulate_rows
-    from relief_bsdf.io.heightmaps import read_relief
-    from relief_bsdf.io.recording import read_recording, read_sample, write_recording
     from relief_bsdf.fit.residual import DEFAULT_METRIC
+    from relief_bsdf.io.recording import read_recording, read_sample, write_recording
     sample = read_sample(args.sample)
     rec = read_recording(sample.recording_path)
-    model = PlateModel.from_sample(sample)
-    if args.table:
-        tabs = load_tables(args.table)
-        ins = table_for(tabs, "inside", args.table)
-        out = table_for(tabs, "outside", args.table) if model.rough_face == "front" else None
-        # the plate's azimuth grid follows the table's azimuth cells (as in `relief fit`)
-        model = replace(model, azimuth_cells=int(ins.phi_s_deg.size))
-        sim = simulate_rows(model, ins, out, rec, where=str(sample.recording_path))
-    else:
-        relief = read_relief(sample.relief_path)
-        fwd = Forward(relief, model, rec, method=args.method, samples=args.samples, seed=args.seed,
-                      where=str(sample.recording_path))
-        sim = fwd.simulate(args.height_scale, args.filter_sigma_um)
+    sim = _simulate(args, sample, rec)
     o = Path(args.out)
     o.mkdir(parents=True, exist_ok=True)
-    m = DEFAULT_METRIC.value(sim, rec.bsdf_sr, rec.sigma_sr)
-    write_recording(o / "simulated.csv", rec.with_values(sim),
-                    comments=[f"relief simulate {Path(args.sample).name}", f"metric vs recording: {m:.6g}"])
+    m = DEFAULT_METRIC.value(sim.values_per_sr, rec.bsdf_sr, rec.sigma_sr)
+    physics = physics_line(sim.info)
+    write_recording(o / "simulated.csv", rec.with_values(sim.values_per_sr),
+                    comments=[f"relief simulate {Path(args.sample).name}", f"physics: {physics}",
+                              f"metric vs recording: {m:.6g}"])
+    print(f"physics: {physics}")
     print(f"wrote {o / 'simulated.csv'} ({len(rec)} rows); metric vs recording {m:.4g}")
     return 0
+
+
+def _simulate(args, sample, rec):
+    """The sample's Experiment (relief face by --method, or the --table file's tables) through plate.simulate."""
+    from dataclasses import replace
+    from relief_bsdf.fit.optimise import Forward
+    from relief_bsdf.io.heightmaps import read_relief
+    from relief_bsdf.plate import TableFace, TableGrid, experiment_from_sample, simulate
+    relief = read_relief(sample.relief_path) if not args.table else None
+    exp = experiment_from_sample(sample, relief, method=args.method, samples=args.samples, seed=args.seed)
+    if not args.table:
+        fwd = Forward(relief, exp, rec, where=str(sample.recording_path))
+        return fwd.simulated(args.height_scale, args.filter_sigma_um)
+    from relief_bsdf.io.hdf5 import load_tables, table_for
+    tabs = load_tables(args.table)
+    front = sample.plate.rough_face == "front"
+    ins = table_for(tabs, "inside", args.table)
+    out = table_for(tabs, "outside", args.table) if front else None
+    exp = exp.with_plate(**{sample.plate.rough_face: TableFace(ins, out)})
+    # the plate's azimuth grid follows the table's azimuth cells (as in `relief fit`)
+    grid = TableGrid(phi_step_deg=360.0 / ins.phi_s_deg.size)
+    return simulate(exp, rec, grid=grid, where=str(sample.recording_path))
+
+
+def physics_line(info: dict) -> str:
+    """One line naming the physics a simulation used (faces' methods, bulk, engine)."""
+    ph = info.get("physics", {})
+
+    def face(d: dict) -> str:
+        if d.get("face") == "relief":
+            return f"relief by {d.get('method')}"
+        return d.get("face", "?") + (f" ({d['method']})" if d.get("method") else "")
+    b = ph.get("bulk", {})
+    bulk = "absorption {:g}/m, scattering {:g}/m (g {:g})".format(b.get("absorption_per_m", 0.0),
+                                                                 b.get("scatter_per_m", 0.0), b.get("hg_g", 0.0))
+    return (f"front {face(ph.get('front', {}))}, back {face(ph.get('back', {}))}; bulk {bulk}; "
+            f"engine {info.get('engine', '?')}")

@@ -103,7 +103,7 @@ def dot_spacing_um(dot_radius_um: float, fill_factor: float, shape: str) -> floa
 
 def _dots(args):
     from relief_bsdf.errors import InputError
-    from relief_bsdf.surface.synth import lgp_dots
+    from relief_bsdf.surface.synth import DotPattern, lgp_dots
     shape = args.dot_shape or "cap"
     if args.size < 4:
         raise InputError("--size", f"grid size must be at least 4 pixels, got {args.size}")
@@ -115,10 +115,10 @@ def _dots(args):
     if args.micro_corr_um is not None and not (math.isfinite(args.micro_corr_um) and args.micro_corr_um > 0):
         raise InputError("--micro-corr-um", f"must be a positive number, got {args.micro_corr_um!r}")
     try:
-        return lgp_dots(args.size, args.pitch_um * 1e-6, spacing * 1e-6, args.dot_radius_um * 1e-6,
-                        args.dot_height_um * 1e-6, shape=shape, jitter=0.2 if args.jitter is None else args.jitter,
-                        seed=args.seed, micro_rms_m=micro * 1e-6,
-                        micro_corr_m=None if args.micro_corr_um is None else args.micro_corr_um * 1e-6)
+        dots = DotPattern(spacing * 1e-6, args.dot_radius_um * 1e-6, args.dot_height_um * 1e-6, shape=shape,
+                          jitter=0.2 if args.jitter is None else args.jitter, micro_rms_m=micro * 1e-6,
+                          micro_corr_m=None if args.micro_corr_um is None else args.micro_corr_um * 1e-6)
+        return lgp_dots(args.size, args.pitch_um * 1e-6, dots, seed=args.seed)
     except InputError as e:
         opt = _DOT_KEYS.get(e.where or "", e.where)
         if opt == "--dot-pitch-um" and args.fill_factor is not None:
@@ -132,7 +132,7 @@ def run(args) -> int:
     from relief_bsdf.errors import InputError
     from relief_bsdf.io.heightmaps import WRITE_SUFFIXES, write_relief
     from relief_bsdf.surface.stats import relief_stats
-    from relief_bsdf.surface.synth import random_relief
+    from relief_bsdf.surface.synth import RandomFieldSpec, relief_from_spec
     from pathlib import Path
     out = Path(args.out)
     if out.suffix.lower() not in WRITE_SUFFIXES:
@@ -149,8 +149,10 @@ def run(args) -> int:
         return 0
     anisotropy = 1.0 if args.anisotropy is None else args.anisotropy
     angle = 0.0 if args.angle_deg is None else args.angle_deg
-    r = random_relief(args.size, args.pitch_um * 1e-6, args.rms_height_um * 1e-6, args.corr_length_um * 1e-6,
-                      kind=args.kind, seed=args.seed, anisotropy=anisotropy, angle_deg=angle)
+    spec = RandomFieldSpec(nx=args.size, ny=args.size, pitch_m=args.pitch_um * 1e-6,
+                           rms_height_m=args.rms_height_um * 1e-6, corr_length_m=args.corr_length_um * 1e-6,
+                           kind=args.kind, anisotropy=anisotropy, angle_deg=angle)
+    r = relief_from_spec(spec, seed=args.seed)
     write_relief(out, r)
     s = relief_stats(r)
     print(f"wrote {out}: {args.kind} relief {args.size} x {args.size} px at {args.pitch_um:g} um; "

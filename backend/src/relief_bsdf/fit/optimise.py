@@ -1,12 +1,13 @@
 """Relief optimisation against a plate recording (paper sec. 3, steps 1-6).
 
-Loop: parameters p = (height_scale s, filter_sigma_um g) -> relief.scaled(s).gaussian_filtered(g)
-(step 6) -> boundary tables of the chosen method for light from outside and inside (step 2)
--> plate simulation on the recording's rows (step 3, `plate.simulate_rows`) -> metric
+Loop: parameters p = (height_scale s, filter_sigma_um g) -> surface.operations.scale_and_filter
+(step 6) -> the Experiment's relief face gets the processed relief; its boundary tables of the
+chosen method for light from outside and inside (step 2, plate.faces.ReliefFace, cached)
+-> plate simulation on the recording's rows (step 3, `plate.simulate`, deterministic) -> metric
 (step 4, `residual.LogChiMetric`) -> scipy.optimize Nelder-Mead (step 5) until the metric
 falls below `threshold` or stops improving (xatol/fatol) or `max_iter` is reached.
 
-Methods: any name of `methods.METHODS`, plus "microfacet+dw" (the default, fast): microfacet
+Methods: any name of `methods.registry`, e.g. "microfacet+dw" (the default, fast; methods.microfacet_dw): microfacet
 (Walter 2007) lobes with the relief's rms slope, and a coherent specular part from its rms
 height sigma by the Kirchhoff / Debye-Waller factor (Beckmann & Spizzichino 1963; valid for
 Gaussian height statistics and lateral scales >> wavelength):
@@ -31,134 +32,79 @@ from typing import Any, Callable
 
 import numpy as np
 
-from relief_bsdf.io.atomic import write_text_atomic
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
-from relief_bsdf.core.optics import Material, mueller_interface
-from relief_bsdf.plate.solver import PlateModel, _blas_single_thread, check_rows, simulate_rows
-from relief_bsdf.progress import Progress, silent
-from relief_bsdf.surface.relief import Relief
-from relief_bsdf.methods.request import Request
 from relief_bsdf.fit.residual import DEFAULT_METRIC, LogChiMetric
+from relief_bsdf.io.atomic import write_text_atomic
+from relief_bsdf.plate import Experiment, ReliefFace, Simulated, TableGrid, check_rows, experiment_from_sample, simulate
+from relief_bsdf.plate.deterministic import model_of
+from relief_bsdf.progress import Progress, silent
+from relief_bsdf.surface.operations import scale_and_filter
+from relief_bsdf.surface.relief import Relief
+from relief_bsdf.surface.stats import rms_height_and_slope
 
 FIT_FORMAT = "relief-fit/1"
 
 
-@dataclass(frozen=True)
-class TableGrid:
-    """Axes of the boundary tables the fit derives (plate discretisation follows them)."""
-
-    theta_step_deg: float = 1.0
-    phi_step_deg: float = 5.0
-    inside_theta_i_step_deg: float = 5.0
-
-    def request(self, wavelengths: Any, theta_i: Any, incident_from: str, method: str, samples: int, seed: int,
-                options: dict | None = None) -> Request:
-        te = tuple(np.linspace(0.0, 90.0, int(round(90 / self.theta_step_deg)) + 1))
-        h = self.phi_step_deg / 2
-        pe = tuple(np.arange(-h, 360.0 - h + 1e-9, self.phi_step_deg))
-        return Request(wavelengths_nm=tuple(float(w) for w in wavelengths),
-                       theta_i_deg=tuple(float(t) for t in theta_i), incident_from=(incident_from,),
-                       theta_s_edges_deg=te, phi_s_edges_deg=pe, samples=int(samples), seed=int(seed),
-                       options=dict(options or {}))
-
-
 def relief_rms(relief: Relief) -> tuple[float, float]:
-    """(rms height after plane levelling, rms slope magnitude) of the valid points."""
-    h = relief.level(1).heights_m
-    gy, gx = np.gradient(h, relief.dy_m, relief.dx_m)
-    s2 = gx**2 + gy**2
-    return float(np.sqrt(np.nanmean(h**2))), float(np.sqrt(np.nanmean(s2)))
-
-
-def _debye_waller(table: BsdfTable, material: Material, sigma_m: float) -> BsdfTable:
-    """Split a diffuse (microfacet) table into coherent specular + scaled diffuse (module doc)."""
-    W, I = table.wavelength_nm.size, table.theta_i_deg.size
-    gR = np.zeros((W, I, 1))
-    gT = np.zeros((W, I, 1))
-    sR = np.zeros((W, I, 1, 4, 4))
-    sT = np.zeros((W, I, 1, 4, 4))
-    for w, wl in enumerate(table.wavelength_nm):
-        n1, n2 = (float(np.real(x)) for x in material.n_pair(wl, table.incident_from))
-        k = 2 * np.pi / (wl * 1e-9)
-        ci = np.cos(np.radians(table.theta_i_deg))
-        st2 = (n1 / n2) ** 2 * (1 - ci**2)
-        ct = np.sqrt(np.clip(1 - st2, 0, 1))
-        gR[w, :, 0] = np.exp(-(2 * k * n1 * sigma_m * ci) ** 2)
-        gT[w, :, 0] = np.where(st2 < 1, np.exp(-(k * sigma_m * (n1 * ci - n2 * ct)) ** 2), 0.0)
-        sR[w, :, 0] = mueller_interface(ci, n1, n2, "R") * gR[w, :, 0, None, None]
-        sT[w, :, 0] = mueller_interface(ci, n1, n2, "T") * gT[w, :, 0, None, None]
-    v = table.values_per_sr.copy()
-    v[:, :, :, 0] *= (1 - gR)[..., None, None]
-    v[:, :, :, 1] *= (1 - gT)[..., None, None]
-    mu = None
-    if table.mueller_per_sr is not None:
-        mu = table.mueller_per_sr.copy()
-        mu[:, :, :, 0] *= (1 - gR)[..., None, None, None, None]
-        mu[:, :, :, 1] *= (1 - gT)[..., None, None, None, None]
-    return replace(table, values_per_sr=v, mueller_per_sr=mu, specular_R=sR[..., 0, 0], specular_T=sT[..., 0, 0],
-                   specular_mueller_R=sR, specular_mueller_T=sT, sigma_per_sr=None,
-                   method=table.method + "+dw", metadata={**table.metadata, "debye_waller_sigma_m": sigma_m})
-
-
-def derive_tables(relief: Relief, material: Material, method: str, wavelengths: Any, theta_i_outside: Any,
-                  grid: TableGrid = TableGrid(), samples: int = 200_000, seed: int = 0,
-                  need_outside: bool = True, progress: Progress | None = None) -> tuple[BsdfTable | None, BsdfTable]:
-    """(outside, inside) boundary tables of `relief` (step 2 of the loop)."""
-    from relief_bsdf.methods import reconstruct
-    base = method[:-3] if method.endswith("+dw") else method
-    opts: dict = {}
-    sigma = 0.0
-    if method == "microfacet+dw":
-        sigma, slope = relief_rms(relief)
-        opts = {"alpha": max(slope, 1e-4)}
-    theta_in = np.arange(0.0, 90.0 - 1e-9, grid.inside_theta_i_step_deg)
-    theta_in = np.unique(np.concatenate([theta_in, [89.0]]))
-    out = None
-    if need_outside:
-        req = grid.request(wavelengths, np.unique(theta_i_outside), "outside", base, samples, seed, opts)
-        (out,) = reconstruct(relief, material, req, base, progress=progress)
-    req = grid.request(wavelengths, theta_in, "inside", base, samples, seed, opts)
-    (ins,) = reconstruct(relief, material, req, base, progress=progress)
-    if method.endswith("+dw"):
-        ins = _debye_waller(ins, material, sigma)
-        out = _debye_waller(out, material, sigma) if out is not None else None
-    return out, ins
+    """(rms height, rms slope magnitude) of the levelled relief: surface.stats' one definition."""
+    h, m = rms_height_and_slope(relief)
+    return float(h), float(m)
 
 
 def process_relief(relief: Relief, height_scale: float, filter_sigma_um: float) -> Relief:
-    """Step 6: the global relief modification being optimised."""
-    return relief.scaled(float(height_scale)).gaussian_filtered(max(float(filter_sigma_um), 0.0) * 1e-6)
+    """Step 6: the global relief modification being optimised (surface.operations.scale_and_filter)."""
+    return scale_and_filter(relief, float(height_scale), max(float(filter_sigma_um), 0.0) * 1e-6)
+
+
+def _relief_face_name(experiment: Experiment) -> str:
+    for name in ("front", "back"):
+        if isinstance(getattr(experiment.plate, name), ReliefFace):
+            return name
+    raise InputError("fit", "the experiment has no relief face to optimise")
 
 
 @dataclass
 class Forward:
-    """The forward model of the fit: parameters -> simulated recording values."""
+    """The forward model of the fit: (height scale, filter) -> simulated recording values.
+
+    `experiment` holds the plate with a ReliefFace on its rough face (its method, samples, seed);
+    each evaluation puts the processed relief on that face and runs `plate.simulate`
+    (deterministic engine on `grid`; tables cached by relief content).
+    """
 
     relief: Relief
-    model: PlateModel
+    experiment: Experiment
     rows: Any
-    method: str = "microfacet+dw"
     grid: TableGrid = field(default_factory=TableGrid)
-    samples: int = 200_000
-    seed: int = 0
     where: str = "recording"
 
     def __post_init__(self) -> None:
-        check_rows(self.model, self.rows, self.where)   # bad rows fail before any table is derived
-        # the plate's azimuth grid follows the tables' azimuth cells (finer cells would be wasted otherwise)
-        self.model = replace(self.model, azimuth_cells=int(round(360.0 / self.grid.phi_step_deg)))
+        self.face_name = _relief_face_name(self.experiment)
+        check_rows(model_of(self.experiment, self.grid), self.rows, self.where)   # bad rows fail before any table
+
+    @property
+    def method(self) -> str:
+        return getattr(self.experiment.plate, self.face_name).method
+
+    def experiment_at(self, height_scale: float, filter_sigma_um: float) -> tuple[Relief, Experiment]:
+        r = process_relief(self.relief, height_scale, filter_sigma_um)
+        face = replace(getattr(self.experiment.plate, self.face_name), relief=r)
+        return r, self.experiment.with_plate(**{self.face_name: face})
 
     def tables(self, height_scale: float, filter_sigma_um: float):
-        r = process_relief(self.relief, height_scale, filter_sigma_um)
-        return r, *derive_tables(r, self.model.material, self.method, np.unique(self.rows.wavelength_nm),
-                                 self.rows.theta_i_deg, self.grid, self.samples, self.seed,
-                                 need_outside=self.model.rough_face == "front")
+        """(processed relief, outside table | None, inside table) of the relief face at these parameters."""
+        r, ex = self.experiment_at(height_scale, filter_sigma_um)
+        face = getattr(ex.plate, self.face_name)
+        return r, *face.tables(ex.plate.material, self.grid, np.unique(self.rows.wavelength_nm),
+                               np.unique(self.rows.theta_i_deg), need_outside=self.face_name == "front")
 
     def simulate(self, height_scale: float, filter_sigma_um: float) -> np.ndarray:
-        with _blas_single_thread():      # small matrices everywhere: BLAS threads only spin (plate.py)
-            _, out, ins = self.tables(height_scale, filter_sigma_um)
-            return simulate_rows(self.model, ins, out, self.rows, where=self.where)
+        return self.simulated(height_scale, filter_sigma_um).values_per_sr
+
+    def simulated(self, height_scale: float, filter_sigma_um: float) -> Simulated:
+        _, ex = self.experiment_at(height_scale, filter_sigma_um)
+        return simulate(ex, self.rows, grid=self.grid, where=self.where)
 
 
 class _Stop(Exception):
@@ -188,10 +134,33 @@ class FitResult:
         return d
 
 
-def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None = None, *,
-               metric: LogChiMetric = DEFAULT_METRIC, threshold: float = 0.0, max_iter: int = 60,
-               checkpoint: str | Path | None = None, progress: Progress | None = None,
-               max_filter_um: float | None = None, on_eval: Callable[[int], None] | None = None) -> FitResult:
+@dataclass(frozen=True)
+class FitSettings:
+    """How the optimiser runs: the residual `metric`, stop at metric <= `threshold`, at most
+    `max_iter` evaluations, the Gaussian filter bounded by `max_filter_um` (None: 20 pixel pitches)."""
+
+    metric: LogChiMetric = DEFAULT_METRIC
+    threshold: float = 0.0
+    max_iter: int = 60
+    max_filter_um: float | None = None
+
+
+@dataclass(frozen=True)
+class FitJob:
+    """What `relief fit` runs: the boundary `method` of the relief face (its Monte-Carlo `samples` and
+    `seed` where it samples), the tables' `grid`, and the optimiser's `max_iter` / `threshold`."""
+
+    method: str = "microfacet+dw"
+    samples: int = 200_000
+    seed: int = 0
+    max_iter: int = 60
+    threshold: float = 0.0
+    grid: TableGrid = TableGrid()
+
+
+def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None = None,
+               settings: FitSettings = FitSettings(), *, checkpoint: str | Path | None = None,
+               progress: Progress | None = None, on_eval: Callable[[int], None] | None = None) -> FitResult:
     """Optimise (height_scale, filter_sigma_um) so the simulated plate matches `measured`.
 
     Nelder-Mead on (u, g), u = ln(s m(g)/m(0)) (m = rms slope after filtering), g >= 0; the first evaluation (s = 1, g = 0) is the
@@ -200,6 +169,8 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     """
     from scipy.optimize import minimize
     progress = progress or silent
+    metric, threshold, max_iter, max_filter_um = (settings.metric, settings.threshold, settings.max_iter,
+                                                  settings.max_filter_um)
     t0 = time.monotonic()
     cache: dict[str, float] = {}
     ck = Path(checkpoint) if checkpoint else None
@@ -267,10 +238,10 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
 
 # ---------------------------------------------------------------- whole job for the CLI
 
-def run_fit_job(sample_path: str | Path, out_dir: str | Path, method: str = "microfacet+dw", samples: int = 200_000,
-                seed: int = 0, max_iter: int = 60, threshold: float = 0.0, grid: TableGrid = TableGrid(),
+def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJob(),
                 progress: Progress | None = None) -> dict:
     """`relief fit`: read the sample, fit, write OUT/fit.json + relief + tables + plots + report."""
+    method = job.method
     from relief_bsdf.report import fit_report as report
     from relief_bsdf.io.hdf5 import save_tables
     from relief_bsdf.io.heightmaps import read_relief, write_relief
@@ -280,13 +251,13 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, method: str = "mic
     sample = read_sample(sample_path)
     rec = read_recording(sample.recording_path)
     relief = read_relief(sample.relief_path)
-    model = PlateModel.from_sample(sample)
-    fwd = Forward(relief, model, rec, method=method, grid=grid, samples=samples, seed=seed,
-                  where=str(sample.recording_path))
-    res = fit_relief(fwd, rec.bsdf_sr, rec.sigma_sr, threshold=threshold, max_iter=max_iter,
+    exp = experiment_from_sample(sample, relief, method=method, samples=job.samples, seed=job.seed)
+    fwd = Forward(relief, exp, rec, grid=job.grid, where=str(sample.recording_path))
+    res = fit_relief(fwd, rec.bsdf_sr, rec.sigma_sr, FitSettings(threshold=job.threshold, max_iter=job.max_iter),
                      checkpoint=out / "checkpoint.json", progress=progress)
     best_relief, t_out, t_in = fwd.tables(res.height_scale, res.filter_sigma_um)
-    sim_after = simulate_rows(fwd.model, t_in, t_out, rec)
+    after = fwd.simulated(res.height_scale, res.filter_sigma_um)
+    sim_after = after.values_per_sr
     sim_before = fwd.simulate(1.0, 0.0)
     tables = [t for t in (t_out, t_in) if t is not None]
     save_tables(out / "boundary.h5", tables)
@@ -306,7 +277,7 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, method: str = "mic
     plots = report.fit_plots(out, rec, sim_before, sim_after)
     files.update(plots)
     doc = res.to_json({"method": method, "sample": str(Path(sample_path)), "files": files,
-                       "relief_history": list(best_relief.history)})
+                       "relief_history": list(best_relief.history), "physics": after.info.get("physics", {})})
     write_text_atomic(out / "fit.json", json.dumps(doc, indent=1))
     report.write_fit_report(out / "report.html", doc, plots)
     return doc

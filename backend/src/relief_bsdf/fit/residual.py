@@ -93,3 +93,25 @@ def mismatch_share(rec: Any, sim: Any, metric: LogChiMetric = DEFAULT_METRIC) ->
             if m.any():
                 out.append({"side": sd, "theta_i_deg": float(ti), "share": float(r2[m].sum() / tot)})
     return sorted(out, key=lambda d: -d["share"])
+
+
+def chi2(rows: Any, model: np.ndarray, model_sigma: np.ndarray | None = None) -> float:
+    """Noise-weighted misfit of a simulation on recording rows (censored Gaussian, Tobit likelihood).
+
+    s^2 = sigma_recording^2 + sigma_model^2 (rows.sigma_sr finite: Recording.with_sigma_fallback).
+    Rows with a measured value > 0 contribute ((y - m) / s)^2.  recording.csv holds no negative
+    BSDF values, so a reading at exactly 0 is a reading clipped at zero (Tobin 1958): it
+    contributes -2 ln(2 Phi(-m / s)), the log-probability of reading <= 0, shifted so that m = 0
+    costs nothing (as z^2 would).  Without this, clipped noise reads as a positive background.
+    Used by the diagnosis (selection by BIC = chi2 + k ln n).
+    """
+    from scipy.special import log_ndtr
+    model = np.asarray(model, float)
+    ms = np.zeros_like(model) if model_sigma is None else np.asarray(model_sigma, float)
+    s = np.sqrt(np.asarray(rows.sigma_sr, float) ** 2 + ms**2)
+    y = np.asarray(rows.bsdf_sr, float)
+    cens = y <= 0
+    z2 = ((y - model) / s) ** 2
+    if cens.any():
+        z2[cens] = np.maximum(-2.0 * (log_ndtr(-model[cens] / s[cens]) + np.log(2.0)), 0.0)
+    return float(np.sum(z2))

@@ -1,1 +1,34 @@
-"""io"""
+"""File input and output: every format of ../shared/formats.md is read and written here, atomically.
+
+    heightmaps  read_relief / write_relief: height maps (.npz, .x3p, Gwyddion, SPIP, SDF, images, ...)
+    recording   read_recording / write_recording (relief-recording/1 text), read_sample / write_sample
+                (relief-sample/1 JSON: plate, instrument, the files a sample consists of)
+    hdf5        save_tables / load_tables / table_for: BSDF tables (relief-bsdf-table/1)
+    isbsdf      export_isbsdf / write_isbsdf / read_isbsdf / import_isbsdf: the IS-BSDF text format
+    atomic      atomic_path / write_text_atomic / write_bytes_atomic: the only way outputs are written
+                (temporary file beside the target, then rename: a reader never sees half a file)
+    oiio        the optional OpenImageIO binding (EXR / TIFF)
+"""
+import importlib
+
+# name -> sub-module; loaded on first use (PEP 562), so `import relief_bsdf.io.atomic` stays cheap
+_EXPORTS = {
+    "atomic_path": "atomic", "write_text_atomic": "atomic", "write_bytes_atomic": "atomic",
+    "load_tables": "hdf5", "save_tables": "hdf5", "table_for": "hdf5",
+    "read_relief": "heightmaps", "write_relief": "heightmaps",
+    "export_isbsdf": "isbsdf", "import_isbsdf": "isbsdf", "read_isbsdf": "isbsdf", "write_isbsdf": "isbsdf",
+    "Recording": "recording", "read_recording": "recording", "write_recording": "recording",
+    "Sample": "recording", "PlateSpec": "recording", "InstrumentSpec": "recording",
+    "read_sample": "recording", "write_sample": "recording",
+}
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

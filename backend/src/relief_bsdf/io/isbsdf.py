@@ -49,7 +49,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from relief_bsdf.io.atomic import write_text_atomic
-from relief_bsdf.bsdf.table import BsdfTable, direction
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.core.frames import direction
 from relief_bsdf.errors import InputError
 
 SIDE_TYPE = {"R": "BRDF", "T": "BTDF"}

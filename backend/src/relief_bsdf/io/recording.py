@@ -34,7 +34,7 @@ import numpy as np
 
 from relief_bsdf.io.atomic import write_text_atomic
 from relief_bsdf.errors import InputError
-from relief_bsdf.core.optics import CauchyIndex, ConstantIndex, IndexModel, Material
+from relief_bsdf.core.index import CauchyIndex, ConstantIndex, IndexModel, Material
 
 RECORDING_MAGIC = "# relief-recording/1"
 RECORDING_COLUMNS = ("wavelength_nm", "theta_i_deg", "phi_i_deg", "side",

@@ -1,36 +1,42 @@
-"""Reconstruction methods: one module each, behind one signature.
+"""Boundary-BSDF methods: turn a relief and a material into BsdfTables, behind one signature.
 
-    reconstruct(relief, material, request, progress=None) -> list[BsdfTable]
+    reconstruct(relief, material, request, method, progress=None) -> list[BsdfTable]
 
-returning one table per side of incidence in `request.incident_from`.  `METHODS`
-maps the command-line names (formats.md) to modules, imported lazily so a method's
-heavy dependencies (embreex, FFT planners) load only when used.
+returning one table per side of incidence in `request.incident_from`.  The methods (and the
+fast surrogates `microfacet+dw` and `flat`) are listed once, in `methods.registry` (name,
+module, typed options class, physics, regime of validity); `Request` (methods.request) holds
+the table axes and effort; each method reads its options only through its options class
+(methods.options), so an unknown or mistyped option is a RequestError naming it.
 """
 from __future__ import annotations
 
-import importlib
+from relief_bsdf.methods.options import (AutoOptions, FlatOptions, KirchhoffOptions, MethodOptions,
+                                         MicrofacetDwOptions, MicrofacetOptions, NormalsOptions, RayleighRiceOptions,
+                                         RayOptions)
+from relief_bsdf.methods.registry import REGISTRY, MethodEntry, entry, method_names, options_for
+from relief_bsdf.methods.request import Request
 
-from relief_bsdf.errors import RequestError
+# name -> module (kept for callers of the old mapping; the registry is the source)
+METHODS = {name: e.module for name, e in REGISTRY.items()}
 
-METHODS = {
-    "microfacet": "microfacet",
-    "normals": "normals",
-    "ray": "ray",
-    "kirchhoff": "kirchhoff",
-    "rayleigh-rice": "rayleigh_rice",
-    "auto": "auto",
-}
+__all__ = ["reconstruct", "get_method", "Request", "REGISTRY", "METHODS", "MethodEntry", "entry", "method_names",
+           "options_for", "MethodOptions", "KirchhoffOptions", "RayleighRiceOptions", "MicrofacetOptions",
+           "MicrofacetDwOptions", "NormalsOptions", "RayOptions", "AutoOptions", "FlatOptions"]
 
 
 def get_method(name: str):
     """The module implementing method `name` (it has a `reconstruct` function)."""
-    if name not in METHODS:
-        raise RequestError(f"unknown method {name!r}; choose from {', '.join(METHODS)}", "--method")
-    return importlib.import_module(f"{__name__}.{METHODS[name]}")
+    return entry(name).load()
 
 
 def reconstruct(relief, material, request, method: str, progress=None):
-    """Run method `name` on the relief: the one entry point the CLI, fit and Blender use."""
+    """Run method `method` on the relief: the one entry point the CLI, fit, plate and Blender use.
+
+    The request's options are checked against the method's options class first, so a typo
+    fails before any work.
+    """
+    e = entry(method)
     request.validate()
+    e.parse_options(request.options)
     material.check(request.wavelengths_nm, "--n/--cauchy")
-    return get_method(method).reconstruct(relief, material, request, progress=progress)
+    return e.load().reconstruct(relief, material, request, progress=progress)

@@ -52,11 +52,11 @@ there is no specular direction) and the similarity transformation extrapolates t
 other direction: measured against a dense-node reference (30-40 nodes, 1024^2 Gaussian
 reliefs, rms 50 / 100 / 300 nm, correlation 5 um, 550 nm, 30 deg, both sides) the median
 in-lobe cell error is 0.1-1.1 % (largest 6-15 % at the lobe's 1 % edge) and R + T moves by
-<= 0.2 %.  `options["qz_tolerance"] = tau` adds nodes, spaced greedily so that the change
+<= 0.2 %.  The option qz_tolerance = tau adds nodes, spaced greedily so that the change
 of x between a node and the points it serves is at most tau max(1, x^2 / 2) (never blending
 across nu_z = 0, where the pattern mirrors); tau = 0.3 brings the median error to ~0.4 %
 for 2-20 nodes per side.  FFTs are single precision (complex64) with scipy.fft, workers =
-options["fft_workers"] (default 2; 1 inside a pool worker, where the pool already fills the cores).
+the option fft_workers (default 2; 1 inside a pool worker, where the pool already fills the cores).
 
 Partial coherence (request.coherence_length_m = Lc).  The incident field is multiplied by
 exp(i psi), psi a Gaussian random phase screen of rms pi rad and Gaussian correlation length
@@ -69,7 +69,7 @@ cells instead of a delta (specular_R/T = 0) and washes out interference structur
 
 Sampling limits (RequestError before work): the pitch must resolve the requested
 directions, |k1 sin t_i + k_s sin t_s,max| <= pi / dx (and dy) unless
-options["band_limited"] = True (then the relief is taken as band-limited and directions
+the option band_limited = True (then the relief is taken as band-limited and directions
 beyond are left with no scattered power); the tile must resolve the cells,
 lambda / (n_s L) <= the finest theta cell (rad); the field exp(-i nu_z h) must not alias
 (|nu_z| |dh| <= pi between neighbouring pixels for 99% of them); Lc must lie between 2
@@ -82,18 +82,27 @@ request, from the coarsest speckle grain and the finest cell).  FFT samples are 
 summed in blocks (power conserving) to a grid spacing of at most 0.7 of that width (the block
 sum is a box filter that adds < 4 % to the Gaussian's variance).
 
-Polarisation (options["polarized"] = True, CLI --polarized): the scalar Fresnel factor is
+Polarisation (option polarized = True, CLI --polarized): the scalar Fresnel factor is
 replaced by the Fresnel Mueller matrix of the stationary-phase facet, rotated from the
 table's incident s/p basis into the facet's plane of incidence and out into the scattered
 basis (bsdf.py frames; the vector tangent-plane approximation in its single-facet form, as
 microfacet.walter_mueller), giving `mueller_per_sr` with M00 = the unpolarised values.
 
-Options (request.options): qz_tolerance (default: one node), max_qz_nodes (default 16), fft_workers,
-band_limited, coherence_instances, smoothing_dcos, polarized.
+Options (methods.options.KirchhoffOptions, read from request.options): qz_tolerance (default: one
+node), max_qz_nodes (default 16), fft_workers, band_limited, coherence_instances, smoothing_dcos,
+polarized, backend.
+
+Code layout: `solve_incidence(Surface, Incidence, SolveSettings)` solves one incidence; per side
+(`_solve_side`) it picks the nodes (`qz_nodes`), pools and crops the nu_xy grid (`_coarse_grid`),
+takes the node FFTs (`_node_densities`), interpolates to each direction's own nu_z
+(`_interp_nodes`), adds the coherent lobe under partial coherence (`_coherent_lobe`) and filters
+into the cells with obliquity and facet Fresnel (`_cells`).
 """
 from __future__ import annotations
 
+import dataclasses
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft as sfft
@@ -101,35 +110,15 @@ from scipy import ndimage
 
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import RequestError
-from relief_bsdf.core.optics import Material, cos_transmitted, fresnel_power, mueller_interface
-from relief_bsdf.parallel.tasks import in_worker, map_tasks, task_rng
+from relief_bsdf.core.fresnel import cos_transmitted, mueller_interface
+from relief_bsdf.core.fresnel import fresnel_reflectance as _fresnel
+from relief_bsdf.core.index import Material
+from relief_bsdf.parallel import in_worker, map_tasks, task_rng
+from relief_bsdf.methods.options import KirchhoffOptions
 from relief_bsdf.methods.wave_filter import DcosGrid, cell_average, cell_samples, check_sides, smoothing_width_dcos
 from relief_bsdf.methods.rayleigh_rice import prepared_heights
 
 # ------------------------------------------------------------------ helpers
-
-
-def _fresnel(cos_loc, n1, n2, polarization: str) -> np.ndarray:
-    if np.imag(n1) == 0 and np.imag(n2) == 0:       # real indices: a fast real-valued path
-        c = np.clip(np.asarray(cos_loc, float), 0.0, 1.0)
-        eta = float(np.real(n1) / np.real(n2))
-        ct2 = 1.0 - eta * eta * (1.0 - c * c)
-        tir = ct2 <= 0
-        ct = np.sqrt(np.where(tir, 0.0, ct2))
-        a, b = np.real(n1) * c, np.real(n2) * ct
-        cc, d = np.real(n2) * c, np.real(n1) * ct
-        with np.errstate(invalid="ignore", divide="ignore"):
-            Rs = np.where(tir, 1.0, ((a - b) / (a + b)) ** 2)
-            Rp = np.where(tir, 1.0, ((cc - d) / (cc + d)) ** 2)
-        Rs = np.nan_to_num(Rs, nan=1.0)
-        Rp = np.nan_to_num(Rp, nan=1.0)
-    else:
-        Rs, Rp, _, _ = fresnel_power(cos_loc, n1, n2)
-    if polarization == "s":
-        return Rs
-    if polarization == "p":
-        return Rp
-    return 0.5 * (Rs + Rp)
 
 
 def qz_nodes(nu_lo: float, nu_hi: float, nu_spec: float | None, sigma_m: float, tau: float = np.inf,
@@ -180,16 +169,15 @@ def qz_nodes(nu_lo: float, nu_hi: float, nu_spec: float | None, sigma_m: float, 
 
 
 def _gaussian_screen(shape, pitch, corr_m, rms, rng) -> np.ndarray:
-    """Periodic Gaussian random field, autocovariance rms^2 exp(-r^2 / corr^2) (FFT filtering)."""
+    """Periodic Gaussian random field, autocovariance rms^2 exp(-r^2 / corr^2): surface.synth's one generator.
+
+    Its zero mean (a constant phase of the screen) does not change any intensity.
+    """
+    from relief_bsdf.surface.synth import RandomFieldSpec, gaussian_field
     ny, nx = shape
-    fx = np.fft.fftfreq(nx, pitch[0])
-    fy = np.fft.fftfreq(ny, pitch[1])
-    amp = np.sqrt(np.pi * corr_m ** 2 * np.exp(-(np.pi * corr_m) ** 2 * (fx[None, :] ** 2 + fy[:, None] ** 2)))
-    amp *= np.sqrt(1.0 / (pitch[0] * pitch[1]))
-    noise = rng.standard_normal(shape)
-    f = np.real(sfft.ifft2(sfft.fft2(noise) * amp))
-    s = f.std()
-    return f * (rms / s) if s > 0 else f
+    spec = RandomFieldSpec(nx=int(nx), ny=int(ny), pitch_m=float(pitch[0]), pitch_y_m=float(pitch[1]),
+                           rms_height_m=float(rms), corr_length_m=float(corr_m))
+    return gaussian_field(spec, rng)
 
 
 def _pool_factor(n: int, target: int) -> int:
@@ -212,8 +200,11 @@ def _pool(p: np.ndarray, by: int, bx: int) -> np.ndarray:
 # ------------------------------------------------------------------ checks
 
 
-def check_sampling(relief, material: Material, request, width_dcos: float, opts: dict) -> None:
-    """Raise RequestError when the relief cannot resolve what the request asks (module doc)."""
+def check_sampling(relief, material: Material, request, width_dcos: float, band_limited: bool = False) -> None:
+    """Raise RequestError when the relief cannot resolve what the request asks (module doc).
+
+    band_limited (option): directions beyond the pitch's band are allowed (they get no power).
+    """
     ny, nx = relief.shape
     dx, dy = relief.dx_m, relief.dy_m
     Lx, Ly = nx * dx, ny * dy
@@ -221,7 +212,7 @@ def check_sampling(relief, material: Material, request, width_dcos: float, opts:
     finest = float(np.min(np.diff(te)))
     s_max = np.sin(te[-1])
     t_max = np.radians(max(request.theta_i_deg))
-    band = bool(opts.get("band_limited", False))
+    band = bool(band_limited)
     for wl in request.wavelengths_nm:
         lam = wl * 1e-9
         for fr in request.incident_from:
@@ -278,8 +269,9 @@ def check_aliasing(h: np.ndarray, w: np.ndarray, nu_max: float, where: str = "re
 # ------------------------------------------------------------------ the per-incidence solver
 
 
-def _side_geometry(side, n1, ns, ci, ai, bi, k0, shape_c, f0, df):
-    """Coarse-grid direction cosines and nu for one side. Returns dict of arrays."""
+def _side_geometry(side, fd, n1, ns, shape_c, f0, df):
+    """Coarse-grid direction cosines and nu for one side (fd: the incidence's _Field). Returns dict of arrays."""
+    ci, ai, bi, k0 = fd.ci, fd.ai, fd.bi, fd.k0
     ncy, ncx = shape_c
     fxc = f0[0] + df[0] * np.arange(ncx)
     fyc = f0[1] + df[1] * np.arange(ncy)
@@ -332,7 +324,7 @@ def _facet_mueller(geo, wi, n1, n2, side, phi_i_rad):
     the table's incident basis (s = z x w_i) and into the scattered basis (s = z x w_s), with
     p = s x k (bsdf.py).  Shape (ny, nx, 4, 4); zeros where not propagating.
     """
-    from relief_bsdf.methods.microfacet import stokes_rotation
+    from relief_bsdf.core.stokes import stokes_rotation
     prop = geo["prop"]
     a = np.broadcast_to(geo["a"], prop.shape)[prop]
     b = np.broadcast_to(geo["b"], prop.shape)[prop]
@@ -408,184 +400,328 @@ def _interp_nodes(nodes, grids, geo, sigma, f0, df, f0n):
     return out
 
 
-def solve_incidence(h, w, pitch, periodic, wavelength_nm, theta_i_deg, phi_i_deg, n1, n2, cells, width_dcos,
-                    polarization="unpolarized", coherence_length_m=None, instances=8, seed=0, key=(0,),
-                    tau=np.inf, max_nodes=16, workers=2, sides=("R", "T"), theta_s_range_deg=(0.0, 90.0),
-                    polarized=False):
-    """Kirchhoff tables for one incidence: {'R': (S, A), 'T': (S, A), 'spec_R', 'spec_T', 'info'}.
+@dataclass(frozen=True)
+class Surface:
+    """The prepared height map one incidence is solved on.
 
-    h: heights in the frame of the incident medium (already sign-flipped for inside), w: window.
+    heights_m: heights in the frame of the incident medium (already sign-flipped for light from
+    inside); window: the weights w (1 for a periodic tile, a 2-D Hann window otherwise);
+    pitch_m: (dx, dy).
     """
-    t0 = time.perf_counter()
+
+    heights_m: np.ndarray
+    window: np.ndarray
+    pitch_m: tuple
+    periodic: bool
+
+
+@dataclass(frozen=True)
+class Incidence:
+    """One incidence: vacuum wavelength, direction (formats.md frame) and the indices (n1 lit, n2 other)."""
+
+    wavelength_nm: float
+    theta_i_deg: float
+    phi_i_deg: float
+    n1: complex
+    n2: complex
+
+
+@dataclass(frozen=True)
+class SolveSettings:
+    """What one incidence is asked for and how it is computed (shared by all incidences of a request).
+
+    cells: the cell samples (wave_filter.cell_samples); width_dcos: the filter width;
+    coherence_length_m / instances / seed: partial coherence by random phase screens (key: the
+    incidence's seed key); tau / max_nodes: the q_z node rule (qz_nodes); workers: FFT workers;
+    theta_s_range_deg: the requested theta_s span; polarized: also the Mueller matrices.
+    """
+
+    cells: object
+    width_dcos: float
+    polarization: str = "unpolarized"
+    coherence_length_m: float | None = None
+    instances: int = 8
+    seed: int = 0
+    key: tuple = (0,)
+    tau: float = np.inf
+    max_nodes: int = 16
+    workers: int = 2
+    sides: tuple = ("R", "T")
+    theta_s_range_deg: tuple = (0.0, 90.0)
+    polarized: bool = False
+
+
+@dataclass(frozen=True)
+class _Field:
+    """Per-incidence quantities shared by both sides: wave numbers, window sums, float32 copies."""
+
+    lam: float
+    k0: float
+    ci: float
+    ai: float
+    bi: float
+    wi: np.ndarray
+    phi_i_rad: float
+    sw: float
+    sw2: float
+    sigma: float
+    h32: np.ndarray
+    w32: np.ndarray | None
+    fxs: np.ndarray
+    fys: np.ndarray
+
+    @property
+    def shape(self):
+        return self.h32.shape
+
+
+def _field(surface: Surface, inc: Incidence) -> _Field:
+    h, w = surface.heights_m, surface.window
     ny, nx = h.shape
-    dx, dy = pitch
-    lam = wavelength_nm * 1e-9
-    k0 = 2 * np.pi / lam
-    ti, pi_ = np.radians(theta_i_deg), np.radians(phi_i_deg)
+    dx, dy = surface.pitch_m
+    lam = inc.wavelength_nm * 1e-9
+    ti, pi_ = np.radians(inc.theta_i_deg), np.radians(inc.phi_i_deg)
     ci = np.cos(ti)
     ai, bi = np.sin(ti) * np.cos(pi_), np.sin(ti) * np.sin(pi_)
-    wi = np.array([ai, bi, ci])
-    sw = float(np.sum(w))
     sw2 = float(np.sum(w * w))
-    sigma = float(np.sqrt(np.sum(w * w * h * h) / sw2))
-    h32 = h.astype(np.float32)
-    w32 = None if periodic else w.astype(np.float32)
-    ntot = nx * ny
-    fxs = np.fft.fftshift(np.fft.fftfreq(nx, dx))
-    fys = np.fft.fftshift(np.fft.fftfreq(ny, dy))
-    # screens for partial coherence (shared by both sides and all nodes)
+    return _Field(lam=lam, k0=2 * np.pi / lam, ci=ci, ai=ai, bi=bi, wi=np.array([ai, bi, ci]), phi_i_rad=pi_,
+                  sw=float(np.sum(w)), sw2=sw2, sigma=float(np.sqrt(np.sum(w * w * h * h) / sw2)),
+                  h32=h.astype(np.float32), w32=None if surface.periodic else w.astype(np.float32),
+                  fxs=np.fft.fftshift(np.fft.fftfreq(nx, dx)), fys=np.fft.fftshift(np.fft.fftfreq(ny, dy)))
+
+
+def _phase_screens(shape, pitch_m, st: SolveSettings) -> list:
+    """exp(i psi) of the partial-coherence screens (module doc), shared by both sides and all nodes."""
     screens = []
-    if coherence_length_m is not None:
-        for k in range(instances):
-            rng = task_rng(seed, *key, 7919, k)
-            psi = _gaussian_screen((ny, nx), (dx, dy), np.pi * coherence_length_m, np.pi, rng)
-            e = np.empty((ny, nx), np.complex64)
-            np.cos(psi, out=e.real)
-            np.sin(psi, out=e.imag)
-            screens.append(e)
-    n_fft = 0
-    out = {"info": {}}
-    te = np.radians(np.asarray(theta_s_range_deg, float))
-    for side in sides:
-        ns = np.real(n1) if side == "R" else np.real(n2)
-        if side == "T" and np.imag(n2) > 0:
-            out["T"] = np.zeros(cells.alpha.shape[:2])
-            out["spec_T"] = 0.0
-            out["mueller_T"] = np.zeros(cells.alpha.shape[:2] + (4, 4))
-            out["spec_mueller_T"] = np.zeros((4, 4))
-            continue
-        k1, ks = k0 * np.real(n1), k0 * ns
-        sgn = 1.0 if side == "R" else -1.0
-        # specular / undeviated nu_z
-        if side == "R":
-            nu_spec = 2 * k1 * ci
-            F_spec = float(_fresnel(ci, n1, n2, polarization))
-        else:
-            ct = cos_transmitted(ci, n1, n2)
-            tir = abs(np.real(ct)) < 1e-12
-            nu_spec = None if tir else float(k1 * ci - ks * np.real(ct))
-            F_spec = 0.0 if tir else 1.0 - float(_fresnel(ci, n1, n2, polarization))
-        cs_lo, cs_hi = np.cos(te[-1]), np.cos(te[0])
-        nu_a, nu_b = k1 * ci + sgn * ks * cs_lo, k1 * ci + sgn * ks * cs_hi
-        nodes = qz_nodes(nu_a, nu_b, nu_spec, sigma, tau, max_nodes)
-        if nu_spec is not None and not np.any(np.isclose(nodes, nu_spec)):
-            nodes = np.unique(np.concatenate([nodes, [nu_spec]]))
-        # pooling: coarse spacing in direction cosines <= 0.7 x the filter width (adds < 4% to its variance)
-        dal = lam / (ns * nx * dx)
-        dbe = lam / (ns * ny * dy)
-        bx = _pool_factor(nx, int(max(1, 0.7 * width_dcos / dal)))
-        by = _pool_factor(ny, int(max(1, 0.7 * width_dcos / dbe)))
-        f0 = (fxs[: (nx // bx) * bx].reshape(-1, bx).mean(axis=1)[0], fys[: (ny // by) * by].reshape(-1, by).mean(axis=1)[0])
-        df = (bx / (nx * dx), by / (ny * dy))
-        dF = (2 * np.pi) ** 2 * df[0] * df[1]          # nu_xy area of one coarse sample
-        # crops of the coarse grid: the target box holds the requested disc plus the filter
-        # margin; node grids also hold the points the similarity lookups reach
-        ncx_f, ncy_f = nx // bx, ny // by
-        reach = min(np.sin(te[-1]) + 4 * width_dcos, 1.0 + 4 * width_dcos)
-        fxb = ((k1 * ai - ks * reach) / (2 * np.pi), (k1 * ai + ks * reach) / (2 * np.pi))
-        fyb = ((k1 * bi - ks * reach) / (2 * np.pi), (k1 * bi + ks * reach) / (2 * np.pi))
-        anu = np.abs(nodes)
-        ratio = float(np.max(anu[1:] / np.maximum(anu[:-1], 1e-30))) if nodes.size > 1 else 1.0
-        ratio = max(ratio, 1.0 / min(ratio, 1.0) if ratio > 0 else 1.0)
-        if nodes.size > 1 and (np.min(anu) <= 0.25 * np.max(anu) or ratio > 4):
-            fbn = None
-        else:
-            fmax = max(abs(fxb[0]), abs(fxb[1]), abs(fyb[0]), abs(fyb[1])) * (ratio if nodes.size > 1 else 1.0)
-            fbn = ((-fmax, fmax), (-fmax, fmax))
+    if st.coherence_length_m is None:
+        return screens
+    for k in range(st.instances):
+        rng = task_rng(st.seed, *st.key, 7919, k)
+        psi = _gaussian_screen(shape, pitch_m, np.pi * st.coherence_length_m, np.pi, rng)
+        e = np.empty(shape, np.complex64)
+        np.cos(psi, out=e.real)
+        np.sin(psi, out=e.imag)
+        screens.append(e)
+    return screens
 
-        def box(fb):
-            if fb is None:
-                return slice(0, ncy_f), slice(0, ncx_f)
-            i0 = int(np.clip(np.floor((fb[0][0] - f0[0]) / df[0]) - 1, 0, ncx_f))
-            i1 = int(np.clip(np.ceil((fb[0][1] - f0[0]) / df[0]) + 2, 0, ncx_f))
-            j0 = int(np.clip(np.floor((fb[1][0] - f0[1]) / df[1]) - 1, 0, ncy_f))
-            j1 = int(np.clip(np.ceil((fb[1][1] - f0[1]) / df[1]) + 2, 0, ncy_f))
-            return slice(j0, j1), slice(i0, i1)
 
-        tb = box((fxb, fyb))
-        nb = box(fbn)
-        f0t = (f0[0] + tb[1].start * df[0], f0[1] + tb[0].start * df[1])
-        f0n = (f0[0] + nb[1].start * df[0], f0[1] + nb[0].start * df[1])
-        halves = 2 if screens else 1
-        grids = [[] for _ in range(halves)]
-        m_spec = 0.0
-        for nu in nodes:
-            ph = h32 * np.float32(-nu)
-            u = np.empty((ny, nx), np.complex64)
-            np.cos(ph, out=u.real)
-            np.sin(ph, out=u.imag)                           # u = exp(-i nu h)
-            direct = w32 is None and not screens
+def _specular(side, fd: _Field, inc: Incidence, ks, polarization):
+    """(nu_z of the specular / undeviated direction or None past the critical angle, its Fresnel factor)."""
+    k1 = fd.k0 * np.real(inc.n1)
+    if side == "R":
+        return 2 * k1 * fd.ci, float(_fresnel(fd.ci, inc.n1, inc.n2, polarization))
+    ct = cos_transmitted(fd.ci, inc.n1, inc.n2)
+    tir = abs(np.real(ct)) < 1e-12
+    nu_spec = None if tir else float(k1 * fd.ci - ks * np.real(ct))
+    return nu_spec, 0.0 if tir else 1.0 - float(_fresnel(fd.ci, inc.n1, inc.n2, polarization))
+
+
+@dataclass(frozen=True)
+class _Coarse:
+    """The pooled, cropped nu_xy grid of one side: pooling (by, bx), spacing df, origin f0 and
+    the crops of the target grid (tb, origin f0t) and of the node grids (nb, origin f0n)."""
+
+    by: int
+    bx: int
+    df: tuple
+    dF: float
+    tb: tuple
+    nb: tuple
+    f0t: tuple
+    f0n: tuple
+
+
+def _crop(fb, f0, df, ncx, ncy):
+    """Index slices of the coarse grid covering the frequency box fb ((fx0, fx1), (fy0, fy1)); None = all."""
+    if fb is None:
+        return slice(0, ncy), slice(0, ncx)
+    i0 = int(np.clip(np.floor((fb[0][0] - f0[0]) / df[0]) - 1, 0, ncx))
+    i1 = int(np.clip(np.ceil((fb[0][1] - f0[0]) / df[0]) + 2, 0, ncx))
+    j0 = int(np.clip(np.floor((fb[1][0] - f0[1]) / df[1]) - 1, 0, ncy))
+    j1 = int(np.clip(np.ceil((fb[1][1] - f0[1]) / df[1]) + 2, 0, ncy))
+    return slice(j0, j1), slice(i0, i1)
+
+
+def _coarse_grid(fd: _Field, pitch_m, k1, ks, ns, nodes, st: SolveSettings) -> _Coarse:
+    """Pooling: coarse spacing in direction cosines <= 0.7 x the filter width (adds < 4 % to its
+    variance); crops: the target box holds the requested disc plus the filter margin, node grids
+    also hold the points the similarity lookups reach."""
+    ny, nx = fd.shape
+    dx, dy = pitch_m
+    width_dcos = st.width_dcos
+    te = np.radians(np.asarray(st.theta_s_range_deg, float))
+    dal = fd.lam / (ns * nx * dx)
+    dbe = fd.lam / (ns * ny * dy)
+    bx = _pool_factor(nx, int(max(1, 0.7 * width_dcos / dal)))
+    by = _pool_factor(ny, int(max(1, 0.7 * width_dcos / dbe)))
+    f0 = (fd.fxs[: (nx // bx) * bx].reshape(-1, bx).mean(axis=1)[0],
+          fd.fys[: (ny // by) * by].reshape(-1, by).mean(axis=1)[0])
+    df = (bx / (nx * dx), by / (ny * dy))
+    ncx_f, ncy_f = nx // bx, ny // by
+    reach = min(np.sin(te[-1]) + 4 * width_dcos, 1.0 + 4 * width_dcos)
+    fxb = ((k1 * fd.ai - ks * reach) / (2 * np.pi), (k1 * fd.ai + ks * reach) / (2 * np.pi))
+    fyb = ((k1 * fd.bi - ks * reach) / (2 * np.pi), (k1 * fd.bi + ks * reach) / (2 * np.pi))
+    anu = np.abs(nodes)
+    ratio = float(np.max(anu[1:] / np.maximum(anu[:-1], 1e-30))) if nodes.size > 1 else 1.0
+    ratio = max(ratio, 1.0 / min(ratio, 1.0) if ratio > 0 else 1.0)
+    if nodes.size > 1 and (np.min(anu) <= 0.25 * np.max(anu) or ratio > 4):
+        fbn = None
+    else:
+        fmax = max(abs(fxb[0]), abs(fxb[1]), abs(fyb[0]), abs(fyb[1])) * (ratio if nodes.size > 1 else 1.0)
+        fbn = ((-fmax, fmax), (-fmax, fmax))
+    tb = _crop((fxb, fyb), f0, df, ncx_f, ncy_f)
+    nb = _crop(fbn, f0, df, ncx_f, ncy_f)
+    return _Coarse(by=by, bx=bx, df=df, dF=(2 * np.pi) ** 2 * df[0] * df[1], tb=tb, nb=nb,
+                   f0t=(f0[0] + tb[1].start * df[0], f0[1] + tb[0].start * df[1]),
+                   f0n=(f0[0] + nb[1].start * df[0], f0[1] + nb[0].start * df[1]))
+
+
+def _node_densities(fd: _Field, nodes, nu_spec, cg: _Coarse, screens, workers):
+    """Diffuse power density on the node grids, one list per half of the screens (one list when
+    coherent); the mean field at the specular node; the number of FFTs (module doc)."""
+    ny, nx = fd.shape
+    ntot = nx * ny
+    halves = 2 if screens else 1
+    grids = [[] for _ in range(halves)]
+    m_spec, n_fft = 0.0, 0
+    for nu in nodes:
+        ph = fd.h32 * np.float32(-nu)
+        u = np.empty((ny, nx), np.complex64)
+        np.cos(ph, out=u.real)
+        np.sin(ph, out=u.imag)                           # u = exp(-i nu h)
+        direct = fd.w32 is None and not screens
+        if direct:
+            # periodic and coherent: the mean field is the DC coefficient; remove it there
+            m = None
+        else:
+            m = (np.sum(u) / ntot) if fd.w32 is None else (np.sum(u * fd.w32) / fd.sw)
+            u -= np.complex64(m)
+            if fd.w32 is not None:
+                u *= fd.w32
+        acc = [None] * halves
+        for k, e in enumerate(screens or [None]):
+            v = u * e if e is not None else u
+            F = sfft.fft2(v, workers=workers, overwrite_x=True)
+            n_fft += 1
             if direct:
-                # periodic and coherent: the mean field is the DC coefficient; remove it there
-                m = None
-            else:
-                m = (np.sum(u) / ntot) if w32 is None else (np.sum(u * w32) / sw)
-                u -= np.complex64(m)
-                if w32 is not None:
-                    u *= w32
-            acc = [None] * halves
-            for k, e in enumerate(screens or [None]):
-                v = u * e if e is not None else u
-                F = sfft.fft2(v, workers=workers, overwrite_x=True)
-                n_fft += 1
-                if direct:
-                    m = complex(F[0, 0]) / ntot
-                    F[0, 0] = 0.0
-                p = F.real * F.real
-                p += F.imag * F.imag
-                p = _pool(p, by, bx)
-                acc[k % halves] = p if acc[k % halves] is None else acc[k % halves] + p
-            if nu_spec is not None and np.isclose(nu, nu_spec):
-                m_spec = complex(m)
-            for k in range(halves):
-                cnt = len(screens[k::2]) if screens else 1
-                grids[k].append(np.fft.fftshift(acc[k])[nb].astype(float) / (cnt * ntot * sw2 * dF))
-        shape_t = (tb[0].stop - tb[0].start, tb[1].stop - tb[1].start)
-        geo = _side_geometry(side, np.real(n1), ns, ci, ai, bi, k0, shape_t, f0t, df)
-        dens = [_interp_nodes(nodes, g, geo, sigma, f0t, df, f0n) for g in grids]
-        spec = abs(m_spec) ** 2 * F_spec
-        if screens and nu_spec is not None:
-            # coherent part spread by the illumination's angular spectrum (the Phong-like peak)
-            acc = [None, None]
-            for k, e in enumerate(screens):
-                v = e if w32 is None else e * w32
-                F = sfft.fft2(v, workers=workers)
-                n_fft += 1
-                p = _pool(F.real * F.real + F.imag * F.imag, by, bx)
-                acc[k % 2] = p if acc[k % 2] is None else acc[k % 2] + p
-            for k in range(2):
-                lobe = np.fft.fftshift(acc[k])[tb].astype(float) / (len(screens[k::2]) * ntot * sw2 * dF)
-                # centred on nu_xy = 0 (the specular direction); Fresnel and obliquity via K F below
-                dens[k] = dens[k] + abs(m_spec) ** 2 * lobe
-            out["info"][f"coherent_specular_{side}"] = spec
-            spec = 0.0
-        grid_of = lambda d: DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"])  # noqa: E731
-        if polarized:
-            fac = ks * ks * _obliquity_fresnel(geo, wi, n1, n2, side, "unpolarized")
-            Mn = _facet_mueller(geo, wi, n1, n2, side, pi_)
-            mus = [np.stack([cell_average(grid_of(d * fac * Mn[..., r, c]).smoothed(width_dcos), cells)
-                             for r in range(4) for c in range(4)], axis=-1).reshape(cells.alpha.shape[:2] + (4, 4))
-                   for d in dens]
-            out[f"mueller_{side}"] = sum(mus) / len(mus)
-            sgn_pol = {"s": 1.0, "p": -1.0}.get(polarization, 0.0)
-            vals = [m[..., 0, 0] + sgn_pol * m[..., 0, 1] for m in mus]
-            ms = mueller_interface(ci, n1, n2, side) if F_spec > 0 else np.zeros((4, 4))
-            out[f"spec_mueller_{side}"] = np.nan_to_num(ms) * (spec / F_spec if F_spec > 0 else 0.0)
-        else:
-            fac = ks * ks * _obliquity_fresnel(geo, wi, n1, n2, side, polarization)
-            vals = [cell_average(grid_of(d * fac).smoothed(width_dcos), cells) for d in dens]
-        out[side] = sum(vals) / len(vals)
-        if screens:
-            big = out[side] > 0.01 * out[side].max()
-            diff = (vals[0] - vals[1])[big]
-            out["info"][f"coherence_rel_error_{side}"] = float(
-                0.5 * np.sqrt(np.mean(diff ** 2)) / np.sqrt(np.mean(out[side][big] ** 2))) if big.any() else 0.0
-        out[f"spec_{side}"] = spec
-        out["info"][f"qz_nodes_{side}"] = int(nodes.size)
-        out["info"][f"pool_{side}"] = [by, bx]
+                m = complex(F[0, 0]) / ntot
+                F[0, 0] = 0.0
+            p = F.real * F.real
+            p += F.imag * F.imag
+            p = _pool(p, cg.by, cg.bx)
+            acc[k % halves] = p if acc[k % halves] is None else acc[k % halves] + p
+        if nu_spec is not None and np.isclose(nu, nu_spec):
+            m_spec = complex(m)
+        for k in range(halves):
+            cnt = len(screens[k::2]) if screens else 1
+            grids[k].append(np.fft.fftshift(acc[k])[cg.nb].astype(float) / (cnt * ntot * fd.sw2 * cg.dF))
+    return grids, m_spec, n_fft
+
+
+def _coherent_lobe(fd: _Field, cg: _Coarse, screens, workers):
+    """The illumination's angular spectrum |FFT(exp(i psi) w)|^2 on the target grid, per half of
+    the screens: the specular delta spread into a Phong-like peak; and the number of FFTs."""
+    ny, nx = fd.shape
+    ntot = nx * ny
+    acc = [None, None]
+    for k, e in enumerate(screens):
+        v = e if fd.w32 is None else e * fd.w32
+        F = sfft.fft2(v, workers=workers)
+        p = _pool(F.real * F.real + F.imag * F.imag, cg.by, cg.bx)
+        acc[k % 2] = p if acc[k % 2] is None else acc[k % 2] + p
+    lobes = [np.fft.fftshift(acc[k])[cg.tb].astype(float) / (len(screens[k::2]) * ntot * fd.sw2 * cg.dF)
+             for k in range(2)]
+    return lobes, len(screens)
+
+
+def _cells(side, dens, geo, fd: _Field, inc: Incidence, st: SolveSettings, specular: tuple, out):
+    """Filter the densities into the cells (times obliquity and facet Fresnel); fills out[side] and,
+    when polarised, out[mueller_side] and out[spec_mueller_side]; returns the per-half values.
+    specular: (coherent specular power, its Fresnel factor)."""
+    n1, n2, ks = inc.n1, inc.n2, geo["ks"]
+    spec, F_spec = specular
+    grid_of = lambda d: DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"])  # noqa: E731
+    cells, width = st.cells, st.width_dcos
+    if st.polarized:
+        fac = ks * ks * _obliquity_fresnel(geo, fd.wi, n1, n2, side, "unpolarized")
+        Mn = _facet_mueller(geo, fd.wi, n1, n2, side, fd.phi_i_rad)
+        mus = [np.stack([cell_average(grid_of(d * fac * Mn[..., r, c]).smoothed(width), cells)
+                         for r in range(4) for c in range(4)], axis=-1).reshape(cells.alpha.shape[:2] + (4, 4))
+               for d in dens]
+        out[f"mueller_{side}"] = sum(mus) / len(mus)
+        sgn_pol = {"s": 1.0, "p": -1.0}.get(st.polarization, 0.0)
+        vals = [m[..., 0, 0] + sgn_pol * m[..., 0, 1] for m in mus]
+        ms = mueller_interface(fd.ci, n1, n2, side) if F_spec > 0 else np.zeros((4, 4))
+        out[f"spec_mueller_{side}"] = np.nan_to_num(ms) * (spec / F_spec if F_spec > 0 else 0.0)
+    else:
+        fac = ks * ks * _obliquity_fresnel(geo, fd.wi, n1, n2, side, st.polarization)
+        vals = [cell_average(grid_of(d * fac).smoothed(width), cells) for d in dens]
+    out[side] = sum(vals) / len(vals)
+    return vals
+
+
+def _absorbed_side(out, cells) -> None:
+    """Transmission into an absorbing medium: nothing propagates, nothing to compute."""
+    out["T"] = np.zeros(cells.alpha.shape[:2])
+    out["spec_T"] = 0.0
+    out["mueller_T"] = np.zeros(cells.alpha.shape[:2] + (4, 4))
+    out["spec_mueller_T"] = np.zeros((4, 4))
+
+
+def _solve_side(side, surface: Surface, inc: Incidence, st: SolveSettings, fd: _Field, screens, out) -> int:
+    """One side (R or T) of one incidence into `out` (see solve_incidence); returns the FFT count."""
+    ns = np.real(inc.n1) if side == "R" else np.real(inc.n2)
+    k1, ks = fd.k0 * np.real(inc.n1), fd.k0 * ns
+    sgn = 1.0 if side == "R" else -1.0
+    nu_spec, F_spec = _specular(side, fd, inc, ks, st.polarization)
+    te = np.radians(np.asarray(st.theta_s_range_deg, float))
+    cs_lo, cs_hi = np.cos(te[-1]), np.cos(te[0])
+    nu_a, nu_b = k1 * fd.ci + sgn * ks * cs_lo, k1 * fd.ci + sgn * ks * cs_hi
+    nodes = qz_nodes(nu_a, nu_b, nu_spec, fd.sigma, st.tau, st.max_nodes)
+    if nu_spec is not None and not np.any(np.isclose(nodes, nu_spec)):
+        nodes = np.unique(np.concatenate([nodes, [nu_spec]]))
+    cg = _coarse_grid(fd, surface.pitch_m, k1, ks, ns, nodes, st)
+    grids, m_spec, n_fft = _node_densities(fd, nodes, nu_spec, cg, screens, st.workers)
+    shape_t = (cg.tb[0].stop - cg.tb[0].start, cg.tb[1].stop - cg.tb[1].start)
+    geo = _side_geometry(side, fd, np.real(inc.n1), ns, shape_t, cg.f0t, cg.df)
+    dens = [_interp_nodes(nodes, g, geo, fd.sigma, cg.f0t, cg.df, cg.f0n) for g in grids]
+    spec = abs(m_spec) ** 2 * F_spec
+    if screens and nu_spec is not None:
+        # coherent part spread by the illumination's angular spectrum (the Phong-like peak);
+        # centred on nu_xy = 0 (the specular direction); Fresnel and obliquity via K F in _cells
+        lobes, n_lobe = _coherent_lobe(fd, cg, screens, st.workers)
+        n_fft += n_lobe
+        dens = [dens[k] + abs(m_spec) ** 2 * lobes[k] for k in range(2)]
+        out["info"][f"coherent_specular_{side}"] = spec
+        spec = 0.0
+    vals = _cells(side, dens, geo, fd, inc, st, (spec, F_spec), out)
+    if screens:
+        big = out[side] > 0.01 * out[side].max()
+        diff = (vals[0] - vals[1])[big]
+        out["info"][f"coherence_rel_error_{side}"] = float(
+            0.5 * np.sqrt(np.mean(diff ** 2)) / np.sqrt(np.mean(out[side][big] ** 2))) if big.any() else 0.0
+    out[f"spec_{side}"] = spec
+    out["info"][f"qz_nodes_{side}"] = int(nodes.size)
+    out["info"][f"pool_{side}"] = [cg.by, cg.bx]
+    return n_fft
+
+
+def solve_incidence(surface: Surface, inc: Incidence, st: SolveSettings) -> dict:
+    """Kirchhoff tables for one incidence: {'R': (S, A), 'T': (S, A), 'spec_R', 'spec_T', 'info'}
+    (plus 'mueller_R/T', 'spec_mueller_R/T' when polarised); the physics is in the module doc."""
+    t0 = time.perf_counter()
+    fd = _field(surface, inc)
+    screens = _phase_screens(fd.shape, surface.pitch_m, st)
+    out = {"info": {}}
+    n_fft = 0
+    for side in st.sides:
+        if side == "T" and np.imag(inc.n2) > 0:
+            _absorbed_side(out, st.cells)
+            continue
+        n_fft += _solve_side(side, surface, inc, st, fd, screens, out)
     out["info"]["ffts"] = n_fft
     out["info"]["seconds"] = time.perf_counter() - t0
-    out["info"]["rms_height_m"] = sigma
+    out["info"]["rms_height_m"] = fd.sigma
     return out
 
 
@@ -596,12 +732,14 @@ def _task(ctx, task):
     iw, it, ip, fr = task
     wl = ctx["wavelengths"][iw]
     n1, n2 = ctx["n"][(iw, fr)]
-    h = ctx["h"] if fr == "outside" else -ctx["h"]
-    return solve_incidence(h, ctx["w"], ctx["pitch"], ctx["periodic"], wl, ctx["theta_i"][it], ctx["phi_i"][ip],
-                           n1, n2, ctx["cells"], ctx["width"], ctx["polarization"], ctx["lc"], ctx["instances"],
-                           ctx["seed"], (iw, it, ip, 0 if fr == "outside" else 1), ctx["tau"], ctx["max_nodes"],
-                           1 if in_worker() else ctx["workers"], theta_s_range_deg=ctx["theta_range"],
-                           polarized=ctx["polarized"])
+    surface = ctx["surface"]
+    if fr != "outside":
+        surface = dataclasses.replace(surface, heights_m=-surface.heights_m)
+    inc = Incidence(wl, ctx["theta_i"][it], ctx["phi_i"][ip], n1, n2)
+    st = ctx["settings"]
+    st = dataclasses.replace(st, key=(iw, it, ip, 0 if fr == "outside" else 1),
+                             workers=1 if in_worker() else st.workers)
+    return solve_incidence(surface, inc, st)
 
 
 def speckle_dcos(relief, material: Material, request) -> float:
@@ -617,66 +755,79 @@ def speckle_dcos(relief, material: Material, request) -> float:
     return worst
 
 
-def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
-    """Kirchhoff tables, one per side of incidence in request.incident_from (module doc)."""
-    request.validate()
-    check_sides(material, request, "kirchhoff")
-    opts = dict(request.options or {})
-    width = smoothing_width_dcos(speckle_dcos(relief, material, request), request.theta_s_edges_deg, opts)
-    check_sampling(relief, material, request, width, opts)
+def _prepare(relief, material: Material, request, opts: KirchhoffOptions) -> tuple[dict, dict]:
+    """Checks (RequestError before work), the prepared surface and the solve settings: (ctx, metadata)."""
+    width = smoothing_width_dcos(speckle_dcos(relief, material, request), request.theta_s_edges_deg,
+                                 opts.smoothing_dcos)
+    check_sampling(relief, material, request, width, opts.band_limited)
     h, w = prepared_heights(relief)
     wls = np.asarray(request.wavelengths_nm, float)
     nmax = max(np.real(n) for wl in wls for fr in request.incident_from for n in material.n_pair(wl, fr))
     nu_max = 2 * nmax * 2 * np.pi / (wls.min() * 1e-9)
     alias = check_aliasing(h, w, nu_max, relief.source or "relief")
     cells = cell_samples(request.theta_s_edges_deg, request.phi_s_edges_deg, width)
-    frame_n = {(iw, fr): material.n_pair(wl, fr) for iw, wl in enumerate(wls) for fr in request.incident_from}
     lc = request.coherence_length_m
-    instances = int(opts.get("coherence_instances", 8))
-    if lc is not None and instances < 2:
+    if lc is not None and opts.coherence_instances < 2:
         raise RequestError("coherence_instances must be >= 2 (the convergence estimate needs two halves)",
                            "options.coherence_instances")
-    ctx = {"h": h, "w": w, "pitch": (relief.dx_m, relief.dy_m), "periodic": relief.periodic, "wavelengths": wls,
-           "theta_i": request.theta_i_deg, "phi_i": request.phi_i_deg, "n": frame_n, "cells": cells,
-           "width": width, "polarization": request.polarization, "lc": lc, "instances": instances,
-           "seed": request.seed, "tau": float(opts.get("qz_tolerance", np.inf)),
-           "max_nodes": int(opts.get("max_qz_nodes", 16)), "workers": int(opts.get("fft_workers", 2)),
-           "theta_range": (request.theta_s_edges_deg[0], request.theta_s_edges_deg[-1]),
-           "polarized": bool(opts.get("polarized", False))}
+    settings = SolveSettings(cells=cells, width_dcos=width, polarization=request.polarization, coherence_length_m=lc,
+                             instances=opts.coherence_instances, seed=request.seed, tau=opts.qz_tolerance,
+                             max_nodes=opts.max_qz_nodes, workers=opts.fft_workers,
+                             theta_s_range_deg=(request.theta_s_edges_deg[0], request.theta_s_edges_deg[-1]),
+                             polarized=opts.polarized)
+    ctx = {"surface": Surface(h, w, (relief.dx_m, relief.dy_m), relief.periodic), "wavelengths": wls,
+           "theta_i": request.theta_i_deg, "phi_i": request.phi_i_deg, "settings": settings,
+           "n": {(iw, fr): material.n_pair(wl, fr) for iw, wl in enumerate(wls) for fr in request.incident_from}}
+    meta = {"smoothing_dcos": width, "window": "none (periodic)" if relief.periodic else "2-D Hann",
+            "aliased_step_fraction": alias, "coherence_length_m": lc,
+            "coherence_instances": opts.coherence_instances if lc is not None else 0}
+    return ctx, meta
+
+
+def _collect(ctx, request, tasks, res) -> dict:
+    """Stack the per-incidence results of one side of incidence into table arrays."""
+    wls, pol = ctx["wavelengths"], ctx["settings"].polarized
     W, I, P = len(wls), len(request.theta_i_deg), len(request.phi_i_deg)
-    S, A = cells.alpha.shape[:2]
+    S, A = ctx["settings"].cells.alpha.shape[:2]
+    a = {"values_per_sr": np.zeros((W, I, P, 2, S, A)), "specular_R": np.zeros((W, I, P)),
+         "specular_T": np.zeros((W, I, P)), "mueller_per_sr": np.zeros((W, I, P, 2, S, A, 4, 4)) if pol else None,
+         "specular_mueller_R": np.zeros((W, I, P, 4, 4)) if pol else None,
+         "specular_mueller_T": np.zeros((W, I, P, 4, 4)) if pol else None}
+    infos = []
+    for (iw, it, ip, _), r in zip(tasks, res):
+        a["values_per_sr"][iw, it, ip, 0] = r["R"]
+        a["values_per_sr"][iw, it, ip, 1] = r["T"]
+        if pol:
+            a["mueller_per_sr"][iw, it, ip, 0], a["mueller_per_sr"][iw, it, ip, 1] = r["mueller_R"], r["mueller_T"]
+            a["specular_mueller_R"][iw, it, ip] = r["spec_mueller_R"]
+            a["specular_mueller_T"][iw, it, ip] = r["spec_mueller_T"]
+        a["specular_R"][iw, it, ip], a["specular_T"][iw, it, ip] = r["spec_R"], r["spec_T"]
+        infos.append({"wavelength_nm": float(wls[iw]), "theta_i_deg": float(request.theta_i_deg[it]),
+                      "phi_i_deg": float(request.phi_i_deg[ip]), **r["info"]})
+    a["infos"] = infos
+    return a
+
+
+def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
+    """Kirchhoff tables, one per side of incidence in request.incident_from (module doc)."""
+    request.validate()
+    check_sides(material, request, "kirchhoff")
+    opts = KirchhoffOptions.from_request(request)
+    ctx, meta = _prepare(relief, material, request, opts)
+    W, I, P = len(ctx["wavelengths"]), len(request.theta_i_deg), len(request.phi_i_deg)
     tables = []
     for fr in request.incident_from:
         tasks = [(iw, it, ip, fr) for iw in range(W) for it in range(I) for ip in range(P)]
-        res = map_tasks(_task, tasks, ctx, progress=progress, label=f"kirchhoff {fr}",
-                        backend=opts.get("backend"))
-        vals = np.zeros((W, I, P, 2, S, A))
-        sR, sT = np.zeros((W, I, P)), np.zeros((W, I, P))
-        pol = ctx["polarized"]
-        mu = np.zeros((W, I, P, 2, S, A, 4, 4)) if pol else None
-        smR = np.zeros((W, I, P, 4, 4)) if pol else None
-        smT = np.zeros((W, I, P, 4, 4)) if pol else None
-        infos = []
-        for (iw, it, ip, _), r in zip(tasks, res):
-            vals[iw, it, ip, 0] = r["R"]
-            vals[iw, it, ip, 1] = r["T"]
-            if pol:
-                mu[iw, it, ip, 0], mu[iw, it, ip, 1] = r["mueller_R"], r["mueller_T"]
-                smR[iw, it, ip], smT[iw, it, ip] = r["spec_mueller_R"], r["spec_mueller_T"]
-            sR[iw, it, ip], sT[iw, it, ip] = r["spec_R"], r["spec_T"]
-            infos.append({"wavelength_nm": float(wls[iw]), "theta_i_deg": float(request.theta_i_deg[it]),
-                          "phi_i_deg": float(request.phi_i_deg[ip]), **r["info"]})
+        res = map_tasks(_task, tasks, ctx, progress=progress, label=f"kirchhoff {fr}", backend=opts.backend)
+        a = _collect(ctx, request, tasks, res)
+        infos = a.pop("infos")
         tab = BsdfTable(
-            wavelength_nm=wls, theta_i_deg=request.theta_i_deg, phi_i_deg=request.phi_i_deg,
+            wavelength_nm=ctx["wavelengths"], theta_i_deg=request.theta_i_deg, phi_i_deg=request.phi_i_deg,
             theta_s_edges_deg=request.theta_s_edges_deg, phi_s_edges_deg=request.phi_s_edges_deg,
-            values_per_sr=vals, incident_from=fr, specular_R=sR, specular_T=sT, method="kirchhoff",
-            mueller_per_sr=mu, specular_mueller_R=smR, specular_mueller_T=smT,
-            material=material.describe(), relief=relief.describe(),
-            metadata={"smoothing_dcos": width, "window": "none (periodic)" if relief.periodic else "2-D Hann",
-                      "aliased_step_fraction": alias, "coherence_length_m": lc,
-                      "coherence_instances": instances if lc is not None else 0, "incidences": infos,
+            incident_from=fr, method="kirchhoff", material=material.describe(), relief=relief.describe(),
+            metadata={**meta, "incidences": infos,
                       "validity": "tangent-plane approximation: radius of curvature >> lambda, no shadowing, "
-                                  "single scattering"})
+                                  "single scattering"}, **a)
         h_ = tab.hemispherical()
         tab.lost = np.clip(1.0 - h_["R"] - h_["T"], 0.0, None)   # absorbed (metal), evanescent or beyond the cells
         tables.append(tab)

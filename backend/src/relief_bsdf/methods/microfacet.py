@@ -44,104 +44,38 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
-from scipy import optimize, special
+from scipy import optimize
 
-from relief_bsdf.bsdf.table import BsdfTable, direction, projected_solid_angle
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.core.frames import direction, projected_solid_angle
+from relief_bsdf.core.frames import dot as _dot, normalize as _normalize
 from relief_bsdf.errors import InputError, RequestError
-from relief_bsdf.core.optics import Material, fresnel_unpolarized, mueller_interface
-from relief_bsdf.parallel.tasks import map_tasks
+from relief_bsdf.core.fresnel import fresnel_unpolarized, mueller_interface
+from relief_bsdf.core.index import Material
+from relief_bsdf.parallel import map_tasks
+from relief_bsdf.core.microfacet import (  # the one copy of the distributions
+    DISTRIBUTIONS, distribution_D, lobes as _lobes, smith_G1, smith_lambda, vcavity_G1)
+from relief_bsdf.core.stokes import s_axis as _s_vector, stokes_rotation
 
-DISTRIBUTIONS = ("beckmann", "ggx")
-SHADOWING = ("smith", "vcavity", "incident", "none")
-_SQRT_PI = np.sqrt(np.pi)
-
-
-# ------------------------------------------------------------------ distributions
-
-
-def _lobes(alpha: Any, weights: Any = None) -> tuple[np.ndarray, np.ndarray]:
-    """Lobe roughnesses (L,) and weights (L,) normalised to sum 1."""
-    a = np.atleast_1d(np.asarray(alpha, float))
-    if a.ndim != 1 or a.size == 0 or np.any(~np.isfinite(a)) or np.any(a <= 0):
-        raise InputError("alpha", f"roughness must be one or more positive numbers, got {alpha!r}")
-    if weights is None:
-        if a.size != 1:
-            raise InputError("weights", "several lobes need their weights")
-        return a, np.ones(1)
-    w = np.atleast_1d(np.asarray(weights, float))
-    if w.shape != a.shape or np.any(w < 0) or not w.sum() > 0:
-        raise InputError("weights", f"lobe weights must be >= 0, one per lobe, not all zero; got {weights!r}")
-    return a, w / w.sum()
-
-
-def distribution_D(cos_m: Any, alpha: Any, distribution: str = "beckmann", weights: Any = None) -> np.ndarray:
-    """Normal distribution D(m) (1/sr) for cos(theta_m) = m.n; 0 for m below the surface.
-
-    Beckmann (W07 eq. 25, paper eq. 3 normalised) or GGX (W07 eq. 33); several lobes mix by
-    paper eq. 4.
-    """
-    a, w = _lobes(alpha, weights)
-    c = np.asarray(cos_m, float)
-    pos = c > 0
-    cs = np.where(pos, c, 1.0)
-    c2 = cs * cs
-    t2 = (1.0 - c2) / c2                             # tan^2 theta_m
-    a2 = (a * a).reshape((-1,) + (1,) * c.ndim)
-    if distribution == "beckmann":
-        d = np.exp(-t2 / a2) / (np.pi * a2 * c2 * c2)
-    elif distribution == "ggx":
-        d = a2 / (np.pi * c2 * c2 * (a2 + t2) ** 2)
-    else:
-        raise InputError("distribution", f"unknown distribution {distribution!r}; choose {DISTRIBUTIONS}")
-    d = np.tensordot(w, d, axes=(0, 0))
-    return np.where(pos, d, 0.0)
-
-
-def smith_lambda(cos_v: Any, alpha: Any, distribution: str = "beckmann", weights: Any = None) -> np.ndarray:
-    """Smith's Lambda(v) for a direction with cos(theta_v) = |v.n| (exact forms, see module doc)."""
-    a, w = _lobes(alpha, weights)
-    c = np.clip(np.abs(np.asarray(cos_v, float)), 0.0, 1.0)
-    s = np.sqrt(np.maximum(0.0, 1.0 - c * c))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        tan_t = np.where(c > 0, s / np.where(c > 0, c, 1.0), np.inf)
-    ar = a.reshape((-1,) + (1,) * c.ndim)
-    if distribution == "beckmann":
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            x = 1.0 / (ar * tan_t)                      # a = cot / alpha; inf at normal incidence
-            lam = 0.5 * (np.exp(-x * x) / (x * _SQRT_PI) - special.erfc(x))
-        lam = np.where(tan_t == 0, 0.0, np.where(np.isinf(tan_t), np.inf, lam))
-        lam = np.maximum(lam, 0.0)
-    elif distribution == "ggx":
-        with np.errstate(invalid="ignore", over="ignore"):
-            lam = 0.5 * (np.sqrt(1.0 + (ar * tan_t) ** 2) - 1.0)
-    else:
-        raise InputError("distribution", f"unknown distribution {distribution!r}; choose {DISTRIBUTIONS}")
-    return np.tensordot(w, lam, axes=(0, 0))
-
-
-def smith_G1(cos_v: Any, alpha: Any, distribution: str = "beckmann", weights: Any = None) -> np.ndarray:
-    """Smith masking 1 / (1 + Lambda) (without the facet back-facing test)."""
-    return 1.0 / (1.0 + smith_lambda(cos_v, alpha, distribution, weights))
-
-
-def vcavity_G1(v_dot_n: Any, v_dot_m: Any, m_dot_n: Any) -> np.ndarray:
-    """One direction's V-cavity factor min(1, 2 (n.m)|n.v| / |v.m|) (paper eq. 5)."""
-    vm = np.abs(np.asarray(v_dot_m, float))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        g = 2.0 * np.asarray(m_dot_n, float) * np.abs(v_dot_n) / vm
-    return np.where(vm > 0, np.minimum(1.0, g), 0.0)
+from relief_bsdf.methods.options import SHADOWING, MicrofacetOptions  # the one list of shadowing terms
 
 
 # ------------------------------------------------------------------ the BSDF
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.einsum("...k,...k->...", a, b)
+@dataclass(frozen=True)
+class Roughness:
+    """The statistical facet surface of the analytic BSDFs (module doc).
 
+    `alpha`: one roughness, or the roughnesses of the lobes of a mixture (paper eq. 4) with
+    their `weights`; `distribution`: "beckmann" or "ggx"; `shadowing`: "smith" (separable
+    G1(wi) G1(wo)), "vcavity" (paper eq. 5, Cook-Torrance's), "incident" (G1(wi) only) or "none".
+    """
 
-def _normalize(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.where(n > 0, n, 1.0)
+    alpha: Any
+    distribution: str = "beckmann"
+    weights: Any = None
+    shadowing: str = "smith"
 
 
 @dataclass
@@ -155,9 +89,9 @@ class WalterTerms:
     cos_ih: np.ndarray      # (N,) wi.h (> 0 where valid)
 
 
-def walter_terms(wi: Any, wo: Any, n_i: Any, n_t: Any, alpha: Any, distribution: str = "beckmann",
-                 shadowing: str = "smith", weights: Any = None) -> WalterTerms:
+def walter_terms(wi: Any, wo: Any, n_i: Any, n_t: Any, rough: Roughness) -> WalterTerms:
     """Evaluate W07 eqs. 20-21 and return the value and its geometric part (see `walter_bsdf`)."""
+    alpha, distribution, shadowing, weights = rough.alpha, rough.distribution, rough.shadowing, rough.weights
     wi = np.atleast_2d(np.asarray(wi, float))
     wo = np.atleast_2d(np.asarray(wo, float))
     wi, wo = np.broadcast_arrays(wi, wo)
@@ -202,29 +136,31 @@ def walter_terms(wi: Any, wo: Any, n_i: Any, n_t: Any, alpha: Any, distribution:
     return WalterTerms(f=f, geom=geom, h=h, is_T=is_T, cos_ih=ih)
 
 
-def walter_bsdf(wi: Any, wo: Any, n_i: Any, n_t: Any, alpha: Any, distribution: str = "beckmann",
-                shadowing: str = "smith", weights: Any = None) -> np.ndarray:
+def walter_bsdf(wi: Any, wo: Any, n_i: Any, n_t: Any, rough: Roughness) -> np.ndarray:
     """Rough-dielectric BSDF f(wi -> wo) in 1/sr (W07 eqs. 20-21; module doc for conventions).
 
     wi (N, 3) toward the source with wi.z > 0 in the incident medium n_i; wo (N, 3) with
-    wo.z > 0 reflection, wo.z < 0 transmission into n_t.  `alpha` is one roughness or the
-    lobe roughnesses of a mixture with `weights` (paper eq. 4).  A complex n_t (metal)
+    wo.z > 0 reflection, wo.z < 0 transmission into n_t.  `rough.alpha` is one roughness or the
+    lobe roughnesses of a mixture with `rough.weights` (paper eq. 4).  A complex n_t (metal)
     reflects with its complex Fresnel factor and transmits nothing (absorbed).
     """
-    return walter_terms(wi, wo, n_i, n_t, alpha, distribution, shadowing, weights).f
+    return walter_terms(wi, wo, n_i, n_t, rough).f
 
 
-def cook_torrance_brdf(wi: Any, wo: Any, n_i: Any, n_t: Any, m: Any, distribution: str = "beckmann",
-                       weights: Any = None, shadowing: str = "vcavity", diffuse: float = 0.0) -> np.ndarray:
+CT_SHADOWING = "vcavity"        # Cook-Torrance's shadowing term (paper eq. 5)
+
+
+def cook_torrance_brdf(wi: Any, wo: Any, n_i: Any, n_t: Any, rough: Roughness, diffuse: float = 0.0) -> np.ndarray:
     """Cook-Torrance reflection (paper eqs. 1-6) for opaque or metal surfaces, in 1/sr.
 
-    Specular part: F D G / (4 (n.l)(n.v)) with the V-cavity G (eq. 5) and D a single or
-    multi-lobe (eq. 4) distribution of rms slope `m`; F from the complex index n_t.  Plus an
+    Specular part: F D G / (4 (n.l)(n.v)) with D a single or multi-lobe (eq. 4) distribution
+    of rms slope `rough.alpha` and G = `rough.shadowing` (Cook-Torrance's own is the V-cavity
+    G of eq. 5, `Roughness(m, shadowing=CT_SHADOWING)`); F from the complex index n_t.  Plus an
     optional Lambertian part `diffuse` / pi (the d R_d term of eq. 1, albedo in [0, 1]).
     Transmission directions (wo.z < 0) get 0.
     """
     wo = np.atleast_2d(np.asarray(wo, float))
-    f = walter_bsdf(wi, wo, n_i, n_t, m, distribution, shadowing, weights)
+    f = walter_bsdf(wi, wo, n_i, n_t, rough)
     f = np.where(wo[..., 2] > 0, f, 0.0)
     if diffuse:
         f = f + np.where(wo[..., 2] > 0, diffuse / np.pi, 0.0)
@@ -234,39 +170,7 @@ def cook_torrance_brdf(wi: Any, wo: Any, n_i: Any, n_t: Any, m: Any, distributio
 # ------------------------------------------------------------------ polarisation
 
 
-def _s_vector(w: np.ndarray, phi_fallback_rad: np.ndarray) -> np.ndarray:
-    """s = z x w / |z x w|; for w along z the azimuthal fallback (-sin phi, cos phi, 0) (bsdf.py)."""
-    s = np.stack([-w[..., 1], w[..., 0], np.zeros(w.shape[:-1])], axis=-1)
-    n = np.linalg.norm(s, axis=-1, keepdims=True)
-    fb = np.stack([-np.sin(phi_fallback_rad), np.cos(phi_fallback_rad), np.zeros(np.shape(phi_fallback_rad))], -1)
-    fb = np.broadcast_to(fb, s.shape)
-    return np.where(n > 1e-12, s / np.where(n > 1e-12, n, 1.0), fb)
-
-
-def stokes_rotation(k: np.ndarray, s_from: np.ndarray, s_to: np.ndarray) -> np.ndarray:
-    """Mueller matrix (..., 4, 4) re-expressing Stokes vectors from basis (s_from, p_from) to (s_to, p_to).
-
-    Stokes (S0, S1 = I_s - I_p, S2, S3) with p = s x k for the beam propagating along k
-    (Born & Wolf's right-handed (p, s, k); the same convention as methods/ray.py, so tables
-    from both methods share their Mueller frames); s_to = cos(psi) s_from + sin(psi) p_from.
-    """
-    p_from = np.cross(s_from, k)
-    c = _dot(s_from, s_to)
-    s = _dot(p_from, s_to)
-    psi = np.arctan2(s, c)
-    c2, s2 = np.cos(2 * psi), np.sin(2 * psi)
-    L = np.zeros(psi.shape + (4, 4))
-    L[..., 0, 0] = 1.0
-    L[..., 3, 3] = 1.0
-    L[..., 1, 1] = c2
-    L[..., 1, 2] = s2
-    L[..., 2, 1] = -s2
-    L[..., 2, 2] = c2
-    return L
-
-
-def walter_mueller(wi: Any, wo: Any, n_i: Any, n_t: Any, alpha: Any, distribution: str = "beckmann",
-                   shadowing: str = "smith", weights: Any = None, phi_i_rad: float = 0.0,
+def walter_mueller(wi: Any, wo: Any, n_i: Any, n_t: Any, rough: Roughness, phi_i_rad: float = 0.0,
                    phi_o_rad: Any = 0.0) -> np.ndarray:
     """Mueller BSDF (N, 4, 4) in 1/sr: W07's geometric factor times the facet's Fresnel Mueller matrix.
 
@@ -274,9 +178,10 @@ def walter_mueller(wi: Any, wo: Any, n_i: Any, n_t: Any, alpha: Any, distributio
     plane of incidence (wi, h); it is rotated from the table's incident basis (s = z x wi) and
     into the scattered basis (s = z x wo), the frames documented in bsdf.py.  Element [0, 0]
     equals `walter_bsdf`.  Single scattering off one facet, so no depolarisation by multiple
-    bounces is modelled.
+    bounces is modelled.  phi_i_rad / phi_o_rad: azimuths of the s-axes of directions along z
+    (core.stokes.s_axis fallback).
     """
-    t = walter_terms(wi, wo, n_i, n_t, alpha, distribution, shadowing, weights)
+    t = walter_terms(wi, wo, n_i, n_t, rough)
     wi = np.broadcast_to(np.atleast_2d(np.asarray(wi, float)), t.h.shape)
     wo = np.broadcast_to(np.atleast_2d(np.asarray(wo, float)), t.h.shape)
     ki = -wi
@@ -369,7 +274,7 @@ def cell_average(fn: Callable, theta_edges_deg: Any, phi_edges_deg: Any, side: s
     """Average of fn(wo) over each scatter cell in projected solid angle, shape (S, A) (+ fn's trailing dims).
 
     `fn` takes (M, 3) directions (and their (M,) azimuths in radians when `with_phi`) and
-    returns (M,) or (M, ...) values, e.g. `lambda wo: walter_bsdf(wi, wo, 1.0, 1.5, 0.1)`.
+    returns (M,) or (M, ...) values, e.g. `lambda wo: walter_bsdf(wi, wo, 1.0, 1.5, Roughness(0.1))`.
     Midpoint rule on a K x K grid in (sin^2 theta, phi) per cell (in (sin theta, phi) with
     sin theta weights for polar-cap cells, see `_subset_directions`).  `refine = (K_fine, frac)`
     recomputes with K_fine the cells holding more than `frac` of the side's total energy
@@ -421,25 +326,21 @@ def auto_subsamples(theta_edges_deg: Any, phi_edges_deg: Any, alpha_min: float, 
 
 
 def relief_slopes(relief) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel surface slopes (dz/dx, dz/dy) of a relief, valid points only, mean slope removed.
+    """Facet slopes (dz/dx, dz/dy) of a relief, valid facets only, mean slope removed.
 
-    Central differences (wrapped when the relief is periodic, one-sided at the borders
-    otherwise); a pixel counts where its differences are finite.  Each pixel has the same
-    area in the x-y plane, so these samples are drawn from the slope density P22 weighted by
+    The facets are the triangles of the piecewise-linear surface (`surface.stats.facet_slopes`,
+    the one slope definition, what the ray tracer sees); every triangle covers the same
+    projected area, so these samples are drawn from the slope density P22 weighted by
     *projected* area, which is exactly the density behind D(m) (D(m) cos(theta_m) d w_m is
     the projected-area fraction of facets).  The mean slope (an instrument tilt) is removed:
     the lobes are centred on the macroscopic normal by construction.
     """
-    h = relief.heights_m
-    if relief.periodic:
-        sx = (np.roll(h, -1, axis=1) - np.roll(h, 1, axis=1)) / (2 * relief.dx_m)
-        sy = (np.roll(h, -1, axis=0) - np.roll(h, 1, axis=0)) / (2 * relief.dy_m)
-    else:
-        sy, sx = np.gradient(h, relief.dy_m, relief.dx_m)
+    from relief_bsdf.surface.stats import facet_slopes
+    sx, sy = (a.ravel() for a in facet_slopes(relief))
     ok = np.isfinite(sx) & np.isfinite(sy)
     if ok.sum() < 16:
         raise InputError(relief.source or "relief", "too few valid points to measure facet slopes "
-                         "(need at least 16 with valid neighbours)")
+                         "(need at least 16 facets with valid corners)")
     sx, sy = sx[ok], sy[ok]
     return sx - sx.mean(), sy - sy.mean()
 
@@ -557,8 +458,8 @@ class TableFit:
             sel = (wo[:, 2] < 0) if k else (wo[:, 2] >= 0)
             for a, w in zip(self.alpha[iw, ii, ip, k], self.weight[iw, ii, ip, k]):
                 if w > 0:
-                    out += np.where(sel, w * walter_bsdf(wi, wo, self.n_i[iw], self.n_t[iw], a,
-                                                         self.distribution, "smith"), 0.0)
+                    out += np.where(sel, w * walter_bsdf(wi, wo, self.n_i[iw], self.n_t[iw],
+                                                         Roughness(a, self.distribution)), 0.0)
         return out
 
 
@@ -602,7 +503,7 @@ def fit_table(table: BsdfTable, n_lobes: int = 1, distribution: str = "ggx", sub
                     def basis(log_a):
                         cols = []
                         for a in np.exp(log_a):
-                            v = walter_bsdf(wi, dirs[k], a_n, b_n, a, distribution, "smith")
+                            v = walter_bsdf(wi, dirs[k], a_n, b_n, Roughness(a, distribution))
                             cols.append(v.reshape(ncell, -1).mean(axis=1))
                         return np.stack(cols, axis=1)
 
@@ -638,21 +539,6 @@ def fit_table(table: BsdfTable, n_lobes: int = 1, distribution: str = "ggx", sub
 # ------------------------------------------------------------------ reconstruct
 
 
-def _options(request) -> dict:
-    o = dict(request.options or {})
-    known = {"alpha", "distribution", "shadowing", "lobes", "weights", "polarized", "subsamples"}
-    unknown = set(o) - known - {"grazing_heuristic", "max_bounces"}
-    if unknown:
-        raise RequestError(f"unknown microfacet option(s) {sorted(unknown)}; known: {sorted(known)}", "options")
-    dist = o.get("distribution", "beckmann")
-    if dist not in DISTRIBUTIONS:
-        raise RequestError(f"distribution must be one of {DISTRIBUTIONS}, got {dist!r}", "options.distribution")
-    sh = o.get("shadowing", "smith")
-    if sh not in SHADOWING:
-        raise RequestError(f"shadowing must be one of {SHADOWING}, got {sh!r}", "options.shadowing")
-    return o
-
-
 def check_indices(material: Material, request) -> None:
     """RequestError for an unphysical index at any requested wavelength, or light from inside a metal."""
     material.check_incidence(request.wavelengths_nm, request.incident_from)
@@ -665,20 +551,19 @@ def _task(ctx: dict, task: tuple) -> dict:
     n_a, n_b = ctx["material"].n_pair(float(wl), side_from)
     wi = direction(req.theta_i_deg[ii], req.phi_i_deg[ip])[None, :]
     lob = ctx["lobes"]
+    rough = Roughness(lob.alpha, lob.distribution, lob.weight, ctx["shadowing"])
     out = {}
     k, k_fine = ctx["subsamples"]
     refine = (k_fine, 1e-5) if k_fine > k else None
     for s, side in enumerate(("R", "T")):
         if ctx["polarized"]:
-            M = cell_average(lambda wo, ph: walter_mueller(wi, wo, np.real(n_a), n_b, lob.alpha, lob.distribution,
-                                                           ctx["shadowing"], lob.weight,
+            M = cell_average(lambda wo, ph: walter_mueller(wi, wo, np.real(n_a), n_b, rough,
                                                            np.radians(req.phi_i_deg[ip]), ph),
                              req.theta_s_edges_deg, req.phi_s_edges_deg, side, k, refine, with_phi=True)
             out[side + "_mueller"] = M
             out[side] = M[..., 0, 0].copy()
         else:
-            out[side] = cell_average(lambda wo: walter_bsdf(wi, wo, np.real(n_a), n_b, lob.alpha, lob.distribution,
-                                                            ctx["shadowing"], lob.weight),
+            out[side] = cell_average(lambda wo: walter_bsdf(wi, wo, np.real(n_a), n_b, rough),
                                      req.theta_s_edges_deg, req.phi_s_edges_deg, side, k, refine)
     return out
 
@@ -686,7 +571,7 @@ def _task(ctx: dict, task: tuple) -> dict:
 def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
     """Analytic Walter / Cook-Torrance tables for every side in `request.incident_from`.
 
-    Roughness: `request.options` may give `alpha` (one value or a list with `weights`),
+    Roughness: the options (MicrofacetOptions) may give `alpha` (one value or a list with `weights`),
     `distribution` ("beckmann" default, "ggx"), `shadowing` ("smith" default, "vcavity",
     "incident", "none"), `lobes` (number of mixture lobes fitted to the relief's slopes when no
     alpha is given; default 1, i.e. alpha = rms slope magnitude for Beckmann), `subsamples`
@@ -698,29 +583,29 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
     isotropic lobe unchanged.
     """
     request.validate()
-    opts = _options(request)
+    opts = MicrofacetOptions.from_request(request)
     check_indices(material, request)
-    dist = opts.get("distribution", "beckmann")
-    if "alpha" in opts:
-        a, w = _lobes(opts["alpha"], opts.get("weights"))
+    dist = opts.distribution
+    if opts.alpha is not None:
+        a, w = _lobes(opts.alpha, opts.weights)
         lobes = Lobes(a, w, dist, {"source": "request options"})
     else:
         if relief is None:
             raise RequestError("no relief and no alpha given: the microfacet roughness must come from one of them",
                                "options.alpha")
         relief.require_valid()
-        lobes = fit_lobes(relief, int(opts.get("lobes", 1)), dist)
+        lobes = fit_lobes(relief, opts.lobes, dist)
         lobes.info["source"] = "fitted to the relief's facet slopes"
-    polarized = bool(opts.get("polarized", False))
+    polarized = opts.polarized
     n_ratio = 1.0
     for wl in request.wavelengths_nm:
         a, b = (np.real(v) for v in material.n_pair(float(wl), "outside"))
         n_ratio = max(n_ratio, a / b, b / a)
-    if opts.get("subsamples"):
-        sub = (int(opts["subsamples"]), int(opts["subsamples"]))
+    if opts.subsamples:
+        sub = (opts.subsamples, opts.subsamples)
     else:
         sub = auto_subsamples(request.theta_s_edges_deg, request.phi_s_edges_deg, float(lobes.alpha.min()), n_ratio)
-    ctx = {"request": request, "material": material, "lobes": lobes, "shadowing": opts.get("shadowing", "smith"),
+    ctx = {"request": request, "material": material, "lobes": lobes, "shadowing": opts.shadowing,
            "polarized": polarized, "subsamples": sub}
     W, I, P = len(request.wavelengths_nm), len(request.theta_i_deg), len(request.phi_i_deg)
     tables = []

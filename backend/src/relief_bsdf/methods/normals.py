@@ -21,7 +21,7 @@ Model
   of the slope set.  For the first hit this is the Smith visible-normal density
   G1(wi) max(0, wi.m) D(m) / cos(theta_i) (Heitz 2014, eq. 38), so single scattering reproduces
   Walter's BSDF with G = G1(wi) and no masking of the exit direction
-  (`microfacet.walter_bsdf(..., shadowing="incident")`) - what this method should agree
+  (`microfacet.walter_bsdf(..., Roughness(alpha, shadowing="incident"))`) - what this method should agree
   with, for gentle slopes where rescattering is rare.
 - At the facet: unpolarised Fresnel reflectance F (optics.fresnel_unpolarized) decides
   reflect or refract by Russian roulette (weights stay 1: energy is conserved ray by ray in
@@ -49,37 +49,34 @@ heights): wrong at grazing angles and high slopes, which is the paper's point.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from relief_bsdf.bsdf.table import BsdfTable, direction, projected_solid_angle
+from relief_bsdf.bsdf.builder import CellAccumulator, CellIndex, ExitSamples, specular_flags
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.core.frames import direction
 from relief_bsdf.errors import InputError, RequestError
-from relief_bsdf.core.optics import fresnel_unpolarized, refract
-from relief_bsdf.parallel.tasks import map_tasks, task_rng
-from relief_bsdf.methods.microfacet import smith_G1
+from relief_bsdf.core.fresnel import fresnel_unpolarized, refract
+from relief_bsdf.parallel import map_tasks, task_rng
+from relief_bsdf.core.microfacet import smith_G1
+from relief_bsdf.methods.options import HEURISTICS, NormalsOptions  # noqa: F401  (HEURISTICS: one list)
 
 MIN_FACETS = 64
-HEURISTICS = ("smith", "cosine")
 
 
 # ------------------------------------------------------------------ facets
 
 
 def triangle_slopes(relief) -> tuple[np.ndarray, np.ndarray]:
-    """Slopes (sx, sy) of the valid triangles of the piecewise-linear relief (2 per grid cell)."""
-    h = relief.heights_m
-    if relief.periodic:
-        h00 = h
-        h01 = np.roll(h, -1, axis=1)
-        h10 = np.roll(h, -1, axis=0)
-        h11 = np.roll(h10, -1, axis=1)
-    else:
-        h00, h01, h10, h11 = h[:-1, :-1], h[:-1, 1:], h[1:, :-1], h[1:, 1:]
-    dx, dy = relief.dx_m, relief.dy_m
-    # triangle (00, 01, 11) and triangle (00, 11, 10)
-    sx = np.concatenate([((h01 - h00) / dx).ravel(), ((h11 - h10) / dx).ravel()])
-    sy = np.concatenate([((h11 - h01) / dy).ravel(), ((h10 - h00) / dy).ravel()])
+    """Slopes (sx, sy) of the valid triangles of the piecewise-linear relief (2 per grid cell).
+
+    The one facet definition, `surface.stats.facet_slopes` (the triangles of surface.mesh).
+    """
+    from relief_bsdf.surface.stats import facet_slopes
+    sx, sy = facet_slopes(relief)
+    sx, sy = sx.ravel(), sy.ravel()
     ok = np.isfinite(sx) & np.isfinite(sy)
     return sx[ok], sy[ok]
 
@@ -135,22 +132,35 @@ def _draw_facets(slopes: SlopeSet, d: np.ndarray, sigma: np.ndarray, rng, max_tr
 # ------------------------------------------------------------------ tracing
 
 
-def _bin(d: np.ndarray, te_sin2: np.ndarray, pe: np.ndarray) -> np.ndarray:
-    """Flat cell index (S * A) of exit directions, -1 outside the table's cells."""
-    s2 = np.clip(1.0 - d[:, 2] ** 2, 0.0, 1.0)
-    si = np.searchsorted(te_sin2, s2, side="right") - 1
-    phi = np.degrees(np.arctan2(d[:, 1], d[:, 0]))
-    phi = np.mod(phi - pe[0], 360.0) + pe[0]
-    ai = np.searchsorted(pe, phi, side="right") - 1
-    S, A = te_sin2.size - 1, pe.size - 1
-    ok = (si >= 0) & (si < S) & (ai >= 0) & (ai < A)
-    return np.where(ok, si * A + ai, -1)
+@dataclass(frozen=True)
+class NormalsBeam:
+    """A parallel beam on the boundary: `wi` toward the source (z > 0), the index of the medium
+    it arrives in (`n_incident`, above in the frame of incidence) and of the other side
+    (`n_other`, below), and the number of paths `n_rays` to trace."""
+
+    wi: np.ndarray
+    n_incident: complex
+    n_other: complex
+    n_rays: int
 
 
-def trace_normals(slopes: SlopeSet, wi: np.ndarray, n_a: complex, n_b: complex, n_rays: int, rng,
-                  theta_edges_deg, phi_edges_deg, heuristic: str | None = None, max_bounces: int = 100,
-                  specular_tol_rad: float = 1e-5, batch: int = 250_000) -> dict:
-    """Trace `n_rays` paths arriving along wi (toward the source, z > 0, medium n_a above).
+@dataclass
+class _Run:
+    """What every batch of one `trace_normals` call shares (the tallies are updated in place)."""
+
+    slopes: SlopeSet
+    opts: NormalsOptions
+    n_idx: tuple                       # (index of the incidence medium, index of the other)
+    absorbing: tuple                   # (incidence medium absorbs, other medium absorbs)
+    specular: tuple                    # mirror direction, flat-plane refraction direction (or None)
+    acc: CellAccumulator
+    tally: dict
+
+
+def trace_normals(slopes: SlopeSet, beam: NormalsBeam, rng, theta_edges_deg, phi_edges_deg,
+                  opts: NormalsOptions = NormalsOptions()) -> dict:
+    """Trace `beam.n_rays` paths arriving along beam.wi (module doc) with the options `opts`
+    (grazing_heuristic, max_bounces, specular_tol_rad, batch).
 
     Returns counts (2, S, A) of exits per cell (R above, T below), the delta-part counts,
     and the lost counts (absorbed, max_bounces, no_facet) and the mean number of facet
@@ -158,131 +168,119 @@ def trace_normals(slopes: SlopeSet, wi: np.ndarray, n_a: complex, n_b: complex, 
     """
     te = np.asarray(theta_edges_deg, float)
     pe = np.asarray(phi_edges_deg, float)
-    te_sin2 = np.sin(np.radians(te)) ** 2
     S, A = te.size - 1, pe.size - 1
-    counts = np.zeros(2 * S * A)
-    n_idx = (complex(n_a), complex(n_b))
+    n_a, n_b, n_rays = beam.n_incident, beam.n_other, int(beam.n_rays)
     absorbing = (np.imag(n_a) > 0, np.imag(n_b) > 0)
-    wi = np.asarray(wi, float)
+    wi = np.asarray(beam.wi, float)
     spec_R = np.array([-wi[0], -wi[1], wi[2]])
     wt, ok_t = refract(wi[None, :], np.array([[0.0, 0.0, 1.0]]), np.real(n_a) / np.real(n_b))
     spec_T = wt[0] if (bool(ok_t[0]) and not absorbing[1]) else None
-    cos_tol = np.cos(specular_tol_rad)
-    tally = {"specular_R": 0, "specular_T": 0, "absorbed": 0, "max_bounces": 0, "no_facet": 0, "events": 0}
-    for lo in range(0, n_rays, batch):
-        m = min(batch, n_rays - lo)
-        d = np.tile(-wi, (m, 1))
-        med = np.zeros(m, np.int8)                       # 0: incidence medium (above), 1: other (below)
-        for bounce in range(max_bounces + 1):
-            if d.shape[0] == 0:
-                break
-            sigma = np.where(med == 0, 1.0, -1.0)
-            proper = sigma * d[:, 2] > 0                  # leaving the boundary in its own medium
-            need = ~proper
-            if heuristic and proper.any():
-                cz = np.abs(d[proper, 2])
-                p = (1.0 - smith_G1(cz, slopes.rms_slope, "beckmann")) if heuristic == "smith" else 1.0 - cz
-                more = rng.random(cz.size) < p
-                idx = np.nonzero(proper)[0][more]
-                faces = slopes.cross_section(d[idx], sigma[idx]) > 1e-15
-                need[idx[faces]] = True
-            if bounce == max_bounces:
-                tally["max_bounces"] += int(need.sum())
-                need[:] = False
-            leave = ~need
-            if leave.any():
-                dl, ml = d[leave], med[leave]
-                for k in (0, 1):
-                    sel = ml == k
-                    if not sel.any():
-                        continue
-                    dk = dl[sel]
-                    ref = spec_R if k == 0 else spec_T
-                    if ref is not None:
-                        sp = dk @ ref > cos_tol
-                        tally["specular_R" if k == 0 else "specular_T"] += int(sp.sum())
-                        dk = dk[~sp]
-                    cells = _bin(dk, te_sin2, pe)
-                    cells = cells[cells >= 0]
-                    counts += np.bincount(cells + k * S * A, minlength=2 * S * A)
-            d, med, sigma = d[need], med[need], sigma[need]
-            if d.shape[0] == 0:
-                break
-            j = _draw_facets(slopes, d, sigma, rng, same_direction=bounce == 0)
-            none = j < 0
-            if none.any():
-                tally["no_facet"] += int(none.sum())
-                d, med, sigma, j = d[~none], med[~none], sigma[~none], j[~none]
-            tally["events"] += d.shape[0]
-            # facet normal facing the ray's medium
-            nf = np.column_stack([-slopes.sx[j], -slopes.sy[j], np.ones(j.size)]) * sigma[:, None]
-            nf /= np.linalg.norm(nf, axis=1, keepdims=True)
-            cos_i = -np.einsum("ij,ij->i", d, nf)
-            new_d = np.empty_like(d)
-            new_med = med.copy()
-            alive = np.ones(d.shape[0], bool)
-            for k in (0, 1):
-                sel = med == k
-                if not sel.any():
-                    continue
-                n1, n2 = n_idx[k], n_idx[1 - k]
-                F = fresnel_unpolarized(np.clip(cos_i[sel], 0.0, 1.0), n1, n2)
-                refl = rng.random(F.size) < F
-                ds, ns, cs = d[sel], nf[sel], cos_i[sel]
-                out = ds + 2.0 * cs[:, None] * ns
-                if absorbing[1 - k] and (~refl).any():
-                    # transmitted into an absorbing medium (metal): absorbed, whatever Snell says
-                    a = alive[sel]
-                    a[~refl] = False
-                    alive[sel] = a
-                elif (~refl).any():
-                    wt, ok = refract(-ds[~refl], ns[~refl], np.real(n1) / np.real(n2))
-                    tmp = out[~refl]
-                    tmp[ok] = wt[ok]                       # TIR (not ok) keeps the mirror direction
-                    out[~refl] = tmp
-                    moved = np.zeros(F.size, bool)
-                    moved[np.nonzero(~refl)[0][ok]] = True
-                    nm = new_med[sel]
-                    nm[moved] = 1 - k
-                    new_med[sel] = nm
-                new_d[sel] = out
-            tally["absorbed"] += int((~alive).sum())
-            d, med = new_d[alive], new_med[alive]
-            d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return {"counts": counts.reshape(2, S, A), "n_rays": int(n_rays), **tally,
+    run = _Run(slopes, opts, (complex(n_a), complex(n_b)), absorbing, (spec_R, spec_T),
+               CellAccumulator(CellIndex(te, pe), lost_names=("absorbed", "max_bounces", "no_facet")),
+               {"specular_R": 0, "specular_T": 0, "absorbed": 0, "max_bounces": 0, "no_facet": 0, "events": 0})
+    for lo in range(0, n_rays, opts.batch):
+        _trace_batch(run, np.tile(-wi, (min(opts.batch, n_rays - lo), 1)), rng)
+    acc, tally = run.acc, run.tally
+    for name in ("absorbed", "max_bounces", "no_facet"):
+        acc.lose(name, tally[name])
+    tally["specular_R"], tally["specular_T"] = float(acc.spec[0]), float(acc.spec[1])
+    return {"counts": acc.sum_w.reshape(2, S, A), "n_rays": n_rays, **tally,
+            "outside_table": acc.outside_table, "cells": acc.table_cells(n_rays),
             "events_per_path": tally["events"] / max(n_rays, 1)}
+
+
+def _trace_batch(run: _Run, d: np.ndarray, rng) -> None:
+    """Bounce the rays d (all in the incidence medium) until they leave or are lost; bin the exits."""
+    med = np.zeros(d.shape[0], np.int8)              # 0: incidence medium (above), 1: other (below)
+    cos_tol = np.cos(run.opts.specular_tol_rad)
+    for bounce in range(run.opts.max_bounces + 1):
+        if d.shape[0] == 0:
+            break
+        sigma = np.where(med == 0, 1.0, -1.0)
+        need = _needs_facet(run, d, sigma, bounce, rng)
+        leave = ~need
+        if leave.any():                               # the one table builder bins the exits
+            dl, ml = d[leave], med[leave]
+            run.acc.add(ExitSamples(dl, np.ones(dl.shape[0]), ml, None, specular_flags(dl, ml, run.specular, cos_tol)))
+        d, med, sigma = d[need], med[need], sigma[need]
+        if d.shape[0] == 0:
+            break
+        j = _draw_facets(run.slopes, d, sigma, rng, same_direction=bounce == 0)
+        none = j < 0
+        if none.any():
+            run.tally["no_facet"] += int(none.sum())
+            d, med, sigma, j = d[~none], med[~none], sigma[~none], j[~none]
+        run.tally["events"] += d.shape[0]
+        d, med = _facet_event(run, d, med, sigma, j, rng)
+
+
+def _needs_facet(run: _Run, d: np.ndarray, sigma: np.ndarray, bounce: int, rng) -> np.ndarray:
+    """Rays that meet another facet: invalid directions, and grazing exits the heuristic sends back."""
+    proper = sigma * d[:, 2] > 0                      # leaving the boundary in its own medium
+    need = ~proper
+    heuristic = run.opts.grazing_heuristic
+    if heuristic and proper.any():
+        cz = np.abs(d[proper, 2])
+        p = (1.0 - smith_G1(cz, run.slopes.rms_slope, "beckmann")) if heuristic == "smith" else 1.0 - cz
+        more = rng.random(cz.size) < p
+        idx = np.nonzero(proper)[0][more]
+        faces = run.slopes.cross_section(d[idx], sigma[idx]) > 1e-15
+        need[idx[faces]] = True
+    if bounce == run.opts.max_bounces:
+        run.tally["max_bounces"] += int(need.sum())
+        need[:] = False
+    return need
+
+
+def _facet_event(run: _Run, d: np.ndarray, med: np.ndarray, sigma: np.ndarray, j: np.ndarray, rng):
+    """Fresnel roulette at facets j: reflect, refract (Snell; TIR keeps the mirror) or be absorbed.
+
+    Returns the new unit directions and media of the rays still alive.
+    """
+    nf = np.column_stack([-run.slopes.sx[j], -run.slopes.sy[j], np.ones(j.size)]) * sigma[:, None]
+    nf /= np.linalg.norm(nf, axis=1, keepdims=True)   # facet normal facing the ray's medium
+    cos_i = -np.einsum("ij,ij->i", d, nf)
+    new_d = np.empty_like(d)
+    new_med = med.copy()
+    alive = np.ones(d.shape[0], bool)
+    for k in (0, 1):
+        sel = med == k
+        if not sel.any():
+            continue
+        n1, n2 = run.n_idx[k], run.n_idx[1 - k]
+        F = fresnel_unpolarized(np.clip(cos_i[sel], 0.0, 1.0), n1, n2)
+        refl = rng.random(F.size) < F
+        ds, ns, cs = d[sel], nf[sel], cos_i[sel]
+        out = ds + 2.0 * cs[:, None] * ns
+        if run.absorbing[1 - k] and (~refl).any():
+            # transmitted into an absorbing medium (metal): absorbed, whatever Snell says
+            a = alive[sel]
+            a[~refl] = False
+            alive[sel] = a
+        elif (~refl).any():
+            wt, ok = refract(-ds[~refl], ns[~refl], np.real(n1) / np.real(n2))
+            tmp = out[~refl]
+            tmp[ok] = wt[ok]                           # TIR (not ok) keeps the mirror direction
+            out[~refl] = tmp
+            moved = np.zeros(F.size, bool)
+            moved[np.nonzero(~refl)[0][ok]] = True
+            nm = new_med[sel]
+            nm[moved] = 1 - k
+            new_med[sel] = nm
+        new_d[sel] = out
+    run.tally["absorbed"] += int((~alive).sum())
+    d, med = new_d[alive], new_med[alive]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d, med
 
 
 # ------------------------------------------------------------------ reconstruct
 
 
-def _options(request) -> dict:
-    o = dict(request.options or {})
-    known = {"grazing_heuristic", "max_bounces", "specular_tol_rad", "batch"}
-    unknown = set(o) - known - {"alpha", "distribution", "shadowing", "lobes", "weights", "polarized", "subsamples"}
-    if unknown:
-        raise RequestError(f"unknown normals option(s) {sorted(unknown)}; known: {sorted(known)}", "options")
-    h = o.get("grazing_heuristic", None)
-    if h in (None, False, "off", "none", ""):
-        h = None
-    elif h is True:
-        h = "smith"
-    elif h not in HEURISTICS:
-        raise RequestError(f"grazing_heuristic must be off, smith or cosine, got {h!r}", "options.grazing_heuristic")
-    mb = int(o.get("max_bounces", 100))
-    if mb < 1:
-        raise RequestError("max_bounces must be >= 1", "options.max_bounces")
-    if o.get("polarized"):
-        raise RequestError("the normals method is unpolarised (scalar Fresnel); use ray or microfacet for "
-                           "Mueller tables", "options.polarized")
-    return {"heuristic": h, "max_bounces": mb, "specular_tol_rad": float(o.get("specular_tol_rad", 1e-5)),
-            "batch": int(o.get("batch", 250_000))}
-
-
-def check_request(relief, material, request) -> dict:
-    """Every reason to refuse, before any work."""
+def check_request(relief, material, request) -> NormalsOptions:
+    """Every reason to refuse, before any work; the typed options."""
     request.validate()
-    opts = _options(request)
+    opts = NormalsOptions.from_request(request)
     if relief is None:
         raise RequestError("the normals method needs a relief", "RELIEF")
     relief.require_valid()
@@ -298,16 +296,15 @@ def _task(ctx: dict, task: tuple) -> dict:
     slopes = ctx["slopes"][side_from]
     wi = direction(req.theta_i_deg[ii], req.phi_i_deg[ip])
     rng = task_rng(req.seed, *key)
-    o = ctx["opts"]
-    return trace_normals(slopes, wi, n_a, n_b, int(req.samples), rng, req.theta_s_edges_deg, req.phi_s_edges_deg,
-                         o["heuristic"], o["max_bounces"], o["specular_tol_rad"], o["batch"])
+    return trace_normals(slopes, NormalsBeam(wi, n_a, n_b, int(req.samples)), rng, req.theta_s_edges_deg,
+                         req.phi_s_edges_deg, ctx["opts"])
 
 
 def reconstruct(relief, material, request, progress=None) -> list[BsdfTable]:
     """Normal-density Monte Carlo tables for every side in `request.incident_from` (module doc).
 
-    `request.samples` paths per incidence; options: grazing_heuristic (off | smith | cosine),
-    max_bounces (100), specular_tol_rad (1e-5).  Seeds: task_rng(seed, side, w, i, p).
+    `request.samples` paths per incidence; options (NormalsOptions): grazing_heuristic (off | smith |
+    cosine), max_bounces (100), specular_tol_rad (1e-5), batch.  Seeds: task_rng(seed, side, w, i, p).
     """
     opts = check_request(relief, material, request)
     t0 = time.perf_counter()
@@ -323,7 +320,6 @@ def reconstruct(relief, material, request, progress=None) -> list[BsdfTable]:
              for sf in request.incident_from for iw in range(W) for ii in range(I) for ip in range(P)]
     res = map_tasks(_task, tasks, ctx, progress=progress, label="normals")
     te, pe = np.asarray(request.theta_s_edges_deg, float), np.asarray(request.phi_s_edges_deg, float)
-    psa = projected_solid_angle(te, pe)
     N = float(request.samples)
     tables = []
     for sf in request.incident_from:
@@ -334,11 +330,12 @@ def reconstruct(relief, material, request, progress=None) -> list[BsdfTable]:
         for (tsf, iw, ii, ip, _), r in zip(tasks, res):
             if tsf != sf:
                 continue
-            vals[iw, ii, ip] = r["counts"] / (N * psa)
-            sig[iw, ii, ip] = np.sqrt(r["counts"]) / (N * psa)
-            spR[iw, ii, ip] = r["specular_R"] / N
-            spT[iw, ii, ip] = r["specular_T"] / N
-            lost[iw, ii, ip] = (r["absorbed"] + r["max_bounces"] + r["no_facet"]) / N
+            c = r["cells"]                                # the one table builder's rows
+            vals[iw, ii, ip] = c.values_per_sr
+            sig[iw, ii, ip] = c.sigma_per_sr
+            spR[iw, ii, ip] = c.specular_R
+            spT[iw, ii, ip] = c.specular_T
+            lost[iw, ii, ip] = c.lost
             detail.append({"wavelength_nm": float(request.wavelengths_nm[iw]),
                            "theta_i_deg": float(request.theta_i_deg[ii]), "phi_i_deg": float(request.phi_i_deg[ip]),
                            "absorbed": r["absorbed"] / N, "max_bounces": r["max_bounces"] / N,
@@ -350,7 +347,7 @@ def reconstruct(relief, material, request, progress=None) -> list[BsdfTable]:
                                 method="normals", material=material.describe(), relief=desc,
                                 metadata={"model": "Monte Carlo on the density of facet normals (paper sec. 2.2)",
                                           "samples_per_incidence": int(request.samples), "seed": int(request.seed),
-                                          "grazing_heuristic": opts["heuristic"] or "off",
-                                          "max_bounces": opts["max_bounces"], "lost_detail": detail,
+                                          "grazing_heuristic": opts.grazing_heuristic or "off",
+                                          "max_bounces": opts.max_bounces, "lost_detail": detail,
                                           "seconds": time.perf_counter() - t0}))
     return tables

@@ -57,14 +57,14 @@ PSD estimate (`estimate_psd`): periodogram |FFT(h w)|^2 dx dy / sum(w^2) after l
 (plane; mean only for periodic reliefs), w = 1 for periodic reliefs and a 2-D Hann window
 otherwise; invalid points are set to 0 and excluded from the normalisation.  Smoothing:
 for an isotropic relief (detected from the eigenvalues of the PSD's slope tensor, ratio of
-rms slopes < 1.25, or forced by `options["psd_isotropic"]`) the periodogram is averaged in
+rms slopes < 1.25, or forced by the option psd_isotropic) the periodogram is averaged in
 annuli of width max(df, w / lambda) (w: the request's filter width in direction cosines,
 so the smoothing matches the cell size and is the same for every wavelength in
 direction-cosine terms at the shortest wavelength); otherwise the 2-D periodogram is
 Gaussian-smoothed with that width.  Between annuli S is linearly interpolated.
 
-Options (`request.options`): psd_isotropic (bool), smoothing_dcos (float), polarized (bool,
-default True: fill mueller_per_sr).
+Options (methods.options.RayleighRiceOptions): psd_isotropic (bool), smoothing_dcos (float),
+polarized (bool, default True: fill mueller_per_sr), backend.
 """
 from __future__ import annotations
 
@@ -75,8 +75,10 @@ import numpy as np
 from scipy import ndimage
 
 from relief_bsdf.bsdf.table import BsdfTable
-from relief_bsdf.core.optics import Material, cos_transmitted, fresnel_amplitudes, mueller_interface
-from relief_bsdf.parallel.tasks import map_tasks
+from relief_bsdf.core.fresnel import cos_transmitted, fresnel_amplitudes, mueller_interface
+from relief_bsdf.core.index import Material
+from relief_bsdf.parallel import map_tasks
+from relief_bsdf.methods.options import RayleighRiceOptions
 from relief_bsdf.methods.wave_filter import cell_samples, check_sides, smoothing_width_dcos
 
 # ------------------------------------------------------------------ PSD
@@ -252,8 +254,21 @@ def medium_factor(side: str, n1, n2) -> float:
     return float(np.real(nb) / np.real(n1))
 
 
-def rr_mueller(theta_i, phi_i, theta_s, phi_s, side: str, n1, n2, wavelength_m: float, psd: Psd) -> np.ndarray:
-    """Mueller BSDF (..., 4, 4) in 1/sr at the given directions (angles in radians)."""
+@dataclass(frozen=True)
+class RoughInterface:
+    """The first-order problem of the module doc: the flat interface between n1 (the medium of
+    incidence, z > 0) and n2, lit at the vacuum wavelength `wavelength_m`, perturbed by a relief
+    whose height PSD is `psd`."""
+
+    n1: complex
+    n2: complex
+    wavelength_m: float
+    psd: Psd
+
+
+def rr_mueller(theta_i, phi_i, theta_s, phi_s, side: str, surface: RoughInterface) -> np.ndarray:
+    """Mueller BSDF (..., 4, 4) in 1/sr at the given directions (angles in radians) of `surface`."""
+    n1, n2, wavelength_m, psd = surface.n1, surface.n2, surface.wavelength_m, surface.psd
     nb = n1 if side == "R" else n2
     J = rr_jones(theta_i, phi_i, theta_s, phi_s, side, n1, n2)
     fx = (np.real(n1) * np.sin(theta_i) * np.cos(phi_i) + np.real(nb) * np.sin(theta_s) * np.cos(phi_s)) / wavelength_m
@@ -265,9 +280,9 @@ def rr_mueller(theta_i, phi_i, theta_s, phi_s, side: str, n1, n2, wavelength_m: 
     return jones_to_mueller(J) * pref[..., None, None]
 
 
-def rr_bsdf(theta_i, phi_i, theta_s, phi_s, side: str, n1, n2, wavelength_m: float, psd: Psd) -> np.ndarray:
+def rr_bsdf(theta_i, phi_i, theta_s, phi_s, side: str, surface: RoughInterface) -> np.ndarray:
     """Unpolarised BSDF (1/sr)."""
-    return rr_mueller(theta_i, phi_i, theta_s, phi_s, side, n1, n2, wavelength_m, psd)[..., 0, 0]
+    return rr_mueller(theta_i, phi_i, theta_s, phi_s, side, surface)[..., 0, 0]
 
 
 # ------------------------------------------------------------------ regime of validity
@@ -285,13 +300,9 @@ def rayleigh_parameter(sigma_m: float, n1, theta_i_deg, wavelength_nm) -> np.nda
 
 def relief_sigma_slope(relief) -> tuple[float, float]:
     """rms height and rms slope magnitude of the levelled relief, valid points only (the
-    figures of relief_bsdf.surface.stats, which methods/auto.py decides on)."""
-    from relief_bsdf.surface.stats import levelled, slopes
-    lv = levelled(relief)
-    z = lv.heights_m[lv.valid]
-    sx, sy = slopes(lv)
-    rms = [float(np.sqrt(np.mean(a[np.isfinite(a)] ** 2))) if np.isfinite(a).any() else 0.0 for a in (sx, sy)]
-    return float(np.sqrt(np.mean(z * z))) if z.size else 0.0, float(np.hypot(*rms))
+    figures of relief_bsdf.surface.stats, which methods/auto.py decides on); 0 where undefined."""
+    from relief_bsdf.surface.stats import rms_height_and_slope
+    return tuple(float(v) if np.isfinite(v) else 0.0 for v in rms_height_and_slope(relief))
 
 
 def regime_check(sigma_m: float, rms_slope: float, n1_per_wavelength, wavelengths_nm, theta_i_deg) -> dict:
@@ -349,7 +360,8 @@ def _task(ctx, task):
         if side == "T" and np.imag(nb) > 0:
             M = np.zeros(cells.alpha.shape[:2] + (4, 4))
         else:
-            M = rr_mueller(ti, pi_, cells.theta, cells.phi, side, n1, n2, wl_nm * 1e-9, psd).mean(axis=2)
+            surface = RoughInterface(n1, n2, wl_nm * 1e-9, psd)
+            M = rr_mueller(ti, pi_, cells.theta, cells.phi, side, surface).mean(axis=2)
         out[side] = M if polarized else _intensity(M, ctx["polarization"])
     # specular parts with Debye-Waller factors
     lam = wl_nm * 1e-9
@@ -377,13 +389,13 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
     """Rayleigh-Rice tables, one per side of incidence in request.incident_from (module doc)."""
     request.validate()
     check_sides(material, request, "rayleigh-rice")
-    opts = dict(request.options or {})
+    opts = RayleighRiceOptions.from_request(request)
     wls = np.asarray(request.wavelengths_nm, float)
     # filter width: cell scale (no speckle here; the PSD is smoothed instead)
-    w = smoothing_width_dcos(0.0, request.theta_s_edges_deg, opts)
+    w = smoothing_width_dcos(0.0, request.theta_s_edges_deg, opts.smoothing_dcos)
     cells = cell_samples(request.theta_s_edges_deg, request.phi_s_edges_deg, w, max_per_axis=6)
-    psd = estimate_psd(relief, smoothing_df=w / (wls.min() * 1e-9), isotropic=opts.get("psd_isotropic"))
-    polarized = bool(opts.get("polarized", True))
+    psd = estimate_psd(relief, smoothing_df=w / (wls.min() * 1e-9), isotropic=opts.psd_isotropic)
+    polarized = opts.polarized
     sigma_rel, slope_rel = relief_sigma_slope(relief)
     frame_n = {}
     for iw, wl in enumerate(wls):
@@ -402,7 +414,7 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
             warnings.warn(msg, RuntimeWarning, stacklevel=2)
         tasks = [(iw, it, ip, fr) for iw in range(W) for it in range(I) for ip in range(P)]
         res = map_tasks(_task, tasks, ctx, progress=progress, label=f"rayleigh-rice {fr}",
-                        backend=opts.get("backend"))
+                        backend=opts.backend)
         shape = (W, I, P, 2, S, A)
         mu = np.zeros(shape + (4, 4)) if polarized else None
         vals = np.zeros(shape)

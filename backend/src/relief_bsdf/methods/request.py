@@ -1,4 +1,8 @@
-"""What a reconstruction is asked to compute: the table's axes and the sampling effort."""
+"""What a reconstruction is asked to compute: the table's axes, the sampling effort and the options.
+
+`options` is the contract's plain mapping (formats.md, ``--option KEY=VALUE``); methods read it
+only as their typed options object, `request.options_for(method)` (methods.options).
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -31,7 +35,12 @@ class Request:
     seed: int = 0
     polarization: str = "unpolarized"
     coherence_length_m: float | None = None
-    options: dict = field(default_factory=dict)
+    options: dict = field(default_factory=dict)      # KEY -> value; read through options_for(method)
+
+    def options_for(self, method: str):
+        """The typed options of `method` (methods.options) from `options`; RequestError naming a bad one."""
+        from relief_bsdf.methods.registry import options_for
+        return options_for(method, self.options)
 
     def validate(self) -> "Request":
         """Raise RequestError (naming the offending value) before any work starts."""

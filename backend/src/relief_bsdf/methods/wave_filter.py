@@ -82,16 +82,15 @@ def cell_samples(theta_edges_deg, phi_edges_deg, width_dcos: float, max_per_axis
     return CellSamples(alpha=s * np.cos(pp), beta=s * np.sin(pp), theta=theta, phi=pp)
 
 
-def smoothing_width_dcos(speckle_dcos: float, theta_edges_deg, options: dict | None = None) -> float:
+def smoothing_width_dcos(speckle_dcos: float, theta_edges_deg, smoothing_dcos: float | None = None) -> float:
     """Gaussian filter width (standard deviation, direction cosines) for a whole request.
 
     w = max(2 x speckle grain, half the finest theta cell in direction cosines near the pole
-    (d(sin theta) ~ d theta there)), unless `options["smoothing_dcos"]` sets it.  Pass the
-    coarsest speckle grain lambda / (n L) over the request's wavelengths and sides.
+    (d(sin theta) ~ d theta there)), unless the option `smoothing_dcos` sets it (not None).
+    Pass the coarsest speckle grain lambda / (n L) over the request's wavelengths and sides.
     """
-    options = options or {}
-    if "smoothing_dcos" in options:
-        w = float(options["smoothing_dcos"])
+    if smoothing_dcos is not None:
+        w = float(smoothing_dcos)
         if not (np.isfinite(w) and w >= 0):
             raise RequestError(f"smoothing_dcos must be >= 0, got {w}", "options.smoothing_dcos")
         return w

@@ -1,4 +1,7 @@
-"""Dask specifics behind `parallel.map_tasks` (imported only when a cluster is used).
+"""Dask specifics behind `parallel.map_tasks` (`distributed` is imported only when a cluster is used).
+
+Depends on `parallel.settings` and `parallel.worker`, never on `parallel.tasks` (which
+imports this module): no import cycle.
 
 - `get_client(spec, workers)`: "local" starts a `distributed.LocalCluster` (one
   single-threaded worker process per core, or `workers`), "tcp://HOST:PORT" connects to a
@@ -30,6 +33,8 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from relief_bsdf.errors import InputError
+from relief_bsdf.parallel.settings import default_workers, group_size
+from relief_bsdf.parallel.worker import run_marked, task_rng
 
 _CLIENTS: dict[str, Any] = {}
 
@@ -67,8 +72,6 @@ def get_client(spec: Any, workers: int | None = None):
             return client
         close_client(spec)
     if spec == "local":
-        from relief_bsdf.parallel.tasks import default_workers
-
         n = int(workers or default_workers())
         with _sigint_ignored_by_children():
             cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
@@ -129,18 +132,11 @@ def close_all() -> None:
         close_client(spec)
 
 
-def _call(batch: list, fn: Callable, context: Any) -> list:
-    from relief_bsdf.parallel.tasks import running_task
-
-    with running_task():        # a task that calls map_tasks itself runs it serially here
-        return [fn(context, task) for task in batch]
-
-
 def run_on_client(client, fn: Callable, context: Any, items: list[tuple[int, Any]], *, retries: int = 2,
                   label: str = "task") -> Iterator[tuple[int, Any]]:
     """Run `fn(context, task)` for (index, task) items on the cluster; yield (index, result)
     in completion order.  The context travels to each worker once; consecutive tasks are
-    grouped (`parallel.group_size`); on exit (normal, error, Ctrl-C, or the consumer stopping) the
+    grouped (`parallel.settings.group_size`); on exit (normal, error, Ctrl-C, or the consumer stopping) the
     unfinished futures are cancelled."""
     try:
         yield from _run_on_client(client, fn, context, items, retries=retries, label=label)
@@ -156,8 +152,6 @@ def _run_on_client(client, fn: Callable, context: Any, items: list[tuple[int, An
                    label: str) -> Iterator[tuple[int, Any]]:
     import distributed
 
-    from relief_bsdf.parallel.tasks import group_size
-
     # wrapped in a list: scatter would split a dict or list context into one future per item
     ctx = client.scatter([context], broadcast=True, hash=False)[0] if context is not None else None
     n_workers = len(client.scheduler_info().get("workers", {}))
@@ -166,7 +160,7 @@ def _run_on_client(client, fn: Callable, context: Any, items: list[tuple[int, An
     tag = uuid.uuid4().hex[:8]
     keys = [f"{label}-{tag}-{g[0][0]}" + (f"+{len(g)}" if len(g) > 1 else "") for g in groups]
     index = {k: [i for i, _ in g] for k, g in zip(keys, groups)}
-    futures = client.map(_call, [[t for _, t in g] for g in groups], key=keys, retries=int(retries), pure=False,
+    futures = client.map(run_marked, [[t for _, t in g] for g in groups], key=keys, retries=int(retries), pure=False,
                          fn=fn, context=ctx)
     remaining = {f.key: f for f in futures}
     try:
@@ -208,8 +202,6 @@ def synthetic_task(context: dict, task: tuple) -> np.ndarray:
     so the cost per task is set by `size` and `work` and the result depends on every
     random number drawn: identical results prove identical seeds.
     """
-    from relief_bsdf.parallel.tasks import task_rng
-
     k = int(task[0])
     if context.get("log_dir"):
         path = os.path.join(context["log_dir"], f"{k}-{uuid.uuid4().hex}")

@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from relief_bsdf.core.optics import ConstantIndex, IndexModel, Material
+from relief_bsdf.core.index import ConstantIndex, IndexModel, Material
 from relief_bsdf.errors import InputError
 
 SOURCE_Q = {"unpolarized": 0.0, "s": 1.0, "p": -1.0}

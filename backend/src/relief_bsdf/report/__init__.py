@@ -1,1 +1,9 @@
-"""report"""
+"""Figures and reports (matplotlib, written atomically): nothing here computes physics.
+
+    plots       table_figure / compare_figure / plot_in_plane / plot_polar_map / save_figure
+                (`relief plot`)
+    fit_report  fit_plots / write_fit_report / in_plane_figure / residual_map_figure (`relief fit`)
+Import the sub-modules directly: they load matplotlib (Agg backend) on import.
+"""
+
+__all__ = ["plots", "fit_report"]

@@ -1,6 +1,6 @@
 """Reusable BSDF plots (matplotlib, Agg backend, PNG written atomically).
 
-- `plot_in_plane(ax, table, side)`: in-plane BSDF curves, one per incidence angle, against
+- `plot_in_plane(ax, table, side, style=CurveStyle(...))`: in-plane BSDF curves, one per incidence angle, against
   the signed scatter angle (negative: the phi_i + 180 half-plane, where the specular /
   undeviated direction lies), log scale, like the paper's figures 4 and 9.  Several tables
   can be overlaid on one axis (e.g. a measurement and a simulation with `linestyle`).
@@ -11,6 +11,7 @@ Delta parts (specular_R/T) are not curves; they are listed in the legend text.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -31,8 +32,18 @@ def _floor(values: np.ndarray) -> float:
     return float(pos.max() * 1e-6) if pos.size else 1e-6
 
 
-def plot_in_plane(ax, table: BsdfTable, side: str, iw: int = 0, ip: int = 0, linestyle: str = "-",
-                  label_prefix: str = "", colors=None, show_specular: bool = True):
+@dataclass(frozen=True)
+class CurveStyle:
+    """How one table's in-plane curves are drawn: line style, a label prefix (e.g. the method),
+    one colour per incidence (None: viridis), and whether the legend lists the delta parts."""
+
+    linestyle: str = "-"
+    label_prefix: str = ""
+    colors: tuple | None = None
+    show_specular: bool = True
+
+
+def plot_in_plane(ax, table: BsdfTable, side: str, iw: int = 0, ip: int = 0, style: CurveStyle = CurveStyle()):
     """In-plane curves of `table` for every incidence angle on `ax` (log y); returns the lines."""
     ang, vals = table.in_plane(side, iw, ip)
     cmap = plt.get_cmap("viridis")
@@ -41,12 +52,12 @@ def plot_in_plane(ax, table: BsdfTable, side: str, iw: int = 0, ip: int = 0, lin
     floor = _floor(vals)
     spec = table.specular_R if side == "R" else table.specular_T
     for k, ti in enumerate(table.theta_i_deg):
-        c = colors[k] if colors is not None else cmap(k / max(n - 1, 1))
+        c = style.colors[k] if style.colors is not None else cmap(k / max(n - 1, 1))
         v = np.where(vals[k] > floor, vals[k], np.nan)
-        lab = f"{label_prefix}{ti:g} deg"
-        if show_specular and spec[iw, k, ip] > 0:
+        lab = f"{style.label_prefix}{ti:g} deg"
+        if style.show_specular and spec[iw, k, ip] > 0:
             lab += f" (+ delta {spec[iw, k, ip]:.3g})"
-        lines += ax.plot(ang, v, linestyle=linestyle, color=c, label=lab)
+        lines += ax.plot(ang, v, linestyle=style.linestyle, color=c, label=lab)
     ax.set_yscale("log")
     ax.set_xlim(-90, 90)
     ax.set_xlabel("signed theta_s (deg); < 0: phi_i + 180 half-plane")
@@ -114,8 +125,8 @@ def compare_figure(tables: list, labels: list, sides=("R", "T"), iw: int = 0, ip
     for s, side in enumerate(sides):
         ax = axs[0, s]
         for k, (t, lab) in enumerate(zip(tables, labels)):
-            plot_in_plane(ax, t.select(tables[0].wavelength_nm[iw]), side, 0, ip, linestyle=styles[k % len(styles)],
-                          label_prefix=f"{lab} ", show_specular=False)
+            style = CurveStyle(linestyle=styles[k % len(styles)], label_prefix=f"{lab} ", show_specular=False)
+            plot_in_plane(ax, t.select(tables[0].wavelength_nm[iw]), side, 0, ip, style)
         ax.legend(fontsize=6, ncol=len(tables))
     fig.suptitle(" vs ".join(f"{lab} ({st})" for lab, st in zip(labels, styles * 4)), fontsize=9)
     return fig

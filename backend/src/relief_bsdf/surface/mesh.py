@@ -5,6 +5,7 @@ Geometry (assumptions stated):
   samples it is the piecewise-linear surface of two triangles per grid cell (the diagonal
   runs from (i, j) to (i+1, j+1)).  Every triangle therefore has a normal with n_z > 0:
   the upper medium is always "above" the surface and a vertical line crosses it once.
+  These triangles are the facets of `surface.stats.facet_slopes` (the one slope definition).
 - The tile is periodic.  A periodic relief (synthetic) keeps its own period: the
   wrap-around cells joining the last row/column to the first are included, so the
   surface is seamless and a ray leaving the tile sideways re-enters from the opposite

@@ -23,10 +23,21 @@ Conventions (all SI; x = columns with pitch dx, y = rows with pitch dy):
 - **PSD** (2-D, m^4): psd = |FFT(w z)|^2 dx dy / (N sum-normalised window power), so that
   sum(psd) * dfx * dfy = sigma^2 (exact without window; the window-weighted variance
   with one), dfx = 1 / (nx dx).  Frequencies in cycles per metre (numpy FFT order).
-- **facets**: one facet per grid cell (2 x 2 pixels; wrap-around cells too when
-  periodic), slope = mean of the cell's two forward differences along each axis;
-  every facet covers the same projected area dx dy.  Cells with an invalid corner
-  are NaN.
+- **facets**: the triangles of the piecewise-linear surface that `surface.mesh` builds and
+  the ray tracer intersects: two per grid cell, split along the (i, j)-(i+1, j+1) diagonal
+  (wrap-around cells too when periodic).  Triangle A = (00, 01, 11) has slopes
+  ((z01 - z00) / dx, (z11 - z01) / dy), triangle B = (00, 11, 10) has ((z11 - z10) / dx,
+  (z10 - z00) / dy) (zRC: R = row offset, C = column offset).  Every facet covers the
+  projected area dx dy / 2.  Triangles with an invalid corner are NaN.
+
+One slope definition: the x (y) components of the facet slopes are exactly the forward
+differences along x (y), each edge counted twice, so on a periodic tile the rms facet slope
+magnitude equals `rms_slope` (forward differences) to rounding; on a non-periodic map they
+differ only by the weight of the border edges.  Every consumer (relief info, the fit's
+microfacet alpha, the diagnosis, the facet-normal and microfacet methods) uses these
+functions; central differences (np.gradient) are *not* used because they measure the slope
+at twice the pitch (relative bias d^2 / L^2 on the rms instead of d^2 / (4 L^2)) and are not
+the slope of any facet the tracer sees.
 """
 from __future__ import annotations
 
@@ -36,6 +47,7 @@ from typing import Any
 import numpy as np
 import scipy.fft as sfft
 
+from relief_bsdf.core.microfacet import normals_from_slopes
 from relief_bsdf.surface.relief import Relief
 
 
@@ -93,6 +105,32 @@ def _rms(a: np.ndarray) -> float:
     return float(np.sqrt(np.mean(a * a))) if a.size else float("nan")
 
 
+def rms_height(relief: Relief) -> float:
+    """rms height (m) of the levelled relief over its valid points (module doc); NaN if none."""
+    lv = levelled(relief)
+    return _rms(lv.heights_m)
+
+
+def rms_slope_xy(relief: Relief) -> tuple[float, float]:
+    """(rms slope along x, along y) of the levelled relief: rms forward differences (module doc)."""
+    sx, sy = slopes(levelled(relief))
+    return _rms(sx), _rms(sy)
+
+
+def rms_slope(relief: Relief) -> float:
+    """rms slope magnitude sqrt(rms_x^2 + rms_y^2) of the levelled relief; what `relief info` prints.
+
+    Equals the rms magnitude of the facet slopes (`facet_slopes`) on a periodic tile, and
+    2 s / L for the Gaussian autocovariance s^2 exp(-r^2 / L^2) (up to d^2 / (4 L^2)).
+    """
+    return float(np.hypot(*rms_slope_xy(relief)))
+
+
+def rms_height_and_slope(relief: Relief) -> tuple[float, float]:
+    """(rms height in m, rms slope magnitude) of the levelled relief: the two figures every model uses."""
+    return rms_height(relief), rms_slope(relief)
+
+
 def relief_stats(relief: Relief) -> ReliefStats:
     """rms height, slopes, correlation lengths and moments of `relief` (valid points only)."""
     relief.require_valid()
@@ -105,8 +143,7 @@ def relief_stats(relief: Relief) -> ReliefStats:
         kurt = float(np.mean(z**4) / sigma**4)
     else:
         skew = kurt = float("nan")
-    sx, sy = slopes(lv)
-    rx, ry = _rms(sx), _rms(sy)
+    rx, ry = rms_slope_xy(relief)
     lags_x, lags_y, acf = acf_2d(lv, level=False)
     return ReliefStats(shape=relief.shape, pitch_m=(relief.dx_m, relief.dy_m),
                        valid_fraction=relief.valid_fraction, rms_height_m=sigma,
@@ -286,29 +323,36 @@ def radial_psd(relief: Relief, window: str | None = "auto") -> tuple[np.ndarray,
 
 
 def facet_slopes(relief: Relief) -> tuple[np.ndarray, np.ndarray]:
-    """Slopes (dz/dx, dz/dy) of the grid-cell facets, shape (ny-1, nx-1) or (ny, nx) if periodic."""
+    """Slopes (dz/dx, dz/dy) of the mesh triangles, each (2, ny-1, nx-1), or (2, ny, nx) if periodic.
+
+    Index 0 along the first axis is triangle A = (00, 01, 11), index 1 triangle B = (00, 11, 10)
+    (module doc); NaN for triangles with an invalid corner.
+    """
     h = relief.heights_m
     if relief.periodic:
-        h10 = np.roll(h, -1, axis=0)
-        h01 = np.roll(h, -1, axis=1)
-        h11 = np.roll(h10, -1, axis=1)
         h00 = h
+        h01 = np.roll(h, -1, axis=1)
+        h10 = np.roll(h, -1, axis=0)
+        h11 = np.roll(h10, -1, axis=1)
     else:
         h00, h01, h10, h11 = h[:-1, :-1], h[:-1, 1:], h[1:, :-1], h[1:, 1:]
-    sx = 0.5 * ((h01 - h00) + (h11 - h10)) / relief.dx_m
-    sy = 0.5 * ((h10 - h00) + (h11 - h01)) / relief.dy_m
+    sx = np.stack([h01 - h00, h11 - h10]) / relief.dx_m
+    sy = np.stack([h11 - h01, h10 - h00]) / relief.dy_m
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.isfinite(sx) & np.isfinite(sy))
+    sx[bad] = np.nan
+    sy[bad] = np.nan
     return sx, sy
 
 
 def facet_normals(relief: Relief) -> np.ndarray:
-    """Unit normals (..., 3) of the grid-cell facets, (-sx, -sy, 1) / sqrt(1 + sx^2 + sy^2).
+    """Unit normals (2, ..., 3) of the mesh triangles, (-sx, -sy, 1) / sqrt(1 + sx^2 + sy^2).
 
-    Each facet covers the projected area dx * dy; its true area is that times
-    sqrt(1 + sx^2 + sy^2) = 1 / n_z.  NaN for cells with an invalid corner.
+    Each triangle covers the projected area dx * dy / 2; its true area is that times
+    sqrt(1 + sx^2 + sy^2) = 1 / n_z.  NaN for triangles with an invalid corner.
     """
     sx, sy = facet_slopes(relief)
-    n = np.stack([-sx, -sy, np.ones_like(sx)], axis=-1)
-    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+    return normals_from_slopes(sx, sy)
 
 
 def slope_histogram(relief: Relief, bins: Any = 64, max_slope: float | None = None

@@ -26,10 +26,12 @@ exponential ACF a fraction ~ d / (pi L) of the variance lies beyond Nyquist.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from relief_bsdf.errors import InputError
-from relief_bsdf.parallel.tasks import task_rng
+from relief_bsdf.parallel import task_rng
 from relief_bsdf.surface.relief import Relief
 
 
@@ -54,55 +56,125 @@ def psd_model(kind: str, fu: np.ndarray, fv: np.ndarray, rms_height_m: float, lu
     raise InputError("kind", f"unknown relief kind {kind!r}; expected 'gaussian' or 'exponential'")
 
 
+@dataclass(frozen=True)
+class RandomFieldSpec:
+    """What a random relief is: grid, statistics and shape of the autocovariance (module doc).
+
+    nx, ny: pixels; pitch_m: x pitch (pitch_y_m: y pitch, default the same); rms_height_m: s;
+    corr_length_m: L; kind: "gaussian" (s^2 exp(-r^2/L^2)) or "exponential" (s^2 exp(-r/L));
+    anisotropy: L is stretched to anisotropy * L along `angle_deg` from +x; exact_rms: scale each
+    realisation to exactly s.
+    """
+
+    nx: int
+    ny: int
+    pitch_m: float
+    rms_height_m: float
+    corr_length_m: float
+    kind: str = "gaussian"
+    anisotropy: float = 1.0
+    angle_deg: float = 0.0
+    exact_rms: bool = True
+    pitch_y_m: float | None = None
+
+    @property
+    def dy_m(self) -> float:
+        return self.pitch_m if self.pitch_y_m is None else float(self.pitch_y_m)
+
+    def check(self) -> None:
+        """InputError for a grid or statistics the generator cannot honour (aliased, too small a tile)."""
+        for name, v in (("size", self.nx), ("ny", self.ny)):
+            if v < 4:
+                raise InputError(name, f"grid size must be at least 4 pixels, got {v}")
+        for name, v in (("pitch", self.pitch_m), ("pitch y", self.dy_m), ("rms height", self.rms_height_m),
+                        ("correlation length", self.corr_length_m), ("anisotropy", self.anisotropy)):
+            if not (np.isfinite(v) and v > 0):
+                raise InputError(name, f"must be a positive number, got {v!r}")
+        if self.kind not in KINDS:
+            raise InputError("kind", f"unknown relief kind {self.kind!r}; expected 'gaussian' or 'exponential'")
+        lu, lv = self.corr_length_m * self.anisotropy, self.corr_length_m
+        pitch = max(self.pitch_m, self.dy_m)
+        if min(lu, lv) < 2 * pitch:
+            raise InputError("correlation length", f"{min(lu, lv) * 1e6:.4g} um is under 2 pixels "
+                                                   f"({pitch * 1e6:.4g} um): the relief would be aliased")
+        if max(lu, lv) > 0.5 * min(self.nx * self.pitch_m, self.ny * self.dy_m):
+            raise InputError("size", f"tile {min(self.nx, self.ny)} px x {self.pitch_m * 1e6:.4g} um is shorter "
+                                     f"than 2 correlation lengths ({max(lu, lv) * 1e6:.4g} um): the statistics "
+                                     "would be meaningless")
+
+
+KINDS = ("gaussian", "exponential")
+
+
+def gaussian_field(spec: RandomFieldSpec, rng: np.random.Generator) -> np.ndarray:
+    """Heights (ny, nx) in m of one periodic realisation of `spec`: FFT filtering of white noise.
+
+    z = IFFT(FFT(e) sqrt(W / (dx dy))) with e standard normal white noise and W the 2-D PSD of the
+    autocovariance (module doc); the mean (f = 0) is removed, and with spec.exact_rms the
+    realisation is scaled to rms exactly s.  No validation: see `RandomFieldSpec.check`.
+    """
+    noise = rng.standard_normal((spec.ny, spec.nx))
+    fu, fv = _grid_freqs(spec.nx, spec.ny, spec.pitch_m, spec.dy_m, spec.angle_deg)
+    W = psd_model(spec.kind, fu, fv, spec.rms_height_m, spec.corr_length_m * spec.anisotropy, spec.corr_length_m)
+    W[0, 0] = 0.0                                   # zero mean
+    z = np.fft.ifft2(np.fft.fft2(noise) * np.sqrt(W / (spec.pitch_m * spec.dy_m))).real
+    if spec.exact_rms:
+        z *= spec.rms_height_m / np.sqrt(np.mean(z * z))
+    return z
+
+
+def random_heights(spec: RandomFieldSpec, seed: int = 0, stream: int = 0) -> np.ndarray:
+    """Validated heights (ny, nx) of `spec`, seeded through `parallel.task_rng(seed, stream)`."""
+    spec.check()
+    return gaussian_field(spec, task_rng(int(seed), int(stream)))
+
+
+def relief_from_spec(spec: RandomFieldSpec, seed: int = 0) -> Relief:
+    """Periodic `Relief` of one realisation of `spec` (history and metadata say how it was made)."""
+    z = random_heights(spec, seed)
+    step = (f"synthetic {spec.kind} relief: s = {spec.rms_height_m * 1e9:.4g} nm, L = {spec.corr_length_m * 1e6:.4g} um"
+            + (f", anisotropy {spec.anisotropy:g} at {spec.angle_deg:g} deg" if spec.anisotropy != 1 else "")
+            + f", seed {seed}" + (", rms normalised exactly" if spec.exact_rms else ""))
+    meta = {"generator": "relief_bsdf.surface.synth.random_relief", "kind": spec.kind,
+            "rms_height_m": spec.rms_height_m, "corr_length_m": spec.corr_length_m, "anisotropy": spec.anisotropy,
+            "angle_deg": spec.angle_deg, "seed": int(seed), "exact_rms": spec.exact_rms}
+    return Relief(z, spec.pitch_m, spec.dy_m, periodic=True, source=step, metadata=meta, history=(step,))
+
+
 def random_relief(n: int, pitch_m: float, rms_height_m: float, corr_length_m: float,
-                  kind: str = "gaussian", seed: int = 0, anisotropy: float = 1.0, angle_deg: float = 0.0,
-                  ny: int | None = None, exact_rms: bool = True) -> Relief:
-    """Periodic random relief of n x n (or ny x n) pixels at square pitch `pitch_m`.
+                  kind: str = "gaussian", seed: int = 0, ny: int | None = None) -> Relief:
+    """Isotropic periodic random relief of n x n (or ny x n) pixels at square pitch `pitch_m`.
 
     The autocovariance is s^2 exp(-r^2/L^2) ("gaussian") or s^2 exp(-r/L) ("exponential")
-    with s = rms_height_m, L = corr_length_m (times `anisotropy` along `angle_deg`).
-    Seeded through `parallel.task_rng(seed, 0)`: the same arguments give the same relief.
+    with s = rms_height_m (exactly, per realisation), L = corr_length_m.  Seeded through
+    `parallel.task_rng(seed, 0)`: the same arguments give the same relief.  The short form of
+    `relief_from_spec(RandomFieldSpec(...), seed)`, which also takes anisotropy and exact_rms.
     """
     nx = int(n)
-    ny = nx if ny is None else int(ny)
-    for name, v in (("size", nx), ("ny", ny)):
-        if v < 4:
-            raise InputError(name, f"grid size must be at least 4 pixels, got {v}")
-    for name, v in (("pitch", pitch_m), ("rms height", rms_height_m), ("correlation length", corr_length_m),
-                    ("anisotropy", anisotropy)):
-        if not (np.isfinite(v) and v > 0):
-            raise InputError(name, f"must be a positive number, got {v!r}")
-    if kind not in ("gaussian", "exponential"):
-        raise InputError("kind", f"unknown relief kind {kind!r}; expected 'gaussian' or 'exponential'")
-    lu, lv = corr_length_m * anisotropy, corr_length_m
-    if min(lu, lv) < 2 * pitch_m:
-        raise InputError("correlation length", f"{min(lu, lv) * 1e6:.4g} um is under 2 pixels "
-                                               f"({pitch_m * 1e6:.4g} um): the relief would be aliased")
-    if max(lu, lv) > 0.5 * min(nx, ny) * pitch_m:
-        raise InputError("size", f"tile {min(nx, ny)} px x {pitch_m * 1e6:.4g} um is shorter than 2 correlation "
-                                 f"lengths ({max(lu, lv) * 1e6:.4g} um): the statistics would be meaningless")
-    rng = task_rng(int(seed), 0)
-    noise = rng.standard_normal((ny, nx))
-    fu, fv = _grid_freqs(nx, ny, pitch_m, pitch_m, angle_deg)
-    W = psd_model(kind, fu, fv, rms_height_m, lu, lv)
-    W[0, 0] = 0.0                                   # zero mean
-    z = np.fft.ifft2(np.fft.fft2(noise) * np.sqrt(W / (pitch_m * pitch_m))).real
-    step = (f"synthetic {kind} relief: s = {rms_height_m * 1e9:.4g} nm, L = {corr_length_m * 1e6:.4g} um"
-            + (f", anisotropy {anisotropy:g} at {angle_deg:g} deg" if anisotropy != 1 else "")
-            + f", seed {seed}")
-    if exact_rms:
-        z *= rms_height_m / np.sqrt(np.mean(z * z))
-        step += ", rms normalised exactly"
-    meta = {"generator": "relief_bsdf.surface.synth.random_relief", "kind": kind, "rms_height_m": rms_height_m,
-            "corr_length_m": corr_length_m, "anisotropy": anisotropy, "angle_deg": angle_deg, "seed": int(seed),
-            "exact_rms": exact_rms}
-    return Relief(z, pitch_m, pitch_m, periodic=True, source=step, metadata=meta, history=(step,))
+    spec = RandomFieldSpec(nx=nx, ny=nx if ny is None else int(ny), pitch_m=pitch_m, rms_height_m=rms_height_m,
+                           corr_length_m=corr_length_m, kind=kind)
+    return relief_from_spec(spec, seed)
 
 
-def lgp_dots(n: int, pitch_m: float, dot_pitch_m: float, dot_radius_m: float, dot_height_m: float,
-             shape: str = "cap", jitter: float = 0.2, seed: int = 0, micro_rms_m: float = 0.0,
-             micro_corr_m: float | None = None, ny: int | None = None) -> Relief:
-    """Light-guide-plate dot pattern: dots on a jittered square grid, periodic tile.
+@dataclass(frozen=True)
+class DotPattern:
+    """A light-guide-plate dot pattern (see `lgp_dots`): dot spacing, radius and height in metres.
+
+    shape "cap" or "gaussian"; jitter: fraction of the spacing the dots wander; micro_rms_m /
+    micro_corr_m: Gaussian micro-roughness inside the dots (0 = none; default L = 4 pixels).
+    """
+
+    dot_pitch_m: float
+    dot_radius_m: float
+    dot_height_m: float
+    shape: str = "cap"
+    jitter: float = 0.2
+    micro_rms_m: float = 0.0
+    micro_corr_m: float | None = None
+
+
+def lgp_dots(n: int, pitch_m: float, dots: DotPattern, seed: int = 0, ny: int | None = None) -> Relief:
+    """Light-guide-plate dot pattern `dots` on a jittered square grid, periodic n x n (ny x n) tile.
 
     Each grid cell (spacing = tile / round(tile / dot_pitch), so the tile stays periodic)
     holds one dot displaced uniformly by up to +-jitter * spacing / 2 along x and y.
@@ -113,6 +185,8 @@ def lgp_dots(n: int, pitch_m: float, dot_pitch_m: float, dot_radius_m: float, do
     default 4 pixels) inside the dots only, as on printed / moulded dots.
     Dots must not overlap: dot_radius (x2 for gaussian) + jitter * spacing / 2 < spacing / 2.
     """
+    dot_pitch_m, dot_radius_m, dot_height_m = dots.dot_pitch_m, dots.dot_radius_m, dots.dot_height_m
+    shape, jitter, micro_rms_m, micro_corr_m = dots.shape, dots.jitter, dots.micro_rms_m, dots.micro_corr_m
     nx = int(n)
     ny = nx if ny is None else int(ny)
     if shape not in ("cap", "gaussian"):

@@ -38,8 +38,17 @@ fraction exp(-(k0 s (n cos t_t - cos t_i))^2) is 0.21 - 0.63 at the recorded inc
 0 / 30 / 55 deg, while reflection (phase rms 2 k0 s cos t_i = 1.6 - 3.7 rad, coherent
 fraction <= 0.08) is mostly diffuse.
 
+Independence: nothing here comes from the forward model the cases check (plate/, methods/,
+diagnose/).  Shared with the rest of the project, and only these: the physics core (Fresnel,
+Stokes rotation, frames, Beer-Lambert, Henyey-Greenstein and Beckmann sampling, through
+validation/photon.py), the ONE random-field generator `surface.synth.random_relief`, the ONE
+triangulation `surface.mesh.build_tile_mesh` (traced by this module's own loop), the ONE relief
+operation `surface.operations.scale_and_filter` (so `height_scale` / `filter_sigma_um` in a key
+mean what the fit's parameters mean), and io/ for the files.
+
 Assumptions: geometric optics except the wave cases above, periodic synthetic relief tile
-(Gaussian autocovariance), in-plane goniophotometer scans (phi_i = 0, phi_s in {0, 180}).
+(Gaussian autocovariance s^2 exp(-r^2 / L^2), formats.md), in-plane goniophotometer scans
+(phi_i = 0, phi_s in {0, 180}).
 """
 from __future__ import annotations
 
@@ -49,11 +58,15 @@ from pathlib import Path
 
 import numpy as np
 
+from relief_bsdf.core.frames import dot, normalize
 from relief_bsdf.io.atomic import write_text_atomic
-from relief_bsdf.parallel.tasks import task_rng
-from relief_bsdf.validation.photon import PlatePhysics, _dot, _normalize, detect, interface_event, run_photons
 from relief_bsdf.io.recording import Recording, write_recording, write_sample
+from relief_bsdf.parallel import ParallelSettings, map_tasks, task_rng
+from relief_bsdf.surface.mesh import build_tile_mesh
+from relief_bsdf.surface.operations import scale_and_filter
 from relief_bsdf.surface.relief import Relief
+from relief_bsdf.surface.synth import random_relief
+from relief_bsdf.validation.photon import PlatePhysics, detect, interface_event, run_photons
 
 EFFECTS_CONCEALABLE = ("none", "bulk_absorption", "volume_scattering", "back_face_roughness", "sample_tilt",
                        "instrument_blur", "polarization", "stray_light", "relief_scale", "relief_smoothing",
@@ -68,47 +81,46 @@ WAVE_EFFECTS = ("diffraction", "partial_coherence")
 
 
 class HeightFieldFace:
-    """Exact ray tracing through a periodic height field (3 x 3 tiles, Embree triangles).
+    """Exact ray tracing through a periodic height field: the project's ONE triangulation
+    (`surface.mesh.build_tile_mesh`: two triangles per cell, wrap-around cells included) laid
+    out as 3 x 3 periodic copies in one Embree scene, traversed by this class's own loop.
 
     Photons enter the relief layer at a uniformly random lateral position (an extended
     beam), bounce on the triangles with Fresnel/Stokes events (`interface_event`) until
-    they leave the layer (above its highest point in air, or below its lowest in glass).
-    Coordinates in micrometres for float32 precision.
+    they leave the layer (above its highest point in air, or below its lowest in glass);
+    after each hit the position is wrapped back into the central tile.  Coordinates are the
+    mesh's (units of the x pitch, float32 precision).  Independent of the ray method's tracer
+    (methods/ray.py): only the mesh is shared.
     """
 
     def __init__(self, heights_m: np.ndarray, dx_m: float, dy_m: float, max_hits: int = 20):
         from embreex import rtcore_scene as rtcs
         from embreex.mesh_construction import TriangleMesh
 
-        h = np.asarray(heights_m, float) * 1e6
-        h = h - np.nanmean(h)
-        ny, nx = h.shape
-        dx, dy = dx_m * 1e6, dy_m * 1e6
-        self.Lx, self.Ly = nx * dx, ny * dy
-        ii = np.arange(-nx, 2 * nx + 1)
-        jj = np.arange(-ny, 2 * ny + 1)
-        X, Y = np.meshgrid(ii * dx, jj * dy)
-        Z = h[np.mod(jj, ny)][:, np.mod(ii, nx)]
-        V = np.stack([X, Y, Z], axis=-1)
-        a = V[:-1, :-1].reshape(-1, 3)
-        b = V[:-1, 1:].reshape(-1, 3)
-        c = V[1:, :-1].reshape(-1, 3)
-        d = V[1:, 1:].reshape(-1, 3)
-        tris = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)], 0)
-        nrm = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-        nrm = nrm * np.sign(nrm[:, 2:3])
-        self.normals = _normalize(nrm)
+        mesh = build_tile_mesh(Relief(np.asarray(heights_m, float), dx_m, dy_m, periodic=True,
+                                      source="concealed-case relief"))
+        self.Lx, self.Ly = (float(v) for v in mesh.period)
+        tri = mesh.vertices.astype(np.float64)[mesh.triangles]            # (T, 3 corners, 3)
+        shifts = [(i * self.Lx, j * self.Ly) for j in (-1, 0, 1) for i in (-1, 0, 1)]
+        tiles = [tri + np.array([sx, sy, 0.0]) for sx, sy in shifts]
+        self.normals = np.tile(normalize(mesh.triangle_normals().astype(np.float64)), (len(shifts), 1))
         self.scene = rtcs.EmbreeScene()
-        TriangleMesh(self.scene, tris.astype(np.float32))
-        self.zmax = float(h.max()) + 1e-3
-        self.zmin = float(h.min()) - 1e-3
+        TriangleMesh(self.scene, np.concatenate(tiles).astype(np.float32))
+        self.zmax = mesh.z_max + 1e-3
+        self.zmin = mesh.z_min - 1e-3
         self.max_hits = max_hits
+
+    def _wrap(self, p: np.ndarray) -> np.ndarray:
+        """Lateral positions folded back into the central tile [-L/2, L/2)."""
+        p[:, 0] = np.mod(p[:, 0] + self.Lx / 2, self.Lx) - self.Lx / 2
+        p[:, 1] = np.mod(p[:, 1] + self.Ly / 2, self.Ly) - self.Ly / 2
+        return p
 
     def interact(self, d, S, e, inside, n_glass, rng):
         n = len(d)
         o = np.empty((n, 3))
-        o[:, 0] = rng.random(n) * self.Lx
-        o[:, 1] = rng.random(n) * self.Ly
+        o[:, 0] = (rng.random(n) - 0.5) * self.Lx
+        o[:, 1] = (rng.random(n) - 0.5) * self.Ly
         o[:, 2] = np.where(d[:, 2] < 0, self.zmax, self.zmin)
         alive = np.ones(n, bool)
         active = np.arange(n)
@@ -116,52 +128,34 @@ class HeightFieldFace:
             if active.size == 0:
                 break
             r = self.scene.run(o[active].astype(np.float32), d[active].astype(np.float32), output=1)
-            prim = r["primID"]
-            miss = prim < 0
+            miss = r["primID"] < 0
             mi = active[miss]
             # a miss is an exit if the photon travels away on its medium's side, else lost
             good = np.where(inside[mi], d[mi, 2] < 0, d[mi, 2] > 0)
             alive[mi[~good]] = False
-            hit = active[~miss]
-            if hit.size == 0:
-                active = hit
-                break
-            t = r["tfar"][~miss].astype(float)
-            p = o[hit] + t[:, None] * d[hit]
-            m = self.normals[prim[~miss]]
-            ins = inside[hit]
-            nf = np.where(ins[:, None], -m, m)
-            bad = _dot(d[hit], nf) >= 0                # grazing numerical cases: flip
-            nf[bad] = -nf[bad]
-            n1 = np.where(ins, n_glass, 1.0)
-            n2 = np.where(ins, 1.0, n_glass)
-            dn, Sn, en, refl = interface_event(d[hit], S[hit], e[hit], nf, n1, n2, rng.random(hit.size))
-            d[hit], S[hit], e[hit] = dn, Sn, en
-            inside[hit] = np.where(refl, ins, ~ins)
-            p[:, 0] = np.mod(p[:, 0], self.Lx)
-            p[:, 1] = np.mod(p[:, 1], self.Ly)
-            o[hit] = p + 2e-4 * dn
-            active = hit
+            active = active[~miss]
+            if active.size:
+                o[active] = self._bounce(active, r["tfar"][~miss], r["primID"][~miss], o, (d, S, e, inside),
+                                         n_glass, rng)
         alive[active] = False
         return d, S, e, inside, alive
 
-
-# ------------------------------------------------------------------ synthetic relief
-
-
-def gaussian_relief(n: int, pitch_m: float, rms_m: float, corr_m: float, seed: int) -> np.ndarray:
-    """Periodic Gaussian random surface with autocovariance s^2 exp(-r^2 / l^2).
-
-    Spectral synthesis: white noise filtered by the square root of the Gaussian PSD
-    pi s^2 l^2 exp(-(pi l f)^2), then rescaled to the exact rms.
-    """
-    rng = task_rng(seed, 7)
-    f = np.fft.fftfreq(n, d=pitch_m)
-    k2 = f[:, None] ** 2 + f[None, :] ** 2
-    amp = np.exp(-((np.pi * corr_m) ** 2) * k2 / 2)
-    h = np.real(np.fft.ifft2(np.fft.fft2(rng.normal(size=(n, n))) * amp))
-    h -= h.mean()
-    return h * (rms_m / h.std())
+    def _bounce(self, hit, tfar, prim, o, photons, n_glass, rng) -> np.ndarray:
+        """Fresnel/Stokes event of the photons `hit` on their triangles (arrays in `photons`
+        updated in place); returns their new ray origins, nudged off the surface."""
+        d, S, e, inside = photons
+        p = o[hit] + tfar.astype(float)[:, None] * d[hit]
+        m = self.normals[prim]
+        ins = inside[hit]
+        nf = np.where(ins[:, None], -m, m)
+        bad = dot(d[hit], nf) >= 0                     # grazing numerical cases: flip
+        nf[bad] = -nf[bad]
+        n1 = np.where(ins, n_glass, 1.0)
+        n2 = np.where(ins, 1.0, n_glass)
+        dn, Sn, en, refl = interface_event(d[hit], S[hit], e[hit], nf, n1, n2, rng.random(hit.size))
+        d[hit], S[hit], e[hit] = dn, Sn, en
+        inside[hit] = np.where(refl, ins, ~ins)
+        return self._wrap(p) + 2e-4 * dn
 
 
 # ------------------------------------------------------------------ cases
@@ -272,13 +266,13 @@ def _rows(spec: CaseSpec) -> Recording:
 def _true_signal(spec: CaseSpec, heights_m: np.ndarray, rec: Recording):
     """Monte-Carlo plate signal with the concealed effect, per row: (value, mc_sigma)."""
     p = spec.parameters
-    h = heights_m
     dx = spec.pitch_um * 1e-6
-    if spec.effect == "relief_scale":
-        h = h * p["height_scale"]
-    elif spec.effect == "relief_smoothing":
-        from scipy import ndimage
-        h = ndimage.gaussian_filter(h, p["filter_sigma_um"] * 1e-6 / dx, mode="wrap")
+    # the relief effects are the project's one relief operation (surface.operations), so the key's
+    # height_scale / filter_sigma_um mean what the fit's and the diagnosis's parameters mean
+    relief = scale_and_filter(Relief(np.asarray(heights_m, float), dx, dx, periodic=True),
+                              p.get("height_scale", 1.0) if spec.effect == "relief_scale" else 1.0,
+                              p.get("filter_sigma_um", 0.0) * 1e-6 if spec.effect == "relief_smoothing" else 0.0)
+    h = relief.heights_m
     wave = spec.effect in WAVE_EFFECTS
     face = None if wave else HeightFieldFace(h, dx, dx)
     phys = PlatePhysics(thickness_mm=spec.thickness_mm, n_glass=spec.n_glass,
@@ -295,9 +289,9 @@ def _true_signal(spec: CaseSpec, heights_m: np.ndarray, rec: Recording):
             ng = spec.n_glass + p["cauchy_B_nm2"] * (1 / wl**2 - 1 / 550.0**2)
         phys.n_glass = ng
         if wave:   # wave optics: one phase screen per wavelength (phase_screen.py)
-            from relief_bsdf.validation.phase_screen import PhaseScreenFace
-            face = PhaseScreenFace(h, dx, dx, wl, n_max=max(1.6, ng),
-                                   coherence_length_um=p.get("coherence_length_um"))
+            from relief_bsdf.validation.phase_screen import PhaseScreenFace, ScreenSampling
+            face = PhaseScreenFace(h, dx, dx, wl, coherence_length_um=p.get("coherence_length_um"),
+                                   sampling=ScreenSampling(n_max=max(1.6, ng)))
         for it, ti in enumerate(spec.theta_i_deg):
             rows = np.nonzero((rec.wavelength_nm == wl) & (rec.theta_i_deg == ti))[0]
             rng = task_rng(spec.seed, iw, it)
@@ -313,13 +307,11 @@ def make_case(spec: CaseSpec, out_dir: str | Path) -> dict:
     """Write one case folder (relief.x3p, recording.csv, sample.toml, key.json); return the key."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    heights = gaussian_relief(spec.relief_n, spec.pitch_um * 1e-6, spec.rms_um * 1e-6, spec.corr_um * 1e-6,
-                              spec.seed)
-    relief = Relief(heights, spec.pitch_um * 1e-6, spec.pitch_um * 1e-6, periodic=True,
-                    source=f"synthetic gaussian, seed {spec.seed}")
+    relief = random_relief(spec.relief_n, spec.pitch_um * 1e-6, spec.rms_um * 1e-6, spec.corr_um * 1e-6,
+                           kind="gaussian", seed=spec.seed)
     relief_name = _write_relief(out, relief)
     rec = _rows(spec)
-    val, mc_sig = _true_signal(spec, heights, rec)
+    val, mc_sig = _true_signal(spec, relief.heights_m, rec)
     rng = task_rng(spec.seed, 12345)
     counts = rng.poisson(np.maximum(val, 0) * spec.counts_per_sr) / spec.counts_per_sr
     gain = 1.0 + spec.gain_noise * rng.normal(size=len(val))
@@ -356,12 +348,13 @@ def _case_task(context, spec: CaseSpec) -> dict:
     return key
 
 
-def generate(out_root: str | Path, cases: list[CaseSpec] | None = None, progress=None) -> Path:
-    """Generate every case under out_root (in parallel); keys go to out_root/key.json."""
-    from relief_bsdf.parallel.tasks import map_tasks
+def generate(out_root: str | Path, cases: list[CaseSpec] | None = None, progress=None,
+             settings: ParallelSettings | None = None) -> Path:
+    """Generate every case under out_root (one `parallel.map_tasks` task per case, run where
+    `settings` say; default: the settings in force); keys go to out_root/key.json."""
     root = Path(out_root)
     root.mkdir(parents=True, exist_ok=True)
     cases = cases if cases is not None else default_cases()
-    keys = map_tasks(_case_task, cases, str(root), progress=progress, label="concealed cases")
+    keys = map_tasks(_case_task, cases, str(root), settings=settings, progress=progress, label="concealed cases")
     write_text_atomic(root / "key.json", json.dumps({"format": "relief-conceal-key/1", "cases": keys}, indent=1))
     return root / "key.json"

@@ -1,18 +1,18 @@
 """Scalar Kirchhoff thin phase screen of a real relief: a wave-optics rough face for photon runs.
 
-`PhaseScreenFace` has the rough-face interface of `photon_plate.py`,
-`interact(d, S, e, inside, n_glass, rng) -> (d, S, e, inside, alive)`, so the whole plate is
-still run by `photon_plate.run_photons`; only the front-face event is wave optics.  It is the
-wave-optics generator of the concealed `diffraction` / `partial_coherence` cases
-(`conceal.py`) and is independent of the diagnosis's model of those effects
-(`photon_plate.KirchhoffFace`: the Beckmann series of a Gaussian-correlated surface built from
-the relief's rms height and slope only): nothing here uses the Gaussian formulas, the coherent
-and diffuse parts come out of the Fourier transform of the real relief's phase.
+`PhaseScreenFace` has the rough-face interface of the validation's photon engine
+(validation/photon.py), `interact(d, S, e, inside, n_glass, rng) -> (d, S, e, inside, alive)`,
+so the whole plate is still run by `photon.run_photons`; only the front-face event is wave
+optics.  It is the wave-optics generator of the concealed `diffraction` / `partial_coherence`
+cases (`conceal.py`) and is independent of the forward model's model of those effects (the
+diagnosis's Beckmann / Debye-Waller description built from the relief's rms height and slope
+only): nothing here uses the Gaussian formulas, the coherent and diffuse parts come out of the
+Fourier transform of the real relief's phase.
 
 Physics of one event (photon arriving with propagation direction d in medium n1 at the mean
 plane z = 0; exp(-i w t) convention; heights h(x) towards +z, air side):
 
-1. Fresnel choice at the MEAN plane (normal +-z) with `photon_plate.interface_event`: the
+1. Fresnel choice at the MEAN plane (normal +-z) with `photon.interface_event`: the
    reflect / transmit choice, the Stokes update (Born & Wolf 1.5.20-21 Mueller matrix) and
    the specular direction d_s in medium n_out (n1 for R, n2 for T).
 2. Thin-element phase (Goodman, Introduction to Fourier Optics, sec. 5.1; Beckmann &
@@ -77,11 +77,13 @@ larger than the relief's correlation length.
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import fft as sp_fft
 
-from relief_bsdf.validation.photon import _normalize, interface_event
+from relief_bsdf.core.frames import normalize
+from relief_bsdf.validation.photon import interface_event
 
 PSI_SIGMA = 4.0            # rms of the partial-coherence phase field psi (rad)
 PHASE_QUANTUM_RAD = 0.04   # max|h| * da: phase error of the cached screens <= half of it (0.02 rad)
@@ -120,37 +122,60 @@ def _hann(n: int) -> np.ndarray:
 
 def gaussian_phase_field(shape: tuple, pitch_m: float, corr_m: float, sigma_rad: float,
                          rng: np.random.Generator) -> np.ndarray:
-    """Periodic Gaussian random field with autocorrelation sigma^2 exp(-r^2 / (2 corr^2)).
+    """Periodic Gaussian random phase field with autocorrelation sigma^2 exp(-r^2 / (2 corr^2)).
 
-    White noise filtered by the square root of its PSD (2 pi corr^2 sigma^2 exp(-2 pi^2 corr^2 f^2)),
-    i.e. the amplitude exp(-pi^2 corr^2 f^2), then rescaled to the exact rms.
+    The Gaussian Schell source's convention (Mandel & Wolf 1995, sec. 5.6.4): a coherence length
+    l_c = corr gives an angular spectrum of 1-sigma 1 / (k l_c), i.e. the diagnosis's blur
+    lambda / (2 pi l_c).  Drawn by the project's one random-field generator
+    (`surface.synth.gaussian_field`, autocovariance s^2 exp(-r^2 / L^2)) with L = sqrt(2) corr.
     """
+    from relief_bsdf.surface.synth import RandomFieldSpec, gaussian_field
     ny, nx = shape
-    fy = np.fft.fftfreq(ny, d=pitch_m)
-    fx = np.fft.fftfreq(nx, d=pitch_m)
-    amp = np.exp(-(np.pi * corr_m) ** 2 * (fy[:, None] ** 2 + fx[None, :] ** 2))
-    g = np.real(np.fft.ifft2(np.fft.fft2(rng.normal(size=shape)) * amp))
-    g -= g.mean()
-    return g * (sigma_rad / g.std())
+    spec = RandomFieldSpec(nx=nx, ny=ny, pitch_m=pitch_m, rms_height_m=sigma_rad,
+                           corr_length_m=np.sqrt(2.0) * corr_m, kind="gaussian", exact_rms=True)
+    return gaussian_field(spec, rng)
+
+
+@dataclass
+class _Event:
+    """One screen event's photon arrays: incoming directions, outgoing directions (set in place),
+    incident and outgoing indices, and which photons are still alive."""
+
+    din: np.ndarray
+    dnew: np.ndarray
+    n1: np.ndarray
+    n_out: np.ndarray
+    alive: np.ndarray
+
+
+@dataclass(frozen=True)
+class ScreenSampling:
+    """How a phase screen is sampled: n_max, the largest glass index the face will see (sets the
+    sampling grid); realisations, illumination instances per outer event (partial coherence);
+    upsample, the grid refinement factor (None = automatic, at most 4); cache_mb, memory for
+    the cached P(f) tables (LRU)."""
+
+    n_max: float = 1.6
+    realisations: int = 16
+    upsample: int | None = None
+    cache_mb: float = 200.0
 
 
 class PhaseScreenFace:
     """Rough face as a scalar Kirchhoff thin phase screen of the real relief (module docstring).
 
     heights_m: periodic height map (metres, finite); dx_m, dy_m: pitch; wavelength_nm: vacuum
-    wavelength (one face per wavelength); n_max: largest glass index the face will see (sets
-    the sampling grid); coherence_length_um: None = fully coherent source, else the Gaussian
-    Schell-model coherence length; realisations: illumination instances per outer event;
-    upsample: grid refinement factor (None = automatic, at most 4); cache_mb: memory for the
-    cached P(f) tables (LRU).  A table keeps only the bins of probability > 1e-10 (their
+    wavelength (one face per wavelength); coherence_length_um: None = fully coherent source,
+    else the Gaussian Schell-model coherence length; sampling: `ScreenSampling` (grid, number
+    of realisations, cache).  A table keeps only the bins of probability > 1e-10 (their
     indices and a float32 CDF; the dropped mass, < 1e-10 per bin, is renormalised away): photons
     trapped in the plate revisit hundreds of phase factors on every event of run_photons, and the
     cache must hold them all.
     """
 
     def __init__(self, heights_m: np.ndarray, dx_m: float, dy_m: float, wavelength_nm: float,
-                 n_max: float = 1.6, coherence_length_um: float | None = None, realisations: int = 16,
-                 upsample: int | None = None, cache_mb: float = 200.0):
+                 coherence_length_um: float | None = None, sampling: ScreenSampling = ScreenSampling()):
+        n_max, realisations, upsample = sampling.n_max, sampling.realisations, sampling.upsample
         h = np.asarray(heights_m, float)
         if not np.all(np.isfinite(h)):
             raise ValueError("PhaseScreenFace needs a height map without holes (fill NaNs first)")
@@ -187,7 +212,7 @@ class PhaseScreenFace:
         self.da = PHASE_QUANTUM_RAD / max(hmax, 1e-12)
         self.max_h_m = hmax
         self._cache: OrderedDict = OrderedDict()
-        self.cache_bytes = int(cache_mb * 2**20)
+        self.cache_bytes = int(sampling.cache_mb * 2**20)
         self._cached_bytes = 0
         self.tables_built = 0
 
@@ -270,8 +295,8 @@ class PhaseScreenFace:
         n_out = np.where(refl, n1, n2)
         a = self.k0 * (n1 * din[:, 2] - n_out * ds[:, 2])
         a_q = np.round(a / self.da)
-        alive = np.ones(n, bool)
-        dnew = ds.copy()
+        ev = _Event(din=din, dnew=ds.copy(), n1=n1, n_out=n_out, alive=np.ones(n, bool))
+        dnew, alive = ev.dnew, ev.alive
         outer = ~inside
         groups = []                                            # (photon indices, psi realisation or None)
         if self.l_c is not None and outer.any():
@@ -298,36 +323,38 @@ class PhaseScreenFace:
                 for key in np.unique(a_q[part]):
                     coh, diff = self.spectrum(key * self.da, psi_cache[real])
                     tables[key] = _compact(coh, diff)
-            for key, (coh, cdf, bins) in tables.items():
-                sel = part[a_q[part] == key]
-                self._kick(sel, din, dnew, n1, n_out, coh, cdf, bins, alive, rng)
+            for key, table in tables.items():
+                self._kick(ev, part[a_q[part] == key], table, rng)
         # polarisation kept, s-axis re-orthogonalised to the new direction
         en = en - np.einsum("ij,ij->i", en, dnew)[:, None] * dnew
         bad = np.linalg.norm(en, axis=1) < 1e-9
         if bad.any():
             en[bad] = np.cross(dnew[bad], np.array([0.0, 0.0, 1.0])) + 1e-3 * np.array([1.0, 0.0, 0.0])
-        en = _normalize(en)
+        en = normalize(en)
         ins_new = np.where(refl, inside, ~inside)
         return dnew, Sn, en, ins_new, alive
 
-    def _kick(self, sel, din, dnew, n1, n_out, coh, cdf, bins, alive, rng):
-        """Draw propagating orders for photons `sel` and set their directions (in place)."""
+    def _kick(self, ev: "_Event", sel: np.ndarray, table: tuple, rng: np.random.Generator) -> None:
+        """Draw propagating orders from `table` (coherent weight, CDF, bins) for photons `sel` of the
+        event and set their directions in `ev.dnew` (in place); after MAX_DRAWS evanescent draws a
+        photon is lost (`ev.alive`)."""
+        coh, cdf, bins = table
         todo = sel
         lam = self.wavelength_m
         for _ in range(MAX_DRAWS):
             if todo.size == 0:
                 break
             fx, fy = self._draw(coh, cdf, bins, todo.size, rng)
-            qx = n1[todo] * din[todo, 0] + lam * fx
-            qy = n1[todo] * din[todo, 1] + lam * fy
-            no = n_out[todo]
+            qx = ev.n1[todo] * ev.din[todo, 0] + lam * fx
+            qy = ev.n1[todo] * ev.din[todo, 1] + lam * fy
+            no = ev.n_out[todo]
             sx, sy = qx / no, qy / no
             s2 = sx * sx + sy * sy
             ok = s2 < 1.0
-            sg = np.sign(dnew[todo, 2])
+            sg = np.sign(ev.dnew[todo, 2])
             g = todo[ok]
-            dnew[g, 0] = sx[ok]
-            dnew[g, 1] = sy[ok]
-            dnew[g, 2] = sg[ok] * np.sqrt(1.0 - s2[ok])
+            ev.dnew[g, 0] = sx[ok]
+            ev.dnew[g, 1] = sy[ok]
+            ev.dnew[g, 2] = sg[ok] * np.sqrt(1.0 - s2[ok])
             todo = todo[~ok]
-        alive[todo] = False
+        ev.alive[todo] = False

@@ -1,21 +1,27 @@
-"""Photon transport through a solid plate with a rough face, polarisation tracked (Stokes).
+"""The validation's own photon engine: transport through a solid plate with a rough face, Stokes tracked.
 
-This is the photon engine shared by the diagnosis forward model (`effects.py`) and the
-concealed-data generator (`conceal.py`).  What differs between the two is the *rough-face
-interaction*, passed in as an object with one method
+This engine is the physics of `relief conceal` (validation/conceal.py) and is deliberately
+independent of the forward model it checks (plate/, methods/, diagnose/): its own transport
+loop, its own faces and its own detector.  It shares only the physics core (`core.fresnel`
+amplitudes and refraction, `core.stokes` frame rotation and interface Mueller product,
+`core.frames` directions and the sample tilt `rot_y`, `core.bulk` Beer-Lambert and
+Henyey-Greenstein sampling, `core.microfacet` Beckmann slope sampling), which every part of
+the project uses.  The rough-face interaction is an object with one method
 
     face.interact(d, S, e, inside, n_glass, rng) -> (d, S, e, inside, alive)
 
 which moves a batch of photons that arrive at the rough face (propagation directions `d`,
 Stokes vectors `S` in the frame whose s-axis is `e`, medium flag `inside` = in the glass)
 until each has left the face region: going up in air (reflected side) or down in the
-glass.  Two implementations exist:
+glass.  Implementations:
 
 - `NormalsFace` (here): random bump mapping over the *measured facet normals* of the relief
   (paper sec. 2.2, "density of normals"): each hit picks one facet with probability
-  proportional to its projected visible area; no shadowing, no lateral correlation.
+  proportional to its projected visible area; no shadowing, no lateral correlation (the
+  simple facet face of the validation's own checks);
 - `conceal.HeightFieldFace`: exact ray tracing through the triangulated height field
-  (Embree), with shadowing and interreflection on the relief (paper sec. 2.3).
+  (`surface.mesh.build_tile_mesh`, Embree), with shadowing and interreflection (paper sec. 2.3);
+- `phase_screen.PhaseScreenFace`: the scalar Kirchhoff thin phase screen of the real relief.
 
 Plate (geometric optics, lateral extent infinite, so lateral offsets do not matter for
 a BSDF): front face at z = 0 (the relief, thin compared to the thickness t), back face at
@@ -24,10 +30,10 @@ slope distribution).  Bulk: Beer-Lambert absorption exp(-a L) along each path in
 glass (weights), optional volume scattering with free paths ~ Exp(mu_s) and a
 Henyey-Greenstein phase function (Henyey & Greenstein 1941; polarisation carried over
 unchanged, a scalar approximation of the volume phase matrix).  Every interface event is a
-Fresnel Mueller matrix in the local s/p basis (`optics.mueller_interface`, Born & Wolf
-1.5.20-21) with the Stokes frame rotated onto the local plane of incidence (Chandrasekhar
-rotation), and the reflect/transmit choice drawn with the probability (M S)_0 / S_0, so the
-photon keeps S_0 = 1 and its weight changes only by absorption.
+Fresnel Mueller matrix in the local s/p basis (Born & Wolf 1.5.20-21) with the Stokes frame
+rotated onto the local plane of incidence (Chandrasekhar rotation, `core.stokes`), and the
+reflect/transmit choice drawn with the probability (M S)_0 / S_0, so the photon keeps
+S_0 = 1 and its weight changes only by absorption.
 
 Detection (formats.md): f = P_detector / (P_incident Omega cos theta_s), with a uniform
 detector cone of half-angle a around each row direction (`detect`), or that cone convolved
@@ -43,54 +49,29 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from relief_bsdf.core.optics import cos_transmitted, fresnel_amplitudes, refract
+from relief_bsdf.core.bulk import beer_lambert, sample_hg_cos, scatter_directions
+from relief_bsdf.core.frames import direction, dot, normalize, rot_y
+from relief_bsdf.core.fresnel import cos_transmitted, fresnel_amplitudes, refract
+from relief_bsdf.core.microfacet import sample_normals
+from relief_bsdf.core.stokes import apply_interface_mueller, rotate_stokes
 
-# ------------------------------------------------------------------ small vector helpers
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.einsum("ij,ij->i", a, b)
-
-
-def _normalize(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=1, keepdims=True)
-
-
-def _perp_any(d: np.ndarray) -> np.ndarray:
-    """A unit vector perpendicular to each row of d."""
-    a = np.where(np.abs(d[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
-    return _normalize(np.cross(d, a))
-
-
-def direction(theta_deg, phi_deg, down: bool = False) -> np.ndarray:
-    """Unit vectors w(theta, phi) of formats.md; `down` mirrors z (T side)."""
-    t = np.radians(np.asarray(theta_deg, float))
-    p = np.radians(np.asarray(phi_deg, float))
-    z = np.cos(t) * (-1.0 if down else 1.0)
-    return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), z], axis=-1)
-
-
-def rot_y(tau_rad: float) -> np.ndarray:
-    """Rotation matrix about the y axis (a sample tilted in the plane of incidence)."""
-    c, s = np.cos(tau_rad), np.sin(tau_rad)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+__all__ = ["Exits", "NormalsFace", "PlatePhysics", "detect", "direction", "interface_event",
+           "run_photons"]
 
 
 # ------------------------------------------------------------------ one interface event
 
 
 def _apply_mueller(a, b, S, scale):
-    """M S for the interface Mueller matrix with amplitudes a (s) and b (p), as
-    optics.mueller_interface (Born & Wolf 1.5.27 power factor in `scale`)."""
+    """M S for the interface Mueller matrix with amplitudes a (s) and b (p) (core.fresnel's
+    `mueller_interface` form, applied by `core.stokes.apply_interface_mueller`; the Born & Wolf
+    1.5.27 power factor in `scale`)."""
     A = np.abs(a) ** 2
     B = np.abs(b) ** 2
     C = a * np.conj(b)
-    out = np.empty_like(S)
-    out[:, 0] = 0.5 * (A + B) * S[:, 0] + 0.5 * (A - B) * S[:, 1]
-    out[:, 1] = 0.5 * (A - B) * S[:, 0] + 0.5 * (A + B) * S[:, 1]
-    out[:, 2] = np.real(C) * S[:, 2] + np.imag(C) * S[:, 3]
-    out[:, 3] = -np.imag(C) * S[:, 2] + np.real(C) * S[:, 3]
-    return out * np.asarray(scale)[..., None] if np.ndim(scale) else out * scale
+    scale = np.asarray(scale, float)
+    return apply_interface_mueller(S, 0.5 * (A + B) * scale, 0.5 * (A - B) * scale, np.real(C) * scale,
+                                   np.imag(C) * scale)
 
 
 def interface_event(d, S, e, nf, n1, n2, u):
@@ -102,19 +83,13 @@ def interface_event(d, S, e, nf, n1, n2, u):
     u: (n,) uniform numbers.  Returns (d_new, S_new, e_new, reflected).
     """
     wi = -d
-    cos_i = np.clip(_dot(wi, nf), 1e-9, 1.0)
+    cos_i = np.clip(dot(wi, nf), 1e-9, 1.0)
     s_vec = np.cross(d, nf)
     ns = np.linalg.norm(s_vec, axis=1)
     degenerate = ns < 1e-9
     s_vec = np.where(degenerate[:, None], e, s_vec / np.where(degenerate, 1.0, ns)[:, None])
-    # rotate Stokes from frame e to frame s_vec (angle psi about d)
-    cpsi = _dot(e, s_vec)
-    spsi = _dot(d, np.cross(e, s_vec))
-    c2 = cpsi * cpsi - spsi * spsi
-    s2 = 2 * cpsi * spsi
-    S1 = c2 * S[:, 1] + s2 * S[:, 2]
-    S2 = -s2 * S[:, 1] + c2 * S[:, 2]
-    Sr = np.stack([S[:, 0], S1, S2, S[:, 3]], axis=1)
+    # re-express the Stokes vector from frame e in the plane-of-incidence frame s_vec (core.stokes)
+    Sr = rotate_stokes(S, d, e, s_vec)
     # Mueller matrices of reflection / transmission applied without forming 4x4 arrays
     rs, rp, ts, tp = fresnel_amplitudes(cos_i, n1, n2)
     ct = cos_transmitted(cos_i, n1, n2)
@@ -126,11 +101,11 @@ def interface_event(d, S, e, nf, n1, n2, u):
     eta = np.broadcast_to(np.real(np.asarray(n1, dtype=complex) / np.asarray(n2, dtype=complex)), cos_i.shape)
     wt, ok = refract(wi, nf, eta)
     refl = refl | ~ok
-    d_ref = d - 2.0 * _dot(d, nf)[:, None] * nf
+    d_ref = d - 2.0 * dot(d, nf)[:, None] * nf
     d_new = np.where(refl[:, None], d_ref, wt)
     Snew = np.where(refl[:, None], SR, ST)
     Snew = Snew / np.maximum(Snew[:, :1], 1e-300)
-    return _normalize(d_new), Snew, s_vec, refl
+    return normalize(d_new), Snew, s_vec, refl
 
 
 # ------------------------------------------------------------------ rough-face models
@@ -154,7 +129,7 @@ class NormalsFace:
     def __post_init__(self) -> None:
         m = np.asarray(self.normals, float).reshape(-1, 3)
         m = m[m[:, 2] > 1e-3]
-        self.normals = _normalize(m)
+        self.normals = normalize(m)
         self._area = 1.0 / self.normals[:, 2]
         self._amax = float(self._area.max())
 
@@ -173,7 +148,7 @@ class NormalsFace:
         gy = np.concatenate([((d - b) / dy_m).ravel(), ((c - a) / dy_m).ravel()])
         ok = np.isfinite(gx) & np.isfinite(gy)
         n = np.stack([-gx[ok], -gy[ok], np.ones(int(ok.sum()))], axis=1)
-        return NormalsFace(_normalize(n))
+        return NormalsFace(normalize(n))
 
     def _pick(self, d: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Sample visible facets for each direction by rejection (vectorised)."""
@@ -186,7 +161,7 @@ class NormalsFace:
                 break
             k = rng.integers(0, len(self.normals), todo.size)
             m = self.normals[k]
-            dm = _dot(d[todo], m)
+            dm = dot(d[todo], m)
             vis = np.where(up[todo], dm, -dm)
             acc = rng.random(todo.size) * self._amax < self._area[k] * np.maximum(vis, 0.0)
             out[todo[acc]] = m[acc]
@@ -219,99 +194,9 @@ class NormalsFace:
         return d, S, e, inside, alive
 
 
-@dataclass
-class KirchhoffFace:
-    """Scalar Kirchhoff (Beckmann) rough face, event by event, for the wave-optics candidates.
-
-    Each photon arriving at the face is reflected or transmitted at the MEAN plane (Fresnel with
-    Stokes, `interface_event` with the normal +-z), which sets the specular direction.  The
-    relief's phase variance for that event is g = (a sigma)^2, a = 2 k0 n1 cos(theta1) in
-    reflection and k0 |n1 cos(theta1) - n2 cos(theta2)| in transmission (the Debye-Waller
-    exponent).  With probability s exp(-g) (s = `coherent_scale`, 1 = Kirchhoff) the photon stays
-    specular (the coherent part); otherwise it takes the incoherent part of the Beckmann series
-    for a Gaussian-correlated surface (Beckmann & Spizzichino 1963, ch. 5, eq. for a Gaussian
-    correlation coefficient exp(-r^2 / T^2)):
-
-        sum over m >= 1 of  exp(-g) g^m / m!  x  Gaussian in the transverse wave-vector change q
-        with variance 2 m / T^2 per axis,
-
-    i.e. m ~ Poisson(g) conditioned on m >= 1, then q ~ N(0, 2 m / T^2) per axis.  For g >> 1
-    this is the geometric-optics lobe of Gaussian slopes with per-axis variance 2 sigma^2 / T^2;
-    T is therefore taken as sqrt(2) sigma / m_axis from the measured rms height and per-axis rms
-    slope, so the rough limit has the measured slope width.  A partially coherent source
-    (Gaussian Schell model, coherence length l_c; van Cittert-Zernike) adds q ~ N(0, 1 / l_c^2)
-    per axis to photons arriving from outside (the source's beam; later events keep the beam's
-    coherence, an approximation).  Transverse wave vectors beyond the outgoing medium's k are
-    evanescent and redrawn (the propagating orders share the event's Fresnel power); after
-    `max_tries` the photon is lost.  The Stokes vector is kept (near-specular scattering) and
-    its s-axis re-orthogonalised.
-
-    Assumptions / validity: Gaussian height statistics and correlation, no shadowing, no
-    obliquity factor, slopes << 1, lateral scales >~ lambda.  `wavelength_nm` is set per run.
-    """
-
-    sigma_m: float
-    corr_m: float
-    wavelength_nm: float = 550.0
-    coherent_scale: float = 1.0
-    coherence_length_m: float = 0.0
-    max_tries: int = 32
-
-    @staticmethod
-    def from_heights(heights_m: np.ndarray, dx_m: float, dy_m: float, **kw) -> "KirchhoffFace":
-        h = np.asarray(heights_m, float)
-        h = np.nan_to_num(h - np.nanmean(h), nan=0.0)
-        gx = (np.roll(h, -1, 1) - h) / dx_m
-        gy = (np.roll(h, -1, 0) - h) / dy_m
-        sigma = float(np.sqrt(np.mean(h**2)))
-        m_axis = float(np.sqrt(0.5 * (np.mean(gx**2) + np.mean(gy**2))))
-        return KirchhoffFace(sigma, np.sqrt(2.0) * sigma / max(m_axis, 1e-12), **kw)
-
-    def interact(self, d, S, e, inside, n_glass, rng):
-        from scipy.stats import poisson
-        n = len(d)
-        down = d[:, 2] < 0
-        nf = np.zeros((n, 3))
-        nf[:, 2] = np.where(down, 1.0, -1.0)                 # mean-plane normal facing the incident medium
-        n1 = np.where(inside, n_glass, 1.0)
-        n2 = np.where(inside, 1.0, n_glass)
-        dn, Sn, en, refl = interface_event(d, S, e, nf, n1, n2, rng.random(n))
-        k0 = 2 * np.pi / (self.wavelength_nm * 1e-9)
-        c1 = np.abs(d[:, 2])
-        a = np.where(refl, 2 * k0 * n1 * c1, k0 * np.abs(n1 * c1 - n2 * np.abs(dn[:, 2])))
-        g = (a * self.sigma_m) ** 2
-        p0 = np.exp(-g)                                      # Debye-Waller factor of the event
-        coh = rng.random(n) < np.clip(self.coherent_scale * p0, 0.0, 1.0)
-        m = np.maximum(poisson.ppf(p0 + rng.random(n) * (1 - p0), g), 1.0)    # Poisson(g) given m >= 1
-        q_sd = np.where(coh, 0.0, np.sqrt(2 * m) / self.corr_m)
-        if self.coherence_length_m > 0:
-            q_sd = np.where(inside, q_sd, np.sqrt(q_sd**2 + 1.0 / self.coherence_length_m**2))
-        n_out = np.where(refl, n1, n2)
-        kt = dn[:, :2] * (n_out * k0)[:, None]
-        out = dn.copy()
-        todo = np.nonzero(q_sd > 0)[0]
-        alive = np.ones(n, bool)
-        for _ in range(self.max_tries):
-            if todo.size == 0:
-                break
-            st = (kt[todo] + q_sd[todo, None] * rng.standard_normal((todo.size, 2))) / (n_out[todo] * k0)[:, None]
-            s2 = np.sum(st**2, axis=1)
-            ok = s2 < 1.0
-            j = todo[ok]
-            out[j, :2] = st[ok]
-            out[j, 2] = np.sign(dn[j, 2]) * np.sqrt(1.0 - s2[ok])
-            todo = todo[~ok]
-        alive[todo] = False
-        en = en - _dot(en, out)[:, None] * out
-        en = _normalize(np.where(np.linalg.norm(en, axis=1, keepdims=True) > 1e-9, en, _perp_any(out)))
-        inside_new = np.where(refl, inside, ~inside)
-        return out, Sn, en, inside_new, alive
-
-
 def beckmann_normals(alpha: float, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Normals of a Beckmann surface: slopes Gaussian with per-axis std alpha / sqrt(2)."""
-    sl = rng.normal(0.0, alpha / np.sqrt(2.0), (n, 2))
-    return _normalize(np.concatenate([-sl, np.ones((n, 1))], axis=1))
+    """Normals of a Beckmann surface (slopes Gaussian, per-axis std alpha / sqrt(2)): `core.microfacet`."""
+    return sample_normals(alpha, n, rng, "beckmann")
 
 
 # ------------------------------------------------------------------ the plate
@@ -351,12 +236,96 @@ class Exits:
     extra: dict = field(default_factory=dict)
 
 
-def _hg_cos(g: float, u: np.ndarray) -> np.ndarray:
-    """Sample cos(theta) of the Henyey-Greenstein phase function (inverse CDF)."""
-    if abs(g) < 1e-6:
-        return 2 * u - 1
-    t = (1 - g * g) / (1 - g + 2 * g * u)
-    return np.clip((1 + g * g - t * t) / (2 * g), -1.0, 1.0)
+_hg_cos = sample_hg_cos     # transition name (tests of the diagnosis); the sampler is core.bulk's
+
+
+@dataclass
+class _Photons:
+    """State of a photon batch in the sample frame: direction d, Stokes S in the frame of s-axis e,
+    weight w, glass path L (mm), height z (mm, front face 0, back face -t), medium flag, and
+    `state` 0 at the front face (from its medium), 1 in the bulk, 2 exited, 3 lost."""
+
+    d: np.ndarray
+    e: np.ndarray
+    S: np.ndarray
+    w: np.ndarray
+    L: np.ndarray
+    z: np.ndarray
+    inside: np.ndarray
+    state: np.ndarray
+
+
+def _launch(phys: PlatePhysics, theta_i_deg: float, phi_i_deg: float, source_stokes, n: int,
+            rng: np.random.Generator, R: np.ndarray) -> _Photons:
+    """Photons of the source beam (Gaussian divergence per axis), rotated into the sample frame."""
+    d = np.tile(-direction(theta_i_deg, phi_i_deg), (n, 1))
+    ph = np.radians(phi_i_deg)
+    e = np.tile(np.array([-np.sin(ph), np.cos(ph), 0.0]), (n, 1))
+    if phys.beam_sigma_deg > 0:
+        sig = np.radians(phys.beam_sigma_deg)
+        b2 = np.cross(d, e)
+        d = normalize(d + sig * (rng.normal(size=(n, 1)) * e + rng.normal(size=(n, 1)) * b2))
+        e = normalize(e - dot(e, d)[:, None] * d)
+    S = np.tile(np.asarray(source_stokes, float) / float(source_stokes[0]), (n, 1))
+    return _Photons(d=d @ R, e=e @ R, S=S, w=np.ones(n), L=np.zeros(n), z=np.zeros(n),
+                    inside=np.zeros(n, bool), state=np.zeros(n, np.int8))
+
+
+def _front_face(face, p: _Photons, f: np.ndarray, n_glass: float, rng: np.random.Generator) -> None:
+    """The rough face moves the photons `f` arriving at it until they leave it (or are lost)."""
+    dn, Sn, en, insn, alive = face.interact(p.d[f], p.S[f], p.e[f], p.inside[f], n_glass, rng)
+    p.d[f], p.S[f], p.e[f], p.inside[f] = dn, Sn, en, insn
+    st = np.where(~alive, 3, np.where(insn, 1, 2))
+    p.state[f] = st
+    p.z[f[st == 1]] = 0.0
+
+
+def _bulk(p: _Photons, b: np.ndarray, phys: PlatePhysics, rng: np.random.Generator) -> np.ndarray:
+    """Free flight of the photons `b` in the glass: Beer-Lambert weight exp(-a L) on each step
+    (core.bulk's law), a volume-scattering event after an Exp(mu_s) free path (Henyey-Greenstein
+    direction, `core.bulk.scatter_directions`; Stokes vector kept, s-axis re-orthogonalised).
+    Returns the photons that reached a face instead."""
+    db = p.d[b]
+    t = float(phys.thickness_mm)
+    dist = np.where(db[:, 2] < 0, (p.z[b] + t) / np.maximum(-db[:, 2], 1e-12),
+                    -p.z[b] / np.maximum(db[:, 2], 1e-12))
+    if phys.scatter_per_mm > 0:
+        free = rng.exponential(1.0 / phys.scatter_per_mm, b.size)
+        scat = free < dist
+    else:
+        free = dist
+        scat = np.zeros(b.size, bool)
+    step = np.where(scat, free, dist)
+    p.L[b] += step
+    if phys.absorption_per_mm > 0:
+        p.w[b] *= beer_lambert(phys.absorption_per_mm, step)
+    p.z[b] += step * db[:, 2]
+    if scat.any():
+        s = b[scat]
+        dnew = normalize(scatter_directions(p.d[s], phys.hg_g, rng))
+        p.d[s] = dnew
+        p.e[s] = normalize(p.e[s] - dot(p.e[s], dnew)[:, None] * dnew)
+    return b[~scat]
+
+
+def _back_face(p: _Photons, bot: np.ndarray, phys: PlatePhysics, rng: np.random.Generator) -> None:
+    """Photons `bot` at the back face (z = -t, from the glass): flat, or Beckmann facets of
+    roughness `back_alpha` (core.microfacet slope sampling); Fresnel event, exit or back up."""
+    if phys.back_alpha > 0:
+        m = beckmann_normals(phys.back_alpha, bot.size, rng)
+    else:
+        m = np.tile(np.array([0.0, 0.0, 1.0]), (bot.size, 1))
+    # only facets facing the photon (d . m < 0); flip the rest (symmetric)
+    m = np.where((dot(p.d[bot], m) > 0)[:, None], m * np.array([-1.0, -1.0, 1.0]), m)
+    dn, Sn, en, refl = interface_event(p.d[bot], p.S[bot], p.e[bot], m, float(phys.n_glass), 1.0,
+                                       rng.random(bot.size))
+    # a path that ends up on the wrong side of a rough back face stays in the glass
+    refl = refl | (~refl & (dn[:, 2] > 0))
+    dn[:, 2] = np.where(refl, np.abs(dn[:, 2]), -np.abs(dn[:, 2]))
+    p.d[bot], p.S[bot], p.e[bot] = dn, Sn, en
+    p.z[bot[refl]] = -float(phys.thickness_mm)
+    p.state[bot[~refl]] = 2
+    p.inside[bot[~refl]] = False
 
 
 def run_photons(face, phys: PlatePhysics, theta_i_deg: float, phi_i_deg: float, source_stokes,
@@ -364,95 +333,30 @@ def run_photons(face, phys: PlatePhysics, theta_i_deg: float, phi_i_deg: float, 
     """Trace `n_photons` photons from the source direction through the plate.
 
     source_stokes: (S0, S1, S2, S3) with S1 = I_s - I_p relative to the plane of incidence.
-    Returns the exits in the lab frame (tilt undone).
+    The sample tilt is `core.frames.rot_y(tilt_deg)` (w_sample = w_lab @ R).  Returns the exits
+    in the lab frame (tilt undone).
     """
     n = int(n_photons)
-    R = rot_y(np.radians(phys.tilt_deg))
-    wi = direction(theta_i_deg, phi_i_deg)
-    d = np.tile(-wi, (n, 1))
-    ph = np.radians(phi_i_deg)
-    e = np.tile(np.array([-np.sin(ph), np.cos(ph), 0.0]), (n, 1))
-    if phys.beam_sigma_deg > 0:
-        sig = np.radians(phys.beam_sigma_deg)
-        b1 = e
-        b2 = np.cross(d, e)
-        d = _normalize(d + sig * (rng.normal(size=(n, 1)) * b1 + rng.normal(size=(n, 1)) * b2))
-        e = _normalize(e - _dot(e, d)[:, None] * d)
-    # into the sample frame
-    d = d @ R
-    e = e @ R
-    S = np.tile(np.asarray(source_stokes, float) / float(source_stokes[0]), (n, 1))
-    w = np.ones(n)
-    L = np.zeros(n)
-    z = np.zeros(n)
-    inside = np.zeros(n, bool)
-    # state: 0 at front face (from its medium), 1 in bulk, 2 exited, 3 lost
-    state = np.zeros(n, np.int8)
-    t = float(phys.thickness_mm)
-    ng = float(phys.n_glass)
+    R = rot_y(phys.tilt_deg)
+    p = _launch(phys, theta_i_deg, phi_i_deg, source_stokes, n, rng, R)
     for _ in range(phys.max_events):
-        f = np.nonzero(state == 0)[0]
+        f = np.nonzero(p.state == 0)[0]
         if f.size:
-            dn, Sn, en, insn, alive = face.interact(d[f], S[f], e[f], inside[f], ng, rng)
-            d[f], S[f], e[f], inside[f] = dn, Sn, en, insn
-            st = np.where(~alive, 3, np.where(insn, 1, 2))
-            state[f] = st
-            z[f[st == 1]] = 0.0
-        b = np.nonzero(state == 1)[0]
+            _front_face(face, p, f, float(phys.n_glass), rng)
+        b = np.nonzero(p.state == 1)[0]
         if b.size == 0 and f.size == 0:
             break
         if b.size:
-            db = d[b]
-            dist = np.where(db[:, 2] < 0, (z[b] + t) / np.maximum(-db[:, 2], 1e-12),
-                            -z[b] / np.maximum(db[:, 2], 1e-12))
-            if phys.scatter_per_mm > 0:
-                free = rng.exponential(1.0 / phys.scatter_per_mm, b.size)
-                scat = free < dist
-            else:
-                free = dist
-                scat = np.zeros(b.size, bool)
-            step = np.where(scat, free, dist)
-            L[b] += step
-            if phys.absorption_per_mm > 0:
-                w[b] *= np.exp(-phys.absorption_per_mm * step)
-            z[b] += step * db[:, 2]
-            if scat.any():
-                s = b[scat]
-                ds = d[s]
-                ct = _hg_cos(phys.hg_g, rng.random(s.size))
-                st_ = np.sqrt(np.maximum(0.0, 1 - ct * ct))
-                psi = 2 * np.pi * rng.random(s.size)
-                u1 = _perp_any(ds)
-                u2 = np.cross(ds, u1)
-                dnew = _normalize(ct[:, None] * ds + st_[:, None] * (np.cos(psi)[:, None] * u1 + np.sin(psi)[:, None] * u2))
-                d[s] = dnew
-                e[s] = _normalize(e[s] - _dot(e[s], dnew)[:, None] * dnew)
-            # boundary hits
-            hit = b[~scat]
+            hit = _bulk(p, b, phys, rng)
             if hit.size:
-                up = d[hit, 2] > 0
-                top = hit[up]
-                state[top] = 0                      # back at the rough front face, from inside
+                up = p.d[hit, 2] > 0
+                p.state[hit[up]] = 0                 # back at the rough front face, from inside
                 bot = hit[~up]
                 if bot.size:
-                    if phys.back_alpha > 0:
-                        m = beckmann_normals(phys.back_alpha, bot.size, rng)
-                    else:
-                        m = np.tile(np.array([0.0, 0.0, 1.0]), (bot.size, 1))
-                    # only facets facing the photon (d . m < 0); flip the rest (symmetric)
-                    m = np.where((_dot(d[bot], m) > 0)[:, None], m * np.array([-1.0, -1.0, 1.0]), m)
-                    dn, Sn, en, refl = interface_event(d[bot], S[bot], e[bot], m, ng, 1.0, rng.random(bot.size))
-                    # a path that ends up on the wrong side of a rough back face stays in the glass
-                    refl = refl | (~refl & (dn[:, 2] > 0))
-                    dn[:, 2] = np.where(refl, np.abs(dn[:, 2]), -np.abs(dn[:, 2]))
-                    d[bot], S[bot], e[bot] = dn, Sn, en
-                    z[bot[refl]] = -t
-                    state[bot[~refl]] = 2
-                    inside[bot[~refl]] = False
-    lost = int(np.sum((state == 3) | (state == 0) | (state == 1)))
-    ex = state == 2
-    dl = d[ex] @ R.T
-    return Exits(d=dl, w=w[ex], path_mm=L[ex], n_launched=n, lost=lost)
+                    _back_face(p, bot, phys, rng)
+    lost = int(np.sum((p.state == 3) | (p.state == 0) | (p.state == 1)))
+    ex = p.state == 2
+    return Exits(d=p.d[ex] @ R.T, w=p.w[ex], path_mm=p.L[ex], n_launched=n, lost=lost)
 
 
 # ------------------------------------------------------------------ detection

@@ -1,0 +1,332 @@
+"""The ONE table builder: sampled exit directions and weights -> BSDF table cells.
+
+Every method that *samples* paths (`ray`, `normals`) hands its exits here; the wave methods
+and `microfacet` integrate a continuous density over the cells instead (quadrature on
+sub-points, `methods.wave_filter.cell_average` / `methods.microfacet.cell_average`) and do
+not come through this module.
+
+Estimator (formats.md units, 1/sr).  N paths are started per incidence, each with the
+incident beam's power 1/N spread uniformly over the tile; a path's exits carry power weights
+w (and, polarised, the exit Mueller columns M, so w M is the exit Mueller matrix).  The
+table cell (theta_s, phi_s) holds the cell average of the BSDF in projected solid angle,
+
+    f_cell = sum_{exits in cell} w / (N Omega_proj(cell)),    Omega_proj = (sin^2 t1 - sin^2 t0)(p1 - p0) / 2,
+
+so that `BsdfTable.hemispherical()` returns the power fractions of the beam.  Its Monte-Carlo
+standard error is the sample standard deviation of the per-path contribution,
+sigma = sqrt((sum w^2 / N - (sum w / N)^2) / N) / Omega_proj (one exit per path and cell).
+Exits flagged as coherent / specular (along the flat mean plane's mirror or refraction
+direction, `specular_flags`) go to the delta parts specular_R/T (power fractions) instead.
+`lost` = power of paths that did not leave (named by the method: absorbed, max bounces, ...)
+plus exits outside the table's cells, over N: nothing is dropped silently.
+Sides: 0 = the side of incidence (R), 1 = the other side (T).
+Binning is vectorised (np.bincount) on cells from `CellIndex` (float32 arithmetic and lookup
+tables for uniform grids, a search for others).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from relief_bsdf.core.frames import projected_solid_angle
+
+F32 = np.float32
+
+
+# ----------------------------------------------------------------------------- cells
+
+
+class CellIndex:
+    """Scatter cell of exit directions for the (theta_s, phi_s) edges (degrees), built once per task.
+
+    Uniform edges (the default 1-degree rings x 5-degree azimuths, and any uniform grid): float32
+    arithmetic on arccos |k_z| and atan2(k_y, k_x) in units of the cell width, truncation, and
+    small lookup tables that fold the azimuth modulo 360 degrees and mark cells beyond the edges
+    (no float modulo, no search).  Other edges: a search.  `__call__(k)` returns int32
+    cell = ring * A + azimuth, or -1 outside the table (|k_z| is used: the ring of either side).
+    """
+
+    def __init__(self, theta_edges_deg, phi_edges_deg):
+        te = np.asarray(theta_edges_deg, float)
+        pe = np.asarray(phi_edges_deg, float)
+        self.S, self.A = te.size - 1, pe.size - 1
+        self.te, self.pe = te, pe
+        self.te_sin2 = np.sin(np.radians(te)) ** 2
+        dt, dp = np.diff(te), np.diff(pe)
+        n_full = 360.0 / dp[0]
+        self.fast = bool(np.allclose(dt, dt[0], rtol=1e-9, atol=1e-9) and np.allclose(dp, dp[0])
+                         and abs(n_full - round(n_full)) < 1e-9)
+        if self.fast:
+            self._ring_table(dt[0])
+            self._azimuth_table(dp[0], int(round(n_full)))
+
+    def _ring_table(self, dt: float) -> None:
+        """x = (theta - te0) / dt, shifted by one ring so that truncation == floor for x > -1."""
+        te, S = self.te, self.S
+        self.t_scale = F32(180.0 / np.pi / dt)
+        self.t_off = F32(1.0 - te[0] / dt)
+        nt = int(math.ceil(90.0 / dt + 1.0 - te[0] / dt)) + 2
+        ring = np.arange(nt) - 1                       # truncated value j -> ring j - 1
+        if te[-1] >= 90.0 - 1e-9:
+            ring[ring == S] = S - 1                    # theta = 90 exactly belongs to the last ring
+        ring[(ring < 0) | (ring >= S)] = -1
+        self.ring_lut = ring.astype(np.int32)
+
+    def _azimuth_table(self, dp: float, nf: int) -> None:
+        """x = (phi - pe0) / dp + shift, shift a multiple of the full turn making x >= 0."""
+        pe = self.pe
+        lo = -180.0 / dp - pe[0] / dp
+        shift = nf * int(math.ceil(max(0.0, -lo) / nf + 1e-9))
+        self.p_scale = F32(180.0 / np.pi / dp)
+        self.p_off = F32(shift - pe[0] / dp)
+        npl = int(math.ceil(180.0 / dp - pe[0] / dp + shift)) + 2
+        az = np.arange(npl) % nf
+        az[az >= self.A] = -1                          # beyond the last edge (span < 360)
+        self.az_lut = az.astype(np.int32)
+
+    def __call__(self, k: np.ndarray) -> np.ndarray:
+        S, A = self.S, self.A
+        if not self.fast:
+            ib = _theta_bins(k[:, 2], self.te_sin2)
+            ia = _phi_bins(k, self.pe)
+            cell = (ib * A + ia).astype(np.int32)
+            cell[(ib < 0) | (ib >= S) | (ia < 0) | (ia >= A)] = -1
+            return cell
+        x = np.abs(k[:, 2])
+        np.minimum(x, F32(1), out=x)
+        np.arccos(x, out=x)
+        x *= self.t_scale
+        x += self.t_off
+        np.maximum(x, F32(0), out=x)
+        ib = np.take(self.ring_lut, x.astype(np.int32), mode="clip")
+        y = np.arctan2(k[:, 1], k[:, 0])
+        y *= self.p_scale
+        y += self.p_off
+        ia = np.take(self.az_lut, y.astype(np.int32), mode="clip")
+        cell = ib * np.int32(A)
+        cell += ia
+        cell[(ib < 0) | (ia < 0)] = -1
+        return cell
+
+
+def _theta_bins(kz: np.ndarray, te_sin2: np.ndarray) -> np.ndarray:
+    """Ring index of each direction (edges given as sin^2 theta); -1 or S when outside the edges.
+
+    Uniform edges in theta: arithmetic on arccos (float32); otherwise a search on sin^2.
+    """
+    te = np.degrees(np.arcsin(np.sqrt(np.clip(te_sin2, 0.0, 1.0))))
+    d = np.diff(te)
+    S = d.size
+    if np.allclose(d, d[0], rtol=1e-9, atol=1e-9):
+        x = np.abs(kz)
+        np.minimum(x, F32(1), out=x)
+        np.arccos(x, out=x)
+        x *= F32(180.0 / np.pi / d[0])               # theta in units of the ring width from te[0]
+        x -= F32(te[0] / d[0])
+        np.floor(x, out=x)
+        ib = x.astype(np.int32)
+        if te[-1] >= 90.0 - 1e-9:
+            ib[ib == S] = S - 1                        # theta = 90 exactly belongs to the last ring
+        ib[x < 0] = -1
+        return ib
+    sin2 = np.maximum(F32(0), 1 - kz * kz).astype(np.float64)
+    ib = np.searchsorted(te_sin2, sin2, side="right") - 1
+    ib[sin2 >= te_sin2[-1]] = S - 1 if te_sin2[-1] >= 1.0 else S
+    return ib
+
+
+def _phi_bins(k: np.ndarray, pe: np.ndarray) -> np.ndarray:
+    """Azimuth cell of each direction; uniform edges by arithmetic (float32), others by search."""
+    d = np.diff(pe)
+    n_full = 360.0 / d[0]
+    if np.allclose(d, d[0]) and abs(n_full - round(n_full)) < 1e-9:
+        # cells tile the circle: the cell count from the edge pe[0] in bin units, floor, and an
+        # integer modulo (float np.mod is ~10x slower than the rest of the binning)
+        x = np.arctan2(k[:, 1], k[:, 0])
+        x *= F32(180.0 / np.pi / d[0])
+        x -= F32(pe[0] / d[0])
+        np.floor(x, out=x)
+        ia = x.astype(np.int32)
+        ia %= np.int32(round(n_full))
+        ia[ia >= d.size] = d.size                    # beyond the last edge (span < 360): outside
+        return ia
+    if np.allclose(d, d[0]):
+        phi = np.arctan2(k[:, 1], k[:, 0])
+        phi *= F32(180.0 / np.pi)
+        phi -= F32(pe[0])
+        np.mod(phi, F32(360.0), out=phi)
+        ia = np.floor(phi * F32(1.0 / d[0])).astype(np.int64)
+        ia[ia >= d.size] = d.size                    # beyond the last edge (span < 360): outside
+        return ia
+    phi = np.mod(np.degrees(np.arctan2(k[:, 1], k[:, 0]).astype(np.float64)) - pe[0], 360.0)
+    return np.searchsorted(pe - pe[0], phi, side="right") - 1
+
+
+def specular_flags(dirs: np.ndarray, side: np.ndarray, ideal_dirs: tuple, cos_tol: float) -> np.ndarray | None:
+    """Exits within acos(cos_tol) of the flat mean plane's ideal direction of their side.
+
+    ideal_dirs: (mirror direction, refraction direction or None), unit, in the frame of `dirs`.
+    A float32 prefilter, then float64 with renormalisation (a float32 unit vector's norm is off
+    by ~1e-8 >> 1 - cos(tol)).  Returns a bool mask, or None when no exit is specular.
+    """
+    spec = None
+    for sd in (0, 1):
+        if ideal_dirs[sd] is None:
+            continue
+        d = np.asarray(ideal_dirs[sd], np.float64)
+        # explicit multiply-adds, not `k @ d`: a BLAS matrix-vector product wakes OpenBLAS's
+        # thread pool, whose spinning threads cost as much CPU as the whole binning
+        d32 = d.astype(F32)
+        c = dirs[:, 0] * d32[0]
+        c += dirs[:, 1] * d32[1]
+        c += dirs[:, 2] * d32[2]
+        cand = np.flatnonzero(c > F32(0.9999))
+        if cand.size:
+            kc = dirs[cand].astype(np.float64)
+            ok = np.einsum("ij,j->i", kc, d) > cos_tol * np.sqrt(np.einsum("ij,ij->i", kc, kc))
+            ok &= side[cand] == sd
+            if ok.any():
+                if spec is None:
+                    spec = np.zeros(dirs.shape[0], bool)
+                spec[cand[ok]] = True
+    return spec
+
+
+# ----------------------------------------------------------------------------- accumulation
+
+
+@dataclass
+class ExitSamples:
+    """Exits of a batch of paths that left through the boundary.
+
+    dirs (n, 3) unit directions (float32 or float64) in the table's frame up to the z sign;
+    weight (n,) power weights; side (n,) 0 (incidence side) or 1; mueller (16, n) float32 exit
+    Mueller columns (row-major 4 x 4 per exit, w M is the exit matrix) or None; specular (n,)
+    bool: coherent / specular exits (delta parts), or None for none.
+    """
+
+    dirs: np.ndarray
+    weight: np.ndarray
+    side: np.ndarray
+    mueller: np.ndarray | None = None
+    specular: np.ndarray | None = None
+
+
+@dataclass
+class TableCells:
+    """One incidence's table rows: values / sigma (2, S, A) float32 1/sr, Mueller (2, S, A, 4, 4)
+    float32 1/sr or None, delta parts (power fractions) and their Mueller matrices, `lost` and its
+    detail (power fractions)."""
+
+    values_per_sr: np.ndarray
+    sigma_per_sr: np.ndarray
+    specular_R: float
+    specular_T: float
+    lost: float
+    lost_detail: dict
+    outside_table: float
+    mueller_per_sr: np.ndarray | None = None
+    specular_mueller_R: np.ndarray | None = None
+    specular_mueller_T: np.ndarray | None = None
+
+
+@dataclass
+class CellAccumulator:
+    """Per-incidence sums of weights (w, w^2 and w M) per cell, delta parts and lost power.
+
+    `add` one batch of exits at a time, `lose` the power of paths that did not leave, `merge`
+    partial accumulators in a fixed order (deterministic sums), then `cells(n_paths)`.
+    """
+
+    cells: CellIndex
+    polarized: bool = False
+    lost_names: tuple = ()
+    sum_w: np.ndarray = field(init=False)
+    sum_w2: np.ndarray = field(init=False)
+    sum_M: np.ndarray | None = field(init=False)
+    spec: np.ndarray = field(init=False)
+    spec_M: np.ndarray | None = field(init=False)
+    lost: dict = field(init=False)
+    outside_table: float = field(init=False, default=0.0)
+
+    def __post_init__(self):
+        nc = 2 * self.cells.S * self.cells.A
+        self.sum_w = np.zeros(nc)
+        self.sum_w2 = np.zeros(nc)
+        self.sum_M = np.zeros((16, nc)) if self.polarized else None
+        self.spec = np.zeros(2)
+        self.spec_M = np.zeros((2, 16)) if self.polarized else None
+        self.lost = {name: 0.0 for name in self.lost_names}
+
+    def lose(self, name: str, weight_sum: float) -> None:
+        self.lost[name] = self.lost.get(name, 0.0) + float(weight_sum)
+
+    def merge(self, other: "CellAccumulator") -> None:
+        self.sum_w += other.sum_w
+        self.sum_w2 += other.sum_w2
+        if self.sum_M is not None:
+            self.sum_M += other.sum_M
+            self.spec_M += other.spec_M
+        self.spec += other.spec
+        for k_, v in other.lost.items():
+            self.lost[k_] = self.lost.get(k_, 0.0) + v
+        self.outside_table += other.outside_table
+
+    def add(self, ex: ExitSamples) -> None:
+        """Bin one batch of exits (vectorised, np.bincount)."""
+        wd, side, spec = ex.weight, ex.side, ex.specular
+        if wd.size == 0:
+            return
+        S, A_ = self.cells.S, self.cells.A
+        cell = self.cells(ex.dirs)
+        inside = cell >= 0
+        cell += side.astype(np.int32) * np.int32(S * A_)
+        if spec is not None:
+            inside &= ~spec
+            self._add_specular(ex)
+        n_in = int(np.count_nonzero(inside))
+        if wd.size - n_in - (0 if spec is None else int(np.count_nonzero(spec))):
+            self.outside_table += float(wd[~inside & (True if spec is None else ~spec)].sum(dtype=np.float64))
+        full = n_in == wd.size
+        c_in = cell if full else cell[inside]
+        w_in = (wd if full else wd[inside]).astype(np.float64)
+        nc = self.sum_w.size
+        self.sum_w += np.bincount(c_in, weights=w_in, minlength=nc)
+        self.sum_w2 += np.bincount(c_in, weights=w_in * w_in, minlength=nc)
+        if self.sum_M is not None:
+            wf = w_in.astype(F32)
+            M16 = ex.mueller * wf if full else np.take(ex.mueller, np.flatnonzero(inside), axis=1) * wf
+            for e in range(16):
+                self.sum_M[e] += np.bincount(c_in, weights=M16[e], minlength=nc)
+
+    def _add_specular(self, ex: ExitSamples) -> None:
+        for sd in (0, 1):
+            msk = ex.specular & (ex.side == sd)
+            if msk.any():
+                self.spec[sd] += float(ex.weight[msk].sum(dtype=np.float64))
+                if self.sum_M is not None:
+                    Ms = np.take(ex.mueller, np.flatnonzero(msk), axis=1)
+                    self.spec_M[sd] += (Ms * ex.weight[msk]).sum(axis=1, dtype=np.float64)
+
+    def table_cells(self, n_paths: float) -> TableCells:
+        """The finished rows for `n_paths` started paths (module doc: estimator and sigma)."""
+        S, A_ = self.cells.S, self.cells.A
+        psa = projected_solid_angle(self.cells.te, self.cells.pe)
+        n = float(n_paths)
+        mean = self.sum_w / n
+        var = np.maximum(self.sum_w2 / n - mean**2, 0.0) / n
+        out = TableCells(values_per_sr=(mean.reshape(2, S, A_) / psa).astype(F32),
+                         sigma_per_sr=(np.sqrt(var).reshape(2, S, A_) / psa).astype(F32),
+                         specular_R=float(self.spec[0] / n), specular_T=float(self.spec[1] / n),
+                         lost=float((sum(self.lost.values()) + self.outside_table) / n),
+                         lost_detail={k_: v / n for k_, v in self.lost.items()},
+                         outside_table=self.outside_table / n)
+        if self.sum_M is not None:
+            m = (self.sum_M / n).reshape(4, 4, 2, S, A_).transpose(2, 3, 4, 0, 1)
+            out.mueller_per_sr = (m / psa[None, :, :, None, None]).astype(F32)
+            out.specular_mueller_R = (self.spec_M[0] / n).reshape(4, 4)
+            out.specular_mueller_T = (self.spec_M[1] / n).reshape(4, 4)
+            out.values_per_sr = out.mueller_per_sr[..., 0, 0].copy()
+        return out

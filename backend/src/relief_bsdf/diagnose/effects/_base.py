@@ -1,0 +1,107 @@
+"""What a candidate effect is: parameters, physics, and a change of the plate description.
+
+Every module of `relief_bsdf.diagnose.effects` defines one `EFFECT = Effect(...)`:
+
+- `params`: the fitted parameters (`Param`: name with its unit in it, bounds, neutral value);
+  at the neutral values the effect is absent and `apply` returns the baseline unchanged;
+- `physics` / `validity`: one line each (the docstring of the module says more);
+- `apply(experiment, context, values) -> Experiment`: the effect as a change of the plate
+  description (`relief_bsdf.plate.description`), nothing else: a bulk field, an instrument
+  field, a face swap, an index change.  The forward model is always the one plate model;
+- `explain(values) -> str`: the fitted values in words, for diagnosis.json's explanation;
+- `skip_reason(context) -> str | None`: why the effect is not a candidate for this sample
+  (e.g. `interreflection` when the baseline already traces the relief, `dispersion` on a
+  one-wavelength recording, a physics the deterministic engine cannot express yet); a
+  skipped effect is listed in `candidates` with its reason and never fitted (no fake);
+- `cheap`: True when the effect leaves every boundary table as it is (bulk, instrument),
+  so an evaluation re-uses the baseline's tables (the fit grid can then be finer);
+- `bracket(context, forward) -> {param: (lo, hi)}`: optional narrower search interval
+  derived from the data (e.g. the weighted-mean background for stray light).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from relief_bsdf.surface.relief import Relief
+
+
+@dataclass(frozen=True)
+class Param:
+    """One fitted parameter: name (unit in the name), bounds, the value meaning "no effect"."""
+
+    name: str
+    lower: float
+    upper: float
+    neutral: float
+    units: str
+    log_scale: bool = False       # search on log10 (a width ~ 1 / value); the neutral value is tried too
+
+    def __post_init__(self) -> None:
+        if not (self.lower < self.upper):
+            raise ValueError(f"parameter {self.name}: lower bound must be below the upper bound")
+        if self.log_scale and self.lower <= 0:
+            raise ValueError(f"parameter {self.name}: a log-scale search needs lower > 0")
+
+
+@dataclass(frozen=True)
+class ReliefContext:
+    """What the effects need to know about the sample besides the Experiment.
+
+    relief: the measured relief (plane-levelled), the baseline front face's relief.
+    method: the boundary method of the baseline's relief face (`relief diagnose --method`).
+    face: `face(relief, method, **options)` builds a front face (the plate's ReliefFace).
+    scale_and_filter: the ONE relief operation the fit optimises, (relief, s, sigma_m) -> Relief.
+    wavelengths_nm: the recording's wavelengths; detector_half_angle_deg: the stated cone.
+    """
+
+    relief: Relief
+    method: str
+    face: Callable[..., Any]
+    scale_and_filter: Callable[[Relief, float, float], Relief]
+    wavelengths_nm: tuple
+    detector_half_angle_deg: float
+    samples: int = 200_000
+    seed: int = 0
+    _reliefs: dict = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def spectral(self) -> bool:
+        return len(set(self.wavelengths_nm)) > 1
+
+    def processed_relief(self, height_scale: float, filter_sigma_m: float) -> Relief:
+        """scale_and_filter(relief, s, sigma), memoised so that the plate's table cache sees one object."""
+        key = (round(float(height_scale), 12), round(max(float(filter_sigma_m), 0.0), 15))
+        if key == (1.0, 0.0):
+            return self.relief
+        if key not in self._reliefs:
+            self._reliefs[key] = self.scale_and_filter(self.relief, key[0], key[1])
+        return self._reliefs[key]
+
+
+def _no_skip(context: ReliefContext) -> str | None:
+    return None
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A candidate effect (see the module docstring)."""
+
+    name: str
+    params: tuple
+    physics: str
+    validity: str
+    apply: Callable[[Any, ReliefContext, dict], Any]
+    explain: Callable[[dict], str]
+    cheap: bool = False
+    skip_reason: Callable[[ReliefContext], "str | None"] = _no_skip
+    bracket: Callable[[ReliefContext, Any], dict] | None = None
+
+    @property
+    def neutral(self) -> dict:
+        return {p.name: p.neutral for p in self.params}
+
+    @property
+    def k(self) -> int:
+        """Number of fitted parameters (the BIC penalty counts them)."""
+        return len(self.params)

@@ -1,0 +1,122 @@
+"""The diagnosis's view of the one forward model: baseline Experiment, rows, misfit.
+
+Baseline: the sample exactly as sample.toml states it (`plate.description.Experiment`):
+the relief as measured (plane-levelled) on the front face with the boundary method of the
+fit (`--method`, default the fit's), the stated index and thickness, the known absorption
+(0 when not known), a flat back face, the stated source polarisation and detector cone, no
+blur, tilt or background.  A candidate effect is a change of that Experiment
+(`effect.apply`), and every evaluation is `simulate(experiment, rows)` of the one plate
+model (deterministic engine), so the simulation, the fit and the diagnosis share the
+physics, the detector and the blur.
+
+Misfit: the censored (Tobit) chi^2 of `fit.residual.chi2`, with s^2 = sigma_recording^2 +
+sigma_model^2.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from relief_bsdf.diagnose.effects import Effect, ReliefContext
+from relief_bsdf.errors import InputError
+from relief_bsdf.fit.residual import chi2
+from relief_bsdf.plate import Experiment, ReliefFace, TableGrid, experiment_from_sample, simulate
+
+DEFAULT_METHOD = "microfacet+dw"      # the fit's default boundary method (`relief fit --method`)
+
+
+@dataclass
+class DiagnosisForward:
+    """Baseline Experiment + recording rows + relief context; evaluates effects on the plate model."""
+
+    experiment: Experiment
+    rows: object                      # Recording with finite sigma (Recording.with_sigma_fallback)
+    context: ReliefContext
+    grid: TableGrid | None = None             # the plate's table grid (None: the plate's default)
+    evaluations: int = 0
+    _baseline: tuple | None = field(default=None, repr=False)
+
+    def simulate(self, experiment: Experiment) -> tuple[np.ndarray, np.ndarray]:
+        self.evaluations += 1
+        sim = simulate(experiment, self.rows, engine="deterministic", grid=self.grid)
+        return sim.values_per_sr, sim.sigma_per_sr
+
+    def baseline(self) -> tuple[np.ndarray, np.ndarray]:
+        """(values, model sigma) of the sample as stated (computed once)."""
+        if self._baseline is None:
+            self._baseline = self.simulate(self.experiment)
+        return self._baseline
+
+    def with_effect(self, effect: Effect, values: dict) -> Experiment:
+        return effect.apply(self.experiment, self.context, values)
+
+    def evaluate(self, effect: Effect, values: dict) -> tuple[float, np.ndarray, np.ndarray]:
+        """(chi^2, values, model sigma) with `effect` at `values`; the neutral values are the baseline."""
+        if effect.params and all(values.get(p.name) == p.neutral for p in effect.params):
+            v, s = self.baseline()
+        else:
+            v, s = self.simulate(self.with_effect(effect, values))
+        return self.misfit(v, s), v, s
+
+    def misfit(self, values: np.ndarray, model_sigma: np.ndarray) -> float:
+        return chi2(self.rows, values, model_sigma)
+
+
+@dataclass(frozen=True)
+class _FaceBuilder:
+    """face(relief, method, **options) -> the plate's ReliefFace (picklable, for worker processes).
+
+    Tables carry Mueller matrices wherever the method can fill them (option `polarized`): a
+    source polarisation, Fresnel at the flat back face and the relief's own polarisation then
+    all reach the rows (a depolarising table would hide the `polarization` effect).
+    """
+
+    samples: int
+    seed: int
+
+    def __call__(self, relief, method: str, coherence_length_m: float | None = None, **options):
+        return ReliefFace(relief, method, self.samples, self.seed, options={**face_options(method), **options},
+                          coherence_length_m=coherence_length_m)
+
+
+def face_options(method: str) -> dict:
+    """The relief face's method options in the diagnosis: Mueller matrices wherever the method fills them."""
+    from relief_bsdf.errors import RequestError
+    from relief_bsdf.methods import entry
+    try:
+        entry(method).parse_options({"polarized": True})
+    except RequestError:         # a scalar method (or no such option): its tables depolarise
+        return {}
+    return {"polarized": True}
+
+
+def _scale_and_filter():
+    from relief_bsdf.surface.operations import scale_and_filter
+    return scale_and_filter
+
+
+def build_forward(sample_path: str | Path, method: str = DEFAULT_METHOD, samples: int = 200_000,
+                  seed: int = 0) -> tuple[DiagnosisForward, object]:
+    """The baseline forward model of a sample.toml (and the Sample)."""
+    from relief_bsdf.io.heightmaps import read_relief
+    from relief_bsdf.io.recording import read_recording, read_sample
+    sample = read_sample(sample_path)
+    if sample.plate.rough_face != "front":
+        raise InputError(sample.path, "key plate.rough_face: diagnose models a relief on the lit (front) face only")
+    relief = read_relief(sample.relief_path)
+    relief.require_valid(0.5)
+    relief = relief.level(0 if relief.periodic else 1)
+    rec = read_recording(sample.recording_path)
+    if len(rec) < 4:
+        raise InputError(sample.recording_path, f"only {len(rec)} rows; a diagnosis needs a scan")
+    rows = rec.with_sigma_fallback()   # unknown sigma: documented fallback (recording.py)
+    sample.material.check(np.unique(rows.wavelength_nm), str(sample.path))
+    context = ReliefContext(relief=relief, method=method, face=_FaceBuilder(samples, seed),
+                            scale_and_filter=_scale_and_filter(),
+                            wavelengths_nm=tuple(float(w) for w in np.unique(rows.wavelength_nm)),
+                            detector_half_angle_deg=float(sample.instrument.detector_half_angle_deg),
+                            samples=samples, seed=seed)
+    experiment = experiment_from_sample(sample, relief, method, samples, seed, options=face_options(method))
+    return DiagnosisForward(experiment, rows, context), sample

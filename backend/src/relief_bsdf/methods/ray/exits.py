@@ -1,0 +1,87 @@
+"""What left the relief layer: the ONE exit record of the ray method (`Exits`).
+
+Every traced path ends exactly once, in one of the states below; `Exits` is a preallocated
+structure of arrays filled by the transport loop as paths end (in no particular order) and
+read by the binning (`relief_bsdf.bsdf.builder`) or re-ordered by input ray (`ordered`) for
+`ReliefTracer.scatter`.  With a first-hit split a path of input index i has two outputs,
+i (reflected branch) and i + n (transmitted branch).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+F32 = np.float32
+
+# exit states
+ABOVE, BELOW, LOST_BOUNCES, LOST_LEAK, LOST_ABSORBED = 0, 1, 2, 3, 4
+STATE_NAMES = {LOST_BOUNCES: "max_bounces", LOST_LEAK: "numerical_leak", LOST_ABSORBED: "absorbed"}
+
+
+class Exits:
+    """Exit records of one chunk: propagation direction k (m, 3) float32, power weight w, state
+    (int8, above), bounce count nb (int16), output id, and, for polarised light, the Stokes
+    columns A (4, K, m) in the exit frame s = z x k, p = s x k.  Filled by `put` / `put_all`;
+    `n` records are valid.  `segments` (Embree queries), `n_paths` (input rays) and `m` (outputs
+    per chunk: n_paths, or 2 n_paths with the first-hit split) are set when the chunk is done.
+    """
+
+    def __init__(self, m: int, K: int = 0):
+        self.k = np.empty((m, 3), F32)
+        self.w = np.empty(m, F32)
+        self.state = np.empty(m, np.int8)
+        self.nb = np.empty(m, np.int16)
+        self.ids = np.empty(m, np.int64)
+        self.A = np.empty((4, K, m), F32) if K else None
+        self.n = 0
+        self.m = m
+        self.segments = 0
+        self.n_paths = 0
+
+    def put(self, k, idx, w, nb, ids, state, A=None) -> None:
+        """Store rows `idx` of the arrays (A: the already gathered (4, K, idx.size) exit columns)."""
+        a, b = self.n, self.n + idx.size
+        # mode="clip": no bounds-check buffer (idx comes from flatnonzero, always in range)
+        np.take(k, idx, axis=0, out=self.k[a:b], mode="clip")
+        np.take(w, idx, out=self.w[a:b], mode="clip")
+        np.take(nb, idx, out=self.nb[a:b], mode="clip")
+        np.take(ids, idx, out=self.ids[a:b], mode="clip")
+        self.state[a:b] = state
+        if A is not None:
+            self.A[:, :, a:b] = A
+        self.n = b
+
+    def put_all(self, k, w, nb, ids, state, A=None) -> None:
+        """Store every row of the arrays."""
+        a, b = self.n, self.n + ids.size
+        self.k[a:b] = k
+        self.w[a:b] = w
+        self.nb[a:b] = nb
+        self.ids[a:b] = ids
+        self.state[a:b] = state
+        if A is not None:
+            self.A[:, :, a:b] = A
+        self.n = b
+
+    # ------------------------------------------------------------------ views of the valid records
+    def records(self):
+        """(k, w, state, nb, A or None) of the n valid records, in the order they ended."""
+        e = self.n
+        return self.k[:e], self.w[:e], self.state[:e], self.nb[:e], None if self.A is None else self.A[:, :, :e]
+
+    def ordered(self):
+        """(k, A, w, state, nb) arrays of length m in id order (never-ended ids: lost as leaks)."""
+        m, e = self.m, self.n
+        k = np.zeros((m, 3), F32)
+        w = np.zeros(m, F32)
+        state = np.full(m, LOST_LEAK, np.int8)
+        nb = np.zeros(m, np.int16)
+        ids = self.ids[:e]
+        k[ids] = self.k[:e]
+        w[ids] = self.w[:e]
+        state[ids] = self.state[:e]
+        nb[ids] = self.nb[:e]
+        A = None
+        if self.A is not None:
+            A = np.zeros((4, self.A.shape[1], m), F32)
+            A[:, :, ids] = self.A[:, :, :e]
+        return k, A, w, state, nb

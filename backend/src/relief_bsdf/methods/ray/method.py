@@ -1,0 +1,432 @@
+"""`reconstruct(relief, material, request) -> [BsdfTable]` of the ray method: checks, tasks, tables.
+
+Each (side, wavelength, incidence) is one `parallel.map_tasks` task (`_incidence_task`), so
+local processes and `--dask` spread them; a worker builds the BVH once (`parallel.worker_cached`,
+keyed by a digest of the heights and mesh options) and traces with one thread, while in this
+process (serial backend, or a single incidence) the task's chunks use every core.  Rays are
+traced in fixed chunks of CHUNK (own seed each: `parallel.task_rng(seed, side, wavelength,
+theta, phi, chunk)`) whose sums are added in chunk order, so the numbers do not depend on the
+backend, worker or thread count.  The beam's entry points are stratified over the tile and
+sorted by 32 x 32 px blocks (BVH coherence).  A task returns its finished float32 table rows
+(built by the one table builder, `bsdf.builder`), written straight into the tables.
+
+Detector: every ray leaves the relief layer (above its highest or below its lowest point,
+moving away); exits are binned into the request's (theta_s, phi_s) cells (builder: cell
+averages in projected solid angle, 1/sr, so `BsdfTable.hemispherical()` equals the power
+fractions of the incident beam, which irradiates the tile uniformly on the mean plane).  Exits
+within `specular_tol_rad` of the mean plane's mirror / refraction direction (exactly flat
+facets) go to the delta parts.  Max bounces, absorption, numerical leaks and exits outside
+the table's cells are counted in `lost` with the detail in metadata.
+Frames: physical s = z x k, p = s x k; for light from inside the table's frame is mirrored
+(z -> -z, bsdf/table.py), which maps the basis (s, p) to (s', -p'): M_table = D M D,
+D = diag(1, 1, -1, -1).
+"""
+from __future__ import annotations
+
+import math
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from relief_bsdf.bsdf.builder import CellAccumulator, CellIndex, ExitSamples, specular_flags
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.core.frames import direction
+from relief_bsdf.core.stokes import s_axis
+from relief_bsdf.errors import RequestError
+from relief_bsdf.methods.options import RayOptions
+from relief_bsdf.methods.ray.exits import BELOW, STATE_NAMES, Exits
+from relief_bsdf.methods.ray.tracer import CHUNK, ReliefTracer, cached_tracer, forget_tracer, relief_hash
+from relief_bsdf.methods.ray.transport import Media, Rays, TraceSettings, carrier_for, trace_chunk
+from relief_bsdf.parallel import default_workers, in_worker, last_run, map_tasks, task_rng, worker_cached
+from relief_bsdf.progress import silent
+from relief_bsdf.surface.relief import Relief
+
+F32 = np.float32
+MIN_SAMPLES_PER_SIDE = 16
+MIN_WAVELENGTHS_PER_TILE = 10.0
+_MIRROR_DD = np.outer([1.0, 1.0, -1.0, -1.0], [1.0, 1.0, -1.0, -1.0])
+_ROWS = ("vals", "sig", "mue", "specR", "specT", "lost", "smR", "smT")
+
+
+# ----------------------------------------------------------------------------- request checks
+
+
+def _options(request) -> RayOptions:
+    """The request's typed ray options (unknown or mistyped options: RequestError naming them)."""
+    return RayOptions.from_request(request)
+
+
+def check_request(relief: Relief, material, request) -> RayOptions:
+    """Every reason to refuse, raised as RequestError/InputError before any tracing starts."""
+    request.validate()
+    opts = _options(request)
+    where = relief.source or "relief"
+    relief.require_valid()
+    if not relief.valid.all() and opts.fill_holes in (None, False):
+        raise RequestError(f"{(~relief.valid).sum()} height samples of {where} are invalid (NaN): the ray tracer "
+                           "needs a closed surface; fill them explicitly (relief fill / Relief.fill_holes) or set "
+                           "the request option fill_holes=True (or a max gap in px)", where)
+    ny, nx = relief.shape
+    if min(nx, ny) < MIN_SAMPLES_PER_SIDE:
+        raise RequestError(f"relief {where} of {ny} x {nx} samples is too small for ray tracing "
+                           f"(need at least {MIN_SAMPLES_PER_SIDE} per side)", where)
+    lam_max_m = max(request.wavelengths_nm) * 1e-9
+    ext = min(nx * relief.dx_m, ny * relief.dy_m)
+    if ext < MIN_WAVELENGTHS_PER_TILE * lam_max_m:
+        raise RequestError(f"relief {where} spans {ext * 1e6:.3g} um, less than {MIN_WAVELENGTHS_PER_TILE:g} "
+                           f"wavelengths ({lam_max_m * 1e9:g} nm): geometric optics does not apply; "
+                           "use a wave method (kirchhoff, rayleigh-rice)", where)
+    n_cells = 2 * (len(request.theta_s_edges_deg) - 1) * (len(request.phi_s_edges_deg) - 1)
+    facets = 2 * nx * ny
+    if facets < n_cells:
+        raise RequestError(f"relief {where} is too coarse for the request: its {facets} facets cannot fill "
+                           f"{n_cells} scatter cells; use a larger map or coarser theta_s/phi_s cells", where)
+    material.check_incidence(request.wavelengths_nm, request.incident_from)
+    return opts
+
+
+# ----------------------------------------------------------------------------- task context
+
+
+class _RayContext:
+    """What every incidence task needs, shipped once per worker (`parallel.map_tasks` context).
+
+    `tracer` (an already built `ReliefTracer`, e.g. from `reconstruct_with`) is used where the
+    tasks run in this process; it is not pickled: a worker process or Dask worker builds its own
+    once (`parallel.worker_cached`, keyed by `tracer_key`).  `digest()` names everything that
+    changes the numbers (checkpoint keys); the refractive indices travel with each task.
+    """
+
+    def __init__(self, relief: Relief, opts: RayOptions, request, tracer: ReliefTracer | None = None):
+        self.relief = relief
+        self.max_bounces = int(opts.max_bounces)
+        self.fill_holes = opts.fill_holes
+        self.polarized = bool(opts.polarized)
+        self.first_hit_split = bool(opts.first_hit_split)
+        self.cos_tol = math.cos(opts.specular_tol_rad)
+        self.threads = opts.threads
+        self.seed = int(request.seed)
+        self.samples = int(request.samples)
+        self.te = np.asarray(request.theta_s_edges_deg, float)
+        self.pe = np.asarray(request.phi_s_edges_deg, float)
+        self.tracer = tracer
+        mesh_options = (self.max_bounces, repr(self.fill_holes))
+        h = tracer.relief_key(relief, mesh_options) if tracer is not None else relief_hash(relief, mesh_options)
+        self.tracer_key = ("ray.ReliefTracer", h.hexdigest())
+        h.update(repr((self.polarized, self.first_hit_split, float(opts.specular_tol_rad), self.seed,
+                       self.samples, self.te.tolist(), self.pe.tolist())).encode())
+        self._digest = h.hexdigest()
+
+    def digest(self) -> str:
+        return self._digest
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        d["tracer"] = None                       # an Embree scene does not travel: rebuilt per worker
+        return d
+
+    def get_tracer(self) -> ReliefTracer:
+        if self.tracer is not None:
+            return self.tracer
+        return cached_tracer(self.tracer_key, self.relief, self.max_bounces, self.fill_holes,
+                             1 if in_worker() else self.threads)
+
+
+def _beam_strata(n: int, Lx: float, Ly: float, block_px: float = 32.0):
+    """Stratified beam: (nxs, nys) strata covering the tile and their order by 32 x 32 px blocks."""
+    nxs = max(1, int(round(math.sqrt(n * Lx / Ly))))
+    nys = max(1, -(-n // nxs))
+    iy, ix = np.divmod(np.arange(nxs * nys, dtype=np.int64), nxs)
+    bx = (ix * (Lx / nxs) // block_px).astype(np.int64)
+    by = (iy * (Ly / nys) // block_px).astype(np.int64)
+    order = np.argsort(by * (int(Lx // block_px) + 2) + bx, kind="stable")
+    return nxs, nys, order
+
+
+@dataclass
+class _Incidence:
+    """One task's beam in the physical frame: propagation direction, media, frames, ideal directions."""
+
+    side: str
+    k_in: np.ndarray
+    from_below: bool
+    media: Media
+    s_init: np.ndarray | None
+    ideal_dirs: tuple                    # (mirror, refraction or None) of the flat mean plane
+    side_of_state: tuple                 # (ABOVE ->, BELOW ->) table side
+    settings: TraceSettings
+
+
+def _incidence(side: str, n_out: complex, n_in: complex, ti: float, pi_: float, K: int, max_bounces: int,
+               split: bool) -> _Incidence:
+    wi = direction(ti, pi_)                                    # table frame, toward the source
+    k_in = -wi if side == "outside" else np.array([-wi[0], -wi[1], wi[2]])
+    from_below = side == "inside"
+    n_above = n_out.real
+    n_below = n_in if n_in.imag > 0 else n_in.real
+    s_init = s_axis(k_in[None, :], math.radians(pi_))[0] if K else None
+    spec_R = np.array([k_in[0], k_in[1], -k_in[2]])
+    n1, n2 = (n_above, n_below) if not from_below else (n_below, n_above)
+    eta = float(np.real(n1) / np.real(n2))
+    sin2t = eta**2 * (1 - k_in[2] ** 2)
+    spec_T = None
+    if sin2t < 1 and not (np.iscomplexobj(n2) and np.imag(n2) > 0):
+        spec_T = np.array([eta * k_in[0], eta * k_in[1], math.copysign(math.sqrt(1 - sin2t), k_in[2])])
+    return _Incidence(side, k_in, from_below, Media(n_above, n_below), s_init, (spec_R, spec_T),
+                      (0, 1) if side == "outside" else (1, 0),
+                      TraceSettings(max_bounces, split, math.radians(pi_ + 180.0)))
+
+
+@dataclass
+class _Tally:
+    """A chunk's exits in table cells (builder) plus the engine's counters."""
+
+    acc: CellAccumulator
+    segments: int = 0
+    paths: int = 0
+    exits: int = 0
+    bounce_sum: float = 0.0
+
+    def merge(self, other: "_Tally") -> None:
+        self.acc.merge(other.acc)
+        self.segments += other.segments
+        self.paths += other.paths
+        self.exits += other.exits
+        self.bounce_sum += other.bounce_sum
+
+
+def _new_tally(cells: CellIndex, K: int) -> _Tally:
+    return _Tally(CellAccumulator(cells, bool(K), tuple(STATE_NAMES.values())))
+
+
+def _bin_exits(t: _Tally, ex: Exits, inc: _Incidence, cos_tol: float) -> None:
+    """Hand one chunk's exits to the builder: lost states by name, the rest as exit samples."""
+    t.segments += ex.segments
+    t.paths += ex.n_paths
+    k, w, state, nb, A = ex.records()
+    done, all_done = None, True
+    if state.size and state.max() > BELOW:
+        for code, name in STATE_NAMES.items():
+            sel = state == code
+            if sel.any():
+                t.acc.lose(name, float(w[sel].sum(dtype=np.float64)))
+        done = np.flatnonzero(state <= BELOW)
+        all_done = done.size == state.size
+    n_done = state.size if all_done else done.size
+    t.exits += n_done
+    t.bounce_sum += float(nb.sum(dtype=np.float64) if all_done else nb[done].sum(dtype=np.float64))
+    if n_done == 0:
+        return
+    kd, wd, st = (k, w, state) if all_done else (k[done], w[done], state[done])
+    side = st if inc.side_of_state[0] == 0 else (1 - st)        # ABOVE = 0, BELOW = 1
+    M = None
+    if A is not None:
+        M = A.reshape(16, -1) if all_done else np.take(A.reshape(16, -1), done, axis=1)
+    t.acc.add(ExitSamples(kd, wd, side, M, specular_flags(kd, side, inc.ideal_dirs, cos_tol)))
+
+
+def _incident_state(K: int, n: int) -> np.ndarray | None:
+    """Mueller columns of the incident basis states (identity), (4, K, n)."""
+    if not K:
+        return None
+    A = np.zeros((4, 4, n), F32)
+    for i in range(4):
+        A[i, i] = 1
+    return A
+
+
+def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
+    """Trace one (side, wavelength, incidence) with `ctx.samples` rays; its finished table rows.
+
+    Module-level `map_tasks` function.  The rays go in fixed chunks of CHUNK, each with its own
+    generator `task_rng(seed, side, wavelength, theta, phi, chunk)`, over one Embree thread in a
+    pool worker and `threads` (default every core) in this process; chunk results are summed in
+    chunk order, so the numbers do not depend on the backend or the thread count.
+    """
+    si, side, iw, ii, ip, n_out, n_in, ti, pi_ = task
+    tracer = ctx.get_tracer()
+    threads = 1 if in_worker() else int(ctx.threads or tracer.threads or default_workers())
+    K = 4 if ctx.polarized else 0
+    cells = CellIndex(ctx.te, ctx.pe)
+    Lx, Ly = float(tracer.Lx), float(tracer.Ly)
+    nxs, nys, strata_order = worker_cached(("ray.strata", ctx.samples, Lx, Ly),
+                                           lambda: _beam_strata(ctx.samples, Lx, Ly))
+    N = nxs * nys
+    chunks = [(lo, min(N, lo + CHUNK)) for lo in range(0, N, CHUNK)]
+    inc = _incidence(side, n_out, n_in, ti, pi_, K, tracer.max_bounces, ctx.first_hit_split)
+
+    def job(ci):
+        lo, hi = chunks[ci]
+        rng = task_rng(ctx.seed, si, iw, ii, ip, ci)
+        iy, ix = np.divmod(strata_order[lo:hi], nxs)
+        jit = rng.random((hi - lo, 2))
+        o = np.empty((hi - lo, 3), F32)
+        o[:, 0] = (ix + jit[:, 0]) * (tracer.Lx / nxs) - tracer.hx
+        o[:, 1] = (iy + jit[:, 1]) * (tracer.Ly / nys) - tracer.hy
+        o[:, 2] = tracer.z_bot if inc.from_below else tracer.z_top
+        rays = Rays(o, np.broadcast_to(inc.k_in.astype(F32), o.shape).copy(), np.full(hi - lo, inc.from_below),
+                    np.ones(hi - lo, F32), np.zeros(hi - lo, np.int16), np.arange(hi - lo, dtype=np.int64),
+                    _incident_state(K, hi - lo))
+        ex = trace_chunk(tracer, rays, carrier_for(K), inc.media, inc.settings, rng, s_init=inc.s_init)
+        t = _new_tally(cells, K)
+        _bin_exits(t, ex, inc, ctx.cos_tol)
+        return t
+
+    t0 = time.perf_counter()
+    total = _new_tally(cells, K)
+    if threads > 1 and len(chunks) > 1:
+        with ThreadPoolExecutor(max_workers=min(threads, len(chunks))) as pool:
+            for t in pool.map(job, range(len(chunks))):       # chunk order: deterministic sums
+                total.merge(t)
+    else:
+        for ci in range(len(chunks)):
+            total.merge(job(ci))
+    out = _task_rows(total, side, K)
+    out["diag"] = {"wavelength_nm": None, "theta_i_deg": float(ti), "phi_i_deg": float(pi_), **out["diag"],
+                   "trace_s": time.perf_counter() - t0, "build_s": tracer.build_s}
+    m = tracer.mesh
+    out["mesh"] = {"rays": int(N), "triangles": m.n_triangles, "tile_samples": list(m.shape),
+                   "mirror_extended": m.mirrored, "history": list(m.history)}
+    return out
+
+
+def _task_rows(total: _Tally, side: str, K: int) -> dict:
+    """The builder's rows of one task, in the table's frame (mirrored Mueller matrices from inside)."""
+    c = total.acc.table_cells(float(total.paths))
+    out = {"vals": c.values_per_sr, "sig": c.sigma_per_sr, "specR": c.specular_R, "specT": c.specular_T,
+           "lost": c.lost, "mue": None, "smR": None, "smT": None}
+    if K:
+        dd = _MIRROR_DD if side == "inside" else 1.0
+        out["mue"] = (c.mueller_per_sr * dd).astype(F32)
+        out["smR"] = c.specular_mueller_R * dd
+        out["smT"] = c.specular_mueller_T * dd
+        out["vals"] = out["mue"][..., 0, 0].copy()
+    out["diag"] = {"rays": int(total.paths), "segments": int(total.segments),
+                   "mean_bounces": total.bounce_sum / max(total.exits, 1), "lost": c.lost_detail,
+                   "outside_table": c.outside_table}
+    return out
+
+
+# ----------------------------------------------------------------------------- reconstruct
+
+
+def reconstruct(relief: Relief, material, request, progress=None) -> list[BsdfTable]:
+    """Ray-trace the relief for every (wavelength, incidence, side) of the request (package doc).
+
+    Options (request.options): polarized (True: Mueller matrices per cell), max_bounces (100),
+    first_hit_split (True), specular_tol_rad (1e-5), fill_holes (None: refuse NaN; True or max
+    gap in px: Laplace filling), threads (this process; default every core), backend
+    (map_tasks backend; default as configured).  `request.samples` rays per incidence.
+    """
+    opts = check_request(relief, material, request)
+    return _reconstruct(None, relief, material, request, progress, opts)
+
+
+def reconstruct_with(tracer: ReliefTracer, relief: Relief, material, request, progress=None) -> list[BsdfTable]:
+    """`reconstruct` with an already built tracer (reuse one BVH across requests, e.g. in fits).
+
+    The tracer is used for the tasks that run in this process (serial backend, a single
+    incidence); worker processes build their own.
+    """
+    opts = check_request(relief, material, request)
+    if opts.threads:
+        tracer.threads = int(opts.threads)
+    return _reconstruct(tracer, relief, material, request, progress, opts)
+
+
+def _task_list(material, request) -> list[tuple]:
+    tasks = []
+    for si, side in enumerate(request.incident_from):
+        for iw, wl in enumerate(request.wavelengths_nm):
+            n_from, n_to = material.n_pair(wl, side)
+            n_out, n_in = (n_from, n_to) if side == "outside" else (n_to, n_from)
+            for ii, ti in enumerate(request.theta_i_deg):
+                for ip, pi_ in enumerate(request.phi_i_deg):
+                    tasks.append((si, side, iw, ii, ip, complex(n_out), complex(n_in), float(ti), float(pi_)))
+    return tasks
+
+
+def _empty_rows(request, K: int) -> dict:
+    """One side's table arrays, filled task by task (float32 for the big arrays)."""
+    W, I, P = len(request.wavelengths_nm), len(request.theta_i_deg), len(request.phi_i_deg)
+    S, A_ = len(request.theta_s_edges_deg) - 1, len(request.phi_s_edges_deg) - 1
+    return {"vals": np.zeros((W, I, P, 2, S, A_), F32), "sig": np.zeros((W, I, P, 2, S, A_), F32),
+            "mue": np.zeros((W, I, P, 2, S, A_, 4, 4), F32) if K else None,
+            "specR": np.zeros((W, I, P)), "specT": np.zeros((W, I, P)), "lost": np.zeros((W, I, P)),
+            "smR": np.zeros((W, I, P, 4, 4)) if K else None, "smT": np.zeros((W, I, P, 4, 4)) if K else None,
+            "diag": {}}
+
+
+def _reconstruct(tracer, relief, material, request, progress, opts) -> list[BsdfTable]:
+    t0 = time.perf_counter()
+    ctx = _RayContext(relief, opts, request, tracer)
+    tasks = _task_list(material, request)
+    sides = [_empty_rows(request, 4 if opts.polarized else 0) for _ in request.incident_from]
+    build_s = [tracer.build_s] if tracer is not None else []
+    mesh_seen: list = []
+
+    def collect(i, r):
+        si, _, iw, ii, ip = tasks[i][:5]
+        d = sides[si]
+        for name in _ROWS:
+            if d[name] is not None:
+                d[name][iw, ii, ip] = r[name]
+        diag = dict(r["diag"])
+        diag["wavelength_nm"] = float(request.wavelengths_nm[iw])
+        build_s.append(diag.pop("build_s"))
+        if not mesh_seen:
+            mesh_seen.append(r["mesh"])
+        d["diag"][(iw, ii, ip)] = diag
+
+    t_trace = time.perf_counter()
+    try:
+        map_tasks(_incidence_task, tasks, ctx, progress=progress or silent, label="ray tracing",
+                  backend=opts.backend, on_result=collect)
+    finally:
+        if tracer is None:
+            forget_tracer(ctx.tracer_key)             # a BVH built here is not kept past the request
+    mesh_info = dict(mesh_seen[0]) if mesh_seen else {}
+    run = _Run(relief, material, request, opts, mesh_info, mesh_info.pop("rays", 0),
+               {"build": max(build_s) if build_s else 0.0, "trace_all_sides": time.perf_counter() - t_trace}, t0)
+    return [_table(side, sides[si], run) for si, side in enumerate(request.incident_from)]
+
+
+@dataclass
+class _Run:
+    """What every table of a request shares: inputs, options, mesh facts, timings."""
+
+    relief: Relief
+    material: object
+    request: object
+    opts: RayOptions
+    mesh_info: dict
+    rays: int
+    timing: dict
+    t0: float
+
+
+def _table(side: str, d: dict, run: _Run) -> BsdfTable:
+    """One side's BsdfTable from its filled rows and the run's metadata."""
+    relief, material, request, opts = run.relief, run.material, run.request, run.opts
+    diag = [d["diag"][key] for key in sorted(d["diag"])]
+    meta = {"request": {"samples_requested": int(request.samples), "rays_per_incidence": run.rays,
+                        "seed": int(request.seed), "options": opts.as_mapping()},
+            "mesh": dict(run.mesh_info),
+            "max_bounces": int(opts.max_bounces),
+            "timing_s": {**run.timing, "total": time.perf_counter() - run.t0},
+            "parallel": last_run(),
+            "tasks": diag,
+            "notes": ["geometric optics: valid when relief features >> wavelength",
+                      "Stokes bases: s = z x k / |z x k|, p = s x k with k the propagation direction, "
+                      "in the table's frame (mirrored for light from inside, as bsdf.py)",
+                      "lost = max bounces + numerical leaks + absorbed + exits outside the table's cells"]}
+    return BsdfTable(
+        wavelength_nm=np.asarray(request.wavelengths_nm, float), theta_i_deg=np.asarray(request.theta_i_deg),
+        phi_i_deg=np.asarray(request.phi_i_deg), theta_s_edges_deg=np.asarray(request.theta_s_edges_deg, float),
+        phi_s_edges_deg=np.asarray(request.phi_s_edges_deg, float),
+        values_per_sr=d["vals"], incident_from=side, specular_R=d["specR"], specular_T=d["specT"],
+        lost=d["lost"], sigma_per_sr=d["sig"], mueller_per_sr=d["mue"], specular_mueller_R=d["smR"],
+        specular_mueller_T=d["smT"], method="ray", material=material.describe(), relief=relief.describe(),
+        metadata=meta)

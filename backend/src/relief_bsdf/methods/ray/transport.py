@@ -1,0 +1,494 @@
+"""The ONE bounce loop of the ray method, generic over what a ray carries.
+
+A batch of rays (`Rays`: float32 structure of arrays) is traced through the relief layer
+until every ray has left it or is lost.  At each hit the local facet is a flat interface
+between n1 (the ray's medium) and n2: Snell refraction, total internal reflection, and a
+Fresnel event whose physics depends on what the ray carries - the *carrier* (as Mitsuba 3
+compiles one integrator for scalar and polarised light; the loop is written once):
+
+- `IntensityCarrier`: unpolarised intensity, the power weight alone; the event's reflectance
+  is the unpolarised Fresnel reflectance (|r_s|^2 + |r_p|^2) / 2 of the facet (the usual
+  scalar approximation, which ignores that the first bounce polarises the light for the
+  second).  Complex indices (metals) use the float64 reference amplitudes.
+- `StokesCarrier`: K Stokes columns per ray (K = 1: one Stokes vector; K = 4: a Mueller
+  matrix whose columns answer the incident basis states) in the basis (s, p = s x k).  At a
+  hit the basis is rotated about k onto the facet's s = n x k / |n x k| (core.stokes
+  convention), the facet's Mueller matrix (`core.fresnel.interface_coefficients_f32`, the
+  form of `mueller_interface`, Born & Wolf 1.5.20-21, 1.5.27) is applied, and the reflectance
+  of the ray's current state, P_R = (M_R S)_0 / S_0 of column 0, drives the choice.
+
+Reflect or refract (Veach 1997 sec. 4.2): with `split_first` every ray's first interaction
+yields both branches deterministically (reflected: output id i, weight w P_R; transmitted:
+id i + n, weight w (1 - P_R)); the first interactions of a chunk are all done before the
+roulette phase starts (so a chunk's random numbers come in a fixed order).  Afterwards
+Russian roulette with probability P_R and renormalisation S <- M S / P keep every weight
+unchanged (unbiased; energy conserved ray by ray in lossless media).  Light transmitted into
+an absorbing medium ends as LOST_ABSORBED; rays found on the wrong side of the surface
+(numerical leaks) as LOST_LEAK; rays still bouncing after `max_bounces` as LOST_BOUNCES.
+Regime: geometric optics (features >> wavelength), no interference between rays.
+
+Speed: a handful of float32 numpy passes per bounce, one gather per bounce (the rays that
+hit), finished rays written once into the preallocated `Exits`; no BLAS call (a matrix
+product wakes OpenBLAS's spinning thread pool); the in-place float32 kernels on the (4, K, n)
+Stokes columns are the core's (`core.stokes.rotate_stokes_columns`,
+`apply_interface_mueller_columns`, `s_axis_rows`; `core.frames.dot_rows`, `cross_rows`),
+tested equal to the reference definitions beside them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from relief_bsdf.core.frames import cross_rows, dot_rows
+from relief_bsdf.core.fresnel import interface_coefficients_f32, reflectance_unpolarized_f32
+from relief_bsdf.core.stokes import apply_interface_mueller_columns, rotate_stokes_columns, s_axis_rows
+from relief_bsdf.methods.ray.exits import ABOVE, BELOW, LOST_ABSORBED, LOST_BOUNCES, LOST_LEAK, Exits
+
+F32 = np.float32
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclass
+class TraceSettings:
+    """How a chunk is traced: bounce limit, deterministic first-hit split, exit frame along z."""
+
+    max_bounces: int = 100
+    split_first: bool = False
+    phi_exit_rad: float = 0.0        # exit Stokes frame of a ray leaving exactly along z (s from the azimuth)
+
+
+@dataclass
+class Media:
+    """The two media of the layer: n_above (real, the lit side) and n_below (complex for a metal)."""
+
+    n_above: float
+    n_below: float | complex
+    eta_dn: np.float32 = field(init=False)      # n1 / n2 for a ray above the surface
+    eta_up: np.float32 = field(init=False)      # n1 / n2 for a ray below it
+    is_complex: bool = field(init=False)
+    absorbing_below: bool = field(init=False)
+
+    def __post_init__(self):
+        self.is_complex = bool(np.iscomplexobj(self.n_above) or np.iscomplexobj(self.n_below))
+        if self.is_complex:
+            self.eta_dn = F32(np.real(self.n_above / self.n_below))
+            self.eta_up = F32(np.real(self.n_below / self.n_above))
+        else:
+            na, nb = F32(self.n_above), F32(self.n_below)
+            self.eta_dn, self.eta_up = na / nb, nb / na
+        self.absorbing_below = self.is_complex and float(np.imag(self.n_below)) > 0
+
+    def pair(self, below: np.ndarray):
+        """Per-ray (n1, n2): float32 for real indices, complex128 otherwise."""
+        if self.is_complex:
+            na, nb = complex(self.n_above), complex(self.n_below)
+            return np.where(below, nb, na), np.where(below, na, nb)
+        na, nb = F32(self.n_above), F32(self.n_below)
+        return np.where(below, nb, na), np.where(below, na, nb)
+
+
+@dataclass
+class Rays:
+    """Rays in flight: origins o and unit directions k (n, 3) float32, below (in the lower medium),
+    weight w, bounce count nb, output id; for polarised light Stokes columns A (4, K, n) in the
+    basis (s, s x k) with s (n, 3)."""
+
+    o: np.ndarray
+    k: np.ndarray
+    below: np.ndarray
+    w: np.ndarray
+    nb: np.ndarray
+    ids: np.ndarray
+    A: np.ndarray | None = None
+    s: np.ndarray | None = None
+
+    @property
+    def size(self) -> int:
+        return self.ids.size
+
+    def take(self, idx: np.ndarray) -> "Rays":
+        return Rays(np.take(self.o, idx, axis=0), np.take(self.k, idx, axis=0), self.below[idx], self.w[idx],
+                    self.nb[idx], self.ids[idx], None if self.A is None else np.take(self.A, idx, axis=2),
+                    None if self.s is None else np.take(self.s, idx, axis=0))
+
+    @staticmethod
+    def concat(parts: list) -> "Rays":
+        if len(parts) == 1:
+            return parts[0]
+        cat = np.concatenate
+        A = None if parts[0].A is None else cat([p.A for p in parts], axis=2)
+        s = None if parts[0].s is None else cat([p.s for p in parts])
+        return Rays(cat([p.o for p in parts]), cat([p.k for p in parts]), cat([p.below for p in parts]),
+                    cat([p.w for p in parts]), cat([p.nb for p in parts]), cat([p.ids for p in parts]), A, s)
+
+    @staticmethod
+    def empty(K: int = 0) -> "Rays":
+        return Rays(np.zeros((0, 3), F32), np.zeros((0, 3), F32), np.zeros(0, bool), np.zeros(0, F32),
+                    np.zeros(0, np.int16), np.zeros(0, np.int64), np.zeros((4, K, 0), F32) if K else None,
+                    np.zeros((0, 3), F32) if K else None)
+
+
+@dataclass
+class Facet:
+    """The facets hit by a batch: unit normal on the incident side (components), cos of the
+    incidence and refraction angles, n1 / n2 and the total-internal-reflection mask."""
+
+    nfx: np.ndarray
+    nfy: np.ndarray
+    nfz: np.ndarray
+    ci: np.ndarray
+    ct: np.ndarray
+    eta: np.ndarray
+    tir: np.ndarray
+
+    def normal(self) -> np.ndarray:
+        return np.stack([self.nfx, self.nfy, self.nfz], axis=1)
+
+
+# ----------------------------------------------------------------------------- carriers
+
+
+class IntensityCarrier:
+    """Unpolarised intensity: the ray's weight is all it carries (module doc)."""
+
+    K = 0
+
+    def start(self, rays: Rays, s_init=None) -> None:
+        """Nothing to set up."""
+
+    def reflectance(self, rays: Rays, f: Facet, media: Media) -> np.ndarray:
+        """Unpolarised Fresnel reflectance of each event (1 past the critical angle)."""
+        if media.is_complex:
+            n1, n2 = media.pair(rays.below)
+            pR = interface_coefficients_f32(f.ci, n1, n2)[0][0].astype(F32)
+        else:
+            # Born & Wolf 1.5.20-21 divided through by n2: (n1, n2) -> (eta, 1)
+            pR = reflectance_unpolarized_f32(f.ci, f.eta, F32(1), f.ct)
+        pR[f.tir] = 1
+        return pR
+
+    def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
+        return None, None
+
+    def reflected(self, rays: Rays, pR) -> None:
+        """Nothing but the weight changes."""
+
+    def chosen(self, rays: Rays, refl, pR) -> None:
+        """Nothing but the direction changes (weights stay)."""
+
+    def exit_columns(self, rays: Rays, idx, phi_exit_rad: float):
+        return None
+
+
+class StokesCarrier:
+    """K Stokes columns per ray, rotated onto each facet's s/p basis (module doc)."""
+
+    def __init__(self, K: int):
+        self.K = int(K)
+        self._ev = None
+
+    def start(self, rays: Rays, s_init=None) -> None:
+        """Initial basis s = z x k (or the given s_init for every ray)."""
+        if s_init is None:
+            rays.s = s_axis_rows(rays.k)
+        else:
+            rays.s = np.ascontiguousarray(np.broadcast_to(np.asarray(s_init, F32), rays.k.shape))
+
+    def reflectance(self, rays: Rays, f: Facet, media: Media) -> np.ndarray:
+        """Rotate the columns onto the facet's basis; P_R of column 0's state."""
+        k = rays.k
+        nf = f.normal()
+        s_new = cross_rows(nf, k)
+        sn = np.sqrt(dot_rows(s_new, s_new))
+        degenerate = sn < 1e-6                      # normal incidence on the facet: keep the basis
+        s_new /= np.where(degenerate, 1, sn)[:, None]
+        if degenerate.any():
+            s_new[degenerate] = rays.s[degenerate]
+        rotate_stokes_columns(rays.A, rays.s, k, s_new)
+        n1, n2 = media.pair(rays.below)
+        R, T = interface_coefficients_f32(f.ci, n1, n2)
+        self._ev = (R, T, s_new)
+        return np.clip(R[0] + R[1] * rays.A[1, 0], 0, 1).astype(F32)
+
+    def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
+        """(A, s) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R."""
+        _, T, s_new = self._ev
+        A = np.take(rays.A, j, axis=2)
+        apply_interface_mueller_columns(A, *(x[j] for x in T), 1 / np.maximum(1 - pR_j, F32(1e-30)))
+        return A, s_new[j]
+
+    def reflected(self, rays: Rays, pR) -> None:
+        """Every ray keeps its reflected branch (first-hit split), renormalised by P_R."""
+        R, _, s_new = self._ev
+        apply_interface_mueller_columns(rays.A, *R, 1 / np.maximum(pR, F32(1e-30)))
+        rays.s = s_new
+
+    def chosen(self, rays: Rays, refl, pR) -> None:
+        """Roulette outcome per ray: reflected (refl) or transmitted, renormalised by its probability."""
+        R, T, s_new = self._ev
+        pc = np.where(refl, pR, 1 - pR)
+        apply_interface_mueller_columns(rays.A, *(np.where(refl, r, t) for r, t in zip(R, T)), 1 / np.maximum(pc, F32(1e-30)))
+        rays.s = s_new
+
+    def exit_columns(self, rays: Rays, idx, phi_exit_rad: float):
+        """Columns of the rays idx (all when None) re-expressed in the exit frame s = z x k."""
+        if idx is None:
+            A, s, k = rays.A, rays.s, rays.k
+        else:
+            A, s, k = np.take(rays.A, idx, axis=2), np.take(rays.s, idx, axis=0), np.take(rays.k, idx, axis=0)
+        rotate_stokes_columns(A, s, k, s_axis_rows(k, phi_exit_rad))
+        return A
+
+
+def carrier_for(K: int):
+    """The carrier of K Stokes columns per ray (0: unpolarised intensity)."""
+    return StokesCarrier(K) if K else IntensityCarrier()
+
+
+# ----------------------------------------------------------------------------- the loop
+
+
+@dataclass
+class _Chunk:
+    """What every step of one chunk's loop shares: the scene, the exit record, the carrier, the
+    media, the settings, the chunk's generator and its number of input rays."""
+
+    tracer: object
+    ex: Exits
+    carrier: object
+    media: Media
+    settings: TraceSettings
+    rng: np.random.Generator
+    n0: int
+
+
+def trace_chunk(tracer, rays: Rays, carrier, media: Media, settings: TraceSettings, rng,
+                s_init=None) -> Exits:
+    """Trace `rays` through `tracer`'s relief layer until every ray has ended; the chunk's `Exits`.
+
+    Phase 1 (split_first): every ray's first interaction, both branches; phase 2: roulette.
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):      # once per chunk (errstate is not free)
+        carrier.start(rays, s_init)
+        n0 = rays.size
+        ex = Exits(2 * n0 if settings.split_first else n0, carrier.K)
+        ch = _Chunk(tracer, ex, carrier, media, settings, rng, n0)
+        cur, nxt, pending = rays, [], settings.split_first
+        segments = 0
+        while True:
+            if cur.size == 0:
+                if pending and nxt:
+                    pending = False
+                    cur, nxt = Rays.concat(nxt), []
+                    continue
+                break
+            segments += cur.size
+            q = tracer.query(cur.o, cur.k)
+            wrapped = _misses(ch, cur, q) if q.n_hit < cur.size else None
+            parts = _hits(ch, cur, q, pending) if q.n_hit else []
+            if pending:                  # the first interaction's outputs wait; the wrapped stay pending
+                nxt.extend(parts)
+                cur = wrapped if wrapped is not None else Rays.empty(carrier.K)
+            else:
+                if wrapped is not None:
+                    parts.append(wrapped)
+                cur = Rays.concat(parts) if parts else Rays.empty(carrier.K)
+        ex.segments, ex.n_paths = segments, n0
+        return ex
+
+
+def _exit_state(up: np.ndarray, below: np.ndarray) -> np.ndarray:
+    """ABOVE for an upward exit from above, BELOW for a downward one from below, else a leak."""
+    st = np.where(up, np.int8(ABOVE), np.int8(BELOW))
+    bad = up == below
+    if bad.any():
+        st[bad] = LOST_LEAK
+    return st
+
+
+def _misses(ch: _Chunk, cur: Rays, q) -> Rays | None:
+    """Rays that hit nothing: those that reached the slab's faces leave; those that reached a
+    tile side re-enter from the opposite side (returned)."""
+    ex, carrier = ch.ex, ch.carrier
+    side_exit = ~(q.t_lat < q.tz)                    # reached the slab face, not a tile side
+    phi = ch.settings.phi_exit_rad
+    if q.n_hit == 0 and side_exit.all():            # every ray left (the usual end of a phase): no gathers
+        ex.put_all(cur.k, cur.w, cur.nb, cur.ids, _exit_state(cur.k[:, 2] > 0, cur.below),
+                   carrier.exit_columns(cur, None, phi))
+        return None
+    mi = np.flatnonzero(~q.hit)
+    lat = ~side_exit[mi]
+    wrapped = None
+    if lat.any():
+        wi = mi[lat]
+        mi = mi[~lat]
+        wrapped = cur.take(wi)
+        wrapped.o = ch.tracer.wrap(wrapped.o, wrapped.k, q.t_lat[wi], q.tx[wi], q.ty[wi])
+    if mi.size:
+        st = _exit_state(np.take(cur.k[:, 2], mi) > 0, cur.below[mi])
+        ex.put(cur.k, mi, cur.w, cur.nb, cur.ids, st, carrier.exit_columns(cur, mi, phi))
+    return wrapped
+
+
+def _hits(ch: _Chunk, cur: Rays, q, pending: bool) -> list:
+    """Gather the rays that hit, drop numerical leaks, and let them interact."""
+    if q.n_hit == cur.size:
+        h, ng, th = cur, q.ng, q.t_hit
+    else:
+        hi = np.flatnonzero(q.hit)
+        h, ng, th = cur.take(hi), np.take(q.ng, hi, axis=0), q.t_hit[hi]
+    k = h.k
+    gx, gy, gz = ng[:, 0], ng[:, 1], ng[:, 2]
+    # unit facet normal oriented up (+z): g / |g| with the sign of g_z
+    inv = gx * gx
+    inv += gy * gy
+    inv += gz * gz
+    np.sqrt(inv, out=inv)
+    np.divide(F32(1), inv, out=inv)
+    np.copysign(inv, gz, out=inv)
+    dot = k[:, 0] * gx
+    dot += k[:, 1] * gy
+    dot += k[:, 2] * gz
+    dot *= inv                                        # k . n_up
+    leak = (dot > 0) != h.below                       # above must hit from above, below from below
+    if leak.any():
+        li = np.flatnonzero(leak)
+        ch.ex.put(h.k, li, h.w, h.nb, h.ids, np.full(li.size, LOST_LEAK, np.int8),
+                  ch.carrier.exit_columns(h, li, ch.settings.phi_exit_rad))
+        g = np.flatnonzero(~leak)
+        h, ng, th, inv, dot = h.take(g), np.take(ng, g, axis=0), th[g], inv[g], dot[g]
+    if h.size == 0:
+        return []
+    return _interact(ch, h, _facet(h, ng, inv, dot, ch.media), th, pending)
+
+
+def _facet(h: Rays, ng, inv, dot, media: Media) -> Facet:
+    """Incident-side unit normal, cos i, cos t (Snell), n1 / n2 and TIR of each hit."""
+    s = np.where(h.below, -inv, inv)                 # nf = n_up above the surface, -n_up below
+    ci = np.abs(dot)
+    eta = np.where(h.below, media.eta_up, media.eta_dn)
+    sin2t = ci * ci                                   # Snell: sin^2 t = eta^2 (1 - cos^2 i); TIR when >= 1
+    np.subtract(F32(1), sin2t, out=sin2t)
+    sin2t *= eta * eta
+    tir = sin2t >= 1
+    ct = np.subtract(F32(1), sin2t, out=sin2t)
+    np.maximum(ct, 0, out=ct)
+    np.sqrt(ct, out=ct)
+    return Facet(ng[:, 0] * s, ng[:, 1] * s, ng[:, 2] * s, ci, ct, eta, tir)
+
+
+def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
+    """One interaction for rays that all hit: the continuing rays (and split copies)."""
+    carrier, eps = ch.carrier, ch.tracer.eps
+    pR = carrier.reflectance(h, f, ch.media)
+    h.nb = h.nb + np.int16(1)
+    p = h.k * th[:, None]                             # hit point
+    p += h.o
+    bt = f.eta * f.ci
+    bt -= f.ct                                        # k_t = eta k + (eta ci - ct) nf; k_r = k + 2 ci nf
+    parts, absorbed = [], None
+    if pending:
+        tr = _split_copies(ch, h, f, p, bt, pR)
+        if tr is not None:
+            parts.append(tr)
+        h.w = h.w * pR
+        carrier.reflected(h, pR)
+        a, b, off = None, 2 * f.ci, eps
+    else:
+        refl = ch.rng.random(h.size, dtype=F32) < pR
+        carrier.chosen(h, refl, pR)
+        a = np.where(refl, F32(1), f.eta)
+        b = np.where(refl, 2 * f.ci, bt)
+        off = np.where(refl, eps, -eps)
+        if ch.media.absorbing_below:
+            absorbed = ~refl & ~h.below               # refracted into the absorbing medium
+        h.below = h.below ^ ~refl
+    h.k = _new_directions(h.k, f, a, b)
+    p[:, 0] += off * f.nfx
+    p[:, 1] += off * f.nfy
+    p[:, 2] += off * f.nfz
+    h.o = p
+    end = _end_rays(ch, h, absorbed)
+    if end is not None:
+        g = np.flatnonzero(~end)
+        if g.size == 0:
+            return parts
+        h = h.take(g)
+    return [h] + parts
+
+
+def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR) -> Rays | None:
+    """Transmitted branch of every ray's first interaction (id + n0, weight w (1 - P_R)); none where
+    nothing is transmitted (P_R = 1: TIR)."""
+    j = np.flatnonzero(pR < 1)
+    if not j.size:
+        return None
+    full = j.size == h.size
+    sel = (lambda a: a) if full else (lambda a: a[j])
+    etj, btj = sel(f.eta), sel(bt)
+    fx, fy, fz = sel(f.nfx), sel(f.nfy), sel(f.nfz)
+    k = h.k
+    kt = np.empty((j.size, 3), F32)
+    kt[:, 0] = etj * sel(k[:, 0]) + btj * fx
+    kt[:, 1] = etj * sel(k[:, 1]) + btj * fy
+    kt[:, 2] = etj * sel(k[:, 2]) + btj * fz
+    kt /= np.sqrt(dot_rows(kt, kt))[:, None]
+    ot = np.take(p, j, axis=0) if not full else p.copy()
+    eps = ch.tracer.eps
+    ot[:, 0] -= eps * fx
+    ot[:, 1] -= eps * fy
+    ot[:, 2] -= eps * fz
+    A, s = ch.carrier.transmitted_copy(h, j, sel(pR))
+    tr = Rays(ot, kt, ~sel(h.below), sel(h.w) * (1 - sel(pR)), sel(h.nb), sel(h.ids) + ch.n0, A, s)
+    if ch.media.absorbing_below:
+        gone = ~sel(h.below)                        # copies from above went into the absorbing medium
+        if gone.any():
+            gi = np.flatnonzero(gone)
+            ch.ex.put(tr.k, gi, tr.w, tr.nb, tr.ids, np.full(gi.size, LOST_ABSORBED, np.int8),
+                      ch.carrier.exit_columns(tr, gi, ch.settings.phi_exit_rad))
+            tr = tr.take(np.flatnonzero(~gone))
+    return tr
+
+
+def _new_directions(k, f: Facet, a, b) -> np.ndarray:
+    """a k + b nf per ray (a None: 1, a reflection, norm preserved; else renormalised)."""
+    kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
+    knew = np.empty(k.shape, F32)
+    if a is None:
+        np.multiply(b, f.nfx, out=knew[:, 0])
+        knew[:, 0] += kx
+        np.multiply(b, f.nfy, out=knew[:, 1])
+        knew[:, 1] += ky
+        np.multiply(b, f.nfz, out=knew[:, 2])
+        knew[:, 2] += kz
+        return knew
+    knew[:, 0] = a * kx + b * f.nfx
+    knew[:, 1] = a * ky + b * f.nfy
+    knew[:, 2] = a * kz + b * f.nfz
+    nr = knew[:, 0] * knew[:, 0]
+    nr += knew[:, 1] * knew[:, 1]
+    nr += knew[:, 2] * knew[:, 2]
+    np.sqrt(nr, out=nr)
+    knew /= nr[:, None]
+    return knew
+
+
+def _end_rays(ch: _Chunk, h: Rays, absorbed):
+    """Record the rays absorbed or past max_bounces; the mask of ended rays (None: none ended)."""
+    ex, carrier, settings = ch.ex, ch.carrier, ch.settings
+    end = None
+    phi = settings.phi_exit_rad
+    if absorbed is not None and absorbed.any():
+        ai = np.flatnonzero(absorbed)
+        ex.put(h.k, ai, h.w, h.nb, h.ids, np.full(ai.size, LOST_ABSORBED, np.int8), carrier.exit_columns(h, ai, phi))
+        end = absorbed
+    over = h.nb >= settings.max_bounces
+    if over.any():
+        sel = over if end is None else over & ~end
+        oi = np.flatnonzero(sel)
+        ex.put(h.k, oi, h.w, h.nb, h.ids, np.full(oi.size, LOST_BOUNCES, np.int8), carrier.exit_columns(h, oi, phi))
+        end = over if end is None else end | over
+    return end

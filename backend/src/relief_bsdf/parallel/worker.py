@@ -1,0 +1,99 @@
+"""The task side of parallel execution: what runs inside a worker, and what a task may use.
+
+A task is a module-level function `fn(context, task)`.  It may call
+
+- `task_rng(seed, *key)`: its own random stream (same numbers on any backend);
+- `worker_cached(key, build)`: an expensive object (a BVH, an FFT plan) built once per
+  worker process and reused by every later task there;
+- `in_worker()`: whether it runs as a task (a nested `map_tasks` then runs serially).
+
+Why this module keeps module-level state (and nothing else in `parallel` does): a local
+pool worker receives the shared context once, through the pool initializer
+(`init_worker`), and the only place an initializer can leave something for the tasks that
+follow in that *process* is module state of the worker process.  The same holds for the
+per-worker cache, which must outlive a single task.  This state is per process and is
+never read to decide *where* tasks run (that is `ParallelSettings`, passed in):
+
+- `_CONTEXT`: shared context per pool token (set by `init_worker`, worker processes only);
+- `_IN_WORKER`: this whole process is a local pool worker;
+- `_LOCAL.in_task`: this thread runs a task (a Dask worker thread, maybe in-process);
+- `_WORKER_CACHE`: the `worker_cached` objects (at most 9, then cleared).
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import threading
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+_CONTEXT: dict[int, Any] = {}
+_IN_WORKER = False
+_LOCAL = threading.local()
+_WORKER_CACHE: dict[Any, Any] = {}
+_CACHE_LIMIT = 8
+
+
+def task_rng(seed: int, *key: int) -> np.random.Generator:
+    """Random generator for one task, derived from the run's seed and the task's integer key."""
+    ints = [int(seed) & 0xFFFFFFFF] + [int(k) & 0xFFFFFFFF for k in key]
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(ints)))
+
+
+def worker_cached(key: Any, build: Callable[[], Any]) -> Any:
+    """Build an expensive per-context object (a BVH, an FFT plan) once per worker process.
+
+    Tasks call `worker_cached(("bvh", relief_digest), lambda: Tracer(relief))`; the object
+    lives for the life of the worker, so it is built once per worker, not once per task.
+    """
+    if key not in _WORKER_CACHE:
+        if len(_WORKER_CACHE) > _CACHE_LIMIT:
+            _WORKER_CACHE.clear()
+        _WORKER_CACHE[key] = build()
+    return _WORKER_CACHE[key]
+
+
+def forget_worker_cached(key: Any) -> None:
+    """Drop one `worker_cached` object from this process (e.g. a BVH built for a serial run)."""
+    _WORKER_CACHE.pop(key, None)
+
+
+def in_worker() -> bool:
+    """True inside a task running on a worker (local process or Dask worker)."""
+    return _IN_WORKER or getattr(_LOCAL, "in_task", False)
+
+
+@contextlib.contextmanager
+def running_task() -> Iterator[None]:
+    """Mark this thread as running a task (nested map_tasks calls then run serially)."""
+    old = getattr(_LOCAL, "in_task", False)
+    _LOCAL.in_task = True
+    try:
+        yield
+    finally:
+        _LOCAL.in_task = old
+
+
+def init_worker(token: int, context: Any) -> None:
+    """Initializer of a local pool worker: keep the context, ignore Ctrl-C, one thread per library."""
+    global _IN_WORKER
+    _CONTEXT[token] = context
+    _IN_WORKER = True
+    # Ctrl-C goes to the whole process group: the parent handles it and terminates us
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # numerical libraries inside a worker use one thread each: the pool already fills the cores
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def run_in_worker(fn: Callable, token: int, batch: list) -> list:
+    """Run one batch of tasks in a local pool worker against the context `init_worker` kept."""
+    context = _CONTEXT[token]
+    return [fn(context, task) for task in batch]
+
+
+def run_marked(batch: list, fn: Callable, context: Any) -> list:
+    """Run one batch of tasks on a Dask worker thread, marked as a task (nested calls run serially)."""
+    with running_task():
+        return [fn(context, task) for task in batch]

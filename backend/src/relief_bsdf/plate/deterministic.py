@@ -1,0 +1,897 @@
+"""The deterministic engine of the plate: radiative transfer between the faces' boundary tables.
+
+Entry point: `run(experiment, rows, grid)` (used by `plate.simulate`): the Experiment's faces give
+their tables (`plate.faces`), `solver_of` places them on the engine's two-face system, the rows
+are read by the one detector (`plate.detector`).  `PlateModel` is this engine's internal flat
+configuration of an Experiment (`model_of`); `PlateSolver` / `simulate_rows` work on tables
+directly (tests, benchmarks).
+
+Geometry (formats.md frame): the plate fills -t < z < 0, the lit face is z = 0, light comes
+from z > 0.  The first face (the relief, or the front face when the relief is on the back) is
+described by two `BsdfTable`s (light from outside, light from inside), each isotropic (one
+phi_i); the second face is flat (exact cell-averaged Fresnel) or carries its own inside table
+(its delta part replaces Fresnel and its cells add a second diffuse kernel K_B).  With the
+relief on the back face the system is solved with the roles swapped (same equations).
+
+Bulk.  Without volume scattering a traversal at internal angle theta keeps exp(-a t / cos theta)
+(Beer-Lambert, diagonal).  With scattering (mu_s > 0, Henyey-Greenstein g) the traversal is the
+slab's reflection and transmission operators per azimuthal mode (`plate.slab`, adding-doubling),
+combined with the faces by the adding equations (`_slab_system`); delta beams are attenuated by
+a + mu_s,j and shed what the slab scatters out of them as diffuse sources (`_slab_sources`).
+Approximation: scalar phase function on S0, Stokes vector carried unchanged by a volume event.
+Source polarisation: Stokes (1, q, 0, 0), q in [-1, 1] (PlateModel.polarization: "s", "p",
+"unpolarized" or q).
+
+Method (radiative transfer between two faces, discrete ordinates):
+
+* Internal directions are discretised into rings of the inside table's theta cells and a
+  uniform azimuth grid (A cells, centres at multiples of 360/A relative to the propagation
+  azimuth of the incident beam).  The state is the power per cell (fraction of the incident
+  power) leaving the rough face into the plate, X.  One round trip (absorb, reflect at the
+  flat face with Fresnel R_F, absorb, scatter back at the rough face with the inside table's R
+  cells K) gives X = S + K A R_F A X, so X = (I - K A R_F A)^-1 S: every internal
+  reflection, including light trapped by total internal reflection (R_F = 1) that escapes
+  after further scattering, is summed exactly (no truncated series).
+* Isotropy makes K circulant in azimuth: a real FFT over the azimuth axis block-diagonalises
+  it (azimuthal reduction), so the solve is A/2+1 small (N x N) systems instead of one
+  (N A) x (N A) system.
+* The delta parts of the tables (specular reflection and transmission of the flat fraction of
+  the relief, or a flat face) are kept apart as exact beams: their chain between the faces is
+  a 4x4 geometric series (Mueller matrices), and what they scatter diffusely feeds S.
+* Polarisation: Stokes vectors (S0, S1 = I_s - I_p, S2, S3) in the s/p basis of the plane
+  (direction, z) (bsdf.py frames).  At a flat face this plane is the plane of incidence, so
+  Fresnel Mueller matrices (optics.mueller_interface) apply without rotation and a flat plate
+  is exact for s and p separately.  When the tables carry Mueller matrices the diffuse loop
+  runs on 4-vectors; otherwise the tables are taken as polarisation independent and
+  *depolarising* for their diffuse part (M = f diag(1,0,0,0)) and polarisation preserving for
+  their specular part (M = p I), and the diffuse loop is scalar (exact under that assumption,
+  since the flat face's polarisation is destroyed at the next rough interaction).
+* Output: the plate BSDF on an outgoing grid (theta cells x azimuth grid) per side, plus
+  delta beams; rows are read by `plate.detector.grid_reading` (cone (x) Gaussian blur
+  quadrature for the diffuse part, response(psi) P / (Omega cos theta_s) for a delta beam).
+
+Regime of validity: geometric optics between the faces (plate thick compared with the
+coherence length: intensities add, no thin-film fringes), laterally infinite plate
+(no edge loss), translation-invariant faces (the relief's statistics do not vary over the
+lit spot), discretisation error of the order of the table's cell size (1 deg by default).
+"""
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, field, replace
+from typing import Any, Sequence
+
+import numpy as np
+
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.core.frames import projected_solid_angle
+from relief_bsdf.errors import InputError
+from relief_bsdf.core.frames import rot_y
+from relief_bsdf.core.fresnel import mueller_interface
+from relief_bsdf.core.index import ConstantIndex, IndexModel, Material
+from relief_bsdf.plate.detector import grid_reading
+
+_DEPOL = np.diag([1.0, 0.0, 0.0, 0.0])
+
+
+def _blas_single_thread():
+    """The plate's matrices are small (N ~ 90): BLAS threads only add wake-up cost, and on a loaded
+    machine OpenBLAS's spinning threads make a 5 ms batched solve take seconds.  One thread."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - pinned in requirements/runtime.txt
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
+SOURCE_STOKES = {"unpolarized": np.array([1.0, 0.0, 0.0, 0.0]),
+                 "s": np.array([1.0, 1.0, 0.0, 0.0]),
+                 "p": np.array([1.0, -1.0, 0.0, 0.0])}
+
+
+@dataclass(frozen=True)
+class PlateModel:
+    """The engine's internal configuration: everything besides the boundary tables (see `model_of`).
+
+    The "effects" a diagnosis may switch on are plain fields with neutral defaults:
+    absorption_per_m (bulk absorption), polarization (source state "unpolarized", "s",
+    "p"), background_per_sr (stray light added to every row), blur_deg (Gaussian
+    instrument blur, 1-sigma, added to the detector cone), tilt_deg (sample tilt about the
+    y axis: incidence seen by the sample is theta_i + tilt in the plane of incidence),
+    The second face is flat unless a table is given to PlateSolver / simulate_rows (`back`,
+    relief on the front only).  Tilt: the sample
+    normal is rotated by tilt_deg about the y axis of the instrument; rows are transformed into
+    the sample frame and the reading converted back with f = f' cos theta_s' / cos theta_s (the
+    instrument divides by its own cos theta_s).
+    """
+
+    thickness_m: float
+    index: IndexModel
+    rough_face: str = "front"
+    absorption_per_m: float = 0.0
+    detector_half_angle_deg: float = 1.0
+    polarization: str | float = "unpolarized"
+    outside_index: IndexModel = ConstantIndex(1.0)
+    background_per_sr: float = 0.0
+    blur_deg: float = 0.0
+    tilt_deg: float = 0.0
+    azimuth_cells: int = 72
+    cone_points: int = 19
+    scatter_per_m: float = 0.0
+    hg_g: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.rough_face not in ("front", "back"):
+            raise InputError("plate.rough_face", f"must be 'front' or 'back', got {self.rough_face!r}")
+        if not (self.thickness_m > 0 and np.isfinite(self.thickness_m)):
+            raise InputError("plate.thickness_mm", f"thickness must be > 0, got {self.thickness_m}")
+        if not (self.absorption_per_m >= 0):
+            raise InputError("plate.absorption_per_mm", f"absorption must be >= 0, got {self.absorption_per_m}")
+        if not (self.detector_half_angle_deg > 0 and self.detector_half_angle_deg < 45):
+            raise InputError("instrument.detector_half_angle_deg",
+                             f"the detector cone half-angle must be in (0, 45) degrees, got "
+                             f"{self.detector_half_angle_deg}")
+        if isinstance(self.polarization, str) and self.polarization not in SOURCE_STOKES:
+            raise InputError("instrument.polarization",
+                             f"must be unpolarized, s or p, got {self.polarization!r}")
+        if not isinstance(self.polarization, str) and not (-1.0 <= float(self.polarization) <= 1.0):
+            raise InputError("instrument.polarization", f"source q must be in [-1, 1], got {self.polarization}")
+
+    @property
+    def source_stokes(self) -> np.ndarray:
+        """Source Stokes vector (1, q, 0, 0) in the s/p basis of the plane of incidence."""
+        if isinstance(self.polarization, str):
+            return SOURCE_STOKES[self.polarization]
+        return np.array([1.0, float(self.polarization), 0.0, 0.0])
+
+    @property
+    def material(self) -> Material:
+        return Material(inside=self.index, outside=self.outside_index)
+
+    def with_effects(self, **kw: Any) -> "PlateModel":
+        return replace(self, **kw)
+
+    @staticmethod
+    def from_sample(sample: Any) -> "PlateModel":
+        """Build from a `relief_bsdf.io.recording.Sample` (sample.toml)."""
+        p, ins = sample.plate, sample.instrument
+        a = getattr(p, "absorption_per_mm", None)
+        try:
+            return PlateModel._from_specs(p, ins, a)
+        except InputError as e:
+            raise InputError(f"{sample.path}: {e.where}", e.message) from None
+
+    @staticmethod
+    def _from_specs(p: Any, ins: Any, a: Any) -> "PlateModel":
+        return PlateModel(thickness_m=float(p.thickness_mm) * 1e-3, index=p.index, rough_face=p.rough_face,
+                          absorption_per_m=0.0 if a is None else float(a) * 1e3,
+                          detector_half_angle_deg=float(ins.detector_half_angle_deg),
+                          polarization=str(ins.polarization))
+
+
+@dataclass
+class Rows:
+    """The geometry of recording rows (any object with these arrays works)."""
+
+    wavelength_nm: np.ndarray
+    theta_i_deg: np.ndarray
+    phi_i_deg: np.ndarray
+    side: np.ndarray
+    theta_s_deg: np.ndarray
+    phi_s_deg: np.ndarray
+
+    def __post_init__(self) -> None:
+        for k in ("wavelength_nm", "theta_i_deg", "phi_i_deg", "theta_s_deg", "phi_s_deg"):
+            setattr(self, k, np.atleast_1d(np.asarray(getattr(self, k), float)))
+        self.side = np.atleast_1d(np.asarray(self.side, dtype="<U1"))
+
+    def __len__(self) -> int:
+        return self.wavelength_nm.size
+
+
+def in_plane_rows(wavelength_nm: float, theta_i_deg: Sequence[float], theta_s_deg: Sequence[float],
+                  sides: Sequence[str] = ("R", "T"), phi_s_deg: Sequence[float] = (0.0, 180.0)) -> Rows:
+    """Rows of a typical in-plane scan (phi_i = 0, phi_s in {0, 180})."""
+    g = np.array([(wavelength_nm, ti, 0.0, sd, ts, ps) for ti in theta_i_deg for sd in sides
+                  for ps in phi_s_deg for ts in theta_s_deg], dtype=object)
+    return Rows(g[:, 0].astype(float), g[:, 1].astype(float), g[:, 2].astype(float), g[:, 3].astype(str),
+                g[:, 4].astype(float), g[:, 5].astype(float))
+
+
+def check_rows(model: PlateModel, rows: Any, where: str = "recording") -> None:
+    """InputError (naming `where` and the column) for rows the plate cannot produce."""
+    model.index.check_range(rows.wavelength_nm, f"{where}: wavelength_nm")
+    model.outside_index.check_range(rows.wavelength_nm, f"{where}: wavelength_nm")
+    for key in ("theta_i_deg", "theta_s_deg"):
+        v = np.asarray(getattr(rows, key), float)
+        bad = ~np.isfinite(v) | (v < 0) | (v >= 90)
+        if bad.any():
+            raise InputError(f"{where}: {key}", f"value {v[bad][0]:g} is outside [0, 90) degrees "
+                             "(a plate cannot be lit or seen at or past grazing)")
+    s = np.asarray(rows.side).astype(str)
+    if np.any((s != "R") & (s != "T")):
+        raise InputError(f"{where}: side", "side must be R or T")
+
+
+# ---------------------------------------------------------------- interpolation helpers
+
+def _lin_matrix(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(len(x), len(grid)) linear interpolation weights, clamped at the ends."""
+    grid = np.asarray(grid, float)
+    x = np.atleast_1d(np.asarray(x, float))
+    W = np.zeros((x.size, grid.size))
+    if grid.size == 1:
+        W[:, 0] = 1.0
+        return W
+    xc = np.clip(x, grid[0], grid[-1])
+    i1 = np.clip(np.searchsorted(grid, xc, side="right"), 1, grid.size - 1)
+    i0 = i1 - 1
+    f = np.clip((xc - grid[i0]) / (grid[i1] - grid[i0]), 0.0, 1.0)
+    r = np.arange(x.size)
+    W[r, i0] += 1.0 - f
+    W[r, i1] += f
+    return W
+
+
+def _periodic_matrix(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Like `_lin_matrix` on a 360-degree periodic axis."""
+    grid = np.asarray(grid, float)
+    x = np.atleast_1d(np.asarray(x, float))
+    n = grid.size
+    W = np.zeros((x.size, n))
+    if n == 1:
+        W[:, 0] = 1.0
+        return W
+    g0 = grid[0]
+    xr = np.mod(x - g0, 360.0) + g0
+    ext = np.concatenate([grid, [g0 + 360.0]])
+    i1 = np.clip(np.searchsorted(ext, xr, side="right"), 1, n)
+    i0 = i1 - 1
+    f = np.clip((xr - ext[i0]) / (ext[i1] - ext[i0]), 0.0, 1.0)
+    r = np.arange(x.size)
+    np.add.at(W, (r, i0 % n), 1.0 - f)
+    np.add.at(W, (r, i1 % n), f)
+    return W
+
+
+def _apply(W: np.ndarray, arr: np.ndarray, axis: int) -> np.ndarray:
+    """Contract interpolation matrix W (new, old) with `arr` along `axis`."""
+    if W.shape[0] == W.shape[1] and np.all(np.diagonal(W) == 1.0):   # rows sum to 1: identity
+        return arr
+    return np.moveaxis(np.tensordot(W, arr, axes=([1], [axis])), 0, axis)
+
+
+class _TableView:
+    """One boundary table at one wavelength, sampled on arbitrary angles (isotropic tables only)."""
+
+    def __init__(self, table: BsdfTable, wavelength_nm: float, mueller: bool, name: str):
+        if not table.is_isotropic:
+            raise InputError(name, "the plate model needs an isotropic boundary table (one phi_i)")
+        self.table = table
+        ww = _lin_matrix(table.wavelength_nm, [wavelength_nm])[0]
+        self.mueller = mueller
+
+        def at_wavelength(arr):          # a view when the wavelength is on the grid (no copy of a big table)
+            hit = np.nonzero(ww == 1.0)[0]
+            return arr[hit[0], :, 0] if hit.size else np.tensordot(ww, arr[:, :, 0], axes=(0, 0))
+        if mueller:
+            if table.mueller_per_sr is not None:
+                v = at_wavelength(table.mueller_per_sr)                                         # (I, 2, S, P, 4, 4)
+            else:
+                v = at_wavelength(table.values_per_sr)[..., None, None] * _DEPOL
+        else:
+            v = at_wavelength(table.values_per_sr)                                              # (I, 2, S, P)
+        self.v = v
+        self.spec = {}
+        for k, name_ in ((0, "R"), (1, "T")):
+            p = ww @ getattr(table, f"specular_{name_}")[:, :, 0]                              # (I,)
+            m = getattr(table, f"specular_mueller_{name_}")
+            pm = (np.tensordot(ww, m[:, :, 0], axes=(0, 0)) if m is not None
+                  else p[:, None, None] * np.eye(4))
+            self.spec[name_] = (p, pm)
+        self.phi0 = float(table.phi_i_deg[0])
+
+    def diffuse(self, side: str, theta_in: np.ndarray, theta_out: np.ndarray, delta_deg: np.ndarray) -> np.ndarray:
+        """f(theta_in -> theta_out, relative propagation azimuth delta): (J, T, A[, 4, 4])."""
+        k = 0 if side == "R" else 1
+        t = self.table
+        arr = self.v[:, k]                                                   # (I, S, P, ...)
+        arr = _apply(_lin_matrix(t.theta_i_deg, theta_in), arr, 0)
+        arr = _apply(_lin_matrix(t.theta_s_deg, theta_out), arr, 1)
+        arr = _apply(_periodic_matrix(t.phi_s_deg, self.phi0 + 180.0 + np.asarray(delta_deg)), arr, 2)
+        return arr
+
+    def specular(self, side: str, theta_in: float) -> np.ndarray:
+        """4x4 Mueller matrix (or scalar power fraction times I) of the delta part."""
+        return self.specular_many(side, [theta_in])[0]
+
+    def specular_many(self, side: str, theta_in: Any) -> np.ndarray:
+        """(n, 4, 4) delta-part Mueller matrices at several incidence angles."""
+        p, pm = self.spec[side]
+        W = _lin_matrix(self.table.theta_i_deg, np.ravel(theta_in))
+        return np.tensordot(W, pm, axes=(1, 0))
+
+
+def _blocks(Xh: np.ndarray, c: int) -> np.ndarray:
+    """(T, J, M[, 4, 4]) kernel in Fourier space -> (M, T c, J c) matrices."""
+    if c == 1:
+        return np.moveaxis(Xh, 2, 0)
+    T, J, M = Xh.shape[:3]
+    return np.transpose(Xh, (2, 0, 3, 1, 4)).reshape(M, T * 4, J * 4)
+
+
+def _block_diag(D: np.ndarray, c: int) -> np.ndarray:
+    """(N, 4, 4) per-cell Mueller matrices -> (N c, N c) block-diagonal (c = 1: the M00 diagonal)."""
+    N = D.shape[0]
+    if c == 1:
+        return np.diag(D[:, 0, 0])
+    out = np.zeros((N, 4, N, 4))
+    idx = np.arange(N)
+    out[idx, :, idx, :] = D
+    return out.reshape(N * 4, N * 4)
+
+
+def _fresnel(cos_i: np.ndarray, n1: float, n2: float, kind: str) -> np.ndarray:
+    return mueller_interface(np.asarray(cos_i, float), n1, n2, kind)
+
+
+def _snell_deg(theta_deg: Any, n1: float, n2: float) -> np.ndarray:
+    s = np.sin(np.radians(theta_deg)) * n1 / n2
+    return np.degrees(np.arcsin(np.clip(s, -1.0, 1.0)))
+
+
+# ---------------------------------------------------------------- volume scattering (plate.slab)
+
+_SLAB_CACHE: dict = {}
+
+
+def _kron4(X: np.ndarray) -> np.ndarray:
+    """(M, N, N) scalar operators -> (M, 4N, 4N) acting on Stokes vectors unchanged (scalar phase function)."""
+    M, N, _ = X.shape
+    return np.einsum("mij,ab->miajb", X, np.eye(4)).reshape(M, 4 * N, 4 * N)
+
+
+def _slab_system(m: "PlateModel", theta_edges: np.ndarray, A: int, Kb: np.ndarray, R2: np.ndarray, c: int) -> dict:
+    """Adding of the scattering slab to the faces, per azimuthal mode (adding equations, van de Hulst 1980).
+
+    X (down-going at the top of the slab, leaving the first face) reaches the second face as
+    B X, B = (I - Rv R2)^-1 Tv, and returns to the first face as Rc X, Rc = Rv + Tv R2 B
+    (R2: the second face's reflection; Rv, Tv: the slab's).  Round trip: X = S + Kb Rc X.
+    Without scattering Rv = 0, Tv = diag(exp(-a t / mu)) and this is the diagonal loop.
+    """
+    from relief_bsdf.plate.slab import slab_operators
+    key = (tuple(np.round(theta_edges, 9)), int(A), m.thickness_m, m.absorption_per_m, m.scatter_per_m, m.hg_g)
+    if key not in _SLAB_CACHE:
+        if len(_SLAB_CACHE) > 8:
+            _SLAB_CACHE.clear()
+        _SLAB_CACHE[key] = slab_operators(theta_edges, A, m.thickness_m, m.absorption_per_m, m.scatter_per_m, m.hg_g)
+    sl = _SLAB_CACHE[key]
+    Rv, Tv, Td = (sl.R, sl.T, sl.T_diffuse) if c == 1 else (_kron4(sl.R), _kron4(sl.T), _kron4(sl.T_diffuse))
+    eye = np.eye(Rv.shape[1])[None]
+    B = np.linalg.solve(eye - Rv @ R2, Tv)
+    Rc = Rv + Tv @ R2 @ B
+    Q = np.linalg.inv(eye - R2 @ Rv)
+    return dict(slab=sl, Rv=Rv, Tv=Tv, Td=Td, R2=R2, B=B, Q=Q, Rtrip=Rc, sys=eye - Kb @ Rc)
+
+
+def _cell_of(theta_edges: np.ndarray, theta_deg: float) -> int:
+    return int(np.clip(np.searchsorted(theta_edges, theta_deg, side="right") - 1, 0, theta_edges.size - 2))
+
+
+def _beam_extinction(m: "PlateModel", slab: dict | None, theta_edges: np.ndarray, theta_deg: float) -> float:
+    """Attenuation coefficient of a delta beam: a, plus the cell-visible scattering mu_s,j with a slab."""
+    if slab is None:
+        return m.absorption_per_m
+    return float(slab["slab"].ext_per_m[_cell_of(theta_edges, theta_deg)])
+
+
+def _slab_sources(slab: dict, Wh: np.ndarray, beams: np.ndarray, theta_edges: np.ndarray, thetas: np.ndarray,
+                  n0: float, n: float, c: int) -> tuple[np.ndarray, np.ndarray]:
+    """(U_x, D_x): extra diffuse light arriving at the first face (up) and at the second face (down).
+
+    Sources: Wh (M, N c, q) leaving the second face upward (a back-face table's diffuse reflection
+    of the beam); the delta beams shed into the slab what it scatters out of them: the down beam
+    y (leaving the first face) gives Td y down at the second face and Rv y up at the first; the up
+    beam b (leaving the second face) gives Td b up and Rv b down.  A beam at internal angle t is
+    given its cell's columns, scaled so that it sheds exactly the power its exact attenuation
+    removes.  Then W = Q (Wh + R2 s_down), U_x = u_up + Tv W, D_x = s_down + Rv W.
+    """
+    sl = slab["slab"]
+    Rv, Td = slab["Rv"], slab["Td"]
+    M, Nc, nI = Wh.shape
+    s_down = np.zeros_like(Wh)
+    u_up = np.zeros_like(Wh)
+    for q, ti in enumerate(thetas):
+        tt = float(np.degrees(np.arcsin(min(np.sin(np.radians(abs(ti))) * n0 / n, 1.0))))
+        j = _cell_of(theta_edges, tt)
+        mu_t = max(np.cos(np.radians(tt)), 1e-6)
+        cols = slice(j * c, (j + 1) * c)
+        y, b = beams[q, 0][:c], beams[q, 1][:c]
+        scale = _shed_scale(sl, j, mu_t)
+        s_down[:, :, q] = (Td[:, :, cols] @ y + Rv[:, :, cols] @ b) * scale
+        u_up[:, :, q] = (Rv[:, :, cols] @ y + Td[:, :, cols] @ b) * scale
+    W = slab["Q"] @ (Wh + slab["R2"] @ s_down)
+    return u_up + slab["Tv"] @ W, s_down + Rv @ W
+
+
+def _shed_scale(sl: Any, j: int, mu_beam: float) -> float:
+    """Power a beam at mu_beam loses in the slab over what its cell's operators remove (1 at the centre)."""
+    lost_cell = 1 - sl.direct[j]
+    if lost_cell <= 0:
+        return 0.0
+    return float((1 - np.exp(-sl.ext_per_m[j] * sl.thickness_m / mu_beam)) / lost_cell)
+
+
+# ---------------------------------------------------------------- the solver
+
+@dataclass
+class PlateResult:
+    """Plate BSDF of one incidence on the outgoing grid, plus the delta beams.
+
+    grid_R / grid_T: (T, A) BSDF (1/sr) at theta_out_deg x delta_deg (delta = outgoing
+    azimuth minus the incident beam's propagation azimuth phi_i + 180).
+    deltas: list of (side, theta_deg, delta_deg, power fraction) for exact beams.
+    """
+
+    wavelength_nm: float
+    theta_i_deg: float
+    phi_i_deg: float
+    theta_out_deg: np.ndarray
+    theta_edges_deg: np.ndarray
+    delta_deg: np.ndarray
+    grid_R: np.ndarray
+    grid_T: np.ndarray
+    deltas: list = field(default_factory=list)
+
+    def hemispherical(self) -> dict:
+        """Directional-hemispherical R and T of the plate (diffuse + delta)."""
+        da = 360.0 / self.delta_deg.size
+        psa = projected_solid_angle(self.theta_edges_deg, [0.0, da])[:, 0]
+        out = {}
+        for side, g in (("R", self.grid_R), ("T", self.grid_T)):
+            d = float(np.sum(g * psa[:, None]))
+            s = float(sum(p for sd, _, _, p in self.deltas if sd == side))
+            out[side] = d + s
+            out[f"diffuse_{side}"] = d
+            out[f"specular_{side}"] = s
+        return out
+
+
+class PlateSolver:
+    """Plate operator for one pair of boundary tables; call `solve` per wavelength and incidences.
+
+    Per wavelength the round-trip system is factorised once and reused for every incidence.
+    """
+
+    def __init__(self, model: PlateModel, inside: BsdfTable, outside: BsdfTable | None = None,
+                 back: BsdfTable | None = None, front: tuple[BsdfTable, BsdfTable] | None = None):
+        """`back`: optional BSDF table (light from inside) of the second, back face; None = flat.
+
+        `front`: optional (outside, inside) tables of the FRONT face when the relief is on the back
+        (None = flat).  The plate is then solved with the roles swapped: the front face is the first
+        face (both tables) and the relief the second face, which light reaches only from inside
+        (`inside` is the relief's inside table), i.e. exactly the front-relief-plus-back-table system.
+        """
+        if front is not None:
+            if model.rough_face != "back":
+                raise InputError("plate", "a BSDF table for the front face needs the relief on the back face "
+                                 "(with the relief in front, give the second face as `back`)")
+            if back is not None:
+                raise InputError("plate", "with the relief on the back face, the second face is the relief: "
+                                 "give the front face as `front`, not `back`")
+            f_out, f_in = front
+            model, back = replace(model, rough_face="front"), inside
+            outside, inside = f_out, f_in
+        if back is not None:
+            if model.rough_face != "front":
+                raise InputError("plate", "a BSDF table for the second face is supported when the relief is on "
+                                 "the front face (the back face is then the second face)")
+            if back.incident_from != "inside":
+                raise InputError("plate", "the back-face table must have incident_from = 'inside'")
+        self.back = back
+        if inside.incident_from != "inside":
+            raise InputError("plate", "the inside table must have incident_from = 'inside'")
+        if model.rough_face == "front":
+            if outside is None:
+                raise InputError("plate", "a relief on the front face needs the outside table too")
+            if outside.incident_from != "outside":
+                raise InputError("plate", "the outside table must have incident_from = 'outside'")
+        self.model = model
+        self.inside = inside
+        self.outside = outside
+        self.mueller = (inside.is_polarized or (outside is not None and outside.is_polarized)
+                        or (back is not None and back.is_polarized))
+        self.theta_edges = np.asarray(inside.theta_s_edges_deg, float)
+        self.theta_c = 0.5 * (self.theta_edges[1:] + self.theta_edges[:-1])
+        A = int(model.azimuth_cells)
+        self.delta = np.arange(A) * (360.0 / A)
+        self.psa = projected_solid_angle(self.theta_edges, [0.0, 360.0 / A])[:, 0]        # (N,)
+        self._ops: dict = {}
+
+    # -- per wavelength operators
+    def _operators(self, wl: float) -> dict:
+        if wl in self._ops:
+            return self._ops[wl]
+        m = self.model
+        n = float(np.real(m.index.n(wl)))
+        n0 = float(np.real(m.outside_index.n(wl)))
+        tc = self.theta_c
+        N = tc.size
+        c = 4 if self.mueller else 1
+        vin = _TableView(self.inside, wl, self.mueller, "inside table")
+        vout = _TableView(self.outside, wl, self.mueller, "outside table") if self.outside is not None else None
+        cos_c = np.maximum(np.cos(np.radians(tc)), 1e-6)
+        absorb = np.exp(-m.absorption_per_m * m.thickness_m / cos_c)                       # (N,)
+        # Fresnel of the flat face averaged over each internal cell (projected solid angle): the cell
+        # straddling the critical angle then loses exactly what the exit remap below lets out
+        e = np.radians(self.theta_edges)
+        nsub = 64
+        u = (np.sin(e[:-1])[:, None] ** 2 + (np.arange(nsub) + 0.5)[None] / nsub
+             * (np.sin(e[1:]) ** 2 - np.sin(e[:-1]) ** 2)[:, None])
+        cos_sub = np.sqrt(np.clip(1.0 - u, 0.0, 1.0))
+        RF = _fresnel(cos_sub, n, n0, "R").mean(axis=1)                                     # (N, 4, 4)
+        vB = _TableView(self.back, wl, self.mueller, "back-face table") if self.back is not None else None
+        th_sub = np.degrees(np.arccos(cos_sub))                                             # cell average too
+        if vB is not None:
+            RF = vB.specular_many("R", th_sub).reshape(N, nsub, 4, 4).mean(axis=1)            # its delta part
+        # the rough face's own delta part acting on diffuse light from inside: specular reflection
+        # keeps the cell (and the propagation azimuth), so it is diagonal in every azimuthal mode
+        # (times 1 - 1e-9: between two lossless specular faces a totally reflected cell would make the
+        # loop singular; it is fed nothing, and 1e-9 per round trip stands for the plate's finite size)
+        SR = vin.specular_many("R", th_sub).reshape(N, nsub, 4, 4).mean(axis=1) * (1 - 1e-9)  # (N, 4, 4)
+        # kernel K[t, j, a] from the inside table's R cells, times the receiving cell's projected solid angle
+        K = vin.diffuse("R", tc, tc, self.delta)                                           # (J, T, A[,4,4])
+        K = np.moveaxis(K, 0, 1) * (self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None])
+        Kh = np.fft.rfft(K, axis=2)                                                         # (T, J, M[,4,4])
+        del K                                                    # big tables: keep one kernel copy at a time
+        # round trip diagonal D_j = A_j R_F,j A_j (4x4 or scalar R_F,00)
+        if c == 1:
+            Dj = absorb**2 * RF[:, 0, 0]
+            Mk = Kh.shape[2]
+            Kmat = np.moveaxis(Kh, 2, 0) + np.diag(SR[:, 0, 0])[None]                      # (M, T, J)
+            sysm = np.eye(N)[None] - Kmat * Dj[None, None, :]
+        else:
+            Dj = absorb[:, None, None] ** 2 * RF                                            # (N, 4, 4)
+            Mk = Kh.shape[2]
+            KD = np.einsum("tjmab,jbc->mtajc", Kh, Dj)
+            idx = np.arange(N)
+            KD[:, idx, :, idx, :] += np.einsum("jab,jbc->jac", SR, Dj)[:, None]
+            sysm = KD.reshape(Mk, N * 4, N * 4)
+            sysm *= -1.0                                                                    # I - K D in place
+            sysm[:, np.arange(N * 4), np.arange(N * 4)] += 1.0
+            del KD
+        Kb = Rtrip = GBT = KBm = None
+        if vB is not None:
+            # second face with its own table: round trip K A (K_B + R_B,delta) A as full matrices per m
+            KB = vB.diffuse("R", tc, tc, self.delta)
+            KB = np.moveaxis(KB, 0, 1) * (self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None])
+            Kb = _blocks(Kh, c) + _block_diag(SR, c)[None]
+            Aa = np.repeat(absorb, c)
+            KBm = _blocks(np.fft.rfft(KB, axis=2), c)
+            Rtrip = (KBm + _block_diag(RF, c)[None]) * Aa[None, :, None] * Aa[None, None, :]
+            sysm = np.eye(N * c)[None] - Kb @ Rtrip
+            GB = vB.diffuse("T", tc, tc, self.delta)
+            if c == 4:
+                GB = GB[..., 0, :]
+            GBh = np.fft.rfft(GB, axis=2)
+            GBT = (np.moveaxis(GBh, 2, 0) if c == 1 else np.moveaxis(GBh, (2, 3), (0, 2))).reshape(
+                GBh.shape[2], -1, GBh.shape[1])
+        slab_ops = None
+        if m.scatter_per_m > 0:   # volume scattering: the slab's operators replace the diagonal traversal
+            Kb = _blocks(Kh, c) + _block_diag(SR, c)[None]
+            R2 = (0.0 if KBm is None else KBm) + _block_diag(RF, c)[None]
+            slab_ops = _slab_system(m, self.theta_edges, self.delta.size, Kb, R2, c)
+            Rtrip, sysm = slab_ops["Rtrip"], slab_ops["sys"]
+        GhT, Wflat, Wspec = self._exit_maps(vin, vB, n, n0, c)
+        ops = dict(n=n, n0=n0, vin=vin, vout=vout, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
+                   Wflat=Wflat, Wspec=Wspec, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT, slab=slab_ops)
+        self._ops[wl] = ops
+        return ops
+
+    def _exit_maps(self, vin: "_TableView", vB: "_TableView | None", n: float, n0: float,
+                   c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(GhT, Wflat, Wspec): how diffuse internal light leaves through each face onto the outgoing grid.
+
+        GhT: the rough face's inside T cells per azimuthal mode.  Wflat / Wspec: exit through the
+        second face's Fresnel (or its table's delta part) and through the rough face's delta part: a
+        conservative Snell remap (each outgoing cell cut into 64 equal projected-solid-angle slices,
+        each slice's pre-image in one internal cell, exact transmission per slice, Mueller row 0).
+        """
+        tc, N, e = self.theta_c, self.theta_c.size, np.radians(self.theta_edges)
+        G = vin.diffuse("T", tc, tc, self.delta)                                           # (J, O, A[,4,4])
+        if c == 4:
+            G = np.ascontiguousarray(G[..., 0, :])                                          # detector: S0 row
+        Gh = np.fft.rfft(G, axis=2)                                                         # (J, O, M[,4])
+        del G
+        GhT = (np.moveaxis(Gh, 2, 0) if c == 1 else np.moveaxis(Gh, (2, 3), (0, 2))).reshape(Gh.shape[2], -1,
+                                                                                            Gh.shape[1])
+        ns = 64
+        u = (np.sin(e[:-1])[:, None] ** 2 + (np.arange(ns) + 0.5)[None] / ns
+             * (np.sin(e[1:]) ** 2 - np.sin(e[:-1]) ** 2)[:, None])                           # (O, ns)
+        th_int = _snell_deg(np.degrees(np.arcsin(np.sqrt(u))), n0, n)
+        if vB is None:
+            tf = _fresnel(np.cos(np.radians(th_int)), n, n0, "T")[..., 0, :c] / ns           # (O, ns, c)
+        else:
+            tf = vB.specular_many("T", th_int).reshape(N, ns, 4, 4)[..., 0, :c] / ns
+        # internal radiance linearly interpolated between cell centres, held constant across the
+        # critical angle (trapped cells never feed the exit) and at the grid ends
+        below = tc < np.degrees(np.arcsin(min(n0 / n, 1.0)))
+        Wi = _lin_matrix(tc[below], th_int.ravel()).reshape(N, ns, -1)                       # (O, ns, Nb)
+
+        def exit_remap(t_slices: np.ndarray) -> np.ndarray:
+            """(O, N, c): internal radiance -> outgoing cells, through transmission t per slice."""
+            W = np.zeros((N, N, c))
+            W[:, below, :] = np.einsum("osj,osc->ojc", Wi, t_slices)
+            return W
+        Wspec = exit_remap(vin.specular_many("T", th_int).reshape(N, ns, 4, 4)[..., 0, :c] / ns)
+        return GhT, exit_remap(tf), Wspec
+
+    def solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
+        """Plate BSDF for each incidence angle (degrees) at one wavelength."""
+        with _blas_single_thread():
+            return self._solve(wavelength_nm, theta_i_deg, phi_i_deg)
+
+    def _solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
+        ops = self._operators(float(wavelength_nm))
+        thetas = np.atleast_1d(np.asarray(theta_i_deg, float))
+        src = _Sources.empty(thetas.size, self.theta_c.size, self.delta.size, ops["c"])
+        for q, ti in enumerate(thetas):
+            self._incidence(ops, src, q, abs(float(ti)))
+        out_rough, out_flat = self._diffuse_exits(ops, src, thetas)
+        front = self.model.rough_face == "front"
+        results = []
+        for q, ti in enumerate(thetas):
+            gR = src.direct_R[q] + (out_rough[q] if front else out_flat[q])
+            gT = out_flat[q] if front else out_rough[q]
+            results.append(PlateResult(float(wavelength_nm), float(ti), float(phi_i_deg), self.theta_c,
+                                       self.theta_edges, self.delta, gR, gT, src.deltas[q]))
+        return results
+
+    def _incidence(self, ops: dict, src: "_Sources", q: int, ti: float) -> None:
+        """Incidence q: first-face scattering of the source, the delta-beam chain, and what the beams scatter."""
+        m, c, vin, vout, vB = self.model, ops["c"], ops["vin"], ops["vout"], ops["vB"]
+        n, n0, tc, psa, delta = ops["n"], ops["n0"], self.theta_c, self.psa, self.delta
+        s_inc = m.source_stokes
+        tt = float(_snell_deg(ti, n0, n))
+        a_t = float(np.exp(-_beam_extinction(m, ops["slab"], self.theta_edges, tt) * m.thickness_m
+                           / max(np.cos(np.radians(tt)), 1e-6)))
+        if vB is None:
+            RFt, TFt = _fresnel(np.cos(np.radians(tt)), n, n0, "R"), _fresnel(np.cos(np.radians(tt)), n, n0, "T")
+        else:
+            RFt, TFt = vB.specular("R", tt), vB.specular("T", tt)
+        deltas = []
+        if m.rough_face == "front":
+            f_r = vout.diffuse("R", [ti], tc, delta)[0]
+            f_t = vout.diffuse("T", [ti], tc, delta)[0]
+            src.direct_R[q] = f_r if c == 1 else f_r[..., 0, :] @ s_inc
+            src.S[q] = (f_t * psa[:, None])[..., None] if c == 1 else (f_t @ s_inc) * psa[:, None, None]
+            y0, z0 = vout.specular("T", ti) @ s_inc, np.zeros(4)
+            deltas.append(("R", ti, 0.0, float((vout.specular("R", ti) @ s_inc)[0])))
+        else:
+            cos_i = np.cos(np.radians(ti))
+            deltas.append(("R", ti, 0.0, float((_fresnel(cos_i, n0, n, "R") @ s_inc)[0])))
+            y0, z0 = np.zeros(4), a_t * (_fresnel(cos_i, n0, n, "T") @ s_inc)
+        # delta chain: z arrives at the rough face from inside, y leaves it into the plate
+        sR, sT = vin.specular("R", tt), vin.specular("T", tt)
+        loop = a_t * a_t * RFt
+        z = np.linalg.solve(np.eye(4) - loop @ sR, z0 + loop @ y0)
+        y = y0 + sR @ z
+        front = m.rough_face == "front"
+        deltas.append(("R" if front else "T", ti, 0.0, float((sT @ z)[0])))
+        deltas.append(("T" if front else "R", ti, 0.0, float((TFt @ (a_t * y))[0])))
+        src.deltas.append(deltas)
+        src.beams[q] = y, (z / a_t if a_t > 1e-300 else 0.0 * z)
+        self._beam_scattering(ops, src, q, tt, a_t * y, z)
+
+    def _beam_scattering(self, ops: dict, src: "_Sources", q: int, tt: float, yb: np.ndarray, z: np.ndarray) -> None:
+        """Diffuse light the delta beams make at the faces: yb at a back-face table, z at the rough face."""
+        c, vin, vB, tc, psa, delta = ops["c"], ops["vin"], ops["vB"], self.theta_c, self.psa, self.delta
+        if vB is not None:
+            up_absorb = ops["absorb"] if ops["slab"] is None else 1.0     # a slab's operators carry the traversal
+            fbr = vB.diffuse("R", [tt], tc, delta)[0]
+            fbt = vB.diffuse("T", [tt], tc, delta)[0]
+            if c == 1:
+                src.U_extra[q, :, :, 0] = fbr * (psa * up_absorb)[:, None] * yb[0]
+                src.direct_flat[q] = fbt * yb[0]
+            else:
+                src.U_extra[q] = (fbr @ yb) * (psa * up_absorb)[:, None, None]
+                src.direct_flat[q] = fbt[..., 0, :] @ yb
+        fr = vin.diffuse("R", [tt], tc, delta)[0]
+        ft = vin.diffuse("T", [tt], tc, delta)[0]
+        if c == 1:
+            src.S[q, :, :, 0] += fr * psa[:, None] * z[0]
+            src.direct_rough[q] += ft * z[0]
+        else:
+            src.S[q] += (fr @ z) * psa[:, None, None]
+            src.direct_rough[q] += ft[..., 0, :] @ z
+
+    def _diffuse_loop(self, ops: dict, src: "_Sources", thetas: np.ndarray) -> dict:
+        """Solve X = S + Kb Rc X per azimuthal mode; return the light at both faces (modes and cells)."""
+        c, Mk, vB, slab = ops["c"], ops["M"], ops["vB"], ops["slab"]
+        nI, N, A = thetas.size, self.theta_c.size, self.delta.size
+        to_modes = lambda arr: np.moveaxis(np.moveaxis(np.fft.rfft(arr, axis=2), 2, 1).reshape(nI, Mk, N * c), 0, 2)  # noqa: E731
+        to_cells = lambda YM: np.fft.irfft(np.moveaxis(np.moveaxis(YM, 2, 0).reshape(nI, Mk, N, c), 1, 2), n=A, axis=2)  # noqa: E731
+        rhs = to_modes(src.S)                                                # (M, N c, nI)
+        Uxh = Dxh = None
+        if vB is not None or slab is not None:
+            Uxh = to_modes(src.U_extra)
+            if slab is not None:   # with the slab: U_extra leaves the back face upward; beams shed light
+                Uxh, Dxh = _slab_sources(slab, Uxh, src.beams, self.theta_edges, thetas, ops["n0"], ops["n"], c)
+            rhs = rhs + ops["Kb"] @ Uxh
+        XhM = np.linalg.solve(ops["sys"], rhs)                               # (M, N c, nI)
+        absorb = ops["absorb"]
+        out = {"XhM": XhM, "Uxh": Uxh}
+        if slab is not None:       # light arriving at the second face: B X + what the beams shed there
+            out["DbM"] = slab["B"] @ XhM + Dxh
+            out["at_flat"] = to_cells(out["DbM"])
+        else:
+            out["at_flat"] = to_cells(XhM) * absorb[None, :, None, None]
+        if vB is None and slab is None:    # back up to the rough face through the flat face's Fresnel R
+            at = out["at_flat"]
+            U = ((at[..., 0] * (ops["RF"][:, 0, 0] * absorb)[None, :, None])[..., None] if c == 1
+                 else np.einsum("jab,qjkb->qjka", ops["RF"], at) * absorb[None, :, None, None])
+            out["Um"] = np.moveaxis(np.fft.rfft(U, axis=2), 2, 0).reshape(Mk, nI, N * c)      # (M, q, J c)
+            out["U"] = U
+        else:
+            out["Um"] = np.moveaxis(ops["Rtrip"] @ XhM + Uxh, 2, 1)                         # (M, q, J c)
+            out["U"] = None
+        return out
+
+    def _diffuse_exits(self, ops: dict, src: "_Sources", thetas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(out_rough, out_flat): the plate's diffuse BSDF leaving through each face, (q, O, A)."""
+        c, Mk, n, n0 = ops["c"], ops["M"], ops["n"], ops["n0"]
+        nI, N, A, psa = thetas.size, self.theta_c.size, self.delta.size, self.psa
+        d = self._diffuse_loop(ops, src, thetas)
+        Um = d["Um"]
+        # rough-face exit: circular convolution over azimuth with the inside T kernel
+        out_rough = np.fft.irfft(np.moveaxis(Um @ ops["GhT"], 0, 2), n=A, axis=2) + src.direct_rough
+        if np.any(ops["Wspec"]):   # specular exit of the diffuse light arriving at the rough face from inside
+            U = d["U"] if d["U"] is not None else np.fft.irfft(np.moveaxis(Um.reshape(Mk, nI, N, c), 0, 2), n=A, axis=2)
+            LU = np.moveaxis(U / psa[None, :, None, None], 2, 3).reshape(nI, N * c, A)
+            out_rough = out_rough + (ops["Wspec"].reshape(N, N * c) @ LU) * (n0 / n) ** 2
+        # flat-face exit: internal radiance (Stokes) interpolated at the Snell pre-image of each outgoing
+        # direction, times the exact Fresnel transmission there, divided by (n/n0)^2 (radiance law)
+        L = np.moveaxis(d["at_flat"] / psa[None, :, None, None], 2, 3).reshape(nI, N * c, A)  # (q, N c, A)
+        out_flat = (ops["Wflat"].reshape(N, N * c) @ L) * (n0 / n) ** 2                     # (q, O, A)
+        if ops["vB"] is not None:   # diffuse exit through the back-face table, from the light arriving there
+            AX = d["DbM"] if ops["slab"] is not None else d["XhM"] * np.repeat(ops["absorb"], c)[None, :, None]
+            out_flat = (out_flat + np.fft.irfft(np.moveaxis(np.moveaxis(AX, 2, 1) @ ops["GBT"], 0, 2), n=A, axis=2)
+                        + src.direct_flat)
+        return out_rough, out_flat
+
+
+@dataclass
+class _Sources:
+    """Per-incidence source terms of the round-trip problem (power per cell / BSDF on the grid)."""
+
+    S: np.ndarray               # (q, N, A, c) leaving the rough face into the plate
+    direct_rough: np.ndarray    # (q, N, A) BSDF through the rough face without the loop
+    direct_R: np.ndarray        # (q, N, A) outside table R (front relief)
+    direct_flat: np.ndarray     # (q, N, A) diffuse exit of the delta beam through a back-face table
+    U_extra: np.ndarray         # (q, N, A, c) delta beam scattered diffusely by a back-face table
+    beams: np.ndarray           # (q, 2, 4) down beam y at the first face, up beam at the second face
+    deltas: list = field(default_factory=list)
+
+    @staticmethod
+    def empty(nI: int, N: int, A: int, c: int) -> "_Sources":
+        z = np.zeros
+        return _Sources(z((nI, N, A, c)), z((nI, N, A)), z((nI, N, A)), z((nI, N, A)), z((nI, N, A, c)),
+                        z((nI, 2, 4)))
+
+
+# ---------------------------------------------------------------- rows
+
+def row_arrays(rows):
+    """(wavelength_nm, theta_i_deg, phi_i_deg, side, theta_s_deg, phi_s_deg) of any row set as arrays."""
+    return (np.asarray(rows.wavelength_nm, float), np.asarray(rows.theta_i_deg, float),
+            np.asarray(rows.phi_i_deg, float), np.asarray(rows.side).astype(str),
+            np.asarray(rows.theta_s_deg, float), np.asarray(rows.phi_s_deg, float))
+
+
+def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | None, rows: Any,
+                  solver: PlateSolver | None = None, where: str = "recording",
+                  back: BsdfTable | None = None, front: tuple[BsdfTable, BsdfTable] | None = None) -> np.ndarray:
+    """Plate BSDF (1/sr) on every row of a recording (same order), detector cone included.
+
+    `back`: optional table (light from inside) of the second face when the relief is on the front;
+    `front`: optional (outside, inside) tables of the front face when the relief is on the back.
+    """
+    check_rows(model, rows, where)
+    solver = solver or PlateSolver(model, inside, outside, back, front)
+    wl, ti, pi, side, ts, ps = row_arrays(rows)
+    factor = 1.0
+    if model.tilt_deg:
+        ti, pi = to_sample_frame(ti, pi, np.full(ti.shape, "R"), model.tilt_deg)
+        ts0 = ts
+        ts, ps = to_sample_frame(ts, ps, side, model.tilt_deg)
+        factor = np.cos(np.radians(ts)) / np.cos(np.radians(ts0))
+        ti, pi, ts, ps = (np.round(a, 9) for a in (ti, pi, ts, ps))
+    out = np.zeros(wl.size)
+    for w in np.unique(wl):
+        mw = wl == w
+        keys = np.unique(np.stack([ti[mw], pi[mw]], 1), axis=0)
+        thetas = np.unique(keys[:, 0])
+        res = {float(t): r for t, r in zip(thetas, solver.solve(w, thetas))}
+        for t, p in keys:
+            sel = mw & (ti == t) & (pi == p)
+            r = res[float(t)]
+            r = replace(r, phi_i_deg=float(p))
+            out[sel] = grid_reading(r, side[sel], ts[sel], ps[sel], model)
+    return (out - model.background_per_sr) * factor + model.background_per_sr
+
+
+def to_sample_frame(theta_deg: Any, phi_deg: Any, side: Any, tilt_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(theta, phi) of instrument-frame directions (R: above, T: below) seen in the tilted sample's frame."""
+    t = np.radians(np.asarray(theta_deg, float))
+    p = np.radians(np.asarray(phi_deg, float))
+    sgn = np.where(np.asarray(side) == "T", -1.0, 1.0)
+    w = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), sgn * np.cos(t)], -1)
+    w2 = w @ rot_y(tilt_deg)            # R^T w for each row
+    th = np.degrees(np.arccos(np.clip(np.abs(w2[..., 2]), 0.0, 1.0)))
+    ph = np.mod(np.degrees(np.arctan2(w2[..., 1], w2[..., 0])), 360.0)
+    return th, ph
+
+
+# ---------------------------------------------------------------- analytic boundary tables for tests / checks
+
+def flat_tables(material: Material, wavelengths_nm: Sequence[float], theta_i_outside_deg: Sequence[float],
+                theta_i_inside_deg: Sequence[float], theta_s_edges_deg: Sequence[float] | None = None,
+                phi_s_edges_deg: Sequence[float] | None = None) -> tuple[BsdfTable, BsdfTable]:
+    """(outside, inside) tables of a perfectly flat boundary: all power in the delta parts, with Mueller.
+
+    The one definition is `methods.flat.flat_table` (Fresnel, Born & Wolf 1.5.20-21); the diffuse
+    cells are zero.  Default axes: the methods' default scatter grid.
+    """
+    from relief_bsdf.methods.flat import flat_table
+    from relief_bsdf.methods.request import DEFAULT_PHI_S_EDGES_DEG, DEFAULT_THETA_S_EDGES_DEG
+    te = np.asarray(theta_s_edges_deg if theta_s_edges_deg is not None else DEFAULT_THETA_S_EDGES_DEG, float)
+    pe = np.asarray(phi_s_edges_deg if phi_s_edges_deg is not None else DEFAULT_PHI_S_EDGES_DEG, float)
+    wl = [float(w) for w in wavelengths_nm]
+    return tuple(flat_table(material, wl, th, [0.0], te, pe, side)
+                 for side, th in (("outside", theta_i_outside_deg), ("inside", theta_i_inside_deg)))
+
+
+# ---------------------------------------------------------------- the Experiment on this engine
+
+def model_of(experiment: Any, grid: Any, rough_face: str = "front") -> PlateModel:
+    """The engine's flat configuration of an Experiment (plate, bulk, instrument) on `grid`."""
+    p, ins, b = experiment.plate, experiment.instrument, experiment.plate.bulk
+    return PlateModel(thickness_m=p.thickness_m, index=p.index, rough_face=rough_face,
+                      absorption_per_m=b.absorption_per_m, detector_half_angle_deg=ins.detector_half_angle_deg,
+                      polarization=float(ins.polarization_q), outside_index=p.outside_index,
+                      background_per_sr=ins.background_per_sr, blur_deg=ins.blur_deg, tilt_deg=ins.tilt_deg,
+                      azimuth_cells=grid.azimuth_cells, cone_points=ins.cone_points,
+                      scatter_per_m=b.scatter_per_m, hg_g=b.hg_g)
+
+
+def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> PlateSolver:
+    """PlateSolver of an Experiment: the faces' tables placed on the engine's two-face system.
+
+    Front non-flat: its (outside, inside) tables, the back face's inside table if it is not flat.
+    Front flat, back non-flat: relief-on-back system (the back face's inside table).  Both flat:
+    the flat face's Fresnel tables on the front.  A flat back face uses the engine's exact
+    cell-averaged Fresnel (no table).
+    """
+    p = experiment.plate
+    mat = p.material
+    wl = np.unique(np.asarray(rows.wavelength_nm, float))
+    ti = np.unique(np.abs(np.asarray(rows.theta_i_deg, float)))
+    tilt = experiment.instrument.tilt_deg
+    if tilt:      # the tilted sample sees other incidences (those the engine will solve)
+        t_s, _ = to_sample_frame(rows.theta_i_deg, rows.phi_i_deg, np.full(np.size(rows.theta_i_deg), "R"), tilt)
+        ti = np.unique(np.round(t_s, 9))
+    front, back = p.front, p.back
+    if front.is_flat and not back.is_flat:
+        _, b_in = back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)
+        return PlateSolver(model_of(experiment, grid, "back"), b_in, None)
+    f_out, f_in = front.tables(mat, grid, wl, ti, need_outside=True, progress=progress)
+    b_in = None if back.is_flat else back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)[1]
+    return PlateSolver(model_of(experiment, grid, "front"), f_in, f_out, back=b_in)
+
+
+def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str = "recording") -> tuple[np.ndarray, dict]:
+    """Deterministic plate BSDF of an Experiment on every row (detector included) and what was used."""
+    solver = solver_of(experiment, rows, grid, progress)
+    vals = simulate_rows(solver.model, solver.inside, solver.outside, rows, solver=solver, where=where)
+    info = {"engine": "deterministic", "grid": {"theta_step_deg": grid.theta_step_deg,
+                                                "phi_step_deg": grid.phi_step_deg,
+                                                "inside_theta_i_step_deg": grid.inside_theta_i_step_deg}}
+    return vals, info

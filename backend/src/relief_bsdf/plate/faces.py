@@ -1,0 +1,480 @@
+"""The faces of the plate: each knows its boundary tables (deterministic engine) and how it
+scatters one photon (Monte Carlo).
+
+Face-local frame: every face is described as a FRONT face: the outside medium above (+z), the
+glass below (-z), relief heights measured outward.  The back face of the plate is the same
+object seen through the mirror z -> -z (the engines do the mirroring), which is why a relief on
+the back face is its height map as measured from the outside (formats.md).
+
+Protocol (duck-typed, four implementations):
+
+    face.tables(material, grid, wavelengths_nm, theta_i_outside_deg, need_outside, progress=None)
+        -> (outside table | None, inside table)      isotropic BsdfTables on `grid`
+    face.interact(d, S, from_inside, ctx, rng) -> FaceEvent
+        photons with propagation directions d (N, 3) and Stokes vectors S (N, 4) (frame s = z x k,
+        the tracer's and the tables' frame) hit the face from outside (d_z < 0) or inside (d_z > 0);
+        ctx: PhotonContext (indices, wavelength, grid for faces that sample their tables)
+    face.is_flat, face.describe()
+
+- FlatFace: Fresnel (Born & Wolf 1.5.20-21, Mueller matrices of core.fresnel).
+- ReliefFace(relief, method, samples, seed, options): tables by `methods.reconstruct` of the
+  relief; photons traced through the triangulated relief (methods.ray.ReliefTracer) when the
+  method is geometric ray tracing ("ray"), otherwise drawn from the face's own tables.
+- TableFace(outside, inside): given tables; photons drawn from them.
+- MicrofacetFace(alpha): a Beckmann rough face (Walter et al. 2007): tables from the
+  microfacet method at that alpha; photons by sampling Beckmann normals (core.microfacet) with
+  one Fresnel event on the sampled facet, Smith masking G1 of both directions as the weight.
+
+Tables are cached in memory (`TABLE_CACHE`) by everything that determines them: the relief's
+content digest, method, options, grid, material, wavelengths, incidences, samples, seed.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.core.fresnel import mueller_interface
+from relief_bsdf.core.index import Material
+from relief_bsdf.errors import InputError
+from relief_bsdf.plate.grid import TableGrid
+from relief_bsdf.surface.relief import Relief
+
+TRACED_METHODS = ("ray",)          # methods whose photons trace the relief itself
+
+
+class TableCache:
+    """Small in-memory LRU cache of derived tables (key: a tuple of everything that determines them)."""
+
+    def __init__(self, maxsize: int = 24):
+        self.maxsize = maxsize
+        self._d: OrderedDict = OrderedDict()
+        self.hits = 0
+        self.misses = 0
+
+    def get(self, key: tuple, make: Callable[[], Any]) -> Any:
+        if key in self._d:
+            self._d.move_to_end(key)
+            self.hits += 1
+            return self._d[key]
+        self.misses += 1
+        v = make()
+        self._d[key] = v
+        while len(self._d) > self.maxsize:
+            self._d.popitem(last=False)
+        return v
+
+    def clear(self) -> None:
+        self._d.clear()
+
+
+TABLE_CACHE = TableCache()
+
+
+def relief_digest(relief: Relief) -> str:
+    """Content digest of a relief (heights, pitch, periodicity): the cache key of its tables."""
+    h = hashlib.sha1(np.ascontiguousarray(relief.heights_m, dtype=np.float64).tobytes())
+    h.update(repr((relief.shape, float(relief.dx_m), float(relief.dy_m), bool(relief.periodic))).encode())
+    return h.hexdigest()
+
+
+def _material_key(material: Material) -> str:
+    return json.dumps(material.describe(), sort_keys=True, default=str)
+
+
+def _grid_key(grid: TableGrid) -> tuple:
+    return (grid.theta_step_deg, grid.phi_step_deg, grid.inside_theta_i_step_deg)
+
+
+@dataclass(frozen=True)
+class PhotonContext:
+    """What a face needs to scatter photons at one wavelength."""
+
+    material: Material
+    wavelength_nm: float
+    grid: TableGrid = field(default_factory=TableGrid)
+    theta_i_outside_deg: tuple = (0.0,)
+
+    @property
+    def n_outside(self) -> float:
+        return float(np.real(self.material.outside.n(self.wavelength_nm)))
+
+    @property
+    def n_glass(self) -> float:
+        return float(np.real(self.material.inside.n(self.wavelength_nm)))
+
+
+@dataclass
+class FaceEvent:
+    """Photons after one face interaction, face-local frame: `outside` True = went to z > 0."""
+
+    d: np.ndarray
+    S: np.ndarray
+    outside: np.ndarray
+    lost: np.ndarray
+
+
+# ---------------------------------------------------------------- photon kernels shared by faces
+
+def fresnel_event(d: np.ndarray, S: np.ndarray, n_above: float, n_below: float, rng: np.random.Generator,
+                  normal: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Fresnel reflect / refract at a plane of normal `normal` (default +z) with Stokes vectors.
+
+    Reflection or transmission is drawn with probability (M S)_0 / S_0 and the Stokes vector
+    renormalised to the incoming S_0, so the weight is unchanged (Mueller matrices of
+    core.fresnel.mueller_interface, s/p frame of the plane of incidence = s = n x k).  With a
+    tilted `normal` (a microfacet) the Stokes frame is taken as the facet's plane of incidence
+    (the rotation into it is neglected: the microfacet face's photons are depolarised anyway).
+    Returns (new directions, new Stokes).
+    """
+    nrm = np.broadcast_to(np.array([0.0, 0.0, 1.0]) if normal is None else normal, d.shape)
+    c = np.sum(d * nrm, axis=1)                                  # < 0: coming from above
+    from_above = c < 0
+    n1 = np.where(from_above, n_above, n_below)
+    n2 = np.where(from_above, n_below, n_above)
+    cos_i = np.abs(c)
+    out_S = np.empty_like(S)
+    trans = np.zeros(d.shape[0], bool)
+    for fa in (True, False):
+        m = from_above == fa
+        if not m.any():
+            continue
+        a, b = (n_above, n_below) if fa else (n_below, n_above)
+        ST = np.einsum("nab,nb->na", mueller_interface(cos_i[m], a, b, "T"), S[m])
+        SR = np.einsum("nab,nb->na", mueller_interface(cos_i[m], a, b, "R"), S[m])
+        pT = np.clip(ST[:, 0] / np.maximum(S[m, 0], 1e-300), 0.0, 1.0)
+        t = rng.random(pT.size) < pT
+        trans[m] = t
+        new = np.where(t[:, None], ST, SR)
+        out_S[m] = new * (S[m, 0] / np.maximum(new[:, 0], 1e-300))[:, None]
+    eta = n1 / n2
+    refl = d - 2 * c[:, None] * nrm
+    sin2_t = eta**2 * (1 - cos_i**2)
+    cos_t = np.sqrt(np.clip(1 - sin2_t, 0, 1))
+    refr = eta[:, None] * d + (eta * cos_i - cos_t)[:, None] * nrm * np.where(from_above, 1.0, -1.0)[:, None]
+    new_d = np.where(trans[:, None], refr, refl)
+    return new_d / np.linalg.norm(new_d, axis=1, keepdims=True), out_S
+
+
+class TableSampler:
+    """Draws photon exits from an isotropic BsdfTable (diffuse cells + delta parts), one wavelength.
+
+    Incidence: the two tabulated incidences around the photon's theta are chosen with the
+    linear-interpolation weights (exact linear interpolation in expectation).  Outcome: a cell of
+    R or T or a delta part, with probability proportional to its power (M00 f Omega_proj); the
+    Stokes vector becomes M S P_total / P_outcome (unbiased).  Diffuse cells without Mueller
+    matrices depolarise (M = f diag(1, 0, 0, 0)), delta parts without them keep S.  Direction:
+    uniform in projected solid angle inside the cell, azimuth relative to the incident plane.
+    """
+
+    def __init__(self, table: BsdfTable, wavelength_nm: float):
+        if not table.is_isotropic:
+            raise InputError("table", "photon sampling needs an isotropic table (one phi_i)")
+        t = table
+        w = int(np.argmin(np.abs(t.wavelength_nm - wavelength_nm)))
+        self.table, self.theta_i = t, np.asarray(t.theta_i_deg, float)
+        psa = projected_solid_angle_cells(t.theta_s_edges_deg, t.phi_s_edges_deg)        # (S, P)
+        v = t.values_per_sr[w, :, 0] * psa[None, None]                                      # (I, 2, S, P)
+        sR = t.specular_R[w, :, 0]
+        sT = t.specular_T[w, :, 0]
+        self.power = np.concatenate([v.reshape(v.shape[0], -1), sR[:, None], sT[:, None]], axis=1)
+        self.total = self.power.sum(axis=1)
+        self.cdf = np.cumsum(self.power, axis=1) / np.maximum(self.total[:, None], 1e-300)
+        self.mueller = None if t.mueller_per_sr is None else t.mueller_per_sr[w, :, 0]     # (I, 2, S, P, 4, 4)
+        self.spec_m = [getattr(t, f"specular_mueller_{k}") for k in "RT"]
+        self.spec_m = [None if m is None else m[w, :, 0] for m in self.spec_m]
+        self.w, self.shape = w, v.shape[1:]
+        self.phi0 = float(t.phi_i_deg[0])
+
+    def sample(self, theta_in_deg: np.ndarray, phi_in_deg: np.ndarray, S: np.ndarray,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(reflected?, delta?, theta_out deg (cells only), phi_out deg, new S) per photon."""
+        ti = self.theta_i
+        x = np.clip(theta_in_deg, ti[0], ti[-1])
+        if ti.size > 1:
+            i1 = np.clip(np.searchsorted(ti, x, side="right"), 1, ti.size - 1)
+            f = (x - ti[i1 - 1]) / (ti[i1] - ti[i1 - 1])
+            inc = np.where(rng.random(x.size) < f, i1, i1 - 1)
+        else:
+            inc = np.zeros(x.size, int)
+        o = np.minimum(_rowwise_searchsorted(self.cdf, inc, rng.random(x.size)), self.power.shape[1] - 1)
+        return self._outcome(inc, o, phi_in_deg, S, rng)
+
+    def _outcome(self, inc, o, phi_in_deg, S, rng):
+        ncell = self.power.shape[1] - 2
+        t = self.table
+        scale = self.total[inc] / np.maximum(self.power[inc, o], 1e-300)
+        cell = o < ncell
+        k, s_, a_ = np.unravel_index(np.where(cell, o, 0), self.shape)
+        te = np.radians(np.asarray(t.theta_s_edges_deg, float))
+        pe = np.asarray(t.phi_s_edges_deg, float)
+        s2 = np.sin(te[s_]) ** 2 + rng.random(o.size) * (np.sin(te[s_ + 1]) ** 2 - np.sin(te[s_]) ** 2)
+        th = np.degrees(np.arcsin(np.sqrt(np.clip(s2, 0, 1))))
+        ph_cell = pe[a_] + rng.random(o.size) * (pe[a_ + 1] - pe[a_]) - self.phi0
+        refl = np.where(cell, k == 0, o == ncell)
+        ph = np.where(cell, ph_cell + phi_in_deg, phi_in_deg + 180.0)   # delta parts: specular / undeviated
+        newS = np.zeros_like(S)
+        if self.mueller is not None:
+            psa = projected_solid_angle_cells(t.theta_s_edges_deg, t.phi_s_edges_deg)
+            M = self.mueller[inc[cell], k[cell], s_[cell], a_[cell]] * psa[s_[cell], a_[cell]][:, None, None]
+            newS[cell] = np.einsum("nab,nb->na", M, S[cell]) * scale[cell, None]
+        else:
+            newS[cell, 0] = S[cell, 0] * self.total[inc[cell]]
+        for j, side in ((ncell, 0), (ncell + 1, 1)):
+            m = o == j
+            if m.any():
+                sm = self.spec_m[side]
+                newS[m] = (S[m] * self.total[inc[m], None] if sm is None
+                           else np.einsum("nab,nb->na", sm[inc[m]], S[m]) * scale[m, None])
+        return refl, ~cell, th, ph, newS
+
+
+def _rowwise_searchsorted(cdf: np.ndarray, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """searchsorted of u[k] in cdf[rows[k]] for every k (vectorised: offset rows onto one axis)."""
+    n = cdf.shape[1]
+    flat = (cdf + np.arange(cdf.shape[0])[:, None] * 2.0).ravel()
+    return np.searchsorted(flat, u + rows * 2.0) - rows * n
+
+
+def projected_solid_angle_cells(theta_edges_deg: Any, phi_edges_deg: Any) -> np.ndarray:
+    from relief_bsdf.core.frames import projected_solid_angle
+    return projected_solid_angle(theta_edges_deg, phi_edges_deg)
+
+
+def _sample_from_tables(out_t: BsdfTable | None, in_t: BsdfTable, d: np.ndarray, S: np.ndarray, ctx: PhotonContext,
+                        rng: np.random.Generator, samplers: dict) -> FaceEvent:
+    """Face event drawn from the face's (outside, inside) tables (TableSampler) for photons `d`."""
+    nd = np.empty_like(d)
+    nS = np.empty_like(S)
+    outside = np.zeros(d.shape[0], bool)
+    from_in = d[:, 2] > 0
+    for inside, table in ((False, out_t), (True, in_t)):
+        m = from_in == inside
+        if not m.any():
+            continue
+        if table is None:
+            raise InputError("plate", "this face has no table for light from outside")
+        key = (id(table), ctx.wavelength_nm)
+        if key not in samplers or samplers[key][0] is not table:      # the table is kept: its id is not reused
+            if len(samplers) > 32:
+                samplers.clear()
+            samplers[key] = (table, TableSampler(table, ctx.wavelength_nm))
+        dm = d[m]
+        th_in = np.degrees(np.arccos(np.clip(np.abs(dm[:, 2]), 0, 1)))
+        ph_in = np.degrees(np.arctan2(-dm[:, 1], -dm[:, 0]))          # azimuth of the incident direction
+        refl, is_delta, th, ph, S2 = samplers[key][1].sample(th_in, ph_in, S[m], rng)
+        n1, n2 = (ctx.n_glass, ctx.n_outside) if inside else (ctx.n_outside, ctx.n_glass)
+        snell = np.degrees(np.arcsin(np.clip(np.sin(np.radians(th_in)) * n1 / n2, 0, 1)))
+        th = np.where(is_delta, np.where(refl, th_in, snell), th)
+        w = np.stack([np.sin(np.radians(th)) * np.cos(np.radians(ph)), np.sin(np.radians(th)) * np.sin(np.radians(ph)),
+                      np.cos(np.radians(th))], 1)
+        # incident side: outside = +z; R stays on the incident side, T crosses
+        up = refl != inside
+        w[:, 2] *= np.where(up, 1.0, -1.0)
+        nd[m], nS[m], outside[m] = w, S2, up
+    return FaceEvent(nd, nS, outside, np.zeros(d.shape[0], bool))
+
+
+def _table_args_key(material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
+                    need_outside: bool) -> tuple:
+    return (_material_key(material), _grid_key(grid), tuple(float(w) for w in np.unique(wavelengths_nm)),
+            tuple(float(t) for t in np.unique(theta_i_outside_deg)), bool(need_outside))
+
+
+def _derive(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
+            need_outside: bool, progress: Any = None) -> tuple[BsdfTable | None, BsdfTable]:
+    """(outside | None, inside) tables of a relief face by its method (`methods.reconstruct`) on `grid`.
+
+    Each side is cached on its own (the inside table does not depend on the outside incidences,
+    so a tilt or a new incidence re-derives only the outside table).
+    """
+    wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
+    base = (face.cache_key(), _material_key(material), _grid_key(grid), wl)
+    out = None
+    if need_outside:
+        th = tuple(float(t) for t in np.unique(np.asarray(theta_i_outside_deg, float)))
+        out = TABLE_CACHE.get(base + ("outside", th), lambda: _reconstruct_side(face, material, grid, wl, th,
+                                                                               "outside", progress))
+    ins = TABLE_CACHE.get(base + ("inside",), lambda: _reconstruct_side(face, material, grid, wl,
+                                                                        grid.inside_incidences_deg(), "inside",
+                                                                        progress))
+    return out, ins
+
+
+def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, wl: Any, theta: Any, side: str,
+                      progress: Any) -> BsdfTable:
+    from dataclasses import replace as _replace
+    from relief_bsdf.methods import reconstruct
+    req = grid.request(wl, theta, side, face.method, face.samples, face.seed, face.options)
+    if face.coherence_length_m is not None:
+        req = _replace(req, coherence_length_m=float(face.coherence_length_m))
+    (table,) = reconstruct(face.relief, material, req, face.method, progress=progress)
+    return table
+
+
+def _flat_inside_incidences(material: Material, grid: TableGrid, wavelengths_nm: Any) -> np.ndarray:
+    """The grid's inside incidences plus a dense band (0.05 deg) around each critical angle: Fresnel
+    jumps to total reflection there, and the engine interpolates the table's delta parts linearly."""
+    th = [grid.inside_incidences_deg()]
+    for w in np.unique(wavelengths_nm):
+        n_in = float(np.real(material.inside.n(w)))
+        n_out = float(np.real(material.outside.n(w)))
+        if n_in > n_out:
+            tc = float(np.degrees(np.arcsin(n_out / n_in)))
+            th.append(np.clip(np.arange(tc - 2.0, tc + 2.0 + 1e-9, 0.05), 0.0, 89.0))
+            th.append([tc - 1e-6, tc + 1e-6])
+    return np.unique(np.round(np.concatenate(th), 9))
+
+
+@dataclass(frozen=True)
+class FlatFace:
+    """A plane face: Fresnel reflection and refraction (Mueller matrices), nothing diffuse."""
+
+    is_flat = True
+
+    def describe(self) -> dict:
+        return {"face": "flat", "physics": "Fresnel (plane interface)"}
+
+    def tables(self, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
+               need_outside: bool = True, progress: Any = None) -> tuple[BsdfTable | None, BsdfTable]:
+        def make():
+            from relief_bsdf.plate.deterministic import flat_tables
+            o, i = flat_tables(material, list(np.unique(wavelengths_nm)), np.unique(theta_i_outside_deg),
+                               _flat_inside_incidences(material, grid, wavelengths_nm), grid.theta_edges_deg(),
+                               grid.phi_edges_deg())
+            return (o if need_outside else None), i
+        key = ("flat",) + _table_args_key(material, grid, wavelengths_nm, theta_i_outside_deg, need_outside)
+        return TABLE_CACHE.get(key, make)
+
+    def interact(self, d: np.ndarray, S: np.ndarray, from_inside: Any, ctx: PhotonContext,
+                 rng: np.random.Generator) -> FaceEvent:
+        nd, nS = fresnel_event(d, S, ctx.n_outside, ctx.n_glass, rng)
+        return FaceEvent(nd, nS, nd[:, 2] > 0, np.zeros(d.shape[0], bool))
+
+
+@dataclass(frozen=True, eq=False)
+class ReliefFace:
+    """A face carrying a measured / synthetic relief; its physics is the boundary `method`.
+
+    method: a `methods` name ("microfacet+dw" default of this release, "ray", "kirchhoff", ...);
+    samples / seed: the method's Monte-Carlo effort; options: the method's options (dict);
+    coherence_length_m: the source's coherence length for wave methods (Request field; None: coherent).
+    Photons: traced through the relief (ReliefTracer) for "ray", drawn from the tables otherwise.
+    """
+
+    relief: Relief
+    method: str = "microfacet+dw"
+    samples: int = 200_000
+    seed: int = 0
+    options: dict = field(default_factory=dict)
+    coherence_length_m: float | None = None
+    is_flat = False
+
+    def describe(self) -> dict:
+        photons = "ray-traced relief" if self.method in TRACED_METHODS else "sampled from the face's tables"
+        return {"face": "relief", "method": self.method, "options": dict(self.options), "photons": photons,
+                "relief": self.relief.source if hasattr(self.relief, "source") else ""}
+
+    def cache_key(self) -> tuple:
+        """Everything about this face that determines its tables (relief content, method, effort)."""
+        return ("relief", relief_digest(self.relief), self.method, json.dumps(self.options, sort_keys=True, default=str),
+                int(self.samples), int(self.seed), self.coherence_length_m)
+
+    def tables(self, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
+               need_outside: bool = True, progress: Any = None) -> tuple[BsdfTable | None, BsdfTable]:
+        return _derive(self, material, grid, wavelengths_nm, theta_i_outside_deg, need_outside, progress)
+
+    def tracer(self) -> Any:
+        """The relief's ReliefTracer (BVH built once per relief content)."""
+        from relief_bsdf.methods.ray import ReliefTracer
+        return TABLE_CACHE.get(("tracer", relief_digest(self.relief)), lambda: ReliefTracer(self.relief))
+
+    def interact(self, d: np.ndarray, S: np.ndarray, from_inside: Any, ctx: PhotonContext,
+                 rng: np.random.Generator) -> FaceEvent:
+        if self.method not in TRACED_METHODS:
+            out_t, in_t = self.tables(ctx.material, ctx.grid, [ctx.wavelength_nm], ctx.theta_i_outside_deg, True)
+            return _sample_from_tables(out_t, in_t, d, S, ctx, rng, _SAMPLERS)
+        r = self.tracer().scatter(d, ctx.n_outside, ctx.n_glass, rng, stokes=S)
+        lost = np.asarray(r.lost, bool)
+        return FaceEvent(np.asarray(r.dirs, float), np.asarray(r.stokes, float), np.asarray(r.above, bool) & ~lost,
+                         lost)
+
+
+_SAMPLERS: dict = {}
+
+
+@dataclass(frozen=True, eq=False)
+class TableFace:
+    """A face given by its tables: `inside` (light from the glass) and optionally `outside`."""
+
+    inside: BsdfTable
+    outside: BsdfTable | None = None
+    is_flat = False
+
+    def describe(self) -> dict:
+        return {"face": "table", "method": self.inside.method, "photons": "sampled from the tables"}
+
+    def tables(self, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
+               need_outside: bool = True, progress: Any = None) -> tuple[BsdfTable | None, BsdfTable]:
+        if need_outside and self.outside is None:
+            raise InputError("plate", "this table face is lit from outside but has no outside table")
+        return (self.outside if need_outside else None), self.inside
+
+    def interact(self, d: np.ndarray, S: np.ndarray, from_inside: Any, ctx: PhotonContext,
+                 rng: np.random.Generator) -> FaceEvent:
+        return _sample_from_tables(self.outside, self.inside, d, S, ctx, rng, _SAMPLERS)
+
+
+@dataclass(frozen=True)
+class MicrofacetFace:
+    """A rough face described by a Beckmann slope distribution of roughness `alpha` (Walter et al. 2007).
+
+    Tables: the `microfacet` method at this alpha.  Photons: a facet normal m drawn from
+    D(m) (m . z) (Beckmann slopes, core.microfacet.sample_normals), one Fresnel event on it
+    (fresnel_event), weight |d . m| / (|d_z| m_z) G1(d) G1(o) (Walter 2007 eq. 38-41 with the
+    separable Smith G); an exit on the wrong side of the mean plane is lost (single scattering).
+    Polarisation: depolarised after the event (S -> (S0, 0, 0, 0)), as the tables' diffuse cells.
+    """
+
+    alpha: float
+    distribution: str = "beckmann"
+    samples: int = 200_000
+    is_flat = False
+
+    def __post_init__(self) -> None:
+        if not (self.alpha > 0):
+            raise InputError("face.alpha", f"microfacet roughness must be > 0, got {self.alpha}")
+
+    def describe(self) -> dict:
+        return {"face": "microfacet", "alpha": self.alpha, "distribution": self.distribution,
+                "photons": "sampled Beckmann facet normals"}
+
+    def tables(self, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
+               need_outside: bool = True, progress: Any = None) -> tuple[BsdfTable | None, BsdfTable]:
+        flat = Relief(np.zeros((8, 8)), 1e-6, 1e-6, periodic=True, source="microfacet face (alpha given)")
+        as_relief = ReliefFace(flat, method="microfacet", samples=self.samples, seed=0,
+                               options={"alpha": float(self.alpha), "distribution": self.distribution})
+        return _derive(as_relief, material, grid, wavelengths_nm, theta_i_outside_deg, need_outside, progress)
+
+    def interact(self, d: np.ndarray, S: np.ndarray, from_inside: Any, ctx: PhotonContext,
+                 rng: np.random.Generator) -> FaceEvent:
+        from relief_bsdf.core.microfacet import sample_normals, smith_G1
+        n = d.shape[0]
+        m = sample_normals(float(self.alpha), n, rng, self.distribution)
+        m = m * np.sign(m[:, 2:3])                                      # facets face +z (outside)
+        dm = np.sum(d * m, axis=1)
+        nd, nS = fresnel_event(d, S, ctx.n_outside, ctx.n_glass, rng, normal=m)
+        ci = np.abs(d[:, 2])
+        w = np.abs(dm) / np.maximum(ci * m[:, 2], 1e-12)
+        w *= smith_G1(ci, self.alpha, self.distribution) * smith_G1(np.abs(nd[:, 2]), self.alpha, self.distribution)
+        # the facet must face the incoming light; the exit must leave the mean plane
+        came_from_above = d[:, 2] < 0
+        ok = (np.where(came_from_above, dm < 0, dm > 0)) & (np.abs(nd[:, 2]) > 1e-9)
+        S_out = np.zeros_like(nS)
+        S_out[:, 0] = nS[:, 0] * np.where(ok, w, 0.0)
+        return FaceEvent(nd, S_out, nd[:, 2] > 0, ~ok)

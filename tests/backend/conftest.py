@@ -1,0 +1,66 @@
+"""Shared fixtures of the backend tests (no bpy).
+
+Reliefs are built by the project's ONE random-field generator (`surface.synth.random_relief`,
+autocovariance s^2 exp(-r^2/L^2), formats.md) so every test sees the same convention; real
+instrument files come from ../shared/data/topography/.  Test folders mirror the packages
+(tests/backend/<package>/); helper modules that several folders import (`_wave_reliefs`) live
+here, on sys.path.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parents[1]
+SHARED = REPO.parent / "shared"
+if str(HERE) not in sys.path:
+    sys.path.insert(0, str(HERE))          # `import _wave_reliefs` from any test folder
+
+
+@pytest.fixture
+def gaussian_relief():
+    """Factory: periodic isotropic Gaussian relief, autocovariance s^2 exp(-r^2/L^2).
+
+    gaussian_relief(n, pitch_m, rms_m, corr_m, seed=0) -> Relief
+    """
+    from relief_bsdf.surface.synth import random_relief
+
+    def make(n: int, pitch_m: float, rms_m: float, corr_m: float, seed: int = 0):
+        return random_relief(n, pitch_m, rms_m, corr_m, "gaussian", seed)
+    return make
+
+
+@pytest.fixture
+def flat_relief():
+    """Factory: a perfectly flat periodic tile, flat_relief(n=64, pitch_m=0.1e-6) -> Relief."""
+    from relief_bsdf.surface.relief import Relief
+
+    def make(n: int = 64, pitch_m: float = 0.1e-6):
+        return Relief(np.zeros((n, n)), pitch_m, pitch_m, periodic=True, source="flat")
+    return make
+
+
+@pytest.fixture
+def glass():
+    """Air over a non-dispersive glass of index 1.5."""
+    from relief_bsdf.core.index import ConstantIndex, Material
+    return Material(inside=ConstantIndex(1.5), outside=ConstantIndex(1.0))
+
+
+@pytest.fixture(scope="session")
+def demo_dir() -> Path:
+    """The default scene (scenes/demo: relief.x3p, sample.toml, recording.csv)."""
+    return REPO / "scenes" / "demo"
+
+
+@pytest.fixture(scope="session")
+def topography_dir() -> Path:
+    """Real instrument files (../shared/data/topography)."""
+    d = SHARED / "data" / "topography"
+    if not d.is_dir():
+        pytest.fail(f"{d} is missing: the tests expect ../shared beside the checkout")
+    return d

@@ -1,0 +1,90 @@
+"""Relief optimisation (fit.optimise): recovery of a known scale and filter, checkpoint resume."""
+import json
+
+import numpy as np
+import pytest
+
+from relief_bsdf.fit.optimise import FitSettings, Forward, TableGrid, fit_relief, process_relief, relief_rms
+from relief_bsdf.core.index import ConstantIndex
+from relief_bsdf.plate import Experiment, FlatFace, Plate, ReliefFace, in_plane_rows
+from relief_bsdf.surface.synth import random_relief
+
+
+@pytest.mark.slow
+def test_fit_recovers_known_scale_and_filter_below_noise_level():
+    relief = random_relief(96, 0.125e-6, 30e-9, 1.0e-6, "gaussian", seed=4)
+    model = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief), FlatFace()))
+    rows = in_plane_rows(550.0, [0, 30, 60], np.arange(1.0, 89.0, 2.0))
+    grid = TableGrid(2.0, 10.0, 15.0)
+    s_true, g_true = 1.3, 0.4
+    clean = Forward(relief, model, rows, grid=grid).simulate(s_true, g_true)
+    sigma = 0.03 * clean
+    meas = clean + sigma * np.random.default_rng(11).standard_normal(clean.size)
+    res = fit_relief(Forward(relief, model, rows, grid=grid), meas, sigma, FitSettings(max_iter=45))
+    assert res.height_scale == pytest.approx(s_true, rel=0.05)
+    assert res.filter_sigma_um == pytest.approx(g_true, rel=0.05)
+    assert res.rms_before > 3.0
+    assert res.rms_after < 1.0          # within the recording's noise (chi-like metric)
+    assert res.iterations[0]["parameters"] == {"height_scale": 1.0, "filter_sigma_um": 0.0}
+
+
+def test_scale_and_filter_act_differently_on_heights_and_slopes():
+    r = random_relief(64, 0.125e-6, 30e-9, 1.0e-6, "gaussian", seed=1)
+    h0, m0 = relief_rms(r)
+    h1, m1 = relief_rms(process_relief(r, 2.0, 0.0))
+    assert h1 == pytest.approx(2 * h0, rel=1e-9) and m1 == pytest.approx(2 * m0, rel=1e-9)
+    h2, m2 = relief_rms(process_relief(r, 1.0, 0.4))
+    assert m2 / m0 < h2 / h0 < 1.0       # smoothing removes slope faster than height
+
+
+class _CheapForward:
+    """A stand-in forward model so the checkpoint logic is tested in milliseconds.
+
+    Like the plate: a lobe whose width follows the processed relief's rms slope and a specular
+    peak whose weight follows its rms height (Debye-Waller-like), on a small relief.
+    """
+
+    def __init__(self, log):
+        self.relief = random_relief(32, 0.125e-6, 30e-9, 0.5e-6, "gaussian", seed=0)
+        self.x = np.linspace(-30, 30, 61)
+        self.log = log
+
+    def simulate(self, s, g):
+        self.log.append((s, g))
+        sigma, slope = relief_rms(process_relief(self.relief, s, g))
+        w = np.degrees(slope) + 0.1
+        spec = np.exp(-(sigma / 30e-9) ** 2)
+        return (1 - spec) * np.exp(-0.5 * (self.x / w) ** 2) / w + spec * np.exp(-0.5 * (self.x / 1.0) ** 2) + 1e-3
+
+
+def test_interrupted_fit_resumes_from_checkpoint_with_identical_result(tmp_path):
+    truth = _CheapForward([]).simulate(1.4, 0.1)
+    sigma = 0.02 * truth
+    full = fit_relief(_CheapForward([]), truth, sigma, FitSettings(max_iter=50))
+
+    ck = tmp_path / "checkpoint.json"
+
+    def interrupt(n):
+        if n == 12:
+            raise KeyboardInterrupt
+
+    first = []
+    with pytest.raises(KeyboardInterrupt):
+        fit_relief(_CheapForward(first), truth, sigma, FitSettings(max_iter=50), checkpoint=ck, on_eval=interrupt)
+    saved = json.loads(ck.read_text())["evaluations"]
+    assert len(saved) == 12 and len(first) == 12
+    second = []
+    resumed = fit_relief(_CheapForward(second), truth, sigma, FitSettings(max_iter=50), checkpoint=ck)
+    # nothing already evaluated is computed again, and the result is the uninterrupted one
+    assert not set(second) & set(first)
+    assert resumed.height_scale == full.height_scale and resumed.filter_sigma_um == full.filter_sigma_um
+    assert resumed.rms_after == full.rms_after
+    assert [i["rms"] for i in resumed.iterations] == [i["rms"] for i in full.iterations]
+    assert resumed.height_scale == pytest.approx(1.4, rel=0.02)
+
+
+def test_threshold_stops_early():
+    truth = _CheapForward([]).simulate(1.4, 0.1)
+    res = fit_relief(_CheapForward([]), truth, 0.02 * truth, FitSettings(max_iter=50, threshold=5.0))
+    assert res.stopped == "threshold" and res.rms_after <= 5.0
+    assert len(res.iterations) < 50

@@ -1,0 +1,78 @@
+"""The ray method's one bounce loop (methods.ray.transport), generic over what a ray carries.
+
+Checked: the intensity and the Stokes carriers run the same loop with the same random numbers
+(a path with one interaction has the same outcome whatever it carries, and the tables' S0
+agree with the scalar tables on a relief within the Monte-Carlo noise: the only physical
+difference, polarisation after the first bounce, is small at low slope).  The loop's float32
+in-place kernels live in core.stokes / core.frames and are tested equal there
+(tests/backend/core/test_stokes.py).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from relief_bsdf.core.index import ConstantIndex, Material
+from relief_bsdf.methods import ray
+from relief_bsdf.methods.request import Request
+from relief_bsdf.surface.synth import random_relief
+
+GLASS = Material(ConstantIndex(1.5))
+TE = tuple(np.linspace(0.0, 90.0, 31))
+PE = tuple(np.arange(-7.5, 360.0, 15.0))
+
+
+def relief(slope_per_axis: float, n: int = 128, corr_px: float = 8.0):
+    L = corr_px * 1e-6
+    return random_relief(n, 1e-6, slope_per_axis * np.sqrt(2) * L / 2, L, seed=5)
+
+
+def test_scalar_and_stokes_carriers_share_the_loop_and_its_random_numbers():
+    """scatter() with and without polarisation: same seeds, same paths wherever the physics is the same."""
+    tr = ray.ReliefTracer(relief(0.1))
+    n = 20_000
+    d = np.tile([np.sin(0.5), 0.0, -np.cos(0.5)], (n, 1))
+    a = tr.scatter(d, 1.0, 1.5, np.random.default_rng(3), polarized=False)
+    b = tr.scatter(d, 1.0, 1.5, np.random.default_rng(3), polarized=True)
+    one = (a.bounces == 1) & (b.bounces == 1)
+    assert one.mean() > 0.9                                  # low slope: mostly single interactions
+    same = (a.state == b.state) & np.all(np.abs(a.dirs - b.dirs) < 1e-5, axis=1)
+    assert same[one].mean() > 0.999                          # the same roulette draw decides them
+    np.testing.assert_allclose(b.stokes[:, 0], b.weight)
+    assert a.segments == b.segments or abs(a.segments - b.segments) < 0.01 * a.segments
+
+
+def test_one_loop_scalar_and_stokes_S0_tables_agree_on_one_relief():
+    r = relief(0.12)
+    kw = dict(theta_i_deg=(30.0,), incident_from=("outside", "inside"), samples=100_000, seed=2,
+              theta_s_edges_deg=TE, phi_s_edges_deg=PE)
+    scal = ray.reconstruct(r, GLASS, Request(options={"polarized": False}, **kw))
+    pol = ray.reconstruct(r, GLASS, Request(options={"polarized": True}, **kw))
+    for a, b in zip(scal, pol):
+        np.testing.assert_array_equal(b.mueller_per_sr[..., 0, 0], b.values_per_sr)
+        ha, hb = a.hemispherical(), b.hemispherical()
+        for key in ("R", "T"):
+            assert abs(float(ha[key].ravel()[0] - hb[key].ravel()[0])) < 2e-3, (a.incident_from, key)
+        f, g = a.values_per_sr[0, 0, 0], b.values_per_sr[0, 0, 0]
+        lobe = f > 0.2 * f.max()
+        z = (g - f)[lobe] / np.hypot(a.sigma_per_sr[0, 0, 0], b.sigma_per_sr[0, 0, 0])[lobe]
+        assert np.abs(z).max() < 4 and abs(z.mean()) < 0.5, (a.incident_from, np.abs(z).max(), z.mean())
+
+
+def test_ray_reads_typed_options_and_refuses_a_misspelled_one():
+    """The ray method reads RayOptions: a typo is a RequestError naming it, before any tracing."""
+    import pytest
+
+    from relief_bsdf.core.index import ConstantIndex, Material
+    from relief_bsdf.errors import RequestError
+    from relief_bsdf.methods import reconstruct
+    from relief_bsdf.methods.request import Request
+    from relief_bsdf.surface.synth import random_relief
+
+    rel = random_relief(128, 1e-6, 0.3e-6, 5e-6, "gaussian", 1)
+    mat = Material(inside=ConstantIndex(1.5), outside=ConstantIndex(1.0))
+    with pytest.raises(RequestError, match="max_bounce"):
+        reconstruct(rel, mat, Request(wavelengths_nm=(550.0,), theta_i_deg=(0.0,), samples=2000,
+                                      options={"max_bounce": 3}), "ray")
+    (t,) = reconstruct(rel, mat, Request(wavelengths_nm=(550.0,), theta_i_deg=(0.0,), samples=2000,
+                                         options={"max_bounces": 3, "polarized": False}), "ray")
+    assert t.metadata["request"]["options"]["max_bounces"] == 3 and t.mueller_per_sr is None

@@ -1,0 +1,25 @@
+"""Fixtures of the plate tests: analytic boundary tables."""
+import numpy as np
+import pytest
+
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.methods.request import Request
+
+
+def _lambert(frm, aR, aT, th, spec_R=0.0, spec_T=0.0, mueller=False):
+    r = Request(theta_i_deg=tuple(th))
+    v = np.zeros((1, len(th), 1, 2, r.theta_s_deg.size, r.phi_s_deg.size))
+    v[:, :, :, 0] = aR / np.pi
+    v[:, :, :, 1] = aT / np.pi
+    mu = v[..., None, None] * np.diag([1.0, 0, 0, 0]) if mueller else None
+    return BsdfTable(r.wavelengths_nm, r.theta_i_deg, r.phi_i_deg, r.theta_s_edges_deg, r.phi_s_edges_deg, v,
+                     incident_from=frm, specular_R=spec_R, specular_T=spec_T, mueller_per_sr=mu)
+
+
+@pytest.fixture
+def lambert_table():
+    """Factory: isotropic table with constant (Lambertian) cells, albedos aR, aT at every incidence.
+
+    lambert_table(incident_from, aR, aT, theta_i_list, spec_R=0, spec_T=0, mueller=False) -> BsdfTable
+    """
+    return _lambert

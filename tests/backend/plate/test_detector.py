@@ -1,0 +1,67 @@
+"""The one detector (plate.detector): response = cone (x) Gaussian, read the same by both engines."""
+import numpy as np
+import pytest
+
+from relief_bsdf.core.index import ConstantIndex, Material
+from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, Rows, TableFace, in_plane_rows, simulate
+from relief_bsdf.plate.detector import cone_solid_angle, quadrature_offsets, response
+
+
+def test_response_is_the_fraction_of_a_gaussian_inside_the_cone():
+    h, b = 1.0, 0.5
+    rng = np.random.default_rng(0)
+    g = np.radians(b) * rng.standard_normal((400_000, 2))
+    for psi in (0.0, 0.6, 1.0, 1.5, 2.5):
+        mc = np.mean(np.hypot(np.radians(psi) + g[:, 0], g[:, 1]) <= np.radians(h))
+        assert response(np.radians(psi), h, b) == pytest.approx(mc, abs=3e-3)
+    assert response(np.radians([0.9, 1.1]), h, 0.0).tolist() == [1.0, 0.0]
+    # its plane integral is the cone's area (the normalisation both engines use, Omega)
+    r = np.linspace(0, np.radians(h + 6 * b), 4001)
+    area = np.trapz(response(r, h, b) * 2 * np.pi * r, r)
+    assert area == pytest.approx(cone_solid_angle(h), rel=1e-3)
+
+
+def test_quadrature_of_cone_and_gaussian_reproduces_the_blurred_average():
+    # the average of a smooth field over the product quadrature = its integral against response / Omega
+    off = quadrature_offsets(1.0, 19, 0.8)
+    f = lambda x, y: 1.0 + 300.0 * x + 4e4 * x * x + 2e4 * y * y      # noqa: E731 (smooth test field, rad)
+    quad = np.mean(f(off[:, 0], off[:, 1]))
+    s = np.radians(0.8)
+    h = np.radians(1.0)
+    exact = 1.0 + 4e4 * (h * h / 4 + s * s) + 2e4 * (h * h / 4 + s * s)   # second moments of cone + Gaussian
+    assert quad == pytest.approx(exact, rel=0.01)
+
+
+def _rows_around_the_specular(offsets_deg, ti=30.0):
+    ts = ti + np.asarray(offsets_deg, float)
+    n = ts.size
+    return Rows(np.full(n, 550.0), np.full(n, ti), np.zeros(n), ["R"] * n, ts, np.full(n, 180.0))
+
+
+def test_both_engines_read_a_delta_beam_through_a_blurred_cone():
+    ex = Experiment(Plate(2e-3, ConstantIndex(1.5), FlatFace(), FlatFace()),
+                    Instrument(detector_half_angle_deg=1.0, blur_deg=0.4))
+    offs = np.array([0.0, 0.5, 0.9, 1.2, 1.6])
+    rows = _rows_around_the_specular(offs)
+    det = simulate(ex, rows).values_per_sr
+    mc = simulate(ex, rows, engine="photon", photons=100_000, seed=3)
+    assert det[0] > 1.0                                  # the specular beam, not the diffuse floor (0 here)
+    # f = response(psi) P / (Omega cos theta_s): the shape over the rows is response x cos ratio
+    expect_shape = (response(np.radians(offs), 1.0, 0.4) / response(0.0, 1.0, 0.4)
+                    * np.cos(np.radians(30.0)) / np.cos(np.radians(rows.theta_s_deg)))
+    np.testing.assert_allclose(det / det[0], expect_shape, rtol=1e-6)
+    np.testing.assert_allclose(mc.values_per_sr, det, rtol=0.0, atol=4 * mc.sigma_per_sr.max() + 1e-9)
+
+
+def test_both_engines_read_a_smooth_lambertian_field_through_a_blurred_cone(lambert_table):
+    o = lambert_table("outside", 0.2, 0.8, [0, 30])
+    i = lambert_table("inside", 0.5, 0.5, np.arange(0, 90, 5.0))
+    ex = Experiment(Plate(2e-3, ConstantIndex(1.5), TableFace(i, o), FlatFace()),
+                    Instrument(detector_half_angle_deg=2.0, blur_deg=1.5))
+    rows = in_plane_rows(550.0, [30.0], np.arange(5.0, 80.0, 10.0))
+    det = simulate(ex, rows).values_per_sr
+    sharp = simulate(ex.with_instrument(blur_deg=0.0), rows).values_per_sr
+    np.testing.assert_allclose(det, sharp, rtol=0.01)               # a smooth field is not changed by blur
+    mc = simulate(ex, rows, engine="photon", photons=200_000, seed=5)
+    z = (mc.values_per_sr - det) / mc.sigma_per_sr
+    assert np.sqrt(np.mean(z**2)) < 1.6, z

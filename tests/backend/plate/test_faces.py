@@ -1,0 +1,82 @@
+"""Faces of the plate (plate.faces): tables and photon interactions of the same face agree; table cache."""
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from relief_bsdf.core.index import ConstantIndex, Material
+from relief_bsdf.plate import (TABLE_CACHE, Experiment, FlatFace, Instrument, MicrofacetFace, PhotonContext, Plate,
+                               ReliefFace, TableFace, TableGrid, experiment_from_sample, in_plane_rows, simulate)
+from relief_bsdf.plate.faces import TableSampler
+from relief_bsdf.plate.photon import hemispherical, trace
+from relief_bsdf.surface.synth import random_relief
+
+
+def test_table_sampler_draws_the_tables_power_and_cosine_law(lambert_table):
+    t = lambert_table("outside", 0.3, 0.6, [0, 30, 60], spec_R=0.04, spec_T=0.06)
+    smp = TableSampler(t, 550.0)
+    rng = np.random.default_rng(0)
+    n = 200_000
+    S = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    refl, delta, th, ph, S2 = smp.sample(np.full(n, 30.0), np.zeros(n), S, rng)
+    w = S2[:, 0] / n
+    assert w[refl & ~delta].sum() == pytest.approx(0.3, abs=3e-3)
+    assert w[~refl & ~delta].sum() == pytest.approx(0.6, abs=3e-3)
+    assert w[refl & delta].sum() == pytest.approx(0.04, abs=2e-3)
+    # Lambertian: sin^2 theta uniform -> mean sin^2 = 1/2
+    assert np.mean(np.sin(np.radians(th[~delta])) ** 2) == pytest.approx(0.5, abs=5e-3)
+
+
+def test_microfacet_face_photons_agree_with_its_tables():
+    """MicrofacetFace: tables from the microfacet method (Walter 2007), photons from sampled Beckmann
+    facets: two codes of the same single-scattering model, on a plate with a flat back."""
+    ex = Experiment(Plate(2e-3, ConstantIndex(1.5), MicrofacetFace(0.3, samples=50_000), FlatFace()),
+                    Instrument(detector_half_angle_deg=3.0))
+    rows = in_plane_rows(550.0, [30.0], np.arange(4.0, 80.0, 6.0))
+    grid = TableGrid(1.0, 5.0, 2.0)            # the transmitted lobe is ~20 deg wide: 2-deg cells smear its peak 10 %
+    det = simulate(ex, rows, grid=grid).values_per_sr
+    mc = simulate(ex, rows, engine="photon", photons=300_000, seed=2, grid=grid)
+    for side in ("R", "T"):
+        m = rows.side == side
+        lobe = m & (det > 0.3 * det[m].max())
+        rel = (mc.values_per_sr[lobe] - det[lobe]) / det[lobe]
+        noise = mc.sigma_per_sr[lobe] / det[lobe]
+        assert lobe.sum() >= 4
+        assert np.sqrt(max(np.mean(rel**2) - np.mean(noise**2), 0.0)) < 0.04, (side, rel)
+        assert abs(mc.values_per_sr[lobe].sum() / det[lobe].sum() - 1) < 0.03
+
+
+def test_relief_face_tables_are_cached_by_content():
+    r = random_relief(32, 0.125e-6, 30e-9, 1.0e-6, "gaussian", seed=2)
+    mat = Material(ConstantIndex(1.5))
+    g = TableGrid(5.0, 15.0, 15.0)
+    a = ReliefFace(r, method="flat").tables(mat, g, [550.0], [0.0, 30.0])
+    hits = TABLE_CACHE.hits
+    b = ReliefFace(r.with_heights(r.heights_m.copy(), "copy"), method="flat").tables(mat, g, [550.0], [0.0, 30.0])
+    assert TABLE_CACHE.hits == hits + 2 and b[1] is a[1]          # same content: same tables (both sides)
+    c = ReliefFace(r.scaled(1.1), method="flat").tables(mat, g, [550.0], [0.0, 30.0])
+    assert c[1] is not a[1]
+
+
+def test_flat_relief_traced_face_and_fresnel_face_give_the_same_plate():
+    flat = random_relief(16, 1e-6, 1e-12, 4e-6, "gaussian", seed=0).scaled(0.0)
+    base = Experiment(Plate(2e-3, ConstantIndex(1.5), FlatFace(), FlatFace()))
+    traced = base.with_plate(back=ReliefFace(flat, method="ray"))
+    h0 = hemispherical(trace(base, 550.0, 45.0, 0.0, 50_000, np.random.default_rng(1)))
+    h1 = hemispherical(trace(traced, 550.0, 45.0, 0.0, 50_000, np.random.default_rng(1)))
+    assert h1["R"] == pytest.approx(h0["R"], abs=4e-3)
+    assert h1["T"] + h1["lost"] == pytest.approx(h0["T"], abs=4e-3)
+
+
+def test_experiment_from_sample_puts_the_relief_on_its_face():
+    r = random_relief(16, 1e-6, 1e-8, 4e-6, "gaussian", seed=0)
+    for face in ("front", "back"):
+        sample = SimpleNamespace(path="s.toml", plate=SimpleNamespace(thickness_mm=1.5, index=ConstantIndex(1.49),
+                                                                      rough_face=face, absorption_per_mm=0.2),
+                                 instrument=SimpleNamespace(detector_half_angle_deg=2.0, polarization="p"))
+        ex = experiment_from_sample(sample, r, method="ray")
+        rough = getattr(ex.plate, face)
+        assert isinstance(rough, ReliefFace) and rough.method == "ray" and rough.relief is r
+        assert getattr(ex.plate, "back" if face == "front" else "front").is_flat
+        assert ex.plate.thickness_m == pytest.approx(1.5e-3) and ex.plate.bulk.absorption_per_m == pytest.approx(200)
+        assert ex.instrument.polarization_q == -1.0 and ex.instrument.detector_half_angle_deg == 2.0
