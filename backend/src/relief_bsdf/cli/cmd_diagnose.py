@@ -32,8 +32,6 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from relief_bsdf.parallel import apply_parallel_args
-    apply_parallel_args(args)
     from relief_bsdf.diagnose.forward import DEFAULT_METHOD
     from relief_bsdf.diagnose.run import diagnose
     from relief_bsdf.errors import InputError

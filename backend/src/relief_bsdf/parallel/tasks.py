@@ -236,24 +236,6 @@ def _pool_context() -> multiprocessing.context.BaseContext:
     return ctx
 
 
-def _pool_context() -> multiprocessing.context.BaseContext:
-    """Start method of the local worker pool: "forkserver", never plain "fork".
-
-    Forking a process that already runs native thread pools (Embree's task threads after a
-    BVH build in this process, OpenBLAS, a Dask client's event loop) copies their locks but
-    not their threads, and the child can hang forever in its first call into that library
-    (seen: a worker stuck creating its Embree device).  The fork server is a fresh interpreter
-    that imports this module once and forks workers from that clean state, so starting a
-    worker stays cheap.  Like "spawn", it needs `if __name__ == "__main__":` in user scripts.
-    `RELIEF_START_METHOD` overrides it (e.g. "spawn").
-    """
-    method = os.environ.get("RELIEF_START_METHOD", "forkserver")
-    ctx = multiprocessing.get_context(method)
-    if method == "forkserver":
-        ctx.set_forkserver_preload([__name__])
-    return ctx
-
-
 def _pool_round(pool: ProcessPoolExecutor, fn: Callable, token: int, pending: dict[int, Any], workers: int):
     """Run the pending tasks on one pool, yielding (index, result) and removing them from
     `pending` as they arrive; the generator's return value says whether the pool broke."""
