@@ -44,6 +44,7 @@ def test_simulate_writes_the_recording_rows(tmp_path):
     assert sim.bsdf_sr.max() > 10 * np.median(sim.bsdf_sr)
 
 
+@pytest.mark.slow
 def test_fit_cli_writes_fit_json_and_resumes(tmp_path, capsys):
     s = make_sample(tmp_path)
     out = tmp_path / "fit"

@@ -315,6 +315,7 @@ def _btdf_reciprocity(tables, tol):
     return worst
 
 
+@pytest.mark.slow
 def test_btdf_reciprocity_across_methods():
     """Each method's outside-T and inside-T tables obey the radiance-BTDF reciprocity.
 

@@ -124,6 +124,7 @@ def _hemispherical(wi, n_i, n_t, alpha, dist="ggx", shadowing="smith"):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("inside", [False, True])
 def test_energy_furnace(inside):
     n_i, n_t = (N_GLASS, 1.0) if inside else (1.0, N_GLASS)
@@ -143,6 +144,7 @@ def test_energy_furnace(inside):
         assert R_small + T_small == pytest.approx(1.0, abs=5e-3)
 
 
+@pytest.mark.slow
 def test_flat_limit_is_fresnel():
     for n_i, n_t in ((1.0, N_GLASS), (N_GLASS, 1.0)):
         for theta in (0.0, 30.0, 60.0):

@@ -70,6 +70,7 @@ def test_inside_past_critical_scatters_more(relief):
     assert tab.specular_T[0, 1, 0] == 0.0 and tab.specular_T[0, 0, 0] > 0.9
 
 
+@pytest.mark.slow
 def test_reciprocity_and_energy(relief):
     # incidences 1 degree apart so pairs lie inside the lobe (values at cell centres, no interpolation)
     req = Request(wavelengths_nm=(LAM,), theta_i_deg=(4.5, 8.5, 12.5, 16.5), incident_from=("outside", "inside"),
@@ -131,6 +132,7 @@ def test_mueller_matches_scatmech_and_flat_interface():
         np.testing.assert_allclose(M / M[0, 0], F / F[0, 0], atol=1e-9)
 
 
+@pytest.mark.slow
 def test_polarized_request_values(relief):
     base = dict(wavelengths_nm=(LAM,), theta_i_deg=(40.0,), phi_s_edges_deg=PHI_EDGES)
     (u,) = reconstruct(relief, MAT, Request(**base), "rayleigh-rice")
