@@ -13,8 +13,8 @@ Gaussian filter sigma 0.3 um) with 3 % multiplicative noise, so `relief fit` on 
 find height_scale ~ 1.25 and filter_sigma_um ~ 0.3.  The plate is simulated with the
 deterministic model (plate.py) and the fit's default boundary method (microfacet+dw) on its
 default table grid: a synthetic recording that the fit's own model can reach exactly.  The
-independent check of that plate model is the Monte-Carlo plate (plate_mc.py) on this same
-sample (tests/backend/test_plate_mc.py: within 3 % in-lobe with ray-traced tables).
+independent check of that plate model is the photon engine of the plate (plate/photon.py) on this same
+sample (tests/backend/plate/test_plate_mc.py: within 3 % in-lobe with ray-traced tables).
 """
 from __future__ import annotations
 

@@ -271,7 +271,7 @@ def test_polarized_table_brewster():
 
 
 def test_mueller_frames_agree_with_ray_tracing():
-    """Same Stokes frames as methods/ray.py: a gentle relief traced with polarisation and the microfacet
+    """Same Stokes frames as methods/ray/: a gentle relief traced with polarisation and the microfacet
     Mueller table of its rms slope agree element by element (signs of the frame rotations included)."""
     from relief_bsdf.methods import reconstruct as run_method
     from relief_bsdf.methods.microfacet import relief_slopes

@@ -4,7 +4,7 @@ Physics: all power goes into the delta parts, reflected and refracted by the Fre
 (Born & Wolf 1.5.20-21) as Mueller matrices (core.fresnel.mueller_interface, unpolarised
 values = M00); the diffuse cells are zero.  Exact for a plane boundary between two
 homogeneous media; past the critical angle (light from inside) R = 1, T = 0.  The relief, if
-one is given, is ignored.  Same tables as plate.solver.flat_tables, on the request's axes.
+one is given, is ignored.  The flat face of the plate (`plate.FlatFace`, `plate.flat_tables`) uses these tables.
 """
 from __future__ import annotations
 

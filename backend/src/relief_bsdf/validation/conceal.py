@@ -90,7 +90,7 @@ class HeightFieldFace:
     they leave the layer (above its highest point in air, or below its lowest in glass);
     after each hit the position is wrapped back into the central tile.  Coordinates are the
     mesh's (units of the x pitch, float32 precision).  Independent of the ray method's tracer
-    (methods/ray.py): only the mesh is shared.
+    (methods/ray/): only the mesh is shared.
     """
 
     def __init__(self, heights_m: np.ndarray, dx_m: float, dy_m: float, max_hits: int = 20):
