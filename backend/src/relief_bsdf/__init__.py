@@ -12,7 +12,7 @@ distributions, bulk), `validation` the independent generator of test cases (`rel
 
 The public face below is loaded lazily (PEP 562), so `import relief_bsdf` stays cheap (Blender).
 """
-import importlib
+from relief_bsdf._lazy import lazy_exports
 
 __version__ = "0.1.0"
 
@@ -26,12 +26,4 @@ _EXPORTS = {
 }
 __all__ = ["__version__", *_EXPORTS]
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())

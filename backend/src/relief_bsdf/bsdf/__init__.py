@@ -8,7 +8,7 @@
              ExitSamples, TableCells, CellAccumulator, specular_flags), used by every sampling method
 File formats: relief_bsdf.io (hdf5, isbsdf).
 """
-import importlib
+from relief_bsdf._lazy import lazy_exports
 
 # name -> sub-module; loaded on first use (PEP 562), so `import relief_bsdf.bsdf.table` stays cheap
 _EXPORTS = {
@@ -18,12 +18,4 @@ _EXPORTS = {
 }
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())

@@ -9,7 +9,7 @@
                 (temporary file beside the target, then rename: a reader never sees half a file)
     oiio        the optional OpenImageIO binding (EXR / TIFF)
 """
-import importlib
+from relief_bsdf._lazy import lazy_exports
 
 # name -> sub-module; loaded on first use (PEP 562), so `import relief_bsdf.io.atomic` stays cheap
 _EXPORTS = {
@@ -23,12 +23,4 @@ _EXPORTS = {
 }
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())

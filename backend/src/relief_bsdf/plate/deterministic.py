@@ -69,6 +69,7 @@ from relief_bsdf.errors import InputError
 from relief_bsdf.core.frames import rot_y
 from relief_bsdf.core.fresnel import mueller_interface
 from relief_bsdf.core.index import ConstantIndex, IndexModel, Material
+from relief_bsdf.plate.description import Bulk, Instrument
 from relief_bsdf.plate.detector import grid_reading
 
 _DEPOL = np.diag([1.0, 0.0, 0.0, 0.0])
@@ -119,21 +120,17 @@ class PlateModel:
     hg_g: float = 0.0
 
     def __post_init__(self) -> None:
+        """The checks are the description's (plate.description: Instrument, Bulk): one owner each."""
         if self.rough_face not in ("front", "back"):
             raise InputError("plate.rough_face", f"must be 'front' or 'back', got {self.rough_face!r}")
         if not (self.thickness_m > 0 and np.isfinite(self.thickness_m)):
             raise InputError("plate.thickness_mm", f"thickness must be > 0, got {self.thickness_m}")
-        if not (self.absorption_per_m >= 0):
-            raise InputError("plate.absorption_per_mm", f"absorption must be >= 0, got {self.absorption_per_m}")
-        if not (self.detector_half_angle_deg > 0 and self.detector_half_angle_deg < 45):
-            raise InputError("instrument.detector_half_angle_deg",
-                             f"the detector cone half-angle must be in (0, 45) degrees, got "
-                             f"{self.detector_half_angle_deg}")
         if isinstance(self.polarization, str) and self.polarization not in SOURCE_STOKES:
             raise InputError("instrument.polarization",
                              f"must be unpolarized, s or p, got {self.polarization!r}")
-        if not isinstance(self.polarization, str) and not (-1.0 <= float(self.polarization) <= 1.0):
-            raise InputError("instrument.polarization", f"source q must be in [-1, 1], got {self.polarization}")
+        Instrument(self.detector_half_angle_deg, float(self.source_stokes[1]), self.blur_deg, self.tilt_deg,
+                   self.background_per_sr, self.cone_points)
+        Bulk(self.absorption_per_m, self.scatter_per_m, self.hg_g)
 
     @property
     def source_stokes(self) -> np.ndarray:

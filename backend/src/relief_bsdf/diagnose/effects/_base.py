@@ -65,6 +65,11 @@ class ReliefContext:
     seed: int = 0
     _reliefs: dict = field(default_factory=dict, compare=False, repr=False)
 
+    def with_relief_face(self, experiment: Any, relief: Relief, method: str, **options: Any) -> Any:
+        """`experiment` with its relief face rebuilt from `relief` by `method` (the one place that
+        knows which face carries the relief: the lit front face, as `diagnose.forward` requires)."""
+        return experiment.with_plate(front=self.face(relief, method, **options))
+
     @property
     def spectral(self) -> bool:
         return len(set(self.wavelengths_nm)) > 1

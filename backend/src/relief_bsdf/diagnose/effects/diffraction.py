@@ -14,7 +14,7 @@ from relief_bsdf.diagnose.effects._base import Effect
 
 
 def _apply(experiment, context, values):
-    return experiment.with_plate(front=context.face(context.relief, "kirchhoff", band_limited=True))
+    return context.with_relief_face(experiment, context.relief, "kirchhoff", band_limited=True)
 
 
 def _skip(context):

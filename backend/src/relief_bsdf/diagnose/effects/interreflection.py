@@ -11,7 +11,7 @@ from relief_bsdf.diagnose.effects._base import Effect
 
 
 def _apply(experiment, context, values):
-    return experiment.with_plate(front=context.face(context.relief, "ray"))
+    return context.with_relief_face(experiment, context.relief, "ray")
 
 
 def _skip(context):

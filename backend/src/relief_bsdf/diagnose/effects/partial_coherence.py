@@ -17,8 +17,8 @@ def _apply(experiment, context, values):
     lc_m = float(values["coherence_length_um"]) * 1e-6
     if lc_m <= 0.0:
         return experiment
-    face = context.face(context.relief, "kirchhoff", band_limited=True, coherence_length_m=lc_m)
-    return experiment.with_plate(front=face)
+    return context.with_relief_face(experiment, context.relief, "kirchhoff", band_limited=True,
+                                    coherence_length_m=lc_m)
 
 
 def _bracket(context, forward):

@@ -13,7 +13,7 @@ def _apply(experiment, context, values):
     s = float(values["height_scale"])
     if s == 1.0:
         return experiment
-    return experiment.with_plate(front=context.face(context.processed_relief(s, 0.0), context.method))
+    return context.with_relief_face(experiment, context.processed_relief(s, 0.0), context.method)
 
 
 EFFECT = Effect(

@@ -12,7 +12,7 @@ def _apply(experiment, context, values):
     g_m = float(values["filter_sigma_um"]) * 1e-6
     if g_m <= 0.0:
         return experiment
-    return experiment.with_plate(front=context.face(context.processed_relief(1.0, g_m), context.method))
+    return context.with_relief_face(experiment, context.processed_relief(1.0, g_m), context.method)
 
 
 EFFECT = Effect(
