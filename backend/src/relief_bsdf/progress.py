@@ -14,8 +14,10 @@ and elapsed time.
 from __future__ import annotations
 
 import sys
+import threading
 import time
-from typing import Callable, Optional
+from contextlib import contextmanager
+from typing import Callable, Iterator, Optional
 
 Progress = Callable[[int, int, str], None]
 
@@ -56,6 +58,8 @@ class LineProgress:
         self.interval_s = interval_s
         self.clock = clock
         self.t0 = clock()
+        self._lock = threading.Lock()
+        self._what = ""
         self._reset(None)
 
     def _reset(self, total) -> None:
@@ -66,6 +70,24 @@ class LineProgress:
         self._finished = False
 
     def __call__(self, done: int, total: int, what: str = "") -> None:
+        with self._lock:
+            self._line(done, total, what)
+
+    def beat(self, force: bool = False) -> None:
+        """A time-based line when nothing was written for `interval_s` (long work between task
+        boundaries, e.g. one fit evaluation's tables): ``<label>: working, elapsed <t>s[ - <what>]``.
+        `force` writes it now (the first line of a job)."""
+        with self._lock:
+            now = self.clock()
+            if not force and now - self._t_line < self.interval_s:
+                return
+            what = f" - {self._what}" if self._what else ""
+            self.stream.write(f"{self.label}: working, elapsed {now - self.t0:.0f}s{what}\n")
+            self.stream.flush()
+            self._t_line = now
+
+    def _line(self, done: int, total: int, what: str) -> None:
+        self._what = " ".join(str(what).split())[:60]
         if total != self._total or done < self._done:
             self._reset(total)
         if self._finished:
@@ -100,6 +122,11 @@ class TerminalBar:
         self._last = 0.0
         self.lines = LineProgress(label, self.stream, interval_s=interval_s) if (lines and not self.enabled) else None
 
+    def beat(self, force: bool = False) -> None:
+        """Time-based heartbeat line (log mode only: a terminal bar redraws on every call)."""
+        if self.lines is not None:
+            self.lines.beat(force)
+
     def __call__(self, done: int, total: int, what: str = "") -> None:
         if self.lines is not None:
             self.lines(done, total, what)
@@ -116,6 +143,34 @@ class TerminalBar:
         if done >= total:
             self.stream.write("\n")
         self.stream.flush()
+
+
+@contextmanager
+def keep_alive(progress: Optional[Progress], interval_s: float = 1.0, first_after_s: float = 1.0) -> Iterator[None]:
+    """Run the block with a heartbeat: a first line once the work has lasted `first_after_s`
+    (a job that fails at once prints only its error), then `progress.beat()` polled every
+    `interval_s` seconds from a daemon thread (the progress object decides when a line is due:
+    LineProgress after its own 30 s of silence), so a non-terminal log shows a long job alive
+    from its first second.  Progress objects without `beat` are left as they are."""
+    beat = getattr(progress, "beat", None)
+    if beat is None:
+        yield
+        return
+    stop = threading.Event()
+
+    def run() -> None:
+        if stop.wait(first_after_s):
+            return
+        beat(force=True)
+        while not stop.wait(interval_s):
+            beat()
+    t = threading.Thread(target=run, name="relief-heartbeat", daemon=True)
+    t.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        t.join(timeout=5.0)
 
 
 def fraction_callback(progress: Optional[Progress], offset: int, total: int) -> Progress:

@@ -13,7 +13,8 @@ from relief_bsdf.surface.synth import random_relief
 @pytest.mark.slow
 def test_fit_recovers_known_scale_and_filter_below_noise_level():
     relief = random_relief(96, 0.125e-6, 30e-9, 1.0e-6, "gaussian", seed=4)
-    model = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief), FlatFace()))
+    # the optimiser's mechanics on the fast surrogate, named (its own recording: not a physics check)
+    model = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "microfacet+dw"), FlatFace()))
     rows = in_plane_rows(550.0, [0, 30, 60], np.arange(1.0, 89.0, 2.0))
     grid = TableGrid(2.0, 10.0, 15.0)
     s_true, g_true = 1.3, 0.4

@@ -22,7 +22,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def run(args) -> int:
     from relief_bsdf.validation.conceal import EFFECTS_CONCEALABLE, default_cases, generate
     from relief_bsdf.errors import InputError
-    from relief_bsdf.progress import TerminalBar
+    from relief_bsdf.progress import TerminalBar, keep_alive
     if args.per_effect < 0 or args.none < 0:
         raise InputError("--per-effect/--none", "case counts must be >= 0")
     cases = default_cases(args.per_effect, args.none, args.seed)
@@ -37,6 +37,8 @@ def run(args) -> int:
             raise InputError("--photons", f"need at least 1000 photons, got {args.photons}")
         for c in cases:
             c.photons = args.photons
-    key = generate(args.out, cases, TerminalBar("conceal"))
+    bar = TerminalBar("conceal")
+    with keep_alive(bar):
+        key = generate(args.out, cases, bar)
     print(f"{len(cases)} cases in {args.out}; key (keep apart) in {key}")
     return 0

@@ -18,7 +18,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument("--method", default=None,
                    help="boundary BSDF method of the baseline's relief face (default: that of `relief fit`, "
-                        "microfacet+dw; or any `relief reconstruct` method)")
+                        "auto: the relief's own physics; or any `relief reconstruct` method or surrogate)")
     p.add_argument("--photons", type=int, default=200_000,
                    help="Monte-Carlo samples per incidence of a sampling boundary method (ray, normals; "
                         "default 200000)")
@@ -35,12 +35,14 @@ def run(args) -> int:
     from relief_bsdf.diagnose.forward import DEFAULT_METHOD
     from relief_bsdf.diagnose.run import diagnose
     from relief_bsdf.errors import InputError
-    from relief_bsdf.progress import TerminalBar
+    from relief_bsdf.progress import TerminalBar, keep_alive
     if args.photons < 1000:
         raise InputError("--photons", f"need at least 1000 photons per incidence, got {args.photons}")
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
-    r = diagnose(args.sample, args.out, TerminalBar("diagnose"), method=args.method or DEFAULT_METHOD,
-                 photons=args.photons, seed=args.seed, effects=effects, workers=args.workers)
+    bar = TerminalBar("diagnose")
+    with keep_alive(bar):                 # a log line at once and at least every 30 s
+        r = diagnose(args.sample, args.out, bar, method=args.method or DEFAULT_METHOD,
+                     photons=args.photons, seed=args.seed, effects=effects, workers=args.workers)
     if args.json:
         print(json.dumps(r, indent=1))
     else:

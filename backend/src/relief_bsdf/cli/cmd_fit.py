@@ -3,18 +3,25 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("fit", help="fit relief height scale and Gaussian filter to the sample's recording")
     p.add_argument("sample", help="sample.toml")
     p.add_argument("-o", "--out", required=True, help="output directory (fit.json, relief, tables, plots, report)")
-    p.add_argument("--method", default="microfacet+dw",
-                   help="boundary BSDF method: microfacet+dw (default, fast), or any `relief reconstruct` method")
+    p.add_argument("--method", default="auto",
+                   help="boundary BSDF method of the relief face: auto (default: the relief's own physics, ray "
+                        "tracing or wave optics, chosen once from its statistics), any `relief reconstruct` "
+                        "method, or the fast surrogate microfacet+dw")
     p.add_argument("--samples", type=int, default=200_000, help="Monte-Carlo samples per incidence (ray methods)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-iter", type=int, default=60, help="most forward evaluations")
     p.add_argument("--threshold", type=float, default=0.0, help="stop once the metric is at or below this")
+    p.add_argument("--scale-bounds", default="0.1,10", metavar="MIN,MAX",
+                   help="bounds of the height scale (default 0.1,10)")
+    p.add_argument("--max-filter-um", type=float, default=None,
+                   help="upper bound of the Gaussian filter sigma in um (default: 20 pixel pitches)")
     p.add_argument("--theta-step-deg", type=float, default=1.0, help="boundary table theta cell size")
     p.add_argument("--phi-step-deg", type=float, default=5.0,
                    help="boundary table azimuth cell size (also the plate's azimuth grid)")
@@ -30,7 +37,7 @@ def run(args) -> int:
     from relief_bsdf.errors import InputError
     from relief_bsdf.fit.optimise import FitJob, run_fit_job
     from relief_bsdf.plate import TableGrid
-    from relief_bsdf.progress import TerminalBar
+    from relief_bsdf.progress import TerminalBar, keep_alive
     if args.max_iter < 1:
         raise InputError("--max-iter", "must be >= 1")
     if not (0 < args.theta_step_deg <= 10 and 0 < args.phi_step_deg <= 30 and 360 % args.phi_step_deg == 0):
@@ -39,7 +46,23 @@ def run(args) -> int:
         raise InputError("--inside-step-deg", f"must be in (0, 15], got {args.inside_step_deg:g}")
     grid = TableGrid(args.theta_step_deg, args.phi_step_deg, args.inside_step_deg)
     job = FitJob(method=args.method, samples=args.samples, seed=args.seed, max_iter=args.max_iter,
-                 threshold=args.threshold, grid=grid)
-    doc = run_fit_job(args.sample, args.out, job, progress=TerminalBar("fit", force=args.progress))
-    print(json.dumps({k: doc[k] for k in ("rms_before", "rms_after", "parameters", "stopped")}))
+                 threshold=args.threshold, grid=grid, scale_bounds=_bounds(args.scale_bounds),
+                 max_filter_um=args.max_filter_um)
+    bar = TerminalBar("fit", force=args.progress)
+    with keep_alive(bar):                 # a log line at once and at least every 30 s (issue 18)
+        doc = run_fit_job(args.sample, args.out, job, progress=bar)
+    for w in doc.get("warnings", []):
+        print(f"relief fit: note: {w}", file=sys.stderr)
+    print(json.dumps({k: doc[k] for k in ("rms_before", "rms_after", "parameters", "intervals", "stopped")}))
     return 0
+
+
+def _bounds(text: str) -> tuple[float, float]:
+    from relief_bsdf.errors import InputError
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError("--scale-bounds", f"expected MIN,MAX (two numbers), got {text!r}") from None
+    if not (0 < lo < 1 < hi < float("inf")):
+        raise InputError("--scale-bounds", f"need 0 < MIN < 1 < MAX, got {text!r}")
+    return lo, hi

@@ -127,7 +127,7 @@ def run(args) -> int:
     from relief_bsdf.io.hdf5 import save_tables
     from relief_bsdf.errors import InputError
     from relief_bsdf.methods import get_method, reconstruct
-    from relief_bsdf.progress import TerminalBar
+    from relief_bsdf.progress import TerminalBar, keep_alive
     from relief_bsdf.io.heightmaps import read_relief
     out = Path(args.out)
     if out.suffix.lower() not in (".h5", ".hdf5"):
@@ -141,7 +141,8 @@ def run(args) -> int:
         pitch = (v[0] * 1e-6, (v[1] if len(v) > 1 else v[0]) * 1e-6)
     relief = read_relief(args.relief, pitch_m=pitch)
     bar = TerminalBar(f"reconstruct {args.method}")
-    tables = reconstruct(relief, material, request, args.method, progress=bar)
+    with keep_alive(bar):
+        tables = reconstruct(relief, material, request, args.method, progress=bar)
     save_tables(out, tables)
     print(f"wrote {out}: method {args.method}, {len(tables)} table(s)")
     print(f"{'from':8s} {'lambda_nm':>9s} {'theta_i':>7s} {'phi_i':>6s} {'R':>8s} {'T':>8s} {'spec_R':>8s} "

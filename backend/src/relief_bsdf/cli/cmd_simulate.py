@@ -9,7 +9,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="simulate the plate of a sample on its recording's rows")
     p.add_argument("sample", help="sample.toml")
     p.add_argument("-o", "--out", required=True, help="output directory (writes simulated.csv)")
-    p.add_argument("--method", default="microfacet+dw", help="boundary BSDF method (default microfacet+dw)")
+    p.add_argument("--method", default="auto",
+                   help="boundary BSDF method of the relief face: auto (default: the relief's own physics), any "
+                        "`relief reconstruct` method, or the fast surrogate microfacet+dw")
     p.add_argument("--samples", type=int, default=200_000, help="Monte-Carlo samples per incidence (ray methods)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--height-scale", type=float, default=1.0, help="relief height scale")
@@ -25,7 +27,9 @@ def run(args) -> int:
     from relief_bsdf.io.recording import read_recording, read_sample, write_recording
     sample = read_sample(args.sample)
     rec = read_recording(sample.recording_path)
-    sim = _simulate(args, sample, rec)
+    from relief_bsdf.progress import TerminalBar, keep_alive
+    with keep_alive(TerminalBar("simulate")):
+        sim = _simulate(args, sample, rec)
     o = Path(args.out)
     o.mkdir(parents=True, exist_ok=True)
     m = DEFAULT_METRIC.value(sim.values_per_sr, rec.bsdf_sr, rec.sigma_sr)
@@ -66,7 +70,7 @@ def physics_line(info: dict) -> str:
 
     def face(d: dict) -> str:
         if d.get("face") == "relief":
-            return f"relief by {d.get('method')}"
+            return f"relief by {d.get('method')}" + (f" ({d['chosen_by']})" if d.get("chosen_by") else "")
         return d.get("face", "?") + (f" ({d['method']})" if d.get("method") else "")
     b = ph.get("bulk", {})
     bulk = "absorption {:g}/m, scattering {:g}/m (g {:g})".format(b.get("absorption_per_m", 0.0),

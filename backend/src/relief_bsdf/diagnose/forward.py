@@ -22,9 +22,10 @@ import numpy as np
 from relief_bsdf.diagnose.effects import Effect, ReliefContext
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import chi2
-from relief_bsdf.plate import Experiment, ReliefFace, TableGrid, experiment_from_sample, simulate
+from relief_bsdf.plate import DEFAULT_METHOD, Experiment, ReliefFace, TableGrid, experiment_from_sample, simulate
+from relief_bsdf.plate.choice import resolve_auto
 
-DEFAULT_METHOD = "microfacet+dw"      # the fit's default boundary method (`relief fit --method`)
+__all__ = ["DEFAULT_METHOD", "DiagnosisForward", "build_forward", "face_options"]
 
 
 @dataclass
@@ -113,10 +114,12 @@ def build_forward(sample_path: str | Path, method: str = DEFAULT_METHOD, samples
         raise InputError(sample.recording_path, f"only {len(rec)} rows; a diagnosis needs a scan")
     rows = rec.with_sigma_fallback()   # unknown sigma: documented fallback (recording.py)
     sample.material.check(np.unique(rows.wavelength_nm), str(sample.path))
-    context = ReliefContext(relief=relief, method=method, face=_FaceBuilder(samples, seed),
+    experiment = experiment_from_sample(sample, relief, method, samples, seed, options=face_options(method))
+    experiment = resolve_auto(experiment, rows)          # the baseline's physics, decided once (plate.choice)
+    front = experiment.plate.front
+    context = ReliefContext(relief=relief, method=front.method, face=_FaceBuilder(samples, seed),
                             scale_and_filter=_scale_and_filter(),
                             wavelengths_nm=tuple(float(w) for w in np.unique(rows.wavelength_nm)),
                             detector_half_angle_deg=float(sample.instrument.detector_half_angle_deg),
-                            samples=samples, seed=seed)
-    experiment = experiment_from_sample(sample, relief, method, samples, seed, options=face_options(method))
+                            samples=samples, seed=seed, method_reason=front.chosen_by)
     return DiagnosisForward(experiment, rows, context), sample

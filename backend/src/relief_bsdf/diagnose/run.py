@@ -46,6 +46,7 @@ from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build
 from relief_bsdf.diagnose.mismatch import classify, locate
 from relief_bsdf.diagnose.report import write_report
 from relief_bsdf.errors import InputError
+from relief_bsdf.fit.selection import BIC_MARGIN
 from relief_bsdf.io.atomic import write_text_atomic
 from relief_bsdf.parallel import map_tasks
 from relief_bsdf.progress import silent
@@ -53,7 +54,6 @@ from relief_bsdf.progress import silent
 METRIC = ("rms of the noise-normalised residual sqrt(mean(((measured - simulated) / sigma)^2)) over all "
           "recording rows, sigma^2 = recording sigma^2 + the simulation's own variance "
           "(1 = agreement to the noise)")
-BIC_MARGIN = 10.0
 BIC_OVERWHELMING = 40.0
 CONSISTENCY_Z = 3.0
 
@@ -172,7 +172,8 @@ def _result(forward: DiagnosisForward, fits: list[dict], located: tuple, chi0: f
         "shape": located[1][:3],
         "selection": _selection_doc(n, chi0, consistent),
         "forward_model": {"engine": "deterministic", "method": ctx.method, "samples": ctx.samples, "seed": ctx.seed,
-                          "rough_face_model": f"boundary tables of the measured relief by method {ctx.method}"},
+                          "rough_face_model": f"boundary tables of the measured relief by method {ctx.method}",
+                          "method_reason": ctx.method_reason},
     }
     return result, (v1, s1)
 

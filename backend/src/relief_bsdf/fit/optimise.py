@@ -7,16 +7,27 @@ chosen method for light from outside and inside (step 2, plate.faces.ReliefFace,
 (step 4, `residual.LogChiMetric`) -> scipy.optimize Nelder-Mead (step 5) until the metric
 falls below `threshold` or stops improving (xatol/fatol) or `max_iter` is reached.
 
-Methods: any name of `methods.registry`, e.g. "microfacet+dw" (the default, fast; methods.microfacet_dw): microfacet
-(Walter 2007) lobes with the relief's rms slope, and a coherent specular part from its rms
-height sigma by the Kirchhoff / Debye-Waller factor (Beckmann & Spizzichino 1963; valid for
-Gaussian height statistics and lateral scales >> wavelength):
-    reflection    g = exp(-(2 k n1 sigma cos theta_i)^2)
-    transmission  g = exp(-(k sigma (n1 cos theta_i - n2 cos theta_t))^2)
-(k = 2 pi / lambda); the Fresnel delta parts are g R_F, g T_F and the diffuse cells are scaled by
-(1 - g).  Height scale and smoothing then act differently on the plate (heights set the
-specular peak, slopes the lobe width), so both are identifiable; a pure geometric-optics
-method only sees slopes and the two parameters are degenerate.
+Physics of the relief face: by default `auto` (plate.choice), the relief's own physics, chosen
+once on the relief as read (ray tracing with inter-reflections for reliefs rough on the
+wavelength scale, Kirchhoff / Rayleigh-Rice for smooth ones) and then fixed for every
+evaluation; any `methods.registry` name may be given instead, e.g. the fast surrogate
+"microfacet+dw".  Sampling methods (ray) use the same seed at every evaluation (common random
+numbers), so the optimiser sees a smooth objective rather than Monte-Carlo jitter.
+
+Identifiability.  In geometric optics the height scale and the Gaussian filter both act on
+slopes only, and for a Gaussian random relief the slope distribution stays Gaussian under
+filtering: the two parameters then slide along a ridge of equal rms slope.  Heights become
+visible in the wave regime (the coherent specular part), and slope-distribution SHAPE on
+non-Gaussian reliefs.  The fit therefore reports what the recording determines:
+- the filter is kept only when the recording asks for it: the scale-only fit (g = 0) and the
+  two-parameter fit are compared by the project's one information criterion (fit.selection:
+  BIC = chi^2 + k ln n with chi^2 = n metric^2, margin 10), and without that evidence the
+  answer is the simplest point of the ridge, g = 0;
+- 68 % intervals from the curvature of chi^2 at the optimum (cov = 2 H^-1, Delta chi^2 = 1),
+  inflated by the reduced chi^2 when the model misses the noise; the correlation of
+  (ln s, g); a ridge (|correlation| > 0.95) and non-identifiable parameters are named in
+  plain `warnings`;
+- bounds on the scale (`scale_bounds`) and the filter (`max_filter_um`) are the user's.
 
 Checkpoints: OUT/checkpoint.json holds every evaluated parameter set and its metric; a
 rerun replays them (no recomputation), and since the optimiser is deterministic it retraces
@@ -35,8 +46,10 @@ import numpy as np
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import DEFAULT_METRIC, LogChiMetric
+from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain
 from relief_bsdf.io.atomic import write_text_atomic
-from relief_bsdf.plate import Experiment, ReliefFace, Simulated, TableGrid, check_rows, experiment_from_sample, simulate
+from relief_bsdf.plate import (DEFAULT_METHOD, Experiment, ReliefFace, Simulated, TableGrid, check_rows,
+                               experiment_from_sample, resolve_auto, simulate)
 from relief_bsdf.plate.deterministic import model_of
 from relief_bsdf.progress import Progress, silent
 from relief_bsdf.surface.operations import scale_and_filter
@@ -82,6 +95,8 @@ class Forward:
     def __post_init__(self) -> None:
         self.face_name = _relief_face_name(self.experiment)
         check_rows(model_of(self.experiment, self.grid), self.rows, self.where)   # bad rows fail before any table
+        # "auto" is decided once, on the relief as read, and kept for every (scale, filter)
+        self.experiment = resolve_auto(self.experiment, self.rows, self.grid)
 
     @property
     def method(self) -> str:
@@ -117,6 +132,17 @@ def _key(p: np.ndarray) -> str:
 
 @dataclass
 class FitResult:
+    """The fitted relief operation and what the recording determines about it.
+
+    intervals: 68 % interval per parameter ([lo, hi]; None where the data cannot pin it down);
+    correlation: of (ln height_scale, filter_sigma_um) at the 2-parameter optimum (None when
+        the Hessian there is not positive definite);
+    filter_needed / bic_gain: whether the recording asks for the filter besides the scale
+        (fit.selection: BIC gain of the 2-parameter fit over the scale-only fit > BIC_MARGIN);
+    ridge: the two parameters slide along a valley (|correlation| > RIDGE_CORRELATION);
+    warnings: plain sentences for the user (non-identifiable parameters, a ridge, the noise).
+    """
+
     height_scale: float
     filter_sigma_um: float
     rms_before: float
@@ -125,115 +151,283 @@ class FitResult:
     metric: str
     stopped: str
     seconds: float
+    intervals: dict = field(default_factory=dict)
+    correlation: float | None = None
+    filter_needed: bool = True
+    bic_gain: float | None = None
+    ridge: bool = False
+    warnings: list = field(default_factory=list)
 
     def to_json(self, extra: dict | None = None) -> dict:
         d = {"format": FIT_FORMAT, "metric": self.metric, "rms_before": self.rms_before, "rms_after": self.rms_after,
              "parameters": {"height_scale": self.height_scale, "filter_sigma_um": self.filter_sigma_um},
-             "iterations": self.iterations, "stopped": self.stopped, "seconds": self.seconds}
+             "intervals": self.intervals, "correlation": self.correlation,
+             "identifiability": {"filter_needed": self.filter_needed, "bic_gain_of_filter": self.bic_gain,
+                                 "ridge": self.ridge, "criterion": f"BIC = chi2 + k ln n, chi2 = n metric^2; the "
+                                 f"filter is kept when it lowers the BIC by more than {BIC_MARGIN:g}",
+                                 "interval_method": "curvature of chi2 (finite differences) at the optimum, "
+                                                    "68 % = Delta chi2 of 1, inflated by the reduced chi2 when "
+                                                    "it exceeds 1"},
+             "warnings": self.warnings, "iterations": self.iterations, "stopped": self.stopped,
+             "seconds": self.seconds}
         d.update(extra or {})
         return d
+
+
+RIDGE_CORRELATION = 0.95
 
 
 @dataclass(frozen=True)
 class FitSettings:
     """How the optimiser runs: the residual `metric`, stop at metric <= `threshold`, at most
-    `max_iter` evaluations, the Gaussian filter bounded by `max_filter_um` (None: 20 pixel pitches)."""
+    `max_iter` evaluations for the search (a few more for the intervals), the Gaussian filter
+    bounded by `max_filter_um` (None: 20 pixel pitches), the height scale by `scale_bounds`."""
 
     metric: LogChiMetric = DEFAULT_METRIC
     threshold: float = 0.0
     max_iter: int = 60
     max_filter_um: float | None = None
+    scale_bounds: tuple = (0.1, 10.0)
+
+    def __post_init__(self) -> None:
+        lo, hi = (float(v) for v in self.scale_bounds)
+        if not (0 < lo < 1 < hi < float("inf")):
+            raise InputError("--scale-bounds", f"need 0 < min < 1 < max, got {lo:g}, {hi:g}")
+        if self.max_filter_um is not None and not (self.max_filter_um > 0):
+            raise InputError("--max-filter-um", f"must be > 0, got {self.max_filter_um:g}")
 
 
 @dataclass(frozen=True)
 class FitJob:
     """What `relief fit` runs: the boundary `method` of the relief face (its Monte-Carlo `samples` and
-    `seed` where it samples), the tables' `grid`, and the optimiser's `max_iter` / `threshold`."""
+    `seed` where it samples), the tables' `grid`, and the optimiser's settings."""
 
-    method: str = "microfacet+dw"
+    method: str = DEFAULT_METHOD
     samples: int = 200_000
     seed: int = 0
     max_iter: int = 60
     threshold: float = 0.0
     grid: TableGrid = TableGrid()
+    scale_bounds: tuple = (0.1, 10.0)
+    max_filter_um: float | None = None
+
+
+class _Objective:
+    """metric(s, g) of the forward model against the recording: cached, checkpointed, reported.
+
+    Every call is logged in `iterations` (replays included, so a resumed run retraces the same
+    path); `chi2` converts a metric to chi^2 = n metric^2 (the log-chi metric is an rms z)."""
+
+    def __init__(self, forward, measured, sigma, settings: FitSettings, cache: dict, save, progress, on_eval):
+        self.forward, self.measured, self.sigma, self.settings = forward, measured, sigma, settings
+        self.cache, self.save, self.progress, self.on_eval = cache, save, progress, on_eval
+        self.iterations: list[dict] = []
+        self.new_evals = 0
+        self.n = int(np.size(measured))
+
+    def chi2(self, m: float) -> float:
+        return self.n * float(m) ** 2
+
+    def __call__(self, s: float, g: float, stop_at_threshold: bool = True) -> float:
+        key = _key(np.array([s, g]))
+        if key in self.cache:
+            m = self.cache[key]
+        else:
+            m = self.settings.metric.value(self.forward.simulate(s, g), self.measured, self.sigma)
+            self.cache[key] = m
+            self.new_evals += 1
+            self.save(self.cache)
+            if self.on_eval:
+                self.on_eval(self.new_evals)
+        self.iterations.append({"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": m})
+        total = self.settings.max_iter
+        self.progress(min(len(self.iterations), total), total, f"rms {m:.4g} at scale {s:.4g}, filter {g:.4g} um")
+        if stop_at_threshold and m <= self.settings.threshold:
+            raise _Stop
+        return m
+
+    def best(self, only_unfiltered: bool = False) -> dict:
+        its = [d for d in self.iterations if not only_unfiltered or d["parameters"]["filter_sigma_um"] == 0.0]
+        return min(its, key=lambda d: d["rms"])
+
+
+def _slope_ratio_fn(relief: Relief) -> Callable[[float], float]:
+    """g -> m(g) / m(0), the rms slope left after a Gaussian filter of g um (memoised)."""
+    m0 = relief_rms(relief)[1] or 1.0
+    memo: dict[float, float] = {}
+
+    def ratio(g: float) -> float:
+        gk = round(g, 12)
+        if gk not in memo:
+            memo[gk] = (relief_rms(process_relief(relief, 1.0, g))[1] / m0) if g > 0 else 1.0
+        return memo[gk] or 1.0
+    return ratio
+
+
+def _search_both(obj: _Objective, relief: Relief, gmax: float, pitch_um: float, budget: int) -> None:
+    """Nelder-Mead on (u, g), u = ln(s m(g) / m(0)): geometric-optics lobes follow the slopes, so at
+    fixed u the lobe width is (nearly) fixed and the valley runs along g instead of curving."""
+    from scipy.optimize import minimize
+    ratio = _slope_ratio_fn(relief)
+    lo, hi = (float(np.log(b)) for b in obj.settings.scale_bounds)
+
+    def f(x: np.ndarray) -> float:
+        g = float(np.clip(x[1], 0.0, gmax))
+        s = float(np.exp(np.clip(x[0] - np.log(ratio(g)), lo, hi)))
+        return obj(s, g)
+
+    x0 = np.array([0.0, 0.0])
+    step_g = max(2.0 * pitch_um, 0.05)
+    simplex = np.array([x0, x0 + [np.log(1.25), 0.0], x0 + [0.0, step_g]])
+    minimize(f, x0, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": max(budget, 3),
+                                                    "xatol": 2e-3, "fatol": 1e-4})
+
+
+def _search_scale_only(obj: _Objective, around_s: float, budget: int) -> None:
+    """Bounded Brent search of ln s at g = 0 within +-0.3 of `around_s` (the 2-parameter optimum's
+    slope-equivalent scale lies close by) and inside the scale bounds."""
+    from scipy.optimize import minimize_scalar
+    lo, hi = (float(np.log(b)) for b in obj.settings.scale_bounds)
+    c = float(np.log(around_s))
+    a, b = max(lo, c - 0.3), min(hi, c + 0.3)
+    if b - a < 1e-6:
+        return
+    minimize_scalar(lambda v: obj(float(np.exp(v)), 0.0), bounds=(a, b), method="bounded",
+                    options={"xatol": 1e-3, "maxiter": max(budget, 1)})
+
+
+def _curvature(obj: _Objective, s: float, g: float, with_filter: bool, gmax: float, pitch_um: float):
+    """Hessian of chi^2 in (ln s[, g]) by central differences at (s, g) (one-sided in g at the bound)."""
+    hv = 0.03
+    f = lambda v, gg: obj.chi2(obj(float(np.exp(v)), float(gg), stop_at_threshold=False))  # noqa: E731
+    v0 = float(np.log(s))
+    f0 = f(v0, g)
+    hvv = (f(v0 + hv, g) - 2 * f0 + f(v0 - hv, g)) / hv**2
+    if not with_filter:
+        return np.array([[hvv]]), (hv,)
+    hg = max(0.1 * g, 0.5 * pitch_um, 1e-3)
+    if g - hg >= 0:
+        fgp, fgm = f(v0, g + hg), f(v0, g - hg)
+        hgg = (fgp - 2 * f0 + fgm) / hg**2
+    else:                                   # at the lower bound: forward second difference
+        fgp, fg2 = f(v0, g + hg), f(v0, g + 2 * hg)
+        hgg = (fg2 - 2 * fgp + f0) / hg**2
+    hvg = (f(v0 + hv, g + hg) - f(v0 + hv, g) - fgp + f0) / (hv * hg)
+    return np.array([[hvv, hvg], [hvg, hgg]]), (hv, hg)
+
+
+def _intervals(obj: _Objective, s: float, g: float, with_filter: bool, gmax: float, pitch_um: float,
+               rms: float) -> tuple[dict, float | None, list]:
+    """68 % intervals from the chi^2 curvature: cov = 2 H^-1, inflated by the reduced chi^2 (rms^2)
+    when the model misses the noise (Birge ratio); a parameter is 'not determined' (None) when H is
+    not positive definite or its interval reaches past the bounds."""
+    H, _ = _curvature(obj, s, g, with_filter, gmax, pitch_um)
+    inflate = max(1.0, float(rms) ** 2)
+    warnings: list[str] = []
+    iv: dict = {"height_scale": None, "filter_sigma_um": None}
+    try:
+        ev = np.linalg.eigvalsh(H)
+        if np.any(ev <= 0):
+            raise np.linalg.LinAlgError
+        cov = 2.0 * np.linalg.inv(H) * inflate
+    except np.linalg.LinAlgError:
+        warnings.append("the recording does not pin down the relief parameters here (chi^2 is not curved "
+                        "upwards at the optimum): no intervals are given")
+        return iv, None, warnings
+    lo, hi = obj.settings.scale_bounds
+    sv = float(np.sqrt(cov[0, 0]))
+    if s * np.exp(-sv) <= lo or s * np.exp(sv) >= hi:
+        warnings.append(f"height_scale is not identifiable: its 68 % interval reaches the bounds [{lo:g}, {hi:g}]")
+    else:
+        iv["height_scale"] = [float(s * np.exp(-sv)), float(s * np.exp(sv))]
+    corr = None
+    if with_filter:
+        sg = float(np.sqrt(cov[1, 1]))
+        corr = float(cov[0, 1] / np.sqrt(cov[0, 0] * cov[1, 1]))
+        if g + sg >= gmax:
+            warnings.append(f"filter_sigma_um is not identifiable: its 68 % interval reaches the bound {gmax:g} um")
+        else:
+            iv["filter_sigma_um"] = [float(max(g - sg, 0.0)), float(g + sg)]
+    else:
+        iv["filter_sigma_um"] = [0.0, 0.0]
+    return iv, corr, warnings
+
+
+def _load_cache(ck: Path | None) -> dict[str, float]:
+    if not (ck and ck.exists()):
+        return {}
+    try:
+        return {str(k): float(v) for k, v in json.loads(ck.read_text())["evaluations"].items()}
+    except (ValueError, KeyError, TypeError) as e:
+        raise InputError(ck, f"unreadable checkpoint ({e}); delete it to start over") from None
+
+
+def _saver(ck: Path | None) -> Callable[[dict], None]:
+    if ck is None:
+        return lambda cache: None
+    return lambda cache: write_text_atomic(ck, json.dumps({"format": "relief-fit-checkpoint/1",
+                                                           "evaluations": cache}, indent=1))
 
 
 def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None = None,
                settings: FitSettings = FitSettings(), *, checkpoint: str | Path | None = None,
                progress: Progress | None = None, on_eval: Callable[[int], None] | None = None) -> FitResult:
-    """Optimise (height_scale, filter_sigma_um) so the simulated plate matches `measured`.
+    """Optimise (height_scale, filter_sigma_um) so the simulated plate matches `measured`, and say
+    what the recording determines (module doc, "Identifiability").
 
-    Nelder-Mead on (u, g), u = ln(s m(g)/m(0)) (m = rms slope after filtering), g >= 0; the first evaluation (s = 1, g = 0) is the
-    baseline "rms_before".  `checkpoint`: JSON file of {params: metric}; existing entries are
-    replayed.  `on_eval(n)` is called after each *new* evaluation (tests use it to interrupt).
+    1. baseline (s = 1, g = 0): "rms_before";
+    2. both parameters: Nelder-Mead on (u, g) (`_search_both`), most of `max_iter`;
+    3. scale alone at g = 0 (`_search_scale_only`), a bounded Brent search near stage 2's scale;
+    4. the filter is kept only when the recording asks for it (fit.selection.asks_for: BIC with
+       chi^2 = n metric^2); otherwise the scale-only optimum is the answer (the simplest point
+       of a ridge);
+    5. 68 % intervals and the correlation from the chi^2 curvature (`_intervals`, a few more
+       evaluations).
+    `checkpoint`: JSON file of {params: metric}; existing entries are replayed (deterministic path).
+    `on_eval(n)` is called after each *new* evaluation (tests use it to interrupt).
     """
-    from scipy.optimize import minimize
     progress = progress or silent
-    metric, threshold, max_iter, max_filter_um = (settings.metric, settings.threshold, settings.max_iter,
-                                                  settings.max_filter_um)
     t0 = time.monotonic()
-    cache: dict[str, float] = {}
     ck = Path(checkpoint) if checkpoint else None
-    if ck and ck.exists():
-        try:
-            cache = {str(k): float(v) for k, v in json.loads(ck.read_text())["evaluations"].items()}
-        except (ValueError, KeyError, TypeError) as e:
-            raise InputError(ck, f"unreadable checkpoint ({e}); delete it to start over") from None
+    obj = _Objective(forward, measured, sigma, settings, _load_cache(ck), _saver(ck), progress, on_eval)
     pitch_um = min(forward.relief.dx_m, forward.relief.dy_m) * 1e6
-    gmax = max_filter_um if max_filter_um is not None else 20 * pitch_um
-    iterations: list[dict] = []
-    new_evals = [0]
-
-    # Optimiser coordinates (u, g): u = ln(s * m(g) / m(0)) with m(g) the rms slope of the relief
-    # filtered by g.  Geometric-optics lobes depend on slopes, so at fixed u the lobe width is
-    # (nearly) fixed and the valley of the metric runs along g instead of curving through (s, g).
-    rough = forward.relief
-    m0 = relief_rms(rough)[1] or 1.0
-    slope_cache: dict[float, float] = {}
-
-    def slope_ratio(g: float) -> float:
-        gk = round(g, 12)
-        if gk not in slope_cache:
-            slope_cache[gk] = (relief_rms(process_relief(rough, 1.0, g))[1] / m0) if g > 0 else 1.0
-        return slope_cache[gk] or 1.0
-
-    def evaluate(x: np.ndarray) -> float:
-        g = float(np.clip(x[1], 0.0, gmax))
-        s = float(np.exp(x[0]) / slope_ratio(g))
-        key = _key(np.array([s, g]))
-        if key in cache:
-            m = cache[key]
-        else:
-            sim = forward.simulate(s, g)
-            m = metric.value(sim, measured, sigma)
-            cache[key] = m
-            new_evals[0] += 1
-            if ck:
-                write_text_atomic(ck, json.dumps({"format": "relief-fit-checkpoint/1", "evaluations": cache},
-                                                 indent=1))
-            if on_eval:
-                on_eval(new_evals[0])
-        iterations.append({"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": m})
-        progress(min(len(iterations), max_iter), max_iter, f"rms {m:.4g}")
-        if m <= threshold:
-            raise _Stop
-        return m
-
-    x0 = np.array([0.0, 0.0])
-    step_g = max(2.0 * pitch_um, 0.05)
-    simplex = np.array([x0, x0 + [np.log(1.25), 0.0], x0 + [0.0, step_g]])
-    rms_before = evaluate(x0) if threshold < float("inf") else float("nan")
+    gmax = settings.max_filter_um if settings.max_filter_um is not None else 20 * pitch_um
     stopped = "converged"
     try:
-        minimize(evaluate, x0, method="Nelder-Mead",
-                 options={"initial_simplex": simplex, "maxfev": max_iter, "xatol": 2e-3, "fatol": 1e-4})
-        if len(iterations) >= max_iter:
+        rms_before = obj(1.0, 0.0)
+        _search_both(obj, forward.relief, gmax, pitch_um, max(int(settings.max_iter * 0.7) - 1, 1))
+        both = obj.best()
+        left = settings.max_iter - len(obj.iterations)
+        if left > 0:
+            _search_scale_only(obj, both["parameters"]["height_scale"]
+                               * _slope_ratio_fn(forward.relief)(both["parameters"]["filter_sigma_um"]), left)
+        if len(obj.iterations) >= settings.max_iter:
             stopped = "max_iter"
     except _Stop:
         stopped = "threshold"
-    best = min(iterations, key=lambda d: d["rms"])
-    return FitResult(best["parameters"]["height_scale"], best["parameters"]["filter_sigma_um"], rms_before,
-                     best["rms"], iterations, metric.describe(), stopped, time.monotonic() - t0)
+        rms_before = obj.iterations[0]["rms"]
+    both, alone = obj.best(), obj.best(only_unfiltered=True)
+    gain = bic_gain(obj.chi2(alone["rms"]), 1, obj.chi2(both["rms"]), 2, obj.n)
+    needed = both["parameters"]["filter_sigma_um"] > 0 and gain > BIC_MARGIN
+    chosen = both if needed else alone
+    s, g = chosen["parameters"]["height_scale"], chosen["parameters"]["filter_sigma_um"]
+    iv, corr, warnings = _intervals(obj, s, g, needed, gmax, pitch_um, chosen["rms"])
+    if not needed:
+        # correlation of the two parameters where the search found them: is there a ridge?
+        b = both["parameters"]
+        if b["filter_sigma_um"] > 0:
+            _, corr, _ = _intervals(obj, b["height_scale"], b["filter_sigma_um"], True, gmax, pitch_um, both["rms"])
+        warnings.append(f"the recording does not ask for filtering the relief (BIC gain of the filter "
+                        f"{gain:.3g} <= {BIC_MARGIN:g}): reported without filter")
+    ridge = corr is not None and abs(corr) > RIDGE_CORRELATION
+    if ridge:
+        warnings.append(f"height scale and filter trade off along a ridge (correlation {corr:+.3f}): the "
+                        "recording fixes a combination of them (the rms slope), not both")
+    if chosen["rms"] > 1.5:
+        warnings.append(f"the best fit misses the recording's noise (metric {chosen['rms']:.3g} > 1.5): intervals "
+                        "are inflated by it, and physics beyond scale and filter may be missing (relief diagnose)")
+    return FitResult(s, g, rms_before, chosen["rms"], obj.iterations, settings.metric.describe(), stopped,
+                     time.monotonic() - t0, iv, corr, bool(needed), float(gain), bool(ridge), warnings)
 
 
 # ---------------------------------------------------------------- whole job for the CLI
@@ -253,8 +447,9 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
     relief = read_relief(sample.relief_path)
     exp = experiment_from_sample(sample, relief, method=method, samples=job.samples, seed=job.seed)
     fwd = Forward(relief, exp, rec, grid=job.grid, where=str(sample.recording_path))
-    res = fit_relief(fwd, rec.bsdf_sr, rec.sigma_sr, FitSettings(threshold=job.threshold, max_iter=job.max_iter),
-                     checkpoint=out / "checkpoint.json", progress=progress)
+    settings = FitSettings(threshold=job.threshold, max_iter=job.max_iter, scale_bounds=job.scale_bounds,
+                           max_filter_um=job.max_filter_um)
+    res = fit_relief(fwd, rec.bsdf_sr, rec.sigma_sr, settings, checkpoint=out / "checkpoint.json", progress=progress)
     best_relief, t_out, t_in = fwd.tables(res.height_scale, res.filter_sigma_um)
     after = fwd.simulated(res.height_scale, res.filter_sigma_um)
     sim_after = after.values_per_sr
@@ -276,7 +471,9 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
     files["simulated"] = "simulated.csv"
     plots = report.fit_plots(out, rec, sim_before, sim_after)
     files.update(plots)
-    doc = res.to_json({"method": method, "sample": str(Path(sample_path)), "files": files,
+    face = getattr(fwd.experiment.plate, fwd.face_name)
+    doc = res.to_json({"method": face.method, "method_requested": method, "method_reason": face.chosen_by,
+                       "sample": str(Path(sample_path)), "files": files,
                        "relief_history": list(best_relief.history), "physics": after.info.get("physics", {})})
     write_text_atomic(out / "fit.json", json.dumps(doc, indent=1))
     report.write_fit_report(out / "report.html", doc, plots)

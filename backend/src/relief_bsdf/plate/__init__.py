@@ -9,6 +9,7 @@
 
 - `plate.description`: the data (Experiment, Plate, Bulk, Instrument);
 - `plate.faces`: FlatFace, ReliefFace, TableFace, MicrofacetFace (tables + photon interaction);
+- `plate.choice`: DEFAULT_METHOD = "auto" and its resolution (the relief's own physics, once);
 - `plate.grid`: TableGrid, the tables' axes = the deterministic discretisation;
 - `plate.deterministic`: radiative transfer between the faces' tables (adding / azimuthal modes);
 - `plate.photon`: photon Monte Carlo of the same description (independent code, checks the first);
@@ -24,7 +25,9 @@ from relief_bsdf.plate.faces import (TABLE_CACHE, FlatFace, MicrofacetFace, Phot
 from relief_bsdf.plate.grid import TableGrid
 from relief_bsdf.plate.deterministic import Rows, check_rows, flat_tables, in_plane_rows
 from relief_bsdf.plate.simulate import Simulated, experiment_from_sample, simulate
+from relief_bsdf.plate.choice import DEFAULT_METHOD, chosen_lines, resolve_auto
 
 __all__ = ["Experiment", "Plate", "Bulk", "Instrument", "SOURCE_Q", "FlatFace", "ReliefFace", "TableFace",
            "MicrofacetFace", "PhotonContext", "TABLE_CACHE", "relief_digest", "TableGrid", "Rows", "in_plane_rows",
-           "check_rows", "flat_tables", "Simulated", "simulate", "experiment_from_sample"]
+           "check_rows", "flat_tables", "Simulated", "simulate", "experiment_from_sample",
+           "DEFAULT_METHOD", "resolve_auto", "chosen_lines"]

@@ -361,23 +361,34 @@ class FlatFace:
 class ReliefFace:
     """A face carrying a measured / synthetic relief; its physics is the boundary `method`.
 
-    method: a `methods` name ("microfacet+dw" default of this release, "ray", "kirchhoff", ...);
+    method: a `methods` name: "auto" (the default: the relief's own physics, resolved once per
+        relief by `plate.choice.resolve_face`), "ray", "kirchhoff", ..., or a named fast surrogate
+        ("microfacet+dw");
     samples / seed: the method's Monte-Carlo effort; options: the method's options (dict);
-    coherence_length_m: the source's coherence length for wave methods (Request field; None: coherent).
+    coherence_length_m: the source's coherence length for wave methods (Request field; None: coherent);
+    chosen_by: auto's one-line reason once resolved ("" when the method was named).
     Photons: traced through the relief (ReliefTracer) for "ray", drawn from the tables otherwise.
     """
 
     relief: Relief
-    method: str = "microfacet+dw"
+    method: str = "auto"
     samples: int = 200_000
     seed: int = 0
     options: dict = field(default_factory=dict)
     coherence_length_m: float | None = None
+    chosen_by: str = ""
     is_flat = False
 
     def describe(self) -> dict:
         photons = "ray-traced relief" if self.method in TRACED_METHODS else "sampled from the face's tables"
-        return {"face": "relief", "method": self.method, "options": dict(self.options), "photons": photons,
+        from relief_bsdf.errors import RequestError
+        from relief_bsdf.methods.registry import entry
+        try:
+            physics = entry(self.method).physics
+        except RequestError:          # an unknown name fails when its tables are asked for, naming it
+            physics = ""
+        return {"face": "relief", "method": self.method, "physics": physics, "chosen_by": self.chosen_by,
+                "options": dict(self.options), "photons": photons,
                 "relief": self.relief.source if hasattr(self.relief, "source") else ""}
 
     def cache_key(self) -> tuple:
@@ -387,6 +398,10 @@ class ReliefFace:
 
     def tables(self, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
                need_outside: bool = True, progress: Any = None) -> tuple[BsdfTable | None, BsdfTable]:
+        if self.method == "auto":          # one choice for both sides (plate.choice)
+            from relief_bsdf.plate.choice import resolve_face
+            face = resolve_face(self, material, grid, wavelengths_nm, theta_i_outside_deg)
+            return face.tables(material, grid, wavelengths_nm, theta_i_outside_deg, need_outside, progress)
         return _derive(self, material, grid, wavelengths_nm, theta_i_outside_deg, need_outside, progress)
 
     def tracer(self) -> Any:

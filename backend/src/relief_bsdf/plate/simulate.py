@@ -9,6 +9,7 @@ import numpy as np
 from relief_bsdf.errors import InputError
 from relief_bsdf.plate.description import SOURCE_Q, Bulk, Experiment, Instrument, Plate
 from relief_bsdf.plate.faces import FlatFace, ReliefFace
+from relief_bsdf.plate.choice import DEFAULT_METHOD, resolve_auto
 from relief_bsdf.plate.grid import TableGrid
 
 ENGINES = ("deterministic", "photon")
@@ -43,6 +44,7 @@ def simulate(experiment: Experiment, rows: Any, engine: str = "deterministic", p
     TableGrid()); "photon": photon Monte Carlo, `photons` per incidence, seeded per incidence.
     """
     grid = grid or TableGrid()
+    experiment = resolve_auto(experiment, rows, grid)       # "auto" faces: the relief's own physics, once
     if engine == "deterministic":
         from relief_bsdf.plate import deterministic
         vals, info = deterministic.run(experiment, rows, grid, progress, where)
@@ -55,7 +57,7 @@ def simulate(experiment: Experiment, rows: Any, engine: str = "deterministic", p
     return Simulated(vals, sig, {**info, "physics": describe(experiment)})
 
 
-def experiment_from_sample(sample: Any, relief: Any, method: str = "microfacet+dw", samples: int = 200_000,
+def experiment_from_sample(sample: Any, relief: Any, method: str = DEFAULT_METHOD, samples: int = 200_000,
                            seed: int = 0, options: dict | None = None) -> Experiment:
     """The Experiment of a sample.toml (`io.recording.Sample`): relief on its rough face, the other flat."""
     p, ins = sample.plate, sample.instrument

@@ -53,6 +53,7 @@ class ReliefContext:
     face: `face(relief, method, **options)` builds a front face (the plate's ReliefFace).
     scale_and_filter: the ONE relief operation the fit optimises, (relief, s, sigma_m) -> Relief.
     wavelengths_nm: the recording's wavelengths; detector_half_angle_deg: the stated cone.
+    method_reason: why the baseline uses `method` (auto's one line; "" when it was named).
     """
 
     relief: Relief
@@ -63,6 +64,7 @@ class ReliefContext:
     detector_half_angle_deg: float
     samples: int = 200_000
     seed: int = 0
+    method_reason: str = ""
     _reliefs: dict = field(default_factory=dict, compare=False, repr=False)
 
     def with_relief_face(self, experiment: Any, relief: Relief, method: str, **options: Any) -> Any:
