@@ -25,8 +25,8 @@ non-Gaussian reliefs.  The fit therefore reports what the recording determines:
   answer is the simplest point of the ridge, g = 0;
 - 68 % intervals from the curvature of chi^2 at the optimum (cov = 2 H^-1, Delta chi^2 = 1),
   inflated by the reduced chi^2 when the model misses the noise; the correlation of
-  (ln s, g); a ridge (|correlation| > 0.95) and non-identifiable parameters are named in
-  plain `warnings`;
+  (ln s, g); a ridge (moving along equal rms slope costs less than the criterion's bar) and
+  non-identifiable parameters are named in plain `warnings`;
 - bounds on the scale (`scale_bounds`) and the filter (`max_filter_um`) are the user's.
 
 Checkpoints: OUT/checkpoint.json holds every evaluated parameter set and its metric; a
@@ -135,11 +135,11 @@ class FitResult:
     """The fitted relief operation and what the recording determines about it.
 
     intervals: 68 % interval per parameter ([lo, hi]; None where the data cannot pin it down);
-    correlation: of (ln height_scale, filter_sigma_um) at the 2-parameter optimum (None when
+    correlation: of (ln height_scale, filter_sigma_um^2) at the 2-parameter optimum (None when
         the Hessian there is not positive definite);
     filter_needed / bic_gain: whether the recording asks for the filter besides the scale
         (fit.selection: BIC gain of the 2-parameter fit over the scale-only fit > BIC_MARGIN);
-    ridge: the two parameters slide along a valley (|correlation| > RIDGE_CORRELATION);
+    ridge: the two parameters slide along a valley of equal rms slope (`_ridge_probe`);
     warnings: plain sentences for the user (non-identifiable parameters, a ridge, the noise).
     """
 
@@ -172,9 +172,6 @@ class FitResult:
              "seconds": self.seconds}
         d.update(extra or {})
         return d
-
-
-RIDGE_CORRELATION = 0.95
 
 
 @dataclass(frozen=True)
@@ -213,10 +210,12 @@ class FitJob:
 
 
 class _Objective:
-    """metric(s, g) of the forward model against the recording: cached, checkpointed, reported.
+    """The forward model's residuals against the recording at (s, g): cached, checkpointed, reported.
 
     Every call is logged in `iterations` (replays included, so a resumed run retraces the same
-    path); `chi2` converts a metric to chi^2 = n metric^2 (the log-chi metric is an rms z)."""
+    path and counts the same budget); residuals are the metric's normalised r_k, so chi^2 = sum
+    r_k^2 = n metric^2 (the log-chi metric is an rms z).  `limit`: the most calls before _Budget.
+    """
 
     def __init__(self, forward, measured, sigma, settings: FitSettings, cache: dict, save, progress, on_eval):
         self.forward, self.measured, self.sigma, self.settings = forward, measured, sigma, settings
@@ -224,31 +223,42 @@ class _Objective:
         self.iterations: list[dict] = []
         self.new_evals = 0
         self.n = int(np.size(measured))
+        self.limit: int | None = None
 
     def chi2(self, m: float) -> float:
         return self.n * float(m) ** 2
 
-    def __call__(self, s: float, g: float, stop_at_threshold: bool = True) -> float:
+    def residuals(self, s: float, g: float, stop_at_threshold: bool = True) -> np.ndarray:
+        if self.limit is not None and len(self.iterations) >= self.limit:
+            raise _Budget
         key = _key(np.array([s, g]))
-        if key in self.cache:
-            m = self.cache[key]
-        else:
-            m = self.settings.metric.value(self.forward.simulate(s, g), self.measured, self.sigma)
-            self.cache[key] = m
+        if key not in self.cache:
+            self.cache[key] = [float(v) for v in np.asarray(self.forward.simulate(s, g), float)]
             self.new_evals += 1
             self.save(self.cache)
             if self.on_eval:
                 self.on_eval(self.new_evals)
+        r = self.settings.metric.residuals(np.asarray(self.cache[key]), self.measured, self.sigma)
+        m = float(np.sqrt(np.mean(r**2))) if r.size else 0.0
         self.iterations.append({"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": m})
         total = self.settings.max_iter
         self.progress(min(len(self.iterations), total), total, f"rms {m:.4g} at scale {s:.4g}, filter {g:.4g} um")
         if stop_at_threshold and m <= self.settings.threshold:
             raise _Stop
-        return m
+        return r
+
+    def __call__(self, s: float, g: float, stop_at_threshold: bool = True) -> float:
+        """The metric (rms of the residuals) at (s, g)."""
+        r = self.residuals(s, g, stop_at_threshold)
+        return float(np.sqrt(np.mean(r**2))) if r.size else 0.0
 
     def best(self, only_unfiltered: bool = False) -> dict:
         its = [d for d in self.iterations if not only_unfiltered or d["parameters"]["filter_sigma_um"] == 0.0]
         return min(its, key=lambda d: d["rms"])
+
+
+class _Budget(Exception):
+    pass
 
 
 def _slope_ratio_fn(relief: Relief) -> Callable[[float], float]:
@@ -264,109 +274,137 @@ def _slope_ratio_fn(relief: Relief) -> Callable[[float], float]:
     return ratio
 
 
-def _search_both(obj: _Objective, relief: Relief, gmax: float, pitch_um: float, budget: int) -> None:
-    """Nelder-Mead on (u, g), u = ln(s m(g) / m(0)): geometric-optics lobes follow the slopes, so at
-    fixed u the lobe width is (nearly) fixed and the valley runs along g instead of curving."""
-    from scipy.optimize import minimize
-    ratio = _slope_ratio_fn(relief)
-    lo, hi = (float(np.log(b)) for b in obj.settings.scale_bounds)
+@dataclass(frozen=True)
+class _Coords:
+    """Fit coordinates x = (ln s[, w = g^2 in um^2]) with their bounds and finite-difference steps.
 
-    def f(x: np.ndarray) -> float:
-        g = float(np.clip(x[1], 0.0, gmax))
-        s = float(np.exp(np.clip(x[0] - np.log(ratio(g)), lo, hi)))
-        return obj(s, g)
+    The filter enters as w = g^2: a Gaussian filter multiplies the height spectrum by
+    exp(-2 pi^2 g^2 f^2), so every plate quantity is smooth in g^2 and has zero derivative in g
+    at g = 0, where a gradient search in g would never leave the unfiltered relief."""
 
-    x0 = np.array([0.0, 0.0])
-    step_g = max(2.0 * pitch_um, 0.05)
-    simplex = np.array([x0, x0 + [np.log(1.25), 0.0], x0 + [0.0, step_g]])
-    minimize(f, x0, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": max(budget, 3),
-                                                    "xatol": 2e-3, "fatol": 1e-4})
+    with_filter: bool
+    lower: np.ndarray
+    upper: np.ndarray
+    step: np.ndarray
 
+    @classmethod
+    def make(cls, settings: FitSettings, with_filter: bool, gmax: float, pitch_um: float) -> "_Coords":
+        lo, hi = (float(np.log(b)) for b in settings.scale_bounds)
+        if with_filter:
+            return cls(True, np.array([lo, 0.0]), np.array([hi, gmax**2]),
+                       np.array([0.02, max(0.5 * pitch_um, 0.02) ** 2]))
+        return cls(False, np.array([lo]), np.array([hi]), np.array([0.02]))
 
-def _search_scale_only(obj: _Objective, around_s: float, budget: int) -> None:
-    """Bounded Brent search of ln s at g = 0 within +-0.3 of `around_s` (the 2-parameter optimum's
-    slope-equivalent scale lies close by) and inside the scale bounds."""
-    from scipy.optimize import minimize_scalar
-    lo, hi = (float(np.log(b)) for b in obj.settings.scale_bounds)
-    c = float(np.log(around_s))
-    a, b = max(lo, c - 0.3), min(hi, c + 0.3)
-    if b - a < 1e-6:
-        return
-    minimize_scalar(lambda v: obj(float(np.exp(v)), 0.0), bounds=(a, b), method="bounded",
-                    options={"xatol": 1e-3, "maxiter": max(budget, 1)})
+    def sg(self, x: np.ndarray) -> tuple[float, float]:
+        x = np.clip(x, self.lower, self.upper)
+        return float(np.exp(x[0])), (float(np.sqrt(x[1])) if self.with_filter else 0.0)
+
+    def x(self, s: float, g: float) -> np.ndarray:
+        return np.array([np.log(s), g * g] if self.with_filter else [np.log(s)], float)
 
 
-def _curvature(obj: _Objective, s: float, g: float, with_filter: bool, gmax: float, pitch_um: float):
-    """Hessian of chi^2 in (ln s[, g]) by central differences at (s, g) (one-sided in g at the bound)."""
-    hv = 0.03
-    f = lambda v, gg: obj.chi2(obj(float(np.exp(v)), float(gg), stop_at_threshold=False))  # noqa: E731
-    v0 = float(np.log(s))
-    f0 = f(v0, g)
-    hvv = (f(v0 + hv, g) - 2 * f0 + f(v0 - hv, g)) / hv**2
-    if not with_filter:
-        return np.array([[hvv]]), (hv,)
-    hg = max(0.1 * g, 0.5 * pitch_um, 1e-3)
-    if g - hg >= 0:
-        fgp, fgm = f(v0, g + hg), f(v0, g - hg)
-        hgg = (fgp - 2 * f0 + fgm) / hg**2
-    else:                                   # at the lower bound: forward second difference
-        fgp, fg2 = f(v0, g + hg), f(v0, g + 2 * hg)
-        hgg = (fg2 - 2 * fgp + f0) / hg**2
-    hvg = (f(v0 + hv, g + hg) - f(v0 + hv, g) - fgp + f0) / (hv * hg)
-    return np.array([[hvv, hvg], [hvg, hgg]]), (hv, hg)
+def _jacobian(obj: _Objective, c: _Coords, x: np.ndarray, stop_at_threshold: bool = True) -> np.ndarray:
+    """d r / d x by central differences (one-sided inward at a bound), on cached evaluations."""
+    cols = []
+    for j, h in enumerate(c.step):
+        xp, xm = x.copy(), x.copy()
+        xp[j] = min(x[j] + h, c.upper[j])
+        xm[j] = max(x[j] - h, c.lower[j])
+        if xp[j] - xm[j] <= 0:
+            cols.append(np.zeros(obj.n))
+            continue
+        rp = obj.residuals(*c.sg(xp), stop_at_threshold=stop_at_threshold)
+        rm = obj.residuals(*c.sg(xm), stop_at_threshold=stop_at_threshold)
+        cols.append((rp - rm) / (xp[j] - xm[j]))
+    return np.stack(cols, axis=1)
 
 
-def _intervals(obj: _Objective, s: float, g: float, with_filter: bool, gmax: float, pitch_um: float,
-               rms: float) -> tuple[dict, float | None, list]:
-    """68 % intervals from the chi^2 curvature: cov = 2 H^-1, inflated by the reduced chi^2 (rms^2)
-    when the model misses the noise (Birge ratio); a parameter is 'not determined' (None) when H is
-    not positive definite or its interval reaches past the bounds."""
-    H, _ = _curvature(obj, s, g, with_filter, gmax, pitch_um)
-    inflate = max(1.0, float(rms) ** 2)
-    warnings: list[str] = []
-    iv: dict = {"height_scale": None, "filter_sigma_um": None}
+def _least_squares(obj: _Objective, c: _Coords, x0: np.ndarray, budget: int) -> None:
+    """Trust-region least squares of the residuals (scipy `trf`, bounds honoured, Jacobian by
+    `_jacobian`) within `budget` calls; the best point is read from obj.iterations."""
+    from scipy.optimize import least_squares
+    obj.limit = len(obj.iterations) + max(int(budget), 0)
     try:
-        ev = np.linalg.eigvalsh(H)
-        if np.any(ev <= 0):
+        # start inside the bounds (trf scales a variable sitting on its bound to zero step)
+        x0 = np.clip(x0, c.lower + c.step, c.upper - c.step)
+        least_squares(lambda x: obj.residuals(*c.sg(x)), x0, jac=lambda x: _jacobian(obj, c, x),
+                      bounds=(c.lower, c.upper), method="trf", x_scale="jac", xtol=1e-4, ftol=1e-6, gtol=1e-8)
+    except _Budget:
+        pass
+    finally:
+        obj.limit = None
+
+
+def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float, rms: float
+               ) -> tuple[dict, float | None, list]:
+    """68 % intervals from the Jacobian at (s, g): cov(x) = (J^T J)^-1 (Delta chi^2 = 1), inflated by
+    the reduced chi^2 when it exceeds 1 (Birge ratio: the model misses the noise); a parameter is
+    'not determined' (None) when J^T J is singular or its interval reaches past the bounds."""
+    J = _jacobian(obj, c, c.x(s, g), stop_at_threshold=False)
+    A = J.T @ J
+    inflate = max(1.0, obj.chi2(rms) / max(obj.n - A.shape[0], 1))
+    warnings: list[str] = []
+    iv: dict = {"height_scale": None, "filter_sigma_um": [0.0, 0.0] if not c.with_filter else None}
+    corr = None
+    try:
+        if np.linalg.cond(A) > 1e12:
             raise np.linalg.LinAlgError
-        cov = 2.0 * np.linalg.inv(H) * inflate
+        cov = np.linalg.inv(A) * inflate
     except np.linalg.LinAlgError:
-        warnings.append("the recording does not pin down the relief parameters here (chi^2 is not curved "
-                        "upwards at the optimum): no intervals are given")
-        return iv, None, warnings
+        warnings.append("the recording does not pin down the relief parameters (their effects on the rows are "
+                        "not independent here): no intervals are given")
+        return iv, (1.0 if c.with_filter else None), warnings
     lo, hi = obj.settings.scale_bounds
     sv = float(np.sqrt(cov[0, 0]))
     if s * np.exp(-sv) <= lo or s * np.exp(sv) >= hi:
         warnings.append(f"height_scale is not identifiable: its 68 % interval reaches the bounds [{lo:g}, {hi:g}]")
     else:
         iv["height_scale"] = [float(s * np.exp(-sv)), float(s * np.exp(sv))]
-    corr = None
-    if with_filter:
-        sg = float(np.sqrt(cov[1, 1]))
+    if c.with_filter:
+        sw = float(np.sqrt(cov[1, 1]))                       # of w = g^2
         corr = float(cov[0, 1] / np.sqrt(cov[0, 0] * cov[1, 1]))
-        if g + sg >= gmax:
+        if g * g + sw >= gmax**2:
             warnings.append(f"filter_sigma_um is not identifiable: its 68 % interval reaches the bound {gmax:g} um")
         else:
-            iv["filter_sigma_um"] = [float(max(g - sg, 0.0)), float(g + sg)]
-    else:
-        iv["filter_sigma_um"] = [0.0, 0.0]
+            iv["filter_sigma_um"] = [float(np.sqrt(max(g * g - sw, 0.0))), float(np.sqrt(g * g + sw))]
     return iv, corr, warnings
 
 
-def _load_cache(ck: Path | None) -> dict[str, float]:
+def _ridge_probe(obj: _Objective, relief: Relief, both: dict, gmax: float, pitch_um: float) -> tuple[bool, dict]:
+    """Is there a ridge?  One evaluation along the slope-preserving direction: the best point's
+    rms slope kept with the filter moved to g1 = max(2 g, 4 pitches, 0.05 um) (within the bound).
+    A ridge when that costs less chi^2 (in units of the reduced chi^2 when > 1) than the
+    information criterion needs to tell two models apart (ln n + BIC_MARGIN)."""
+    ratio = _slope_ratio_fn(relief)
+    b = both["parameters"]
+    s_u = b["height_scale"] * ratio(b["filter_sigma_um"])
+    g1 = float(min(max(2.0 * b["filter_sigma_um"], 4.0 * pitch_um, 0.05), gmax))
+    lo, hi = obj.settings.scale_bounds
+    s1 = float(np.clip(s_u / ratio(g1), lo, hi))
+    m1 = obj(s1, g1, stop_at_threshold=False)
+    cost = (obj.chi2(m1) - obj.chi2(both["rms"])) / max(1.0, both["rms"] ** 2)
+    return bool(cost <= np.log(obj.n) + BIC_MARGIN), {"height_scale": s1, "filter_sigma_um": g1}
+
+
+def _load_cache(ck: Path | None) -> dict[str, list]:
     if not (ck and ck.exists()):
         return {}
     try:
-        return {str(k): float(v) for k, v in json.loads(ck.read_text())["evaluations"].items()}
-    except (ValueError, KeyError, TypeError) as e:
+        doc = json.loads(ck.read_text())
+        if doc.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"format {doc.get('format')!r}, expected {CHECKPOINT_FORMAT!r}")
+        return {str(k): [float(x) for x in v] for k, v in doc["evaluations"].items()}
+    except (ValueError, KeyError, TypeError, AttributeError) as e:
         raise InputError(ck, f"unreadable checkpoint ({e}); delete it to start over") from None
+
+
+CHECKPOINT_FORMAT = "relief-fit-checkpoint/2"
 
 
 def _saver(ck: Path | None) -> Callable[[dict], None]:
     if ck is None:
         return lambda cache: None
-    return lambda cache: write_text_atomic(ck, json.dumps({"format": "relief-fit-checkpoint/1",
-                                                           "evaluations": cache}, indent=1))
+    return lambda cache: write_text_atomic(ck, json.dumps({"format": CHECKPOINT_FORMAT, "evaluations": cache}))
 
 
 def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None = None,
@@ -376,15 +414,17 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     what the recording determines (module doc, "Identifiability").
 
     1. baseline (s = 1, g = 0): "rms_before";
-    2. both parameters: Nelder-Mead on (u, g) (`_search_both`), most of `max_iter`;
-    3. scale alone at g = 0 (`_search_scale_only`), a bounded Brent search near stage 2's scale;
-    4. the filter is kept only when the recording asks for it (fit.selection.asks_for: BIC with
-       chi^2 = n metric^2); otherwise the scale-only optimum is the answer (the simplest point
-       of a ridge);
-    5. 68 % intervals and the correlation from the chi^2 curvature (`_intervals`, a few more
-       evaluations).
-    `checkpoint`: JSON file of {params: metric}; existing entries are replayed (deterministic path).
-    `on_eval(n)` is called after each *new* evaluation (tests use it to interrupt).
+    2. both parameters: trust-region least squares of the normalised residuals in (ln s, g^2)
+       (`_least_squares`), about two thirds of `max_iter` evaluations;
+    3. scale alone at g = 0, from the slope-equivalent scale of step 2, the rest of the budget;
+    4. the filter is kept only when the recording asks for it (fit.selection: BIC with
+       chi^2 = sum r^2); otherwise the scale-only optimum is the answer (the simplest point of a
+       ridge);
+    5. 68 % intervals and the correlation from the Jacobian at the answer (`_intervals`), and one
+       probe along equal rms slope for a ridge (`_ridge_probe`): a few evaluations more.
+    `checkpoint`: JSON file of {params: simulated values}; existing entries are replayed
+    (deterministic path, same result as an uninterrupted run).  `on_eval(n)` is called after each
+    *new* evaluation (tests use it to interrupt).
     """
     progress = progress or silent
     t0 = time.monotonic()
@@ -392,15 +432,15 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     obj = _Objective(forward, measured, sigma, settings, _load_cache(ck), _saver(ck), progress, on_eval)
     pitch_um = min(forward.relief.dx_m, forward.relief.dy_m) * 1e6
     gmax = settings.max_filter_um if settings.max_filter_um is not None else 20 * pitch_um
+    c2 = _Coords.make(settings, True, gmax, pitch_um)
+    c1 = _Coords.make(settings, False, gmax, pitch_um)
     stopped = "converged"
     try:
         rms_before = obj(1.0, 0.0)
-        _search_both(obj, forward.relief, gmax, pitch_um, max(int(settings.max_iter * 0.7) - 1, 1))
-        both = obj.best()
-        left = settings.max_iter - len(obj.iterations)
-        if left > 0:
-            _search_scale_only(obj, both["parameters"]["height_scale"]
-                               * _slope_ratio_fn(forward.relief)(both["parameters"]["filter_sigma_um"]), left)
+        _least_squares(obj, c2, np.array([0.0, 0.0]), int(settings.max_iter * 2 / 3) - 1)
+        b = obj.best()["parameters"]
+        s_u = b["height_scale"] * _slope_ratio_fn(forward.relief)(b["filter_sigma_um"])
+        _least_squares(obj, c1, c1.x(s_u, 0.0), settings.max_iter - len(obj.iterations))
         if len(obj.iterations) >= settings.max_iter:
             stopped = "max_iter"
     except _Stop:
@@ -411,18 +451,17 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     needed = both["parameters"]["filter_sigma_um"] > 0 and gain > BIC_MARGIN
     chosen = both if needed else alone
     s, g = chosen["parameters"]["height_scale"], chosen["parameters"]["filter_sigma_um"]
-    iv, corr, warnings = _intervals(obj, s, g, needed, gmax, pitch_um, chosen["rms"])
+    iv, corr, warnings = _intervals(obj, c2 if needed else c1, s, g, gmax, chosen["rms"])
     if not needed:
-        # correlation of the two parameters where the search found them: is there a ridge?
-        b = both["parameters"]
-        if b["filter_sigma_um"] > 0:
-            _, corr, _ = _intervals(obj, b["height_scale"], b["filter_sigma_um"], True, gmax, pitch_um, both["rms"])
+        bp = both["parameters"]
+        _, corr, _ = _intervals(obj, c2, bp["height_scale"], bp["filter_sigma_um"], gmax, both["rms"])
         warnings.append(f"the recording does not ask for filtering the relief (BIC gain of the filter "
                         f"{gain:.3g} <= {BIC_MARGIN:g}): reported without filter")
-    ridge = corr is not None and abs(corr) > RIDGE_CORRELATION
+    ridge, probe = _ridge_probe(obj, forward.relief, both, gmax, pitch_um)
     if ridge:
-        warnings.append(f"height scale and filter trade off along a ridge (correlation {corr:+.3f}): the "
-                        "recording fixes a combination of them (the rms slope), not both")
+        warnings.append(f"height scale and filter trade off along a ridge: ({s:.4g}, {g:.4g} um) and "
+                        f"({probe['height_scale']:.4g}, {probe['filter_sigma_um']:.4g} um) have the same rms "
+                        "slope and fit alike; the recording fixes that combination, not both parameters")
     if chosen["rms"] > 1.5:
         warnings.append(f"the best fit misses the recording's noise (metric {chosen['rms']:.3g} > 1.5): intervals "
                         "are inflated by it, and physics beyond scale and filter may be missing (relief diagnose)")
