@@ -34,7 +34,7 @@ def run(args) -> int:
     o.mkdir(parents=True, exist_ok=True)
     m = DEFAULT_METRIC.value(sim.values_per_sr, rec.bsdf_sr, rec.sigma_sr)
     physics = physics_line(sim.info)
-    write_recording(o / "simulated.csv", rec.with_values(sim.values_per_sr),
+    write_recording(o / "simulated.csv", rec.with_values(sim.values_per_sr, sim.sigma_per_sr),
                     comments=[f"relief simulate {Path(args.sample).name}", f"physics: {physics}",
                               f"metric vs recording: {m:.6g}"])
     print(f"physics: {physics}")
@@ -52,7 +52,7 @@ def _simulate(args, sample, rec):
     exp = experiment_from_sample(sample, relief, method=args.method, samples=args.samples, seed=args.seed)
     if not args.table:
         fwd = Forward(relief, exp, rec, where=str(sample.recording_path))
-        return fwd.simulated(args.height_scale, args.filter_sigma_um)
+        return fwd.simulated(args.height_scale, args.filter_sigma_um, table_sigma_draws=fwd.sigma_draws)
     from relief_bsdf.io.hdf5 import load_tables, table_for
     tabs = load_tables(args.table)
     front = sample.plate.rough_face == "front"

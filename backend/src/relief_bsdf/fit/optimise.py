@@ -91,6 +91,8 @@ class Forward:
     rows: Any
     grid: TableGrid = field(default_factory=TableGrid)
     where: str = "recording"
+    sigma_draws: int = 8
+    _rel_sigma: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         self.face_name = _relief_face_name(self.experiment)
@@ -117,9 +119,21 @@ class Forward:
     def simulate(self, height_scale: float, filter_sigma_um: float) -> np.ndarray:
         return self.simulated(height_scale, filter_sigma_um).values_per_sr
 
-    def simulated(self, height_scale: float, filter_sigma_um: float) -> Simulated:
+    def model_rel_sigma(self) -> np.ndarray:
+        """Relative 1-sigma per row of the simulation itself (its tables' Monte-Carlo noise and tile
+        realisation through the plate, plate.uncertainty), at the relief as read; computed once and
+        scaled with the values at other parameters (the relative noise of a table hardly moves
+        with scale and filter; common random numbers keep it the same draw)."""
+        if self._rel_sigma is None:
+            _, ex = self.experiment_at(1.0, 0.0)
+            sim = simulate(ex, self.rows, grid=self.grid, where=self.where, table_sigma_draws=self.sigma_draws)
+            v = np.abs(sim.values_per_sr)
+            self._rel_sigma = np.clip(np.divide(sim.sigma_per_sr, v, out=np.zeros_like(v), where=v > 0), 0.0, 1.0)
+        return self._rel_sigma
+
+    def simulated(self, height_scale: float, filter_sigma_um: float, table_sigma_draws: int = 0) -> Simulated:
         _, ex = self.experiment_at(height_scale, filter_sigma_um)
-        return simulate(ex, self.rows, grid=self.grid, where=self.where)
+        return simulate(ex, self.rows, grid=self.grid, where=self.where, table_sigma_draws=table_sigma_draws)
 
 
 class _Stop(Exception):
@@ -238,7 +252,10 @@ class _Objective:
             self.save(self.cache)
             if self.on_eval:
                 self.on_eval(self.new_evals)
-        r = self.settings.metric.residuals(np.asarray(self.cache[key]), self.measured, self.sigma)
+        sim = np.asarray(self.cache[key])
+        rel = getattr(self.forward, "model_rel_sigma", None)
+        model_sigma = None if rel is None else rel() * np.abs(sim)
+        r = self.settings.metric.residuals(sim, self.measured, self.sigma, model_sigma)
         m = float(np.sqrt(np.mean(r**2))) if r.size else 0.0
         self.iterations.append({"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": m})
         total = self.settings.max_iter
@@ -490,7 +507,7 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
                            max_filter_um=job.max_filter_um)
     res = fit_relief(fwd, rec.bsdf_sr, rec.sigma_sr, settings, checkpoint=out / "checkpoint.json", progress=progress)
     best_relief, t_out, t_in = fwd.tables(res.height_scale, res.filter_sigma_um)
-    after = fwd.simulated(res.height_scale, res.filter_sigma_um)
+    after = fwd.simulated(res.height_scale, res.filter_sigma_um, table_sigma_draws=fwd.sigma_draws)
     sim_after = after.values_per_sr
     sim_before = fwd.simulate(1.0, 0.0)
     tables = [t for t in (t_out, t_in) if t is not None]
@@ -506,7 +523,9 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
         pass
     write_relief(out / "relief_optimised.npz", best_relief)
     files["relief"] = "relief_optimised.npz"
-    write_recording(out / "simulated.csv", rec.with_values(sim_after), comments=["simulated plate after the fit"])
+    write_recording(out / "simulated.csv", rec.with_values(sim_after, after.sigma_per_sr),
+                    comments=["simulated plate after the fit; sigma_sr: the simulation's own 1-sigma (its tables' "
+                              "uncertainty through the plate)"])
     files["simulated"] = "simulated.csv"
     plots = report.fit_plots(out, rec, sim_before, sim_after)
     files.update(plots)

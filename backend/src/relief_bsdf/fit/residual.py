@@ -4,7 +4,7 @@ Metric ("log-chi"): a BSDF spans many decades (a specular peak 1e3-1e5 times the
 differences are taken on logarithms, each normalised by its uncertainty:
 
     r_k = [ln(sim_k + b) - ln(meas_k + b)] / s_k
-    s_k = sqrt( (sigma_k / (meas_k + b))^2 + q^2 )
+    s_k = sqrt( (sigma_k^2 + sigma_model_k^2) / (meas_k + b)^2 + q^2 )
     metric = sqrt(mean_k r_k^2)
 
 - b (floor, 1/sr) = `floor_rel` x median(meas): values far below the floor (dark noise, the
@@ -12,6 +12,8 @@ differences are taken on logarithms, each normalised by its uncertainty:
   deep wings.
 - sigma_k / (meas_k + b) is the row's 1-sigma uncertainty propagated to ln (first order);
   where sigma is unknown (NaN) `default_rel_sigma` of the value is assumed.
+- sigma_model_k is the simulation's own 1-sigma (its boundary tables' Monte-Carlo noise and
+  tile realisation carried through the plate, plate.uncertainty), when known.
 - q = `model_rel` is a relative model/calibration floor added in quadrature (default 1 %).
 
 A recording that agrees with the simulation within its noise gives metric ~ 1 (chi-like);
@@ -36,29 +38,33 @@ class LogChiMetric:
         pos = m[np.isfinite(m) & (m > 0)]
         return float(self.floor_rel * np.median(pos)) if pos.size else 1e-12
 
-    def sigma_log(self, meas: np.ndarray, sigma: np.ndarray | None) -> np.ndarray:
+    def sigma_log(self, meas: np.ndarray, sigma: np.ndarray | None, model_sigma: np.ndarray | None = None
+                  ) -> np.ndarray:
         m = np.asarray(meas, float)
         b = self.floor(m)
         s = np.full(m.shape, np.nan) if sigma is None else np.asarray(sigma, float)
         s = np.where(np.isfinite(s), s, self.default_rel_sigma * np.abs(m))
+        if model_sigma is not None:
+            s = np.sqrt(s**2 + np.nan_to_num(np.asarray(model_sigma, float)) ** 2)
         return np.sqrt((s / (np.abs(m) + b)) ** 2 + self.model_rel**2)
 
-    def residuals(self, sim: Any, meas: Any, sigma: Any = None) -> np.ndarray:
+    def residuals(self, sim: Any, meas: Any, sigma: Any = None, model_sigma: Any = None) -> np.ndarray:
         """Normalised residuals r_k (sim above the measurement: positive)."""
         sim = np.asarray(sim, float)
         meas = np.asarray(meas, float)
         b = self.floor(meas)
         d = np.log(np.maximum(sim, 0.0) + b) - np.log(np.maximum(meas, 0.0) + b)
-        return d / self.sigma_log(meas, sigma)
+        return d / self.sigma_log(meas, sigma, model_sigma)
 
-    def value(self, sim: Any, meas: Any, sigma: Any = None) -> float:
-        r = self.residuals(sim, meas, sigma)
+    def value(self, sim: Any, meas: Any, sigma: Any = None, model_sigma: Any = None) -> float:
+        r = self.residuals(sim, meas, sigma, model_sigma)
         return float(np.sqrt(np.mean(r**2))) if r.size else 0.0
 
     def describe(self) -> str:
         return ("log-chi: sqrt(mean(r^2)), r = [ln(sim + b) - ln(meas + b)] / s, b = "
                 f"{self.floor_rel:g} x median(measured) (floor, 1/sr), s = sqrt((sigma/(meas + b))^2 + "
-                f"{self.model_rel:g}^2) (sigma unknown: {self.default_rel_sigma:g} x meas); "
+                f"{self.model_rel:g}^2), sigma^2 = recording sigma^2 + the simulation's own sigma^2 (sigma "
+                f"unknown: {self.default_rel_sigma:g} x meas); "
                 "1 = agreement within the recording's noise")
 
 

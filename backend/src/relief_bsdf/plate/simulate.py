@@ -37,11 +37,14 @@ def describe(experiment: Experiment) -> dict:
 
 
 def simulate(experiment: Experiment, rows: Any, engine: str = "deterministic", photons: int = 200_000, seed: int = 0,
-             grid: TableGrid | None = None, progress: Any = None, where: str = "recording") -> Simulated:
+             grid: TableGrid | None = None, progress: Any = None, where: str = "recording",
+             table_sigma_draws: int = 0) -> Simulated:
     """The plate as the instrument sees it, on every row (same order).
 
     engine "deterministic": radiative transfer over the faces' tables on `grid` (default
-    TableGrid()); "photon": photon Monte Carlo, `photons` per incidence, seeded per incidence.
+    TableGrid()); its sigma is the tables' own uncertainty carried through the plate when
+    `table_sigma_draws` >= 2 (plate.uncertainty.rows_sigma), else 0.  "photon": photon Monte
+    Carlo, `photons` per incidence, seeded per incidence, with its own sampling sigma.
     """
     grid = grid or TableGrid()
     experiment = resolve_auto(experiment, rows, grid)       # "auto" faces: the relief's own physics, once
@@ -49,6 +52,10 @@ def simulate(experiment: Experiment, rows: Any, engine: str = "deterministic", p
         from relief_bsdf.plate import deterministic
         vals, info = deterministic.run(experiment, rows, grid, progress, where)
         sig = np.zeros_like(vals)
+        if table_sigma_draws >= 2:
+            from relief_bsdf.plate.uncertainty import rows_sigma
+            sig = rows_sigma(experiment, rows, grid, table_sigma_draws, seed)
+            info = {**info, "sigma": f"boundary tables' 1-sigma carried through the plate ({table_sigma_draws} draws)"}
     elif engine == "photon":
         from relief_bsdf.plate import photon
         vals, sig, info = photon.run(experiment, rows, photons=photons, seed=seed, grid=grid, where=where)
