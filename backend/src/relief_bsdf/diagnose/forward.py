@@ -27,6 +27,8 @@ from relief_bsdf.plate.choice import resolve_auto
 
 __all__ = ["DEFAULT_METHOD", "DiagnosisForward", "build_forward", "face_options"]
 
+SIGMA_DRAWS = 8        # perturbation draws of the baseline's tables for the model sigma (plate.uncertainty)
+
 
 @dataclass
 class DiagnosisForward:
@@ -38,11 +40,23 @@ class DiagnosisForward:
     grid: TableGrid | None = None             # the plate's table grid (None: the plate's default)
     evaluations: int = 0
     _baseline: tuple | None = field(default=None, repr=False)
+    _rel_sigma: np.ndarray | None = field(default=None, repr=False)
 
     def simulate(self, experiment: Experiment) -> tuple[np.ndarray, np.ndarray]:
+        """(values, model sigma): the sigma is the baseline's relative 1-sigma (its tables' Monte-Carlo
+        noise and tile realisation through the plate, plate.uncertainty, computed once) times the values."""
         self.evaluations += 1
         sim = simulate(experiment, self.rows, engine="deterministic", grid=self.grid)
-        return sim.values_per_sr, sim.sigma_per_sr
+        return sim.values_per_sr, self.model_rel_sigma() * np.abs(sim.values_per_sr)
+
+    def model_rel_sigma(self) -> np.ndarray:
+        if self._rel_sigma is None:
+            sim = simulate(self.experiment, self.rows, engine="deterministic", grid=self.grid,
+                           table_sigma_draws=SIGMA_DRAWS)
+            v = np.abs(sim.values_per_sr)
+            rel = np.divide(sim.sigma_per_sr, v, out=np.zeros_like(v), where=v > 0)
+            self._rel_sigma = np.clip(np.nan_to_num(rel, nan=0.0), 0.0, 1.0)
+        return self._rel_sigma
 
     def baseline(self) -> tuple[np.ndarray, np.ndarray]:
         """(values, model sigma) of the sample as stated (computed once)."""
