@@ -174,12 +174,14 @@ def _grids(table: BsdfTable, symmetric: bool) -> tuple[np.ndarray, np.ndarray]:
 BTDF_CENTRES = ("refracted", "undeviated")
 
 
-def refracted_theta_deg(theta_i_deg: Any, n_incident: float, n_transmitted: float) -> np.ndarray:
-    """Polar angle of the refracted direction (Snell, core.fresnel); 90 past the critical angle."""
+def refracted_theta_deg(theta_i_deg: Any, n_incident: float, n_transmitted: float,
+                        past_critical: float = 90.0) -> np.ndarray:
+    """Polar angle of the refracted direction (Snell, core.fresnel.cos_transmitted);
+    `past_critical` (default 90, grazing) where there is none (total internal reflection)."""
     from relief_bsdf.core.fresnel import cos_transmitted
     ct = cos_transmitted(np.cos(np.radians(np.asarray(theta_i_deg, float))), n_incident, n_transmitted)
     tir = np.abs(np.imag(ct)) > 1e-12
-    return np.where(tir, 90.0, np.degrees(np.arccos(np.clip(np.real(ct), -1.0, 1.0))))
+    return np.where(tir, past_critical, np.degrees(np.arccos(np.clip(np.real(ct), -1.0, 1.0))))
 
 
 def table_indices(table: BsdfTable, iw: int = 0) -> tuple[float, float]:

@@ -54,8 +54,6 @@ from typing import Any
 import numpy as np
 
 from relief_bsdf.bsdf.table import BsdfTable
-from relief_bsdf.core.fresnel import cos_transmitted
-from relief_bsdf.core.index import Material
 from relief_bsdf.errors import InputError
 from relief_bsdf.io.atomic import write_text_atomic
 
@@ -132,15 +130,12 @@ def _patch_samples(basis: AngleBasis, m: int) -> tuple[np.ndarray, np.ndarray]:
 def specular_directions(table: BsdfTable, iw: int, theta_i_deg: np.ndarray) -> np.ndarray | None:
     """Polar angle (deg) of the refracted direction for each incidence, NaN beyond the critical
     angle; None when the table does not state its material (indices)."""
-    if not table.material:
-        return None
+    from relief_bsdf.io.isbsdf import refracted_theta_deg, table_indices
     try:
-        n1, n2 = Material.from_dict(table.material).n_pair(float(table.wavelength_nm[iw]), table.incident_from)
-    except (KeyError, TypeError, ValueError):
+        n1, n2 = table_indices(table, iw)
+    except (InputError, KeyError, TypeError, ValueError):
         return None
-    ct = cos_transmitted(np.cos(np.radians(theta_i_deg)), np.real(n1), np.real(n2))
-    evanescent = np.abs(np.imag(ct)) > 1e-12                  # beyond the critical angle
-    return np.where(evanescent, np.nan, np.degrees(np.arccos(np.clip(np.real(ct), -1.0, 1.0))))
+    return refracted_theta_deg(theta_i_deg, n1, n2, past_critical=np.nan)
 
 
 def klems_matrix(table: BsdfTable, side: str, iw: int = 0, basis: AngleBasis = KLEMS, m: int = 8) -> np.ndarray:
