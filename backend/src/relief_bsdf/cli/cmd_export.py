@@ -36,6 +36,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--wavelength-nm", type=float, default=None,
                    help="radiance-xml: the wavelength written (nearest tabulated; default 555). "
                         "Reading an IS-BSDF file that does not state its wavelength: its wavelength")
+    p.add_argument("--n", type=float, default=None,
+                   help="refractive index of the dielectric, for a measured file that does not state it "
+                        "(recorded as the table's material, needed to bake it; centres an untagged BTDF)")
     return p
 
 
@@ -77,7 +80,8 @@ def run(args) -> int:
     out = Path(args.out)
     if args.depth is not None and not 1 <= args.depth <= 8:
         raise InputError("--depth", f"tensor-tree depth must be 1..8, got {args.depth}")
-    tables = read_table_file(args.table, wavelength_nm=args.wavelength_nm if args.format != "radiance-xml" else None)
+    tables = read_table_file(args.table, wavelength_nm=args.wavelength_nm if args.format != "radiance-xml" else None,
+                             n=args.n)
     if args.format == "radiance-xml":
         from relief_bsdf.io.radiance_xml import write_radiance_xml
         iso = all(t.is_isotropic for t in tables)

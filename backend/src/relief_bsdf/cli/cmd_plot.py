@@ -24,6 +24,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         "that does not state it")
     p.add_argument("--compare", action="append", default=[], metavar="OTHER",
                    help="another table to overlay (repeatable; same as naming it after the first)")
+    p.add_argument("--n", type=float, default=None,
+                   help="refractive index of the dielectric, for a measured file that does not state it "
+                        "(recorded as the table's material, needed to bake it; centres an untagged BTDF)")
     return p
 
 
@@ -37,7 +40,7 @@ def run(args) -> int:
     out = Path(args.out) if args.out else paths[0].with_suffix(".png")
     if out.suffix.lower() != ".png":
         raise InputError(out, "the plot is written as PNG; give a .png file name")
-    tables = [pick_table(read_table_file(p, wavelength_nm=args.wavelength_nm), args.incident_from, p).select(
+    tables = [pick_table(read_table_file(p, wavelength_nm=args.wavelength_nm, n=args.n), args.incident_from, p).select(
         args.wavelength_nm) for p in paths]
     sides = (args.side,) if args.side else ("R", "T")
     if len(tables) > 1:

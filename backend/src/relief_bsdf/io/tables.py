@@ -27,11 +27,22 @@ def _isbsdf_partners(path: Path) -> list[Path]:
     return [path]
 
 
-def read_table_file(path: str | Path, wavelength_nm: float | None = None, n_incident: float | None = None,
-                    n_transmitted: float | None = None) -> list[BsdfTable]:
+def read_table_file(path: str | Path, wavelength_nm: float | None = None, n: float | None = None) -> list[BsdfTable]:
     """Every table a BSDF file holds (module doc).  `wavelength_nm` is needed for IS-BSDF files that do
-    not state it; n_incident / n_transmitted say where an untagged measured BTDF is centred."""
-    path = Path(path)
+    not state it.  `n`, the refractive index of the dielectric (outside: n = 1), is recorded as the
+    `material` of tables that have none (a bake needs it) and says where an untagged measured BTDF
+    is centred (the refracted direction for that index pair; without `n`: 1 and 1, a sample in air)."""
+    if n is not None and not n > 0:
+        raise InputError("--n", f"refractive index must be > 0, got {n}")
+    tables = _read(Path(path), wavelength_nm, n)
+    if n is None:
+        return tables
+    from dataclasses import replace
+    mat = {"inside": {"model": "constant", "n": float(n), "k": 0.0}, "outside": {"model": "constant", "n": 1.0, "k": 0.0}}
+    return [t if t.material else replace(t, material=mat) for t in tables]
+
+
+def _read(path: Path, wavelength_nm: float | None, n: float | None) -> list[BsdfTable]:
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
         raise InputError(path, f"not a BSDF table file (expected one of {', '.join(SUFFIXES)})")
@@ -43,9 +54,11 @@ def read_table_file(path: str | Path, wavelength_nm: float | None = None, n_inci
     if suffix == ".xml":
         from relief_bsdf.io.radiance_xml import read_radiance_xml
         return read_radiance_xml(path, wavelength_nm=wavelength_nm)
-    from relief_bsdf.io.isbsdf import import_isbsdf
-    return [import_isbsdf(_isbsdf_partners(path), wavelength_nm=wavelength_nm, n_incident=n_incident,
-                          n_transmitted=n_transmitted)]
+    from relief_bsdf.io.isbsdf import import_isbsdf, read_isbsdf
+    files = _isbsdf_partners(path)
+    frm = read_isbsdf(files[0]).relief_tag("incident_from") or "outside"
+    pair = (None, None) if n is None else ((1.0, float(n)) if frm == "outside" else (float(n), 1.0))
+    return [import_isbsdf(files, wavelength_nm=wavelength_nm, n_incident=pair[0], n_transmitted=pair[1])]
 
 
 def pick_table(tables: list[BsdfTable], incident_from: str | None, where: str | Path) -> BsdfTable:
