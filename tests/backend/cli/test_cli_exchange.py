@@ -13,7 +13,7 @@ from relief_bsdf.io.hdf5 import load_tables, save_tables
 from relief_bsdf.io.recording import read_recording
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "io"))
-from test_radiance_xml import boundary_table  # noqa: E402
+from test_radiance_xml import boundary_table, load_bsdf  # noqa: E402
 
 
 def run_cli(capsys, *args):
@@ -30,15 +30,15 @@ def table_file(tmp_path):
 
 @pytest.mark.slow
 def test_export_radiance_xml_loads_in_radiance(tmp_path, capsys, table_file):
-    pyradiance = pytest.importorskip("pyradiance")
+    """Radiance caches BSDFs by file name (without directory): every test loads a distinct name."""
+    pytest.importorskip("pyradiance")
     from pyradiance import bsdf as rbsdf
-    rc, o, e = run_cli(capsys, "export", table_file, "--format", "radiance-xml", "-o", tmp_path / "b.xml")
+    rc, o, e = run_cli(capsys, "export", table_file, "--format", "radiance-xml", "-o", tmp_path / "cli_export_pair.xml")
     assert rc == 0, e
-    sd = rbsdf.load_file(str(tmp_path / "b.xml"))
+    sd = load_bsdf(tmp_path / "cli_export_pair.xml")
     t = load_tables(table_file)[0]
     got = rbsdf.direct_hemi(sd, 150.0, 0.0, rbsdf.SAMPLE_T | rbsdf.SAMPLE_SP | rbsdf.SAMPLE_DF)
     assert got == pytest.approx(t.hemispherical()["T"][0, 3, 0], rel=0.03)
-    assert pyradiance is not None
     # one side only: a clear error naming the missing side, exit 2
     one = save_tables(tmp_path / "one.h5", [boundary_table("outside")])
     rc, o, e = run_cli(capsys, "export", one, "--format", "radiance-xml", "-o", tmp_path / "x.xml")

@@ -22,6 +22,19 @@ pyradiance = pytest.importorskip("pyradiance")
 from pyradiance import bsdf as rbsdf  # noqa: E402
 
 CHECKBSDF = Path(pyradiance.__file__).parent / "bin" / "checkBSDF"
+_LOADED: list = []
+
+
+def load_bsdf(path):
+    """Radiance's SDcacheFile via pyradiance, kept alive for the whole session: pyradiance 1.3.1 hands
+    Python the cached SDData, and letting it be collected frees the cache entry (a later load then
+    crashes).  Radiance caches by file name without the directory: tests use distinct names."""
+    sd = rbsdf.load_file(str(path))
+    assert sd is not None, path
+    _LOADED.append(sd)
+    return sd
+
+
 TE = np.linspace(0, 90, 31)
 PE = np.linspace(0, 360, 73)
 N_GLASS = 1.5
@@ -51,7 +64,7 @@ def boundary_table(frm: str) -> BsdfTable:
 @pytest.fixture(scope="module")
 def klems_file(tmp_path_factory):
     tabs = [boundary_table("outside"), boundary_table("inside")]
-    path = write_radiance_xml(tmp_path_factory.mktemp("xml") / "b.xml", tabs, samples_per_patch=4)
+    path = write_radiance_xml(tmp_path_factory.mktemp("xml") / "klems_pair.xml", tabs, samples_per_patch=4)
     return path, tabs
 
 
@@ -66,8 +79,7 @@ def test_radiance_hemispherical_totals_match_the_table(klems_file):
     """Radiance's SDdirectHemi (R and T, delta parts included) within 3 % of the table's totals, both sides.
     WINDOW front = light from outside = Radiance's -z hemisphere (Radiance reverses WINDOW's sides)."""
     path, tabs = klems_file
-    sd = rbsdf.load_file(str(path))
-    assert sd is not None
+    sd = load_bsdf(path)
     for t in tabs:
         h = t.hemispherical()
         for i, ti in enumerate(t.theta_i_deg[:8]):          # Klems rings up to 75 deg hold the table's grid
@@ -96,7 +108,7 @@ def test_radiance_point_values_follow_the_lobe(klems_file):
     the direction: the lobe sits where the table has it (a turned or mirrored azimuth convention
     would swap the forward and backward values)."""
     path, tabs = klems_file
-    sd = rbsdf.load_file(str(path))
+    sd = load_bsdf(path)
     t = tabs[0]
     # light from outside at 30 deg, table azimuth 0 -> Radiance direction (180 - 30, 0): WINDOW front
     for side, ts in (("R", 40.0), ("T", 40.0), ("R", 70.0), ("T", 60.0)):  # off the delta patches
@@ -115,7 +127,7 @@ def test_tensor_tree_loads_in_radiance(tmp_path):
     path = write_radiance_xml(tmp_path / "tt.xml", tabs, structure="tensor-tree", depth=5)
     r = subprocess.run([str(CHECKBSDF), str(path)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "Isotropic_Tensor_Tree" in r.stdout, r.stdout + r.stderr
-    sd = rbsdf.load_file(str(path))
+    sd = load_bsdf(path)
     h = tabs[0].hemispherical()
     for i, ti in enumerate(tabs[0].theta_i_deg[:6]):   # resolution in sin(theta_i) is 1/16 at depth 5
         got = rbsdf.direct_hemi(sd, 180.0 - ti, 0.0, rbsdf.SAMPLE_T | rbsdf.SAMPLE_SP | rbsdf.SAMPLE_DF)
