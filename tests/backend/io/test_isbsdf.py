@@ -153,9 +153,9 @@ def test_combined_file_round_trip(tmp_path):
     np.testing.assert_allclose(only.values_per_sr[0], t.values_per_sr[1], rtol=1e-5)
 
 
-def refracted_lobe_table(frm="outside", n=1.5):
+def refracted_lobe_table(frm="outside", n=1.5, ti=(0.0, 30.0, 60.0, 75.0)):
     """T lobe about the refracted direction (the physics of a smooth-ish boundary), R about the mirror."""
-    ti = np.array([0.0, 30.0, 60.0, 75.0])
+    ti = np.asarray(ti, float)
     tc, pc = 0.5 * (TE[1:] + TE[:-1]), 0.5 * (PE[1:] + PE[:-1])
     d = direction(tc[:, None], pc[None, :])
     n1, n2 = (1.0, n) if frm == "outside" else (n, 1.0)
@@ -215,3 +215,13 @@ def test_measured_file_without_tags_is_read_as_opticstudio(tmp_path):
     assert tab.eval(550.0, 60.0, 0.0, "T", tt, 180.0) == pytest.approx(0.52, rel=0.05)
     air = import_isbsdf(foreign, TE, PE, wavelength_nm=550.0)
     assert air.eval(550.0, 60.0, 0.0, "T", 60.0, 180.0) == pytest.approx(0.52, rel=0.05)
+
+
+def test_refracted_block_reaches_the_far_horizon(tmp_path):
+    """From inside at 40 deg the refracted ray leaves at 74.6 deg: the block's radial grid must reach
+    90 + 74.6 deg, not 90 + theta_i, or the far side of the lobe is lost."""
+    t = refracted_lobe_table("inside", ti=(40.0,))
+    b = read_isbsdf(export_isbsdf(t, tmp_path / "far.bsdf", sides=("T",))[0])
+    assert b.radial_deg.max() >= 90.0 + float(refracted_theta_deg(40.0, 1.5, 1.0)) - 1e-6
+    back = import_isbsdf(tmp_path / "far.bsdf", TE, PE)
+    np.testing.assert_allclose(back.hemispherical()["diffuse_T"], t.hemispherical()["diffuse_T"], rtol=0.03)

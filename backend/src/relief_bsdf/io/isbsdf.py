@@ -154,12 +154,13 @@ def _plane_symmetric(table: BsdfTable, k: int, w: int) -> bool:
     return bool(np.max(np.abs(v - v[..., back])) <= 1e-9 * scale)
 
 
-def _grids(table: BsdfTable, symmetric: bool) -> tuple[np.ndarray, np.ndarray]:
+def _grids(table: BsdfTable, symmetric: bool, max_centre_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """Radial and azimuth lists: the table's cell centres and edges (so sampling is exact at
-    normal incidence and twice as fine as the table elsewhere), radial out to 90 + max theta_i."""
+    normal incidence and twice as fine as the table elsewhere), radial out to 90 + the largest
+    block centre's polar angle (the far horizon seen from the centre)."""
     te, tc = table.theta_s_edges_deg, table.theta_s_deg
     step = 0.5 * float(np.mean(np.diff(te)))
-    top = min(180.0, 90.0 + float(table.theta_i_deg.max()))
+    top = min(180.0, 90.0 + float(max_centre_deg))
     ext = np.arange(te[-1] + step, top + step, step)
     radial = np.unique(np.round(np.concatenate([[0.0], tc, te, ext[ext <= top], [top]]), 9))
     radial = radial[radial <= top]
@@ -211,7 +212,7 @@ def block_from_table(table: BsdfTable, side: str, iw: int = 0, btdf_centre: str 
     centre = _centres(table, side, iw, btdf_centre)
     k = 0 if side == "R" else 1
     symmetric = _plane_symmetric(table, k, iw)
-    radial, az = _grids(table, symmetric)
+    radial, az = _grids(table, symmetric, float(np.max(centre)))
     wl = float(table.wavelength_nm[iw])
     P, I = table.phi_i_deg.size, table.theta_i_deg.size
     data = np.zeros((P, I, az.size, radial.size))

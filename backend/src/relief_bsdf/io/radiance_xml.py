@@ -58,6 +58,7 @@ from relief_bsdf.errors import InputError
 from relief_bsdf.io.atomic import write_text_atomic
 
 NS = "http://windows.lbl.gov"
+XSI = "http://www.w3.org/2001/XMLSchema-instance"
 KLEMS_FULL_NAME = "LBNL/Klems Full"
 # (lower theta, upper theta, number of azimuth patches) per ring of the Klems full basis
 KLEMS_FULL = ((0.0, 5.0, 1), (5.0, 15.0, 8), (15.0, 25.0, 16), (25.0, 35.0, 20), (35.0, 45.0, 24),
@@ -224,7 +225,7 @@ def _header(name: str, thickness_m: float, comments: list[str], data_definition:
     notes = "\n".join(f"<!-- {c.replace('--', '- -')} -->" for c in comments)
     return f"""<?xml version="1.0" encoding="UTF-8"?>
 {notes}
-<WindowElement xmlns="{NS}" xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" xsi:schemaLocation="{NS}/BSDF-v1.4.xsd">
+<WindowElement xmlns="{NS}" xmlns:xsi="{XSI}" xsi:schemaLocation="{NS}/BSDF-v1.4.xsd">
 <WindowElementType>System</WindowElementType>
 <FileType>BSDF</FileType>
 <Optical>
@@ -285,7 +286,7 @@ def write_radiance_xml(path: str | Path, tables: list[BsdfTable], wavelength_nm:
     iw = _nearest_wl(by["outside"], wavelength_nm)
     wl = float(by["outside"].wavelength_nm[iw])
     iw_in = _nearest_wl(by["inside"], wl)
-    thick = float(by["outside"].metadata.get("thickness_m", 0.0) or 0.0) if isinstance(by["outside"].metadata, dict) else 0.0
+    thick = 0.0                                      # one boundary: no thickness of its own
     name = f"relief-bsdf boundary ({by['outside'].method})"
     if structure == "klems":
         head = _header(name, thick, _comments(by, iw, "Klems full basis"),
@@ -537,8 +538,10 @@ def read_radiance_xml(path: str | Path, wavelength_nm: float | None = None, phi_
     else:
         raise InputError(path, f"IncidentDataStructure {structure!r} not supported (Columns, Rows, TensorTree3/4)")
     klems = structure in ("Columns", "Rows")
-    te = np.linspace(0.0, 90.0, 37 if klems else 91) if theta_s_edges_deg is None else np.asarray(theta_s_edges_deg, float)
-    pe = np.linspace(0.0, 360.0, 481 if klems else 181) if phi_s_edges_deg is None else np.asarray(phi_s_edges_deg, float)
+    te = (np.linspace(0.0, 90.0, 37 if klems else 91) if theta_s_edges_deg is None
+          else np.asarray(theta_s_edges_deg, float))
+    pe = (np.linspace(0.0, 360.0, 481 if klems else 181) if phi_s_edges_deg is None
+          else np.asarray(phi_s_edges_deg, float))
     pi = np.atleast_1d(np.asarray(phi_i_deg, float))
     tc, pc = 0.5 * (te[1:] + te[:-1]), 0.5 * (pe[1:] + pe[:-1])
     TS, PS = np.meshgrid(tc, pc, indexing="ij")

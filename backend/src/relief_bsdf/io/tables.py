@@ -38,7 +38,8 @@ def read_table_file(path: str | Path, wavelength_nm: float | None = None, n: flo
     if n is None:
         return tables
     from dataclasses import replace
-    mat = {"inside": {"model": "constant", "n": float(n), "k": 0.0}, "outside": {"model": "constant", "n": 1.0, "k": 0.0}}
+    mat = {"inside": {"model": "constant", "n": float(n), "k": 0.0},
+           "outside": {"model": "constant", "n": 1.0, "k": 0.0}}
     return [t if t.material else replace(t, material=mat) for t in tables]
 
 
