@@ -25,14 +25,17 @@ def run_cli(capsys, *argv):
     return rc, out, err
 
 
+MATERIAL = {"inside": {"model": "constant", "n": 1.5, "k": 0.0}, "outside": {"model": "constant", "n": 1.0, "k": 0.0}}
+
+
 def make_table_file(path):
     te, pe = np.linspace(0, 90, 19), np.linspace(0, 360, 25)
     rng = np.random.default_rng(0)
     t_out = BsdfTable([550.0], [0.0, 40.0], [0.0], te, pe, rng.random((1, 2, 1, 2, 18, 24)) * 0.2,
                       specular_R=0.04, specular_T=0.5, method="test",
-                      sigma_per_sr=np.full((1, 2, 1, 2, 18, 24), 0.01))
+                      sigma_per_sr=np.full((1, 2, 1, 2, 18, 24), 0.01), material=MATERIAL)
     t_in = BsdfTable([550.0], [0.0, 40.0], [0.0], te, pe, rng.random((1, 2, 1, 2, 18, 24)) * 0.1,
-                     incident_from="inside", method="test")
+                     incident_from="inside", method="test", material=MATERIAL)
     save_tables(path, [t_out, t_in])
     return t_out, t_in
 
@@ -143,6 +146,7 @@ def test_export_isbsdf(tmp_path, capsys):
     b = read_isbsdf(tmp_path / "z_BRDF.bsdf")
     assert b.scatter_type == "BRDF" and list(b.angle_of_incidence_deg) == [0.0, 40.0]
     assert read_isbsdf(tmp_path / "z_BTDF.bsdf").scatter_type == "BTDF"
+    assert read_isbsdf(tmp_path / "z_BTDF.bsdf").relief_tag("btdf_centre") == "refracted"   # OpticStudio's
     rc, o, e = run_cli(capsys, "export", tmp_path / "t.h5", "--format", "is-bsdf", "-o", tmp_path / "z.bsdf",
                        "--from", "inside")
     assert rc == 0

@@ -1,4 +1,8 @@
-"""`relief export TABLE.h5 --format recording-csv|is-bsdf [--from outside|inside] -o OUT`."""
+"""`relief export TABLE --format recording-csv|is-bsdf|radiance-xml|hdf5 [--from outside|inside] -o OUT`.
+
+TABLE may be a project table (.h5) or a measured / exchanged file (IS-BSDF .bsdf, WINDOW/Radiance
+.xml): io.tables reads them all as BsdfTables.
+"""
 from __future__ import annotations
 
 import argparse
@@ -6,18 +10,35 @@ from pathlib import Path
 
 import numpy as np
 
+FORMATS = ("recording-csv", "is-bsdf", "radiance-xml", "hdf5")
+
 
 def add_parser(sub) -> argparse.ArgumentParser:
-    p = sub.add_parser("export", help="export a BSDF table as recording-layout CSV or Zemax IS-BSDF",
+    p = sub.add_parser("export", help="export a BSDF table: recording CSV, Zemax IS-BSDF, Radiance XML or HDF5",
                        description="recording-csv: every tabulated cell value as a recording.csv row (cell "
                                    "centres, sigma empty when unknown); the delta-like specular parts are "
-                                   "listed in comments. is-bsdf: Zemax/Radiant tabulated .bsdf, one file per "
-                                   "side (BRDF, BTDF) and wavelength.")
-    p.add_argument("table", help="BSDF table (.h5)")
-    p.add_argument("--format", required=True, choices=("recording-csv", "is-bsdf"))
+                                   "listed in comments. is-bsdf: Zemax OpticStudio tabulated .bsdf, one file per "
+                                   "scatter type (BRDF, BTDF) and wavelength, BTDF centred on the refracted ray. "
+                                   "radiance-xml: LBNL/WINDOW XML BSDF of both sides (front = light from outside), "
+                                   "Klems full basis or a tensor tree, as Radiance, WINDOW and EnergyPlus read it. "
+                                   "hdf5: the project's table file (e.g. to bake a measured file in Blender).")
+    p.add_argument("table", help="BSDF table (.h5, .bsdf IS-BSDF, .xml WINDOW/Radiance)")
+    p.add_argument("--format", required=True, choices=FORMATS)
     p.add_argument("--from", dest="incident_from", choices=("outside", "inside"),
                    help="which table (light arriving from outside or inside); default: outside if present")
     p.add_argument("-o", "--out", required=True, help="output file")
+    p.add_argument("--btdf-centre", choices=("refracted", "undeviated"), default="refracted",
+                   help="is-bsdf: centre of the BTDF's specular coordinates (default refracted, as OpticStudio)")
+    p.add_argument("--structure", choices=("klems", "tensor-tree"), default="klems",
+                   help="radiance-xml: Klems full basis (default) or a uniform tensor tree")
+    p.add_argument("--depth", type=int, default=None,
+                   help="radiance-xml tensor tree: 2^depth cells per axis (default 6 isotropic, 4 otherwise)")
+    p.add_argument("--wavelength-nm", type=float, default=None,
+                   help="radiance-xml: the wavelength written (nearest tabulated; default 555). "
+                        "Reading an IS-BSDF file that does not state its wavelength: its wavelength")
+    p.add_argument("--n", type=float, default=None,
+                   help="refractive index of the dielectric, for a measured file that does not state it "
+                        "(recorded as the table's material, needed to bake it; centres an untagged BTDF)")
     return p
 
 
@@ -34,34 +55,50 @@ def table_rows(table):
                      sigma_sr=sigma)
 
 
-def run(args) -> int:
-    from relief_bsdf.io.hdf5 import load_tables, table_for
+def _write_recording_csv(args, table, out: Path) -> None:
     from relief_bsdf.errors import InputError
-    tables = load_tables(args.table)
-    if args.incident_from:
-        table = table_for(tables, args.incident_from, args.table)
-    else:
-        table = next((t for t in tables if t.incident_from == "outside"), tables[0])
+    from relief_bsdf.io.recording import write_recording
+    rec = table_rows(table)
+    if np.any(~np.isfinite(rec.bsdf_sr)) or np.any(rec.bsdf_sr < 0):
+        raise InputError(args.table, "table holds negative or non-finite BSDF values; cannot write a recording")
+    comments = [f"exported from {args.table} (method {table.method}, light from {table.incident_from})",
+                "rows are scatter-cell centres; values are cell averages in 1/sr",
+                "specular (delta) parts are not rows: wavelength_nm, theta_i_deg, phi_i_deg, specular_R, specular_T"]
+    for w, wl in enumerate(table.wavelength_nm):
+        for i, ti in enumerate(table.theta_i_deg):
+            for p, pi in enumerate(table.phi_i_deg):
+                comments.append(f"specular {wl:g}, {ti:g}, {pi % 360:g}, {table.specular_R[w, i, p]:.6g}, "
+                                f"{table.specular_T[w, i, p]:.6g}")
+    write_recording(out, rec, comments=comments)
+    print(f"wrote {out}: {len(rec)} rows ({table.wavelength_nm.size} wavelength(s), "
+          f"{table.theta_i_deg.size * table.phi_i_deg.size} incidence(s), light from {table.incident_from})")
+
+
+def run(args) -> int:
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.io.tables import pick_table, read_table_file
     out = Path(args.out)
+    if args.depth is not None and not 1 <= args.depth <= 8:
+        raise InputError("--depth", f"tensor-tree depth must be 1..8, got {args.depth}")
+    tables = read_table_file(args.table, wavelength_nm=args.wavelength_nm if args.format != "radiance-xml" else None,
+                             n=args.n)
+    if args.format == "radiance-xml":
+        from relief_bsdf.io.radiance_xml import write_radiance_xml
+        iso = all(t.is_isotropic for t in tables)
+        depth = args.depth or (6 if iso else 4)
+        write_radiance_xml(out, tables, wavelength_nm=args.wavelength_nm, structure=args.structure, depth=depth)
+        print(f"wrote {out} ({args.structure}, front = light from outside, back = light from inside)")
+        return 0
+    if args.format == "hdf5":
+        from relief_bsdf.io.hdf5 import save_tables
+        save_tables(out, tables)
+        print(f"wrote {out}: {len(tables)} table(s) ({', '.join(t.incident_from for t in tables)})")
+        return 0
+    table = pick_table(tables, args.incident_from, args.table)
     if args.format == "recording-csv":
-        from relief_bsdf.io.recording import write_recording
-        rec = table_rows(table)
-        if np.any(~np.isfinite(rec.bsdf_sr)) or np.any(rec.bsdf_sr < 0):
-            raise InputError(args.table, "table holds negative or non-finite BSDF values; cannot write a recording")
-        comments = [f"exported from {args.table} (method {table.method}, light from {table.incident_from})",
-                    "rows are scatter-cell centres; values are cell averages in 1/sr",
-                    "specular (delta) parts are not rows: wavelength_nm, theta_i_deg, phi_i_deg, specular_R, specular_T"]
-        for w, wl in enumerate(table.wavelength_nm):
-            for i, ti in enumerate(table.theta_i_deg):
-                for p, pi in enumerate(table.phi_i_deg):
-                    comments.append(f"specular {wl:g}, {ti:g}, {pi % 360:g}, {table.specular_R[w, i, p]:.6g}, "
-                                    f"{table.specular_T[w, i, p]:.6g}")
-        write_recording(out, rec, comments=comments)
-        print(f"wrote {out}: {len(rec)} rows ({table.wavelength_nm.size} wavelength(s), "
-              f"{table.theta_i_deg.size * table.phi_i_deg.size} incidence(s), light from {table.incident_from})")
+        _write_recording_csv(args, table, out)
         return 0
     from relief_bsdf.io.isbsdf import export_isbsdf
-    paths = export_isbsdf(table, out)
-    for p in paths:
+    for p in export_isbsdf(table, out, btdf_centre=args.btdf_centre):
         print(f"wrote {p}")
     return 0

@@ -1,47 +1,51 @@
-"""`relief plot`: in-plane BSDF curves per incidence angle and polar maps of a table, to PNG."""
+"""`relief plot A [B ...]`: in-plane BSDF curves and polar maps of a table, or several tables overlaid.
+
+Any table file works (.h5, measured IS-BSDF .bsdf, WINDOW/Radiance .xml; io.tables), so a measured
+file can be drawn beside a reconstruction: `relief plot boundary.h5 measured_BTDF.bsdf`.
+"""
 from __future__ import annotations
 
 import argparse
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
-    p = sub.add_parser("plot", help="plot a BSDF table (in-plane curves and polar maps) to PNG",
-                       description="In-plane BSDF curves per incidence angle (log scale, signed scatter angle, "
-                                   "like the paper's figures 4 and 9) and polar maps of the scatter hemisphere.")
-    p.add_argument("table", metavar="TABLE.h5")
-    p.add_argument("-o", "--out", default=None, help="output PNG (default: TABLE.png beside the table)")
+    p = sub.add_parser("plot", help="plot BSDF tables (in-plane curves and polar maps) to PNG",
+                       description="One table: in-plane BSDF curves per incidence angle (log scale, signed "
+                                   "scatter angle, like the paper's figures 4 and 9, delta parts marked) and "
+                                   "polar maps of the scatter hemisphere. Several tables: their in-plane curves "
+                                   "overlaid, evaluated at the first table's incidence angles.")
+    p.add_argument("tables", metavar="TABLE", nargs="+", help="BSDF table files (.h5, .bsdf, .xml)")
+    p.add_argument("-o", "--out", default=None, help="output PNG (default: the first TABLE's name with .png)")
     p.add_argument("--side", choices=("R", "T"), default=None, help="only reflection or transmission (default both)")
     p.add_argument("--from", dest="incident_from", choices=("outside", "inside"), default=None,
-                   help="which table of the file (default: the first)")
-    p.add_argument("--wavelength-nm", type=float, default=None, help="wavelength to show (nearest tabulated)")
-    p.add_argument("--compare", action="append", default=[], metavar="OTHER.h5",
-                   help="overlay the in-plane curves of another table (repeatable; same --from side)")
+                   help="which table of each file (default: outside if present)")
+    p.add_argument("--wavelength-nm", type=float, default=None,
+                   help="wavelength to show (nearest tabulated); also the wavelength of an IS-BSDF file "
+                        "that does not state it")
+    p.add_argument("--compare", action="append", default=[], metavar="OTHER",
+                   help="another table to overlay (repeatable; same as naming it after the first)")
+    p.add_argument("--n", type=float, default=None,
+                   help="refractive index of the dielectric, for a measured file that does not state it "
+                        "(recorded as the table's material, needed to bake it; centres an untagged BTDF)")
     return p
 
 
 def run(args) -> int:
     from pathlib import Path
 
-    from relief_bsdf.io.hdf5 import load_tables, table_for
     from relief_bsdf.errors import InputError
-    from relief_bsdf.report.plots import save_figure, table_figure
-    path = Path(args.table)
-    tables = load_tables(path)
-    table = table_for(tables, args.incident_from, path) if args.incident_from else tables[0]
-    table = table.select(args.wavelength_nm)
-    out = Path(args.out) if args.out else path.with_suffix(".png")
+    from relief_bsdf.io.tables import pick_table, read_table_file
+    from relief_bsdf.report.plots import compare_figure, save_figure, table_figure
+    paths = [Path(p) for p in list(args.tables) + list(args.compare)]
+    out = Path(args.out) if args.out else paths[0].with_suffix(".png")
     if out.suffix.lower() != ".png":
         raise InputError(out, "the plot is written as PNG; give a .png file name")
+    tables = [pick_table(read_table_file(p, wavelength_nm=args.wavelength_nm, n=args.n), args.incident_from, p).select(
+        args.wavelength_nm) for p in paths]
     sides = (args.side,) if args.side else ("R", "T")
-    if args.compare:
-        from relief_bsdf.report.plots import compare_figure
-        others = []
-        for o in args.compare:
-            ts = load_tables(o)
-            others.append(table_for(ts, table.incident_from, o))
-        labels = [path.stem] + [Path(o).stem for o in args.compare]
-        save_figure(compare_figure([table] + others, labels, sides), out)
+    if len(tables) > 1:
+        save_figure(compare_figure(tables, [p.name for p in paths], sides), out)
     else:
-        save_figure(table_figure(table, sides), out)
+        save_figure(table_figure(tables[0], sides), out)
     print(f"wrote {out}")
     return 0

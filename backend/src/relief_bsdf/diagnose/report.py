@@ -1,12 +1,10 @@
-"""report.html of `relief diagnose`: residual maps before/after and in-plane curves, PNGs embedded.
+"""report.html of `relief diagnose`: residual maps before/after and in-plane curves, in the house
+style of the fit report (relief_bsdf.report.html: one self-contained page, images embedded).
 
 Residuals are the noise-normalised z = (measured - simulated) / s of `mismatch.residual_z`.
 """
 from __future__ import annotations
 
-import base64
-import io
-import json
 import math
 from pathlib import Path
 
@@ -17,98 +15,103 @@ from relief_bsdf.io.atomic import write_text_atomic
 
 __all__ = ["write_report"]
 
-
-def _png(fig) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    import matplotlib.pyplot as plt
-    plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode("ascii")
+Z_LABEL = "z = (measured - simulated) / sigma"
 
 
-def _residual_map(rows, v, s, title, ax):
-    z = residual_z(rows, v, s)
-    keys = sorted({(float(rows.wavelength_nm[k]), str(rows.side[k]), float(rows.theta_i_deg[k]),
-                    float(rows.phi_s_deg[k])) for k in range(len(z))})
-    ths = np.unique(rows.theta_s_deg)
-    img = np.full((len(keys), len(ths)), np.nan)
-    kidx = {k: i for i, k in enumerate(keys)}
-    for k in range(len(z)):
-        key = (float(rows.wavelength_nm[k]), str(rows.side[k]), float(rows.theta_i_deg[k]), float(rows.phi_s_deg[k]))
-        img[kidx[key], np.searchsorted(ths, rows.theta_s_deg[k])] = z[k]
-    im = ax.imshow(img, aspect="auto", cmap="RdBu_r", vmin=-5, vmax=5, interpolation="nearest")
-    ax.set_yticks(range(len(keys)))
-    ax.set_yticklabels([f"{k[1]} ti={k[2]:g} ps={k[3]:g}" + (f" {k[0]:g}nm" if len({q[0] for q in keys}) > 1 else "")
-                        for k in keys], fontsize=6)
-    step = max(1, len(ths) // 10)
-    ax.set_xticks(range(0, len(ths), step))
-    ax.set_xticklabels([f"{t:g}" for t in ths[::step]], fontsize=7)
-    ax.set_xlabel("theta_s (deg)")
-    ax.set_title(title, fontsize=9)
-    return im
+def _signed(rows) -> np.ndarray:
+    """Signed scatter angle: negative on the phi_s = phi_i + 180 half-plane."""
+    rel = np.mod(np.asarray(rows.phi_s_deg) - np.asarray(rows.phi_i_deg), 360.0)
+    return np.where(np.abs(rel - 180.0) < 90.0, -1.0, 1.0) * np.asarray(rows.theta_s_deg)
 
 
-def _candidate_row(c: dict, esc) -> str:
-    if c.get("skipped"):
-        return f"<tr><td>{esc(c['effect'])}</td><td colspan=3>not tried: {esc(c['skipped'])}</td></tr>"
-    return (f"<tr><td>{esc(c['effect'])}</td><td>{c['rms_after']:.3f}</td><td>{c['score']:.1f}</td>"
-            f"<td>{esc(json.dumps(c['parameters']))}</td></tr>")
+def _maps_png(rows, v0, s0, v1, s1, result: dict) -> bytes:
+    from relief_bsdf.report import html as H
+    from relief_bsdf.report.fit_report import _plt, residual_image
+    plt = _plt()
+    z0, z1 = residual_z(rows, v0, s0), residual_z(rows, v1, s1)
+    multi_wl = np.unique(rows.wavelength_nm).size > 1
+    extra = [f"{w:g} nm" for w in rows.wavelength_nm] if multi_wl else None
+    keys = {(s, t, e) for s, t, e in zip(np.asarray(rows.side).tolist(), np.asarray(rows.theta_i_deg).tolist(),
+                                         extra or [""] * len(rows))}
+    lim = max(3.0, float(np.nanpercentile(np.abs(np.concatenate([z0, z1])), 98)))
+    fig, axs = plt.subplots(1, 2, figsize=(13.0, 1.8 + 0.42 * len(keys)), sharey=True)
+    residual_image(axs[0], rows.side, rows.theta_i_deg, _signed(rows), z0, lim, extra)
+    axs[0].set_title(f"baseline (rms {result['rms_before']:.3g})", fontsize=9)
+    im = residual_image(axs[1], rows.side, rows.theta_i_deg, _signed(rows), z1, lim, extra)
+    axs[1].set_title(f"with {', '.join(result.get('effects') or [result['effect']])} (rms {result['rms_after']:.3g})",
+                     fontsize=9)
+    fig.colorbar(im, ax=axs, pad=0.01, shrink=0.9).set_label(Z_LABEL, fontsize=8)
+    return H.figure_png(fig)
 
 
-def write_report(path: Path, rows, v0, s0, v1, s1, result: dict) -> Path:
-    """report.html: residual maps (before/after) and in-plane curves, PNGs embedded."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, axs = plt.subplots(1, 2, figsize=(11, 0.18 * len(np.unique(np.stack([rows.side, rows.theta_i_deg.astype(str),
-                                                                           rows.phi_s_deg.astype(str),
-                                                                           rows.wavelength_nm.astype(str)], 1),
-                                                                 axis=0)) + 2))
-    _residual_map(rows, v0, s0, f"baseline residual / sigma (rms {result['rms_before']:.2f})", axs[0])
-    im = _residual_map(rows, v1, s1, f"with {result['effect']} (rms {result['rms_after']:.2f})", axs[1])
-    fig.colorbar(im, ax=axs, shrink=0.6, label="(measured - simulated) / sigma")
-    maps = _png(fig)
-    # in-plane curves: signed angle theta_s * (+1 at phi_s = 0, -1 at 180)
+def _curves_png(rows, v0, v1, result: dict) -> bytes:
+    from relief_bsdf.report import html as H
+    from relief_bsdf.report.fit_report import _plt
+    plt = _plt()
     groups = sorted({(float(rows.wavelength_nm[k]), str(rows.side[k]), float(rows.theta_i_deg[k]))
                      for k in range(len(rows))})
     ncol = 3
     nrow = int(math.ceil(len(groups) / ncol))
-    fig, axs = plt.subplots(nrow, ncol, figsize=(12, 3.0 * nrow), squeeze=False)
+    fig, axs = plt.subplots(nrow, ncol, figsize=(13, 3.3 * nrow), squeeze=False)
+    x_all = _signed(rows)
     for ax, g in zip(axs.ravel(), groups):
         sel = np.nonzero((rows.wavelength_nm == g[0]) & (rows.side == g[1]) & (rows.theta_i_deg == g[2]))[0]
-        x = np.where(np.abs(((rows.phi_s_deg[sel] + 90) % 360) - 90) < 90, 1, -1) * rows.theta_s_deg[sel]
-        o = np.argsort(x)
-        sel, x = sel[o], x[o]
+        o = np.argsort(x_all[sel])
+        sel, x = sel[o], x_all[sel][o]
         ax.errorbar(x, rows.bsdf_sr[sel], rows.sigma_sr[sel], fmt=".", ms=3, color="k", label="recording")
         ax.plot(x, v0[sel], "-", color="tab:red", label="baseline")
-        ax.plot(x, v1[sel], "-", color="tab:blue", label=result["effect"])
+        ax.plot(x, v1[sel], "-", color="tab:blue", label=f"with {result['effect']}")
+        ax.axvline(-g[2], color="0.5", ls=":", lw=0.9, label="specular / undeviated")
         ax.set_yscale("symlog", linthresh=1e-2)
-        ax.set_title(f"{g[1]} theta_i={g[2]:g} deg" + (f" {g[0]:g} nm" if len({q[0] for q in groups}) > 1 else ""),
+        ax.set_title(f"{g[1]}, theta_i = {g[2]:g} deg" + (f", {g[0]:g} nm" if len({q[0] for q in groups}) > 1 else ""),
                      fontsize=9)
-        ax.set_xlabel("theta_s signed by phi_s (deg)")
-        ax.set_ylabel("BSDF (1/sr)")
+        ax.set_xlabel("signed scatter angle theta_s (deg)", fontsize=8)
+        ax.set_ylabel("plate BSDF (1/sr)", fontsize=8)
+        ax.grid(alpha=0.3)
     for ax in axs.ravel()[len(groups):]:
         ax.axis("off")
     axs.ravel()[0].legend(fontsize=7)
     fig.tight_layout()
-    curves = _png(fig)
-    esc = lambda s: (str(s).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;"))  # noqa: E731
-    cand_rows = "".join(_candidate_row(c, esc) for c in result["candidates"])
-    mis_rows = "".join(f"<tr><td>{m['side']}</td><td>{m['theta_i_deg']:g}</td><td>{m['phi_s_deg']:g}</td>"
-                       f"<td>{m['theta_s_deg'][0]:g}-{m['theta_s_deg'][1]:g}</td><td>{m['share']:.1%}</td>"
-                       f"<td>{esc(m.get('shape', ''))}</td></tr>" for m in result["mismatch"])
-    html = f"""<!doctype html><html><head><meta charset="utf-8"><title>relief diagnose</title>
-<style>body{{font-family:sans-serif;max-width:1200px;margin:auto}} table{{border-collapse:collapse}}
-td,th{{border:1px solid #ccc;padding:2px 6px;font-size:13px}}</style></head><body>
-<h1>Diagnosis: {esc(result['effect'])}</h1>
-<p>{esc(result['explanation'])}</p>
-<p>Metric: {esc(result['metric'])}. Before: <b>{result['rms_before']:.3f}</b>, after: <b>{result['rms_after']:.3f}</b>.
-Parameters: {esc(json.dumps(result['parameters']))}</p>
-<h2>Where the baseline misses</h2><table><tr><th>side</th><th>theta_i</th><th>phi_s</th><th>theta_s</th><th>share</th>
-<th>shape</th></tr>{mis_rows}</table>
-<h2>Candidates (best first; score = BIC)</h2><table><tr><th>effect</th><th>rms after</th><th>score</th>
-<th>parameters</th></tr>{cand_rows}</table>
-<h2>Residual maps</h2><img src="data:image/png;base64,{maps}" style="max-width:100%">
-<h2>In-plane curves</h2><img src="data:image/png;base64,{curves}" style="max-width:100%">
-</body></html>"""
-    return write_text_atomic(path, html)
+    return H.figure_png(fig)
+
+
+def _candidates_html(result: dict) -> str:
+    from relief_bsdf.report import html as H
+    rows = []
+    for c in result["candidates"]:
+        if c.get("skipped"):
+            rows.append([c["effect"], "not tried", "", H.Raw(H.esc(c["skipped"]))])
+        else:
+            params = ", ".join(f"{k} = {H.fmt(v)}" for k, v in (c.get("parameters") or {}).items())
+            rows.append([c["effect"], c["rms_after"], c["score"], params])
+    return H.table_html(["effect", "rms after", "score (BIC, lower is better)", "parameters"], rows)
+
+
+def write_report(path: Path, rows, v0, s0, v1, s1, result: dict) -> Path:
+    """report.html: verdict, parameters with intervals, residual maps (before/after), in-plane curves."""
+    from relief_bsdf.report import html as H
+    effects = result.get("effects") or [result["effect"]]
+    verdict = (f"<div class='verdict {'ok' if result['rms_after'] < result['rms_before'] else 'warn'}'>"
+               f"Left out: <b>{H.esc(', '.join(effects))}</b>. Metric {H.fmt(result['rms_before'], 3)} (baseline) "
+               f"&rarr; {H.fmt(result['rms_after'], 3)} with it modelled.</div>"
+               f"<p>{H.esc(result['explanation'])}</p><p class='small'><b>Metric.</b> {H.esc(result['metric'])}</p>")
+    params = (H.table_html(["parameter", "unit", "value", "68 % interval"],
+                           H.parameter_rows(result["parameters"], result.get("intervals")))
+              if result.get("parameters") else "<p>No parameters (no effect named).</p>")
+    mis = H.table_html(["side", "theta_i (deg)", "phi_s (deg)", "theta_s range (deg)", "share of residual", "shape"],
+                       [[m["side"], m["theta_i_deg"], m["phi_s_deg"],
+                         f"{H.fmt(m['theta_s_deg'][0])} - {H.fmt(m['theta_s_deg'][1])}", f"{100 * m['share']:.1f} %",
+                         m.get("shape", "")] for m in result["mismatch"]])
+    sections = [H.section("Verdict", verdict), H.section("Fitted parameters", params),
+                H.section("Where the baseline misses", mis),
+                H.section("Candidates (best first)", _candidates_html(result)),
+                H.section("Residual maps", H.figure_html(_maps_png(rows, v0, s0, v1, s1, result),
+                                                         "Residual per point, baseline (left) and with the effect "
+                                                         "(right): one row per side and incidence, same colour "
+                                                         "scale.")),
+                H.section("In-plane curves", H.figure_html(_curves_png(rows, v0, v1, result),
+                                                           "Recording (points, 1 sigma), baseline (red) and with "
+                                                           "the effect (blue); dotted: specular / undeviated "
+                                                           "direction.")),
+                H.section("Units and conventions", f"<p>{H.CONVENTIONS}</p>")]
+    return write_text_atomic(path, H.page("Diagnosis", f"format {H.esc(result.get('format', ''))}", sections))

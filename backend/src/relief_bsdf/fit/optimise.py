@@ -513,14 +513,9 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
     tables = [t for t in (t_out, t_in) if t is not None]
     save_tables(out / "boundary.h5", tables)
     files = {"boundary_table": "boundary.h5"}
-    try:
-        from relief_bsdf.io import isbsdf as bsdf_isbsdf  # type: ignore[attr-defined]
-        for t in tables:
-            name = f"boundary_{t.incident_from}.isbsdf"
-            bsdf_isbsdf.write_isbsdf(out / name, t)  # type: ignore[attr-defined]
-            files[f"isbsdf_{t.incident_from}"] = name
-    except (ImportError, AttributeError):
-        pass
+    from relief_bsdf.io.isbsdf import export_isbsdf
+    for t in tables:      # OpticStudio: one scatter type per .bsdf file, BTDF centred on the refracted ray
+        files[f"isbsdf_{t.incident_from}"] = [q.name for q in export_isbsdf(t, out / f"boundary_{t.incident_from}.bsdf")]
     write_relief(out / "relief_optimised.npz", best_relief)
     files["relief"] = "relief_optimised.npz"
     write_recording(out / "simulated.csv", rec.with_values(sim_after, after.sigma_per_sr),

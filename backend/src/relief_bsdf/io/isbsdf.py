@@ -21,17 +21,21 @@ specular delta part is not in the data: optical design programs trace it apart).
 
 Choices made here (stated because the published descriptions differ):
 
-- One ScatterType per file (`export_isbsdf`), as every reader of the format expects: a table
-  (one incidence side) gives a BRDF file and a BTDF file; one file per wavelength
-  (SpectralContent Monochrome).  `export_isbsdf` returns the paths it wrote.
-  `write_isbsdf` writes all blocks one after another into one file (a single
-  artefact for reports and fits; `read_isbsdf_all` / `import_isbsdf` read it).
-- BTDF blocks are centred on the *undeviated* (direct) transmission direction
-  (T, theta_i, phi_i + 180) of formats.md, as in Radiant's original description
-  ("relative to the angle of direct transmission"); AngleOfIncidence is then the
-  true incidence angle for both blocks and no refractive index is needed.  (Newer
-  OpticStudio notes centre BTDF data on the refracted direction; import such a file
-  with ``btdf_centre="refracted"`` and the index pair.)
+- One ScatterType per file (`export_isbsdf`), as OpticStudio expects: a table (one
+  incidence side) gives a BRDF file and a BTDF file; one file per wavelength
+  (SpectralContent Monochrome).  `export_isbsdf` returns the paths it wrote.  (Older
+  combined multi-block files are still read by `read_isbsdf_all` / `import_isbsdf`.)
+- BTDF blocks follow OpticStudio by default (``btdf_centre="refracted"``): ScatterRadial is
+  measured from the *refracted* direction (T, theta_t, phi_i + 180), sin theta_t =
+  n_i sin theta_i / n_t, the indices from the table's `material` at its wavelength; past the
+  critical angle (light from inside) there is no refracted ray and the block is centred on
+  the grazing direction (theta 90).  ``btdf_centre="undeviated"`` keeps the earlier choice
+  (Radiant's original description, "relative to the angle of direct transmission": the
+  undeviated direction (T, theta_i, phi_i + 180), no index needed).  At 60 deg into n = 1.5
+  the two centres are 25 deg apart.  AngleOfIncidence is the true incidence angle (in the
+  medium of incidence) for both blocks.  The centring is recorded in a ``# relief:`` comment;
+  a file without it (a measurement) is read as refracted-centred with the indices given to
+  `import_isbsdf` (default 1 and 1: a sample measured in air, where refracted = undeviated).
 - SampleRotation lists the table's incidence azimuths phi_i (0 for an isotropic table).
 - Directions below the horizon (radial > 90 - theta_i toward the far side) hold 0.
 - Comment lines ``# relief:`` carry the wavelength, incidence side and method, so an
@@ -91,7 +95,8 @@ def specular_frame(theta_i_deg: float, phi_i_deg: float) -> tuple[np.ndarray, np
     """(s, e0, e1): specular direction and the azimuth-0 / azimuth-90 unit vectors about it.
 
     s = w(theta_i, phi_i + 180) (mirror direction; for the BTDF block the same vector
-    in the mirrored T frame is the undeviated direction).  e0 is the tangent at s
+    in the mirrored T frame is the undeviated direction; pass the refracted polar angle as
+    `theta_i_deg` to centre on the refracted direction).  e0 is the tangent at s
     pointing toward the normal z (limit value at normal incidence), e1 = s x e0
     (counter-clockwise seen from +z).
     """
@@ -149,12 +154,13 @@ def _plane_symmetric(table: BsdfTable, k: int, w: int) -> bool:
     return bool(np.max(np.abs(v - v[..., back])) <= 1e-9 * scale)
 
 
-def _grids(table: BsdfTable, symmetric: bool) -> tuple[np.ndarray, np.ndarray]:
+def _grids(table: BsdfTable, symmetric: bool, max_centre_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """Radial and azimuth lists: the table's cell centres and edges (so sampling is exact at
-    normal incidence and twice as fine as the table elsewhere), radial out to 90 + max theta_i."""
+    normal incidence and twice as fine as the table elsewhere), radial out to 90 + the largest
+    block centre's polar angle (the far horizon seen from the centre)."""
     te, tc = table.theta_s_edges_deg, table.theta_s_deg
     step = 0.5 * float(np.mean(np.diff(te)))
-    top = min(180.0, 90.0 + float(table.theta_i_deg.max()))
+    top = min(180.0, 90.0 + float(max_centre_deg))
     ext = np.arange(te[-1] + step, top + step, step)
     radial = np.unique(np.round(np.concatenate([[0.0], tc, te, ext[ext <= top], [top]]), 9))
     radial = radial[radial <= top]
@@ -166,20 +172,54 @@ def _grids(table: BsdfTable, symmetric: bool) -> tuple[np.ndarray, np.ndarray]:
     return radial, az
 
 
-def block_from_table(table: BsdfTable, side: str, iw: int = 0) -> IsBsdfBlock:
-    """One IS-BSDF block (side 'R' -> BRDF, 'T' -> BTDF) of the table at wavelength index iw."""
+BTDF_CENTRES = ("refracted", "undeviated")
+
+
+def refracted_theta_deg(theta_i_deg: Any, n_incident: float, n_transmitted: float,
+                        past_critical: float = 90.0) -> np.ndarray:
+    """Polar angle of the refracted direction (Snell, core.fresnel.cos_transmitted);
+    `past_critical` (default 90, grazing) where there is none (total internal reflection)."""
+    from relief_bsdf.core.fresnel import cos_transmitted
+    ct = cos_transmitted(np.cos(np.radians(np.asarray(theta_i_deg, float))), n_incident, n_transmitted)
+    tir = np.abs(np.imag(ct)) > 1e-12
+    return np.where(tir, past_critical, np.degrees(np.arccos(np.clip(np.real(ct), -1.0, 1.0))))
+
+
+def table_indices(table: BsdfTable, iw: int = 0) -> tuple[float, float]:
+    """(n of the medium of incidence, n of the other medium) from the table's `material`."""
+    from relief_bsdf.core.index import Material
+    if not table.material:
+        raise InputError("is-bsdf", "the table does not state its material (refractive indices), needed to centre "
+                         "the BTDF on the refracted direction; use btdf_centre='undeviated'")
+    n1, n2 = Material.from_dict(table.material).n_pair(float(table.wavelength_nm[iw]), table.incident_from)
+    return float(np.real(n1)), float(np.real(n2))
+
+
+def _centres(table: BsdfTable, side: str, iw: int, btdf_centre: str) -> np.ndarray:
+    """Polar angle of each incidence's block centre: mirror (R), refracted or undeviated (T)."""
+    if side == "R" or btdf_centre == "undeviated":
+        return table.theta_i_deg.copy()
+    return refracted_theta_deg(table.theta_i_deg, *table_indices(table, iw))
+
+
+def block_from_table(table: BsdfTable, side: str, iw: int = 0, btdf_centre: str = "refracted") -> IsBsdfBlock:
+    """One IS-BSDF block (side 'R' -> BRDF, 'T' -> BTDF) of the table at wavelength index iw;
+    a BTDF centred on the refracted (OpticStudio, default) or the undeviated direction."""
     if side not in SIDE_TYPE:
         raise ValueError(f"side must be 'R' or 'T', got {side!r}")
+    if btdf_centre not in BTDF_CENTRES:
+        raise InputError("is-bsdf", f"btdf_centre must be one of {BTDF_CENTRES}, got {btdf_centre!r}")
+    centre = _centres(table, side, iw, btdf_centre)
     k = 0 if side == "R" else 1
     symmetric = _plane_symmetric(table, k, iw)
-    radial, az = _grids(table, symmetric)
+    radial, az = _grids(table, symmetric, float(np.max(centre)))
     wl = float(table.wavelength_nm[iw])
     P, I = table.phi_i_deg.size, table.theta_i_deg.size
     data = np.zeros((P, I, az.size, radial.size))
     R, A = np.meshgrid(radial, az)
     for p, phi_i in enumerate(table.phi_i_deg):
         for i, theta_i in enumerate(table.theta_i_deg):
-            th, ph, up = from_specular_coords(theta_i, phi_i, R, A)
+            th, ph, up = from_specular_coords(centre[i], phi_i, R, A)
             v = table.eval(wl, theta_i, phi_i, side, np.minimum(th, 90.0), ph)
             data[p, i] = np.where(up, v, 0.0)
     hemi = table.hemispherical()["diffuse_" + side][iw]          # (I, P)
@@ -187,8 +227,11 @@ def block_from_table(table: BsdfTable, side: str, iw: int = 0) -> IsBsdfBlock:
                 f"relief: wavelength_nm = {wl!r}",
                 f"relief: incident_from = {table.incident_from}",
                 f"relief: method = {table.method}",
-                "relief: btdf_centre = undeviated" if side == "T" else "relief: brdf_centre = mirror",
+                f"relief: btdf_centre = {btdf_centre}" if side == "T" else "relief: brdf_centre = mirror",
                 "relief: values = Nicodemus BSDF in 1/sr (not cosine-corrected); specular part excluded"]
+    if side == "T" and btdf_centre == "refracted":
+        n1, n2 = table_indices(table, iw)
+        comments += [f"relief: n_incident = {n1!r}", f"relief: n_transmitted = {n2!r}"]
     return IsBsdfBlock(scatter_type=SIDE_TYPE[side], symmetry="PlaneSymmetrical" if symmetric else "Asymmetrical",
                        sample_rotation_deg=table.phi_i_deg.copy(), angle_of_incidence_deg=table.theta_i_deg.copy(),
                        azimuth_deg=az, radial_deg=radial, tis=hemi.T.copy(), data_per_sr=data,
@@ -214,22 +257,9 @@ def format_block(block: IsBsdfBlock) -> str:
     return "\n".join(out)
 
 
-def write_isbsdf(path: str | Path, table: BsdfTable, wavelength_nm: float | None = None) -> Path:
-    """One combined file at `path`: the BRDF block, then the BTDF block, for every wavelength
-    (or the one nearest `wavelength_nm`).  Convenient as a single artefact (fit output) and
-    read back by `read_isbsdf_all` / `import_isbsdf`; optical design programs expect one
-    block per file, which `export_isbsdf` writes.
-    """
-    wls = range(table.wavelength_nm.size)
-    if wavelength_nm is not None:
-        wls = [int(np.argmin(np.abs(table.wavelength_nm - wavelength_nm)))]
-    text = "".join(format_block(block_from_table(table, side, iw)) for iw in wls for side in ("R", "T"))
-    return write_text_atomic(Path(path), text)
-
-
 def export_isbsdf(table: BsdfTable, path: str | Path, sides: Sequence[str] = ("R", "T"),
-                  wavelength_nm: float | None = None) -> list[Path]:
-    """Write the table as IS-BSDF file(s); returns the paths written (atomically).
+                  wavelength_nm: float | None = None, btdf_centre: str = "refracted") -> list[Path]:
+    """Write the table as IS-BSDF file(s), one scatter type each; returns the paths written (atomically).
 
     One file per side and wavelength.  With a single side and wavelength the file is
     `path` itself; otherwise `path`'s stem gets _BRDF / _BTDF and, for several
@@ -249,7 +279,7 @@ def export_isbsdf(table: BsdfTable, path: str | Path, sides: Sequence[str] = ("R
             else:
                 tag = f"_{SIDE_TYPE[side]}" + (f"_{table.wavelength_nm[iw]:g}nm" if len(wls) > 1 else "")
                 target = path.with_name(path.stem + tag + (path.suffix or ".bsdf"))
-            written.append(write_text_atomic(target, format_block(block_from_table(table, side, iw))))
+            written.append(write_text_atomic(target, format_block(block_from_table(table, side, iw, btdf_centre))))
     return written
 
 
@@ -266,8 +296,8 @@ def _numbers(tokens: list[str], n: int, where: str, what: str) -> np.ndarray:
 
 
 def read_isbsdf_all(path: str | Path) -> list[IsBsdfBlock]:
-    """Every block of a .bsdf file: one for standard files, several for the combined
-    files `write_isbsdf` makes (blocks follow one another, each ending with DataEnd)."""
+    """Every block of a .bsdf file: one for standard files, several for combined files
+    (blocks follow one another, each ending with DataEnd; written by earlier versions)."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8", errors="strict")
@@ -403,9 +433,12 @@ def _interp_block(block: IsBsdfBlock, p: int, i: int, radial: np.ndarray, az: np
 
 def import_isbsdf(paths: str | Path | Sequence[str | Path], theta_s_edges_deg: Any = None,
                   phi_s_edges_deg: Any = None, wavelength_nm: float | None = None,
-                  incident_from: str | None = None, method: str | None = None) -> BsdfTable:
+                  incident_from: str | None = None, method: str | None = None,
+                  n_incident: float | None = None, n_transmitted: float | None = None) -> BsdfTable:
     """Build a BsdfTable from IS-BSDF files: one BRDF and/or one BTDF block per wavelength
-    (standard one-block files, or combined files from `write_isbsdf`).
+    (standard one-block files, or older combined files).  A BTDF is read with the centring
+    its '# relief: btdf_centre' comment states, else as OpticStudio's (refracted) with the
+    indices n_incident / n_transmitted (tags first, then the arguments, then 1 and 1).
 
     The scatter grid defaults to 1-degree theta cells (0..90) and 5-degree phi cells;
     values are interpolated in specular coordinates at the cell centres.  Wavelength,
@@ -426,10 +459,12 @@ def import_isbsdf(paths: str | Path | Sequence[str | Path], theta_s_edges_deg: A
     if len(wl_tags) > 1:
         # several wavelengths: one table per wavelength, then stacked along the wavelength axis
         parts = [import_isbsdf_blocks([b for b in blocks if (b.relief_tag("wavelength_nm") or "") == t],
-                                      theta_s_edges_deg, phi_s_edges_deg, None, incident_from, method)
+                                      theta_s_edges_deg, phi_s_edges_deg, None, incident_from, method,
+                                      (n_incident, n_transmitted))
                  for t in wl_tags]
         return _stack_wavelengths(parts)
-    return import_isbsdf_blocks(blocks, theta_s_edges_deg, phi_s_edges_deg, wavelength_nm, incident_from, method)
+    return import_isbsdf_blocks(blocks, theta_s_edges_deg, phi_s_edges_deg, wavelength_nm, incident_from, method,
+                                (n_incident, n_transmitted))
 
 
 def _stack_wavelengths(parts: list[BsdfTable]) -> BsdfTable:
@@ -446,7 +481,7 @@ def _stack_wavelengths(parts: list[BsdfTable]) -> BsdfTable:
 
 def import_isbsdf_blocks(blocks: list[IsBsdfBlock], theta_s_edges_deg: Any = None, phi_s_edges_deg: Any = None,
                          wavelength_nm: float | None = None, incident_from: str | None = None,
-                         method: str | None = None) -> BsdfTable:
+                         method: str | None = None, indices: tuple = (None, None)) -> BsdfTable:
     """`import_isbsdf` for already parsed blocks of one wavelength (at most one BRDF, one BTDF)."""
     by_side: dict[str, IsBsdfBlock] = {}
     for b in blocks:
@@ -460,8 +495,8 @@ def import_isbsdf_blocks(blocks: list[IsBsdfBlock], theta_s_edges_deg: Any = Non
                 and np.array_equal(b.sample_rotation_deg, first.sample_rotation_deg)):
             raise InputError(b.path, "BRDF and BTDF blocks have different incidence angles / sample rotations")
     for b in blocks:
-        if b.relief_tag("btdf_centre") not in (None, "undeviated"):
-            raise InputError(b.path, "only BTDF data centred on the undeviated direction are supported")
+        if b.relief_tag("btdf_centre") not in (None,) + BTDF_CENTRES:
+            raise InputError(b.path, f"unknown btdf_centre {b.relief_tag('btdf_centre')!r} (expected {BTDF_CENTRES})")
     wl = wavelength_nm
     if wl is None:
         tag = first.relief_tag("wavelength_nm")
@@ -480,10 +515,22 @@ def import_isbsdf_blocks(blocks: list[IsBsdfBlock], theta_s_edges_deg: Any = Non
     for side, b in by_side.items():
         k = 0 if side == "R" else 1
         for p, phi_i in enumerate(rot):
+            centre = _block_centres(b, side, aoi, indices)
             for i, theta_i in enumerate(aoi):
-                radial, az = to_specular_coords(theta_i, phi_i, TH, PH)
+                radial, az = to_specular_coords(centre[i], phi_i, TH, PH)
                 values[0, i, p, k] = _interp_block(b, p, i, radial, az)
     return BsdfTable(wavelength_nm=[wl], theta_i_deg=aoi, phi_i_deg=rot, theta_s_edges_deg=te,
                      phi_s_edges_deg=pe, values_per_sr=values, incident_from=inc, method=meth,
                      metadata={"imported_from": [str(b.path) for b in blocks],
                                "tis": {b.scatter_type: b.tis.tolist() for b in blocks}})
+
+
+def _block_centres(block: IsBsdfBlock, side: str, aoi: np.ndarray, indices: tuple) -> np.ndarray:
+    """Polar angle of each block's centre when read: mirror, or the BTDF's stated centring."""
+    if side == "R" or block.relief_tag("btdf_centre") == "undeviated":
+        return aoi
+    n = []
+    for tag, arg in zip(("n_incident", "n_transmitted"), indices):
+        t = block.relief_tag(tag)
+        n.append(float(t) if t is not None else (1.0 if arg is None else float(arg)))
+    return refracted_theta_deg(aoi, n[0], n[1])

@@ -1,13 +1,16 @@
 """Reusable BSDF plots (matplotlib, Agg backend, PNG written atomically).
 
-- `plot_in_plane(ax, table, side, style=CurveStyle(...))`: in-plane BSDF curves, one per incidence angle, against
-  the signed scatter angle (negative: the phi_i + 180 half-plane, where the specular /
-  undeviated direction lies), log scale, like the paper's figures 4 and 9.  Several tables
-  can be overlaid on one axis (e.g. a measurement and a simulation with `linestyle`).
-- `plot_polar_map(ax, table, side, ii)`: the whole scatter hemisphere of one incidence as
-  a polar map of log10 f (radius theta_s, angle phi_s).
-- `table_figure(table)`: both together for one table; `save_figure(fig, path)`.
-Delta parts (specular_R/T) are not curves; they are listed in the legend text.
+- `plot_in_plane(ax, table, side, style=CurveStyle(...))`: in-plane BSDF curves, one per incidence
+  angle, against the signed scatter angle (negative: the phi_i + 180 half-plane, where the
+  specular / refracted direction lies), log scale, like the paper's figures 4 and 9.  Several
+  tables can be overlaid on one axis; `theta_i_deg` evaluates a table at another table's
+  incidence angles (`BsdfTable.eval` interpolates), so a Klems file can be laid over a fine table.
+  The delta parts (specular_R/T, a power fraction, not a curve) are marked by a triangle at the
+  mirror / refracted direction, labelled with their power.
+- `plot_polar_map(ax, table, side, ii)`: the scatter hemisphere of one incidence as a polar map
+  of f (log colour scale; radius theta_s, angle phi_s).
+- `table_figure(table)`: both together for one table; `compare_figure(tables, labels)`;
+  `save_figure(fig, path)`.
 """
 from __future__ import annotations
 
@@ -21,21 +24,24 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
-from relief_bsdf.io.atomic import atomic_path  # noqa: E402
 from relief_bsdf.bsdf.table import BsdfTable  # noqa: E402
+from relief_bsdf.errors import InputError  # noqa: E402
+from relief_bsdf.io.atomic import atomic_path  # noqa: E402
 
 SIDE_NAME = {"R": "reflection (BRDF)", "T": "transmission (BTDF)"}
+BSDF_LABEL = "BSDF f (1/sr, not cosine-corrected)"
+SIGNED_LABEL = "signed scatter angle theta_s (deg)\n< 0: phi_i + 180 half-plane (specular side)"
 
 
 def _floor(values: np.ndarray) -> float:
-    pos = values[values > 0]
+    pos = values[np.isfinite(values) & (values > 0)]
     return float(pos.max() * 1e-6) if pos.size else 1e-6
 
 
 @dataclass(frozen=True)
 class CurveStyle:
     """How one table's in-plane curves are drawn: line style, a label prefix (e.g. the method),
-    one colour per incidence (None: viridis), and whether the legend lists the delta parts."""
+    one colour per incidence (None: viridis), and whether the delta parts are marked."""
 
     linestyle: str = "-"
     label_prefix: str = ""
@@ -43,27 +49,58 @@ class CurveStyle:
     show_specular: bool = True
 
 
-def plot_in_plane(ax, table: BsdfTable, side: str, iw: int = 0, ip: int = 0, style: CurveStyle = CurveStyle()):
-    """In-plane curves of `table` for every incidence angle on `ax` (log y); returns the lines."""
-    ang, vals = table.in_plane(side, iw, ip)
+def delta_angles_deg(table: BsdfTable, side: str, theta_i_deg: np.ndarray, iw: int = 0) -> np.ndarray:
+    """Polar angle of the delta part's direction: the mirror (R) or the refracted direction (T;
+    the undeviated one when the table does not state its indices); NaN past the critical angle."""
+    th = np.asarray(theta_i_deg, float)
+    if side == "R":
+        return th
+    from relief_bsdf.io.isbsdf import refracted_theta_deg, table_indices
+    try:
+        return refracted_theta_deg(th, *table_indices(table, iw), past_critical=np.nan)
+    except (InputError, KeyError, TypeError, ValueError):
+        return th
+
+
+def _in_plane(table: BsdfTable, side: str, theta_i: np.ndarray, iw: int, ip: int) -> tuple[np.ndarray, np.ndarray]:
+    ts = table.theta_s_deg
+    phi0 = table.phi_i_deg[ip]
+    wl = table.wavelength_nm[iw]
+    ang = np.concatenate([-ts[::-1], ts])
+    vals = np.stack([np.concatenate([table.eval(wl, t, phi0, side, ts[::-1], phi0 + 180.0),
+                                     table.eval(wl, t, phi0, side, ts, phi0)]) for t in theta_i])
+    return ang, vals
+
+
+def plot_in_plane(ax, table: BsdfTable, side: str, iw: int = 0, ip: int = 0, style: CurveStyle = CurveStyle(),
+                  theta_i_deg=None):
+    """In-plane curves of `table` for every incidence angle (or those given) on `ax` (log y); returns the lines."""
+    theta_i = table.theta_i_deg if theta_i_deg is None else np.atleast_1d(np.asarray(theta_i_deg, float))
+    ang, vals = _in_plane(table, side, theta_i, iw, ip)
     cmap = plt.get_cmap("viridis")
-    n = len(table.theta_i_deg)
+    n = len(theta_i)
     lines = []
     floor = _floor(vals)
-    spec = table.specular_R if side == "R" else table.specular_T
-    for k, ti in enumerate(table.theta_i_deg):
+    spec_tab = (table.specular_R if side == "R" else table.specular_T)[iw, :, ip]
+    spec = np.interp(theta_i, table.theta_i_deg, spec_tab) if table.theta_i_deg.size > 1 else np.full(n, spec_tab[0])
+    where = delta_angles_deg(table, side, theta_i, iw)
+    top = float(np.nanmax(vals)) if np.any(np.isfinite(vals)) else 1.0
+    for k, ti in enumerate(theta_i):
         c = style.colors[k] if style.colors is not None else cmap(k / max(n - 1, 1))
         v = np.where(vals[k] > floor, vals[k], np.nan)
         lab = f"{style.label_prefix}{ti:g} deg"
-        if style.show_specular and spec[iw, k, ip] > 0:
-            lab += f" (+ delta {spec[iw, k, ip]:.3g})"
+        if style.show_specular and spec[k] > 0 and np.isfinite(where[k]):
+            lab += f" (delta {spec[k]:.3g} at theta_s {where[k]:.0f})"
+            ax.plot([-where[k]], [top * 2.0], marker="v", color=c, markersize=7, linestyle="none")
+            ax.axvline(-where[k], color=c, linestyle=":", linewidth=0.8)
         lines += ax.plot(ang, v, linestyle=style.linestyle, color=c, label=lab)
     ax.set_yscale("log")
     ax.set_xlim(-90, 90)
-    ax.set_xlabel("signed theta_s (deg); < 0: phi_i + 180 half-plane")
-    ax.set_ylabel("BSDF (1/sr)")
+    ax.set_xlabel(SIGNED_LABEL, fontsize=8)
+    ax.set_ylabel(BSDF_LABEL, fontsize=8)
     wl = table.wavelength_nm[iw]
-    ax.set_title(f"{SIDE_NAME.get(side, side)}\nlight from {table.incident_from}, {wl:g} nm", fontsize=9)
+    ax.set_title(f"{SIDE_NAME.get(side, side)}, light from {table.incident_from}, {wl:g} nm\n"
+                 "triangles: delta (specular) parts, power fraction in the legend", fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
     return lines
 
@@ -84,51 +121,67 @@ def plot_polar_map(ax, table: BsdfTable, side: str, ii: int, iw: int = 0, ip: in
     ax.set_ylim(0, te[-1])
     ax.set_yticks([30, 60, 90])
     ax.set_yticklabels(["30", "60", "90"], fontsize=6)
-    ax.tick_params(axis="x", labelsize=6)
-    ax.set_title(f"{side}, theta_i {table.theta_i_deg[ii]:g}", fontsize=8, pad=14)
+    ax.set_xticks(np.radians([0, 90, 180, 270]))
+    ax.set_xticklabels(["0", "90", "180", "270"], fontsize=6)
+    ax.set_title(f"{side}, theta_i = {table.theta_i_deg[ii]:g} deg", fontsize=8, pad=16)
     return mesh
 
 
-def table_figure(table: BsdfTable, sides=("R", "T"), iw: int = 0, ip: int = 0, max_maps: int = 6):
-    """A figure with the in-plane curves per side (top) and polar maps per incidence (below)."""
+def table_figure(table: BsdfTable, sides=("R", "T"), iw: int = 0, ip: int = 0, max_maps: int = 5):
+    """A figure with the in-plane curves per side (top) and polar maps per incidence (below),
+    one shared, labelled log colour bar per side."""
     sides = list(sides)
     I = len(table.theta_i_deg)
     pick = np.unique(np.linspace(0, I - 1, min(I, max_maps)).round().astype(int))
     ncol = max(len(pick), 2)
-    fig = plt.figure(figsize=(max(3.0 * ncol, 6.5 * len(sides)), 4.6 + 2.8 * len(sides)))
-    gs = fig.add_gridspec(1 + len(sides), 1, height_ratios=[1.7] + [1.0] * len(sides), hspace=0.5)
-    top = gs[0].subgridspec(1, len(sides), wspace=0.3)
+    fig = plt.figure(figsize=(max(3.2 * ncol + 1.2, 7.0 * len(sides)), 5.2 + 3.4 * len(sides)))
+    gs = fig.add_gridspec(1 + len(sides), 1, height_ratios=[1.8] + [1.0] * len(sides), hspace=0.55)
+    top = gs[0].subgridspec(1, len(sides), wspace=0.75)
     for s, side in enumerate(sides):
         ax = fig.add_subplot(top[0, s])
         plot_in_plane(ax, table, side, iw, ip)
-        ax.legend(fontsize=7, title="theta_i", title_fontsize=7)
-        row = gs[1 + s].subgridspec(1, ncol)
+        ax.legend(fontsize=6, title="theta_i", title_fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+        k = 0 if side == "R" else 1
+        allv = table.values_per_sr[iw, pick, ip, k]
+        pos = allv[allv > 0]
+        vmax = float(pos.max()) if pos.size else 1.0
+        row = gs[1 + s].subgridspec(1, ncol + 1, width_ratios=[1.0] * ncol + [0.08], wspace=0.45)
         for j, ii in enumerate(pick):
             pax = fig.add_subplot(row[0, j], projection="polar")
-            mesh = plot_polar_map(pax, table, side, int(ii), iw, ip)
-        fig.colorbar(mesh, ax=pax, fraction=0.046, pad=0.12).ax.tick_params(labelsize=6)
+            mesh = plot_polar_map(pax, table, side, int(ii), iw, ip, vmin=vmax * 1e-5, vmax=vmax)
+        cax = fig.add_subplot(row[0, ncol])
+        fig.colorbar(mesh, cax=cax).set_label(f"f_{side} (1/sr)", fontsize=7)
+        cax.tick_params(labelsize=6)
     h = table.hemispherical()
-    fig.suptitle(f"method {table.method}: R = {np.round(h['R'][iw, :, ip], 4).tolist()}, "
-                 f"T = {np.round(h['T'][iw, :, ip], 4).tolist()}", fontsize=8)
+    fig.suptitle(f"method {table.method}, light from {table.incident_from}: hemispherical R = "
+                 f"{', '.join(f'{x:.3f}' for x in h['R'][iw, :, ip])}; T = "
+                 f"{', '.join(f'{x:.3f}' for x in h['T'][iw, :, ip])} (theta_i = "
+                 f"{', '.join(f'{x:g}' for x in table.theta_i_deg)} deg; polar maps: radius theta_s, "
+                 "angle phi_s in deg)", fontsize=8)
     return fig
 
 
 def compare_figure(tables: list, labels: list, sides=("R", "T"), iw: int = 0, ip: int = 0):
-    """In-plane curves of several tables overlaid (one line style per table, one colour per incidence).
+    """In-plane curves of several tables overlaid (one line style per table, one colour per
+    incidence), every table evaluated at the first table's incidence angles and wavelength.
 
-    Tables are matched by incidence angle index; e.g. `ray`, `normals` and `microfacet` tables of
-    one relief, or a simulation against a measurement converted to a table.
-    """
+    E.g. `ray`, `normals` and `microfacet` tables of one relief, or a reconstruction against a
+    measured IS-BSDF / XML file read by io.tables."""
     styles = ["-", "--", ":", "-."]
     sides = list(sides)
-    fig, axs = plt.subplots(1, len(sides), figsize=(6.5 * len(sides), 5.0), squeeze=False)
+    ref = tables[0]
+    fig, axs = plt.subplots(1, len(sides), figsize=(7.0 * len(sides), 5.6 + 0.12 * len(ref.theta_i_deg)),
+                            squeeze=False)
     for s, side in enumerate(sides):
         ax = axs[0, s]
         for k, (t, lab) in enumerate(zip(tables, labels)):
-            style = CurveStyle(linestyle=styles[k % len(styles)], label_prefix=f"{lab} ", show_specular=False)
-            plot_in_plane(ax, t.select(tables[0].wavelength_nm[iw]), side, 0, ip, style)
-        ax.legend(fontsize=6, ncol=len(tables))
-    fig.suptitle(" vs ".join(f"{lab} ({st})" for lab, st in zip(labels, styles * 4)), fontsize=9)
+            style = CurveStyle(linestyle=styles[k % len(styles)], label_prefix=f"{lab} ", show_specular=(k == 0))
+            plot_in_plane(ax, t.select(ref.wavelength_nm[iw]), side, 0, min(ip, t.phi_i_deg.size - 1), style,
+                          theta_i_deg=ref.theta_i_deg)
+        ax.legend(fontsize=6, ncol=len(tables), loc="upper center", bbox_to_anchor=(0.5, -0.2))
+    fig.suptitle(" vs ".join(f"{lab} ({st})" for lab, st in zip(labels, styles * 4))
+                 + f"  at theta_i of {labels[0]}", fontsize=9)
+    fig.tight_layout()
     return fig
 
 
