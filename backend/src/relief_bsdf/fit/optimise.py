@@ -175,7 +175,10 @@ class FitResult:
     def to_json(self, extra: dict | None = None) -> dict:
         d = {"format": FIT_FORMAT, "metric": self.metric, "rms_before": self.rms_before, "rms_after": self.rms_after,
              "parameters": {"height_scale": self.height_scale, "filter_sigma_um": self.filter_sigma_um},
-             "intervals": self.intervals, "correlation": self.correlation,
+             "intervals": self.intervals,
+             "correlation": None if self.correlation is None else
+             {"names": ["ln height_scale", "filter_sigma_um^2"], "matrix": [[1.0, self.correlation],
+                                                                             [self.correlation, 1.0]]},
              "identifiability": {"filter_needed": self.filter_needed, "bic_gain_of_filter": self.bic_gain,
                                  "ridge": self.ridge, "criterion": f"BIC = chi2 + k ln n, chi2 = n metric^2; the "
                                  f"filter is kept when it lowers the BIC by more than {BIC_MARGIN:g}",

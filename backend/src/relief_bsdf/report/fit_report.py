@@ -187,12 +187,20 @@ def write_fit_report(path: str | Path, doc: dict, plots: dict, renders: dict | N
     fit_sec = params + H.correlation_html(doc.get("correlation"))
     if doc.get("intervals") is None:
         fit_sec += "<p class='small'>This fit did not estimate parameter intervals.</p>"
+    if doc.get("warnings"):
+        fit_sec += ("<p><b>What the recording determines:</b></p><ul>"
+                    + "".join(f"<li>{H.esc(w)}</li>" for w in doc["warnings"]) + "</ul>")
+    ident = doc.get("identifiability") or {}
+    if ident.get("criterion"):
+        fit_sec += f"<p class='small'>{H.esc(ident['criterion'])}; {H.esc(ident.get('interval_method', ''))}.</p>"
     figs = "".join(H.figure_html(base / f, CAPTIONS.get(k, k)) for k, f in plots.items() if (base / f).exists())
     sections = [H.section("Summary", summary), H.section("Fitted parameters", fit_sec),
                 H.section("Plate BSDF before and after", figs)]
     if renders:
         sections.append(H.section("Plate renders", "".join(H.figure_html(p, cap) for cap, p in renders.items())))
     physics = f"<p>Boundary method: <b>{H.esc(doc.get('method', 'unknown'))}</b>.</p>"
+    if doc.get("method_reason"):
+        physics += f"<p class='small'>Why: {H.esc(doc['method_reason'])}</p>"
     physics += H.kv_html(doc["physics"]) if doc.get("physics") else "<p>Not recorded.</p>"
     if doc.get("relief_history"):
         physics += "<p class='small'>Relief operations: " + H.esc("; ".join(map(str, doc["relief_history"]))) + "</p>"
