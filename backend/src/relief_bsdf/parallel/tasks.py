@@ -314,7 +314,7 @@ def _run_processes(fn: Callable, context: Any, items: list[tuple[int, Any]], set
     restarts = 0
     while pending:
         pool = ProcessPoolExecutor(max_workers=max(1, min(workers, len(pending))), initializer=init_worker,
-                                   initargs=(token, context), mp_context=_pool_context())
+                                   initargs=(token, context, os.getpid()), mp_context=_pool_context())
         clean = False
         try:
             broken = yield from _pool_round(pool, fn, token, pending, workers)
