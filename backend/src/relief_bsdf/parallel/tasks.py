@@ -339,10 +339,19 @@ def _crashed(restarts: int, pending: dict[int, Any], label: str, settings: Paral
 
 def _run_dask(fn: Callable, context: Any, items: list[tuple[int, Any]], settings: ParallelSettings,
               label: str) -> Iterator[tuple[int, Any]]:
-    spec = settings.dask if settings.dask is not None else os.environ.get("RELIEF_DASK_SCHEDULER")
-    client = cluster.get_client(check_dask_spec(spec) or "local", workers=settings.workers)
+    spec = settings.dask
+    if spec is None and os.environ.get("RELIEF_DASK_SCHEDULER"):
+        # the environment redirects the work to another machine: say so, never silently
+        spec = check_dask_spec(os.environ["RELIEF_DASK_SCHEDULER"], "$RELIEF_DASK_SCHEDULER")
+        if spec not in _ENV_NOTED:
+            _ENV_NOTED.add(spec)
+            _note(f"tasks run on the Dask scheduler {spec} named by $RELIEF_DASK_SCHEDULER")
+    client = cluster.get_client(spec or "local", workers=settings.workers)
     yield from cluster.run_on_client(client, fn, context, items, retries=settings.retries, label=label)
 
+
+#: schedulers named by $RELIEF_DASK_SCHEDULER already announced in this process (one note each)
+_ENV_NOTED: set[str] = set()
 
 _RUNNERS = {"serial": _run_serial, "processes": _run_processes, "dask": _run_dask}
 
