@@ -154,6 +154,8 @@ def _array_from(body: Any, arrays: Any) -> np.ndarray:
         a = np.asarray(arrays[body])
     elif isinstance(body, dict) and set(body) == {"dtype", "shape", "b64"}:
         dt = np.dtype(str(body["dtype"]))
+        if dt.kind not in _ARRAY_KINDS:
+            raise ValueError(f"array of dtype {dt} is not data")
         shape = tuple(int(s) for s in body["shape"])
         a = np.frombuffer(base64.b64decode(body["b64"], validate=True), dtype=dt).reshape(shape).copy()
     else:
