@@ -199,6 +199,7 @@ def test_hdf5_file_that_is_not_a_table(tmp_path, capsys):
         h["data"] = np.arange(4.0)
     assert_refused(capsys, str(f), "export", f, "--format", "recording-csv", "-o", tmp_path / "o.csv",
                    why="not a relief BSDF table")
+    assert_refused(capsys, str(f), "info", f, why="no height-map channel")
     g = tmp_path / "half.h5"
     with h5py.File(g, "w") as h:
         h.attrs["format"] = "relief-bsdf-table/1"

@@ -61,6 +61,12 @@ def file_digest(path: str | Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+def input_digests(**paths: str | Path) -> dict[str, str]:
+    """{name: file_digest(path)} for the input files of a run (the "inputs" part of a key), e.g.
+    ``input_digests(sample=s.path, relief=s.relief_path, recording=s.recording_path)``."""
+    return {name: file_digest(p) for name, p in sorted(paths.items())}
+
+
 @functools.lru_cache(maxsize=1)
 def code_version() -> str:
     """The package version plus a digest of its source files (an edited checkout is another code version)."""

@@ -419,9 +419,18 @@ def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str
             raise InputError(path, f"cannot read {what}: {type(e).__name__}: {_one_line(e)} "
                                    "(supported: x3p, gwy, sur, sdf, datx/dat, plu/plux, opd, di/spm, nid, ibw, "
                                    "mi, frt, npz, float tif/exr and the other SurfaceTopography formats)") from None
-        chans = reader.channels
+        try:
+            chans = list(reader.channels)
+        except Exception as e:  # noqa: BLE001 - a reader failing on a foreign layout
+            raise InputError(path, f"cannot read the channels: {type(e).__name__}: {_one_line(e)}") from None
+        if not chans:
+            raise InputError(path, "the file holds no height-map channel (is it a height map at all? an HDF5 "
+                                   "BSDF table needs the relief-bsdf-table/1 layout)")
         if channel is None:
-            ch = reader.default_channel
+            try:
+                ch = reader.default_channel
+            except (IndexError, KeyError, AttributeError):
+                ch = chans[0]
         elif isinstance(channel, str) and not channel.lstrip("-").isdigit():
             found = [c for c in chans if c.name == channel] or [c for c in chans if c.name.lower() == channel.lower()]
             if not found:
