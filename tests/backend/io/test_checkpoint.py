@@ -94,3 +94,25 @@ def test_malformed_trees_are_refused():
         with pytest.raises(ValueError):
             decode(bad)
     assert decode(encode(float("-inf"))) == float("-inf")
+
+
+def test_package_dataclasses_round_trip_others_are_refused(tmp_path):
+    import dataclasses
+
+    from relief_bsdf.bsdf.builder import TableCells
+    cells = TableCells(values_per_sr=np.ones((2, 3, 4), np.float32), sigma_per_sr=np.zeros((2, 3, 4), np.float32),
+                       specular_R=0.04, specular_T=0.9, lost=0.0, lost_detail={"escaped": 0.0}, outside_table=0.01)
+    store = CheckpointStore(tmp_path / "ck.npz", {"k": 1})
+    store.save({"result": cells})
+    back = store.load()["result"]
+    assert isinstance(back, TableCells) and back.specular_R == 0.04 and back.mueller_per_sr is None
+    assert np.array_equal(back.values_per_sr, cells.values_per_sr) and back.values_per_sr.dtype == np.float32
+
+    @dataclasses.dataclass
+    class Foreign:
+        x: int = 1
+    with pytest.raises(TypeError):
+        encode(Foreign())
+    for name in ("os:system", "builtins:eval", "relief_bsdf.io.checkpoint:decode", "relief_bsdf.io.checkpoint:_x.y"):
+        with pytest.raises(ValueError):
+            decode({"dataclass": [name, {}]})

@@ -13,9 +13,12 @@ checkpoint folder running code when it is loaded.  So:
 - a checkpoint holds **data only**: JSON (`.json`) or a numpy archive read with
   ``allow_pickle=False`` (`.npz`), with a small tagged encoding (`encode` / `decode`) for
   the values tasks return: None, bool, int, float (NaN and infinities too, the JSON stays
-  strict), str, list, tuple, dict (any of these as keys) and numeric / boolean / string numpy
-  arrays and scalars.  Anything else (an object, a dataclass, an object array) is refused
-  when saving (`TypeError`): nothing is ever unpickled or imported by name;
+  strict), str, list, tuple, dict (any of these as keys), numeric / boolean / string numpy
+  arrays and scalars, and the package's own dataclasses (`relief_bsdf.*`, e.g. a task's
+  `TableCells`: stored as their fields, rebuilt only if the named class is a dataclass of
+  this package).  Anything else (another object, an object array) is refused when saving
+  (`TypeError`): nothing is ever unpickled, and no callable but a relief_bsdf dataclass's
+  constructor is ever looked up by name;
 - a file that does not parse or does not follow the layout is ignored with a note, never
   trusted; writes are atomic (`relief_bsdf.io.atomic`).
 
@@ -34,7 +37,9 @@ Format of a `.json` checkpoint: ``{"format": "relief-checkpoint/1", "key_digest"
 from __future__ import annotations
 
 import base64
+import dataclasses
 import functools
+import importlib
 import hashlib
 import io
 import json
@@ -112,6 +117,10 @@ def encode(value: Any, arrays: dict[str, np.ndarray] | None = None) -> Any:
         return {"scalar": _array_node(np.asarray(value), arrays)}
     if isinstance(value, np.ndarray):
         return {"array": _array_node(value, arrays)}
+    cls = type(value)
+    if dataclasses.is_dataclass(value) and cls.__module__.startswith("relief_bsdf.") and "<" not in cls.__qualname__:
+        fields = {f.name: encode(getattr(value, f.name), arrays) for f in dataclasses.fields(value)}
+        return {"dataclass": [f"{cls.__module__}:{cls.__qualname__}", fields]}
     raise TypeError(f"a checkpoint holds data only; cannot store a {type(value).__module__}.{type(value).__name__}")
 
 
@@ -147,10 +156,35 @@ def decode(tree: Any, arrays: Any = None) -> Any:
             k = decode(pair[0], arrays)
             out[k if not isinstance(k, list) else tuple(k)] = decode(pair[1], arrays)
         return out
+    if tag == "dataclass" and isinstance(body, list) and len(body) == 2 and isinstance(body[1], dict):
+        return _dataclass_from(str(body[0]), {str(k): decode(v, arrays) for k, v in body[1].items()})
     if tag in ("array", "scalar"):
         a = _array_from(body, arrays)
         return a if tag == "array" else a.reshape(())[()]
     raise ValueError(f"unknown checkpoint tag {tag!r}")
+
+
+def _dataclass_from(name: str, values: dict) -> Any:
+    """Rebuild a relief_bsdf dataclass; refuse anything else (no other name is ever resolved)."""
+    module, _, qualname = name.partition(":")
+    if not module.startswith("relief_bsdf.") or not qualname or not all(p.isidentifier() for p in qualname.split(".")):
+        raise ValueError(f"{name!r} is not a relief_bsdf data class")
+    try:
+        obj: Any = importlib.import_module(module)
+        for part in qualname.split("."):
+            obj = getattr(obj, part)
+    except (ImportError, AttributeError) as e:
+        raise ValueError(f"{name!r}: {e}") from None
+    if not (isinstance(obj, type) and dataclasses.is_dataclass(obj)):
+        raise ValueError(f"{name!r} is not a data class")
+    fields = {f.name: f for f in dataclasses.fields(obj)}
+    if set(values) != set(fields):
+        raise ValueError(f"{name}: fields {sorted(values)} do not match {sorted(fields)}")
+    out = obj(**{k: v for k, v in values.items() if fields[k].init})
+    for k, v in values.items():
+        if not fields[k].init:
+            object.__setattr__(out, k, v)
+    return out
 
 
 def _array_from(body: Any, arrays: Any) -> np.ndarray:
