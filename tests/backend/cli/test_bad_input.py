@@ -318,3 +318,16 @@ def test_outputs_honour_the_umask_and_stale_parts_are_removed(tmp_path, capsys):
     assert stat.S_IMODE((tmp_path / "r.npz").stat().st_mode) == 0o640
     assert not stale.exists()
     assert not [p for p in tmp_path.iterdir() if ".part" in p.name]
+
+
+def test_sample_that_is_a_fifo_or_folder_and_a_checkpoint_dir_that_is_a_file(tmp_path, capsys):
+    fifo = tmp_path / "s.toml"
+    os.mkfifo(fifo)
+    assert_refused(capsys, str(fifo), "simulate", fifo, "-o", tmp_path / "out", why="not a regular file")
+    (tmp_path / "d.toml").mkdir()
+    assert_refused(capsys, str(tmp_path / "d.toml"), "fit", tmp_path / "d.toml", "-o", tmp_path / "out",
+                   why="is a folder")
+    s = _sample(tmp_path / "ok") if (tmp_path / "ok").mkdir() is None else None
+    (tmp_path / "ck").write_text("x")
+    assert_refused(capsys, str(tmp_path / "ck"), "simulate", s, "-o", tmp_path / "out", "--checkpoint-dir",
+                   tmp_path / "ck", why="is a file")

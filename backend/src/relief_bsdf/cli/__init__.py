@@ -82,8 +82,12 @@ def input_warnings_as_lines() -> Iterator[None]:
 
 
 def check_output(args: argparse.Namespace) -> None:
-    """The command's -o/--out is writable and of the right kind (file or folder); InputError if not."""
+    """The command's -o/--out (and --checkpoint-dir) is writable and of the right kind (file or folder);
+    InputError naming it if not."""
     from relief_bsdf.io.atomic import check_output_dir, check_output_file
+    ck = getattr(args, "checkpoint_dir", None)
+    if ck:
+        check_output_dir(ck)
     out = getattr(args, "out", None)
     kind = OUTPUT_KIND.get(args.command)
     if out is None or kind is None:

@@ -165,6 +165,10 @@ def _parse_float(text: str, where: str, column: str) -> float:
 
 def _read_bytes(path: Path, what: str) -> bytes:
     """The file's bytes, or an InputError naming the file ("<what> file not found", ...)."""
+    if path.is_dir():
+        raise InputError(path, f"is a folder; expected a {what} file")
+    if path.exists() and not path.is_file():
+        raise InputError(path, f"not a regular file (a FIFO, socket or device?); expected a {what} file")
     try:
         return path.read_bytes()
     except FileNotFoundError:
