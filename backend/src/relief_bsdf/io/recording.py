@@ -28,8 +28,9 @@ sample.toml
     ``plate.refractive_index`` (and a Cauchy index between 380 and 1000 nm) in
     [1.05, 5] (transparent solids: aerogels ~1.05 up to germanium ~4 in the infrared;
     n = 1 has no boundary at all); ``instrument.detector_half_angle_deg`` in
-    [0.01, 90) (a cone below 0.01 deg collects a solid angle below 1e-7 sr: no
-    goniophotometer integrates that little light).
+    [0.01, 45) (a cone below 0.01 deg collects a solid angle below 1e-7 sr: no
+    goniophotometer integrates that little light; the plate model's detector takes cones
+    below 45 deg).
 """
 from __future__ import annotations
 
@@ -297,7 +298,7 @@ def write_recording(path: str | Path, rec: Recording, comments: Any = ()) -> Pat
 #: plausible ranges of sample.toml values (see the module doc for why)
 THICKNESS_RANGE_MM = (0.01, 1000.0)
 INDEX_RANGE = (1.05, 5.0)
-DETECTOR_HALF_ANGLE_MIN_DEG = 0.01
+DETECTOR_HALF_ANGLE_RANGE_DEG = (0.01, 45.0)
 
 
 @dataclass
@@ -438,10 +439,10 @@ def _sample_from_doc(doc: dict, path: Path, check_files: bool) -> Sample:
 
     inst = tables["instrument"]
     half = _number(inst, "instrument", "detector_half_angle_deg", path)
-    if not DETECTOR_HALF_ANGLE_MIN_DEG <= half < 90:
-        raise InputError(path, f"key instrument.detector_half_angle_deg: {half:g} is outside "
-                               f"[{DETECTOR_HALF_ANGLE_MIN_DEG:g}, 90) deg (a detector cone; below "
-                               f"{DETECTOR_HALF_ANGLE_MIN_DEG:g} deg it collects almost no light)")
+    lo, hi = DETECTOR_HALF_ANGLE_RANGE_DEG
+    if not lo <= half < hi:
+        raise InputError(path, f"key instrument.detector_half_angle_deg: {half:g} is outside [{lo:g}, {hi:g}) deg "
+                               f"(a detector cone; below {lo:g} deg it collects almost no light)")
     pol = _string(inst, "instrument", "polarization", path, default="unpolarized")
     if pol not in ("unpolarized", "s", "p"):
         raise InputError(path, f"key instrument.polarization: expected \"unpolarized\", \"s\" or \"p\", got {pol!r}")
