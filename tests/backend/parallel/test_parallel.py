@@ -351,3 +351,25 @@ def test_parallel_modules_have_no_import_cycle():
     par = "relief_bsdf.parallel"
     assert not {m for m in imports(f"{par}.settings") | imports(f"{par}.worker") if m.startswith(par)}
     assert {m for m in imports(f"{par}.cluster") if m.startswith(par)} == {f"{par}.settings", f"{par}.worker"}
+
+
+def test_foreign_and_planted_checkpoints_are_never_trusted(tmp_path, capsys):
+    """A checkpoint copied under another task's name is ignored (one note); a planted pickle is never opened."""
+    import pickle
+    import shutil
+
+    ck = tmp_path / "ck"
+    ref = parallel.map_tasks(synthetic_task, TASKS[:3], _ctx(), backend="serial", checkpoint_dir=ck)
+    names = parallel.task_keys(synthetic_task, TASKS[:3], _ctx())
+    shutil.copy(ck / f"{names[0]}.npz", ck / f"{names[1]}.npz")
+
+    class Payload:
+        def __reduce__(self):
+            return (exec, (f"open({str(tmp_path / 'pwned')!r}, 'w').close()",))
+    (ck / f"{names[2]}.pkl.z").write_bytes(pickle.dumps(Payload()))
+    capsys.readouterr()
+    out = parallel.map_tasks(synthetic_task, TASKS[:3], _ctx(), backend="serial", checkpoint_dir=ck)
+    assert _same(out, ref) and parallel.last_run()["computed"] == 1
+    assert not (tmp_path / "pwned").exists()
+    notes = capsys.readouterr().err.strip().splitlines()
+    assert len(notes) == 2 and "ignored 1 checkpoint" in notes[0] and "pkl.z" in notes[1]
