@@ -7,7 +7,6 @@ implausible input) exit 0 with one ``relief: warning:`` line naming the file.
 """
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import os
@@ -327,7 +326,8 @@ def test_sample_that_is_a_fifo_or_folder_and_a_checkpoint_dir_that_is_a_file(tmp
     (tmp_path / "d.toml").mkdir()
     assert_refused(capsys, str(tmp_path / "d.toml"), "fit", tmp_path / "d.toml", "-o", tmp_path / "out",
                    why="is a folder")
-    s = _sample(tmp_path / "ok") if (tmp_path / "ok").mkdir() is None else None
+    (tmp_path / "ok").mkdir()
+    s = _sample(tmp_path / "ok")
     (tmp_path / "ck").write_text("x")
     assert_refused(capsys, str(tmp_path / "ck"), "simulate", s, "-o", tmp_path / "out", "--checkpoint-dir",
                    tmp_path / "ck", why="is a file")

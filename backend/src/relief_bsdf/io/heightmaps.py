@@ -61,7 +61,6 @@ import hashlib
 import io
 import json
 import os
-import re
 import struct
 import warnings
 import zipfile
