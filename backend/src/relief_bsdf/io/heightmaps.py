@@ -405,9 +405,9 @@ def _surface_topography_version() -> str:
 
 
 def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str | None) -> Relief:
-    import SurfaceTopography as ST
     if path.suffix.lower() == ".x3p":
-        check_x3p(path)
+        check_x3p(path)                 # before SurfaceTopography allocates anything
+    import SurfaceTopography as ST
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         fmt = _st_format_for(path)
