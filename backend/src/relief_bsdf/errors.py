@@ -1,11 +1,16 @@
-"""Errors raised at the edges of the backend.
+"""Errors (and warnings) raised at the edges of the backend.
 
 `InputError` is the one exception the command line turns into exit code 2 and a
 one-line message: it always names the offending file (or argument) and says what
 was expected.  Everything else escaping the backend is an internal error (exit 1).
+
+`InputWarning` (issued by `warn_input`) is an input that is accepted but implausible
+(an rms height of metres, a checksum that does not match); it too names the file and
+says why, and the command line prints it as one line ``relief: warning: FILE: ...``.
 """
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 
@@ -28,3 +33,13 @@ class RequestError(InputError):
 
     def __init__(self, message: str, where: str | None = "request"):
         super().__init__(where, message)
+
+
+class InputWarning(UserWarning):
+    """An accepted but implausible input: the message names the file and says why."""
+
+
+def warn_input(where: str | Path | None, message: str) -> None:
+    """Issue an `InputWarning` "<where>: <message>" (shown once per distinct message)."""
+    text = f"{where}: {message}" if where else message
+    warnings.warn(InputWarning(text), stacklevel=3)

@@ -95,7 +95,7 @@ def test_checkpoints_resume_after_a_failed_run(tmp_path):
     with pytest.raises(RuntimeError, match="poisoned task 5"):
         parallel.map_tasks(synthetic_task, TASKS, ctx, backend="serial", checkpoint_dir=ck)
     assert _executions(ctx) == [0, 1, 2, 3, 4, 5]
-    assert len(list(ck.glob("*.pkl.z"))) == 5
+    assert len(list(ck.glob("[!.]*.npz"))) == 5
     poison.unlink()
     _clear_log(ctx)
     seen = []
@@ -123,7 +123,7 @@ def test_checkpoint_keys_change_with_context_task_and_function(tmp_path):
 def test_damaged_checkpoint_is_recomputed(tmp_path):
     ck = tmp_path / "ck"
     ref = parallel.map_tasks(synthetic_task, TASKS[:3], _ctx(), backend="serial", checkpoint_dir=ck)
-    victim = ck / (parallel.task_keys(synthetic_task, TASKS[:3], _ctx())[1] + ".pkl.z")
+    victim = ck / (parallel.task_keys(synthetic_task, TASKS[:3], _ctx())[1] + ".npz")
     victim.write_bytes(b"not a checkpoint")
     out = parallel.map_tasks(synthetic_task, TASKS[:3], _ctx(), backend="serial", checkpoint_dir=ck)
     assert _same(out, ref)
@@ -147,7 +147,7 @@ def test_killed_run_resumes_from_checkpoints(tmp_path):
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         t0 = time.monotonic()
-        while len(list(ck.glob("*.pkl.z"))) < 4:
+        while len(list(ck.glob("[!.]*.npz"))) < 4:
             assert time.monotonic() - t0 < 60, "the run never checkpointed"
             assert proc.poll() is None, "the run ended before it was killed"
             time.sleep(0.02)
@@ -156,7 +156,7 @@ def test_killed_run_resumes_from_checkpoints(tmp_path):
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    finished = len(list(ck.glob("*.pkl.z")))
+    finished = len(list(ck.glob("[!.]*.npz")))
     assert 4 <= finished < N
     _clear_log(ctx)
     out = parallel.map_tasks(synthetic_task, TASKS, ctx, backend="serial", checkpoint_dir=ck)
@@ -258,14 +258,14 @@ def test_grouped_tasks_checkpoint_and_resume_one_by_one(tmp_path, monkeypatch):
     ctx = _ctx(tmp_path, poison_file=str(poison), poison_from=N - 1)
     with pytest.raises(RuntimeError, match="poisoned"):
         parallel.map_tasks(synthetic_task, TASKS, ctx, backend="processes", workers=2, checkpoint_dir=ck)
-    saved = len(list(ck.glob("*.pkl.z")))
+    saved = len(list(ck.glob("[!.]*.npz")))
     assert saved <= N - 2                                    # the group holding task N-1 never returned
     poison.unlink()
     seen = []
     out = parallel.map_tasks(synthetic_task, TASKS, ctx, backend="processes", workers=2, checkpoint_dir=ck,
                              progress=lambda d, n, w: seen.append(d))
     assert _same(out, parallel.map_tasks(synthetic_task, TASKS, _ctx(), backend="serial"))
-    assert len(list(ck.glob("*.pkl.z"))) == N
+    assert len(list(ck.glob("[!.]*.npz"))) == N
     assert seen[-1] == N and seen == sorted(seen)
 
 
@@ -351,3 +351,25 @@ def test_parallel_modules_have_no_import_cycle():
     par = "relief_bsdf.parallel"
     assert not {m for m in imports(f"{par}.settings") | imports(f"{par}.worker") if m.startswith(par)}
     assert {m for m in imports(f"{par}.cluster") if m.startswith(par)} == {f"{par}.settings", f"{par}.worker"}
+
+
+def test_foreign_and_planted_checkpoints_are_never_trusted(tmp_path, capsys):
+    """A checkpoint copied under another task's name is ignored (one note); a planted pickle is never opened."""
+    import pickle
+    import shutil
+
+    ck = tmp_path / "ck"
+    ref = parallel.map_tasks(synthetic_task, TASKS[:3], _ctx(), backend="serial", checkpoint_dir=ck)
+    names = parallel.task_keys(synthetic_task, TASKS[:3], _ctx())
+    shutil.copy(ck / f"{names[0]}.npz", ck / f"{names[1]}.npz")
+
+    class Payload:
+        def __reduce__(self):
+            return (exec, (f"open({str(tmp_path / 'pwned')!r}, 'w').close()",))
+    (ck / f"{names[2]}.pkl.z").write_bytes(pickle.dumps(Payload()))
+    capsys.readouterr()
+    out = parallel.map_tasks(synthetic_task, TASKS[:3], _ctx(), backend="serial", checkpoint_dir=ck)
+    assert _same(out, ref) and parallel.last_run()["computed"] == 1
+    assert not (tmp_path / "pwned").exists()
+    notes = capsys.readouterr().err.strip().splitlines()
+    assert len(notes) == 2 and "ignored 1 checkpoint" in notes[0] and "pkl.z" in notes[1]

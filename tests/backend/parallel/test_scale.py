@@ -143,7 +143,7 @@ def test_checkpointed_dask_run_resumes_after_failure(client, tmp_path):
     with pytest.raises(RuntimeError, match="poisoned task"):
         parallel.map_tasks(synthetic_task, TASKS, ctx, retries=0, checkpoint_dir=ck)
     keys = parallel.task_keys(synthetic_task, TASKS, ctx)
-    saved = {k for k in range(N) if (ck / f"{keys[k]}.pkl.z").exists()}
+    saved = {k for k in range(N) if (ck / f"{keys[k]}.npz").exists()}
     assert saved <= set(range(10))
     poison.unlink()
     for p in Path(ctx["log_dir"]).iterdir():
@@ -255,7 +255,7 @@ def test_cli_reconstruct_on_a_local_dask_cluster_matches_default(tmp_path):
     assert b.returncode == 0, b.stderr
     ta, tb = load_tables(tmp_path / "a.h5")[0], load_tables(tmp_path / "b.h5")[0]
     assert ta.values_per_sr.any() and np.array_equal(ta.values_per_sr, tb.values_per_sr)
-    assert len(list((tmp_path / "ck").glob("normals-*.pkl.z"))) == 2 * 2 * 2
+    assert len(list((tmp_path / "ck").glob("normals-*.npz"))) == 2 * 2 * 2
     bad = subprocess.run(relief_cli + ["--dask", "nowhere", "-o", str(tmp_path / "c.h5")], capture_output=True,
                          text=True, env=env)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--dask" in bad.stderr

@@ -135,6 +135,10 @@ def run(args) -> int:
     path = Path(args.file)
     if not path.exists():
         raise InputError(path, "file not found")
+    if path.is_dir():
+        raise InputError(path, "is a folder; expected a file")
+    if not path.is_file():
+        raise InputError(path, "not a regular file (a FIFO, socket or device would block or never end)")
     show = {"relief": _info_relief, "bsdf": _info_bsdf, "recording": _info_recording, "sample": _info_sample,
             "is-bsdf": _info_isbsdf}[_kind(path)]
     return show(path, args)

@@ -64,10 +64,16 @@ def save_tables(path: str | Path, tables: list[BsdfTable], compression: int = 4)
 
 
 def load_tables(path: str | Path) -> list[BsdfTable]:
-    """Read every table in an HDF5 file written by `save_tables`."""
+    """Read every table in an HDF5 file written by `save_tables`.
+
+    Anything that is not such a file (another HDF5 layout, missing or mistyped groups,
+    datasets or attributes, inconsistent shapes) raises an `InputError` naming the file.
+    """
     path = Path(path)
     if not path.exists():
         raise InputError(path, "file not found")
+    if not path.is_file():
+        raise InputError(path, "not a regular file (a folder?); expected an HDF5 BSDF table (.h5)")
     try:
         f = h5py.File(path, "r")
     except OSError as e:
@@ -76,23 +82,30 @@ def load_tables(path: str | Path) -> list[BsdfTable]:
         if f.attrs.get("format") != FORMAT:
             raise InputError(path, f"not a relief BSDF table (format attribute {f.attrs.get('format')!r}, "
                              f"expected {FORMAT!r})")
-        out = []
-        for name in str(f.attrs["tables"]).split(","):
-            if name not in f:
-                raise InputError(path, f"table group {name!r} listed but missing")
-            g = f[name]
-            try:
-                kw = {ax: g[ax][()] for ax in _AXES}
-                kw.update({n: g[n][()] for n in _PER_INCIDENCE})
-                kw.update({n: g[n][()].astype(np.float64) for n in _OPTIONAL if n in g})
-                t = BsdfTable(values_per_sr=g["values_per_sr"][()].astype(np.float64),
-                              incident_from=str(g.attrs["incident_from"]), method=str(g.attrs["method"]),
-                              material=json.loads(g.attrs["material"]), relief=json.loads(g.attrs["relief"]),
-                              metadata=json.loads(g.attrs["metadata"]), **kw)
-            except KeyError as e:
-                raise InputError(path, f"table {name!r} lacks {e}") from None
-            out.append(t)
-        return out
+        listed = f.attrs.get("tables")
+        if not isinstance(listed, (str, bytes)) or not str(listed).strip():
+            raise InputError(path, "not a relief BSDF table: the root attribute 'tables' (comma-separated group "
+                                   "names) is missing or empty")
+        listed = listed.decode() if isinstance(listed, bytes) else listed
+        return [_load_group(f, path, name.strip()) for name in listed.split(",")]
+
+
+def _load_group(f: h5py.File, path: Path, name: str) -> BsdfTable:
+    if name not in f or not isinstance(f[name], h5py.Group):
+        raise InputError(path, f"table group {name!r} listed but missing")
+    g = f[name]
+    try:
+        kw = {ax: np.asarray(g[ax][()], dtype=float) for ax in _AXES}
+        kw.update({n: np.asarray(g[n][()], dtype=float) for n in _PER_INCIDENCE})
+        kw.update({n: g[n][()].astype(np.float64) for n in _OPTIONAL if n in g})
+        return BsdfTable(values_per_sr=np.asarray(g["values_per_sr"][()], dtype=np.float64),
+                         incident_from=str(g.attrs["incident_from"]), method=str(g.attrs["method"]),
+                         material=json.loads(g.attrs["material"]), relief=json.loads(g.attrs["relief"]),
+                         metadata=json.loads(g.attrs["metadata"]), **kw)
+    except KeyError as e:
+        raise InputError(path, f"table {name!r} lacks {e}") from None
+    except (ValueError, TypeError, IndexError, AttributeError, OSError) as e:
+        raise InputError(path, f"table {name!r} is malformed ({type(e).__name__}: {str(e)[:160]})") from None
 
 
 def table_for(tables: list[BsdfTable], incident_from: str, where: str | Path = "table") -> BsdfTable:

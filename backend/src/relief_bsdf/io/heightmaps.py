@@ -30,16 +30,37 @@ sizes with the height unit; we read the lateral sizes as metres for that reader
 (checked against the file's own header: 20 um scan, 256 px -> 78.1 nm pitch).
 A pitch outside [1e-11, 1] m is refused as implausible (pass ``pitch_m``).
 
+Bounds and plausibility (checked *before* the pixels are allocated):
+
+- size: a map declaring more than `max_pixels()` pixels is refused (default
+  `DEFAULT_MAX_PIXELS` = 2**25, about 33.5 million, i.e. 5792 x 5792, 270 MB as float64 and
+  several times that in the methods' working arrays).  Raise it with the CLI flag
+  ``--max-pixels N``, the environment variable ``RELIEF_MAX_PIXELS`` or `pixel_limit(n)`.
+  The declared size is read from the npz member headers, the image spec, the SDF header,
+  the X3P main.xml and SurfaceTopography's channel description;
+- X3P: the declared increments must be positive and finite, the MD5 checksums of the point
+  data and of main.xml are verified (a mismatch is a warning naming the file);
+- images: an error OpenImageIO records while reading (a truncated or corrupt TIFF / EXR)
+  refuses the file;
+- implausible values warn (`relief_bsdf.errors.InputWarning`, saying why): an rms height
+  above 1 mm (micro-reliefs are nm to um; a wrong height unit is the usual cause) or a
+  pitch above 1 mm (a lateral unit read wrong);
+- a map without two adjacent valid points along x and along y is refused (no slope can be
+  formed: e.g. a 2 x 2 map with 3 NaN).
+
 Invalid points stay NaN (masked arrays from SurfaceTopography, NaN in images/npz);
 nothing is filled or levelled here.  A 1-D profile is refused with a message
 saying 2-D work needs an area scan; an all-NaN map is refused.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import datetime
 import hashlib
 import io
 import json
+import os
 import struct
 import warnings
 import zipfile
@@ -50,7 +71,7 @@ from typing import Any
 import numpy as np
 
 from relief_bsdf.io.atomic import atomic_path, write_bytes_atomic, write_text_atomic
-from relief_bsdf.errors import InputError
+from relief_bsdf.errors import InputError, warn_input
 from relief_bsdf.surface.relief import Relief
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".exr")
@@ -62,6 +83,56 @@ LENGTH_UNITS = {"m": 1.0, "dm": 1e-1, "cm": 1e-2, "mm": 1e-3, "µm": 1e-6, "μm"
 #: SurfaceTopography readers whose physical sizes are in metres whatever the channel unit says
 _LATERAL_IN_METRES = {"MIReader"}
 _PITCH_RANGE_M = (1e-11, 1.0)
+#: plausibility: above these a warning says why (below the hard limits)
+PLAUSIBLE_RMS_HEIGHT_M = 1e-3
+PLAUSIBLE_PITCH_M = 1e-3
+
+#: documented default of the size limit (pixels of one height map), see the module doc
+DEFAULT_MAX_PIXELS = 2 ** 25
+_MAX_PIXELS: contextvars.ContextVar[int | None] = contextvars.ContextVar("relief_max_pixels", default=None)
+
+
+def max_pixels() -> int:
+    """The size limit in force: `pixel_limit` block, else $RELIEF_MAX_PIXELS, else DEFAULT_MAX_PIXELS."""
+    v = _MAX_PIXELS.get()
+    if v is not None:
+        return v
+    env = os.environ.get("RELIEF_MAX_PIXELS")
+    if env:
+        try:
+            n = int(float(env))
+        except ValueError:
+            raise InputError("$RELIEF_MAX_PIXELS", f"expected a whole number of pixels, got {env!r}") from None
+        if n < 1:
+            raise InputError("$RELIEF_MAX_PIXELS", f"must be >= 1, got {env!r}")
+        return n
+    return DEFAULT_MAX_PIXELS
+
+
+@contextlib.contextmanager
+def pixel_limit(n: int | None):
+    """Put a size limit (pixels) in force for a `with` block; None keeps the one in force."""
+    if n is None:
+        yield
+        return
+    token = _MAX_PIXELS.set(int(n))
+    try:
+        yield
+    finally:
+        _MAX_PIXELS.reset(token)
+
+
+def check_declared_size(path: Path, shape: tuple, what: str = "height map") -> None:
+    """Refuse (InputError) a declared size beyond `max_pixels()` before anything is allocated."""
+    dims = [int(d) for d in shape]
+    if any(d < 0 for d in dims):
+        raise InputError(path, f"the file declares a negative size {' x '.join(map(str, dims))}")
+    n = int(np.prod(dims, dtype=object)) if dims else 1
+    limit = max_pixels()
+    if n > limit:
+        raise InputError(path, f"the {what} declares {' x '.join(map(str, dims))} = {n} values, more than the limit "
+                               f"of {limit} (about {8 * n / 1e9:.2g} GB as float64); raise it with --max-pixels "
+                               "or RELIEF_MAX_PIXELS if this is meant")
 
 
 def _unit_factor(unit: Any, where: Path, what: str) -> float:
@@ -99,7 +170,22 @@ def _finish(path: Path, heights_m: np.ndarray, dx: float, dy: float, periodic: b
     relief = Relief(h, float(dx), float(dy), periodic=bool(periodic), source=str(path), metadata=meta)
     if relief.valid_fraction == 0.0:
         raise InputError(path, "the height map has no valid points (every value is NaN / not measured)")
+    v = np.isfinite(relief.heights_m)
+    if not ((v[:, 1:] & v[:, :-1]).any() and (v[1:, :] & v[:-1, :]).any()):
+        raise InputError(path, f"the height map ({h.shape[0]} x {h.shape[1]}, {int(v.sum())} valid) has no two "
+                               "adjacent valid points along x and along y: no slope, no BSDF can be formed")
+    _warn_implausible(path, relief.heights_m[v], float(dx), float(dy))
     return relief
+
+
+def _warn_implausible(path: Path, valid_m: np.ndarray, dx: float, dy: float) -> None:
+    rms = float(np.std(valid_m))
+    if not np.isfinite(rms) or rms > PLAUSIBLE_RMS_HEIGHT_M:
+        warn_input(path, f"implausible rms height {rms:.4g} m (micro-reliefs are nm to um; above "
+                         f"{PLAUSIBLE_RMS_HEIGHT_M * 1e3:g} mm the height unit is probably wrong)")
+    if max(dx, dy) > PLAUSIBLE_PITCH_M:
+        warn_input(path, f"implausible lateral pitch {dx:.4g} x {dy:.4g} m (above {PLAUSIBLE_PITCH_M * 1e3:g} mm "
+                         "a profilometer map is unusual; the lateral unit is probably wrong; pass pitch_m)")
 
 
 # ====================================================================== reading
@@ -133,7 +219,29 @@ def read_relief(path: str | Path, pitch_m: Any = None, channel: int | str | None
     return _read_surface_topography(path, pitch, channel)
 
 
+def _npz_declared_shapes(path: Path) -> dict[str, tuple]:
+    """Shape of every member array, from the .npy headers only (nothing is allocated)."""
+    shapes = {}
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            with zf.open(info) as f:
+                version = np.lib.format.read_magic(f)
+                if version == (1, 0):
+                    shape, _, _ = np.lib.format.read_array_header_1_0(f)
+                else:
+                    shape, _, _ = np.lib.format.read_array_header_2_0(f)
+            shapes[name] = tuple(shape)
+    return shapes
+
+
 def _read_npz(path: Path, pitch: tuple | None) -> Relief:
+    try:
+        shapes = _npz_declared_shapes(path)
+    except Exception as e:  # zipfile.BadZipFile, ValueError (not .npy), EOFError, OSError, ...
+        raise InputError(path, f"not a readable .npz archive ({type(e).__name__}: {e})") from None
+    for name, shape in shapes.items():
+        check_declared_size(path, shape, f"array {name!r}")
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
@@ -172,10 +280,14 @@ def _read_sidecar(path: Path) -> dict | None:
     side = path.with_name(path.name + ".json")
     if not side.exists():
         return None
+    if not side.is_file():
+        raise InputError(side, "the sidecar is not a regular file (a folder?); expected a JSON file with dx_m, dy_m")
     try:
-        d = json.loads(side.read_text(encoding="utf-8"))
+        d = json.loads(side.read_text(encoding="utf-8-sig"))
     except (ValueError, UnicodeDecodeError) as e:
         raise InputError(side, f"sidecar is not valid JSON ({e})") from None
+    except OSError as e:
+        raise InputError(side, f"cannot read the sidecar ({e.strerror or e})") from None
     if not isinstance(d, dict):
         raise InputError(side, "sidecar must be a JSON object with dx_m, dy_m and optional z_unit")
     allowed = {"dx_m", "dy_m", "z_unit", "periodic", "source", "history", "comment"}
@@ -225,9 +337,13 @@ def _read_image(path: Path, pitch: tuple | None, channel: int | str | None, z_un
             if not pick:
                 raise InputError(path, f"image has {spec.nchannels} channels {names}; choose one with channel=")
             ci = names.index(pick[0])
+        check_declared_size(path, (max(1, spec.depth), spec.height, spec.width), "image")
+        if spec.nchannels > 64:
+            raise InputError(path, f"the image declares {spec.nchannels} channels; a height map has one (or a few)")
         pixels = inp.read_image(format="float")
-        if pixels is None:
-            raise InputError(path, f"cannot read the pixels (truncated or corrupt image: {inp.geterror().strip()})")
+        if pixels is None or inp.has_error:
+            why = " ".join(inp.geterror().split())[:200] or "unknown error"
+            raise InputError(path, f"cannot read the pixels (truncated or corrupt image: {why})")
         attrs = {k: spec.getattribute(k) for k in ("relief:dx_m", "relief:dy_m", "relief:z_unit",
                                                       "relief:periodic")}
     finally:
@@ -289,6 +405,8 @@ def _surface_topography_version() -> str:
 
 
 def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str | None) -> Relief:
+    if path.suffix.lower() == ".x3p":
+        check_x3p(path)                 # before SurfaceTopography allocates anything
     import SurfaceTopography as ST
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -300,9 +418,18 @@ def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str
             raise InputError(path, f"cannot read {what}: {type(e).__name__}: {_one_line(e)} "
                                    "(supported: x3p, gwy, sur, sdf, datx/dat, plu/plux, opd, di/spm, nid, ibw, "
                                    "mi, frt, npz, float tif/exr and the other SurfaceTopography formats)") from None
-        chans = reader.channels
+        try:
+            chans = list(reader.channels)
+        except Exception as e:  # noqa: BLE001 - a reader failing on a foreign layout
+            raise InputError(path, f"cannot read the channels: {type(e).__name__}: {_one_line(e)}") from None
+        if not chans:
+            raise InputError(path, "the file holds no height-map channel (is it a height map at all? an HDF5 "
+                                   "BSDF table needs the relief-bsdf-table/1 layout)")
         if channel is None:
-            ch = reader.default_channel
+            try:
+                ch = reader.default_channel
+            except (IndexError, KeyError, AttributeError):
+                ch = chans[0]
         elif isinstance(channel, str) and not channel.lstrip("-").isdigit():
             found = [c for c in chans if c.name == channel] or [c for c in chans if c.name.lower() == channel.lower()]
             if not found:
@@ -323,6 +450,8 @@ def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str
             if unit[1] is None or unit[1] not in LENGTH_UNITS:
                 raise InputError(path, f"channel {ch.name!r} holds {unit[1] or 'unitless'} data, not heights; "
                                        f"choose a height channel ({[c.name for c in chans]})")
+        if ch.nb_grid_pts:
+            check_declared_size(path, tuple(ch.nb_grid_pts))
         kw: dict = {}
         if ch.physical_sizes is None:
             if pitch is None:
@@ -367,6 +496,72 @@ def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str
         _check_pitch(dx, dy, path, f"the file ({sx:g} x {sy:g} {lat_unit})")
     periodic = bool(getattr(topo, "is_periodic", False)) or _x3p_written_periodic(path)
     return _finish(path, h.T * zf, dx, dy, periodic, meta)
+
+
+_X3P_ITEMSIZE = {"I": 2, "L": 4, "F": 4, "D": 8}
+
+
+def _xml_children(elem) -> dict:
+    """Local tag name -> element, for an X3P main.xml element (namespaces dropped)."""
+    return {c.tag.rsplit("}", 1)[-1]: c for c in elem}
+
+
+def _xml_text(elem, *names: str) -> str | None:
+    for n in names:
+        if elem is None:
+            return None
+        elem = _xml_children(elem).get(n)
+    return None if elem is None or elem.text is None else elem.text.strip()
+
+
+def check_x3p(path: Path) -> None:
+    """Check an ISO 25178-72 X3P before its data is read: declared size within the limit, increments
+    positive, point data no larger than declared (InputError); MD5 checksums verified (InputWarning)."""
+    import xml.etree.ElementTree as ET
+    try:
+        with zipfile.ZipFile(path) as z:
+            xml = z.read("main.xml")
+            root = ET.fromstring(xml)
+            r1, r3 = _xml_children(root).get("Record1"), _xml_children(root).get("Record3")
+            sizes = [_xml_text(r3, "MatrixDimension", k) for k in ("SizeX", "SizeY", "SizeZ")]
+            link = _xml_text(r3, "DataLink", "PointDataLink")
+            md5 = _xml_text(r3, "DataLink", "MD5ChecksumPointData")
+            ztype = _xml_text(r1, "Axes", "CZ", "DataType") or "D"
+            incs = {a: _xml_text(r1, "Axes", a, "Increment") for a in ("CX", "CY")}
+            kinds = {a: _xml_text(r1, "Axes", a, "AxisType") for a in ("CX", "CY")}
+            names = set(z.namelist())
+            data_info = z.getinfo(link) if link and link in names else None
+            hex_text = z.read("md5checksum.hex").decode("ascii", "replace") if "md5checksum.hex" in names else None
+            if sizes[0] is not None:
+                try:
+                    dims = [int(v) if v is not None else 1 for v in sizes]
+                except ValueError:
+                    raise InputError(path, f"X3P MatrixDimension is not whole numbers: {sizes}") from None
+                check_declared_size(path, dims)
+                need = int(np.prod(dims, dtype=object)) * _X3P_ITEMSIZE.get(ztype, 8)
+                if data_info is not None and data_info.file_size > need + 1024:
+                    raise InputError(path, f"X3P point data holds {data_info.file_size} bytes, the header declares "
+                                           f"{' x '.join(map(str, dims))} values ({need} bytes)")
+            for a, text in incs.items():
+                if kinds[a] == "I" or text is not None:
+                    try:
+                        inc = float(text) if text is not None else float("nan")
+                    except ValueError:
+                        inc = float("nan")
+                    if not (np.isfinite(inc) and inc > 0):
+                        raise InputError(path, f"X3P axis {a} declares increment {text!r}; the lateral pitch must "
+                                               "be a positive number of metres")
+            if md5 and data_info is not None:
+                got = hashlib.md5(z.read(link)).hexdigest()
+                if got.lower() != md5.lower():
+                    warn_input(path, f"X3P point data MD5 {got} does not match the checksum in main.xml ({md5}); "
+                                     "the file was altered or damaged")
+    except (zipfile.BadZipFile, ET.ParseError, KeyError, OSError) as e:
+        raise InputError(path, f"not a readable X3P container ({type(e).__name__}: {_one_line(e)})") from None
+    if hex_text:
+        want = hex_text.split()[0].lower() if hex_text.split() else ""
+        if want and want != hashlib.md5(xml).hexdigest():
+            warn_input(path, f"X3P main.xml MD5 does not match md5checksum.hex ({want}); the file was altered")
 
 
 def _x3p_written_periodic(path: Path) -> bool:
@@ -428,10 +623,11 @@ def _read_sdf(path: Path, pitch: tuple | None) -> Relief:
             xs, ys, zs = float(hdr["Xscale"]), float(hdr["Yscale"]), float(hdr["Zscale"])
         except ValueError as e:
             raise InputError(path, f"SDF header value is not a number ({e})") from None
+        check_declared_size(path, (ny, nx))
         if len(values) < nx * ny:
             raise InputError(path, f"SDF data has {len(values)} values, header promises {nx} x {ny} = {nx * ny} "
                                    "(truncated file?)")
-        vals = np.array([np.nan if v.upper() == "BAD" else float(v) for v in values[:nx * ny]])
+        vals = _sdf_ascii_values(path, values[:nx * ny], nx)
     else:
         fmt = "<8s10s12s12sHHddddBBB"
         size = struct.calcsize(fmt)
@@ -440,6 +636,7 @@ def _read_sdf(path: Path, pitch: tuple | None) -> Relief:
         fields = struct.unpack(fmt, raw[:size])
         hdr = dict(zip(_SDF_KEYS, fields[1:]))
         nx, ny = hdr["NumPoints"], hdr["NumProfiles"]
+        check_declared_size(path, (ny, nx))
         xs, ys, zs = hdr["Xscale"], hdr["Yscale"], hdr["Zscale"]
         dt = _SDF_DTYPES.get(hdr["DataType"])
         if dt is None:
@@ -463,6 +660,21 @@ def _read_sdf(path: Path, pitch: tuple | None) -> Relief:
         if ny > 1:
             _check_pitch(dx, dy, path, "the SDF Xscale/Yscale")
     return _finish(path, h, dx, dy, False, meta)
+
+
+def _sdf_ascii_values(path: Path, values: list[str], nx: int) -> np.ndarray:
+    """ASCII SDF values as floats (BAD -> NaN); InputError naming the first token that is not a number."""
+    out = np.empty(len(values))
+    for i, v in enumerate(values):
+        if v.upper() == "BAD":
+            out[i] = np.nan
+            continue
+        try:
+            out[i] = float(v)
+        except ValueError:
+            raise InputError(path, f"SDF value {v[:40]!r} (point {i % nx}, profile {i // nx}) is not a number "
+                                   "(nor BAD)") from None
+    return out
 
 
 # ====================================================================== writing

@@ -20,7 +20,17 @@ sample.toml
     ``relief.file``, ``instrument.detector_half_angle_deg``, ``recording.file``.
     Optional with defaults: ``plate.absorption_per_mm`` (None = not known),
     ``instrument.polarization`` ("unpolarized").  File paths are relative to the
-    toml file.
+    toml file.  UTF-8 with or without a byte-order mark.
+
+    Plausible ranges (outside them the description is refused as a typo, exit 2, rather
+    than simulated into NaN): ``plate.thickness_mm`` in [0.01, 1000] (below 10 um the
+    plate is a thin film whose interference the incoherent plate model ignores);
+    ``plate.refractive_index`` (and a Cauchy index between 380 and 1000 nm) in
+    [1.05, 5] (transparent solids: aerogels ~1.05 up to germanium ~4 in the infrared;
+    n = 1 has no boundary at all); ``instrument.detector_half_angle_deg`` in
+    [0.01, 45) (a cone below 0.01 deg collects a solid angle below 1e-7 sr: no
+    goniophotometer integrates that little light; the plate model's detector takes cones
+    below 45 deg).
 """
 from __future__ import annotations
 
@@ -156,6 +166,10 @@ def _parse_float(text: str, where: str, column: str) -> float:
 
 def _read_bytes(path: Path, what: str) -> bytes:
     """The file's bytes, or an InputError naming the file ("<what> file not found", ...)."""
+    if path.is_dir():
+        raise InputError(path, f"is a folder; expected a {what} file")
+    if path.exists() and not path.is_file():
+        raise InputError(path, f"not a regular file (a FIFO, socket or device?); expected a {what} file")
     try:
         return path.read_bytes()
     except FileNotFoundError:
@@ -281,6 +295,11 @@ def write_recording(path: str | Path, rec: Recording, comments: Any = ()) -> Pat
 
 # ====================================================================== sample.toml
 
+#: plausible ranges of sample.toml values (see the module doc for why)
+THICKNESS_RANGE_MM = (0.01, 1000.0)
+INDEX_RANGE = (1.05, 5.0)
+DETECTOR_HALF_ANGLE_RANGE_DEG = (0.01, 45.0)
+
 
 @dataclass
 class PlateSpec:
@@ -387,8 +406,10 @@ def _sample_from_doc(doc: dict, path: Path, check_files: bool) -> Sample:
 
     plate = tables["plate"]
     thickness = _number(plate, "plate", "thickness_mm", path)
-    if thickness <= 0:
-        raise InputError(path, f"key plate.thickness_mm: must be > 0, got {thickness:g}")
+    lo, hi = THICKNESS_RANGE_MM
+    if not lo <= thickness <= hi:
+        raise InputError(path, f"key plate.thickness_mm: {thickness:g} is outside the plausible range [{lo:g}, {hi:g}] "
+                               "mm of a plate")
     has_n, has_c = "refractive_index" in plate, "cauchy" in plate
     if has_n and has_c:
         raise InputError(path, "keys plate.refractive_index and plate.cauchy are both given; use one")
@@ -396,8 +417,7 @@ def _sample_from_doc(doc: dict, path: Path, check_files: bool) -> Sample:
         raise InputError(path, "missing required key plate.refractive_index (or plate.cauchy = [A, B_nm2, C_nm4])")
     if has_n:
         n = _number(plate, "plate", "refractive_index", path)
-        if n <= 0:
-            raise InputError(path, f"key plate.refractive_index: must be > 0, got {n:g}")
+        _check_index(n, path, "plate.refractive_index")
         index: IndexModel = ConstantIndex(n)
     else:
         c = plate["cauchy"]
@@ -408,6 +428,8 @@ def _sample_from_doc(doc: dict, path: Path, check_files: bool) -> Sample:
             index = CauchyIndex(float(c[0]), float(c[1]), float(c[2]) if len(c) == 3 else 0.0)
         except InputError as e:
             raise InputError(path, f"key plate.cauchy: {e.message}") from None
+        for wl in (380.0, 1000.0):
+            _check_index(float(np.real(index.n(wl))), path, f"plate.cauchy (n at {wl:g} nm)")
     rough = _string(plate, "plate", "rough_face", path)
     if rough not in ("front", "back"):
         raise InputError(path, f"key plate.rough_face: expected \"front\" or \"back\", got {rough!r}")
@@ -417,8 +439,10 @@ def _sample_from_doc(doc: dict, path: Path, check_files: bool) -> Sample:
 
     inst = tables["instrument"]
     half = _number(inst, "instrument", "detector_half_angle_deg", path)
-    if not 0 < half < 90:
-        raise InputError(path, f"key instrument.detector_half_angle_deg: must be in (0, 90), got {half:g}")
+    lo, hi = DETECTOR_HALF_ANGLE_RANGE_DEG
+    if not lo <= half < hi:
+        raise InputError(path, f"key instrument.detector_half_angle_deg: {half:g} is outside [{lo:g}, {hi:g}) deg "
+                               f"(a detector cone; below {lo:g} deg it collects almost no light)")
     pol = _string(inst, "instrument", "polarization", path, default="unpolarized")
     if pol not in ("unpolarized", "s", "p"):
         raise InputError(path, f"key instrument.polarization: expected \"unpolarized\", \"s\" or \"p\", got {pol!r}")
@@ -432,10 +456,19 @@ def _sample_from_doc(doc: dict, path: Path, check_files: bool) -> Sample:
         p = Path(f)
         p = p if p.is_absolute() else base / p
         if check_files and not p.is_file():
-            raise InputError(path, f"key {t}.file: file {f!r} not found (looked for {p})")
+            what = ("is a folder, not a file" if p.is_dir() else "is not a regular file" if p.exists()
+                    else "not found")
+            raise InputError(path, f"key {t}.file: {f!r} {what} (looked for {p})")
         files[t] = p
     return Sample(path=path, plate=PlateSpec(thickness, index, rough, absorption), relief_path=files["relief"],
                   instrument=InstrumentSpec(half, pol), recording_path=files["recording"])
+
+
+def _check_index(n: float, path: Path, key: str) -> None:
+    lo, hi = INDEX_RANGE
+    if not lo <= n <= hi:
+        raise InputError(path, f"key {key}: refractive index {n:g} is outside the plausible range [{lo:g}, {hi:g}] "
+                               "of a transparent plate" + (" (n = 1 is no boundary at all)" if n <= 1 else ""))
 
 
 def read_sample(path: str | Path, check_files: bool = True) -> Sample:
@@ -443,7 +476,7 @@ def read_sample(path: str | Path, check_files: bool = True) -> Sample:
     path = Path(path)
     raw = _read_bytes(path, "sample")
     try:
-        doc = tomllib.loads(raw.decode("utf-8"))
+        doc = tomllib.loads(raw.decode("utf-8-sig"))
     except UnicodeDecodeError:
         raise InputError(path, "not UTF-8 text; a sample.toml is UTF-8 TOML") from None
     except tomllib.TOMLDecodeError as e:

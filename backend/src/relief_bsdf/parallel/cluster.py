@@ -4,7 +4,8 @@ Depends on `parallel.settings` and `parallel.worker`, never on `parallel.tasks` 
 imports this module): no import cycle.
 
 - `get_client(spec, workers)`: "local" starts a `distributed.LocalCluster` (one
-  single-threaded worker process per core, or `workers`), "tcp://HOST:PORT" connects to a
+  single-threaded worker process per core, or `workers`) bound to 127.0.0.1, its dashboard
+  included (reachable from this machine only), "tcp://HOST:PORT" connects to a
   running scheduler; clients are cached per spec for the life of the process and closed
   at exit (or by `close_client`).
 - `run_on_client(client, fn, context, items, retries, label)`: scatters the context to
@@ -74,8 +75,11 @@ def get_client(spec: Any, workers: int | None = None):
     if spec == "local":
         n = int(workers or default_workers())
         with _sigint_ignored_by_children():
+            # everything on the loopback interface: the scheduler, its workers and the dashboard
+            # (which is unauthenticated) are reachable from this machine only
             cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                               dashboard_address=":0", silence_logs=logging.ERROR)
+                                               host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                                               silence_logs=logging.ERROR)
         client = distributed.Client(cluster)
     else:
         try:

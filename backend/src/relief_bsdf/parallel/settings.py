@@ -39,16 +39,31 @@ def default_workers() -> int:
     return max(1, os.cpu_count() or 1)
 
 
-def check_dask_spec(dask: Any) -> Any:
-    """Normalise a scheduler spec: None, a Client, "local", "tcp://HOST:PORT" ("HOST:PORT" gains tcp://)."""
+#: address schemes of a Dask scheduler (distributed's comms); "tls" for one reached across machines
+DASK_SCHEMES = ("tcp", "tls", "ucx", "ws", "wss")
+
+
+def check_dask_spec(dask: Any, where: str = "--dask") -> Any:
+    """Normalise a scheduler spec: None, a Client, "local", "SCHEME://HOST:PORT" with a Dask comm
+    scheme (tcp, tls, ucx, ws, wss; "HOST:PORT" gains tcp://).  Anything else is an InputError naming
+    `where` (the flag or the environment variable it came from)."""
     if dask is None or not isinstance(dask, str):
         return dask
     spec = dask.strip()
-    if spec == "local" or "://" in spec:
+    if spec == "local":
         return spec
+    if "://" in spec:
+        scheme, rest = spec.split("://", 1)
+        if scheme.lower() not in DASK_SCHEMES:
+            raise InputError(where, f"{dask!r}: {scheme}:// is not a Dask scheduler address; use "
+                                    f"{' / '.join(s + '://HOST:PORT' for s in DASK_SCHEMES[:2])} or 'local'")
+        host, _, port = rest.rstrip("/").rpartition(":")
+        if not host or not port.isdigit() or not 0 < int(port) < 65536 or "/" in host:
+            raise InputError(where, f"{dask!r}: expected {scheme}://HOST:PORT (e.g. {scheme}://node1:8786)")
+        return f"{scheme.lower()}://{rest.rstrip('/')}"
     if ":" in spec and spec.rsplit(":", 1)[1].isdigit():
         return "tcp://" + spec
-    raise InputError("--dask", f"expected 'local' or a scheduler address such as tcp://HOST:8786, got {dask!r}")
+    raise InputError(where, f"expected 'local' or a scheduler address such as tcp://HOST:8786, got {dask!r}")
 
 
 @dataclass(frozen=True)

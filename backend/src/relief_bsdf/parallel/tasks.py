@@ -31,11 +31,16 @@ Backends:
   completed across the cluster.  Dask specifics live in `cluster.py`.
 
 Checkpoints: with a `checkpoint_dir` every finished task's result is written atomically to
-`DIR/<label>-<sha256 of (fn, context, task)>.pkl.z` as soon as it arrives; a rerun with
-the same function, context and task loads it instead of computing, so a killed run
-resumes where it stopped.  Changing the context (relief, material, seed, sampling) or
-the task changes the key, so a stale checkpoint is never reused.  The checkpoint folder
-in force is for the top-level run: a nested call inside a worker only uses an explicit one.
+`DIR/<label>-<sha256 of (fn, context, task, code version)>.npz` as soon as it arrives, as
+*data* (`relief_bsdf.io.checkpoint`: a numpy archive read with allow_pickle=False, no object
+is ever unpickled, so a file planted in a shared folder cannot run code); a rerun with the
+same function, context, task and code loads it instead of computing, so a killed run resumes
+where it stopped.  The full key digest is stored inside the file and compared on load: a
+checkpoint renamed or copied from another run is ignored (one note on stderr per run), as is
+a damaged one.  Old pickled checkpoints (`*.pkl.z`) are never opened.  Changing the context
+(relief, material, seed, sampling) or the task changes the key.  A result that is not data
+(an object) is not checkpointed (one note).  The checkpoint folder in force is for the
+top-level run: a nested call inside a worker only uses an explicit one.
 
 Results come back in task order whatever ran them, and every task draws its random
 numbers from `task_rng(seed, *key)`, so the same inputs and seed give the same
@@ -51,7 +56,7 @@ import multiprocessing
 import multiprocessing.context
 import os
 import pickle
-import zlib
+import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
@@ -156,40 +161,73 @@ def _digest_context(context: Any) -> str:
     return hashlib.sha256(blob).hexdigest()
 
 
-def task_keys(fn: Callable, tasks: Sequence[Any], context: Any, label: str = "task") -> list[str]:
-    """Stable checkpoint names: `<label>-<sha256(fn, context, task)>` (first 32 hex digits)."""
+def _task_digests(fn: Callable, tasks: Sequence[Any], context: Any) -> list[str]:
+    """Full SHA-256 (hex) of (fn, context, task, code version) per task: what a checkpoint is keyed by.
+    (Pickling here only *hashes* the task; nothing is ever unpickled.)"""
+    from relief_bsdf.io.checkpoint import code_version
+
     fn_name = f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', repr(fn))}"
-    base = hashlib.sha256(fn_name.encode() + b"\0" + _digest_context(context).encode())
-    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in label)[:40] or "task"
-    keys = []
+    base = hashlib.sha256(fn_name.encode() + b"\0" + _digest_context(context).encode() + b"\0"
+                          + code_version().encode())
+    out = []
     for t in tasks:
         h = base.copy()
         h.update(pickle.dumps(t, protocol=4))
-        keys.append(f"{safe}-{h.hexdigest()[:32]}")
-    return keys
+        out.append(h.hexdigest())
+    return out
 
 
-def _ck_path(ckdir: Path, key: str) -> Path:
-    return ckdir / f"{key}.pkl.z"
+def _safe_label(label: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in label)[:40] or "task"
 
 
-def _load_checkpoint(path: Path) -> tuple[bool, Any]:
-    try:
-        blob = path.read_bytes()
-    except FileNotFoundError:
-        return False, None
-    try:
-        return True, pickle.loads(zlib.decompress(blob))
-    except Exception:  # noqa: BLE001 - a damaged checkpoint is recomputed, never trusted
-        return False, None
+def task_keys(fn: Callable, tasks: Sequence[Any], context: Any, label: str = "task") -> list[str]:
+    """Stable checkpoint names: `<label>-<sha256(fn, context, task, code version)>` (first 32 hex digits)."""
+    safe = _safe_label(label)
+    return [f"{safe}-{d[:32]}" for d in _task_digests(fn, tasks, context)]
 
 
-def _save_checkpoint(path: Path, result: Any) -> None:
-    # imported here: `parallel` sits below `surface` and `io` (surface.synth seeds with task_rng), so at
-    # import time it needs nothing of the package but errors / progress
-    from relief_bsdf.io.atomic import write_bytes_atomic
+class _TaskCheckpoints:
+    """The per-task checkpoints of one `map_tasks` call in a folder (data only, keyed, validated)."""
 
-    write_bytes_atomic(path, zlib.compress(pickle.dumps(result, protocol=5), 1))
+    def __init__(self, ckdir: Path, fn: Callable, tasks: list, context: Any, label: str):
+        from relief_bsdf.io.checkpoint import CheckpointStore
+
+        self.ckdir = ckdir
+        self.ignored: list[str] = []
+        safe = _safe_label(label)
+        self.stores = [CheckpointStore(ckdir / f"{safe}-{d[:32]}.npz", {"task": d}, note=self.ignored.append)
+                       for d in _task_digests(fn, tasks, context)]
+        self.saving = True
+        self.legacy = sorted(p.name for p in ckdir.glob(f"{safe}-*.pkl.z"))
+
+    def load(self, i: int) -> tuple[bool, Any]:
+        data = self.stores[i].load()
+        if "result" not in data:
+            return False, None
+        return True, data["result"]
+
+    def save(self, i: int, result: Any) -> None:
+        if not self.saving:
+            return
+        try:
+            self.stores[i].save({"result": result})
+        except TypeError as e:
+            self.saving = False
+            _note(f"tasks' results are not checkpointed in {self.ckdir} ({e})")
+
+    def report(self) -> None:
+        """One line for the checkpoints this call ignored (stale, foreign or damaged), one for old pickles."""
+        if self.ignored:
+            _note(f"ignored {len(self.ignored)} checkpoint(s) in {self.ckdir} that do not belong to this run or "
+                  f"are damaged (first: {self.ignored[0].removeprefix('ignored checkpoint ')[:160]})")
+        if self.legacy:
+            _note(f"{len(self.legacy)} old pickled checkpoint(s) (*.pkl.z) in {self.ckdir} were not opened "
+                  "(pickles can run code); delete them")
+
+
+def _note(message: str) -> None:
+    print(f"relief: note: {message}", file=sys.stderr)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -276,7 +314,7 @@ def _run_processes(fn: Callable, context: Any, items: list[tuple[int, Any]], set
     restarts = 0
     while pending:
         pool = ProcessPoolExecutor(max_workers=max(1, min(workers, len(pending))), initializer=init_worker,
-                                   initargs=(token, context), mp_context=_pool_context())
+                                   initargs=(token, context, os.getpid()), mp_context=_pool_context())
         clean = False
         try:
             broken = yield from _pool_round(pool, fn, token, pending, workers)
@@ -301,10 +339,19 @@ def _crashed(restarts: int, pending: dict[int, Any], label: str, settings: Paral
 
 def _run_dask(fn: Callable, context: Any, items: list[tuple[int, Any]], settings: ParallelSettings,
               label: str) -> Iterator[tuple[int, Any]]:
-    spec = settings.dask if settings.dask is not None else os.environ.get("RELIEF_DASK_SCHEDULER")
-    client = cluster.get_client(check_dask_spec(spec) or "local", workers=settings.workers)
+    spec = settings.dask
+    if spec is None and os.environ.get("RELIEF_DASK_SCHEDULER"):
+        # the environment redirects the work to another machine: say so, never silently
+        spec = check_dask_spec(os.environ["RELIEF_DASK_SCHEDULER"], "$RELIEF_DASK_SCHEDULER")
+        if spec not in _ENV_NOTED:
+            _ENV_NOTED.add(spec)
+            _note(f"tasks run on the Dask scheduler {spec} named by $RELIEF_DASK_SCHEDULER")
+    client = cluster.get_client(spec or "local", workers=settings.workers)
     yield from cluster.run_on_client(client, fn, context, items, retries=settings.retries, label=label)
 
+
+#: schedulers named by $RELIEF_DASK_SCHEDULER already announced in this process (one note each)
+_ENV_NOTED: set[str] = set()
 
 _RUNNERS = {"serial": _run_serial, "processes": _run_processes, "dask": _run_dask}
 
@@ -315,15 +362,17 @@ def _call_settings(overrides: dict[str, Any]) -> ParallelSettings:
     return base.updated(**overrides)
 
 
-def _load_checkpoints(paths: list[Path], items: list[tuple[int, Any]], deliver: Callable[[int, Any], None]) -> list:
+def _load_checkpoints(cks: _TaskCheckpoints, items: list[tuple[int, Any]],
+                      deliver: Callable[[int, Any], None]) -> list:
     """Deliver the tasks found in checkpoints; return the items still to compute."""
     todo = []
     for i, t in items:
-        ok, r = _load_checkpoint(paths[i])
+        ok, r = cks.load(i)
         if ok:
             deliver(i, r)
         else:
             todo.append((i, t))
+    cks.report()
     return todo
 
 
@@ -364,18 +413,18 @@ def map_tasks(fn: Callable[[Any, Any], Any], tasks: Sequence[Any], context: Any 
             on_result(i, r)
 
     items = list(enumerate(tasks))
-    paths = _checkpoint_paths(fn, tasks, context, label, s)
+    cks = _checkpoints(fn, tasks, context, label, s)
     try:
-        if paths is not None:
-            items = _load_checkpoints(paths, items, deliver)
+        if cks is not None:
+            items = _load_checkpoints(cks, items, deliver)
             stats.loaded = n - len(items)
             if stats.loaded:
                 progress(stats.loaded, n, f"{label} (resumed)")
         if items:
             with contextlib.closing(_RUNNERS[backend](fn, context, items, s, label)) as runner:
                 for i, r in runner:
-                    if paths is not None:
-                        _save_checkpoint(paths[i], r)
+                    if cks is not None:
+                        cks.save(i, r)
                     deliver(i, r)
                     del r
                     stats.computed += 1
@@ -385,12 +434,17 @@ def map_tasks(fn: Callable[[Any, Any], Any], tasks: Sequence[Any], context: Any 
     return results
 
 
-def _checkpoint_paths(fn: Callable, tasks: list, context: Any, label: str, s: ParallelSettings) -> list[Path] | None:
+def _checkpoints(fn: Callable, tasks: list, context: Any, label: str, s: ParallelSettings) -> _TaskCheckpoints | None:
     if s.checkpoint_dir is None:
         return None
     ckdir = Path(s.checkpoint_dir)
-    ckdir.mkdir(parents=True, exist_ok=True)
-    return [_ck_path(ckdir, k) for k in task_keys(fn, tasks, context, label)]
+    if ckdir.exists() and not ckdir.is_dir():
+        raise InputError(ckdir, "--checkpoint-dir is a file, not a folder")
+    try:
+        ckdir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(ckdir, f"cannot create the checkpoint folder ({e.strerror or e})") from None
+    return _TaskCheckpoints(ckdir, fn, tasks, context, label)
 
 
 def last_run() -> dict[str, Any]:

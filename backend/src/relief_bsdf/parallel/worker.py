@@ -25,6 +25,7 @@ import contextlib
 import os
 import signal
 import threading
+import time
 from typing import Any, Callable, Iterator
 
 import numpy as np
@@ -76,8 +77,9 @@ def running_task() -> Iterator[None]:
         _LOCAL.in_task = old
 
 
-def init_worker(token: int, context: Any) -> None:
-    """Initializer of a local pool worker: keep the context, ignore Ctrl-C, one thread per library."""
+def init_worker(token: int, context: Any, owner_pid: int | None = None) -> None:
+    """Initializer of a local pool worker: keep the context, ignore Ctrl-C, one thread per library,
+    and exit when the run that owns the pool (`owner_pid`) is gone."""
     global _IN_WORKER
     _CONTEXT[token] = context
     _IN_WORKER = True
@@ -85,6 +87,42 @@ def init_worker(token: int, context: Any) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # numerical libraries inside a worker use one thread each: the pool already fills the cores
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    if owner_pid is not None:
+        watch_owner(owner_pid)
+
+
+def process_alive(pid: int) -> bool:
+    """Whether process `pid` still runs (a zombie, dead but not yet reaped, counts as gone)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            state = f.read().rsplit(b")", 1)[1].split()[0]
+        return state not in (b"Z", b"X")
+    except (OSError, IndexError):
+        return True
+
+
+def watch_owner(owner_pid: int, interval_s: float = 0.5) -> threading.Thread:
+    """Exit this process (os._exit) once `owner_pid` is gone, whatever killed it (kill -9 included).
+
+    Why polling: a pool worker's parent is the fork server, not the run, and the pipes it waits on
+    are also held open by its sibling workers, so neither a parent-death signal nor end-of-file
+    tells it that the run died.  Once the workers are gone, the fork server and multiprocessing's
+    resource tracker see their last pipe close and exit too: no process of the run is left.
+    """
+    def watch() -> None:
+        while process_alive(owner_pid):
+            time.sleep(interval_s)
+        os._exit(3)
+
+    t = threading.Thread(target=watch, name="relief-owner-watch", daemon=True)
+    t.start()
+    return t
 
 
 def run_in_worker(fn: Callable, token: int, batch: list) -> list:
