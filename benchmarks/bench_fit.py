@@ -80,7 +80,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         doc = run_fit_job(a.sample, Path(tmp) / "fit", FitJob(max_iter=a.max_iter))
         wall = time.perf_counter() - t0
-        evals = len(json.loads((Path(tmp) / "fit" / "checkpoint.json").read_text())["evaluations"])
+        evals = int(doc["evaluations_computed"])
     print(f"demo fit ({doc['method']}): {wall:.1f} s, {evals} evaluations ({wall / max(evals, 1):.2f} s each); "
           f"metric {doc['rms_before']:.3g} -> {doc['rms_after']:.3g}; {doc['parameters']} {doc['intervals']}")
     out = {"fit_seconds": wall, "evaluations": evals, "seconds_per_evaluation": wall / max(evals, 1),

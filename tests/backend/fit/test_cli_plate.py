@@ -66,11 +66,11 @@ def test_fit_cli_writes_fit_json_and_resumes(tmp_path, capsys):
     a = read_recording(out / "simulated.csv").bsdf_sr
     b = read_recording(tmp_path / "sim" / "simulated.csv").bsdf_sr
     np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-9)   # tables are stored as float32
-    n_ck = len(json.loads((out / "checkpoint.json").read_text())["evaluations"])
+    n_ck = len(json.loads((out / "checkpoint.json").read_text())["data"]["evaluations"])
     assert main(args) == 0               # replayed from the checkpoint: same answer
     doc2 = json.loads((out / "fit.json").read_text())
     assert doc2["parameters"] == doc["parameters"] and doc2["rms_after"] == doc["rms_after"]
-    assert len(json.loads((out / "checkpoint.json").read_text())["evaluations"]) == n_ck
+    assert len(json.loads((out / "checkpoint.json").read_text())["data"]["evaluations"]) == n_ck
 
 
 @pytest.mark.parametrize("case, needle", [
@@ -105,3 +105,25 @@ def test_fit_cli_rejects_a_bad_inside_step(tmp_path, capsys):
     assert main(["fit", str(s), "-o", str(tmp_path / "f"), "--inside-step-deg", "0"]) == 2
     assert "--inside-step-deg" in capsys.readouterr().err
     assert not (tmp_path / "f" / "fit.json").exists()
+
+
+def test_a_checkpoint_of_another_sample_is_ignored_and_the_true_result_returned(tmp_path, capsys):
+    """A finished run's checkpoint copied into a run of another sample (n 1.60 instead of 1.50)
+    must not be replayed: the second run gives what a fresh run of its own sample gives."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir(), b.mkdir()
+    sa, sb = make_sample(a), make_sample(b)
+    sb.write_text(sb.read_text().replace("refractive_index = 1.5", "refractive_index = 1.6"))
+    args = ["--max-iter", "4", "--theta-step-deg", "3", "--phi-step-deg", "15", "--method", "microfacet+dw"]
+    assert main(["fit", str(sa), "-o", str(a / "fit")] + args) == 0
+    assert main(["fit", str(sb), "-o", str(b / "fresh")] + args) == 0
+    (b / "copied").mkdir()
+    (b / "copied" / "checkpoint.json").write_bytes((a / "fit" / "checkpoint.json").read_bytes())
+    capsys.readouterr()
+    assert main(["fit", str(sb), "-o", str(b / "copied")] + args) == 0
+    assert "ignored checkpoint" in capsys.readouterr().err
+    fresh = json.loads((b / "fresh" / "fit.json").read_text())
+    copied = json.loads((b / "copied" / "fit.json").read_text())
+    first = json.loads((a / "fit" / "fit.json").read_text())
+    assert copied["rms_before"] == fresh["rms_before"] != first["rms_before"]
+    assert copied["parameters"] == fresh["parameters"] and copied["evaluations_computed"] > 0

@@ -72,7 +72,7 @@ def test_interrupted_fit_resumes_from_checkpoint_with_identical_result(tmp_path)
     first = []
     with pytest.raises(KeyboardInterrupt):
         fit_relief(_CheapForward(first), truth, sigma, FitSettings(max_iter=50), checkpoint=ck, on_eval=interrupt)
-    saved = json.loads(ck.read_text())["evaluations"]
+    saved = json.loads(ck.read_text())["data"]["evaluations"]
     assert len(saved) == 12 and len(first) == 12
     second = []
     resumed = fit_relief(_CheapForward(second), truth, sigma, FitSettings(max_iter=50), checkpoint=ck)

@@ -171,6 +171,7 @@ class FitResult:
     bic_gain: float | None = None
     ridge: bool = False
     warnings: list = field(default_factory=list)
+    computed: int = 0                 # forward evaluations computed in this run (not replayed)
 
     def to_json(self, extra: dict | None = None) -> dict:
         d = {"format": FIT_FORMAT, "metric": self.metric, "rms_before": self.rms_before, "rms_after": self.rms_after,
@@ -185,7 +186,8 @@ class FitResult:
                                  "interval_method": "curvature of chi2 (finite differences) at the optimum, "
                                                     "68 % = Delta chi2 of 1, inflated by the reduced chi2 when "
                                                     "it exceeds 1"},
-             "warnings": self.warnings, "iterations": self.iterations, "stopped": self.stopped,
+             "warnings": self.warnings, "iterations": self.iterations, "evaluations_computed": self.computed,
+             "stopped": self.stopped,
              "seconds": self.seconds}
         d.update(extra or {})
         return d
@@ -406,29 +408,38 @@ def _ridge_probe(obj: _Objective, relief: Relief, both: dict, gmax: float, pitch
     return bool(cost <= np.log(obj.n) + BIC_MARGIN), {"height_scale": s1, "filter_sigma_um": g1}
 
 
-def _load_cache(ck: Path | None) -> dict[str, list]:
-    if not (ck and ck.exists()):
+def _store(checkpoint: Any, measured: np.ndarray, sigma: np.ndarray | None) -> Any:
+    """The fit's checkpoint store (io.checkpoint: JSON data bound to a key): a given CheckpointStore,
+    or one for a bare path keyed by the recording's values and sigma (what `run_fit_job` keys by
+    the inputs' content, method, effort and grid)."""
+    from relief_bsdf.io.checkpoint import CheckpointStore
+    if checkpoint is None or isinstance(checkpoint, CheckpointStore):
+        return checkpoint
+    import hashlib
+    h = hashlib.sha256(np.ascontiguousarray(measured, float).tobytes())
+    h.update(b"-" if sigma is None else np.ascontiguousarray(sigma, float).tobytes())
+    return CheckpointStore(checkpoint, {"kind": "relief-fit", "recording_values": h.hexdigest()})
+
+
+def _load_cache(store: Any) -> dict[str, list]:
+    if store is None:
         return {}
+    ev = store.load().get("evaluations", {})
     try:
-        doc = json.loads(ck.read_text())
-        if doc.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError(f"format {doc.get('format')!r}, expected {CHECKPOINT_FORMAT!r}")
-        return {str(k): [float(x) for x in v] for k, v in doc["evaluations"].items()}
-    except (ValueError, KeyError, TypeError, AttributeError) as e:
-        raise InputError(ck, f"unreadable checkpoint ({e}); delete it to start over") from None
+        return {str(k): [float(x) for x in v] for k, v in ev.items()}
+    except (TypeError, ValueError, AttributeError):
+        raise InputError(store.path, "checkpoint evaluations are not lists of numbers; delete it to start over") \
+            from None
 
 
-CHECKPOINT_FORMAT = "relief-fit-checkpoint/2"
-
-
-def _saver(ck: Path | None) -> Callable[[dict], None]:
-    if ck is None:
+def _saver(store: Any) -> Callable[[dict], None]:
+    if store is None:
         return lambda cache: None
-    return lambda cache: write_text_atomic(ck, json.dumps({"format": CHECKPOINT_FORMAT, "evaluations": cache}))
+    return lambda cache: store.save({"evaluations": cache})
 
 
 def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None = None,
-               settings: FitSettings = FitSettings(), *, checkpoint: str | Path | None = None,
+               settings: FitSettings = FitSettings(), *, checkpoint: Any = None,
                progress: Progress | None = None, on_eval: Callable[[int], None] | None = None) -> FitResult:
     """Optimise (height_scale, filter_sigma_um) so the simulated plate matches `measured`, and say
     what the recording determines (module doc, "Identifiability").
@@ -442,14 +453,15 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
        ridge);
     5. 68 % intervals and the correlation from the Jacobian at the answer (`_intervals`), and one
        probe along equal rms slope for a ridge (`_ridge_probe`): a few evaluations more.
-    `checkpoint`: JSON file of {params: simulated values}; existing entries are replayed
-    (deterministic path, same result as an uninterrupted run).  `on_eval(n)` is called after each
+    `checkpoint`: an io.checkpoint.CheckpointStore (or a .json path, keyed by the recording) of
+    {params: simulated values}; its entries are replayed (deterministic path, same result as an
+    uninterrupted run); a checkpoint of another run is ignored with a note.  `on_eval(n)` is called after each
     *new* evaluation (tests use it to interrupt).
     """
     progress = progress or silent
     t0 = time.monotonic()
-    ck = Path(checkpoint) if checkpoint else None
-    obj = _Objective(forward, measured, sigma, settings, _load_cache(ck), _saver(ck), progress, on_eval)
+    store = _store(checkpoint, measured, sigma)
+    obj = _Objective(forward, measured, sigma, settings, _load_cache(store), _saver(store), progress, on_eval)
     pitch_um = min(forward.relief.dx_m, forward.relief.dy_m) * 1e6
     gmax = settings.max_filter_um if settings.max_filter_um is not None else 20 * pitch_um
     c2 = _Coords.make(settings, True, gmax, pitch_um)
@@ -486,10 +498,22 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
         warnings.append(f"the best fit misses the recording's noise (metric {chosen['rms']:.3g} > 1.5): intervals "
                         "are inflated by it, and physics beyond scale and filter may be missing (relief diagnose)")
     return FitResult(s, g, rms_before, chosen["rms"], obj.iterations, settings.metric.describe(), stopped,
-                     time.monotonic() - t0, iv, corr, bool(needed), float(gain), bool(ridge), warnings)
+                     time.monotonic() - t0, iv, corr, bool(needed), float(gain), bool(ridge), warnings, obj.new_evals)
 
 
 # ---------------------------------------------------------------- whole job for the CLI
+
+def _job_store(out: Path, sample: Any, job: FitJob) -> Any:
+    """OUT/checkpoint.json keyed by everything that determines an evaluation: the inputs' content
+    (sample, relief, recording), method, effort, seed and grid (io.checkpoint adds the code
+    version); the optimiser's budget is not in it, so a longer rerun resumes."""
+    import dataclasses
+    from relief_bsdf.io.checkpoint import CheckpointStore, input_digests
+    key = {"kind": "relief-fit", "inputs": input_digests(sample=sample.path, relief=sample.relief_path,
+                                                         recording=sample.recording_path),
+           "method": job.method, "samples": job.samples, "seed": job.seed, "grid": dataclasses.asdict(job.grid)}
+    return CheckpointStore(out / "checkpoint.json", key)
+
 
 def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJob(),
                 progress: Progress | None = None) -> dict:
@@ -508,7 +532,8 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
     fwd = Forward(relief, exp, rec, grid=job.grid, where=str(sample.recording_path))
     settings = FitSettings(threshold=job.threshold, max_iter=job.max_iter, scale_bounds=job.scale_bounds,
                            max_filter_um=job.max_filter_um)
-    res = fit_relief(fwd, rec.bsdf_sr, rec.sigma_sr, settings, checkpoint=out / "checkpoint.json", progress=progress)
+    res = fit_relief(fwd, rec.bsdf_sr, rec.sigma_sr, settings, checkpoint=_job_store(out, sample, job),
+                     progress=progress)
     best_relief, t_out, t_in = fwd.tables(res.height_scale, res.filter_sigma_um)
     after = fwd.simulated(res.height_scale, res.filter_sigma_um, table_sigma_draws=fwd.sigma_draws)
     sim_after = after.values_per_sr
