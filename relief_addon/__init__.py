@@ -12,9 +12,9 @@ builds Blender data around it.  Scripted use:
 """
 from __future__ import annotations
 
-from . import operators, panels, props
+from . import operators, panels, prefs, props
 
-_MODULES = (props, operators, panels)
+_MODULES = (prefs, props, operators, panels)
 
 
 def register():
