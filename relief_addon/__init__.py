@@ -12,9 +12,9 @@ builds Blender data around it.  Scripted use:
 """
 from __future__ import annotations
 
-from . import operators, panels, prefs, props
+from . import operators, panels, paths, prefs, props
 
-_MODULES = (prefs, props, operators, panels)
+_MODULES = (prefs, props, paths, operators, panels)
 
 
 def register():

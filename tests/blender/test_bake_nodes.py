@@ -33,11 +33,18 @@ def test_node_group_structure(clean_bpy, tables):
     assert group.name == "Relief BSDF: probe" and group.use_fake_user
     outs = [s for s in group.interface.items_tree if getattr(s, "in_out", "") == "OUTPUT"]
     assert [s.socket_type for s in outs] == ["NodeSocketShader"]
+    ins = {s.name: s for s in group.interface.items_tree if getattr(s, "in_out", "") == "INPUT"}
+    assert set(ins) == {"Tint", "Haze", "Fitted", "Rotation"}
+    assert tuple(ins["Tint"].default_value) == (1, 1, 1, 1) and ins["Haze"].default_value == 1.0
+    assert ins["Fitted"].default_value == 0.0 and not group["relief_fitted"]        # no fitted table given
+    # the closures live in the table's inner group, used by both branches of the Fitted switch
+    inner = bpy.data.node_groups["Relief LUT BSDF: probe"]
+    assert [n.node_tree for n in group.nodes if n.bl_idname == "ShaderNodeGroup"] == [inner, inner]
     glossy = {"ShaderNodeBsdfAnisotropic": "ShaderNodeBsdfGlossy"}      # Blender 4+ merged the two
-    kinds = sorted(glossy.get(n.bl_idname, n.bl_idname) for n in group.nodes if n.bl_idname.startswith("ShaderNodeBsdf"))
+    kinds = sorted(glossy.get(n.bl_idname, n.bl_idname) for n in inner.nodes if n.bl_idname.startswith("ShaderNodeBsdf"))
     assert kinds == ["ShaderNodeBsdfGlossy", "ShaderNodeBsdfMetallic", "ShaderNodeBsdfRefraction",
                      "ShaderNodeBsdfRefraction"]
-    texs = [n for n in group.nodes if n.bl_idname == "ShaderNodeTexImage"]
+    texs = [n for n in inner.nodes if n.bl_idname == "ShaderNodeTexImage"]
     assert len(texs) == len(ROW_NAMES)
     assert all(t.image == img and t.extension == "EXTEND" and t.interpolation == "Linear" for t in texs)
     # the image: packed float32 non-colour data with a fake user, exactly the LUT rows
@@ -47,7 +54,7 @@ def test_node_group_structure(clean_bpy, tables):
     img.pixels.foreach_get(px)
     np.testing.assert_array_equal(px, lut.image_pixels())
     # refraction IOR is the table's n_inside / n_outside
-    refr = [n for n in group.nodes if n.bl_idname == "ShaderNodeBsdfRefraction"]
+    refr = [n for n in inner.nodes if n.bl_idname == "ShaderNodeBsdfRefraction"]
     assert all(r.inputs["IOR"].default_value == pytest.approx(1.5) for r in refr)
     # assigned to the rough face of a plate: top face gets the group, the others glass
     me = bpy.data.meshes.new("plate")

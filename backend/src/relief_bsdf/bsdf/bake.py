@@ -39,7 +39,11 @@ Spectral tables: the RGB channels carry the weights at three wavelengths (defaul
 465 nm, interpolated linearly between tabulated wavelengths and held outside them);
 roughness and IOR are scalar in Cycles and use the green wavelength.
 
-Assumptions and limits: isotropic boundary (one incidence azimuth is used; several are
+Anisotropy: a table with incidence azimuths 0 and 90 degrees bakes an anisotropic
+reflection lobe (Cycles' Anisotropy with the tangent along the relief's x axis,
+`_lobe_roughness`); transmission lobes stay isotropic (Cycles' Refraction BSDF has none).
+
+Assumptions and limits: other tables are taken as isotropic (several incidence azimuths are
 averaged); lobe shapes are GGX (Walter et al. 2007, eqs. 20-21, 33) so tables of another
 shape match in energy exactly and in shape approximately; a missing "inside" table is
 replaced by a smooth interface seen from inside (Fresnel, total internal reflection),
@@ -128,7 +132,8 @@ class BakedLut:
 
     rows: (2 * ROWS_PER_SIDE, C, 4) float32; row block s (0 front/outside, 1 back/inside)
     holds ROW_NAMES in order; colour rows are (R, G, B, 1) weights, the roughness row is
-    (r_R, r_T, 0, 1) in Cycles' roughness (sqrt of GGX alpha).  Columns sample theta_v
+    (r_R, r_T, anisotropy_R, 1) in Cycles' roughness (sqrt of GGX alpha) and Cycles'
+    anisotropy of the reflection lobe, tangent along the relief's x axis (0: isotropic).  Columns sample theta_v
     uniformly from 0 to 90 degrees.
     """
 
@@ -164,6 +169,17 @@ class BakedLut:
         x = np.asarray(theta_deg, float) / 90.0
         return x * (c - 1) / c + 0.5 / c
 
+    @property
+    def anisotropy(self) -> float:
+        """Largest |anisotropy| of the reflection lobe (0 for an isotropic bake)."""
+        k = self.row_index("outside", "roughness")
+        return float(np.max(np.abs(self.rows[k, :, 2])))
+
+    @property
+    def haze(self) -> float:
+        """Transmission haze of the baked table (ASTM D1003 sense, `transmission_haze`); NaN if unknown."""
+        return float(self.info.get("haze_T", float("nan")))
+
     def texture_v(self, row_index: int) -> float:
         return (row_index + 0.5) / self.n_rows
 
@@ -175,7 +191,7 @@ def _per_incidence(table: BsdfTable) -> dict[str, np.ndarray]:
 
 
 def _fit_roughness(table: BsdfTable, wl_nm: float, subsamples: int | None = None) -> np.ndarray:
-    """(I, 2) Cycles roughness of one GGX lobe per incidence and side (R, T) at one wavelength.
+    """(I, P, 2) Cycles roughness of one GGX lobe per incidence, incidence azimuth and side (R, T).
 
     The model lobe is averaged over each cell like the table (`subsamples` per cell axis;
     default 1 for cells of at most 1 x 5 degrees, else 2: coarse cells need the average, or a
@@ -186,13 +202,66 @@ def _fit_roughness(table: BsdfTable, wl_nm: float, subsamples: int | None = None
         fine = np.max(np.diff(table.theta_s_edges_deg)) <= 1.01 and np.max(np.diff(table.phi_s_edges_deg)) <= 5.01
         subsamples = 1 if fine else 2
     t = table.select(wl_nm)
-    diffuse = _per_incidence(t)
+    h = t.hemispherical()
     fit = fit_table(t, n_lobes=1, distribution="ggx", subsamples=subsamples)
-    alpha = fit.alpha[0, :, :, :, 0].mean(axis=1)                  # (I, 2)
-    r = np.sqrt(np.clip(alpha, 0.0, None))
+    r = np.sqrt(np.clip(fit.alpha[0, :, :, :, 0], 0.0, None))      # (I, P, 2)
     for k, key in enumerate(("diffuse_R", "diffuse_T")):
-        r[diffuse[key][0] <= 0, k] = 0.0
+        r[np.asarray(h[key], float)[0] <= 0, k] = 0.0
     return np.clip(r, 0.0, 1.0)
+
+
+def _azimuth_index(phi_deg: np.ndarray, target: float) -> int | None:
+    d = np.abs((np.asarray(phi_deg, float) - target + 90.0) % 180.0 - 90.0)     # lobes repeat every 180 deg
+    k = int(np.argmin(d))
+    return k if d[k] <= 10.0 else None
+
+
+def cycles_anisotropy(r_x: np.ndarray, r_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cycles (roughness, anisotropy) of a GGX lobe with roughnesses r_x along the tangent and r_y
+    across it (roughness = sqrt(alpha)).
+
+    Cycles 5.0 (node_glossy_bsdf.osl, the same for Metallic): alpha = roughness^2, and for
+    anisotropy a > 0 alpha_u = alpha (1 - a), alpha_v = alpha / (1 - a); for a < 0
+    alpha_u = alpha / (1 + a), alpha_v = alpha (1 + a); u is the tangent.  Inverse:
+    alpha = sqrt(alpha_x alpha_y), a = 1 - alpha_x / alpha (alpha_x <= alpha_y) or
+    alpha / alpha_x - 1 (alpha_x > alpha_y); |a| is held below 0.99 as Cycles clamps it.
+    """
+    ax = np.asarray(r_x, float) ** 2
+    ay = np.asarray(r_y, float) ** 2
+    a = np.sqrt(ax * ay)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        aniso = np.where(ax <= ay, 1.0 - ax / np.where(a > 0, a, 1.0), a / np.where(ax > 0, ax, 1.0) - 1.0)
+    aniso = np.where(a > 0, np.clip(aniso, -0.99, 0.99), 0.0)
+    return np.sqrt(a), aniso
+
+
+def _lobe_roughness(table: BsdfTable, wl_nm: float) -> tuple[np.ndarray, np.ndarray]:
+    """(I, 2) roughness per incidence and side, and (I,) anisotropy of the reflection lobe.
+
+    A table with incidence azimuths 0 and 90 degrees (light in the relief's x-z and y-z
+    planes) is read as anisotropic: the lobe fitted at azimuth 0 spreads mostly in the x-z
+    plane (its roughness is r_x), the one at 90 degrees in y-z (r_y); `cycles_anisotropy`
+    turns the pair into Cycles' (roughness, anisotropy) with the tangent along x.  At normal
+    incidence both fits see the same lobe, so the anisotropy is taken from the obliquest
+    incidences (theta_i >= 30 deg, averaged) and held for all.  Transmission stays isotropic
+    (Cycles' Refraction BSDF has no anisotropy): its roughness is the azimuth mean.  Other
+    tables: isotropic, every azimuth averaged.
+    """
+    r = _fit_roughness(table, wl_nm)
+    iso = r.mean(axis=1)
+    k0, k90 = _azimuth_index(table.phi_i_deg, 0.0), _azimuth_index(table.phi_i_deg, 90.0)
+    aniso = np.zeros(iso.shape[0])
+    if k0 is None or k90 is None or k0 == k90:
+        return iso, aniso
+    oblique = table.theta_i_deg >= 30.0
+    if not oblique.any():
+        return iso, aniso
+    r_x = np.sqrt(np.mean(r[oblique, k0, 0] ** 2))
+    r_y = np.sqrt(np.mean(r[oblique, k90, 0] ** 2))
+    _, a = cycles_anisotropy(r_x, r_y)
+    rough = iso.copy()
+    rough[:, 0] = np.sqrt(r[:, k0, 0] * r[:, k90, 0])          # geometric mean: Cycles' alpha = sqrt(ax ay)
+    return rough, np.full(iso.shape[0], float(a))
 
 
 def _interp_wl(values: np.ndarray, wl_axis: np.ndarray, targets: Sequence[float]) -> np.ndarray:
@@ -225,7 +294,7 @@ def _side_rows(table: BsdfTable, cols: np.ndarray, bc: _BakeColours, back: bool)
     floor, reflection_closure, ior_rgb = bc.floor, bc.reflection_closure, bc.ior_rgb
     integ = _per_incidence(table)
     ti = table.theta_i_deg
-    rough = _fit_roughness(table, green_nm)                          # (I, 2)
+    rough, aniso = _lobe_roughness(table, green_nm)                  # (I, 2), (I,)
     r_R = np.interp(cols, ti, rough[:, 0])
     r_T = np.interp(cols, ti, rough[:, 1])
     rows = np.zeros((ROWS_PER_SIDE, cols.size, 4))
@@ -245,8 +314,9 @@ def _side_rows(table: BsdfTable, cols: np.ndarray, bc: _BakeColours, back: bool)
             rows[j, :, c] = np.interp(cols, ti, rgb[c]) / np.maximum(a, floor)
     rows[4, :, 0] = r_R
     rows[4, :, 1] = r_T
+    rows[4, :, 2] = np.interp(cols, ti, aniso)
     return rows, {"roughness_R_at_table": rough[:, 0].tolist(), "roughness_T_at_table": rough[:, 1].tolist(),
-                  "albedo_clamped_columns": clamped}
+                  "anisotropy_R": float(aniso.mean()), "albedo_clamped_columns": clamped}
 
 
 def _smooth_inside_rows(material: Material, cols: np.ndarray, rgb_nm, green_nm: float, albedo: Albedo,
@@ -261,6 +331,31 @@ def _smooth_inside_rows(material: Material, cols: np.ndarray, rgb_nm, green_nm: 
         rows[0, :, c] = F / np.maximum(albedo("glossy", np.zeros_like(cols), cols, ior), floor)
         rows[2, :, c] = (1 - F) / np.maximum(albedo("refraction_back", np.zeros_like(cols), cols, ior), floor)
     return rows
+
+
+def transmission_haze(table: BsdfTable, wl_nm: float = 550.0, wide_deg: float = 2.5) -> float:
+    """Transmission haze at normal incidence, in the sense of ASTM D1003: the share of the
+    transmitted light that leaves more than `wide_deg` (2.5 deg) from the regular (undeviated)
+    beam.  Regular part: the table's specular transmission plus the T cells whose centre lies
+    within `wide_deg` of the beam; the cell grid limits how sharply the 2.5 deg edge is drawn
+    (one cell width).  Uses the incidence nearest 0 deg (NaN if none within 1 deg), the
+    wavelength nearest `wl_nm`, azimuths averaged; NaN when nothing is transmitted.
+    """
+    ti = np.asarray(table.theta_i_deg, float)
+    i = int(np.argmin(np.abs(ti)))
+    if abs(ti[i]) > 1.0:
+        return float("nan")
+    w = int(np.argmin(np.abs(np.asarray(table.wavelength_nm, float) - wl_nm)))
+    psa = table.projected_solid_angle_sr                          # (S, A)
+    cells = np.asarray(table.values_per_sr[w, i, :, 1], float) * psa[None]   # (P, S, A) power per T cell
+    edges = np.asarray(table.theta_s_edges_deg, float)
+    centre = 0.5 * (edges[:-1] + edges[1:])
+    near = centre <= wide_deg
+    spec = 0.0 if table.specular_T is None else np.asarray(table.specular_T, float)[w, i, :]
+    regular = np.mean(spec + cells[:, near, :].sum(axis=(1, 2)))
+    wide = np.mean(cells[:, ~near, :].sum(axis=(1, 2)))
+    tot = regular + wide
+    return float(wide / tot) if tot > 0 else float("nan")
 
 
 def bake_lut(tables: Sequence[BsdfTable], name: str, albedo: Albedo | None = None, n_columns: int = 91,
@@ -292,7 +387,8 @@ def bake_lut(tables: Sequence[BsdfTable], name: str, albedo: Albedo | None = Non
     bc = _BakeColours(rgb_nm=rgb, green_nm=green, ior=ior, ior_rgb=ior_rgb, albedo=albedo, floor=albedo_floor,
                       reflection_closure=reflection_closure)
     front, info_f = _side_rows(out, cols, bc, back=False)
-    info = {"outside": info_f, "method": out.method, "closure_albedo": getattr(albedo, "source", "ideal (1)")}
+    info = {"outside": info_f, "method": out.method, "closure_albedo": getattr(albedo, "source", "ideal (1)"),
+            "haze_T": transmission_haze(out, green)}
     if "inside" in by_side:
         back, info_b = _side_rows(by_side["inside"], cols, bc, back=True)
         info["inside"] = info_b
