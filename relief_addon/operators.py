@@ -70,7 +70,12 @@ def _import_file(context, path: Path, pitch_um: float, z_scale: float):
     except ImportError as e:                # e.g. no SurfaceTopography wheel for this platform
         raise InputError(path, f"this format needs {e.name or e}, which is not available in this "
                          "Blender (npz, TIFF, EXR and SDF files still work)") from None
-    obj = import_relief(relief, z_scale=z_scale, collection=context.collection)
+    s = context.scene.relief
+    request = {"ior": s.ior, "wavelengths_nm": _floats(s.wavelengths_nm, "wavelengths"),
+               "theta_i_deg": _floats(s.theta_i_deg, "incidences")}
+    obj = import_relief(relief, z_scale=z_scale, collection=context.collection, regime_request=request)
+    from .mesh_import import frame_in_views
+    frame_in_views(obj, context.scene)
     for o in context.view_layer.objects:
         o.select_set(False)
     obj.select_set(True)
