@@ -63,3 +63,22 @@ def test_linux_zip_installs_and_enables(tmp_path):
     assert "bl_ext.user_default.relief_addon" in res["addons"]
     assert res["panel"] and str(tmp_path / "user") in res["file"]
     assert {"import_heightmap", "reconstruct", "bake_bsdf", "render_plate"} <= set(res["ops"])
+
+
+@pytest.mark.slow
+def test_reader_report_checks_each_zip_by_reading(tmp_path):
+    # a zip like the Windows one (relief_bsdf, no SurfaceTopography wheel) reads x3p with its own readers;
+    # a zip without the backend cannot read its main inputs and is never called validated
+    import zipfile
+    wheel = bx.build_backend_wheel(tmp_path / "cache")
+    win = tmp_path / "relief_addon-0.1.0-windows_x64.zip"
+    with zipfile.ZipFile(win, "w") as zf:
+        zf.write(wheel, "wheels/" + wheel.name)
+    rep = bx.reader_report(win, tmp_path / "cache")
+    assert rep["main_ok"] and {"x3p", "gwy", "npz"} <= set(rep["formats"]) and "surfacetopography" not in rep["formats"]
+    assert "native_readers (x3p)" in rep["text"] and "not available" in rep["text"]
+    bare = tmp_path / "bare.zip"
+    with zipfile.ZipFile(bare, "w") as zf:
+        zf.writestr("__init__.py", "")
+    rep = bx.reader_report(bare, tmp_path / "cache")
+    assert not rep["main_ok"] and rep["formats"] == []
