@@ -232,7 +232,12 @@ def build_lut_group(lut, img: bpy.types.Image | None = None) -> bpy.types.Shader
     g.links.new(tex["roughness"].outputs["Color"], sep.inputs["Color"])
     geo = g.nodes.new("ShaderNodeNewGeometry")
     geo.location = (-20, -1250)
-    aniso = (sep.outputs["Blue"], _relief_x_tangent(g, (-300, -1500)), gi.outputs["Rotation"])
+    # signed anisotropy (relief_bsdf.bsdf.bake.closure_anisotropy): |value|, and a quarter turn where negative
+    a_abs = _math(g, "ABSOLUTE", sep.outputs["Blue"], location=(150, -1400), label="anisotropy")
+    neg = _math(g, "LESS_THAN", sep.outputs["Blue"], 0.0, location=(150, -1550))
+    quarter = _math(g, "MULTIPLY", neg.outputs[0], 0.25, location=(300, -1550))
+    rot = _math(g, "ADD", quarter.outputs[0], gi.outputs["Rotation"], location=(450, -1550), label="rotation")
+    aniso = (a_abs.outputs[0], _relief_x_tangent(g, (-300, -1500)), rot.outputs[0])
     closures = []
     spec = [("specular_R", "ShaderNodeBsdfGlossy", None), ("diffuse_R", None, "Red"),
             ("specular_T", "ShaderNodeBsdfRefraction", None), ("diffuse_T", "ShaderNodeBsdfRefraction", "Green")]

@@ -152,3 +152,51 @@ def test_goniophotometer_reproduces_table(clean_bpy, tables):
             f = G.bsdf(m, ti, ts, 180.0, "T", samples=64)[1] * n**2
             ft = float(out.eval(550.0, ti, 0.0, "T", ts, 180.0))
             assert f == pytest.approx(ft, rel=0.20), (ti, ts, f, ft)
+
+
+def _anisotropic_tables():
+    """Monte Carlo (normals method, independent of the bake's GGX fit) tables of a Gaussian relief whose
+    slopes are 4 times steeper along x than along y (rms slopes 0.28 and 0.07)."""
+    from relief_bsdf.core.index import ConstantIndex, Material
+    from relief_bsdf.methods import reconstruct
+    from relief_bsdf.methods.request import Request
+    from relief_bsdf.parallel import parallel_settings
+    from relief_bsdf.surface.synth import RandomFieldSpec, relief_from_spec
+    relief = relief_from_spec(RandomFieldSpec(nx=128, ny=128, pitch_m=0.25e-6, rms_height_m=0.18e-6,
+                                              corr_length_m=4e-6, anisotropy=0.25), 0)
+    req = Request(theta_i_deg=(0.0, 20.0, 40.0, 60.0, 80.0), phi_i_deg=(0.0, 90.0), incident_from=("outside", "inside"),
+                  theta_s_edges_deg=tuple(np.linspace(0, 90, 46)), phi_s_edges_deg=tuple(np.arange(-5.0, 360, 10)),
+                  samples=200_000, seed=1)
+    with parallel_settings(backend="serial"):
+        return reconstruct(relief, Material(ConstantIndex(1.5)), req, "normals")
+
+
+@pytest.mark.slow
+def test_anisotropic_relief_bakes_anisotropic_lobe_checked_at_two_azimuths(clean_bpy):
+    """The goniophotometer sees the table's azimuth dependence: light across the steep slopes (azimuth
+    0, relief x) spreads wide, light along them (azimuth 90: the group's Rotation turns the relief by
+    a quarter) stays narrow.  In-plane reflection at theta_i = 40 deg."""
+    from relief_addon import bake_nodes, goniophotometer as G
+    from relief_bsdf.bsdf.bake import reflection_slope_ratio
+    tables = _anisotropic_tables()
+    out = tables[0]
+    assert reflection_slope_ratio(out, 550.0) == pytest.approx(0.277 / 0.068, rel=0.15)   # the relief's slopes
+    lut, _, group = bake_nodes.bake_tables(tables, "aniso")
+    assert lut.anisotropy > 0.5 and group["relief_anisotropy"] == pytest.approx(lut.anisotropy)
+    m = bake_nodes.material_for_group(group)
+    node = next(n for n in m.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+    ti = 40.0
+    got, want = {}, {}
+    for rot, phi_i in ((0.0, 0.0), (0.25, 90.0)):
+        node.inputs["Rotation"].default_value = rot
+        for ts in (40.0, 55.0, 70.0):
+            got[phi_i, ts] = G.bsdf(m, ti, ts, 180.0, "R", samples=64)[1]
+            want[phi_i, ts] = float(out.eval(550.0, ti, phi_i, "R", ts, phi_i + 180.0))
+    for phi_i in (0.0, 90.0):
+        assert got[phi_i, 40.0] == pytest.approx(want[phi_i, 40.0], rel=0.25), (phi_i, got, want)   # lobe peak
+    assert got[0.0, 70.0] == pytest.approx(want[0.0, 70.0], rel=0.25), (got, want)                  # wide tail
+    # the azimuth contrast off the peak: the table's ratio, within 35 %; an isotropic lobe would give 1
+    ratio_table = want[0.0, 55.0] / want[90.0, 55.0]
+    assert ratio_table > 2.0
+    assert got[0.0, 55.0] / got[90.0, 55.0] == pytest.approx(ratio_table, rel=0.35), (got, want)
+    assert got[90.0, 70.0] < 0.2 * got[0.0, 70.0]

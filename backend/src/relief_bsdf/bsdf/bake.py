@@ -39,9 +39,10 @@ Spectral tables: the RGB channels carry the weights at three wavelengths (defaul
 465 nm, interpolated linearly between tabulated wavelengths and held outside them);
 roughness and IOR are scalar in Cycles and use the green wavelength.
 
-Anisotropy: a table with incidence azimuths 0 and 90 degrees bakes an anisotropic
-reflection lobe (Cycles' Anisotropy with the tangent along the relief's x axis,
-`_lobe_roughness`); transmission lobes stay isotropic (Cycles' Refraction BSDF has none).
+Anisotropy: the reflection lobe's aspect ratio alpha_x / alpha_y is read from the table's
+own lobe at normal incidence (`reflection_slope_ratio`) and baked as Cycles' Anisotropy
+with the tangent along the relief's x axis (`closure_anisotropy`, `_lobe_roughness`); transmission lobes stay
+isotropic (Cycles' Refraction BSDF has none).
 
 Assumptions and limits: other tables are taken as isotropic (several incidence azimuths are
 averaged); lobe shapes are GGX (Walter et al. 2007, eqs. 20-21, 33) so tables of another
@@ -133,7 +134,8 @@ class BakedLut:
     rows: (2 * ROWS_PER_SIDE, C, 4) float32; row block s (0 front/outside, 1 back/inside)
     holds ROW_NAMES in order; colour rows are (R, G, B, 1) weights, the roughness row is
     (r_R, r_T, anisotropy_R, 1) in Cycles' roughness (sqrt of GGX alpha) and Cycles'
-    anisotropy of the reflection lobe, tangent along the relief's x axis (0: isotropic).  Columns sample theta_v
+    anisotropy of the reflection lobe (`closure_anisotropy`: tangent along the relief's x
+    axis, turned 90 degrees where negative; 0: isotropic).  Columns sample theta_v
     uniformly from 0 to 90 degrees.
     """
 
@@ -210,58 +212,77 @@ def _fit_roughness(table: BsdfTable, wl_nm: float, subsamples: int | None = None
     return np.clip(r, 0.0, 1.0)
 
 
-def _azimuth_index(phi_deg: np.ndarray, target: float) -> int | None:
-    d = np.abs((np.asarray(phi_deg, float) - target + 90.0) % 180.0 - 90.0)     # lobes repeat every 180 deg
-    k = int(np.argmin(d))
-    return k if d[k] <= 10.0 else None
+def closure_anisotropy(rho: float, closure: str) -> float:
+    """Cycles' Anisotropy for a GGX lobe with alpha_x / alpha_y = rho (x = the tangent), signed:
+    a negative value means "use |value| with the tangent turned by 90 degrees" (the node group
+    adds 0.25 to Rotation), because both closures below only stretch one way.
 
-
-def cycles_anisotropy(r_x: np.ndarray, r_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cycles (roughness, anisotropy) of a GGX lobe with roughnesses r_x along the tangent and r_y
-    across it (roughness = sqrt(alpha)).
-
-    Cycles 5.0 (node_glossy_bsdf.osl, the same for Metallic): alpha = roughness^2, and for
-    anisotropy a > 0 alpha_u = alpha (1 - a), alpha_v = alpha / (1 - a); for a < 0
-    alpha_u = alpha / (1 + a), alpha_v = alpha (1 + a); u is the tangent.  Inverse:
-    alpha = sqrt(alpha_x alpha_y), a = 1 - alpha_x / alpha (alpha_x <= alpha_y) or
-    alpha / alpha_x - 1 (alpha_x > alpha_y); |a| is held below 0.99 as Cycles clamps it.
+    Cycles 5.0 (node_metallic_bsdf.osl, node_glossy_bsdf.osl; the roughness r gives
+    alpha = r^2 and alpha_x alpha_y = alpha^2 in both, so the baked r stays the geometric mean):
+    - "metallic": aspect = sqrt(1 - 0.9 a), alpha_x = alpha / aspect, alpha_y = alpha aspect,
+      a in [0, 1]: rho = 1 / (1 - 0.9 a), so a = (1 - 1 / rho) / 0.9 (rho >= 1, at most 10);
+    - "glossy": alpha_x = alpha (1 - a), alpha_y = alpha / (1 - a) for a > 0: rho = (1 - a)^2,
+      so a = 1 - sqrt(rho) (rho <= 1), held below 0.99 as Cycles clamps it.
     """
-    ax = np.asarray(r_x, float) ** 2
-    ay = np.asarray(r_y, float) ** 2
-    a = np.sqrt(ax * ay)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        aniso = np.where(ax <= ay, 1.0 - ax / np.where(a > 0, a, 1.0), a / np.where(ax > 0, ax, 1.0) - 1.0)
-    aniso = np.where(a > 0, np.clip(aniso, -0.99, 0.99), 0.0)
-    return np.sqrt(a), aniso
+    if not np.isfinite(rho) or rho <= 0:
+        return 0.0
+    along = rho >= 1.0 if closure == "metallic" else rho <= 1.0       # stretch along the tangent
+    q = rho if along else 1.0 / rho                                     # the ratio the closure makes
+    a = (1.0 - 1.0 / q) / 0.9 if closure == "metallic" else 1.0 - np.sqrt(q)
+    a = float(np.clip(a, 0.0, 1.0 if closure == "metallic" else 0.99))
+    return a if along else -a
 
 
-def _lobe_roughness(table: BsdfTable, wl_nm: float) -> tuple[np.ndarray, np.ndarray]:
-    """(I, 2) roughness per incidence and side, and (I,) anisotropy of the reflection lobe.
+def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
+    order = np.argsort(x)
+    cw = np.cumsum(w[order])
+    return float(x[order][np.searchsorted(cw, 0.5 * cw[-1])])
 
-    A table with incidence azimuths 0 and 90 degrees (light in the relief's x-z and y-z
-    planes) is read as anisotropic: the lobe fitted at azimuth 0 spreads mostly in the x-z
-    plane (its roughness is r_x), the one at 90 degrees in y-z (r_y); `cycles_anisotropy`
-    turns the pair into Cycles' (roughness, anisotropy) with the tangent along x.  At normal
-    incidence both fits see the same lobe, so the anisotropy is taken from the obliquest
-    incidences (theta_i >= 30 deg, averaged) and held for all.  Transmission stays isotropic
-    (Cycles' Refraction BSDF has no anisotropy): its roughness is the azimuth mean.  Other
-    tables: isotropic, every azimuth averaged.
+
+def reflection_slope_ratio(table: BsdfTable, wl_nm: float) -> float:
+    """alpha_x / alpha_y of the reflection lobe at normal incidence; NaN if the table cannot say.
+
+    At normal incidence each reflected direction w_o belongs to one facet slope, that of the
+    half vector h = (z + w_o) / |z + w_o|: (s_x, s_y) = -(h_x, h_y) / h_z.  The power of each R
+    cell (f x projected solid angle) is the share of light reflected by facets of that slope, and
+    for a lobe whose slope density is elliptical, P(s_x / alpha_x, s_y / alpha_y), the ratio of
+    the power-weighted medians of |s_x| and |s_y| is alpha_x / alpha_y whatever the shape of P
+    (the Fresnel and shadowing factors depend on the tilt, which is the same for both axes at
+    normal incidence; anisotropic masking is neglected).  Needs an incidence within 1 deg of the
+    normal and the lobe resolved by more than one azimuth cell; azimuth phi_s = 0 is +x.
     """
-    r = _fit_roughness(table, wl_nm)
-    iso = r.mean(axis=1)
-    k0, k90 = _azimuth_index(table.phi_i_deg, 0.0), _azimuth_index(table.phi_i_deg, 90.0)
-    aniso = np.zeros(iso.shape[0])
-    if k0 is None or k90 is None or k0 == k90:
-        return iso, aniso
-    oblique = table.theta_i_deg >= 30.0
-    if not oblique.any():
-        return iso, aniso
-    r_x = np.sqrt(np.mean(r[oblique, k0, 0] ** 2))
-    r_y = np.sqrt(np.mean(r[oblique, k90, 0] ** 2))
-    _, a = cycles_anisotropy(r_x, r_y)
-    rough = iso.copy()
-    rough[:, 0] = np.sqrt(r[:, k0, 0] * r[:, k90, 0])          # geometric mean: Cycles' alpha = sqrt(ax ay)
-    return rough, np.full(iso.shape[0], float(a))
+    ti = np.asarray(table.theta_i_deg, float)
+    i = int(np.argmin(np.abs(ti)))
+    if abs(ti[i]) > 1.0 or len(table.phi_s_edges_deg) < 5:
+        return float("nan")
+    from relief_bsdf.core.frames import direction
+    w = int(np.argmin(np.abs(np.asarray(table.wavelength_nm, float) - wl_nm)))
+    p = int(np.argmin(np.abs((np.asarray(table.phi_i_deg, float) + 180.0) % 360.0 - 180.0)))
+    te, pe = np.asarray(table.theta_s_edges_deg, float), np.asarray(table.phi_s_edges_deg, float)
+    th, ph = np.meshgrid(0.5 * (te[:-1] + te[1:]), 0.5 * (pe[:-1] + pe[1:]), indexing="ij")
+    h = direction(th, ph) + np.array([0.0, 0.0, 1.0])
+    sx, sy = np.abs(h[..., 0] / h[..., 2]).ravel(), np.abs(h[..., 1] / h[..., 2]).ravel()
+    power = (np.asarray(table.values_per_sr[w, i, p, 0], float) * table.projected_solid_angle_sr).ravel()
+    if not np.any(power > 0):
+        return float("nan")
+    my, mx = _weighted_median(sy, power), _weighted_median(sx, power)
+    return mx / my if my > 0 and mx > 0 else float("nan")
+
+
+def _lobe_roughness(table: BsdfTable, wl_nm: float, closure: str) -> tuple[np.ndarray, np.ndarray]:
+    """(I, 2) roughness per incidence and side, and (I,) signed anisotropy of the reflection lobe.
+
+    Roughness: one isotropic GGX lobe fitted per incidence and side, azimuths averaged; for an
+    anisotropic lobe this is close to the geometric mean of the two axes' roughnesses, which is
+    what Cycles' (roughness, anisotropy) pair keeps.  Anisotropy: from the table's own
+    reflection lobe at normal incidence (`reflection_slope_ratio`, rho = alpha_x / alpha_y,
+    tangent along x) in the convention of the closure (`closure_anisotropy`), the same for every
+    incidence.  A table without a normal incidence bakes isotropic.  Transmission stays
+    isotropic (Cycles' Refraction BSDF has no anisotropy).
+    """
+    rough = _fit_roughness(table, wl_nm).mean(axis=1)
+    a = closure_anisotropy(reflection_slope_ratio(table, wl_nm), closure)
+    return rough, np.full(rough.shape[0], a)
 
 
 def _interp_wl(values: np.ndarray, wl_axis: np.ndarray, targets: Sequence[float]) -> np.ndarray:
@@ -294,7 +315,7 @@ def _side_rows(table: BsdfTable, cols: np.ndarray, bc: _BakeColours, back: bool)
     floor, reflection_closure, ior_rgb = bc.floor, bc.reflection_closure, bc.ior_rgb
     integ = _per_incidence(table)
     ti = table.theta_i_deg
-    rough, aniso = _lobe_roughness(table, green_nm)                  # (I, 2), (I,)
+    rough, aniso = _lobe_roughness(table, green_nm, reflection_closure)   # (I, 2), (I,)
     r_R = np.interp(cols, ti, rough[:, 0])
     r_T = np.interp(cols, ti, rough[:, 1])
     rows = np.zeros((ROWS_PER_SIDE, cols.size, 4))
