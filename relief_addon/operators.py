@@ -10,6 +10,7 @@ from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatPrope
 from bpy_extras.io_utils import ImportHelper
 
 from .jobs import JobOperator
+from .presets import ITEMS as PRESET_ITEMS
 from .props import METHOD_ITEMS, SIDE_ITEMS
 
 # every suffix the backend reads: npz, images (OpenImageIO), .sdf, and SurfaceTopography's readers
@@ -444,8 +445,44 @@ class RELIEF_OT_render_plate(JobOperator, bpy.types.Operator):
         self.report({"INFO"}, f"Wrote {out}")
 
 
+class RELIEF_OT_add_preset(JobOperator, bpy.types.Operator):
+    """Add a ready-to-render plate scene of a typical surface (frosted acrylic, anti-glare film, light-guide dots)"""
+
+    bl_idname = "relief.add_preset"
+    bl_label = "Add Preset Plate Scene"
+    bl_options = {"REGISTER", "UNDO"}
+    job_label = "Preset"
+
+    preset: EnumProperty(name="Preset", items=PRESET_ITEMS, default="frosted_acrylic")
+
+    def prepare(self, context):
+        from .bake_nodes import closure_albedo, has_metallic_bsdf
+        s = context.scene.relief
+        return {"preset": self.preset, "albedo": closure_albedo(),
+                "closure": "metallic" if has_metallic_bsdf() else "glossy",
+                "width": s.render_width, "samples": s.render_samples}
+
+    @staticmethod
+    def work(p, progress):
+        from .presets import preset_plate
+        return {**p, "plate": preset_plate(p["preset"], p["albedo"], p["closure"], progress)}
+
+    def finish(self, context, r):
+        from .plate_scene import build_scene
+        sc = build_scene(r["plate"], r["width"], r["samples"])
+        group = next((m.node_tree.nodes[0].node_tree for o in sc.collection.objects if o.type == "MESH"
+                      for m in o.data.materials if m and m.name.startswith("Relief BSDF")), None)
+        if context.window is not None:
+            context.window.scene = sc            # the new scene is shown: F12 renders it
+        if group is not None:
+            context.scene.relief.last_group = group.name
+        haze = r["plate"]["lut"].haze
+        self.report({"INFO"}, f"Scene {sc.name!r} ready to render"
+                              + (f" (haze {100 * haze:.1f} %)" if haze == haze else ""))
+
+
 CLASSES = (RELIEF_OT_import_heightmap, RELIEF_FH_heightmap, RELIEF_OT_reconstruct, RELIEF_OT_bake_bsdf,
-           RELIEF_OT_simulate_plate, RELIEF_OT_fit, RELIEF_OT_diagnose, RELIEF_OT_render_plate)
+           RELIEF_OT_simulate_plate, RELIEF_OT_fit, RELIEF_OT_diagnose, RELIEF_OT_render_plate, RELIEF_OT_add_preset)
 
 
 def register():

@@ -108,6 +108,10 @@ class RELIEF_PT_reconstruct(_ReliefPanel, bpy.types.Panel):
         col = self.layout.column()
         for p in ("method", "wavelengths_nm", "theta_i_deg", "sides", "samples", "seed", "ior", "table_path"):
             col.prop(s, p)
+        from .prefs import get_prefs
+        prefs = get_prefs(context)
+        if hasattr(prefs, "bl_rna"):           # registered as an add-on: its preferences
+            col.prop(prefs, "workers")
         op = col.operator("relief.reconstruct", icon="PLAY")
         op.method = s.method
         op.sides = s.sides
@@ -144,6 +148,12 @@ class RELIEF_PT_bake_render(_ReliefPanel, bpy.types.Panel):
         col.prop(s, "render_width")
         col.prop(s, "render_samples")
         col.operator("relief.render_plate", icon="RENDER_STILL")
+        col.separator()
+        col.label(text="Presets (scene ready to render):")
+        row = col.row(align=True)
+        from .presets import PRESETS
+        for key, p in PRESETS.items():
+            row.operator("relief.add_preset", text=p.label).preset = key
         if s.job_status:
             col.label(text=s.job_status, icon="INFO")
 

@@ -53,6 +53,7 @@ weights stay finite (grazing back-facing views past the critical angle).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -205,6 +206,11 @@ def _fit_roughness(table: BsdfTable, wl_nm: float, subsamples: int | None = None
         subsamples = 1 if fine else 2
     t = table.select(wl_nm)
     h = t.hemispherical()
+    # a lobe carrying under 1e-12 of the light (a nearly flat face) is no lobe: its cells are
+    # zeroed so that the fit skips it instead of dividing by an underflowed norm
+    power = (t.values_per_sr * t.projected_solid_angle_sr).sum(axis=(-2, -1))
+    if np.any((power > 0) & (power < 1e-12)):
+        t = dataclasses.replace(t, values_per_sr=np.where((power < 1e-12)[..., None, None], 0.0, t.values_per_sr))
     fit = fit_table(t, n_lobes=1, distribution="ggx", subsamples=subsamples)
     r = np.sqrt(np.clip(fit.alpha[0, :, :, :, 0], 0.0, None))      # (I, P, 2)
     for k, key in enumerate(("diffuse_R", "diffuse_T")):
