@@ -259,8 +259,10 @@ def reader_report(z: Path, cache: Path) -> dict:
     The zip's relief_bsdf wheel is unpacked and, in a fresh Python (this one's numpy, scipy
     and h5py), reads the demo X3P and an npz with SurfaceTopography made unimportable when
     the zip bundles no wheel of it (what Blender on that platform will have).  Formats: the
-    project's own (x3p, gwy, sdf, npz), float tif/exr when OpenImageIO is bundled, and every
-    SurfaceTopography format when its wheel is.  main_ok: the main inputs (x3p, npz) read.
+    project's own (x3p, gwy, sdf, npz), float tif/exr (Blender's own OpenImageIO), and every
+    SurfaceTopography format when its wheel is bundled (the wheel of another platform cannot run
+    here: this Python's SurfaceTopography stands in for it in the check).  main_ok: the main
+    inputs (x3p, npz) read.
     """
     import zipfile
     wheels = _zip_wheels(z)
@@ -290,7 +292,7 @@ def reader_report(z: Path, cache: Path) -> dict:
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env={k: v for k, v in __import__("os").environ.items() if k != "PYTHONPATH"})
     ok = res.returncode == 0 and "READ" in res.stdout
-    formats = list(OWN_FORMATS) + (["tif", "exr"] if "openimageio" in has else [])
+    formats = list(OWN_FORMATS) + ["tif", "exr"]      # float images: Blender's own OpenImageIO (io/oiio.py)
     text = (f"reads {', '.join(formats)}"
             + (" and every SurfaceTopography format (dat, plu, opd, di, nid, ibw, mi, frt, ...)" if st else
                " with its own readers (no SurfaceTopography wheel for this platform: the other instrument "
