@@ -22,7 +22,7 @@ Steps:
 
 A package with no wheel for a platform is reported and left out of that platform's zip (the
 feature needing it then fails there with a clear error; SurfaceTopography's instrument formats
-fall back to the project's own X3P / GWY / SDF readers, io/native_readers.py).
+fall back to the project's own X3P / GWY / PLU / SDF readers, io/native_readers.py).
 """
 from __future__ import annotations
 
@@ -244,7 +244,7 @@ def build(out: Path, platforms: list[str], cache: Path, offline: bool = False) -
 
 
 MAIN_INPUTS = ("x3p", "npz")
-OWN_FORMATS = ("x3p", "gwy", "sdf", "npz")          # relief_bsdf's own readers (io.heightmaps, io.native_readers)
+OWN_FORMATS = ("x3p", "gwy", "plu", "sdf", "npz")          # relief_bsdf's own readers (io.heightmaps, io.native_readers)
 
 
 def _zip_wheels(z: Path) -> list[str]:
@@ -259,7 +259,7 @@ def reader_report(z: Path, cache: Path) -> dict:
     The zip's relief_bsdf wheel is unpacked and, in a fresh Python (this one's numpy, scipy
     and h5py), reads the demo X3P and an npz with SurfaceTopography made unimportable when
     the zip bundles no wheel of it (what Blender on that platform will have).  Formats: the
-    project's own (x3p, gwy, sdf, npz), float tif/exr (Blender's own OpenImageIO), and every
+    project's own (x3p, gwy, plu, sdf, npz), float tif/exr (Blender's own OpenImageIO), and every
     SurfaceTopography format when its wheel is bundled (the wheel of another platform cannot run
     here: this Python's SurfaceTopography stands in for it in the check).  main_ok: the main
     inputs (x3p, npz) read.

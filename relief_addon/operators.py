@@ -70,7 +70,7 @@ def _import_file(context, path: Path, pitch_um: float, z_scale: float):
         relief = read_relief(path, pitch_m=pitch)
     except ImportError as e:                # e.g. no SurfaceTopography wheel for this platform
         raise InputError(path, f"this format needs {e.name or e}, which is not available in this "
-                         "Blender (x3p, gwy, sdf, npz, TIFF and EXR files still work)") from None
+                         "Blender (x3p, gwy, plu, sdf, npz, TIFF and EXR files still work)") from None
     s = context.scene.relief
     request = {"ior": s.ior, "wavelengths_nm": _floats(s.wavelengths_nm, "wavelengths"),
                "theta_i_deg": _floats(s.theta_i_deg, "incidences")}

@@ -1,6 +1,6 @@
-"""The project's own X3P / GWY readers, run with SurfaceTopography made unavailable (issue 16, item 1).
+"""The project's own X3P / GWY / PLU readers, run with SurfaceTopography made unavailable (issue 16, item 1).
 
-Oracles are independent: SurfaceTopography's reader of the same real X3P file, and files written
+Oracles are independent: SurfaceTopography's readers of the same real X3P and PLU files, and files written
 by `gwyfile` (an independent pure-Python implementation of Gwyddion's format).
 """
 from __future__ import annotations
@@ -30,17 +30,19 @@ def no_surface_topography(monkeypatch):
     yield
 
 
-def test_x3p_without_surface_topography_matches_its_reader():
-    with_st = read_relief(X3P)
+@pytest.mark.parametrize("name, shape", [("ST_x3p-2.x3p", (650, 650)), ("ST_plu-1.plu", (576, 768))])
+def test_own_reader_without_surface_topography_matches_its_reader(name, shape):
+    path = SHARED / "data" / "topography" / name
+    with_st = read_relief(path)
     assert with_st.metadata["reader"].startswith("SurfaceTopography")
     mp = pytest.MonkeyPatch()
     try:
         mp.setitem(sys.modules, "SurfaceTopography", None)
-        own = read_relief(X3P)
+        own = read_relief(path)
     finally:
         mp.undo()
     assert own.metadata["reader"].startswith("relief_bsdf.io.native_readers")
-    assert own.shape == with_st.shape == (650, 650)
+    assert own.shape == with_st.shape == shape
     assert own.dx_m == with_st.dx_m and own.dy_m == with_st.dy_m
     np.testing.assert_array_equal(own.heights_m, with_st.heights_m)
 
@@ -100,6 +102,10 @@ def test_bad_files_name_the_file(no_surface_topography, tmp_path):
     gwy.write_bytes(b"GWYO" + b"\0" * 40)
     with pytest.raises(InputError, match="old.gwy.*GWYP"):
         read_relief(gwy)
+    plu = tmp_path / "short.plu"
+    plu.write_bytes(b"\0" * 100)
+    with pytest.raises(InputError, match="short.plu.*too short"):
+        read_relief(plu)
     cut = tmp_path / "cut.gwy"
     cut.write_bytes(b"GWYPGwyContainer\0" + b"\xff\x00\x00\x00" + b"/0/data\0o")
     with pytest.raises(InputError, match="cut.gwy"):

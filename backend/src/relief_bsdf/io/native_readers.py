@@ -20,6 +20,14 @@ descriptions, with numpy and the standard library only:
   (physical sizes), si_unit_xy / si_unit_z (GwySIUnit, `unitstr`) and `data` (yres rows of
   xres float64).  A mask `/0/mask` (1 = masked) marks invalid points.
 
+- PLU (Sensofar confocal / interferometric profilers, the layout SurfaceTopography reads):
+  a 500-byte little-endian header (date 128 bytes, time uint32, comment 256 bytes; calibration:
+  uint32 rows, columns, N_tall, float32 dy_multip, um per pixel in x and y, offsets x, y, um per
+  pixel tall, offset z; measurement: uint32 type (3 = topography), algorithm, method, objective,
+  area type; 40 bytes of scan settings; 8 bytes of flags, the second the number of layers;
+  uint32 factor), then per layer uint32 rows and columns and rows x columns float32 heights
+  in micrometres (1000001 = not measured), then float32 min and max.  Pitch = um per pixel.
+
 `wanted(suffix)` says whether `read_relief` should use these readers: the format is one of
 them and SurfaceTopography cannot be imported.  `read(path, pitch)` returns
 (heights_m[y, x], dx_m, dy_m, periodic, metadata); `read_relief` finishes it as for any file.
@@ -227,4 +235,36 @@ def read_gwy(path: Path) -> tuple[np.ndarray, float, float, dict]:
     return h, float(f["xreal"]) * lat / nx, float(f["yreal"]) * lat / ny, meta
 
 
-READERS = {".x3p": read_x3p, ".gwy": read_gwy}
+# ------------------------------------------------------------------------------------- PLU
+
+_PLU_HEADER = 500                  # bytes before the first layer (module doc)
+_PLU_UNDEFINED = 1000001.0
+
+
+def read_plu(path: Path) -> tuple[np.ndarray, float, float, dict]:
+    """Sensofar .plu (module doc): the first topography layer -> heights (ny, nx) m, dx, dy, metadata."""
+    buf = path.read_bytes()
+    if len(buf) < _PLU_HEADER + 8:
+        raise InputError(path, f"too short for a Sensofar PLU file ({len(buf)} bytes)")
+    um_x, um_y = struct.unpack_from("<ff", buf, 388 + 16)
+    kind, _, _, _, area_type = struct.unpack_from("<5I", buf, 428)
+    if kind != 3:
+        raise InputError(path, f"PLU measurement type {kind}: not a topography (type 3); profiles are not read")
+    n_layers = buf[448 + 40 + 1]
+    if n_layers < 1:
+        raise InputError(path, "the PLU file holds no data layer")
+    ny, nx = struct.unpack_from("<II", buf, _PLU_HEADER)
+    start = _PLU_HEADER + 8
+    if ny < 2 or nx < 2 or start + 4 * nx * ny > len(buf):
+        raise InputError(path, f"PLU layer of {nx} x {ny} points does not fit the file (truncated?)")
+    h = np.frombuffer(buf, "<f4", nx * ny, start).astype(float).reshape(ny, nx)
+    h[h == _PLU_UNDEFINED] = np.nan
+    if not (um_x > 0 and um_y > 0):
+        raise InputError(path, f"PLU pixel size {um_x} x {um_y} um is not positive")
+    meta = {"file_unit": "um", "lateral_unit": "um", "channel": "layer0", "channels": [f"layer{k}" for k in
+                                                                                    range(n_layers)],
+            "area_type": int(area_type)}
+    return h * 1e-6, um_x * 1e-6, um_y * 1e-6, meta
+
+
+READERS = {".x3p": read_x3p, ".gwy": read_gwy, ".plu": read_plu}
