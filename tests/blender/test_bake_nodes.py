@@ -200,3 +200,39 @@ def test_anisotropic_relief_bakes_anisotropic_lobe_checked_at_two_azimuths(clean
     assert ratio_table > 2.0
     assert got[0.0, 55.0] / got[90.0, 55.0] == pytest.approx(ratio_table, rel=0.35), (got, want)
     assert got[90.0, 70.0] < 0.2 * got[0.0, 70.0]
+
+
+@pytest.mark.slow
+def test_group_inputs_haze_tint_and_fitted_switch(clean_bpy, tables):
+    """Haze 0 is the smooth boundary (Fresnel), Haze 1 the table; Tint scales the transmitted light
+    per channel; Fitted picks the second table."""
+    from relief_addon import bake_nodes, goniophotometer as G
+    from relief_bsdf.core.fresnel import fresnel_unpolarized
+    from relief_bsdf.bsdf.bake import bake_lut
+    lut, img, _ = bake_nodes.bake_tables(tables, "rough")
+    smooth_tables = _microfacet_tables(alpha=0.05)
+    smoother = bake_lut(smooth_tables, "smoother", albedo=bake_nodes.closure_albedo(),
+                        reflection_closure=lut.reflection_closure)
+    group = bake_nodes.build_node_group(lut, img, fitted=smoother, name="switch")
+    assert group["relief_fitted"] and bpy.data.node_groups.get("Relief LUT BSDF: smoother") is not None
+    m = bake_nodes.material_for_group(group)
+    node = next(n for n in m.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+    assert node.inputs["Fitted"].default_value == 1.0                       # a fitted table: shown by default
+    t = 30.0
+    T_table = tables[0].hemispherical()["T"][0, 3, 0]
+    T_fresnel = 1.0 - float(fresnel_unpolarized(np.cos(np.radians(t)), 1.0, 1.5))
+    node.inputs["Fitted"].default_value = 0.0
+    assert G.directional(m, t, "T", samples=32)[1] == pytest.approx(T_table, rel=0.05)
+    node.inputs["Haze"].default_value = 0.0
+    assert G.directional(m, t, "T", samples=32)[1] == pytest.approx(T_fresnel, rel=0.03)
+    node.inputs["Haze"].default_value = 1.0
+    node.inputs["Tint"].default_value = (1.0, 0.5, 0.25, 1.0)
+    rgb = G.directional(m, t, "T", samples=32)
+    assert rgb[1] / rgb[0] == pytest.approx(0.5, rel=0.05) and rgb[2] / rgb[0] == pytest.approx(0.25, rel=0.05)
+    # Fitted 0 / 1 renders each table's own directional R at a grazing view (where the two differ)
+    node.inputs["Tint"].default_value = (1.0, 1.0, 1.0, 1.0)
+    R_want = {0.0: tables[0].hemispherical()["R"][0, 7, 0], 1.0: smooth_tables[0].hemispherical()["R"][0, 7, 0]}
+    assert abs(R_want[0.0] - R_want[1.0]) > 0.1 * R_want[1.0]
+    for fitted, want in R_want.items():
+        node.inputs["Fitted"].default_value = fitted
+        assert G.directional(m, 70.0, "R", samples=32)[1] == pytest.approx(want, rel=0.05), fitted
