@@ -35,7 +35,6 @@ Errors are `InputError`s naming the file.
 """
 from __future__ import annotations
 
-import importlib.util
 import struct
 import xml.etree.ElementTree as ET
 import zipfile
@@ -50,7 +49,13 @@ _SI_PREFIX = {"": 1.0, "m": 1e-3, "u": 1e-6, "µ": 1e-6, "n": 1e-9, "p": 1e-12, 
 
 
 def surface_topography_available() -> bool:
-    return importlib.util.find_spec("SurfaceTopography") is not None
+    """SurfaceTopography imports (present *and* loadable: a copy without its compiled
+    dependencies, muFFT / muGrid, counts as missing)."""
+    try:
+        import SurfaceTopography  # noqa: F401
+    except Exception:  # noqa: BLE001 - ImportError, or a broken native extension
+        return False
+    return True
 
 
 def wanted(suffix: str) -> bool:
