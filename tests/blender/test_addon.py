@@ -163,3 +163,53 @@ def test_panel_lengths_and_regime(addon, tmp_path):
                   incident_from=("outside", "inside")).validate()
     assert reg["method"] == choose(read_relief(path), Material(ConstantIndex(s.ior)), req).method == "rayleigh-rice"
     assert reg["regime"] == "optically smooth" and reg["rayleigh_parameter"] < 0.1
+
+
+class _Layout:
+    """Stand-in for a panel's UILayout (no window in background mode): records labels and props."""
+
+    def __init__(self, log):
+        self.log = log
+
+    def label(self, text="", icon=None):
+        self.log.append(("label", text))
+
+    def prop(self, data, name, **kw):
+        self.log.append(("prop", name))
+
+    def operator(self, idname, **kw):
+        self.log.append(("operator", idname))
+        return type("Props", (), {})()
+
+    def separator(self):
+        pass
+
+    def box(self):
+        return self
+
+    def row(self, **kw):
+        return self
+
+    def column(self, **kw):
+        return self
+
+
+def test_panels_draw_units_regime_and_haze(addon, tmp_path):
+    from types import SimpleNamespace
+    from relief_addon import panels
+    from relief_bsdf.io.heightmaps import write_relief
+    from relief_bsdf.surface.relief import Relief
+    h = 0.08e-6 * np.random.default_rng(5).standard_normal((40, 40))
+    path = write_relief(tmp_path / "p.npz", Relief(h, 0.5e-6, 0.5e-6))
+    assert bpy.ops.relief.import_heightmap(filepath=str(path)) == {"FINISHED"}
+    assert bpy.ops.relief.reconstruct(method="microfacet", wavelengths_nm="550", theta_i_deg="0,40", sides="both",
+                                      filepath=str(tmp_path / "p.h5")) == {"FINISHED"}
+    log = []
+    for cls in panels.CLASSES:
+        cls.draw(SimpleNamespace(layout=_Layout(log)), bpy.context)
+    labels = [t for k, t in log if k == "label"]
+    text = "\n".join(labels)
+    assert "500 x 500 nm" in labels and any(t.endswith(" nm") for t in labels[labels.index("rms height"):][:2])
+    assert "Optical regime:" in text and "auto would pick:" in text
+    assert any(t.startswith("haze (T, normal incidence):") and t.endswith("%") for t in labels)
+    assert ("operator", "relief.add_preset") in log
