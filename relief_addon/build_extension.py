@@ -244,7 +244,7 @@ def build(out: Path, platforms: list[str], cache: Path, offline: bool = False) -
 
 
 MAIN_INPUTS = ("x3p", "npz")
-OWN_FORMATS = ("x3p", "gwy", "plu", "sdf", "npz")          # relief_bsdf's own readers (io.heightmaps, io.native_readers)
+OWN_FORMATS = ("x3p", "gwy", "plu", "sdf", "npz")     # relief_bsdf's own readers (io.heightmaps, io.native_readers)
 
 
 def _zip_wheels(z: Path) -> list[str]:
@@ -297,7 +297,8 @@ def reader_report(z: Path, cache: Path) -> dict:
             + (" and every SurfaceTopography format (dat, plu, opd, di, nid, ibw, mi, frt, ...)" if st else
                " with its own readers (no SurfaceTopography wheel for this platform: the other instrument "
                "formats are not available)")
-            + (f"; checked: the demo X3P and an npz read with this zip's readers ({res.stdout.split('READ', 1)[1].strip()})"
+            + (f"; checked: the demo X3P and an npz read with this zip's readers "
+               f"({res.stdout.split('READ', 1)[1].strip()})"
                if ok else f"; FAILED to read the demo X3P / an npz with this zip's readers: "
                           f"{(res.stderr.strip().splitlines() or ['no output'])[-1]}"))
     return {"main_ok": ok, "formats": formats + (["surfacetopography"] if st else []), "text": text}

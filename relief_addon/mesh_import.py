@@ -171,7 +171,8 @@ def optical_regime(relief, ior: float, wavelengths_nm, theta_i_deg) -> dict:
 
 
 def import_relief(relief, name: str | None = None, z_scale: float = 1.0,
-                  collection: bpy.types.Collection | None = None, regime_request: dict | None = None) -> bpy.types.Object:
+                  collection: bpy.types.Collection | None = None,
+                  regime_request: dict | None = None) -> bpy.types.Object:
     """Create the relief object (mesh + properties) in `collection` (default: the scene's).
 
     regime_request: {"ior", "wavelengths_nm", "theta_i_deg"} to assess the optical regime with

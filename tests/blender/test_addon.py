@@ -159,7 +159,8 @@ def test_panel_lengths_and_regime(addon, tmp_path):
     assert bpy.ops.relief.import_heightmap(filepath=str(path)) == {"FINISHED"}
     reg = bpy.context.active_object["relief_regime"]
     s = bpy.context.scene.relief
-    req = Request(wavelengths_nm=(float(s.wavelengths_nm),), theta_i_deg=tuple(float(x) for x in s.theta_i_deg.split(",")),
+    req = Request(wavelengths_nm=(float(s.wavelengths_nm),),
+                  theta_i_deg=tuple(float(x) for x in s.theta_i_deg.split(",")),
                   incident_from=("outside", "inside")).validate()
     assert reg["method"] == choose(read_relief(path), Material(ConstantIndex(s.ior)), req).method == "rayleigh-rice"
     assert reg["regime"] == "optically smooth" and reg["rayleigh_parameter"] < 0.1

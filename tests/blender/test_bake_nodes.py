@@ -41,7 +41,8 @@ def test_node_group_structure(clean_bpy, tables):
     inner = bpy.data.node_groups["Relief LUT BSDF: probe"]
     assert [n.node_tree for n in group.nodes if n.bl_idname == "ShaderNodeGroup"] == [inner, inner]
     glossy = {"ShaderNodeBsdfAnisotropic": "ShaderNodeBsdfGlossy"}      # Blender 4+ merged the two
-    kinds = sorted(glossy.get(n.bl_idname, n.bl_idname) for n in inner.nodes if n.bl_idname.startswith("ShaderNodeBsdf"))
+    kinds = sorted(glossy.get(n.bl_idname, n.bl_idname) for n in inner.nodes
+                   if n.bl_idname.startswith("ShaderNodeBsdf"))
     assert kinds == ["ShaderNodeBsdfGlossy", "ShaderNodeBsdfMetallic", "ShaderNodeBsdfRefraction",
                      "ShaderNodeBsdfRefraction"]
     texs = [n for n in inner.nodes if n.bl_idname == "ShaderNodeTexImage"]

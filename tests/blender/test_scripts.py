@@ -4,6 +4,7 @@ Each test runs a script in a fresh Python with the bpy module, as `python script
 `__main__` situation as `blender --background --python script.py`).  The script imports bpy at
 top level, so a worker process that re-ran it would die at `import bpy` (no bpy in a forked
 worker, as in Blender's own Python); it logs every execution of its top level to a file.
+Each takes 2-3 s alone (a fresh bpy, worker start-up), more on a loaded machine: marked slow.
 """
 from __future__ import annotations
 
@@ -13,7 +14,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -66,6 +66,7 @@ def _run(tmp_path: Path, code: str) -> tuple[dict, list[str]]:
     return json.loads(line[7:]), log.read_text().split()
 
 
+@pytest.mark.slow
 def test_unguarded_script_runs_reconstruct_on_worker_processes(tmp_path):
     res, runs = _run(tmp_path, OPERATOR)
     assert res["res"] == ["FINISHED"]
@@ -76,6 +77,7 @@ def test_unguarded_script_runs_reconstruct_on_worker_processes(tmp_path):
     assert sorted(t.incident_from for t in load_tables(tmp_path / "t.h5")) == ["inside", "outside"]
 
 
+@pytest.mark.slow
 def test_worker_dying_at_start_is_reported_with_its_cause(tmp_path):
     # outside the add-on nothing cleans __main__: workers re-run the script and die at `import bpy`;
     # the error says so (exit status of a Python error), not "out of memory, try fewer workers"
