@@ -7,8 +7,12 @@ only builds Blender data:
 - image "Relief LUT: <name>": C x (2 * 5) float32 RGBA, non-colour data, packed, fake user;
 - node group "Relief LUT coordinate": (Row) -> texel-centred (u, v) from the view angle
   theta_v = acos(|I . N|) and Backfacing (selects the inside row block);
-- node group "Relief BSDF: <name>": four Cycles closures whose colours and roughnesses are
-  read from the image (Linear interpolation, EXTEND), summed into one BSDF output.
+- node group "Relief LUT BSDF: <name>": four Cycles closures whose colours and roughnesses are
+  read from the image (Linear interpolation, EXTEND), summed into one BSDF output
+  (anisotropic reflection lobe when the table is);
+- node group "Relief BSDF: <name>": what a user drops into a material, with inputs Tint,
+  Haze, Fitted (fitted / measured-as-is table) and Rotation (`build_node_group`).
+Re-baking updates images and groups in place; baking onto an object adds a material slot.
 """
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ import bpy
 import numpy as np
 
 GROUP_PREFIX = "Relief BSDF: "
+LUT_GROUP_PREFIX = "Relief LUT BSDF: "
 IMAGE_PREFIX = "Relief LUT: "
 COORD_GROUP = "Relief LUT coordinate"
 CALIBRATION = Path(__file__).resolve().parent / "data" / "cycles_albedo.npz"
@@ -31,19 +36,41 @@ def closure_albedo():
 
 
 def lut_image(lut) -> bpy.types.Image:
-    """Packed float32 data image holding the LUT rows (row 0 at the bottom)."""
+    """Packed float32 data image holding the LUT rows (row 0 at the bottom); an image of the
+    same name is updated in place (same datablock, so every user of it sees the new rows)."""
     name = IMAGE_PREFIX + lut.name
-    old = bpy.data.images.get(name)
-    if old is not None:
-        bpy.data.images.remove(old)
     n_cols, n_rows = lut.rows.shape[1], lut.rows.shape[0]
-    img = bpy.data.images.new(name, n_cols, n_rows, alpha=True, float_buffer=True, is_data=True)
+    img = bpy.data.images.get(name)
+    if img is not None and tuple(img.size) != (n_cols, n_rows):
+        img.scale(n_cols, n_rows)
+    if img is None:
+        img = bpy.data.images.new(name, n_cols, n_rows, alpha=True, float_buffer=True, is_data=True)
     img.colorspace_settings.is_data = True
     img.pixels.foreach_set(lut.image_pixels())
     img.pack()
     img.use_fake_user = True
     img["relief_theta_deg"] = [float(lut.theta_deg[0]), float(lut.theta_deg[-1])]
     return img
+
+
+def _group(name: str, sockets: list[tuple[str, str, str]]) -> bpy.types.ShaderNodeTree:
+    """The node group `name`, emptied of nodes, with (name, in_out, socket_type) sockets.
+
+    An existing group is reused (its datablock, hence every material and group node using it,
+    stays), and its interface sockets are kept where they already match, so links to them in
+    the user's materials survive a re-bake."""
+    g = bpy.data.node_groups.get(name) or bpy.data.node_groups.new(name, "ShaderNodeTree")
+    g.nodes.clear()
+    have = {(it.name, it.in_out): it for it in g.interface.items_tree if getattr(it, "item_type", "") == "SOCKET"}
+    for (sname, io), it in have.items():
+        if (sname, io, it.socket_type) not in sockets:
+            g.interface.remove(it)
+    for sname, io, stype in sockets:
+        it = have.get((sname, io))
+        if it is None or it.socket_type != stype:
+            g.interface.new_socket(sname, in_out=io, socket_type=stype)
+    g.use_fake_user = True
+    return g
 
 
 def _math(nt, op, a=None, b=None, location=(0, 0), label=None):
@@ -116,7 +143,7 @@ def _lut_tex(g, img, coord, row: int, location):
     return tex
 
 
-def _metallic_lobe(g, lut, tex, roughness_socket, geo, loc):
+def _metallic_lobe(g, lut, tex, roughness_socket, geo, loc, aniso=None):
     """Fresnel-weighted GGX reflection lobe: Metallic BSDF (physical conductor, extinction 0,
     IOR n per channel, 1/n when back-facing) times the LUT's green weight (two halves through
     Mix Shader factors, which Cycles clamps to [0, 1], so weights up to 2 pass)."""
@@ -127,6 +154,8 @@ def _metallic_lobe(g, lut, tex, roughness_socket, geo, loc):
     b.distribution = "GGX"
     b.inputs["Extinction"].default_value = (0.0, 0.0, 0.0)
     g.links.new(roughness_socket, b.inputs["Roughness"])
+    if aniso is not None:
+        _anisotropic(g, b, *aniso)
     mix = g.nodes.new("ShaderNodeMix")
     mix.data_type = "VECTOR"
     mix.location = (loc[0] - 200, loc[1] - 150)
@@ -152,19 +181,49 @@ def _metallic_lobe(g, lut, tex, roughness_socket, geo, loc):
     return add
 
 
-def build_node_group(lut, img: bpy.types.Image | None = None) -> bpy.types.ShaderNodeTree:
-    """The reusable node group "Relief BSDF: <name>" for a `relief_bsdf.bsdf.bake.BakedLut`."""
+def _anisotropic(g, bsdf, anisotropy_socket, tangent_socket, rotation_socket) -> None:
+    g.links.new(anisotropy_socket, bsdf.inputs["Anisotropy"])
+    g.links.new(tangent_socket, bsdf.inputs["Tangent"])
+    g.links.new(rotation_socket, bsdf.inputs["Rotation"])
+
+
+def _relief_x_tangent(g, location):
+    """World-space direction of the object's +x axis: the relief's x (mesh_import lays the map's
+    columns along object x), the tangent of the anisotropic lobe."""
+    vt = g.nodes.new("ShaderNodeVectorTransform")
+    vt.vector_type, vt.convert_from, vt.convert_to = "VECTOR", "OBJECT", "WORLD"
+    vt.inputs["Vector"].default_value = (1.0, 0.0, 0.0)
+    vt.location = location
+    vt.label = "relief x (tangent)"
+    return vt.outputs["Vector"]
+
+
+def _tinted(g, colour_socket, tint_socket, location):
+    m = g.nodes.new("ShaderNodeMix")
+    m.data_type, m.blend_type = "RGBA", "MULTIPLY"
+    m.location = location
+    m.inputs["Factor"].default_value = 1.0
+    g.links.new(colour_socket, m.inputs[6])          # A (colour)
+    g.links.new(tint_socket, m.inputs[7])            # B (colour)
+    return m.outputs[2]                              # Result (colour)
+
+
+def build_lut_group(lut, img: bpy.types.Image | None = None) -> bpy.types.ShaderNodeTree:
+    """The closures of one baked table: group "Relief LUT BSDF: <name>" (inputs Tint, Rotation).
+
+    Four Cycles closures whose colours and roughnesses are read from the LUT image; the
+    reflection lobe is anisotropic when the table is (Anisotropy from the roughness row's third
+    channel, tangent = the object's x axis, turned by Rotation: 0.25 = 90 deg); Tint multiplies
+    the transmitted closures (a coloured plate)."""
     from relief_bsdf.bsdf.bake import ROW_NAMES, ROWS_PER_SIDE
     img = img or lut_image(lut)
-    name = GROUP_PREFIX + lut.name
-    old = bpy.data.node_groups.get(name)
-    if old is not None:
-        bpy.data.node_groups.remove(old)
     n_cols, n_rows = lut.rows.shape[1], lut.rows.shape[0]
     coord = coordinate_group(n_cols, n_rows, ROWS_PER_SIDE)
-    g = bpy.data.node_groups.new(name, "ShaderNodeTree")
-    g.interface.new_socket("BSDF", in_out="OUTPUT", socket_type="NodeSocketShader")
-    g.use_fake_user = True
+    g = _group(LUT_GROUP_PREFIX + lut.name, [("Tint", "INPUT", "NodeSocketColor"),
+                                             ("Rotation", "INPUT", "NodeSocketFloat"),
+                                             ("BSDF", "OUTPUT", "NodeSocketShader")])
+    gi = g.nodes.new("NodeGroupInput")
+    gi.location = (-700, -1300)
     go = g.nodes.new("NodeGroupOutput")
     go.location = (900, 0)
     tex = {r: _lut_tex(g, img, coord, k, (-300, 300 - 260 * k)) for k, r in enumerate(ROW_NAMES)}
@@ -173,23 +232,33 @@ def build_node_group(lut, img: bpy.types.Image | None = None) -> bpy.types.Shade
     g.links.new(tex["roughness"].outputs["Color"], sep.inputs["Color"])
     geo = g.nodes.new("ShaderNodeNewGeometry")
     geo.location = (-20, -1250)
+    # signed anisotropy (relief_bsdf.bsdf.bake.closure_anisotropy): |value|, and a quarter turn where negative
+    a_abs = _math(g, "ABSOLUTE", sep.outputs["Blue"], location=(150, -1400), label="anisotropy")
+    neg = _math(g, "LESS_THAN", sep.outputs["Blue"], 0.0, location=(150, -1550))
+    quarter = _math(g, "MULTIPLY", neg.outputs[0], 0.25, location=(300, -1550))
+    rot = _math(g, "ADD", quarter.outputs[0], gi.outputs["Rotation"], location=(450, -1550), label="rotation")
+    aniso = (a_abs.outputs[0], _relief_x_tangent(g, (-300, -1500)), rot.outputs[0])
     closures = []
     spec = [("specular_R", "ShaderNodeBsdfGlossy", None), ("diffuse_R", None, "Red"),
             ("specular_T", "ShaderNodeBsdfRefraction", None), ("diffuse_T", "ShaderNodeBsdfRefraction", "Green")]
     for k, (row, kind, rough) in enumerate(spec):
         loc = (250, 400 - 280 * k)
         if row == "diffuse_R" and lut.reflection_closure == "metallic":
-            closures.append(_metallic_lobe(g, lut, tex[row], sep.outputs[rough], geo, loc))
+            closures.append(_metallic_lobe(g, lut, tex[row], sep.outputs[rough], geo, loc, aniso))
             continue
         b = g.nodes.new(kind or "ShaderNodeBsdfGlossy")
         b.location = loc
         b.label = row
         b.distribution = "GGX"
+        colour = tex[row].outputs["Color"]
         if b.bl_idname == "ShaderNodeBsdfRefraction":
             b.inputs["IOR"].default_value = lut.ior
+            colour = _tinted(g, colour, gi.outputs["Tint"], (loc[0] - 150, loc[1] - 120))
         else:
             b.distribution = "MULTI_GGX"
-        g.links.new(tex[row].outputs["Color"], b.inputs["Color"])
+            if row == "diffuse_R":
+                _anisotropic(g, b, *aniso)
+        g.links.new(colour, b.inputs["Color"])
         if rough is None:
             b.inputs["Roughness"].default_value = 0.0
         else:
@@ -203,12 +272,94 @@ def build_node_group(lut, img: bpy.types.Image | None = None) -> bpy.types.Shade
         g.links.new(b.outputs[0], add.inputs[1])
         acc = add.outputs[0]
     g.links.new(acc, go.inputs["BSDF"])
+    g["relief_image"] = img.name
+    g["relief_anisotropy"] = float(lut.anisotropy)
+    return g
+
+
+def _set_default(g, name: str, value, lo=None, hi=None) -> None:
+    it = next(i for i in g.interface.items_tree if getattr(i, "name", "") == name and i.in_out == "INPUT")
+    it.default_value = value
+    if lo is not None:
+        it.min_value, it.max_value = lo, hi
+
+
+def build_node_group(lut, img: bpy.types.Image | None = None, fitted=None, name: str | None = None,
+                     table: str = "") -> bpy.types.ShaderNodeTree:
+    """The user-facing node group "Relief BSDF: <name>" (default name: the LUT's).
+
+    Inputs: Tint (colour of the transmitted light), Haze (0 = smooth glass of the same index,
+    1 = the relief as baked; in between a mix of the two, energy-conserving as both are),
+    Fitted (1 = the fitted table `fitted`, 0 = the relief measured as is `lut`; without a
+    fitted table both are the measured one), Rotation (turns the anisotropic lobe's tangent,
+    the relief's x axis, about the normal; 0.25 = 90 deg).  Output: BSDF.  Re-baking updates
+    the group in place (`_group`): materials using it keep it.  `table`: the table file, kept
+    in the group (`relief_table`) so a re-bake of the same file finds this group.
+    """
+    img = img or lut_image(lut)
+    measured = build_lut_group(lut, img)
+    fit_group = build_lut_group(fitted) if fitted is not None else measured
+    g = _group(GROUP_PREFIX + (name or lut.name), [("Tint", "INPUT", "NodeSocketColor"),
+                                                   ("Haze", "INPUT", "NodeSocketFloat"),
+                                                   ("Fitted", "INPUT", "NodeSocketFloat"),
+                                                   ("Rotation", "INPUT", "NodeSocketFloat"),
+                                                   ("BSDF", "OUTPUT", "NodeSocketShader")])
+    _set_default(g, "Tint", (1.0, 1.0, 1.0, 1.0))
+    _set_default(g, "Haze", 1.0, 0.0, 1.0)
+    _set_default(g, "Fitted", 1.0 if fitted is not None else 0.0, 0.0, 1.0)
+    _set_default(g, "Rotation", 0.0)
+    gi = g.nodes.new("NodeGroupInput")
+    gi.location = (-600, 0)
+    go = g.nodes.new("NodeGroupOutput")
+    go.location = (600, 0)
+    nodes = []
+    for k, sub in enumerate((measured, fit_group)):
+        n = g.nodes.new("ShaderNodeGroup")
+        n.node_tree = sub
+        n.location = (-300, 200 - 250 * k)
+        n.label = ("measured", "fitted")[k]
+        g.links.new(gi.outputs["Tint"], n.inputs["Tint"])
+        g.links.new(gi.outputs["Rotation"], n.inputs["Rotation"])
+        nodes.append(n)
+    pick = g.nodes.new("ShaderNodeMixShader")
+    pick.location = (0, 100)
+    pick.label = "fitted / measured"
+    g.links.new(gi.outputs["Fitted"], pick.inputs["Fac"])
+    g.links.new(nodes[0].outputs["BSDF"], pick.inputs[1])
+    g.links.new(nodes[1].outputs["BSDF"], pick.inputs[2])
+    smooth = g.nodes.new("ShaderNodeBsdfGlass")
+    smooth.location = (0, -250)
+    smooth.label = "smooth boundary"
+    smooth.distribution = "GGX"
+    smooth.inputs["Roughness"].default_value = 0.0
+    smooth.inputs["IOR"].default_value = float(lut.ior)
+    g.links.new(gi.outputs["Tint"], smooth.inputs["Color"])
+    haze = g.nodes.new("ShaderNodeMixShader")
+    haze.location = (300, 0)
+    haze.label = "haze"
+    g.links.new(gi.outputs["Haze"], haze.inputs["Fac"])
+    g.links.new(smooth.outputs[0], haze.inputs[1])
+    g.links.new(pick.outputs[0], haze.inputs[2])
+    g.links.new(haze.outputs[0], go.inputs["BSDF"])
     g["relief_ior"] = float(lut.ior)
     g["relief_rgb_nm"] = list(lut.rgb_nm)
     g["relief_image"] = img.name
     g["relief_reflection_closure"] = lut.reflection_closure
     g["relief_closure_albedo"] = str(lut.info.get("closure_albedo", ""))
+    g["relief_haze"] = float(lut.haze)
+    g["relief_anisotropy"] = float(lut.anisotropy)
+    g["relief_fitted"] = fitted is not None
+    if table:
+        g["relief_table"] = str(table)
     return g
+
+
+def group_for_table(table: str) -> bpy.types.ShaderNodeTree | None:
+    """The node group baked from this table file before, if any (`relief_table`)."""
+    for g in bpy.data.node_groups:
+        if g.name.startswith(GROUP_PREFIX) and g.get("relief_table") == str(table):
+            return g
+    return None
 
 
 def has_metallic_bsdf() -> bool:
@@ -228,9 +379,13 @@ def bake_tables(tables, name: str, albedo="calibrated"):
 
 
 def material_for_group(group: bpy.types.ShaderNodeTree, name: str | None = None) -> bpy.types.Material:
-    """A material whose surface is the node group (one per group, reused)."""
+    """A material whose surface is the node group (one per group, reused: a material that
+    already uses the group is left as the user edited it)."""
     name = name or group.name
-    mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
+    mat = bpy.data.materials.get(name)
+    if mat is not None and any(n.bl_idname == "ShaderNodeGroup" and n.node_tree == group for n in mat.node_tree.nodes):
+        return mat
+    mat = mat or bpy.data.materials.new(name)
     nt = mat.node_tree
     nt.nodes.clear()
     node = nt.nodes.new("ShaderNodeGroup")
@@ -256,22 +411,32 @@ def glass_material(ior: float, name: str = "Relief smooth glass") -> bpy.types.M
     return mat
 
 
-def assign_to_rough_face(obj: bpy.types.Object, group: bpy.types.ShaderNodeTree, rough_face: str = "front") -> None:
-    """Give `obj` two material slots: glass (all faces) and the baked BSDF on its rough face.
+def assign_to_rough_face(obj: bpy.types.Object, group: bpy.types.ShaderNodeTree, rough_face: str = "front") -> int:
+    """Put the baked BSDF on the rough face of `obj`; returns its material slot index.
 
-    The rough face is the face whose normal is most along +z ("front", the lit face) or -z
-    ("back").  Faces are selected by their normal in object space.
+    Existing material slots are kept: the material of the group ("Relief BSDF: <name>") is
+    added as a new slot (or its slot reused on a re-bake) and given to the faces whose normal
+    is most along +z ("front", the lit face) or -z ("back"), in object space.  An object with
+    no material gets smooth glass of the table's index on its other faces first (a plate).
     """
     me = obj.data
-    glass = glass_material(group.get("relief_ior", 1.5))
     baked = material_for_group(group)
-    me.materials.clear()
-    me.materials.append(glass)
-    me.materials.append(baked)
+    if len(me.materials) == 0:
+        me.materials.append(glass_material(group.get("relief_ior", 1.5)))
+    names = [m.name if m is not None else None for m in me.materials]
+    if baked.name in names:
+        slot = names.index(baked.name)
+    else:
+        me.materials.append(baked)
+        slot = len(me.materials) - 1
     n = len(me.polygons)
     normals = np.empty(3 * n, np.float32)
     me.polygons.foreach_get("normal", normals)
     nz = normals.reshape(n, 3)[:, 2]
     target = nz > 0.5 if rough_face == "front" else nz < -0.5
-    me.polygons.foreach_set("material_index", target.astype(np.int32))
+    idx = np.empty(n, np.int32)
+    me.polygons.foreach_get("material_index", idx)
+    idx[target] = slot
+    me.polygons.foreach_set("material_index", idx)
     me.update()
+    return slot

@@ -15,10 +15,14 @@ Steps:
 3. a staging folder with blender_manifest.toml (plus the `wheels` list and the chosen
    `platforms`) and the add-on's Python files;
 4. Blender's own `blender_ext.py build --split-platforms` (runs under plain Python), then
-   `blender_ext.py validate` on every zip.
+   `blender_ext.py validate` on every zip;
+5. `reader_report` on every zip: what it can read, checked by reading the demo X3P and an npz
+   with the zip's own relief_bsdf (SurfaceTopography blocked where the zip has no wheel of it).
+   Only a zip that reads its main inputs is reported "validated"; otherwise the build fails.
 
 A package with no wheel for a platform is reported and left out of that platform's zip (the
-feature needing it then fails there with a clear error); the build does not stop.
+feature needing it then fails there with a clear error; SurfaceTopography's instrument formats
+fall back to the project's own X3P / GWY / PLU / SDF readers, io/native_readers.py).
 """
 from __future__ import annotations
 
@@ -222,12 +226,82 @@ def build(out: Path, platforms: list[str], cache: Path, offline: bool = False) -
     if r.returncode != 0:
         raise SystemExit(f"build_extension: blender_ext build failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
     zips = sorted(out.glob("relief_addon-*.zip"))
+    failed = []
     for z in zips:
         v = subprocess.run([sys.executable, str(ext), "validate", str(z)], capture_output=True, text=True)
         if v.returncode != 0:
             raise SystemExit(f"build_extension: {z.name} does not validate:\n{v.stdout}\n{v.stderr}")
-        print(f"built and validated {z} ({z.stat().st_size / 1e6:.1f} MB)")
+        rep = reader_report(z, cache)
+        size = f"{z.stat().st_size / 1e6:.1f} MB"
+        if rep["main_ok"]:
+            print(f"built and validated {z} ({size}): manifest valid; {rep['text']}")
+        else:
+            failed.append(z.name)
+            print(f"built {z} ({size}), NOT validated: {rep['text']}", file=sys.stderr)
+    if failed:
+        raise SystemExit(f"build_extension: {', '.join(failed)} cannot read the main inputs (x3p, npz)")
     return zips
+
+
+MAIN_INPUTS = ("x3p", "npz")
+OWN_FORMATS = ("x3p", "gwy", "plu", "sdf", "npz")     # relief_bsdf's own readers (io.heightmaps, io.native_readers)
+
+
+def _zip_wheels(z: Path) -> list[str]:
+    import zipfile
+    with zipfile.ZipFile(z) as zf:
+        return [n.rsplit("/", 1)[-1] for n in zf.namelist() if n.endswith(".whl")]
+
+
+def reader_report(z: Path, cache: Path) -> dict:
+    """What the zip `z` can read, checked by reading files with its own bundled readers.
+
+    The zip's relief_bsdf wheel is unpacked and, in a fresh Python (this one's numpy, scipy
+    and h5py), reads the demo X3P and an npz with SurfaceTopography made unimportable when
+    the zip bundles no wheel of it (what Blender on that platform will have).  Formats: the
+    project's own (x3p, gwy, plu, sdf, npz), float tif/exr (Blender's own OpenImageIO), and every
+    SurfaceTopography format when its wheel is bundled (the wheel of another platform cannot run
+    here: this Python's SurfaceTopography stands in for it in the check).  main_ok: the main
+    inputs (x3p, npz) read.
+    """
+    import zipfile
+    wheels = _zip_wheels(z)
+    has = {w.split("-")[0].lower() for w in wheels}
+    backend = [w for w in wheels if w.startswith("relief_bsdf-")]
+    if not backend:
+        return {"main_ok": False, "formats": [], "text": "no relief_bsdf wheel in the zip: reads nothing"}
+    unpack = cache.parent / "reader_check" / z.stem
+    shutil.rmtree(unpack, ignore_errors=True)
+    unpack.mkdir(parents=True)
+    with zipfile.ZipFile(z) as zf:
+        inner = next(n for n in zf.namelist() if n.endswith(backend[0]))
+        (unpack / backend[0]).write_bytes(zf.read(inner))
+    with zipfile.ZipFile(unpack / backend[0]) as wf:
+        wf.extractall(unpack / "site")
+    st = "surfacetopography" in has
+    code = ("import sys, numpy as np\n"
+            + ("" if st else "sys.modules['SurfaceTopography'] = None\n")
+            + f"sys.path.insert(0, {str(unpack / 'site')!r})\n"
+            "from relief_bsdf.io.heightmaps import read_relief, write_relief\n"
+            "from relief_bsdf.surface.relief import Relief\n"
+            f"r = read_relief({str(ROOT / 'scenes' / 'demo' / 'relief.x3p')!r})\n"
+            f"p = write_relief({str(unpack / 'probe.npz')!r}, Relief(np.zeros((4, 4)), 1e-6, 1e-6))\n"
+            "read_relief(p)\n"
+            "import relief_bsdf; assert relief_bsdf.__file__.startswith(sys.path[0]), relief_bsdf.__file__\n"
+            "print('READ', r.metadata['reader'], r.shape)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={k: v for k, v in __import__("os").environ.items() if k != "PYTHONPATH"})
+    ok = res.returncode == 0 and "READ" in res.stdout
+    formats = list(OWN_FORMATS) + ["tif", "exr"]      # float images: Blender's own OpenImageIO (io/oiio.py)
+    text = (f"reads {', '.join(formats)}"
+            + (" and every SurfaceTopography format (dat, plu, opd, di, nid, ibw, mi, frt, ...)" if st else
+               " with its own readers (no SurfaceTopography wheel for this platform: the other instrument "
+               "formats are not available)")
+            + (f"; checked: the demo X3P and an npz read with this zip's readers "
+               f"({res.stdout.split('READ', 1)[1].strip()})"
+               if ok else f"; FAILED to read the demo X3P / an npz with this zip's readers: "
+                          f"{(res.stderr.strip().splitlines() or ['no output'])[-1]}"))
+    return {"main_ok": ok, "formats": formats + (["surfacetopography"] if st else []), "text": text}
 
 
 def main(argv: list[str] | None = None) -> int:

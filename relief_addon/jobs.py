@@ -11,6 +11,8 @@ timers never fire).  `invoke()` runs `work` on a worker thread and polls it from
 timer, showing `wm.progress_*` and the task label in the status bar; Esc sets a flag that
 the progress callback turns into `relief_bsdf.progress.Cancelled` at the next task boundary.
 Every error becomes a Blender report (one line); the traceback goes to the console too.
+The work runs inside `workers.running_backend`: the preferences' worker count in force and
+worker processes that start from the add-on's code, never from the user's script.
 """
 from __future__ import annotations
 
@@ -53,7 +55,10 @@ class JobOperator:
             payload = self.prepare(context)
             # synchronous runs (blender --background, scripts): progress as log lines on stderr
             from relief_bsdf.progress import TerminalBar
-            result = type(self).work(payload, TerminalBar(self.job_label))
+            from .prefs import get_prefs
+            from .workers import running_backend
+            with running_backend(get_prefs(context).workers):
+                result = type(self).work(payload, TerminalBar(self.job_label))
             self.finish(context, result)
         except Exception as exc:  # noqa: BLE001 - every failure becomes a report
             traceback.print_exc()
@@ -78,6 +83,9 @@ class JobOperator:
         self._state = {"done": 0, "total": 1, "what": "", "result": None, "error": None, "finished": False}
         self._cancel = threading.Event()
         state, cancel, work = self._state, self._cancel, type(self).work
+        from .prefs import get_prefs
+        from .workers import running_backend
+        n_workers = get_prefs(context).workers
 
         def progress(done, total, what=""):
             state["done"], state["total"], state["what"] = done, max(total, 1), what
@@ -87,7 +95,8 @@ class JobOperator:
 
         def run():
             try:
-                state["result"] = work(payload, progress)
+                with running_backend(n_workers):
+                    state["result"] = work(payload, progress)
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread
                 state["error"] = exc
                 state["trace"] = traceback.format_exc()

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
 from pathlib import Path
 
 import bpy
@@ -11,6 +10,7 @@ from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatPrope
 from bpy_extras.io_utils import ImportHelper
 
 from .jobs import JobOperator
+from .presets import ITEMS as PRESET_ITEMS
 from .props import METHOD_ITEMS, SIDE_ITEMS
 
 # every suffix the backend reads: npz, images (OpenImageIO), .sdf, and SurfaceTopography's readers
@@ -32,10 +32,9 @@ def reader_suffixes() -> tuple:
 
 
 def abspath(p: str) -> Path:
-    """Blender path ('//' = the .blend's folder; a temporary folder when the file is unsaved)."""
-    if p.startswith("//") and not bpy.data.filepath:
-        return Path(tempfile.gettempdir()) / "relief" / p[2:]
-    return Path(bpy.path.abspath(p))
+    """Blender path ('//' = the .blend's folder; the per-user cache when the file is unsaved)."""
+    from .paths import resolve
+    return resolve(p)
 
 
 def _floats(text: str, what: str) -> tuple:
@@ -71,8 +70,13 @@ def _import_file(context, path: Path, pitch_um: float, z_scale: float):
         relief = read_relief(path, pitch_m=pitch)
     except ImportError as e:                # e.g. no SurfaceTopography wheel for this platform
         raise InputError(path, f"this format needs {e.name or e}, which is not available in this "
-                         "Blender (npz, TIFF, EXR and SDF files still work)") from None
-    obj = import_relief(relief, z_scale=z_scale, collection=context.collection)
+                         "Blender (x3p, gwy, plu, sdf, npz, TIFF and EXR files still work)") from None
+    s = context.scene.relief
+    request = {"ior": s.ior, "wavelengths_nm": _floats(s.wavelengths_nm, "wavelengths"),
+               "theta_i_deg": _floats(s.theta_i_deg, "incidences")}
+    obj = import_relief(relief, z_scale=z_scale, collection=context.collection, regime_request=request)
+    from .mesh_import import frame_in_views
+    frame_in_views(obj, context.scene)
     for o in context.view_layer.objects:
         o.select_set(False)
     obj.select_set(True)
@@ -194,10 +198,13 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
         if self.bake:
             from .bake_nodes import closure_albedo
             albedo = closure_albedo()
-        from .bake_nodes import has_metallic_bsdf
+        from .bake_nodes import GROUP_PREFIX, group_for_table, has_metallic_bsdf
+        from .paths import stored
+        before = group_for_table(stored(out))          # a re-run updates the group baked from this table
         return {"relief": src, "pitch": pitch, "material": Material(ConstantIndex(float(self.ior or s.ior))),
                 "request": req, "method": self.method, "out": out, "bake": self.bake, "albedo": albedo,
-                "closure": "metallic" if has_metallic_bsdf() else "glossy", "name": Path(src).stem}
+                "closure": "metallic" if has_metallic_bsdf() else "glossy",
+                "name": before.name[len(GROUP_PREFIX):] if before is not None else Path(src).stem}
 
     @staticmethod
     def work(p, progress):
@@ -214,25 +221,35 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
         return {"tables": tables, "out": p["out"], "lut": lut}
 
     def finish(self, context, r):
-        context.scene.relief.table_path = str(r["out"])
+        from .paths import stored
+        context.scene.relief.table_path = stored(r["out"])
         rows = r["tables"][0].albedo_rows()
         msg = ", ".join(f"{x['theta_i_deg']:.0f} deg: R {x['R']:.3f} T {x['T']:.3f}" for x in rows[:4])
         self.report({"INFO"}, f"Wrote {r['out']} ({msg}{', ...' if len(rows) > 4 else ''})")
         if r["lut"] is not None:
-            _install_lut(context, r["lut"], assign=False)
+            group = _install_lut(context, r["lut"], assign=False, table=stored(r["out"]))
+            context.scene.relief.last_group = group.name
 
 
 # ====================================================================== bake
 
 
-def _install_lut(context, lut, assign: bool):
+def _install_lut(context, lut, assign: bool, fitted=None, table: str = "", name: str | None = None):
     from .bake_nodes import assign_to_rough_face, build_node_group, lut_image
-    img = lut_image(lut)
-    group = build_node_group(lut, img)
+    group = build_node_group(lut, lut_image(lut), fitted=fitted, name=name, table=table)
     obj = context.active_object
     if assign and obj is not None and obj.type == "MESH":
         assign_to_rough_face(obj, group, obj.get("relief_rough_face", "front"))
     return group
+
+
+def _fitted_table(op, context) -> Path | None:
+    """The fitted table: the operator's `fitted`, else boundary.h5 in the scene's fit folder."""
+    if op.fitted:
+        return abspath(op.fitted)
+    fit_dir = context.scene.relief.fit_dir
+    cand = abspath(fit_dir) / "boundary.h5" if fit_dir else None
+    return cand if cand is not None and cand.is_file() else None
 
 
 class RELIEF_OT_bake_bsdf(JobOperator, bpy.types.Operator):
@@ -243,33 +260,51 @@ class RELIEF_OT_bake_bsdf(JobOperator, bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
     job_label = "Bake"
 
-    filepath: StringProperty(name="Table", default="", subtype="FILE_PATH")
-    name: StringProperty(name="Name", default="", description="Node group name suffix (default: file stem)")
+    filepath: StringProperty(name="Table", default="", subtype="FILE_PATH",
+                             description="The relief's table as measured (default: the scene's table)")
+    fitted: StringProperty(name="Fitted table", default="", subtype="FILE_PATH",
+                           description="Table of the fitted relief (default: boundary.h5 of the scene's fit)")
+    name: StringProperty(name="Name", default="",
+                         description="Node group name suffix (default: the group baked from this table before, "
+                                     "else the file stem)")
     assign: BoolProperty(name="Assign to active", default=True,
-                         description="Put the group on the rough face of the active mesh")
+                         description="Add the group's material to the rough face of the active mesh "
+                                     "(existing materials are kept)")
 
     def prepare(self, context):
         from relief_bsdf.errors import InputError
-        from .bake_nodes import closure_albedo, has_metallic_bsdf
+        from .bake_nodes import GROUP_PREFIX, closure_albedo, group_for_table, has_metallic_bsdf
+        from .paths import stored
         path = abspath(self.filepath or context.scene.relief.table_path)
         if not path.is_file():
             raise InputError(path, "BSDF table file not found (reconstruct first or choose a .h5 file)")
-        return {"path": path, "name": self.name or path.stem, "albedo": closure_albedo(),
+        fitted = _fitted_table(self, context)
+        if fitted is not None and not fitted.is_file():
+            raise InputError(fitted, "fitted table file not found")
+        before = group_for_table(stored(path))
+        name = self.name or (before.name[len(GROUP_PREFIX):] if before is not None else path.stem)
+        return {"path": path, "fitted": fitted, "name": name, "table": stored(path), "albedo": closure_albedo(),
                 "closure": "metallic" if has_metallic_bsdf() else "glossy"}
 
     @staticmethod
     def work(p, progress):
         from relief_bsdf.bsdf.bake import bake_lut
         from relief_bsdf.io.hdf5 import load_tables
-        tables = load_tables(p["path"])
-        progress(0, 1, "fitting lobes")
-        lut = bake_lut(tables, p["name"], albedo=p["albedo"], reflection_closure=p["closure"])
-        progress(1, 1, "done")
-        return lut
+        progress(0, 2, "fitting lobes")
+        lut = bake_lut(load_tables(p["path"]), p["name"], albedo=p["albedo"], reflection_closure=p["closure"])
+        fitted = None
+        if p["fitted"] is not None:
+            progress(1, 2, "fitting lobes (fitted table)")
+            fitted = bake_lut(load_tables(p["fitted"]), p["name"] + " (fitted)", albedo=p["albedo"],
+                              reflection_closure=p["closure"])
+        progress(2, 2, "done")
+        return {"lut": lut, "fitted": fitted, "table": p["table"], "name": p["name"]}
 
-    def finish(self, context, lut):
-        group = _install_lut(context, lut, self.assign)
-        self.report({"INFO"}, f"Baked {group.name}")
+    def finish(self, context, r):
+        group = _install_lut(context, r["lut"], self.assign, fitted=r["fitted"], table=r["table"], name=r["name"])
+        context.scene.relief.last_group = group.name
+        haze = r["lut"].haze
+        self.report({"INFO"}, f"Baked {group.name}" + (f" (haze {100 * haze:.1f} %)" if haze == haze else ""))
 
 
 # ====================================================================== plate, fit, diagnose
@@ -341,7 +376,8 @@ class RELIEF_OT_fit(JobOperator, bpy.types.Operator):
         return {"doc": doc, "out": p["out"]}
 
     def finish(self, context, r):
-        context.scene.relief.fit_dir = r["out"]
+        from .paths import stored
+        context.scene.relief.fit_dir = stored(r["out"])
         d = r["doc"]
         self.report({"INFO"}, f"Fit: rms {d['rms_before']:.4g} -> {d['rms_after']:.4g}, "
                               f"parameters {json.dumps(d.get('parameters', {}))}")
@@ -409,8 +445,44 @@ class RELIEF_OT_render_plate(JobOperator, bpy.types.Operator):
         self.report({"INFO"}, f"Wrote {out}")
 
 
+class RELIEF_OT_add_preset(JobOperator, bpy.types.Operator):
+    """Add a ready-to-render plate scene of a typical surface (frosted acrylic, anti-glare film, light-guide dots)"""
+
+    bl_idname = "relief.add_preset"
+    bl_label = "Add Preset Plate Scene"
+    bl_options = {"REGISTER", "UNDO"}
+    job_label = "Preset"
+
+    preset: EnumProperty(name="Preset", items=PRESET_ITEMS, default="frosted_acrylic")
+
+    def prepare(self, context):
+        from .bake_nodes import closure_albedo, has_metallic_bsdf
+        s = context.scene.relief
+        return {"preset": self.preset, "albedo": closure_albedo(),
+                "closure": "metallic" if has_metallic_bsdf() else "glossy",
+                "width": s.render_width, "samples": s.render_samples}
+
+    @staticmethod
+    def work(p, progress):
+        from .presets import preset_plate
+        return {**p, "plate": preset_plate(p["preset"], p["albedo"], p["closure"], progress)}
+
+    def finish(self, context, r):
+        from .plate_scene import build_scene
+        sc = build_scene(r["plate"], r["width"], r["samples"])
+        group = next((m.node_tree.nodes[0].node_tree for o in sc.collection.objects if o.type == "MESH"
+                      for m in o.data.materials if m and m.name.startswith("Relief BSDF")), None)
+        if context.window is not None:
+            context.window.scene = sc            # the new scene is shown: F12 renders it
+        if group is not None:
+            context.scene.relief.last_group = group.name
+        haze = r["plate"]["lut"].haze
+        self.report({"INFO"}, f"Scene {sc.name!r} ready to render"
+                              + (f" (haze {100 * haze:.1f} %)" if haze == haze else ""))
+
+
 CLASSES = (RELIEF_OT_import_heightmap, RELIEF_FH_heightmap, RELIEF_OT_reconstruct, RELIEF_OT_bake_bsdf,
-           RELIEF_OT_simulate_plate, RELIEF_OT_fit, RELIEF_OT_diagnose, RELIEF_OT_render_plate)
+           RELIEF_OT_simulate_plate, RELIEF_OT_fit, RELIEF_OT_diagnose, RELIEF_OT_render_plate, RELIEF_OT_add_preset)
 
 
 def register():

@@ -10,18 +10,69 @@ class _ReliefPanel:
     bl_category = "Relief"
 
 
+_LENGTH_UNITS = ((1e-6, 1e9, "nm"), (1e-3, 1e6, "um"), (1.0, 1e3, "mm"), (float("inf"), 1.0, "m"))
+
+
+def fmt_length(*values_m: float) -> str:
+    """Lengths in the unit that fits the largest of them: nm below 1 um, um below 1 mm, mm
+    below 1 m, else m (4 significant digits)."""
+    big = max((abs(v) for v in values_m if v == v), default=0.0)
+    scale, unit = next((f, u) for limit, f, u in _LENGTH_UNITS if big < limit)
+    return " x ".join(f"{v * scale:.4g}" for v in values_m) + f" {unit}"
+
+
 def _fmt(key: str, v) -> str:
-    if isinstance(v, float):
-        if key.endswith("_m"):
-            return f"{v * 1e6:.4g} um"
-        return f"{v:.4g}"
     if hasattr(v, "to_list"):
         v = v.to_list()
+    if key.endswith("_m") and isinstance(v, (int, float)):
+        return fmt_length(float(v))
+    if key.endswith("_m") and isinstance(v, (list, tuple)) and all(isinstance(x, (int, float)) for x in v):
+        return fmt_length(*(float(x) for x in v))
+    if isinstance(v, float):
+        return f"{v:.4g}"
     if isinstance(v, (list, tuple)):
-        if key.endswith("_m"):
-            return " x ".join(f"{x * 1e6:.4g}" for x in v) + " um"
         return " x ".join(f"{x:g}" if isinstance(x, float) else str(x) for x in v)
     return str(v)
+
+
+def _wrapped(layout, text: str, width: int = 44) -> None:
+    line = ""
+    for word in text.split():
+        if line and len(line) + 1 + len(word) > width:
+            layout.label(text=line)
+            line = word
+        else:
+            line = f"{line} {word}" if line else word
+    if line:
+        layout.label(text=line)
+
+
+def _regime_box(layout, obj) -> None:
+    reg = obj.get("relief_regime")
+    if reg is None:
+        return
+    box = layout.box()
+    if "error" in reg:
+        box.label(text="Optical regime: not assessed", icon="ERROR")
+        _wrapped(box, str(reg["error"]))
+        return
+    box.label(text=f"Optical regime: {reg['regime']}", icon="LIGHT")
+    box.label(text=f"auto would pick: {reg['method']} (at {reg['wavelength_nm']:.0f} nm)")
+    _wrapped(box, str(reg["summary"]))
+
+
+def _baked_box(layout, context) -> None:
+    name = context.scene.relief.last_group
+    g = bpy.data.node_groups.get(name) if name else None
+    if g is None:
+        return
+    box = layout.box()
+    box.label(text=g.name, icon="NODETREE")
+    haze = g.get("relief_haze", float("nan"))
+    box.label(text=f"haze (T, normal incidence): {100 * haze:.1f} %" if haze == haze else "haze: not known "
+              "(the table has no normal incidence)")
+    an = g.get("relief_anisotropy", 0.0)
+    box.label(text=f"anisotropy of the reflection lobe: {an:.2f}" if an else "isotropic lobes")
 
 
 class RELIEF_PT_relief(_ReliefPanel, bpy.types.Panel):
@@ -42,6 +93,7 @@ class RELIEF_PT_relief(_ReliefPanel, bpy.types.Panel):
             row = box.row()
             row.label(text=(k[:-2] if k.endswith("_m") else k).replace("_", " "))
             row.label(text=_fmt(k, stats[k]))
+        _regime_box(lay, obj)
         s = context.scene.relief
         if s.job_status:
             lay.label(text=s.job_status, icon="INFO")
@@ -56,6 +108,10 @@ class RELIEF_PT_reconstruct(_ReliefPanel, bpy.types.Panel):
         col = self.layout.column()
         for p in ("method", "wavelengths_nm", "theta_i_deg", "sides", "samples", "seed", "ior", "table_path"):
             col.prop(s, p)
+        from .prefs import get_prefs
+        prefs = get_prefs(context)
+        if hasattr(prefs, "bl_rna"):           # registered as an add-on: its preferences
+            col.prop(prefs, "workers")
         op = col.operator("relief.reconstruct", icon="PLAY")
         op.method = s.method
         op.sides = s.sides
@@ -86,11 +142,18 @@ class RELIEF_PT_bake_render(_ReliefPanel, bpy.types.Panel):
         col = self.layout.column()
         col.prop(s, "table_path")
         col.operator("relief.bake_bsdf", icon="NODETREE")
+        _baked_box(col, context)
         col.separator()
         col.prop(s, "render_path")
         col.prop(s, "render_width")
         col.prop(s, "render_samples")
         col.operator("relief.render_plate", icon="RENDER_STILL")
+        col.separator()
+        col.label(text="Presets (scene ready to render):")
+        row = col.row(align=True)
+        from .presets import PRESETS
+        for key, p in PRESETS.items():
+            row.operator("relief.add_preset", text=p.label).preset = key
         if s.job_status:
             col.label(text=s.job_status, icon="INFO")
 

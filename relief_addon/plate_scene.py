@@ -10,8 +10,10 @@ OpenImageIO (`relief_bsdf.io.oiio`).
 Scene (metres): a checkerboard (5 mm squares, diffuse, albedo 0.05 / 0.8) on z = 0; the
 plate (50 x 50 mm, the sample's thickness) 30 mm above it, so that the scattering visibly
 blurs the board; its rough face carries the baked node group and every other face is smooth
-glass of the same index; a uniform white world (diffuse light, radiance 1); a perspective camera 30 degrees off the normal.  Cycles,
-Standard view transform, no denoising: a 256 px wide image at 32 samples takes seconds.
+glass of the same index; a uniform white world (diffuse light, radiance 1); a perspective
+camera 30 degrees off the normal; the plate's label on a dark strip along the bottom.  Cycles,
+Standard view transform, OpenImageDenoise and an indirect clamp (`_denoise`): a 256 px wide
+image at 32 samples takes seconds.
 """
 from __future__ import annotations
 
@@ -119,7 +121,7 @@ def build_scene(plate: dict, width: int, samples: int):
     sc.render.engine = "CYCLES"
     sc.cycles.device = "CPU"
     sc.cycles.samples = samples
-    sc.cycles.use_denoising = False
+    _denoise(sc)
     sc.cycles.max_bounces = 12
     sc.cycles.transmission_bounces = 12
     sc.cycles.glossy_bounces = 8
@@ -168,7 +170,63 @@ def build_scene(plate: dict, width: int, samples: int):
     co.location = target + d * 0.16
     co.rotation_euler = (-d).to_track_quat("-Z", "Y").to_euler()
     sc.camera = co
+    cam.clip_start = 0.005
+    _label(sc, co, plate["label"])
     return sc
+
+
+def _denoise(sc) -> None:
+    """Denoise the demo picture (OpenImageDenoise, in Cycles' CPU build of Blender 4 / 5), and
+    clamp indirect samples at 10: the checkerboard seen through the rough face is lit only
+    indirectly, and rare paths through the plate's polished sides otherwise leave a line of
+    hot pixels along its edges.  (For pictures only: radiometric renders, goniophotometer.py,
+    clamp nothing and denoise nothing.)"""
+    import _cycles
+    sc.cycles.use_denoising = bool(getattr(_cycles, "with_openimagedenoise", False))
+    if sc.cycles.use_denoising:
+        sc.cycles.denoiser = "OPENIMAGEDENOISE"
+        sc.cycles.denoising_input_passes = "RGB_ALBEDO_NORMAL"
+    sc.cycles.sample_clamp_indirect = 10.0
+
+
+def _emission(name: str, rgb):
+    import bpy
+    m = bpy.data.materials.get(name) or bpy.data.materials.new(name)
+    nt = m.node_tree
+    nt.nodes.clear()
+    em = nt.nodes.new("ShaderNodeEmission")
+    em.inputs["Color"].default_value = (*rgb, 1.0)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    nt.links.new(em.outputs[0], out.inputs["Surface"])
+    return m
+
+
+def _label(sc, cam_obj, text: str) -> None:
+    """The plate's label ("before fit", "after fit", ...) in white on a dark strip along the
+    bottom of the frame: a text object and a plane parented to the camera, 1 cm in front of it
+    (inside the view, in front of everything else), emissive so no light or glass changes them."""
+    import bpy
+    d = 0.01
+    cam = cam_obj.data
+    half_w = 0.5 * d * cam.sensor_width / cam.lens          # landscape frame: the sensor width is horizontal
+    half_h = half_w * sc.render.resolution_y / sc.render.resolution_x
+    strip_h = 0.22 * half_h
+    me = bpy.data.meshes.new("Relief label strip")
+    y0, y1 = -half_h, -half_h + strip_h
+    me.from_pydata([(-half_w, y0, -d), (half_w, y0, -d), (half_w, y1, -d), (-half_w, y1, -d)], [], [(0, 1, 2, 3)])
+    me.materials.append(_emission("Relief label strip", (0.02, 0.02, 0.02)))
+    strip = bpy.data.objects.new("Relief label strip", me)
+    cu = bpy.data.curves.new("Relief label", "FONT")
+    cu.body = text
+    cu.size = 0.7 * strip_h
+    cu.align_x, cu.align_y = "CENTER", "CENTER"
+    cu.materials.append(_emission("Relief label text", (1.0, 1.0, 1.0)))
+    txt = bpy.data.objects.new("Relief label", cu)
+    txt.location = (0.0, y0 + 0.5 * strip_h, -0.999 * d)
+    for ob in (strip, txt):
+        sc.collection.objects.link(ob)
+        ob.parent = cam_obj
+        ob.visible_shadow = False
 
 
 def render_scene(sc, path: Path) -> np.ndarray:
@@ -211,9 +269,9 @@ def write_image(path: Path, rgb_display: np.ndarray) -> Path:
     return path
 
 
-def render_side_by_side(plates: list[dict], out, width: int = 256, samples: int = 32, keep_scenes: bool = False) -> Path:
+def render_side_by_side(plates: list[dict], out, width: int = 256, samples: int = 32,
+                        keep_scenes: bool = False) -> Path:
     """Render every plate and write them side by side (left to right) to `out` (PNG / EXR / ...)."""
-    import bpy
     out = Path(out)
     frames = []
     with tempfile.TemporaryDirectory() as d:
@@ -237,7 +295,9 @@ def _remove_scene(sc) -> None:
         data = ob.data
         bpy.data.objects.remove(ob)
         try:
-            if isinstance(data, bpy.types.Mesh) and data.users == 0:
+            if isinstance(data, bpy.types.Curve) and data.users == 0:
+                bpy.data.curves.remove(data)
+            elif isinstance(data, bpy.types.Mesh) and data.users == 0:
                 bpy.data.meshes.remove(data)
             elif isinstance(data, bpy.types.Camera) and data.users == 0:
                 bpy.data.cameras.remove(data)

@@ -4,6 +4,9 @@ from __future__ import annotations
 import bpy
 from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+# "//" paths (beside the .blend) are this add-on's convention (paths.py); Blender 4.5+ asks to say so
+_REL = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (4, 5, 0) else set()
+
 METHOD_ITEMS = [
     ("microfacet", "Microfacet", "Analytic Walter / Cook-Torrance lobes fitted to the relief's slopes (fast)"),
     ("normals", "Normals", "Monte Carlo over the relief's facet normals"),
@@ -34,18 +37,19 @@ class ReliefSceneSettings(bpy.types.PropertyGroup):
     samples: IntProperty(name="Samples", default=200_000, min=1, description="Monte-Carlo samples per incidence")
     seed: IntProperty(name="Seed", default=0, min=0)
     ior: FloatProperty(name="Refractive index", default=1.5, min=1.0001, max=4.0)
-    table_path: StringProperty(name="Table", subtype="FILE_PATH", default="//relief_table.h5",
+    table_path: StringProperty(options=_REL, name="Table", subtype="FILE_PATH", default="//relief_table.h5",
                                description="BSDF table (HDF5) written by Reconstruct, read by Bake")
-    sample_path: StringProperty(name="Sample", subtype="FILE_PATH", default="",
+    sample_path: StringProperty(options=_REL, name="Sample", subtype="FILE_PATH", default="",
                                 description="sample.toml (plate, relief, instrument, recording)")
-    output_dir: StringProperty(name="Output", subtype="DIR_PATH", default="//relief_out/",
+    output_dir: StringProperty(options=_REL, name="Output", subtype="DIR_PATH", default="//relief_out/",
                                description="Folder for simulate / fit / diagnose results")
-    fit_dir: StringProperty(name="Fit result", subtype="DIR_PATH", default="",
+    fit_dir: StringProperty(options=_REL, name="Fit result", subtype="DIR_PATH", default="",
                             description="Folder written by Fit (fit.json); used by Render")
-    render_path: StringProperty(name="Render", subtype="FILE_PATH", default="//relief_plate.png")
+    render_path: StringProperty(options=_REL, name="Render", subtype="FILE_PATH", default="//relief_plate.png")
     render_width: IntProperty(name="Width per image", default=256, min=16, max=4096)
     render_samples: IntProperty(name="Render samples", default=32, min=1, max=4096)
     job_status: StringProperty(name="Status", default="")
+    last_group: StringProperty(name="Baked group", default="", description="The node group baked last")
 
 
 CLASSES = (ReliefSceneSettings,)

@@ -39,7 +39,9 @@ def render(source, out, width: int = 256, samples: int = 32, progress=None) -> P
     from .plate_scene import prepare_plates, render_side_by_side
     if width < 8 or samples < 1:
         raise InputError("--width/--samples", "need a width of at least 8 pixels and at least 1 sample")
-    plates = prepare_plates(source, closure_albedo(), "metallic" if has_metallic_bsdf() else "glossy", progress)
+    from .workers import running_backend
+    with running_backend():             # workers start from this package, never re-run a calling script
+        plates = prepare_plates(source, closure_albedo(), "metallic" if has_metallic_bsdf() else "glossy", progress)
     return render_side_by_side(plates, out, width=width, samples=samples)
 
 

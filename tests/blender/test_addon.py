@@ -117,3 +117,100 @@ def test_reconstruct_operator_writes_table_and_bakes(addon, tmp_path):
     tabs = load_tables(out)
     assert sorted(t.incident_from for t in tabs) == ["inside", "outside"]
     assert "Relief BSDF: r" in bpy.data.node_groups
+
+
+def test_import_frames_small_map_and_keeps_true_heights(addon, tmp_path):
+    from relief_bsdf.io.heightmaps import write_relief
+    from relief_bsdf.surface.relief import Relief
+    # 83 um x 204 um, heights ~0.1 um: far below the default 10 mm clip start
+    h = 0.1e-6 * np.random.default_rng(3).standard_normal((64, 32))
+    path = write_relief(tmp_path / "small.npz", Relief(h, 83e-6 / 31, 204e-6 / 63))
+    assert bpy.ops.relief.import_heightmap(filepath=str(path)) == {"FINISHED"}
+    obj = bpy.context.active_object
+    pos = np.empty(3 * h.size, np.float32)
+    obj.data.attributes["position"].data.foreach_get("vector", pos)
+    np.testing.assert_allclose(pos.reshape(64, 32, 3)[..., 2], h.astype(np.float32), rtol=1e-6)   # metres
+    assert bpy.context.scene.unit_settings.length_unit == "MICROMETERS"
+    assert bpy.context.scene.unit_settings.scale_length == 1.0                 # 1 unit stays 1 m
+    size = 204e-6
+    views = [sp for sc in bpy.data.screens for a in sc.areas for sp in a.spaces if sp.type == "VIEW_3D"]
+    assert views
+    for sp in views:
+        assert sp.clip_start <= max(size / 100, 1e-6) and size * 10 <= sp.clip_end < 0.5   # map in, 1 m cube out
+        assert sp.region_3d.view_distance == pytest.approx(2 * size, rel=1e-3)
+        loc = sp.region_3d.view_location
+        assert abs(loc.x) < size and abs(loc.y) < size
+
+
+def test_panel_lengths_and_regime(addon, tmp_path):
+    from relief_addon.panels import _fmt, fmt_length
+    assert fmt_length(7.719e-8) == "77.19 nm"
+    assert fmt_length(1.277e-7, 3.146e-7) == "127.7 x 314.6 nm"
+    assert fmt_length(2.21e-6) == "2.21 um" and fmt_length(1.2e-3) == "1.2 mm" and fmt_length(2.0) == "2 m"
+    assert _fmt("rms_height_m", 7.719e-8) == "77.19 nm" and _fmt("rms_slope", 0.0621) == "0.0621"
+    from relief_bsdf.core.index import ConstantIndex, Material
+    from relief_bsdf.io.heightmaps import read_relief, write_relief
+    from relief_bsdf.methods.auto import choose
+    from relief_bsdf.methods.request import Request
+    from relief_bsdf.surface.relief import Relief
+    # a 5 nm rms relief is optically smooth at 550 nm: auto picks Rayleigh-Rice
+    h = 5e-9 * np.random.default_rng(4).standard_normal((48, 48))
+    path = write_relief(tmp_path / "smooth.npz", Relief(h, 0.5e-6, 0.5e-6))
+    assert bpy.ops.relief.import_heightmap(filepath=str(path)) == {"FINISHED"}
+    reg = bpy.context.active_object["relief_regime"]
+    s = bpy.context.scene.relief
+    req = Request(wavelengths_nm=(float(s.wavelengths_nm),),
+                  theta_i_deg=tuple(float(x) for x in s.theta_i_deg.split(",")),
+                  incident_from=("outside", "inside")).validate()
+    assert reg["method"] == choose(read_relief(path), Material(ConstantIndex(s.ior)), req).method == "rayleigh-rice"
+    assert reg["regime"] == "optically smooth" and reg["rayleigh_parameter"] < 0.1
+
+
+class _Layout:
+    """Stand-in for a panel's UILayout (no window in background mode): records labels and props."""
+
+    def __init__(self, log):
+        self.log = log
+
+    def label(self, text="", icon=None):
+        self.log.append(("label", text))
+
+    def prop(self, data, name, **kw):
+        self.log.append(("prop", name))
+
+    def operator(self, idname, **kw):
+        self.log.append(("operator", idname))
+        return type("Props", (), {})()
+
+    def separator(self):
+        pass
+
+    def box(self):
+        return self
+
+    def row(self, **kw):
+        return self
+
+    def column(self, **kw):
+        return self
+
+
+def test_panels_draw_units_regime_and_haze(addon, tmp_path):
+    from types import SimpleNamespace
+    from relief_addon import panels
+    from relief_bsdf.io.heightmaps import write_relief
+    from relief_bsdf.surface.relief import Relief
+    h = 0.08e-6 * np.random.default_rng(5).standard_normal((40, 40))
+    path = write_relief(tmp_path / "p.npz", Relief(h, 0.5e-6, 0.5e-6))
+    assert bpy.ops.relief.import_heightmap(filepath=str(path)) == {"FINISHED"}
+    assert bpy.ops.relief.reconstruct(method="microfacet", wavelengths_nm="550", theta_i_deg="0,40", sides="both",
+                                      filepath=str(tmp_path / "p.h5")) == {"FINISHED"}
+    log = []
+    for cls in panels.CLASSES:
+        cls.draw(SimpleNamespace(layout=_Layout(log)), bpy.context)
+    labels = [t for k, t in log if k == "label"]
+    text = "\n".join(labels)
+    assert "500 x 500 nm" in labels and any(t.endswith(" nm") for t in labels[labels.index("rms height"):][:2])
+    assert "Optical regime:" in text and "auto would pick:" in text
+    assert any(t.startswith("haze (T, normal incidence):") and t.endswith("%") for t in labels)
+    assert ("operator", "relief.add_preset") in log

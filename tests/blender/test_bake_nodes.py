@@ -33,11 +33,19 @@ def test_node_group_structure(clean_bpy, tables):
     assert group.name == "Relief BSDF: probe" and group.use_fake_user
     outs = [s for s in group.interface.items_tree if getattr(s, "in_out", "") == "OUTPUT"]
     assert [s.socket_type for s in outs] == ["NodeSocketShader"]
+    ins = {s.name: s for s in group.interface.items_tree if getattr(s, "in_out", "") == "INPUT"}
+    assert set(ins) == {"Tint", "Haze", "Fitted", "Rotation"}
+    assert tuple(ins["Tint"].default_value) == (1, 1, 1, 1) and ins["Haze"].default_value == 1.0
+    assert ins["Fitted"].default_value == 0.0 and not group["relief_fitted"]        # no fitted table given
+    # the closures live in the table's inner group, used by both branches of the Fitted switch
+    inner = bpy.data.node_groups["Relief LUT BSDF: probe"]
+    assert [n.node_tree for n in group.nodes if n.bl_idname == "ShaderNodeGroup"] == [inner, inner]
     glossy = {"ShaderNodeBsdfAnisotropic": "ShaderNodeBsdfGlossy"}      # Blender 4+ merged the two
-    kinds = sorted(glossy.get(n.bl_idname, n.bl_idname) for n in group.nodes if n.bl_idname.startswith("ShaderNodeBsdf"))
+    kinds = sorted(glossy.get(n.bl_idname, n.bl_idname) for n in inner.nodes
+                   if n.bl_idname.startswith("ShaderNodeBsdf"))
     assert kinds == ["ShaderNodeBsdfGlossy", "ShaderNodeBsdfMetallic", "ShaderNodeBsdfRefraction",
                      "ShaderNodeBsdfRefraction"]
-    texs = [n for n in group.nodes if n.bl_idname == "ShaderNodeTexImage"]
+    texs = [n for n in inner.nodes if n.bl_idname == "ShaderNodeTexImage"]
     assert len(texs) == len(ROW_NAMES)
     assert all(t.image == img and t.extension == "EXTEND" and t.interpolation == "Linear" for t in texs)
     # the image: packed float32 non-colour data with a fake user, exactly the LUT rows
@@ -47,7 +55,7 @@ def test_node_group_structure(clean_bpy, tables):
     img.pixels.foreach_get(px)
     np.testing.assert_array_equal(px, lut.image_pixels())
     # refraction IOR is the table's n_inside / n_outside
-    refr = [n for n in group.nodes if n.bl_idname == "ShaderNodeBsdfRefraction"]
+    refr = [n for n in inner.nodes if n.bl_idname == "ShaderNodeBsdfRefraction"]
     assert all(r.inputs["IOR"].default_value == pytest.approx(1.5) for r in refr)
     # assigned to the rough face of a plate: top face gets the group, the others glass
     me = bpy.data.meshes.new("plate")
@@ -145,3 +153,87 @@ def test_goniophotometer_reproduces_table(clean_bpy, tables):
             f = G.bsdf(m, ti, ts, 180.0, "T", samples=64)[1] * n**2
             ft = float(out.eval(550.0, ti, 0.0, "T", ts, 180.0))
             assert f == pytest.approx(ft, rel=0.20), (ti, ts, f, ft)
+
+
+def _anisotropic_tables():
+    """Monte Carlo (normals method, independent of the bake's GGX fit) tables of a Gaussian relief whose
+    slopes are 4 times steeper along x than along y (rms slopes 0.28 and 0.07)."""
+    from relief_bsdf.core.index import ConstantIndex, Material
+    from relief_bsdf.methods import reconstruct
+    from relief_bsdf.methods.request import Request
+    from relief_bsdf.parallel import parallel_settings
+    from relief_bsdf.surface.synth import RandomFieldSpec, relief_from_spec
+    relief = relief_from_spec(RandomFieldSpec(nx=128, ny=128, pitch_m=0.25e-6, rms_height_m=0.18e-6,
+                                              corr_length_m=4e-6, anisotropy=0.25), 0)
+    req = Request(theta_i_deg=(0.0, 20.0, 40.0, 60.0, 80.0), phi_i_deg=(0.0, 90.0), incident_from=("outside", "inside"),
+                  theta_s_edges_deg=tuple(np.linspace(0, 90, 46)), phi_s_edges_deg=tuple(np.arange(-5.0, 360, 10)),
+                  samples=200_000, seed=1)
+    with parallel_settings(backend="serial"):
+        return reconstruct(relief, Material(ConstantIndex(1.5)), req, "normals")
+
+
+@pytest.mark.slow
+def test_anisotropic_relief_bakes_anisotropic_lobe_checked_at_two_azimuths(clean_bpy):
+    """The goniophotometer sees the table's azimuth dependence: light across the steep slopes (azimuth
+    0, relief x) spreads wide, light along them (azimuth 90: the group's Rotation turns the relief by
+    a quarter) stays narrow.  In-plane reflection at theta_i = 40 deg."""
+    from relief_addon import bake_nodes, goniophotometer as G
+    from relief_bsdf.bsdf.bake import reflection_slope_ratio
+    tables = _anisotropic_tables()
+    out = tables[0]
+    assert reflection_slope_ratio(out, 550.0) == pytest.approx(0.277 / 0.068, rel=0.15)   # the relief's slopes
+    lut, _, group = bake_nodes.bake_tables(tables, "aniso")
+    assert lut.anisotropy > 0.5 and group["relief_anisotropy"] == pytest.approx(lut.anisotropy)
+    m = bake_nodes.material_for_group(group)
+    node = next(n for n in m.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+    ti = 40.0
+    got, want = {}, {}
+    for rot, phi_i in ((0.0, 0.0), (0.25, 90.0)):
+        node.inputs["Rotation"].default_value = rot
+        for ts in (40.0, 55.0, 70.0):
+            got[phi_i, ts] = G.bsdf(m, ti, ts, 180.0, "R", samples=64)[1]
+            want[phi_i, ts] = float(out.eval(550.0, ti, phi_i, "R", ts, phi_i + 180.0))
+    for phi_i in (0.0, 90.0):
+        assert got[phi_i, 40.0] == pytest.approx(want[phi_i, 40.0], rel=0.25), (phi_i, got, want)   # lobe peak
+    assert got[0.0, 70.0] == pytest.approx(want[0.0, 70.0], rel=0.25), (got, want)                  # wide tail
+    # the azimuth contrast off the peak: the table's ratio, within 35 %; an isotropic lobe would give 1
+    ratio_table = want[0.0, 55.0] / want[90.0, 55.0]
+    assert ratio_table > 2.0
+    assert got[0.0, 55.0] / got[90.0, 55.0] == pytest.approx(ratio_table, rel=0.35), (got, want)
+    assert got[90.0, 70.0] < 0.2 * got[0.0, 70.0]
+
+
+@pytest.mark.slow
+def test_group_inputs_haze_tint_and_fitted_switch(clean_bpy, tables):
+    """Haze 0 is the smooth boundary (Fresnel), Haze 1 the table; Tint scales the transmitted light
+    per channel; Fitted picks the second table."""
+    from relief_addon import bake_nodes, goniophotometer as G
+    from relief_bsdf.core.fresnel import fresnel_unpolarized
+    from relief_bsdf.bsdf.bake import bake_lut
+    lut, img, _ = bake_nodes.bake_tables(tables, "rough")
+    smooth_tables = _microfacet_tables(alpha=0.05)
+    smoother = bake_lut(smooth_tables, "smoother", albedo=bake_nodes.closure_albedo(),
+                        reflection_closure=lut.reflection_closure)
+    group = bake_nodes.build_node_group(lut, img, fitted=smoother, name="switch")
+    assert group["relief_fitted"] and bpy.data.node_groups.get("Relief LUT BSDF: smoother") is not None
+    m = bake_nodes.material_for_group(group)
+    node = next(n for n in m.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+    assert node.inputs["Fitted"].default_value == 1.0                       # a fitted table: shown by default
+    t = 30.0
+    T_table = tables[0].hemispherical()["T"][0, 3, 0]
+    T_fresnel = 1.0 - float(fresnel_unpolarized(np.cos(np.radians(t)), 1.0, 1.5))
+    node.inputs["Fitted"].default_value = 0.0
+    assert G.directional(m, t, "T", samples=32)[1] == pytest.approx(T_table, rel=0.05)
+    node.inputs["Haze"].default_value = 0.0
+    assert G.directional(m, t, "T", samples=32)[1] == pytest.approx(T_fresnel, rel=0.03)
+    node.inputs["Haze"].default_value = 1.0
+    node.inputs["Tint"].default_value = (1.0, 0.5, 0.25, 1.0)
+    rgb = G.directional(m, t, "T", samples=32)
+    assert rgb[1] / rgb[0] == pytest.approx(0.5, rel=0.05) and rgb[2] / rgb[0] == pytest.approx(0.25, rel=0.05)
+    # Fitted 0 / 1 renders each table's own directional R at a grazing view (where the two differ)
+    node.inputs["Tint"].default_value = (1.0, 1.0, 1.0, 1.0)
+    R_want = {0.0: tables[0].hemispherical()["R"][0, 7, 0], 1.0: smooth_tables[0].hemispherical()["R"][0, 7, 0]}
+    assert abs(R_want[0.0] - R_want[1.0]) > 0.1 * R_want[1.0]
+    for fitted, want in R_want.items():
+        node.inputs["Fitted"].default_value = fitted
+        assert G.directional(m, 70.0, "R", samples=32)[1] == pytest.approx(want, rel=0.05), fitted

@@ -46,20 +46,59 @@ def test_linux_zip_installs_and_enables(tmp_path):
     assert not any(w.startswith("numpy-") for w in wheels)
     assert {"__init__.py", "blender_manifest.toml", "bake_nodes.py", "data/cycles_albedo.npz"} <= set(names)
     assert "build_extension.py" not in names
+    # a user script without a main guard: install, enable, set the preferences, import the demo X3P,
+    # reconstruct on 2 worker processes, bake onto the relief
     script = (
         "import json, sys, bpy\n"
-        "bpy.ops.extensions.package_install_files(filepath=sys.argv[-1], repo='user_default', enable_on_install=True)\n"
+        "bpy.ops.extensions.package_install_files(filepath=sys.argv[-2], repo='user_default', enable_on_install=True)\n"
         "mods = sorted(bpy.context.preferences.addons.keys())\n"
         "ok = 'RELIEF_PT_relief' in dir(bpy.types) and 'relief' in dir(bpy.ops)\n"
         "import importlib; m = importlib.import_module('bl_ext.user_default.relief_addon')\n"
-        "print('RESULT ' + json.dumps({'addons': mods, 'panel': ok, 'file': m.__file__,\n"
+        "prefs = bpy.context.preferences.addons['bl_ext.user_default.relief_addon'].preferences\n"
+        "prefs.workers = 2\n"
+        "bpy.ops.relief.import_heightmap(filepath=sys.argv[-1])\n"
+        "res = bpy.ops.relief.reconstruct(method='microfacet', wavelengths_nm='550', theta_i_deg='0,40',\n"
+        "                                 sides='both')\n"
+        "import relief_bsdf\n"
+        "from relief_bsdf.parallel import last_run\n"
+        "print('RESULT ' + json.dumps({'addons': mods, 'panel': ok, 'file': m.__file__, 'res': sorted(res),\n"
+        "     'backend_file': relief_bsdf.__file__, 'run': last_run(), 'table': bpy.context.scene.relief.table_path,\n"
+        "     'cache': str(m.prefs.per_user_cache()), 'groups': sorted(bpy.data.node_groups.keys()),\n"
         "     'ops': sorted(dir(bpy.ops.relief))}))\n")
-    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp_path / "user"))
-    r = subprocess.run([sys.executable, "-c", script, str(zips[0])], capture_output=True, text=True, env=env,
-                       timeout=900)
+    (tmp_path / "user_script.py").write_text(script)
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp_path / "user"), RELIEF_BACKEND="processes")
+    env.pop("PYTHONPATH", None)                  # the backend must come from the installed extension
+    r = subprocess.run([sys.executable, str(tmp_path / "user_script.py"), str(zips[0]),
+                        str(REPO / "scenes" / "demo" / "relief.x3p")], capture_output=True, text=True, env=env,
+                       timeout=900, cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
     line = [x for x in r.stdout.splitlines() if x.startswith("RESULT ")][-1]
     res = json.loads(line[7:])
     assert "bl_ext.user_default.relief_addon" in res["addons"]
     assert res["panel"] and str(tmp_path / "user") in res["file"]
-    assert {"import_heightmap", "reconstruct", "bake_bsdf", "render_plate"} <= set(res["ops"])
+    assert {"import_heightmap", "reconstruct", "bake_bsdf", "render_plate", "add_preset"} <= set(res["ops"])
+    assert str(tmp_path / "user") in res["backend_file"]                      # the bundled wheel's relief_bsdf
+    assert res["res"] == ["FINISHED"] and res["run"]["backend"] == "processes" and res["run"]["total"] > 1
+    # unsaved file: the table went to the extension's per-user folder, the scene keeps "//relief_table.h5"
+    assert res["table"] == "//relief_table.h5" and str(tmp_path / "user") in res["cache"]
+    assert (Path(res["cache"]) / "relief_table.h5").is_file()
+    assert "Relief BSDF: relief" in res["groups"]
+
+
+@pytest.mark.slow
+def test_reader_report_checks_each_zip_by_reading(tmp_path):
+    # a zip like the Windows one (relief_bsdf, no SurfaceTopography wheel) reads x3p with its own readers;
+    # a zip without the backend cannot read its main inputs and is never called validated
+    import zipfile
+    wheel = bx.build_backend_wheel(tmp_path / "cache")
+    win = tmp_path / "relief_addon-0.1.0-windows_x64.zip"
+    with zipfile.ZipFile(win, "w") as zf:
+        zf.write(wheel, "wheels/" + wheel.name)
+    rep = bx.reader_report(win, tmp_path / "cache")
+    assert rep["main_ok"] and {"x3p", "gwy", "npz"} <= set(rep["formats"]) and "surfacetopography" not in rep["formats"]
+    assert "native_readers (x3p)" in rep["text"] and "not available" in rep["text"]
+    bare = tmp_path / "bare.zip"
+    with zipfile.ZipFile(bare, "w") as zf:
+        zf.writestr("__init__.py", "")
+    rep = bx.reader_report(bare, tmp_path / "cache")
+    assert not rep["main_ok"] and rep["formats"] == []

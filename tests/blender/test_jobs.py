@@ -8,8 +8,6 @@ from __future__ import annotations
 import time
 from types import SimpleNamespace
 
-import pytest
-
 from relief_addon.jobs import JobOperator
 
 

@@ -112,3 +112,29 @@ def test_render_scene_code_ships_in_the_installed_distribution(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "relief_bsdf.cli", "render", str(tmp_path / "missing.toml"), "-o",
                           str(tmp_path / "x.png")], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)
     assert bad.returncode == 2 and "missing.toml" in bad.stderr
+
+
+def test_plate_scene_has_label_and_denoiser(clean_bpy):
+    import bpy
+    from relief_addon.plate_scene import _remove_scene, build_scene
+    from relief_bsdf.bsdf.bake import bake_lut
+    from relief_bsdf.core.index import ConstantIndex, Material
+    from relief_bsdf.plate import flat_tables
+    th = np.arange(0.0, 90.0, 10.0)
+    lut = bake_lut(list(flat_tables(Material(ConstantIndex(1.5)), [550.0], th, th, np.linspace(0, 90, 10),
+                                    np.arange(-15.0, 360, 30))), "flat")
+    sc = build_scene({"label": "before fit", "lut": lut, "thickness_m": 0.003, "rough_face": "front", "ior": 1.5},
+                     32, 4)
+    import _cycles
+    assert sc.cycles.use_denoising == bool(_cycles.with_openimagedenoise) and sc.cycles.sample_clamp_indirect > 0
+    labels = [o for o in sc.collection.objects if o.type == "FONT"]
+    assert [o.data.body for o in labels] == ["before fit"] and labels[0].parent == sc.camera
+    # in front of the camera, beyond its clip start, inside the lower part of the frame
+    from bpy_extras.object_utils import world_to_camera_view
+    bpy.context.view_layer.update()
+    for o in sc.collection.objects:
+        if o.parent == sc.camera:
+            o.matrix_world = sc.camera.matrix_world @ o.matrix_basis
+    p = world_to_camera_view(sc, sc.camera, labels[0].matrix_world.translation)
+    assert 0.0 < p.x < 1.0 and 0.0 < p.y < 0.25 and p.z > sc.camera.data.clip_start
+    _remove_scene(sc)

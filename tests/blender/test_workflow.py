@@ -49,3 +49,24 @@ def test_simulate_fit_render_from_operators(addon, tmp_path):
     out = tmp_path / "plate.png"
     assert bpy.ops.relief.render_plate(filepath=str(out), width=32, samples=2) == {"FINISHED"}
     assert out.stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_presets_make_a_scene_ready_to_render(addon, tmp_path):
+    hazes = {}
+    for key in ("anti_glare_film", "frosted_acrylic"):
+        before = set(bpy.data.scenes.keys())
+        assert bpy.ops.relief.add_preset(preset=key) == {"FINISHED"}
+        (name,) = set(bpy.data.scenes.keys()) - before
+        sc = bpy.data.scenes[name]
+        assert sc.camera is not None and sc.render.engine == "CYCLES"
+        plate = next(o for o in sc.collection.objects if o.name.startswith("Relief plate"))
+        group = [m for m in plate.data.materials if m.name.startswith("Relief BSDF")][0].node_tree.nodes[0].node_tree
+        hazes[key] = group["relief_haze"]
+        sc.render.resolution_x, sc.render.resolution_y, sc.cycles.samples = 24, 18, 2
+        sc.render.image_settings.file_format = "PNG"
+        sc.render.filepath = str(tmp_path / f"{key}.png")
+        bpy.ops.render.render(write_still=True, scene=sc.name)
+        assert (tmp_path / f"{key}.png").stat().st_size > 0
+    # the frosted plate scatters far more of the transmitted light out of the beam than the film
+    assert 0.0 < hazes["anti_glare_film"] < hazes["frosted_acrylic"] <= 1.0

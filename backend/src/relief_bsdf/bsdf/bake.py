@@ -39,7 +39,12 @@ Spectral tables: the RGB channels carry the weights at three wavelengths (defaul
 465 nm, interpolated linearly between tabulated wavelengths and held outside them);
 roughness and IOR are scalar in Cycles and use the green wavelength.
 
-Assumptions and limits: isotropic boundary (one incidence azimuth is used; several are
+Anisotropy: the reflection lobe's aspect ratio alpha_x / alpha_y is read from the table's
+own lobe at normal incidence (`reflection_slope_ratio`) and baked as Cycles' Anisotropy
+with the tangent along the relief's x axis (`closure_anisotropy`, `_lobe_roughness`); transmission lobes stay
+isotropic (Cycles' Refraction BSDF has none).
+
+Assumptions and limits: other tables are taken as isotropic (several incidence azimuths are
 averaged); lobe shapes are GGX (Walter et al. 2007, eqs. 20-21, 33) so tables of another
 shape match in energy exactly and in shape approximately; a missing "inside" table is
 replaced by a smooth interface seen from inside (Fresnel, total internal reflection),
@@ -48,6 +53,7 @@ weights stay finite (grazing back-facing views past the critical angle).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -128,7 +134,9 @@ class BakedLut:
 
     rows: (2 * ROWS_PER_SIDE, C, 4) float32; row block s (0 front/outside, 1 back/inside)
     holds ROW_NAMES in order; colour rows are (R, G, B, 1) weights, the roughness row is
-    (r_R, r_T, 0, 1) in Cycles' roughness (sqrt of GGX alpha).  Columns sample theta_v
+    (r_R, r_T, anisotropy_R, 1) in Cycles' roughness (sqrt of GGX alpha) and Cycles'
+    anisotropy of the reflection lobe (`closure_anisotropy`: tangent along the relief's x
+    axis, turned 90 degrees where negative; 0: isotropic).  Columns sample theta_v
     uniformly from 0 to 90 degrees.
     """
 
@@ -164,6 +172,17 @@ class BakedLut:
         x = np.asarray(theta_deg, float) / 90.0
         return x * (c - 1) / c + 0.5 / c
 
+    @property
+    def anisotropy(self) -> float:
+        """Largest |anisotropy| of the reflection lobe (0 for an isotropic bake)."""
+        k = self.row_index("outside", "roughness")
+        return float(np.max(np.abs(self.rows[k, :, 2])))
+
+    @property
+    def haze(self) -> float:
+        """Transmission haze of the baked table (ASTM D1003 sense, `transmission_haze`); NaN if unknown."""
+        return float(self.info.get("haze_T", float("nan")))
+
     def texture_v(self, row_index: int) -> float:
         return (row_index + 0.5) / self.n_rows
 
@@ -175,7 +194,7 @@ def _per_incidence(table: BsdfTable) -> dict[str, np.ndarray]:
 
 
 def _fit_roughness(table: BsdfTable, wl_nm: float, subsamples: int | None = None) -> np.ndarray:
-    """(I, 2) Cycles roughness of one GGX lobe per incidence and side (R, T) at one wavelength.
+    """(I, P, 2) Cycles roughness of one GGX lobe per incidence, incidence azimuth and side (R, T).
 
     The model lobe is averaged over each cell like the table (`subsamples` per cell axis;
     default 1 for cells of at most 1 x 5 degrees, else 2: coarse cells need the average, or a
@@ -186,13 +205,90 @@ def _fit_roughness(table: BsdfTable, wl_nm: float, subsamples: int | None = None
         fine = np.max(np.diff(table.theta_s_edges_deg)) <= 1.01 and np.max(np.diff(table.phi_s_edges_deg)) <= 5.01
         subsamples = 1 if fine else 2
     t = table.select(wl_nm)
-    diffuse = _per_incidence(t)
+    h = t.hemispherical()
+    # a lobe carrying under 1e-12 of the light (a nearly flat face) is no lobe: its cells are
+    # zeroed so that the fit skips it instead of dividing by an underflowed norm
+    power = (t.values_per_sr * t.projected_solid_angle_sr).sum(axis=(-2, -1))
+    if np.any((power > 0) & (power < 1e-12)):
+        t = dataclasses.replace(t, values_per_sr=np.where((power < 1e-12)[..., None, None], 0.0, t.values_per_sr))
     fit = fit_table(t, n_lobes=1, distribution="ggx", subsamples=subsamples)
-    alpha = fit.alpha[0, :, :, :, 0].mean(axis=1)                  # (I, 2)
-    r = np.sqrt(np.clip(alpha, 0.0, None))
+    r = np.sqrt(np.clip(fit.alpha[0, :, :, :, 0], 0.0, None))      # (I, P, 2)
     for k, key in enumerate(("diffuse_R", "diffuse_T")):
-        r[diffuse[key][0] <= 0, k] = 0.0
+        r[np.asarray(h[key], float)[0] <= 0, k] = 0.0
     return np.clip(r, 0.0, 1.0)
+
+
+def closure_anisotropy(rho: float, closure: str) -> float:
+    """Cycles' Anisotropy for a GGX lobe with alpha_x / alpha_y = rho (x = the tangent), signed:
+    a negative value means "use |value| with the tangent turned by 90 degrees" (the node group
+    adds 0.25 to Rotation), because both closures below only stretch one way.
+
+    Cycles 5.0 (node_metallic_bsdf.osl, node_glossy_bsdf.osl; the roughness r gives
+    alpha = r^2 and alpha_x alpha_y = alpha^2 in both, so the baked r stays the geometric mean):
+    - "metallic": aspect = sqrt(1 - 0.9 a), alpha_x = alpha / aspect, alpha_y = alpha aspect,
+      a in [0, 1]: rho = 1 / (1 - 0.9 a), so a = (1 - 1 / rho) / 0.9 (rho >= 1, at most 10);
+    - "glossy": alpha_x = alpha (1 - a), alpha_y = alpha / (1 - a) for a > 0: rho = (1 - a)^2,
+      so a = 1 - sqrt(rho) (rho <= 1), held below 0.99 as Cycles clamps it.
+    """
+    if not np.isfinite(rho) or rho <= 0:
+        return 0.0
+    along = rho >= 1.0 if closure == "metallic" else rho <= 1.0       # stretch along the tangent
+    q = rho if along else 1.0 / rho                                     # the ratio the closure makes
+    a = (1.0 - 1.0 / q) / 0.9 if closure == "metallic" else 1.0 - np.sqrt(q)
+    a = float(np.clip(a, 0.0, 1.0 if closure == "metallic" else 0.99))
+    return a if along else -a
+
+
+def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
+    order = np.argsort(x)
+    cw = np.cumsum(w[order])
+    return float(x[order][np.searchsorted(cw, 0.5 * cw[-1])])
+
+
+def reflection_slope_ratio(table: BsdfTable, wl_nm: float) -> float:
+    """alpha_x / alpha_y of the reflection lobe at normal incidence; NaN if the table cannot say.
+
+    At normal incidence each reflected direction w_o belongs to one facet slope, that of the
+    half vector h = (z + w_o) / |z + w_o|: (s_x, s_y) = -(h_x, h_y) / h_z.  The power of each R
+    cell (f x projected solid angle) is the share of light reflected by facets of that slope, and
+    for a lobe whose slope density is elliptical, P(s_x / alpha_x, s_y / alpha_y), the ratio of
+    the power-weighted medians of |s_x| and |s_y| is alpha_x / alpha_y whatever the shape of P
+    (the Fresnel and shadowing factors depend on the tilt, which is the same for both axes at
+    normal incidence; anisotropic masking is neglected).  Needs an incidence within 1 deg of the
+    normal and the lobe resolved by more than one azimuth cell; azimuth phi_s = 0 is +x.
+    """
+    ti = np.asarray(table.theta_i_deg, float)
+    i = int(np.argmin(np.abs(ti)))
+    if abs(ti[i]) > 1.0 or len(table.phi_s_edges_deg) < 5:
+        return float("nan")
+    from relief_bsdf.core.frames import direction
+    w = int(np.argmin(np.abs(np.asarray(table.wavelength_nm, float) - wl_nm)))
+    p = int(np.argmin(np.abs((np.asarray(table.phi_i_deg, float) + 180.0) % 360.0 - 180.0)))
+    te, pe = np.asarray(table.theta_s_edges_deg, float), np.asarray(table.phi_s_edges_deg, float)
+    th, ph = np.meshgrid(0.5 * (te[:-1] + te[1:]), 0.5 * (pe[:-1] + pe[1:]), indexing="ij")
+    h = direction(th, ph) + np.array([0.0, 0.0, 1.0])
+    sx, sy = np.abs(h[..., 0] / h[..., 2]).ravel(), np.abs(h[..., 1] / h[..., 2]).ravel()
+    power = (np.asarray(table.values_per_sr[w, i, p, 0], float) * table.projected_solid_angle_sr).ravel()
+    if not np.any(power > 0):
+        return float("nan")
+    my, mx = _weighted_median(sy, power), _weighted_median(sx, power)
+    return mx / my if my > 0 and mx > 0 else float("nan")
+
+
+def _lobe_roughness(table: BsdfTable, wl_nm: float, closure: str) -> tuple[np.ndarray, np.ndarray]:
+    """(I, 2) roughness per incidence and side, and (I,) signed anisotropy of the reflection lobe.
+
+    Roughness: one isotropic GGX lobe fitted per incidence and side, azimuths averaged; for an
+    anisotropic lobe this is close to the geometric mean of the two axes' roughnesses, which is
+    what Cycles' (roughness, anisotropy) pair keeps.  Anisotropy: from the table's own
+    reflection lobe at normal incidence (`reflection_slope_ratio`, rho = alpha_x / alpha_y,
+    tangent along x) in the convention of the closure (`closure_anisotropy`), the same for every
+    incidence.  A table without a normal incidence bakes isotropic.  Transmission stays
+    isotropic (Cycles' Refraction BSDF has no anisotropy).
+    """
+    rough = _fit_roughness(table, wl_nm).mean(axis=1)
+    a = closure_anisotropy(reflection_slope_ratio(table, wl_nm), closure)
+    return rough, np.full(rough.shape[0], a)
 
 
 def _interp_wl(values: np.ndarray, wl_axis: np.ndarray, targets: Sequence[float]) -> np.ndarray:
@@ -225,7 +321,7 @@ def _side_rows(table: BsdfTable, cols: np.ndarray, bc: _BakeColours, back: bool)
     floor, reflection_closure, ior_rgb = bc.floor, bc.reflection_closure, bc.ior_rgb
     integ = _per_incidence(table)
     ti = table.theta_i_deg
-    rough = _fit_roughness(table, green_nm)                          # (I, 2)
+    rough, aniso = _lobe_roughness(table, green_nm, reflection_closure)   # (I, 2), (I,)
     r_R = np.interp(cols, ti, rough[:, 0])
     r_T = np.interp(cols, ti, rough[:, 1])
     rows = np.zeros((ROWS_PER_SIDE, cols.size, 4))
@@ -245,8 +341,9 @@ def _side_rows(table: BsdfTable, cols: np.ndarray, bc: _BakeColours, back: bool)
             rows[j, :, c] = np.interp(cols, ti, rgb[c]) / np.maximum(a, floor)
     rows[4, :, 0] = r_R
     rows[4, :, 1] = r_T
+    rows[4, :, 2] = np.interp(cols, ti, aniso)
     return rows, {"roughness_R_at_table": rough[:, 0].tolist(), "roughness_T_at_table": rough[:, 1].tolist(),
-                  "albedo_clamped_columns": clamped}
+                  "anisotropy_R": float(aniso.mean()), "albedo_clamped_columns": clamped}
 
 
 def _smooth_inside_rows(material: Material, cols: np.ndarray, rgb_nm, green_nm: float, albedo: Albedo,
@@ -261,6 +358,31 @@ def _smooth_inside_rows(material: Material, cols: np.ndarray, rgb_nm, green_nm: 
         rows[0, :, c] = F / np.maximum(albedo("glossy", np.zeros_like(cols), cols, ior), floor)
         rows[2, :, c] = (1 - F) / np.maximum(albedo("refraction_back", np.zeros_like(cols), cols, ior), floor)
     return rows
+
+
+def transmission_haze(table: BsdfTable, wl_nm: float = 550.0, wide_deg: float = 2.5) -> float:
+    """Transmission haze at normal incidence, in the sense of ASTM D1003: the share of the
+    transmitted light that leaves more than `wide_deg` (2.5 deg) from the regular (undeviated)
+    beam.  Regular part: the table's specular transmission plus the T cells whose centre lies
+    within `wide_deg` of the beam; the cell grid limits how sharply the 2.5 deg edge is drawn
+    (one cell width).  Uses the incidence nearest 0 deg (NaN if none within 1 deg), the
+    wavelength nearest `wl_nm`, azimuths averaged; NaN when nothing is transmitted.
+    """
+    ti = np.asarray(table.theta_i_deg, float)
+    i = int(np.argmin(np.abs(ti)))
+    if abs(ti[i]) > 1.0:
+        return float("nan")
+    w = int(np.argmin(np.abs(np.asarray(table.wavelength_nm, float) - wl_nm)))
+    psa = table.projected_solid_angle_sr                          # (S, A)
+    cells = np.asarray(table.values_per_sr[w, i, :, 1], float) * psa[None]   # (P, S, A) power per T cell
+    edges = np.asarray(table.theta_s_edges_deg, float)
+    centre = 0.5 * (edges[:-1] + edges[1:])
+    near = centre <= wide_deg
+    spec = 0.0 if table.specular_T is None else np.asarray(table.specular_T, float)[w, i, :]
+    regular = np.mean(spec + cells[:, near, :].sum(axis=(1, 2)))
+    wide = np.mean(cells[:, ~near, :].sum(axis=(1, 2)))
+    tot = regular + wide
+    return float(wide / tot) if tot > 0 else float("nan")
 
 
 def bake_lut(tables: Sequence[BsdfTable], name: str, albedo: Albedo | None = None, n_columns: int = 91,
@@ -292,7 +414,8 @@ def bake_lut(tables: Sequence[BsdfTable], name: str, albedo: Albedo | None = Non
     bc = _BakeColours(rgb_nm=rgb, green_nm=green, ior=ior, ior_rgb=ior_rgb, albedo=albedo, floor=albedo_floor,
                       reflection_closure=reflection_closure)
     front, info_f = _side_rows(out, cols, bc, back=False)
-    info = {"outside": info_f, "method": out.method, "closure_albedo": getattr(albedo, "source", "ideal (1)")}
+    info = {"outside": info_f, "method": out.method, "closure_albedo": getattr(albedo, "source", "ideal (1)"),
+            "haze_T": transmission_haze(out, green)}
     if "inside" in by_side:
         back, info_b = _side_rows(by_side["inside"], cols, bc, back=True)
         info["inside"] = info_b

@@ -216,6 +216,11 @@ def read_relief(path: str | Path, pitch_m: Any = None, channel: int | str | None
         return _read_image(path, pitch, channel, z_unit)
     if suffix == ".sdf":
         return _read_sdf(path, pitch)
+    # --- hook (issue 16): the project's own readers where SurfaceTopography is missing (io/native_readers.py)
+    from relief_bsdf.io import native_readers
+    if native_readers.wanted(suffix):
+        return _finish(path, *native_readers.read(path, pitch))
+    # --- end of hook
     return _read_surface_topography(path, pitch, channel)
 
 

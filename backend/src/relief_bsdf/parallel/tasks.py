@@ -312,6 +312,7 @@ def _run_processes(fn: Callable, context: Any, items: list[tuple[int, Any]], set
     pending = dict(items)
     workers = settings.worker_count()
     restarts = 0
+    exit_codes: set[int] = set()
     while pending:
         pool = ProcessPoolExecutor(max_workers=max(1, min(workers, len(pending))), initializer=init_worker,
                                    initargs=(token, context, os.getpid()), mp_context=_pool_context())
@@ -320,21 +321,41 @@ def _run_processes(fn: Callable, context: Any, items: list[tuple[int, Any]], set
             broken = yield from _pool_round(pool, fn, token, pending, workers)
             clean = not broken
         finally:
+            procs = list((getattr(pool, "_processes", None) or {}).values())
             _stop_pool(pool, kill=not clean)
         if broken:
+            exit_codes |= {p.exitcode for p in procs if p.exitcode not in (None, 0, -15)}  # -15: the pool's stop
             restarts += 1
             if restarts > settings.retries:
-                raise _crashed(restarts, pending, label, settings)
+                raise _crashed(restarts, pending, label, settings, exit_codes)
 
 
-def _crashed(restarts: int, pending: dict[int, Any], label: str, settings: ParallelSettings) -> WorkerCrashed:
+def _exit_cause(code: int) -> str:
+    """What a worker's exit code says about why it died."""
+    if code > 0:
+        return (f"exit status {code}: a Python error before or between tasks, e.g. while the worker started "
+                "(its traceback is on stderr / the console)")
+    import signal
+    try:
+        name = signal.Signals(-code).name
+    except ValueError:
+        name = f"signal {-code}"
+    hint = {"SIGKILL": "usually the out-of-memory killer", "SIGSEGV": "a crash in native code",
+            "SIGBUS": "a crash in native code", "SIGABRT": "a native library aborted"}.get(name, "killed")
+    return f"{name} ({hint})"
+
+
+def _crashed(restarts: int, pending: dict[int, Any], label: str, settings: ParallelSettings,
+             exit_codes: set[int] = frozenset()) -> WorkerCrashed:
     shown = sorted(pending)[:8]
     more = "" if len(pending) <= 8 else f" (+{len(pending) - 8} more)"
+    causes = "; ".join(_exit_cause(c) for c in sorted(exit_codes)) or "exit code not known"
+    memory = -9 in exit_codes or not exit_codes
     return WorkerCrashed(
-        f"a worker process died abruptly (crash or out-of-memory kill) {restarts} times while running "
-        f"{label} tasks; {len(pending)} unfinished, indices {shown}{more}; finished ones were kept"
+        f"a worker process died abruptly {restarts} times while running {label} tasks ({causes}); "
+        f"{len(pending)} unfinished, indices {shown}{more}; finished ones were kept"
         + (" in the checkpoint folder" if settings.checkpoint_dir else "")
-        + ". Try fewer workers (--workers) or a smaller request.")
+        + (". Try fewer workers (--workers) or a smaller request." if memory else "."))
 
 
 def _run_dask(fn: Callable, context: Any, items: list[tuple[int, Any]], settings: ParallelSettings,

@@ -1,0 +1,85 @@
+"""Where tables live, re-baking, and what a bake does to an object's materials (issue 16, item 3)."""
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import bpy
+
+
+@pytest.fixture
+def cache(addon, tmp_path, monkeypatch):
+    """The preferences' cache folder, pointed at a test folder (the add-on is registered without
+    addon_utils here, so its preferences are the module defaults)."""
+    from relief_addon import prefs
+    folder = tmp_path / "cache"
+    monkeypatch.setattr(prefs, "_DEFAULTS", type(prefs._DEFAULTS)(workers=0, cache_dir=str(folder)))
+    return folder
+
+
+def _flat_table(path: Path) -> Path:
+    from relief_bsdf.core.index import ConstantIndex, Material
+    from relief_bsdf.io.hdf5 import save_tables
+    from relief_bsdf.plate import flat_tables
+    th = np.arange(0.0, 90.0, 10.0)
+    save_tables(path, list(flat_tables(Material(ConstantIndex(1.5)), [550.0], th, th, np.linspace(0, 90, 10),
+                                       np.arange(-15.0, 360, 30))))
+    return path
+
+
+def _relief(path: Path) -> Path:
+    from relief_bsdf.io.heightmaps import write_relief
+    from relief_bsdf.surface.relief import Relief
+    h = 0.2e-6 * np.random.default_rng(1).standard_normal((24, 24))
+    return write_relief(path, Relief(h, 1e-6, 1e-6))
+
+
+def test_default_cache_is_per_user_not_temporary(addon):
+    from relief_addon.prefs import default_cache_dir
+    d = default_cache_dir().resolve()
+    assert Path(tempfile.gettempdir()).resolve() not in d.parents
+    assert Path(bpy.utils.resource_path("USER")).resolve() in d.parents
+
+
+def test_unsaved_file_uses_cache_and_saved_file_gets_tables_beside_it(cache, tmp_path):
+    assert not bpy.data.filepath
+    src = _relief(tmp_path / "r.npz")
+    assert bpy.ops.relief.import_heightmap(filepath=str(src)) == {"FINISHED"}
+    assert bpy.ops.relief.reconstruct(method="microfacet", wavelengths_nm="550", theta_i_deg="0,40",
+                                      sides="both") == {"FINISHED"}
+    s = bpy.context.scene.relief
+    assert s.table_path == "//relief_table.h5"                 # the .blend keeps the relative path
+    assert (cache / "relief_table.h5").is_file()
+    assert bpy.data.node_groups["Relief BSDF: r"]["relief_table"] == "//relief_table.h5"
+    blend = tmp_path / "saved" / "scene.blend"
+    blend.parent.mkdir()
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    assert (blend.parent / "relief_table.h5").is_file()        # copied beside the .blend on save
+    raw = blend.read_bytes()
+    assert str(cache).encode() not in raw and tempfile.gettempdir().encode() + b"/relief" not in raw
+
+
+def test_rebake_updates_the_same_group_and_keeps_existing_materials(cache, tmp_path):
+    table = _flat_table(tmp_path / "flat.h5")
+    bpy.ops.mesh.primitive_plane_add(size=0.05)
+    obj = bpy.context.active_object
+    paint = bpy.data.materials.new("Paint")
+    obj.data.materials.append(paint)
+    assert bpy.ops.relief.bake_bsdf(filepath=str(table)) == {"FINISHED"}
+    group = bpy.data.node_groups["Relief BSDF: flat"]
+    ptr, n_groups = group.as_pointer(), len(bpy.data.node_groups)
+    assert [m.name for m in obj.data.materials] == ["Paint", "Relief BSDF: flat"]
+    assert [p.material_index for p in obj.data.polygons] == [1]
+    # the user sets an input in the material; a second bake of the same table keeps group, material and value
+    node = next(n for n in bpy.data.materials["Relief BSDF: flat"].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+    node.inputs["Haze"].default_value = 0.3
+    assert bpy.ops.relief.bake_bsdf(filepath=str(table)) == {"FINISHED"}
+    assert len(bpy.data.node_groups) == n_groups
+    assert bpy.data.node_groups["Relief BSDF: flat"].as_pointer() == ptr
+    assert [m.name for m in obj.data.materials] == ["Paint", "Relief BSDF: flat"]
+    node = next(n for n in bpy.data.materials["Relief BSDF: flat"].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+    assert node.node_tree.as_pointer() == ptr and node.inputs["Haze"].default_value == pytest.approx(0.3)
+    assert not any(n.endswith(".001") for n in bpy.data.node_groups.keys())
