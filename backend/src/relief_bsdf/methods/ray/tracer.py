@@ -148,6 +148,25 @@ class ReliefTracer:
             self._bounds = (hi, c)
         return hi[:3 * n], c[:3 * n]
 
+    def subtile_of(self, p: np.ndarray, grid: tuple) -> np.ndarray:
+        """Sub-tile index iy * gx + ix (int32) of points p (n, >= 2, tile coordinates) on a gx x gy
+        grid of the *relief's own* extent: on a mirror-extended tile the coordinates are folded
+        back onto the measured map first, so that mirror images share their sub-tile."""
+        gx, gy = int(grid[0]), int(grid[1])
+        idx = None
+        for ax, (g, L, h) in enumerate(((gx, self.Lx, self.hx), (gy, self.Ly, self.hy))):
+            u = p[:, ax] + h                            # [0, L)
+            if self.mesh.mirrored:                      # period 2 (n - 1) px: fold [L/2, L) onto [0, L/2]
+                half = L / F32(2)
+                u = half - np.abs(u - half)
+                scale = F32(g) / half
+            else:
+                scale = F32(g) / L
+            i = (u * scale).astype(np.int32)
+            np.clip(i, 0, g - 1, out=i)
+            idx = i if idx is None else idx + i * np.int32(gx)
+        return idx
+
     def relief_key(self, relief: Relief, mesh_options: tuple) -> "hashlib._Hash":
         """sha256 of the heights and mesh options (kept when `relief` is this tracer's own relief:
         hashing 8 MB of heights costs ~30 ms per request, e.g. in fits that reuse the tracer)."""

@@ -58,6 +58,7 @@ class TraceSettings:
     max_bounces: int = 100
     split_first: bool = False
     phi_exit_rad: float = 0.0        # exit Stokes frame of a ray leaving exactly along z (s from the azimuth)
+    subtiles: tuple | None = None    # (gx, gy): tag each path with the sub-tile of its first hit (Exits.first_group)
 
 
 @dataclass
@@ -263,6 +264,7 @@ class _Chunk:
     settings: TraceSettings
     rng: np.random.Generator
     n0: int
+    group: np.ndarray | None = None
 
 
 def trace_chunk(tracer, rays: Rays, carrier, media: Media, settings: TraceSettings, rng,
@@ -270,12 +272,18 @@ def trace_chunk(tracer, rays: Rays, carrier, media: Media, settings: TraceSettin
     """Trace `rays` through `tracer`'s relief layer until every ray has ended; the chunk's `Exits`.
 
     Phase 1 (split_first): every ray's first interaction, both branches; phase 2: roulette.
+    With settings.subtiles, `Exits.first_group` holds the sub-tile of each input ray's first hit
+    (its entry point if it never hit), rays.ids being 0..n-1.
     """
     with np.errstate(divide="ignore", invalid="ignore"):      # once per chunk (errstate is not free)
         carrier.start(rays, s_init)
         n0 = rays.size
         ex = Exits(2 * n0 if settings.split_first else n0, carrier.K)
         ch = _Chunk(tracer, ex, carrier, media, settings, rng, n0)
+        if settings.subtiles is not None:
+            ch.group = np.empty(n0, np.int32)
+            ch.group[rays.ids] = tracer.subtile_of(rays.o, settings.subtiles)
+            ex.first_group = ch.group
         cur, nxt, pending = rays, [], settings.split_first
         segments = 0
         while True:
@@ -384,9 +392,11 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
     """One interaction for rays that all hit: the continuing rays (and split copies)."""
     carrier, eps = ch.carrier, ch.tracer.eps
     pR = carrier.reflectance(h, f, ch.media)
-    h.nb = h.nb + np.int16(1)
     p = h.k * th[:, None]                             # hit point
     p += h.o
+    if ch.group is not None:
+        _tag_first_hits(ch, h, p, pending)
+    h.nb = h.nb + np.int16(1)
     bt = f.eta * f.ci
     bt -= f.ct                                        # k_t = eta k + (eta ci - ct) nf; k_r = k + 2 ci nf
     parts, absorbed = [], None
@@ -418,6 +428,16 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
             return parts
         h = h.take(g)
     return [h] + parts
+
+
+def _tag_first_hits(ch: _Chunk, h: Rays, p, pending: bool) -> None:
+    """Record the sub-tile of the first hit of rays hitting for the first time (nb == 0)."""
+    if pending:                                     # the first-interaction phase: every ray is a first hit
+        ch.group[h.ids] = ch.tracer.subtile_of(p, ch.settings.subtiles)
+    elif not ch.settings.split_first:
+        fi = np.flatnonzero(h.nb == 0)
+        if fi.size:
+            ch.group[h.ids[fi]] = ch.tracer.subtile_of(np.take(p, fi, axis=0), ch.settings.subtiles)
 
 
 def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR) -> Rays | None:
