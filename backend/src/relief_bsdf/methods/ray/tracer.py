@@ -24,7 +24,7 @@ from relief_bsdf.errors import RequestError
 from relief_bsdf.methods.ray.exits import ABOVE, Exits
 from relief_bsdf.methods.ray.transport import Media, Rays, TraceSettings, carrier_for, trace_chunk
 from relief_bsdf.parallel import default_workers, forget_worker_cached, worker_cached
-from relief_bsdf.surface.mesh import TileMesh, build_tile_mesh
+from relief_bsdf.surface.mesh import TileMesh, build_tile_mesh, remesh_heights
 from relief_bsdf.surface.relief import Relief
 
 F32 = np.float32
@@ -79,7 +79,7 @@ class ReliefTracer:
     """
 
     def __init__(self, relief: Relief, max_bounces: int = 100, fill_holes: bool | int | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, _mesh: TileMesh | None = None):
         from embreex import rtcore_scene as rtcs
         from embreex.mesh_construction import TriangleMesh
 
@@ -87,11 +87,14 @@ class ReliefTracer:
             raise RequestError(f"max_bounces must be >= 1, got {max_bounces}", "max_bounces")
         self.relief = relief
         self.max_bounces = int(max_bounces)
+        self.fill_holes = fill_holes
         self.threads = int(threads or default_workers())
         t0 = time.perf_counter()
-        self.mesh: TileMesh = build_tile_mesh(relief, fill_holes)
+        self.mesh: TileMesh = build_tile_mesh(relief, fill_holes) if _mesh is None else _mesh
+        t1 = time.perf_counter()
         self.scene = rtcs.EmbreeScene()
         self._embree_mesh = TriangleMesh(self.scene, self.mesh.vertices, self.mesh.triangles)
+        t2 = time.perf_counter()
         m = self.mesh
         self.Lx, self.Ly = (F32(m.period[0]), F32(m.period[1]))
         self.hx, self.hy = F32(m.period[0] / 2), F32(m.period[1] / 2)
@@ -103,9 +106,28 @@ class ReliefTracer:
         # commit the BVH now (first query) so timings of later calls are clean
         self.scene.run(np.array([[0, 0, self.z_top + 1]], F32), np.array([[0, 0, -1]], F32))
         self.build_s = time.perf_counter() - t0
+        # where the build time goes: mesh (numpy), Embree buffers (embreex copies element by
+        # element under the GIL), BVH commit (Embree, all cores)
+        self.build_split_s = {"mesh": t1 - t0, "embree_buffers": t2 - t1, "bvh_commit": self.build_s - (t2 - t0)}
         self.record_segments: list | None = None
         self._bounds = (np.zeros(0, F32), np.zeros(0, F32))
         self._relief_hash_cache: dict = {}
+
+    def with_heights(self, heights_m: np.ndarray | Relief, step: str = "heights replaced") -> "ReliefTracer":
+        """A tracer of the same grid with new heights (a fit's scaled / filtered relief).
+
+        Reuses the mesh topology (triangle index buffer, vertex x, y); only z is rewritten.  The
+        Embree scene itself is rebuilt: embreex (4.4) copies the buffers into Embree once in
+        `TriangleMesh(...)` and binds neither rtcGetGeometryBufferData / rtcUpdateGeometryBuffer
+        nor a scene re-commit, so vertex buffers cannot be updated in place and the BVH cannot be
+        refitted from Python; `build_split_s` says where the rebuild's time goes.  Random numbers:
+        tables traced with a given seed use the same ones for every height map (common random
+        numbers; `method` module doc), so a fit sees a smooth objective.
+        """
+        relief = heights_m if isinstance(heights_m, Relief) else self.relief.with_heights(
+            np.asarray(heights_m, dtype=np.float64), step)
+        mesh = remesh_heights(self.mesh, relief, self.fill_holes)
+        return ReliefTracer(relief, self.max_bounces, self.fill_holes, self.threads, _mesh=mesh)
 
     # ------------------------------------------------------------------ geometry of the tile
     def query(self, o: np.ndarray, k: np.ndarray) -> Query:

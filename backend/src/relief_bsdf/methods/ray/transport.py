@@ -22,7 +22,14 @@ yields both branches deterministically (reflected: output id i, weight w P_R; tr
 id i + n, weight w (1 - P_R)); the first interactions of a chunk are all done before the
 roulette phase starts (so a chunk's random numbers come in a fixed order).  Afterwards
 Russian roulette with probability P_R and renormalisation S <- M S / P keep every weight
-unchanged (unbiased; energy conserved ray by ray in lossless media).  Light transmitted into
+unchanged (unbiased; energy conserved ray by ray in lossless media).
+Common random numbers: the roulette's uniform number of a path at its b-th interaction is a
+hash of (chunk key, output id, b) (`path_uniforms`: counter-based, like Philox / Random123,
+Salmon et al. 2011), not the next number of a shared stream, so a path meets the same numbers
+whatever the other paths did: re-tracing a relief whose heights changed a little (a fit's
+iterations) changes only the paths that really change, and the objective is smooth in the
+heights.  The chunk key is drawn from the chunk's generator (one number, after the entry
+points), so a seed still names every number.  Light transmitted into
 an absorbing medium ends as LOST_ABSORBED; rays found on the wrong side of the surface
 (numerical leaks) as LOST_LEAK; rays still bouncing after `max_bounces` as LOST_BOUNCES.
 Regime: geometric optics (features >> wavelength), no interference between rays.
@@ -265,6 +272,7 @@ class _Chunk:
     rng: np.random.Generator
     n0: int
     group: np.ndarray | None = None
+    key: np.uint32 = np.uint32(0)
 
 
 def trace_chunk(tracer, rays: Rays, carrier, media: Media, settings: TraceSettings, rng,
@@ -280,6 +288,7 @@ def trace_chunk(tracer, rays: Rays, carrier, media: Media, settings: TraceSettin
         n0 = rays.size
         ex = Exits(2 * n0 if settings.split_first else n0, carrier.K)
         ch = _Chunk(tracer, ex, carrier, media, settings, rng, n0)
+        ch.key = np.uint32(rng.integers(0, 2**32))
         if settings.subtiles is not None:
             ch.group = np.empty(n0, np.int32)
             ch.group[rays.ids] = tracer.subtile_of(rays.o, settings.subtiles)
@@ -408,7 +417,7 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
         carrier.reflected(h, pR)
         a, b, off = None, 2 * f.ci, eps
     else:
-        refl = ch.rng.random(h.size, dtype=F32) < pR
+        refl = path_uniforms(ch.key, h.ids, h.nb) < pR
         carrier.chosen(h, refl, pR)
         a = np.where(refl, F32(1), f.eta)
         b = np.where(refl, 2 * f.ci, bt)
@@ -428,6 +437,29 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
             return parts
         h = h.take(g)
     return [h] + parts
+
+
+def path_uniforms(key: np.uint32, ids: np.ndarray, nb: np.ndarray) -> np.ndarray:
+    """Uniform float32 numbers in [0, 1) per path, a pure function of (key, id, interaction count).
+
+    An integer hash of the three (multiplicative mixing, then the xor-shift-multiply finaliser
+    of a 32-bit avalanche hash: every input bit flips each output bit with probability ~1/2),
+    whose top 24 bits make the float.  Module doc: common random numbers.
+    """
+    x = ids.astype(np.uint32)
+    x *= np.uint32(0x9E3779B1)
+    y = nb.astype(np.uint32)
+    y *= np.uint32(0x85EBCA77)
+    x ^= y
+    x ^= key
+    for shift, mul in ((16, 0x7FEB352D), (15, 0x846CA68B)):
+        x ^= x >> np.uint32(shift)
+        x *= np.uint32(mul)
+    x ^= x >> np.uint32(16)
+    x >>= np.uint32(8)
+    u = x.astype(F32)
+    u *= F32(2.0**-24)
+    return u
 
 
 def _tag_first_hits(ch: _Chunk, h: Rays, p, pending: bool) -> None:
