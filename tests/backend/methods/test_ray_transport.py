@@ -131,3 +131,26 @@ def test_common_random_numbers_keep_every_unchanged_path_unchanged():
                                                     options=dict(req.options)))[0].values_per_sr[0, 0, 0]
     lobe = f > 0.2 * f.max()
     assert np.sqrt(np.mean((f - g)[lobe] ** 2)) < 0.35 * np.sqrt(np.mean((f - c)[lobe] ** 2))
+
+
+def test_first_interaction_columns_equal_the_core_matrices_multiplied():
+    """The written-out M Rot of the identity shortcut equals core.fresnel's interface matrix times
+    core.stokes' frame rotation, for reflection and transmission, below and past the critical angle."""
+    from relief_bsdf.core.fresnel import interface_coefficients_f32, mueller_interface
+    from relief_bsdf.core.stokes import double_angle_cd, rotation_by_angle
+    from relief_bsdf.methods.ray.transport import first_interaction_columns
+    rng = np.random.default_rng(2)
+    n = 200
+    ci = rng.uniform(0.05, 1.0, n).astype(np.float32)
+    psi = rng.uniform(-180, 180, n)
+    c, d = np.cos(np.radians(psi)).astype(np.float32), np.sin(np.radians(psi)).astype(np.float32)
+    c2, s2 = double_angle_cd(c.copy(), d.copy())
+    for n1, n2 in ((1.0, 1.5), (1.5, 1.0)):                   # from inside: TIR for ci < 0.745
+        R, T = interface_coefficients_f32(ci, np.float32(n1), np.float32(n2))
+        inv = np.full(n, 1.0, np.float32)
+        for coef, kind in ((R, "R"), (T, "T")):
+            got = first_interaction_columns(coef, c2, s2, inv)
+            for i in range(0, n, 17):
+                want = mueller_interface(float(ci[i]), n1, n2, kind) @ rotation_by_angle(psi[i])
+                np.testing.assert_allclose(got[:, :, i], want, atol=2e-5)
+    assert np.any(np.abs(R[3]) > 0.1)                           # TIR retardance was exercised

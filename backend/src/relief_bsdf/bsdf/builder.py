@@ -273,16 +273,16 @@ class CellAccumulator:
     spec_M: np.ndarray | None = field(init=False)
     lost: dict = field(init=False)
     outside_table: float = field(init=False, default=0.0)
-    sum_w_group: np.ndarray | None = field(init=False)
     paths_group: np.ndarray | None = field(init=False)
+    _group_parts: list = field(init=False)          # (key = group * cells + cell, weight) per batch
 
     def __post_init__(self):
         nc = 2 * self.cells.S * self.cells.A
         self.sum_w = np.zeros(nc)
         self.sum_w2 = np.zeros(nc)
         G = int(self.n_groups)
-        self.sum_w_group = np.zeros(G * nc) if G else None
         self.paths_group = np.zeros(G) if G else None
+        self._group_parts = []
         self.sum_M = np.zeros((16, nc)) if self.polarized else None
         self.spec = np.zeros(2)
         self.spec_M = np.zeros((2, 16)) if self.polarized else None
@@ -299,8 +299,8 @@ class CellAccumulator:
     def merge(self, other: "CellAccumulator") -> None:
         self.sum_w += other.sum_w
         self.sum_w2 += other.sum_w2
-        if self.sum_w_group is not None:
-            self.sum_w_group += other.sum_w_group
+        if self.paths_group is not None:
+            self._group_parts.extend(other._group_parts)    # summed once, in merge order, by `sum_w_group`
             self.paths_group += other.paths_group
         if self.sum_M is not None:
             self.sum_M += other.sum_M
@@ -331,11 +331,11 @@ class CellAccumulator:
         nc = self.sum_w.size
         self.sum_w += np.bincount(c_in, weights=w_in, minlength=nc)
         self.sum_w2 += np.bincount(c_in, weights=w_in * w_in, minlength=nc)
-        if self.sum_w_group is not None:
+        if self.paths_group is not None:
             g = ex.group if full else ex.group[inside]
             gc = g.astype(np.int64) * nc
             gc += c_in
-            self.sum_w_group += np.bincount(gc, weights=w_in, minlength=self.sum_w_group.size)
+            self._group_parts.append((gc, w_in))
         if self.sum_M is not None:
             wf = w_in.astype(F32)
             M16 = ex.mueller * wf if full else np.take(ex.mueller, np.flatnonzero(inside), axis=1) * wf
@@ -378,17 +378,29 @@ class CellAccumulator:
             out.values_per_sr = out.mueller_per_sr[..., 0, 0].copy()
         return out
 
+    def sum_w_group(self) -> np.ndarray:
+        """Sums of the weights per (group, cell), (n_groups, cells) (the batches' parts added once:
+        a dense array per batch would cost more than the binning itself)."""
+        nc = self.sum_w.size
+        G = int(self.n_groups)
+        if not self._group_parts:
+            return np.zeros((G, nc))
+        keys = np.concatenate([k_ for k_, _ in self._group_parts])
+        w = np.concatenate([w_ for _, w_ in self._group_parts])
+        self._group_parts = [(keys, w)]
+        return np.bincount(keys, weights=w, minlength=G * nc).reshape(G, nc)
+
     def _tile_variance(self, mean: np.ndarray, var_mc: np.ndarray, n: float) -> np.ndarray | None:
         """V_tile = max(V_block - V_mc, 0) per cell (module doc; power fractions squared), or None
         without groups (or fewer than two non-empty ones)."""
-        if self.sum_w_group is None:
+        if self.paths_group is None:
             return None
         n_g = self.paths_group
         used = n_g > 0
         G = int(np.count_nonzero(used))
         if G < 2:
             return None
-        S_g = self.sum_w_group.reshape(n_g.size, -1)[used]
+        S_g = self.sum_w_group()[used]
         dev = S_g - mean[None, :] * (n_g[used] * 1.0)[:, None]       # mean = f (power fraction per path)
         v_block = G / (G - 1) * np.einsum("gc,gc->c", dev, dev) / (n * n)
         return np.maximum(v_block - var_mc, 0.0)

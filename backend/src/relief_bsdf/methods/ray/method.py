@@ -125,11 +125,12 @@ class _RayContext:
         self.pe = np.asarray(request.phi_s_edges_deg, float)
         self.tracer = tracer
         self.tile_uncertainty = bool(opts.tile_uncertainty)
-        self.subtiles, self.corr_areas, self.corr_length_m = (_subtile_grid(relief) if self.tile_uncertainty
-                                                              else (None, None, None))
         mesh_options = (self.max_bounces, repr(self.fill_holes))
         h = tracer.relief_key(relief, mesh_options) if tracer is not None else relief_hash(relief, mesh_options)
         self.tracer_key = ("ray.ReliefTracer", h.hexdigest())
+        self.subtiles, self.corr_areas, self.corr_length_m = (
+            worker_cached(("ray.subtiles", self.tracer_key[1]), lambda: _subtile_grid(relief))
+            if self.tile_uncertainty else (None, None, None))
         h.update(repr((self.polarized, self.first_hit_split, float(opts.specular_tol_rad), self.seed,
                        self.samples, self.te.tolist(), self.pe.tolist(), self.subtiles)).encode())
         self._digest = h.hexdigest()
@@ -266,16 +267,6 @@ def _bin_exits(t: _Tally, ex: Exits, inc: _Incidence, cos_tol: float) -> None:
     t.acc.add(ExitSamples(kd, wd, side, M, specular_flags(kd, side, inc.ideal_dirs, cos_tol), grp))
 
 
-def _incident_state(K: int, n: int) -> np.ndarray | None:
-    """Mueller columns of the incident basis states (identity), (4, K, n)."""
-    if not K:
-        return None
-    A = np.zeros((4, 4, n), F32)
-    for i in range(4):
-        A[i, i] = 1
-    return A
-
-
 def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
     """Trace one (side, wavelength, incidence) with `ctx.samples` rays; its finished table rows.
 
@@ -307,7 +298,7 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
         o[:, 2] = tracer.z_bot if inc.from_below else tracer.z_top
         rays = Rays(o, np.broadcast_to(inc.k_in.astype(F32), o.shape).copy(), np.full(hi - lo, inc.from_below),
                     np.ones(hi - lo, F32), np.zeros(hi - lo, np.int16), np.arange(hi - lo, dtype=np.int64),
-                    _incident_state(K, hi - lo))
+                    None)                      # polarised: None = the identity columns (StokesCarrier)
         ex = trace_chunk(tracer, rays, carrier_for(K), inc.media, inc.settings, rng, s_init=inc.s_init)
         t = _new_tally(cells, K, ctx.subtiles)
         _bin_exits(t, ex, inc, ctx.cos_tol)
