@@ -154,3 +154,34 @@ def test_first_interaction_columns_equal_the_core_matrices_multiplied():
                 want = mueller_interface(float(ci[i]), n1, n2, kind) @ rotation_by_angle(psi[i])
                 np.testing.assert_allclose(got[:, :, i], want, atol=2e-5)
     assert np.any(np.abs(R[3]) > 0.1)                           # TIR retardance was exercised
+
+
+def test_direct_buffers_and_in_place_height_update_trace_like_embreex_own_mesh():
+    """The numpy-written Embree buffers (methods.ray.embree_buffers) trace the paths of embreex's own
+    TriangleMesh; `update_heights` (vertex z rewritten in place, BVH refitted) traces the paths of a
+    tracer built from scratch on the new heights."""
+    r = relief(0.3, n=96)
+    direct = ray.ReliefTracer(r)
+    own = ray.ReliefTracer(r, direct_buffers=False)
+    assert direct.direct_buffers and not own.direct_buffers
+    n, th = 40_000, np.radians(40.0)
+    d = np.tile([np.sin(th), 0.0, -np.cos(th)], (n, 1))
+
+    def trace(tr):
+        return tr.scatter(d, 1.0, 1.5, np.random.default_rng(1), polarized=False)
+
+    a, b = trace(direct), trace(own)
+    assert (a.state == b.state).mean() > 0.999
+    assert np.quantile(np.abs(a.dirs - b.dirs).max(axis=1), 0.999) < 1e-4   # a BVH of other quality: edge hits
+    r2 = r.scaled(1.25).gaussian_filtered(1.2e-6)
+    seconds = direct.update_heights(r2)
+    assert seconds > 0 and direct.relief is r2
+    fresh = ray.ReliefTracer(r2, direct_buffers=False)
+    a2, c = trace(direct), trace(fresh)
+    assert (a2.state == c.state).mean() > 0.999
+    assert np.quantile(np.abs(a2.dirs - c.dirs).max(axis=1), 0.999) < 1e-4
+    assert np.abs(a2.dirs - a.dirs).max() > 0.1                           # the heights really changed
+    assert direct.z_top == fresh.z_top and direct.eps == fresh.eps
+    import pytest
+    with pytest.raises(RuntimeError, match="with_heights"):
+        own.update_heights(r2)

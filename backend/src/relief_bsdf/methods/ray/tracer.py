@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relief_bsdf.errors import RequestError
+from relief_bsdf.methods.ray.embree_buffers import DirectMesh, Unavailable
 from relief_bsdf.methods.ray.exits import ABOVE, Exits
 from relief_bsdf.methods.ray.transport import Media, Rays, TraceSettings, carrier_for, trace_chunk
 from relief_bsdf.parallel import default_workers, forget_worker_cached, worker_cached
@@ -79,7 +80,7 @@ class ReliefTracer:
     """
 
     def __init__(self, relief: Relief, max_bounces: int = 100, fill_holes: bool | int | None = None,
-                 threads: int | None = None, _mesh: TileMesh | None = None):
+                 threads: int | None = None, _mesh: TileMesh | None = None, direct_buffers: bool = True):
         from embreex import rtcore_scene as rtcs
         from embreex.mesh_construction import TriangleMesh
 
@@ -93,8 +94,32 @@ class ReliefTracer:
         self.mesh: TileMesh = build_tile_mesh(relief, fill_holes) if _mesh is None else _mesh
         t1 = time.perf_counter()
         self.scene = rtcs.EmbreeScene()
-        self._embree_mesh = TriangleMesh(self.scene, self.mesh.vertices, self.mesh.triangles)
+        self._direct = None
+        if direct_buffers:
+            try:                                       # numpy-filled Embree buffers (embree_buffers doc)
+                self._direct = DirectMesh(self.scene, self.mesh.vertices, self.mesh.triangles)
+            except Unavailable:
+                self._direct = None
+        if self._direct is None:
+            self._embree_mesh = TriangleMesh(self.scene, self.mesh.vertices, self.mesh.triangles)
         t2 = time.perf_counter()
+        self._set_bounds()
+        self.build_s = time.perf_counter() - t0
+        # where the build time goes: mesh (numpy), Embree buffers (embreex copies element by element
+        # under the GIL; numpy-filled with the direct path), BVH build (Embree, all cores)
+        self.build_split_s = {"mesh": t1 - t0, "embree_buffers": t2 - t1, "bvh_commit": self.build_s - (t2 - t0)}
+        self.record_segments: list | None = None
+        self._bounds = (np.zeros(0, F32), np.zeros(0, F32))
+        self._relief_hash_cache: dict = {}
+
+    @property
+    def direct_buffers(self) -> bool:
+        """True when Embree's buffers are numpy-written and `update_heights` refits in place."""
+        return self._direct is not None
+
+    def _set_bounds(self) -> None:
+        """Tile period, slab faces and the ray-origin offset from the mesh; commit the BVH now (first
+        query) so that timings of later calls are clean."""
         m = self.mesh
         self.Lx, self.Ly = (F32(m.period[0]), F32(m.period[1]))
         self.hx, self.hy = F32(m.period[0] / 2), F32(m.period[1] / 2)
@@ -103,15 +128,8 @@ class ReliefTracer:
         self.eps = F32(64 * big * 2.0**-24)
         self.z_top = F32(m.z_max + 8 * self.eps)
         self.z_bot = F32(m.z_min - 8 * self.eps)
-        # commit the BVH now (first query) so timings of later calls are clean
-        self.scene.run(np.array([[0, 0, self.z_top + 1]], F32), np.array([[0, 0, -1]], F32))
-        self.build_s = time.perf_counter() - t0
-        # where the build time goes: mesh (numpy), Embree buffers (embreex copies element by
-        # element under the GIL), BVH commit (Embree, all cores)
-        self.build_split_s = {"mesh": t1 - t0, "embree_buffers": t2 - t1, "bvh_commit": self.build_s - (t2 - t0)}
-        self.record_segments: list | None = None
         self._bounds = (np.zeros(0, F32), np.zeros(0, F32))
-        self._relief_hash_cache: dict = {}
+        self.scene.run(np.array([[0, 0, self.z_top + 1]], F32), np.array([[0, 0, -1]], F32))
 
     def with_heights(self, heights_m: np.ndarray | Relief, step: str = "heights replaced") -> "ReliefTracer":
         """A tracer of the same grid with new heights (a fit's scaled / filtered relief).
@@ -127,7 +145,26 @@ class ReliefTracer:
         relief = heights_m if isinstance(heights_m, Relief) else self.relief.with_heights(
             np.asarray(heights_m, dtype=np.float64), step)
         mesh = remesh_heights(self.mesh, relief, self.fill_holes)
-        return ReliefTracer(relief, self.max_bounces, self.fill_holes, self.threads, _mesh=mesh)
+        return ReliefTracer(relief, self.max_bounces, self.fill_holes, self.threads, _mesh=mesh,
+                            direct_buffers=self.direct_buffers)
+
+    def update_heights(self, heights_m: np.ndarray | Relief, step: str = "heights replaced") -> float:
+        """In place: new heights on the same grid, the BVH refitted (no index buffer, no new scene).
+
+        Only with `direct_buffers` (else RuntimeError: use `with_heights`).  Not while another
+        thread traces with this tracer.  Returns the seconds it took (z written + BVH refit).
+        """
+        if self._direct is None:
+            raise RuntimeError("this tracer's Embree buffers are embreex's own: use with_heights")
+        t0 = time.perf_counter()
+        relief = heights_m if isinstance(heights_m, Relief) else self.relief.with_heights(
+            np.asarray(heights_m, dtype=np.float64), step)
+        self.mesh = remesh_heights(self.mesh, relief, self.fill_holes)
+        self.relief = relief
+        self._relief_hash_cache = {}
+        self._direct.update_z(self.mesh.vertices[:, 2])
+        self._set_bounds()                             # new slab faces; the query commits (refits) the BVH
+        return time.perf_counter() - t0
 
     # ------------------------------------------------------------------ geometry of the tile
     def query(self, o: np.ndarray, k: np.ndarray) -> Query:

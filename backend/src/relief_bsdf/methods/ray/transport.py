@@ -291,11 +291,14 @@ class StokesCarrier:
         """(A, s) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R."""
         _, T, s_new, rot = self._ev
         inv = 1 / np.maximum(1 - pR_j, F32(1e-30))
+        full = j.size == s_new.shape[0]                 # usually every ray transmits something: no gathers
+        sel = (lambda a: a) if full else (lambda a: np.take(a, j, axis=0))
+        s_t = s_new if full else np.take(s_new, j, axis=0)   # never modified in place (replaced per event)
         if rot is not None:
-            return first_interaction_columns([x[j] for x in T], rot[0][j], rot[1][j], inv), s_new[j]
-        A = np.take(rays.A, j, axis=2)
-        apply_interface_mueller_columns(A, *(x[j] for x in T), inv)
-        return A, s_new[j]
+            return first_interaction_columns([sel(x) for x in T], sel(rot[0]), sel(rot[1]), inv), s_t
+        A = rays.A.copy() if full else np.take(rays.A, j, axis=2)
+        apply_interface_mueller_columns(A, *(sel(x) for x in T), inv)
+        return A, s_t
 
     def reflected(self, rays: Rays, pR) -> None:
         """Every ray keeps its reflected branch (first-hit split), renormalised by P_R."""
