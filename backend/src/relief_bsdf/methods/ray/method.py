@@ -164,8 +164,9 @@ def _subtile_grid(relief: Relief) -> tuple:
         g = MAX_SUBTILES if not (np.isfinite(l_m) and l_m > 0) else int(e // (SUBTILE_CORR * l_m))
         grid.append(int(min(MAX_SUBTILES, max(1, g))))
     lc = st.correlation_length_m
-    n_corr = float(ext[0] * ext[1] / lc**2) if np.isfinite(lc) and lc > 0 else float("inf")
-    return tuple(grid), n_corr, float(lc)
+    if not (np.isfinite(lc) and lc > 0):                    # e.g. a flat relief: no correlation length
+        return tuple(grid), None, None
+    return tuple(grid), float(ext[0] * ext[1] / lc**2), float(lc)
 
 
 def _beam_strata(n: int, Lx: float, Ly: float, block_px: float = 32.0):
@@ -450,16 +451,17 @@ def _uncertainty_meta(side: str, diag: list, run: "_Run") -> tuple[dict, list]:
     rel = [d["tile_scatter"]["lobe_rel"] for d in diag if d.get("tile_scatter")]
     worst = max(rel) if rel else 0.0
     gx, gy = t["subtiles"]
+    areas = "an unknown number of" if t["correlation_areas"] is None else f"{t['correlation_areas']:.0f}"
     info = {"sigma": "Monte-Carlo and the tile's realisation uncertainty (sub-tile batch means)",
             "subtiles": [gx, gy], "correlation_areas": t["correlation_areas"],
             "correlation_length_m": t["correlation_length_m"], "lobe_relative_tile_sigma_max": worst}
     warn = []
     if gx * gy < 16:
         warn.append(f"ray table ({side}): the tile holds only {gx} x {gy} sub-tiles of {SUBTILE_CORR:g} "
-                    f"correlation lengths ({t['correlation_areas']:.0f} correlation areas): its realisation "
+                    f"correlation lengths ({areas} correlation areas): its realisation "
                     "uncertainty is poorly known (sigma may be low); use a larger tile")
     if worst > TILE_WARN_REL:
-        warn.append(f"ray table ({side}): the tile holds {t['correlation_areas']:.0f} correlation areas, too few "
+        warn.append(f"ray table ({side}): the tile holds {areas} correlation areas, too few "
                     f"for the cells asked for: the lobe's cells scatter by up to {100 * worst:.0f} % between "
                     "tile realisations (included in sigma_per_sr); use a larger tile or coarser cells")
     for w in warn:
