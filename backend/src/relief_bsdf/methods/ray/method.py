@@ -155,7 +155,8 @@ def _subtile_grid(relief: Relief) -> tuple:
     axis, over the relief's own extent; number of correlation areas l^2 in it; l in metres)."""
     from relief_bsdf.surface.stats import relief_stats
 
-    st = relief_stats(relief)
+    with np.errstate(invalid="ignore", divide="ignore"):      # a flat relief has no correlation length
+        st = relief_stats(relief)
     ny, nx = relief.shape
     ext = (nx * relief.dx_m, ny * relief.dy_m)
     ls = (st.correlation_length_x_m, st.correlation_length_y_m)
