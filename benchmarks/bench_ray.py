@@ -24,6 +24,9 @@ the ratios are the meaningful numbers):
 - minimal_loop: a minimal numpy + embreex bounce loop with no physics beyond a Fresnel
   reflect/refract choice (no wrap, no polarisation, no binning), two threads over raster-
   ordered rays: paths/s.  ratio_to_minimal = engine paths/s / minimal paths/s (target >= 0.5).
+- fit reuse (issue 18 item 4): the build's split (mesh, Embree buffers, BVH), a new tracer for
+  new heights on the same grid (`with_heights`) and the in-place update with BVH refit
+  (`update_heights`), seconds.
 - peak_rss_mb: peak resident memory of this process.
 The last line is one JSON object.
 
@@ -176,6 +179,11 @@ def main(argv=None) -> int:
     pps_s = scal["paths"] / scal["wall_s"]
     pps_p = pol["paths"] / pol["wall_s"]
     seg_s = scal["segments"] / scal["wall_s"]
+    t = time.perf_counter()
+    tracer_h = tracer.with_heights(relief.scaled(1.1))
+    with_heights_s = time.perf_counter() - t
+    update_s = tracer_h.update_heights(relief.scaled(1.2)) if tracer_h.direct_buffers else None
+    del tracer_h
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(f"engine scalar   : {pps_s / 1e6:.3f} M paths/s, {scal['segments'] / scal['paths']:.3f} segments/path, "
           f"{seg_s / 1e6:.2f} M segments/s, R {scal['R']:.4f} T {scal['T']:.4f} lost {scal['lost']:.2e}")
@@ -192,6 +200,9 @@ def main(argv=None) -> int:
           f"embree CPU {cpu_emb:.2f} s)")
     print(f"minimal numpy+embree loop: {min_pps / 1e6:.3f} M paths/s ({min_spp:.2f} segments/path) -> "
           f"engine/minimal {pps_s / min_pps:.2f} (scalar), {pps_p / min_pps:.2f} (polarised)")
+    print(f"build split {', '.join(f'{k} {v:.2f} s' for k, v in tracer.build_split_s.items())}; fit reuse: "
+          f"with_heights {with_heights_s:.2f} s, update_heights (refit) "
+          f"{'n/a' if update_s is None else f'{update_s:.2f} s'}")
     print(f"peak RSS {peak:.0f} MB, threads {a.threads}")
     out = {"paths_per_s": pps_s, "paths_per_s_polarized": pps_p, "segments_per_path": scal["segments"] / scal["paths"],
            "segments_per_s": seg_s, "embree_segments_per_s": emb_seg_s, "ratio_to_embree": seg_s / emb_seg_s,
@@ -201,7 +212,9 @@ def main(argv=None) -> int:
            "ratio_to_minimal_polarized": pps_p / min_pps, "polarized_cost_factor": pps_s / pps_p,
            "ratio_to_embree_polarized": seg_p / emb_seg_p, "ratio_to_embree_cpu_polarized": cpu_emb_p / pol["cpu_s"],
            "R": scal["R"], "T": scal["T"], "lost": scal["lost"], "rays": scal["paths"], "size": a.size,
-           "threads": a.threads, "build_s": tracer.build_s, "peak_rss_mb": peak}
+           "threads": a.threads, "build_s": tracer.build_s, "build_split_s": tracer.build_split_s,
+           "direct_buffers": tracer.direct_buffers, "with_heights_s": with_heights_s, "update_heights_s": update_s,
+           "peak_rss_mb": peak}
     print(json.dumps(out))
     return 0
 

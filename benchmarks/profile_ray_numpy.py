@@ -31,12 +31,13 @@ def main(argv=None) -> int:
     ap.add_argument("--rays", type=int, default=1 << 20)
     ap.add_argument("--polarized", action="store_true")
     ap.add_argument("--profile", action="store_true", help="cProfile one replay")
+    ap.add_argument("--no-tile", dest="no_tile", action="store_true", help="Monte-Carlo sigma only (no sub-tile groups)")
     a = ap.parse_args(argv)
     L = 8e-6
     relief = random_relief(a.size, 1e-6, 0.3 * L / 2, L, seed=7)
     tracer = ray.ReliefTracer(relief, threads=1)
     mat = Material(ConstantIndex(1.5))
-    req = Request(theta_i_deg=(30.0,), samples=a.rays, seed=3, options={"polarized": a.polarized, "threads": 1})
+    req = Request(theta_i_deg=(30.0,), samples=a.rays, seed=3, options={"polarized": a.polarized, "threads": 1, **({"tile_uncertainty": False} if a.no_tile else {})})
     real = tracer.scene
     log: list = []
 

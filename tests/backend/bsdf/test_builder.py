@@ -108,3 +108,49 @@ def test_cell_index_search_path_agrees_with_float64_angles_on_uneven_grids():
     ph = np.mod(np.degrees(np.arctan2(d[:, 1], d[:, 0])), 360.0)
     want = (np.searchsorted(te, th, side="right") - 1) * (pe.size - 1) + np.searchsorted(pe, ph, side="right") - 1
     assert np.mean(cells(d) == want) > 0.9999
+
+
+def test_subtile_batch_means_recover_a_known_realisation_variance():
+    """Paths in G groups whose cell probabilities are modulated (a tile's realisation, known
+    variance) give sigma_tile = the modulation's standard error; unmodulated groups give a total
+    sigma equal to the binomial one (the tile part then adds nothing beyond its noise)."""
+    rng = np.random.default_rng(4)
+    G, per = 64, 4000
+    n = G * per
+    group = np.repeat(np.arange(G), per)
+    te, pe = np.linspace(0.0, 90.0, 7), np.arange(-30.0, 360.0, 60.0)
+    S, A = te.size - 1, pe.size - 1
+    psa = projected_solid_angle(te, pe)
+    for amp in (0.0, 0.3):
+        eps = 1 + amp * rng.standard_normal((G, S * A))            # per-group, per-cell modulation
+        base = (psa / psa.sum()).ravel()
+        p = np.clip(base[None, :] * eps, 0, None)
+        p /= p.sum(axis=1, keepdims=True)
+        cell = np.concatenate([rng.choice(S * A, size=per, p=p[g]) for g in range(G)])
+        ring, az = np.divmod(cell, A)
+        th = np.radians(0.5 * (te[ring] + te[ring + 1]))
+        ph = np.radians(0.5 * (pe[az] + pe[az + 1]))
+        d = np.column_stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
+        acc = CellAccumulator(CellIndex(te, pe), n_groups=G)
+        acc.count_paths(group)
+        acc.add(ExitSamples(d, np.ones(n), np.zeros(n, np.int8), group=group))
+        c = acc.table_cells(n)
+        mc = np.sqrt(base * (1 - base) / n)                         # binomial sigma of a power fraction
+        tile_true = base * amp / np.sqrt(G)                         # standard error of the group modulation
+        got_tile = (c.sigma_tile_per_sr[0] * psa).ravel()
+        got_total = (c.sigma_per_sr[0] * psa).ravel()
+        if amp == 0:
+            # total ~ binomial (clipped noise of the tile part: at most a few tens of percent)
+            assert np.all(got_total / mc > 0.9) and np.median(got_total / mc) < 1.25, got_total / mc
+        else:
+            r = got_tile / tile_true
+            assert 0.8 < np.median(r) < 1.2 and r.min() > 0.6 and r.max() < 1.5, r
+            assert np.all(got_total > got_tile)
+
+
+def test_without_groups_sigma_is_monte_carlo_only():
+    acc = CellAccumulator(CellIndex(TE, PE))
+    rng = np.random.default_rng(5)
+    acc.add(ExitSamples(lambertian(1000, rng), np.ones(1000), np.zeros(1000, np.int8)))
+    c = acc.table_cells(1000)
+    assert c.sigma_tile_per_sr is None

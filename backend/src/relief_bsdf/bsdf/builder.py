@@ -15,6 +15,22 @@ table cell (theta_s, phi_s) holds the cell average of the BSDF in projected soli
 so that `BsdfTable.hemispherical()` returns the power fractions of the beam.  Its Monte-Carlo
 standard error is the sample standard deviation of the per-path contribution,
 sigma = sqrt((sum w^2 / N - (sum w / N)^2) / N) / Omega_proj (one exit per path and cell).
+Realisation uncertainty of a finite tile (sub-tile batch means).  The cell value of one tile is
+itself a random draw: another tile of the same surface statistics gives another value (a cell
+that a few facets fill scatters by tens of percent however many rays are traced).  When the
+method tags every path with the sub-tile g = 1..G of its first hit (sub-tiles several
+correlation lengths wide, so that their contributions are nearly independent), the cell value
+is the ratio estimator f = sum_g S_g / sum_g n_g (S_g: the weights of the cell's exits of group
+g; n_g: paths of group g), whose variance over both the rays and the surface's realisations is
+estimated by the cluster-sampling (batch-means) formula
+
+    V_block = G / (G - 1) sum_g (S_g - f n_g)^2 / N^2        (Cochran 1977, Sampling Techniques, eq. 6.9),
+
+the analytic limit of a bootstrap over sub-tiles.  V_block contains the Monte-Carlo variance
+V_mc above; the tile part is V_tile = max(V_block - V_mc, 0) (`sigma_tile_per_sr`) and the
+table's sigma is sqrt(V_mc + V_tile).  Assumes the tile is one realisation of a stationary
+surface and sub-tiles decorrelate (side >= ~4 correlation lengths: the estimate is then
+~10 % low in sigma); G >= 16 gives sigma to ~20 %.
 Exits flagged as coherent / specular (along the flat mean plane's mirror or refraction
 direction, `specular_flags`) go to the delta parts specular_R/T (power fractions) instead.
 `lost` = power of paths that did not leave (named by the method: absorbed, max bounces, ...)
@@ -204,7 +220,8 @@ class ExitSamples:
     dirs (n, 3) unit directions (float32 or float64) in the table's frame up to the z sign;
     weight (n,) power weights; side (n,) 0 (incidence side) or 1; mueller (16, n) float32 exit
     Mueller columns (row-major 4 x 4 per exit, w M is the exit matrix) or None; specular (n,)
-    bool: coherent / specular exits (delta parts), or None for none.
+    bool: coherent / specular exits (delta parts), or None for none; group (n,) int: the sub-tile
+    of the path's first hit (0..G-1), for the realisation uncertainty (module doc), or None.
     """
 
     dirs: np.ndarray
@@ -212,13 +229,15 @@ class ExitSamples:
     side: np.ndarray
     mueller: np.ndarray | None = None
     specular: np.ndarray | None = None
+    group: np.ndarray | None = None
 
 
 @dataclass
 class TableCells:
     """One incidence's table rows: values / sigma (2, S, A) float32 1/sr, Mueller (2, S, A, 4, 4)
     float32 1/sr or None, delta parts (power fractions) and their Mueller matrices, `lost` and its
-    detail (power fractions)."""
+    detail (power fractions).  sigma_per_sr is the total (Monte-Carlo and, with sub-tile groups,
+    the tile's realisation uncertainty); sigma_tile_per_sr the tile part alone (None without groups)."""
 
     values_per_sr: np.ndarray
     sigma_per_sr: np.ndarray
@@ -227,6 +246,7 @@ class TableCells:
     lost: float
     lost_detail: dict
     outside_table: float
+    sigma_tile_per_sr: np.ndarray | None = None
     mueller_per_sr: np.ndarray | None = None
     specular_mueller_R: np.ndarray | None = None
     specular_mueller_T: np.ndarray | None = None
@@ -237,12 +257,15 @@ class CellAccumulator:
     """Per-incidence sums of weights (w, w^2 and w M) per cell, delta parts and lost power.
 
     `add` one batch of exits at a time, `lose` the power of paths that did not leave, `merge`
-    partial accumulators in a fixed order (deterministic sums), then `cells(n_paths)`.
+    partial accumulators in a fixed order (deterministic sums), then `cells(n_paths)`.  With
+    n_groups > 0 the weights are also summed per (sub-tile group, cell) and `count_paths` counts
+    the paths of each group (realisation uncertainty, module doc).
     """
 
     cells: CellIndex
     polarized: bool = False
     lost_names: tuple = ()
+    n_groups: int = 0
     sum_w: np.ndarray = field(init=False)
     sum_w2: np.ndarray = field(init=False)
     sum_M: np.ndarray | None = field(init=False)
@@ -250,11 +273,16 @@ class CellAccumulator:
     spec_M: np.ndarray | None = field(init=False)
     lost: dict = field(init=False)
     outside_table: float = field(init=False, default=0.0)
+    paths_group: np.ndarray | None = field(init=False)
+    _group_parts: list = field(init=False)          # (key = group * cells + cell, weight) per batch
 
     def __post_init__(self):
         nc = 2 * self.cells.S * self.cells.A
         self.sum_w = np.zeros(nc)
         self.sum_w2 = np.zeros(nc)
+        G = int(self.n_groups)
+        self.paths_group = np.zeros(G) if G else None
+        self._group_parts = []
         self.sum_M = np.zeros((16, nc)) if self.polarized else None
         self.spec = np.zeros(2)
         self.spec_M = np.zeros((2, 16)) if self.polarized else None
@@ -263,9 +291,17 @@ class CellAccumulator:
     def lose(self, name: str, weight_sum: float) -> None:
         self.lost[name] = self.lost.get(name, 0.0) + float(weight_sum)
 
+    def count_paths(self, group_of_path: np.ndarray) -> None:
+        """Count started paths per sub-tile group (one entry per path: the group of its first hit)."""
+        if self.paths_group is not None:
+            self.paths_group += np.bincount(group_of_path, minlength=self.paths_group.size)[:self.paths_group.size]
+
     def merge(self, other: "CellAccumulator") -> None:
         self.sum_w += other.sum_w
         self.sum_w2 += other.sum_w2
+        if self.paths_group is not None:
+            self._group_parts.extend(other._group_parts)    # summed once, in merge order, by `sum_w_group`
+            self.paths_group += other.paths_group
         if self.sum_M is not None:
             self.sum_M += other.sum_M
             self.spec_M += other.spec_M
@@ -295,6 +331,11 @@ class CellAccumulator:
         nc = self.sum_w.size
         self.sum_w += np.bincount(c_in, weights=w_in, minlength=nc)
         self.sum_w2 += np.bincount(c_in, weights=w_in * w_in, minlength=nc)
+        if self.paths_group is not None:
+            g = ex.group if full else ex.group[inside]
+            gc = g.astype(np.int64) * nc
+            gc += c_in
+            self._group_parts.append((gc, w_in))
         if self.sum_M is not None:
             wf = w_in.astype(F32)
             M16 = ex.mueller * wf if full else np.take(ex.mueller, np.flatnonzero(inside), axis=1) * wf
@@ -317,8 +358,14 @@ class CellAccumulator:
         n = float(n_paths)
         mean = self.sum_w / n
         var = np.maximum(self.sum_w2 / n - mean**2, 0.0) / n
+        var_tile = self._tile_variance(mean, var, n)
+        sig_tile = None
+        if var_tile is not None:
+            sig_tile = (np.sqrt(var_tile).reshape(2, S, A_) / psa).astype(F32)
+            var = var + var_tile
         out = TableCells(values_per_sr=(mean.reshape(2, S, A_) / psa).astype(F32),
                          sigma_per_sr=(np.sqrt(var).reshape(2, S, A_) / psa).astype(F32),
+                         sigma_tile_per_sr=sig_tile,
                          specular_R=float(self.spec[0] / n), specular_T=float(self.spec[1] / n),
                          lost=float((sum(self.lost.values()) + self.outside_table) / n),
                          lost_detail={k_: v / n for k_, v in self.lost.items()},
@@ -330,3 +377,30 @@ class CellAccumulator:
             out.specular_mueller_T = (self.spec_M[1] / n).reshape(4, 4)
             out.values_per_sr = out.mueller_per_sr[..., 0, 0].copy()
         return out
+
+    def sum_w_group(self) -> np.ndarray:
+        """Sums of the weights per (group, cell), (n_groups, cells) (the batches' parts added once:
+        a dense array per batch would cost more than the binning itself)."""
+        nc = self.sum_w.size
+        G = int(self.n_groups)
+        if not self._group_parts:
+            return np.zeros((G, nc))
+        keys = np.concatenate([k_ for k_, _ in self._group_parts])
+        w = np.concatenate([w_ for _, w_ in self._group_parts])
+        self._group_parts = [(keys, w)]
+        return np.bincount(keys, weights=w, minlength=G * nc).reshape(G, nc)
+
+    def _tile_variance(self, mean: np.ndarray, var_mc: np.ndarray, n: float) -> np.ndarray | None:
+        """V_tile = max(V_block - V_mc, 0) per cell (module doc; power fractions squared), or None
+        without groups (or fewer than two non-empty ones)."""
+        if self.paths_group is None:
+            return None
+        n_g = self.paths_group
+        used = n_g > 0
+        G = int(np.count_nonzero(used))
+        if G < 2:
+            return None
+        S_g = self.sum_w_group()[used]
+        dev = S_g - mean[None, :] * (n_g[used] * 1.0)[:, None]       # mean = f (power fraction per path)
+        v_block = G / (G - 1) * np.einsum("gc,gc->c", dev, dev) / (n * n)
+        return np.maximum(v_block - var_mc, 0.0)

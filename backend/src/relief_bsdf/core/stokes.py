@@ -143,18 +143,33 @@ def rotate_stokes_columns(A: np.ndarray, s_from: np.ndarray, k: np.ndarray, s_to
     """
     c = dot_rows(s_from, s_to)
     d = dot_rows(cross_rows(s_from, k), s_to)          # p_from . s_to, p_from = s_from x k
-    c2, d2 = c * c, d * d
+    rotate_stokes_columns_cd(A, c, d)
+
+
+def double_angle_cd(c: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cos 2 psi, sin 2 psi) from c ~ s_from . s_to, d ~ p_from . s_to (any common positive factor):
+    (c^2 - d^2) / r, 2 c d / r, r = c^2 + d^2 (r = 0: the identity); keeps the dtype."""
+    c2 = c * c
+    d2 = d * d
     r = c2 + d2
     r[r == 0] = 1
-    cos2 = c2 - d2
-    cos2 /= r
-    sin2 = 2 * c * d
+    sin2 = c * d
+    sin2 += sin2
     sin2 /= r
+    c2 -= d2
+    c2 /= r
+    return c2, sin2
+
+
+def rotate_stokes_columns_cd(A: np.ndarray, c: np.ndarray, d: np.ndarray) -> None:
+    """In place: the rotation of `rotate_stokes_columns` given c ~ s_from . s_to and d ~ p_from . s_to
+    up to a common positive factor per beam (only the ratio matters); c and d are overwritten."""
+    c2, sin2 = double_angle_cd(c, d)
     a1 = A[1]
     a2 = A[2]
-    new1 = cos2 * a1
+    new1 = c2 * a1
     new1 += sin2 * a2
-    a2 *= cos2
+    a2 *= c2
     a1 *= sin2
     a2 -= a1
     A[1] = new1

@@ -269,6 +269,8 @@ class RayOptions(MethodOptions):
                               "None or 0: the tracer's default)", optional=True, minimum=0)
     block_px: int | None = opt(None, "int", "tile block size of the ray ordering, px", optional=True, minimum=1)
     backend: str | None = opt(None, "str", "map_tasks backend (None: as configured)", optional=True)
+    tile_uncertainty: bool = opt(True, "bool", "add the finite tile's realisation uncertainty (sub-tile batch "
+                                 "means) to sigma; False: Monte-Carlo sigma only (comparisons on one tile)")
 
 
 @dataclass(frozen=True)

@@ -107,19 +107,12 @@ def build_tile_mesh(relief: Relief, fill_holes: bool | int | None = None) -> Til
     ny, nx = h_m.shape
     unit = float(relief.dx_m)
     sy = float(relief.dy_m) / unit
-    z = (h_m - np.mean(h_m)) / unit
-    # vertex grid (ny+1) x (nx+1): the last row/column repeat the first (wrap-around cells)
-    zz = np.empty((ny + 1, nx + 1), dtype=np.float64)
-    zz[:ny, :nx] = z
-    zz[ny, :nx] = z[0]
-    zz[:ny, nx] = z[:, 0]
-    zz[ny, nx] = z[0, 0]
     x = np.arange(nx + 1, dtype=np.float64) - nx / 2.0
     y = (np.arange(ny + 1, dtype=np.float64) - ny / 2.0) * sy
     verts = np.empty((ny + 1, nx + 1, 3), dtype=np.float32)
     verts[..., 0] = x[None, :]
     verts[..., 1] = y[:, None]
-    verts[..., 2] = zz
+    z_min, z_max = _fill_vertex_heights(verts, h_m, unit)
     idx = np.arange((ny + 1) * (nx + 1), dtype=np.int64).reshape(ny + 1, nx + 1)
     v00 = idx[:-1, :-1].ravel()
     v10 = idx[:-1, 1:].ravel()
@@ -134,5 +127,39 @@ def build_tile_mesh(relief: Relief, fill_holes: bool | int | None = None) -> Til
     tris[1::2, 1] = v11
     tris[1::2, 2] = v01
     return TileMesh(vertices=verts.reshape(-1, 3), triangles=tris, unit_m=unit,
-                    period=(float(nx), float(ny) * sy), z_min=float(z.min()), z_max=float(z.max()),
+                    period=(float(nx), float(ny) * sy), z_min=z_min, z_max=z_max,
                     shape=(ny, nx), mirrored=mirrored, history=steps)
+
+
+def _fill_vertex_heights(verts: np.ndarray, h_m: np.ndarray, unit: float) -> tuple[float, float]:
+    """Write the levelled heights (units of `unit`) into the (ny+1, nx+1, 3) vertex grid's z, the
+    last row/column repeating the first (wrap-around cells); (z_min, z_max)."""
+    ny, nx = h_m.shape
+    z = (h_m - np.mean(h_m)) / unit
+    zz = verts[..., 2]
+    zz[:ny, :nx] = z
+    zz[ny, :nx] = z[0]
+    zz[:ny, nx] = z[:, 0]
+    zz[ny, nx] = z[0, 0]
+    return float(z.min()), float(z.max())
+
+
+def remesh_heights(mesh: TileMesh, relief: Relief, fill_holes: bool | int | None = None) -> TileMesh:
+    """`mesh` with the heights of `relief` on the same grid (same shape, pitch and periodicity):
+    the triangle index buffer and the x, y of the vertices are reused, only z is rewritten.
+
+    Equal to `build_tile_mesh(relief, fill_holes)` (tested); for fits that re-trace a relief whose
+    heights change (scale, filter) but whose grid does not.
+    """
+    h_m, mirrored, steps = periodic_heights(relief, fill_holes)
+    if h_m.shape != tuple(mesh.shape) or mirrored != mesh.mirrored or float(relief.dx_m) != mesh.unit_m \
+            or abs(float(relief.dy_m) / float(relief.dx_m) * h_m.shape[0] - mesh.period[1]) > 1e-9 * mesh.period[1]:
+        raise InputError(relief.source or "relief", f"heights of shape {relief.shape} (pitch {relief.dx_m:g} x "
+                         f"{relief.dy_m:g} m, periodic {relief.periodic}) do not fit the mesh's grid "
+                         f"{mesh.shape} (mirrored {mesh.mirrored}): build a new mesh")
+    ny, nx = h_m.shape
+    verts = mesh.vertices.copy().reshape(ny + 1, nx + 1, 3)
+    z_min, z_max = _fill_vertex_heights(verts, h_m, mesh.unit_m)
+    return TileMesh(vertices=verts.reshape(-1, 3), triangles=mesh.triangles, unit_m=mesh.unit_m,
+                    period=mesh.period, z_min=z_min, z_max=z_max, shape=mesh.shape, mirrored=mirrored,
+                    history=steps)

@@ -11,12 +11,16 @@ model; interference between rays is ignored.
 - Surface (`tracer`): the height map as the one periodic triangulation
   (`surface.mesh.build_tile_mesh`) in an Embree BVH built once per relief; a ray leaving the
   tile sideways re-enters from the opposite side (no boundary losses at grazing incidence).
+  Embree's buffers are written by numpy (`embree_buffers`, fallback: embreex's TriangleMesh);
+  a fit re-uses the grid: `ReliefTracer.with_heights` (new tracer, topology reused) or
+  `update_heights` (in place, BVH refitted).
 - Transport (`transport`): ONE bounce loop, generic over what a ray carries - unpolarised
   intensity or K Stokes columns (a Mueller matrix for tables) - with the per-event Fresnel
   update supplied by the carrier (Fresnel: `core.fresnel`, Born & Wolf 1.5.20-21; Stokes frame
   rotation: `core.stokes`).  Reflect or refract by Russian roulette on the reflectance of the
   ray's current state, P_R = (M_R S)_0 / S_0, with S <- M S / P (Veach 1997 sec. 4.2: unbiased,
-  every weight stays 1); for tables the first interaction is split deterministically into both
+  every weight stays 1; the uniform numbers are a hash of (chunk, path, interaction): common
+  random numbers across height maps); for tables the first interaction is split deterministically into both
   branches (option `first_hit_split`, default True: a flat surface is then exact and the BRDF
   of a dielectric gets all N rays).  Without polarisation the unpolarised Fresnel reflectance
   is used at every bounce (the usual scalar approximation).  Light transmitted into an
@@ -25,13 +29,16 @@ model; interference between rays is ignored.
   columns in the frame s = z x k, p = s x k).
 - Tables (`method`): one `parallel.map_tasks` task per (side, wavelength, incidence); exits go
   through the one table builder (`bsdf.builder`: cell averages in projected solid angle,
-  1/sr, delta parts along the flat mean plane's ideal directions, `lost`, Monte-Carlo sigma).
+  1/sr, delta parts along the flat mean plane's ideal directions, `lost`, sigma = Monte-Carlo
+  noise and the finite tile's realisation uncertainty from sub-tile batch means, with a warning
+  when the tile holds too few correlation areas for the cells).
   For light from inside the table's frame is mirrored (z -> -z) and Mueller matrices become
   D M D, D = diag(1, 1, -1, -1).
 
 Options (request.options): polarized (True), max_bounces (100), first_hit_split (True),
 specular_tol_rad (1e-5), fill_holes (None: NaN refused; True or a max gap in px), threads
-(in this process; a pool worker uses one), backend (map_tasks backend, default as configured).
+(in this process; a pool worker uses one), backend (map_tasks backend, default as configured),
+tile_uncertainty (True: sigma includes the tile's realisation uncertainty).
 `request.samples` rays per (wavelength, incidence, side).  Tables store the unpolarised BSDF
 (M00) whatever `request.polarization` says; the Mueller matrices carry the rest.
 Speed: benchmarks/bench_ray.py (paths/s and the ratio to Embree alone on the same segments).

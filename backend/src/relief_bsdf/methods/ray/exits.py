@@ -36,6 +36,7 @@ class Exits:
         self.m = m
         self.segments = 0
         self.n_paths = 0
+        self.first_group = None          # (n_paths,) sub-tile of each input ray's first hit, when asked for
 
     def put(self, k, idx, w, nb, ids, state, A=None) -> None:
         """Store rows `idx` of the arrays (A: the already gathered (4, K, idx.size) exit columns)."""
@@ -63,6 +64,13 @@ class Exits:
         self.n = b
 
     # ------------------------------------------------------------------ views of the valid records
+    def groups(self) -> np.ndarray | None:
+        """Sub-tile of the first hit of the path of each valid record (None when not tagged)."""
+        if self.first_group is None:
+            return None
+        ids = self.ids[:self.n]
+        return np.take(self.first_group, ids % self.n_paths if self.m > self.n_paths else ids)
+
     def records(self):
         """(k, w, state, nb, A or None) of the n valid records, in the order they ended."""
         e = self.n

@@ -17,6 +17,14 @@ fractions of the incident beam, which irradiates the tile uniformly on the mean 
 within `specular_tol_rad` of the mean plane's mirror / refraction direction (exactly flat
 facets) go to the delta parts.  Max bounces, absorption, numerical leaks and exits outside
 the table's cells are counted in `lost` with the detail in metadata.
+Uncertainty: sigma = Monte-Carlo noise (per path) combined with the realisation uncertainty
+of the finite tile (option tile_uncertainty, default True): every path is tagged with the
+sub-tile of its first hit (a grid of sub-tiles at least SUBTILE_CORR correlation lengths wide,
+up to MAX_SUBTILES per axis; a mirror-extended measured map folded back onto the map) and the
+builder's sub-tile batch-means estimate (bsdf.builder module doc) adds the scatter that another
+tile of the same statistics would give.  When the lobe's cells scatter by more than
+TILE_WARN_REL between realisations (too few correlation areas for the cells asked for) the
+table's metadata["warnings"] says so (and a RuntimeWarning is issued).
 Frames: physical s = z x k, p = s x k; for light from inside the table's frame is mirrored
 (z -> -z, bsdf/table.py), which maps the basis (s, p) to (s', -p'): M_table = D M D,
 D = diag(1, 1, -1, -1).
@@ -25,6 +33,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -48,6 +57,9 @@ MIN_SAMPLES_PER_SIDE = 16
 MIN_WAVELENGTHS_PER_TILE = 10.0
 _MIRROR_DD = np.outer([1.0, 1.0, -1.0, -1.0], [1.0, 1.0, -1.0, -1.0])
 _ROWS = ("vals", "sig", "mue", "specR", "specT", "lost", "smR", "smT")
+SUBTILE_CORR = 4.0            # sub-tile side in correlation lengths (realisation uncertainty)
+MAX_SUBTILES = 8              # per axis (64 groups: sigma known to ~10 %)
+TILE_WARN_REL = 0.10          # warn when the lobe's cells scatter more than this between tile realisations
 
 
 # ----------------------------------------------------------------------------- request checks
@@ -112,11 +124,15 @@ class _RayContext:
         self.te = np.asarray(request.theta_s_edges_deg, float)
         self.pe = np.asarray(request.phi_s_edges_deg, float)
         self.tracer = tracer
+        self.tile_uncertainty = bool(opts.tile_uncertainty)
         mesh_options = (self.max_bounces, repr(self.fill_holes))
         h = tracer.relief_key(relief, mesh_options) if tracer is not None else relief_hash(relief, mesh_options)
         self.tracer_key = ("ray.ReliefTracer", h.hexdigest())
+        self.subtiles, self.corr_areas, self.corr_length_m = (
+            worker_cached(("ray.subtiles", self.tracer_key[1]), lambda: _subtile_grid(relief))
+            if self.tile_uncertainty else (None, None, None))
         h.update(repr((self.polarized, self.first_hit_split, float(opts.specular_tol_rad), self.seed,
-                       self.samples, self.te.tolist(), self.pe.tolist())).encode())
+                       self.samples, self.te.tolist(), self.pe.tolist(), self.subtiles)).encode())
         self._digest = h.hexdigest()
 
     def digest(self) -> str:
@@ -132,6 +148,26 @@ class _RayContext:
             return self.tracer
         return cached_tracer(self.tracer_key, self.relief, self.max_bounces, self.fill_holes,
                              1 if in_worker() else self.threads)
+
+
+def _subtile_grid(relief: Relief) -> tuple:
+    """((gx, gy) sub-tiles of at least SUBTILE_CORR correlation lengths, at most MAX_SUBTILES per
+    axis, over the relief's own extent; number of correlation areas l^2 in it; l in metres)."""
+    from relief_bsdf.surface.stats import relief_stats
+
+    with np.errstate(invalid="ignore", divide="ignore"):      # a flat relief has no correlation length
+        st = relief_stats(relief)
+    ny, nx = relief.shape
+    ext = (nx * relief.dx_m, ny * relief.dy_m)
+    ls = (st.correlation_length_x_m, st.correlation_length_y_m)
+    grid = []
+    for e, l_m in zip(ext, ls):
+        g = MAX_SUBTILES if not (np.isfinite(l_m) and l_m > 0) else int(e // (SUBTILE_CORR * l_m))
+        grid.append(int(min(MAX_SUBTILES, max(1, g))))
+    lc = st.correlation_length_m
+    if not (np.isfinite(lc) and lc > 0):                    # e.g. a flat relief: no correlation length
+        return tuple(grid), None, None
+    return tuple(grid), float(ext[0] * ext[1] / lc**2), float(lc)
 
 
 def _beam_strata(n: int, Lx: float, Ly: float, block_px: float = 32.0):
@@ -160,7 +196,7 @@ class _Incidence:
 
 
 def _incidence(side: str, n_out: complex, n_in: complex, ti: float, pi_: float, K: int, max_bounces: int,
-               split: bool) -> _Incidence:
+               split: bool, subtiles: tuple | None = None) -> _Incidence:
     wi = direction(ti, pi_)                                    # table frame, toward the source
     k_in = -wi if side == "outside" else np.array([-wi[0], -wi[1], wi[2]])
     from_below = side == "inside"
@@ -176,7 +212,7 @@ def _incidence(side: str, n_out: complex, n_in: complex, ti: float, pi_: float, 
         spec_T = np.array([eta * k_in[0], eta * k_in[1], math.copysign(math.sqrt(1 - sin2t), k_in[2])])
     return _Incidence(side, k_in, from_below, Media(n_above, n_below), s_init, (spec_R, spec_T),
                       (0, 1) if side == "outside" else (1, 0),
-                      TraceSettings(max_bounces, split, math.radians(pi_ + 180.0)))
+                      TraceSettings(max_bounces, split, math.radians(pi_ + 180.0), subtiles))
 
 
 @dataclass
@@ -197,8 +233,9 @@ class _Tally:
         self.bounce_sum += other.bounce_sum
 
 
-def _new_tally(cells: CellIndex, K: int) -> _Tally:
-    return _Tally(CellAccumulator(cells, bool(K), tuple(STATE_NAMES.values())))
+def _new_tally(cells: CellIndex, K: int, subtiles: tuple | None = None) -> _Tally:
+    G = 0 if subtiles is None else int(subtiles[0] * subtiles[1])
+    return _Tally(CellAccumulator(cells, bool(K), tuple(STATE_NAMES.values()), n_groups=G if G >= 2 else 0))
 
 
 def _bin_exits(t: _Tally, ex: Exits, inc: _Incidence, cos_tol: float) -> None:
@@ -206,6 +243,9 @@ def _bin_exits(t: _Tally, ex: Exits, inc: _Incidence, cos_tol: float) -> None:
     t.segments += ex.segments
     t.paths += ex.n_paths
     k, w, state, nb, A = ex.records()
+    grp = ex.groups() if t.acc.n_groups else None
+    if grp is not None:
+        t.acc.count_paths(ex.first_group)
     done, all_done = None, True
     if state.size and state.max() > BELOW:
         for code, name in STATE_NAMES.items():
@@ -220,21 +260,13 @@ def _bin_exits(t: _Tally, ex: Exits, inc: _Incidence, cos_tol: float) -> None:
     if n_done == 0:
         return
     kd, wd, st = (k, w, state) if all_done else (k[done], w[done], state[done])
+    if grp is not None and not all_done:
+        grp = grp[done]
     side = st if inc.side_of_state[0] == 0 else (1 - st)        # ABOVE = 0, BELOW = 1
     M = None
     if A is not None:
         M = A.reshape(16, -1) if all_done else np.take(A.reshape(16, -1), done, axis=1)
-    t.acc.add(ExitSamples(kd, wd, side, M, specular_flags(kd, side, inc.ideal_dirs, cos_tol)))
-
-
-def _incident_state(K: int, n: int) -> np.ndarray | None:
-    """Mueller columns of the incident basis states (identity), (4, K, n)."""
-    if not K:
-        return None
-    A = np.zeros((4, 4, n), F32)
-    for i in range(4):
-        A[i, i] = 1
-    return A
+    t.acc.add(ExitSamples(kd, wd, side, M, specular_flags(kd, side, inc.ideal_dirs, cos_tol), grp))
 
 
 def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
@@ -255,7 +287,7 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
                                            lambda: _beam_strata(ctx.samples, Lx, Ly))
     N = nxs * nys
     chunks = [(lo, min(N, lo + CHUNK)) for lo in range(0, N, CHUNK)]
-    inc = _incidence(side, n_out, n_in, ti, pi_, K, tracer.max_bounces, ctx.first_hit_split)
+    inc = _incidence(side, n_out, n_in, ti, pi_, K, tracer.max_bounces, ctx.first_hit_split, ctx.subtiles)
 
     def job(ci):
         lo, hi = chunks[ci]
@@ -268,14 +300,14 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
         o[:, 2] = tracer.z_bot if inc.from_below else tracer.z_top
         rays = Rays(o, np.broadcast_to(inc.k_in.astype(F32), o.shape).copy(), np.full(hi - lo, inc.from_below),
                     np.ones(hi - lo, F32), np.zeros(hi - lo, np.int16), np.arange(hi - lo, dtype=np.int64),
-                    _incident_state(K, hi - lo))
+                    None)                      # polarised: None = the identity columns (StokesCarrier)
         ex = trace_chunk(tracer, rays, carrier_for(K), inc.media, inc.settings, rng, s_init=inc.s_init)
-        t = _new_tally(cells, K)
+        t = _new_tally(cells, K, ctx.subtiles)
         _bin_exits(t, ex, inc, ctx.cos_tol)
         return t
 
     t0 = time.perf_counter()
-    total = _new_tally(cells, K)
+    total = _new_tally(cells, K, ctx.subtiles)
     if threads > 1 and len(chunks) > 1:
         with ThreadPoolExecutor(max_workers=min(threads, len(chunks))) as pool:
             for t in pool.map(job, range(len(chunks))):       # chunk order: deterministic sums
@@ -305,8 +337,25 @@ def _task_rows(total: _Tally, side: str, K: int) -> dict:
         out["vals"] = out["mue"][..., 0, 0].copy()
     out["diag"] = {"rays": int(total.paths), "segments": int(total.segments),
                    "mean_bounces": total.bounce_sum / max(total.exits, 1), "lost": c.lost_detail,
-                   "outside_table": c.outside_table}
+                   "outside_table": c.outside_table, "tile_scatter": _tile_scatter(c)}
     return out
+
+
+def _tile_scatter(c) -> dict | None:
+    """Relative realisation scatter of the lobe's cells (those holding the brightest half of the
+    diffuse power): median of sigma_tile / value and of sigma_tile / sigma_total there."""
+    if c.sigma_tile_per_sr is None:
+        return None
+    v = np.asarray(c.values_per_sr, np.float64).ravel()
+    st = np.asarray(c.sigma_tile_per_sr, np.float64).ravel()
+    sg = np.asarray(c.sigma_per_sr, np.float64).ravel()
+    if not np.any(v > 0):
+        return {"lobe_rel": 0.0, "lobe_tile_share": 0.0}
+    order = np.argsort(v)[::-1]
+    cum = np.cumsum(v[order])
+    lobe = order[:int(np.searchsorted(cum, 0.5 * cum[-1])) + 1]
+    return {"lobe_rel": float(np.median(st[lobe] / v[lobe])),
+            "lobe_tile_share": float(np.median(st[lobe] / np.maximum(sg[lobe], 1e-300)))}
 
 
 # ----------------------------------------------------------------------------- reconstruct
@@ -389,8 +438,36 @@ def _reconstruct(tracer, relief, material, request, progress, opts) -> list[Bsdf
             forget_tracer(ctx.tracer_key)             # a BVH built here is not kept past the request
     mesh_info = dict(mesh_seen[0]) if mesh_seen else {}
     run = _Run(relief, material, request, opts, mesh_info, mesh_info.pop("rays", 0),
-               {"build": max(build_s) if build_s else 0.0, "trace_all_sides": time.perf_counter() - t_trace}, t0)
+               {"build": max(build_s) if build_s else 0.0, "trace_all_sides": time.perf_counter() - t_trace}, t0,
+               {"subtiles": None if ctx.subtiles is None else list(ctx.subtiles),
+                "correlation_areas": ctx.corr_areas, "correlation_length_m": ctx.corr_length_m})
     return [_table(side, sides[si], run) for si, side in enumerate(request.incident_from)]
+
+
+def _uncertainty_meta(side: str, diag: list, run: "_Run") -> tuple[dict, list]:
+    """What sigma_per_sr contains, and the warning when the tile is too small for the cells."""
+    t = run.tile
+    if t["subtiles"] is None:
+        return {"sigma": "Monte-Carlo only (option tile_uncertainty=False)"}, []
+    rel = [d["tile_scatter"]["lobe_rel"] for d in diag if d.get("tile_scatter")]
+    worst = max(rel) if rel else 0.0
+    gx, gy = t["subtiles"]
+    areas = "an unknown number of" if t["correlation_areas"] is None else f"{t['correlation_areas']:.0f}"
+    info = {"sigma": "Monte-Carlo and the tile's realisation uncertainty (sub-tile batch means)",
+            "subtiles": [gx, gy], "correlation_areas": t["correlation_areas"],
+            "correlation_length_m": t["correlation_length_m"], "lobe_relative_tile_sigma_max": worst}
+    warn = []
+    if gx * gy < 16:
+        warn.append(f"ray table ({side}): the tile holds only {gx} x {gy} sub-tiles of {SUBTILE_CORR:g} "
+                    f"correlation lengths ({areas} correlation areas): its realisation "
+                    "uncertainty is poorly known (sigma may be low); use a larger tile")
+    if worst > TILE_WARN_REL:
+        warn.append(f"ray table ({side}): the tile holds {areas} correlation areas, too few "
+                    f"for the cells asked for: the lobe's cells scatter by up to {100 * worst:.0f} % between "
+                    "tile realisations (included in sigma_per_sr); use a larger tile or coarser cells")
+    for w in warn:
+        warnings.warn(w, RuntimeWarning, stacklevel=4)
+    return info, warn
 
 
 @dataclass
@@ -405,12 +482,14 @@ class _Run:
     rays: int
     timing: dict
     t0: float
+    tile: dict
 
 
 def _table(side: str, d: dict, run: _Run) -> BsdfTable:
     """One side's BsdfTable from its filled rows and the run's metadata."""
     relief, material, request, opts = run.relief, run.material, run.request, run.opts
     diag = [d["diag"][key] for key in sorted(d["diag"])]
+    uncertainty, warn = _uncertainty_meta(side, diag, run)
     meta = {"request": {"samples_requested": int(request.samples), "rays_per_incidence": run.rays,
                         "seed": int(request.seed), "options": opts.as_mapping()},
             "mesh": dict(run.mesh_info),
@@ -418,6 +497,8 @@ def _table(side: str, d: dict, run: _Run) -> BsdfTable:
             "timing_s": {**run.timing, "total": time.perf_counter() - run.t0},
             "parallel": last_run(),
             "tasks": diag,
+            "uncertainty": uncertainty,
+            "warnings": warn,
             "notes": ["geometric optics: valid when relief features >> wavelength",
                       "Stokes bases: s = z x k / |z x k|, p = s x k with k the propagation direction, "
                       "in the table's frame (mirrored for light from inside, as bsdf.py)",

@@ -21,10 +21,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from relief_bsdf.errors import RequestError
+from relief_bsdf.methods.ray.embree_buffers import DirectMesh, Unavailable
 from relief_bsdf.methods.ray.exits import ABOVE, Exits
 from relief_bsdf.methods.ray.transport import Media, Rays, TraceSettings, carrier_for, trace_chunk
 from relief_bsdf.parallel import default_workers, forget_worker_cached, worker_cached
-from relief_bsdf.surface.mesh import TileMesh, build_tile_mesh
+from relief_bsdf.surface.mesh import TileMesh, build_tile_mesh, remesh_heights
 from relief_bsdf.surface.relief import Relief
 
 F32 = np.float32
@@ -79,7 +80,7 @@ class ReliefTracer:
     """
 
     def __init__(self, relief: Relief, max_bounces: int = 100, fill_holes: bool | int | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, _mesh: TileMesh | None = None, direct_buffers: bool = True):
         from embreex import rtcore_scene as rtcs
         from embreex.mesh_construction import TriangleMesh
 
@@ -87,11 +88,38 @@ class ReliefTracer:
             raise RequestError(f"max_bounces must be >= 1, got {max_bounces}", "max_bounces")
         self.relief = relief
         self.max_bounces = int(max_bounces)
+        self.fill_holes = fill_holes
         self.threads = int(threads or default_workers())
         t0 = time.perf_counter()
-        self.mesh: TileMesh = build_tile_mesh(relief, fill_holes)
+        self.mesh: TileMesh = build_tile_mesh(relief, fill_holes) if _mesh is None else _mesh
+        t1 = time.perf_counter()
         self.scene = rtcs.EmbreeScene()
-        self._embree_mesh = TriangleMesh(self.scene, self.mesh.vertices, self.mesh.triangles)
+        self._direct = None
+        if direct_buffers:
+            try:                                       # numpy-filled Embree buffers (embree_buffers doc)
+                self._direct = DirectMesh(self.scene, self.mesh.vertices, self.mesh.triangles)
+            except Unavailable:
+                self._direct = None
+        if self._direct is None:
+            self._embree_mesh = TriangleMesh(self.scene, self.mesh.vertices, self.mesh.triangles)
+        t2 = time.perf_counter()
+        self._set_bounds()
+        self.build_s = time.perf_counter() - t0
+        # where the build time goes: mesh (numpy), Embree buffers (embreex copies element by element
+        # under the GIL; numpy-filled with the direct path), BVH build (Embree, all cores)
+        self.build_split_s = {"mesh": t1 - t0, "embree_buffers": t2 - t1, "bvh_commit": self.build_s - (t2 - t0)}
+        self.record_segments: list | None = None
+        self._bounds = (np.zeros(0, F32), np.zeros(0, F32))
+        self._relief_hash_cache: dict = {}
+
+    @property
+    def direct_buffers(self) -> bool:
+        """True when Embree's buffers are numpy-written and `update_heights` refits in place."""
+        return self._direct is not None
+
+    def _set_bounds(self) -> None:
+        """Tile period, slab faces and the ray-origin offset from the mesh; commit the BVH now (first
+        query) so that timings of later calls are clean."""
         m = self.mesh
         self.Lx, self.Ly = (F32(m.period[0]), F32(m.period[1]))
         self.hx, self.hy = F32(m.period[0] / 2), F32(m.period[1] / 2)
@@ -100,12 +128,43 @@ class ReliefTracer:
         self.eps = F32(64 * big * 2.0**-24)
         self.z_top = F32(m.z_max + 8 * self.eps)
         self.z_bot = F32(m.z_min - 8 * self.eps)
-        # commit the BVH now (first query) so timings of later calls are clean
-        self.scene.run(np.array([[0, 0, self.z_top + 1]], F32), np.array([[0, 0, -1]], F32))
-        self.build_s = time.perf_counter() - t0
-        self.record_segments: list | None = None
         self._bounds = (np.zeros(0, F32), np.zeros(0, F32))
-        self._relief_hash_cache: dict = {}
+        self.scene.run(np.array([[0, 0, self.z_top + 1]], F32), np.array([[0, 0, -1]], F32))
+
+    def with_heights(self, heights_m: np.ndarray | Relief, step: str = "heights replaced") -> "ReliefTracer":
+        """A tracer of the same grid with new heights (a fit's scaled / filtered relief).
+
+        Reuses the mesh topology (triangle index buffer, vertex x, y); only z is rewritten.  The
+        Embree scene itself is rebuilt: embreex (4.4) copies the buffers into Embree once in
+        `TriangleMesh(...)` and binds neither rtcGetGeometryBufferData / rtcUpdateGeometryBuffer
+        nor a scene re-commit, so vertex buffers cannot be updated in place and the BVH cannot be
+        refitted from Python; `build_split_s` says where the rebuild's time goes.  Random numbers:
+        tables traced with a given seed use the same ones for every height map (common random
+        numbers; `method` module doc), so a fit sees a smooth objective.
+        """
+        relief = heights_m if isinstance(heights_m, Relief) else self.relief.with_heights(
+            np.asarray(heights_m, dtype=np.float64), step)
+        mesh = remesh_heights(self.mesh, relief, self.fill_holes)
+        return ReliefTracer(relief, self.max_bounces, self.fill_holes, self.threads, _mesh=mesh,
+                            direct_buffers=self.direct_buffers)
+
+    def update_heights(self, heights_m: np.ndarray | Relief, step: str = "heights replaced") -> float:
+        """In place: new heights on the same grid, the BVH refitted (no index buffer, no new scene).
+
+        Only with `direct_buffers` (else RuntimeError: use `with_heights`).  Not while another
+        thread traces with this tracer.  Returns the seconds it took (z written + BVH refit).
+        """
+        if self._direct is None:
+            raise RuntimeError("this tracer's Embree buffers are embreex's own: use with_heights")
+        t0 = time.perf_counter()
+        relief = heights_m if isinstance(heights_m, Relief) else self.relief.with_heights(
+            np.asarray(heights_m, dtype=np.float64), step)
+        self.mesh = remesh_heights(self.mesh, relief, self.fill_holes)
+        self.relief = relief
+        self._relief_hash_cache = {}
+        self._direct.update_z(self.mesh.vertices[:, 2])
+        self._set_bounds()                             # new slab faces; the query commits (refits) the BVH
+        return time.perf_counter() - t0
 
     # ------------------------------------------------------------------ geometry of the tile
     def query(self, o: np.ndarray, k: np.ndarray) -> Query:
@@ -147,6 +206,25 @@ class ReliefTracer:
             hi, c = np.tile(np.array([self.hx, self.hy, zh], F32), cap), np.tile(np.array([0, 0, zc], F32), cap)
             self._bounds = (hi, c)
         return hi[:3 * n], c[:3 * n]
+
+    def subtile_of(self, p: np.ndarray, grid: tuple) -> np.ndarray:
+        """Sub-tile index iy * gx + ix (int32) of points p (n, >= 2, tile coordinates) on a gx x gy
+        grid of the *relief's own* extent: on a mirror-extended tile the coordinates are folded
+        back onto the measured map first, so that mirror images share their sub-tile."""
+        gx, gy = int(grid[0]), int(grid[1])
+        idx = None
+        for ax, (g, L, h) in enumerate(((gx, self.Lx, self.hx), (gy, self.Ly, self.hy))):
+            u = p[:, ax] + h                            # [0, L)
+            if self.mesh.mirrored:                      # period 2 (n - 1) px: fold [L/2, L) onto [0, L/2]
+                half = L / F32(2)
+                u = half - np.abs(u - half)
+                scale = F32(g) / half
+            else:
+                scale = F32(g) / L
+            i = (u * scale).astype(np.int32)
+            np.clip(i, 0, g - 1, out=i)
+            idx = i if idx is None else idx + i * np.int32(gx)
+        return idx
 
     def relief_key(self, relief: Relief, mesh_options: tuple) -> "hashlib._Hash":
         """sha256 of the heights and mesh options (kept when `relief` is this tracer's own relief:

@@ -22,7 +22,14 @@ yields both branches deterministically (reflected: output id i, weight w P_R; tr
 id i + n, weight w (1 - P_R)); the first interactions of a chunk are all done before the
 roulette phase starts (so a chunk's random numbers come in a fixed order).  Afterwards
 Russian roulette with probability P_R and renormalisation S <- M S / P keep every weight
-unchanged (unbiased; energy conserved ray by ray in lossless media).  Light transmitted into
+unchanged (unbiased; energy conserved ray by ray in lossless media).
+Common random numbers: the roulette's uniform number of a path at its b-th interaction is a
+hash of (chunk key, output id, b) (`path_uniforms`: counter-based, like Philox / Random123,
+Salmon et al. 2011), not the next number of a shared stream, so a path meets the same numbers
+whatever the other paths did: re-tracing a relief whose heights changed a little (a fit's
+iterations) changes only the paths that really change, and the objective is smooth in the
+heights.  The chunk key is drawn from the chunk's generator (one number, after the entry
+points), so a seed still names every number.  Light transmitted into
 an absorbing medium ends as LOST_ABSORBED; rays found on the wrong side of the surface
 (numerical leaks) as LOST_LEAK; rays still bouncing after `max_bounces` as LOST_BOUNCES.
 Regime: geometric optics (features >> wavelength), no interference between rays.
@@ -42,7 +49,8 @@ import numpy as np
 
 from relief_bsdf.core.frames import cross_rows, dot_rows
 from relief_bsdf.core.fresnel import interface_coefficients_f32, reflectance_unpolarized_f32
-from relief_bsdf.core.stokes import apply_interface_mueller_columns, rotate_stokes_columns, s_axis_rows
+from relief_bsdf.core.stokes import (apply_interface_mueller_columns, double_angle_cd,
+                                     rotate_stokes_columns_cd, s_axis_rows)
 from relief_bsdf.methods.ray.exits import ABOVE, BELOW, LOST_ABSORBED, LOST_BOUNCES, LOST_LEAK, Exits
 
 F32 = np.float32
@@ -58,6 +66,7 @@ class TraceSettings:
     max_bounces: int = 100
     split_first: bool = False
     phi_exit_rad: float = 0.0        # exit Stokes frame of a ray leaving exactly along z (s from the azimuth)
+    subtiles: tuple | None = None    # (gx, gy): tag each path with the sub-tile of its first hit (Exits.first_group)
 
 
 @dataclass
@@ -119,7 +128,11 @@ class Rays:
         if len(parts) == 1:
             return parts[0]
         cat = np.concatenate
-        A = None if parts[0].A is None else cat([p.A for p in parts], axis=2)
+        A = None
+        withA = [p.A for p in parts if p.A is not None]
+        if withA:                                   # A None = identity columns (StokesCarrier): materialise
+            K = withA[0].shape[1]
+            A = cat([p.A if p.A is not None else identity_columns(K, p.size) for p in parts], axis=2)
         s = None if parts[0].s is None else cat([p.s for p in parts])
         return Rays(cat([p.o for p in parts]), cat([p.k for p in parts]), cat([p.below for p in parts]),
                     cat([p.w for p in parts]), cat([p.nb for p in parts]), cat([p.ids for p in parts]), A, s)
@@ -129,6 +142,39 @@ class Rays:
         return Rays(np.zeros((0, 3), F32), np.zeros((0, 3), F32), np.zeros(0, bool), np.zeros(0, F32),
                     np.zeros(0, np.int16), np.zeros(0, np.int64), np.zeros((4, K, 0), F32) if K else None,
                     np.zeros((0, 3), F32) if K else None)
+
+
+def identity_columns(K: int, n: int) -> np.ndarray:
+    """Stokes columns (4, K, n) of the incident basis states: the identity Mueller matrix."""
+    A = np.zeros((4, K, n), F32)
+    for i in range(min(4, K)):
+        A[i, i] = 1
+    return A
+
+
+def first_interaction_columns(coef, c2, s2, inv_p) -> np.ndarray:
+    """Mueller columns (4, 4, n) of M Rot / p for rays still in their incident basis (A = identity):
+    Rot the frame rotation by psi (core.stokes: cos 2psi = c2, sin 2psi = s2), M = [[a,b,0,0],
+    [b,a,0,0],[0,0,c,d],[0,0,-d,c]] the facet's interface matrix (core.fresnel coefficients), the
+    product written out: [[a, b c2, b s2, 0], [b, a c2, a s2, 0], [0, -c s2, c c2, d], [0, d s2, -d c2, c]]
+    (tested equal to the core's matrices multiplied)."""
+    a, b, c, d = (x * inv_p for x in coef)
+    A = np.zeros((4, 4, a.size), F32)
+    A[0, 0] = a
+    np.multiply(b, c2, out=A[0, 1])
+    np.multiply(b, s2, out=A[0, 2])
+    A[1, 0] = b
+    np.multiply(a, c2, out=A[1, 1])
+    np.multiply(a, s2, out=A[1, 2])
+    np.multiply(c, s2, out=A[2, 1])
+    np.negative(A[2, 1], out=A[2, 1])
+    np.multiply(c, c2, out=A[2, 2])
+    A[2, 3] = d
+    np.multiply(d, s2, out=A[3, 1])
+    np.multiply(d, c2, out=A[3, 2])
+    np.negative(A[3, 2], out=A[3, 2])
+    A[3, 3] = c
+    return A
 
 
 @dataclass
@@ -191,55 +237,114 @@ class StokesCarrier:
         self._ev = None
 
     def start(self, rays: Rays, s_init=None) -> None:
-        """Initial basis s = z x k (or the given s_init for every ray)."""
+        """Initial basis s = z x k (or the given s_init for every ray); rays.A None stands for the
+        identity columns (the incident basis states) until the first interaction."""
         if s_init is None:
             rays.s = s_axis_rows(rays.k)
         else:
             rays.s = np.ascontiguousarray(np.broadcast_to(np.asarray(s_init, F32), rays.k.shape))
 
     def reflectance(self, rays: Rays, f: Facet, media: Media) -> np.ndarray:
-        """Rotate the columns onto the facet's basis; P_R of column 0's state."""
-        k = rays.k
-        nf = f.normal()
-        s_new = cross_rows(nf, k)
-        sn = np.sqrt(dot_rows(s_new, s_new))
+        """Rotate the columns onto the facet's basis; P_R of column 0's state.
+
+        The facet's basis is s' = n x k / |n x k|.  With s' = u / |u|, u = n x k, and s, p = s x k
+        the ray's basis (s . k = 0, |k| = 1): s . u = |u| (s . s') and p . u = s . n, so the
+        rotation's (c, d) = (s . s', p . s') are (s . u, s . n) / |u| (`rotate_stokes_columns_cd`
+        needs them only up to that factor): two dot products instead of a cross product.
+        """
+        k, s_old = rays.k, rays.s
+        kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
+        u = np.empty(k.shape, F32)                  # n x k
+        np.multiply(f.nfy, kz, out=u[:, 0])
+        u[:, 0] -= f.nfz * ky
+        np.multiply(f.nfz, kx, out=u[:, 1])
+        u[:, 1] -= f.nfx * kz
+        np.multiply(f.nfx, ky, out=u[:, 2])
+        u[:, 2] -= f.nfy * kx
+        sx, sy, sz = s_old[:, 0], s_old[:, 1], s_old[:, 2]
+        c = sx * u[:, 0]
+        c += sy * u[:, 1]
+        c += sz * u[:, 2]
+        d = sx * f.nfx
+        d += sy * f.nfy
+        d += sz * f.nfz
+        sn = dot_rows(u, u)
+        np.sqrt(sn, out=sn)
         degenerate = sn < 1e-6                      # normal incidence on the facet: keep the basis
-        s_new /= np.where(degenerate, 1, sn)[:, None]
         if degenerate.any():
-            s_new[degenerate] = rays.s[degenerate]
-        rotate_stokes_columns(rays.A, rays.s, k, s_new)
+            sn[degenerate] = 1
+            u[degenerate] = s_old[degenerate]
+            c[degenerate] = 1
+            d[degenerate] = 0
+        u /= sn[:, None]
+        s_new = u
         n1, n2 = media.pair(rays.below)
         R, T = interface_coefficients_f32(f.ci, n1, n2)
-        self._ev = (R, T, s_new)
+        if rays.A is None:                          # still the identity (first interaction): no rotation yet
+            self._ev = (R, T, s_new, double_angle_cd(c, d))
+            return np.clip(R[0], 0, 1).astype(F32)  # column 0 (unpolarised) is not changed by a rotation
+        rotate_stokes_columns_cd(rays.A, c, d)
+        self._ev = (R, T, s_new, None)
         return np.clip(R[0] + R[1] * rays.A[1, 0], 0, 1).astype(F32)
 
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
         """(A, s) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R."""
-        _, T, s_new = self._ev
-        A = np.take(rays.A, j, axis=2)
-        apply_interface_mueller_columns(A, *(x[j] for x in T), 1 / np.maximum(1 - pR_j, F32(1e-30)))
-        return A, s_new[j]
+        _, T, s_new, rot = self._ev
+        inv = 1 / np.maximum(1 - pR_j, F32(1e-30))
+        full = j.size == s_new.shape[0]                 # usually every ray transmits something: no gathers
+        sel = (lambda a: a) if full else (lambda a: np.take(a, j, axis=0))
+        s_t = s_new if full else np.take(s_new, j, axis=0)   # never modified in place (replaced per event)
+        if rot is not None:
+            return first_interaction_columns([sel(x) for x in T], sel(rot[0]), sel(rot[1]), inv), s_t
+        A = rays.A.copy() if full else np.take(rays.A, j, axis=2)
+        apply_interface_mueller_columns(A, *(sel(x) for x in T), inv)
+        return A, s_t
 
     def reflected(self, rays: Rays, pR) -> None:
         """Every ray keeps its reflected branch (first-hit split), renormalised by P_R."""
-        R, _, s_new = self._ev
-        apply_interface_mueller_columns(rays.A, *R, 1 / np.maximum(pR, F32(1e-30)))
+        R, _, s_new, rot = self._ev
+        inv = 1 / np.maximum(pR, F32(1e-30))
+        if rot is not None:
+            rays.A = first_interaction_columns(R, rot[0], rot[1], inv)
+        else:
+            apply_interface_mueller_columns(rays.A, *R, inv)
         rays.s = s_new
 
     def chosen(self, rays: Rays, refl, pR) -> None:
         """Roulette outcome per ray: reflected (refl) or transmitted, renormalised by its probability."""
-        R, T, s_new = self._ev
+        R, T, s_new, rot = self._ev
         pc = np.where(refl, pR, 1 - pR)
-        apply_interface_mueller_columns(rays.A, *(np.where(refl, r, t) for r, t in zip(R, T)), 1 / np.maximum(pc, F32(1e-30)))
+        coef = [np.where(refl, r, t) for r, t in zip(R, T)]
+        if rot is not None:
+            rays.A = first_interaction_columns(coef, rot[0], rot[1], 1 / np.maximum(pc, F32(1e-30)))
+        else:
+            apply_interface_mueller_columns(rays.A, *coef, 1 / np.maximum(pc, F32(1e-30)))
         rays.s = s_new
 
     def exit_columns(self, rays: Rays, idx, phi_exit_rad: float):
         """Columns of the rays idx (all when None) re-expressed in the exit frame s = z x k."""
         if idx is None:
             A, s, k = rays.A, rays.s, rays.k
+            if A is None:
+                A = identity_columns(self.K, k.shape[0])
         else:
-            A, s, k = np.take(rays.A, idx, axis=2), np.take(rays.s, idx, axis=0), np.take(rays.k, idx, axis=0)
-        rotate_stokes_columns(A, s, k, s_axis_rows(k, phi_exit_rad))
+            A = identity_columns(self.K, idx.size) if rays.A is None else np.take(rays.A, idx, axis=2)
+            s, k = np.take(rays.s, idx, axis=0), np.take(rays.k, idx, axis=0)
+        # exit basis s' = z x k / |z x k|: with u = z x k = (-k_y, k_x, 0), s . u = s_y k_x - s_x k_y and
+        # p . u = (s x k) . (z x k) = s_z (as in `reflectance`); along z the fallback azimuth, generically
+        kx, ky = k[:, 0], k[:, 1]
+        c = s[:, 1] * kx
+        c -= s[:, 0] * ky
+        d = s[:, 2].copy()
+        h = kx * kx
+        h += ky * ky
+        along_z = h < F32(1e-14)
+        if along_z.any():
+            zi = np.flatnonzero(along_z)
+            s_to = s_axis_rows(k[zi], phi_exit_rad)
+            c[zi] = dot_rows(s[zi], s_to)
+            d[zi] = dot_rows(cross_rows(s[zi], k[zi]), s_to)
+        rotate_stokes_columns_cd(A, c, d)
         return A
 
 
@@ -263,6 +368,8 @@ class _Chunk:
     settings: TraceSettings
     rng: np.random.Generator
     n0: int
+    group: np.ndarray | None = None
+    key: np.uint32 = np.uint32(0)
 
 
 def trace_chunk(tracer, rays: Rays, carrier, media: Media, settings: TraceSettings, rng,
@@ -270,12 +377,19 @@ def trace_chunk(tracer, rays: Rays, carrier, media: Media, settings: TraceSettin
     """Trace `rays` through `tracer`'s relief layer until every ray has ended; the chunk's `Exits`.
 
     Phase 1 (split_first): every ray's first interaction, both branches; phase 2: roulette.
+    With settings.subtiles, `Exits.first_group` holds the sub-tile of each input ray's first hit
+    (its entry point if it never hit), rays.ids being 0..n-1.
     """
     with np.errstate(divide="ignore", invalid="ignore"):      # once per chunk (errstate is not free)
         carrier.start(rays, s_init)
         n0 = rays.size
         ex = Exits(2 * n0 if settings.split_first else n0, carrier.K)
         ch = _Chunk(tracer, ex, carrier, media, settings, rng, n0)
+        ch.key = np.uint32(rng.integers(0, 2**32))
+        if settings.subtiles is not None:
+            ch.group = np.empty(n0, np.int32)
+            ch.group[rays.ids] = tracer.subtile_of(rays.o, settings.subtiles)
+            ex.first_group = ch.group
         cur, nxt, pending = rays, [], settings.split_first
         segments = 0
         while True:
@@ -384,9 +498,11 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
     """One interaction for rays that all hit: the continuing rays (and split copies)."""
     carrier, eps = ch.carrier, ch.tracer.eps
     pR = carrier.reflectance(h, f, ch.media)
-    h.nb = h.nb + np.int16(1)
     p = h.k * th[:, None]                             # hit point
     p += h.o
+    if ch.group is not None:
+        _tag_first_hits(ch, h, p, pending)
+    h.nb = h.nb + np.int16(1)
     bt = f.eta * f.ci
     bt -= f.ct                                        # k_t = eta k + (eta ci - ct) nf; k_r = k + 2 ci nf
     parts, absorbed = [], None
@@ -398,7 +514,7 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
         carrier.reflected(h, pR)
         a, b, off = None, 2 * f.ci, eps
     else:
-        refl = ch.rng.random(h.size, dtype=F32) < pR
+        refl = path_uniforms(ch.key, h.ids, h.nb) < pR
         carrier.chosen(h, refl, pR)
         a = np.where(refl, F32(1), f.eta)
         b = np.where(refl, 2 * f.ci, bt)
@@ -418,6 +534,39 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
             return parts
         h = h.take(g)
     return [h] + parts
+
+
+def path_uniforms(key: np.uint32, ids: np.ndarray, nb: np.ndarray) -> np.ndarray:
+    """Uniform float32 numbers in [0, 1) per path, a pure function of (key, id, interaction count).
+
+    An integer hash of the three (multiplicative mixing, then the xor-shift-multiply finaliser
+    of a 32-bit avalanche hash: every input bit flips each output bit with probability ~1/2),
+    whose top 24 bits make the float.  Module doc: common random numbers.
+    """
+    x = ids.astype(np.uint32)
+    x *= np.uint32(0x9E3779B1)
+    y = nb.astype(np.uint32)
+    y *= np.uint32(0x85EBCA77)
+    x ^= y
+    x ^= key
+    for shift, mul in ((16, 0x7FEB352D), (15, 0x846CA68B)):
+        x ^= x >> np.uint32(shift)
+        x *= np.uint32(mul)
+    x ^= x >> np.uint32(16)
+    x >>= np.uint32(8)
+    u = x.astype(F32)
+    u *= F32(2.0**-24)
+    return u
+
+
+def _tag_first_hits(ch: _Chunk, h: Rays, p, pending: bool) -> None:
+    """Record the sub-tile of the first hit of rays hitting for the first time (nb == 0)."""
+    if pending:                                     # the first-interaction phase: every ray is a first hit
+        ch.group[h.ids] = ch.tracer.subtile_of(p, ch.settings.subtiles)
+    elif not ch.settings.split_first:
+        fi = np.flatnonzero(h.nb == 0)
+        if fi.size:
+            ch.group[h.ids[fi]] = ch.tracer.subtile_of(np.take(p, fi, axis=0), ch.settings.subtiles)
 
 
 def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR) -> Rays | None:
