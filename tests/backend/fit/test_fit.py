@@ -72,7 +72,7 @@ def test_interrupted_fit_resumes_from_checkpoint_with_identical_result(tmp_path)
     first = []
     with pytest.raises(KeyboardInterrupt):
         fit_relief(_CheapForward(first), truth, sigma, FitSettings(max_iter=50), checkpoint=ck, on_eval=interrupt)
-    saved = json.loads(ck.read_text())["data"]["evaluations"]
+    saved = _saved_evaluations(ck)
     assert len(saved) == 12 and len(first) == 12
     second = []
     resumed = fit_relief(_CheapForward(second), truth, sigma, FitSettings(max_iter=50), checkpoint=ck)
@@ -89,3 +89,9 @@ def test_threshold_stops_early():
     res = fit_relief(_CheapForward([]), truth, 0.02 * truth, FitSettings(max_iter=50, threshold=5.0))
     assert res.stopped == "threshold" and res.rms_after <= 5.0
     assert len(res.iterations) < 50
+
+
+def _saved_evaluations(path):
+    """The evaluations a fit checkpoint holds (io.checkpoint's JSON layout, read without its key)."""
+    from relief_bsdf.io.checkpoint import decode
+    return decode(json.loads(path.read_text())["data"])["evaluations"]
