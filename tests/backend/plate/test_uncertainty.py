@@ -51,3 +51,26 @@ def test_no_table_sigma_means_unknown_not_zero():
     bare = ex.with_plate(front=TableFace(dataclasses.replace(ins, sigma_per_sr=None),
                                          dataclasses.replace(out, sigma_per_sr=None)))
     assert np.all(np.isnan(rows_sigma(bare, ROWS, GRID)))
+
+
+def test_a_relief_face_reuses_its_tracer_across_heights_with_the_tables_of_a_fresh_build():
+    """The fit's evaluations re-trace one grid with new heights: the plate keeps one tracer per grid
+    and rewrites its heights (plate.faces._topology_tracer); the tables equal a fresh reconstruction."""
+    from relief_bsdf.methods import reconstruct
+    from relief_bsdf.plate import TABLE_CACHE
+    from relief_bsdf.plate.faces import _TRACERS
+    from relief_bsdf.surface.operations import scale_and_filter
+    ex = _experiment(0, samples=4000)
+    mat = ex.plate.material
+    relief = ex.plate.front.relief
+    ex.plate.front.tables(mat, GRID, [550.0], [30.0])
+    tracer = next(iter(_TRACERS.values()))
+    other = scale_and_filter(relief, 1.3, 0.0)
+    face = dataclasses.replace(ex.plate.front, relief=other)
+    TABLE_CACHE.clear()
+    out, ins = face.tables(mat, GRID, [550.0], [30.0])
+    again = next(iter(_TRACERS.values()))
+    assert len(_TRACERS) == 1 and (again is tracer or again.mesh.triangles is tracer.mesh.triangles)
+    req = GRID.request([550.0], [30.0], "outside", "ray", 4000, 0, {"backend": "serial"})
+    (fresh,) = reconstruct(other, mat, req, "ray")
+    np.testing.assert_array_equal(out.values_per_sr, fresh.values_per_sr)
