@@ -20,7 +20,7 @@ from relief_bsdf.validation.conceal import CaseSpec, make_case
 @pytest.mark.parametrize("s_true, seed", [(0.791, 31), (1.215, 32)])
 def test_default_fit_gives_back_the_true_scale_and_needs_no_filter(tmp_path, s_true, seed):
     spec = CaseSpec(name=f"scale{s_true}", effect="relief_scale", parameters={"height_scale": s_true}, seed=seed,
-                    relief_n=80, photons=300_000, theta_i_deg=(0.0, 30.0),
+                    relief_n=96, photons=300_000, theta_i_deg=(0.0, 30.0),
                     theta_s_deg=tuple(float(x) for x in range(0, 90, 4)))
     make_case(spec, tmp_path / "case")
     out = tmp_path / "fit"

@@ -1,7 +1,7 @@
 """Fit: optimise the relief's height scale and smoothing so the plate matches a recording.
 
     fwd = Forward(relief, experiment, recording_rows, grid)     # the one forward model (plate.simulate)
-    result = fit_relief(fwd, measured, sigma)                    # Nelder-Mead on (scale, filter)
+    result = fit_relief(fwd, measured, sigma)                    # least squares on (scale, filter^2)
     run_fit_job(sample.toml, out_dir)                           # `relief fit`
 
 `fit.residual` holds the comparison (log-chi metric, residual maps, the diagnosis's chi2).

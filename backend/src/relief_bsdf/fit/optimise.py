@@ -4,8 +4,9 @@ Loop: parameters p = (height_scale s, filter_sigma_um g) -> surface.operations.s
 (step 6) -> the Experiment's relief face gets the processed relief; its boundary tables of the
 chosen method for light from outside and inside (step 2, plate.faces.ReliefFace, cached)
 -> plate simulation on the recording's rows (step 3, `plate.simulate`, deterministic) -> metric
-(step 4, `residual.LogChiMetric`) -> scipy.optimize Nelder-Mead (step 5) until the metric
-falls below `threshold` or stops improving (xatol/fatol) or `max_iter` is reached.
+(step 4, `residual.LogChiMetric`) -> trust-region least squares of the normalised residuals
+(scipy.optimize.least_squares, step 5) until the metric falls below `threshold`, the step or
+the gain become negligible, or `max_iter` evaluations are spent.
 
 Physics of the relief face: by default `auto` (plate.choice), the relief's own physics, chosen
 once on the relief as read (ray tracing with inter-reflections for reliefs rough on the
@@ -150,7 +151,7 @@ class FitResult:
 
     intervals: 68 % interval per parameter ([lo, hi]; None where the data cannot pin it down);
     correlation: of (ln height_scale, filter_sigma_um^2) at the 2-parameter optimum (None when
-        the Hessian there is not positive definite);
+        J^T J there is singular);
     filter_needed / bic_gain: whether the recording asks for the filter besides the scale
         (fit.selection: BIC gain of the 2-parameter fit over the scale-only fit > BIC_MARGIN);
     ridge: the two parameters slide along a valley of equal rms slope (`_ridge_probe`);
@@ -183,9 +184,10 @@ class FitResult:
              "identifiability": {"filter_needed": self.filter_needed, "bic_gain_of_filter": self.bic_gain,
                                  "ridge": self.ridge, "criterion": f"BIC = chi2 + k ln n, chi2 = n metric^2; the "
                                  f"filter is kept when it lowers the BIC by more than {BIC_MARGIN:g}",
-                                 "interval_method": "curvature of chi2 (finite differences) at the optimum, "
-                                                    "68 % = Delta chi2 of 1, inflated by the reduced chi2 when "
-                                                    "it exceeds 1"},
+                                 "interval_method": "cov = (J^T J)^-1 from the Jacobian of the normalised "
+                                                    "residuals (central differences) at the optimum, 68 % = "
+                                                    "Delta chi2 of 1, inflated by the reduced chi2 when it "
+                                                    "exceeds 1"},
              "warnings": self.warnings, "iterations": self.iterations, "evaluations_computed": self.computed,
              "stopped": self.stopped,
              "seconds": self.seconds}
