@@ -329,7 +329,8 @@ class RELIEF_OT_simulate_plate(JobOperator, bpy.types.Operator):
 
     sample: StringProperty(name="Sample", default="", subtype="FILE_PATH")
     output_dir: StringProperty(name="Output", default="", subtype="DIR_PATH")
-    method: StringProperty(name="Method", default="microfacet+dw")
+    method: StringProperty(name="Method", default="auto",
+                           description="Boundary method: auto (the relief's own physics) or any method name")
     table: StringProperty(name="Table", default="", subtype="FILE_PATH",
                           description="Use this boundary table instead of deriving one")
 
@@ -361,7 +362,8 @@ class RELIEF_OT_fit(JobOperator, bpy.types.Operator):
 
     sample: StringProperty(name="Sample", default="", subtype="FILE_PATH")
     output_dir: StringProperty(name="Output", default="", subtype="DIR_PATH")
-    method: StringProperty(name="Method", default="microfacet+dw")
+    method: StringProperty(name="Method", default="auto",
+                           description="Boundary method: auto (the relief's own physics) or any method name")
     max_iter: IntProperty(name="Iterations", default=60, min=1)
 
     def prepare(self, context):

@@ -62,14 +62,14 @@ def prepare_plates(source, albedo=None, closure: str = "metallic", progress=None
         doc = json.loads(fj.read_text())
         sample = read_sample(_sample_path_from_fit(src, doc))
         par = doc.get("parameters", {})
-        method = doc.get("method", "microfacet+dw")
+        method = doc.get("method", "auto")
         relief = read_relief(sample.relief_path)
         variants = [("before fit", process_relief(relief, 1.0, 0.0)),
                     ("after fit", process_relief(relief, float(par.get("height_scale", 1.0)),
                                                  float(par.get("filter_sigma_um", 0.0))))]
     elif src.is_file() and src.suffix.lower() == ".toml":
         sample = read_sample(src)
-        method = "microfacet+dw"
+        method = "auto"                 # the relief's own physics (plate.choice)
         variants = [("smooth", None), ("measured relief", read_relief(sample.relief_path))]
     else:
         raise InputError(src, "expected a sample.toml or a fit folder")
