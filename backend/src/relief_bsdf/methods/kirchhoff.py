@@ -102,6 +102,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -115,57 +116,12 @@ from relief_bsdf.core.fresnel import fresnel_reflectance as _fresnel
 from relief_bsdf.core.index import Material
 from relief_bsdf.parallel import in_worker, map_tasks, task_rng
 from relief_bsdf.methods.options import KirchhoffOptions
-from relief_bsdf.methods.wave_filter import DcosGrid, cell_average, cell_samples, check_sides, smoothing_width_dcos
+from relief_bsdf.methods.wave_filter import (DcosGrid, cell_average, cell_samples, check_sides, ring_conserving,
+                                             smoothing_width_dcos)
 from relief_bsdf.methods.rayleigh_rice import prepared_heights
+from relief_bsdf.methods.qz_expansion import HeightMoments, LagrangeBasis, chebyshev_nodes, expansion_order
 
 # ------------------------------------------------------------------ helpers
-
-
-def qz_nodes(nu_lo: float, nu_hi: float, nu_spec: float | None, sigma_m: float, tau: float = np.inf,
-             max_nodes: int = 16) -> np.ndarray:
-    """nu_z nodes for [nu_lo, nu_hi]: one at nu_spec, then greedily as far apart as the rule allows.
-
-    The distance between two nu_z in x = nu_z^2 sigma^2 is |x1 - x2| on the same side of 0
-    and x1 + x2 across it; a node covers the points within tau max(1, x^2 / 2) of it (x the
-    smaller of the two), beyond which the similarity interpolation of the module doc would be
-    used too far from its asymptotic regimes.  The ends of the range need no node of their own
-    when the last node covers them (they are reached by the similarity extrapolation).
-    """
-    lo, hi = min(nu_lo, nu_hi), max(nu_lo, nu_hi)
-    start = nu_spec if (nu_spec is not None and lo <= nu_spec <= hi) else 0.5 * (lo + hi)
-    if sigma_m <= 0 or hi <= lo:
-        return np.array([start])
-    s = sigma_m
-
-    def dist(a, b):
-        xa, xb = (a * s) ** 2, (b * s) ** 2
-        return np.where(np.sign(a) == np.sign(b), np.abs(xa - xb), xa + xb)
-
-    def allowed(a, b):
-        x = np.minimum((a * s) ** 2, (b * s) ** 2)
-        return tau * np.maximum(1.0, 0.5 * x * x)
-
-    nodes = [start]
-    for bound in (hi, lo):
-        cand = np.linspace(start, bound, 4001)[1:]
-        cand = cand[np.abs(cand) * s > 1e-6] if np.any(np.abs(cand) * s > 1e-6) else cand
-        last = start
-        while cand.size:
-            ok = dist(last, cand) <= allowed(last, cand)
-            if ok.all():
-                break
-            k = int(np.argmin(ok)) - 1          # farthest candidate before the first uncovered one
-            k = max(k, 0)
-            last = float(cand[k])
-            nodes.append(last)
-            cand = cand[k + 1:]
-            if len(nodes) > 4 * max_nodes:
-                break
-    nodes = np.unique(np.asarray(nodes))
-    if nodes.size > max_nodes:   # keep the specular node and spread the rest evenly
-        extra = np.linspace(lo, hi, max_nodes - 1)
-        nodes = np.unique(np.concatenate([extra, [start]]))
-    return nodes
 
 
 def _gaussian_screen(shape, pitch, corr_m, rms, rng) -> np.ndarray:
@@ -358,48 +314,6 @@ def _facet_mueller(geo, wi, n1, n2, side, phi_i_rad):
     return out
 
 
-def _interp_nodes(nodes, grids, geo, sigma, f0, df, f0n):
-    """Density in nu_xy on the target grid (origin f0) at each point's own nu_z (similarity
-    interpolation); node grids have origin f0n and the same spacing df."""
-    nuz = geo["nuz"]
-    s2 = sigma * sigma
-    ncy, ncx = nuz.shape
-    fxc = f0[0] + df[0] * np.arange(ncx)
-    fyc = f0[1] + df[1] * np.arange(ncy)
-    FX, FY = np.meshgrid(fxc, fyc)
-    out = np.zeros_like(nuz)
-    x = nuz * nuz * s2
-    gam = x / (1.0 + x)
-    g = -np.expm1(-x)
-    t = np.zeros(nuz.shape)
-    nuc = np.clip(nuz, nodes[0], nodes[-1])
-    j = np.clip(np.searchsorted(nodes, nuc, side="right") - 1, 0, max(nodes.size - 2, 0))
-    if nodes.size > 1:
-        t = (nuc - nodes[j]) / (nodes[j + 1] - nodes[j])
-        # never blend across nu_z = 0: the pattern is mirrored there; use the node on the target's side
-        cross = np.sign(nodes[j]) * np.sign(nodes[j + 1]) < 0
-        t = np.where(cross, np.where(np.sign(nuz) == np.sign(nodes[j + 1]), 1.0, 0.0), t)
-    for jn, nj in enumerate(nodes):
-        if nodes.size == 1:
-            wgt = np.ones(nuz.shape)
-        else:
-            wgt = np.where(j == jn, 1.0 - t, 0.0) + np.where(j + 1 == jn, t, 0.0)
-        sel = wgt > 0
-        if not np.any(sel):
-            continue
-        nz = nuz[sel]
-        r = nj / np.where(np.abs(nz) > 0, nz, 1e-30)
-        sc = np.sign(r) * np.abs(r) ** gam[sel]
-        xj = nj * nj * s2
-        gj = -np.expm1(-xj)
-        amp = np.where(gj > 0, g[sel] / max(gj, 1e-300), 1.0) * np.abs(r) ** (2 * gam[sel])
-        ci = (FX[sel] * sc - f0n[0]) / df[0]
-        cj = (FY[sel] * sc - f0n[1]) / df[1]
-        val = ndimage.map_coordinates(grids[jn], [cj, ci], order=1, mode="constant", cval=0.0, prefilter=False)
-        out[sel] += wgt[sel] * amp * val
-    return out
-
-
 @dataclass(frozen=True)
 class Surface:
     """The prepared height map one incidence is solved on.
@@ -443,12 +357,14 @@ class SolveSettings:
     instances: int = 8
     seed: int = 0
     key: tuple = (0,)
-    tau: float = np.inf
-    max_nodes: int = 16
+    tau: float = 1e-3
+    max_nodes: int = 64
     workers: int = 2
     sides: tuple = ("R", "T")
     theta_s_range_deg: tuple = (0.0, 90.0)
     polarized: bool = False
+    theta_edges_deg: tuple = (0.0, 90.0)
+    phi_edges_deg: tuple = (0.0, 360.0)
 
 
 @dataclass(frozen=True)
@@ -469,6 +385,8 @@ class _Field:
     w32: np.ndarray | None
     fxs: np.ndarray
     fys: np.ndarray
+    w2: np.ndarray | None
+    moments: HeightMoments
 
     @property
     def shape(self):
@@ -476,6 +394,8 @@ class _Field:
 
 
 def _field(surface: Surface, inc: Incidence) -> _Field:
+    """Heights from their mid-range h_c (a common phase only), the squared-window weights and the
+    height moments of the q_z expansion."""
     h, w = surface.heights_m, surface.window
     ny, nx = h.shape
     dx, dy = surface.pitch_m
@@ -483,11 +403,16 @@ def _field(surface: Surface, inc: Incidence) -> _Field:
     ti, pi_ = np.radians(inc.theta_i_deg), np.radians(inc.phi_i_deg)
     ci = np.cos(ti)
     ai, bi = np.sin(ti) * np.cos(pi_), np.sin(ti) * np.sin(pi_)
+    w2 = None if surface.periodic else w * w
     sw2 = float(np.sum(w * w))
+    mom = HeightMoments.of(h, w2)
+    hc = h - mom.centre_m
+    hbar = float(np.sum(w * w * hc) / sw2)
     return _Field(lam=lam, k0=2 * np.pi / lam, ci=ci, ai=ai, bi=bi, wi=np.array([ai, bi, ci]), phi_i_rad=pi_,
-                  sw=float(np.sum(w)), sw2=sw2, sigma=float(np.sqrt(np.sum(w * w * h * h) / sw2)),
-                  h32=h.astype(np.float32), w32=None if surface.periodic else w.astype(np.float32),
-                  fxs=np.fft.fftshift(np.fft.fftfreq(nx, dx)), fys=np.fft.fftshift(np.fft.fftfreq(ny, dy)))
+                  sw=float(np.sum(w)), sw2=sw2, sigma=float(np.sqrt(np.sum(w * w * (hc - hbar) ** 2) / sw2)),
+                  h32=hc.astype(np.float32), w32=None if surface.periodic else w.astype(np.float32),
+                  fxs=np.fft.fftshift(np.fft.fftfreq(nx, dx)), fys=np.fft.fftshift(np.fft.fftfreq(ny, dy)),
+                  w2=None if w2 is None else w2.astype(np.float32), moments=mom)
 
 
 def _phase_screens(shape, pitch_m, st: SolveSettings) -> list:
@@ -518,17 +443,20 @@ def _specular(side, fd: _Field, inc: Incidence, ks, polarization):
 
 @dataclass(frozen=True)
 class _Coarse:
-    """The pooled, cropped nu_xy grid of one side: pooling (by, bx), spacing df, origin f0 and
-    the crops of the target grid (tb, origin f0t) and of the node grids (nb, origin f0n)."""
+    """The pooled, cropped nu_xy grid of one side: pooling (by, bx), spacing df (pooled), the crop
+    tb of the pooled, fftshifted grid (origin f0t), and the matching full-resolution rows and
+    columns (indices into the unshifted FFT, and their frequencies)."""
 
     by: int
     bx: int
     df: tuple
     dF: float
     tb: tuple
-    nb: tuple
     f0t: tuple
-    f0n: tuple
+    rows: np.ndarray
+    cols: np.ndarray
+    fx_full: np.ndarray
+    fy_full: np.ndarray
 
 
 def _crop(fb, f0, df, ncx, ncy):
@@ -542,80 +470,29 @@ def _crop(fb, f0, df, ncx, ncy):
     return slice(j0, j1), slice(i0, i1)
 
 
-def _coarse_grid(fd: _Field, pitch_m, k1, ks, ns, nodes, st: SolveSettings) -> _Coarse:
+def _coarse_grid(fd: _Field, pitch_m, k1, ks, ns, st: SolveSettings) -> _Coarse:
     """Pooling: coarse spacing in direction cosines <= 0.7 x the filter width (adds < 4 % to its
-    variance); crops: the target box holds the requested disc plus the filter margin, node grids
-    also hold the points the similarity lookups reach."""
+    variance); crop: the requested disc plus the filter margin (4 widths)."""
     ny, nx = fd.shape
     dx, dy = pitch_m
-    width_dcos = st.width_dcos
     te = np.radians(np.asarray(st.theta_s_range_deg, float))
     dal = fd.lam / (ns * nx * dx)
     dbe = fd.lam / (ns * ny * dy)
-    bx = _pool_factor(nx, int(max(1, 0.7 * width_dcos / dal)))
-    by = _pool_factor(ny, int(max(1, 0.7 * width_dcos / dbe)))
+    bx = _pool_factor(nx, int(max(1, 0.7 * st.width_dcos / dal)))
+    by = _pool_factor(ny, int(max(1, 0.7 * st.width_dcos / dbe)))
     f0 = (fd.fxs[: (nx // bx) * bx].reshape(-1, bx).mean(axis=1)[0],
           fd.fys[: (ny // by) * by].reshape(-1, by).mean(axis=1)[0])
     df = (bx / (nx * dx), by / (ny * dy))
-    ncx_f, ncy_f = nx // bx, ny // by
-    reach = min(np.sin(te[-1]) + 4 * width_dcos, 1.0 + 4 * width_dcos)
+    reach = min(np.sin(te[-1]) + 4 * st.width_dcos, 1.0 + 4 * st.width_dcos)
     fxb = ((k1 * fd.ai - ks * reach) / (2 * np.pi), (k1 * fd.ai + ks * reach) / (2 * np.pi))
     fyb = ((k1 * fd.bi - ks * reach) / (2 * np.pi), (k1 * fd.bi + ks * reach) / (2 * np.pi))
-    anu = np.abs(nodes)
-    ratio = float(np.max(anu[1:] / np.maximum(anu[:-1], 1e-30))) if nodes.size > 1 else 1.0
-    ratio = max(ratio, 1.0 / min(ratio, 1.0) if ratio > 0 else 1.0)
-    if nodes.size > 1 and (np.min(anu) <= 0.25 * np.max(anu) or ratio > 4):
-        fbn = None
-    else:
-        fmax = max(abs(fxb[0]), abs(fxb[1]), abs(fyb[0]), abs(fyb[1])) * (ratio if nodes.size > 1 else 1.0)
-        fbn = ((-fmax, fmax), (-fmax, fmax))
-    tb = _crop((fxb, fyb), f0, df, ncx_f, ncy_f)
-    nb = _crop(fbn, f0, df, ncx_f, ncy_f)
-    return _Coarse(by=by, bx=bx, df=df, dF=(2 * np.pi) ** 2 * df[0] * df[1], tb=tb, nb=nb,
+    tb = _crop((fxb, fyb), f0, df, nx // bx, ny // by)
+    rs = np.arange(tb[0].start * by, tb[0].stop * by)          # rows of the fftshifted full grid
+    cs = np.arange(tb[1].start * bx, tb[1].stop * bx)
+    return _Coarse(by=by, bx=bx, df=df, dF=(2 * np.pi) ** 2 * df[0] * df[1], tb=tb,
                    f0t=(f0[0] + tb[1].start * df[0], f0[1] + tb[0].start * df[1]),
-                   f0n=(f0[0] + nb[1].start * df[0], f0[1] + nb[0].start * df[1]))
-
-
-def _node_densities(fd: _Field, nodes, nu_spec, cg: _Coarse, screens, workers):
-    """Diffuse power density on the node grids, one list per half of the screens (one list when
-    coherent); the mean field at the specular node; the number of FFTs (module doc)."""
-    ny, nx = fd.shape
-    ntot = nx * ny
-    halves = 2 if screens else 1
-    grids = [[] for _ in range(halves)]
-    m_spec, n_fft = 0.0, 0
-    for nu in nodes:
-        ph = fd.h32 * np.float32(-nu)
-        u = np.empty((ny, nx), np.complex64)
-        np.cos(ph, out=u.real)
-        np.sin(ph, out=u.imag)                           # u = exp(-i nu h)
-        direct = fd.w32 is None and not screens
-        if direct:
-            # periodic and coherent: the mean field is the DC coefficient; remove it there
-            m = None
-        else:
-            m = (np.sum(u) / ntot) if fd.w32 is None else (np.sum(u * fd.w32) / fd.sw)
-            u -= np.complex64(m)
-            if fd.w32 is not None:
-                u *= fd.w32
-        acc = [None] * halves
-        for k, e in enumerate(screens or [None]):
-            v = u * e if e is not None else u
-            F = sfft.fft2(v, workers=workers, overwrite_x=True)
-            n_fft += 1
-            if direct:
-                m = complex(F[0, 0]) / ntot
-                F[0, 0] = 0.0
-            p = F.real * F.real
-            p += F.imag * F.imag
-            p = _pool(p, cg.by, cg.bx)
-            acc[k % halves] = p if acc[k % halves] is None else acc[k % halves] + p
-        if nu_spec is not None and np.isclose(nu, nu_spec):
-            m_spec = complex(m)
-        for k in range(halves):
-            cnt = len(screens[k::2]) if screens else 1
-            grids[k].append(np.fft.fftshift(acc[k])[cg.nb].astype(float) / (cnt * ntot * fd.sw2 * cg.dF))
-    return grids, m_spec, n_fft
+                   rows=np.fft.fftshift(np.arange(ny))[rs], cols=np.fft.fftshift(np.arange(nx))[cs],
+                   fx_full=fd.fxs[cs], fy_full=fd.fys[rs])
 
 
 def _coherent_lobe(fd: _Field, cg: _Coarse, screens, workers):
@@ -635,27 +512,29 @@ def _coherent_lobe(fd: _Field, cg: _Coarse, screens, workers):
 
 
 def _cells(side, dens, geo, fd: _Field, inc: Incidence, st: SolveSettings, specular: tuple, out):
-    """Filter the densities into the cells (times obliquity and facet Fresnel); fills out[side] and,
+    """Filter the densities (obliquity and facet Fresnel already in) into the cells; fills out[side] and,
     when polarised, out[mueller_side] and out[spec_mueller_side]; returns the per-half values.
     specular: (coherent specular power, its Fresnel factor)."""
     n1, n2, ks = inc.n1, inc.n2, geo["ks"]
     spec, F_spec = specular
-    grid_of = lambda d: DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"])  # noqa: E731
+    disc = geo["disc"]
+
+    def cell_values(d):                       # power-conserving filter inside the disc, then cell averages
+        g = DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"]).smoothed(width, disc)
+        return ring_conserving(cell_average(g.extended(disc), cells), g, st.theta_edges_deg, st.phi_edges_deg)
+
     cells, width = st.cells, st.width_dcos
     if st.polarized:
-        fac = ks * ks * _obliquity_fresnel(geo, fd.wi, n1, n2, side, "unpolarized")
         Mn = _facet_mueller(geo, fd.wi, n1, n2, side, fd.phi_i_rad)
-        mus = [np.stack([cell_average(grid_of(d * fac * Mn[..., r, c]).smoothed(width), cells)
-                         for r in range(4) for c in range(4)], axis=-1).reshape(cells.alpha.shape[:2] + (4, 4))
-               for d in dens]
+        mus = [np.stack([cell_values(ks * ks * d * Mn[..., r, c]) for r in range(4) for c in range(4)],
+                        axis=-1).reshape(cells.alpha.shape[:2] + (4, 4)) for d in dens]
         out[f"mueller_{side}"] = sum(mus) / len(mus)
         sgn_pol = {"s": 1.0, "p": -1.0}.get(st.polarization, 0.0)
         vals = [m[..., 0, 0] + sgn_pol * m[..., 0, 1] for m in mus]
         ms = mueller_interface(fd.ci, n1, n2, side) if F_spec > 0 else np.zeros((4, 4))
         out[f"spec_mueller_{side}"] = np.nan_to_num(ms) * (spec / F_spec if F_spec > 0 else 0.0)
     else:
-        fac = ks * ks * _obliquity_fresnel(geo, fd.wi, n1, n2, side, st.polarization)
-        vals = [cell_average(grid_of(d * fac).smoothed(width), cells) for d in dens]
+        vals = [cell_values(ks * ks * d) for d in dens]
     out[side] = sum(vals) / len(vals)
     return vals
 
@@ -668,30 +547,139 @@ def _absorbed_side(out, cells) -> None:
     out["spec_mueller_T"] = np.zeros((4, 4))
 
 
-def _solve_side(side, surface: Surface, inc: Incidence, st: SolveSettings, fd: _Field, screens, out) -> int:
-    """One side (R or T) of one incidence into `out` (see solve_incidence); returns the FFT count."""
+def _nu_range(side, fd: _Field, k1, ks, st: SolveSettings):
+    """(nu_lo, nu_hi): the nu_z of the requested directions plus the filter margin."""
+    te = np.radians(np.asarray(st.theta_s_range_deg, float))
+    s_hi = min(np.sin(te[-1]) + 4 * st.width_dcos, 1.0)
+    s_lo = max(np.sin(te[0]) - 4 * st.width_dcos, 0.0) if te[0] > 0 else 0.0
+    sgn = 1.0 if side == "R" else -1.0
+    ends = k1 * fd.ci + sgn * ks * np.sqrt(1.0 - np.array([s_lo, s_hi]) ** 2)
+    return float(ends.min()), float(ends.max())
+
+
+def _mean_field(fd: _Field, nu: float) -> complex:
+    """m(nu) = <exp(-i nu h)> with the squared-window weights (module doc, coherent part)."""
+    ph = fd.h32 * np.float32(-nu)
+    c, s = np.cos(ph), np.sin(ph)
+    if fd.w2 is None:
+        return complex(c.mean(dtype=np.float64), s.mean(dtype=np.float64))
+    return complex(np.dot(c.ravel(), fd.w2.ravel()) / fd.sw2, np.dot(s.ravel(), fd.w2.ravel()) / fd.sw2)
+
+
+def _node_field(fd: _Field, nu: float) -> tuple[np.ndarray, complex | None]:
+    """(w exp(-i nu (h - h_c)) as complex64, its mean field m with the squared-window weights);
+    m is None for a periodic tile, where it is the FFT's DC term (removed there)."""
+    ph = fd.h32 * np.float32(-nu)
+    u = np.empty(fd.shape, np.complex64)
+    np.cos(ph, out=u.real)
+    np.sin(ph, out=u.imag)
+    if fd.w32 is None:
+        return u, None
+    m = complex(np.dot(u.real.ravel(), fd.w2.ravel()) / fd.sw2, np.dot(u.imag.ravel(), fd.w2.ravel()) / fd.sw2)
+    u *= fd.w32
+    return u, m
+
+
+def _side_power(fd: _Field, cg: _Coarse, nodes, nu_full, fac_full, screens, workers):
+    """Diffuse power density (per unit nu_xy area, times the obliquity-Fresnel factor fac_full of
+    every full-resolution frequency) on the pooled target grid, the field interpolated in nu_z to
+    every frequency's own nu_z (qz_expansion); one array per half of the screens (one when
+    coherent), and the number of FFTs.  The mean field is removed in the transform: FFT(w (u - m))
+    = FFT(w u) - m FFT(w) (for a periodic tile FFT(w) is N at DC only)."""
+    ny, nx = fd.shape
+    ntot = nx * ny
+    lb = LagrangeBasis(nodes, nu_full)
+    accs = [np.zeros(nu_full.shape, np.complex64) for _ in (screens or [None])]
+    dc = None
+    if fd.w32 is None and not screens:
+        hit = (cg.rows == 0)[:, None] & (cg.cols == 0)[None, :]
+        dc = np.nonzero(hit)
+    win = [None] * len(accs)
+    n_fft = 0
+    for j, nu in enumerate(nodes):
+        v, m = _node_field(fd, nu)
+        Lj = lb.basis(j)
+        for k, e in enumerate(screens or [None]):
+            if e is not None and win[k] is None:
+                ww = e if fd.w32 is None else e * fd.w32
+                win[k] = sfft.fft2(ww, workers=workers)[np.ix_(cg.rows, cg.cols)]
+                n_fft += 1
+            elif e is None and fd.w32 is not None and win[k] is None:
+                win[k] = sfft.fft2(fd.w32.astype(np.complex64), workers=workers)[np.ix_(cg.rows, cg.cols)]
+                n_fft += 1
+            if m is None and e is not None:
+                m = complex(v.mean(dtype=np.complex128))
+            F = sfft.fft2(v if e is None else v * e, workers=workers, overwrite_x=True)
+            n_fft += 1
+            Fc = F[np.ix_(cg.rows, cg.cols)]
+            if dc is not None:
+                Fc[dc] = 0.0                       # periodic, coherent: the mean field is the DC term
+            else:
+                Fc -= np.complex64(m) * win[k]
+            accs[k] += Lj * Fc
+    halves = 2 if screens else 1
+    acc_p = [None] * halves
+    for k, acc in enumerate(accs):
+        p = _pool((acc.real.astype(float) ** 2 + acc.imag.astype(float) ** 2) * fac_full, cg.by, cg.bx)
+        acc_p[k % halves] = p if acc_p[k % halves] is None else acc_p[k % halves] + p
+    dens = [acc_p[k] / ((len(screens[k::2]) if screens else 1) * ntot * fd.sw2 * cg.dF) for k in range(halves)]
+    return dens, n_fft
+
+
+def _side_density(side, surface: Surface, inc: Incidence, st: SolveSettings, fd: _Field, screens):
+    """The diffuse density of one side before filtering: (dens list, geo, cg, nu_spec, F_spec, m_spec,
+    n_nodes, error bound, FFT count)."""
     ns = np.real(inc.n1) if side == "R" else np.real(inc.n2)
     k1, ks = fd.k0 * np.real(inc.n1), fd.k0 * ns
     sgn = 1.0 if side == "R" else -1.0
     nu_spec, F_spec = _specular(side, fd, inc, ks, st.polarization)
-    te = np.radians(np.asarray(st.theta_s_range_deg, float))
-    cs_lo, cs_hi = np.cos(te[-1]), np.cos(te[0])
-    nu_a, nu_b = k1 * fd.ci + sgn * ks * cs_lo, k1 * fd.ci + sgn * ks * cs_hi
-    nodes = qz_nodes(nu_a, nu_b, nu_spec, fd.sigma, st.tau, st.max_nodes)
-    if nu_spec is not None and not np.any(np.isclose(nodes, nu_spec)):
-        nodes = np.unique(np.concatenate([nodes, [nu_spec]]))
-    cg = _coarse_grid(fd, surface.pitch_m, k1, ks, ns, nodes, st)
-    grids, m_spec, n_fft = _node_densities(fd, nodes, nu_spec, cg, screens, st.workers)
+    lo, hi = _nu_range(side, fd, k1, ks, st)
+    m_spec = _mean_field(fd, nu_spec) if nu_spec is not None else 0.0
+    m_ref = m_spec if nu_spec is not None else _mean_field(fd, lo if abs(lo) > abs(hi) else hi)
+    amp = np.sqrt(max(1.0 - abs(m_ref) ** 2, 0.0))
+    n_nodes, bound = expansion_order(0.5 * (hi - lo), fd.moments, amp, st.tau, st.max_nodes)
+    nodes = chebyshev_nodes(lo, hi, n_nodes)
+    cg = _coarse_grid(fd, surface.pitch_m, k1, ks, ns, st)
+    a = (2 * np.pi * cg.fx_full[None, :] - k1 * fd.ai) / ks
+    b = (2 * np.pi * cg.fy_full[:, None] - k1 * fd.bi) / ks
+    cs = np.sqrt(np.clip(1.0 - a * a - b * b, 0.0, 1.0))
+    nu_full = np.clip(k1 * fd.ci + sgn * ks * cs, lo, hi)
+    prop = a * a + b * b < 1.0
+    geo_full = {"a": a, "b": b, "cs": cs, "prop": prop, "k1": k1, "ks": ks, "sgn": sgn}
+    fac_full = _obliquity_fresnel(geo_full, fd.wi, inc.n1, inc.n2, side,
+                                  "unpolarized" if st.polarized else st.polarization)
+    dens, n_fft = _side_power(fd, cg, nodes, nu_full, fac_full, screens, st.workers)
     shape_t = (cg.tb[0].stop - cg.tb[0].start, cg.tb[1].stop - cg.tb[1].start)
     geo = _side_geometry(side, fd, np.real(inc.n1), ns, shape_t, cg.f0t, cg.df)
-    dens = [_interp_nodes(nodes, g, geo, fd.sigma, cg.f0t, cg.df, cg.f0n) for g in grids]
+    geo["disc"] = _pool(prop.astype(float), cg.by, cg.bx) > 0
+    return dens, geo, cg, nu_spec, F_spec, m_spec, n_nodes, bound, n_fft
+
+
+def order_powers(surface: Surface, inc: Incidence, st: SolveSettings, side: str) -> dict:
+    """Unfiltered result of one side, one value per FFT frequency (per diffraction order of a
+    periodic tile): direction cosines alpha, beta, the diffuse power fraction (obliquity and facet
+    Fresnel included) and the coherent specular fraction.  Coherent illumination only."""
+    st = dataclasses.replace(st, width_dcos=0.0, coherence_length_m=None)
+    fd = _field(surface, inc)
+    dens, geo, cg, nu_spec, F_spec, m_spec, n_nodes, bound, _ = _side_density(side, surface, inc, st, fd, [])
+    shape = geo["prop"].shape
+    return {"alpha": np.broadcast_to(geo["a"], shape), "beta": np.broadcast_to(geo["b"], shape),
+            "power": dens[0] * cg.dF, "specular": abs(m_spec) ** 2 * F_spec, "qz_nodes": n_nodes,
+            "error_bound": bound}
+
+
+def _solve_side(side, surface: Surface, inc: Incidence, st: SolveSettings, fd: _Field, screens, out) -> int:
+    """One side (R or T) of one incidence into `out` (see solve_incidence); returns the FFT count."""
+    dens, geo, cg, nu_spec, F_spec, m_spec, n_nodes, bound, n_fft = _side_density(side, surface, inc, st, fd,
+                                                                                 screens)
     spec = abs(m_spec) ** 2 * F_spec
     if screens and nu_spec is not None:
         # coherent part spread by the illumination's angular spectrum (the Phong-like peak);
-        # centred on nu_xy = 0 (the specular direction); Fresnel and obliquity via K F in _cells
+        # centred on nu_xy = 0 (the specular direction), times obliquity and facet Fresnel
         lobes, n_lobe = _coherent_lobe(fd, cg, screens, st.workers)
         n_fft += n_lobe
-        dens = [dens[k] + abs(m_spec) ** 2 * lobes[k] for k in range(2)]
+        kf = _obliquity_fresnel(geo, fd.wi, inc.n1, inc.n2, side, "unpolarized" if st.polarized else st.polarization)
+        dens = [dens[k] + abs(m_spec) ** 2 * lobes[k] * kf for k in range(2)]
         out["info"][f"coherent_specular_{side}"] = spec
         spec = 0.0
     vals = _cells(side, dens, geo, fd, inc, st, (spec, F_spec), out)
@@ -701,7 +689,8 @@ def _solve_side(side, surface: Surface, inc: Incidence, st: SolveSettings, fd: _
         out["info"][f"coherence_rel_error_{side}"] = float(
             0.5 * np.sqrt(np.mean(diff ** 2)) / np.sqrt(np.mean(out[side][big] ** 2))) if big.any() else 0.0
     out[f"spec_{side}"] = spec
-    out["info"][f"qz_nodes_{side}"] = int(nodes.size)
+    out["info"][f"qz_nodes_{side}"] = int(n_nodes)
+    out["info"][f"qz_error_bound_{side}"] = float(bound)
     out["info"][f"pool_{side}"] = [cg.by, cg.bx]
     return n_fft
 
@@ -774,7 +763,8 @@ def _prepare(relief, material: Material, request, opts: KirchhoffOptions) -> tup
                              instances=opts.coherence_instances, seed=request.seed, tau=opts.qz_tolerance,
                              max_nodes=opts.max_qz_nodes, workers=opts.fft_workers,
                              theta_s_range_deg=(request.theta_s_edges_deg[0], request.theta_s_edges_deg[-1]),
-                             polarized=opts.polarized)
+                             polarized=opts.polarized, theta_edges_deg=tuple(request.theta_s_edges_deg),
+                             phi_edges_deg=tuple(request.phi_s_edges_deg))
     ctx = {"surface": Surface(h, w, (relief.dx_m, relief.dy_m), relief.periodic), "wavelengths": wls,
            "theta_i": request.theta_i_deg, "phi_i": request.phi_i_deg, "settings": settings,
            "n": {(iw, fr): material.n_pair(wl, fr) for iw, wl in enumerate(wls) for fr in request.incident_from}}
@@ -808,6 +798,29 @@ def _collect(ctx, request, tasks, res) -> dict:
     return a
 
 
+ENERGY_DEFECT_WARN = 0.01
+
+
+def _energy_defect(tab: BsdfTable, material: Material) -> None:
+    """tab.lost = 1 - R - T, signed: absorption into a metal, and otherwise the tangent-plane
+    model's own energy defect (no shadowing / multiple scattering; negative = power created).
+    Stored in metadata['energy_defect'] too, and a RuntimeWarning above 1 % for a lossless boundary."""
+    h_ = tab.hemispherical()
+    lost = 1.0 - h_["R"] - h_["T"]
+    tab.lost = lost
+    absorbing = tab.incident_from == "outside" and any(
+        np.imag(material.n_pair(w, "outside")[1]) > 0 for w in tab.wavelength_nm)
+    worst = float(lost.flat[np.argmax(np.abs(lost))])
+    tab.metadata["energy_defect"] = {"max_abs": abs(worst), "worst_signed": worst,
+                                     "meaning": "absorption" if absorbing else "tangent-plane energy defect"}
+    if not absorbing and abs(worst) > ENERGY_DEFECT_WARN:
+        w, i, p = np.unravel_index(np.argmax(np.abs(lost)), lost.shape)
+        warnings.warn(f"kirchhoff ({tab.incident_from}): R + T differs from 1 by {-worst:+.2%} at "
+                      f"{tab.wavelength_nm[w]:g} nm, theta_i {tab.theta_i_deg[i]:g} deg: the tangent-plane "
+                      "model (no shadowing, single scattering) does not conserve energy here; the table "
+                      "stores it signed as 'lost'", RuntimeWarning, stacklevel=3)
+
+
 def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
     """Kirchhoff tables, one per side of incidence in request.incident_from (module doc)."""
     request.validate()
@@ -828,7 +841,6 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
             metadata={**meta, "incidences": infos,
                       "validity": "tangent-plane approximation: radius of curvature >> lambda, no shadowing, "
                                   "single scattering"}, **a)
-        h_ = tab.hemispherical()
-        tab.lost = np.clip(1.0 - h_["R"] - h_["T"], 0.0, None)   # absorbed (metal), evanescent or beyond the cells
+        _energy_defect(tab, material)
         tables.append(tab)
     return tables
