@@ -116,7 +116,7 @@ from relief_bsdf.core.fresnel import fresnel_reflectance as _fresnel
 from relief_bsdf.core.index import Material
 from relief_bsdf.parallel import in_worker, map_tasks, task_rng
 from relief_bsdf.methods.options import KirchhoffOptions
-from relief_bsdf.methods.wave_filter import (DcosGrid, cell_average, cell_samples, check_sides, ring_conserving,
+from relief_bsdf.methods.wave_filter import (DcosGrid, cell_average, cell_samples, check_sides, ring_factors,
                                              smoothing_width_dcos)
 from relief_bsdf.methods.rayleigh_rice import prepared_heights
 from relief_bsdf.methods.qz_expansion import HeightMoments, LagrangeBasis, chebyshev_nodes, expansion_order
@@ -518,23 +518,33 @@ def _cells(side, dens, geo, fd: _Field, inc: Incidence, st: SolveSettings, specu
     n1, n2, ks = inc.n1, inc.n2, geo["ks"]
     spec, F_spec = specular
     disc = geo["disc"]
-
-    def cell_values(d):                       # power-conserving filter inside the disc, then cell averages
-        g = DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"]).smoothed(width, disc)
-        return ring_conserving(cell_average(g.extended(disc), cells), g, st.theta_edges_deg, st.phi_edges_deg)
-
     cells, width = st.cells, st.width_dcos
+
+    def smooth(d):                            # power-conserving filter inside the disc
+        return DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"]).smoothed(width, disc)
+
+    def power_cells(d):                       # cell averages of the power, and their ring factors
+        g = smooth(d)
+        v = cell_average(g.extended(disc), cells)
+        f = ring_factors(v, g, st.theta_edges_deg, st.phi_edges_deg)[:, None]
+        return v * f, f
+
     if st.polarized:
         Mn = _facet_mueller(geo, fd.wi, n1, n2, side, fd.phi_i_rad)
-        mus = [np.stack([cell_values(ks * ks * d * Mn[..., r, c]) for r in range(4) for c in range(4)],
-                        axis=-1).reshape(cells.alpha.shape[:2] + (4, 4)) for d in dens]
+        mus = []
+        for d in dens:
+            m00, f = power_cells(ks * ks * d)           # M00 is the power itself (Mn00 = 1 wherever d > 0)
+            els = [m00 if (r, c) == (0, 0) else cell_average(smooth(ks * ks * d * Mn[..., r, c]).extended(disc),
+                                                               cells) * f
+                   for r in range(4) for c in range(4)]
+            mus.append(np.stack(els, axis=-1).reshape(cells.alpha.shape[:2] + (4, 4)))
         out[f"mueller_{side}"] = sum(mus) / len(mus)
         sgn_pol = {"s": 1.0, "p": -1.0}.get(st.polarization, 0.0)
         vals = [m[..., 0, 0] + sgn_pol * m[..., 0, 1] for m in mus]
         ms = mueller_interface(fd.ci, n1, n2, side) if F_spec > 0 else np.zeros((4, 4))
         out[f"spec_mueller_{side}"] = np.nan_to_num(ms) * (spec / F_spec if F_spec > 0 else 0.0)
     else:
-        vals = [cell_values(ks * ks * d) for d in dens]
+        vals = [power_cells(ks * ks * d)[0] for d in dens]
     out[side] = sum(vals) / len(vals)
     return vals
 
@@ -580,55 +590,26 @@ def _node_field(fd: _Field, nu: float) -> tuple[np.ndarray, complex | None]:
     return u, m
 
 
-def _side_power(fd: _Field, cg: _Coarse, nodes, nu_full, fac_full, screens, workers):
-    """Diffuse power density (per unit nu_xy area, times the obliquity-Fresnel factor fac_full of
-    every full-resolution frequency) on the pooled target grid, the field interpolated in nu_z to
-    every frequency's own nu_z (qz_expansion); one array per half of the screens (one when
-    coherent), and the number of FFTs.  The mean field is removed in the transform: FFT(w (u - m))
-    = FFT(w u) - m FFT(w) (for a periodic tile FFT(w) is N at DC only)."""
-    ny, nx = fd.shape
-    ntot = nx * ny
-    lb = LagrangeBasis(nodes, nu_full)
-    accs = [np.zeros(nu_full.shape, np.complex64) for _ in (screens or [None])]
-    dc = None
-    if fd.w32 is None and not screens:
-        hit = (cg.rows == 0)[:, None] & (cg.cols == 0)[None, :]
-        dc = np.nonzero(hit)
-    win = [None] * len(accs)
-    n_fft = 0
-    for j, nu in enumerate(nodes):
-        v, m = _node_field(fd, nu)
-        Lj = lb.basis(j)
-        for k, e in enumerate(screens or [None]):
-            if e is not None and win[k] is None:
-                ww = e if fd.w32 is None else e * fd.w32
-                win[k] = sfft.fft2(ww, workers=workers)[np.ix_(cg.rows, cg.cols)]
-                n_fft += 1
-            elif e is None and fd.w32 is not None and win[k] is None:
-                win[k] = sfft.fft2(fd.w32.astype(np.complex64), workers=workers)[np.ix_(cg.rows, cg.cols)]
-                n_fft += 1
-            if m is None and e is not None:
-                m = complex(v.mean(dtype=np.complex128))
-            F = sfft.fft2(v if e is None else v * e, workers=workers, overwrite_x=True)
-            n_fft += 1
-            Fc = F[np.ix_(cg.rows, cg.cols)]
-            if dc is not None:
-                Fc[dc] = 0.0                       # periodic, coherent: the mean field is the DC term
-            else:
-                Fc -= np.complex64(m) * win[k]
-            accs[k] += Lj * Fc
-    halves = 2 if screens else 1
-    acc_p = [None] * halves
-    for k, acc in enumerate(accs):
-        p = _pool((acc.real.astype(float) ** 2 + acc.imag.astype(float) ** 2) * fac_full, cg.by, cg.bx)
-        acc_p[k % halves] = p if acc_p[k % halves] is None else acc_p[k % halves] + p
-    dens = [acc_p[k] / ((len(screens[k::2]) if screens else 1) * ntot * fd.sw2 * cg.dF) for k in range(halves)]
-    return dens, n_fft
+@dataclass
+class _Side:
+    """One side (R or T) of one incidence before its FFTs: geometry, specular part, crops, the
+    full-resolution nu_z and obliquity-Fresnel factor of every frequency."""
+
+    side: str
+    ns: float
+    nu_spec: float | None
+    F_spec: float
+    m_spec: complex
+    amp: float
+    lo: float
+    hi: float
+    cg: _Coarse
+    nu_full: np.ndarray
+    fac_full: np.ndarray
+    geo: dict
 
 
-def _side_density(side, surface: Surface, inc: Incidence, st: SolveSettings, fd: _Field, screens):
-    """The diffuse density of one side before filtering: (dens list, geo, cg, nu_spec, F_spec, m_spec,
-    n_nodes, error bound, FFT count)."""
+def _side_setup(side, surface: Surface, inc: Incidence, st: SolveSettings, fd: _Field) -> _Side:
     ns = np.real(inc.n1) if side == "R" else np.real(inc.n2)
     k1, ks = fd.k0 * np.real(inc.n1), fd.k0 * ns
     sgn = 1.0 if side == "R" else -1.0
@@ -636,23 +617,99 @@ def _side_density(side, surface: Surface, inc: Incidence, st: SolveSettings, fd:
     lo, hi = _nu_range(side, fd, k1, ks, st)
     m_spec = _mean_field(fd, nu_spec) if nu_spec is not None else 0.0
     m_ref = m_spec if nu_spec is not None else _mean_field(fd, lo if abs(lo) > abs(hi) else hi)
-    amp = np.sqrt(max(1.0 - abs(m_ref) ** 2, 0.0))
-    n_nodes, bound = expansion_order(0.5 * (hi - lo), fd.moments, amp, st.tau, st.max_nodes)
-    nodes = chebyshev_nodes(lo, hi, n_nodes)
     cg = _coarse_grid(fd, surface.pitch_m, k1, ks, ns, st)
     a = (2 * np.pi * cg.fx_full[None, :] - k1 * fd.ai) / ks
     b = (2 * np.pi * cg.fy_full[:, None] - k1 * fd.bi) / ks
     cs = np.sqrt(np.clip(1.0 - a * a - b * b, 0.0, 1.0))
-    nu_full = np.clip(k1 * fd.ci + sgn * ks * cs, lo, hi)
     prop = a * a + b * b < 1.0
     geo_full = {"a": a, "b": b, "cs": cs, "prop": prop, "k1": k1, "ks": ks, "sgn": sgn}
     fac_full = _obliquity_fresnel(geo_full, fd.wi, inc.n1, inc.n2, side,
-                                  "unpolarized" if st.polarized else st.polarization)
-    dens, n_fft = _side_power(fd, cg, nodes, nu_full, fac_full, screens, st.workers)
+                                  "unpolarized" if st.polarized else st.polarization).astype(np.float32)
     shape_t = (cg.tb[0].stop - cg.tb[0].start, cg.tb[1].stop - cg.tb[1].start)
     geo = _side_geometry(side, fd, np.real(inc.n1), ns, shape_t, cg.f0t, cg.df)
     geo["disc"] = _pool(prop.astype(float), cg.by, cg.bx) > 0
-    return dens, geo, cg, nu_spec, F_spec, m_spec, n_nodes, bound, n_fft
+    # the reference diffuse amplitude of the tolerance; without a specular direction (transmission
+    # past the critical angle) the side only sees the weak far tail of the field: 10x lower
+    amp = float(np.sqrt(max(1.0 - abs(m_ref) ** 2, 0.0))) * (1.0 if nu_spec is not None else 0.1)
+    return _Side(side=side, ns=ns, nu_spec=nu_spec, F_spec=F_spec, m_spec=m_spec, amp=amp, lo=lo, hi=hi, cg=cg,
+                 nu_full=np.clip(k1 * fd.ci + sgn * ks * cs, lo, hi), fac_full=fac_full, geo=geo)
+
+
+def _plan_nodes(sides: list, fd: _Field, st: SolveSettings) -> list:
+    """[(nodes, error bound, [sides served])]: one node set per side, or one for the union of their
+    nu_z intervals when that needs fewer FFTs in all (the R and T intervals of an incidence touch at
+    nu_z = k1 cos t_i, so the union is about their sum and saves the fixed part of the count)."""
+    own = []
+    for sd in sides:
+        n, e = expansion_order(0.5 * (sd.hi - sd.lo), fd.moments, sd.amp, st.tau, st.max_nodes)
+        own.append((chebyshev_nodes(sd.lo, sd.hi, n), e, [sd]))
+    if len(sides) < 2:
+        return own
+    lo, hi = min(sd.lo for sd in sides), max(sd.hi for sd in sides)
+    n, e = expansion_order(0.5 * (hi - lo), fd.moments, min(sd.amp for sd in sides), st.tau, st.max_nodes)
+    if n < sum(o[0].size for o in own) and e <= max(o[1] for o in own):
+        return [(chebyshev_nodes(lo, hi, n), e, list(sides))]
+    return own
+
+
+def _side_power(fd: _Field, sides: list, nodes, screens, workers):
+    """Diffuse power density (per unit nu_xy area, times the obliquity-Fresnel factor of every
+    full-resolution frequency) on each side's pooled target grid, the field interpolated in nu_z
+    to every frequency's own nu_z (qz_expansion) from one FFT per node shared by the sides; per
+    side one array per half of the screens (one when coherent); and the number of FFTs.  The mean
+    field is removed in the transform: FFT(w (u - m)) = FFT(w u) - m FFT(w) (for a periodic tile
+    FFT(w) is N at DC only)."""
+    ny, nx = fd.shape
+    ntot = nx * ny
+    nscr = len(screens) or 1
+    bases = [LagrangeBasis(nodes, sd.nu_full) for sd in sides]
+    ix = [np.ix_(sd.cg.rows, sd.cg.cols) for sd in sides]
+    accs = [[np.zeros(sd.nu_full.shape, np.complex64) for _ in range(nscr)] for sd in sides]
+    periodic_coherent = fd.w32 is None and not screens
+    dcs = [np.nonzero((sd.cg.rows == 0)[:, None] & (sd.cg.cols == 0)[None, :]) for sd in sides]
+    win = [None] * nscr
+    n_fft = 0
+    for j, nu in enumerate(nodes):
+        v, m = _node_field(fd, nu)
+        Ls = [lb.basis(j) for lb in bases]
+        for k, e in enumerate(screens or [None]):
+            if not periodic_coherent and win[k] is None:
+                ww = fd.w32.astype(np.complex64) if e is None else (e if fd.w32 is None else e * fd.w32)
+                win[k] = sfft.fft2(ww, workers=workers)
+                n_fft += 1
+            if m is None and e is not None:
+                m = complex(v.mean(dtype=np.complex128))
+            F = sfft.fft2(v if e is None else v * e, workers=workers, overwrite_x=e is None)
+            n_fft += 1
+            for i, sd in enumerate(sides):
+                Fc = F[ix[i]]
+                if periodic_coherent:
+                    Fc[dcs[i]] = 0.0                 # the mean field is the DC term
+                else:
+                    Fc -= np.complex64(m) * win[k][ix[i]]
+                accs[i][k] += Ls[i] * Fc
+    halves = 2 if screens else 1
+    out = []
+    for i, sd in enumerate(sides):
+        acc_p = [None] * halves
+        for k, acc in enumerate(accs[i]):
+            p = _pool((acc.real.astype(float) ** 2 + acc.imag.astype(float) ** 2) * sd.fac_full, sd.cg.by, sd.cg.bx)
+            acc_p[k % halves] = p if acc_p[k % halves] is None else acc_p[k % halves] + p
+        cnt = [len(screens[k::2]) if screens else 1 for k in range(halves)]
+        out.append([acc_p[k] / (cnt[k] * ntot * fd.sw2 * sd.cg.dF) for k in range(halves)])
+    return out, n_fft
+
+
+def _densities(sides: list, fd: _Field, st: SolveSettings, screens) -> tuple[dict, dict, int]:
+    """{side: density list}, {side: (nodes, error bound)} and the FFT count, over the node plan."""
+    dens, plan_of, n_fft = {}, {}, 0
+    for nodes, bound, served in _plan_nodes(sides, fd, st):
+        d, n = _side_power(fd, served, nodes, screens, st.workers)
+        n_fft += n
+        for sd, di in zip(served, d):
+            dens[sd.side] = di
+            plan_of[sd.side] = (nodes, bound)
+    return dens, plan_of, n_fft
 
 
 def order_powers(surface: Surface, inc: Incidence, st: SolveSettings, side: str) -> dict:
@@ -661,37 +718,36 @@ def order_powers(surface: Surface, inc: Incidence, st: SolveSettings, side: str)
     Fresnel included) and the coherent specular fraction.  Coherent illumination only."""
     st = dataclasses.replace(st, width_dcos=0.0, coherence_length_m=None)
     fd = _field(surface, inc)
-    dens, geo, cg, nu_spec, F_spec, m_spec, n_nodes, bound, _ = _side_density(side, surface, inc, st, fd, [])
-    shape = geo["prop"].shape
-    return {"alpha": np.broadcast_to(geo["a"], shape), "beta": np.broadcast_to(geo["b"], shape),
-            "power": dens[0] * cg.dF, "specular": abs(m_spec) ** 2 * F_spec, "qz_nodes": n_nodes,
-            "error_bound": bound}
+    sd = _side_setup(side, surface, inc, st, fd)
+    dens, plan_of, _ = _densities([sd], fd, st, [])
+    shape = sd.geo["prop"].shape
+    return {"alpha": np.broadcast_to(sd.geo["a"], shape), "beta": np.broadcast_to(sd.geo["b"], shape),
+            "power": dens[side][0] * sd.cg.dF, "specular": abs(sd.m_spec) ** 2 * sd.F_spec,
+            "qz_nodes": int(plan_of[side][0].size), "error_bound": plan_of[side][1]}
 
 
-def _solve_side(side, surface: Surface, inc: Incidence, st: SolveSettings, fd: _Field, screens, out) -> int:
-    """One side (R or T) of one incidence into `out` (see solve_incidence); returns the FFT count."""
-    dens, geo, cg, nu_spec, F_spec, m_spec, n_nodes, bound, n_fft = _side_density(side, surface, inc, st, fd,
-                                                                                 screens)
-    spec = abs(m_spec) ** 2 * F_spec
-    if screens and nu_spec is not None:
+def _finish_side(sd: _Side, dens, nodes_bound, inc: Incidence, st: SolveSettings, fd: _Field, screens, out) -> int:
+    """Coherent part, filtering into the cells and the side's info into `out`; returns extra FFTs."""
+    side, geo, n_fft = sd.side, sd.geo, 0
+    spec = abs(sd.m_spec) ** 2 * sd.F_spec
+    if screens and sd.nu_spec is not None:
         # coherent part spread by the illumination's angular spectrum (the Phong-like peak);
         # centred on nu_xy = 0 (the specular direction), times obliquity and facet Fresnel
-        lobes, n_lobe = _coherent_lobe(fd, cg, screens, st.workers)
-        n_fft += n_lobe
+        lobes, n_fft = _coherent_lobe(fd, sd.cg, screens, st.workers)
         kf = _obliquity_fresnel(geo, fd.wi, inc.n1, inc.n2, side, "unpolarized" if st.polarized else st.polarization)
-        dens = [dens[k] + abs(m_spec) ** 2 * lobes[k] * kf for k in range(2)]
+        dens = [dens[k] + abs(sd.m_spec) ** 2 * lobes[k] * kf for k in range(2)]
         out["info"][f"coherent_specular_{side}"] = spec
         spec = 0.0
-    vals = _cells(side, dens, geo, fd, inc, st, (spec, F_spec), out)
+    vals = _cells(side, dens, geo, fd, inc, st, (spec, sd.F_spec), out)
     if screens:
         big = out[side] > 0.01 * out[side].max()
         diff = (vals[0] - vals[1])[big]
         out["info"][f"coherence_rel_error_{side}"] = float(
             0.5 * np.sqrt(np.mean(diff ** 2)) / np.sqrt(np.mean(out[side][big] ** 2))) if big.any() else 0.0
     out[f"spec_{side}"] = spec
-    out["info"][f"qz_nodes_{side}"] = int(n_nodes)
-    out["info"][f"qz_error_bound_{side}"] = float(bound)
-    out["info"][f"pool_{side}"] = [cg.by, cg.bx]
+    out["info"][f"qz_nodes_{side}"] = int(nodes_bound[0].size)
+    out["info"][f"qz_error_bound_{side}"] = float(nodes_bound[1])
+    out["info"][f"pool_{side}"] = [sd.cg.by, sd.cg.bx]
     return n_fft
 
 
@@ -702,12 +758,15 @@ def solve_incidence(surface: Surface, inc: Incidence, st: SolveSettings) -> dict
     fd = _field(surface, inc)
     screens = _phase_screens(fd.shape, surface.pitch_m, st)
     out = {"info": {}}
-    n_fft = 0
+    sides = []
     for side in st.sides:
         if side == "T" and np.imag(inc.n2) > 0:
             _absorbed_side(out, st.cells)
-            continue
-        n_fft += _solve_side(side, surface, inc, st, fd, screens, out)
+        else:
+            sides.append(_side_setup(side, surface, inc, st, fd))
+    dens, plan_of, n_fft = _densities(sides, fd, st, screens)
+    for sd in sides:
+        n_fft += _finish_side(sd, dens[sd.side], plan_of[sd.side], inc, st, fd, screens, out)
     out["info"]["ffts"] = n_fft
     out["info"]["seconds"] = time.perf_counter() - t0
     out["info"]["rms_height_m"] = fd.sigma

@@ -161,7 +161,13 @@ def cell_average(grid: DcosGrid, cells: CellSamples, extra=None) -> np.ndarray:
 
 
 def ring_conserving(values: np.ndarray, grid: DcosGrid, theta_edges_deg, phi_edges_deg) -> np.ndarray:
-    """Cell averages rescaled, band of theta rings by band, to the power the grid holds there.
+    """Cell averages rescaled, band of theta rings by band, to the power the grid holds there
+    (`ring_factors`)."""
+    return values * ring_factors(values, grid, theta_edges_deg, phi_edges_deg)[:, None]
+
+
+def ring_factors(values: np.ndarray, grid: DcosGrid, theta_edges_deg, phi_edges_deg) -> np.ndarray:
+    """Per theta ring, the factor that brings the cell averages to the power the grid holds there.
 
     The sub-point averages of `cell_average` are a quadrature of the (smoothed) density; near the
     rim of the disc, where the tangent-plane density grows like 1 / cos theta_s, a bilinear grid
@@ -171,12 +177,13 @@ def ring_conserving(values: np.ndarray, grid: DcosGrid, theta_edges_deg, phi_edg
     least two grid spacings wide, and each band's cells are scaled so that their power (value x
     projected solid angle) equals the grid's power in that band: the hemispherical total is then
     the grid's exactly, and the shape within a band is the quadrature's.  Only for a full 360 deg
-    azimuth span (otherwise `values` are returned as they are).
+    azimuth span (otherwise all factors are 1).
     """
     te = np.radians(np.asarray(theta_edges_deg, float))
     pe = np.radians(np.asarray(phi_edges_deg, float))
+    fac = np.ones(te.size - 1)
     if abs((pe[-1] - pe[0]) - 2 * np.pi) > 1e-9:
-        return values
+        return fac
     ny, nx = grid.density.shape
     al = grid.alpha0 + grid.dalpha * np.arange(nx)
     be = grid.beta0 + grid.dbeta * np.arange(ny)
@@ -190,7 +197,6 @@ def ring_conserving(values: np.ndarray, grid: DcosGrid, theta_edges_deg, phi_edg
     psa = 0.5 * (se[1:] ** 2 - se[:-1] ** 2)[:, None] * np.diff(pe)[None, :]
     cell_ring = np.sum(values * psa, axis=1)
     step = 2.0 * max(grid.dalpha, grid.dbeta)
-    out = values.copy()
     start = 0
     while start < te.size - 1:
         stop = start + 1
@@ -200,9 +206,9 @@ def ring_conserving(values: np.ndarray, grid: DcosGrid, theta_edges_deg, phi_edg
             stop = te.size - 1                   # a too thin last band joins this one
         have, want = cell_ring[start:stop].sum(), grid_ring[start:stop].sum()
         if have > 0:
-            out[start:stop] *= want / have
+            fac[start:stop] = want / have
         start = stop
-    return out
+    return fac
 
 
 def check_sides(material, request, method: str) -> None:
