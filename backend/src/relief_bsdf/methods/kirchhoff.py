@@ -33,30 +33,28 @@ Two factors multiply it:
 No shadowing or multiple scattering (tangent-plane approximation: radius of curvature >> lambda,
 moderate slopes, not too grazing).
 
-Coherent specular part.  The mean field m = sum(w u) / sum(w) of u = exp(-i nu_z h) at the
-specular (undeviated) nu_z is removed from the field before the FFT; |m|^2 F is reported as
-`specular_R` / `specular_T` (a delta, not smeared into cells).
+Coherent specular part.  The mean field m = sum(w^2 u) / sum(w^2) of u = exp(-i nu_z h) at the
+specular (undeviated) nu_z - weighted by the squared window, the same weights as the power, so
+that |m|^2 + sum(w^2 |u - m|^2) / sum(w^2) = 1 exactly for a windowed map too - is removed from
+the field (FFT(w (u - m)) = FFT(w u) - m FFT(w); for a periodic tile the DC term); |m|^2 F is
+reported as `specular_R` / `specular_T` (a delta, not smeared into cells), computed from the
+map's own heights (no Gaussian Debye-Waller factor).
 
-The nu_z dependence (q_z scheme).  nu_z changes with the scattering direction, so one FFT
-is exact only on one ring of directions.  FFTs are taken at a few nodes nu_z,j (one at the
-specular nu_z, others stepping out to cover the requested theta_s range); between nodes the
-power density D(nu_xy; nu_z) is interpolated linearly in nu_z from the two nearest nodes
-after a *similarity transformation* that is exact in both asymptotic regimes
-(x = nu_z^2 sigma^2):
-    D(nu_xy; nu_z) ~ A D_j(nu_xy r^gamma),  r = nu_z,j / nu_z,  gamma = x / (1 + x),
-    A = [(1 - e^-x) / (1 - e^-x_j)] |r|^(2 gamma).
-For x << 1 (first-order regime) D is proportional to x S(nu_xy / 2 pi) (A = x / x_j, no
-rescaling); for x >> 1 (geometric optics) D = p(slope = -nu_xy / nu_z) / nu_z^2 (pure
-rescaling).  By default ONE node per side (the specular nu_z; the midpoint of the range when
-there is no specular direction) and the similarity transformation extrapolates to every
-other direction: measured against a dense-node reference (30-40 nodes, 1024^2 Gaussian
-reliefs, rms 50 / 100 / 300 nm, correlation 5 um, 550 nm, 30 deg, both sides) the median
-in-lobe cell error is 0.1-1.1 % (largest 6-15 % at the lobe's 1 % edge) and R + T moves by
-<= 0.2 %.  The option qz_tolerance = tau adds nodes, spaced greedily so that the change
-of x between a node and the points it serves is at most tau max(1, x^2 / 2) (never blending
-across nu_z = 0, where the pattern mirrors); tau = 0.3 brings the median error to ~0.4 %
-for 2-20 nodes per side.  FFTs are single precision (complex64) with scipy.fft, workers =
-the option fft_workers (default 2; 1 inside a pool worker, where the pool already fills the cores).
+The nu_z dependence.  nu_z changes with the scattering direction, so one FFT is exact only on
+one ring of directions.  The field is interpolated in nu_z, exactly to a stated tolerance, by
+methods.qz_expansion: n FFTs of w exp(-i nu_j h) at the Chebyshev nodes nu_j of the nu_z interval
+the requested directions span (plus the filter margin), combined at every frequency with the
+barycentric Lagrange weights of its own nu_z.  n is the fewest nodes whose error bound (rms field
+error / rms diffuse field, from the map's height moments) is at most the option qz_tolerance
+(default 1e-3; about 2e-3 on the diffuse power); it is chosen per incidence from the nu_z span
+times the height range (few nodes where q_z sigma is small), and R and T share one node set
+when their touching intervals need fewer FFTs together.  Past the critical angle the tolerance's
+reference amplitude is taken 10x lower (the side sees only the field's weak far tail).  Checked
+against direct integration at every diffraction order (tests/backend/methods/kirchhoff_oracle.py:
+in-lobe cells within 3 %, totals within 1 %, Gaussian / exponential / light-guide-dot reliefs,
+0-60 deg from both sides).  The bound reached is reported per side (info qz_error_bound_R/T).
+FFTs are single precision (complex64) with scipy.fft, workers = the option fft_workers (default
+2; 1 inside a pool worker, where the pool already fills the cores).
 
 Partial coherence (request.coherence_length_m = Lc).  The incident field is multiplied by
 exp(i psi), psi a Gaussian random phase screen of rms pi rad and Gaussian correlation length
@@ -78,9 +76,17 @@ exact: diffraction orders of the periodic tile); measured ones are levelled and 
 by a 2-D Hann window (normalised by sum(w^2)), which suppresses the edge discontinuity.
 
 Filtering into cells: `wave_filter` (one Gaussian width in direction cosines for the whole
-request, from the coarsest speckle grain and the finest cell).  FFT samples are first
-summed in blocks (power conserving) to a grid spacing of at most 0.7 of that width (the block
-sum is a box filter that adds < 4 % to the Gaussian's variance).
+request, from the coarsest speckle grain and the finest cell).  The power of every FFT sample,
+times its own obliquity and facet Fresnel factor, is first summed in blocks (power conserving) to
+a grid spacing of at most 0.7 of that width (the block sum adds < 4 % to the Gaussian's
+variance); the filter is a normalised convolution inside the propagating disc (no power is
+spread beyond the rim), and the cell averages are rescaled band of rings by band to the power
+the grid holds there (`wave_filter.ring_factors`), so the hemispherical totals are the integral's.
+
+Energy.  R + T of the tangent-plane model is not 1 in general (no shadowing or multiple
+scattering; grazing incidence and light past the critical angle are the worst): the defect
+1 - R - T is stored signed in `lost` and in metadata["energy_defect"], and a RuntimeWarning is
+raised above 1 % for a lossless boundary (for a metal `lost` is the absorption).
 
 Polarisation (option polarized = True, CLI --polarized): the scalar Fresnel factor is
 replaced by the Fresnel Mueller matrix of the stationary-phase facet, rotated from the
@@ -88,21 +94,20 @@ table's incident s/p basis into the facet's plane of incidence and out into the 
 basis (bsdf.py frames; the vector tangent-plane approximation in its single-facet form, as
 microfacet.walter_mueller), giving `mueller_per_sr` with M00 = the unpolarised values.
 
-Options (methods.options.KirchhoffOptions, read from request.options): qz_tolerance (default: one
-node), max_qz_nodes (default 16), fft_workers, band_limited, coherence_instances, smoothing_dcos,
+Options (methods.options.KirchhoffOptions, read from request.options): qz_tolerance (default
+1e-3), max_qz_nodes (default 64), fft_workers, band_limited, coherence_instances, smoothing_dcos,
 polarized, backend.
 
-Code layout: `solve_incidence(Surface, Incidence, SolveSettings)` solves one incidence; per side
-(`_solve_side`) it picks the nodes (`qz_nodes`), pools and crops the nu_xy grid (`_coarse_grid`),
-takes the node FFTs (`_node_densities`), interpolates to each direction's own nu_z
-(`_interp_nodes`), adds the coherent lobe under partial coherence (`_coherent_lobe`) and filters
-into the cells with obliquity and facet Fresnel (`_cells`).
+Code layout: `solve_incidence(Surface, Incidence, SolveSettings)` solves one incidence: per side
+`_side_setup` (specular part, nu_z range, crops, every frequency's nu_z and obliquity-Fresnel
+factor), `_plan_nodes` (the q_z nodes, shared or per side), `_side_power` (the node FFTs and the
+interpolation), `_finish_side` (coherent lobe under partial coherence, `_cells`: filtering).
+`order_powers` gives the unfiltered power of every diffraction order (what the oracle checks).
 """
 from __future__ import annotations
 
 import dataclasses
 import time
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,7 +121,8 @@ from relief_bsdf.core.fresnel import fresnel_reflectance as _fresnel
 from relief_bsdf.core.index import Material
 from relief_bsdf.parallel import in_worker, map_tasks, task_rng
 from relief_bsdf.methods.options import KirchhoffOptions
-from relief_bsdf.methods.wave_filter import (DcosGrid, cell_average, cell_samples, check_sides, ring_factors,
+from relief_bsdf.methods.wave_filter import (DcosGrid, cell_average, cell_samples, check_sides, energy_defect,
+                                             ring_factors,
                                              smoothing_width_dcos)
 from relief_bsdf.methods.rayleigh_rice import prepared_heights
 from relief_bsdf.methods.qz_expansion import HeightMoments, LagrangeBasis, chebyshev_nodes, expansion_order
@@ -524,8 +530,9 @@ def _cells(side, dens, geo, fd: _Field, inc: Incidence, st: SolveSettings, specu
     disc = geo["disc"]
     cells, width = st.cells, st.width_dcos
 
-    def smooth(d):                            # power-conserving filter inside the disc
-        return DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"]).smoothed(width, disc)
+    def smooth(d, conserving=True):           # power-conserving filter inside the disc (or plain)
+        return DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"]).smoothed(
+            width, disc if conserving else None)
 
     def power_cells(d):                       # cell averages of the power, and their ring factors
         g = smooth(d)
@@ -534,14 +541,22 @@ def _cells(side, dens, geo, fd: _Field, inc: Incidence, st: SolveSettings, specu
         return v * f, f
 
     if st.polarized:
-        Mn = _facet_mueller(geo, fd.wi, n1, n2, side, fd.phi_i_rad)
+        # the stationary-phase facet's Mueller matrix at every cell sub-point (its own direction), averaged
+        # over the cell with the filtered power as weight; M00 is the power itself (rotation-covariant:
+        # the matrix of a direction does not depend on how the FFT grid meets the rim)
+        a_s, b_s = cells.alpha, cells.beta
+        geo_s = {"a": a_s, "b": b_s, "cs": np.sqrt(np.clip(1 - a_s * a_s - b_s * b_s, 0, 1)),
+                 "prop": a_s * a_s + b_s * b_s < 1.0, "k1": geo["k1"], "ks": ks, "sgn": geo["sgn"]}
+        Mn = _facet_mueller(geo_s, fd.wi, n1, n2, side, fd.phi_i_rad)          # (S, A, M, 4, 4)
         mus = []
         for d in dens:
-            m00, f = power_cells(ks * ks * d)           # M00 is the power itself (Mn00 = 1 wherever d > 0)
-            els = [m00 if (r, c) == (0, 0) else cell_average(smooth(ks * ks * d * Mn[..., r, c]).extended(disc),
-                                                               cells) * f
-                   for r in range(4) for c in range(4)]
-            mus.append(np.stack(els, axis=-1).reshape(cells.alpha.shape[:2] + (4, 4)))
+            m00, _ = power_cells(ks * ks * d)
+            w_sub = smooth(ks * ks * d).extended(disc).at(a_s, b_s)                # (S, A, M)
+            wsum = w_sub.sum(axis=-1)
+            avg = np.where(wsum[..., None, None] > 0,
+                           np.einsum("sam,samrc->sarc", w_sub, Mn) / np.where(wsum > 0, wsum, 1.0)[..., None, None],
+                           Mn.mean(axis=2))
+            mus.append(avg * m00[..., None, None])
         out[f"mueller_{side}"] = sum(mus) / len(mus)
         sgn_pol = {"s": 1.0, "p": -1.0}.get(st.polarization, 0.0)
         vals = [m[..., 0, 0] + sgn_pol * m[..., 0, 1] for m in mus]
@@ -861,29 +876,6 @@ def _collect(ctx, request, tasks, res) -> dict:
     return a
 
 
-ENERGY_DEFECT_WARN = 0.01
-
-
-def _energy_defect(tab: BsdfTable, material: Material) -> None:
-    """tab.lost = 1 - R - T, signed: absorption into a metal, and otherwise the tangent-plane
-    model's own energy defect (no shadowing / multiple scattering; negative = power created).
-    Stored in metadata['energy_defect'] too, and a RuntimeWarning above 1 % for a lossless boundary."""
-    h_ = tab.hemispherical()
-    lost = 1.0 - h_["R"] - h_["T"]
-    tab.lost = lost
-    absorbing = tab.incident_from == "outside" and any(
-        np.imag(material.n_pair(w, "outside")[1]) > 0 for w in tab.wavelength_nm)
-    worst = float(lost.flat[np.argmax(np.abs(lost))])
-    tab.metadata["energy_defect"] = {"max_abs": abs(worst), "worst_signed": worst,
-                                     "meaning": "absorption" if absorbing else "tangent-plane energy defect"}
-    if not absorbing and abs(worst) > ENERGY_DEFECT_WARN:
-        w, i, p = np.unravel_index(np.argmax(np.abs(lost)), lost.shape)
-        warnings.warn(f"kirchhoff ({tab.incident_from}): R + T differs from 1 by {-worst:+.2%} at "
-                      f"{tab.wavelength_nm[w]:g} nm, theta_i {tab.theta_i_deg[i]:g} deg: the tangent-plane "
-                      "model (no shadowing, single scattering) does not conserve energy here; the table "
-                      "stores it signed as 'lost'", RuntimeWarning, stacklevel=3)
-
-
 def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
     """Kirchhoff tables, one per side of incidence in request.incident_from (module doc)."""
     request.validate()
@@ -904,6 +896,6 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
             metadata={**meta, "incidences": infos,
                       "validity": "tangent-plane approximation: radius of curvature >> lambda, no shadowing, "
                                   "single scattering"}, **a)
-        _energy_defect(tab, material)
+        energy_defect(tab, material, "kirchhoff", "tangent-plane")
         tables.append(tab)
     return tables

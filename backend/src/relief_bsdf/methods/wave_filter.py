@@ -18,9 +18,12 @@ size L).  It is smoothed with a Gaussian kernel of one width `w` in direction co
 chosen ONCE per request from the coarsest speckle grain over all wavelengths and sides
 and from the finest requested cell (`smoothing_width_dcos`), so adjacent wavelengths and
 incidences are filtered identically in physical (direction-cosine) terms - the
-inconsistency the paper warns about does not arise.  Gaussian smoothing of a power
-density conserves its integral, so the filtering moves no energy in or out of the
-hemisphere except across its rim (|alpha, beta| = 1), where the density is small.
+inconsistency the paper warns about does not arise.  Inside the propagating disc the
+smoothing is a normalised convolution (`DcosGrid.smoothed(width, mask)`): every sample's
+power stays in the disc, so filtering moves no energy out of the hemisphere; the cell
+averages are then brought to the power the grid holds, ring band by ring band
+(`ring_factors`), which removes the quadrature error of the sub-point averages where the
+tangent-plane density grows toward the rim.
 """
 from __future__ import annotations
 
@@ -166,6 +169,10 @@ def ring_conserving(values: np.ndarray, grid: DcosGrid, theta_edges_deg, phi_edg
     return values * ring_factors(values, grid, theta_edges_deg, phi_edges_deg)[:, None]
 
 
+BAND_SPACINGS = 8        # a band of rings is at least this many grid spacings wide ...
+BAND_SAMPLES = 400       # ... and holds at least this many grid samples (assignment by centre: ~ 1/sqrt(N))
+
+
 def ring_factors(values: np.ndarray, grid: DcosGrid, theta_edges_deg, phi_edges_deg) -> np.ndarray:
     """Per theta ring, the factor that brings the cell averages to the power the grid holds there.
 
@@ -174,7 +181,8 @@ def ring_factors(values: np.ndarray, grid: DcosGrid, theta_edges_deg, phi_edges_
     under-resolves it and the quadrature misses a few % of the power.  Here each grid sample's
     power (density x d alpha d beta) is assigned to the theta ring holding its direction (samples
     beyond the rim to the last ring when it reaches 90 deg), rings are merged outward into bands at
-    least two grid spacings wide, and each band's cells are scaled so that their power (value x
+    least BAND_SPACINGS grid spacings wide holding BAND_SAMPLES samples (so that assigning a sample
+    by its centre errs by well under 1 % of a band), and each band's cells are scaled so that their power (value x
     projected solid angle) equals the grid's power in that band: the hemispherical total is then
     the grid's exactly, and the shape within a band is the quadrature's.  Only for a full 360 deg
     azimuth span (otherwise all factors are 1).
@@ -196,19 +204,44 @@ def ring_factors(values: np.ndarray, grid: DcosGrid, theta_edges_deg, phi_edges_
     grid_ring = np.bincount(ring, weights=p[keep], minlength=te.size - 1)
     psa = 0.5 * (se[1:] ** 2 - se[:-1] ** 2)[:, None] * np.diff(pe)[None, :]
     cell_ring = np.sum(values * psa, axis=1)
-    step = 2.0 * max(grid.dalpha, grid.dbeta)
+    step = BAND_SPACINGS * max(grid.dalpha, grid.dbeta)
+    count = np.bincount(ring, minlength=te.size - 1)
     start = 0
     while start < te.size - 1:
         stop = start + 1
-        while stop < te.size - 1 and se[stop] - se[start] < step:
+        while stop < te.size - 1 and (se[stop] - se[start] < step or count[start:stop].sum() < BAND_SAMPLES):
             stop += 1
-        if te.size - 1 - stop > 0 and se[-1] - se[stop] < step:
+        if te.size - 1 - stop > 0 and (se[-1] - se[stop] < step or count[stop:].sum() < BAND_SAMPLES):
             stop = te.size - 1                   # a too thin last band joins this one
         have, want = cell_ring[start:stop].sum(), grid_ring[start:stop].sum()
         if have > 0:
             fac[start:stop] = want / have
         start = stop
     return fac
+
+
+ENERGY_DEFECT_WARN = 0.01
+
+
+def energy_defect(tab, material, method: str, model: str) -> None:
+    """tab.lost = 1 - R - T, signed: absorption into a metal, otherwise the model's own energy defect
+    (negative = more power out than in).  Stored in metadata["energy_defect"] too; a RuntimeWarning
+    above 1 % for a lossless boundary."""
+    import warnings
+    h_ = tab.hemispherical()
+    lost = 1.0 - h_["R"] - h_["T"]
+    tab.lost = lost
+    absorbing = tab.incident_from == "outside" and any(
+        np.imag(material.n_pair(w, "outside")[1]) > 0 for w in tab.wavelength_nm)
+    k = int(np.argmax(np.abs(lost)))
+    worst = float(lost.flat[k])
+    tab.metadata["energy_defect"] = {"max_abs": abs(worst), "worst_signed": worst,
+                                     "meaning": "absorption" if absorbing else f"{model} energy defect"}
+    if not absorbing and abs(worst) > ENERGY_DEFECT_WARN:
+        w, i, p = np.unravel_index(k, lost.shape)
+        warnings.warn(f"{method} ({tab.incident_from}): R + T differs from 1 by {-worst:+.2%} at "
+                      f"{tab.wavelength_nm[w]:g} nm, theta_i {tab.theta_i_deg[i]:g} deg: the {model} model does not "
+                      "conserve energy here; the table stores it signed as 'lost'", RuntimeWarning, stacklevel=4)
 
 
 def check_sides(material, request, method: str) -> None:
