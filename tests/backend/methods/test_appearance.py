@@ -89,3 +89,14 @@ def test_relief_info_reports_noise_band_and_flags():
     spiky[rng.random(base.shape) < 2e-3] += 300e-9
     s = relief_info(Relief(spiky, 0.05e-6, 0.05e-6, periodic=True, source="spiky"))
     assert s["flags"]["spiky"] and s["flags"]["kurtosis"] > 5 and "spiky" in s["flags"]["statements"][0]
+
+
+def test_plot_note_states_the_specular_parts_per_wavelength():
+    """`relief plot` annotates what the cells cannot show: the specular deltas and the haze, one line
+    per wavelength (colour dependence)."""
+    from relief_bsdf.cli.cmd_plot import specular_note
+    rel = Relief(np.zeros((64, 64)), 0.1e-6, 0.1e-6, periodic=True, source="flat")
+    (tab,) = reconstruct(rel, MAT, Request(wavelengths_nm=(450.0, 650.0), theta_i_deg=(0.0, 40.0)), "flat")
+    note = specular_note(tab).splitlines()
+    assert len(note) == 3 and note[1].startswith("450 nm") and note[2].startswith("650 nm")
+    assert f"{tab.specular_T[0, 0, 0]:.4f}" in note[1] and "haze (>2.5 deg) 0.0000 0.0000" in note[1]

@@ -19,6 +19,24 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
+def specular_note(table, ip: int = 0) -> str:
+    """The coherent (specular) parts, which the cells do not show, and the haze per wavelength (its
+    colour dependence: a wave-optics relief is sharper in the red), one line per wavelength."""
+    from relief_bsdf.bsdf.appearance import appearance
+    rows = appearance(table)
+    P = len(table.phi_i_deg)
+    lines = []
+    for iw, wl in enumerate(table.wavelength_nm):
+        sr = " ".join(f"{v:.4f}" for v in table.specular_R[iw, :, ip])
+        st = " ".join(f"{v:.4f}" for v in table.specular_T[iw, :, ip])
+        hz = " ".join(f"{rows[(iw * len(table.theta_i_deg) + it) * P + ip].haze:.4f}"
+                      for it in range(len(table.theta_i_deg)))
+        lines.append(f"{wl:g} nm: specular R {sr} | specular T {st} | haze (>2.5 deg) {hz}")
+    head = ("specular deltas (not drawn in the cells) per theta_i "
+            + ", ".join(f"{t:g}" for t in table.theta_i_deg) + " deg")
+    return "\n".join([head] + lines)
+
+
 def run(args) -> int:
     from pathlib import Path
 
@@ -28,6 +46,7 @@ def run(args) -> int:
     path = Path(args.table)
     tables = load_tables(path)
     table = table_for(tables, args.incident_from, path) if args.incident_from else tables[0]
+    full = table
     table = table.select(args.wavelength_nm)
     out = Path(args.out) if args.out else path.with_suffix(".png")
     if out.suffix.lower() != ".png":
@@ -42,6 +61,8 @@ def run(args) -> int:
         labels = [path.stem] + [Path(o).stem for o in args.compare]
         save_figure(compare_figure([table] + others, labels, sides), out)
     else:
-        save_figure(table_figure(table, sides), out)
+        fig = table_figure(table, sides)
+        fig.text(0.01, 0.005, specular_note(full), fontsize=7, family="monospace", va="bottom")
+        save_figure(fig, out)
     print(f"wrote {out}")
     return 0
