@@ -827,8 +827,11 @@ def _prepare(relief, material: Material, request, opts: KirchhoffOptions) -> tup
     width = smoothing_width_dcos(speckle_dcos(relief, material, request), request.theta_s_edges_deg,
                                  opts.smoothing_dcos)
     check_sampling(relief, material, request, width, opts.band_limited)
-    h, w = prepared_heights(relief)
     wls = np.asarray(request.wavelengths_nm, float)
+    band = None
+    if opts.band_limit_heights:
+        relief, band = _band_limit(relief, material, request, width)
+    h, w = prepared_heights(relief)
     nmax = max(np.real(n) for wl in wls for fr in request.incident_from for n in material.n_pair(wl, fr))
     nu_max = 2 * nmax * 2 * np.pi / (wls.min() * 1e-9)
     alias = check_aliasing(h, w, nu_max, relief.source or "relief")
@@ -848,8 +851,31 @@ def _prepare(relief, material: Material, request, opts: KirchhoffOptions) -> tup
            "n": {(iw, fr): material.n_pair(wl, fr) for iw, wl in enumerate(wls) for fr in request.incident_from}}
     meta = {"smoothing_dcos": width, "window": "none (periodic)" if relief.periodic else "2-D Hann",
             "aliased_step_fraction": alias, "coherence_length_m": lc,
-            "coherence_instances": opts.coherence_instances if lc is not None else 0}
+            "coherence_instances": opts.coherence_instances if lc is not None else 0,
+            "height_band_limit": band}
     return ctx, meta
+
+
+def _band_limit(relief, material: Material, request, width_dcos: float):
+    """The relief low-passed to the spatial frequencies that can scatter into a requested direction
+    (any wavelength, side and incidence of the request, plus the filter margin), and the statement
+    of what was removed (None when the pitch's band is already inside).  Finer components
+    (profilometer noise, tip artefacts) would only scatter into evanescent orders, yet in the
+    tangent-plane phase exp(-i nu_z h) they would lower the coherent part and book their power as
+    an energy defect; first-order theory (rayleigh-rice) shows they take no power from it."""
+    from relief_bsdf.surface.stats import band_limited
+    lam = min(request.wavelengths_nm) * 1e-9
+    n_in = max(float(np.real(material.n_pair(wl, fr)[0])) for wl in request.wavelengths_nm
+               for fr in request.incident_from)
+    n_any = max(float(np.real(n)) for wl in request.wavelengths_nm for fr in request.incident_from
+                for n in material.n_pair(wl, fr) if np.imag(n) == 0)
+    s_max = min(np.sin(np.radians(request.theta_s_edges_deg[-1])) + 4 * width_dcos, 1.0 + 4 * width_dcos)
+    f_max = (n_in * np.sin(np.radians(max(request.theta_i_deg))) + n_any * s_max) / lam
+    if f_max >= 0.5 / max(relief.dx_m, relief.dy_m):
+        return relief, None
+    bl = band_limited(relief, f_max)
+    return bl.relief, {"f_max_per_m": bl.f_max_per_m, "removed_rms_m": bl.removed_rms_m,
+                       "removed_rms_slope": bl.removed_rms_slope, "statement": bl.statement()}
 
 
 def _collect(ctx, request, tasks, res) -> dict:

@@ -161,6 +161,8 @@ class KirchhoffOptions(MethodOptions):
     fft_workers: int = opt(2, "int", "scipy.fft workers in this process (1 inside a pool worker)", minimum=1)
     band_limited: bool = opt(False, "bool", "take the relief as band-limited: directions beyond the pitch's band "
                              "get no power instead of refusing the request")
+    band_limit_heights: bool = opt(True, "bool", "low-pass the heights to the spatial frequencies that scatter into "
+                                   "the requested directions (what was removed is in metadata height_band_limit)")
     coherence_instances: int = opt(8, "int", "random phase screens averaged for partial coherence (>= 2)")
     smoothing_dcos: float | None = opt(None, "float", "filter width in direction cosines (None: from speckle and "
                                        "cells)", optional=True, minimum=0.0)
