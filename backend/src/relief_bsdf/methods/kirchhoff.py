@@ -272,7 +272,7 @@ def _obliquity_fresnel(geo, wi, n1, n2, side, polarization):
     K = ih * oh * nn2 / (np.maximum(nuz * nuz, f4(1e-12) * nn2) * w2 * np.maximum(cs, f4(1e-12)))
     r1 = np.real(n1) if np.imag(n1) == 0 else n1
     r2 = np.real(n2) if np.imag(n2) == 0 else n2
-    F = _fresnel(ih.astype(float), r1, r2, polarization)
+    F = _fresnel(ih, r1, r2, polarization)
     if side == "R":
         fac = K * F
     else:
@@ -600,8 +600,9 @@ def _node_field(fd: _Field, nu: float) -> tuple[np.ndarray, complex | None]:
     m is None for a periodic tile, where it is the FFT's DC term (removed there)."""
     ph = fd.h32 * np.float32(-nu)
     u = np.empty(fd.shape, np.complex64)
-    np.cos(ph, out=u.real)
-    np.sin(ph, out=u.imag)
+    u.real[...] = np.cos(ph)                  # contiguous ufunc, then one strided copy (faster than out=)
+    np.sin(ph, out=ph)
+    u.imag[...] = ph
     if fd.w32 is None:
         return u, None
     m = complex(np.dot(u.real.ravel(), fd.w2.ravel()) / fd.sw2, np.dot(u.imag.ravel(), fd.w2.ravel()) / fd.sw2)
@@ -706,7 +707,8 @@ def _side_power(fd: _Field, sides: list, nodes, screens, workers):
                     Fc[dcs[i]] = 0.0                 # the mean field is the DC term
                 else:
                     Fc -= np.complex64(m) * win[k][ix[i]]
-                accs[i][k] += Ls[i] * Fc
+                np.multiply(Fc, Ls[i], out=Fc)
+                accs[i][k] += Fc
     halves = 2 if screens else 1
     out = []
     for i, sd in enumerate(sides):
