@@ -204,32 +204,32 @@ def test_metal_reflects_fresnel_and_absorbs_the_rest():
     assert np.all(h["T"] == 0) and np.all(t.lost > 0.05)
 
 
-def test_qz_nodes_rule():
-    # smooth: one or two nodes; rough (geometric optics): the similarity makes one node enough
+def test_qz_expansion_order_follows_height_range_and_tolerance():
+    """Fewer nodes where q_z sigma is small; more for a wider nu_z span, rougher map or tighter tolerance."""
+    from relief_bsdf.methods.qz_expansion import HeightMoments, expansion_order
+    rng = np.random.default_rng(0)
     k = 2 * np.pi / 550e-9
-    assert kirchhoff.qz_nodes(k, 2 * k, 2 * k, 60e-9).size == 1     # default: one node, similarity elsewhere
-    assert kirchhoff.qz_nodes(k, 2 * k, 2 * k, 5e-9, tau=0.3).size <= 2
-    assert kirchhoff.qz_nodes(k, 2 * k, 2 * k, 2e-6, tau=0.3).size <= 2
-    mid = kirchhoff.qz_nodes(k, 2 * k, 2 * k, 60e-9, tau=0.3)
-    assert mid.size >= 3 and np.isclose(mid, 2 * k).any()
+    n_of = lambda sig, half, tol=1e-3: expansion_order(half, HeightMoments.of(sig * rng.standard_normal((64, 64)),  # noqa: E731
+                                                                             None), 1.0, tol, 64)[0]
+    assert n_of(2e-9, 0.5 * k) <= 3
+    assert n_of(50e-9, 0.5 * k) < n_of(150e-9, 0.5 * k) < n_of(150e-9, 1.25 * k)
+    assert n_of(100e-9, k, 1e-2) < n_of(100e-9, k, 1e-6)
 
 
-def test_one_node_similarity_matches_dense_nodes():
-    """The default single q_z node (similarity extrapolation) against 10-40 exact nodes."""
-    rel = gaussian_relief(512, 0.1e-6, 0.1e-6, 3e-6, seed=8)
-    base = dict(wavelengths_nm=(550.0,), theta_i_deg=(30.0,), theta_s_edges_deg=tuple(np.linspace(0, 80, 41)),
-                phi_s_edges_deg=tuple(np.arange(-5, 360, 10.0)))
-    (one,) = reconstruct(rel, MAT, Request(**base, options={"band_limited": True}), "kirchhoff")
-    (ref,) = reconstruct(rel, MAT, Request(**base, options={"band_limited": True, "qz_tolerance": 0.05,
-                                                            "max_qz_nodes": 40}), "kirchhoff")
-    assert one.metadata["incidences"][0]["qz_nodes_R"] == 1
-    assert ref.metadata["incidences"][0]["qz_nodes_R"] >= 10
-    for s in range(2):
-        a, r = one.values_per_sr[0, 0, 0, s], ref.values_per_sr[0, 0, 0, s]
-        lobe = r > 0.05 * r.max()
-        assert np.median(np.abs(a[lobe] / r[lobe] - 1)) < 0.02
-    np.testing.assert_allclose(one.hemispherical()["T"], ref.hemispherical()["T"], rtol=0.01)
-    np.testing.assert_allclose(one.hemispherical()["R"], ref.hemispherical()["R"], rtol=0.01)
+def test_expansion_converges_to_its_tolerance():
+    """order_powers at the default tolerance against a 1e-8 tolerance (many more nodes)."""
+    rel = gaussian_relief(64, 0.0625e-6, 0.15e-6, 1e-6, seed=4)
+    from relief_bsdf.methods.rayleigh_rice import prepared_heights
+    h, w = prepared_heights(rel)
+    surf = kirchhoff.Surface(h, w, (rel.dx_m, rel.dy_m), True)
+    inc = kirchhoff.Incidence(550.0, 60.0, 0.0, 1.0, 1.5)
+    for side in "RT":
+        a = kirchhoff.order_powers(surf, inc, kirchhoff.SolveSettings(cells=None, width_dcos=0.0), side)
+        b = kirchhoff.order_powers(surf, inc, kirchhoff.SolveSettings(cells=None, width_dcos=0.0, tau=1e-8), side)
+        assert b["qz_nodes"] > a["qz_nodes"] + 3
+        big = b["power"] > 1e-3 * b["power"].max()
+        assert np.max(np.abs(a["power"][big] / b["power"][big] - 1)) < 0.01
+        assert abs(a["power"].sum() / b["power"].sum() - 1) < 1e-3
 
 
 def test_measured_tile_windowed_like_periodic(smooth):

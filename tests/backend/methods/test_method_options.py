@@ -54,7 +54,7 @@ def test_mistyped_option_is_an_error_naming_it(cls, key, value):
 
 def test_defaults_and_conversion():
     k = KirchhoffOptions.from_mapping({})
-    assert k == KirchhoffOptions() and k.qz_tolerance == np.inf and k.max_qz_nodes == 16 and not k.band_limited
+    assert k == KirchhoffOptions() and k.qz_tolerance == 1e-3 and k.max_qz_nodes == 64 and not k.band_limited
     k = KirchhoffOptions.from_mapping({"max_qz_nodes": 4.0, "qz_tolerance": 1, "band_limited": True})
     assert k.max_qz_nodes == 4 and isinstance(k.max_qz_nodes, int) and k.qz_tolerance == 1.0
     m = MicrofacetOptions.from_mapping({"alpha": [0.1, 0.3], "weights": [1, 2]})

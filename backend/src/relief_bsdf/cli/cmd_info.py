@@ -79,10 +79,36 @@ def relief_info(relief) -> dict:
     out["periodic"] = relief.periodic
     out["source"] = relief.source
     out["metadata"] = relief.metadata
+    out.update(measured_map_info(relief))
     out["estimators"] = {"rms_height_m": "std of heights after least-squares plane levelling, valid points",
                          "rms_slope": "rms of forward differences between adjacent valid pixels, "
                                       "sqrt(sx^2 + sy^2)",
                          "correlation_length_m": "1/e point of the radially averaged autocorrelation"}
+    return out
+
+
+def measured_map_info(relief, wavelength_nm: float = 550.0, n: float = 1.5) -> dict:
+    """Noise floor (from the PSD), what band-limiting to the propagating band at `wavelength_nm`
+    (index n, any incidence) removes, and the spike / anisotropy flags (surface.stats)."""
+    from relief_bsdf.surface.stats import band_limited, map_flags, noise_floor, propagating_f_max
+    nf = noise_floor(relief)
+    fl = map_flags(relief)
+    f_max = propagating_f_max(wavelength_nm, n, n, 90.0)
+    out = {"noise_floor": {"psd_m4": nf.psd_m4, "rms_m": nf.rms_m, "fraction_of_rms": nf.fraction_of_rms,
+                           "slope_rms": nf.slope_rms, "statement": nf.statement()},
+           "flags": {"kurtosis": fl.kurtosis, "spiky": fl.spiky, "anisotropy": fl.anisotropy,
+                     "anisotropic": fl.anisotropic, "statements": fl.statements()}}
+    if f_max < 0.5 / max(relief.dx_m, relief.dy_m):
+        bl = band_limited(relief, f_max)
+        out["band_limit"] = {"wavelength_nm": wavelength_nm, "n": n, "f_max_per_m": bl.f_max_per_m,
+                             "removed_rms_m": bl.removed_rms_m, "removed_rms_slope": bl.removed_rms_slope,
+                             "statement": bl.statement()}
+    else:
+        out["band_limit"] = {"wavelength_nm": wavelength_nm, "n": n, "f_max_per_m": f_max, "removed_rms_m": 0.0,
+                             "removed_rms_slope": 0.0,
+                             "statement": f"the pitch resolves only |f| <= {0.5e-6 / max(relief.dx_m, relief.dy_m):.3g}"
+                                          f" /um of the {f_max * 1e-6:.3g} /um that scatter at {wavelength_nm:g} nm: "
+                                          "wave methods run band-limited (nothing to remove)"}
     return out
 
 
@@ -128,6 +154,11 @@ def _print_relief(d: dict) -> None:
         regime = ("smooth: first-order perturbation (Rayleigh-Rice) applies" if g < 0.1 else
                   "rough: geometric optics / Kirchhoff regime" if g > 1 else "intermediate roughness")
         print(f"  at 550 nm  Rayleigh parameter (4 pi Sq / lambda)^2 = {g:.3g} at normal incidence -> {regime}")
+    if "noise_floor" in d:
+        print(f"  noise      {d['noise_floor']['statement']}")
+        print(f"  band       {d['band_limit']['statement']} (550 nm, n 1.5)")
+        for line in d["flags"]["statements"]:
+            print(f"  FLAG       {line}")
 
 
 def run(args) -> int:
@@ -159,8 +190,12 @@ def _info_bsdf(path: Path, args) -> int:
     from relief_bsdf.io.hdf5 import load_tables
     tables = load_tables(path)
     rows = [r for t in tables for r in t.albedo_rows()]
+    from relief_bsdf.bsdf.appearance import appearance
     d = {"kind": "bsdf", "method": tables[0].method if tables else None, "albedo": rows,
-         "tables": [{k: v for k, v in t.summary().items() if k != "albedo"} for t in tables]}
+         "tables": [{k: v for k, v in t.summary().items() if k != "albedo"} for t in tables],
+         "appearance": [a.as_dict() for t in tables for a in appearance(t)],
+         "energy_defect": {t.incident_from: t.metadata.get("energy_defect") for t in tables
+                           if isinstance(t.metadata, dict) and t.metadata.get("energy_defect")}}
     if args.json:
         print(json.dumps(d, default=str))
         return 0
@@ -171,13 +206,30 @@ def _info_bsdf(path: Path, args) -> int:
               f"theta_i {s['theta_i_deg']} deg, phi_i {s['phi_i_deg']} deg, "
               f"{s['theta_s_cells']} x {s['phi_s_cells']} scatter cells")
         _print_validity(t)
-    print("  hemispherical integrals per incidence (R, T include the specular parts):")
+    print("  hemispherical integrals per incidence (R, T include the specular parts; lost = 1 - R - T, signed):")
     print(f"    {'from':8s} {'lambda/nm':>9s} {'theta_i':>7s} {'phi_i':>6s} {'R':>8s} {'T':>8s} "
           f"{'spec R':>8s} {'spec T':>8s} {'lost':>8s}")
     for r in rows:
         print(f"    {r['from']:8s} {r['wavelength_nm']:9.4g} {r['theta_i_deg']:7.3g} {r['phi_i_deg']:6.3g} "
-              f"{r['R']:8.4f} {r['T']:8.4f} {r['specular_R']:8.4f} {r['specular_T']:8.4f} {r['lost']:8.4f}")
+              f"{r['R']:8.4f} {r['T']:8.4f} {r['specular_R']:8.4f} {r['specular_T']:8.4f} {r['lost']:+8.4f}")
+    for t in tables:
+        ed = t.metadata.get("energy_defect") if isinstance(t.metadata, dict) else None
+        if isinstance(ed, dict) and ed.get("meaning") != "absorption" and ed.get("max_abs", 0) > 0.01:
+            print(f"  WARNING    light from {t.incident_from}: R + T misses 1 by up to {-ed['worst_signed']:+.2%} "
+                  f"({ed['meaning']}; the plate must not read it as absorption)")
+    _print_appearance(d["appearance"])
     return 0
+
+
+def _print_appearance(rows: list) -> None:
+    print("  appearance (haze: ASTM D1003 share of T deviated > 2.5 deg; clarity (I_C - I_R) / (I_C + I_R), "
+          "I_C within 0.1 deg, I_R 0.1-2.5 deg; TIS = diffuse R, T; coherent = specular / total):")
+    print(f"    {'from':8s} {'lambda/nm':>9s} {'theta_i':>7s} {'haze':>7s} {'clarity':>7s} {'TIS R':>8s} "
+          f"{'TIS T':>8s} {'coh R':>6s} {'coh T':>6s}")
+    for a in rows:
+        print(f"    {a['incident_from']:8s} {a['wavelength_nm']:9.4g} {a['theta_i_deg']:7.3g} {a['haze']:7.4f} "
+              f"{a['clarity']:7.4f} {a['tis_R']:8.4f} {a['tis_T']:8.4f} {a['coherent_fraction_R']:6.3f} "
+              f"{a['coherent_fraction_T']:6.3f}")
 
 
 def _print_validity(table) -> None:

@@ -30,6 +30,24 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
+def specular_note(table, ip: int = 0) -> str:
+    """The coherent (specular) parts, which the cells do not show, and the haze per wavelength (its
+    colour dependence: a wave-optics relief is sharper in the red), one line per wavelength."""
+    from relief_bsdf.bsdf.appearance import appearance
+    rows = appearance(table)
+    P = len(table.phi_i_deg)
+    lines = []
+    for iw, wl in enumerate(table.wavelength_nm):
+        sr = " ".join(f"{v:.4f}" for v in table.specular_R[iw, :, ip])
+        st = " ".join(f"{v:.4f}" for v in table.specular_T[iw, :, ip])
+        hz = " ".join(f"{rows[(iw * len(table.theta_i_deg) + it) * P + ip].haze:.4f}"
+                      for it in range(len(table.theta_i_deg)))
+        lines.append(f"{wl:g} nm: specular R {sr} | specular T {st} | haze (>2.5 deg) {hz}")
+    head = ("specular deltas (not drawn in the cells) per theta_i "
+            + ", ".join(f"{t:g}" for t in table.theta_i_deg) + " deg")
+    return "\n".join([head] + lines)
+
+
 def run(args) -> int:
     from pathlib import Path
 
@@ -40,12 +58,15 @@ def run(args) -> int:
     out = Path(args.out) if args.out else paths[0].with_suffix(".png")
     if out.suffix.lower() != ".png":
         raise InputError(out, "the plot is written as PNG; give a .png file name")
-    tables = [pick_table(read_table_file(p, wavelength_nm=args.wavelength_nm, n=args.n), args.incident_from, p).select(
-        args.wavelength_nm) for p in paths]
+    full = [pick_table(read_table_file(p, wavelength_nm=args.wavelength_nm, n=args.n), args.incident_from, p)
+            for p in paths]
+    tables = [t.select(args.wavelength_nm) for t in full]
     sides = (args.side,) if args.side else ("R", "T")
     if len(tables) > 1:
         save_figure(compare_figure(tables, [p.name for p in paths], sides), out)
     else:
-        save_figure(table_figure(tables[0], sides), out)
+        fig = table_figure(tables[0], sides)
+        fig.text(0.01, 0.005, specular_note(full[0]), fontsize=7, family="monospace", va="bottom")
+        save_figure(fig, out)
     print(f"wrote {out}")
     return 0

@@ -1,40 +1,44 @@
-"""`auto`: choose ray, kirchhoff or rayleigh-rice from the relief's statistics and the request.
+"""`auto`: choose rayleigh-rice, kirchhoff or ray from the relief's statistics and the request.
 
-Quantities (relief_bsdf.surface.stats.relief_stats, levelled heights): rms height sigma, rms slope
-magnitude m, correlation length l (1/e of the radial autocovariance), and the rms mean
-curvature kappa from second differences ((h_xx + h_yy) / 2, rms over valid points), radius of
-curvature R_c = 1 / kappa.  With n the largest index the light travels in (1 from
-outside, n_inside for --from inside) and lambda the shortest requested wavelength:
+Figures (relief_bsdf.surface.stats; levelled heights, valid points): rms height sigma, rms slope
+m, correlation length l (1/e of the radial autocovariance), rms mean curvature kappa from second
+differences ((h_xx + h_yy) / 2), radius of curvature R_c = 1 / kappa; n the largest index the
+light arrives in, lambda the shortest requested wavelength, k = 2 pi n / lambda.
 
-- Rayleigh-Rice (first-order perturbation) is valid when the Rayleigh parameter at normal
-  incidence g = (4 pi n sigma / lambda)^2 < 0.1 (Stover, *Optical Scattering*, sec. 4: the
-  first-order result is accurate for g << 1; 0.1 keeps the neglected second order ~5 %) and
-  slopes are small, m < 0.15.  Incidence angles only lower g (cos theta), so normal
-  incidence is the worst case.
-- Kirchhoff (tangent plane) is valid when the surface is locally flat on the wavelength
-  scale: k R_c >= 5 with k = 2 pi n / lambda (Thorsos 1988: k R_c >~ 1, with margin;
-  Ogilvy 1991 sec. 4.2) and k l >= 6, slopes m < 0.5 (no shadowing in the model);
-  and its sampling limits for this request must hold (kirchhoff.check_sampling,
-  kirchhoff.check_aliasing).
-- Ray (geometric optics) is valid when the relief is rough on the wavelength scale,
-  sigma >= lambda / n (g >= (4 pi)^2: no coherent specular left) and its facets are large,
-  l >= 10 lambda / n, with slopes resolved by the pitch (l >= 4 pixels).
+Wave-optics figures are taken on the relief *band-limited to the propagating band*: components
+finer than f_max = (n sin t_i,max + n_max) / lambda scatter into no propagating direction in
+those models (first-order grating equation), and on profilometer maps they are mostly noise
+(surface.stats.band_limited; the rms removed is in the figures).  Geometric optics is judged on
+the relief as traced (raw figures).  The coherent specular share at normal incidence,
+|<exp(-i nu h)>|^2 over the map's own heights (any statistics, no Gaussian assumption), with
+nu = 2 n1 k0 (R) and |n1 - n2| k0 (T, the smaller and so the more coherent), decides whether a
+specular part remains.
 
-Preference: rayleigh-rice when valid (cheapest, vector, exact to first order); otherwise
-kirchhoff when valid, except that ray is preferred when it is also valid and slopes are
-steep (m >= 0.35: shadowing and inter-reflections, which only ray tracing includes);
-otherwise ray.  When none is valid the least-bad one is used (kirchhoff if feasible, then
-ray) and a warning says so.  The full reason (every condition with its figure) is returned in
-`metadata["auto_reason"]` and logged (logger "relief_bsdf.auto", debug); one short line
-(`Choice.summary`: the method and the figures that decided) is written once to stderr, unless
-the option quiet is set, or once as a RuntimeWarning when no method is valid.
+Conditions (each "value < limit" or "value >= limit"):
+- rayleigh-rice (first-order perturbation): g = (4 pi n sigma / lambda)^2 < 0.1 (Stover,
+  *Optical Scattering*, sec. 4: the neglected second order is ~ g), m < 0.15.
+- kirchhoff (tangent plane): k R_c >= 5 (Thorsos 1988: k R_c >~ 1, with margin; Ogilvy 1991
+  sec. 4.2), k l >= 6, m < 0.5 (no shadowing in the model); and feasible: its sampling limits
+  (kirchhoff.check_sampling, check_aliasing).  Where only the pitch limits the directions the
+  map can resolve, it runs band-limited (option band_limited = True): the map carries no
+  information beyond its band, and the reason says what share of the propagating band it covers.
+- ray (geometric optics): coherent share < 1 %, sigma >= lambda / n, l >= 10 lambda / n,
+  l >= 4 pixels, and k R_c >= 10 on the raw map (facets large on the wavelength scale: an
+  exponential-autocorrelation relief has wavelength-sized facets whatever its l).
 
-Options (methods.options.AutoOptions): quiet, plus any option of the candidates
-(rayleigh-rice, kirchhoff, ray), forwarded to the chosen method when it knows it.
+Ranking: each method's miss is the sum over its conditions of how many decades the condition
+is missed (0 when it holds; infinite when not feasible).  Valid methods come first in the
+order rayleigh-rice, kirchhoff, ray (ray before kirchhoff when both are valid and m >= 0.35:
+shadowing and inter-reflections only ray tracing includes); then the rest by miss.  Ray is
+never chosen while a coherent part remains (share > 1 %) and a wave method is within one decade
+of valid.  When the chosen method misses its conditions a RuntimeWarning says so.
 
-When the request asks for directions beyond the pitch's band (kirchhoff's sampling limit)
-while the relief's own scattering lies well inside it (3 rms slopes, doubled for reflection,
-fits in the band), kirchhoff is run with the option band_limited = True and the reason says so.
+Output: one line (`Choice.summary`: the method and the figures that decided) written once to
+stderr (unless the option quiet is set) or, when no method is valid, once as a RuntimeWarning;
+the full ranking with every condition in `metadata["auto_reason"]` (and the debug log
+"relief_bsdf.auto").  Options (methods.options.AutoOptions): quiet, plus any option of the
+candidates, forwarded to the chosen method when it knows it; an unknown or misspelled option is
+a RequestError naming it.
 """
 from __future__ import annotations
 
@@ -81,93 +85,152 @@ def rms_curvature(relief) -> float:
     return float(np.sqrt(np.mean(k * k))) if k.size else float("nan")
 
 
+def _coherent_fraction(relief, nu_per_m: float) -> float:
+    """|<exp(-i nu h)>|^2 over the valid levelled heights: the coherent (specular) share of the
+    tangent-plane field at wave-vector transfer nu, for any height statistics (no Gaussian
+    Debye-Waller assumption)."""
+    from relief_bsdf.surface.stats import levelled
+    lv = levelled(relief)
+    z = lv.heights_m[lv.valid]
+    return float(abs(np.mean(np.exp(-1j * nu_per_m * z))) ** 2) if z.size else 1.0
+
+
 def _figures(relief, material, request) -> dict:
-    """The relief's and request's numbers every validity condition is stated in (module doc)."""
-    st = relief_stats(relief)
-    sigma, m, ell = st.rms_height_m, st.rms_slope, st.correlation_length_m
-    kappa = rms_curvature(relief)
-    rc = 1.0 / kappa if kappa > 0 else np.inf
+    """The relief's and request's numbers every validity condition is stated in (module doc).
+
+    Wave-optics figures (rayleigh-rice, kirchhoff) are taken on the relief band-limited to the
+    spatial frequencies that scatter into propagating directions (surface.stats.band_limited):
+    finer components (profilometer noise, tip artefacts) scatter nowhere in those models.
+    Geometric optics sees the relief as traced (raw figures).
+    """
+    from relief_bsdf.surface.stats import band_limited, propagating_f_max
     lam = min(request.wavelengths_nm) * 1e-9
-    n = max(float(np.real(v)) for wl in request.wavelengths_nm for fr in request.incident_from
-            for v in material.n_pair(wl, fr)[:1])
+    pairs = [material.n_pair(wl, fr) for wl in request.wavelengths_nm for fr in request.incident_from]
+    n = max(float(np.real(p[0])) for p in pairs)
+    n_any = max(float(np.real(v)) for p in pairs for v in p if np.imag(v) == 0)
+    ti_max = max(request.theta_i_deg)
+    f_max = propagating_f_max(lam * 1e9, n, n_any, ti_max)
+    nyquist = 0.5 / max(relief.dx_m, relief.dy_m)
+    bl = band_limited(relief, f_max) if f_max < nyquist else None
+    wave_rel = bl.relief if bl is not None else relief
+    st_raw = relief_stats(relief)
+    st = relief_stats(wave_rel) if bl is not None else st_raw
+    kappa = rms_curvature(wave_rel)
+    rc = 1.0 / kappa if kappa > 0 else np.inf
+    kappa_raw = rms_curvature(relief) if bl is not None else kappa
+    rc_raw = 1.0 / kappa_raw if kappa_raw > 0 else np.inf
     lam_n = lam / n
-    return {"rms_height_m": sigma, "rms_slope": m, "correlation_length_m": ell, "radius_of_curvature_m": rc,
-            "rayleigh_parameter": (4 * np.pi * sigma / lam_n) ** 2, "wavelength_nm": lam * 1e9, "n_incident_max": n,
-            "k_rc": 2 * np.pi * rc / lam_n, "k_l": 2 * np.pi * ell / lam_n,
-            "pitch_m": max(relief.dx_m, relief.dy_m)}
+    k0 = 2 * np.pi / lam
+    # coherent share at normal incidence, the least coherent case of each side: R 2 n1 k0, T |n1 - n2| k0
+    coh = {}
+    for (n1, n2), fr in zip(pairs, [fr for _ in request.wavelengths_nm for fr in request.incident_from]):
+        coh[f"coherent_R_{fr}"] = _coherent_fraction(relief, 2 * np.real(n1) * k0)
+        if np.imag(n2) == 0:
+            coh[f"coherent_T_{fr}"] = _coherent_fraction(relief, abs(np.real(n1) - np.real(n2)) * k0)
+    return {"rms_height_m": st.rms_height_m, "rms_slope": st.rms_slope, "correlation_length_m": st.correlation_length_m,
+            "radius_of_curvature_m": rc, "rayleigh_parameter": (4 * np.pi * st.rms_height_m / lam_n) ** 2,
+            "wavelength_nm": lam * 1e9, "n_incident_max": n, "k_rc": 2 * np.pi * rc / lam_n,
+            "k_l": 2 * np.pi * st.correlation_length_m / lam_n, "pitch_m": max(relief.dx_m, relief.dy_m),
+            "raw_rms_height_m": st_raw.rms_height_m, "raw_rms_slope": st_raw.rms_slope,
+            "raw_correlation_length_m": st_raw.correlation_length_m, "raw_k_rc": 2 * np.pi * rc_raw / lam_n,
+            "band_f_max_per_m": f_max, "band_removed_rms_m": bl.removed_rms_m if bl is not None else 0.0,
+            "coherent_max": max(coh.values()), **coh}
 
 
-def _rayleigh_rice_validity(fig) -> tuple[bool, str]:
-    g, m = fig["rayleigh_parameter"], fig["rms_slope"]
-    return g < 0.1 and m < 0.15, (f"Rayleigh parameter (4 pi n sigma / lambda)^2 = {g:.3g} "
-                                  f"({'<' if g < 0.1 else '>='} 0.1), rms slope {m:.3g} "
-                                  f"({'<' if m < 0.15 else '>='} 0.15)")
+def _miss(value: float, limit: float, kind: str) -> float:
+    """How far a condition `value kind limit` is missed, in decades (0 when it holds)."""
+    if not (np.isfinite(value) and value > 0):
+        return 0.0 if (kind == "<" and value <= 0) else np.inf
+    r = np.log10(value / limit)
+    return max(0.0, r if kind == "<" else -r)
+
+
+def _conditions(fig) -> dict:
+    """method -> [(label, value, limit, kind)] (module doc)."""
+    lam_n = fig["wavelength_nm"] * 1e-9 / fig["n_incident_max"]
+    return {
+        "rayleigh-rice": [("Rayleigh parameter g (band-limited)", fig["rayleigh_parameter"], 0.1, "<"),
+                          ("rms slope (band-limited)", fig["rms_slope"], 0.15, "<")],
+        "kirchhoff": [("k R_c", fig["k_rc"], 5.0, ">="), ("k l", fig["k_l"], 6.0, ">="),
+                      ("rms slope (band-limited)", fig["rms_slope"], 0.5, "<")],
+        "ray": [("coherent specular share at normal incidence", fig["coherent_max"], 0.01, "<"),
+                ("sigma / (lambda/n)", fig["raw_rms_height_m"] / lam_n, 1.0, ">="),
+                ("l / (lambda/n)", fig["raw_correlation_length_m"] / lam_n, 10.0, ">="),
+                ("l / pitch", fig["raw_correlation_length_m"] / fig["pitch_m"], 4.0, ">="),
+                ("k R_c (facets large on the wavelength scale)", fig["raw_k_rc"], 10.0, ">=")],
+    }
+
+
+def _describe(conds) -> str:
+    return ", ".join(f"{lab} = {v:.3g} ({'ok' if _miss(v, lim, k) == 0 else 'missed'}: {k} {lim:g})"
+                     for lab, v, lim, k in conds)
 
 
 def _kirchhoff_feasibility(relief, material, request, fig, k_opts: KirchhoffOptions) -> tuple[bool, str, dict]:
-    """Kirchhoff's sampling limits for this request: (feasible, why, extra options such as band_limited)."""
+    """Kirchhoff's sampling limits for this request: (feasible, why, extra options such as band_limited).
+
+    Where the pitch cannot resolve every requested direction the map carries no information beyond
+    its band anyway: kirchhoff is run band-limited (band_limited = True) and the reason says what
+    share of the requested band the map covers."""
     from relief_bsdf.methods import kirchhoff
     from relief_bsdf.methods.rayleigh_rice import prepared_heights
     from relief_bsdf.methods.wave_filter import smoothing_width_dcos
-    n, lam, m = fig["n_incident_max"], fig["wavelength_nm"] * 1e-9, fig["rms_slope"]
+    n, lam = fig["n_incident_max"], fig["wavelength_nm"] * 1e-9
     extra, why = {}, ""
-    width = None
+    width = smoothing_width_dcos(kirchhoff.speckle_dcos(relief, material, request), request.theta_s_edges_deg,
+                                 k_opts.smoothing_dcos)
     try:
-        width = smoothing_width_dcos(kirchhoff.speckle_dcos(relief, material, request), request.theta_s_edges_deg,
-                                     k_opts.smoothing_dcos)
         kirchhoff.check_sampling(relief, material, request, width, k_opts.band_limited)
     except RequestError as e:
-        band_only = "resolves |n1 sin t_i" in e.message
-        reach = min(1.0, 6 * m) * n + n * np.sin(np.radians(max(request.theta_i_deg)))
-        if not (band_only and reach <= lam / (2 * fig["pitch_m"])):
-            return False, f"; not feasible: {e.message}", {}
+        if "resolves |n1 sin t_i" not in e.message:
+            return False, f"not feasible: {e.message}", {}
         try:
             kirchhoff.check_sampling(relief, material, request, width, True)
         except RequestError as e2:
-            return False, f"; not feasible: {e2.message}", {}
+            return False, f"not feasible: {e2.message}", {}
         extra["band_limited"] = True
-        why = "; run band-limited (the relief scatters within the pitch's band, 3 rms slopes)"
+        share = (0.5 / fig["pitch_m"]) / fig["band_f_max_per_m"]
+        why = f"band-limited (the pitch resolves {share:.0%} of the propagating band)"
     try:
         h, w = prepared_heights(relief)
         kirchhoff.check_aliasing(h, w, 2 * n * 2 * np.pi / lam)
     except RequestError as e:
-        return False, why + f"; not feasible: {e.message}", {}
+        return False, f"not feasible: {e.message}", {}
     return True, why, extra
 
 
-def _kirchhoff_validity(relief, material, request, fig, k_opts) -> tuple[bool, bool, str, dict]:
-    """(valid, feasible, why, extra options) of the tangent-plane model for this relief and request."""
-    m = fig["rms_slope"]
-    ok = fig["k_rc"] >= 5 and fig["k_l"] >= 6 and m < 0.5
-    why = (f"k R_c = {fig['k_rc']:.3g} ({'>=' if fig['k_rc'] >= 5 else '<'} 5), k l = {fig['k_l']:.3g} "
-           f"({'>=' if fig['k_l'] >= 6 else '<'} 6), rms slope {m:.3g} ({'<' if m < 0.5 else '>='} 0.5)")
-    feasible, why_f, extra = _kirchhoff_feasibility(relief, material, request, fig, k_opts)
-    return ok and feasible, feasible, why + why_f, extra
+def _rank(fig, feasible_k: bool) -> list:
+    """[(method, miss in decades, why)] best first: valid methods in preference order (rayleigh-rice,
+    kirchhoff, ray - ray ahead of kirchhoff when slopes are steep, m >= 0.35, and it is valid), then
+    the others by how far their conditions are missed.  Ray is never ranked while a coherent
+    specular part remains (share > 1 % at normal incidence) unless no wave method can run."""
+    conds = _conditions(fig)
+    miss = {m: sum(_miss(v, lim, k) for _, v, lim, k in c) for m, c in conds.items()}
+    if not feasible_k:
+        miss["kirchhoff"] = np.inf
+    order = ["rayleigh-rice", "kirchhoff", "ray"]
+    if miss["ray"] == 0 and miss["kirchhoff"] == 0 and fig["rms_slope"] >= 0.35:
+        order = ["rayleigh-rice", "ray", "kirchhoff"]
+    # a coherent part remains and a wave method is close to valid (within a decade): never ray then
+    wave_close = min(miss["rayleigh-rice"], miss["kirchhoff"]) <= 1.0
+    coherent = fig["coherent_max"] > 0.01 and wave_close
+    key = lambda m: (m == "ray" and coherent, miss[m] > 0, miss[m], order.index(m))  # noqa: E731
+    return [(m, miss[m], _describe(conds[m])) for m in sorted(order, key=key)]
 
 
-def _ray_validity(fig) -> tuple[bool, str]:
-    sigma, ell, pitch = fig["rms_height_m"], fig["correlation_length_m"], fig["pitch_m"]
-    lam_n = fig["wavelength_nm"] * 1e-9 / fig["n_incident_max"]
-    ok = sigma >= lam_n and ell >= 10 * lam_n and ell >= 4 * pitch
-    return ok, (f"sigma / (lambda/n) = {sigma / lam_n:.3g} ({'>=' if sigma >= lam_n else '<'} 1), "
-                f"l / (lambda/n) = {ell / lam_n:.3g} ({'>=' if ell >= 10 * lam_n else '<'} 10), "
-                f"l / pitch = {ell / pitch:.3g} ({'>=' if ell >= 4 * pitch else '<'} 4)")
-
-
-def _summary(method: str, fig: dict, k_opts: dict, warning: bool) -> str:
+def _summary(method: str, miss: float, fig: dict, extra: dict, why_k: str) -> str:
     """One short line: the method and the figures that decided."""
     g, m = fig["rayleigh_parameter"], fig["rms_slope"]
-    if warning:
-        return (f"no method is valid (g = {g:.3g}, k R_c = {fig['k_rc']:.3g}, k l = {fig['k_l']:.3g}, "
-                f"slope {m:.3g}); using {method} as the least bad (details: table metadata auto_reason)")
+    coh = fig["coherent_max"]
+    head = "" if miss == 0 else f"no method fully valid; {method} misses its conditions least ({miss:.2g} decades); "
     if method == "rayleigh-rice":
-        return f"optically smooth: g = {g:.3g} < 0.1, rms slope {m:.3g} < 0.15"
+        return head + f"optically smooth: g = {g:.3g}, rms slope {m:.3g} (band-limited), coherent share {coh:.2f}"
     if method == "kirchhoff":
-        return (f"g = {g:.3g} >= 0.1 but locally flat: k R_c = {fig['k_rc']:.3g}, k l = {fig['k_l']:.3g}, "
-                f"slope {m:.3g}" + ("; band-limited" if k_opts.get("band_limited") else ""))
+        return head + (f"locally flat: k R_c = {fig['k_rc']:.3g}, k l = {fig['k_l']:.3g}, slope {m:.3g}, g = {g:.3g}, "
+                       f"coherent share {coh:.2f}" + (f"; {why_k}" if extra.get("band_limited") else ""))
     lam_n = fig["wavelength_nm"] * 1e-9 / fig["n_incident_max"]
-    return (f"rough: sigma = {fig['rms_height_m'] / lam_n:.3g} lambda/n, l = "
-            f"{fig['correlation_length_m'] / lam_n:.3g} lambda/n, slope {m:.3g}")
+    return head + (f"rough: sigma = {fig['raw_rms_height_m'] / lam_n:.3g} lambda/n, l = "
+                   f"{fig['raw_correlation_length_m'] / lam_n:.3g} lambda/n, coherent share {coh:.3f}")
 
 
 def choose(relief, material, request) -> Choice:
@@ -175,28 +238,19 @@ def choose(relief, material, request) -> Choice:
     opts = AutoOptions.from_request(request)
     k_opts = KirchhoffOptions.from_mapping(opts.for_method(KirchhoffOptions), "auto")
     fig = _figures(relief, material, request)
-    ok_rr, why_rr = _rayleigh_rice_validity(fig)
-    ok_k, feasible_k, why_k, extra_k = _kirchhoff_validity(relief, material, request, fig, k_opts)
-    ok_ray, why_ray = _ray_validity(fig)
-    valid = {"rayleigh-rice": (ok_rr, why_rr), "kirchhoff": (ok_k, why_k), "ray": (ok_ray, why_ray)}
-    m = fig["rms_slope"]
-    if ok_rr:
-        method, reason = "rayleigh-rice", "small roughness: " + why_rr
-    elif ok_k and not (ok_ray and m >= 0.35):
-        method = "kirchhoff"
-        reason = "smooth on the wavelength scale but not small: " + why_k + "; Rayleigh-Rice invalid: " + why_rr
-    elif ok_ray:
-        method = "ray"
-        reason = "rough on the wavelength scale: " + why_ray + \
-                 ("; steep slopes favour ray tracing (shadowing, inter-reflections)" if ok_k else
-                  "; Kirchhoff invalid: " + why_k)
-    else:
-        method = "kirchhoff" if feasible_k else "ray"
-        reason = ("WARNING: no method is valid for this relief and wavelength; using " + method + " as the least bad. "
-                  + "; ".join(f"{k}: {v[1]}" for k, v in valid.items()))
+    feasible_k, why_k, extra_k = _kirchhoff_feasibility(relief, material, request, fig, k_opts)
+    ranked = _rank(fig, feasible_k)
+    method, miss, _ = ranked[0]
+    valid = {m: (ms == 0, why) for m, ms, why in ranked}
+    if not feasible_k:
+        valid["kirchhoff"] = (False, valid["kirchhoff"][1] + "; " + why_k)
+    reason = ("; ".join(f"{m} (missed by {ms:.2g} decades): {why}" for m, ms, why in ranked)
+              + (f"; kirchhoff {why_k}" if why_k and feasible_k else ""))
+    if miss > 0:
+        reason = "WARNING: no method is valid for this relief and wavelength; ranked: " + reason
     extra = extra_k if method == "kirchhoff" else {}
     fig.pop("pitch_m")
-    return Choice(method, reason, valid, extra, fig, _summary(method, fig, extra, reason.startswith("WARNING")))
+    return Choice(method, reason, valid, extra, fig, _summary(method, miss, fig, extra, why_k))
 
 
 def reconstruct(relief, material, request, progress=None):

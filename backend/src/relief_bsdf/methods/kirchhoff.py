@@ -33,30 +33,28 @@ Two factors multiply it:
 No shadowing or multiple scattering (tangent-plane approximation: radius of curvature >> lambda,
 moderate slopes, not too grazing).
 
-Coherent specular part.  The mean field m = sum(w u) / sum(w) of u = exp(-i nu_z h) at the
-specular (undeviated) nu_z is removed from the field before the FFT; |m|^2 F is reported as
-`specular_R` / `specular_T` (a delta, not smeared into cells).
+Coherent specular part.  The mean field m = sum(w^2 u) / sum(w^2) of u = exp(-i nu_z h) at the
+specular (undeviated) nu_z - weighted by the squared window, the same weights as the power, so
+that |m|^2 + sum(w^2 |u - m|^2) / sum(w^2) = 1 exactly for a windowed map too - is removed from
+the field (FFT(w (u - m)) = FFT(w u) - m FFT(w); for a periodic tile the DC term); |m|^2 F is
+reported as `specular_R` / `specular_T` (a delta, not smeared into cells), computed from the
+map's own heights (no Gaussian Debye-Waller factor).
 
-The nu_z dependence (q_z scheme).  nu_z changes with the scattering direction, so one FFT
-is exact only on one ring of directions.  FFTs are taken at a few nodes nu_z,j (one at the
-specular nu_z, others stepping out to cover the requested theta_s range); between nodes the
-power density D(nu_xy; nu_z) is interpolated linearly in nu_z from the two nearest nodes
-after a *similarity transformation* that is exact in both asymptotic regimes
-(x = nu_z^2 sigma^2):
-    D(nu_xy; nu_z) ~ A D_j(nu_xy r^gamma),  r = nu_z,j / nu_z,  gamma = x / (1 + x),
-    A = [(1 - e^-x) / (1 - e^-x_j)] |r|^(2 gamma).
-For x << 1 (first-order regime) D is proportional to x S(nu_xy / 2 pi) (A = x / x_j, no
-rescaling); for x >> 1 (geometric optics) D = p(slope = -nu_xy / nu_z) / nu_z^2 (pure
-rescaling).  By default ONE node per side (the specular nu_z; the midpoint of the range when
-there is no specular direction) and the similarity transformation extrapolates to every
-other direction: measured against a dense-node reference (30-40 nodes, 1024^2 Gaussian
-reliefs, rms 50 / 100 / 300 nm, correlation 5 um, 550 nm, 30 deg, both sides) the median
-in-lobe cell error is 0.1-1.1 % (largest 6-15 % at the lobe's 1 % edge) and R + T moves by
-<= 0.2 %.  The option qz_tolerance = tau adds nodes, spaced greedily so that the change
-of x between a node and the points it serves is at most tau max(1, x^2 / 2) (never blending
-across nu_z = 0, where the pattern mirrors); tau = 0.3 brings the median error to ~0.4 %
-for 2-20 nodes per side.  FFTs are single precision (complex64) with scipy.fft, workers =
-the option fft_workers (default 2; 1 inside a pool worker, where the pool already fills the cores).
+The nu_z dependence.  nu_z changes with the scattering direction, so one FFT is exact only on
+one ring of directions.  The field is interpolated in nu_z, exactly to a stated tolerance, by
+methods.qz_expansion: n FFTs of w exp(-i nu_j h) at the Chebyshev nodes nu_j of the nu_z interval
+the requested directions span (plus the filter margin), combined at every frequency with the
+barycentric Lagrange weights of its own nu_z.  n is the fewest nodes whose error bound (rms field
+error / rms diffuse field, from the map's height moments) is at most the option qz_tolerance
+(default 1e-3; about 2e-3 on the diffuse power); it is chosen per incidence from the nu_z span
+times the height range (few nodes where q_z sigma is small), and R and T share one node set
+when their touching intervals need fewer FFTs together.  Past the critical angle the tolerance's
+reference amplitude is taken 10x lower (the side sees only the field's weak far tail).  Checked
+against direct integration at every diffraction order (tests/backend/methods/kirchhoff_oracle.py:
+in-lobe cells within 3 %, totals within 1 %, Gaussian / exponential / light-guide-dot reliefs,
+0-60 deg from both sides).  The bound reached is reported per side (info qz_error_bound_R/T).
+FFTs are single precision (complex64) with scipy.fft, workers = the option fft_workers (default
+2; 1 inside a pool worker, where the pool already fills the cores).
 
 Partial coherence (request.coherence_length_m = Lc).  The incident field is multiplied by
 exp(i psi), psi a Gaussian random phase screen of rms pi rad and Gaussian correlation length
@@ -78,9 +76,17 @@ exact: diffraction orders of the periodic tile); measured ones are levelled and 
 by a 2-D Hann window (normalised by sum(w^2)), which suppresses the edge discontinuity.
 
 Filtering into cells: `wave_filter` (one Gaussian width in direction cosines for the whole
-request, from the coarsest speckle grain and the finest cell).  FFT samples are first
-summed in blocks (power conserving) to a grid spacing of at most 0.7 of that width (the block
-sum is a box filter that adds < 4 % to the Gaussian's variance).
+request, from the coarsest speckle grain and the finest cell).  The power of every FFT sample,
+times its own obliquity and facet Fresnel factor, is first summed in blocks (power conserving) to
+a grid spacing of at most 0.7 of that width (the block sum adds < 4 % to the Gaussian's
+variance); the filter is a normalised convolution inside the propagating disc (no power is
+spread beyond the rim), and the cell averages are rescaled band of rings by band to the power
+the grid holds there (`wave_filter.ring_factors`), so the hemispherical totals are the integral's.
+
+Energy.  R + T of the tangent-plane model is not 1 in general (no shadowing or multiple
+scattering; grazing incidence and light past the critical angle are the worst): the defect
+1 - R - T is stored signed in `lost` and in metadata["energy_defect"], and a RuntimeWarning is
+raised above 1 % for a lossless boundary (for a metal `lost` is the absorption).
 
 Polarisation (option polarized = True, CLI --polarized): the scalar Fresnel factor is
 replaced by the Fresnel Mueller matrix of the stationary-phase facet, rotated from the
@@ -88,15 +94,15 @@ table's incident s/p basis into the facet's plane of incidence and out into the 
 basis (bsdf.py frames; the vector tangent-plane approximation in its single-facet form, as
 microfacet.walter_mueller), giving `mueller_per_sr` with M00 = the unpolarised values.
 
-Options (methods.options.KirchhoffOptions, read from request.options): qz_tolerance (default: one
-node), max_qz_nodes (default 16), fft_workers, band_limited, coherence_instances, smoothing_dcos,
+Options (methods.options.KirchhoffOptions, read from request.options): qz_tolerance (default
+1e-3), max_qz_nodes (default 64), fft_workers, band_limited, coherence_instances, smoothing_dcos,
 polarized, backend.
 
-Code layout: `solve_incidence(Surface, Incidence, SolveSettings)` solves one incidence; per side
-(`_solve_side`) it picks the nodes (`qz_nodes`), pools and crops the nu_xy grid (`_coarse_grid`),
-takes the node FFTs (`_node_densities`), interpolates to each direction's own nu_z
-(`_interp_nodes`), adds the coherent lobe under partial coherence (`_coherent_lobe`) and filters
-into the cells with obliquity and facet Fresnel (`_cells`).
+Code layout: `solve_incidence(Surface, Incidence, SolveSettings)` solves one incidence: per side
+`_side_setup` (specular part, nu_z range, crops, every frequency's nu_z and obliquity-Fresnel
+factor), `_plan_nodes` (the q_z nodes, shared or per side), `_side_power` (the node FFTs and the
+interpolation), `_finish_side` (coherent lobe under partial coherence, `_cells`: filtering).
+`order_powers` gives the unfiltered power of every diffraction order (what the oracle checks).
 """
 from __future__ import annotations
 
@@ -115,57 +121,13 @@ from relief_bsdf.core.fresnel import fresnel_reflectance as _fresnel
 from relief_bsdf.core.index import Material
 from relief_bsdf.parallel import in_worker, map_tasks, task_rng
 from relief_bsdf.methods.options import KirchhoffOptions
-from relief_bsdf.methods.wave_filter import DcosGrid, cell_average, cell_samples, check_sides, smoothing_width_dcos
+from relief_bsdf.methods.wave_filter import (DcosGrid, cell_average, cell_samples, check_sides, energy_defect,
+                                             ring_factors,
+                                             smoothing_width_dcos)
 from relief_bsdf.methods.rayleigh_rice import prepared_heights
+from relief_bsdf.methods.qz_expansion import HeightMoments, LagrangeBasis, chebyshev_nodes, expansion_order
 
 # ------------------------------------------------------------------ helpers
-
-
-def qz_nodes(nu_lo: float, nu_hi: float, nu_spec: float | None, sigma_m: float, tau: float = np.inf,
-             max_nodes: int = 16) -> np.ndarray:
-    """nu_z nodes for [nu_lo, nu_hi]: one at nu_spec, then greedily as far apart as the rule allows.
-
-    The distance between two nu_z in x = nu_z^2 sigma^2 is |x1 - x2| on the same side of 0
-    and x1 + x2 across it; a node covers the points within tau max(1, x^2 / 2) of it (x the
-    smaller of the two), beyond which the similarity interpolation of the module doc would be
-    used too far from its asymptotic regimes.  The ends of the range need no node of their own
-    when the last node covers them (they are reached by the similarity extrapolation).
-    """
-    lo, hi = min(nu_lo, nu_hi), max(nu_lo, nu_hi)
-    start = nu_spec if (nu_spec is not None and lo <= nu_spec <= hi) else 0.5 * (lo + hi)
-    if sigma_m <= 0 or hi <= lo:
-        return np.array([start])
-    s = sigma_m
-
-    def dist(a, b):
-        xa, xb = (a * s) ** 2, (b * s) ** 2
-        return np.where(np.sign(a) == np.sign(b), np.abs(xa - xb), xa + xb)
-
-    def allowed(a, b):
-        x = np.minimum((a * s) ** 2, (b * s) ** 2)
-        return tau * np.maximum(1.0, 0.5 * x * x)
-
-    nodes = [start]
-    for bound in (hi, lo):
-        cand = np.linspace(start, bound, 4001)[1:]
-        cand = cand[np.abs(cand) * s > 1e-6] if np.any(np.abs(cand) * s > 1e-6) else cand
-        last = start
-        while cand.size:
-            ok = dist(last, cand) <= allowed(last, cand)
-            if ok.all():
-                break
-            k = int(np.argmin(ok)) - 1          # farthest candidate before the first uncovered one
-            k = max(k, 0)
-            last = float(cand[k])
-            nodes.append(last)
-            cand = cand[k + 1:]
-            if len(nodes) > 4 * max_nodes:
-                break
-    nodes = np.unique(np.asarray(nodes))
-    if nodes.size > max_nodes:   # keep the specular node and spread the rest evenly
-        extra = np.linspace(lo, hi, max_nodes - 1)
-        nodes = np.unique(np.concatenate([extra, [start]]))
-    return nodes
 
 
 def _gaussian_screen(shape, pitch, corr_m, rms, rng) -> np.ndarray:
@@ -289,24 +251,28 @@ def _side_geometry(side, fd, n1, ns, shape_c, f0, df):
 
 
 def _obliquity_fresnel(geo, wi, n1, n2, side, polarization):
-    """K * F_loc on the coarse grid (module doc), 0 where not propagating or not realisable."""
+    """K * F_loc on the grid of geo (module doc), 0 where not propagating or not realisable.
+
+    Single precision (the factor is smooth; 1e-6 relative is far below the method's tolerance)."""
     prop = geo["prop"]
-    a, b, cs = geo["a"], geo["b"], geo["cs"]
-    a = np.broadcast_to(a, prop.shape)[prop]
-    b = np.broadcast_to(b, prop.shape)[prop]
-    cs = cs[prop]
-    k1, ks, sgn = geo["k1"], geo["ks"], geo["sgn"]
-    nux = k1 * wi[0] + ks * a
-    nuy = k1 * wi[1] + ks * b
-    nuz = k1 * wi[2] + ks * sgn * cs
-    nn2 = np.maximum(nux * nux + nuy * nuy + nuz * nuz, 1e-300)
-    nn = np.sqrt(nn2)
-    ih_signed = (wi[0] * nux + wi[1] * nuy + wi[2] * nuz) / nn
-    oh_signed = (a * nux + b * nuy + sgn * cs * nuz) / nn
+    f4 = np.float32
+    a = np.broadcast_to(geo["a"], prop.shape)[prop].astype(f4)
+    b = np.broadcast_to(geo["b"], prop.shape)[prop].astype(f4)
+    cs = np.broadcast_to(geo["cs"], prop.shape)[prop].astype(f4)
+    k1, ks, sgn = f4(geo["k1"]), f4(geo["ks"]), f4(geo["sgn"])
+    w0, w1, w2 = f4(wi[0]), f4(wi[1]), f4(wi[2])
+    nux = k1 * w0 + ks * a
+    nuy = k1 * w1 + ks * b
+    nuz = k1 * w2 + (ks * sgn) * cs
+    nn2 = np.maximum(nux * nux + nuy * nuy + nuz * nuz, f4(1e-30))
+    inn = 1.0 / np.sqrt(nn2)
+    ih_signed = (w0 * nux + w1 * nuy + w2 * nuz) * inn
+    oh_signed = (a * nux + b * nuy + sgn * cs * nuz) * inn
     ih, oh = np.abs(ih_signed), np.abs(oh_signed)
-    nuz2 = np.maximum(nuz * nuz, 1e-30 * nn2)
-    K = ih * oh * nn2 / (nuz2 * wi[2] * np.maximum(cs, 1e-12))
-    F = _fresnel(ih, n1, n2, polarization)
+    K = ih * oh * nn2 / (np.maximum(nuz * nuz, f4(1e-12) * nn2) * w2 * np.maximum(cs, f4(1e-12)))
+    r1 = np.real(n1) if np.imag(n1) == 0 else n1
+    r2 = np.real(n2) if np.imag(n2) == 0 else n2
+    F = _fresnel(ih, r1, r2, polarization)
     if side == "R":
         fac = K * F
     else:
@@ -358,48 +324,6 @@ def _facet_mueller(geo, wi, n1, n2, side, phi_i_rad):
     return out
 
 
-def _interp_nodes(nodes, grids, geo, sigma, f0, df, f0n):
-    """Density in nu_xy on the target grid (origin f0) at each point's own nu_z (similarity
-    interpolation); node grids have origin f0n and the same spacing df."""
-    nuz = geo["nuz"]
-    s2 = sigma * sigma
-    ncy, ncx = nuz.shape
-    fxc = f0[0] + df[0] * np.arange(ncx)
-    fyc = f0[1] + df[1] * np.arange(ncy)
-    FX, FY = np.meshgrid(fxc, fyc)
-    out = np.zeros_like(nuz)
-    x = nuz * nuz * s2
-    gam = x / (1.0 + x)
-    g = -np.expm1(-x)
-    t = np.zeros(nuz.shape)
-    nuc = np.clip(nuz, nodes[0], nodes[-1])
-    j = np.clip(np.searchsorted(nodes, nuc, side="right") - 1, 0, max(nodes.size - 2, 0))
-    if nodes.size > 1:
-        t = (nuc - nodes[j]) / (nodes[j + 1] - nodes[j])
-        # never blend across nu_z = 0: the pattern is mirrored there; use the node on the target's side
-        cross = np.sign(nodes[j]) * np.sign(nodes[j + 1]) < 0
-        t = np.where(cross, np.where(np.sign(nuz) == np.sign(nodes[j + 1]), 1.0, 0.0), t)
-    for jn, nj in enumerate(nodes):
-        if nodes.size == 1:
-            wgt = np.ones(nuz.shape)
-        else:
-            wgt = np.where(j == jn, 1.0 - t, 0.0) + np.where(j + 1 == jn, t, 0.0)
-        sel = wgt > 0
-        if not np.any(sel):
-            continue
-        nz = nuz[sel]
-        r = nj / np.where(np.abs(nz) > 0, nz, 1e-30)
-        sc = np.sign(r) * np.abs(r) ** gam[sel]
-        xj = nj * nj * s2
-        gj = -np.expm1(-xj)
-        amp = np.where(gj > 0, g[sel] / max(gj, 1e-300), 1.0) * np.abs(r) ** (2 * gam[sel])
-        ci = (FX[sel] * sc - f0n[0]) / df[0]
-        cj = (FY[sel] * sc - f0n[1]) / df[1]
-        val = ndimage.map_coordinates(grids[jn], [cj, ci], order=1, mode="constant", cval=0.0, prefilter=False)
-        out[sel] += wgt[sel] * amp * val
-    return out
-
-
 @dataclass(frozen=True)
 class Surface:
     """The prepared height map one incidence is solved on.
@@ -443,12 +367,14 @@ class SolveSettings:
     instances: int = 8
     seed: int = 0
     key: tuple = (0,)
-    tau: float = np.inf
-    max_nodes: int = 16
+    tau: float = 1e-3
+    max_nodes: int = 64
     workers: int = 2
     sides: tuple = ("R", "T")
     theta_s_range_deg: tuple = (0.0, 90.0)
     polarized: bool = False
+    theta_edges_deg: tuple = (0.0, 90.0)
+    phi_edges_deg: tuple = (0.0, 360.0)
 
 
 @dataclass(frozen=True)
@@ -469,6 +395,8 @@ class _Field:
     w32: np.ndarray | None
     fxs: np.ndarray
     fys: np.ndarray
+    w2: np.ndarray | None
+    moments: HeightMoments
 
     @property
     def shape(self):
@@ -476,6 +404,8 @@ class _Field:
 
 
 def _field(surface: Surface, inc: Incidence) -> _Field:
+    """Heights from their mid-range h_c (a common phase only), the squared-window weights and the
+    height moments of the q_z expansion."""
     h, w = surface.heights_m, surface.window
     ny, nx = h.shape
     dx, dy = surface.pitch_m
@@ -483,11 +413,16 @@ def _field(surface: Surface, inc: Incidence) -> _Field:
     ti, pi_ = np.radians(inc.theta_i_deg), np.radians(inc.phi_i_deg)
     ci = np.cos(ti)
     ai, bi = np.sin(ti) * np.cos(pi_), np.sin(ti) * np.sin(pi_)
+    w2 = None if surface.periodic else w * w
     sw2 = float(np.sum(w * w))
+    mom = HeightMoments.of(h, w2)
+    hc = h - mom.centre_m
+    hbar = float(np.sum(w * w * hc) / sw2)
     return _Field(lam=lam, k0=2 * np.pi / lam, ci=ci, ai=ai, bi=bi, wi=np.array([ai, bi, ci]), phi_i_rad=pi_,
-                  sw=float(np.sum(w)), sw2=sw2, sigma=float(np.sqrt(np.sum(w * w * h * h) / sw2)),
-                  h32=h.astype(np.float32), w32=None if surface.periodic else w.astype(np.float32),
-                  fxs=np.fft.fftshift(np.fft.fftfreq(nx, dx)), fys=np.fft.fftshift(np.fft.fftfreq(ny, dy)))
+                  sw=float(np.sum(w)), sw2=sw2, sigma=float(np.sqrt(np.sum(w * w * (hc - hbar) ** 2) / sw2)),
+                  h32=hc.astype(np.float32), w32=None if surface.periodic else w.astype(np.float32),
+                  fxs=np.fft.fftshift(np.fft.fftfreq(nx, dx)), fys=np.fft.fftshift(np.fft.fftfreq(ny, dy)),
+                  w2=None if w2 is None else w2.astype(np.float32), moments=mom)
 
 
 def _phase_screens(shape, pitch_m, st: SolveSettings) -> list:
@@ -518,17 +453,20 @@ def _specular(side, fd: _Field, inc: Incidence, ks, polarization):
 
 @dataclass(frozen=True)
 class _Coarse:
-    """The pooled, cropped nu_xy grid of one side: pooling (by, bx), spacing df, origin f0 and
-    the crops of the target grid (tb, origin f0t) and of the node grids (nb, origin f0n)."""
+    """The pooled, cropped nu_xy grid of one side: pooling (by, bx), spacing df (pooled), the crop
+    tb of the pooled, fftshifted grid (origin f0t), and the matching full-resolution rows and
+    columns (indices into the unshifted FFT, and their frequencies)."""
 
     by: int
     bx: int
     df: tuple
     dF: float
     tb: tuple
-    nb: tuple
     f0t: tuple
-    f0n: tuple
+    rows: np.ndarray
+    cols: np.ndarray
+    fx_full: np.ndarray
+    fy_full: np.ndarray
 
 
 def _crop(fb, f0, df, ncx, ncy):
@@ -542,80 +480,29 @@ def _crop(fb, f0, df, ncx, ncy):
     return slice(j0, j1), slice(i0, i1)
 
 
-def _coarse_grid(fd: _Field, pitch_m, k1, ks, ns, nodes, st: SolveSettings) -> _Coarse:
+def _coarse_grid(fd: _Field, pitch_m, k1, ks, ns, st: SolveSettings) -> _Coarse:
     """Pooling: coarse spacing in direction cosines <= 0.7 x the filter width (adds < 4 % to its
-    variance); crops: the target box holds the requested disc plus the filter margin, node grids
-    also hold the points the similarity lookups reach."""
+    variance); crop: the requested disc plus the filter margin (4 widths)."""
     ny, nx = fd.shape
     dx, dy = pitch_m
-    width_dcos = st.width_dcos
     te = np.radians(np.asarray(st.theta_s_range_deg, float))
     dal = fd.lam / (ns * nx * dx)
     dbe = fd.lam / (ns * ny * dy)
-    bx = _pool_factor(nx, int(max(1, 0.7 * width_dcos / dal)))
-    by = _pool_factor(ny, int(max(1, 0.7 * width_dcos / dbe)))
+    bx = _pool_factor(nx, int(max(1, 0.7 * st.width_dcos / dal)))
+    by = _pool_factor(ny, int(max(1, 0.7 * st.width_dcos / dbe)))
     f0 = (fd.fxs[: (nx // bx) * bx].reshape(-1, bx).mean(axis=1)[0],
           fd.fys[: (ny // by) * by].reshape(-1, by).mean(axis=1)[0])
     df = (bx / (nx * dx), by / (ny * dy))
-    ncx_f, ncy_f = nx // bx, ny // by
-    reach = min(np.sin(te[-1]) + 4 * width_dcos, 1.0 + 4 * width_dcos)
+    reach = min(np.sin(te[-1]) + 4 * st.width_dcos, 1.0 + 4 * st.width_dcos)
     fxb = ((k1 * fd.ai - ks * reach) / (2 * np.pi), (k1 * fd.ai + ks * reach) / (2 * np.pi))
     fyb = ((k1 * fd.bi - ks * reach) / (2 * np.pi), (k1 * fd.bi + ks * reach) / (2 * np.pi))
-    anu = np.abs(nodes)
-    ratio = float(np.max(anu[1:] / np.maximum(anu[:-1], 1e-30))) if nodes.size > 1 else 1.0
-    ratio = max(ratio, 1.0 / min(ratio, 1.0) if ratio > 0 else 1.0)
-    if nodes.size > 1 and (np.min(anu) <= 0.25 * np.max(anu) or ratio > 4):
-        fbn = None
-    else:
-        fmax = max(abs(fxb[0]), abs(fxb[1]), abs(fyb[0]), abs(fyb[1])) * (ratio if nodes.size > 1 else 1.0)
-        fbn = ((-fmax, fmax), (-fmax, fmax))
-    tb = _crop((fxb, fyb), f0, df, ncx_f, ncy_f)
-    nb = _crop(fbn, f0, df, ncx_f, ncy_f)
-    return _Coarse(by=by, bx=bx, df=df, dF=(2 * np.pi) ** 2 * df[0] * df[1], tb=tb, nb=nb,
+    tb = _crop((fxb, fyb), f0, df, nx // bx, ny // by)
+    rs = np.arange(tb[0].start * by, tb[0].stop * by)          # rows of the fftshifted full grid
+    cs = np.arange(tb[1].start * bx, tb[1].stop * bx)
+    return _Coarse(by=by, bx=bx, df=df, dF=(2 * np.pi) ** 2 * df[0] * df[1], tb=tb,
                    f0t=(f0[0] + tb[1].start * df[0], f0[1] + tb[0].start * df[1]),
-                   f0n=(f0[0] + nb[1].start * df[0], f0[1] + nb[0].start * df[1]))
-
-
-def _node_densities(fd: _Field, nodes, nu_spec, cg: _Coarse, screens, workers):
-    """Diffuse power density on the node grids, one list per half of the screens (one list when
-    coherent); the mean field at the specular node; the number of FFTs (module doc)."""
-    ny, nx = fd.shape
-    ntot = nx * ny
-    halves = 2 if screens else 1
-    grids = [[] for _ in range(halves)]
-    m_spec, n_fft = 0.0, 0
-    for nu in nodes:
-        ph = fd.h32 * np.float32(-nu)
-        u = np.empty((ny, nx), np.complex64)
-        np.cos(ph, out=u.real)
-        np.sin(ph, out=u.imag)                           # u = exp(-i nu h)
-        direct = fd.w32 is None and not screens
-        if direct:
-            # periodic and coherent: the mean field is the DC coefficient; remove it there
-            m = None
-        else:
-            m = (np.sum(u) / ntot) if fd.w32 is None else (np.sum(u * fd.w32) / fd.sw)
-            u -= np.complex64(m)
-            if fd.w32 is not None:
-                u *= fd.w32
-        acc = [None] * halves
-        for k, e in enumerate(screens or [None]):
-            v = u * e if e is not None else u
-            F = sfft.fft2(v, workers=workers, overwrite_x=True)
-            n_fft += 1
-            if direct:
-                m = complex(F[0, 0]) / ntot
-                F[0, 0] = 0.0
-            p = F.real * F.real
-            p += F.imag * F.imag
-            p = _pool(p, cg.by, cg.bx)
-            acc[k % halves] = p if acc[k % halves] is None else acc[k % halves] + p
-        if nu_spec is not None and np.isclose(nu, nu_spec):
-            m_spec = complex(m)
-        for k in range(halves):
-            cnt = len(screens[k::2]) if screens else 1
-            grids[k].append(np.fft.fftshift(acc[k])[cg.nb].astype(float) / (cnt * ntot * fd.sw2 * cg.dF))
-    return grids, m_spec, n_fft
+                   rows=np.fft.fftshift(np.arange(ny))[rs], cols=np.fft.fftshift(np.arange(nx))[cs],
+                   fx_full=fd.fxs[cs], fy_full=fd.fys[rs])
 
 
 def _coherent_lobe(fd: _Field, cg: _Coarse, screens, workers):
@@ -635,27 +522,48 @@ def _coherent_lobe(fd: _Field, cg: _Coarse, screens, workers):
 
 
 def _cells(side, dens, geo, fd: _Field, inc: Incidence, st: SolveSettings, specular: tuple, out):
-    """Filter the densities into the cells (times obliquity and facet Fresnel); fills out[side] and,
+    """Filter the densities (obliquity and facet Fresnel already in) into the cells; fills out[side] and,
     when polarised, out[mueller_side] and out[spec_mueller_side]; returns the per-half values.
     specular: (coherent specular power, its Fresnel factor)."""
     n1, n2, ks = inc.n1, inc.n2, geo["ks"]
     spec, F_spec = specular
-    grid_of = lambda d: DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"])  # noqa: E731
+    disc = geo["disc"]
     cells, width = st.cells, st.width_dcos
+
+    def smooth(d, conserving=True):           # power-conserving filter inside the disc (or plain)
+        return DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"]).smoothed(
+            width, disc if conserving else None)
+
+    def power_cells(d):                       # cell averages of the power, and their ring factors
+        g = smooth(d)
+        v = cell_average(g.extended(disc), cells)
+        f = ring_factors(v, g, st.theta_edges_deg, st.phi_edges_deg)[:, None]
+        return v * f, f
+
     if st.polarized:
-        fac = ks * ks * _obliquity_fresnel(geo, fd.wi, n1, n2, side, "unpolarized")
-        Mn = _facet_mueller(geo, fd.wi, n1, n2, side, fd.phi_i_rad)
-        mus = [np.stack([cell_average(grid_of(d * fac * Mn[..., r, c]).smoothed(width), cells)
-                         for r in range(4) for c in range(4)], axis=-1).reshape(cells.alpha.shape[:2] + (4, 4))
-               for d in dens]
+        # the stationary-phase facet's Mueller matrix at every cell sub-point (its own direction), averaged
+        # over the cell with the filtered power as weight; M00 is the power itself (rotation-covariant:
+        # the matrix of a direction does not depend on how the FFT grid meets the rim)
+        a_s, b_s = cells.alpha, cells.beta
+        geo_s = {"a": a_s, "b": b_s, "cs": np.sqrt(np.clip(1 - a_s * a_s - b_s * b_s, 0, 1)),
+                 "prop": a_s * a_s + b_s * b_s < 1.0, "k1": geo["k1"], "ks": ks, "sgn": geo["sgn"]}
+        Mn = _facet_mueller(geo_s, fd.wi, n1, n2, side, fd.phi_i_rad)          # (S, A, M, 4, 4)
+        mus = []
+        for d in dens:
+            m00, _ = power_cells(ks * ks * d)
+            w_sub = smooth(ks * ks * d).extended(disc).at(a_s, b_s)                # (S, A, M)
+            wsum = w_sub.sum(axis=-1)
+            avg = np.where(wsum[..., None, None] > 0,
+                           np.einsum("sam,samrc->sarc", w_sub, Mn) / np.where(wsum > 0, wsum, 1.0)[..., None, None],
+                           Mn.mean(axis=2))
+            mus.append(avg * m00[..., None, None])
         out[f"mueller_{side}"] = sum(mus) / len(mus)
         sgn_pol = {"s": 1.0, "p": -1.0}.get(st.polarization, 0.0)
         vals = [m[..., 0, 0] + sgn_pol * m[..., 0, 1] for m in mus]
         ms = mueller_interface(fd.ci, n1, n2, side) if F_spec > 0 else np.zeros((4, 4))
         out[f"spec_mueller_{side}"] = np.nan_to_num(ms) * (spec / F_spec if F_spec > 0 else 0.0)
     else:
-        fac = ks * ks * _obliquity_fresnel(geo, fd.wi, n1, n2, side, st.polarization)
-        vals = [cell_average(grid_of(d * fac).smoothed(width), cells) for d in dens]
+        vals = [power_cells(ks * ks * d)[0] for d in dens]
     out[side] = sum(vals) / len(vals)
     return vals
 
@@ -668,41 +576,199 @@ def _absorbed_side(out, cells) -> None:
     out["spec_mueller_T"] = np.zeros((4, 4))
 
 
-def _solve_side(side, surface: Surface, inc: Incidence, st: SolveSettings, fd: _Field, screens, out) -> int:
-    """One side (R or T) of one incidence into `out` (see solve_incidence); returns the FFT count."""
+def _nu_range(side, fd: _Field, k1, ks, st: SolveSettings):
+    """(nu_lo, nu_hi): the nu_z of the requested directions plus the filter margin."""
+    te = np.radians(np.asarray(st.theta_s_range_deg, float))
+    s_hi = min(np.sin(te[-1]) + 4 * st.width_dcos, 1.0)
+    s_lo = max(np.sin(te[0]) - 4 * st.width_dcos, 0.0) if te[0] > 0 else 0.0
+    sgn = 1.0 if side == "R" else -1.0
+    ends = k1 * fd.ci + sgn * ks * np.sqrt(1.0 - np.array([s_lo, s_hi]) ** 2)
+    return float(ends.min()), float(ends.max())
+
+
+def _mean_field(fd: _Field, nu: float) -> complex:
+    """m(nu) = <exp(-i nu h)> with the squared-window weights (module doc, coherent part)."""
+    ph = fd.h32 * np.float32(-nu)
+    c, s = np.cos(ph), np.sin(ph)
+    if fd.w2 is None:
+        return complex(c.mean(dtype=np.float64), s.mean(dtype=np.float64))
+    return complex(np.dot(c.ravel(), fd.w2.ravel()) / fd.sw2, np.dot(s.ravel(), fd.w2.ravel()) / fd.sw2)
+
+
+def _node_field(fd: _Field, nu: float) -> tuple[np.ndarray, complex | None]:
+    """(w exp(-i nu (h - h_c)) as complex64, its mean field m with the squared-window weights);
+    m is None for a periodic tile, where it is the FFT's DC term (removed there)."""
+    ph = fd.h32 * np.float32(-nu)
+    u = np.empty(fd.shape, np.complex64)
+    u.real[...] = np.cos(ph)                  # contiguous ufunc, then one strided copy (faster than out=)
+    np.sin(ph, out=ph)
+    u.imag[...] = ph
+    if fd.w32 is None:
+        return u, None
+    m = complex(np.dot(u.real.ravel(), fd.w2.ravel()) / fd.sw2, np.dot(u.imag.ravel(), fd.w2.ravel()) / fd.sw2)
+    u *= fd.w32
+    return u, m
+
+
+@dataclass
+class _Side:
+    """One side (R or T) of one incidence before its FFTs: geometry, specular part, crops, the
+    full-resolution nu_z and obliquity-Fresnel factor of every frequency."""
+
+    side: str
+    ns: float
+    nu_spec: float | None
+    F_spec: float
+    m_spec: complex
+    amp: float
+    lo: float
+    hi: float
+    cg: _Coarse
+    nu_full: np.ndarray
+    fac_full: np.ndarray
+    geo: dict
+
+
+def _side_setup(side, surface: Surface, inc: Incidence, st: SolveSettings, fd: _Field) -> _Side:
     ns = np.real(inc.n1) if side == "R" else np.real(inc.n2)
     k1, ks = fd.k0 * np.real(inc.n1), fd.k0 * ns
     sgn = 1.0 if side == "R" else -1.0
     nu_spec, F_spec = _specular(side, fd, inc, ks, st.polarization)
-    te = np.radians(np.asarray(st.theta_s_range_deg, float))
-    cs_lo, cs_hi = np.cos(te[-1]), np.cos(te[0])
-    nu_a, nu_b = k1 * fd.ci + sgn * ks * cs_lo, k1 * fd.ci + sgn * ks * cs_hi
-    nodes = qz_nodes(nu_a, nu_b, nu_spec, fd.sigma, st.tau, st.max_nodes)
-    if nu_spec is not None and not np.any(np.isclose(nodes, nu_spec)):
-        nodes = np.unique(np.concatenate([nodes, [nu_spec]]))
-    cg = _coarse_grid(fd, surface.pitch_m, k1, ks, ns, nodes, st)
-    grids, m_spec, n_fft = _node_densities(fd, nodes, nu_spec, cg, screens, st.workers)
+    lo, hi = _nu_range(side, fd, k1, ks, st)
+    m_spec = _mean_field(fd, nu_spec) if nu_spec is not None else 0.0
+    m_ref = m_spec if nu_spec is not None else _mean_field(fd, lo if abs(lo) > abs(hi) else hi)
+    cg = _coarse_grid(fd, surface.pitch_m, k1, ks, ns, st)
+    a = (2 * np.pi * cg.fx_full[None, :] - k1 * fd.ai) / ks
+    b = (2 * np.pi * cg.fy_full[:, None] - k1 * fd.bi) / ks
+    cs = np.sqrt(np.clip(1.0 - a * a - b * b, 0.0, 1.0))
+    prop = a * a + b * b < 1.0
+    geo_full = {"a": a, "b": b, "cs": cs, "prop": prop, "k1": k1, "ks": ks, "sgn": sgn}
+    fac_full = _obliquity_fresnel(geo_full, fd.wi, inc.n1, inc.n2, side,
+                                  "unpolarized" if st.polarized else st.polarization).astype(np.float32)
     shape_t = (cg.tb[0].stop - cg.tb[0].start, cg.tb[1].stop - cg.tb[1].start)
     geo = _side_geometry(side, fd, np.real(inc.n1), ns, shape_t, cg.f0t, cg.df)
-    dens = [_interp_nodes(nodes, g, geo, fd.sigma, cg.f0t, cg.df, cg.f0n) for g in grids]
-    spec = abs(m_spec) ** 2 * F_spec
-    if screens and nu_spec is not None:
+    geo["disc"] = _pool(prop.astype(float), cg.by, cg.bx) > 0
+    # the reference diffuse amplitude of the tolerance; without a specular direction (transmission
+    # past the critical angle) the side only sees the weak far tail of the field: 10x lower
+    amp = float(np.sqrt(max(1.0 - abs(m_ref) ** 2, 0.0))) * (1.0 if nu_spec is not None else 0.1)
+    return _Side(side=side, ns=ns, nu_spec=nu_spec, F_spec=F_spec, m_spec=m_spec, amp=amp, lo=lo, hi=hi, cg=cg,
+                 nu_full=np.clip(k1 * fd.ci + sgn * ks * cs, lo, hi), fac_full=fac_full, geo=geo)
+
+
+def _plan_nodes(sides: list, fd: _Field, st: SolveSettings) -> list:
+    """[(nodes, error bound, [sides served])]: one node set per side, or one for the union of their
+    nu_z intervals when that needs fewer FFTs in all (the R and T intervals of an incidence touch at
+    nu_z = k1 cos t_i, so the union is about their sum and saves the fixed part of the count)."""
+    own = []
+    for sd in sides:
+        n, e = expansion_order(0.5 * (sd.hi - sd.lo), fd.moments, sd.amp, st.tau, st.max_nodes)
+        own.append((chebyshev_nodes(sd.lo, sd.hi, n), e, [sd]))
+    if len(sides) < 2:
+        return own
+    lo, hi = min(sd.lo for sd in sides), max(sd.hi for sd in sides)
+    n, e = expansion_order(0.5 * (hi - lo), fd.moments, min(sd.amp for sd in sides), st.tau, st.max_nodes)
+    if n < sum(o[0].size for o in own) and e <= max(o[1] for o in own):
+        return [(chebyshev_nodes(lo, hi, n), e, list(sides))]
+    return own
+
+
+def _side_power(fd: _Field, sides: list, nodes, screens, workers):
+    """Diffuse power density (per unit nu_xy area, times the obliquity-Fresnel factor of every
+    full-resolution frequency) on each side's pooled target grid, the field interpolated in nu_z
+    to every frequency's own nu_z (qz_expansion) from one FFT per node shared by the sides; per
+    side one array per half of the screens (one when coherent); and the number of FFTs.  The mean
+    field is removed in the transform: FFT(w (u - m)) = FFT(w u) - m FFT(w) (for a periodic tile
+    FFT(w) is N at DC only)."""
+    ny, nx = fd.shape
+    ntot = nx * ny
+    nscr = len(screens) or 1
+    bases = [LagrangeBasis(nodes, sd.nu_full) for sd in sides]
+    ix = [np.ix_(sd.cg.rows, sd.cg.cols) for sd in sides]
+    accs = [[np.zeros(sd.nu_full.shape, np.complex64) for _ in range(nscr)] for sd in sides]
+    periodic_coherent = fd.w32 is None and not screens
+    dcs = [np.nonzero((sd.cg.rows == 0)[:, None] & (sd.cg.cols == 0)[None, :]) for sd in sides]
+    win = [None] * nscr
+    n_fft = 0
+    for j, nu in enumerate(nodes):
+        v, m = _node_field(fd, nu)
+        Ls = [lb.basis(j) for lb in bases]
+        for k, e in enumerate(screens or [None]):
+            if not periodic_coherent and win[k] is None:
+                ww = fd.w32.astype(np.complex64) if e is None else (e if fd.w32 is None else e * fd.w32)
+                win[k] = sfft.fft2(ww, workers=workers)
+                n_fft += 1
+            if m is None and e is not None:
+                m = complex(v.mean(dtype=np.complex128))
+            F = sfft.fft2(v if e is None else v * e, workers=workers, overwrite_x=e is None)
+            n_fft += 1
+            for i, sd in enumerate(sides):
+                Fc = F[ix[i]]
+                if periodic_coherent:
+                    Fc[dcs[i]] = 0.0                 # the mean field is the DC term
+                else:
+                    Fc -= np.complex64(m) * win[k][ix[i]]
+                np.multiply(Fc, Ls[i], out=Fc)
+                accs[i][k] += Fc
+    halves = 2 if screens else 1
+    out = []
+    for i, sd in enumerate(sides):
+        acc_p = [None] * halves
+        for k, acc in enumerate(accs[i]):
+            p = _pool((acc.real.astype(float) ** 2 + acc.imag.astype(float) ** 2) * sd.fac_full, sd.cg.by, sd.cg.bx)
+            acc_p[k % halves] = p if acc_p[k % halves] is None else acc_p[k % halves] + p
+        cnt = [len(screens[k::2]) if screens else 1 for k in range(halves)]
+        out.append([acc_p[k] / (cnt[k] * ntot * fd.sw2 * sd.cg.dF) for k in range(halves)])
+    return out, n_fft
+
+
+def _densities(sides: list, fd: _Field, st: SolveSettings, screens) -> tuple[dict, dict, int]:
+    """{side: density list}, {side: (nodes, error bound)} and the FFT count, over the node plan."""
+    dens, plan_of, n_fft = {}, {}, 0
+    for nodes, bound, served in _plan_nodes(sides, fd, st):
+        d, n = _side_power(fd, served, nodes, screens, st.workers)
+        n_fft += n
+        for sd, di in zip(served, d):
+            dens[sd.side] = di
+            plan_of[sd.side] = (nodes, bound)
+    return dens, plan_of, n_fft
+
+
+def order_powers(surface: Surface, inc: Incidence, st: SolveSettings, side: str) -> dict:
+    """Unfiltered result of one side, one value per FFT frequency (per diffraction order of a
+    periodic tile): direction cosines alpha, beta, the diffuse power fraction (obliquity and facet
+    Fresnel included) and the coherent specular fraction.  Coherent illumination only."""
+    st = dataclasses.replace(st, width_dcos=0.0, coherence_length_m=None)
+    fd = _field(surface, inc)
+    sd = _side_setup(side, surface, inc, st, fd)
+    dens, plan_of, _ = _densities([sd], fd, st, [])
+    shape = sd.geo["prop"].shape
+    return {"alpha": np.broadcast_to(sd.geo["a"], shape), "beta": np.broadcast_to(sd.geo["b"], shape),
+            "power": dens[side][0] * sd.cg.dF, "specular": abs(sd.m_spec) ** 2 * sd.F_spec,
+            "qz_nodes": int(plan_of[side][0].size), "error_bound": plan_of[side][1]}
+
+
+def _finish_side(sd: _Side, dens, nodes_bound, inc: Incidence, st: SolveSettings, fd: _Field, screens, out) -> int:
+    """Coherent part, filtering into the cells and the side's info into `out`; returns extra FFTs."""
+    side, geo, n_fft = sd.side, sd.geo, 0
+    spec = abs(sd.m_spec) ** 2 * sd.F_spec
+    if screens and sd.nu_spec is not None:
         # coherent part spread by the illumination's angular spectrum (the Phong-like peak);
-        # centred on nu_xy = 0 (the specular direction); Fresnel and obliquity via K F in _cells
-        lobes, n_lobe = _coherent_lobe(fd, cg, screens, st.workers)
-        n_fft += n_lobe
-        dens = [dens[k] + abs(m_spec) ** 2 * lobes[k] for k in range(2)]
+        # centred on nu_xy = 0 (the specular direction), times obliquity and facet Fresnel
+        lobes, n_fft = _coherent_lobe(fd, sd.cg, screens, st.workers)
+        kf = _obliquity_fresnel(geo, fd.wi, inc.n1, inc.n2, side, "unpolarized" if st.polarized else st.polarization)
+        dens = [dens[k] + abs(sd.m_spec) ** 2 * lobes[k] * kf for k in range(2)]
         out["info"][f"coherent_specular_{side}"] = spec
         spec = 0.0
-    vals = _cells(side, dens, geo, fd, inc, st, (spec, F_spec), out)
+    vals = _cells(side, dens, geo, fd, inc, st, (spec, sd.F_spec), out)
     if screens:
         big = out[side] > 0.01 * out[side].max()
         diff = (vals[0] - vals[1])[big]
         out["info"][f"coherence_rel_error_{side}"] = float(
             0.5 * np.sqrt(np.mean(diff ** 2)) / np.sqrt(np.mean(out[side][big] ** 2))) if big.any() else 0.0
     out[f"spec_{side}"] = spec
-    out["info"][f"qz_nodes_{side}"] = int(nodes.size)
-    out["info"][f"pool_{side}"] = [cg.by, cg.bx]
+    out["info"][f"qz_nodes_{side}"] = int(nodes_bound[0].size)
+    out["info"][f"qz_error_bound_{side}"] = float(nodes_bound[1])
+    out["info"][f"pool_{side}"] = [sd.cg.by, sd.cg.bx]
     return n_fft
 
 
@@ -713,12 +779,15 @@ def solve_incidence(surface: Surface, inc: Incidence, st: SolveSettings) -> dict
     fd = _field(surface, inc)
     screens = _phase_screens(fd.shape, surface.pitch_m, st)
     out = {"info": {}}
-    n_fft = 0
+    sides = []
     for side in st.sides:
         if side == "T" and np.imag(inc.n2) > 0:
             _absorbed_side(out, st.cells)
-            continue
-        n_fft += _solve_side(side, surface, inc, st, fd, screens, out)
+        else:
+            sides.append(_side_setup(side, surface, inc, st, fd))
+    dens, plan_of, n_fft = _densities(sides, fd, st, screens)
+    for sd in sides:
+        n_fft += _finish_side(sd, dens[sd.side], plan_of[sd.side], inc, st, fd, screens, out)
     out["info"]["ffts"] = n_fft
     out["info"]["seconds"] = time.perf_counter() - t0
     out["info"]["rms_height_m"] = fd.sigma
@@ -760,8 +829,11 @@ def _prepare(relief, material: Material, request, opts: KirchhoffOptions) -> tup
     width = smoothing_width_dcos(speckle_dcos(relief, material, request), request.theta_s_edges_deg,
                                  opts.smoothing_dcos)
     check_sampling(relief, material, request, width, opts.band_limited)
-    h, w = prepared_heights(relief)
     wls = np.asarray(request.wavelengths_nm, float)
+    band = None
+    if opts.band_limit_heights:
+        relief, band = _band_limit(relief, material, request, width)
+    h, w = prepared_heights(relief)
     nmax = max(np.real(n) for wl in wls for fr in request.incident_from for n in material.n_pair(wl, fr))
     nu_max = 2 * nmax * 2 * np.pi / (wls.min() * 1e-9)
     alias = check_aliasing(h, w, nu_max, relief.source or "relief")
@@ -774,14 +846,38 @@ def _prepare(relief, material: Material, request, opts: KirchhoffOptions) -> tup
                              instances=opts.coherence_instances, seed=request.seed, tau=opts.qz_tolerance,
                              max_nodes=opts.max_qz_nodes, workers=opts.fft_workers,
                              theta_s_range_deg=(request.theta_s_edges_deg[0], request.theta_s_edges_deg[-1]),
-                             polarized=opts.polarized)
+                             polarized=opts.polarized, theta_edges_deg=tuple(request.theta_s_edges_deg),
+                             phi_edges_deg=tuple(request.phi_s_edges_deg))
     ctx = {"surface": Surface(h, w, (relief.dx_m, relief.dy_m), relief.periodic), "wavelengths": wls,
            "theta_i": request.theta_i_deg, "phi_i": request.phi_i_deg, "settings": settings,
            "n": {(iw, fr): material.n_pair(wl, fr) for iw, wl in enumerate(wls) for fr in request.incident_from}}
     meta = {"smoothing_dcos": width, "window": "none (periodic)" if relief.periodic else "2-D Hann",
             "aliased_step_fraction": alias, "coherence_length_m": lc,
-            "coherence_instances": opts.coherence_instances if lc is not None else 0}
+            "coherence_instances": opts.coherence_instances if lc is not None else 0,
+            "height_band_limit": band}
     return ctx, meta
+
+
+def _band_limit(relief, material: Material, request, width_dcos: float):
+    """The relief low-passed to the spatial frequencies that can scatter into a requested direction
+    (any wavelength, side and incidence of the request, plus the filter margin), and the statement
+    of what was removed (None when the pitch's band is already inside).  Finer components
+    (profilometer noise, tip artefacts) would only scatter into evanescent orders, yet in the
+    tangent-plane phase exp(-i nu_z h) they would lower the coherent part and book their power as
+    an energy defect; first-order theory (rayleigh-rice) shows they take no power from it."""
+    from relief_bsdf.surface.stats import band_limited
+    lam = min(request.wavelengths_nm) * 1e-9
+    n_in = max(float(np.real(material.n_pair(wl, fr)[0])) for wl in request.wavelengths_nm
+               for fr in request.incident_from)
+    n_any = max(float(np.real(n)) for wl in request.wavelengths_nm for fr in request.incident_from
+                for n in material.n_pair(wl, fr) if np.imag(n) == 0)
+    s_max = min(np.sin(np.radians(request.theta_s_edges_deg[-1])) + 4 * width_dcos, 1.0 + 4 * width_dcos)
+    f_max = (n_in * np.sin(np.radians(max(request.theta_i_deg))) + n_any * s_max) / lam
+    if f_max >= 0.5 / max(relief.dx_m, relief.dy_m):
+        return relief, None
+    bl = band_limited(relief, f_max)
+    return bl.relief, {"f_max_per_m": bl.f_max_per_m, "removed_rms_m": bl.removed_rms_m,
+                       "removed_rms_slope": bl.removed_rms_slope, "statement": bl.statement()}
 
 
 def _collect(ctx, request, tasks, res) -> dict:
@@ -828,7 +924,6 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
             metadata={**meta, "incidences": infos,
                       "validity": "tangent-plane approximation: radius of curvature >> lambda, no shadowing, "
                                   "single scattering"}, **a)
-        h_ = tab.hemispherical()
-        tab.lost = np.clip(1.0 - h_["R"] - h_["T"], 0.0, None)   # absorbed (metal), evanescent or beyond the cells
+        energy_defect(tab, material, "kirchhoff", "tangent-plane")
         tables.append(tab)
     return tables

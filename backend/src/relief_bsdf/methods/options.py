@@ -153,12 +153,16 @@ class KirchhoffOptions(MethodOptions):
     """Options of the Kirchhoff (tangent-plane) method; see methods.kirchhoff for the q_z scheme."""
 
     METHOD: ClassVar[str] = "kirchhoff"
-    qz_tolerance: float = opt(math.inf, "float", "change of x = nu_z^2 sigma^2 a q_z node may serve, relative "
-                              "(inf: one node per side, similarity extrapolation elsewhere)", minimum=0.0)
-    max_qz_nodes: int = opt(16, "int", "most q_z nodes (FFTs) per side", minimum=1)
+    qz_tolerance: float = opt(1e-3, "float", "rms error of the q_z expansion of the Kirchhoff field, relative to the "
+                              "diffuse field (methods.qz_expansion; the diffuse power's error is about twice it)",
+                              minimum=0.0)
+    max_qz_nodes: int = opt(64, "int", "most q_z nodes (FFTs) per side; the bound reached is reported",
+                            minimum=2)
     fft_workers: int = opt(2, "int", "scipy.fft workers in this process (1 inside a pool worker)", minimum=1)
     band_limited: bool = opt(False, "bool", "take the relief as band-limited: directions beyond the pitch's band "
                              "get no power instead of refusing the request")
+    band_limit_heights: bool = opt(True, "bool", "low-pass the heights to the spatial frequencies that scatter into "
+                                   "the requested directions (what was removed is in metadata height_band_limit)")
     coherence_instances: int = opt(8, "int", "random phase screens averaged for partial coherence (>= 2)")
     smoothing_dcos: float | None = opt(None, "float", "filter width in direction cosines (None: from speckle and "
                                        "cells)", optional=True, minimum=0.0)

@@ -79,7 +79,7 @@ from relief_bsdf.core.fresnel import cos_transmitted, fresnel_amplitudes, muelle
 from relief_bsdf.core.index import Material
 from relief_bsdf.parallel import map_tasks
 from relief_bsdf.methods.options import RayleighRiceOptions
-from relief_bsdf.methods.wave_filter import cell_samples, check_sides, smoothing_width_dcos
+from relief_bsdf.methods.wave_filter import cell_samples, check_sides, energy_defect, smoothing_width_dcos
 
 # ------------------------------------------------------------------ PSD
 
@@ -440,7 +440,6 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
                       "rms_height_m": psd.sigma_m, "smoothing_dcos": w,
                       "rayleigh_parameter_max": validity["rayleigh_parameter_max"],
                       "validity": validity})
-        h = tab.hemispherical()
-        tab.lost = np.clip(1.0 - h["R"] - h["T"], 0.0, None)     # absorbed (metal) or beyond the cells
+        energy_defect(tab, material, "rayleigh-rice", "first-order perturbation")   # signed; absorbed for a metal
         tables.append(tab)
     return tables

@@ -378,3 +378,111 @@ def slope_histogram(relief: Relief, bins: Any = 64, max_slope: float | None = No
     counts, ex, ey = np.histogram2d(a, b, bins=bins, range=rng)
     area = np.outer(np.diff(ex), np.diff(ey))
     return ex, ey, counts / (ok.sum() * area)
+
+
+# ---------------------------------------------------------------- measured maps as they are
+
+
+@dataclass(frozen=True)
+class BandLimit:
+    """A relief low-passed to the spatial frequencies that scatter into propagating directions.
+
+    f_max_per_m: the cut-off |f| (cycles/m); removed_rms_m / removed_rms_slope: rms height and
+    rms slope of what was removed (the difference map); kept_rms_m: rms of what remains.
+    """
+
+    relief: Relief
+    f_max_per_m: float
+    removed_rms_m: float
+    removed_rms_slope: float
+    kept_rms_m: float
+
+    def statement(self) -> str:
+        return (f"band-limited to |f| <= {self.f_max_per_m * 1e-6:.3g} /um (propagating scatter): removed "
+                f"{self.removed_rms_m * 1e9:.3g} nm rms height, {self.removed_rms_slope:.3g} rms slope; kept "
+                f"{self.kept_rms_m * 1e9:.3g} nm rms")
+
+
+def propagating_f_max(wavelength_nm: float, n_incident: float, n_scatter: float, theta_i_max_deg: float) -> float:
+    """|f| (cycles/m) of the finest relief component that scatters into a propagating direction:
+    (n1 sin t_i,max + n_s) / lambda (first-order grating equation)."""
+    return (n_incident * np.sin(np.radians(theta_i_max_deg)) + n_scatter) / (wavelength_nm * 1e-9)
+
+
+def band_limited(relief: Relief, f_max_per_m: float) -> BandLimit:
+    """Levelled heights with every Fourier component above f_max_per_m removed (sharp disc in f).
+
+    Non-periodic maps are mirrored to twice their size first (no wrap-around edge); invalid
+    points are set to the mean plane (0) for the transform and stay invalid in the result.
+    """
+    lv = levelled(relief)
+    m = lv.valid
+    z = np.where(m, lv.heights_m, 0.0)
+    ny, nx = z.shape
+    big = z if relief.periodic else np.block([[z, z[:, ::-1]], [z[::-1, :], z[::-1, ::-1]]])
+    fx = np.fft.fftfreq(big.shape[1], relief.dx_m)
+    fy = np.fft.fftfreq(big.shape[0], relief.dy_m)
+    keep = fx[None, :] ** 2 + fy[:, None] ** 2 <= f_max_per_m ** 2
+    zl = np.real(np.fft.ifft2(np.fft.fft2(big) * keep))[:ny, :nx]
+    out = lv.with_heights(np.where(m, zl, np.nan), f"band-limited to |f| <= {f_max_per_m:.4g} /m")
+    diff = lv.with_heights(np.where(m, z - zl, np.nan), "removed part")
+    return BandLimit(relief=out, f_max_per_m=float(f_max_per_m), removed_rms_m=_rms((z - zl)[m]),
+                     removed_rms_slope=rms_slope(diff), kept_rms_m=_rms(zl[m]))
+
+
+@dataclass(frozen=True)
+class NoiseFloor:
+    """White-noise floor of a measured map from its PSD (see `noise_floor`)."""
+
+    psd_m4: float                 # 2-D PSD level of the floor
+    rms_m: float                  # rms height of white noise at that level over the map's band
+    fraction_of_rms: float        # rms_m / rms height of the map
+    slope_rms: float              # rms slope such noise adds (forward differences)
+
+    def statement(self) -> str:
+        return (f"PSD noise floor {self.psd_m4:.3g} m^4: white noise of {self.rms_m * 1e9:.3g} nm rms "
+                f"({self.fraction_of_rms:.1%} of the heights) adding {self.slope_rms:.3g} rms slope")
+
+
+def noise_floor(relief: Relief) -> NoiseFloor:
+    """Noise floor = median of the 2-D PSD over the outer annulus (0.8-1 of the Nyquist radius of
+    the coarser axis), where a measured surface's PSD has usually fallen to the instrument's white
+    noise.  White noise of PSD level P over the band [-1/(2dx), 1/(2dx)] x [-1/(2dy), 1/(2dy)] has
+    variance P / (dx dy), and forward-difference slope variance 2 P / (dx dy) (1/dx^2 + 1/dy^2)
+    (uncorrelated pixels).  An upper estimate when the surface itself still has power there."""
+    fx, fy, psd = psd_2d(relief)
+    fr = np.hypot(fx[None, :] * (2 * relief.dx_m), fy[:, None] * (2 * relief.dy_m))  # 1 at each axis's Nyquist
+    ring = (fr >= 0.8) & (fr <= 1.0)
+    P = float(np.median(psd[ring])) if ring.any() else 0.0
+    var = P / (relief.dx_m * relief.dy_m)
+    sigma = rms_height(relief)
+    return NoiseFloor(psd_m4=P, rms_m=float(np.sqrt(var)), fraction_of_rms=float(np.sqrt(var) / sigma) if sigma > 0
+                      else float("nan"), slope_rms=float(np.sqrt(2 * var * (relief.dx_m ** -2 + relief.dy_m ** -2))))
+
+
+@dataclass(frozen=True)
+class MapFlags:
+    """Flags of a measured map that change its BSDF (`map_flags`)."""
+
+    kurtosis: float
+    spiky: bool                   # kurtosis > 5: spikes / outliers dominate the high moments
+    anisotropy: float             # ratio of the larger to the smaller rms slope of the two axes
+    anisotropic: bool             # anisotropy > 1.5
+
+    def statements(self) -> list[str]:
+        out = []
+        if self.spiky:
+            out.append(f"spiky: kurtosis {self.kurtosis:.3g} >> 3 (Gaussian): spikes or outliers raise the wide-angle "
+                       "scatter and lower the coherent specular part beyond what the rms height says; remove "
+                       "outliers before reconstructing if they are measurement artefacts")
+        if self.anisotropic:
+            out.append(f"anisotropic: rms slopes differ {self.anisotropy:.3g}x between the axes: the BSDF is "
+                       "not rotationally symmetric (lobes stretched across the lay); keep phi_i and the azimuth cells")
+        return out
+
+
+def map_flags(relief: Relief) -> MapFlags:
+    st = relief_stats(relief)
+    a = max(st.rms_slope_x, st.rms_slope_y) / max(min(st.rms_slope_x, st.rms_slope_y), 1e-300)
+    return MapFlags(kurtosis=st.kurtosis, spiky=bool(st.kurtosis > 5.0), anisotropy=float(a),
+                    anisotropic=bool(a > 1.5))
