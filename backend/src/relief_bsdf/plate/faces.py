@@ -318,8 +318,9 @@ def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, w
         req = _replace(req, options={**req.options, "backend": "serial"})
         (table,) = reconstruct_with(_topology_tracer(face.relief, req), face.relief, material, req, progress=progress)
         return table
+    from relief_bsdf.plate.energy import closed
     (table,) = reconstruct(face.relief, material, req, face.method, progress=progress)
-    return table
+    return closed(table)          # a wave model's energy defect is the model's, not absorption (plate.energy)
 
 
 def _trace_here(face: "ReliefFace") -> bool:
