@@ -312,12 +312,9 @@ def make_case(spec: CaseSpec, out_dir: str | Path) -> dict:
     relief_name = _write_relief(out, relief)
     rec = _rows(spec)
     val, mc_sig = _true_signal(spec, relief.heights_m, rec)
-    rng = task_rng(spec.seed, 12345)
-    counts = rng.poisson(np.maximum(val, 0) * spec.counts_per_sr) / spec.counts_per_sr
-    gain = 1.0 + spec.gain_noise * rng.normal(size=len(val))
-    noisy = np.maximum(counts * gain + spec.floor_sr * rng.normal(size=len(val)), 0.0)
-    sigma = np.sqrt(np.maximum(val, 0) / spec.counts_per_sr + (spec.gain_noise * val) ** 2
-                    + spec.floor_sr**2 + mc_sig**2)
+    from relief_bsdf.validation.record import Goniophotometer, instrument_noise
+    noisy, sigma = instrument_noise(val, mc_sig, Goniophotometer(spec.counts_per_sr, spec.gain_noise, spec.floor_sr),
+                                    task_rng(spec.seed, 12345))
     write_recording(out / "recording.csv", rec.with_values(noisy, sigma),
                     comments=[f"concealed case {spec.name} (see key file kept apart)"])
     write_sample(out / "sample.toml", {
