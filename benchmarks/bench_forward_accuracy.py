@@ -163,9 +163,10 @@ def run_case(name: str, args) -> dict:
     from relief_bsdf.surface.stats import rms_height_and_slope
     case = CASES[name]
     relief = make_relief(name)
-    rows = rows_of()
+    rows = rows_of(args.theta_i)
     h, m = rms_height_and_slope(relief)
     out = {"case": name, "relief": {"shape": list(relief.shape), "rms_height_um": h * 1e6, "rms_slope": m},
+           "theta_i_deg": list(args.theta_i),
            "plate": case.__dict__, "photons": args.photons, "grids": []}
     t0 = time.time()
     rec, sig, info = independent(relief, case, rows, args.photons, seed=1)
@@ -204,9 +205,19 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=int, default=4_000_000)
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--check-generator", action="store_true")
+    ap.add_argument("--theta-i", type=lambda v: tuple(float(x) for x in v.split(",")), default=THETA_I,
+                    help="incidences, comma separated (default 0,15,...,75)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     results = [run_case(c, args) for c in args.cases]
+    print("\n| case | rms slope | n | t mm | cone deg | grid t,p,i | ray samples | rms z | R | T | lobe | tail | "
+          "forward s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in results:
+        p = r["plate"]
+        for g in r["grids"]:
+            print(f"| {r['case']} | {r['relief']['rms_slope']:.3f} | {p['n_glass']:g} | {p['thickness_mm']:g} | "
+                  f"{p['half_angle_deg']:g} | {g['grid']} | {g['samples']} | {g['rms_z']:.2f} | {g['rms_z_R']:.2f} | "
+                  f"{g['rms_z_T']:.2f} | {g['rms_z_lobe']:.2f} | {g['rms_z_tail']:.2f} | {g['seconds']:.0f} |")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))
     return 0
