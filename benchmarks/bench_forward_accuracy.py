@@ -31,6 +31,25 @@ slope from 0.06 into the range, mirrored into a periodic tile: see `measured_til
 Grid spec "t,p,i" = TableGrid(theta_step_deg=t, phi_step_deg=p, inside_theta_i_step_deg=i).
 Runtime: the photon run is ~7 s per million photons per incidence on one core (256^2 relief),
 so 4 M photons x 6 incidences is ~3 minutes per case; run cases one at a time on a shared machine.
+
+Findings (2026-12-01, 2 shared cores under load 8-16, so seconds are inflated ~3x; 1 M photons per
+incidence, NOT the 4 M target: the machine could not run 4 M x 8 cases; at 4 M the recording's
+sigma halves, so a systematic error's z doubles).  Full figures: the report of branch hdemo.
+
+- The generator is converged: two seeds agree to rms z 0.81 (in-lobe 0.99), max_hits 40 vs 20
+  changes nothing (0.78); lost photons < 1e-2 even at 75 deg.
+- gauss_mid, all 6 incidences: grid (theta, phi, inside) 1,5,5: rms z 2.63 (lobe 4.4); 0.5,5,5: 2.37;
+  1,5,2.5: 2.50; 1,2.5,5: 2.09 (lobe 2.9); 1,1.25,5: 2.05 (lobe 2.7, tail 1.8: table noise);
+  0.5,2.5,2.5: 1.47 (lobe 2.2, tail 1.1).  200k vs 800k rays on 1,5,5: 2.64 vs 2.63 (grid-limited).
+- WHERE: the in-plane cut of oblique transmitted lobes.  In-plane integral sum f sin(theta_s),
+  forward / recording, T at theta_i 45: 0.946 / 0.981 / 0.997 for 5 / 2.5 / 1.25 deg azimuth
+  cells; at 60: 0.941 / 0.968 / 0.983.  WHY: a table cell holds the cell AVERAGE and the engine
+  interpolates cell averages as point values; the in-plane row sits on the lobe's azimuthal
+  maximum, so both the averaging (-d^2 f'' / 24) and the linear interpolation (up to -d^2 f'' / 8)
+  bias it low; a 5-deg azimuth cell is 3.5 deg of arc at 45 deg, wider than the 2-deg cone.
+- Near grazing exits (theta_s >= 85, T at theta_i 60): forward 15-25 % low on every grid.
+- Narrow lobes (the measured map: peak 67 /sr): 1,5,5 rms z 14 (peak 35 % low), 0.5,2.5,2.5 6.3
+  (still 14 % low): cells must be narrower than the lobe, not only than the cone.
 """
 from __future__ import annotations
 
