@@ -50,6 +50,28 @@ sigma halves, so a systematic error's z doubles).  Full figures: the report of b
 - Near grazing exits (theta_s >= 85, T at theta_i 60): forward 15-25 % low on every grid.
 - Narrow lobes (the measured map: peak 67 /sr): 1,5,5 rms z 14 (peak 35 % low), 0.5,2.5,2.5 6.3
   (still 14 % low): cells must be narrower than the lobe, not only than the cone.
+- Table noise: two ray seeds of the 0.5,2.5,2.5 forward (800k rays) differ by rms z 0.24 (lobe 0.35)
+  in units of the 1 M-photon recording's sigma: small here, ~0.5-0.7 at 4 M photons.
+- Rows at theta_s = 1 deg (the cone covers the pole): T theta_i 30 on dots / exponential, forward
+  2-3.5x the recording, WORSE on the finer grid (dots 0.126 -> 0.218 /sr, recording 0.062); R
+  theta_i 0 on the anisotropic relief 0.63x.  Polar cells (theta < 1 deg x every azimuth cell) have
+  vanishing solid angle, so few rays each: table noise concentrated at the pole (suspected).
+- Anisotropic (3:1 at 30 deg): rms z 6.3 / 3.6; T theta_i 30 theta_s 39 phi 180 forward 3.4x the
+  recording on 1,5,5.  Handedness was checked (an asymmetric grating along y: out-of-plane rows at
+  phi 90 / 270 agree between the engines), so the cause is not a mirrored frame; the engine's
+  isotropic-table assumption (one phi_i, circulant azimuth kernel) is the suspect.
+
+1 M photons, theta_i 0 / 30 / 60 (gauss_mid: 0-75), 400k rays (gauss_mid 800k), rms z over all rows:
+
+    case        slope  n     t   cone  1,5,5 (lobe)   0.5,2.5,2.5 (lobe)
+    gauss_low   0.116  1.45  1   1.5   8.14 (18.8)    2.95 (7.2)
+    gauss_mid   0.232  1.53  2   2.0   2.63 (4.4)     1.47 (2.2)
+    gauss_high  0.338  1.60  3   2.5   1.79 (2.2)     1.45 (1.6)
+    dots        0.244  1.49  2   2.0   2.59 (2.7)     2.95 (6.3)
+    exponential 0.318  1.50  2   2.0   1.73 (2.4)     1.67 (1.7)
+    two_scales  0.200  1.50  1.5 2.0   3.13 (5.7)     1.45 (2.1)
+    anisotropic 0.210  1.50  2   2.0   6.33 (12.1)    3.58 (7.9)
+    measured    0.169  1.52  1.1 2.0   14.2 (31.3)    6.32 (13.8)
 """
 from __future__ import annotations
 

@@ -14,7 +14,8 @@ parameters).  The physics is an *independent* Monte-Carlo photon simulation:
   a rescaled or filtered relief, a Cauchy-dispersive glass (n depends on wavelength);
 - noise: Poisson shot noise on the detected counts (gain `counts_per_sr`), a relative gain
   noise per row (`gain_noise`), a noise floor (`floor_sr`), plus the Monte-Carlo's own
-  variance; `sigma_sr` is the quadrature sum of those.
+  variance; `sigma_sr` is the quadrature sum of those (`record.instrument_noise`, the one noise model,
+  which the demo recording uses too).
 
 `interreflection` cases need no extra physics here (the generator always traces the real
 relief): they are cases on a *steep* relief (rms slope ~ 1, `STEEP_RELIEF`), where shadowing
