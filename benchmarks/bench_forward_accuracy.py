@@ -37,7 +37,10 @@ incidence, NOT the 4 M target: the machine could not run 4 M x 8 cases; at 4 M t
 sigma halves, so a systematic error's z doubles).  Full figures: the report of branch hdemo.
 
 - The generator is converged: two seeds agree to rms z 0.81 (in-lobe 0.99), max_hits 40 vs 20
-  changes nothing (0.78); lost photons < 1e-2 even at 75 deg.
+  changes nothing (0.78), 4 M vs 1 M photons 0.64; lost photons < 1.2e-2 even at 75 deg.
+- gauss_mid at the target's 4 M photons (same forward runs): 1,5,5: rms z 5.0 (lobe 8.6);
+  1,2.5,5: 3.8; 1,1.25,5: 3.6 (tail 2.9: table noise); 0.5,5,5: 4.5; 1,5,2.5: 4.7;
+  0.5,2.5,2.5: 2.5 (lobe 4.0).
 - gauss_mid, all 6 incidences: grid (theta, phi, inside) 1,5,5: rms z 2.63 (lobe 4.4); 0.5,5,5: 2.37;
   1,5,2.5: 2.50; 1,2.5,5: 2.09 (lobe 2.9); 1,1.25,5: 2.05 (lobe 2.7, tail 1.8: table noise);
   0.5,2.5,2.5: 1.47 (lobe 2.2, tail 1.1).  200k vs 800k rays on 1,5,5: 2.64 vs 2.63 (grid-limited).
