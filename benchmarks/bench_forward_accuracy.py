@@ -40,7 +40,10 @@ sigma halves, so a systematic error's z doubles).  Full figures: the report of b
   changes nothing (0.78), 4 M vs 1 M photons 0.64; lost photons < 1.2e-2 even at 75 deg.
 - gauss_mid at the target's 4 M photons (same forward runs): 1,5,5: rms z 5.0 (lobe 8.6);
   1,2.5,5: 3.8; 1,1.25,5: 3.6 (tail 2.9: table noise); 0.5,5,5: 4.5; 1,5,2.5: 4.7;
-  0.5,2.5,2.5: 2.5 (lobe 4.0).
+  0.5,2.5,2.5: 2.5 (lobe 4.0); 0.5,1.25,2.5 with 1.6 M rays: 2.41 (lobe 3.3, tail 2.0), 286 s.
+  On that grid the T 45 in-plane lobe is right to ~1 % at its peak; what is left is the tile's fine
+  structure (features narrower than 2 deg, e.g. theta_s 57-67: -2 to -4 %) and table noise in the
+  tails (more cells, same rays): no grid tried reaches rms z 1.2 at 4 M photons.
 - gauss_mid, all 6 incidences: grid (theta, phi, inside) 1,5,5: rms z 2.63 (lobe 4.4); 0.5,5,5: 2.37;
   1,5,2.5: 2.50; 1,2.5,5: 2.09 (lobe 2.9); 1,1.25,5: 2.05 (lobe 2.7, tail 1.8: table noise);
   0.5,2.5,2.5: 1.47 (lobe 2.2, tail 1.1).  200k vs 800k rays on 1,5,5: 2.64 vs 2.63 (grid-limited).
@@ -58,7 +61,11 @@ sigma halves, so a systematic error's z doubles).  Full figures: the report of b
 - Rows at theta_s = 1 deg (the cone covers the pole): T theta_i 30 on dots / exponential, forward
   2-3.5x the recording, WORSE on the finer grid (dots 0.126 -> 0.218 /sr, recording 0.062); R
   theta_i 0 on the anisotropic relief 0.63x.  Polar cells (theta < 1 deg x every azimuth cell) have
-  vanishing solid angle, so few rays each: table noise concentrated at the pole (suspected).
+  vanishing solid angle.  Checked on exponential, T theta_i 30, theta_s 1 / 3 (2 M photons): forward /
+  recording 0.30 / 1.97 (1,5,5, 400k rays), 0.47 / 0.94 (0.5,2.5,2.5, 400k, seed 1), 0.28 / 1.80
+  (0.5,2.5,2.5, 1.6 M rays): it does NOT converge with 4x the rays, so not only table noise; the
+  recording falls 20x from theta_s 1 to 5 (phi 0) there: the cone straddles the pole on a steep
+  gradient.  Cause open (the pole handling of the cells / the bilinear read).
 - Anisotropic (3:1 at 30 deg): rms z 6.3 / 3.6; T theta_i 30 theta_s 39 phi 180 forward 3.4x the
   recording on 1,5,5.  Handedness was checked (an asymmetric grating along y: out-of-plane rows at
   phi 90 / 270 agree between the engines), so the cause is not a mirrored frame; the engine's
