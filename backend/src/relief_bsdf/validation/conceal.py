@@ -14,7 +14,8 @@ parameters).  The physics is an *independent* Monte-Carlo photon simulation:
   a rescaled or filtered relief, a Cauchy-dispersive glass (n depends on wavelength);
 - noise: Poisson shot noise on the detected counts (gain `counts_per_sr`), a relative gain
   noise per row (`gain_noise`), a noise floor (`floor_sr`), plus the Monte-Carlo's own
-  variance; `sigma_sr` is the quadrature sum of those.
+  variance; `sigma_sr` is the quadrature sum of those (`record.instrument_noise`, the one noise model,
+  which the demo recording uses too).
 
 `interreflection` cases need no extra physics here (the generator always traces the real
 relief): they are cases on a *steep* relief (rms slope ~ 1, `STEEP_RELIEF`), where shadowing
@@ -312,12 +313,9 @@ def make_case(spec: CaseSpec, out_dir: str | Path) -> dict:
     relief_name = _write_relief(out, relief)
     rec = _rows(spec)
     val, mc_sig = _true_signal(spec, relief.heights_m, rec)
-    rng = task_rng(spec.seed, 12345)
-    counts = rng.poisson(np.maximum(val, 0) * spec.counts_per_sr) / spec.counts_per_sr
-    gain = 1.0 + spec.gain_noise * rng.normal(size=len(val))
-    noisy = np.maximum(counts * gain + spec.floor_sr * rng.normal(size=len(val)), 0.0)
-    sigma = np.sqrt(np.maximum(val, 0) / spec.counts_per_sr + (spec.gain_noise * val) ** 2
-                    + spec.floor_sr**2 + mc_sig**2)
+    from relief_bsdf.validation.record import Goniophotometer, instrument_noise
+    noisy, sigma = instrument_noise(val, mc_sig, Goniophotometer(spec.counts_per_sr, spec.gain_noise, spec.floor_sr),
+                                    task_rng(spec.seed, 12345))
     write_recording(out / "recording.csv", rec.with_values(noisy, sigma),
                     comments=[f"concealed case {spec.name} (see key file kept apart)"])
     write_sample(out / "sample.toml", {

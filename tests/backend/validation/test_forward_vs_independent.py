@@ -1,0 +1,114 @@
+"""The forward model (plate.simulate over ray-traced boundary tables) against an INDEPENDENT photon
+Monte Carlo through the same real relief (issue 18, item 2).
+
+The recording is made by `validation.record.trace_recording`: the validation's own photon engine
+with the relief triangulated and ray traced by `conceal.HeightFieldFace` (Embree), its own
+transport loop and detector; nothing of plate/ or methods/.  The forward model is the
+deterministic engine with `ReliefFace(method="ray")` on the same relief.  z = (forward -
+recording) / sigma, sigma = the recording's Monte-Carlo sigma (one-photon floor).
+
+First the generator itself is checked (a wrong truth would blame the forward model): two seeds
+must agree to their own noise (rms z ~ 1, so its sigma is right and nothing drifts with the
+seed), and doubling the inter-reflection depth must change nothing.  Then the forward model is
+held to the issue's target, rms z <= 1.2 over all rows, R and T.  The full table (cases, grids,
+photons, cost) is benchmarks/bench_forward_accuracy.py.
+"""
+import numpy as np
+import pytest
+
+from relief_bsdf.validation.photon import PlatePhysics
+from relief_bsdf.validation.record import Goniophotometer, instrument_noise, trace_recording
+
+PHYS = PlatePhysics(thickness_mm=2.0, n_glass=1.5)
+HALF_ANGLE = 2.0
+
+
+def _rows(theta_i, theta_s):
+    from relief_bsdf.plate import in_plane_rows
+    return in_plane_rows(550.0, list(theta_i), list(theta_s))
+
+
+def _relief(n=64, corr_um=6.0, slope=0.24, seed=5):
+    from relief_bsdf.surface.synth import random_relief
+    return random_relief(n, 1e-6, slope * corr_um * 1e-6 / 2, corr_um * 1e-6, "gaussian", seed=seed)
+
+
+def _rms_z(a, b, sigma):
+    return float(np.sqrt(np.mean(((np.asarray(a) - b) / sigma) ** 2)))
+
+
+def test_generator_agrees_with_itself_to_its_own_noise():
+    """Two seeds of the independent generator: differences are noise (rms z ~ 1), with its stated sigma."""
+    relief = _relief()
+    rows = _rows((0.0, 45.0), np.arange(1.0, 89.0, 4.0))
+    a, sa, info = trace_recording(relief, rows, PHYS, HALF_ANGLE, 60_000, seed=1)
+    b, sb, _ = trace_recording(relief, rows, PHYS, HALF_ANGLE, 60_000, seed=2)
+    lobe = a > 0.05 * a.max()
+    z_lobe = _rms_z(a[lobe], b[lobe], np.hypot(sa, sb)[lobe])
+    assert 0.6 < z_lobe < 1.4, z_lobe
+    assert _rms_z(a, b, np.hypot(sa, sb)) < 1.4
+    assert max(info["lost_fraction"].values()) < 1e-3         # photons are not silently dropped
+
+
+def test_generator_is_converged_in_interreflection_depth():
+    """max_hits 20 (default) vs 60 on a steep relief (rms slope 0.6): same recording within the noise."""
+    relief = _relief(slope=0.6)
+    rows = _rows((30.0,), np.arange(1.0, 89.0, 4.0))
+    a, sa, _ = trace_recording(relief, rows, PHYS, HALF_ANGLE, 60_000, seed=3, max_hits=20)
+    b, sb, _ = trace_recording(relief, rows, PHYS, HALF_ANGLE, 60_000, seed=4, max_hits=60)
+    assert _rms_z(a, b, np.hypot(sa, sb)) < 1.4
+
+
+def test_instrument_noise_has_the_stated_sigma():
+    clean = np.linspace(0.1, 20.0, 4000)
+    noisy, sigma = instrument_noise(clean, np.zeros_like(clean), Goniophotometer(1500.0, 0.015, 1e-3),
+                                    np.random.default_rng(0))
+    z = (noisy - clean) / sigma
+    assert abs(np.std(z) - 1.0) < 0.05 and abs(np.mean(z)) < 0.06
+    rel = sigma / clean
+    assert 0.015 < rel[-1] < 0.03                                 # 1-3 % in the lobe
+
+
+def _forward(relief, rows, grid, samples):
+    from relief_bsdf.core.index import ConstantIndex
+    from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, simulate
+    ex = Experiment(Plate(PHYS.thickness_mm * 1e-3, ConstantIndex(PHYS.n_glass),
+                          ReliefFace(relief, method="ray", samples=samples, seed=0), FlatFace()),
+                    Instrument(detector_half_angle_deg=HALF_ANGLE))
+    return simulate(ex, rows, grid=grid).values_per_sr
+
+
+@pytest.fixture(scope="module")
+def recorded():
+    relief = _relief(n=128, corr_um=8.0, slope=0.24, seed=7)
+    rows = _rows((0.0, 45.0), np.arange(1.0, 89.0, 2.0))
+    val, sig, _ = trace_recording(relief, rows, PHYS, HALF_ANGLE, 1_000_000, seed=1)
+    return relief, rows, val, sig
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "known defect of plate/ on its default TableGrid (1 deg theta x 5 deg azimuth cells, inside incidences every "
+    "5 deg), issue 18 item 2: the 5-deg azimuth cells average the in-plane cut of the transmitted lobe over "
+    "+-2.5 deg of azimuth (3.5 deg of arc at 45 deg, wider than the 2-deg detector), so oblique transmitted lobes "
+    "come out 4-6 % low (benchmarks/bench_forward_accuracy.py); strict: fails the day the default reaches the noise"))
+def test_forward_on_the_default_grid_reaches_the_independent_recording(recorded):
+    from relief_bsdf.plate import TableGrid
+    relief, rows, val, sig = recorded
+    assert _rms_z(_forward(relief, rows, TableGrid(), 400_000), val, sig) <= 1.2
+
+
+@pytest.mark.slow
+def test_finer_azimuth_cells_converge_on_the_independent_transmitted_lobe(recorded):
+    """Where the default grid misses: the in-plane cut of the oblique transmitted lobe (theta_i 45, T,
+    phi_s 180).  Its in-plane integral sum f sin(theta_s) must approach the independent recording as the
+    azimuth cells shrink (5 -> 2.5 deg), the error falling at least 2x, to under 3 %."""
+    from relief_bsdf.plate import TableGrid
+    relief, rows, val, sig = recorded
+    m = (rows.side == "T") & (rows.theta_i_deg == 45.0) & (rows.phi_s_deg == 180.0)
+    w = np.sin(np.radians(rows.theta_s_deg[m]))
+    err = []
+    for phi_step in (5.0, 2.5):
+        v = _forward(relief, rows, TableGrid(theta_step_deg=1.0, phi_step_deg=phi_step), 400_000)
+        err.append(abs(float((v[m] * w).sum() / (val[m] * w).sum()) - 1.0))
+    assert err[1] < 0.5 * err[0] and err[1] < 0.03, err
