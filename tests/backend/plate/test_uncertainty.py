@@ -74,3 +74,29 @@ def test_a_relief_face_reuses_its_tracer_across_heights_with_the_tables_of_a_fre
     req = GRID.request([550.0], [30.0], "outside", "ray", 4000, 0, {"backend": "serial"})
     (fresh,) = reconstruct(other, mat, req, "ray")
     np.testing.assert_array_equal(out.values_per_sr, fresh.values_per_sr)
+
+
+@pytest.mark.parametrize("theta_s, half_angle, tol", [(30.0, 2.0, 2e-3), (85.0, 2.0, 2e-3), (88.0, 3.0, 1e-2)])
+def test_detector_weights_each_cone_direction_by_its_own_projection(theta_s, half_angle, tol):
+    """formats.md: f = P / (P_inc Omega cos theta_s), P collecting f cos(theta) d(omega) over the cone.
+    For a BSDF f = cos(theta) the reading is the cone's mean cos^2(theta) / cos(theta_s), checked
+    against a direct Monte-Carlo integral over the cone (uniform in solid angle); the horizon's kink
+    (88 deg, 3 deg cone) limits the quadrature to ~1 %."""
+    from relief_bsdf.plate.detector import offset_directions, projection_weights, quadrature_offsets
+    off = quadrature_offsets(half_angle, 400)
+    th, _ = offset_directions(np.array([theta_s]), np.array([0.0]), off)
+    w = projection_weights(np.array([theta_s]), off)
+    f = np.cos(np.radians(th))
+    got = float(np.mean(f * w))
+    rng = np.random.default_rng(0)
+    n = 400_000
+    cos_h = np.cos(np.radians(half_angle))
+    cz = 1 - rng.random(n) * (1 - cos_h)                 # uniform in solid angle about the row direction
+    az = rng.random(n) * 2 * np.pi
+    sz = np.sqrt(1 - cz**2)
+    t = np.radians(theta_s)
+    z = np.maximum(cz * np.cos(t) - sz * np.cos(az) * np.sin(t), 0.0)     # cos(theta) of each direction
+    want = np.mean(z * z) / np.cos(t)
+    assert got == pytest.approx(want, rel=tol)
+    if theta_s >= 85:
+        assert abs(np.mean(f) / got - 1.0) > 0.005       # equal weights (the old reading) were off here

@@ -19,7 +19,8 @@ the old Monte-Carlo jitter of exit directions equals it in expectation (replaced
 which has no extra variance).  Both engines normalise by Omega (the plane integral of the
 response is pi h^2, Omega differs from it by h^2 / 12 relative: 2.5e-5 at 1 deg).
 
-- Deterministic engine: a diffuse field is averaged over a product quadrature of the cone
+- Deterministic engine: a diffuse field f cos(theta) / cos(theta_s) is averaged over a product
+  quadrature of the cone
   (equal-area Vogel points) and the Gaussian (16 equal-probability rings, each at the radius of
   its ring's mean r^2, golden-angle azimuths: exact second moment), offsets added in the tangent
   plane; a delta beam adds response(psi) P / (Omega cos
@@ -109,6 +110,21 @@ def offset_directions(theta_deg: np.ndarray, phi_deg: np.ndarray, offsets: np.nd
     return th, ph
 
 
+def projection_weights(theta_deg: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """cos(theta) of each quadrature point over cos(theta_s) of its row, (R, K); 0 below the horizon.
+
+    The reading f = P / (P_inc Omega cos theta_s) collects the power f cos(theta) d(omega) of every
+    direction in the cone, so a point's BSDF counts with its own projection cos(theta), not the
+    row's: at 85 deg a 2-deg cone spans cos(theta) from 0.05 to 0.12 around cos(theta_s) = 0.087.
+    """
+    t = np.radians(np.asarray(theta_deg, float))[:, None]
+    a, b = offsets[:, 0], offsets[:, 1]
+    r = np.hypot(a, b)
+    along = np.where(r > 0, np.sin(r) * a / np.where(r > 0, r, 1.0), 0.0)     # offset toward +theta
+    cz = np.cos(r)[None, :] * np.cos(t) - along[None, :] * np.sin(t)
+    return np.maximum(cz, 0.0) / np.maximum(np.cos(t), 1e-12)
+
+
 def unit(theta_deg: Any, phi_deg: Any) -> np.ndarray:
     """Unit vectors (..., 3) of polar / azimuth angles in degrees (upper hemisphere)."""
     t = np.radians(np.asarray(theta_deg, float))
@@ -189,6 +205,7 @@ def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndar
     """
     off = quadrature_offsets(det.detector_half_angle_deg, det.cone_points, det.blur_deg)
     th, ph = offset_directions(theta_s, phi_s, off)
+    proj = projection_weights(theta_s, off)
     dl = np.mod(ph - (res.phi_i_deg + 180.0), 360.0)
     out = np.zeros(theta_s.size)
     for sd, grid in (("R", res.grid_R), ("T", res.grid_T)):
@@ -196,7 +213,7 @@ def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndar
         if sel.any():
             v = _bilinear_periodic(centre_values(grid), res.theta_out_deg, res.delta_deg, th[sel].ravel(),
                                    dl[sel].ravel())
-            out[sel] = v.reshape(-1, off.shape[0]).mean(axis=1)
+            out[sel] = (v.reshape(-1, off.shape[0]) * proj[sel]).mean(axis=1)
     for sd, tdeg, ddeg, p in res.deltas:
         sel = np.nonzero(side == sd)[0]
         if p != 0.0 and sel.size:
