@@ -7,9 +7,13 @@ differences are taken on logarithms, each normalised by its uncertainty:
     s_k = sqrt( (sigma_k^2 + sigma_model_k^2) / (meas_k + b)^2 + q^2 )
     metric = sqrt(mean_k r_k^2)
 
-- b (floor, 1/sr) = `floor_rel` x median(meas): values far below the floor (dark noise, the
+- b (floor, 1/sr) = max(`floor_rel` x median(meas), the recording's noise floor = the
+  `noise_quantile` quantile of its known sigma): values far below the floor (dark noise, the
   detector's stray light) count as "about zero", so the metric does not chase noise in the
-  deep wings.
+  deep wings.  With b at least the noise floor, ln(x + b) is close to linear over a row's
+  noise, so a simulation that agrees with the recording scores ~1; with b below it (a
+  recording whose wings sit at the detector's floor, readings clipped at 0) the log stretches
+  noise around zero and a perfect simulation scored ~1.4.
 - sigma_k / (meas_k + b) is the row's 1-sigma uncertainty propagated to ln (first order);
   where sigma is unknown (NaN) `default_rel_sigma` of the value is assumed.
 - sigma_model_k is the simulation's own 1-sigma (its boundary tables' Monte-Carlo noise and
@@ -32,16 +36,23 @@ class LogChiMetric:
     floor_rel: float = 1e-2
     default_rel_sigma: float = 0.05
     model_rel: float = 0.01
+    noise_quantile: float | None = 0.1          # None: no noise-floor term
 
-    def floor(self, meas: np.ndarray) -> float:
+    def floor(self, meas: np.ndarray, sigma: np.ndarray | None = None) -> float:
         m = np.asarray(meas, float)
         pos = m[np.isfinite(m) & (m > 0)]
-        return float(self.floor_rel * np.median(pos)) if pos.size else 1e-12
+        b = float(self.floor_rel * np.median(pos)) if pos.size else 1e-12
+        if sigma is not None and self.noise_quantile is not None:
+            s = np.asarray(sigma, float)
+            s = s[np.isfinite(s) & (s > 0)]
+            if s.size:
+                b = max(b, float(np.quantile(s, self.noise_quantile)))
+        return b
 
     def sigma_log(self, meas: np.ndarray, sigma: np.ndarray | None, model_sigma: np.ndarray | None = None
                   ) -> np.ndarray:
         m = np.asarray(meas, float)
-        b = self.floor(m)
+        b = self.floor(m, sigma)
         s = np.full(m.shape, np.nan) if sigma is None else np.asarray(sigma, float)
         s = np.where(np.isfinite(s), s, self.default_rel_sigma * np.abs(m))
         if model_sigma is not None:
@@ -52,7 +63,7 @@ class LogChiMetric:
         """Normalised residuals r_k (sim above the measurement: positive)."""
         sim = np.asarray(sim, float)
         meas = np.asarray(meas, float)
-        b = self.floor(meas)
+        b = self.floor(meas, sigma)
         d = np.log(np.maximum(sim, 0.0) + b) - np.log(np.maximum(meas, 0.0) + b)
         return d / self.sigma_log(meas, sigma, model_sigma)
 
@@ -61,8 +72,9 @@ class LogChiMetric:
         return float(np.sqrt(np.mean(r**2))) if r.size else 0.0
 
     def describe(self) -> str:
-        return ("log-chi: sqrt(mean(r^2)), r = [ln(sim + b) - ln(meas + b)] / s, b = "
-                f"{self.floor_rel:g} x median(measured) (floor, 1/sr), s = sqrt((sigma/(meas + b))^2 + "
+        return ("log-chi: sqrt(mean(r^2)), r = [ln(sim + b) - ln(meas + b)] / s, b = max("
+                f"{self.floor_rel:g} x median(measured), the {self.noise_quantile:g} quantile of the recording's "
+                "sigma) (floor, 1/sr), s = sqrt((sigma/(meas + b))^2 + "
                 f"{self.model_rel:g}^2), sigma^2 = recording sigma^2 + the simulation's own sigma^2 (sigma "
                 f"unknown: {self.default_rel_sigma:g} x meas); "
                 "1 = agreement within the recording's noise")
