@@ -59,4 +59,16 @@ def run(args) -> int:
     from relief_bsdf.progress import TerminalBar
     out = _scene_module().render(src, args.out, args.width, args.samples, progress=TerminalBar("render"))
     print(f"wrote {out}")
+    if src.is_dir() and (src / "fit.json").is_file() and Path(out).suffix.lower() == ".png":
+        print(f"wrote {_embed_in_report(src, Path(out))} (with the plate render)")
     return 0
+
+
+def _embed_in_report(fit_dir: Path, png: Path) -> Path:
+    """Rewrite the fit folder's report.html with the plate render (before | after) embedded."""
+    import json
+    from relief_bsdf.report.fit_report import write_fit_report
+    doc = json.loads((fit_dir / "fit.json").read_text())
+    plots = {k: v for k, v in (doc.get("files") or {}).items() if isinstance(v, str) and v.endswith(".png")}
+    return write_fit_report(fit_dir / "report.html", doc, plots,
+                            renders={"the plate over a checkerboard, before | after the fit (Cycles)": png})
