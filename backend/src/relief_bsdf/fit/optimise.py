@@ -316,8 +316,8 @@ class _Coords:
         lo, hi = (float(np.log(b)) for b in settings.scale_bounds)
         if with_filter:
             return cls(True, np.array([lo, 0.0]), np.array([hi, gmax**2]),
-                       np.array([0.02, max(0.5 * pitch_um, 0.02) ** 2]))
-        return cls(False, np.array([lo]), np.array([hi]), np.array([0.02]))
+                       np.array([0.005, max(0.25 * pitch_um, 0.01) ** 2]))
+        return cls(False, np.array([lo]), np.array([hi]), np.array([0.005]))
 
     def sg(self, x: np.ndarray) -> tuple[float, float]:
         x = np.clip(x, self.lower, self.upper)
@@ -327,19 +327,31 @@ class _Coords:
         return np.array([np.log(s), g * g] if self.with_filter else [np.log(s)], float)
 
 
-def _jacobian(obj: _Objective, c: _Coords, x: np.ndarray, stop_at_threshold: bool = True) -> np.ndarray:
-    """d r / d x by central differences (one-sided inward at a bound), on cached evaluations."""
+def _jacobian(obj: _Objective, c: _Coords, x: np.ndarray, stop_at_threshold: bool = True,
+              central: bool = True) -> np.ndarray:
+    """d r / d x by central differences (one-sided inward at a bound), or forward differences
+    (`central` False: one evaluation per parameter, for the search's steps), on cached evaluations."""
+    seen: dict = {}
+
+    def at(xx: np.ndarray) -> np.ndarray:          # each point once per Jacobian (replays count in the budget)
+        k = tuple(xx)
+        if k not in seen:
+            seen[k] = obj.residuals(*c.sg(xx), stop_at_threshold=stop_at_threshold)
+        return seen[k]
     cols = []
     for j, h in enumerate(c.step):
         xp, xm = x.copy(), x.copy()
-        xp[j] = min(x[j] + h, c.upper[j])
-        xm[j] = max(x[j] - h, c.lower[j])
+        if central:
+            xp[j] = min(x[j] + h, c.upper[j])
+            xm[j] = max(x[j] - h, c.lower[j])
+        elif x[j] + h <= c.upper[j]:
+            xp[j] = x[j] + h
+        else:
+            xm[j] = x[j] - h
         if xp[j] - xm[j] <= 0:
             cols.append(np.zeros(obj.n))
             continue
-        rp = obj.residuals(*c.sg(xp), stop_at_threshold=stop_at_threshold)
-        rm = obj.residuals(*c.sg(xm), stop_at_threshold=stop_at_threshold)
-        cols.append((rp - rm) / (xp[j] - xm[j]))
+        cols.append((at(xp) - at(xm)) / (xp[j] - xm[j]))      # the point itself is a cached replay
     return np.stack(cols, axis=1)
 
 
@@ -351,8 +363,8 @@ def _least_squares(obj: _Objective, c: _Coords, x0: np.ndarray, budget: int) -> 
     try:
         # start inside the bounds (trf scales a variable sitting on its bound to zero step)
         x0 = np.clip(x0, c.lower + c.step, c.upper - c.step)
-        least_squares(lambda x: obj.residuals(*c.sg(x)), x0, jac=lambda x: _jacobian(obj, c, x),
-                      bounds=(c.lower, c.upper), method="trf", x_scale="jac", xtol=1e-4, ftol=1e-6, gtol=1e-8)
+        least_squares(lambda x: obj.residuals(*c.sg(x)), x0, jac=lambda x: _jacobian(obj, c, x, central=False),
+                      bounds=(c.lower, c.upper), method="trf", x_scale="jac", xtol=1e-3, ftol=1e-5, gtol=1e-8)
     except _Budget:
         pass
     finally:
@@ -447,13 +459,15 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     what the recording determines (module doc, "Identifiability").
 
     1. baseline (s = 1, g = 0): "rms_before";
-    2. both parameters: trust-region least squares of the normalised residuals in (ln s, g^2)
-       (`_least_squares`), about two thirds of `max_iter` evaluations;
-    3. scale alone at g = 0, from the slope-equivalent scale of step 2, the rest of the budget;
-    4. the filter is kept only when the recording asks for it (fit.selection: BIC with
+    2. scale alone at g = 0 (a sixth of `max_iter`, at most 10): robust from far away, it sets the
+       slopes;
+    3. both parameters from there: trust-region least squares of the normalised residuals in
+       (ln s, g^2) (`_least_squares`, forward-difference Jacobians), most of the budget;
+    4. scale alone again from the slope-equivalent scale of step 3 (what is left, at least 4);
+    5. the filter is kept only when the recording asks for it (fit.selection: BIC with
        chi^2 = sum r^2); otherwise the scale-only optimum is the answer (the simplest point of a
        ridge);
-    5. 68 % intervals and the correlation from the Jacobian at the answer (`_intervals`), and one
+    6. 68 % intervals and the correlation from the Jacobian at the answer (`_intervals`), and one
        probe along equal rms slope for a ridge (`_ridge_probe`): a few evaluations more.
     `checkpoint`: an io.checkpoint.CheckpointStore (or a .json path, keyed by the recording) of
     {params: simulated values}; its entries are replayed (deterministic path, same result as an
@@ -471,7 +485,11 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     stopped = "converged"
     try:
         rms_before = obj(1.0, 0.0)
-        _least_squares(obj, c2, np.array([0.0, 0.0]), int(settings.max_iter * 2 / 3) - 1)
+        # scale alone first (cheap, robust from far away: it sets the slopes, the lobe width), then both
+        # from there, then scale alone again from the slope-equivalent scale of the joint optimum
+        _least_squares(obj, c1, c1.x(1.0, 0.0), max(min(settings.max_iter // 6, 10), 3))
+        a = obj.best(only_unfiltered=True)["parameters"]
+        _least_squares(obj, c2, c2.x(a["height_scale"], 0.0), settings.max_iter - len(obj.iterations) - 4)
         b = obj.best()["parameters"]
         s_u = b["height_scale"] * _slope_ratio_fn(forward.relief)(b["filter_sigma_um"])
         _least_squares(obj, c1, c1.x(s_u, 0.0), settings.max_iter - len(obj.iterations))
