@@ -21,7 +21,8 @@ def test_fit_recovers_known_scale_and_filter_below_noise_level():
     clean = Forward(relief, model, rows, grid=grid).simulate(s_true, g_true)
     sigma = 0.03 * clean
     meas = clean + sigma * np.random.default_rng(11).standard_normal(clean.size)
-    res = fit_relief(Forward(relief, model, rows, grid=grid), meas, sigma, FitSettings(max_iter=45))
+    # the fit's default budget (relief fit --max-iter 60): from a metric of ~58 the search needs it
+    res = fit_relief(Forward(relief, model, rows, grid=grid), meas, sigma, FitSettings(max_iter=60))
     assert res.height_scale == pytest.approx(s_true, rel=0.05)
     assert res.filter_sigma_um == pytest.approx(g_true, rel=0.05)
     assert res.rms_before > 3.0

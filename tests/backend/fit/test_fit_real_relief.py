@@ -24,7 +24,7 @@ def test_default_fit_gives_back_the_true_scale_and_needs_no_filter(tmp_path, s_t
                     theta_s_deg=tuple(float(x) for x in range(0, 90, 4)))
     make_case(spec, tmp_path / "case")
     out = tmp_path / "fit"
-    assert main(["fit", str(tmp_path / "case" / "sample.toml"), "-o", str(out), "--max-iter", "24",
+    assert main(["fit", str(tmp_path / "case" / "sample.toml"), "-o", str(out), "--max-iter", "40",
                  "--samples", "60000"]) == 0
     doc = json.loads((out / "fit.json").read_text())
     assert doc["method"] == "ray" and doc["method_reason"].startswith("auto: ray")

@@ -332,9 +332,10 @@ def test_ctrl_c_on_a_local_dask_run_exits_cleanly(tmp_path):
     try:
         reader.start()
         t0 = time.monotonic()
-        # the cluster ignores Ctrl-C while its workers start (cluster.py); a first progress line on stderr
-        # (stderr is not a terminal: plain log lines) means it is up and tasks are under way
-        while not any(ln.startswith("reconstruct normals:") for ln in list(lines)):
+        # the cluster ignores Ctrl-C while its workers start (cluster.py); a first progress line with a task
+        # count on stderr (stderr is not a terminal: plain log lines; the heartbeat's "working" line comes
+        # before the cluster is up) means it is up and tasks are under way
+        while not any(ln.startswith("reconstruct normals:") and "/" in ln for ln in list(lines)):
             assert p.poll() is None and time.monotonic() - t0 < 60, lines
             time.sleep(0.05)
         kids = [c.pid for c in psutil.Process(p.pid).children(recursive=True)]

@@ -459,11 +459,12 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     what the recording determines (module doc, "Identifiability").
 
     1. baseline (s = 1, g = 0): "rms_before";
-    2. scale alone at g = 0 (a sixth of `max_iter`, at most 10): robust from far away, it sets the
-       slopes;
+    2. scale alone at g = 0 (a quarter of `max_iter`, at most 12): robust from far away, it sets
+       the slopes;
     3. both parameters from there: trust-region least squares of the normalised residuals in
        (ln s, g^2) (`_least_squares`, forward-difference Jacobians), most of the budget;
-    4. scale alone again from the slope-equivalent scale of step 3 (what is left, at least 4);
+    4. scale alone again from the slope-equivalent scale of step 3 (what is left: at least a fifth
+       of `max_iter`, at least 6, is kept for it);
     5. the filter is kept only when the recording asks for it (fit.selection: BIC with
        chi^2 = sum r^2); otherwise the scale-only optimum is the answer (the simplest point of a
        ridge);
@@ -487,9 +488,8 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
         rms_before = obj(1.0, 0.0)
         # scale alone first (cheap, robust from far away: it sets the slopes, the lobe width), then both
         # from there, then scale alone again from the slope-equivalent scale of the joint optimum
-        _least_squares(obj, c1, c1.x(1.0, 0.0), max(min(settings.max_iter // 6, 10), 3))
-        a = obj.best(only_unfiltered=True)["parameters"]
-        _least_squares(obj, c2, c2.x(a["height_scale"], 0.0), settings.max_iter - len(obj.iterations) - 4)
+        reserve = max(6, settings.max_iter // 5)           # for step 4
+        _least_squares(obj, c2, c2.x(1.0, 0.0), settings.max_iter - len(obj.iterations) - reserve)
         b = obj.best()["parameters"]
         s_u = b["height_scale"] * _slope_ratio_fn(forward.relief)(b["filter_sigma_um"])
         _least_squares(obj, c1, c1.x(s_u, 0.0), settings.max_iter - len(obj.iterations))
