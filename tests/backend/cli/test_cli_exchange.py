@@ -31,8 +31,7 @@ def table_file(tmp_path):
 @pytest.mark.slow
 def test_export_radiance_xml_loads_in_radiance(tmp_path, capsys, table_file):
     """Radiance caches BSDFs by file name (without directory): every test loads a distinct name."""
-    pytest.importorskip("pyradiance")
-    from pyradiance import bsdf as rbsdf
+    from pyradiance import bsdf as rbsdf      # test-only oracle (requirements/test.txt): never skipped
     rc, o, e = run_cli(capsys, "export", table_file, "--format", "radiance-xml", "-o", tmp_path / "cli_export_pair.xml")
     assert rc == 0, e
     sd = load_bsdf(tmp_path / "cli_export_pair.xml")

@@ -18,7 +18,7 @@ from relief_bsdf.errors import InputError
 from relief_bsdf.io.radiance_xml import (KLEMS, disc_to_square, read_radiance_xml, square_to_disc,
                                          write_radiance_xml)
 
-pyradiance = pytest.importorskip("pyradiance")
+import pyradiance  # noqa: E402  (test-only oracle, pinned in requirements/test.txt: a missing one fails)
 from pyradiance import bsdf as rbsdf  # noqa: E402
 
 CHECKBSDF = Path(pyradiance.__file__).parent / "bin" / "checkBSDF"
