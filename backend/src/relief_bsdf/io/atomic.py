@@ -48,14 +48,21 @@ def _umask() -> int:
     return old
 
 
-def _pid_alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether process `pid` still runs (a zombie, dead but not yet reaped, counts as gone).  The one
+    liveness check: stale `.part` files here, orphaned pool workers in parallel.worker."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
         return True
-    return True
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            state = f.read().rsplit(b")", 1)[1].split()[0]
+        return state not in (b"Z", b"X")
+    except (OSError, IndexError):
+        return True
 
 
 def remove_stale_parts(folder: str | Path) -> list[Path]:
@@ -71,7 +78,7 @@ def remove_stale_parts(folder: str | Path) -> list[Path]:
         return removed
     for name in names:
         m = _PART.match(name)
-        if m is None or m["host"] != host or _pid_alive(int(m["pid"])):
+        if m is None or m["host"] != host or process_alive(int(m["pid"])):
             continue
         with contextlib.suppress(OSError):
             (folder / name).unlink()

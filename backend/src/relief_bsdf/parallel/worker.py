@@ -30,6 +30,8 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from relief_bsdf.io.atomic import process_alive
+
 _CONTEXT: dict[int, Any] = {}
 _IN_WORKER = False
 _LOCAL = threading.local()
@@ -89,22 +91,6 @@ def init_worker(token: int, context: Any, owner_pid: int | None = None) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     if owner_pid is not None:
         watch_owner(owner_pid)
-
-
-def process_alive(pid: int) -> bool:
-    """Whether process `pid` still runs (a zombie, dead but not yet reaped, counts as gone)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            state = f.read().rsplit(b")", 1)[1].split()[0]
-        return state not in (b"Z", b"X")
-    except (OSError, IndexError):
-        return True
 
 
 def watch_owner(owner_pid: int, interval_s: float = 0.5) -> threading.Thread:

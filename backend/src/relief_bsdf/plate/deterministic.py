@@ -859,6 +859,18 @@ def model_of(experiment: Any, grid: Any, rough_face: str = "front") -> PlateMode
                       scatter_per_m=b.scatter_per_m, hg_g=b.hg_g)
 
 
+def table_incidences(experiment: Any, rows: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(wavelengths, outside incidences) the faces' tables need for these rows: the rows' own, or
+    under a sample tilt the incidences the tilted sample sees (those the engine will solve)."""
+    wl = np.unique(np.asarray(rows.wavelength_nm, float))
+    ti = np.unique(np.abs(np.asarray(rows.theta_i_deg, float)))
+    tilt = experiment.instrument.tilt_deg
+    if tilt:
+        t_s, _ = to_sample_frame(rows.theta_i_deg, rows.phi_i_deg, np.full(np.size(rows.theta_i_deg), "R"), tilt)
+        ti = np.unique(np.round(t_s, 9))
+    return wl, ti
+
+
 def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> PlateSolver:
     """PlateSolver of an Experiment: the faces' tables placed on the engine's two-face system.
 
@@ -869,12 +881,7 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> Pl
     """
     p = experiment.plate
     mat = p.material
-    wl = np.unique(np.asarray(rows.wavelength_nm, float))
-    ti = np.unique(np.abs(np.asarray(rows.theta_i_deg, float)))
-    tilt = experiment.instrument.tilt_deg
-    if tilt:      # the tilted sample sees other incidences (those the engine will solve)
-        t_s, _ = to_sample_frame(rows.theta_i_deg, rows.phi_i_deg, np.full(np.size(rows.theta_i_deg), "R"), tilt)
-        ti = np.unique(np.round(t_s, 9))
+    wl, ti = table_incidences(experiment, rows)
     front, back = p.front, p.back
     if front.is_flat and not back.is_flat:
         _, b_in = back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)

@@ -47,14 +47,9 @@ def perturbed(table: BsdfTable | None, rng: np.random.Generator) -> BsdfTable | 
 
 def _face_tables(experiment: Experiment, rows: Any, grid: TableGrid) -> dict:
     """{face name: (outside | None, inside)} of the non-flat faces whose tables carry a sigma."""
-    from relief_bsdf.plate.deterministic import to_sample_frame
+    from relief_bsdf.plate.deterministic import table_incidences
     p = experiment.plate
-    wl = np.unique(np.asarray(rows.wavelength_nm, float))
-    ti = np.unique(np.abs(np.asarray(rows.theta_i_deg, float)))
-    if experiment.instrument.tilt_deg:
-        t_s, _ = to_sample_frame(rows.theta_i_deg, rows.phi_i_deg, np.full(np.size(rows.theta_i_deg), "R"),
-                                 experiment.instrument.tilt_deg)
-        ti = np.unique(np.round(t_s, 9))
+    wl, ti = table_incidences(experiment, rows)
     out = {}
     for name in ("front", "back"):
         face = getattr(p, name)
