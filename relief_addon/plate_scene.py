@@ -84,8 +84,9 @@ def prepare_plates(source, albedo=None, closure: str = "metallic", progress=None
         else:
             tables = _tables(relief, mat, method)
         lut = bake_lut(tables, f"{sample.path.stem} {label}", albedo=albedo, reflection_closure=closure)
+        outside = next((t for t in tables if t.incident_from == "outside"), None)
         plates.append({"label": label, "lut": lut, "thickness_m": sample.plate.thickness_mm * 1e-3,
-                       "rough_face": sample.plate.rough_face, "ior": lut.ior})
+                       "rough_face": sample.plate.rough_face, "ior": lut.ior, "table_outside": outside})
     if progress:
         progress(len(variants), len(variants), "baked")
     return plates
@@ -286,7 +287,28 @@ def render_side_by_side(plates: list[dict], out, width: int = 256, samples: int 
         if k:
             parts.append(gap)
         parts.append(f if out.suffix.lower() == ".exr" else _srgb(f))
-    return write_image(out, np.concatenate(parts, axis=1))
+    image = np.concatenate(parts, axis=1)
+    if out.suffix.lower() != ".exr":
+        image = with_bsdf_panel(image, plates)
+    return write_image(out, image)
+
+
+def with_bsdf_panel(image: np.ndarray, plates: list[dict]) -> np.ndarray:
+    """`image` (display-encoded RGB) with the boundary BSDF curves of the plates below it
+    (`relief_bsdf.report.plots.before_after_figure`: in-plane T and R for light from outside,
+    one line style per plate, the haze in the legend), as wide as the renders; unchanged when a
+    plate has no outside table.  bpy-free."""
+    tables = [p.get("table_outside") for p in plates]
+    if any(t is None for t in tables):
+        return image
+    from relief_bsdf.report.plots import before_after_figure, figure_rgb
+    w = image.shape[1]
+    panel = figure_rgb(before_after_figure(tables, [p["label"] for p in plates], width_px=w,
+                                           height_px=max(240, int(round(0.55 * w)))))
+    panel = panel[:, :w] if panel.shape[1] >= w else np.pad(panel, ((0, 0), (0, w - panel.shape[1]), (0, 0)),
+                                                               constant_values=1.0)
+    gap = np.ones((max(2, w // 128), w, 3), np.float32)
+    return np.concatenate([image, gap, panel.astype(np.float32)], axis=0)
 
 
 def _remove_scene(sc) -> None:

@@ -4,9 +4,9 @@ Loop: parameters p = (height_scale s, filter_sigma_um g) -> surface.operations.s
 (step 6) -> the Experiment's relief face gets the processed relief; its boundary tables of the
 chosen method for light from outside and inside (step 2, plate.faces.ReliefFace, cached)
 -> plate simulation on the recording's rows (step 3, `plate.simulate`, deterministic) -> metric
-(step 4, `residual.LogChiMetric`) -> trust-region least squares of the normalised residuals
-(scipy.optimize.least_squares, step 5) until the metric falls below `threshold`, the step or
-the gain become negligible, or `max_iter` evaluations are spent.
+(step 4, `residual.LogChiMetric`) -> damped Gauss-Newton of the normalised residuals with a
+line search (`_gauss_newton`, step 5) until the metric falls below `threshold`, the step or
+the gain become negligible, or `max_iter` distinct evaluations are spent.
 
 Physics of the relief face: by default `auto` (plate.choice), the relief's own physics, chosen
 once on the relief as read (ray tracing with inter-reflections for reliefs rough on the
@@ -233,15 +233,19 @@ class FitJob:
 class _Objective:
     """The forward model's residuals against the recording at (s, g): cached, checkpointed, reported.
 
-    Every call is logged in `iterations` (replays included, so a resumed run retraces the same
-    path and counts the same budget); residuals are the metric's normalised r_k, so chi^2 = sum
-    r_k^2 = n metric^2 (the log-chi metric is an rms z).  `limit`: the most calls before _Budget.
+    Budget and log count distinct parameter points: the first call at a point in this run is
+    logged in `iterations` (a checkpointed point replayed from disk too, so a resumed run retraces
+    the same path and spends the same budget); repeated calls at a point already visited (a
+    Jacobian's base point) are free.  Residuals are the metric's normalised r_k, so chi^2 = sum
+    r_k^2 = n metric^2 (the log-chi metric is an rms z).  `limit`: the most distinct points before
+    _Budget.
     """
 
     def __init__(self, forward, measured, sigma, settings: FitSettings, cache: dict, save, progress, on_eval):
         self.forward, self.measured, self.sigma, self.settings = forward, measured, sigma, settings
         self.cache, self.save, self.progress, self.on_eval = cache, save, progress, on_eval
         self.iterations: list[dict] = []
+        self._seen: dict[str, np.ndarray] = {}
         self.new_evals = 0
         self.n = int(np.size(measured))
         self.limit: int | None = None
@@ -250,9 +254,11 @@ class _Objective:
         return self.n * float(m) ** 2
 
     def residuals(self, s: float, g: float, stop_at_threshold: bool = True) -> np.ndarray:
+        key = _key(np.array([s, g]))
+        if key in self._seen:
+            return self._seen[key]
         if self.limit is not None and len(self.iterations) >= self.limit:
             raise _Budget
-        key = _key(np.array([s, g]))
         if key not in self.cache:
             self.cache[key] = [float(v) for v in np.asarray(self.forward.simulate(s, g), float)]
             self.new_evals += 1
@@ -263,6 +269,7 @@ class _Objective:
         rel = getattr(self.forward, "model_rel_sigma", None)
         model_sigma = None if rel is None else rel() * np.abs(sim)
         r = self.settings.metric.residuals(sim, self.measured, self.sigma, model_sigma)
+        self._seen[key] = r
         m = float(np.sqrt(np.mean(r**2))) if r.size else 0.0
         self.iterations.append({"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": m})
         total = self.settings.max_iter
@@ -355,20 +362,78 @@ def _jacobian(obj: _Objective, c: _Coords, x: np.ndarray, stop_at_threshold: boo
     return np.stack(cols, axis=1)
 
 
-def _least_squares(obj: _Objective, c: _Coords, x0: np.ndarray, budget: int) -> None:
-    """Trust-region least squares of the residuals (scipy `trf`, bounds honoured, Jacobian by
-    `_jacobian`) within `budget` calls; the best point is read from obj.iterations."""
-    from scipy.optimize import least_squares
+def _gauss_newton(obj: _Objective, c: _Coords, x0: np.ndarray, budget: int, max_stretch: int = 3) -> None:
+    """Damped Gauss-Newton (Levenberg-Marquardt) of the normalised residuals with a line search,
+    within `budget` new distinct points; the best point is read from obj.iterations.
+
+    Each iteration: the Jacobian J by forward differences (`_jacobian`, one point per parameter),
+    the step d solving (J^T J + mu diag(J^T J)) d = -J^T r (Marquardt 1963), projected into the
+    bounds; then a line search along d: the full step, doubled while the chi^2 keeps falling (up to
+    `max_stretch` times: the residuals of a plate are far from linear in the parameters, and a GN
+    step from a distant start is typically too short), or shortened (`BACKTRACK`) when it rises,
+    after which mu grows tenfold.  Converged when the accepted step is below one finite-difference step in
+    every coordinate (the objective is not resolved finer) or the chi^2 gain is below 1e-4
+    relative.  Deterministic: the same path for the same inputs (resumable from a checkpoint)."""
     obj.limit = len(obj.iterations) + max(int(budget), 0)
+    lo, hi = c.lower, c.upper
+    x = np.clip(np.asarray(x0, float), lo, hi)
+    mu = 1e-3
     try:
-        # start inside the bounds (trf scales a variable sitting on its bound to zero step)
-        x0 = np.clip(x0, c.lower + c.step, c.upper - c.step)
-        least_squares(lambda x: obj.residuals(*c.sg(x)), x0, jac=lambda x: _jacobian(obj, c, x, central=False),
-                      bounds=(c.lower, c.upper), method="trf", x_scale="jac", xtol=1e-3, ftol=1e-5, gtol=1e-8)
+        r = obj.residuals(*c.sg(x))
+        f = float(r @ r)
+        while True:
+            J = _jacobian(obj, c, x, central=False)
+            A, b = J.T @ J, -J.T @ r
+            moved = False
+            for _ in range(3):                                  # raise the damping if the line search fails
+                d = np.linalg.lstsq(A + mu * np.diag(np.maximum(np.diag(A), 1e-12)), b, rcond=None)[0]
+                x_new, f_new, r_new = _line_search(obj, c, x, d, f, max_stretch)
+                if f_new < f:
+                    moved = True
+                    break
+                mu *= 10.0
+            if not moved:
+                return
+            step, gain = np.abs(x_new - x), (f - f_new) / max(f, 1e-300)
+            x, f, r = x_new, f_new, r_new
+            mu = max(mu / 3.0, 1e-6)
+            if np.all(step < c.step) or gain < 1e-4:
+                return
     except _Budget:
         pass
     finally:
         obj.limit = None
+
+
+BACKTRACK = (0.3, 0.1, 0.03, 0.01)
+
+
+def _line_search(obj: _Objective, c: _Coords, x: np.ndarray, d: np.ndarray, f: float, max_stretch: int):
+    """Best of x + t d (projected into the bounds) for t = 1, 2, 4, ... while improving, or the
+    first improving t of BACKTRACK when t = 1 does not improve (a Gauss-Newton step can overshoot
+    by orders of magnitude where the residuals bend, e.g. the filter's effect on a specular
+    peak); returns (x, chi^2, residuals) of the best, or (x, f, None)."""
+    def at(t: float):
+        xt = np.clip(x + t * d, c.lower, c.upper)
+        rt = obj.residuals(*c.sg(xt))
+        return xt, float(rt @ rt), rt
+    best = (x, f, None)
+    t = 1.0
+    cand = at(t)
+    if cand[1] < f:
+        best = cand
+        for _ in range(max_stretch):
+            t *= 2.0
+            nxt = at(t)
+            if nxt[1] >= best[1] or np.allclose(nxt[0], best[0]):
+                break
+            best = nxt
+        return best
+    for t in BACKTRACK:
+        cand = at(t)
+        if cand[1] < f:
+            return cand
+    return best
 
 
 def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float, rms: float
@@ -459,17 +524,17 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     what the recording determines (module doc, "Identifiability").
 
     1. baseline (s = 1, g = 0): "rms_before";
-    2. scale alone at g = 0 (a quarter of `max_iter`, at most 12): robust from far away, it sets
-       the slopes;
-    3. both parameters from there: trust-region least squares of the normalised residuals in
-       (ln s, g^2) (`_least_squares`, forward-difference Jacobians), most of the budget;
-    4. scale alone again from the slope-equivalent scale of step 3 (what is left: at least a fifth
-       of `max_iter`, at least 6, is kept for it);
-    5. the filter is kept only when the recording asks for it (fit.selection: BIC with
+    2. both parameters from there: damped Gauss-Newton with a line search of the normalised
+       residuals in (ln s, g^2) (`_gauss_newton`, forward-difference Jacobians), the budget less a
+       reserve of max(6, max_iter // 5) evaluations;
+    3. scale alone from the slope-equivalent scale of step 2's best point (g = 0, same rms slope),
+       with what is left;
+    4. the filter is kept only when the recording asks for it (fit.selection: BIC with
        chi^2 = sum r^2); otherwise the scale-only optimum is the answer (the simplest point of a
        ridge);
-    6. 68 % intervals and the correlation from the Jacobian at the answer (`_intervals`), and one
+    5. 68 % intervals and the correlation from the Jacobian at the answer (`_intervals`), and one
        probe along equal rms slope for a ridge (`_ridge_probe`): a few evaluations more.
+    The budget counts distinct parameter points (a Jacobian's base point is not paid twice).
     `checkpoint`: an io.checkpoint.CheckpointStore (or a .json path, keyed by the recording) of
     {params: simulated values}; its entries are replayed (deterministic path, same result as an
     uninterrupted run); a checkpoint of another run is ignored with a note.  `on_eval(n)` is called after each
@@ -489,10 +554,10 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
         # scale alone first (cheap, robust from far away: it sets the slopes, the lobe width), then both
         # from there, then scale alone again from the slope-equivalent scale of the joint optimum
         reserve = max(6, settings.max_iter // 5)           # for step 4
-        _least_squares(obj, c2, c2.x(1.0, 0.0), settings.max_iter - len(obj.iterations) - reserve)
+        _gauss_newton(obj, c2, c2.x(1.0, 0.0), settings.max_iter - len(obj.iterations) - reserve)
         b = obj.best()["parameters"]
         s_u = b["height_scale"] * _slope_ratio_fn(forward.relief)(b["filter_sigma_um"])
-        _least_squares(obj, c1, c1.x(s_u, 0.0), settings.max_iter - len(obj.iterations))
+        _gauss_newton(obj, c1, c1.x(s_u, 0.0), settings.max_iter - len(obj.iterations))
         if len(obj.iterations) >= settings.max_iter:
             stopped = "max_iter"
     except _Stop:

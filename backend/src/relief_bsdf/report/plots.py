@@ -192,3 +192,75 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png")
     plt.close(fig)
     return path
+
+
+def boundary_haze(table: BsdfTable, iw: int = 0) -> float:
+    """Haze of a boundary table at its incidence closest to the normal (bsdf.appearance: the share
+    of the transmitted power deviated more than 2.5 deg from the refracted ray, inside the
+    medium the table transmits into); NaN when the table transmits nothing there."""
+    from relief_bsdf.bsdf.appearance import appearance
+    ii = int(np.argmin(np.abs(table.theta_i_deg)))
+    sub = table.select(table.wavelength_nm[iw])
+    for a in appearance(sub):
+        if a.theta_i_deg == float(table.theta_i_deg[ii]) and a.phi_i_deg == float(table.phi_i_deg[0]):
+            return float(a.haze)
+    return float("nan")
+
+
+def before_after_figure(tables: list, labels: list, theta_i_deg=(0.0, 30.0), width_px: int = 640,
+                        height_px: int = 300, dpi: int = 100):
+    """The boundary BSDF curves that a fit changed, side by side: in-plane transmission (left) and
+    reflection (right) for light from outside, one line style per table (e.g. the relief as
+    measured and as fitted), one colour per incidence; each label carries the table's haze
+    (`boundary_haze`).  Sized in pixels to sit under a render of the same width."""
+    styles = ["-", "--", ":", "-."]
+    fig, axs = plt.subplots(1, 2, figsize=(width_px / dpi, height_px / dpi), dpi=dpi, squeeze=False)
+    colors = ("tab:blue", "tab:orange", "tab:green", "tab:red")
+    th = np.atleast_1d(np.asarray(theta_i_deg, float))
+    short = {"T": "BTDF", "R": "BRDF"}
+    for j, side in enumerate(("T", "R")):
+        ax = axs[0, j]
+        lines = []
+        for k, (t, lab) in enumerate(zip(tables, labels)):
+            haze = boundary_haze(t)
+            name = f"{lab}" + (f" (haze {100 * haze:.0f} %)" if side == "T" and np.isfinite(haze) else "")
+            lines += plot_in_plane(ax, t, side, 0, 0, CurveStyle(linestyle=styles[k % 4], label_prefix=f"{name}: ",
+                                                                colors=colors[:th.size], show_specular=False),
+                                   theta_i_deg=th)
+        _zoom_to_curves(ax, lines)
+        ax.set_title(f"boundary {short[side]}, light from {tables[0].incident_from}, "
+                     f"{tables[0].wavelength_nm[0]:g} nm", fontsize=7)
+        ax.set_xlabel("signed scatter angle (deg), < 0: specular side", fontsize=6)
+        ax.set_ylabel("BSDF (1/sr)", fontsize=6)
+        ax.tick_params(labelsize=6)
+        ax.legend(fontsize=5, loc="lower center", ncol=1, framealpha=0.8)
+    fig.tight_layout(pad=0.4)
+    return fig
+
+
+def _zoom_to_curves(ax, lines, floor: float = 1e-3) -> None:
+    """x limits around where the curves exceed `floor` x their peak (a narrow transmitted lobe
+    fills the axis instead of a sliver of it), at least +-20 deg."""
+    xs, ys = [], []
+    for ln in lines:
+        x, y = np.asarray(ln.get_xdata(), float), np.asarray(ln.get_ydata(), float)
+        xs.append(x)
+        ys.append(y)
+    if not xs:
+        return
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    ok = np.isfinite(y)
+    if not ok.any():
+        return
+    top = np.nanmax(y)
+    sel = x[ok & (y > floor * top)]
+    half = float(np.clip(np.max(np.abs(sel)) + 5.0, 20.0, 90.0)) if sel.size else 90.0
+    ax.set_xlim(-half, half)
+
+
+def figure_rgb(fig) -> np.ndarray:
+    """The figure's pixels as float RGB in [0, 1] (display-encoded, top row first); closes it."""
+    fig.canvas.draw()
+    rgba = np.asarray(fig.canvas.buffer_rgba(), dtype=np.float32) / 255.0
+    plt.close(fig)
+    return np.ascontiguousarray(rgba[..., :3])
