@@ -120,6 +120,7 @@ from relief_bsdf.core.fresnel import cos_transmitted, mueller_interface
 from relief_bsdf.core.fresnel import fresnel_reflectance as _fresnel
 from relief_bsdf.core.index import Material
 from relief_bsdf.parallel import in_worker, map_tasks, task_rng
+from relief_bsdf.methods import realisation
 from relief_bsdf.methods.options import KirchhoffOptions
 from relief_bsdf.methods.wave_filter import (DcosGrid, cell_average, cell_samples, check_sides, energy_defect,
                                              ring_factors,
@@ -534,9 +535,14 @@ def _cells(side, dens, geo, fd: _Field, inc: Incidence, st: SolveSettings, specu
         return DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"]).smoothed(
             width, disc if conserving else None)
 
+    inhom = []
+
     def power_cells(d):                       # cell averages of the power, and their ring factors
         g = smooth(d)
-        v = cell_average(g.extended(disc), cells)
+        sub = g.extended(disc).at(cells.alpha, cells.beta)
+        v = sub.mean(axis=-1)
+        # <D^2> / <D>^2 over the cell's sub-points: the realisation variance's inhomogeneity factor
+        inhom.append(np.where(v > 0, (sub * sub).mean(axis=-1) / np.where(v > 0, v * v, 1.0), 1.0))
         f = ring_factors(v, g, st.theta_edges_deg, st.phi_edges_deg)[:, None]
         return v * f, f
 
@@ -565,12 +571,14 @@ def _cells(side, dens, geo, fd: _Field, inc: Incidence, st: SolveSettings, specu
     else:
         vals = [power_cells(ks * ks * d)[0] for d in dens]
     out[side] = sum(vals) / len(vals)
+    out[f"inhom_{side}"] = sum(inhom) / len(inhom)
     return vals
 
 
 def _absorbed_side(out, cells) -> None:
     """Transmission into an absorbing medium: nothing propagates, nothing to compute."""
     out["T"] = np.zeros(cells.alpha.shape[:2])
+    out["inhom_T"] = np.ones(cells.alpha.shape[:2])
     out["spec_T"] = 0.0
     out["mueller_T"] = np.zeros(cells.alpha.shape[:2] + (4, 4))
     out["spec_mueller_T"] = np.zeros((4, 4))
@@ -889,10 +897,13 @@ def _collect(ctx, request, tasks, res) -> dict:
          "specular_T": np.zeros((W, I, P)), "mueller_per_sr": np.zeros((W, I, P, 2, S, A, 4, 4)) if pol else None,
          "specular_mueller_R": np.zeros((W, I, P, 4, 4)) if pol else None,
          "specular_mueller_T": np.zeros((W, I, P, 4, 4)) if pol else None}
+    a["inhomogeneity"] = np.ones((W, I, P, 2, S, A))
     infos = []
     for (iw, it, ip, _), r in zip(tasks, res):
         a["values_per_sr"][iw, it, ip, 0] = r["R"]
         a["values_per_sr"][iw, it, ip, 1] = r["T"]
+        a["inhomogeneity"][iw, it, ip, 0] = r["inhom_R"]
+        a["inhomogeneity"][iw, it, ip, 1] = r["inhom_T"]
         if pol:
             a["mueller_per_sr"][iw, it, ip, 0], a["mueller_per_sr"][iw, it, ip, 1] = r["mueller_R"], r["mueller_T"]
             a["specular_mueller_R"][iw, it, ip] = r["spec_mueller_R"]
@@ -917,6 +928,7 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
         res = map_tasks(_task, tasks, ctx, progress=progress, label=f"kirchhoff {fr}", backend=opts.backend)
         a = _collect(ctx, request, tasks, res)
         infos = a.pop("infos")
+        inhom = a.pop("inhomogeneity")
         tab = BsdfTable(
             wavelength_nm=ctx["wavelengths"], theta_i_deg=request.theta_i_deg, phi_i_deg=request.phi_i_deg,
             theta_s_edges_deg=request.theta_s_edges_deg, phi_s_edges_deg=request.phi_s_edges_deg,
@@ -925,5 +937,41 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
                       "validity": "tangent-plane approximation: radius of curvature >> lambda, no shadowing, "
                                   "single scattering"}, **a)
         energy_defect(tab, material, "kirchhoff", "tangent-plane")
+        tab.sigma_per_sr = _tile_sigma(tab, ctx, material, inhom)
+        unc, warn = realisation.uncertainty_meta("kirchhoff", fr, tab.values_per_sr, tab.sigma_per_sr,
+                                                 "speckle statistics: chi^2_2 per frequency sample, averaged over "
+                                                 "the filter and the cell; methods.realisation",
+                                                 realisation.correlation_areas(relief), stacklevel=3)
+        tab.metadata["uncertainty"] = unc
+        tab.metadata["warnings"] = tab.metadata.get("warnings", []) + warn
         tables.append(tab)
     return tables
+
+
+def _tile_sigma(tab: BsdfTable, ctx: dict, material: Material, inhom: np.ndarray) -> np.ndarray:
+    """sigma_per_sr: the finite tile's realisation uncertainty of every cell (methods.realisation).
+
+    The speckle grain of side s (R: n1, T: n2) is (lambda / (n_s L_x)) (lambda / (n_s L_y)) in direction
+    cosines, times the window's grain factor; the filter is the table's Gaussian of width w, widened
+    under partial coherence by the illumination's angular spectrum (1/e half width lambda / (pi n_s Lc),
+    standard deviation that / sqrt(2)), which averages the speckle further.  inhom: <D^2> / <D>^2 of the
+    filtered density over each cell's sub-points (a lobe narrower than the cell holds fewer grains than
+    the cell's area: variance a int D^2 / A^2, not a <D>^2 / A)."""
+    st, surf = ctx["settings"], ctx["surface"]
+    ny, nx = surf.heights_m.shape
+    Lx, Ly = nx * surf.pitch_m[0], ny * surf.pitch_m[1]
+    gf = realisation.window_grain_factor(None if surf.periodic else surf.window)
+    sig = np.zeros_like(tab.values_per_sr)
+    for iw, wl in enumerate(tab.wavelength_nm):
+        lam = wl * 1e-9
+        for k, ns in enumerate(material.n_pair(wl, tab.incident_from)):
+            if np.imag(ns) > 0:
+                continue
+            ns = float(np.real(ns))
+            a = (lam / (ns * Lx)) * (lam / (ns * Ly)) * gf
+            width2 = st.width_dcos ** 2
+            if st.coherence_length_m is not None:
+                width2 += 0.5 * (lam / (np.pi * ns * st.coherence_length_m)) ** 2
+            rel = realisation.relative_sigma(a, np.sqrt(width2), tab.theta_s_edges_deg, tab.phi_s_edges_deg)
+            sig[iw, :, :, k] = rel * np.sqrt(inhom[iw, :, :, k]) * tab.values_per_sr[iw, :, :, k]
+    return sig
