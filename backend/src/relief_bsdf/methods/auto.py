@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relief_bsdf.errors import RequestError
-from relief_bsdf.methods.options import AutoOptions, KirchhoffOptions
+from relief_bsdf.methods.options import AutoOptions, KirchhoffOptions, TwoScaleOptions
 from relief_bsdf.surface.stats import relief_stats
 
 log = logging.getLogger("relief_bsdf.auto")
@@ -95,7 +95,7 @@ def _coherent_fraction(relief, nu_per_m: float) -> float:
     return float(abs(np.mean(np.exp(-1j * nu_per_m * z))) ** 2) if z.size else 1.0
 
 
-def _figures(relief, material, request) -> dict:
+def _figures(relief, material, request, ts_opts: TwoScaleOptions | None = None) -> dict:
     """The relief's and request's numbers every validity condition is stated in (module doc).
 
     Wave-optics figures (rayleigh-rice, kirchhoff) are taken on the relief band-limited to the
@@ -127,7 +127,9 @@ def _figures(relief, material, request) -> dict:
         coh[f"coherent_R_{fr}"] = _coherent_fraction(relief, 2 * np.real(n1) * k0)
         if np.imag(n2) == 0:
             coh[f"coherent_T_{fr}"] = _coherent_fraction(relief, abs(np.real(n1) - np.real(n2)) * k0)
-    return {"rms_height_m": st.rms_height_m, "rms_slope": st.rms_slope, "correlation_length_m": st.correlation_length_m,
+    from relief_bsdf.methods import two_scale
+    ts = {f"ts_{k}": v for k, v in two_scale.figures(relief, material, request, ts_opts or TwoScaleOptions()).items()}
+    return {**ts, "rms_height_m": st.rms_height_m, "rms_slope": st.rms_slope, "correlation_length_m": st.correlation_length_m,
             "radius_of_curvature_m": rc, "rayleigh_parameter": (4 * np.pi * st.rms_height_m / lam_n) ** 2,
             "wavelength_nm": lam * 1e9, "n_incident_max": n, "k_rc": 2 * np.pi * rc / lam_n,
             "k_l": 2 * np.pi * st.correlation_length_m / lam_n, "pitch_m": max(relief.dx_m, relief.dy_m),
@@ -153,6 +155,15 @@ def _conditions(fig) -> dict:
                           ("rms slope (band-limited)", fig["rms_slope"], 0.15, "<")],
         "kirchhoff": [("k R_c", fig["k_rc"], 5.0, ">="), ("k l", fig["k_l"], 6.0, ">="),
                       ("rms slope (band-limited)", fig["rms_slope"], 0.5, "<")],
+        "two_scale": [("fine-scale Rayleigh parameter g_F", fig["ts_fine_rayleigh"], 0.1, "<"),
+                      ("fine-scale rms slope", fig["ts_fine_rms_slope"], 0.15, "<"),
+                      ("scale separation l_L / l_F", fig["ts_large_correlation_length_m"]
+                       / max(fig["ts_fine_correlation_length_m"], 1e-300), SCALE_SEPARATION, ">="),
+                      ("large-scale coherent specular share", fig["ts_large_coherent"], 0.01, "<"),
+                      ("large-scale sigma / (lambda/n)", fig["ts_large_rms_m"] / lam_n, 1.0, ">="),
+                      ("large-scale l / (lambda/n)", fig["ts_large_correlation_length_m"] / lam_n, 10.0, ">="),
+                      ("large-scale l / pitch", fig["ts_large_correlation_length_m"] / fig["pitch_m"], 4.0, ">="),
+                      ("large-scale k R_c", fig["ts_large_k_rc"], 10.0, ">=")],
         "ray": [("coherent specular share at normal incidence", fig["coherent_max"], 0.01, "<"),
                 ("sigma / (lambda/n)", fig["raw_rms_height_m"] / lam_n, 1.0, ">="),
                 ("l / (lambda/n)", fig["raw_correlation_length_m"] / lam_n, 10.0, ">="),
@@ -199,18 +210,29 @@ def _kirchhoff_feasibility(relief, material, request, fig, k_opts: KirchhoffOpti
     return True, why, extra
 
 
+SCALE_SEPARATION = 5.0        # l_L / l_F at least this: the relief has two scales (two_scale is a candidate)
+
+
+def _two_scales(fig) -> bool:
+    """Whether the relief is rough at one scale and smooth at another: the large scale's correlation
+    length is at least SCALE_SEPARATION times the fine scale's at the two-scale cut."""
+    return fig["ts_large_correlation_length_m"] >= SCALE_SEPARATION * fig["ts_fine_correlation_length_m"]
+
+
 def _rank(fig, feasible_k: bool) -> list:
     """[(method, miss in decades, why)] best first: valid methods in preference order (rayleigh-rice,
-    kirchhoff, ray - ray ahead of kirchhoff when slopes are steep, m >= 0.35, and it is valid), then
-    the others by how far their conditions are missed.  Ray is never ranked while a coherent
+    two_scale, kirchhoff, ray - ray ahead of kirchhoff when slopes are steep, m >= 0.35, and it is valid),
+    then the others by how far their conditions are missed.  Ray is never ranked while a coherent
     specular part remains (share > 1 % at normal incidence) unless no wave method can run."""
     conds = _conditions(fig)
     miss = {m: sum(_miss(v, lim, k) for _, v, lim, k in c) for m, c in conds.items()}
     if not feasible_k:
         miss["kirchhoff"] = np.inf
-    order = ["rayleigh-rice", "kirchhoff", "ray"]
+    if not _two_scales(fig):                  # one scale: the composite is not a candidate (module doc)
+        miss["two_scale"] = np.inf
+    order = ["rayleigh-rice", "two_scale", "kirchhoff", "ray"]
     if miss["ray"] == 0 and miss["kirchhoff"] == 0 and fig["rms_slope"] >= 0.35:
-        order = ["rayleigh-rice", "ray", "kirchhoff"]
+        order = ["rayleigh-rice", "two_scale", "ray", "kirchhoff"]
     # a coherent part remains and a wave method is close to valid (within a decade): never ray then
     wave_close = min(miss["rayleigh-rice"], miss["kirchhoff"]) <= 1.0
     coherent = fig["coherent_max"] > 0.01 and wave_close
@@ -229,6 +251,11 @@ def _summary(method: str, miss: float, fig: dict, extra: dict, why_k: str) -> st
         return head + (f"locally flat: k R_c = {fig['k_rc']:.3g}, k l = {fig['k_l']:.3g}, slope {m:.3g}, g = {g:.3g}, "
                        f"coherent share {coh:.2f}" + (f"; {why_k}" if extra.get("band_limited") else ""))
     lam_n = fig["wavelength_nm"] * 1e-9 / fig["n_incident_max"]
+    if method == "two_scale":
+        return head + (f"two scales: large {fig['ts_large_rms_m'] * 1e9:.4g} nm rms, l {fig['ts_large_correlation_length_m'] * 1e6:.3g} "
+                       f"um (ray: k R_c {fig['ts_large_k_rc']:.3g}, coherent {fig['ts_large_coherent']:.3f}) + fine "
+                       f"{fig['ts_fine_rms_m'] * 1e9:.3g} nm rms, l {fig['ts_fine_correlation_length_m'] * 1e6:.3g} um "
+                       f"(rayleigh-rice: g_F {fig['ts_fine_rayleigh']:.3g}), split at {fig['ts_f_cut_per_m'] * 1e-6:.3g} /um")
     return head + (f"rough: sigma = {fig['raw_rms_height_m'] / lam_n:.3g} lambda/n, l = "
                    f"{fig['raw_correlation_length_m'] / lam_n:.3g} lambda/n, coherent share {coh:.3f}")
 
@@ -237,7 +264,8 @@ def choose(relief, material, request) -> Choice:
     """Decide the method (module doc); no reconstruction is run."""
     opts = AutoOptions.from_request(request)
     k_opts = KirchhoffOptions.from_mapping(opts.for_method(KirchhoffOptions), "auto")
-    fig = _figures(relief, material, request)
+    ts_opts = TwoScaleOptions.from_mapping(opts.for_method(TwoScaleOptions), "auto")
+    fig = _figures(relief, material, request, ts_opts)
     feasible_k, why_k, extra_k = _kirchhoff_feasibility(relief, material, request, fig, k_opts)
     ranked = _rank(fig, feasible_k)
     method, miss, _ = ranked[0]
@@ -249,6 +277,8 @@ def choose(relief, material, request) -> Choice:
     if miss > 0:
         reason = "WARNING: no method is valid for this relief and wavelength; ranked: " + reason
     extra = extra_k if method == "kirchhoff" else {}
+    if method == "two_scale":                     # the run uses the very split the reason states
+        extra = {"f_cut_per_um": fig["ts_f_cut_per_m"] * 1e-6}
     fig.pop("pitch_m")
     return Choice(method, reason, valid, extra, fig, _summary(method, miss, fig, extra, why_k))
 

@@ -84,15 +84,21 @@ def relative_sigma_extents(grain_area: float, width: float, c_r: np.ndarray, c_p
 
 
 def lobe_relative_sigma(values: np.ndarray, sigma: np.ndarray) -> float:
-    """Largest relative sigma of the lobe's cells (above LOBE_FRACTION of the largest value), per
-    table row (axis -2, -1 = cells), the worst row."""
+    """The lobe's relative sigma as the ray method states it: per table row (incidence and side; the last
+    two axes are the cells) the median of sigma / value over the lobe's cells (above LOBE_FRACTION of the
+    row's largest value); the worst row."""
     v = np.asarray(values, float)
     sg = np.asarray(sigma, float)
-    top = v.max(axis=(-2, -1), keepdims=True)
-    lobe = (v > LOBE_FRACTION * top) & (top > 0)
-    if not lobe.any():
-        return 0.0
-    return float(np.max(np.where(lobe, sg / np.where(v > 0, v, 1.0), 0.0)))
+    S, A = v.shape[-2:]
+    v = v.reshape(-1, S * A)
+    sg = sg.reshape(-1, S * A)
+    worst = 0.0
+    for row, srow in zip(v, sg):
+        top = row.max()
+        lobe = row > LOBE_FRACTION * top
+        if top > 0 and lobe.any():
+            worst = max(worst, float(np.median(srow[lobe] / row[lobe])))
+    return worst
 
 
 def uncertainty_meta(method: str, side: str, values, sigma, how: str, correlation_areas: float | None,
@@ -105,7 +111,7 @@ def uncertainty_meta(method: str, side: str, values, sigma, how: str, correlatio
     warn = []
     if worst > TILE_WARN_REL:
         warn.append(f"{method} table ({side}): the tile holds {areas} correlation areas, too few for the cells "
-                     f"asked for: the lobe's cells scatter by up to {100 * worst:.0f} % between tile realisations "
+                     f"asked for: the lobe's cells scatter by {100 * worst:.0f} % (median) between tile realisations "
                      "(included in sigma_per_sr); use a larger tile or coarser cells")
     for w in warn:
         warnings.warn(w, RuntimeWarning, stacklevel=stacklevel)

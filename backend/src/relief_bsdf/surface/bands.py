@@ -68,6 +68,11 @@ class BandSpectrum:
         hi = np.searchsorted(self.f_per_m, f_prop_per_m, side="right")
         return np.maximum(c[hi] - c[np.minimum(lo, hi)], 0.0)
 
+    def fine_slope(self, f_cut_per_m: float, f_prop_per_m: float = np.inf) -> float:
+        """rms slope magnitude of the components f_cut < |f| <= f_prop (continuous derivative, 2 pi f)."""
+        m = (self.f_per_m > f_cut_per_m) & (self.f_per_m <= f_prop_per_m)
+        return float(np.sqrt(np.sum((2 * np.pi * self.f_per_m[m]) ** 2 * self.power_m2[m])))
+
     def large_curvature(self, f_cut_per_m) -> np.ndarray:
         """rms mean curvature (1/m, second differences) of the components |f| <= f_cut."""
         c = np.concatenate([[0.0], np.cumsum(self.power_m2 * self.curv2_per_m4)])
@@ -93,13 +98,14 @@ class BandSplit:
                 f"({self.fine_rms_prop_m * 1e9:.3g} nm inside the propagating band)")
 
 
-def band_split(relief: Relief, f_cut_per_m: float, f_prop_per_m: float = np.inf) -> BandSplit:
+def band_split(relief: Relief, f_cut_per_m: float, f_prop_per_m: float = np.inf,
+               spectrum: BandSpectrum | None = None) -> BandSplit:
     """The relief split at f_cut_per_m (module doc); f_prop_per_m: the propagating band's edge for the
-    fine scale's in-band rms."""
+    fine scale's in-band rms; spectrum: the relief's BandSpectrum if already computed."""
     bl = band_limited(relief, f_cut_per_m)
     lv = levelled(relief)
     fine = lv.with_heights(lv.heights_m - bl.relief.heights_m, f"fine scale: |f| > {f_cut_per_m:.4g} /m")
-    spec = BandSpectrum.of(relief)
+    spec = spectrum if spectrum is not None else BandSpectrum.of(relief)
     prop = float(np.sqrt(spec.fine_variance(f_cut_per_m, f_prop_per_m)))
     return BandSplit(large=bl.relief, fine=fine, f_cut_per_m=float(f_cut_per_m), fine_rms_m=rms_height(fine),
                      fine_rms_prop_m=prop, large_rms_m=rms_height(bl.relief))
