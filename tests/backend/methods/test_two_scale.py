@@ -186,3 +186,29 @@ def test_agrees_with_full_kirchhoff_where_both_apply(side_from):
             checked += 1
     assert checked >= 5
     assert np.all(np.abs(hs["R"] + hs["T"] - 1.0) < 0.01)
+
+
+@pytest.mark.slow
+def test_real_maps_coherent_specular_of_autos_choice_within_ten_percent_of_the_wave_methods():
+    """Every area map of ../shared/data/topography (outside and inside, 0-60 deg): the coherent specular
+    fraction auto's choice carries is within 0.1 of the wave methods' |<exp(-i nu h)>|^2 at normal incidence
+    (the tangent-plane mean field of the map's own heights, the least coherent incidence): ray carries
+    none, two_scale only its large scale's (times the fine scale's Debye-Waller factor <= 1), the wave
+    methods the figure itself."""
+    from pathlib import Path
+
+    from relief_bsdf.io.heightmaps import read_relief
+    topo = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "topography"
+    req = Request(theta_i_deg=(0.0, 30.0, 60.0), incident_from=("outside", "inside"))
+    seen = 0
+    for p in sorted(topo.glob("ST_*")):
+        try:
+            rel = read_relief(p)
+        except Exception:                      # the 1-D profile
+            continue
+        c = _quiet(auto.choose, rel, MAT, req)
+        wave = c.figures["coherent_max"]
+        carried = {"ray": 0.0, "two_scale": c.figures["ts_large_coherent"]}.get(c.method, wave)
+        assert abs(carried - wave) <= 0.1, (p.name, c.method, carried, wave)
+        seen += 1
+    assert seen >= 8

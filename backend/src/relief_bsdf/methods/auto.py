@@ -1,4 +1,4 @@
-"""`auto`: choose rayleigh-rice, kirchhoff or ray from the relief's statistics and the request.
+"""`auto`: choose rayleigh-rice, two_scale, kirchhoff or ray from the relief's statistics and the request.
 
 Figures (relief_bsdf.surface.stats; levelled heights, valid points): rms height sigma, rms slope
 m, correlation length l (1/e of the radial autocovariance), rms mean curvature kappa from second
@@ -22,14 +22,24 @@ Conditions (each "value < limit" or "value >= limit"):
   (kirchhoff.check_sampling, check_aliasing).  Where only the pitch limits the directions the
   map can resolve, it runs band-limited (option band_limited = True): the map carries no
   information beyond its band, and the reason says what share of the propagating band it covers.
+- two_scale (methods.two_scale; figures on its split, surface.bands: the lowest cut with the fine
+  scale's g_F <= 0.05): the fine scale as rayleigh-rice, g_F < 0.1 and rms slope < 0.15 (inside
+  the propagating band); the large scale as ray: coherent share < 1 %, sigma_L >= lambda / n,
+  l_L >= 10 lambda / n, l_L >= 4 pixels, k R_c(L) >= 10; and two scales: l_L >= 5 l_F
+  (SCALE_SEPARATION: a relief with one scale is not a candidate at all, whatever it misses).
 - ray (geometric optics): coherent share < 1 %, sigma >= lambda / n, l >= 10 lambda / n,
   l >= 4 pixels, and k R_c >= 10 on the raw map (facets large on the wavelength scale: an
   exponential-autocorrelation relief has wavelength-sized facets whatever its l).
 
 Ranking: each method's miss is the sum over its conditions of how many decades the condition
 is missed (0 when it holds; infinite when not feasible).  Valid methods come first in the
-order rayleigh-rice, kirchhoff, ray (ray before kirchhoff when both are valid and m >= 0.35:
-shadowing and inter-reflections only ray tracing includes); then the rest by miss.  Ray is
+order rayleigh-rice, two_scale, kirchhoff, ray (ray before kirchhoff when both are valid and
+m >= 0.35: shadowing and inter-reflections only ray tracing includes); then the rest by miss.
+two_scale comes before kirchhoff: for a lobe plus a haze both may hold, the composite costs one
+ray tracing and a PSD where the tangent plane needs q_z nodes growing with sigma_L, and it adds
+the large scale's shadowing and inter-reflections; it agrees with kirchhoff where both apply
+(tests/backend/methods/test_two_scale.py).  Where it runs, it uses the very cut its reason states
+(option f_cut_per_um).  Ray is
 never chosen while a coherent part remains (share > 1 %) and a wave method is within one decade
 of valid.  When the chosen method misses its conditions a RuntimeWarning says so.
 
