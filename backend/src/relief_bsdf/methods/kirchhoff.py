@@ -88,6 +88,14 @@ scattering; grazing incidence and light past the critical angle are the worst): 
 1 - R - T is stored signed in `lost` and in metadata["energy_defect"], and a RuntimeWarning is
 raised above 1 % for a lossless boundary (for a metal `lost` is the absorption).
 
+Uncertainty.  sigma_per_sr is the finite tile's realisation uncertainty of every cell: the
+speckle statistics of the far field (chi^2_2 per frequency sample, grain lambda / (n_s L) times the
+window's grain factor), averaged by the filter and the cell, with the lobe's inhomogeneity over the
+cell (methods.realisation; checked against the spread over independently seeded tiles in
+tests/backend/methods/test_tile_sigma.py); metadata["uncertainty"] says so, and a warning (also in
+metadata["warnings"]) when the lobe's cells scatter by more than 10 % between tiles.  The q_z
+expansion's error is the separate bound qz_error_bound_R/T.
+
 Polarisation (option polarized = True, CLI --polarized): the scalar Fresnel factor is
 replaced by the Fresnel Mueller matrix of the stationary-phase facet, rotated from the
 table's incident s/p basis into the facet's plane of incidence and out into the scattered
@@ -691,7 +699,9 @@ def _side_power(fd: _Field, sides: list, nodes, screens, workers):
     ntot = nx * ny
     nscr = len(screens) or 1
     bases = [LagrangeBasis(nodes, sd.nu_full) for sd in sides]
-    ix = [np.ix_(sd.cg.rows, sd.cg.cols) for sd in sides]
+    # each side's crop is a contiguous block of the fftshifted grid: one shift per FFT, then views
+    ix = [(slice(sd.cg.tb[0].start * sd.cg.by, sd.cg.tb[0].stop * sd.cg.by),
+           slice(sd.cg.tb[1].start * sd.cg.bx, sd.cg.tb[1].stop * sd.cg.bx)) for sd in sides]
     accs = [[np.zeros(sd.nu_full.shape, np.complex64) for _ in range(nscr)] for sd in sides]
     periodic_coherent = fd.w32 is None and not screens
     dcs = [np.nonzero((sd.cg.rows == 0)[:, None] & (sd.cg.cols == 0)[None, :]) for sd in sides]
@@ -703,19 +713,19 @@ def _side_power(fd: _Field, sides: list, nodes, screens, workers):
         for k, e in enumerate(screens or [None]):
             if not periodic_coherent and win[k] is None:
                 ww = fd.w32.astype(np.complex64) if e is None else (e if fd.w32 is None else e * fd.w32)
-                win[k] = sfft.fft2(ww, workers=workers)
+                win[k] = np.fft.fftshift(sfft.fft2(ww, workers=workers))
                 n_fft += 1
             if m is None and e is not None:
                 m = complex(v.mean(dtype=np.complex128))
-            F = sfft.fft2(v if e is None else v * e, workers=workers, overwrite_x=e is None)
+            F = np.fft.fftshift(sfft.fft2(v if e is None else v * e, workers=workers, overwrite_x=e is None))
             n_fft += 1
             for i, sd in enumerate(sides):
-                Fc = F[ix[i]]
                 if periodic_coherent:
+                    Fc = np.multiply(F[ix[i]], Ls[i])
                     Fc[dcs[i]] = 0.0                 # the mean field is the DC term
                 else:
-                    Fc -= np.complex64(m) * win[k][ix[i]]
-                np.multiply(Fc, Ls[i], out=Fc)
+                    Fc = F[ix[i]] - np.complex64(m) * win[k][ix[i]]
+                    np.multiply(Fc, Ls[i], out=Fc)
                 accs[i][k] += Fc
     halves = 2 if screens else 1
     out = []
@@ -941,7 +951,8 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
         unc, warn = realisation.uncertainty_meta("kirchhoff", fr, tab.values_per_sr, tab.sigma_per_sr,
                                                  "speckle statistics: chi^2_2 per frequency sample, averaged over "
                                                  "the filter and the cell; methods.realisation",
-                                                 realisation.correlation_areas(relief), stacklevel=3)
+                                                 realisation.correlation_areas(relief),
+                                                 (request.theta_s_edges_deg, request.phi_s_edges_deg), stacklevel=3)
         tab.metadata["uncertainty"] = unc
         tab.metadata["warnings"] = tab.metadata.get("warnings", []) + warn
         tables.append(tab)

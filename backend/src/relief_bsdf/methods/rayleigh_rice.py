@@ -63,6 +63,10 @@ so the smoothing matches the cell size and is the same for every wavelength in
 direction-cosine terms at the shortest wavelength); otherwise the 2-D periodogram is
 Gaussian-smoothed with that width.  Between annuli S is linearly interpolated.
 
+Uncertainty: sigma_per_sr is the tile's realisation uncertainty of the PSD estimate (`cell_sigma`:
+chi^2_2 periodogram samples, the window's grain factor, annulus averages combined exactly into each
+cell; methods.realisation), with a warning when the lobe's cells scatter by more than 10 %.
+
 Options (methods.options.RayleighRiceOptions): psd_isotropic (bool), smoothing_dcos (float),
 polarized (bool, default True: fill mueller_per_sr), backend.
 """
@@ -505,7 +509,8 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
         energy_defect(tab, material, "rayleigh-rice", "first-order perturbation")   # signed; absorbed for a metal
         unc, warn = uncertainty_meta("rayleigh-rice", fr, vals, sig, "periodogram statistics: chi^2_2 per sample, "
                                      "averaged over the PSD smoothing and the cell; methods.realisation",
-                                     correlation_areas(relief), stacklevel=3)
+                                     correlation_areas(relief),
+                                     (request.theta_s_edges_deg, request.phi_s_edges_deg), stacklevel=3)
         tab.metadata["uncertainty"] = unc
         tab.metadata["warnings"] = warn
         tables.append(tab)

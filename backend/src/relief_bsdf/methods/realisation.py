@@ -38,6 +38,7 @@ from scipy.special import erf
 
 TILE_WARN_REL = 0.10          # as methods.ray: warn when the lobe's cells scatter more than this between tiles
 LOBE_FRACTION = 0.01          # the lobe: cells above this fraction of the table's largest diffuse value
+MIN_DIFFUSE = 1e-3            # rows with less diffuse power than this (of the incident) are not warned about
 
 
 def window_grain_factor(window: np.ndarray | None) -> float:
@@ -83,28 +84,36 @@ def relative_sigma_extents(grain_area: float, width: float, c_r: np.ndarray, c_p
     return np.sqrt(grain_area / (4 * np.pi * s * s) * _box_factor(c_r, s) * _box_factor(c_phi, s))
 
 
-def lobe_relative_sigma(values: np.ndarray, sigma: np.ndarray) -> float:
+def lobe_relative_sigma(values: np.ndarray, sigma: np.ndarray, psa: np.ndarray | None = None) -> float:
     """The lobe's relative sigma as the ray method states it: per table row (incidence and side; the last
     two axes are the cells) the median of sigma / value over the lobe's cells (above LOBE_FRACTION of the
-    row's largest value); the worst row."""
+    row's largest value); the worst row.  With psa (the cells' projected solid angles) rows whose diffuse
+    power is below MIN_DIFFUSE of the incident power are left out (a negligible lobe, e.g. near the flat
+    limit, is not worth a warning)."""
     v = np.asarray(values, float)
     sg = np.asarray(sigma, float)
     S, A = v.shape[-2:]
     v = v.reshape(-1, S * A)
     sg = sg.reshape(-1, S * A)
+    power = (v * np.ravel(psa)[None, :]).sum(axis=1) if psa is not None else np.ones(v.shape[0])
     worst = 0.0
-    for row, srow in zip(v, sg):
+    for row, srow, pw in zip(v, sg, power):
         top = row.max()
         lobe = row > LOBE_FRACTION * top
-        if top > 0 and lobe.any():
+        if top > 0 and lobe.any() and pw >= MIN_DIFFUSE:
             worst = max(worst, float(np.median(srow[lobe] / row[lobe])))
     return worst
 
 
 def uncertainty_meta(method: str, side: str, values, sigma, how: str, correlation_areas: float | None,
-                     stacklevel: int = 3) -> tuple[dict, list]:
-    """metadata["uncertainty"] and the warnings (also issued as RuntimeWarning) of a wave table."""
-    worst = lobe_relative_sigma(values, sigma)
+                     edges: tuple | None = None, stacklevel: int = 3) -> tuple[dict, list]:
+    """metadata["uncertainty"] and the warnings (also issued as RuntimeWarning) of a wave table; edges:
+    (theta_s, phi_s) cell edges in degrees (rows with a negligible diffuse part are then not warned about)."""
+    psa = None
+    if edges is not None:
+        te, pe = np.radians(np.asarray(edges[0], float)), np.radians(np.asarray(edges[1], float))
+        psa = 0.5 * (np.sin(te[1:]) ** 2 - np.sin(te[:-1]) ** 2)[:, None] * np.diff(pe)[None, :]
+    worst = lobe_relative_sigma(values, sigma, psa)
     areas = "an unknown number of" if correlation_areas is None else f"{correlation_areas:.0f}"
     info = {"sigma": f"the finite tile's realisation uncertainty ({how})", "correlation_areas": correlation_areas,
             "lobe_relative_tile_sigma_max": worst}
