@@ -611,14 +611,18 @@ def _mean_field(fd: _Field, nu: float) -> complex:
     return complex(np.dot(c.ravel(), fd.w2.ravel()) / fd.sw2, np.dot(s.ravel(), fd.w2.ravel()) / fd.sw2)
 
 
-def _node_field(fd: _Field, nu: float) -> tuple[np.ndarray, complex | None]:
+def _node_field(fd: _Field, nu: float, bufs: dict) -> tuple[np.ndarray, complex | None]:
     """(w exp(-i nu (h - h_c)) as complex64, its mean field m with the squared-window weights);
-    m is None for a periodic tile, where it is the FFT's DC term (removed there)."""
-    ph = fd.h32 * np.float32(-nu)
-    u = np.empty(fd.shape, np.complex64)
-    u.real[...] = np.cos(ph)                  # contiguous ufunc, then one strided copy (faster than out=)
-    np.sin(ph, out=ph)
-    u.imag[...] = ph
+    m is None for a periodic tile, where it is the FFT's DC term (removed there).  bufs: work arrays
+    reused from node to node (a fresh 2048^2 array costs its page faults every time)."""
+    ph = bufs.setdefault("phase", np.empty(fd.shape, np.float32))
+    tmp = bufs.setdefault("trig", np.empty(fd.shape, np.float32))
+    u = bufs.setdefault("field", np.empty(fd.shape, np.complex64))
+    np.multiply(fd.h32, np.float32(-nu), out=ph)
+    np.cos(ph, out=tmp)                       # contiguous ufuncs, then strided copies (faster than out=)
+    u.real[...] = tmp
+    np.sin(ph, out=tmp)
+    u.imag[...] = tmp
     if fd.w32 is None:
         return u, None
     m = complex(np.dot(u.real.ravel(), fd.w2.ravel()) / fd.sw2, np.dot(u.imag.ravel(), fd.w2.ravel()) / fd.sw2)
@@ -707,8 +711,9 @@ def _side_power(fd: _Field, sides: list, nodes, screens, workers):
     dcs = [np.nonzero((sd.cg.rows == 0)[:, None] & (sd.cg.cols == 0)[None, :]) for sd in sides]
     win = [None] * nscr
     n_fft = 0
+    bufs = {}
     for j, nu in enumerate(nodes):
-        v, m = _node_field(fd, nu)
+        v, m = _node_field(fd, nu, bufs)
         Ls = [lb.basis(j) for lb in bases]
         for k, e in enumerate(screens or [None]):
             if not periodic_coherent and win[k] is None:
@@ -717,7 +722,7 @@ def _side_power(fd: _Field, sides: list, nodes, screens, workers):
                 n_fft += 1
             if m is None and e is not None:
                 m = complex(v.mean(dtype=np.complex128))
-            F = np.fft.fftshift(sfft.fft2(v if e is None else v * e, workers=workers, overwrite_x=e is None))
+            F = _shifted(sfft.fft2(v if e is None else v * e, workers=workers, overwrite_x=e is None), bufs)
             n_fft += 1
             for i, sd in enumerate(sides):
                 if periodic_coherent:
@@ -737,6 +742,20 @@ def _side_power(fd: _Field, sides: list, nodes, screens, workers):
         cnt = [len(screens[k::2]) if screens else 1 for k in range(halves)]
         out.append([acc_p[k] / (cnt[k] * ntot * fd.sw2 * sd.cg.dF) for k in range(halves)])
     return out, n_fft
+
+
+def _shifted(F: np.ndarray, bufs: dict) -> np.ndarray:
+    """np.fft.fftshift(F) written into a reused buffer (four block copies)."""
+    out = bufs.get("shifted")
+    if out is None or out.shape != F.shape:
+        out = bufs["shifted"] = np.empty(F.shape, F.dtype)
+    ny, nx = F.shape
+    hy, hx = ny - ny // 2, nx - nx // 2          # fftshift moves index k to (k + n // 2) mod n
+    out[ny // 2:, nx // 2:] = F[:hy, :hx]
+    out[ny // 2:, :nx // 2] = F[:hy, hx:]
+    out[:ny // 2, nx // 2:] = F[hy:, :hx]
+    out[:ny // 2, :nx // 2] = F[hy:, hx:]
+    return out
 
 
 def _densities(sides: list, fd: _Field, st: SolveSettings, screens) -> tuple[dict, dict, int]:
