@@ -213,8 +213,12 @@ def _kirchhoff_feasibility(relief, material, request, fig, k_opts: KirchhoffOpti
         share = (0.5 / fig["pitch_m"]) / fig["band_f_max_per_m"]
         why = f"band-limited (the pitch resolves {share:.0%} of the propagating band)"
     try:
-        h, w = prepared_heights(relief)
-        kirchhoff.check_aliasing(h, w, 2 * n * 2 * np.pi / lam)
+        # the heights kirchhoff will diffract: band-limited as it does (option band_limit_heights)
+        rel_k = kirchhoff._band_limit(relief, material, request, width)[0] if k_opts.band_limit_heights else relief
+        h, w = prepared_heights(rel_k)
+        n_all = max(float(np.real(v)) for wl in request.wavelengths_nm for fr in request.incident_from
+                    for v in material.n_pair(wl, fr))          # kirchhoff's own bound on nu_z
+        kirchhoff.check_aliasing(h, w, 2 * n_all * 2 * np.pi / lam)
     except RequestError as e:
         return False, f"not feasible: {e.message}", {}
     return True, why, extra
