@@ -130,7 +130,7 @@ from relief_bsdf.core.index import Material
 from relief_bsdf.parallel import in_worker, map_tasks, task_rng
 from relief_bsdf.methods import realisation
 from relief_bsdf.methods.options import KirchhoffOptions
-from relief_bsdf.methods.wave_filter import (DcosGrid, cell_average, cell_samples, check_sides, energy_defect,
+from relief_bsdf.methods.wave_filter import (DcosGrid, cell_samples, check_sides, energy_defect,
                                              ring_factors,
                                              smoothing_width_dcos)
 from relief_bsdf.methods.rayleigh_rice import prepared_heights
