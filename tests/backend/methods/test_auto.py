@@ -32,7 +32,7 @@ def test_intermediate_picks_kirchhoff():
     (tab,) = reconstruct(rel, MAT, Request(**SMALL, options={"quiet": True}), "auto")
     assert tab.method == "kirchhoff"
     assert "rayleigh-rice (missed by" in tab.metadata["auto_reason"]
-    assert tab.metadata["auto_valid"] == {"rayleigh-rice": False, "kirchhoff": True, "ray": False}
+    assert tab.metadata["auto_valid"] == {"rayleigh-rice": False, "kirchhoff": True, "ray": False, "two_scale": False}
 
 
 def test_rough_coarse_pitch_picks_ray_and_rayleigh_parameter_scales():

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from relief_bsdf.methods.options import (AutoOptions, FlatOptions, KirchhoffOptions, MethodOptions,
                                          MicrofacetDwOptions, MicrofacetOptions, NormalsOptions, RayleighRiceOptions,
-                                         RayOptions)
+                                         RayOptions, TwoScaleOptions)
 from relief_bsdf.methods.registry import REGISTRY, MethodEntry, entry, method_names, options_for
 from relief_bsdf.methods.request import Request
 
@@ -21,7 +21,8 @@ METHODS = {name: e.module for name, e in REGISTRY.items()}
 
 __all__ = ["reconstruct", "get_method", "Request", "REGISTRY", "METHODS", "MethodEntry", "entry", "method_names",
            "options_for", "MethodOptions", "KirchhoffOptions", "RayleighRiceOptions", "MicrofacetOptions",
-           "MicrofacetDwOptions", "NormalsOptions", "RayOptions", "AutoOptions", "FlatOptions"]
+           "MicrofacetDwOptions", "NormalsOptions", "RayOptions", "AutoOptions", "FlatOptions",
+           "TwoScaleOptions"]
 
 
 def get_method(name: str):

@@ -1,4 +1,4 @@
-"""`auto`: choose rayleigh-rice, kirchhoff or ray from the relief's statistics and the request.
+"""`auto`: choose rayleigh-rice, two_scale, kirchhoff or ray from the relief's statistics and the request.
 
 Figures (relief_bsdf.surface.stats; levelled heights, valid points): rms height sigma, rms slope
 m, correlation length l (1/e of the radial autocovariance), rms mean curvature kappa from second
@@ -22,14 +22,24 @@ Conditions (each "value < limit" or "value >= limit"):
   (kirchhoff.check_sampling, check_aliasing).  Where only the pitch limits the directions the
   map can resolve, it runs band-limited (option band_limited = True): the map carries no
   information beyond its band, and the reason says what share of the propagating band it covers.
+- two_scale (methods.two_scale; figures on its split, surface.bands: the lowest cut with the fine
+  scale's g_F <= 0.05): the fine scale as rayleigh-rice, g_F < 0.1 and rms slope < 0.15 (inside
+  the propagating band); the large scale as ray: coherent share < 1 %, sigma_L >= lambda / n,
+  l_L >= 10 lambda / n, l_L >= 4 pixels, k R_c(L) >= 10; and two scales: l_L >= 5 l_F
+  (SCALE_SEPARATION: a relief with one scale is not a candidate at all, whatever it misses).
 - ray (geometric optics): coherent share < 1 %, sigma >= lambda / n, l >= 10 lambda / n,
   l >= 4 pixels, and k R_c >= 10 on the raw map (facets large on the wavelength scale: an
   exponential-autocorrelation relief has wavelength-sized facets whatever its l).
 
 Ranking: each method's miss is the sum over its conditions of how many decades the condition
 is missed (0 when it holds; infinite when not feasible).  Valid methods come first in the
-order rayleigh-rice, kirchhoff, ray (ray before kirchhoff when both are valid and m >= 0.35:
-shadowing and inter-reflections only ray tracing includes); then the rest by miss.  Ray is
+order rayleigh-rice, two_scale, kirchhoff, ray (ray before kirchhoff when both are valid and
+m >= 0.35: shadowing and inter-reflections only ray tracing includes); then the rest by miss.
+two_scale comes before kirchhoff: for a lobe plus a haze both may hold, the composite costs one
+ray tracing and a PSD where the tangent plane needs q_z nodes growing with sigma_L, and it adds
+the large scale's shadowing and inter-reflections; it agrees with kirchhoff where both apply
+(tests/backend/methods/test_two_scale.py).  Where it runs, it uses the very cut its reason states
+(option f_cut_per_um).  Ray is
 never chosen while a coherent part remains (share > 1 %) and a wave method is within one decade
 of valid.  When the chosen method misses its conditions a RuntimeWarning says so.
 
@@ -51,7 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relief_bsdf.errors import RequestError
-from relief_bsdf.methods.options import AutoOptions, KirchhoffOptions
+from relief_bsdf.methods.options import AutoOptions, KirchhoffOptions, TwoScaleOptions
 from relief_bsdf.surface.stats import relief_stats
 
 log = logging.getLogger("relief_bsdf.auto")
@@ -95,7 +105,7 @@ def _coherent_fraction(relief, nu_per_m: float) -> float:
     return float(abs(np.mean(np.exp(-1j * nu_per_m * z))) ** 2) if z.size else 1.0
 
 
-def _figures(relief, material, request) -> dict:
+def _figures(relief, material, request, ts_opts: TwoScaleOptions | None = None) -> dict:
     """The relief's and request's numbers every validity condition is stated in (module doc).
 
     Wave-optics figures (rayleigh-rice, kirchhoff) are taken on the relief band-limited to the
@@ -127,7 +137,9 @@ def _figures(relief, material, request) -> dict:
         coh[f"coherent_R_{fr}"] = _coherent_fraction(relief, 2 * np.real(n1) * k0)
         if np.imag(n2) == 0:
             coh[f"coherent_T_{fr}"] = _coherent_fraction(relief, abs(np.real(n1) - np.real(n2)) * k0)
-    return {"rms_height_m": st.rms_height_m, "rms_slope": st.rms_slope, "correlation_length_m": st.correlation_length_m,
+    from relief_bsdf.methods import two_scale
+    ts = {f"ts_{k}": v for k, v in two_scale.figures(relief, material, request, ts_opts or TwoScaleOptions()).items()}
+    return {**ts, "rms_height_m": st.rms_height_m, "rms_slope": st.rms_slope, "correlation_length_m": st.correlation_length_m,
             "radius_of_curvature_m": rc, "rayleigh_parameter": (4 * np.pi * st.rms_height_m / lam_n) ** 2,
             "wavelength_nm": lam * 1e9, "n_incident_max": n, "k_rc": 2 * np.pi * rc / lam_n,
             "k_l": 2 * np.pi * st.correlation_length_m / lam_n, "pitch_m": max(relief.dx_m, relief.dy_m),
@@ -153,6 +165,15 @@ def _conditions(fig) -> dict:
                           ("rms slope (band-limited)", fig["rms_slope"], 0.15, "<")],
         "kirchhoff": [("k R_c", fig["k_rc"], 5.0, ">="), ("k l", fig["k_l"], 6.0, ">="),
                       ("rms slope (band-limited)", fig["rms_slope"], 0.5, "<")],
+        "two_scale": [("fine-scale Rayleigh parameter g_F", fig["ts_fine_rayleigh"], 0.1, "<"),
+                      ("fine-scale rms slope", fig["ts_fine_rms_slope"], 0.15, "<"),
+                      ("scale separation l_L / l_F", fig["ts_large_correlation_length_m"]
+                       / max(fig["ts_fine_correlation_length_m"], 1e-300), SCALE_SEPARATION, ">="),
+                      ("large-scale coherent specular share", fig["ts_large_coherent"], 0.01, "<"),
+                      ("large-scale sigma / (lambda/n)", fig["ts_large_rms_m"] / lam_n, 1.0, ">="),
+                      ("large-scale l / (lambda/n)", fig["ts_large_correlation_length_m"] / lam_n, 10.0, ">="),
+                      ("large-scale l / pitch", fig["ts_large_correlation_length_m"] / fig["pitch_m"], 4.0, ">="),
+                      ("large-scale k R_c", fig["ts_large_k_rc"], 10.0, ">=")],
         "ray": [("coherent specular share at normal incidence", fig["coherent_max"], 0.01, "<"),
                 ("sigma / (lambda/n)", fig["raw_rms_height_m"] / lam_n, 1.0, ">="),
                 ("l / (lambda/n)", fig["raw_correlation_length_m"] / lam_n, 10.0, ">="),
@@ -192,25 +213,40 @@ def _kirchhoff_feasibility(relief, material, request, fig, k_opts: KirchhoffOpti
         share = (0.5 / fig["pitch_m"]) / fig["band_f_max_per_m"]
         why = f"band-limited (the pitch resolves {share:.0%} of the propagating band)"
     try:
-        h, w = prepared_heights(relief)
-        kirchhoff.check_aliasing(h, w, 2 * n * 2 * np.pi / lam)
+        # the heights kirchhoff will diffract: band-limited as it does (option band_limit_heights)
+        rel_k = kirchhoff._band_limit(relief, material, request, width)[0] if k_opts.band_limit_heights else relief
+        h, w = prepared_heights(rel_k)
+        n_all = max(float(np.real(v)) for wl in request.wavelengths_nm for fr in request.incident_from
+                    for v in material.n_pair(wl, fr))          # kirchhoff's own bound on nu_z
+        kirchhoff.check_aliasing(h, w, 2 * n_all * 2 * np.pi / lam)
     except RequestError as e:
         return False, f"not feasible: {e.message}", {}
     return True, why, extra
 
 
+SCALE_SEPARATION = 5.0        # l_L / l_F at least this: the relief has two scales (two_scale is a candidate)
+
+
+def _two_scales(fig) -> bool:
+    """Whether the relief is rough at one scale and smooth at another: the large scale's correlation
+    length is at least SCALE_SEPARATION times the fine scale's at the two-scale cut."""
+    return fig["ts_large_correlation_length_m"] >= SCALE_SEPARATION * fig["ts_fine_correlation_length_m"]
+
+
 def _rank(fig, feasible_k: bool) -> list:
     """[(method, miss in decades, why)] best first: valid methods in preference order (rayleigh-rice,
-    kirchhoff, ray - ray ahead of kirchhoff when slopes are steep, m >= 0.35, and it is valid), then
-    the others by how far their conditions are missed.  Ray is never ranked while a coherent
+    two_scale, kirchhoff, ray - ray ahead of kirchhoff when slopes are steep, m >= 0.35, and it is valid),
+    then the others by how far their conditions are missed.  Ray is never ranked while a coherent
     specular part remains (share > 1 % at normal incidence) unless no wave method can run."""
     conds = _conditions(fig)
     miss = {m: sum(_miss(v, lim, k) for _, v, lim, k in c) for m, c in conds.items()}
     if not feasible_k:
         miss["kirchhoff"] = np.inf
-    order = ["rayleigh-rice", "kirchhoff", "ray"]
+    if not _two_scales(fig):                  # one scale: the composite is not a candidate (module doc)
+        miss["two_scale"] = np.inf
+    order = ["rayleigh-rice", "two_scale", "kirchhoff", "ray"]
     if miss["ray"] == 0 and miss["kirchhoff"] == 0 and fig["rms_slope"] >= 0.35:
-        order = ["rayleigh-rice", "ray", "kirchhoff"]
+        order = ["rayleigh-rice", "two_scale", "ray", "kirchhoff"]
     # a coherent part remains and a wave method is close to valid (within a decade): never ray then
     wave_close = min(miss["rayleigh-rice"], miss["kirchhoff"]) <= 1.0
     coherent = fig["coherent_max"] > 0.01 and wave_close
@@ -229,6 +265,11 @@ def _summary(method: str, miss: float, fig: dict, extra: dict, why_k: str) -> st
         return head + (f"locally flat: k R_c = {fig['k_rc']:.3g}, k l = {fig['k_l']:.3g}, slope {m:.3g}, g = {g:.3g}, "
                        f"coherent share {coh:.2f}" + (f"; {why_k}" if extra.get("band_limited") else ""))
     lam_n = fig["wavelength_nm"] * 1e-9 / fig["n_incident_max"]
+    if method == "two_scale":
+        return head + (f"two scales: large {fig['ts_large_rms_m'] * 1e9:.4g} nm rms, l {fig['ts_large_correlation_length_m'] * 1e6:.3g} "
+                       f"um (ray: k R_c {fig['ts_large_k_rc']:.3g}, coherent {fig['ts_large_coherent']:.3f}) + fine "
+                       f"{fig['ts_fine_rms_m'] * 1e9:.3g} nm rms, l {fig['ts_fine_correlation_length_m'] * 1e6:.3g} um "
+                       f"(rayleigh-rice: g_F {fig['ts_fine_rayleigh']:.3g}), split at {fig['ts_f_cut_per_m'] * 1e-6:.3g} /um")
     return head + (f"rough: sigma = {fig['raw_rms_height_m'] / lam_n:.3g} lambda/n, l = "
                    f"{fig['raw_correlation_length_m'] / lam_n:.3g} lambda/n, coherent share {coh:.3f}")
 
@@ -237,7 +278,8 @@ def choose(relief, material, request) -> Choice:
     """Decide the method (module doc); no reconstruction is run."""
     opts = AutoOptions.from_request(request)
     k_opts = KirchhoffOptions.from_mapping(opts.for_method(KirchhoffOptions), "auto")
-    fig = _figures(relief, material, request)
+    ts_opts = TwoScaleOptions.from_mapping(opts.for_method(TwoScaleOptions), "auto")
+    fig = _figures(relief, material, request, ts_opts)
     feasible_k, why_k, extra_k = _kirchhoff_feasibility(relief, material, request, fig, k_opts)
     ranked = _rank(fig, feasible_k)
     method, miss, _ = ranked[0]
@@ -249,6 +291,8 @@ def choose(relief, material, request) -> Choice:
     if miss > 0:
         reason = "WARNING: no method is valid for this relief and wavelength; ranked: " + reason
     extra = extra_k if method == "kirchhoff" else {}
+    if method == "two_scale":                     # the run uses the very split the reason states
+        extra = {"f_cut_per_um": fig["ts_f_cut_per_m"] * 1e-6}
     fig.pop("pitch_m")
     return Choice(method, reason, valid, extra, fig, _summary(method, miss, fig, extra, why_k))
 

@@ -88,6 +88,14 @@ scattering; grazing incidence and light past the critical angle are the worst): 
 1 - R - T is stored signed in `lost` and in metadata["energy_defect"], and a RuntimeWarning is
 raised above 1 % for a lossless boundary (for a metal `lost` is the absorption).
 
+Uncertainty.  sigma_per_sr is the finite tile's realisation uncertainty of every cell: the
+speckle statistics of the far field (chi^2_2 per frequency sample, grain lambda / (n_s L) times the
+window's grain factor), averaged by the filter and the cell, with the lobe's inhomogeneity over the
+cell (methods.realisation; checked against the spread over independently seeded tiles in
+tests/backend/methods/test_tile_sigma.py); metadata["uncertainty"] says so, and a warning (also in
+metadata["warnings"]) when the lobe's cells scatter by more than 10 % between tiles.  The q_z
+expansion's error is the separate bound qz_error_bound_R/T.
+
 Polarisation (option polarized = True, CLI --polarized): the scalar Fresnel factor is
 replaced by the Fresnel Mueller matrix of the stationary-phase facet, rotated from the
 table's incident s/p basis into the facet's plane of incidence and out into the scattered
@@ -120,8 +128,9 @@ from relief_bsdf.core.fresnel import cos_transmitted, mueller_interface
 from relief_bsdf.core.fresnel import fresnel_reflectance as _fresnel
 from relief_bsdf.core.index import Material
 from relief_bsdf.parallel import in_worker, map_tasks, task_rng
+from relief_bsdf.methods import realisation
 from relief_bsdf.methods.options import KirchhoffOptions
-from relief_bsdf.methods.wave_filter import (DcosGrid, cell_average, cell_samples, check_sides, energy_defect,
+from relief_bsdf.methods.wave_filter import (DcosGrid, cell_samples, check_sides, energy_defect,
                                              ring_factors,
                                              smoothing_width_dcos)
 from relief_bsdf.methods.rayleigh_rice import prepared_heights
@@ -534,9 +543,14 @@ def _cells(side, dens, geo, fd: _Field, inc: Incidence, st: SolveSettings, specu
         return DcosGrid(d, geo["alpha0"], geo["beta0"], geo["dalpha"], geo["dbeta"]).smoothed(
             width, disc if conserving else None)
 
+    inhom = []
+
     def power_cells(d):                       # cell averages of the power, and their ring factors
         g = smooth(d)
-        v = cell_average(g.extended(disc), cells)
+        sub = g.extended(disc).at(cells.alpha, cells.beta)
+        v = sub.mean(axis=-1)
+        # <D^2> / <D>^2 over the cell's sub-points: the realisation variance's inhomogeneity factor
+        inhom.append(np.where(v > 0, (sub * sub).mean(axis=-1) / np.where(v > 0, v * v, 1.0), 1.0))
         f = ring_factors(v, g, st.theta_edges_deg, st.phi_edges_deg)[:, None]
         return v * f, f
 
@@ -565,12 +579,14 @@ def _cells(side, dens, geo, fd: _Field, inc: Incidence, st: SolveSettings, specu
     else:
         vals = [power_cells(ks * ks * d)[0] for d in dens]
     out[side] = sum(vals) / len(vals)
+    out[f"inhom_{side}"] = sum(inhom) / len(inhom)
     return vals
 
 
 def _absorbed_side(out, cells) -> None:
     """Transmission into an absorbing medium: nothing propagates, nothing to compute."""
     out["T"] = np.zeros(cells.alpha.shape[:2])
+    out["inhom_T"] = np.ones(cells.alpha.shape[:2])
     out["spec_T"] = 0.0
     out["mueller_T"] = np.zeros(cells.alpha.shape[:2] + (4, 4))
     out["spec_mueller_T"] = np.zeros((4, 4))
@@ -595,14 +611,18 @@ def _mean_field(fd: _Field, nu: float) -> complex:
     return complex(np.dot(c.ravel(), fd.w2.ravel()) / fd.sw2, np.dot(s.ravel(), fd.w2.ravel()) / fd.sw2)
 
 
-def _node_field(fd: _Field, nu: float) -> tuple[np.ndarray, complex | None]:
+def _node_field(fd: _Field, nu: float, bufs: dict) -> tuple[np.ndarray, complex | None]:
     """(w exp(-i nu (h - h_c)) as complex64, its mean field m with the squared-window weights);
-    m is None for a periodic tile, where it is the FFT's DC term (removed there)."""
-    ph = fd.h32 * np.float32(-nu)
-    u = np.empty(fd.shape, np.complex64)
-    u.real[...] = np.cos(ph)                  # contiguous ufunc, then one strided copy (faster than out=)
-    np.sin(ph, out=ph)
-    u.imag[...] = ph
+    m is None for a periodic tile, where it is the FFT's DC term (removed there).  bufs: work arrays
+    reused from node to node (a fresh 2048^2 array costs its page faults every time)."""
+    ph = bufs.setdefault("phase", np.empty(fd.shape, np.float32))
+    tmp = bufs.setdefault("trig", np.empty(fd.shape, np.float32))
+    u = bufs.setdefault("field", np.empty(fd.shape, np.complex64))
+    np.multiply(fd.h32, np.float32(-nu), out=ph)
+    np.cos(ph, out=tmp)                       # contiguous ufuncs, then strided copies (faster than out=)
+    u.real[...] = tmp
+    np.sin(ph, out=tmp)
+    u.imag[...] = tmp
     if fd.w32 is None:
         return u, None
     m = complex(np.dot(u.real.ravel(), fd.w2.ravel()) / fd.sw2, np.dot(u.imag.ravel(), fd.w2.ravel()) / fd.sw2)
@@ -683,31 +703,34 @@ def _side_power(fd: _Field, sides: list, nodes, screens, workers):
     ntot = nx * ny
     nscr = len(screens) or 1
     bases = [LagrangeBasis(nodes, sd.nu_full) for sd in sides]
-    ix = [np.ix_(sd.cg.rows, sd.cg.cols) for sd in sides]
+    # each side's crop is a contiguous block of the fftshifted grid: one shift per FFT, then views
+    ix = [(slice(sd.cg.tb[0].start * sd.cg.by, sd.cg.tb[0].stop * sd.cg.by),
+           slice(sd.cg.tb[1].start * sd.cg.bx, sd.cg.tb[1].stop * sd.cg.bx)) for sd in sides]
     accs = [[np.zeros(sd.nu_full.shape, np.complex64) for _ in range(nscr)] for sd in sides]
     periodic_coherent = fd.w32 is None and not screens
     dcs = [np.nonzero((sd.cg.rows == 0)[:, None] & (sd.cg.cols == 0)[None, :]) for sd in sides]
     win = [None] * nscr
     n_fft = 0
+    bufs = {}
     for j, nu in enumerate(nodes):
-        v, m = _node_field(fd, nu)
+        v, m = _node_field(fd, nu, bufs)
         Ls = [lb.basis(j) for lb in bases]
         for k, e in enumerate(screens or [None]):
             if not periodic_coherent and win[k] is None:
                 ww = fd.w32.astype(np.complex64) if e is None else (e if fd.w32 is None else e * fd.w32)
-                win[k] = sfft.fft2(ww, workers=workers)
+                win[k] = np.fft.fftshift(sfft.fft2(ww, workers=workers))
                 n_fft += 1
             if m is None and e is not None:
                 m = complex(v.mean(dtype=np.complex128))
-            F = sfft.fft2(v if e is None else v * e, workers=workers, overwrite_x=e is None)
+            F = _shifted(sfft.fft2(v if e is None else v * e, workers=workers, overwrite_x=e is None), bufs)
             n_fft += 1
             for i, sd in enumerate(sides):
-                Fc = F[ix[i]]
                 if periodic_coherent:
+                    Fc = np.multiply(F[ix[i]], Ls[i])
                     Fc[dcs[i]] = 0.0                 # the mean field is the DC term
                 else:
-                    Fc -= np.complex64(m) * win[k][ix[i]]
-                np.multiply(Fc, Ls[i], out=Fc)
+                    Fc = F[ix[i]] - np.complex64(m) * win[k][ix[i]]
+                    np.multiply(Fc, Ls[i], out=Fc)
                 accs[i][k] += Fc
     halves = 2 if screens else 1
     out = []
@@ -719,6 +742,20 @@ def _side_power(fd: _Field, sides: list, nodes, screens, workers):
         cnt = [len(screens[k::2]) if screens else 1 for k in range(halves)]
         out.append([acc_p[k] / (cnt[k] * ntot * fd.sw2 * sd.cg.dF) for k in range(halves)])
     return out, n_fft
+
+
+def _shifted(F: np.ndarray, bufs: dict) -> np.ndarray:
+    """np.fft.fftshift(F) written into a reused buffer (four block copies)."""
+    out = bufs.get("shifted")
+    if out is None or out.shape != F.shape:
+        out = bufs["shifted"] = np.empty(F.shape, F.dtype)
+    ny, nx = F.shape
+    hy, hx = ny - ny // 2, nx - nx // 2          # fftshift moves index k to (k + n // 2) mod n
+    out[ny // 2:, nx // 2:] = F[:hy, :hx]
+    out[ny // 2:, :nx // 2] = F[:hy, hx:]
+    out[:ny // 2, nx // 2:] = F[hy:, :hx]
+    out[:ny // 2, :nx // 2] = F[hy:, hx:]
+    return out
 
 
 def _densities(sides: list, fd: _Field, st: SolveSettings, screens) -> tuple[dict, dict, int]:
@@ -889,10 +926,13 @@ def _collect(ctx, request, tasks, res) -> dict:
          "specular_T": np.zeros((W, I, P)), "mueller_per_sr": np.zeros((W, I, P, 2, S, A, 4, 4)) if pol else None,
          "specular_mueller_R": np.zeros((W, I, P, 4, 4)) if pol else None,
          "specular_mueller_T": np.zeros((W, I, P, 4, 4)) if pol else None}
+    a["inhomogeneity"] = np.ones((W, I, P, 2, S, A))
     infos = []
     for (iw, it, ip, _), r in zip(tasks, res):
         a["values_per_sr"][iw, it, ip, 0] = r["R"]
         a["values_per_sr"][iw, it, ip, 1] = r["T"]
+        a["inhomogeneity"][iw, it, ip, 0] = r["inhom_R"]
+        a["inhomogeneity"][iw, it, ip, 1] = r["inhom_T"]
         if pol:
             a["mueller_per_sr"][iw, it, ip, 0], a["mueller_per_sr"][iw, it, ip, 1] = r["mueller_R"], r["mueller_T"]
             a["specular_mueller_R"][iw, it, ip] = r["spec_mueller_R"]
@@ -917,6 +957,7 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
         res = map_tasks(_task, tasks, ctx, progress=progress, label=f"kirchhoff {fr}", backend=opts.backend)
         a = _collect(ctx, request, tasks, res)
         infos = a.pop("infos")
+        inhom = a.pop("inhomogeneity")
         tab = BsdfTable(
             wavelength_nm=ctx["wavelengths"], theta_i_deg=request.theta_i_deg, phi_i_deg=request.phi_i_deg,
             theta_s_edges_deg=request.theta_s_edges_deg, phi_s_edges_deg=request.phi_s_edges_deg,
@@ -925,5 +966,42 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
                       "validity": "tangent-plane approximation: radius of curvature >> lambda, no shadowing, "
                                   "single scattering"}, **a)
         energy_defect(tab, material, "kirchhoff", "tangent-plane")
+        tab.sigma_per_sr = _tile_sigma(tab, ctx, material, inhom)
+        unc, warn = realisation.uncertainty_meta("kirchhoff", fr, tab.values_per_sr, tab.sigma_per_sr,
+                                                 "speckle statistics: chi^2_2 per frequency sample, averaged over "
+                                                 "the filter and the cell; methods.realisation",
+                                                 realisation.correlation_areas(relief),
+                                                 (request.theta_s_edges_deg, request.phi_s_edges_deg), stacklevel=3)
+        tab.metadata["uncertainty"] = unc
+        tab.metadata["warnings"] = tab.metadata.get("warnings", []) + warn
         tables.append(tab)
     return tables
+
+
+def _tile_sigma(tab: BsdfTable, ctx: dict, material: Material, inhom: np.ndarray) -> np.ndarray:
+    """sigma_per_sr: the finite tile's realisation uncertainty of every cell (methods.realisation).
+
+    The speckle grain of side s (R: n1, T: n2) is (lambda / (n_s L_x)) (lambda / (n_s L_y)) in direction
+    cosines, times the window's grain factor; the filter is the table's Gaussian of width w, widened
+    under partial coherence by the illumination's angular spectrum (1/e half width lambda / (pi n_s Lc),
+    standard deviation that / sqrt(2)), which averages the speckle further.  inhom: <D^2> / <D>^2 of the
+    filtered density over each cell's sub-points (a lobe narrower than the cell holds fewer grains than
+    the cell's area: variance a int D^2 / A^2, not a <D>^2 / A)."""
+    st, surf = ctx["settings"], ctx["surface"]
+    ny, nx = surf.heights_m.shape
+    Lx, Ly = nx * surf.pitch_m[0], ny * surf.pitch_m[1]
+    gf = realisation.window_grain_factor(None if surf.periodic else surf.window)
+    sig = np.zeros_like(tab.values_per_sr)
+    for iw, wl in enumerate(tab.wavelength_nm):
+        lam = wl * 1e-9
+        for k, ns in enumerate(material.n_pair(wl, tab.incident_from)):
+            if np.imag(ns) > 0:
+                continue
+            ns = float(np.real(ns))
+            a = (lam / (ns * Lx)) * (lam / (ns * Ly)) * gf
+            width2 = st.width_dcos ** 2
+            if st.coherence_length_m is not None:
+                width2 += 0.5 * (lam / (np.pi * ns * st.coherence_length_m)) ** 2
+            rel = realisation.relative_sigma(a, np.sqrt(width2), tab.theta_s_edges_deg, tab.phi_s_edges_deg)
+            sig[iw, :, :, k] = rel * np.sqrt(inhom[iw, :, :, k]) * tab.values_per_sr[iw, :, :, k]
+    return sig

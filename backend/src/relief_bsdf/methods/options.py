@@ -278,6 +278,25 @@ class RayOptions(MethodOptions):
 
 
 @dataclass(frozen=True)
+class TwoScaleOptions(MethodOptions):
+    """Options of the two-scale composite (methods.two_scale): the split, the haze, and the ray options of the
+    large scale."""
+
+    METHOD: ClassVar[str] = "two_scale"
+    f_cut_per_um: float | None = opt(None, "float", "cut-off spatial frequency between the large and the fine scale, "
+                                     "1/um (None: the lowest at which the fine scale's Rayleigh parameter is at most "
+                                     "fine_rayleigh)", optional=True, minimum=0.0)
+    fine_rayleigh: float = opt(0.05, "float", "the fine scale's Rayleigh parameter (4 pi n sigma_F / lambda)^2 at the "
+                               "automatic cut", minimum=1e-6, maximum_excl=0.1 + 1e-12)
+    tilt_convolution: bool = opt(True, "bool", "spread the fine scale's haze over the large scale's facet "
+                                 "orientations (the ray lobe's spread)")
+    max_bounces: int = opt(100, "int", "ray: interactions before a ray counts as lost", minimum=1)
+    threads: int | None = opt(None, "int", "ray: tracing threads in this process", optional=True, minimum=0)
+    tile_uncertainty: bool = opt(True, "bool", "ray: add the finite tile's realisation uncertainty to sigma")
+    backend: str | None = opt(None, "str", "map_tasks backend (None: as configured)", optional=True)
+
+
+@dataclass(frozen=True)
 class FlatOptions(MethodOptions):
     """The flat face has no options (Fresnel only)."""
 
@@ -286,7 +305,7 @@ class FlatOptions(MethodOptions):
 
 
 # the options auto's candidates understand (auto forwards those the chosen method knows)
-AUTO_CANDIDATES = (RayleighRiceOptions, KirchhoffOptions, RayOptions)
+AUTO_CANDIDATES = (RayleighRiceOptions, KirchhoffOptions, RayOptions, TwoScaleOptions)
 
 
 @dataclass(frozen=True)

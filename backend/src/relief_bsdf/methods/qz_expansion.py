@@ -99,14 +99,20 @@ class HeightMoments:
 
     @classmethod
     def of(cls, h: np.ndarray, w2: np.ndarray | None, bins: int = 256) -> "HeightMoments":
-        valid = np.ones(h.shape, bool) if w2 is None else w2 > 0
-        hv = h[valid]
+        valid = None if w2 is None else w2 > 0
+        hv = h.ravel() if valid is None else h[valid]
         if hv.size == 0:
             return cls(np.zeros(1), np.ones(1), 0.0)
-        hc = 0.5 * (float(hv.max()) + float(hv.min()))
+        lo, hi = float(hv.min()), float(hv.max())
+        hc = 0.5 * (hi + lo)
+        top = max(0.5 * (hi - lo), 1e-300)
+        # uniform bins on [0, top] (np.histogram's rule, the last bin closed), by one bincount
         a = np.abs(hv - hc)
-        top = max(float(a.max()), 1e-300)
-        cnt, edges = np.histogram(a, bins=bins, range=(0.0, top), weights=None if w2 is None else w2[valid])
+        a *= bins / top
+        idx = a.astype(np.intp)
+        np.minimum(idx, bins - 1, out=idx)
+        cnt = np.bincount(idx, weights=None if w2 is None else w2[valid], minlength=bins).astype(float)
+        edges = np.linspace(0.0, top, bins + 1)
         return cls(edges[1:], cnt / max(cnt.sum(), 1e-300), hc)
 
     def rms_power(self, n: int) -> float:

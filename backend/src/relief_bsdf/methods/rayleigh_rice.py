@@ -63,6 +63,10 @@ so the smoothing matches the cell size and is the same for every wavelength in
 direction-cosine terms at the shortest wavelength); otherwise the 2-D periodogram is
 Gaussian-smoothed with that width.  Between annuli S is linearly interpolated.
 
+Uncertainty: sigma_per_sr is the tile's realisation uncertainty of the PSD estimate (`cell_sigma`:
+chi^2_2 periodogram samples, the window's grain factor, annulus averages combined exactly into each
+cell; methods.realisation), with a warning when the lobe's cells scatter by more than 10 %.
+
 Options (methods.options.RayleighRiceOptions): psd_isotropic (bool), smoothing_dcos (float),
 polarized (bool, default True: fill mueller_per_sr), backend.
 """
@@ -79,6 +83,8 @@ from relief_bsdf.core.fresnel import cos_transmitted, fresnel_amplitudes, muelle
 from relief_bsdf.core.index import Material
 from relief_bsdf.parallel import map_tasks
 from relief_bsdf.methods.options import RayleighRiceOptions
+from relief_bsdf.methods.realisation import (cell_extents_dcos, correlation_areas, uncertainty_meta,
+                                             window_grain_factor)
 from relief_bsdf.methods.wave_filter import cell_samples, check_sides, energy_defect, smoothing_width_dcos
 
 # ------------------------------------------------------------------ PSD
@@ -97,6 +103,9 @@ class Psd:
     f0: tuple = (0.0, 0.0)
     dfxy: tuple = (1.0, 1.0)
     description: str = ""
+    radial_n: np.ndarray | None = None         # isotropic: periodogram samples per annulus
+    grain_factor: float = 1.0                  # samples one periodogram grain spans (window; realisation)
+    smoothing_df: float = 0.0                  # anisotropic: Gaussian smoothing sigma (1/m)
 
     def at(self, fx, fy) -> np.ndarray:
         fx = np.asarray(fx, float)
@@ -165,7 +174,9 @@ def estimate_psd(relief, smoothing_df: float = 0.0, isotropic: bool | None = Non
         desc = (f"periodogram ({'periodic, no window' if relief.periodic else '2-D Hann window'}), "
                 f"annulus average, width {width:.4g} 1/m")
         return Psd(sigma, True, width, radial_f=np.concatenate([[0.0], rf]),
-                   radial_s=np.concatenate([[rs[0]], rs]), description=desc)
+                   radial_s=np.concatenate([[rs[0]], rs]), description=desc,
+                   radial_n=np.concatenate([[cnt[ok][0]], cnt[ok]]).astype(float),
+                   grain_factor=_grain_factor(w, relief.periodic))
     Ps = np.fft.fftshift(P)
     sig = (smoothing_df / dfy, smoothing_df / dfx)
     if max(sig) > 0.3:
@@ -173,7 +184,12 @@ def estimate_psd(relief, smoothing_df: float = 0.0, isotropic: bool | None = Non
     fxs, fys = np.fft.fftshift(fx), np.fft.fftshift(fy)
     desc = (f"periodogram ({'periodic, no window' if relief.periodic else '2-D Hann window'}), "
             f"anisotropic, Gaussian smoothing sigma {smoothing_df:.4g} 1/m")
-    return Psd(sigma, False, width, grid=Ps, f0=(fxs[0], fys[0]), dfxy=(dfx, dfy), description=desc)
+    return Psd(sigma, False, width, grid=Ps, f0=(fxs[0], fys[0]), dfxy=(dfx, dfy), description=desc,
+               grain_factor=_grain_factor(w, relief.periodic), smoothing_df=smoothing_df if max(sig) > 0.3 else 0.0)
+
+
+def _grain_factor(w: np.ndarray, periodic: bool) -> float:
+    return window_grain_factor(None if periodic else w)
 
 
 # ------------------------------------------------------------------ zeroth-order fields
@@ -269,15 +285,58 @@ class RoughInterface:
 def rr_mueller(theta_i, phi_i, theta_s, phi_s, side: str, surface: RoughInterface) -> np.ndarray:
     """Mueller BSDF (..., 4, 4) in 1/sr at the given directions (angles in radians) of `surface`."""
     n1, n2, wavelength_m, psd = surface.n1, surface.n2, surface.wavelength_m, surface.psd
-    nb = n1 if side == "R" else n2
     J = rr_jones(theta_i, phi_i, theta_s, phi_s, side, n1, n2)
-    fx = (np.real(n1) * np.sin(theta_i) * np.cos(phi_i) + np.real(nb) * np.sin(theta_s) * np.cos(phi_s)) / wavelength_m
-    fy = (np.real(n1) * np.sin(theta_i) * np.sin(phi_i) + np.real(nb) * np.sin(theta_s) * np.sin(phi_s)) / wavelength_m
+    fx, fy = scatter_frequency(theta_i, phi_i, theta_s, phi_s, side, surface)
     S = psd.at(fx, fy)
     ci = np.cos(theta_i)
     cs = np.maximum(np.cos(theta_s), 1e-12)
     pref = np.pi ** 2 / wavelength_m ** 4 * medium_factor(side, n1, n2) * S / (ci * cs)
     return jones_to_mueller(J) * pref[..., None, None]
+
+
+def scatter_frequency(theta_i, phi_i, theta_s, phi_s, side: str, surface: RoughInterface):
+    """(fx, fy) in 1/m: the relief frequency that scatters (theta_i, phi_i) into (theta_s, phi_s) (module doc)."""
+    n1, nb = surface.n1, (surface.n1 if side == "R" else surface.n2)
+    lam = surface.wavelength_m
+    fx = (np.real(n1) * np.sin(theta_i) * np.cos(phi_i) + np.real(nb) * np.sin(theta_s) * np.cos(phi_s)) / lam
+    fy = (np.real(n1) * np.sin(theta_i) * np.sin(phi_i) + np.real(nb) * np.sin(theta_s) * np.sin(phi_s)) / lam
+    return fx, fy
+
+
+def cell_sigma(m00_sub: np.ndarray, theta_i, phi_i, cells, side: str, surface: RoughInterface,
+               extents_dcos: tuple) -> np.ndarray:
+    """(S, A) realisation 1-sigma of the cell averages of m00_sub (S, A, M): the PSD estimate's
+    periodogram statistics (methods.realisation: chi^2_2 per sample, the grain factor of the window).
+
+    Isotropic PSD: every annulus mean of n_j samples has relative variance grain / n_j, annuli are
+    independent, and a cell value is a linear combination of them (each sub-point interpolates two
+    neighbouring annuli), so its variance is sum_j c_j^2 var_j exactly.  Anisotropic: the Gaussian-
+    smoothed periodogram averaged over the cell (realisation.relative_sigma_extents in frequency units)."""
+    from relief_bsdf.methods.realisation import relative_sigma_extents
+    psd = surface.psd
+    fx, fy = scatter_frequency(theta_i, phi_i, cells.theta, cells.phi, side, surface)
+    S = psd.at(fx, fy)
+    pref = np.where(S > 0, m00_sub / np.where(S > 0, S, 1.0), 0.0)
+    Sc, A, M = m00_sub.shape
+    if not psd.isotropic:
+        nb = float(np.real(surface.n1 if side == "R" else surface.n2))
+        k = nb / surface.wavelength_m
+        a = psd.dfxy[0] * psd.dfxy[1] * psd.grain_factor
+        rel = relative_sigma_extents(a, max(psd.smoothing_df, np.sqrt(a / (4 * np.pi))),
+                                     extents_dcos[0] * k, extents_dcos[1] * k)
+        return rel * m00_sub.mean(axis=-1)
+    rf, J = psd.radial_f, psd.radial_f.size
+    fr = np.hypot(fx, fy).ravel()
+    j1 = np.clip(np.searchsorted(rf, fr, side="right"), 1, J - 1)
+    t = np.clip((fr - rf[j1 - 1]) / np.maximum(rf[j1] - rf[j1 - 1], 1e-300), 0.0, 1.0)
+    inside = fr <= rf[-1]
+    p = (pref.ravel() / M) * inside
+    cell = np.repeat(np.arange(Sc * A), M)
+    ann = lambda j: np.maximum(j, 1)        # noqa: E731  (node 0 repeats annulus 1 at f = 0)
+    keys = np.concatenate([cell * J + ann(j1 - 1), cell * J + ann(j1)])
+    c = np.bincount(keys, weights=np.concatenate([p * (1 - t), p * t]), minlength=Sc * A * J).reshape(Sc * A, J)
+    var_j = psd.radial_s ** 2 * psd.grain_factor / np.maximum(psd.radial_n, 1.0)
+    return np.sqrt((c * c) @ var_j).reshape(Sc, A)
 
 
 def rr_bsdf(theta_i, phi_i, theta_s, phi_s, side: str, surface: RoughInterface) -> np.ndarray:
@@ -361,8 +420,12 @@ def _task(ctx, task):
             M = np.zeros(cells.alpha.shape[:2] + (4, 4))
         else:
             surface = RoughInterface(n1, n2, wl_nm * 1e-9, psd)
-            M = rr_mueller(ti, pi_, cells.theta, cells.phi, side, surface).mean(axis=2)
+            Msub = rr_mueller(ti, pi_, cells.theta, cells.phi, side, surface)
+            M = Msub.mean(axis=2)
+            out["sigma_" + side] = cell_sigma(_intensity(Msub, ctx["polarization"]), ti, pi_, cells, side, surface,
+                                              ctx["extents"])
         out[side] = M if polarized else _intensity(M, ctx["polarization"])
+        out.setdefault("sigma_" + side, np.zeros(cells.alpha.shape[:2]))
     # specular parts with Debye-Waller factors
     lam = wl_nm * 1e-9
     ci = np.cos(ti)
@@ -402,7 +465,8 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
         for fr in request.incident_from:
             frame_n[(iw, fr)] = material.n_pair(wl, fr)
     ctx = {"psd": psd, "cells": cells, "n": frame_n, "wavelengths": wls, "theta_i": request.theta_i_deg,
-           "phi_i": request.phi_i_deg, "polarized": polarized, "polarization": request.polarization}
+           "phi_i": request.phi_i_deg, "polarized": polarized, "polarization": request.polarization,
+           "extents": cell_extents_dcos(request.theta_s_edges_deg, request.phi_s_edges_deg)}
     tables = []
     W, I, P = len(wls), len(request.theta_i_deg), len(request.phi_i_deg)
     S, A = cells.alpha.shape[:2]
@@ -418,10 +482,12 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
         shape = (W, I, P, 2, S, A)
         mu = np.zeros(shape + (4, 4)) if polarized else None
         vals = np.zeros(shape)
+        sig = np.zeros(shape)
         sR, sT = np.zeros((W, I, P)), np.zeros((W, I, P))
         mR, mT = np.zeros((W, I, P, 4, 4)), np.zeros((W, I, P, 4, 4))
         for (iw, it, ip, _), (out, MR, MT) in zip(tasks, res):
             for k, side in enumerate(("R", "T")):
+                sig[iw, it, ip, k] = out["sigma_" + side]
                 if polarized:
                     mu[iw, it, ip, k] = out[side]
                     vals[iw, it, ip, k] = _intensity(out[side], request.polarization)
@@ -432,7 +498,7 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
         tab = BsdfTable(
             wavelength_nm=wls, theta_i_deg=request.theta_i_deg, phi_i_deg=request.phi_i_deg,
             theta_s_edges_deg=request.theta_s_edges_deg, phi_s_edges_deg=request.phi_s_edges_deg,
-            values_per_sr=vals, incident_from=fr, specular_R=sR, specular_T=sT,
+            values_per_sr=vals, sigma_per_sr=sig, incident_from=fr, specular_R=sR, specular_T=sT,
             mueller_per_sr=mu, specular_mueller_R=mR if polarized else None,
             specular_mueller_T=mT if polarized else None, method="rayleigh-rice",
             material=material.describe(), relief=relief.describe(),
@@ -441,5 +507,11 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
                       "rayleigh_parameter_max": validity["rayleigh_parameter_max"],
                       "validity": validity})
         energy_defect(tab, material, "rayleigh-rice", "first-order perturbation")   # signed; absorbed for a metal
+        unc, warn = uncertainty_meta("rayleigh-rice", fr, vals, sig, "periodogram statistics: chi^2_2 per sample, "
+                                     "averaged over the PSD smoothing and the cell; methods.realisation",
+                                     correlation_areas(relief),
+                                     (request.theta_s_edges_deg, request.phi_s_edges_deg), stacklevel=3)
+        tab.metadata["uncertainty"] = unc
+        tab.metadata["warnings"] = warn
         tables.append(tab)
     return tables

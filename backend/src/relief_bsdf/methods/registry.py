@@ -57,8 +57,13 @@ _ENTRIES = (
     MethodEntry("rayleigh-rice", "rayleigh_rice", _o.RayleighRiceOptions,
                 "first-order vector perturbation theory: BSDF = (16 pi^2 / lambda^4) cos cos Q PSD",
                 "optically smooth: (4 pi n sigma / lambda)^2 < 0.1 and rms slope < 0.15"),
+    MethodEntry("two_scale", "two_scale", _o.TwoScaleOptions,
+                "composite: ray tracing of the relief's large scale, its cells times the fine scale's Debye-Waller "
+                "factor, plus the fine scale's Rayleigh-Rice haze spread over the facet orientations",
+                "large scale rough on the wavelength scale with facets >> wavelength (as ray), fine scale optically "
+                "smooth (Rayleigh parameter <= 0.1); a lobe plus a haze (anti-glare film)"),
     MethodEntry("auto", "auto", _o.AutoOptions,
-                "chooses rayleigh-rice, kirchhoff or ray from the relief's statistics and the request",
+                "chooses rayleigh-rice, kirchhoff, two_scale or ray from the relief's statistics and the request",
                 "that of the method chosen (the reason says which condition decided)"),
     MethodEntry("microfacet+dw", "microfacet_dw", _o.MicrofacetDwOptions,
                 "microfacet lobe of the rms slope plus a Debye-Waller coherent specular part "
