@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from relief_bsdf.fit.optimise import FitSettings, fit_relief, process_relief, relief_rms
-from relief_bsdf.fit.selection import BIC_MARGIN, asks_for, bic, bic_gain
+from relief_bsdf.fit.selection import BIC_MARGIN, asks_for, bic, bic_gain, overdispersion
 from relief_bsdf.surface.synth import random_relief
 
 X_DEG = np.linspace(-40, 40, 81)
@@ -44,6 +44,18 @@ def test_bic_is_the_one_criterion():
     assert bic_gain(50.0, 1, 20.0, 2, 100) == pytest.approx(30.0 - np.log(100))
     assert asks_for(50.0, 1, 20.0, 2, 100) and not asks_for(25.0, 1, 20.0, 2, 100)
     assert BIC_MARGIN == 10.0
+
+
+def test_a_model_that_misses_the_noise_needs_proportionally_more_evidence():
+    """QBIC: a parameter that lowers chi^2 by 30 on 100 rows is evidence when the model reaches the
+    noise (c = 1), but not when its misfit is twice the noise (c = 2: half of the gain is the
+    model's own systematic error, bent towards)."""
+    n = 100
+    assert overdispersion(90.0, 2, n) == 1.0
+    assert overdispersion(196.0, 2, n) == pytest.approx(2.0)
+    assert bic_gain(120.0, 1, 90.0, 2, n, overdispersion(90.0, 2, n)) > BIC_MARGIN
+    assert bic_gain(226.0, 1, 196.0, 2, n, overdispersion(196.0, 2, n)) < BIC_MARGIN
+    assert bic_gain(226.0, 1, 196.0, 2, n, 2.0) == pytest.approx(15.0 - np.log(n))
 
 
 def test_slope_only_plate_gives_the_scale_and_says_the_filter_is_not_needed():

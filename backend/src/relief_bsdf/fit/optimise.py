@@ -22,8 +22,10 @@ visible in the wave regime (the coherent specular part), and slope-distribution 
 non-Gaussian reliefs.  The fit therefore reports what the recording determines:
 - the filter is kept only when the recording asks for it: the scale-only fit (g = 0) and the
   two-parameter fit are compared by the project's one information criterion (fit.selection:
-  BIC = chi^2 + k ln n with chi^2 = n metric^2, margin 10), and without that evidence the
-  answer is the simplest point of the ridge, g = 0;
+  BIC = chi^2 + k ln n with chi^2 = n metric^2, margin 10; the chi^2 divided by the
+  two-parameter fit's reduced chi^2 when it exceeds 1, QBIC: a filter that only bends the model
+  towards its own systematic error is not evidence), and without that evidence the answer is
+  the simplest point of the ridge, g = 0;
 - 68 % intervals from the curvature of chi^2 at the optimum (cov = 2 H^-1, Delta chi^2 = 1),
   inflated by the reduced chi^2 when the model misses the noise; the correlation of
   (ln s, g); a ridge (moving along equal rms slope costs less than the criterion's bar) and
@@ -47,7 +49,7 @@ import numpy as np
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import DEFAULT_METRIC, LogChiMetric
-from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain
+from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain, overdispersion
 from relief_bsdf.io.atomic import write_text_atomic
 from relief_bsdf.plate import (DEFAULT_METHOD, Experiment, ReliefFace, Simulated, TableGrid, check_rows,
                                experiment_from_sample, resolve_auto, simulate)
@@ -183,8 +185,9 @@ class FitResult:
              {"names": ["ln height_scale", "filter_sigma_um^2"], "matrix": [[1.0, self.correlation],
                                                                              [self.correlation, 1.0]]},
              "identifiability": {"filter_needed": self.filter_needed, "bic_gain_of_filter": self.bic_gain,
-                                 "ridge": self.ridge, "criterion": f"BIC = chi2 + k ln n, chi2 = n metric^2; the "
-                                 f"filter is kept when it lowers the BIC by more than {BIC_MARGIN:g}",
+                                 "ridge": self.ridge, "criterion": f"BIC = chi2 / c + k ln n, chi2 = n metric^2, c = "
+                                 "max(1, reduced chi2 of the two-parameter fit) (QBIC); the filter is kept when "
+                                 f"it lowers the BIC by more than {BIC_MARGIN:g}",
                                  "interval_method": "cov = (J^T J)^-1 from the Jacobian of the normalised "
                                                     "residuals (central differences) at the optimum, 68 % = "
                                                     "Delta chi2 of 1, inflated by the reduced chi2 when it "
@@ -565,7 +568,8 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
         stopped = "threshold"
         rms_before = obj.iterations[0]["rms"]
     both, alone = obj.best(), obj.best(only_unfiltered=True)
-    gain = bic_gain(obj.chi2(alone["rms"]), 1, obj.chi2(both["rms"]), 2, obj.n)
+    c_hat = overdispersion(obj.chi2(both["rms"]), 2, obj.n)          # QBIC when the model misses the noise
+    gain = bic_gain(obj.chi2(alone["rms"]), 1, obj.chi2(both["rms"]), 2, obj.n, c_hat)
     needed = both["parameters"]["filter_sigma_um"] > 0 and gain > BIC_MARGIN
     chosen = both if needed else alone
     s, g = chosen["parameters"]["height_scale"], chosen["parameters"]["filter_sigma_um"]

@@ -26,7 +26,8 @@ Conditions (each "value < limit" or "value >= limit"):
   scale's g_F <= 0.05): the fine scale as rayleigh-rice, g_F < 0.1 and rms slope < 0.15 (inside
   the propagating band); the large scale as ray: coherent share < 1 %, sigma_L >= lambda / n,
   l_L >= 10 lambda / n, l_L >= 4 pixels, k R_c(L) >= 10; and two scales: l_L >= 5 l_F
-  (SCALE_SEPARATION: a relief with one scale is not a candidate at all, whatever it misses).
+  (SCALE_SEPARATION) with the fine scale resolved, l_F >= 2 pixels (FINE_RESOLVED_PX): a relief
+  with one scale is not a candidate at all, whatever it misses.
 - ray (geometric optics): coherent share < 1 %, sigma >= lambda / n, l >= 10 lambda / n,
   l >= 4 pixels, and k R_c >= 10 on the raw map (facets large on the wavelength scale: an
   exponential-autocorrelation relief has wavelength-sized facets whatever its l).
@@ -225,12 +226,18 @@ def _kirchhoff_feasibility(relief, material, request, fig, k_opts: KirchhoffOpti
 
 
 SCALE_SEPARATION = 5.0        # l_L / l_F at least this: the relief has two scales (two_scale is a candidate)
+FINE_RESOLVED_PX = 2.0        # l_F at least this many pixels: the fine scale is resolved by the map
 
 
 def _two_scales(fig) -> bool:
     """Whether the relief is rough at one scale and smooth at another: the large scale's correlation
-    length is at least SCALE_SEPARATION times the fine scale's at the two-scale cut."""
-    return fig["ts_large_correlation_length_m"] >= SCALE_SEPARATION * fig["ts_fine_correlation_length_m"]
+    length is at least SCALE_SEPARATION times the fine scale's at the two-scale cut, and the fine
+    scale is resolved by the map (l_F >= FINE_RESOLVED_PX pixels).  A 'fine scale' correlated over
+    less than two samples is the sampling's own floor (the kinks between facets of the triangulated
+    map, the instrument's noise band), not a surface scale whose haze the map describes; the relief
+    is then one scale for the ray tracer, which traces those facets as they are."""
+    resolved = fig["ts_fine_correlation_length_m"] >= FINE_RESOLVED_PX * fig["pitch_m"]
+    return resolved and fig["ts_large_correlation_length_m"] >= SCALE_SEPARATION * fig["ts_fine_correlation_length_m"]
 
 
 def _rank(fig, feasible_k: bool) -> list:
