@@ -47,15 +47,15 @@ def test_bic_is_the_one_criterion():
 
 
 def test_a_model_that_misses_the_noise_needs_proportionally_more_evidence():
-    """QBIC: a parameter that lowers chi^2 by 30 on 100 rows is evidence when the model reaches the
+    """QBIC: a parameter that lowers chi^2 by 25 on 100 rows is evidence when the model reaches the
     noise (c = 1), but not when its misfit is twice the noise (c = 2: half of the gain is the
     model's own systematic error, bent towards)."""
     n = 100
     assert overdispersion(90.0, 2, n) == 1.0
     assert overdispersion(196.0, 2, n) == pytest.approx(2.0)
-    assert bic_gain(120.0, 1, 90.0, 2, n, overdispersion(90.0, 2, n)) > BIC_MARGIN
-    assert bic_gain(226.0, 1, 196.0, 2, n, overdispersion(196.0, 2, n)) < BIC_MARGIN
-    assert bic_gain(226.0, 1, 196.0, 2, n, 2.0) == pytest.approx(15.0 - np.log(n))
+    assert bic_gain(115.0, 1, 90.0, 2, n, overdispersion(90.0, 2, n)) > BIC_MARGIN
+    assert bic_gain(221.0, 1, 196.0, 2, n, overdispersion(196.0, 2, n)) < BIC_MARGIN
+    assert bic_gain(221.0, 1, 196.0, 2, n, 2.0) == pytest.approx(12.5 - np.log(n))
 
 
 def test_slope_only_plate_gives_the_scale_and_says_the_filter_is_not_needed():
