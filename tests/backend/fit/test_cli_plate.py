@@ -31,6 +31,7 @@ def make_sample(tmp_path, *, cauchy=None, theta_s_max=89.0, half_angle=1.0, reli
     return tmp_path / "sample.toml"
 
 
+@pytest.mark.slow
 def test_simulate_writes_the_recording_rows(tmp_path):
     s = make_sample(tmp_path)
     # plumbing on a tiny relief: the fast surrogate, named (the default, auto, is tested below)
@@ -107,6 +108,7 @@ def test_fit_cli_rejects_a_bad_inside_step(tmp_path, capsys):
     assert not (tmp_path / "f" / "fit.json").exists()
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_another_sample_is_ignored_and_the_true_result_returned(tmp_path, capsys):
     """A finished run's checkpoint copied into a run of another sample (n 1.60 instead of 1.50)
     must not be replayed: the second run gives what a fresh run of its own sample gives."""

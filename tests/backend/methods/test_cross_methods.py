@@ -230,6 +230,7 @@ def test_inside_frame_mirrored(geo):
 # ====================================================================== 2. wave methods
 
 
+@pytest.mark.slow
 def test_kirchhoff_large_roughness_is_geometric(rough):
     """sigma ~ 2 lambda: the Kirchhoff lobe has the ray / microfacet centroid (within 0.005) and
     rms width (within 12 %: kirchhoff's values are Gaussian-filtered in direction cosines on top of
@@ -485,6 +486,7 @@ def test_normal_incidence_azimuth_only_turns_the_incident_basis(geo, smooth):
             assert d < tol, (t.method, frm, d)
 
 
+@pytest.mark.slow
 def test_flat_limit_equals_mueller_interface():
     """A flat boundary: every method's delta parts (ray, kirchhoff, rayleigh-rice) are exactly
     fresnel.mueller_interface; microfacet with a tiny alpha has its in-lobe cells at the specular

@@ -232,6 +232,7 @@ def test_expansion_converges_to_its_tolerance():
         assert abs(a["power"].sum() / b["power"].sum() - 1) < 1e-3
 
 
+@pytest.mark.slow
 def test_measured_tile_windowed_like_periodic(smooth):
     """A cropped, tilted (non-periodic) tile: Hann window + levelling give the periodic result."""
     h = smooth.heights_m[:900, :1000] + 1e-11 * np.arange(1000)[None, :]

@@ -170,6 +170,7 @@ OLD_SPECULAR_T_OUTSIDE = [0.9098871843459978, 0.8986569154464067, 0.935646068481
 OLD_SIGMA_M = 3.3166247903553997e-08
 
 
+@pytest.mark.slow
 def test_microfacet_dw_equals_the_old_fit_path():
     from relief_bsdf.methods.microfacet_dw import relief_sigma_slope
     rel = _wavy()
@@ -192,6 +193,7 @@ def test_microfacet_dw_equals_the_old_fit_path():
             np.testing.assert_allclose(new.specular_T.ravel(), OLD_SPECULAR_T_OUTSIDE, rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_fit_relief_face_tables_call_the_registered_surrogate():
     from relief_bsdf.plate import ReliefFace, TableGrid
     rel = _wavy()

@@ -27,6 +27,7 @@ def test_table_sampler_draws_the_tables_power_and_cosine_law(lambert_table):
     assert np.mean(np.sin(np.radians(th[~delta])) ** 2) == pytest.approx(0.5, abs=5e-3)
 
 
+@pytest.mark.slow
 def test_microfacet_face_photons_agree_with_its_tables():
     """MicrofacetFace: tables from the microfacet method (Walter 2007), photons from sampled Beckmann
     facets: two codes of the same single-scattering model, on a plate with a flat back."""

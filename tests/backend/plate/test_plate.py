@@ -213,6 +213,7 @@ def _lossless_inside(th, aR, aT, spec_T_below_critical, n=N_GLASS):
     return replace(t, specular_T=sT, specular_R=1.0 - aR - aT - sT)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mueller", [False, True])
 def test_lossless_plate_with_specular_parts_conserves_energy(mueller):
     # diffuse light inside meets the rough face's delta part too: specular reflection keeps it in the

@@ -28,6 +28,7 @@ def test_lossless_scattering_plate_conserves_energy(g):
         assert h["diffuse_R"] > 0.05 and h["diffuse_T"] > 0.1        # scattering did happen
 
 
+@pytest.mark.slow
 def test_lossless_scattering_with_a_depolarising_mueller_face_conserves_energy(lambert_table):
     # the Stokes (4-vector) loop with the slab: Rv, Tv act on S unchanged (scalar phase function)
     o = lambert_table("outside", 0.05, 0.95, [0, 30], mueller=True)
@@ -59,6 +60,7 @@ def test_thin_slab_reflection_is_single_scattering():
     np.testing.assert_allclose(v, expect, rtol=0.02)
 
 
+@pytest.mark.slow
 def test_forward_peaked_scattering_tends_to_no_scattering():
     clear = hemi(plate(Bulk(0.0, 0.0, 0.0)), 30.0)
     diffuse = []
