@@ -31,6 +31,7 @@ Regime: small cones and blurs (tangent-plane offsets, h + 5 b well below 45 deg)
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -197,6 +198,112 @@ def centre_values(grid: np.ndarray) -> np.ndarray:
     return np.maximum(grid - lap / 24.0, 0.0)
 
 
+SUB_POINTS = 3          # per axis of a direct-grid cell: equal-solid-angle sub-points of the cone integral
+
+
+@dataclass(frozen=True)
+class DirectField:
+    """The direct parts of a plate on the outside table's own cells, for `direct_reading`.
+
+    theta_edges_deg / delta_edges_deg: the cells (azimuth relative to the incident beam's
+    propagation azimuth); R: (S, P) BSDF of the direct reflection (S0); T: (S, P, c) Stokes
+    vector of the first transmission inside the glass (per unit internal projected solid angle);
+    eta = n0 / n; t_exit(theta_int_deg) -> (n, c): the row of the exit's Mueller matrix times
+    what the traversal and the radiance law apply (Fresnel T row 0 x (n0/n)^2 x absorption).
+    """
+
+    theta_edges_deg: np.ndarray
+    delta_edges_deg: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    eta: float
+    t_exit: Any
+
+    def values(self, side: str, pts: "_SubPoints") -> np.ndarray:
+        """The field at the sub-points: piecewise constant on the cells (each cell holds its average)."""
+        if side == "R":
+            return self.R[pts.ring, pts.az]
+        th_int = np.degrees(np.arcsin(np.clip(np.sin(np.radians(pts.theta_deg)) * self.eta, 0.0, 1.0)))
+        ring = np.clip(np.searchsorted(self.theta_edges_deg, th_int, side="right") - 1, 0, self.R.shape[0] - 1)
+        return np.einsum("nc,nc->n", self.T[ring, pts.az], self.t_exit(th_int))
+
+
+@dataclass(frozen=True)
+class _SubPoints:
+    """Equal-solid-angle sub-points of every cell of a grid (k^2 per cell), their weights (sr), cells
+    and a KD-tree of their unit vectors (azimuth = delta)."""
+
+    theta_deg: np.ndarray
+    cos_theta: np.ndarray
+    weight_sr: np.ndarray
+    ring: np.ndarray
+    az: np.ndarray
+    tree: Any
+
+
+_SUB_CACHE: dict = {}
+
+
+def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int = SUB_POINTS) -> _SubPoints:
+    key = (theta_edges_deg.tobytes(), delta_edges_deg.tobytes(), k)
+    if key in _SUB_CACHE:
+        return _SUB_CACHE[key]
+    from scipy.spatial import cKDTree
+    ct = np.cos(np.radians(theta_edges_deg))
+    u = (np.arange(k) + 0.5) / k
+    cos_sub = ct[:-1, None] + u[None] * (ct[1:] - ct[:-1])[:, None]               # (S, k): equal solid angle
+    ph_sub = delta_edges_deg[:-1, None] + u[None] * np.diff(delta_edges_deg)[:, None]   # (P, k)
+    S, P = cos_sub.shape[0], ph_sub.shape[0]
+    w = (ct[:-1] - ct[1:])[:, None] * np.radians(np.diff(delta_edges_deg))[None, :] / k**2   # (S, P)
+    ring = np.broadcast_to(np.arange(S)[:, None, None, None], (S, k, P, k)).ravel()
+    az = np.broadcast_to(np.arange(P)[None, None, :, None], (S, k, P, k)).ravel()
+    cz = np.broadcast_to(cos_sub[:, :, None, None], (S, k, P, k)).ravel()
+    ph = np.radians(np.broadcast_to(ph_sub[None, None, :, :], (S, k, P, k)).ravel())
+    sz = np.sqrt(np.clip(1 - cz**2, 0, 1))
+    vec = np.stack([sz * np.cos(ph), sz * np.sin(ph), cz], 1)
+    pts = _SubPoints(np.degrees(np.arccos(cz)), cz, w[ring, az], ring, az, cKDTree(vec))
+    if len(_SUB_CACHE) > 4:
+        _SUB_CACHE.clear()
+    _SUB_CACHE[key] = pts
+    return pts
+
+
+def direct_reading(field: DirectField, side: np.ndarray, theta_s: np.ndarray, delta_s: np.ndarray,
+                   det: Any) -> np.ndarray:
+    """Readings (1/sr) of the rows from a DirectField: the cone integral of the cells themselves.
+
+    f = sum_p w_p f(p) cos(theta_p) response(psi_p) / (Omega cos theta_s) over equal-solid-angle
+    sub-points p of every cell (SUB_POINTS^2 per cell, weight = the cell's solid angle / their
+    number): each cell counts with (an estimate of) its overlap with the cone, so a lobe narrower
+    than the engine grid, a cone on the pole (cells of vanishing solid angle) and a grazing row
+    (cos theta varying across the cone) are integrated, not interpolated.  The cells must be
+    smaller than the cone for this to be accurate (boundary cells are cut at sub-point resolution).
+    """
+    out = np.zeros(theta_s.size)
+    pts = _sub_points(field.theta_edges_deg, field.delta_edges_deg)
+    reach = min(support_rad(det.detector_half_angle_deg, det.blur_deg), np.pi)
+    norm = cone_solid_angle(det.detector_half_angle_deg) * np.cos(np.radians(theta_s))
+    for sd in ("R", "T"):
+        sel = np.nonzero(side == sd)[0]
+        if sel.size == 0:
+            continue
+        q = unit(theta_s[sel], delta_s[sel])
+        hits = pts.tree.query_ball_point(q, 2 * np.sin(reach / 2))
+        idx = np.unique(np.concatenate([np.asarray(h, int) for h in hits] + [np.zeros(0, int)]))
+        val = np.zeros(pts.cos_theta.size)
+        if idx.size:
+            sub = _SubPoints(pts.theta_deg[idx], pts.cos_theta[idx], pts.weight_sr[idx], pts.ring[idx], pts.az[idx],
+                             None)
+            val[idx] = field.values(sd, sub) * pts.weight_sr[idx] * pts.cos_theta[idx]
+        vecs = pts.tree.data
+        for j, h in zip(sel, hits):
+            if h:
+                h = np.asarray(h, int)
+                psi = np.arccos(np.clip(vecs[h] @ unit(theta_s[j], delta_s[j]), -1, 1))
+                out[j] = np.sum(val[h] * response(psi, det.detector_half_angle_deg, det.blur_deg)) / norm[j]
+    return out
+
+
 def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndarray, det: Any) -> np.ndarray:
     """Detector readings (1/sr) of the rows of one incidence from a deterministic result.
 
@@ -208,12 +315,16 @@ def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndar
     proj = projection_weights(theta_s, off)
     dl = np.mod(ph - (res.phi_i_deg + 180.0), 360.0)
     out = np.zeros(theta_s.size)
-    for sd, grid in (("R", res.grid_R), ("T", res.grid_T)):
+    direct = getattr(res, "direct", None)
+    grids = (("R", res.grid_R), ("T", res.grid_T)) if direct is None else (("R", res.loop_R), ("T", res.loop_T))
+    if direct is not None:
+        out += direct_reading(direct, side, theta_s, np.mod(phi_s - (res.phi_i_deg + 180.0), 360.0), det)
+    for sd, grid in grids:
         sel = side == sd
         if sel.any():
             v = _bilinear_periodic(centre_values(grid), res.theta_out_deg, res.delta_deg, th[sel].ravel(),
                                    dl[sel].ravel())
-            out[sel] = (v.reshape(-1, off.shape[0]) * proj[sel]).mean(axis=1)
+            out[sel] += (v.reshape(-1, off.shape[0]) * proj[sel]).mean(axis=1)
     for sd, tdeg, ddeg, p in res.deltas:
         sel = np.nonzero(side == sd)[0]
         if p != 0.0 and sel.size:

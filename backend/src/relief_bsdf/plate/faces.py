@@ -88,7 +88,7 @@ def _material_key(material: Material) -> str:
 
 
 def _grid_key(grid: TableGrid) -> tuple:
-    return (grid.theta_step_deg, grid.phi_step_deg, grid.inside_theta_i_step_deg)
+    return grid.key()
 
 
 @dataclass(frozen=True)
@@ -310,6 +310,10 @@ def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, w
                       progress: Any) -> BsdfTable:
     from dataclasses import replace as _replace
     from relief_bsdf.methods import reconstruct
+    if side == "outside" and face.method in TRACED_METHODS:    # a tile fills at most one cell per facet
+        grid = grid.direct_within(2 * face.relief.shape[0] * face.relief.shape[1])
+    elif side == "outside":      # wave methods pay per cell: their outside tables stay on the engine grid
+        grid = grid.direct_within(0)
     req = grid.request(wl, theta, side, face.method, face.samples, face.seed, face.options)
     if face.coherence_length_m is not None:
         req = _replace(req, coherence_length_m=float(face.coherence_length_m))
