@@ -205,9 +205,22 @@ def zstats(model, rec, sigma, rows) -> dict:
 
 
 def parse_grid(spec: str):
+    """"default": TableGrid(); "old": the single-grid engine (1,5,5, no direct grid); "t,p,i[,s]":
+    TableGrid(theta_step_deg=t, phi_step_deg=p, inside_theta_i_step_deg=i[, inside_samples_scale=s])
+    with the default direct grid; a trailing ",nodirect" drops the direct grid."""
     from relief_bsdf.plate import TableGrid
-    t, p, i = (float(v) for v in spec.split(","))
-    return TableGrid(theta_step_deg=t, phi_step_deg=p, inside_theta_i_step_deg=i)
+    if spec == "default":
+        return TableGrid()
+    if spec == "old":
+        return TableGrid(1.0, 5.0, 5.0, direct_theta_step_deg=None)
+    parts = spec.split(",")
+    kw = {}
+    if parts[-1] == "nodirect":
+        parts, kw = parts[:-1], {"direct_theta_step_deg": None}
+    v = [float(x) for x in parts]
+    if len(v) > 3:
+        kw["inside_samples_scale"] = v[3]
+    return TableGrid(theta_step_deg=v[0], phi_step_deg=v[1], inside_theta_i_step_deg=v[2], **kw)
 
 
 def run_case(name: str, args) -> dict:

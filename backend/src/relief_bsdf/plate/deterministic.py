@@ -992,7 +992,14 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> Pl
 
 def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str = "recording") -> tuple[np.ndarray, dict]:
     """Deterministic plate BSDF of an Experiment on every row (detector included) and what was used."""
+    import warnings
+    from relief_bsdf.plate.faces import isotropy_warning
     solver = solver_of(experiment, rows, grid, progress)
     vals = simulate_rows(solver.model, solver.inside, solver.outside, rows, solver=solver, where=where)
     info = {"engine": "deterministic", "grid": grid.describe()}
+    notes = [w for w in (isotropy_warning(f) for f in (experiment.plate.front, experiment.plate.back)) if w]
+    for w in notes:
+        warnings.warn(w, RuntimeWarning, stacklevel=2)
+    if notes:
+        info["warnings"] = notes
     return vals, info

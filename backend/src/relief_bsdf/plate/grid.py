@@ -44,16 +44,23 @@ class TableGrid:
     direct_phi_step_deg: azimuth cell size of the outside tables inside the band.
     direct_band_deg: half-width of the fine azimuth band around phi 0 and 180 (rounded so that
         its edges fall on the engine grid's azimuth edges).
+    inside_samples_scale: a sampled method's effort per inside incidence, as a fraction of the
+        face's `samples` (the outside tables get `samples`): the loop integrates the inside
+        tables over the incidences of the light inside, which averages their noise, so denser
+        inside incidences can share the same total effort.
     """
 
     theta_step_deg: float = 1.0
     phi_step_deg: float = 5.0
-    inside_theta_i_step_deg: float = 5.0
+    inside_theta_i_step_deg: float = 2.5
     direct_theta_step_deg: float | None = 0.5
     direct_phi_step_deg: float = 1.0
     direct_band_deg: float = 12.5
+    inside_samples_scale: float = 0.5
 
     def __post_init__(self) -> None:
+        if not (0 < self.inside_samples_scale <= 1):
+            raise InputError("grid.inside_samples_scale", f"must be in (0, 1], got {self.inside_samples_scale}")
         for k in ("theta_step_deg", "phi_step_deg", "inside_theta_i_step_deg", "direct_phi_step_deg"):
             v = getattr(self, k)
             if not (np.isfinite(v) and 0 < v <= 90):
@@ -76,10 +83,22 @@ class TableGrid:
         h = self.phi_step_deg / 2
         return tuple(np.arange(-h, 360.0 - h + 1e-9, self.phi_step_deg))
 
-    def direct_theta_edges_deg(self) -> tuple:
+    def direct_theta_edges_deg(self, index_ratio: float | None = None) -> tuple:
+        """Polar edges of the outside tables: every `direct_theta_step_deg` (the reflected side is read
+        as it is), plus, for a glass of index ratio n / n0 = `index_ratio`, the Snell pre-images
+        asin(sin(theta_e) / ratio) of the same uniform edges theta_e outside: the transmitted side is
+        read through the flat face, where refraction stretches an internal cell by
+        n cos(theta_int) / cos(theta_e) (2.5x at 60 deg, unbounded at grazing), so its cells must be
+        narrow in exit angle, not in internal angle."""
         if not self.has_direct_grid:
             return self.theta_edges_deg()
-        return tuple(np.linspace(0.0, 90.0, int(round(90 / self.direct_theta_step_deg)) + 1))
+        e = np.linspace(0.0, 90.0, int(round(90 / self.direct_theta_step_deg)) + 1)
+        if index_ratio is not None and index_ratio > 1.0:
+            pre = np.degrees(np.arcsin(np.sin(np.radians(e)) / index_ratio))
+            e = np.unique(np.round(np.concatenate([e, pre]), 6))
+            e = e[np.concatenate([[True], np.diff(e) > 0.05 * self.direct_theta_step_deg])]   # no sliver rings
+            e[-1] = 90.0
+        return tuple(e)
 
     def direct_phi_edges_deg(self) -> tuple:
         """Azimuth edges of the outside tables: fine cells in the bands around 0 and 180 deg, the
@@ -105,38 +124,42 @@ class TableGrid:
         th = np.arange(0.0, 90.0 - 1e-9, self.inside_theta_i_step_deg)
         return np.unique(np.concatenate([th, [89.0]]))
 
-    def direct_cells(self) -> int:
+    def direct_cells(self, index_ratio: float | None = None) -> int:
         """Scatter cells of one outside table (both sides)."""
-        return 2 * (len(self.direct_theta_edges_deg()) - 1) * (len(self.direct_phi_edges_deg()) - 1)
+        return 2 * (len(self.direct_theta_edges_deg(index_ratio)) - 1) * (len(self.direct_phi_edges_deg()) - 1)
 
-    def direct_within(self, max_cells: int) -> "TableGrid":
+    def direct_within(self, max_cells: int, index_ratio: float | None = None) -> "TableGrid":
         """This grid with its direct grid coarsened until an outside table has at most `max_cells`
         cells (a sampled relief cannot fill more cells than it has facets): first the engine's
         polar step, then no direct grid at all."""
         g = self
         for step in (self.direct_theta_step_deg, self.theta_step_deg, None):
             g = replace(self, direct_theta_step_deg=step)
-            if step is None or g.direct_cells() <= max_cells:
+            if step is None or g.direct_cells(index_ratio) <= max_cells:
                 return g
         return g
 
     def key(self) -> tuple:
         """Everything that determines the tables (cache keys)."""
         return (self.theta_step_deg, self.phi_step_deg, self.inside_theta_i_step_deg, self.direct_theta_step_deg,
-                self.direct_phi_step_deg, self.direct_band_deg)
+                self.direct_phi_step_deg, self.direct_band_deg, self.inside_samples_scale)
 
     def describe(self) -> dict:
         return {"theta_step_deg": self.theta_step_deg, "phi_step_deg": self.phi_step_deg,
                 "inside_theta_i_step_deg": self.inside_theta_i_step_deg,
                 "direct_theta_step_deg": self.direct_theta_step_deg,
-                "direct_phi_step_deg": self.direct_phi_step_deg, "direct_band_deg": self.direct_band_deg}
+                "direct_phi_step_deg": self.direct_phi_step_deg, "direct_band_deg": self.direct_band_deg,
+                "inside_samples_scale": self.inside_samples_scale}
 
     def request(self, wavelengths: Any, theta_i: Any, incident_from: str, method: str, samples: int, seed: int,
-                options: dict | None = None) -> Request:
+                options: dict | None = None, index_ratio: float | None = None) -> Request:
         """The methods' Request for one side of incidence on this grid (`method` is informational):
-        the outside tables on the direct grid, the inside tables on the engine grid."""
+        the outside tables on the direct grid (`index_ratio` n / n0 of the glass: its exit-side
+        edges), the inside tables on the engine grid."""
         outside = incident_from == "outside"
-        te = self.direct_theta_edges_deg() if outside else self.theta_edges_deg()
+        if not outside:
+            samples = max(int(round(samples * self.inside_samples_scale)), 1)
+        te = self.direct_theta_edges_deg(index_ratio) if outside else self.theta_edges_deg()
         pe = self.direct_phi_edges_deg() if outside else self.phi_edges_deg()
         return Request(wavelengths_nm=tuple(float(w) for w in wavelengths),
                        theta_i_deg=tuple(float(t) for t in theta_i), incident_from=(incident_from,),
