@@ -245,23 +245,30 @@ _SUB_CACHE: dict = {}
 
 
 def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int = SUB_POINTS) -> _SubPoints:
+    """k equal-solid-angle sub-rings per cell, and k x (cell width / narrowest width) azimuth sub-points
+    (a wide cell is cut as finely as a narrow one); weights: the cell's solid angle shared equally."""
     key = (theta_edges_deg.tobytes(), delta_edges_deg.tobytes(), k)
     if key in _SUB_CACHE:
         return _SUB_CACHE[key]
     from scipy.spatial import cKDTree
     ct = np.cos(np.radians(theta_edges_deg))
     u = (np.arange(k) + 0.5) / k
-    cos_sub = ct[:-1, None] + u[None] * (ct[1:] - ct[:-1])[:, None]               # (S, k): equal solid angle
-    ph_sub = delta_edges_deg[:-1, None] + u[None] * np.diff(delta_edges_deg)[:, None]   # (P, k)
-    S, P = cos_sub.shape[0], ph_sub.shape[0]
-    w = (ct[:-1] - ct[1:])[:, None] * np.radians(np.diff(delta_edges_deg))[None, :] / k**2   # (S, P)
-    ring = np.broadcast_to(np.arange(S)[:, None, None, None], (S, k, P, k)).ravel()
-    az = np.broadcast_to(np.arange(P)[None, None, :, None], (S, k, P, k)).ravel()
-    cz = np.broadcast_to(cos_sub[:, :, None, None], (S, k, P, k)).ravel()
-    ph = np.radians(np.broadcast_to(ph_sub[None, None, :, :], (S, k, P, k)).ravel())
+    cos_sub = (ct[:-1, None] + u[None] * (ct[1:] - ct[:-1])[:, None]).ravel()          # (S k,) equal solid angle
+    ring_sub = np.repeat(np.arange(ct.size - 1), k)
+    dw = np.diff(delta_edges_deg)
+    per = k * np.maximum(np.round(dw / dw.min()), 1).astype(int)                        # azimuth sub-points per cell
+    az_sub = np.repeat(np.arange(dw.size), per)
+    frac = (np.arange(az_sub.size) - np.repeat(np.cumsum(per) - per, per) + 0.5) / per[az_sub]
+    ph_sub = np.radians(delta_edges_deg[:-1][az_sub] + frac * dw[az_sub])
+    cell_sr = (ct[:-1] - ct[1:])[:, None] * np.radians(dw)[None, :]
+    ring = np.repeat(ring_sub, az_sub.size)
+    az = np.tile(az_sub, ring_sub.size)
+    cz = np.repeat(cos_sub, az_sub.size)
+    ph = np.tile(ph_sub, ring_sub.size)
     sz = np.sqrt(np.clip(1 - cz**2, 0, 1))
     vec = np.stack([sz * np.cos(ph), sz * np.sin(ph), cz], 1)
-    pts = _SubPoints(np.degrees(np.arccos(cz)), cz, w[ring, az], ring, az, cKDTree(vec))
+    w = cell_sr[ring, az] / (k * per[az])
+    pts = _SubPoints(np.degrees(np.arccos(np.clip(cz, -1, 1))), cz, w, ring, az, cKDTree(vec))
     if len(_SUB_CACHE) > 4:
         _SUB_CACHE.clear()
     _SUB_CACHE[key] = pts
@@ -281,7 +288,9 @@ def direct_reading(field: DirectField, side: np.ndarray, theta_s: np.ndarray, de
     """
     out = np.zeros(theta_s.size)
     pts = _sub_points(field.theta_edges_deg, field.delta_edges_deg)
-    reach = min(support_rad(det.detector_half_angle_deg, det.blur_deg), np.pi)
+    h = np.radians(det.detector_half_angle_deg)
+    size = np.sqrt(pts.weight_sr)                    # a sub-point's linear size (rad)
+    reach = min(support_rad(det.detector_half_angle_deg, det.blur_deg) + float(size.max()), np.pi)
     norm = cone_solid_angle(det.detector_half_angle_deg) * np.cos(np.radians(theta_s))
     for sd in ("R", "T"):
         sel = np.nonzero(side == sd)[0]
@@ -289,18 +298,21 @@ def direct_reading(field: DirectField, side: np.ndarray, theta_s: np.ndarray, de
             continue
         q = unit(theta_s[sel], delta_s[sel])
         hits = pts.tree.query_ball_point(q, 2 * np.sin(reach / 2))
-        idx = np.unique(np.concatenate([np.asarray(h, int) for h in hits] + [np.zeros(0, int)]))
+        idx = np.unique(np.concatenate([np.asarray(x, int) for x in hits] + [np.zeros(0, int)]))
         val = np.zeros(pts.cos_theta.size)
         if idx.size:
             sub = _SubPoints(pts.theta_deg[idx], pts.cos_theta[idx], pts.weight_sr[idx], pts.ring[idx], pts.az[idx],
                              None)
             val[idx] = field.values(sd, sub) * pts.weight_sr[idx] * pts.cos_theta[idx]
-        vecs = pts.tree.data
-        for j, h in zip(sel, hits):
-            if h:
-                h = np.asarray(h, int)
-                psi = np.arccos(np.clip(vecs[h] @ unit(theta_s[j], delta_s[j]), -1, 1))
-                out[j] = np.sum(val[h] * response(psi, det.detector_half_angle_deg, det.blur_deg)) / norm[j]
+        for j, hit in zip(sel, hits):
+            if hit:
+                hit = np.asarray(hit, int)
+                psi = np.arccos(np.clip(pts.tree.data[hit] @ q[sel == j][0], -1, 1))
+                if det.blur_deg > 0:
+                    r = response(psi, det.detector_half_angle_deg, det.blur_deg)
+                else:    # the cone's edge cuts a sub-point's patch: its inside fraction, to first order
+                    r = np.clip((h - psi) / size[hit] + 0.5, 0.0, 1.0)
+                out[j] = np.sum(val[hit] * r) / norm[j]
     return out
 
 

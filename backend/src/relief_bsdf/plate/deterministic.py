@@ -324,8 +324,10 @@ class _TableView:
         pe = np.asarray(t.phi_s_edges_deg, float)
         d = 360.0 / azimuth_cells
         want = self.phi0 + 180.0 - d / 2 + np.arange(azimuth_cells + 1) * d
-        return (np.array_equal(np.asarray(t.theta_s_edges_deg, float), np.asarray(theta_edges_deg, float))
-                and pe.size == want.size and np.allclose(np.mod(pe - want[0], 360.0), np.mod(want - want[0], 360.0)))
+        same_phi = pe.size == want.size and np.allclose(np.sort(np.mod(pe[:-1] - want[0] + 1e-9, 360.0)),
+                                                          np.mod(want[:-1] - want[0] + 1e-9, 360.0), atol=1e-6)
+        return bool(np.array_equal(np.asarray(t.theta_s_edges_deg, float), np.asarray(theta_edges_deg, float))
+                    and same_phi)
 
     def at_incidence(self, side: str, theta_in: float) -> np.ndarray:
         """The table's own cells at one incidence (linear in theta_i): (S, P[, 4, 4])."""

@@ -86,7 +86,8 @@ class TableGrid:
     def direct_theta_edges_deg(self, index_ratio: float | None = None) -> tuple:
         """Polar edges of the outside tables: every `direct_theta_step_deg` (the reflected side is read
         as it is), plus, for a glass of index ratio n / n0 = `index_ratio`, the Snell pre-images
-        asin(sin(theta_e) / ratio) of the same uniform edges theta_e outside: the transmitted side is
+        asin(sin(theta_e) / ratio) of the same uniform edges theta_e outside, which replace the uniform
+        edges below the critical angle (they are finer there): the transmitted side is
         read through the flat face, where refraction stretches an internal cell by
         n cos(theta_int) / cos(theta_e) (2.5x at 60 deg, unbounded at grazing), so its cells must be
         narrow in exit angle, not in internal angle."""
@@ -94,8 +95,9 @@ class TableGrid:
             return self.theta_edges_deg()
         e = np.linspace(0.0, 90.0, int(round(90 / self.direct_theta_step_deg)) + 1)
         if index_ratio is not None and index_ratio > 1.0:
+            # below the critical angle the pre-images are finer than the uniform edges (reflected side included)
             pre = np.degrees(np.arcsin(np.sin(np.radians(e)) / index_ratio))
-            e = np.unique(np.round(np.concatenate([e, pre]), 6))
+            e = np.unique(np.round(np.concatenate([e[e > pre[-1]], pre]), 6))
             e = e[np.concatenate([[True], np.diff(e) > 0.05 * self.direct_theta_step_deg])]   # no sliver rings
             e[-1] = 90.0
         return tuple(e)
