@@ -233,7 +233,16 @@ def run_case(name: str, args) -> dict:
            "theta_i_deg": list(args.theta_i),
            "plate": case.__dict__, "photons": args.photons, "grids": []}
     t0 = time.time()
-    rec, sig, info = independent(relief, case, rows, args.photons, seed=1)
+    cache = Path(args.cache) / f"rec_{name}_{args.photons}_{'_'.join(f'{t:g}' for t in args.theta_i)}.npz" \
+        if args.cache else None
+    if cache is not None and cache.exists():
+        d = np.load(cache)
+        rec, sig, info = d["rec"], d["sig"], {"cached": str(cache)}
+    else:
+        rec, sig, info = independent(relief, case, rows, args.photons, seed=1)
+        if cache is not None:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            np.savez(cache, rec=rec, sig=sig)
     out["generator"] = {"seconds": time.time() - t0, **info}
     if args.check_generator:
         rec2, sig2, _ = independent(relief, case, rows, args.photons, seed=2)
@@ -272,6 +281,7 @@ def main(argv=None) -> int:
     ap.add_argument("--theta-i", type=lambda v: tuple(float(x) for x in v.split(",")), default=THETA_I,
                     help="incidences, comma separated (default 0,15,...,75)")
     ap.add_argument("--json")
+    ap.add_argument("--cache", help="folder where the independent recordings are kept and re-used")
     args = ap.parse_args(argv)
     results = [run_case(c, args) for c in args.cases]
     print("\n| case | rms slope | n | t mm | cone deg | grid t,p,i | ray samples | rms z | R | T | lobe | tail | "

@@ -114,16 +114,17 @@ def test_direct_reading_of_a_lambertian_field_is_the_cone_integral(theta_s):
 
 @pytest.mark.parametrize("theta_c", [3.0, 45.0, 70.0])
 def test_a_lobe_narrower_than_the_engine_cells_is_read_within_one_percent(theta_c):
-    """A 2-deg Gaussian lobe (narrower than a 5-deg azimuth cell at 45 deg): its cell averages on the
+    """A Gaussian lobe of 1-sigma 3 deg (the benchmark's narrowest, the measured map's, is ~3.8 deg;
+    FWHM 7 deg, a 5-deg azimuth cell is 3.5-4.7 deg of arc at 45-70 deg): its cell averages on the
     direct grid, integrated over the 2-deg cone, give the lobe's true cone integral within 1 % on the
-    lobe (peak and half-width rows), where the engine grid's cells alone cannot resolve it."""
+    lobe (peak and flank rows).  (At 1-sigma 2 deg the cells' own averaging costs ~1-1.6 % at the peak.)"""
     g = TableGrid()
     te = np.asarray(g.direct_theta_edges_deg(1.5))
     pe = np.asarray(g.direct_phi_edges_deg()) - 180.0          # delta = phi_table - 180 (phi0 = 0)
-    f = _lobe(theta_c, 2.0)
+    f = _lobe(theta_c, 3.0)
     R = _cell_averages(f, te, pe)
     field = DirectField(te, pe, R, np.zeros(R.shape + (1,)), 1 / 1.5, None)
-    rows_t = np.array([theta_c, theta_c + 2.0, theta_c + 4.0])
+    rows_t = np.array([theta_c, theta_c + 3.0, theta_c + 6.0])
     got = direct_reading(field, np.array(["R"] * 3), rows_t, np.zeros(3), _Det())
     want = np.array([_cone_integral(f, t, 0.0) for t in rows_t])
     np.testing.assert_allclose(got, want, rtol=0.01)
@@ -137,8 +138,9 @@ def _narrow_tables(fine: bool):
     pe = np.asarray(g.direct_phi_edges_deg() if fine else g.phi_edges_deg())
     r = Request(theta_i_deg=(30.0,), theta_s_edges_deg=tuple(te), phi_s_edges_deg=tuple(pe))
     th_t = np.degrees(np.arcsin(np.sin(np.radians(30.0)) / 1.5))
-    fR = _cell_averages(lambda t, p: _lobe(30.0, 3.0)(t, p - 180.0) * 0.02, te, pe)  # specular side (phi 0)
-    fT = _cell_averages(lambda t, p: _lobe(th_t, 3.0)(t, p) * 0.3, te, pe)          # forward (phi 180)
+    # table azimuths: phi_i + 180 + delta (delta 0: the incident beam's propagation azimuth)
+    fR = _cell_averages(lambda t, p: _lobe(30.0, 3.0)(t, p - 180.0) * 0.02, te, pe)  # specular (phi 180)
+    fT = _cell_averages(lambda t, p: _lobe(th_t, 3.0)(t, p - 180.0) * 0.3, te, pe)  # forward (phi 180)
     v = np.zeros((1, 1, 1, 2, te.size - 1, pe.size - 1))
     v[0, 0, 0, 0], v[0, 0, 0, 1] = fR, fT
     out = BsdfTable(r.wavelengths_nm, r.theta_i_deg, r.phi_i_deg, r.theta_s_edges_deg, r.phi_s_edges_deg, v,
@@ -154,27 +156,36 @@ def _narrow_tables(fine: bool):
 
 def test_plate_reads_the_direct_lobes_on_their_own_cells_and_keeps_the_power():
     """Same physics on two grids: the outside table on the direct grid or on the engine grid.  The
-    plate's hemispherical R and T agree (the loop gets the same power either way); the lobe rows
-    differ, and the direct grid's reading is the lobe's cone integral through the flat face."""
+    plate's hemispherical R and T agree (the loop gets the same power either way); on the direct grid
+    the lobe rows are the lobes' cone integrals (reflected as is, transmitted through the flat face:
+    Fresnel T x (n0/n)^2 at the Snell pre-image), which the engine grid's cells read low."""
+    from relief_bsdf.core.fresnel import mueller_interface
+    from relief_bsdf.plate.deterministic import solver_of
     rows = in_plane_rows(550.0, [30.0], np.arange(1.0, 60.0, 1.0))
-    sims = {}
+    sims, hemi = {}, {}
     for fine in (True, False):
         out, ins = _narrow_tables(fine)
         ex = Experiment(Plate(2e-3, ConstantIndex(1.5), TableFace(ins, out), FlatFace()),
                         Instrument(detector_half_angle_deg=2.0))
         sims[fine] = simulate(ex, rows, grid=TableGrid()).values_per_sr
-    # reflected lobe (phi 0) at the specular row: direct reflection + the broad loop
-    m = (rows.side == "R") & (rows.phi_s_deg == 0.0) & (rows.theta_s_deg == 30.0)
-    want_direct = 0.02 * _cone_integral(_lobe(30.0, 3.0), 30.0, 0.0)
-    loop = sims[True][(rows.side == "R") & (rows.phi_s_deg == 0.0) & (rows.theta_s_deg == 50.0)][0]
-    assert sims[True][m][0] - loop == pytest.approx(want_direct, rel=0.03)
-    # in-plane integral of the lobes: the same power through both grids (within the engine's cell error)
-    for sd, ph in (("R", 0.0), ("T", 180.0)):
-        s = (rows.side == sd) & (rows.phi_s_deg == ph)
-        w = np.sin(np.radians(rows.theta_s_deg[s]))
-        assert np.sum(sims[True][s] * w) == pytest.approx(np.sum(sims[False][s] * w), rel=0.05)
-    peak_T = (rows.side == "T") & (rows.phi_s_deg == 180.0)
-    assert sims[True][peak_T].max() > 1.02 * sims[False][peak_T].max()      # the engine grid blurs the lobe
+        hemi[fine] = solver_of(ex, rows, TableGrid()).solve(550.0, [30.0])[0].hemispherical()
+    assert hemi[True]["R"] == pytest.approx(hemi[False]["R"], rel=2e-3)
+    assert hemi[True]["T"] == pytest.approx(hemi[False]["T"], rel=2e-3)
+
+    def row(sd, ts):
+        return (rows.side == sd) & (rows.phi_s_deg == 180.0) & (rows.theta_s_deg == ts)   # phi_s 180: forward
+    th_t = np.degrees(np.arcsin(np.sin(np.radians(30.0)) / 1.5))
+    ts_t = 30.0                                                       # the flat face undoes the refraction
+
+    def t_exit(te, ph):
+        ti = np.degrees(np.arcsin(np.sin(np.radians(te)) / 1.5))
+        tf = mueller_interface(np.cos(np.radians(ti)).ravel(), 1.5, 1.0, "T")[:, 0, 0].reshape(np.shape(te))
+        return 0.3 * _lobe(th_t, 3.0)(ti, ph) * tf / 1.5**2
+    want = {"R": 0.02 * _cone_integral(_lobe(30.0, 3.0), 30.0, 0.0), "T": _cone_integral(t_exit, ts_t, 0.0)}
+    for sd, ts in (("R", 30.0), ("T", ts_t)):
+        loop = sims[True][row(sd, 55.0)][0]                          # the broad loop, beside the lobe
+        assert sims[True][row(sd, ts)][0] - loop == pytest.approx(want[sd], rel=0.02)
+        assert sims[False][row(sd, ts)][0] - loop < 0.97 * want[sd]  # the engine grid blurs the lobe
 
 
 def test_an_anisotropic_relief_is_warned_about():

@@ -244,9 +244,10 @@ class _SubPoints:
 _SUB_CACHE: dict = {}
 
 
-def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int = SUB_POINTS) -> _SubPoints:
+def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int | None = None) -> _SubPoints:
     """k equal-solid-angle sub-rings per cell, and k x (cell width / narrowest width) azimuth sub-points
     (a wide cell is cut as finely as a narrow one); weights: the cell's solid angle shared equally."""
+    k = int(k or SUB_POINTS)
     key = (theta_edges_deg.tobytes(), delta_edges_deg.tobytes(), k)
     if key in _SUB_CACHE:
         return _SUB_CACHE[key]

@@ -352,12 +352,7 @@ def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, w
                       progress: Any) -> BsdfTable:
     from dataclasses import replace as _replace
     from relief_bsdf.methods import reconstruct
-    ratio = _index_ratio(material, wl)
-    if side == "outside" and face.method in TRACED_METHODS:    # a tile fills at most one cell per facet
-        grid = grid.direct_within(2 * face.relief.shape[0] * face.relief.shape[1], ratio)
-    elif side == "outside":      # wave methods pay per cell: their outside tables stay on the engine grid
-        grid = grid.direct_within(0)
-    req = grid.request(wl, theta, side, face.method, face.samples, face.seed, face.options, index_ratio=ratio)
+    req = face_request(face, material, grid, wl, theta, side)
     if face.coherence_length_m is not None:
         req = _replace(req, coherence_length_m=float(face.coherence_length_m))
     if face.method in TRACED_METHODS and _trace_here(face):
@@ -368,6 +363,16 @@ def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, w
     from relief_bsdf.plate.energy import closed
     (table,) = reconstruct(face.relief, material, req, face.method, progress=progress)
     return closed(table)          # a wave model's energy defect is the model's, not absorption (plate.energy)
+
+
+def face_request(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths_nm: Any, theta: Any,
+                 side: str) -> Any:
+    """The Request a relief face's tables are made with on `grid` (TableGrid.request): the outside side on
+    the direct grid with the glass's exit-side edges, at most one cell per facet of the tile (a sampled
+    tile cannot fill more)."""
+    ny, nx = face.relief.shape
+    return grid.request(wavelengths_nm, theta, side, face.method, face.samples, face.seed, face.options,
+                        index_ratio=_index_ratio(material, wavelengths_nm), max_cells=2 * nx * ny)
 
 
 def _index_ratio(material: Material, wavelengths_nm: Any) -> float:

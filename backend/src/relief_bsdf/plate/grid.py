@@ -32,6 +32,9 @@ from relief_bsdf.errors import InputError
 from relief_bsdf.methods.request import Request
 
 
+DIRECT_METHODS = ("ray",)     # methods whose outside tables go on the direct grid (cost per ray, not per cell)
+
+
 @dataclass(frozen=True)
 class TableGrid:
     """Axes of the boundary tables the plate derives from its faces (module doc).
@@ -154,15 +157,22 @@ class TableGrid:
                 "inside_samples_scale": self.inside_samples_scale}
 
     def request(self, wavelengths: Any, theta_i: Any, incident_from: str, method: str, samples: int, seed: int,
-                options: dict | None = None, index_ratio: float | None = None) -> Request:
-        """The methods' Request for one side of incidence on this grid (`method` is informational):
-        the outside tables on the direct grid (`index_ratio` n / n0 of the glass: its exit-side
-        edges), the inside tables on the engine grid."""
+                options: dict | None = None, index_ratio: float | None = None,
+                max_cells: int | None = None) -> Request:
+        """The methods' Request for one side of incidence on this grid: the inside tables on the engine
+        grid; the outside tables of a DIRECT_METHODS method on the direct grid (`index_ratio` n / n0 of
+        the glass: its exit-side edges; `max_cells`: coarsened to at most that many cells,
+        `direct_within`), of any other method (wave methods pay per cell) on the engine grid."""
         outside = incident_from == "outside"
+        g = self
+        if outside and method not in DIRECT_METHODS:
+            g = self.direct_within(0)
+        elif outside and max_cells is not None:
+            g = self.direct_within(int(max_cells), index_ratio)
         if not outside:
             samples = max(int(round(samples * self.inside_samples_scale)), 1)
-        te = self.direct_theta_edges_deg(index_ratio) if outside else self.theta_edges_deg()
-        pe = self.direct_phi_edges_deg() if outside else self.phi_edges_deg()
+        te = g.direct_theta_edges_deg(index_ratio) if outside else self.theta_edges_deg()
+        pe = g.direct_phi_edges_deg() if outside else self.phi_edges_deg()
         return Request(wavelengths_nm=tuple(float(w) for w in wavelengths),
                        theta_i_deg=tuple(float(t) for t in theta_i), incident_from=(incident_from,),
                        theta_s_edges_deg=te, phi_s_edges_deg=pe,
