@@ -27,6 +27,14 @@ response is pi h^2, Omega differs from it by h^2 / 12 relative: 2.5e-5 at 1 deg)
   theta_s).
 - Monte Carlo: each exit photon of weight w adds w response(psi) / (N Omega cos theta_s).
 
+- Deterministic engine, direct parts on their own (finer) grid (`direct_reading`): the cone
+  integral of the cells themselves, sum over equal-solid-angle sub-points of every cell of
+  f_cell cos(theta_p) response(psi_p) d(omega_p) / (Omega cos theta_s); without blur the cone's
+  edge takes the inside fraction of each sub-point's patch (clip((h - psi) / size + 1/2)), so
+  a lobe narrower than the engine's cells, a cone on the pole and a grazing row are integrated,
+  not interpolated; what is left is the cells' own averaging (1-sigma 2-deg lobe: ~1-2 % at
+  the peak; 3 deg: < 1 %).
+
 Regime: small cones and blurs (tangent-plane offsets, h + 5 b well below 45 deg).
 """
 from __future__ import annotations
@@ -219,13 +227,18 @@ class DirectField:
     eta: float
     t_exit: Any
 
-    def values(self, side: str, pts: "_SubPoints") -> np.ndarray:
-        """The field at the sub-points: piecewise constant on the cells (each cell holds its average)."""
+    def values(self, side: str, pts: "_SubPoints", idx: np.ndarray) -> np.ndarray:
+        """The field at the sub-points `idx`: piecewise constant on the cells (each holds its average).
+        T: each exit direction's Snell pre-image is looked up in the internal cells (per sub-ring:
+        the exit factor depends on the polar angle only)."""
+        az = pts.az[idx]
         if side == "R":
-            return self.R[pts.ring, pts.az]
-        th_int = np.degrees(np.arcsin(np.clip(np.sin(np.radians(pts.theta_deg)) * self.eta, 0.0, 1.0)))
-        ring = np.clip(np.searchsorted(self.theta_edges_deg, th_int, side="right") - 1, 0, self.R.shape[0] - 1)
-        return np.einsum("nc,nc->n", self.T[ring, pts.az], self.t_exit(th_int))
+            return self.R[pts.ring[idx], az]
+        th_int = np.degrees(np.arcsin(np.clip(np.sin(np.radians(pts.sub_theta_deg)) * self.eta, 0.0, 1.0)))
+        ring_int = np.clip(np.searchsorted(self.theta_edges_deg, th_int, side="right") - 1, 0, self.R.shape[0] - 1)
+        t_exit = self.t_exit(th_int)                                        # (sub-rings, c)
+        sr = pts.sub_ring[idx]
+        return np.einsum("nc,nc->n", self.T[ring_int[sr], az], t_exit[sr])
 
 
 @dataclass(frozen=True)
@@ -233,11 +246,12 @@ class _SubPoints:
     """Equal-solid-angle sub-points of every cell of a grid (k^2 per cell), their weights (sr), cells
     and a KD-tree of their unit vectors (azimuth = delta)."""
 
-    theta_deg: np.ndarray
     cos_theta: np.ndarray
     weight_sr: np.ndarray
     ring: np.ndarray
     az: np.ndarray
+    sub_ring: np.ndarray          # index into sub_theta_deg (k per ring)
+    sub_theta_deg: np.ndarray
     tree: Any
 
 
@@ -263,13 +277,14 @@ def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int
     ph_sub = np.radians(delta_edges_deg[:-1][az_sub] + frac * dw[az_sub])
     cell_sr = (ct[:-1] - ct[1:])[:, None] * np.radians(dw)[None, :]
     ring = np.repeat(ring_sub, az_sub.size)
+    sub_ring = np.repeat(np.arange(ring_sub.size), az_sub.size)
     az = np.tile(az_sub, ring_sub.size)
     cz = np.repeat(cos_sub, az_sub.size)
     ph = np.tile(ph_sub, ring_sub.size)
     sz = np.sqrt(np.clip(1 - cz**2, 0, 1))
     vec = np.stack([sz * np.cos(ph), sz * np.sin(ph), cz], 1)
     w = cell_sr[ring, az] / (k * per[az])
-    pts = _SubPoints(np.degrees(np.arccos(np.clip(cz, -1, 1))), cz, w, ring, az, cKDTree(vec))
+    pts = _SubPoints(cz, w, ring, az, sub_ring, np.degrees(np.arccos(np.clip(cos_sub, -1, 1))), cKDTree(vec))
     if len(_SUB_CACHE) > 4:
         _SUB_CACHE.clear()
     _SUB_CACHE[key] = pts
@@ -289,31 +304,47 @@ def direct_reading(field: DirectField, side: np.ndarray, theta_s: np.ndarray, de
     """
     out = np.zeros(theta_s.size)
     pts = _sub_points(field.theta_edges_deg, field.delta_edges_deg)
-    h = np.radians(det.detector_half_angle_deg)
-    size = np.sqrt(pts.weight_sr)                    # a sub-point's linear size (rad)
-    reach = min(support_rad(det.detector_half_angle_deg, det.blur_deg) + float(size.max()), np.pi)
-    norm = cone_solid_angle(det.detector_half_angle_deg) * np.cos(np.radians(theta_s))
     for sd in ("R", "T"):
         sel = np.nonzero(side == sd)[0]
         if sel.size == 0:
             continue
-        q = unit(theta_s[sel], delta_s[sel])
-        hits = pts.tree.query_ball_point(q, 2 * np.sin(reach / 2))
-        idx = np.unique(np.concatenate([np.asarray(x, int) for x in hits] + [np.zeros(0, int)]))
-        val = np.zeros(pts.cos_theta.size)
-        if idx.size:
-            sub = _SubPoints(pts.theta_deg[idx], pts.cos_theta[idx], pts.weight_sr[idx], pts.ring[idx], pts.az[idx],
-                             None)
-            val[idx] = field.values(sd, sub) * pts.weight_sr[idx] * pts.cos_theta[idx]
-        for j, hit in zip(sel, hits):
-            if hit:
-                hit = np.asarray(hit, int)
-                psi = np.arccos(np.clip(pts.tree.data[hit] @ q[sel == j][0], -1, 1))
-                if det.blur_deg > 0:
-                    r = response(psi, det.detector_half_angle_deg, det.blur_deg)
-                else:    # the cone's edge cuts a sub-point's patch: its inside fraction, to first order
-                    r = np.clip((h - psi) / size[hit] + 0.5, 0.0, 1.0)
-                out[j] = np.sum(val[hit] * r) / norm[j]
+        row, col, wt = _reading_weights(pts, field, theta_s[sel], delta_s[sel], det)
+        if col.size:
+            idx, inv = np.unique(col, return_inverse=True)
+            val = field.values(sd, pts, idx) * pts.weight_sr[idx] * pts.cos_theta[idx]
+            out[sel] = np.bincount(row, weights=val[inv] * wt, minlength=sel.size)
+    return out / (cone_solid_angle(det.detector_half_angle_deg) * np.cos(np.radians(theta_s)))
+
+
+_WEIGHT_CACHE: dict = {}
+
+
+def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, delta_s: np.ndarray,
+                     det: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(row, sub-point, response) triplets of the rows' cones: the same for every evaluation of a fit
+    (rows, cells and instrument fixed), so they are kept (a few entries)."""
+    key = (field.theta_edges_deg.tobytes(), field.delta_edges_deg.tobytes(), theta_s.tobytes(), delta_s.tobytes(),
+           float(det.detector_half_angle_deg), float(det.blur_deg))
+    if key in _WEIGHT_CACHE:
+        return _WEIGHT_CACHE[key]
+    h = np.radians(det.detector_half_angle_deg)
+    size = np.sqrt(pts.weight_sr)                    # a sub-point's linear size (rad)
+    reach = min(support_rad(det.detector_half_angle_deg, det.blur_deg) + float(size.max()), np.pi)
+    q = unit(theta_s, delta_s)
+    hits = pts.tree.query_ball_point(q, 2 * np.sin(reach / 2))
+    n = np.array([len(x) for x in hits], int)
+    row = np.repeat(np.arange(theta_s.size), n)
+    col = np.concatenate([np.asarray(x, int) for x in hits] + [np.zeros(0, int)])
+    psi = np.arccos(np.clip(np.einsum("ij,ij->i", pts.tree.data[col], q[row]), -1, 1))
+    if det.blur_deg > 0:
+        wt = response(psi, det.detector_half_angle_deg, det.blur_deg)
+    else:        # the cone's edge cuts a sub-point's patch: its inside fraction, to first order
+        wt = np.clip((h - psi) / size[col] + 0.5, 0.0, 1.0)
+    keep = wt > 0
+    out = (row[keep], col[keep], wt[keep])
+    if len(_WEIGHT_CACHE) > 16:
+        _WEIGHT_CACHE.clear()
+    _WEIGHT_CACHE[key] = out
     return out
 
 

@@ -49,11 +49,22 @@ Method (radiative transfer between two faces, discrete ordinates):
 * Output: the plate BSDF on an outgoing grid (theta cells x azimuth grid) per side, plus
   delta beams; rows are read by `plate.detector.grid_reading` (cone (x) Gaussian blur
   quadrature for the diffuse part, response(psi) P / (Omega cos theta_s) for a delta beam).
+* Two grids (plate.grid, issue 18 item 2).  When the outside table is on a finer grid than the
+  engine's (`TableGrid` direct grid: 0.5-deg rings with the flat face's Snell pre-images, 1-deg
+  azimuth cells around the plane of incidence), the loop is solved on the engine grid with the
+  outside table's cell averages there (`_TableView.cells`: projected-solid-angle overlaps, power
+  kept), and the two terms that carry the narrow lobes are read from the outside table's own
+  cells: the direct reflection f_R and the first transmitted pass, which leaves through the flat
+  face as f_T(theta_int) T_F(theta_int) (n0/n)^2 exp(-a t / cos theta_int) at the Snell
+  pre-image theta_int of each exit direction (the radiance law; the same terms the engine grid
+  carries, `_flat_exit`, subtracted there).  Applies with a flat second face and no volume
+  scattering (otherwise everything is read on the engine grid, as before).
 
 Regime of validity: geometric optics between the faces (plate thick compared with the
 coherence length: intensities add, no thin-film fringes), laterally infinite plate
 (no edge loss), translation-invariant faces (the relief's statistics do not vary over the
-lit spot), discretisation error of the order of the table's cell size (1 deg by default).
+lit spot), discretisation error of the order of the table's cell size (the direct grid's for the
+direct terms, the engine grid's for the loop).
 """
 from __future__ import annotations
 
