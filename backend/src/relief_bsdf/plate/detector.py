@@ -227,18 +227,58 @@ class DirectField:
     eta: float
     t_exit: Any
 
+    def __post_init__(self) -> None:
+        tc = 0.5 * (self.theta_edges_deg[1:] + self.theta_edges_deg[:-1])
+        pc = 0.5 * (self.delta_edges_deg[1:] + self.delta_edges_deg[:-1])
+        object.__setattr__(self, "_centres", (tc, pc))
+        object.__setattr__(self, "_slopes", {"R": _limited_slopes(self.R, tc, pc),
+                                             "T": _limited_slopes(self.T, tc, pc)})
+
+    def _reconstruct(self, side: str, ring: np.ndarray, az: np.ndarray, theta_deg: np.ndarray,
+                     delta_deg: np.ndarray) -> np.ndarray:
+        """Cell average + limited slopes x offset from the cell centre (second order, conservative:
+        the slope terms integrate to ~0 over a cell; minmod: no new extrema at a lobe's hard edge)."""
+        F = self.R if side == "R" else self.T
+        gt, gp = self._slopes[side]
+        tc, pc = self._centres
+        dt = theta_deg - tc[ring]
+        dp = np.mod(delta_deg - pc[az] + 180.0, 360.0) - 180.0
+        if F.ndim == 3:
+            dt, dp = dt[:, None], dp[:, None]
+        return F[ring, az] + gt[ring, az] * dt + gp[ring, az] * dp
+
     def values(self, side: str, pts: "_SubPoints", idx: np.ndarray) -> np.ndarray:
-        """The field at the sub-points `idx`: piecewise constant on the cells (each holds its average).
-        T: each exit direction's Snell pre-image is looked up in the internal cells (per sub-ring:
-        the exit factor depends on the polar angle only)."""
+        """The field at the sub-points `idx`, reconstructed from the cells (`_reconstruct`).  T: each
+        exit direction's Snell pre-image is looked up in the internal cells (the exit factor per
+        sub-ring: it depends on the polar angle only)."""
         az = pts.az[idx]
         if side == "R":
-            return self.R[pts.ring[idx], az]
+            return np.maximum(self._reconstruct("R", pts.ring[idx], az, pts.sub_theta_deg[pts.sub_ring[idx]],
+                                                pts.delta_deg[idx]), 0.0)
         th_int = np.degrees(np.arcsin(np.clip(np.sin(np.radians(pts.sub_theta_deg)) * self.eta, 0.0, 1.0)))
         ring_int = np.clip(np.searchsorted(self.theta_edges_deg, th_int, side="right") - 1, 0, self.R.shape[0] - 1)
         t_exit = self.t_exit(th_int)                                        # (sub-rings, c)
         sr = pts.sub_ring[idx]
-        return np.einsum("nc,nc->n", self.T[ring_int[sr], az], t_exit[sr])
+        T = self._reconstruct("T", ring_int[sr], az, th_int[sr], pts.delta_deg[idx])
+        return np.maximum(np.einsum("nc,nc->n", T, t_exit[sr]), 0.0)
+
+
+def _minmod(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.where(a * b > 0, np.sign(a) * np.minimum(np.abs(a), np.abs(b)), 0.0)
+
+
+def _limited_slopes(F: np.ndarray, tc: np.ndarray, pc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(d/dtheta, d/ddelta) per cell (per degree) of cell averages F (S, P[, c]): minmod of the one-sided
+    differences to the neighbouring centres (azimuth periodic; zero at the polar ends)."""
+    ext = (slice(None),) + (None,) * (F.ndim - 1)
+    d = np.diff(F, axis=0) / np.diff(tc)[ext]
+    gt = np.zeros_like(F)
+    gt[1:-1] = _minmod(d[:-1], d[1:])
+    step = np.mod(np.roll(pc, -1) - pc, 360.0)                              # centre to the next centre
+    ext_p = (None, slice(None)) + (None,) * (F.ndim - 2)
+    fwd = (np.roll(F, -1, axis=1) - F) / step[ext_p]
+    gp = _minmod(np.roll(fwd, 1, axis=1), fwd)
+    return gt, gp
 
 
 @dataclass(frozen=True)
@@ -252,6 +292,7 @@ class _SubPoints:
     az: np.ndarray
     sub_ring: np.ndarray          # index into sub_theta_deg (k per ring)
     sub_theta_deg: np.ndarray
+    delta_deg: np.ndarray
     tree: Any
 
 
@@ -284,7 +325,8 @@ def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int
     sz = np.sqrt(np.clip(1 - cz**2, 0, 1))
     vec = np.stack([sz * np.cos(ph), sz * np.sin(ph), cz], 1)
     w = cell_sr[ring, az] / (k * per[az])
-    pts = _SubPoints(cz, w, ring, az, sub_ring, np.degrees(np.arccos(np.clip(cos_sub, -1, 1))), cKDTree(vec))
+    pts = _SubPoints(cz, w, ring, az, sub_ring, np.degrees(np.arccos(np.clip(cos_sub, -1, 1))), np.degrees(ph),
+                     cKDTree(vec))
     if len(_SUB_CACHE) > 4:
         _SUB_CACHE.clear()
     _SUB_CACHE[key] = pts
@@ -324,7 +366,7 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
     """(row, sub-point, response) triplets of the rows' cones: the same for every evaluation of a fit
     (rows, cells and instrument fixed), so they are kept (a few entries)."""
     key = (field.theta_edges_deg.tobytes(), field.delta_edges_deg.tobytes(), theta_s.tobytes(), delta_s.tobytes(),
-           float(det.detector_half_angle_deg), float(det.blur_deg))
+           float(det.detector_half_angle_deg), float(det.blur_deg), pts.cos_theta.size)
     if key in _WEIGHT_CACHE:
         return _WEIGHT_CACHE[key]
     h = np.radians(det.detector_half_angle_deg)
