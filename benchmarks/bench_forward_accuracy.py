@@ -212,7 +212,7 @@ def parse_grid(spec: str):
     if spec == "default":
         return TableGrid()
     if spec == "old":
-        return TableGrid(1.0, 5.0, 5.0, direct_theta_step_deg=None)
+        return TableGrid(1.0, 5.0, 5.0, direct_theta_step_deg=None, inside_samples_scale=1.0)
     parts = spec.split(",")
     kw = {}
     if parts[-1] == "nodirect":

@@ -79,9 +79,9 @@ def test_mc_and_deterministic_plates_agree_within_3_percent_in_lobe_on_the_demo_
     relief = read_relief(tmp_path / "relief.x3p")
     m = replace(PlateModel.from_sample(sample), azimuth_cells=180)
     assert m.detector_half_angle_deg == 1.0 and m.rough_face == "front"
-    g = TableGrid(0.5, 2.0, 1.0)
-    (out,) = reconstruct(relief, m.material, g.request([550.0], [0.0, 30.0, 60.0], "outside", "ray", 4_000_000, 1),
-                         "ray")
+    g = TableGrid(0.5, 2.0, 1.0, inside_samples_scale=1.0)
+    (out,) = reconstruct(relief, m.material, g.request([550.0], [0.0, 30.0, 60.0], "outside", "ray", 4_000_000, 1,
+                                                       index_ratio=1.49), "ray")
     (ins,) = reconstruct(relief, m.material, g.request([550.0], np.arange(0, 90, 1.0), "inside", "ray", 800_000, 2),
                          "ray")
     det = simulate_rows(m, ins, out, rows)
