@@ -7,19 +7,30 @@ Two grids (issue 18 item 2: cells narrower than the detector cone where the lobe
   which the multiple round trips are solved (uniform azimuth cells: the azimuthal Fourier
   reduction needs them).  What it carries has been scattered at least twice by the relief or
   reflected inside the plate, so it is broad; a cell error of the order of a cell is
-  tolerable there.
+  tolerable there, but a lobe must MOVE between two inside incidences rather than blend
+  (a second pass through the relief from inside is read from the two tables around its
+  incidence): every 2.5 deg, with half the rays per incidence (`inside_samples_scale`: the
+  same total, the loop averages their noise over the incidences of the light inside).
 - the DIRECT grid of the outside tables (light from outside, at the recording's own
   incidences): `direct_theta_step_deg` rings and azimuth cells of `direct_phi_step_deg` in a
   band of half-width `direct_band_deg` around the plane of incidence (both the specular side
-  phi = 0 and the forward side phi = 180, where the reflected and refracted lobes of an
-  isotropic relief are centred), `phi_step_deg` cells elsewhere.  The engine reads the direct
+  and the forward side, table azimuths 180 and 0 from the propagation azimuth, where the
+  reflected and refracted lobes of an isotropic relief are centred; a 2-deg cone on an
+  in-plane row at theta >= 10 deg stays inside it), `phi_step_deg` cells elsewhere; below
+  the critical angle its rings are the Snell pre-images of uniform exit rings (a transmitted
+  lobe is read through the flat face, where refraction stretches internal angles).  The engine reads the direct
   reflection and the first transmitted pass (outside T table -> plate -> flat face) from this
   grid, integrated over the detector cone (plate.detector.direct_reading), and gives the loop
   its cell averages on the engine grid.  `direct_theta_step_deg=None` puts the outside tables
   on the engine grid (the engine's old single-grid behaviour).
 
-Cost: the outside tables hold ~2.5x the engine grid's cells (binning and memory, the same
-rays); the solve is on the engine grid and does not change.
+Cost (gauss_mid, 6 incidences, 400k rays): the outside tables hold 272 x 112 cells per side
+(4.7x the engine grid's, the same rays; 30 MB with Mueller matrices); the inside tables 37
+incidences at half the rays (the same total); the engine's operators on 37 inside incidences
+and the cone integral of the direct cells add ~1-2 s per evaluation on one quiet core (the cone
+weights are kept across a fit's evaluations).  Regime: the direct grid applies with a flat second
+face and no volume scattering (plate.deterministic), for the ray method's tables
+(DIRECT_METHODS; a wave method pays per cell and keeps the engine grid).
 """
 from __future__ import annotations
 
