@@ -341,8 +341,11 @@ def direct_reading(field: DirectField, side: np.ndarray, theta_s: np.ndarray, de
     sub-points p of every cell (SUB_POINTS^2 per cell, weight = the cell's solid angle / their
     number): each cell counts with (an estimate of) its overlap with the cone, so a lobe narrower
     than the engine grid, a cone on the pole (cells of vanishing solid angle) and a grazing row
-    (cos theta varying across the cone) are integrated, not interpolated.  The cells must be
-    smaller than the cone for this to be accurate (boundary cells are cut at sub-point resolution).
+    (cos theta varying across the cone) are integrated, not interpolated.  Inside a cell the field
+    is its average plus limited slopes (DirectField._reconstruct), and the cone's edge takes the
+    inside fraction of each sub-point's patch, so a cell cut by the cone counts its inside part to
+    second order (a 1-sigma 2-deg Gaussian lobe: 0.1 % at 45-70 deg; without the slopes 1-1.6 %).
+    The cells must be smaller than the cone for this to be accurate.
     """
     out = np.zeros(theta_s.size)
     pts = _sub_points(field.theta_edges_deg, field.delta_edges_deg)
