@@ -106,7 +106,8 @@ def slope_anisotropy(relief: Relief) -> tuple[float, float]:
     lam, vec = np.linalg.eigh(C)
     if lam[1] <= 0:
         return 1.0, 0.0
-    return float(np.sqrt(lam[1] / max(lam[0], 1e-300 * lam[1]))), float(np.degrees(np.arctan2(vec[1, 1], vec[0, 1])) % 180)
+    ratio = float(np.sqrt(lam[1] / max(lam[0], 1e-300 * lam[1])))
+    return ratio, float(np.degrees(np.arctan2(vec[1, 1], vec[0, 1])) % 180)
 
 
 def isotropy_warning(face: Any) -> str:

@@ -43,6 +43,7 @@ from relief_bsdf.errors import InputError
 from relief_bsdf.methods.request import Request
 
 
+REFERENCE_INSIDE_STEP_DEG = 5.0   # the former default inside step: its total inside effort is kept
 DIRECT_METHODS = ("ray",)     # methods whose outside tables go on the direct grid (cost per ray, not per cell)
 
 
@@ -61,7 +62,8 @@ class TableGrid:
     inside_samples_scale: a sampled method's effort per inside incidence, as a fraction of the
         face's `samples` (the outside tables get `samples`): the loop integrates the inside
         tables over the incidences of the light inside, which averages their noise, so denser
-        inside incidences can share the same total effort.
+        inside incidences can share the same total effort.  None: min(1, inside step / 5 deg),
+        the total of the former 5-deg default whatever the step (0.5 at the default 2.5 deg).
     """
 
     theta_step_deg: float = 1.0
@@ -70,17 +72,26 @@ class TableGrid:
     direct_theta_step_deg: float | None = 0.5
     direct_phi_step_deg: float = 1.0
     direct_band_deg: float = 12.5
-    inside_samples_scale: float = 0.5
+    inside_samples_scale: float | None = None
 
     def __post_init__(self) -> None:
-        if not (0 < self.inside_samples_scale <= 1):
-            raise InputError("grid.inside_samples_scale", f"must be in (0, 1], got {self.inside_samples_scale}")
+        if self.inside_samples_scale is not None and not (0 < self.inside_samples_scale <= 1):
+            raise InputError("grid.inside_samples_scale",
+                             f"must be in (0, 1] or None, got {self.inside_samples_scale}")
         for k in ("theta_step_deg", "phi_step_deg", "inside_theta_i_step_deg", "direct_phi_step_deg"):
             v = getattr(self, k)
             if not (np.isfinite(v) and 0 < v <= 90):
                 raise InputError(f"grid.{k}", f"must be in (0, 90] degrees, got {v}")
         if self.direct_theta_step_deg is not None and not (0 < self.direct_theta_step_deg <= 90):
-            raise InputError("grid.direct_theta_step_deg", f"must be in (0, 90] or None, got {self.direct_theta_step_deg}")
+            raise InputError("grid.direct_theta_step_deg",
+                             f"must be in (0, 90] or None, got {self.direct_theta_step_deg}")
+
+    @property
+    def inside_samples_fraction(self) -> float:
+        """Effort per inside incidence over the face's samples (`inside_samples_scale`)."""
+        if self.inside_samples_scale is not None:
+            return float(self.inside_samples_scale)
+        return min(1.0, self.inside_theta_i_step_deg / REFERENCE_INSIDE_STEP_DEG)
 
     @property
     def azimuth_cells(self) -> int:
@@ -158,14 +169,14 @@ class TableGrid:
     def key(self) -> tuple:
         """Everything that determines the tables (cache keys)."""
         return (self.theta_step_deg, self.phi_step_deg, self.inside_theta_i_step_deg, self.direct_theta_step_deg,
-                self.direct_phi_step_deg, self.direct_band_deg, self.inside_samples_scale)
+                self.direct_phi_step_deg, self.direct_band_deg, self.inside_samples_fraction)
 
     def describe(self) -> dict:
         return {"theta_step_deg": self.theta_step_deg, "phi_step_deg": self.phi_step_deg,
                 "inside_theta_i_step_deg": self.inside_theta_i_step_deg,
                 "direct_theta_step_deg": self.direct_theta_step_deg,
                 "direct_phi_step_deg": self.direct_phi_step_deg, "direct_band_deg": self.direct_band_deg,
-                "inside_samples_scale": self.inside_samples_scale}
+                "inside_samples_fraction": self.inside_samples_fraction}
 
     def request(self, wavelengths: Any, theta_i: Any, incident_from: str, method: str, samples: int, seed: int,
                 options: dict | None = None, index_ratio: float | None = None,
@@ -181,7 +192,7 @@ class TableGrid:
         elif outside and max_cells is not None:
             g = self.direct_within(int(max_cells), index_ratio)
         if not outside:
-            samples = max(int(round(samples * self.inside_samples_scale)), 1)
+            samples = max(int(round(samples * self.inside_samples_fraction)), 1)
         te = g.direct_theta_edges_deg(index_ratio) if outside else self.theta_edges_deg()
         pe = g.direct_phi_edges_deg() if outside else self.phi_edges_deg()
         return Request(wavelengths_nm=tuple(float(w) for w in wavelengths),
