@@ -73,7 +73,8 @@ def test_a_relief_face_reuses_its_tracer_across_heights_with_the_tables_of_a_fre
     out, ins = face.tables(mat, GRID, [550.0], [30.0])
     again = next(iter(_TRACERS.values()))
     assert len(_TRACERS) == 1 and (again is tracer or again.mesh.triangles is tracer.mesh.triangles)
-    req = GRID.request([550.0], [30.0], "outside", "ray", 4000, 0, {"backend": "serial"})
+    from relief_bsdf.plate.faces import face_request
+    req = face_request(dataclasses.replace(face, options={"backend": "serial"}), mat, GRID, [550.0], [30.0], "outside")
     (fresh,) = reconstruct(other, mat, req, "ray")
     np.testing.assert_array_equal(out.values_per_sr, fresh.values_per_sr)
 

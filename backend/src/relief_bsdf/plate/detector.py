@@ -27,10 +27,19 @@ response is pi h^2, Omega differs from it by h^2 / 12 relative: 2.5e-5 at 1 deg)
   theta_s).
 - Monte Carlo: each exit photon of weight w adds w response(psi) / (N Omega cos theta_s).
 
+- Deterministic engine, direct parts on their own (finer) grid (`direct_reading`): the cone
+  integral of the cells themselves, sum over equal-solid-angle sub-points of every cell of
+  f_cell cos(theta_p) response(psi_p) d(omega_p) / (Omega cos theta_s); without blur the cone's
+  edge takes the inside fraction of each sub-point's patch (clip((h - psi) / size + 1/2)), so
+  a lobe narrower than the engine's cells, a cone on the pole and a grazing row are integrated,
+  not interpolated; what is left is the cells' own averaging (1-sigma 2-deg lobe: ~1-2 % at
+  the peak; 3 deg: < 1 %).
+
 Regime: small cones and blurs (tangent-plane offsets, h + 5 b well below 45 deg).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -197,6 +206,193 @@ def centre_values(grid: np.ndarray) -> np.ndarray:
     return np.maximum(grid - lap / 24.0, 0.0)
 
 
+SUB_POINTS = 3          # per axis of a direct-grid cell: equal-solid-angle sub-points of the cone integral
+
+
+@dataclass(frozen=True)
+class DirectField:
+    """The direct parts of a plate on the outside table's own cells, for `direct_reading`.
+
+    theta_edges_deg / delta_edges_deg: the cells (azimuth relative to the incident beam's
+    propagation azimuth); R: (S, P) BSDF of the direct reflection (S0); T: (S, P, c) Stokes
+    vector of the first transmission inside the glass (per unit internal projected solid angle);
+    eta = n0 / n; t_exit(theta_int_deg) -> (n, c): the row of the exit's Mueller matrix times
+    what the traversal and the radiance law apply (Fresnel T row 0 x (n0/n)^2 x absorption).
+    """
+
+    theta_edges_deg: np.ndarray
+    delta_edges_deg: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    eta: float
+    t_exit: Any
+
+    def __post_init__(self) -> None:
+        tc = 0.5 * (self.theta_edges_deg[1:] + self.theta_edges_deg[:-1])
+        pc = 0.5 * (self.delta_edges_deg[1:] + self.delta_edges_deg[:-1])
+        object.__setattr__(self, "_centres", (tc, pc))
+        object.__setattr__(self, "_slopes", {"R": _limited_slopes(self.R, tc, pc),
+                                             "T": _limited_slopes(self.T, tc, pc)})
+
+    def _reconstruct(self, side: str, ring: np.ndarray, az: np.ndarray, theta_deg: np.ndarray,
+                     delta_deg: np.ndarray) -> np.ndarray:
+        """Cell average + limited slopes x offset from the cell centre (second order, conservative:
+        the slope terms integrate to ~0 over a cell; minmod: no new extrema at a lobe's hard edge)."""
+        F = self.R if side == "R" else self.T
+        gt, gp = self._slopes[side]
+        tc, pc = self._centres
+        dt = theta_deg - tc[ring]
+        dp = np.mod(delta_deg - pc[az] + 180.0, 360.0) - 180.0
+        if F.ndim == 3:
+            dt, dp = dt[:, None], dp[:, None]
+        return F[ring, az] + gt[ring, az] * dt + gp[ring, az] * dp
+
+    def values(self, side: str, pts: "_SubPoints", idx: np.ndarray) -> np.ndarray:
+        """The field at the sub-points `idx`, reconstructed from the cells (`_reconstruct`).  T: each
+        exit direction's Snell pre-image is looked up in the internal cells (the exit factor per
+        sub-ring: it depends on the polar angle only)."""
+        az = pts.az[idx]
+        if side == "R":
+            return np.maximum(self._reconstruct("R", pts.ring[idx], az, pts.sub_theta_deg[pts.sub_ring[idx]],
+                                                pts.delta_deg[idx]), 0.0)
+        th_int = np.degrees(np.arcsin(np.clip(np.sin(np.radians(pts.sub_theta_deg)) * self.eta, 0.0, 1.0)))
+        ring_int = np.clip(np.searchsorted(self.theta_edges_deg, th_int, side="right") - 1, 0, self.R.shape[0] - 1)
+        t_exit = self.t_exit(th_int)                                        # (sub-rings, c)
+        sr = pts.sub_ring[idx]
+        T = self._reconstruct("T", ring_int[sr], az, th_int[sr], pts.delta_deg[idx])
+        return np.maximum(np.einsum("nc,nc->n", T, t_exit[sr]), 0.0)
+
+
+def _minmod(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.where(a * b > 0, np.sign(a) * np.minimum(np.abs(a), np.abs(b)), 0.0)
+
+
+def _limited_slopes(F: np.ndarray, tc: np.ndarray, pc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(d/dtheta, d/ddelta) per cell (per degree) of cell averages F (S, P[, c]): minmod of the one-sided
+    differences to the neighbouring centres (azimuth periodic; zero at the polar ends)."""
+    ext = (slice(None),) + (None,) * (F.ndim - 1)
+    d = np.diff(F, axis=0) / np.diff(tc)[ext]
+    gt = np.zeros_like(F)
+    gt[1:-1] = _minmod(d[:-1], d[1:])
+    step = np.mod(np.roll(pc, -1) - pc, 360.0)                              # centre to the next centre
+    ext_p = (None, slice(None)) + (None,) * (F.ndim - 2)
+    fwd = (np.roll(F, -1, axis=1) - F) / step[ext_p]
+    gp = _minmod(np.roll(fwd, 1, axis=1), fwd)
+    return gt, gp
+
+
+@dataclass(frozen=True)
+class _SubPoints:
+    """Equal-solid-angle sub-points of every cell of a grid (k^2 per cell), their weights (sr), cells
+    and a KD-tree of their unit vectors (azimuth = delta)."""
+
+    cos_theta: np.ndarray
+    weight_sr: np.ndarray
+    ring: np.ndarray
+    az: np.ndarray
+    sub_ring: np.ndarray          # index into sub_theta_deg (k per ring)
+    sub_theta_deg: np.ndarray
+    delta_deg: np.ndarray
+    tree: Any
+
+
+_SUB_CACHE: dict = {}
+
+
+def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int | None = None) -> _SubPoints:
+    """k equal-solid-angle sub-rings per cell, and k x (cell width / narrowest width) azimuth sub-points
+    (a wide cell is cut as finely as a narrow one); weights: the cell's solid angle shared equally."""
+    k = int(k or SUB_POINTS)
+    key = (theta_edges_deg.tobytes(), delta_edges_deg.tobytes(), k)
+    if key in _SUB_CACHE:
+        return _SUB_CACHE[key]
+    from scipy.spatial import cKDTree
+    ct = np.cos(np.radians(theta_edges_deg))
+    u = (np.arange(k) + 0.5) / k
+    cos_sub = (ct[:-1, None] + u[None] * (ct[1:] - ct[:-1])[:, None]).ravel()          # (S k,) equal solid angle
+    ring_sub = np.repeat(np.arange(ct.size - 1), k)
+    dw = np.diff(delta_edges_deg)
+    per = k * np.maximum(np.round(dw / dw.min()), 1).astype(int)                        # azimuth sub-points per cell
+    az_sub = np.repeat(np.arange(dw.size), per)
+    frac = (np.arange(az_sub.size) - np.repeat(np.cumsum(per) - per, per) + 0.5) / per[az_sub]
+    ph_sub = np.radians(delta_edges_deg[:-1][az_sub] + frac * dw[az_sub])
+    cell_sr = (ct[:-1] - ct[1:])[:, None] * np.radians(dw)[None, :]
+    ring = np.repeat(ring_sub, az_sub.size)
+    sub_ring = np.repeat(np.arange(ring_sub.size), az_sub.size)
+    az = np.tile(az_sub, ring_sub.size)
+    cz = np.repeat(cos_sub, az_sub.size)
+    ph = np.tile(ph_sub, ring_sub.size)
+    sz = np.sqrt(np.clip(1 - cz**2, 0, 1))
+    vec = np.stack([sz * np.cos(ph), sz * np.sin(ph), cz], 1)
+    w = cell_sr[ring, az] / (k * per[az])
+    pts = _SubPoints(cz, w, ring, az, sub_ring, np.degrees(np.arccos(np.clip(cos_sub, -1, 1))), np.degrees(ph),
+                     cKDTree(vec))
+    if len(_SUB_CACHE) > 4:
+        _SUB_CACHE.clear()
+    _SUB_CACHE[key] = pts
+    return pts
+
+
+def direct_reading(field: DirectField, side: np.ndarray, theta_s: np.ndarray, delta_s: np.ndarray,
+                   det: Any) -> np.ndarray:
+    """Readings (1/sr) of the rows from a DirectField: the cone integral of the cells themselves.
+
+    f = sum_p w_p f(p) cos(theta_p) response(psi_p) / (Omega cos theta_s) over equal-solid-angle
+    sub-points p of every cell (SUB_POINTS^2 per cell, weight = the cell's solid angle / their
+    number): each cell counts with (an estimate of) its overlap with the cone, so a lobe narrower
+    than the engine grid, a cone on the pole (cells of vanishing solid angle) and a grazing row
+    (cos theta varying across the cone) are integrated, not interpolated.  Inside a cell the field
+    is its average plus limited slopes (DirectField._reconstruct), and the cone's edge takes the
+    inside fraction of each sub-point's patch, so a cell cut by the cone counts its inside part to
+    second order (a 1-sigma 2-deg Gaussian lobe: 0.1 % at 45-70 deg; without the slopes 1-1.6 %).
+    The cells must be smaller than the cone for this to be accurate.
+    """
+    out = np.zeros(theta_s.size)
+    pts = _sub_points(field.theta_edges_deg, field.delta_edges_deg)
+    for sd in ("R", "T"):
+        sel = np.nonzero(side == sd)[0]
+        if sel.size == 0:
+            continue
+        row, col, wt = _reading_weights(pts, field, theta_s[sel], delta_s[sel], det)
+        if col.size:
+            idx, inv = np.unique(col, return_inverse=True)
+            val = field.values(sd, pts, idx) * pts.weight_sr[idx] * pts.cos_theta[idx]
+            out[sel] = np.bincount(row, weights=val[inv] * wt, minlength=sel.size)
+    return out / (cone_solid_angle(det.detector_half_angle_deg) * np.cos(np.radians(theta_s)))
+
+
+_WEIGHT_CACHE: dict = {}
+
+
+def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, delta_s: np.ndarray,
+                     det: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(row, sub-point, response) triplets of the rows' cones: the same for every evaluation of a fit
+    (rows, cells and instrument fixed), so they are kept (a few entries)."""
+    key = (field.theta_edges_deg.tobytes(), field.delta_edges_deg.tobytes(), theta_s.tobytes(), delta_s.tobytes(),
+           float(det.detector_half_angle_deg), float(det.blur_deg), pts.cos_theta.size)
+    if key in _WEIGHT_CACHE:
+        return _WEIGHT_CACHE[key]
+    h = np.radians(det.detector_half_angle_deg)
+    size = np.sqrt(pts.weight_sr)                    # a sub-point's linear size (rad)
+    reach = min(support_rad(det.detector_half_angle_deg, det.blur_deg) + float(size.max()), np.pi)
+    q = unit(theta_s, delta_s)
+    hits = pts.tree.query_ball_point(q, 2 * np.sin(reach / 2))
+    n = np.array([len(x) for x in hits], int)
+    row = np.repeat(np.arange(theta_s.size), n)
+    col = np.concatenate([np.asarray(x, int) for x in hits] + [np.zeros(0, int)])
+    psi = np.arccos(np.clip(np.einsum("ij,ij->i", pts.tree.data[col], q[row]), -1, 1))
+    if det.blur_deg > 0:
+        wt = response(psi, det.detector_half_angle_deg, det.blur_deg)
+    else:        # the cone's edge cuts a sub-point's patch: its inside fraction, to first order
+        wt = np.clip((h - psi) / size[col] + 0.5, 0.0, 1.0)
+    keep = wt > 0
+    out = (row[keep], col[keep], wt[keep])
+    if len(_WEIGHT_CACHE) > 16:
+        _WEIGHT_CACHE.clear()
+    _WEIGHT_CACHE[key] = out
+    return out
+
+
 def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndarray, det: Any) -> np.ndarray:
     """Detector readings (1/sr) of the rows of one incidence from a deterministic result.
 
@@ -208,12 +404,16 @@ def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndar
     proj = projection_weights(theta_s, off)
     dl = np.mod(ph - (res.phi_i_deg + 180.0), 360.0)
     out = np.zeros(theta_s.size)
-    for sd, grid in (("R", res.grid_R), ("T", res.grid_T)):
+    direct = getattr(res, "direct", None)
+    grids = (("R", res.grid_R), ("T", res.grid_T)) if direct is None else (("R", res.loop_R), ("T", res.loop_T))
+    if direct is not None:
+        out += direct_reading(direct, side, theta_s, np.mod(phi_s - (res.phi_i_deg + 180.0), 360.0), det)
+    for sd, grid in grids:
         sel = side == sd
         if sel.any():
             v = _bilinear_periodic(centre_values(grid), res.theta_out_deg, res.delta_deg, th[sel].ravel(),
                                    dl[sel].ravel())
-            out[sel] = (v.reshape(-1, off.shape[0]) * proj[sel]).mean(axis=1)
+            out[sel] += (v.reshape(-1, off.shape[0]) * proj[sel]).mean(axis=1)
     for sd, tdeg, ddeg, p in res.deltas:
         sel = np.nonzero(side == sd)[0]
         if p != 0.0 and sel.size:

@@ -49,11 +49,22 @@ Method (radiative transfer between two faces, discrete ordinates):
 * Output: the plate BSDF on an outgoing grid (theta cells x azimuth grid) per side, plus
   delta beams; rows are read by `plate.detector.grid_reading` (cone (x) Gaussian blur
   quadrature for the diffuse part, response(psi) P / (Omega cos theta_s) for a delta beam).
+* Two grids (plate.grid, issue 18 item 2).  When the outside table is on a finer grid than the
+  engine's (`TableGrid` direct grid: 0.5-deg rings with the flat face's Snell pre-images, 1-deg
+  azimuth cells around the plane of incidence), the loop is solved on the engine grid with the
+  outside table's cell averages there (`_TableView.cells`: projected-solid-angle overlaps, power
+  kept), and the two terms that carry the narrow lobes are read from the outside table's own
+  cells: the direct reflection f_R and the first transmitted pass, which leaves through the flat
+  face as f_T(theta_int) T_F(theta_int) (n0/n)^2 exp(-a t / cos theta_int) at the Snell
+  pre-image theta_int of each exit direction (the radiance law; the same terms the engine grid
+  carries, `_flat_exit`, subtracted there).  Applies with a flat second face and no volume
+  scattering (otherwise everything is read on the engine grid, as before).
 
 Regime of validity: geometric optics between the faces (plate thick compared with the
 coherence length: intensities add, no thin-film fringes), laterally infinite plate
 (no edge loss), translation-invariant faces (the relief's statistics do not vary over the
-lit spot), discretisation error of the order of the table's cell size (1 deg by default).
+lit spot), discretisation error of the order of the table's cell size (the direct grid's for the
+direct terms, the engine grid's for the loop).
 """
 from __future__ import annotations
 
@@ -256,6 +267,28 @@ def _apply(W: np.ndarray, arr: np.ndarray, axis: int) -> np.ndarray:
     return np.moveaxis(np.tensordot(W, arr, axes=([1], [axis])), 0, axis)
 
 
+def _overlap_theta(edges_deg: np.ndarray, coarse_edges_deg: np.ndarray) -> np.ndarray:
+    """(C, S) weights turning cell averages on polar edges `edges_deg` into averages on `coarse_edges_deg`:
+    the overlap of the cells in projected solid angle (u = sin^2 theta: d(sin^2) = 2 sin cos d theta),
+    each cell's value taken as uniform over it (its average)."""
+    u = np.sin(np.radians(np.asarray(edges_deg, float))) ** 2
+    uc = np.sin(np.radians(np.asarray(coarse_edges_deg, float))) ** 2
+    ov = np.clip(np.minimum(uc[1:, None], u[None, 1:]) - np.maximum(uc[:-1, None], u[None, :-1]), 0.0, None)
+    return ov / np.maximum(uc[1:] - uc[:-1], 1e-300)[:, None]
+
+
+def _overlap_phi(edges_deg: np.ndarray, centres_deg: np.ndarray, width_deg: float) -> np.ndarray:
+    """(A, P) weights turning azimuth-cell averages on `edges_deg` into averages over the cells
+    [c - w/2, c + w/2] (periodic: the table's cells are also taken 360 deg to either side)."""
+    e = np.asarray(edges_deg, float)
+    lo = np.asarray(centres_deg, float)[:, None] - width_deg / 2
+    hi = lo + width_deg
+    W = np.zeros((lo.size, e.size - 1))
+    for k in (-720.0, -360.0, 0.0, 360.0, 720.0):
+        W += np.clip(np.minimum(hi, e[None, 1:] + k) - np.maximum(lo, e[None, :-1] + k), 0.0, None)
+    return W / width_deg
+
+
 class _TableView:
     """One boundary table at one wavelength, sampled on arbitrary angles (isotropic tables only)."""
 
@@ -295,6 +328,33 @@ class _TableView:
         arr = _apply(_lin_matrix(t.theta_s_deg, theta_out), arr, 1)
         arr = _apply(_periodic_matrix(t.phi_s_deg, self.phi0 + 180.0 + np.asarray(delta_deg)), arr, 2)
         return arr
+
+    def on_grid(self, theta_edges_deg: np.ndarray, azimuth_cells: int) -> bool:
+        """The table's cells are the engine's (same polar edges, azimuth cells centred on the engine's)."""
+        t = self.table
+        pe = np.asarray(t.phi_s_edges_deg, float)
+        d = 360.0 / azimuth_cells
+        want = self.phi0 + 180.0 - d / 2 + np.arange(azimuth_cells + 1) * d
+        same_phi = pe.size == want.size and np.allclose(np.sort(np.mod(pe[:-1] - want[0] + 1e-9, 360.0)),
+                                                          np.mod(want[:-1] - want[0] + 1e-9, 360.0), atol=1e-6)
+        return bool(np.array_equal(np.asarray(t.theta_s_edges_deg, float), np.asarray(theta_edges_deg, float))
+                    and same_phi)
+
+    def at_incidence(self, side: str, theta_in: float) -> np.ndarray:
+        """The table's own cells at one incidence (linear in theta_i): (S, P[, 4, 4])."""
+        k = 0 if side == "R" else 1
+        return _apply(_lin_matrix(self.table.theta_i_deg, [theta_in]), self.v[:, k], 0)[0]
+
+    def cells(self, side: str, theta_in: float, theta_edges_deg: np.ndarray, delta_deg: np.ndarray) -> np.ndarray:
+        """Cell averages on the engine grid (polar edges x azimuth cells centred on delta, relative
+        propagation azimuth) from the table's own cells (projected-solid-angle overlaps): (T, A[, 4, 4])."""
+        arr = self.at_incidence(side, theta_in)
+        t = self.table
+        Wt = _overlap_theta(t.theta_s_edges_deg, theta_edges_deg)
+        Wp = _overlap_phi(t.phi_s_edges_deg, self.phi0 + 180.0 + np.asarray(delta_deg, float),
+                          360.0 / np.asarray(delta_deg).size)
+        arr = np.tensordot(Wt, arr, axes=(1, 0))
+        return np.moveaxis(np.tensordot(Wp, arr, axes=(1, 1)), 0, 1)
 
     def specular(self, side: str, theta_in: float) -> np.ndarray:
         """4x4 Mueller matrix (or scalar power fraction times I) of the delta part."""
@@ -426,6 +486,9 @@ class PlateResult:
     grid_R / grid_T: (T, A) BSDF (1/sr) at theta_out_deg x delta_deg (delta = outgoing
     azimuth minus the incident beam's propagation azimuth phi_i + 180).
     deltas: list of (side, theta_deg, delta_deg, power fraction) for exact beams.
+    direct / loop_R / loop_T: when the outside table is finer than the engine grid, the direct
+    reflection and the first transmitted pass on the table's own cells (read by integrating them
+    over the detector cone) and the rest on the engine grid; grid_R / grid_T hold the sum.
     """
 
     wavelength_nm: float
@@ -437,6 +500,9 @@ class PlateResult:
     grid_R: np.ndarray
     grid_T: np.ndarray
     deltas: list = field(default_factory=list)
+    direct: Any = None            # DirectField of the outside table's direct parts (or None)
+    loop_R: Any = None            # with `direct`: grid_R / grid_T without the direct parts (engine grid)
+    loop_T: Any = None
 
     def hemispherical(self) -> dict:
         """Directional-hemispherical R and T of the plate (diffuse + delta)."""
@@ -578,8 +644,13 @@ class PlateSolver:
             slab_ops = _slab_system(m, self.theta_edges, self.delta.size, Kb, R2, c)
             Rtrip, sysm = slab_ops["Rtrip"], slab_ops["sys"]
         GhT, Wflat, Wspec = self._exit_maps(vin, vB, n, n0, c)
+        out_on_grid = vout is None or vout.on_grid(self.theta_edges, self.delta.size)
+        # the outside table on its own finer grid: the direct reflection and the first transmitted pass
+        # are read from it (plate.detector.direct_reading), the loop from the engine grid
+        direct = (not out_on_grid and m.rough_face == "front" and vB is None and slab_ops is None)
         ops = dict(n=n, n0=n0, vin=vin, vout=vout, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
-                   Wflat=Wflat, Wspec=Wspec, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT, slab=slab_ops)
+                   Wflat=Wflat, Wspec=Wspec, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT, slab=slab_ops,
+                   out_on_grid=out_on_grid, direct=direct)
         self._ops[wl] = ops
         return ops
 
@@ -634,13 +705,45 @@ class PlateSolver:
             self._incidence(ops, src, q, abs(float(ti)))
         out_rough, out_flat = self._diffuse_exits(ops, src, thetas)
         front = self.model.rough_face == "front"
+        first_T = self._flat_exit(ops, src.S_first) if ops["direct"] else None
         results = []
         for q, ti in enumerate(thetas):
             gR = src.direct_R[q] + (out_rough[q] if front else out_flat[q])
             gT = out_flat[q] if front else out_rough[q]
-            results.append(PlateResult(float(wavelength_nm), float(ti), float(phi_i_deg), self.theta_c,
-                                       self.theta_edges, self.delta, gR, gT, src.deltas[q]))
+            r = PlateResult(float(wavelength_nm), float(ti), float(phi_i_deg), self.theta_c,
+                            self.theta_edges, self.delta, gR, gT, src.deltas[q])
+            if src.direct[q] is not None:   # the loop on the engine grid, the direct parts on their own grid
+                r = replace(r, direct=src.direct[q], loop_R=out_rough[q], loop_T=out_flat[q] - first_T[q])
+            results.append(r)
         return results
+
+    def _flat_exit(self, ops: dict, S: np.ndarray) -> np.ndarray:
+        """(q, O, A) BSDF through the flat second face of power per cell S (q, N, A, c) arriving there
+        after one traversal (absorption), by the same Snell remap as the loop's exit (`_exit_maps`)."""
+        c, n, n0, psa = ops["c"], ops["n"], ops["n0"], self.psa
+        nI, N, A = S.shape[0], self.theta_c.size, self.delta.size
+        L = np.moveaxis(S * ops["absorb"][None, :, None, None] / psa[None, :, None, None], 2, 3).reshape(nI, N * c, A)
+        return (ops["Wflat"].reshape(N, N * c) @ L) * (n0 / n) ** 2
+
+    def _direct_field(self, ops: dict, ti: float) -> "DirectField":
+        """The outside table's cells at incidence ti as the detector reads them (plate.detector.DirectField):
+        R, the direct reflection's S0; T, the Stokes vector of the first transmission inside the glass,
+        leaving through the flat face with Fresnel T, (n0/n)^2 (radiance law) and Beer-Lambert absorption."""
+        from relief_bsdf.plate.detector import DirectField
+        vout, c, s_inc, m = ops["vout"], ops["c"], self.model.source_stokes, self.model
+        f_r, f_t = vout.at_incidence("R", ti), vout.at_incidence("T", ti)
+        R = f_r if c == 1 else f_r[..., 0, :] @ s_inc
+        T = f_t[..., None] if c == 1 else f_t @ s_inc
+        n, n0 = ops["n"], ops["n0"]
+
+        def t_exit(theta_int_deg: np.ndarray) -> np.ndarray:
+            cos_t = np.cos(np.radians(theta_int_deg))
+            tf = _fresnel(cos_t, n, n0, "T")[..., 0, :c]
+            return tf * ((n0 / n) ** 2 * np.exp(-m.absorption_per_m * m.thickness_m / np.maximum(cos_t, 1e-6)))[:, None]
+        t = vout.table
+        return DirectField(np.asarray(t.theta_s_edges_deg, float),
+                           np.asarray(t.phi_s_edges_deg, float) - (vout.phi0 + 180.0),
+                           np.asarray(R, float), np.asarray(T, float), n0 / n, t_exit)
 
     def _incidence(self, ops: dict, src: "_Sources", q: int, ti: float) -> None:
         """Incidence q: first-face scattering of the source, the delta-beam chain, and what the beams scatter."""
@@ -656,10 +759,17 @@ class PlateSolver:
             RFt, TFt = vB.specular("R", tt), vB.specular("T", tt)
         deltas = []
         if m.rough_face == "front":
-            f_r = vout.diffuse("R", [ti], tc, delta)[0]
-            f_t = vout.diffuse("T", [ti], tc, delta)[0]
+            if not ops["out_on_grid"]:
+                f_r = vout.cells("R", ti, self.theta_edges, delta)
+                f_t = vout.cells("T", ti, self.theta_edges, delta)
+                if ops["direct"]:
+                    src.direct[q] = self._direct_field(ops, ti)
+            else:
+                f_r = vout.diffuse("R", [ti], tc, delta)[0]
+                f_t = vout.diffuse("T", [ti], tc, delta)[0]
             src.direct_R[q] = f_r if c == 1 else f_r[..., 0, :] @ s_inc
             src.S[q] = (f_t * psa[:, None])[..., None] if c == 1 else (f_t @ s_inc) * psa[:, None, None]
+            src.S_first[q] = src.S[q]
             y0, z0 = vout.specular("T", ti) @ s_inc, np.zeros(4)
             deltas.append(("R", ti, 0.0, float((vout.specular("R", ti) @ s_inc)[0])))
         else:
@@ -765,13 +875,15 @@ class _Sources:
     direct_flat: np.ndarray     # (q, N, A) diffuse exit of the delta beam through a back-face table
     U_extra: np.ndarray         # (q, N, A, c) delta beam scattered diffusely by a back-face table
     beams: np.ndarray           # (q, 2, 4) down beam y at the first face, up beam at the second face
+    S_first: np.ndarray         # (q, N, A, c) the part of S that is the outside table's first transmission
     deltas: list = field(default_factory=list)
+    direct: list = field(default_factory=list)   # per incidence: DirectField or None
 
     @staticmethod
     def empty(nI: int, N: int, A: int, c: int) -> "_Sources":
         z = np.zeros
         return _Sources(z((nI, N, A, c)), z((nI, N, A)), z((nI, N, A)), z((nI, N, A)), z((nI, N, A, c)),
-                        z((nI, 2, 4)))
+                        z((nI, 2, 4)), z((nI, N, A, c)), direct=[None] * nI)
 
 
 # ---------------------------------------------------------------- rows
@@ -893,9 +1005,14 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> Pl
 
 def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str = "recording") -> tuple[np.ndarray, dict]:
     """Deterministic plate BSDF of an Experiment on every row (detector included) and what was used."""
+    import warnings
+    from relief_bsdf.plate.faces import isotropy_warning
     solver = solver_of(experiment, rows, grid, progress)
     vals = simulate_rows(solver.model, solver.inside, solver.outside, rows, solver=solver, where=where)
-    info = {"engine": "deterministic", "grid": {"theta_step_deg": grid.theta_step_deg,
-                                                "phi_step_deg": grid.phi_step_deg,
-                                                "inside_theta_i_step_deg": grid.inside_theta_i_step_deg}}
+    info = {"engine": "deterministic", "grid": grid.describe()}
+    notes = [w for w in (isotropy_warning(f) for f in (experiment.plate.front, experiment.plate.back)) if w]
+    for w in notes:
+        warnings.warn(w, RuntimeWarning, stacklevel=2)
+    if notes:
+        info["warnings"] = notes
     return vals, info

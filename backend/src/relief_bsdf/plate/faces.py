@@ -83,12 +83,55 @@ def relief_digest(relief: Relief) -> str:
     return h.hexdigest()
 
 
+ANISOTROPY_WARN = 1.3      # principal rms-slope ratio above which the isotropic-table assumption is flagged (the
+#                            benchmark's isotropic 256^2 tiles reach 1.04-1.23 by sampling scatter alone)
+
+
+def slope_anisotropy(relief: Relief) -> tuple[float, float]:
+    """(ratio, angle_deg) of the relief's slope statistics: the ratio of the principal rms slopes
+    (square root of the eigenvalue ratio of the 2x2 covariance of the height gradient, forward
+    differences, wrapped on a periodic tile) and the azimuth of the steeper axis.  1 for a
+    rotation-invariant relief (up to the sampling scatter of a finite tile, a few per cent for
+    hundreds of correlation areas)."""
+    h = np.asarray(relief.heights_m, float)
+    if relief.periodic:
+        gx = (np.roll(h, -1, 1) - h) / relief.dx_m
+        gy = (np.roll(h, -1, 0) - h) / relief.dy_m
+    else:
+        gx = (np.diff(h, axis=1) / relief.dx_m)[:-1, :]
+        gy = (np.diff(h, axis=0) / relief.dy_m)[:, :-1]
+    ok = np.isfinite(gx) & np.isfinite(gy)
+    gx, gy = gx[ok] - gx[ok].mean(), gy[ok] - gy[ok].mean()
+    C = np.array([[np.mean(gx * gx), np.mean(gx * gy)], [np.mean(gx * gy), np.mean(gy * gy)]])
+    lam, vec = np.linalg.eigh(C)
+    if lam[1] <= 0:
+        return 1.0, 0.0
+    ratio = float(np.sqrt(lam[1] / max(lam[0], 1e-300 * lam[1])))
+    return ratio, float(np.degrees(np.arctan2(vec[1, 1], vec[0, 1])) % 180)
+
+
+def isotropy_warning(face: Any) -> str:
+    """A plain warning when a relief face is anisotropic (the deterministic engine assumes isotropic
+    tables: one incidence azimuth, azimuth-circulant loop kernels), else ''."""
+    relief = getattr(face, "relief", None)
+    if relief is None or getattr(face, "method", "") == "microfacet":
+        return ""
+    ratio, ang = slope_anisotropy(relief)
+    if ratio <= ANISOTROPY_WARN:
+        return ""
+    return (f"relief {getattr(relief, 'source', '') or 'map'} is anisotropic (principal rms slopes differ "
+            f"{ratio:.2g}x, steeper axis at {ang:.0f} deg): the deterministic engine assumes isotropic boundary "
+            "tables; its direct reflection and first transmitted pass are the relief's own only for rows lit at "
+            "the tables' incidence azimuth (phi_i = 0), its multiple scattering is the azimuth average, and rows "
+            "at other phi_i are a rotation of phi_i = 0; check with engine='photon'")
+
+
 def _material_key(material: Material) -> str:
     return json.dumps(material.describe(), sort_keys=True, default=str)
 
 
 def _grid_key(grid: TableGrid) -> tuple:
-    return (grid.theta_step_deg, grid.phi_step_deg, grid.inside_theta_i_step_deg)
+    return grid.key()
 
 
 @dataclass(frozen=True)
@@ -310,7 +353,7 @@ def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, w
                       progress: Any) -> BsdfTable:
     from dataclasses import replace as _replace
     from relief_bsdf.methods import reconstruct
-    req = grid.request(wl, theta, side, face.method, face.samples, face.seed, face.options)
+    req = face_request(face, material, grid, wl, theta, side)
     if face.coherence_length_m is not None:
         req = _replace(req, coherence_length_m=float(face.coherence_length_m))
     if face.method in TRACED_METHODS and _trace_here(face):
@@ -321,6 +364,22 @@ def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, w
     from relief_bsdf.plate.energy import closed
     (table,) = reconstruct(face.relief, material, req, face.method, progress=progress)
     return closed(table)          # a wave model's energy defect is the model's, not absorption (plate.energy)
+
+
+def face_request(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths_nm: Any, theta: Any,
+                 side: str) -> Any:
+    """The Request a relief face's tables are made with on `grid` (TableGrid.request): the outside side on
+    the direct grid with the glass's exit-side edges, at most one cell per facet of the tile (a sampled
+    tile cannot fill more)."""
+    ny, nx = face.relief.shape
+    return grid.request(wavelengths_nm, theta, side, face.method, face.samples, face.seed, face.options,
+                        index_ratio=_index_ratio(material, wavelengths_nm), max_cells=2 * nx * ny)
+
+
+def _index_ratio(material: Material, wavelengths_nm: Any) -> float:
+    """n_glass / n_outside at the middle wavelength (the exit-side edges of the direct grid)."""
+    w = float(np.median(np.asarray(wavelengths_nm, float)))
+    return float(np.real(material.inside.n(w)) / np.real(material.outside.n(w)))
 
 
 def _trace_here(face: "ReliefFace") -> bool:

@@ -1,38 +1,105 @@
-"""The angular grid of the boundary tables, which is also the deterministic plate's discretisation.
+"""The angular grids of the boundary tables, which are also the deterministic plate's discretisation.
 
-The deterministic engine works on the internal direction cells of the inside table (its theta
-cells x a uniform azimuth grid of `360 / phi_step_deg` cells), so the table grid *is* the
-plate's discretisation: a finer plate grid than the tables would only interpolate.  Regime:
-the discretisation error is of the order of a cell (1 deg x 5 deg by default); lobes narrower
-than a few cells need a finer grid (issue 18).
+Two grids (issue 18 item 2: cells narrower than the detector cone where the lobe is narrow):
+
+- the ENGINE grid (`theta_step_deg` x `phi_step_deg`, inside incidences every
+  `inside_theta_i_step_deg`): the inside tables and the plate's internal direction cells on
+  which the multiple round trips are solved (uniform azimuth cells: the azimuthal Fourier
+  reduction needs them).  What it carries has been scattered at least twice by the relief or
+  reflected inside the plate, so it is broad; a cell error of the order of a cell is
+  tolerable there, but a lobe must MOVE between two inside incidences rather than blend
+  (a second pass through the relief from inside is read from the two tables around its
+  incidence): every 2.5 deg, with half the rays per incidence (`inside_samples_scale`: the
+  same total, the loop averages their noise over the incidences of the light inside).
+- the DIRECT grid of the outside tables (light from outside, at the recording's own
+  incidences): `direct_theta_step_deg` rings and azimuth cells of `direct_phi_step_deg` in a
+  band of half-width `direct_band_deg` around the plane of incidence (both the specular side
+  and the forward side, table azimuths 180 and 0 from the propagation azimuth, where the
+  reflected and refracted lobes of an isotropic relief are centred; a 2-deg cone on an
+  in-plane row at theta >= 10 deg stays inside it), `phi_step_deg` cells elsewhere; below
+  the critical angle its rings are the Snell pre-images of uniform exit rings (a transmitted
+  lobe is read through the flat face, where refraction stretches internal angles).  The engine reads the direct
+  reflection and the first transmitted pass (outside T table -> plate -> flat face) from this
+  grid, integrated over the detector cone (plate.detector.direct_reading), and gives the loop
+  its cell averages on the engine grid.  `direct_theta_step_deg=None` puts the outside tables
+  on the engine grid (the engine's old single-grid behaviour).
+
+Cost (gauss_mid, 6 incidences, 400k rays): the outside tables hold 272 x 112 cells per side
+(4.7x the engine grid's, the same rays; 30 MB with Mueller matrices); the inside tables 37
+incidences at half the rays (the same total); the engine's operators on 37 inside incidences
+and the cone integral of the direct cells add ~1-2 s per evaluation on one quiet core (the cone
+weights are kept across a fit's evaluations).  Regime: the direct grid applies with a flat second
+face and no volume scattering (plate.deterministic), for the ray method's tables
+(DIRECT_METHODS; a wave method pays per cell and keeps the engine grid).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
+from relief_bsdf.errors import InputError
 from relief_bsdf.methods.request import Request
+
+
+REFERENCE_INSIDE_STEP_DEG = 5.0   # the former default inside step: its total inside effort is kept
+DIRECT_METHODS = ("ray",)     # methods whose outside tables go on the direct grid (cost per ray, not per cell)
 
 
 @dataclass(frozen=True)
 class TableGrid:
-    """Axes of the boundary tables the plate derives from its faces.
+    """Axes of the boundary tables the plate derives from its faces (module doc).
 
-    theta_step_deg: scatter polar cell size (edges 0..90).
+    theta_step_deg: scatter polar cell size of the engine grid (edges 0..90).
     phi_step_deg: scatter azimuth cell size (cells centred on multiples of it; also the plate's
         azimuth grid).
     inside_theta_i_step_deg: step between the incidences of the inside tables (0..85 + 89).
+    direct_theta_step_deg: polar cell size of the outside tables (None: the engine grid).
+    direct_phi_step_deg: azimuth cell size of the outside tables inside the band.
+    direct_band_deg: half-width of the fine azimuth band around phi 0 and 180 (rounded so that
+        its edges fall on the engine grid's azimuth edges).
+    inside_samples_scale: a sampled method's effort per inside incidence, as a fraction of the
+        face's `samples` (the outside tables get `samples`): the loop integrates the inside
+        tables over the incidences of the light inside, which averages their noise, so denser
+        inside incidences can share the same total effort.  None: min(1, inside step / 5 deg),
+        the total of the former 5-deg default whatever the step (0.5 at the default 2.5 deg).
     """
 
     theta_step_deg: float = 1.0
     phi_step_deg: float = 5.0
-    inside_theta_i_step_deg: float = 5.0
+    inside_theta_i_step_deg: float = 2.5
+    direct_theta_step_deg: float | None = 0.5
+    direct_phi_step_deg: float = 1.0
+    direct_band_deg: float = 12.5
+    inside_samples_scale: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.inside_samples_scale is not None and not (0 < self.inside_samples_scale <= 1):
+            raise InputError("grid.inside_samples_scale",
+                             f"must be in (0, 1] or None, got {self.inside_samples_scale}")
+        for k in ("theta_step_deg", "phi_step_deg", "inside_theta_i_step_deg", "direct_phi_step_deg"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and 0 < v <= 90):
+                raise InputError(f"grid.{k}", f"must be in (0, 90] degrees, got {v}")
+        if self.direct_theta_step_deg is not None and not (0 < self.direct_theta_step_deg <= 90):
+            raise InputError("grid.direct_theta_step_deg",
+                             f"must be in (0, 90] or None, got {self.direct_theta_step_deg}")
+
+    @property
+    def inside_samples_fraction(self) -> float:
+        """Effort per inside incidence over the face's samples (`inside_samples_scale`)."""
+        if self.inside_samples_scale is not None:
+            return float(self.inside_samples_scale)
+        return min(1.0, self.inside_theta_i_step_deg / REFERENCE_INSIDE_STEP_DEG)
 
     @property
     def azimuth_cells(self) -> int:
         return int(round(360.0 / self.phi_step_deg))
+
+    @property
+    def has_direct_grid(self) -> bool:
+        return self.direct_theta_step_deg is not None
 
     def theta_edges_deg(self) -> tuple:
         return tuple(np.linspace(0.0, 90.0, int(round(90 / self.theta_step_deg)) + 1))
@@ -41,15 +108,94 @@ class TableGrid:
         h = self.phi_step_deg / 2
         return tuple(np.arange(-h, 360.0 - h + 1e-9, self.phi_step_deg))
 
+    def direct_theta_edges_deg(self, index_ratio: float | None = None) -> tuple:
+        """Polar edges of the outside tables: every `direct_theta_step_deg` (the reflected side is read
+        as it is), plus, for a glass of index ratio n / n0 = `index_ratio`, the Snell pre-images
+        asin(sin(theta_e) / ratio) of the same uniform edges theta_e outside, which replace the uniform
+        edges below the critical angle (they are finer there): the transmitted side is
+        read through the flat face, where refraction stretches an internal cell by
+        n cos(theta_int) / cos(theta_e) (2.5x at 60 deg, unbounded at grazing), so its cells must be
+        narrow in exit angle, not in internal angle."""
+        if not self.has_direct_grid:
+            return self.theta_edges_deg()
+        e = np.linspace(0.0, 90.0, int(round(90 / self.direct_theta_step_deg)) + 1)
+        if index_ratio is not None and index_ratio > 1.0:
+            # below the critical angle the pre-images are finer than the uniform edges (reflected side included)
+            pre = np.degrees(np.arcsin(np.sin(np.radians(e)) / index_ratio))
+            e = np.unique(np.round(np.concatenate([e[e > pre[-1]], pre]), 6))
+            e = e[np.concatenate([[True], np.diff(e) > 0.05 * self.direct_theta_step_deg])]   # no sliver rings
+            e[-1] = 90.0
+        return tuple(e)
+
+    def direct_phi_edges_deg(self) -> tuple:
+        """Azimuth edges of the outside tables: fine cells in the bands around 0 and 180 deg, the
+        engine's cells elsewhere; every engine edge is kept (the fine cells nest in the engine's)."""
+        coarse = np.asarray(self.phi_edges_deg())
+        if not self.has_direct_grid:
+            return tuple(coarse)
+        p, h = self.phi_step_deg, self.phi_step_deg / 2
+        k = max(int(np.ceil((self.direct_band_deg - h) / p - 1e-9)), 0)
+        band = h + k * p                                    # an engine edge
+        n_fine = max(int(round(p / self.direct_phi_step_deg)), 1)
+        edges = [coarse]
+        for centre in (0.0, 180.0):
+            e = np.linspace(centre - band, centre + band, int(round(2 * band / p)) * n_fine + 1)
+            edges.append(e)
+        e = np.concatenate(edges)
+        e = np.mod(e - coarse[0], 360.0) + coarse[0]       # the band around 0 wraps past the first edge
+        e = np.unique(np.round(np.concatenate([e, coarse]), 9))
+        return tuple(e[e <= coarse[-1] + 1e-9])
+
     def inside_incidences_deg(self) -> np.ndarray:
         """Incidences of the inside tables: every step from 0, plus 89 deg (near-grazing light)."""
         th = np.arange(0.0, 90.0 - 1e-9, self.inside_theta_i_step_deg)
         return np.unique(np.concatenate([th, [89.0]]))
 
+    def direct_cells(self, index_ratio: float | None = None) -> int:
+        """Scatter cells of one outside table (both sides)."""
+        return 2 * (len(self.direct_theta_edges_deg(index_ratio)) - 1) * (len(self.direct_phi_edges_deg()) - 1)
+
+    def direct_within(self, max_cells: int, index_ratio: float | None = None) -> "TableGrid":
+        """This grid with its direct grid coarsened until an outside table has at most `max_cells`
+        cells (a sampled relief cannot fill more cells than it has facets): first the engine's
+        polar step, then no direct grid at all."""
+        g = self
+        for step in (self.direct_theta_step_deg, self.theta_step_deg, None):
+            g = replace(self, direct_theta_step_deg=step)
+            if step is None or g.direct_cells(index_ratio) <= max_cells:
+                return g
+        return g
+
+    def key(self) -> tuple:
+        """Everything that determines the tables (cache keys)."""
+        return (self.theta_step_deg, self.phi_step_deg, self.inside_theta_i_step_deg, self.direct_theta_step_deg,
+                self.direct_phi_step_deg, self.direct_band_deg, self.inside_samples_fraction)
+
+    def describe(self) -> dict:
+        return {"theta_step_deg": self.theta_step_deg, "phi_step_deg": self.phi_step_deg,
+                "inside_theta_i_step_deg": self.inside_theta_i_step_deg,
+                "direct_theta_step_deg": self.direct_theta_step_deg,
+                "direct_phi_step_deg": self.direct_phi_step_deg, "direct_band_deg": self.direct_band_deg,
+                "inside_samples_fraction": self.inside_samples_fraction}
+
     def request(self, wavelengths: Any, theta_i: Any, incident_from: str, method: str, samples: int, seed: int,
-                options: dict | None = None) -> Request:
-        """The methods' Request for one side of incidence on this grid (`method` is informational)."""
+                options: dict | None = None, index_ratio: float | None = None,
+                max_cells: int | None = None) -> Request:
+        """The methods' Request for one side of incidence on this grid: the inside tables on the engine
+        grid; the outside tables of a DIRECT_METHODS method on the direct grid (`index_ratio` n / n0 of
+        the glass: its exit-side edges; `max_cells`: coarsened to at most that many cells,
+        `direct_within`), of any other method (wave methods pay per cell) on the engine grid."""
+        outside = incident_from == "outside"
+        g = self
+        if outside and method not in DIRECT_METHODS:
+            g = self.direct_within(0)
+        elif outside and max_cells is not None:
+            g = self.direct_within(int(max_cells), index_ratio)
+        if not outside:
+            samples = max(int(round(samples * self.inside_samples_fraction)), 1)
+        te = g.direct_theta_edges_deg(index_ratio) if outside else self.theta_edges_deg()
+        pe = g.direct_phi_edges_deg() if outside else self.phi_edges_deg()
         return Request(wavelengths_nm=tuple(float(w) for w in wavelengths),
                        theta_i_deg=tuple(float(t) for t in theta_i), incident_from=(incident_from,),
-                       theta_s_edges_deg=self.theta_edges_deg(), phi_s_edges_deg=self.phi_edges_deg(),
+                       theta_s_edges_deg=te, phi_s_edges_deg=pe,
                        samples=int(samples), seed=int(seed), options=dict(options or {}))
