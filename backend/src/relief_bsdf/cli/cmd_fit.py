@@ -22,11 +22,15 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="bounds of the height scale (default 0.1,10)")
     p.add_argument("--max-filter-um", type=float, default=None,
                    help="upper bound of the Gaussian filter sigma in um (default: 20 pixel pitches)")
-    p.add_argument("--theta-step-deg", type=float, default=1.0, help="boundary table theta cell size")
-    p.add_argument("--phi-step-deg", type=float, default=5.0,
-                   help="boundary table azimuth cell size (also the plate's azimuth grid)")
-    p.add_argument("--inside-step-deg", type=float, default=5.0,
-                   help="step between the incidences of the inside table (narrow lobes: 1-2)")
+    from relief_bsdf.plate.grid import TableGrid
+    p.add_argument("--theta-step-deg", type=float, default=TableGrid.theta_step_deg,
+                   help=f"theta cell size of the plate's engine grid (default {TableGrid.theta_step_deg:g}; the "
+                        "outside ray tables also get a finer direct grid, plate.grid)")
+    p.add_argument("--phi-step-deg", type=float, default=TableGrid.phi_step_deg,
+                   help=f"azimuth cell size of the engine grid (default {TableGrid.phi_step_deg:g})")
+    p.add_argument("--inside-step-deg", type=float, default=TableGrid.inside_theta_i_step_deg,
+                   help=f"step between the incidences of the inside table (default "
+                        f"{TableGrid.inside_theta_i_step_deg:g})")
     p.add_argument("--progress", action="store_true", help="force the progress bar")
     from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
