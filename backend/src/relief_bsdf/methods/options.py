@@ -275,6 +275,8 @@ class RayOptions(MethodOptions):
     backend: str | None = opt(None, "str", "map_tasks backend (None: as configured)", optional=True)
     tile_uncertainty: bool = opt(True, "bool", "add the finite tile's realisation uncertainty (sub-tile batch "
                                  "means) to sigma; False: Monte-Carlo sigma only (comparisons on one tile)")
+    sparse_cells: bool = opt(False, "bool", "allow more scatter cells than the tile has facets (cells read "
+                             "together, e.g. the plate's direct grid integrated over a detector cone)")
 
 
 @dataclass(frozen=True)

@@ -369,11 +369,21 @@ def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, w
 def face_request(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths_nm: Any, theta: Any,
                  side: str) -> Any:
     """The Request a relief face's tables are made with on `grid` (TableGrid.request): the outside side on
-    the direct grid with the glass's exit-side edges, at most one cell per facet of the tile (a sampled
-    tile cannot fill more)."""
-    ny, nx = face.relief.shape
-    return grid.request(wavelengths_nm, theta, side, face.method, face.samples, face.seed, face.options,
-                        index_ratio=_index_ratio(material, wavelengths_nm), max_cells=2 * nx * ny)
+    the direct grid with the glass's exit-side edges.
+
+    The direct grid may have more cells than the tile has facets (a 96 x 96 tile: 18 k facets, the
+    direct grid ~60 k cells).  A flat facet sends a delta, so a small tile's BSDF is a sum of deltas
+    whatever the cells; what the plate reads from these cells is their integral over a detector cone
+    (~50 direct cells), not single cells, so the ray tables are asked for them anyway (ray option
+    sparse_cells) rather than falling back to coarse cells, whose width broadens a narrow lobe
+    (the reason for the direct grid).  Each cell's tile-realisation sigma says how little one cell
+    is worth; the cone integral averages them."""
+    options = dict(face.options)
+    max_cells = 2 * face.relief.shape[0] * face.relief.shape[1]
+    if side == "outside" and face.method == "ray":
+        options["sparse_cells"], max_cells = True, None
+    return grid.request(wavelengths_nm, theta, side, face.method, face.samples, face.seed, options,
+                        index_ratio=_index_ratio(material, wavelengths_nm), max_cells=max_cells)
 
 
 def _index_ratio(material: Material, wavelengths_nm: Any) -> float:

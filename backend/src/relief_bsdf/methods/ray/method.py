@@ -92,7 +92,7 @@ def check_request(relief: Relief, material, request) -> RayOptions:
                            "use a wave method (kirchhoff, rayleigh-rice)", where)
     n_cells = 2 * (len(request.theta_s_edges_deg) - 1) * (len(request.phi_s_edges_deg) - 1)
     facets = 2 * nx * ny
-    if facets < n_cells:
+    if facets < n_cells and not opts.sparse_cells:
         raise RequestError(f"relief {where} is too coarse for the request: its {facets} facets cannot fill "
                            f"{n_cells} scatter cells; use a larger map or coarser theta_s/phi_s cells", where)
     material.check_incidence(request.wavelengths_nm, request.incident_from)
