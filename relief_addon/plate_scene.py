@@ -42,7 +42,8 @@ def _tables(relief, material, method: str, progress=None):
     from relief_bsdf.plate import ReliefFace, TableGrid
     theta_out = np.array([0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 89.0])
     face = ReliefFace(relief, method=method, samples=100_000, seed=0)
-    out, ins = face.tables(material, TableGrid(2.0, 10.0, 10.0), [550.0], theta_out, True, progress)
+    grid = TableGrid(2.0, 10.0, 10.0, direct_theta_step_deg=None)      # a picture: no direct grid (plate.grid)
+    out, ins = face.tables(material, grid, [550.0], theta_out, True, progress)
     return [t for t in (out, ins) if t is not None]
 
 
