@@ -58,6 +58,26 @@ def _diag(context, name):
             "candidates": [(c["effect"], c["score"]) for c in r["candidates"][:3]]}
 
 
+def _read_results(root: Path, cases) -> tuple[list, list]:
+    """Results of the cases whose diagnosis.json exists under root (seconds from bench_results.jsonl if any)."""
+    secs = {}
+    log = root / "bench_results.jsonl"
+    if log.is_file():
+        for line in log.read_text().splitlines():
+            d = json.loads(line)
+            secs[d["case"]] = d["seconds"]
+    res, done = [], []
+    for c in cases:
+        f = root / c.name / "diagnosis" / "diagnosis.json"
+        if f.is_file():
+            r = json.loads(f.read_text())
+            res.append({"effects": r.get("effects") or [r["effect"]], "parameters": r["parameters"],
+                        "intervals": r.get("intervals", {}), "rms_before": r["rms_before"],
+                        "rms_after": r["rms_after"], "seconds": secs.get(c.name, float("nan")), "candidates": []})
+            done.append(c)
+    return res, done
+
+
 def _kind(key: dict) -> str:
     eff = key.get("effects") or [key["effect"]]
     return "clean" if eff == ["none"] else ("single" if len(eff) == 1 else "compound")
@@ -124,6 +144,9 @@ def main(argv=None) -> int:
     ap.add_argument("--candidates", default=None, help="comma-separated candidate effects the diagnosis tries")
     ap.add_argument("--case-photons", type=int, default=None, help="generator photons per incidence (default: its own)")
     ap.add_argument("--reuse", action="store_true", help="reuse cases already in --out")
+    ap.add_argument("--serial", action="store_true", help="diagnose one case after the other, printing each result")
+    ap.add_argument("--summarise-only", action="store_true",
+                    help="no diagnosis: summarise the diagnosis.json files already under --out (implies --reuse)")
     a = ap.parse_args(argv)
     root = Path(a.out or tempfile.mkdtemp(prefix="bench_diagnose_"))
     cases = default_cases(a.per_effect, a.none, a.seed, n_compound=a.compound, relief_cases=not a.no_relief_cases)
@@ -138,13 +161,24 @@ def main(argv=None) -> int:
             c.photons = int(a.case_photons)
     candidates = a.candidates.split(",") if a.candidates else None
     t0 = time.time()
-    if not (a.reuse and (root / "key.json").is_file()):
+    if not ((a.reuse or a.summarise_only) and (root / "key.json").is_file()):
         generate(root, cases)
     t_gen = time.time() - t0
     keys = {k["case"]: k for k in json.loads((root / "key.json").read_text())["cases"]}
     cases = [c for c in cases if c.name in keys]
     t1 = time.time()
-    res = map_tasks(_diag, [c.name for c in cases], (str(root), a.photons, a.method, candidates), label="diagnose")
+    ctx = (str(root), a.photons, a.method, candidates)
+    if a.summarise_only:          # the diagnoses already written (e.g. a run stopped part-way)
+        res, cases = _read_results(root, cases)
+    elif a.serial:                # one case after the other, each result kept as it comes
+        res = []
+        for c in cases:
+            res.append(_diag(ctx, c.name))
+            with open(root / "bench_results.jsonl", "a") as fh:
+                fh.write(json.dumps({"case": c.name, **res[-1]}) + "\n")
+            print(f"{c.name} done: {'+'.join(res[-1]['effects'])} in {res[-1]['seconds']:.0f} s", flush=True)
+    else:
+        res = map_tasks(_diag, [c.name for c in cases], ctx, label="diagnose")
     summary = summarise(cases, keys, res)
     summary.update({"seed": a.seed, "method": a.method, "diagnosis_photons": a.photons,
                     "case_photons": a.case_photons or "default", "candidates": candidates or "all",

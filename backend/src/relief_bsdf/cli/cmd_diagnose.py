@@ -13,7 +13,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
                                    "polarisation, stray light, relief scale/smoothing, index, dispersion, "
                                    "interreflection, diffraction, partial coherence, ...) on the one plate model and "
                                    "names every effect present by a stepwise BIC selection with a noise-consistency "
-                                   "gate (joint refit, 68 % intervals); an effect sample.toml states is held fixed. Writes OUTDIR/diagnosis.json and "
+                                   "gate (joint refit, 68 % intervals); an effect sample.toml states is held "
+                                   "fixed. Writes OUTDIR/diagnosis.json and "
                                    "OUTDIR/report.html.")
     p.add_argument("sample", help="sample.toml")
     p.add_argument("-o", "--out", required=True, help="output folder")

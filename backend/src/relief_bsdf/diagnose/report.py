@@ -60,7 +60,8 @@ def _curves_png(rows, v0, v1, result: dict) -> bytes:
         sel, x = sel[o], x_all[sel][o]
         ax.errorbar(x, rows.bsdf_sr[sel], rows.sigma_sr[sel], fmt=".", ms=3, color="k", label="recording")
         ax.plot(x, v0[sel], "-", color="tab:red", label="baseline")
-        ax.plot(x, v1[sel], "-", color="tab:blue", label=f"with {' + '.join(result.get('effects') or [result['effect']])}")
+        named = " + ".join(result.get("effects") or [result["effect"]])
+        ax.plot(x, v1[sel], "-", color="tab:blue", label=f"with {named}")
         ax.axvline(-g[2], color="0.5", ls=":", lw=0.9, label="specular / undeviated")
         ax.set_yscale("symlog", linthresh=1e-2)
         ax.set_title(f"{g[1]}, theta_i = {g[2]:g} deg" + (f", {g[0]:g} nm" if len({q[0] for q in groups}) > 1 else ""),
@@ -97,7 +98,8 @@ def _notes_html(notes: dict) -> str:
 def _unexplained_html(u: dict) -> str:
     from relief_bsdf.report import html as H
     best = ", ".join(u["best_combination"]) or "no candidate passed the bar"
-    rows = [[m["side"], m["theta_i_deg"], m["phi_s_deg"], f"{H.fmt(m['theta_s_deg'][0])} - {H.fmt(m['theta_s_deg'][1])}",
+    rows = [[m["side"], m["theta_i_deg"], m["phi_s_deg"],
+             f"{H.fmt(m['theta_s_deg'][0])} - {H.fmt(m['theta_s_deg'][1])}",
              f"{100 * m['share']:.1f} %", m.get("shape", "")] for m in u["residual"]]
     return (f"<p>Best combination tried: {H.esc(best)} (rms {H.fmt(u['rms_best_combination'], 3)}), still short of "
             f"the noise: not named as the cause. The residual it leaves resembles: "
@@ -110,7 +112,8 @@ def write_report(path: Path, rows, v0, s0, v1, s1, result: dict) -> Path:
     from relief_bsdf.report import html as H
     effects = result.get("effects") or [result["effect"]]
     if result.get("unexplained"):
-        head = "The simulation misses the recording and no combination of candidates explains it: <b>no cause named</b>."
+        head = ("The simulation misses the recording and no combination of candidates explains it: "
+                "<b>no cause named</b>.")
     else:
         head = f"Left out: <b>{H.esc(', '.join(effects))}</b>."
     verdict = (f"<div class='verdict {'ok' if result['rms_after'] < result['rms_before'] else 'warn'}'>"

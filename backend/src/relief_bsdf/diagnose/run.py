@@ -134,10 +134,14 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
                 f"{_resembles(unexplained['shapes'])} The cause may be outside the candidates tried "
                 f"or in the relief's own model.")
     if effects == ["none"]:
-        return (f"The simulation of the plate as described agrees with the recording to within its noise "
+        within = ("within its noise" if fit["consistent"] else
+                  f"within its noise and the forward model's stated accuracy (rms {MODEL_ACCURACY_RMS:g}), and no "
+                  f"candidate passes the bar")
+        return (f"The simulation of the plate as described agrees with the recording to {within} "
                 f"(rms of the normalised residual {fit['rms0']:.2f}, chi2 = {fit['chi0']:.0f} for {fit['n']} "
                 f"rows), so no missing physics is named.")
-    lead = "The best explanation is" if len(effects) == 1 else f"{len(effects)} effects are present, most important first:"
+    lead = ("The best explanation is" if len(effects) == 1
+            else f"{len(effects)} effects are present, most important first:")
     return (f"The baseline simulation misses the recording (normalised rms {fit['rms0']:.2f}).{where} {lead} "
             f"{_effects_words(effects, params)}. Modelling {'it' if len(effects) == 1 else 'them together'} "
             f"brings the rms down to {fit['rms1']:.2f}.")
@@ -168,7 +172,8 @@ def _selection_doc(n: int, steps: list, closed: bool) -> dict:
                           f"{BIC_MARGIN:g} and the current model has chi2 > n + {CONSISTENCY_Z:g} sqrt(2n), or by more "
                           f"than max({BIC_OVERWHELMING:g}, {CONSISTENCY_Z:g} sqrt(2n)) = {overwhelming_bar(n):.1f} "
                           f"whatever its chi2; stop when none passes. The named set must then reach chi2 <= "
-                          f"{MODEL_ACCURACY_RMS:g}^2 n + {CONSISTENCY_Z:g} sqrt(2n) (the forward model's stated accuracy), "
+                          f"{MODEL_ACCURACY_RMS:g}^2 n + {CONSISTENCY_Z:g} sqrt(2n) (the forward model's stated "
+                          f"accuracy), "
                           f"else nothing is named"),
             "n_rows": n, "chi2_baseline": round(steps[0].chi2, 3),
             "consistent_with_noise": bool(consistent_with_noise(steps[0].chi2, n)),
@@ -199,7 +204,8 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
         if not closes(base.chi2, n):
             v, s = final.model
             unexplained = {"tried": list(final.effects), "rms_tried": math.sqrt(final.chi2 / n),
-                           "mismatch": locate(rows, v, s, n_glass=n_glass), "shapes": classify(rows, v, s, n_glass=n_glass)}
+                           "mismatch": locate(rows, v, s, n_glass=n_glass),
+                           "shapes": classify(rows, v, s, n_glass=n_glass)}
     fits = first_fits(steps)
     ctx = forward.context
     facts = {"rms0": rms0, "rms1": rms1, "n": n, "chi0": base.chi2, "consistent": consistent_with_noise(base.chi2, n)}

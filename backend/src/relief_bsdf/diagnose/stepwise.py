@@ -8,7 +8,13 @@ fitted parameters of the named effects.
 Step (current set S, chi^2_S, k_S; S = {} is the baseline):
 1. every candidate c not in S that can act together with S (`effects.compatible`) and is not
    held fixed by sample.toml is fitted with S held at its values (`fitting.fit_effect`, the
-   conditional fit; at the first step this is the single-effect fit of each candidate);
+   conditional fit; at the first step this is the single-effect fit of each candidate).
+   Budget: from the second step on, a candidate that re-derives the boundary tables is first
+   screened by ONE evaluation, at its own first-step value (or 10 % into its range when that
+   was neutral): the best chi^2 gain along the line from the current model to that probe,
+   (r . d)^2 / (d . d) with r the current normalised residual and d the probe's change of the
+   model in the same units (a linear least-squares line search, the score-test idea), must
+   exceed k ln n + BIC_MARGIN, else it is listed as screened out and not fitted;
 2. the candidate with the lowest BIC(S + c) is the one that gains most; it passes the bar
    (`passes`) when
    - Delta BIC = BIC(S) - BIC(S + c) > BIC_MARGIN = 10 ("very strong", Kass & Raftery 1995),
@@ -34,6 +40,7 @@ from dataclasses import dataclass, field
 
 from relief_bsdf.diagnose.effects import compatible, get_effect
 from relief_bsdf.diagnose.fitting import fit_effect, refit_joint
+from relief_bsdf.errors import InputError
 from relief_bsdf.fit.selection import BIC_MARGIN, bic
 from relief_bsdf.parallel import map_tasks
 from relief_bsdf.progress import silent
@@ -73,6 +80,50 @@ class Step:
     tried: list = field(default_factory=list)     # the conditional fits of the step that led here
 
 
+def _probe(effect, first: dict | None) -> dict | None:
+    """The screening point of a table-changing candidate (module docstring, step 1)."""
+    if not effect.params:
+        return None
+    if first and not first.get("skipped") and any(first["parameters"][p.name] != p.neutral for p in effect.params):
+        return dict(first["parameters"])
+    return {p.name: p.neutral + 0.1 * (p.upper - p.neutral if p.upper > p.neutral else p.lower - p.neutral)
+            for p in effect.params}
+
+
+def line_gain(forward, cur: "Step", effect, probe: dict) -> float:
+    """Largest chi^2 gain along the line from the current model to `effect` at `probe` (linear)."""
+    import numpy as np
+    named = tuple(get_effect(e) for e in cur.effects) + (effect,)
+    m1 = forward.evaluate_set(named, {**cur.values, **probe})[1]
+    m0, s0 = cur.model
+    s = np.sqrt(np.asarray(forward.rows.sigma_sr, float) ** 2 + s0**2)
+    r = (np.asarray(forward.rows.bsdf_sr, float) - m0) / s
+    d = (m1 - m0) / s
+    dd = float(d @ d)
+    return float(r @ d) ** 2 / dd if dd > 0 else 0.0
+
+
+def _screen(forward, cur: "Step", names: list[str], first: dict, n: int) -> tuple[list[str], list[dict]]:
+    """(candidates to fit, screened-out entries) of a later step (module docstring, step 1)."""
+    keep, out = [], []
+    for name in names:
+        e = get_effect(name)
+        probe = None if e.cheap else _probe(e, first.get(name))
+        if probe is None:
+            keep.append(name)
+            continue
+        try:
+            g = line_gain(forward, cur, e, probe)
+        except InputError as err:
+            out.append({"effect": name, "skipped": str(err)})
+            continue
+        if g > e.k * math.log(max(n, 2)) + BIC_MARGIN:
+            keep.append(name)
+        else:
+            out.append({"effect": name, "screened": round(g, 3)})
+    return keep, out
+
+
 def _cond_task(context, name: str) -> dict:
     forward, named, values, coarse = context
     return fit_effect(forward, get_effect(name), tuple(get_effect(e) for e in named), values, coarse)
@@ -105,10 +156,14 @@ def stepwise(forward, names: list[str], progress=None, workers: int | None = Non
                      and compatible(named + (get_effect(m),))]
         if not remaining:
             break
+        screened = []
+        if cur.effects:
+            first = {f["effect"]: f for f in first_fits(steps)}
+            remaining, screened = _screen(forward, cur, remaining, first, n)
         fits = map_tasks(_cond_task, remaining, (forward, cur.effects, cur.values, bool(cur.effects)),
                          progress=progress, label=f"candidate effects, step {len(steps)}", workers=workers)
         ok = [f for f in fits if not f.get("skipped")]
-        step_tried = fits
+        step_tried = fits + screened
         if not ok:
             steps.append(Step(cur.effects, cur.values, cur.chi2, cur.k, cur.model, "stop", 0.0, (), step_tried))
             break
