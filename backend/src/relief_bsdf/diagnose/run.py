@@ -98,7 +98,8 @@ def _where(mismatch: list, shapes: list, what: str = "largest misfit") -> str:
                  f"{m['theta_i_deg']:g} deg, phi_s = {m['phi_s_deg']:g} deg, theta_s {m['theta_s_deg'][0]:g}-"
                  f"{m['theta_s_deg'][1]:g} deg ({m['sign']}).")
     if shapes and shapes[0]["explained"] > 0.3:
-        where += (f" Its shape is mostly a {shapes[0]['shape'].replace('_', ' ')} "
+        word = shapes[0]["shape"].replace("_", " ")
+        where += (f" Its shape is mostly {'an' if word[0] in 'aeiou' else 'a'} {word} "
                   f"({shapes[0]['explained']:.0%} of the misfit).")
     return where
 
