@@ -10,13 +10,18 @@ Pipeline
    by BIC = chi^2 + k ln n, refit all named effects jointly, stop when no further effect passes
    the bar); an effect that does not apply, or that the plate engine cannot express yet, is
    listed in `candidates` with the reason instead of a number.
-4. Closure: the chosen combination must reach the noise, up to the forward model's own stated
-   accuracy: chi^2 <= MODEL_ACCURACY_RMS^2 n + 3 sqrt(2 n), MODEL_ACCURACY_RMS = 1.2 (the rms z
-   the one plate model is required to reach on clean independent recordings, issue 18; not
-   tuned here).  If even the best combination misses it, no effect is named as the cause
-   (`effects` = ["none"]): the explanation says so, says where the unexplained residual lives
-   (`mismatch.locate` on the best combination's residual) and which physics its shape resembles
-   (`mismatch.SHAPE_PHYSICS`), and the best combination is reported as tried, not as found.
+4. Closure: the chosen combination must explain the misfit: reach the noise up to the forward
+   model's own stated accuracy (`stepwise.adequate`: chi^2 <= 1.2^2 n + 3 sqrt(2 n)), or remove
+   at least EXPLAINED_SHARE = 1/2 of the baseline's misfit above the noise, (chi^2_0 - chi^2) /
+   (chi^2_0 - n) >= 1/2 (then what remains is reported as an unexplained remainder).  The share
+   was set on the seed-1 test cases (an absorption case on a 48 px relief whose `normals` model
+   misses by rms 1.8 after the fit: 0.95 explained; absorption + stray light seen through tilt
+   and polarisation only: 0.011), any value in 0.02 - 0.9 separating them; it is reported on
+   seed 2 by the benchmark.  If even the best combination fails both, no effect is named as the
+   cause (`effects` = ["none"]): the explanation says so, says where the unexplained residual
+   lives (`mismatch.locate` on the best combination's residual) and which physics its shape
+   resembles (`mismatch.SHAPE_PHYSICS`), and the best combination is reported as tried, not as
+   found.
 5. Intervals: 68 % intervals of every named parameter from the chi^2 curvature
    (`fitting.intervals`); a parameter the data cannot pin down is null with a note.
 6. Report: diagnosis.json (formats.md schema: `effects` most important first, `effect` =
@@ -38,8 +43,8 @@ from relief_bsdf.diagnose.fitting import intervals as fit_intervals
 from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build_forward
 from relief_bsdf.diagnose.mismatch import SHAPE_PHYSICS, attribute, classify, locate, regions
 from relief_bsdf.diagnose.report import write_report
-from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, consistent_with_noise, first_fits,
-                                           overwhelming_bar, passes, stepwise)
+from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODEL_ACCURACY_RMS, adequate,
+                                           consistent_with_noise, first_fits, overwhelming_bar, passes, stepwise)
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.selection import BIC_MARGIN
 from relief_bsdf.io.atomic import write_text_atomic
@@ -51,7 +56,7 @@ __all__ = ["BIC_MARGIN", "BIC_OVERWHELMING", "CONSISTENCY_Z", "MODEL_ACCURACY_RM
 METRIC = ("rms of the noise-normalised residual sqrt(mean(((measured - simulated) / sigma)^2)) over all "
           "recording rows, sigma^2 = recording sigma^2 + the simulation's own variance "
           "(1 = agreement to the noise)")
-MODEL_ACCURACY_RMS = 1.2
+EXPLAINED_SHARE = 0.5
 
 
 def select(chi0: float, n: int, fits: list[dict]) -> tuple[str, list[dict], bool]:
@@ -74,9 +79,9 @@ def select(chi0: float, n: int, fits: list[dict]) -> tuple[str, list[dict], bool
     return best["effect"], cands, consistent_with_noise(chi0, n)
 
 
-def closes(chi2: float, n: int) -> bool:
-    """Does a model reach the noise up to the forward model's stated accuracy (module docstring, 4)?"""
-    return chi2 <= MODEL_ACCURACY_RMS**2 * n + CONSISTENCY_Z * math.sqrt(2 * n)
+def closes(chi0: float, chi2: float, n: int) -> bool:
+    """Does a model explain the baseline's misfit (module docstring, 4)?"""
+    return adequate(chi2, n) or (chi0 > n and (chi0 - chi2) / (chi0 - n) >= EXPLAINED_SHARE)
 
 
 def candidate_names(requested: list[str] | None) -> list[str]:
@@ -121,9 +126,11 @@ def _effects_words(effects: list[str], params: dict) -> str:
     return "; ".join(parts)
 
 
-def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexplained: dict | None = None) -> str:
+def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexplained: dict | None = None,
+            remainder: dict | None = None) -> str:
     """Plain-language account; `fit` = {rms0, rms1, n, chi0, consistent}, `located` = (mismatch, shapes);
-    `unexplained` = {tried, rms_tried, mismatch, shapes} when even the best combination misses the noise."""
+    `unexplained` = {tried, rms_tried, mismatch, shapes} when even the best combination misses the noise;
+    `remainder` = {mismatch, shapes} of what named effects leave beyond the noise."""
     where = _where(*located)
     if unexplained is not None:
         tried = unexplained["tried"]
@@ -143,9 +150,13 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
                 f"rows), so no missing physics is named.")
     lead = ("The best explanation is" if len(effects) == 1
             else f"{len(effects)} effects are present, most important first:")
+    rest = ""
+    if remainder is not None:
+        rest = (f" A remainder beyond the noise and the model's stated accuracy is left unexplained."
+                f"{_where(remainder['mismatch'], [], 'largest remaining residual')}{_resembles(remainder['shapes'])}")
     return (f"The baseline simulation misses the recording (normalised rms {fit['rms0']:.2f}).{where} {lead} "
             f"{_effects_words(effects, params)}. Modelling {'it' if len(effects) == 1 else 'them together'} "
-            f"brings the rms down to {fit['rms1']:.2f}.")
+            f"brings the rms down to {fit['rms1']:.2f}.{rest}")
 
 
 def _rounded(d: dict) -> dict:
@@ -170,15 +181,15 @@ def _selection_doc(n: int, steps: list, closed: bool) -> dict:
              "bic_gain": round(s.gain, 3), "dropped": list(s.dropped)} for s in steps if s.added != "stop"]
     return {"criterion": (f"stepwise: add the candidate with the lowest BIC = chi2 + k ln n given the effects named "
                           f"so far, refit all jointly; it is named if it beats the current model by more than "
-                          f"{BIC_MARGIN:g} and the current model has chi2 > n + {CONSISTENCY_Z:g} sqrt(2n), or by more "
+                          f"{BIC_MARGIN:g} and the current model has chi2 > {MODEL_ACCURACY_RMS:g}^2 n + "
+                          f"{CONSISTENCY_Z:g} sqrt(2n) (noise plus the forward model's stated accuracy), or by more "
                           f"than max({BIC_OVERWHELMING:g}, {CONSISTENCY_Z:g} sqrt(2n)) = {overwhelming_bar(n):.1f} "
-                          f"whatever its chi2; stop when none passes. The named set must then reach chi2 <= "
-                          f"{MODEL_ACCURACY_RMS:g}^2 n + {CONSISTENCY_Z:g} sqrt(2n) (the forward model's stated "
-                          f"accuracy), "
-                          f"else nothing is named"),
+                          f"whatever its chi2; stop when none passes. The named set must then reach that bound or "
+                          f"remove at least {EXPLAINED_SHARE:g} of the baseline's misfit above n, else nothing is "
+                          f"named"),
             "n_rows": n, "chi2_baseline": round(steps[0].chi2, 3),
             "consistent_with_noise": bool(consistent_with_noise(steps[0].chi2, n)),
-            "best_combination_reaches_noise": bool(closed), "path": path}
+            "best_combination_explains": bool(closed), "path": path}
 
 
 def _known(forward: DiagnosisForward, fits: list[dict]) -> list[dict]:
@@ -193,16 +204,19 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
     rows = forward.rows
     final, base = steps[-1], steps[0]
     rms0 = math.sqrt(base.chi2 / n)
-    closed = closes(final.chi2, n)
+    closed = closes(base.chi2, final.chi2, n)
     chain = [("none",) + base.model] + [(s.added,) + s.model for s in steps[1:] if s.added != "stop"]
     mismatch = attribute(rows, located[0], chain)
-    unexplained = None
+    unexplained = remainder = None
     if final.effects and closed:
         effects, params, (v1, s1), rms1 = list(final.effects), final.values, final.model, math.sqrt(final.chi2 / n)
         ivals, notes = fit_intervals(forward, tuple(get_effect(e) for e in final.effects), final.values)
+        if not adequate(final.chi2, n):
+            remainder = {"mismatch": locate(rows, v1, s1, n_glass=n_glass),
+                         "shapes": classify(rows, v1, s1, n_glass=n_glass)}
     else:
         effects, params, (v1, s1), rms1, ivals, notes = ["none"], {}, base.model, rms0, {}, {}
-        if not closes(base.chi2, n):
+        if not adequate(base.chi2, n):
             v, s = final.model
             unexplained = {"tried": list(final.effects), "rms_tried": math.sqrt(final.chi2 / n),
                            "mismatch": locate(rows, v, s, n_glass=n_glass),
@@ -216,7 +230,8 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
         "effect": effects[0], "parameters": _rounded(params),
         "mismatch": mismatch,
         "candidates": _candidate_list(fits + _known(forward, fits), base.chi2, n),
-        "explanation": explain(effects, params, facts, ([e for e, _ in located[0]], located[1]), unexplained),
+        "explanation": explain(effects, params, facts, ([e for e, _ in located[0]], located[1]), unexplained,
+                               remainder),
         "effects": effects, "intervals": ivals, "interval_notes": notes,
         "shape": located[1][:3],
         "selection": _selection_doc(n, steps, closed),

@@ -18,10 +18,16 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
 2. the candidate with the lowest BIC(S + c) is the one that gains most; it passes the bar
    (`passes`) when
    - Delta BIC = BIC(S) - BIC(S + c) > BIC_MARGIN = 10 ("very strong", Kass & Raftery 1995),
-   - AND S is not consistent with the noise, chi^2_S > n + 3 sqrt(2 n) (99.9 % one-sided bound of
-     a chi^2 with n degrees of freedom, normal approximation), or the gain is overwhelming,
-     Delta BIC > max(40, 3 sqrt(2 n)) (a global chi^2 test has little power against an effect
-     confined to a few rows; under pure noise a 1-parameter gain of 45 has probability ~1e-11);
+   - AND S does not reach the noise within the forward model's stated accuracy (`adequate`:
+     chi^2_S > A^2 n + 3 sqrt(2 n), A = MODEL_ACCURACY_RMS = 1.2, the rms z the one plate model is
+     required to reach on clean independent recordings (issue 18); 3 sqrt(2 n) is the 99.9 %
+     one-sided spread of a chi^2 with n degrees of freedom, normal approximation), or the gain is
+     overwhelming, Delta BIC > max(40, 3 sqrt(2 n)) (a global chi^2 test has little power against
+     an effect confined to a few rows; under pure noise a 1-parameter gain of 45 has probability
+     ~1e-11).  A baseline that misses the noise only by the model's own stated inaccuracy is
+     not evidence of a missing physics: a candidate can always absorb part of a systematic
+     model error (a clean 48 px case on `normals` tables, rms 1.34, gained 21 with a relief
+     scale of 0.95; test_diagnose.test_clean_case_called_none);
 3. if it passes, every parameter of S + c is refitted jointly (`fitting.refit_joint`, starting
    from S's values and c's conditional fit), and a named effect that the others now make
    redundant (removing it, the rest held, loses less than BIC_MARGIN) is dropped;
@@ -48,11 +54,17 @@ from relief_bsdf.progress import silent
 BIC_OVERWHELMING = 40.0
 CONSISTENCY_Z = 3.0
 MAX_EFFECTS = 4
+MODEL_ACCURACY_RMS = 1.2
 
 
 def consistent_with_noise(chi2: float, n: int) -> bool:
     """chi^2 <= n + 3 sqrt(2 n): the 99.9 % one-sided bound of a chi^2 with n degrees of freedom."""
     return chi2 <= n + CONSISTENCY_Z * math.sqrt(2 * n)
+
+
+def adequate(chi2: float, n: int) -> bool:
+    """chi^2 <= A^2 n + 3 sqrt(2 n): the noise reached within the forward model's stated accuracy A."""
+    return chi2 <= MODEL_ACCURACY_RMS**2 * n + CONSISTENCY_Z * math.sqrt(2 * n)
 
 
 def overwhelming_bar(n: int) -> float:
@@ -62,7 +74,7 @@ def overwhelming_bar(n: int) -> float:
 def passes(chi_cur: float, k_cur: int, chi_new: float, k_new: int, n: int) -> bool:
     """Does the larger model (chi_new, k_new) pass the bar against the current one (module docstring)?"""
     gain = bic(chi_cur, k_cur, n) - bic(chi_new, k_new, n)
-    return gain > BIC_MARGIN and (not consistent_with_noise(chi_cur, n) or gain > overwhelming_bar(n))
+    return gain > BIC_MARGIN and (not adequate(chi_cur, n) or gain > overwhelming_bar(n))
 
 
 @dataclass
