@@ -300,6 +300,11 @@ def default_cases(n_per_effect: int = 2, n_none: int = 4, seed: int = 1, n_compo
     rng3 = task_rng(seed, 97)
     for kind, effect in (RELIEF_CASES if relief_cases else ()):
         k += 1
+        if kind == "measured" and not (_topography_dir() / MEASURED_MAP).is_file():
+            import warnings
+            warnings.warn(f"conceal: {_topography_dir() / MEASURED_MAP} not found: the measured-map case "
+                          f"case{k:02d} is left out", RuntimeWarning, stacklevel=2)
+            continue
         spec = _single_case(f"case{k:02d}", effect, rng3, seed * 1000 + k, False)
         spec.relief = kind
         cases.append(spec)
