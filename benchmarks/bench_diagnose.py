@@ -1,19 +1,27 @@
-"""Blind diagnosis of concealed-effect cases (issue 6 proof).
+"""Blind diagnosis of concealed-effect cases: single effects, compound cases, clean cases (issues 6, 14).
 
 Generates seeded cases with `relief_bsdf.validation.conceal` (independent Monte-Carlo photon plate
-through the ray-traced height field, realistic noise; one concealed effect or none per
-case, the key kept apart), runs `relief_bsdf.diagnose.run.diagnose` on each without the key,
-then compares.  Prints one line per case, a summary, and as last line one JSON object with
-`cases`, `named_right`, `none_right`, `median_rms_ratio` (over effect cases), parameter
-errors and timings.
+through the ray-traced height field, realistic noise; none, one or two concealed effects per case,
+on Gaussian, exponential, anisotropic, light-guide-dot and measured reliefs; the key kept apart),
+runs `relief_bsdf.diagnose.run.diagnose` on each without the key, then compares.  Prints one line
+per case, a summary, and as last line one JSON object with, separately for single-effect, compound
+and clean cases: cases, right (single: effects == [truth]; compound: every concealed effect named
+and no other; clean: effects == ["none"]), fraction; the median rms_after / rms_before over cases
+with effects; parameter errors; and the coverage of the 68 % intervals (how often the true value
+lies inside the reported interval; intervals reported as not determined are counted apart).
 
-    .venv/bin/python benchmarks/bench_diagnose.py [--out DIR] [--seed 1] [--per-effect 2] [--none 4]
-        [--method microfacet+dw] [--only bulk_absorption,...] [--candidates ...] [--case-photons N]
+    PYTHONPATH=backend/src .venv/bin/python benchmarks/bench_diagnose.py [--out DIR] [--seed 2]
+        [--per-effect 2] [--none 4] [--compound 1] [--no-relief-cases] [--method auto]
+        [--only bulk_absorption,...] [--candidates ...] [--case-photons N] [--photons N]
 
-`--only` keeps the cases of the named effects (and `none`), `--candidates` restricts the
-effects the diagnosis tries, `--case-photons` lowers the generator's photons: quick subsets
-for day-to-day checks; the full benchmark is the default.  Effects without a fitted
-parameter (interreflection, diffraction: a face swap) have no parameter error.
+Seeds: the selection rule's thresholds (BIC_MARGIN 10 of fit.selection, the noise-consistency
+gate 3 sqrt(2n), the overwhelming bar max(40, 3 sqrt(2n))) were set on seed 1 in the first
+(single-effect) benchmark; the stepwise search adds no threshold of its own, and its closure bar
+(rms 1.2) is the forward model's stated accuracy, not tuned here.  Report on a fresh seed
+(default 2).  `--only` keeps the cases whose every effect is named (plus clean cases),
+`--candidates` restricts the effects the diagnosis tries, `--case-photons` lowers the generator's
+photons: quick subsets for day-to-day checks; the full benchmark is the default.  Effects
+without a fitted parameter (interreflection, diffraction: a face swap) have no parameter error.
 """
 from __future__ import annotations
 
@@ -26,10 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
-from relief_bsdf.validation.conceal import default_cases, generate
 from relief_bsdf.diagnose.forward import DEFAULT_METHOD
 from relief_bsdf.diagnose.run import diagnose
 from relief_bsdf.parallel import map_tasks
+from relief_bsdf.validation.conceal import default_cases, generate
 
 KEY_PARAM = {"bulk_absorption": "absorption_per_mm", "volume_scattering": "scatter_per_mm",
              "back_face_roughness": "back_alpha", "sample_tilt": "tilt_deg", "instrument_blur": "blur_deg",
@@ -45,73 +53,144 @@ def _diag(context, name):
     t = time.time()
     r = diagnose(Path(root) / name / "sample.toml", Path(root) / name / "diagnosis", method=method, photons=photons,
                  effects=candidates, workers=1)
-    return {"effect": r["effect"], "parameters": r["parameters"], "rms_before": r["rms_before"],
-            "rms_after": r["rms_after"], "seconds": time.time() - t,
+    return {"effects": r["effects"], "parameters": r["parameters"], "intervals": r["intervals"],
+            "rms_before": r["rms_before"], "rms_after": r["rms_after"], "seconds": time.time() - t,
             "candidates": [(c["effect"], c["score"]) for c in r["candidates"][:3]]}
+
+
+def _read_results(root: Path, cases) -> tuple[list, list]:
+    """Results of the cases whose diagnosis.json exists under root (seconds from bench_results.jsonl if any)."""
+    secs = {}
+    log = root / "bench_results.jsonl"
+    if log.is_file():
+        for line in log.read_text().splitlines():
+            d = json.loads(line)
+            secs[d["case"]] = d["seconds"]
+    res, done = [], []
+    for c in cases:
+        f = root / c.name / "diagnosis" / "diagnosis.json"
+        if f.is_file():
+            r = json.loads(f.read_text())
+            res.append({"effects": r.get("effects") or [r["effect"]], "parameters": r["parameters"],
+                        "intervals": r.get("intervals", {}), "rms_before": r["rms_before"],
+                        "rms_after": r["rms_after"], "seconds": secs.get(c.name, float("nan")), "candidates": []})
+            done.append(c)
+    return res, done
+
+
+def _kind(key: dict) -> str:
+    eff = key.get("effects") or [key["effect"]]
+    return "clean" if eff == ["none"] else ("single" if len(eff) == 1 else "compound")
+
+
+def _param_checks(key: dict, r: dict, perr: dict, cover: dict) -> None:
+    """Parameter errors and interval coverage of every concealed effect the diagnosis named."""
+    for e in key.get("effects") or [key["effect"]]:
+        if e not in r["effects"] or e in PARAMETER_FREE or e == "none":
+            continue
+        p = KEY_PARAM[e]
+        tv, fv = key["parameters"][p], r["parameters"].get(p, float("nan"))
+        perr.setdefault(e, []).append({"true": round(tv, 5), "fitted": round(fv, 5),
+                                       "rel_error": round(abs(fv - tv) / abs(tv), 4)})
+        iv = r["intervals"].get(p)
+        if iv is None:
+            cover["not_determined"] += 1
+        else:
+            cover["inside" if iv[0] <= tv <= iv[1] else "outside"] += 1
+
+
+def summarise(cases, keys: dict, res: list) -> dict:
+    groups = {g: {"cases": 0, "right": 0} for g in ("single", "compound", "clean")}
+    ratios, perr = [], {}
+    cover = {"inside": 0, "outside": 0, "not_determined": 0}
+    for c, r in zip(cases, res):
+        k = keys[c.name]
+        g = _kind(k)
+        truth = k.get("effects") or [k["effect"]]
+        ok = (sorted(r["effects"]) == sorted(truth))
+        groups[g]["cases"] += 1
+        groups[g]["right"] += ok
+        if g != "clean":
+            ratios.append(r["rms_after"] / r["rms_before"])
+        _param_checks(k, r, perr, cover)
+        print(f"{c.name} [{g:8s} {k.get('relief', 'gaussian'):11s}] true={'+'.join(truth):36s} "
+              f"named={'+'.join(r['effects']):36s} {'OK ' if ok else 'BAD'} rms {r['rms_before']:.2f}->"
+              f"{r['rms_after']:.2f} true={k['parameters']} fit={r['parameters']} iv={r['intervals']} "
+              f"{r['seconds']:.0f}s", flush=True)
+    for g in groups.values():
+        g["fraction"] = round(g["right"] / g["cases"], 4) if g["cases"] else None
+    n_iv = cover["inside"] + cover["outside"]
+    return {**groups, "median_rms_ratio": round(float(np.median(ratios)), 4) if ratios else None,
+            "parameter_errors": perr,
+            "median_param_rel_error": round(float(np.median([e["rel_error"] for v in perr.values() for e in v])), 4)
+            if perr else None,
+            "interval_coverage": {**cover, "fraction_inside": round(cover["inside"] / n_iv, 4) if n_iv else None},
+            "seconds_per_diagnose_median": round(float(np.median([r["seconds"] for r in res])), 1) if res else None}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=None, help="folder for the cases (default: a temporary one)")
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=2, help="case seed (the rule was set on seed 1; report a fresh one)")
     ap.add_argument("--per-effect", type=int, default=2)
     ap.add_argument("--none", type=int, default=4)
+    ap.add_argument("--compound", type=int, default=1, help="cases per compound pair of conceal.COMPOUND_CASES")
+    ap.add_argument("--no-relief-cases", action="store_true", help="leave out the non-Gaussian relief cases")
     ap.add_argument("--photons", type=int, default=200_000,
                     help="diagnosis: Monte-Carlo samples per incidence of a sampling boundary method")
     ap.add_argument("--method", default=DEFAULT_METHOD, help="boundary method of the diagnosis baseline")
-    ap.add_argument("--only", default=None, help="comma-separated effects whose cases are kept (plus none)")
+    ap.add_argument("--only", default=None, help="comma-separated effects: keep cases whose effects are all among them")
+    ap.add_argument("--kinds", default=None, help="comma-separated case kinds to keep: single,compound,clean")
     ap.add_argument("--candidates", default=None, help="comma-separated candidate effects the diagnosis tries")
     ap.add_argument("--case-photons", type=int, default=None, help="generator photons per incidence (default: its own)")
     ap.add_argument("--reuse", action="store_true", help="reuse cases already in --out")
+    ap.add_argument("--serial", action="store_true", help="diagnose one case after the other, printing each result")
+    ap.add_argument("--summarise-only", action="store_true",
+                    help="no diagnosis: summarise the diagnosis.json files already under --out (implies --reuse)")
     a = ap.parse_args(argv)
     root = Path(a.out or tempfile.mkdtemp(prefix="bench_diagnose_"))
-    cases = default_cases(a.per_effect, a.none, a.seed)
+    cases = default_cases(a.per_effect, a.none, a.seed, n_compound=a.compound, relief_cases=not a.no_relief_cases)
     if a.only:
         keep = set(a.only.split(",")) | {"none"}
-        cases = [c for c in cases if c.effect in keep]
+        cases = [c for c in cases if set(c.effects) <= keep]
+    if a.kinds:
+        kinds = set(a.kinds.split(","))
+        cases = [c for c in cases if _kind({"effects": list(c.effects)}) in kinds]
     if a.case_photons:
         for c in cases:
             c.photons = int(a.case_photons)
     candidates = a.candidates.split(",") if a.candidates else None
     t0 = time.time()
-    if not (a.reuse and (root / "key.json").is_file()):
+    if not ((a.reuse or a.summarise_only) and (root / "key.json").is_file()):
         generate(root, cases)
     t_gen = time.time() - t0
     keys = {k["case"]: k for k in json.loads((root / "key.json").read_text())["cases"]}
+    cases = [c for c in cases if c.name in keys]
     t1 = time.time()
-    res = map_tasks(_diag, [c.name for c in cases], (str(root), a.photons, a.method, candidates), label="diagnose")
-    t_diag = time.time() - t1
-    named = none_ok = n_none = 0
-    ratios, perr = [], {}
-    for c, r in zip(cases, res):
-        k = keys[c.name]
-        ok = r["effect"] == k["effect"]
-        named += ok
-        if k["effect"] == "none":
-            n_none += 1
-            none_ok += ok
-        else:
-            ratios.append(r["rms_after"] / r["rms_before"])
-            if ok and k["effect"] not in PARAMETER_FREE:
-                p = KEY_PARAM[k["effect"]]
-                tv, fv = k["parameters"][p], r["parameters"].get(p, float("nan"))
-                perr.setdefault(k["effect"], []).append({"true": round(tv, 5), "fitted": round(fv, 5),
-                                                         "rel_error": round(abs(fv - tv) / abs(tv), 4)})
-        print(f"{c.name} true={k['effect']:20s} named={r['effect']:20s} {'OK ' if ok else 'BAD'} "
-              f"rms {r['rms_before']:.2f}->{r['rms_after']:.2f} true={k['parameters']} fit={r['parameters']} "
-              f"top={r['candidates']} {r['seconds']:.0f}s", flush=True)
-    n = len(cases)
-    summary = {"cases": n, "named_right": named, "named_right_fraction": round(named / n, 4),
-               "none_cases": n_none, "none_right": none_ok,
-               "median_rms_ratio": round(float(np.median(ratios)), 4) if ratios else None,
-               "parameter_errors": perr,
-               "median_param_rel_error": round(float(np.median([e["rel_error"] for v in perr.values() for e in v])), 4)
-               if perr else None,
-               "seconds_generate": round(t_gen, 1), "seconds_diagnose_total": round(t_diag, 1),
-               "seconds_per_diagnose_median": round(float(np.median([r["seconds"] for r in res])), 1),
-               "method": a.method, "cases_dir": str(root)}
-    print(f"named right {named}/{n}, none called none {none_ok}/{n_none}, median rms ratio over effect cases "
-          f"{summary['median_rms_ratio']}")
+    ctx = (str(root), a.photons, a.method, candidates)
+    if a.summarise_only:          # the diagnoses already written (e.g. a run stopped part-way)
+        res, cases = _read_results(root, cases)
+    elif a.serial:                # one case after the other, each result kept as it comes
+        res = []
+        for c in cases:
+            res.append(_diag(ctx, c.name))
+            with open(root / "bench_results.jsonl", "a") as fh:
+                fh.write(json.dumps({"case": c.name, **res[-1]}) + "\n")
+            print(f"{c.name} done: {'+'.join(res[-1]['effects'])} in {res[-1]['seconds']:.0f} s", flush=True)
+    else:
+        res = map_tasks(_diag, [c.name for c in cases], ctx, label="diagnose")
+    summary = summarise(cases, keys, res)
+    summary.update({"seed": a.seed, "method": a.method, "diagnosis_photons": a.photons,
+                    "case_photons": a.case_photons or "default", "candidates": candidates or "all",
+                    "seconds_generate": round(t_gen, 1), "seconds_diagnose_total": round(time.time() - t1, 1),
+                    "cases_dir": str(root),
+                    "rule": "thresholds set on seed 1 (first benchmark); this run reports seed "
+                            f"{a.seed}" + (" (fresh)" if a.seed != 1 else " (the seed the rule was set on)")})
+    for g in ("single", "compound", "clean"):
+        d = summary[g]
+        print(f"{g}: {d['right']}/{d['cases']} right")
+    print(f"median rms ratio {summary['median_rms_ratio']}, truth inside the 68 % interval "
+          f"{summary['interval_coverage']}")
     print(json.dumps(summary))
     return 0
 

@@ -5,9 +5,10 @@ import argparse
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
-    p = sub.add_parser("conceal", help="generate recordings with a concealed effect (proof data for diagnose)",
+    p = sub.add_parser("conceal", help="generate recordings with concealed effects (proof data for diagnose)",
                        description="Each case OUTDIR/caseNN holds relief.x3p, recording.csv and sample.toml "
-                                   "(nothing in them reveals the effect); OUTDIR/key.json holds the truth. Physics: "
+                                   "(nothing in them reveals the effects); OUTDIR/key.json holds the truth. Cases: "
+                                   "one effect each, compound pairs, clean, and non-Gaussian reliefs. Physics: "
                                    "independent Monte-Carlo photon plate through the ray-traced relief, with shot, "
                                    "gain and floor noise.")
     p.add_argument("-o", "--out", required=True, help="output folder")
@@ -31,7 +32,7 @@ def run(args) -> int:
         bad = [e for e in want if e not in EFFECTS_CONCEALABLE]
         if bad:
             raise InputError("--effects", f"unknown effect(s) {bad}; choose from {', '.join(EFFECTS_CONCEALABLE)}")
-        cases = [c for c in cases if c.effect in want]
+        cases = [c for c in cases if set(c.effects) <= set(want)]    # compound cases: every effect asked for
     if args.photons is not None:
         if args.photons < 1000:
             raise InputError("--photons", f"need at least 1000 photons, got {args.photons}")

@@ -12,7 +12,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                                    "relief_bsdf.diagnose.effects: absorption, back-face roughness, tilt, blur, "
                                    "polarisation, stray light, relief scale/smoothing, index, dispersion, "
                                    "interreflection, diffraction, partial coherence, ...) on the one plate model and "
-                                   "selects by BIC with a noise-consistency gate. Writes OUTDIR/diagnosis.json and "
+                                   "names every effect present by a stepwise BIC selection with a noise-consistency "
+                                   "gate (joint refit, 68 % intervals); an effect sample.toml states is held "
+                                   "fixed. Writes OUTDIR/diagnosis.json and "
                                    "OUTDIR/report.html.")
     p.add_argument("sample", help="sample.toml")
     p.add_argument("-o", "--out", required=True, help="output folder")
@@ -46,6 +48,7 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(r, indent=1))
     else:
-        print(f"{r['effect']}: rms {r['rms_before']:.3f} -> {r['rms_after']:.3f} {json.dumps(r['parameters'])}")
+        print(f"{' + '.join(r['effects'])}: rms {r['rms_before']:.3f} -> {r['rms_after']:.3f} "
+              f"{json.dumps(r['parameters'])} 68 % intervals {json.dumps(r['intervals'])}")
         print(r["explanation"])
     return 0

@@ -1,18 +1,41 @@
-"""Fit one candidate effect's parameters by least censored chi^2 on the plate model.
+"""Fit candidate effects' parameters by least censored chi^2 on the plate model; their 68 % intervals.
 
-Search (per parameter, within its bounds or the effect's data-driven bracket): a coarse
-grid that always contains the neutral value (the baseline, so a fit never ends worse than
-no effect), then a bounded Brent refinement between the best grid point's neighbours
-(scipy.optimize.minimize_scalar).  A log-scale parameter (a width ~ 1 / value) is searched
-on log10 and compared with its neutral value.  Several parameters: one coordinate pass
-per parameter, then the first again in a narrowed interval.  Cheap effects (tables
-re-used) get a finer grid than effects that re-derive the boundary tables.
+One effect (`fit_effect`), possibly on top of effects already named and held at their values
+(`fixed`, the conditional fit of a stepwise step): per parameter, within its bounds or the
+effect's data-driven bracket, a coarse grid that always contains the neutral value (the
+model without the effect, so a fit never ends worse than no effect), then a bounded Brent
+refinement between the best grid point's neighbours (scipy.optimize.minimize_scalar).  A
+log-scale parameter (a width ~ 1 / value) is searched on log10 and compared with its neutral
+value.  Several parameters: one coordinate pass per parameter, then the first again in a
+narrowed interval.  Cheap effects (tables re-used) get a finer grid than effects that
+re-derive the boundary tables.
+
+Several effects together (`refit_joint`): coordinate descent over every parameter of the
+set, starting from the values found so far (each effect's own fit), each coordinate searched
+in an interval around its current value by a short grid + Brent; at most `JOINT_PASSES`
+passes, stopping when a pass gains less than one unit of chi^2.  Budgeted: a table-changing
+coordinate gets a 3-point grid and 3 Brent steps, a cheap one 5 and 6.
+
+Intervals (`intervals`): the curvature of chi^2 at the best point in the Gauss-Newton form.
+With the residual vector r = (y - m) / s (s^2 = sigma_recording^2 + sigma_model^2, the s of
+the chi^2 the selection uses) and its Jacobian J (central differences), cov = (J^T J)^-1 is
+the covariance for Delta chi^2 = 1 (Press et al., Numerical Recipes 15.6); when the best
+model still misses the noise (chi^2 / (n - k) > 1) the covariance is inflated by that
+reduced chi^2 (Birge ratio).  A parameter is *not determined* (no interval, a note instead)
+when moving it across its whole search range changes chi^2 by less than 1 (the rows do not
+respond to it, e.g. a source polarisation seen through depolarising tables), when J^T J of
+the responding parameters is singular (their effects cannot be told apart), or when its
+1-sigma reaches past its whole search range.  An
+interval is clipped to the parameter's bounds.
 
 An effect the plate model cannot express for this sample (an InputError of the plate or a
 method's RequestError, such as Kirchhoff's sampling limits on this relief) comes back as
-skipped, with the reason, never as a number.
+skipped, with the reason, never as a number; an effect whose value sample.toml states is
+skipped as held fixed (`ReliefContext.known`).
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from scipy import optimize
@@ -22,11 +45,14 @@ from relief_bsdf.errors import InputError
 
 GRID_CHEAP, REFINE_CHEAP = 9, 10
 GRID_TABLES, REFINE_TABLES = 5, 5
+JOINT_PASSES = 2
+SINGULAR_COND = 1e12
 
 
 def _fit_1d(f, lo: float, hi: float, grid: int, refine: int, extra: tuple = ()) -> tuple[float, float]:
     """Grid (plus `extra` points) then bounded Brent between the best grid point's neighbours."""
     xs = np.unique(np.concatenate([np.linspace(lo, hi, grid), np.asarray(extra, float)]))
+    xs = xs[(xs >= lo) & (xs <= hi)]
     ys = [f(x) for x in xs]
     k = int(np.argmin(ys))
     best_x, best_y = float(xs[k]), float(ys[k])
@@ -39,26 +65,41 @@ def _fit_1d(f, lo: float, hi: float, grid: int, refine: int, extra: tuple = ()) 
     return best_x, best_y
 
 
-def _fit_param(cost, p: Param, lo: float, hi: float, grid: int, refine: int) -> float:
-    """Best value of one parameter (the others held) for cost(value); the neutral value unless beaten.
+def _fit_param(cost, p: Param, lo: float, hi: float, grid: int, refine: int, start: float | None = None) -> float:
+    """Best value of one parameter (the others held) for cost(value); `start` (default the neutral
+    value) unless beaten.
 
     A parameter the data do not constrain (a flat cost, e.g. the source polarisation seen through
-    depolarising tables) stays neutral instead of taking whichever grid end comes first.
+    depolarising tables) stays where it is instead of taking whichever grid end comes first.
     """
-    c0 = cost(p.neutral)
+    x0 = p.neutral if start is None else float(start)
+    c0 = cost(x0)
     if p.log_scale:
-        u, cu = _fit_1d(lambda u: cost(10.0**u), np.log10(lo), np.log10(hi), grid, refine)
+        u, cu = _fit_1d(lambda u: cost(10.0**u), np.log10(lo), np.log10(hi), grid, refine,
+                        (math.log10(x0),) if x0 > 0 else ())
         x, cx = 10.0**u, cu
     else:
-        x, cx = _fit_1d(cost, lo, hi, grid, refine, (p.neutral,) if lo <= p.neutral <= hi else ())
-    return x if cx < c0 - 1e-9 * max(1.0, abs(c0)) else p.neutral
+        extra = tuple(v for v in (p.neutral, x0) if lo <= v <= hi)
+        x, cx = _fit_1d(cost, lo, hi, grid, refine, extra)
+    return x if cx < c0 - 1e-9 * max(1.0, abs(c0)) else x0
 
 
-def _search(forward, effect: Effect) -> dict:
-    grid, refine = (GRID_CHEAP, REFINE_CHEAP) if effect.cheap else (GRID_TABLES, REFINE_TABLES)
+def search_bounds(forward, effect: Effect) -> dict:
+    """{param: (lo, hi)}: the parameter bounds, narrowed by the effect's data-driven bracket."""
     bounds = {p.name: (p.lower, p.upper) for p in effect.params}
     if effect.bracket is not None:
         bounds.update(effect.bracket(forward.context, forward))
+    return {k: (min(lo, hi), max(lo, hi)) for k, (lo, hi) in bounds.items()}
+
+
+def _search(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | None = None,
+            coarse: bool = False) -> dict:
+    grid, refine = (GRID_CHEAP, REFINE_CHEAP) if effect.cheap else (GRID_TABLES, REFINE_TABLES)
+    if coarse and not effect.cheap:          # a later stepwise step: the table-changing search is budgeted
+        grid, refine = 4, 3
+    bounds = search_bounds(forward, effect)
+    held_all = dict(fixed_values or {})
+    effects = tuple(fixed) + (effect,)
     values = effect.neutral
     if len(effect.params) > 1:        # coupled parameters: coarser passes, one more for the first
         grid, refine = max(3, grid - 1), max(2, refine - 2)
@@ -67,23 +108,118 @@ def _search(forward, effect: Effect) -> dict:
         lo, hi = bounds[p.name]
         if j == len(effect.params) and values[p.name] != p.neutral:   # second pass: narrowed interval
             lo, hi = max(lo, 0.5 * values[p.name]), min(hi, 1.5 * values[p.name])
-        held = dict(values)
+        held = {**held_all, **values}
 
         def cost(x, name=p.name, held=held):
-            return forward.evaluate(effect, {**held, name: float(x)})[0]
+            return forward.evaluate_set(effects, {**held, name: float(x)})[0]
         values[p.name] = float(_fit_param(cost, p, min(lo, hi), max(lo, hi), grid, refine))
     return values
 
 
-def fit_effect(forward, effect: Effect) -> dict:
-    """{effect, parameters, chi2, k, values, model_sigma} or {effect, skipped: reason}."""
-    reason = effect.skip_reason(forward.context)
+def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | None = None,
+               coarse: bool = False) -> dict:
+    """{effect, parameters, chi2, k, values, model_sigma} or {effect, skipped: reason}.
+
+    `fixed`/`fixed_values`: effects already named, held at their values (chi2 and values are then
+    those of all of them together, k counts this effect's parameters only).
+    """
+    known = dict(forward.context.known)
+    reason = known.get(effect.name) or effect.skip_reason(forward.context)
     if reason:
         return {"effect": effect.name, "skipped": reason}
     try:
-        values = _search(forward, effect) if effect.params else {}
-        c, v, s = forward.evaluate(effect, values)
+        values = _search(forward, effect, fixed, fixed_values, coarse) if effect.params else {}
+        c, v, s = forward.evaluate_set(tuple(fixed) + (effect,), {**(fixed_values or {}), **values})
     except InputError as e:
         return {"effect": effect.name, "skipped": str(e)}
     return {"effect": effect.name, "parameters": {k: float(x) for k, x in values.items()}, "chi2": c,
             "k": effect.k, "values": v, "model_sigma": s}
+
+
+def refit_joint(forward, effects: tuple, values: dict) -> tuple[dict, float]:
+    """(values, chi2) of every parameter of `effects` refitted jointly from `values` (module docstring)."""
+    values = dict(values)
+    params = [(e, p) for e in effects for p in e.params]
+    best = forward.evaluate_set(effects, values)[0]
+    if not params:
+        return values, best
+    bounds = {}
+    for e in effects:
+        bounds.update(search_bounds(forward, e))
+    for _ in range(JOINT_PASSES):
+        start = best
+        for e, p in params:
+            lo, hi = bounds[p.name]
+            x = values[p.name]
+            w = 0.25 * (hi - lo)
+            a, b = max(lo, x - w), min(hi, x + w)
+            if p.log_scale and x > 0:
+                a, b = max(lo, x / 2.0), min(hi, 2.0 * x)
+            grid, refine = (5, 6) if e.cheap else (3, 3)
+
+            def cost(v, name=p.name):
+                return forward.evaluate_set(effects, {**values, name: float(v)})[0]
+            values[p.name] = float(_fit_param(cost, p, a, b, grid, refine, start=x))
+            best = forward.evaluate_set(effects, values)[0]
+        if start - best < 1.0:
+            break
+    return values, best
+
+
+def _step(p: Param, x: float, lo: float, hi: float) -> float:
+    """Finite-difference step: 1 % of the search range, at most 10 % of the value (never 0)."""
+    h = 0.01 * (hi - lo)
+    if x != 0.0:
+        h = min(h, max(0.1 * abs(x), 1e-3 * (hi - lo)))
+    return h
+
+
+def intervals(forward, effects: tuple, values: dict) -> tuple[dict, dict]:
+    """({param: [lo, hi] or None}, {param: note}) at the best point (module docstring)."""
+    params = [p for e in effects for p in e.params]
+    if not params:
+        return {}, {}
+    rows = forward.rows
+    chi, v0, s0 = forward.evaluate_set(effects, values)
+    s = np.sqrt(np.asarray(rows.sigma_sr, float) ** 2 + s0**2)
+    bounds = {}
+    for e in effects:
+        bounds.update(search_bounds(forward, e))
+    J = np.zeros((len(rows), len(params)))
+    for j, p in enumerate(params):
+        x = values[p.name]
+        lo, hi = p.lower, p.upper
+        h = _step(p, x, *bounds[p.name])
+        xp, xm = min(x + h, hi), max(x - h, lo)
+        mp = forward.evaluate_set(effects, {**values, p.name: xp})[1]
+        mm = forward.evaluate_set(effects, {**values, p.name: xm})[1]
+        J[:, j] = -(mp - mm) / (xp - xm) / s
+    A = J.T @ J
+    n, k = len(rows), len(params)
+    inflate = max(1.0, chi / max(n - k, 1))
+    ranges = np.array([bounds[p.name][1] - bounds[p.name][0] for p in params])
+    live = np.diag(A) * ranges**2 >= 1.0        # moving it across its whole range changes chi^2 by >= 1
+    cov = np.full((k, k), np.nan)
+    idx = np.nonzero(live)[0]
+    sub = A[np.ix_(idx, idx)]
+    if idx.size and np.all(np.isfinite(sub)) and np.linalg.cond(sub) < SINGULAR_COND:
+        cov[np.ix_(idx, idx)] = np.linalg.inv(sub) * inflate
+    out, notes = {}, {}
+    for j, p in enumerate(params):
+        lo, hi = bounds[p.name]
+        if not live[j] or not np.isfinite(cov[j, j]) or cov[j, j] <= 0:
+            why = ("the recording does not respond to it (across its whole range chi^2 changes by less than 1)"
+                   if not live[j] else "its effect on the rows cannot be told apart from the other parameters'")
+            out[p.name] = None
+            notes[p.name] = f"not determined: {why}"
+            continue
+        sd = float(math.sqrt(cov[j, j]))
+        if sd >= (hi - lo):
+            out[p.name] = None
+            notes[p.name] = f"not determined: its 1-sigma ({sd:.3g}) exceeds its whole search range [{lo:g}, {hi:g}]"
+            continue
+        x = values[p.name]
+        out[p.name] = [round(max(x - sd, p.lower), 6), round(min(x + sd, p.upper), 6)]
+        if inflate > 1.0:
+            notes[p.name] = f"widened by sqrt of the reduced chi^2 {inflate:.2f} (the model misses the noise)"
+    return out, notes

@@ -19,14 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
-from relief_bsdf.diagnose.effects import Effect, ReliefContext
+from relief_bsdf.diagnose.effects import Effect, ReliefContext, apply_all
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import chi2
 from relief_bsdf.plate import DEFAULT_METHOD, Experiment, ReliefFace, TableGrid, experiment_from_sample, simulate
 from relief_bsdf.plate.choice import resolve_auto
 
-__all__ = ["DEFAULT_METHOD", "DiagnosisForward", "build_forward", "face_options"]
+__all__ = ["DEFAULT_METHOD", "DiagnosisForward", "build_forward", "face_options", "known_effects"]
 
+MEMO_SIZE = 400        # evaluations kept (each holds two row-length arrays)
 SIGMA_DRAWS = 8        # perturbation draws of the baseline's tables for the model sigma (plate.uncertainty)
 
 
@@ -40,6 +41,7 @@ class DiagnosisForward:
     grid: TableGrid | None = None             # the plate's table grid (None: the plate's default)
     evaluations: int = 0
     _baseline: tuple | None = field(default=None, repr=False)
+    _memo: dict = field(default_factory=dict, repr=False)
     _rel_sigma: np.ndarray | None = field(default=None, repr=False)
 
     def simulate(self, experiment: Experiment) -> tuple[np.ndarray, np.ndarray]:
@@ -69,11 +71,25 @@ class DiagnosisForward:
 
     def evaluate(self, effect: Effect, values: dict) -> tuple[float, np.ndarray, np.ndarray]:
         """(chi^2, values, model sigma) with `effect` at `values`; the neutral values are the baseline."""
-        if effect.params and all(values.get(p.name) == p.neutral for p in effect.params):
+        return self.evaluate_set((effect,), values)
+
+    def evaluate_set(self, effects, values: dict) -> tuple[float, np.ndarray, np.ndarray]:
+        """(chi^2, values, model sigma) with every effect of `effects` acting together at `values`
+        (`effects.apply_all`); all at their neutral values is the baseline.  Memoised on the effect
+        names and parameter values (a joint refit and the intervals revisit the points of the
+        single fits)."""
+        names = tuple(sorted(e.name for e in effects))
+        vals = {p.name: float(values.get(p.name, p.neutral)) for e in effects for p in e.params}
+        if all(vals[p.name] == p.neutral for e in effects for p in e.params) and all(e.params for e in effects):
             v, s = self.baseline()
-        else:
-            v, s = self.simulate(self.with_effect(effect, values))
-        return self.misfit(v, s), v, s
+            return self.misfit(v, s), v, s
+        key = (names, tuple(sorted((k, round(x, 12)) for k, x in vals.items())))
+        if key not in self._memo:
+            v, s = self.simulate(apply_all(self.experiment, self.context, effects, vals))
+            self._memo[key] = (self.misfit(v, s), v, s)
+            if len(self._memo) > MEMO_SIZE:
+                self._memo.pop(next(iter(self._memo)))
+        return self._memo[key]
 
     def misfit(self, values: np.ndarray, model_sigma: np.ndarray) -> float:
         return chi2(self.rows, values, model_sigma)
@@ -107,6 +123,16 @@ def face_options(method: str) -> dict:
     return {"polarized": True}
 
 
+def known_effects(sample) -> tuple:
+    """((effect, reason), ...) for the effects whose value sample.toml states: held fixed, not candidates."""
+    known = []
+    a = sample.plate.absorption_per_mm
+    if a is not None:
+        known.append(("bulk_absorption", f"held fixed: sample.toml states plate.absorption_per_mm = {a:g} "
+                                         f"(what the user knows is not a candidate)"))
+    return tuple(known)
+
+
 def _scale_and_filter():
     from relief_bsdf.surface.operations import scale_and_filter
     return scale_and_filter
@@ -135,5 +161,5 @@ def build_forward(sample_path: str | Path, method: str = DEFAULT_METHOD, samples
                             scale_and_filter=_scale_and_filter(),
                             wavelengths_nm=tuple(float(w) for w in np.unique(rows.wavelength_nm)),
                             detector_half_angle_deg=float(sample.instrument.detector_half_angle_deg),
-                            samples=samples, seed=seed, method_reason=front.chosen_by)
+                            samples=samples, seed=seed, method_reason=front.chosen_by, known=known_effects(sample))
     return DiagnosisForward(experiment, rows, context), sample

@@ -107,13 +107,20 @@ def classify(rows, model: np.ndarray, model_sigma: np.ndarray | None = None, n_g
 def locate(rows, model: np.ndarray, model_sigma: np.ndarray | None = None, *, threshold: float = 2.0,
            max_regions: int = 8, n_glass: float = 1.5) -> list[dict]:
     """Contiguous regions of large residual, largest share of chi^2 first (formats.md entries)."""
+    return [e for e, _ in regions(rows, model, model_sigma, threshold=threshold, max_regions=max_regions,
+                                  n_glass=n_glass)]
+
+
+def regions(rows, model: np.ndarray, model_sigma: np.ndarray | None = None, *, threshold: float = 2.0,
+            max_regions: int = 8, n_glass: float = 1.5) -> list[tuple[dict, np.ndarray]]:
+    """`locate`'s entries with the row indices of each region: [(entry, rows), ...]."""
     z = residual_z(rows, model, model_sigma)
     c = z**2
     total = float(c.sum())
     if total <= 0:
         return []
     multi_wl = np.ptp(np.asarray(rows.wavelength_nm, float)) > 0
-    regions = []
+    found = []
     for key, idx in _scans(rows).items():
         hot = np.abs(z[idx]) > threshold
         # bridge single-row gaps
@@ -141,7 +148,41 @@ def locate(rows, model: np.ndarray, model_sigma: np.ndarray | None = None, *, th
             shapes = classify(rows, model, model_sigma, n_glass, subset=idx)
             if shapes and shapes[0]["explained"] > 0.3:
                 entry["shape"] = shapes[0]["shape"]
-            regions.append(entry)
+            found.append((entry, sel))
             k = j + 1
-    regions.sort(key=lambda d: -d["share"])
-    return regions[:max_regions]
+    found.sort(key=lambda d: -d[0]["share"])
+    return found[:max_regions]
+
+
+# what a residual of each shape resembles physically (a description for the "nothing fits" account)
+SHAPE_PHYSICS = {
+    "offset": "a constant background (stray light, a detector offset)",
+    "gain": "a level error (source or detector calibration, a loss that does not depend on the path)",
+    "shift": "a displaced lobe (a tilted sample, a different refractive index)",
+    "broadening": "a wider or narrower lobe (beam divergence, relief heights or smoothing, back-face roughness)",
+    "path_deficit": "a loss growing with the path in the glass (bulk absorption, volume scattering)",
+    "asymmetry": "a left/right imbalance (a tilted sample, a polarised source, an anisotropic relief)",
+    "colour_trend": "a trend with wavelength (dispersion)",
+}
+
+
+def attribute(rows, found: list[tuple[dict, np.ndarray]], models: list[tuple[str, np.ndarray, np.ndarray]]
+              ) -> list[dict]:
+    """Which effect explains which region: `found` = regions of the baseline residual with their rows,
+    `models` = [(effect added, values, model sigma), ...] along the stepwise path, the baseline first
+    (effect "none").  Each entry gains `explained_by` (the effect whose step removed most of the
+    region's chi^2, or "unexplained" when the final model still leaves over half of it) and
+    `explained_share` {effect: fraction of the region's baseline chi^2 removed by its step}."""
+    out = []
+    for entry, sel in found:
+        c = [float(np.sum(residual_z(rows, v, s)[sel] ** 2)) for _, v, s in models]
+        shares = {}
+        for j in range(1, len(models)):
+            shares[models[j][0]] = round(max(c[j - 1] - c[j], 0.0) / c[0], 4) if c[0] > 0 else 0.0
+        e = dict(entry)
+        left = c[-1] / c[0] if c[0] > 0 else 0.0
+        e["explained_share"] = shares
+        e["explained_by"] = ("unexplained" if left > 0.5 or not shares
+                             else max(shares, key=lambda k: shares[k]))
+        out.append(e)
+    return out

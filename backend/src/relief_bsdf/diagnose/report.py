@@ -60,7 +60,8 @@ def _curves_png(rows, v0, v1, result: dict) -> bytes:
         sel, x = sel[o], x_all[sel][o]
         ax.errorbar(x, rows.bsdf_sr[sel], rows.sigma_sr[sel], fmt=".", ms=3, color="k", label="recording")
         ax.plot(x, v0[sel], "-", color="tab:red", label="baseline")
-        ax.plot(x, v1[sel], "-", color="tab:blue", label=f"with {result['effect']}")
+        named = " + ".join(result.get("effects") or [result["effect"]])
+        ax.plot(x, v1[sel], "-", color="tab:blue", label=f"with {named}")
         ax.axvline(-g[2], color="0.5", ls=":", lw=0.9, label="specular / undeviated")
         ax.set_yscale("symlog", linthresh=1e-2)
         ax.set_title(f"{g[1]}, theta_i = {g[2]:g} deg" + (f", {g[0]:g} nm" if len({q[0] for q in groups}) > 1 else ""),
@@ -87,23 +88,52 @@ def _candidates_html(result: dict) -> str:
     return H.table_html(["effect", "rms after", "score (BIC, lower is better)", "parameters"], rows)
 
 
+def _notes_html(notes: dict) -> str:
+    from relief_bsdf.report import html as H
+    if not notes:
+        return ""
+    return "<ul class='small'>" + "".join(f"<li><b>{H.esc(k)}</b>: {H.esc(v)}</li>" for k, v in notes.items()) + "</ul>"
+
+
+def _unexplained_html(u: dict) -> str:
+    from relief_bsdf.report import html as H
+    best = ", ".join(u["best_combination"]) or "no candidate passed the bar"
+    rows = [[m["side"], m["theta_i_deg"], m["phi_s_deg"],
+             f"{H.fmt(m['theta_s_deg'][0])} - {H.fmt(m['theta_s_deg'][1])}",
+             f"{100 * m['share']:.1f} %", m.get("shape", "")] for m in u["residual"]]
+    return (f"<p>Best combination tried: {H.esc(best)} (rms {H.fmt(u['rms_best_combination'], 3)}), still short of "
+            f"the noise: not named as the cause. The residual it leaves resembles: "
+            f"{H.esc('; '.join(u['resembles']) or 'none of the simple shapes')}.</p>"
+            + H.table_html(["side", "theta_i (deg)", "phi_s (deg)", "theta_s range (deg)", "share", "shape"], rows))
+
+
 def write_report(path: Path, rows, v0, s0, v1, s1, result: dict) -> Path:
     """report.html: verdict, parameters with intervals, residual maps (before/after), in-plane curves."""
     from relief_bsdf.report import html as H
     effects = result.get("effects") or [result["effect"]]
+    if result.get("unexplained"):
+        head = ("The simulation misses the recording and no combination of candidates explains it: "
+                "<b>no cause named</b>.")
+    else:
+        head = f"Left out: <b>{H.esc(', '.join(effects))}</b>."
     verdict = (f"<div class='verdict {'ok' if result['rms_after'] < result['rms_before'] else 'warn'}'>"
-               f"Left out: <b>{H.esc(', '.join(effects))}</b>. Metric {H.fmt(result['rms_before'], 3)} (baseline) "
+               f"{head} Metric {H.fmt(result['rms_before'], 3)} (baseline) "
                f"&rarr; {H.fmt(result['rms_after'], 3)} with it modelled.</div>"
                f"<p>{H.esc(result['explanation'])}</p><p class='small'><b>Metric.</b> {H.esc(result['metric'])}</p>")
     params = (H.table_html(["parameter", "unit", "value", "68 % interval"],
                            H.parameter_rows(result["parameters"], result.get("intervals")))
+              + _notes_html(result.get("interval_notes") or {})
               if result.get("parameters") else "<p>No parameters (no effect named).</p>")
-    mis = H.table_html(["side", "theta_i (deg)", "phi_s (deg)", "theta_s range (deg)", "share of residual", "shape"],
+    mis = H.table_html(["side", "theta_i (deg)", "phi_s (deg)", "theta_s range (deg)", "share of residual", "shape",
+                        "explained by"],
                        [[m["side"], m["theta_i_deg"], m["phi_s_deg"],
                          f"{H.fmt(m['theta_s_deg'][0])} - {H.fmt(m['theta_s_deg'][1])}", f"{100 * m['share']:.1f} %",
-                         m.get("shape", "")] for m in result["mismatch"]])
+                         m.get("shape", ""), m.get("explained_by", "")] for m in result["mismatch"]])
     sections = [H.section("Verdict", verdict), H.section("Fitted parameters", params),
-                H.section("Where the baseline misses", mis),
+                H.section("Where the baseline misses", mis)]
+    if result.get("unexplained"):
+        sections.append(H.section("What no candidate explains", _unexplained_html(result["unexplained"])))
+    sections += [
                 H.section("Candidates (best first)", _candidates_html(result)),
                 H.section("Residual maps", H.figure_html(_maps_png(rows, v0, s0, v1, s1, result),
                                                          "Residual per point, baseline (left) and with the effect "

@@ -1,34 +1,32 @@
-"""`relief diagnose`: locate the mismatch, name the missing physics, model it, refit.
+"""`relief diagnose`: locate the mismatch, name every missing physics, model it, refit, give intervals.
 
 Pipeline
 1. Baseline: the plate exactly as sample.toml states it, simulated by the one plate model
    (`forward.build_forward`: relief as measured on the front face, boundary tables by the
-   fit's method, `--method`).
-2. Locate: `mismatch.locate` / `mismatch.classify` on the noise-normalised baseline residual.
-3. Candidates: every effect module of `diagnose.effects` that applies to this sample is
-   fitted independently (`parallel.map_tasks`, one task per effect) by least censored chi^2
-   (`fitting.fit_effect`); an effect that does not apply, or that the plate engine cannot
-   express yet, is listed in `candidates` with the reason instead of a number.
-4. Select (documented criterion):
-   chi^2 = sum((y - m)^2 / (sigma^2 + sigma_model^2)) over the n rows (censored rows:
-   `fit.residual.chi2`), k = number of fitted parameters, score = BIC = chi^2 + k ln n
-   (Schwarz 1978), lower is better; `none` has k = 0.
-   - the candidate with the lowest BIC is named if it beats `none` by a "very strong" margin
-     (Delta BIC > 10, Kass & Raftery 1995) AND the baseline is not consistent with the noise,
-     chi^2_0 > n + 3 sqrt(2 n) (the 99.9 % one-sided bound of a chi^2 with n degrees of
-     freedom, normal approximation);
-   - a baseline that passes that global test is still rejected when one candidate gains an
-     overwhelming Delta BIC > max(40, 3 sqrt(2 n)) (a global chi^2 test has little power against
-     an effect confined to a few rows, e.g. a colour trend in a spectral scan; under pure noise
-     a 1-parameter gain of chi^2 > 45 has probability ~1e-11, so only model systematics can
-     reach it).  The bar grows with the chi^2 statistic's own spread sqrt(2 n): the baseline's
-     systematics grow with the number of rows, and a candidate must explain more than they
-     can hide.  (The fixed 40 alone was set from the first benchmark; a clean 420-row
-     spectral case then gained 44, which is why the bar scales with n - a change made after
-     seeing that run, re-checked on fresh seeds.);
-   - otherwise `none`.
-5. Report: diagnosis.json (formats.md schema; `effects` = [effect] and `intervals` = {}
-   until the stepwise selection and intervals of issue 14) + report.html, written atomically.
+   fit's method, `--method`).  What sample.toml states (plate.absorption_per_mm) is in the
+   baseline and held fixed: its effect is no candidate (listed as skipped, with the reason).
+2. Locate: `mismatch.regions` / `mismatch.classify` on the noise-normalised baseline residual.
+3. Candidates and selection: the stepwise search of `stepwise` (add the effect that gains most
+   by BIC = chi^2 + k ln n, refit all named effects jointly, stop when no further effect passes
+   the bar); an effect that does not apply, or that the plate engine cannot express yet, is
+   listed in `candidates` with the reason instead of a number.
+4. Closure: the chosen combination must explain the misfit: reach the noise up to the forward
+   model's own stated accuracy (`stepwise.adequate`: chi^2 <= 1.2^2 n + 3 sqrt(2 n)), or remove
+   at least EXPLAINED_SHARE = 1/2 of the baseline's misfit above the noise, (chi^2_0 - chi^2) /
+   (chi^2_0 - n) >= 1/2 (then what remains is reported as an unexplained remainder).  The share
+   was set on the seed-1 test cases (an absorption case on a 48 px relief whose `normals` model
+   misses by rms 1.8 after the fit: 0.95 explained; absorption + stray light seen through tilt
+   and polarisation only: 0.011), any value in 0.02 - 0.9 separating them; it is reported on
+   seed 2 by the benchmark.  If even the best combination fails both, no effect is named as the
+   cause (`effects` = ["none"]): the explanation says so, says where the unexplained residual
+   lives (`mismatch.locate` on the best combination's residual) and which physics its shape
+   resembles (`mismatch.SHAPE_PHYSICS`), and the best combination is reported as tried, not as
+   found.
+5. Intervals: 68 % intervals of every named parameter from the chi^2 curvature
+   (`fitting.intervals`); a parameter the data cannot pin down is null with a note.
+6. Report: diagnosis.json (formats.md schema: `effects` most important first, `effect` =
+   effects[0], `parameters` of every named effect, `intervals`; `mismatch` entries say which
+   named effect explains each region, `mismatch.attribute`) + report.html, written atomically.
 
 Metric: rms of the noise-normalised residual, sqrt(chi^2 / n) (1 = fits to the noise).
 """
@@ -41,25 +39,28 @@ from pathlib import Path
 import numpy as np
 
 from relief_bsdf.diagnose.effects import all_effects, get_effect
-from relief_bsdf.diagnose.fitting import fit_effect
+from relief_bsdf.diagnose.fitting import intervals as fit_intervals
 from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build_forward
-from relief_bsdf.diagnose.mismatch import classify, locate
+from relief_bsdf.diagnose.mismatch import SHAPE_PHYSICS, attribute, classify, locate, regions
 from relief_bsdf.diagnose.report import write_report
+from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODEL_ACCURACY_RMS, adequate,
+                                           consistent_with_noise, first_fits, overwhelming_bar, passes, stepwise)
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.selection import BIC_MARGIN
 from relief_bsdf.io.atomic import write_text_atomic
-from relief_bsdf.parallel import map_tasks
 from relief_bsdf.progress import silent
+
+__all__ = ["BIC_MARGIN", "BIC_OVERWHELMING", "CONSISTENCY_Z", "MODEL_ACCURACY_RMS", "candidate_names", "diagnose",
+           "explain", "select"]
 
 METRIC = ("rms of the noise-normalised residual sqrt(mean(((measured - simulated) / sigma)^2)) over all "
           "recording rows, sigma^2 = recording sigma^2 + the simulation's own variance "
           "(1 = agreement to the noise)")
-BIC_OVERWHELMING = 40.0
-CONSISTENCY_Z = 3.0
+EXPLAINED_SHARE = 0.5
 
 
 def select(chi0: float, n: int, fits: list[dict]) -> tuple[str, list[dict], bool]:
-    """Apply the selection criterion of the module docstring to the fitted candidates.
+    """One step of the selection (`stepwise.passes`) on candidates fitted against the baseline.
 
     `fits`: {effect, chi2, k, parameters} per candidate (skipped ones carry "skipped" and are
     ignored).  Returns (effect name or "none", candidates best first with score, consistent).
@@ -72,13 +73,15 @@ def select(chi0: float, n: int, fits: list[dict]) -> tuple[str, list[dict], bool
         cands.append({"effect": f["effect"], "chi2": f["chi2"], "k": f["k"], "score": f["chi2"] + f["k"] * ln,
                       "parameters": f["parameters"]})
     cands.sort(key=lambda c: c["score"])
-    consistent = chi0 <= n + CONSISTENCY_Z * math.sqrt(2 * n)
     best = cands[0]
-    gain = chi0 - best["score"]
-    overwhelming = max(BIC_OVERWHELMING, CONSISTENCY_Z * math.sqrt(2 * n))
-    if best["effect"] == "none" or gain <= BIC_MARGIN or (consistent and gain <= overwhelming):
-        return "none", cands, consistent
-    return best["effect"], cands, consistent
+    if best["effect"] == "none" or not passes(chi0, 0, best["chi2"], best["k"], n):
+        return "none", cands, consistent_with_noise(chi0, n)
+    return best["effect"], cands, consistent_with_noise(chi0, n)
+
+
+def closes(chi0: float, chi2: float, n: int) -> bool:
+    """Does a model explain the baseline's misfit (module docstring, 4)?"""
+    return adequate(chi2, n) or (chi0 > n and (chi0 - chi2) / (chi0 - n) >= EXPLAINED_SHARE)
 
 
 def candidate_names(requested: list[str] | None) -> list[str]:
@@ -92,89 +95,156 @@ def candidate_names(requested: list[str] | None) -> list[str]:
     return [e for e in names if e in requested]
 
 
-def _fit_task(forward: DiagnosisForward, name: str) -> dict:
-    return fit_effect(forward, get_effect(name))
-
-
-def _where(mismatch: list, shapes: list) -> str:
+def _where(mismatch: list, shapes: list, what: str = "largest misfit") -> str:
     where = ""
     if mismatch:
         m = mismatch[0]
-        where = (f" The largest misfit ({m['share']:.0%} of it) is on the {m['side']} side at theta_i = "
+        where = (f" The {what} ({m['share']:.0%} of it) is on the {m['side']} side at theta_i = "
                  f"{m['theta_i_deg']:g} deg, phi_s = {m['phi_s_deg']:g} deg, theta_s {m['theta_s_deg'][0]:g}-"
                  f"{m['theta_s_deg'][1]:g} deg ({m['sign']}).")
     if shapes and shapes[0]["explained"] > 0.3:
-        where += (f" Its shape is mostly a {shapes[0]['shape'].replace('_', ' ')} "
+        word = shapes[0]["shape"].replace("_", " ")
+        where += (f" Its shape is mostly {'an' if word[0] in 'aeiou' else 'a'} {word} "
                   f"({shapes[0]['explained']:.0%} of the misfit).")
     return where
 
 
-def explain(effect: str, params: dict, fit: dict, located: tuple, runner_up: dict | None) -> str:
-    """Plain-language account; `fit` = {rms0, rms1, n, chi0, consistent}, `located` = (mismatch, shapes)."""
+def _resembles(shapes: list) -> str:
+    good = [s for s in shapes if s["explained"] > 0.3][:2]
+    if not good:
+        return " Its shape matches none of the simple templates (offset, gain, shift, broadening, path loss)."
+    return " It resembles " + "; or ".join(f"{SHAPE_PHYSICS[s['shape']]} ({s['explained']:.0%} of it)"
+                                          for s in good) + "."
+
+
+def _effects_words(effects: list[str], params: dict) -> str:
+    parts = []
+    for name in effects:
+        e = get_effect(name)
+        mine = {p.name: params[p.name] for p in e.params if p.name in params}
+        parts.append(f"{name.replace('_', ' ')} ({e.physics}; {e.explain(mine)})")
+    return "; ".join(parts)
+
+
+def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexplained: dict | None = None,
+            remainder: dict | None = None) -> str:
+    """Plain-language account; `fit` = {rms0, rms1, n, chi0, consistent}, `located` = (mismatch, shapes);
+    `unexplained` = {tried, rms_tried, mismatch, shapes} when even the best combination misses the noise;
+    `remainder` = {mismatch, shapes} of what named effects leave beyond the noise."""
     where = _where(*located)
-    if effect == "none":
-        if fit["consistent"]:
-            return (f"The simulation of the plate as described agrees with the recording to within its noise "
-                    f"(rms of the normalised residual {fit['rms0']:.2f}, chi2 = {fit['chi0']:.0f} for {fit['n']} "
-                    f"rows), so no missing physics is named.")
-        return (f"The simulation misses the recording (normalised rms {fit['rms0']:.2f}),{where} but no candidate "
-                f"effect explains it convincingly (none improves the BIC by more than {BIC_MARGIN:g}); the cause may "
-                f"be outside the candidates tried.")
-    e = get_effect(effect)
-    alt = ""
-    if runner_up is not None:
-        alt = f" The next best explanation, {runner_up['effect']}, fits less well (rms {runner_up['rms_after']:.2f})."
-    return (f"The baseline simulation misses the recording (normalised rms {fit['rms0']:.2f}).{where} The best "
-            f"explanation is {effect.replace('_', ' ')}: {e.physics}. Modelling it with {e.explain(params)} "
-            f"brings the rms down to {fit['rms1']:.2f}.{alt}")
+    if unexplained is not None:
+        tried = unexplained["tried"]
+        best = (f"The best combination of candidates, {', '.join(tried)}, brings it only to "
+                f"{unexplained['rms_tried']:.2f}, still short of the noise, so it is not named as the cause."
+                if tried else "No candidate effect improves it by more than the bar.")
+        return (f"The simulation of the plate as described misses the recording (normalised rms {fit['rms0']:.2f})."
+                f"{where} {best}{_where(unexplained['mismatch'], [], 'largest unexplained residual')}"
+                f"{_resembles(unexplained['shapes'])} The cause may be outside the candidates tried "
+                f"or in the relief's own model.")
+    if effects == ["none"]:
+        within = ("within its noise" if fit["consistent"] else
+                  f"within its noise and the forward model's stated accuracy (rms {MODEL_ACCURACY_RMS:g}), and no "
+                  f"candidate passes the bar")
+        return (f"The simulation of the plate as described agrees with the recording to {within} "
+                f"(rms of the normalised residual {fit['rms0']:.2f}, chi2 = {fit['chi0']:.0f} for {fit['n']} "
+                f"rows), so no missing physics is named.")
+    lead = ("The best explanation is" if len(effects) == 1
+            else f"{len(effects)} effects are present, most important first:")
+    rest = ""
+    if remainder is not None:
+        rest = (f" A remainder beyond the noise and the model's stated accuracy is left unexplained."
+                f"{_where(remainder['mismatch'], [], 'largest remaining residual')}{_resembles(remainder['shapes'])}")
+    return (f"The baseline simulation misses the recording (normalised rms {fit['rms0']:.2f}).{where} {lead} "
+            f"{_effects_words(effects, params)}. Modelling {'it' if len(effects) == 1 else 'them together'} "
+            f"brings the rms down to {fit['rms1']:.2f}.{rest}")
 
 
 def _rounded(d: dict) -> dict:
     return {k: round(float(v), 6) for k, v in d.items()}
 
 
-def _candidate_list(cands: list[dict], fits: list[dict], n: int) -> list[dict]:
-    out = [{"effect": c["effect"], "rms_after": round(math.sqrt(c["chi2"] / n), 6), "score": round(c["score"], 3),
-            "parameters": _rounded(c["parameters"])} for c in cands]
+def _candidate_list(fits: list[dict], chi0: float, n: int) -> list[dict]:
+    """Every effect tried alone against the baseline (the first step), best first; skipped ones last."""
+    ln = math.log(max(n, 2))
+    out = [{"effect": "none", "rms_after": round(math.sqrt(chi0 / n), 6), "score": round(chi0, 3), "parameters": {}}]
+    out += [{"effect": f["effect"], "rms_after": round(math.sqrt(f["chi2"] / n), 6),
+             "score": round(f["chi2"] + f["k"] * ln, 3), "parameters": _rounded(f["parameters"])}
+            for f in fits if not f.get("skipped")]
+    out.sort(key=lambda c: c["score"])
     out += [{"effect": f["effect"], "rms_after": None, "score": None, "parameters": {}, "skipped": f["skipped"]}
             for f in fits if f.get("skipped")]
     return out
 
 
-def _selection_doc(n: int, chi0: float, consistent: bool) -> dict:
-    return {"criterion": f"BIC = chi2 + k ln n; an effect is named if it beats none by more than "
-                         f"{BIC_MARGIN:g} and chi2_0 > n + {CONSISTENCY_Z:g} sqrt(2n), or by more than "
-                         f"max({BIC_OVERWHELMING:g}, {CONSISTENCY_Z:g} sqrt(2n)) whatever chi2_0; else none",
-            "n_rows": n, "chi2_baseline": round(chi0, 3), "consistent_with_noise": bool(consistent)}
+def _selection_doc(n: int, steps: list, closed: bool) -> dict:
+    path = [{"effects": list(s.effects) or ["none"], "added": s.added, "chi2": round(s.chi2, 3), "k": s.k,
+             "bic_gain": round(s.gain, 3), "dropped": list(s.dropped)} for s in steps if s.added != "stop"]
+    return {"criterion": (f"stepwise: add the candidate with the lowest BIC = chi2 + k ln n given the effects named "
+                          f"so far, refit all jointly; it is named if it beats the current model by more than "
+                          f"{BIC_MARGIN:g} and the current model has chi2 > {MODEL_ACCURACY_RMS:g}^2 n + "
+                          f"{CONSISTENCY_Z:g} sqrt(2n) (noise plus the forward model's stated accuracy), or by more "
+                          f"than max({BIC_OVERWHELMING:g}, {CONSISTENCY_Z:g} sqrt(2n)) = {overwhelming_bar(n):.1f} "
+                          f"whatever its chi2; stop when none passes. The named set must then reach that bound or "
+                          f"remove at least {EXPLAINED_SHARE:g} of the baseline's misfit above n, else nothing is "
+                          f"named"),
+            "n_rows": n, "chi2_baseline": round(steps[0].chi2, 3),
+            "consistent_with_noise": bool(consistent_with_noise(steps[0].chi2, n)),
+            "best_combination_explains": bool(closed), "path": path}
 
 
-def _result(forward: DiagnosisForward, fits: list[dict], located: tuple, chi0: float) -> tuple[dict, tuple]:
+def _known(forward: DiagnosisForward, fits: list[dict]) -> list[dict]:
+    """Held-fixed effects as skipped candidates (they were never offered to the search)."""
+    have = {f["effect"] for f in fits}
+    return [{"effect": name, "skipped": why} for name, why in forward.context.known if name not in have]
+
+
+def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: float) -> tuple[dict, tuple]:
     """diagnosis.json's dict and the (values, sigma) of the chosen model."""
     n = len(forward.rows)
-    effect, cands, consistent = select(chi0, n, fits)
-    rms0 = math.sqrt(chi0 / n)
-    v1, s1 = forward.baseline()
-    params, rms1 = {}, rms0
-    if effect != "none":
-        f = next(f for f in fits if f["effect"] == effect)
-        params, rms1, v1, s1 = f["parameters"], math.sqrt(f["chi2"] / n), f["values"], f["model_sigma"]
-    listed = _candidate_list(cands, fits, n)
-    runner = next((c for c in listed if c["effect"] not in (effect, "none") and not c.get("skipped")), None)
+    rows = forward.rows
+    final, base = steps[-1], steps[0]
+    rms0 = math.sqrt(base.chi2 / n)
+    closed = closes(base.chi2, final.chi2, n)
+    chain = [("none",) + base.model] + [(s.added,) + s.model for s in steps[1:] if s.added != "stop"]
+    mismatch = attribute(rows, located[0], chain)
+    unexplained = remainder = None
+    if final.effects and closed:
+        effects, params, (v1, s1), rms1 = list(final.effects), final.values, final.model, math.sqrt(final.chi2 / n)
+        ivals, notes = fit_intervals(forward, tuple(get_effect(e) for e in final.effects), final.values)
+        if not adequate(final.chi2, n):
+            remainder = {"mismatch": locate(rows, v1, s1, n_glass=n_glass),
+                         "shapes": classify(rows, v1, s1, n_glass=n_glass)}
+    else:
+        effects, params, (v1, s1), rms1, ivals, notes = ["none"], {}, base.model, rms0, {}, {}
+        if not adequate(base.chi2, n):
+            v, s = final.model
+            unexplained = {"tried": list(final.effects), "rms_tried": math.sqrt(final.chi2 / n),
+                           "mismatch": locate(rows, v, s, n_glass=n_glass),
+                           "shapes": classify(rows, v, s, n_glass=n_glass)}
+    fits = first_fits(steps)
     ctx = forward.context
-    facts = {"rms0": rms0, "rms1": rms1, "n": n, "chi0": chi0, "consistent": consistent}
+    facts = {"rms0": rms0, "rms1": rms1, "n": n, "chi0": base.chi2, "consistent": consistent_with_noise(base.chi2, n)}
     result = {
         "format": "relief-diagnosis/1", "metric": METRIC,
         "rms_before": round(rms0, 6), "rms_after": round(rms1, 6),
-        "effect": effect, "parameters": _rounded(params),
-        "mismatch": located[0], "candidates": listed,
-        "explanation": explain(effect, params, facts, located, runner),
-        "effects": [effect], "intervals": {},
+        "effect": effects[0], "parameters": _rounded(params),
+        "mismatch": mismatch,
+        "candidates": _candidate_list(fits + _known(forward, fits), base.chi2, n),
+        "explanation": explain(effects, params, facts, ([e for e, _ in located[0]], located[1]), unexplained,
+                               remainder),
+        "effects": effects, "intervals": ivals, "interval_notes": notes,
         "shape": located[1][:3],
-        "selection": _selection_doc(n, chi0, consistent),
+        "selection": _selection_doc(n, steps, closed),
         "forward_model": {"engine": "deterministic", "method": ctx.method, "samples": ctx.samples, "seed": ctx.seed,
                           "rough_face_model": f"boundary tables of the measured relief by method {ctx.method}",
-                          "method_reason": ctx.method_reason},
+                          "method_reason": ctx.method_reason, "evaluations": forward.evaluations},
     }
+    if unexplained is not None:
+        result["unexplained"] = {"best_combination": unexplained["tried"],
+                                 "rms_best_combination": round(unexplained["rms_tried"], 6),
+                                 "residual": unexplained["mismatch"], "shape": unexplained["shapes"][:3],
+                                 "resembles": [SHAPE_PHYSICS[s["shape"]] for s in unexplained["shapes"][:2]
+                                               if s["explained"] > 0.3]}
     return result, (v1, s1)
 
 
@@ -190,11 +260,10 @@ def diagnose(sample_path: str | Path, out_dir: str | Path, progress=None, *, met
     forward, sample = build_forward(sample_path, method, photons, seed)
     rows = forward.rows
     v0, s0 = forward.baseline()
-    chi0 = forward.misfit(v0, s0)
     n_mid = float(np.real(sample.plate.index.n(float(np.median(rows.wavelength_nm)))))
-    located = (locate(rows, v0, s0, n_glass=n_mid), classify(rows, v0, s0, n_glass=n_mid))
-    fits = map_tasks(_fit_task, names, forward, progress=progress, label="candidate effects", workers=workers)
-    result, (v1, s1) = _result(forward, fits, located, chi0)
+    located = (regions(rows, v0, s0, n_glass=n_mid), classify(rows, v0, s0, n_glass=n_mid))
+    steps = stepwise(forward, names, progress, workers)
+    result, (v1, s1) = _result(forward, steps, located, n_mid)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "diagnosis.json", json.dumps(result, indent=1))

@@ -1,9 +1,18 @@
-"""Concealed-effect cases: recordings in which one physical effect (or none) is hidden.
+"""Concealed-effect cases: recordings in which physical effects (none, one or several) are hidden.
 
 Each case is a folder with `relief.x3p`, `recording.csv` and `sample.toml` (nothing in it
-reveals the effect: absorption is always "not known", the index is the nominal one, the
-instrument is the nominal one) plus `key.json` kept apart (the effect and its true
-parameters).  The physics is an *independent* Monte-Carlo photon simulation:
+reveals the effects: absorption is always "not known", the index is the nominal one, the
+instrument is the nominal one) plus `key.json` kept apart (the effects and their true
+parameters: `effects` the list, `effect` its first entry, for readers of the one-effect key).
+
+Compound cases (`COMPOUND_CASES`) conceal two effects at once, each done as its own physics in
+the same photon run (parameter names are unique across effects, so one `parameters` dict
+holds both).  Reliefs (`CaseSpec.relief`): "gaussian" (default), "exponential"
+(autocovariance s^2 exp(-r/L), `random_relief(kind="exponential")`), "anisotropic"
+(`RandomFieldSpec`, correlation length 2.5 L along 30 deg), "dots" (light-guide-plate caps,
+`surface.synth.lgp_dots`) and "measured" (`measured_tile`: the real instrument map
+../shared/data/topography/ST_x3p-2.x3p, levelled, central crop, heights x 3, mirrored into a
+periodic tile).  The physics is an *independent* Monte-Carlo photon simulation:
 
 - the rough face is the real relief, triangulated and ray traced with Embree
   (`HeightFieldFace`: shadowing, masking and interreflection on the relief are all there),
@@ -54,7 +63,7 @@ Assumptions: geometric optics except the wave cases above, periodic synthetic re
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +85,16 @@ STEEP_RELIEF = {"rms_um": (1.6, 2.2), "corr_um": 2.5}   # interreflection cases:
 # wave-optics cases (module docstring): transmitted coherent fraction 0.21 - 0.63, reflection mostly diffuse
 WAVE_RELIEF = {"rms_um": (0.12, 0.16), "corr_um": 2.5, "pitch_um": 0.5, "relief_n": 256}
 WAVE_EFFECTS = ("diffraction", "partial_coherence")
+RELIEF_KINDS = ("gaussian", "exponential", "anisotropic", "dots", "measured")
+# compound cases (issue 14): two effects concealed together
+COMPOUND_CASES = (("bulk_absorption", "stray_light"), ("sample_tilt", "instrument_blur"),
+                  ("relief_scale", "bulk_absorption"), ("polarization", "stray_light"),
+                  ("relief_smoothing", "sample_tilt"))
+# single-effect and clean cases on non-Gaussian reliefs: (relief kind, effect)
+RELIEF_CASES = (("dots", "none"), ("dots", "bulk_absorption"), ("exponential", "none"),
+                ("exponential", "sample_tilt"), ("anisotropic", "none"), ("anisotropic", "stray_light"),
+                ("measured", "none"), ("measured", "instrument_blur"))
+MEASURED_MAP = "ST_x3p-2.x3p"
 
 
 # ------------------------------------------------------------------ height-field face
@@ -164,12 +183,13 @@ class HeightFieldFace:
 
 @dataclass
 class CaseSpec:
-    """One concealed case: the effect, its true parameters, geometry and noise."""
+    """One concealed case: the effects (`effects`; `effect` = the first, or the only one), their true
+    parameters, the relief kind (module docstring), geometry and noise."""
 
     name: str
-    effect: str
-    parameters: dict
-    seed: int
+    effect: str = ""
+    parameters: dict = field(default_factory=dict)
+    seed: int = 0
     n_glass: float = 1.5
     thickness_mm: float = 2.0
     half_angle_deg: float = 2.5
@@ -184,69 +204,157 @@ class CaseSpec:
     counts_per_sr: float = 4.0e5      # detector counts per unit BSDF (shot noise scale)
     gain_noise: float = 0.02
     floor_sr: float = 2e-3
+    effects: tuple = ()
+    relief: str = "gaussian"
+
+    def __post_init__(self) -> None:
+        self.effects = tuple(self.effects) or ((self.effect or "none"),)
+        if self.effect and len(self.effects) == 1:
+            self.effects = (self.effect,)      # the one-effect form (also `dataclasses.replace(spec, effect=...)`)
+        if self.effect and self.effect != self.effects[0]:
+            raise ValueError(f"case {self.name}: effect {self.effect!r} is not the first of effects {self.effects}")
+        unknown = [e for e in self.effects if e not in EFFECTS_CONCEALABLE]
+        if unknown or ("none" in self.effects and len(self.effects) > 1):
+            raise ValueError(f"case {self.name}: cannot conceal {self.effects}")
+        if self.relief not in RELIEF_KINDS:
+            raise ValueError(f"case {self.name}: relief kind {self.relief!r} is not one of {RELIEF_KINDS}")
+        self.effect = self.effects[0]
 
 
-def default_cases(n_per_effect: int = 2, n_none: int = 4, seed: int = 1) -> list[CaseSpec]:
-    """A seeded list of cases: `n_per_effect` per concealed effect and `n_none` clean ones.
+def _draw(effect: str, rng: np.random.Generator) -> dict:
+    """True parameters of one concealed effect, drawn from ranges large enough to matter and
+    within the effect's plausible physical range."""
+    u = rng.random()
+    if effect == "bulk_absorption":
+        return {"absorption_per_mm": float(0.1 + 0.25 * u)}
+    if effect == "volume_scattering":
+        return {"scatter_per_mm": float(0.15 + 0.25 * u), "hg_g": float(0.6 + 0.2 * rng.random())}
+    if effect == "back_face_roughness":
+        return {"back_alpha": float(0.08 + 0.1 * u)}
+    if effect == "sample_tilt":
+        return {"tilt_deg": float((2.0 + 2.0 * u) * (1 if rng.random() < 0.5 else -1))}
+    if effect == "instrument_blur":
+        return {"blur_deg": float(2.0 + 1.5 * u)}
+    if effect == "polarization":
+        return {"polarization_q": float((0.7 + 0.3 * u) * (1 if rng.random() < 0.5 else -1))}
+    if effect == "stray_light":
+        return {"background_per_sr": float(0.02 + 0.03 * u)}
+    if effect == "relief_scale":
+        # scaled *up*: a scale-down of a Gaussian relief is degenerate with smoothing in ray optics
+        return {"height_scale": float(1.2 + 0.25 * u)}
+    if effect == "relief_smoothing":
+        return {"filter_sigma_um": float(1.5 + 1.0 * u)}
+    if effect == "dispersion":
+        return {"cauchy_B_nm2": float(15000 + 10000 * u)}
+    if effect == "interreflection":
+        return {"interreflection_weight": 1.0}
+    if effect == "diffraction":
+        return {"coherent_scale": 1.0}
+    if effect == "partial_coherence":
+        return {"coherence_length_um": float(0.8 + 0.7 * u)}
+    return {}
 
-    Parameter values are drawn per case (seeded) from ranges large enough to matter and
-    within each effect's plausible physical range.
-    """
+
+def _single_case(name: str, effect: str, rng: np.random.Generator, seed: int, spectral: bool) -> CaseSpec:
+    spec = CaseSpec(name=name, effect=effect, parameters=_draw(effect, rng), seed=seed)
+    if effect == "dispersion" or spectral:
+        spec.wavelengths_nm = (450.0, 550.0, 650.0)
+        spec.theta_i_deg = (0.0, 45.0)
+    if effect == "interreflection":
+        lo, hi = STEEP_RELIEF["rms_um"]
+        spec.rms_um = float(lo + (hi - lo) * rng.random())
+        spec.corr_um = STEEP_RELIEF["corr_um"]
+    if effect in WAVE_EFFECTS:
+        lo, hi = WAVE_RELIEF["rms_um"]
+        spec.rms_um = float(lo + (hi - lo) * rng.random())
+        spec.corr_um = WAVE_RELIEF["corr_um"]
+        spec.pitch_um = WAVE_RELIEF["pitch_um"]
+        spec.relief_n = WAVE_RELIEF["relief_n"]
+    return spec
+
+
+def default_cases(n_per_effect: int = 2, n_none: int = 4, seed: int = 1, n_compound: int = 1,
+                  relief_cases: bool = True) -> list[CaseSpec]:
+    """A seeded list of cases: `n_per_effect` per concealed effect and `n_none` clean ones (Gaussian
+    reliefs), then `n_compound` per pair of `COMPOUND_CASES`, then (`relief_cases`) the single-effect
+    and clean cases of `RELIEF_CASES` on non-Gaussian reliefs.  Parameter values are drawn per case
+    (seeded, `_draw`); the compound and relief cases draw from their own streams, so adding them
+    leaves the single-effect cases of a seed as they were."""
     rng = task_rng(seed, 99)
     cases = []
-
-    def draw(effect: str):
-        u = rng.random()
-        if effect == "bulk_absorption":
-            return {"absorption_per_mm": float(0.1 + 0.25 * u)}
-        if effect == "volume_scattering":
-            return {"scatter_per_mm": float(0.15 + 0.25 * u), "hg_g": float(0.6 + 0.2 * rng.random())}
-        if effect == "back_face_roughness":
-            return {"back_alpha": float(0.08 + 0.1 * u)}
-        if effect == "sample_tilt":
-            return {"tilt_deg": float((2.0 + 2.0 * u) * (1 if rng.random() < 0.5 else -1))}
-        if effect == "instrument_blur":
-            return {"blur_deg": float(2.0 + 1.5 * u)}
-        if effect == "polarization":
-            return {"polarization_q": float((0.7 + 0.3 * u) * (1 if rng.random() < 0.5 else -1))}
-        if effect == "stray_light":
-            return {"background_per_sr": float(0.02 + 0.03 * u)}
-        if effect == "relief_scale":
-            # scaled *up*: a scale-down of a Gaussian relief is degenerate with smoothing in ray optics
-            return {"height_scale": float(1.2 + 0.25 * u)}
-        if effect == "relief_smoothing":
-            return {"filter_sigma_um": float(1.5 + 1.0 * u)}
-        if effect == "dispersion":
-            return {"cauchy_B_nm2": float(15000 + 10000 * u)}
-        if effect == "interreflection":
-            return {"interreflection_weight": 1.0}
-        if effect == "diffraction":
-            return {"coherent_scale": 1.0}
-        if effect == "partial_coherence":
-            return {"coherence_length_um": float(0.8 + 0.7 * u)}
-        return {}
-
     k = 0
     for effect in EFFECTS_CONCEALABLE:
         reps = n_none if effect == "none" else n_per_effect
         for j in range(reps):
             k += 1
-            spec = CaseSpec(name=f"case{k:02d}", effect=effect, parameters=draw(effect), seed=seed * 1000 + k)
-            if effect == "dispersion" or (effect == "none" and j == reps - 1):
-                spec.wavelengths_nm = (450.0, 550.0, 650.0)
-                spec.theta_i_deg = (0.0, 45.0)
-            if effect == "interreflection":
-                lo, hi = STEEP_RELIEF["rms_um"]
-                spec.rms_um = float(lo + (hi - lo) * rng.random())
-                spec.corr_um = STEEP_RELIEF["corr_um"]
-            if effect in WAVE_EFFECTS:
-                lo, hi = WAVE_RELIEF["rms_um"]
-                spec.rms_um = float(lo + (hi - lo) * rng.random())
-                spec.corr_um = WAVE_RELIEF["corr_um"]
-                spec.pitch_um = WAVE_RELIEF["pitch_um"]
-                spec.relief_n = WAVE_RELIEF["relief_n"]
-            cases.append(spec)
+            cases.append(_single_case(f"case{k:02d}", effect, rng, seed * 1000 + k,
+                                      effect == "none" and j == reps - 1))
+    rng2 = task_rng(seed, 98)
+    for pair in COMPOUND_CASES:
+        for _ in range(n_compound):
+            k += 1
+            params = {}
+            for e in pair:
+                params.update(_draw(e, rng2))
+            cases.append(CaseSpec(name=f"case{k:02d}", effects=pair, parameters=params, seed=seed * 1000 + k))
+    rng3 = task_rng(seed, 97)
+    for kind, effect in (RELIEF_CASES if relief_cases else ()):
+        k += 1
+        if kind == "measured" and not (_topography_dir() / MEASURED_MAP).is_file():
+            import warnings
+            warnings.warn(f"conceal: {_topography_dir() / MEASURED_MAP} not found: the measured-map case "
+                          f"case{k:02d} is left out", RuntimeWarning, stacklevel=2)
+            continue
+        spec = _single_case(f"case{k:02d}", effect, rng3, seed * 1000 + k, False)
+        spec.relief = kind
+        cases.append(spec)
     return cases
+
+
+def _topography_dir() -> Path:
+    """../shared/data/topography beside the repository (the project's real measured maps)."""
+    return Path(__file__).resolve().parents[4].parent / "shared" / "data" / "topography"
+
+
+def measured_tile(crop_n: int = 96, height_scale: float = 3.0, name: str = MEASURED_MAP) -> Relief:
+    """A periodic tile of a real instrument map: `name` read by `io.heightmaps.read_relief`, plane-levelled,
+    its central crop_n x crop_n crop (mean removed), heights x `height_scale` (ST_x3p-2's rms slope 0.06
+    becomes 0.18, rough on the wavelength scale so that the ray-optics generator is the right physics),
+    then mirrored into a 2 crop_n square tile: [[c, c flipped in x], [c flipped in y, c flipped in both]]
+    (even extension: heights continuous across every tile edge, so the periodic tile adds no step; slope
+    magnitudes are kept, their signs mirror).  The map's own anisotropic pitch is kept."""
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.io.heightmaps import read_relief
+    path = _topography_dir() / name
+    if not path.is_file():
+        raise InputError(str(path), "measured map for the concealed case not found")
+    r = read_relief(path).level()
+    ny, nx = r.shape
+    if min(ny, nx) < crop_n:
+        raise InputError(str(path), f"map {ny} x {nx} is smaller than the {crop_n} px crop")
+    c = r.heights_m[(ny - crop_n) // 2:(ny - crop_n) // 2 + crop_n, (nx - crop_n) // 2:(nx - crop_n) // 2 + crop_n]
+    if not np.all(np.isfinite(c)):
+        raise InputError(str(path), "the central crop holds non-measured points")
+    c = (c - c.mean()) * height_scale
+    tile = np.block([[c, c[:, ::-1]], [c[::-1, :], c[::-1, ::-1]]])
+    return Relief(tile, r.dx_m, r.dy_m, periodic=True,
+                  source=f"{name} levelled, central {crop_n}^2 crop x {height_scale:g}, mirrored periodic tile")
+
+
+def case_relief(spec: CaseSpec) -> Relief:
+    """The relief of a case (its `relief` kind, module docstring), seeded by the case's seed."""
+    from relief_bsdf.surface.synth import DotPattern, RandomFieldSpec, lgp_dots, relief_from_spec
+    um = 1e-6
+    if spec.relief == "measured":
+        return measured_tile()
+    if spec.relief == "dots":
+        dots = DotPattern(24 * um, 8 * um, 2.0 * um, micro_rms_m=0.3 * um, micro_corr_m=5 * um)
+        return lgp_dots(spec.relief_n, spec.pitch_um * um, dots, seed=spec.seed)
+    if spec.relief == "anisotropic":
+        return relief_from_spec(RandomFieldSpec(spec.relief_n, spec.relief_n, spec.pitch_um * um, spec.rms_um * um,
+                                                spec.corr_um * um, anisotropy=2.5, angle_deg=30.0), spec.seed)
+    return random_relief(spec.relief_n, spec.pitch_um * um, spec.rms_um * um, spec.corr_um * um,
+                         kind=spec.relief, seed=spec.seed)
 
 
 def _rows(spec: CaseSpec) -> Recording:
@@ -264,18 +372,23 @@ def _rows(spec: CaseSpec) -> Recording:
                      phi_s_deg=ps, bsdf_sr=np.zeros(n), sigma_sr=np.full(n, np.nan))
 
 
-def _true_signal(spec: CaseSpec, heights_m: np.ndarray, rec: Recording):
-    """Monte-Carlo plate signal with the concealed effect, per row: (value, mc_sigma)."""
+def _true_signal(spec: CaseSpec, heights_m, rec: Recording):
+    """Monte-Carlo plate signal with the concealed effects, per row: (value, mc_sigma).
+
+    `heights_m`: the case's Relief, or its heights (then on the spec's square pitch)."""
     p = spec.parameters
-    dx = spec.pitch_um * 1e-6
+    if isinstance(heights_m, Relief):
+        base = Relief(heights_m.heights_m, heights_m.dx_m, heights_m.dy_m, periodic=True)
+    else:
+        base = Relief(np.asarray(heights_m, float), spec.pitch_um * 1e-6, spec.pitch_um * 1e-6, periodic=True)
+    dx, dy = base.dx_m, base.dy_m
     # the relief effects are the project's one relief operation (surface.operations), so the key's
     # height_scale / filter_sigma_um mean what the fit's and the diagnosis's parameters mean
-    relief = scale_and_filter(Relief(np.asarray(heights_m, float), dx, dx, periodic=True),
-                              p.get("height_scale", 1.0) if spec.effect == "relief_scale" else 1.0,
-                              p.get("filter_sigma_um", 0.0) * 1e-6 if spec.effect == "relief_smoothing" else 0.0)
+    relief = scale_and_filter(base, p.get("height_scale", 1.0) if "relief_scale" in spec.effects else 1.0,
+                              p.get("filter_sigma_um", 0.0) * 1e-6 if "relief_smoothing" in spec.effects else 0.0)
     h = relief.heights_m
-    wave = spec.effect in WAVE_EFFECTS
-    face = None if wave else HeightFieldFace(h, dx, dx)
+    wave = any(e in WAVE_EFFECTS for e in spec.effects)
+    face = None if wave else HeightFieldFace(h, dx, dy)
     phys = PlatePhysics(thickness_mm=spec.thickness_mm, n_glass=spec.n_glass,
                         absorption_per_mm=p.get("absorption_per_mm", 0.0),
                         scatter_per_mm=p.get("scatter_per_mm", 0.0), hg_g=p.get("hg_g", 0.0),
@@ -286,12 +399,12 @@ def _true_signal(spec: CaseSpec, heights_m: np.ndarray, rec: Recording):
     sig = np.zeros(len(rec))
     for iw, wl in enumerate(spec.wavelengths_nm):
         ng = spec.n_glass
-        if spec.effect == "dispersion":
+        if "dispersion" in spec.effects:
             ng = spec.n_glass + p["cauchy_B_nm2"] * (1 / wl**2 - 1 / 550.0**2)
         phys.n_glass = ng
         if wave:   # wave optics: one phase screen per wavelength (phase_screen.py)
             from relief_bsdf.validation.phase_screen import PhaseScreenFace, ScreenSampling
-            face = PhaseScreenFace(h, dx, dx, wl, coherence_length_um=p.get("coherence_length_um"),
+            face = PhaseScreenFace(h, dx, dy, wl, coherence_length_um=p.get("coherence_length_um"),
                                    sampling=ScreenSampling(n_max=max(1.6, ng)))
         for it, ti in enumerate(spec.theta_i_deg):
             rows = np.nonzero((rec.wavelength_nm == wl) & (rec.theta_i_deg == ti))[0]
@@ -308,11 +421,10 @@ def make_case(spec: CaseSpec, out_dir: str | Path) -> dict:
     """Write one case folder (relief.x3p, recording.csv, sample.toml, key.json); return the key."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    relief = random_relief(spec.relief_n, spec.pitch_um * 1e-6, spec.rms_um * 1e-6, spec.corr_um * 1e-6,
-                           kind="gaussian", seed=spec.seed)
+    relief = case_relief(spec)
     relief_name = _write_relief(out, relief)
     rec = _rows(spec)
-    val, mc_sig = _true_signal(spec, relief.heights_m, rec)
+    val, mc_sig = _true_signal(spec, relief, rec)
     from relief_bsdf.validation.record import Goniophotometer, instrument_noise
     noisy, sigma = instrument_noise(val, mc_sig, Goniophotometer(spec.counts_per_sr, spec.gain_noise, spec.floor_sr),
                                     task_rng(spec.seed, 12345))
@@ -323,7 +435,8 @@ def make_case(spec: CaseSpec, out_dir: str | Path) -> dict:
         "relief": {"file": relief_name},
         "instrument": {"detector_half_angle_deg": spec.half_angle_deg, "polarization": "unpolarized"},
         "recording": {"file": "recording.csv"}})
-    key = {"case": spec.name, "effect": spec.effect, "parameters": spec.parameters, "seed": spec.seed,
+    key = {"case": spec.name, "effect": spec.effect, "effects": list(spec.effects), "parameters": spec.parameters,
+           "relief": spec.relief, "seed": spec.seed,
            "photons_per_incidence": spec.photons,
            "noise": {"counts_per_sr": spec.counts_per_sr, "gain_noise": spec.gain_noise, "floor_sr": spec.floor_sr}}
     return key

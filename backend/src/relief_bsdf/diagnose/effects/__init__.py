@@ -10,9 +10,9 @@ from __future__ import annotations
 import importlib
 import pkgutil
 
-from relief_bsdf.diagnose.effects._base import Effect, Param, ReliefContext
+from relief_bsdf.diagnose.effects._base import Effect, Param, ReliefContext, apply_all, compatible
 
-__all__ = ["Effect", "Param", "ReliefContext", "all_effects", "get_effect"]
+__all__ = ["Effect", "Param", "ReliefContext", "all_effects", "apply_all", "compatible", "get_effect"]
 
 _REGISTRY: dict[str, Effect] = {}
 

@@ -16,7 +16,16 @@ Every module of `relief_bsdf.diagnose.effects` defines one `EFFECT = Effect(...)
 - `cheap`: True when the effect leaves every boundary table as it is (bulk, instrument),
   so an evaluation re-uses the baseline's tables (the fit grid can then be finer);
 - `bracket(context, forward) -> {param: (lo, hi)}`: optional narrower search interval
-  derived from the data (e.g. the weighted-mean background for stray light).
+  derived from the data (e.g. the weighted-mean background for stray light);
+- `face`: "" for an effect that leaves the relief face alone, "relief" for an operation on the
+  measured relief (relief_scale, relief_smoothing: they compose into the one
+  scale-and-filter operation, `apply_all`), "swap" for a different face physics
+  (diffraction, partial_coherence, interreflection: at most one face swap in a combination,
+  and never together with a relief operation, whose tables belong to the baseline's method).
+
+Several effects act together by applying them one after the other (`apply_all`): each is a
+change of a different part of the description (bulk, instrument, index, back face), except
+the relief operations, which are merged into one scale-and-filter of the measured relief.
 """
 from __future__ import annotations
 
@@ -54,6 +63,8 @@ class ReliefContext:
     scale_and_filter: the ONE relief operation the fit optimises, (relief, s, sigma_m) -> Relief.
     wavelengths_nm: the recording's wavelengths; detector_half_angle_deg: the stated cone.
     method_reason: why the baseline uses `method` (auto's one line; "" when it was named).
+    known: effects whose value sample.toml states (e.g. plate.absorption_per_mm for
+    bulk_absorption), with the reason; they are held fixed at the stated value, never fitted.
     """
 
     relief: Relief
@@ -65,6 +76,7 @@ class ReliefContext:
     samples: int = 200_000
     seed: int = 0
     method_reason: str = ""
+    known: tuple = ()                 # ((effect name, reason it is held fixed), ...) from sample.toml
     _reliefs: dict = field(default_factory=dict, compare=False, repr=False)
 
     def with_relief_face(self, experiment: Any, relief: Relief, method: str, **options: Any) -> Any:
@@ -103,6 +115,7 @@ class Effect:
     cheap: bool = False
     skip_reason: Callable[[ReliefContext], "str | None"] = _no_skip
     bracket: Callable[[ReliefContext, Any], dict] | None = None
+    face: str = ""
 
     @property
     def neutral(self) -> dict:
@@ -112,3 +125,32 @@ class Effect:
     def k(self) -> int:
         """Number of fitted parameters (the BIC penalty counts them)."""
         return len(self.params)
+
+
+def compatible(effects) -> bool:
+    """Can these effects act together on one plate?  At most one face swap, and a face swap never
+    with a relief operation (module docstring, `face`)."""
+    swaps = sum(e.face == "swap" for e in effects)
+    ops = sum(e.face == "relief" for e in effects)
+    return swaps == 0 or (swaps == 1 and ops == 0)
+
+
+def apply_all(experiment: Any, context: ReliefContext, effects, values: dict) -> Any:
+    """The plate description with every effect of `effects` at `values` (module docstring).
+
+    Non-face effects are applied one after the other (each changes its own part of the
+    description); the relief operations are merged: heights scaled by `height_scale` and
+    low-passed by `filter_sigma_um` in ONE `processed_relief(s, sigma)` (their neutral values
+    when the effect is absent), then the face is rebuilt once with the baseline's method.
+    """
+    ops = [e for e in effects if e.face == "relief"]
+    for e in effects:
+        if e.face != "relief":
+            experiment = e.apply(experiment, context, values)
+    if ops:
+        s = float(values.get("height_scale", 1.0)) if any(e.name == "relief_scale" for e in ops) else 1.0
+        g_um = float(values.get("filter_sigma_um", 0.0)) if any(e.name == "relief_smoothing" for e in ops) else 0.0
+        if (s, max(g_um, 0.0)) != (1.0, 0.0):
+            experiment = context.with_relief_face(experiment, context.processed_relief(s, max(g_um, 0.0) * 1e-6),
+                                                  context.method)
+    return experiment

@@ -31,4 +31,5 @@ EFFECT = Effect(
     apply=_apply,
     explain=lambda v: "scalar Kirchhoff (wave-optics) scattering at the relief instead of ray optics",
     skip_reason=_skip,
+    face="swap",
 )

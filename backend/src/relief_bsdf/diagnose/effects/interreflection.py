@@ -28,4 +28,5 @@ EFFECT = Effect(
     apply=_apply,
     explain=lambda v: "the relief ray traced (shadowing, masking and multiple bounces) instead of single scattering",
     skip_reason=_skip,
+    face="swap",
 )

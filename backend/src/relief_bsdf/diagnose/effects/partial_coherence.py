@@ -38,4 +38,5 @@ EFFECT = Effect(
     explain=lambda v: (f"Kirchhoff scattering lit by a source of coherence length {v['coherence_length_um']:.3g} um "
                        f"(the coherent beam spread over lambda / (pi l_c))"),
     bracket=_bracket,
+    face="swap",
 )

@@ -23,4 +23,5 @@ EFFECT = Effect(
     validity="that of the baseline boundary method",
     apply=_apply,
     explain=lambda v: f"heights scaled by {v['height_scale']:.3f}",
+    face="relief",
 )

@@ -22,4 +22,5 @@ EFFECT = Effect(
     validity="that of the baseline boundary method; filter much smaller than the tile",
     apply=_apply,
     explain=lambda v: f"the relief smoothed by a Gaussian of {v['filter_sigma_um']:.2f} um",
+    face="relief",
 )
