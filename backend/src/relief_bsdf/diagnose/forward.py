@@ -84,12 +84,12 @@ class DiagnosisForward:
             v, s = self.baseline()
             return self.misfit(v, s), v, s
         key = (names, tuple(sorted((k, round(x, 12)) for k, x in vals.items())))
-        if key not in self._memo:
-            v, s = self.simulate(apply_all(self.experiment, self.context, effects, vals))
-            self._memo[key] = (self.misfit(v, s), v, s)
+        if key not in self._memo:            # the simulation is memoised, the misfit computed against the rows now
+            self._memo[key] = self.simulate(apply_all(self.experiment, self.context, effects, vals))
             if len(self._memo) > MEMO_SIZE:
                 self._memo.pop(next(iter(self._memo)))
-        return self._memo[key]
+        v, s = self._memo[key]
+        return self.misfit(v, s), v, s
 
     def misfit(self, values: np.ndarray, model_sigma: np.ndarray) -> float:
         return chi2(self.rows, values, model_sigma)
