@@ -341,14 +341,10 @@ class _Coords:
 def _jacobian(obj: _Objective, c: _Coords, x: np.ndarray, stop_at_threshold: bool = True,
               central: bool = True) -> np.ndarray:
     """d r / d x by central differences (one-sided inward at a bound), or forward differences
-    (`central` False: one evaluation per parameter, for the search's steps), on cached evaluations."""
-    seen: dict = {}
-
-    def at(xx: np.ndarray) -> np.ndarray:          # each point once per Jacobian (replays count in the budget)
-        k = tuple(xx)
-        if k not in seen:
-            seen[k] = obj.residuals(*c.sg(xx), stop_at_threshold=stop_at_threshold)
-        return seen[k]
+    (`central` False: one evaluation per parameter, for the search's steps); a point already visited
+    (the base point) is the objective's memo, free of budget."""
+    def at(xx: np.ndarray) -> np.ndarray:
+        return obj.residuals(*c.sg(xx), stop_at_threshold=stop_at_threshold)
     cols = []
     for j, h in enumerate(c.step):
         xp, xm = x.copy(), x.copy()
@@ -362,7 +358,7 @@ def _jacobian(obj: _Objective, c: _Coords, x: np.ndarray, stop_at_threshold: boo
         if xp[j] - xm[j] <= 0:
             cols.append(np.zeros(obj.n))
             continue
-        cols.append((at(xp) - at(xm)) / (xp[j] - xm[j]))      # the point itself is a cached replay
+        cols.append((at(xp) - at(xm)) / (xp[j] - xm[j]))
     return np.stack(cols, axis=1)
 
 

@@ -93,13 +93,10 @@ def slope_anisotropy(relief: Relief) -> tuple[float, float]:
     differences, wrapped on a periodic tile) and the azimuth of the steeper axis.  1 for a
     rotation-invariant relief (up to the sampling scatter of a finite tile, a few per cent for
     hundreds of correlation areas)."""
-    h = np.asarray(relief.heights_m, float)
-    if relief.periodic:
-        gx = (np.roll(h, -1, 1) - h) / relief.dx_m
-        gy = (np.roll(h, -1, 0) - h) / relief.dy_m
-    else:
-        gx = (np.diff(h, axis=1) / relief.dx_m)[:-1, :]
-        gy = (np.diff(h, axis=0) / relief.dy_m)[:, :-1]
+    from relief_bsdf.surface.stats import slopes         # the project's one slope definition
+    gx, gy = slopes(relief)
+    ny, nx = min(gx.shape[0], gy.shape[0]), min(gx.shape[1], gy.shape[1])   # non-periodic: common cells
+    gx, gy = gx[:ny, :nx], gy[:ny, :nx]
     ok = np.isfinite(gx) & np.isfinite(gy)
     gx, gy = gx[ok] - gx[ok].mean(), gy[ok] - gy[ok].mean()
     C = np.array([[np.mean(gx * gx), np.mean(gx * gy)], [np.mean(gx * gy), np.mean(gy * gy)]])

@@ -218,11 +218,11 @@ def before_after_figure(tables: list, labels: list, theta_i_deg=(0.0, 30.0), wid
     colors = ("tab:blue", "tab:orange", "tab:green", "tab:red")
     th = np.atleast_1d(np.asarray(theta_i_deg, float))
     short = {"T": "BTDF", "R": "BRDF"}
+    hazes = [boundary_haze(t) for t in tables]
     for j, side in enumerate(("T", "R")):
         ax = axs[0, j]
         lines = []
-        for k, (t, lab) in enumerate(zip(tables, labels)):
-            haze = boundary_haze(t)
+        for k, (t, lab, haze) in enumerate(zip(tables, labels, hazes)):
             name = f"{lab}" + (f" (haze {100 * haze:.0f} %)" if side == "T" and np.isfinite(haze) else "")
             lines += plot_in_plane(ax, t, side, 0, 0, CurveStyle(linestyle=styles[k % 4], label_prefix=f"{name}: ",
                                                                 colors=colors[:th.size], show_specular=False),
@@ -241,14 +241,10 @@ def before_after_figure(tables: list, labels: list, theta_i_deg=(0.0, 30.0), wid
 def _zoom_to_curves(ax, lines, floor: float = 1e-3) -> None:
     """x limits around where the curves exceed `floor` x their peak (a narrow transmitted lobe
     fills the axis instead of a sliver of it), at least +-20 deg."""
-    xs, ys = [], []
-    for ln in lines:
-        x, y = np.asarray(ln.get_xdata(), float), np.asarray(ln.get_ydata(), float)
-        xs.append(x)
-        ys.append(y)
-    if not xs:
+    if not lines:
         return
-    x, y = np.concatenate(xs), np.concatenate(ys)
+    x = np.concatenate([np.asarray(ln.get_xdata(), float) for ln in lines])
+    y = np.concatenate([np.asarray(ln.get_ydata(), float) for ln in lines])
     ok = np.isfinite(y)
     if not ok.any():
         return
