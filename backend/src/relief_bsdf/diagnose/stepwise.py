@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 from relief_bsdf.diagnose.effects import compatible, get_effect
 from relief_bsdf.diagnose.fitting import fit_effect, refit_joint
 from relief_bsdf.errors import InputError
-from relief_bsdf.fit.selection import BIC_MARGIN, bic
+from relief_bsdf.fit.selection import BIC_MARGIN, bic, bic_gain
 from relief_bsdf.parallel import map_tasks
 from relief_bsdf.progress import silent
 
@@ -73,7 +73,7 @@ def overwhelming_bar(n: int) -> float:
 
 def passes(chi_cur: float, k_cur: int, chi_new: float, k_new: int, n: int) -> bool:
     """Does the larger model (chi_new, k_new) pass the bar against the current one (module docstring)?"""
-    gain = bic(chi_cur, k_cur, n) - bic(chi_new, k_new, n)
+    gain = bic_gain(chi_cur, k_cur, chi_new, k_new, n)
     return gain > BIC_MARGIN and (not adequate(chi_cur, n) or gain > overwhelming_bar(n))
 
 
