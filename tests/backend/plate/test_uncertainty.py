@@ -62,6 +62,8 @@ def test_a_relief_face_reuses_its_tracer_across_heights_with_the_tables_of_a_fre
     from relief_bsdf.plate import TABLE_CACHE
     from relief_bsdf.plate.faces import _TRACERS
     from relief_bsdf.surface.operations import scale_and_filter
+    _TRACERS.clear()                       # other tests leave their grids' tracers behind
+    TABLE_CACHE.clear()
     ex = _experiment(0, samples=4000)
     mat = ex.plate.material
     relief = ex.plate.front.relief
