@@ -7,10 +7,10 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 OUT    ?= out
 
-.PHONY: demo test venv venv-test bench extension clean help
+.PHONY: demo test test-fast venv venv-test bench extension clean help
 
 help:
-	@echo "make demo | make test | make bench | make extension | make clean"
+	@echo "make demo | make test | make test-fast | make bench | make extension | make clean"
 
 $(VENV)/.runtime-stamp: requirements/runtime.txt backend/pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -35,6 +35,10 @@ demo: venv
 
 test: venv-test
 	$(PY) -m pytest
+
+# day-to-day tier: everything not marked slow, on both cores (under 2 minutes on 2 cores)
+test-fast: venv-test
+	$(PY) -m pytest -m "not slow" -n 2
 
 bench: venv
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

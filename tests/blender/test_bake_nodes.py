@@ -102,6 +102,7 @@ def test_lookup_through_cycles_matches_interpolation(clean_bpy):
             np.testing.assert_allclose(got, want, atol=2e-3, err_msg=f"{side} {row} theta {theta}")
 
 
+@pytest.mark.slow
 def test_flat_interface_bake_reproduces_fresnel(clean_bpy):
     """Delta rows: a flat boundary's specular R and T (Fresnel) come back from Cycles."""
     from relief_addon import bake_nodes, goniophotometer as G

@@ -43,6 +43,7 @@ def test_each_effect_is_absent_at_its_neutral_values(small):
             assert e.apply(small.experiment, small.context, e.neutral) == small.experiment, name
 
 
+@pytest.mark.slow
 def test_cheap_effects_reuse_the_baseline_tables(small):
     from relief_bsdf.plate import TABLE_CACHE
     small.baseline()

@@ -201,6 +201,7 @@ def test_incidence_azimuth_rotates_the_lobe(geo):
                 assert np.allclose(h["R"][0, i, 0], h["R"][0, i, 1], rtol=0.05, atol=2e-3), (m, frm, ti)
 
 
+@pytest.mark.slow
 def test_microfacet_smooth_lobe_at_normal_incidence_keeps_its_energy():
     """A nearly flat boundary (alpha 0.01, 5 nm / 1 um relief) at normal incidence: the T lobe
     (~0.2 deg) sits on the pole inside the first 3 degree cell.  Light is neither absorbed nor

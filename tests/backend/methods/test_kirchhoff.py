@@ -249,6 +249,7 @@ def test_measured_tile_windowed_like_periodic(smooth):
             assert b.metadata["window"] == "2-D Hann"
 
 
+@pytest.mark.slow
 def test_polarized_mueller_consistent_with_walter():
     """--polarized: M00 equals the scalar table; lobe-averaged Mueller elements match W07's facet Mueller."""
     from relief_bsdf.methods.microfacet import Roughness, walter_mueller

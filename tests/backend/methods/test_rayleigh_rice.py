@@ -39,6 +39,7 @@ def test_formula_matches_scatmech_pointwise():
 
 @pytest.mark.oracle
 @pytest.mark.parametrize("incident_from", ["outside", "inside"])
+@pytest.mark.slow
 def test_table_from_estimated_psd_matches_scatmech(relief, incident_from):
     """Median in-lobe ratio within 3% for R and T at 0, 30, 60 degrees (relief's own PSD)."""
     req = Request(wavelengths_nm=(LAM,), theta_i_deg=(0.0, 30.0, 60.0), incident_from=(incident_from,),
@@ -60,6 +61,7 @@ def test_table_from_estimated_psd_matches_scatmech(relief, incident_from):
             assert abs(ratio - 1) < 0.03, (incident_from, ti, side, ratio)
 
 
+@pytest.mark.slow
 def test_inside_past_critical_scatters_more(relief):
     """From inside the glass, 60 deg (past critical, 41.8 deg) scatters ~5x more than 30 deg."""
     req = Request(wavelengths_nm=(LAM,), theta_i_deg=(30.0, 60.0), incident_from=("inside",))
@@ -95,6 +97,7 @@ def rr_rel(a, b, side):
     return reciprocity_error(a, b, side=side)["max_rel"]
 
 
+@pytest.mark.slow
 def test_redder_is_sharper(relief):
     """Colour: the lobe narrows with wavelength (PSD sampled at f = sin / lambda)."""
     req = Request(wavelengths_nm=(450.0, 650.0), theta_i_deg=(0.0,), phi_s_edges_deg=PHI_EDGES)

@@ -146,6 +146,7 @@ def test_auto_picks_two_scale_for_a_lobe_plus_a_haze_and_says_why_in_one_line():
 
 
 @pytest.mark.parametrize("side_from", ["outside", "inside"])
+@pytest.mark.slow
 def test_agrees_with_full_kirchhoff_where_both_apply(side_from):
     """The 512^2 two-scale relief (large: 0.5 um rms, l 10 um, slope 0.1, k R_c ~ 500: tangent plane valid and
     no coherent part left in the large scale; fine: 12 nm rms, l 1 um, g_F ~ 0.05) at 0 / 30 / 60 deg.

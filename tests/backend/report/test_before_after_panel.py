@@ -12,6 +12,7 @@ def _outside_table(relief, glass):
     return out
 
 
+@pytest.mark.slow
 def test_haze_grows_with_the_relief_slopes_and_the_panel_draws_both_tables(gaussian_relief, glass):
     gentle = _outside_table(gaussian_relief(64, 1e-6, 0.2e-6, 8e-6, seed=1), glass)
     rough = _outside_table(gaussian_relief(64, 1e-6, 0.6e-6, 8e-6, seed=1), glass)
