@@ -185,3 +185,14 @@ def test_direct_buffers_and_in_place_height_update_trace_like_embreex_own_mesh()
     import pytest
     with pytest.raises(RuntimeError, match="with_heights"):
         own.update_heights(r2)
+
+
+def test_the_loop_keeps_freed_heap_under_glibc():
+    """After a trace, glibc's malloc keeps freed blocks for reuse (transport.keep_freed_heap): the
+    per-bounce temporaries stop paying page faults.  On another C library the call is a no-op."""
+    import platform
+    from relief_bsdf.methods.ray.transport import keep_freed_heap
+    tr = ray.ReliefTracer(relief(0.1, n=32))
+    tr.scatter(np.tile([0.0, 0.0, -1.0], (100, 1)), 1.0, 1.5, np.random.default_rng(1))
+    glibc = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
+    assert keep_freed_heap() is glibc
