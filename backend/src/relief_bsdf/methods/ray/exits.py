@@ -20,7 +20,7 @@ STATE_NAMES = {LOST_BOUNCES: "max_bounces", LOST_LEAK: "numerical_leak", LOST_AB
 class Exits:
     """Exit records of one chunk: propagation direction k (m, 3) float32, power weight w, state
     (int8, above), bounce count nb (int16), output id, and, for polarised light, the Stokes
-    columns A (4, K, m) in the exit frame s = z x k, p = s x k.  Filled by `put` / `put_all`;
+    columns A (4, K, m) in the exit frame s = z x k, p = s x k.  Filled by `put`;
     `n` records are valid.  `segments` (Embree queries), `n_paths` (input rays) and `m` (outputs
     per chunk: n_paths, or 2 n_paths with the first-hit split) are set when the chunk is done.
     """
@@ -38,30 +38,26 @@ class Exits:
         self.n_paths = 0
         self.first_group = None          # (n_paths,) sub-tile of each input ray's first hit, when asked for
 
-    def put(self, k, idx, w, nb, ids, state, A=None) -> None:
-        """Store rows `idx` of the arrays (A: the already gathered (4, K, idx.size) exit columns)."""
-        a, b = self.n, self.n + idx.size
-        # mode="clip": no bounds-check buffer (idx comes from flatnonzero, always in range)
-        np.take(k, idx, axis=0, out=self.k[a:b], mode="clip")
-        np.take(w, idx, out=self.w[a:b], mode="clip")
-        np.take(nb, idx, out=self.nb[a:b], mode="clip")
-        np.take(ids, idx, out=self.ids[a:b], mode="clip")
+    def put(self, k, idx, w, nb, ids, state) -> slice:
+        """Store rows `idx` of the arrays (idx None: every row); the slice of the new records, whose
+        Stokes columns `A[:, :, slice]` the caller fills (the carrier, in the exit frame)."""
+        a = self.n
+        if idx is None:
+            b = a + ids.size
+            self.k[a:b] = k
+            self.w[a:b] = w
+            self.nb[a:b] = nb
+            self.ids[a:b] = ids
+        else:
+            b = a + idx.size
+            # mode="clip": no bounds-check buffer (idx comes from flatnonzero, always in range)
+            np.take(k, idx, axis=0, out=self.k[a:b], mode="clip")
+            np.take(w, idx, out=self.w[a:b], mode="clip")
+            np.take(nb, idx, out=self.nb[a:b], mode="clip")
+            np.take(ids, idx, out=self.ids[a:b], mode="clip")
         self.state[a:b] = state
-        if A is not None:
-            self.A[:, :, a:b] = A
         self.n = b
-
-    def put_all(self, k, w, nb, ids, state, A=None) -> None:
-        """Store every row of the arrays."""
-        a, b = self.n, self.n + ids.size
-        self.k[a:b] = k
-        self.w[a:b] = w
-        self.nb[a:b] = nb
-        self.ids[a:b] = ids
-        self.state[a:b] = state
-        if A is not None:
-            self.A[:, :, a:b] = A
-        self.n = b
+        return slice(a, b)
 
     # ------------------------------------------------------------------ views of the valid records
     def groups(self) -> np.ndarray | None:

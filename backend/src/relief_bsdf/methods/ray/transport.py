@@ -255,8 +255,8 @@ class IntensityCarrier:
     def chosen(self, rays: Rays, refl, pR) -> None:
         """Nothing but the direction changes (weights stay)."""
 
-    def exit_columns(self, rays: Rays, idx, phi_exit_rad: float):
-        return None
+    def exit_columns(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out) -> None:
+        """Nothing to record."""
 
 
 class StokesCarrier:
@@ -351,15 +351,20 @@ class StokesCarrier:
             apply_interface_mueller_columns(rays.A, *coef, 1 / np.maximum(pc, F32(1e-30)))
         rays.s = s_new
 
-    def exit_columns(self, rays: Rays, idx, phi_exit_rad: float):
-        """Columns of the rays idx (all when None) re-expressed in the exit frame s = z x k."""
-        if idx is None:
-            A, s, k = rays.A, rays.s, rays.k
-            if A is None:
-                A = identity_columns(self.K, k.shape[0])
+    def exit_columns(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out) -> None:
+        """Write the columns of the rays idx (all when None), re-expressed in the exit frame
+        s = z x k, into `out` (4, K, m): the exit record's slot, filled row by row without a
+        temporary (`np.take` into each contiguous row); k_exit (m, 3) their directions."""
+        if rays.A is None:
+            out[...] = identity_columns(self.K, k_exit.shape[0])
+        elif idx is None:
+            out[...] = rays.A
         else:
-            A = identity_columns(self.K, idx.size) if rays.A is None else np.take(rays.A, idx, axis=2)
-            s, k = np.take(rays.s, idx, axis=0), np.take(rays.k, idx, axis=0)
+            for i in range(4):
+                for j in range(self.K):
+                    np.take(rays.A[i, j], idx, out=out[i, j], mode="clip")
+        s = rays.s if idx is None else np.take(rays.s, idx, axis=0)
+        k = k_exit
         # exit basis s' = z x k / |z x k|: with u = z x k = (-k_y, k_x, 0), s . u = s_y k_x - s_x k_y and
         # p . u = (s x k) . (z x k) = s_z (as in `reflectance`); along z the fallback azimuth, generically
         kx, ky = k[:, 0], k[:, 1]
@@ -374,8 +379,7 @@ class StokesCarrier:
             s_to = s_axis_rows(k[zi], phi_exit_rad)
             c[zi] = dot_rows(s[zi], s_to)
             d[zi] = dot_rows(cross_rows(s[zi], k[zi]), s_to)
-        rotate_stokes_columns_cd(A, c, d)
-        return A
+        rotate_stokes_columns_cd(out, c, d)
 
 
 def carrier_for(K: int):
@@ -445,6 +449,15 @@ def trace_chunk(tracer, rays: Rays, carrier, media: Media, settings: TraceSettin
         return ex
 
 
+def _record(ch: _Chunk, rays: Rays, idx, state) -> None:
+    """Record the rays idx (None: all) as ended in `state` (one code or one per ray): direction,
+    weight, bounces and id in the exit record, and the Stokes columns (exit frame) in its slot."""
+    ex = ch.ex
+    sl = ex.put(rays.k, idx, rays.w, rays.nb, rays.ids, state)
+    if ex.A is not None:
+        ch.carrier.exit_columns(rays, idx, ch.settings.phi_exit_rad, ex.k[sl], ex.A[:, :, sl])
+
+
 def _exit_state(up: np.ndarray, below: np.ndarray) -> np.ndarray:
     """ABOVE for an upward exit from above, BELOW for a downward one from below, else a leak."""
     st = np.where(up, np.int8(ABOVE), np.int8(BELOW))
@@ -457,12 +470,9 @@ def _exit_state(up: np.ndarray, below: np.ndarray) -> np.ndarray:
 def _misses(ch: _Chunk, cur: Rays, q) -> Rays | None:
     """Rays that hit nothing: those that reached the slab's faces leave; those that reached a
     tile side re-enter from the opposite side (returned)."""
-    ex, carrier = ch.ex, ch.carrier
     side_exit = ~(q.t_lat < q.tz)                    # reached the slab face, not a tile side
-    phi = ch.settings.phi_exit_rad
     if q.n_hit == 0 and side_exit.all():            # every ray left (the usual end of a phase): no gathers
-        ex.put_all(cur.k, cur.w, cur.nb, cur.ids, _exit_state(cur.k[:, 2] > 0, cur.below),
-                   carrier.exit_columns(cur, None, phi))
+        _record(ch, cur, None, _exit_state(cur.k[:, 2] > 0, cur.below))
         return None
     mi = np.flatnonzero(~q.hit)
     lat = ~side_exit[mi]
@@ -474,7 +484,7 @@ def _misses(ch: _Chunk, cur: Rays, q) -> Rays | None:
         wrapped.o = ch.tracer.wrap(wrapped.o, wrapped.k, q.t_lat[wi], q.tx[wi], q.ty[wi])
     if mi.size:
         st = _exit_state(np.take(cur.k[:, 2], mi) > 0, cur.below[mi])
-        ex.put(cur.k, mi, cur.w, cur.nb, cur.ids, st, carrier.exit_columns(cur, mi, phi))
+        _record(ch, cur, mi, st)
     return wrapped
 
 
@@ -501,8 +511,7 @@ def _hits(ch: _Chunk, cur: Rays, q, pending: bool) -> list:
     leak = (dot > 0) != h.below                       # above must hit from above, below from below
     if leak.any():
         li = np.flatnonzero(leak)
-        ch.ex.put(h.k, li, h.w, h.nb, h.ids, np.full(li.size, LOST_LEAK, np.int8),
-                  ch.carrier.exit_columns(h, li, ch.settings.phi_exit_rad))
+        _record(ch, h, li, LOST_LEAK)
         g = np.flatnonzero(~leak)
         h, ng, th, inv, dot = h.take(g), np.take(ng, g, axis=0), th[g], inv[g], dot[g]
     if h.size == 0:
@@ -627,8 +636,7 @@ def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR) -> Rays | None:
         gone = ~sel(h.below)                        # copies from above went into the absorbing medium
         if gone.any():
             gi = np.flatnonzero(gone)
-            ch.ex.put(tr.k, gi, tr.w, tr.nb, tr.ids, np.full(gi.size, LOST_ABSORBED, np.int8),
-                      ch.carrier.exit_columns(tr, gi, ch.settings.phi_exit_rad))
+            _record(ch, tr, gi, LOST_ABSORBED)
             tr = tr.take(np.flatnonzero(~gone))
     return tr
 
@@ -658,17 +666,16 @@ def _new_directions(k, f: Facet, a, b) -> np.ndarray:
 
 def _end_rays(ch: _Chunk, h: Rays, absorbed):
     """Record the rays absorbed or past max_bounces; the mask of ended rays (None: none ended)."""
-    ex, carrier, settings = ch.ex, ch.carrier, ch.settings
+    settings = ch.settings
     end = None
-    phi = settings.phi_exit_rad
     if absorbed is not None and absorbed.any():
         ai = np.flatnonzero(absorbed)
-        ex.put(h.k, ai, h.w, h.nb, h.ids, np.full(ai.size, LOST_ABSORBED, np.int8), carrier.exit_columns(h, ai, phi))
+        _record(ch, h, ai, LOST_ABSORBED)
         end = absorbed
     over = h.nb >= settings.max_bounces
     if over.any():
         sel = over if end is None else over & ~end
         oi = np.flatnonzero(sel)
-        ex.put(h.k, oi, h.w, h.nb, h.ids, np.full(oi.size, LOST_BOUNCES, np.int8), carrier.exit_columns(h, oi, phi))
+        _record(ch, h, oi, LOST_BOUNCES)
         end = over if end is None else end | over
     return end
