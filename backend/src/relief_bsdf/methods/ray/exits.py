@@ -65,7 +65,9 @@ class Exits:
         if self.first_group is None:
             return None
         ids = self.ids[:self.n]
-        return np.take(self.first_group, ids % self.n_paths if self.m > self.n_paths else ids)
+        if self.m > self.n_paths:                   # ids < 2 n_paths: i % n_paths without an integer division
+            ids = np.where(ids >= self.n_paths, ids - self.n_paths, ids)
+        return np.take(self.first_group, ids)
 
     def records(self):
         """(k, w, state, nb, A or None) of the n valid records, in the order they ended."""

@@ -312,10 +312,10 @@ class StokesCarrier:
         R, T = interface_coefficients_f32(f.ci, n1, n2)
         if rays.A is None:                          # still the identity (first interaction): no rotation yet
             self._ev = (R, T, s_new, double_angle_cd(c, d))
-            return np.clip(R[0], 0, 1).astype(F32)  # column 0 (unpolarised) is not changed by a rotation
+            return np.clip(R[0], 0, 1).astype(F32, copy=False)  # column 0 (unpolarised) is not changed by a rotation
         rotate_stokes_columns_cd(rays.A, c, d)
         self._ev = (R, T, s_new, None)
-        return np.clip(R[0] + R[1] * rays.A[1, 0], 0, 1).astype(F32)
+        return np.clip(R[0] + R[1] * rays.A[1, 0], 0, 1).astype(F32, copy=False)
 
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
         """(A, s) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R."""
