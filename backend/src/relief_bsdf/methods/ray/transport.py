@@ -37,9 +37,9 @@ Regime: geometric optics (features >> wavelength), no interference between rays.
 Speed: a handful of float32 numpy passes per bounce, one gather per bounce (the rays that
 hit), finished rays written once into the preallocated `Exits` (their exit-frame Stokes
 columns gathered and rotated in the record's own slot); freed temporaries stay in the heap
-(`keep_freed_heap`: no page faults per bounce); (n, 3) rows scaled column by column; no BLAS call (a matrix
-product wakes OpenBLAS's spinning thread pool); the in-place float32 kernels on the (4, K, n)
-Stokes columns are the core's (`core.stokes.rotate_stokes_columns`,
+(`keep_freed_heap`: no page faults per bounce); (n, 3) rows scaled column by column; no
+BLAS call (a matrix product wakes OpenBLAS's spinning thread pool); the in-place float32
+kernels on the (4, K, n) Stokes columns are the core's (`core.stokes.rotate_stokes_columns`,
 `apply_interface_mueller_columns`, `s_axis_rows`; `core.frames.dot_rows`, `cross_rows`),
 tested equal to the reference definitions beside them.
 """
