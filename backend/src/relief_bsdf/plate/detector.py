@@ -353,9 +353,8 @@ def direct_reading(field: DirectField, side: np.ndarray, theta_s: np.ndarray, de
         sel = np.nonzero(side == sd)[0]
         if sel.size == 0:
             continue
-        row, col, wt = _reading_weights(pts, field, theta_s[sel], delta_s[sel], det)
-        if col.size:
-            idx, inv = np.unique(col, return_inverse=True)
+        row, idx, inv, wt = _reading_weights(pts, field, theta_s[sel], delta_s[sel], det)
+        if idx.size:
             val = field.values(sd, pts, idx) * pts.weight_sr[idx] * pts.cos_theta[idx]
             out[sel] = np.bincount(row, weights=val[inv] * wt, minlength=sel.size)
     return out / (cone_solid_angle(det.detector_half_angle_deg) * np.cos(np.radians(theta_s)))
@@ -365,9 +364,10 @@ _WEIGHT_CACHE: dict = {}
 
 
 def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, delta_s: np.ndarray,
-                     det: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(row, sub-point, response) triplets of the rows' cones: the same for every evaluation of a fit
-    (rows, cells and instrument fixed), so they are kept (a few entries)."""
+                     det: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(row, idx, inv, response) of the rows' cones: the (row, sub-point idx[inv], response) triplets,
+    idx the sub-points seen (sorted, each once).  The same for every evaluation of a fit (rows,
+    cells and instrument fixed), so they are kept (a few entries)."""
     key = (field.theta_edges_deg.tobytes(), field.delta_edges_deg.tobytes(), theta_s.tobytes(), delta_s.tobytes(),
            float(det.detector_half_angle_deg), float(det.blur_deg), pts.cos_theta.size)
     if key in _WEIGHT_CACHE:
@@ -386,7 +386,10 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
     else:        # the cone's edge cuts a sub-point's patch: its inside fraction, to first order
         wt = np.clip((h - psi) / size[col] + 0.5, 0.0, 1.0)
     keep = wt > 0
-    out = (row[keep], col[keep], wt[keep])
+    col = col[keep]
+    seen = np.zeros(pts.cos_theta.size, bool)       # np.unique(col, return_inverse=True) without its sort
+    seen[col] = True
+    out = (row[keep], np.flatnonzero(seen), (np.cumsum(seen) - 1)[col], wt[keep])
     if len(_WEIGHT_CACHE) > 16:
         _WEIGHT_CACHE.clear()
     _WEIGHT_CACHE[key] = out

@@ -4,7 +4,10 @@ Physics: the instrument's angular response is the detector cone convolved with a
 Gaussian of 1-sigma b (`Instrument.blur_deg`, the plate engine's one blur definition);
 Gaussians convolve by adding variances, so the fitted extra blur adds in quadrature to the
 stated one.  Tables unchanged (cheap).
-Validity: small angles (b of a few degrees), blur independent of the direction.
+Validity: small angles (b of a few degrees), blur independent of the direction.  The search
+stops at b = 5 deg: the detector's tangent-plane offsets hold while h + 5 b stays well below
+45 deg (plate.detector, Regime), and a 5-deg 1-sigma (12 deg FWHM) is already far beyond a
+goniophotometer's divergence.
 """
 import math
 
@@ -18,7 +21,7 @@ def _apply(experiment, context, values):
 
 EFFECT = Effect(
     name="instrument_blur",
-    params=(Param("blur_deg", 0.0, 8.0, 0.0, "deg"),),
+    params=(Param("blur_deg", 0.0, 5.0, 0.0, "deg"),),
     physics="beam divergence / detector aperture wider than stated (angular blur)",
     validity="Gaussian angular response of a few degrees, the same in every direction",
     apply=_apply,
