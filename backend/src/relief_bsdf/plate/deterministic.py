@@ -69,6 +69,7 @@ direct terms, the engine grid's for the loop).
 from __future__ import annotations
 
 import contextlib
+import copy
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
@@ -997,10 +998,37 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> Pl
     front, back = p.front, p.back
     if front.is_flat and not back.is_flat:
         _, b_in = back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)
-        return PlateSolver(model_of(experiment, grid, "back"), b_in, None)
+        return _reused_solver(model_of(experiment, grid, "back"), b_in, None, None)
     f_out, f_in = front.tables(mat, grid, wl, ti, need_outside=True, progress=progress)
     b_in = None if back.is_flat else back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)[1]
-    return PlateSolver(model_of(experiment, grid, "front"), f_in, f_out, back=b_in)
+    return _reused_solver(model_of(experiment, grid, "front"), f_in, f_out, b_in)
+
+
+_SOLVERS: list = []          # (tables, plate fields, solver): the last few, newest last
+_SOLVERS_KEPT = 4
+_INSTRUMENT_FIELDS = ("detector_half_angle_deg", "polarization", "background_per_sr", "blur_deg", "tilt_deg",
+                      "cone_points")
+
+
+def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | None,
+                   back: BsdfTable | None) -> PlateSolver:
+    """A PlateSolver whose per-wavelength operators (round-trip system, exit maps) are those of an
+    earlier solver on the SAME table objects and the same plate (thickness, indices, bulk, grid):
+    they do not depend on the instrument (source polarisation, cone, blur, tilt, stray light),
+    which acts only on the incident Stokes vector and the detector reading.  A fit or diagnosis
+    that changes only the instrument then reuses them; the numbers are those of a fresh solver."""
+    plate = tuple((f, getattr(model, f)) for f in PlateModel.__dataclass_fields__ if f not in _INSTRUMENT_FIELDS)
+    tables = (inside, outside, back)
+    for i, (t, key, solver) in enumerate(_SOLVERS):
+        if all(a is b for a, b in zip(t, tables)) and key == plate:
+            _SOLVERS.append(_SOLVERS.pop(i))
+            new = copy.copy(solver)          # shares the operators (solver._ops), carries the new instrument
+            new.model = model
+            return new
+    solver = PlateSolver(model, inside, outside, back=back)
+    _SOLVERS.append((tables, plate, solver))
+    del _SOLVERS[:-_SOLVERS_KEPT]
+    return solver
 
 
 def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str = "recording") -> tuple[np.ndarray, dict]:
