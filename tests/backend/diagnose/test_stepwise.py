@@ -176,3 +176,25 @@ def test_a_baseline_within_the_models_stated_accuracy_needs_an_overwhelming_gain
     assert not passes(chi0, 0, chi0 - 21 - math.log(n), 1, n)
     assert passes(chi0, 0, chi0 - 45 - math.log(n), 1, n)
     assert passes(2.0**2 * n, 0, 2.0**2 * n - 21 - math.log(n), 1, n)
+
+
+def test_an_effect_that_the_others_take_over_after_a_refit_is_dropped():
+    """Truth: absorption only (0.2/mm).  A step that holds the absorption too high (0.35) with a
+    background lifting the too-dark transmitted rows back is a compromise: with the background
+    removed and the absorption held, the rows are worse (the background would stay); refitted,
+    the absorption alone reaches the truth and the background is dropped."""
+    from relief_bsdf.diagnose.stepwise import Step, _drop_redundant
+    fwd = AnalyticForward({"absorption_per_mm": 0.2}, seed=5)
+    n = len(fwd.rows)
+    effs = (get_effect("stray_light"), get_effect("bulk_absorption"))
+    fits = [(fwd.evaluate_set(effs, {"background_per_sr": b, "absorption_per_mm": 0.35})[0], b)
+            for b in np.linspace(0.0, 0.2, 201)]
+    chi, b = min(fits)
+    vals = {"background_per_sr": b, "absorption_per_mm": 0.35}
+    _, v, s = fwd.evaluate_set(effs, vals)
+    held = fwd.evaluate_set(effs[1:], {"absorption_per_mm": 0.35})[0]
+    assert b > 0 and passes(held, 1, chi, 2, n)          # without the refit the background would stay
+    out = _drop_redundant(fwd, Step(("stray_light", "bulk_absorption"), vals, chi, 2, (v, s)), n)
+    assert out.effects == ("bulk_absorption",) and out.dropped == ("stray_light",)
+    assert out.values["absorption_per_mm"] == pytest.approx(0.2, rel=0.1)
+    assert out.chi2 < chi

@@ -30,7 +30,7 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
      scale of 0.95; test_diagnose.test_clean_case_called_none);
 3. if it passes, every parameter of S + c is refitted jointly (`fitting.refit_joint`, starting
    from S's values and c's conditional fit), and a named effect that the others now make
-   redundant (removing it, the rest held, loses less than BIC_MARGIN) is dropped;
+   redundant (removing it and refitting the rest jointly does not fail the bar) is dropped;
 4. stop when no candidate passes, or at MAX_EFFECTS effects (a dropped effect is not offered
    again, so the search ends).
 
@@ -142,14 +142,19 @@ def _cond_task(context, name: str) -> dict:
 
 
 def _drop_redundant(forward, step: Step, n: int) -> Step:
-    """Drop a named effect that the others make redundant (removing it loses less than BIC_MARGIN)."""
+    """Drop a named effect that the others make redundant: removing it and refitting the rest
+    jointly (`fitting.refit_joint`, from their current values) loses less than the bar.  The refit
+    matters: a greedy first step may name an effect that mimics two true ones together (volume
+    scattering both dims the lobes and lifts the floor, like absorption plus stray light); once
+    those are named, they take over its share only if they may move."""
     for name in step.effects[:-1]:
-        rest = tuple(e for e in step.effects if e != name)
+        rest = tuple(get_effect(e) for e in step.effects if e != name)
         eff = get_effect(name)
         vals = {k: v for k, v in step.values.items() if k not in {p.name for p in eff.params}}
-        chi, v, s = forward.evaluate_set(tuple(get_effect(e) for e in rest), vals)
+        vals, _ = refit_joint(forward, rest, vals)
+        chi, v, s = forward.evaluate_set(rest, vals)
         if not passes(chi, step.k - eff.k, step.chi2, step.k, n):
-            return Step(rest, vals, chi, step.k - eff.k, (v, s), step.added, step.gain,
+            return Step(tuple(e.name for e in rest), vals, chi, step.k - eff.k, (v, s), step.added, step.gain,
                         step.dropped + (name,), step.tried)
     return step
 
