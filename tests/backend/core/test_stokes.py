@@ -1,7 +1,7 @@
 """The one Stokes-frame rotation (core/stokes.py) and its fast kernels, tested equal to the reference."""
 import numpy as np
 
-from relief_bsdf.core.frames import cross_rows, direction, dot, dot_rows, normalize
+from relief_bsdf.core.frames import cross_rows, direction, divide_rows, dot, dot_rows, normalize, scale_rows
 from relief_bsdf.core.stokes import (apply_interface_mueller, apply_interface_mueller_columns, rotate_stokes,
                                      rotate_stokes_columns, rotation_by_angle, s_axis, s_axis_rows,
                                      stokes_rotation)
@@ -80,6 +80,11 @@ def test_row_kernels_equal_dot_and_cross():
     assert dot_rows(a, b).dtype == np.float32
     np.testing.assert_allclose(cross_rows(a, b), np.cross(a, b), rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(cross_rows(a[0], b), np.cross(a[0], b), rtol=1e-6, atol=1e-6)   # broadcast
+    r = rng.uniform(0.5, 2.0, 1000).astype(np.float32)
+    np.testing.assert_array_equal(scale_rows(a, r), a * r[:, None])          # the same numbers, bit for bit
+    v = a.copy()
+    divide_rows(v, r)
+    np.testing.assert_array_equal(v, a / r[:, None])
 
 
 def test_float32_column_kernels_equal_the_reference_definitions():

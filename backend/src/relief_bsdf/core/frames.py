@@ -70,6 +70,22 @@ def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def divide_rows(v: np.ndarray, r: np.ndarray) -> None:
+    """Fast kernel of v /= r[:, None] for (n, 3) batches, in place, column by column: the same
+    numbers (tested equal); a broadcast over 3 components runs numpy's inner loop 3 elements at
+    a time, about 2x slower on the ray loop's float32 batches."""
+    for i in range(3):
+        v[:, i] /= r
+
+
+def scale_rows(v: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Fast kernel of v * r[:, None] for (n, 3) batches, column by column (as `divide_rows`)."""
+    out = np.empty(v.shape, v.dtype)
+    for i in range(3):
+        np.multiply(v[:, i], r, out=out[:, i])
+    return out
+
+
 def normalize(v: np.ndarray) -> np.ndarray:
     """v / |v| over the last axis; zero vectors stay zero."""
     n = np.linalg.norm(v, axis=-1, keepdims=True)
