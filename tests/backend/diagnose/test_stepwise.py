@@ -198,3 +198,48 @@ def test_an_effect_that_the_others_take_over_after_a_refit_is_dropped():
     assert out.effects == ("bulk_absorption",) and out.dropped == ("stray_light",)
     assert out.values["absorption_per_mm"] == pytest.approx(0.2, rel=0.1)
     assert out.chi2 < chi
+
+
+class BlurForward(AnalyticForward):
+    """AnalyticForward whose lobes also widen with the instrument blur (a budgeted, slow effect):
+    width w = sqrt(W0^2 + 2 b^2), peak scaled by W0 / w (the lobe's in-plane integral kept), a
+    change of SHAPE with b, not only of amplitude."""
+
+    W0_RAD = 0.12
+
+    def model(self, values: dict) -> np.ndarray:
+        a = values.get("absorption_per_mm", 0.0)
+        bg = values.get("background_per_sr", 0.0)
+        b = math.radians(values.get("blur_deg", 0.0))
+        w = math.sqrt(self.W0_RAD**2 + 2.0 * b * b)
+        th = np.radians(self.rows.theta_s_deg)
+        lobe = np.where(self.t, 0.8, 0.1) * np.exp(-(th / w) ** 2) * (self.W0_RAD / w) + 0.02
+        return np.where(self.t, lobe * np.exp(-2 * a * T_MM), lobe) + bg
+
+
+def test_a_budgeted_candidate_the_rows_do_not_see_is_screened_out_after_two_evaluations():
+    """relief_scale (table-changing) and volume_scattering (slow) leave the analytic rows alone: the
+    score test's gain is 0, so they are listed as screened and never fitted; the cheap ones are fitted."""
+    fwd = AnalyticForward({"absorption_per_mm": 0.2}, seed=3)
+    names = ["bulk_absorption", "stray_light", "relief_scale", "volume_scattering"]
+    steps = stepwise(fwd, names, workers=1)
+    assert steps[-1].effects == ("bulk_absorption",)
+    tried = {f["effect"]: f for f in steps[1].tried}
+    assert tried["relief_scale"] == {"effect": "relief_scale", "screened": 0.0}
+    assert tried["volume_scattering"] == {"effect": "volume_scattering", "screened": 0.0}
+    assert "chi2" in tried["bulk_absorption"] and "chi2" in tried["stray_light"]
+    fwd.evaluations = 0
+    from relief_bsdf.diagnose.stepwise import _screen
+    keep, out = _screen(fwd, steps[0], ["relief_scale"], {}, len(fwd.rows))
+    assert keep == [] and fwd.evaluations == 2
+
+
+@pytest.mark.parametrize("blur_deg", [1.5, 4.0])
+def test_a_budgeted_effect_that_changes_the_lobe_shape_passes_the_screen_and_is_fitted(blur_deg):
+    """The blur widens the lobe (shape, not amplitude): the two probes (0.5 and 1.5 deg) span that
+    change well enough for the screen to pass, from a small blur to most of the range; the fit then
+    names it and finds its value."""
+    fwd = BlurForward({"blur_deg": blur_deg}, seed=4)
+    steps = stepwise(fwd, ["bulk_absorption", "stray_light", "instrument_blur"], workers=1)
+    assert steps[-1].effects == ("instrument_blur",)
+    assert steps[-1].values["blur_deg"] == pytest.approx(blur_deg, rel=0.1)

@@ -7,13 +7,13 @@ model without the effect, so a fit never ends worse than no effect), then a boun
 refinement between the best grid point's neighbours (scipy.optimize.minimize_scalar).  A
 log-scale parameter (a width ~ 1 / value) is searched on log10 and compared with its neutral
 value.  Several parameters: one coordinate pass per parameter, then the first again in a
-narrowed interval.  Cheap effects (tables re-used) get a finer grid than effects that
-re-derive the boundary tables.
+narrowed interval.  Cheap effects (tables re-used, evaluations under a second) get a finer
+grid than `budgeted` ones (that re-derive the boundary tables, or are slow: `Effect.slow`).
 
 Several effects together (`refit_joint`): coordinate descent over every parameter of the
 set, starting from the values found so far (each effect's own fit), each coordinate searched
 in an interval around its current value by a short grid + Brent; at most `JOINT_PASSES`
-passes, stopping when a pass gains less than one unit of chi^2.  Budgeted: a table-changing
+passes, stopping when a pass gains less than one unit of chi^2.  Budgeted: a `budgeted`
 coordinate gets a 3-point grid and 3 Brent steps, a cheap one 5 and 6.
 
 Intervals (`intervals`): the curvature of chi^2 at the best point in the Gauss-Newton form.
@@ -94,8 +94,8 @@ def search_bounds(forward, effect: Effect) -> dict:
 
 def _search(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | None = None,
             coarse: bool = False) -> dict:
-    grid, refine = (GRID_CHEAP, REFINE_CHEAP) if effect.cheap else (GRID_TABLES, REFINE_TABLES)
-    if coarse and not effect.cheap:          # a later stepwise step: the table-changing search is budgeted
+    grid, refine = (GRID_TABLES, REFINE_TABLES) if effect.budgeted else (GRID_CHEAP, REFINE_CHEAP)
+    if coarse and effect.budgeted:           # a later stepwise step: the costly search is budgeted
         grid, refine = 4, 3
     bounds = search_bounds(forward, effect)
     held_all = dict(fixed_values or {})
@@ -155,7 +155,7 @@ def refit_joint(forward, effects: tuple, values: dict) -> tuple[dict, float]:
             a, b = max(lo, x - w), min(hi, x + w)
             if p.log_scale and x > 0:
                 a, b = max(lo, x / 2.0), min(hi, 2.0 * x)
-            grid, refine = (5, 6) if e.cheap else (3, 3)
+            grid, refine = (3, 3) if e.budgeted else (5, 6)
 
             def cost(v, name=p.name):
                 return forward.evaluate_set(effects, {**values, name: float(v)})[0]

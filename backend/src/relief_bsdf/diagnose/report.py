@@ -82,6 +82,8 @@ def _candidates_html(result: dict) -> str:
     for c in result["candidates"]:
         if c.get("skipped"):
             rows.append([c["effect"], "not tried", "", H.Raw(H.esc(c["skipped"]))])
+        elif c.get("screened"):
+            rows.append([c["effect"], "screened out", "", H.Raw(H.esc(c["screened"]))])
         else:
             params = ", ".join(f"{k} = {H.fmt(v)}" for k, v in (c.get("parameters") or {}).items())
             rows.append([c["effect"], c["rms_after"], c["score"], params])

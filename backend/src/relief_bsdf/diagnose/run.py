@@ -164,13 +164,18 @@ def _rounded(d: dict) -> dict:
 
 
 def _candidate_list(fits: list[dict], chi0: float, n: int) -> list[dict]:
-    """Every effect tried alone against the baseline (the first step), best first; skipped ones last."""
+    """Every effect tried alone against the baseline (the first step), best first; screened-out and
+    skipped ones last."""
     ln = math.log(max(n, 2))
     out = [{"effect": "none", "rms_after": round(math.sqrt(chi0 / n), 6), "score": round(chi0, 3), "parameters": {}}]
     out += [{"effect": f["effect"], "rms_after": round(math.sqrt(f["chi2"] / n), 6),
              "score": round(f["chi2"] + f["k"] * ln, 3), "parameters": _rounded(f["parameters"])}
-            for f in fits if not f.get("skipped")]
+            for f in fits if "chi2" in f]
     out.sort(key=lambda c: c["score"])
+    out += [{"effect": f["effect"], "rms_after": None, "score": None, "parameters": {},
+             "screened": (f"not fitted: the best linear change toward it (score test, stepwise) gains chi2 "
+                          f"{f['screened']:.3g}, short of the selection's bar")}
+            for f in fits if "screened" in f]
     out += [{"effect": f["effect"], "rms_after": None, "score": None, "parameters": {}, "skipped": f["skipped"]}
             for f in fits if f.get("skipped")]
     return out

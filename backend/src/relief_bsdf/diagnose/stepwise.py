@@ -9,12 +9,17 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
 1. every candidate c not in S that can act together with S (`effects.compatible`) and is not
    held fixed by sample.toml is fitted with S held at its values (`fitting.fit_effect`, the
    conditional fit; at the first step this is the single-effect fit of each candidate).
-   Budget: from the second step on, a candidate that re-derives the boundary tables is first
-   screened by ONE evaluation, at its own first-step value (or 10 % into its range when that
-   was neutral): the best chi^2 gain along the line from the current model to that probe,
-   (r . d)^2 / (d . d) with r the current normalised residual and d the probe's change of the
-   model in the same units (a linear least-squares line search, the score-test idea), must
-   exceed k ln n + BIC_MARGIN, else it is listed as screened out and not fitted;
+   Budget: at every step, a `budgeted` candidate (one that re-derives the boundary tables, or
+   whose evaluation is slow: volume scattering, instrument blur) is first screened by TWO
+   evaluations (`_probes`: its value from the first step's fit when it had one, else 10 % into
+   its range; and 10 % to the other side of its neutral value, or 30 % into the range when the
+   neutral value is a bound).  With r the current normalised residual and D the probes' changes
+   of the model in the same units, the chi^2 gain of the best linear combination,
+   r.D (D^T D)^+ D^T.r (a linear least-squares search in the probes' span: Rao's score test,
+   with the second probe catching a change of shape with the amplitude), must pass the same
+   bar as a fit (`passes`, with chi^2_S minus that gain as the larger model's chi^2), else the
+   candidate is listed as screened out and not fitted.  A screen cannot name an effect, only
+   save the fit of one that could not pass: what is named is always decided on fitted chi^2;
 2. the candidate with the lowest BIC(S + c) is the one that gains most; it passes the bar
    (`passes`) when
    - Delta BIC = BIC(S) - BIC(S + c) > BIC_MARGIN = 10 ("very strong", Kass & Raftery 1995),
@@ -92,44 +97,55 @@ class Step:
     tried: list = field(default_factory=list)     # the conditional fits of the step that led here
 
 
-def _probe(effect, first: dict | None) -> dict | None:
-    """The screening point of a table-changing candidate (module docstring, step 1)."""
+def _probes(effect, first: dict | None) -> list[dict]:
+    """The screening points of a budgeted candidate (module docstring, step 1)."""
     if not effect.params:
-        return None
-    if first and not first.get("skipped") and any(first["parameters"][p.name] != p.neutral for p in effect.params):
-        return dict(first["parameters"])
-    return {p.name: p.neutral + 0.1 * (p.upper - p.neutral if p.upper > p.neutral else p.lower - p.neutral)
-            for p in effect.params}
+        return []
+    out = []
+    if first and "parameters" in first and any(first["parameters"][p.name] != p.neutral for p in effect.params):
+        out.append(dict(first["parameters"]))
+
+    def toward(p, frac: float, wide: bool) -> float:
+        up = p.upper - p.neutral >= p.neutral - p.lower
+        end = p.upper if up == wide else p.lower
+        return p.neutral + frac * (end - p.neutral)
+    out.append({p.name: toward(p, 0.1, True) for p in effect.params})
+    out.append({p.name: (toward(p, 0.1, False) if p.lower < p.neutral < p.upper else toward(p, 0.3, True))
+                for p in effect.params})
+    return out
 
 
-def line_gain(forward, cur: "Step", effect, probe: dict) -> float:
-    """Largest chi^2 gain along the line from the current model to `effect` at `probe` (linear)."""
+def line_gain(forward, cur: "Step", effect, probes: list[dict]) -> float:
+    """chi^2 gain of the best linear combination of the model changes toward `probes` (module docstring)."""
     import numpy as np
     named = tuple(get_effect(e) for e in cur.effects) + (effect,)
-    m1 = forward.evaluate_set(named, {**cur.values, **probe})[1]
     m0, s0 = cur.model
     s = np.sqrt(np.asarray(forward.rows.sigma_sr, float) ** 2 + s0**2)
     r = (np.asarray(forward.rows.bsdf_sr, float) - m0) / s
-    d = (m1 - m0) / s
-    dd = float(d @ d)
-    return float(r @ d) ** 2 / dd if dd > 0 else 0.0
+    D = np.stack([(forward.evaluate_set(named, {**cur.values, **p})[1] - m0) / s for p in probes], axis=1)
+    ok = np.all(np.isfinite(D), axis=0) & (np.abs(D).sum(axis=0) > 0)
+    if not ok.any():
+        return 0.0
+    c = np.linalg.lstsq(D[:, ok], r, rcond=None)[0]
+    fit = D[:, ok] @ c
+    return float(fit @ fit)
 
 
 def _screen(forward, cur: "Step", names: list[str], first: dict, n: int) -> tuple[list[str], list[dict]]:
-    """(candidates to fit, screened-out entries) of a later step (module docstring, step 1)."""
+    """(candidates to fit, screened-out entries) of a step (module docstring, step 1)."""
     keep, out = [], []
     for name in names:
         e = get_effect(name)
-        probe = None if e.cheap else _probe(e, first.get(name))
-        if probe is None:
-            keep.append(name)
+        probes = _probes(e, first.get(name)) if e.budgeted else []
+        if not probes or dict(forward.context.known).get(name) or e.skip_reason(forward.context):
+            keep.append(name)            # fitted (or listed as skipped by fit_effect, with its reason)
             continue
         try:
-            g = line_gain(forward, cur, e, probe)
+            g = line_gain(forward, cur, e, probes)
         except InputError as err:
             out.append({"effect": name, "skipped": str(err)})
             continue
-        if g > e.k * math.log(max(n, 2)) + BIC_MARGIN:
+        if passes(cur.chi2, cur.k, cur.chi2 - g, cur.k + e.k, n):
             keep.append(name)
         else:
             out.append({"effect": name, "screened": round(g, 3)})
@@ -173,10 +189,8 @@ def stepwise(forward, names: list[str], progress=None, workers: int | None = Non
                      and compatible(named + (get_effect(m),))]
         if not remaining:
             break
-        screened = []
-        if cur.effects:
-            first = {f["effect"]: f for f in first_fits(steps)}
-            remaining, screened = _screen(forward, cur, remaining, first, n)
+        first = {f["effect"]: f for f in first_fits(steps)} if cur.effects else {}
+        remaining, screened = _screen(forward, cur, remaining, first, n)
         fits = map_tasks(_cond_task, remaining, (forward, cur.effects, cur.values, bool(cur.effects)),
                          progress=progress, label=f"candidate effects, step {len(steps)}", workers=workers)
         ok = [f for f in fits if not f.get("skipped")]

@@ -15,6 +15,10 @@ Every module of `relief_bsdf.diagnose.effects` defines one `EFFECT = Effect(...)
   skipped effect is listed in `candidates` with its reason and never fitted (no fake);
 - `cheap`: True when the effect leaves every boundary table as it is (bulk, instrument),
   so an evaluation re-uses the baseline's tables (the fit grid can then be finer);
+- `slow`: True for a cheap effect whose evaluation still takes seconds (the adding-doubling
+  slab of a scattering bulk, the blurred detector's quadrature); `budgeted` (not cheap, or
+  slow) effects get the short fit grid and are screened before they are fitted
+  (`stepwise`);
 - `bracket(context, forward) -> {param: (lo, hi)}`: optional narrower search interval
   derived from the data (e.g. the weighted-mean background for stray light);
 - `face`: "" for an effect that leaves the relief face alone, "relief" for an operation on the
@@ -113,6 +117,7 @@ class Effect:
     apply: Callable[[Any, ReliefContext, dict], Any]
     explain: Callable[[dict], str]
     cheap: bool = False
+    slow: bool = False
     skip_reason: Callable[[ReliefContext], "str | None"] = _no_skip
     bracket: Callable[[ReliefContext, Any], dict] | None = None
     face: str = ""
@@ -120,6 +125,12 @@ class Effect:
     @property
     def neutral(self) -> dict:
         return {p.name: p.neutral for p in self.params}
+
+    @property
+    def budgeted(self) -> bool:
+        """An evaluation costs seconds (new boundary tables, or a slow cheap effect): short fit grids,
+        and screened by the linear score test before a fit (`stepwise`)."""
+        return not self.cheap or self.slow
 
     @property
     def k(self) -> int:

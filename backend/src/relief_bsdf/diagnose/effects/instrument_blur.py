@@ -27,4 +27,5 @@ EFFECT = Effect(
     apply=_apply,
     explain=lambda v: f"an extra angular blur of {v['blur_deg']:.2f} deg (1-sigma)",
     cheap=True,
+    slow=True,
 )

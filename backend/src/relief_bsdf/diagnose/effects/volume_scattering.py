@@ -25,4 +25,5 @@ EFFECT = Effect(
     explain=lambda v: (f"a scattering coefficient of {v['scatter_per_mm']:.3g} per mm with Henyey-Greenstein "
                        f"asymmetry g = {v['hg_g']:.2f}"),
     cheap=True,
+    slow=True,
 )
