@@ -62,7 +62,7 @@ def test_fit_cli_writes_fit_json_and_resumes(tmp_path, capsys):
     for f in ("checkpoint.json", "boundary.h5", "relief_optimised.npz", "report.html", "in_plane_after.png",
               "residual_before.png", "simulated.csv"):
         assert (out / f).exists(), f
-    # the saved boundary tables reproduce the fitted simulation through `relief simulate --table`
+    _check_fit_isbsdf_files(out, doc)    # the saved boundary tables reproduce the fitted simulation through `relief simulate --table`
     assert main(["simulate", str(s), "-o", str(tmp_path / "sim"), "--table", str(out / "boundary.h5")]) == 0
     a = read_recording(out / "simulated.csv").bsdf_sr
     b = read_recording(tmp_path / "sim" / "simulated.csv").bsdf_sr
@@ -72,6 +72,30 @@ def test_fit_cli_writes_fit_json_and_resumes(tmp_path, capsys):
     doc2 = json.loads((out / "fit.json").read_text())
     assert doc2["parameters"] == doc["parameters"] and doc2["rms_after"] == doc["rms_after"]
     assert len(_saved_evaluations(out / "checkpoint.json")) == n_ck
+
+
+def _check_fit_isbsdf_files(out, doc):
+    """Issue 15 item 2 on the fit's own output: OpticStudio wants one scatter type per .bsdf file and
+    a BTDF centred on the refracted ray.  Each file's TIS is the fitted table's diffuse total (the
+    tables in boundary.h5), and read back at normal incidence, where the IS-BSDF grid holds the
+    table's cell centres, the pair gives the table's values (oblique incidences are interpolated
+    between the two grids: io/test_isbsdf.py bounds that error on smooth lobes)."""
+    from relief_bsdf.io.hdf5 import load_tables
+    from relief_bsdf.io.isbsdf import import_isbsdf, read_isbsdf_all
+    for t in load_tables(out / "boundary.h5"):
+        names = doc["files"][f"isbsdf_{t.incident_from}"]
+        assert sorted(names) == [f"boundary_{t.incident_from}_BRDF.bsdf", f"boundary_{t.incident_from}_BTDF.bsdf"]
+        h = t.hemispherical()
+        for name in names:
+            blocks = read_isbsdf_all(out / name)
+            assert len(blocks) == 1 and blocks[0].scatter_type == name[-9:-5]
+            side = "R" if blocks[0].scatter_type == "BRDF" else "T"
+            if side == "T":
+                assert blocks[0].relief_tag("btdf_centre") == "refracted"
+            np.testing.assert_allclose(blocks[0].tis[0], h["diffuse_" + side][0, :, 0], rtol=1e-5, atol=1e-9)
+        back = import_isbsdf([out / n for n in names], t.theta_s_edges_deg, t.phi_s_edges_deg)
+        assert back.incident_from == t.incident_from and t.theta_i_deg[0] == 0.0
+        np.testing.assert_allclose(back.values_per_sr[0, 0], t.values_per_sr[0, 0], rtol=1e-4, atol=1e-7)
 
 
 @pytest.mark.parametrize("case, needle", [
