@@ -331,3 +331,29 @@ def test_sample_that_is_a_fifo_or_folder_and_a_checkpoint_dir_that_is_a_file(tmp
     (tmp_path / "ck").write_text("x")
     assert_refused(capsys, str(tmp_path / "ck"), "simulate", s, "-o", tmp_path / "out", "--checkpoint-dir",
                    tmp_path / "ck", why="is a file")
+
+
+# ---------------------------------------------------------------------------------------------
+# flat maps: accepted, described without RuntimeWarnings and in strict JSON; refused by name where no
+# slope can be formed
+
+def test_flat_map_info_has_no_runtime_warnings_and_strict_json(tmp_path, capsys):
+    import warnings
+    f = tmp_path / "flat.npz"
+    np.savez(f, heights=np.zeros((32, 32)), dx=1e-6, dy=1e-6)
+    for extra in ([], ["--json"]):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)      # a RuntimeWarning becomes an internal error
+            rc, out, err = run(capsys, "info", f, *extra)
+        assert rc == 0 and err == "", err
+        assert "nan" not in out.lower()
+    d = json.loads(out, parse_constant=lambda c: pytest.fail(f"literal {c} is not JSON"))
+    assert d["rms_height_m"] == 0.0 and d["correlation_length_m"] is None
+    assert d["noise_floor"]["fraction_of_rms"] is None and d["flags"]["kurtosis"] is None
+
+
+def test_flat_map_for_a_slope_method_is_refused_naming_the_file(tmp_path, capsys):
+    f = tmp_path / "flat.npz"
+    np.savez(f, heights=np.zeros((32, 32)), dx=1e-6, dy=1e-6)
+    assert_refused(capsys, str(f), "reconstruct", f, "--method", "microfacet", "--n", "1.5", "--wavelengths-nm",
+                   "550", "--theta-i-deg", "0", "--workers", "1", "-o", tmp_path / "t.h5", why="no measurable slopes")

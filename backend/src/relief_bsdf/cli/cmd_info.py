@@ -94,9 +94,11 @@ def measured_map_info(relief, wavelength_nm: float = 550.0, n: float = 1.5) -> d
     nf = noise_floor(relief)
     fl = map_flags(relief)
     f_max = propagating_f_max(wavelength_nm, n, n, 90.0)
-    out = {"noise_floor": {"psd_m4": nf.psd_m4, "rms_m": nf.rms_m, "fraction_of_rms": nf.fraction_of_rms,
+    def finite(v: float) -> float | None:       # strict JSON: undefined (a flat map's) is null, never NaN
+        return float(v) if math.isfinite(v) else None
+    out = {"noise_floor": {"psd_m4": nf.psd_m4, "rms_m": nf.rms_m, "fraction_of_rms": finite(nf.fraction_of_rms),
                            "slope_rms": nf.slope_rms, "statement": nf.statement()},
-           "flags": {"kurtosis": fl.kurtosis, "spiky": fl.spiky, "anisotropy": fl.anisotropy,
+           "flags": {"kurtosis": finite(fl.kurtosis), "spiky": fl.spiky, "anisotropy": fl.anisotropy,
                      "anisotropic": fl.anisotropic, "statements": fl.statements()}}
     if f_max < 0.5 / max(relief.dx_m, relief.dy_m):
         bl = band_limited(relief, f_max)

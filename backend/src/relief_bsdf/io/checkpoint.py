@@ -248,6 +248,11 @@ class CheckpointStore:
             return {}
         return data
 
+    def ignore(self, why: str) -> dict:
+        """For a user of the store that finds the loaded content unfit (`why`): one note, and {} (start afresh)."""
+        self._note(f"ignored checkpoint {self.path}: {why}; starting afresh")
+        return {}
+
     def _read(self) -> tuple[str, dict]:
         if self.path.suffix.lower() == ".json":
             doc = json.loads(self.path.read_text(encoding="utf-8"))
