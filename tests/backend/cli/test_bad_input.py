@@ -357,3 +357,17 @@ def test_flat_map_for_a_slope_method_is_refused_naming_the_file(tmp_path, capsys
     np.savez(f, heights=np.zeros((32, 32)), dx=1e-6, dy=1e-6)
     assert_refused(capsys, str(f), "reconstruct", f, "--method", "microfacet", "--n", "1.5", "--wavelengths-nm",
                    "550", "--theta-i-deg", "0", "--workers", "1", "-o", tmp_path / "t.h5", why="no measurable slopes")
+
+
+def test_x3p_bounds_hold_for_the_native_reader_too(tmp_path, capsys, monkeypatch):
+    """Without SurfaceTopography (io.native_readers reads the X3P) the same checks run first."""
+    from relief_bsdf.io import native_readers
+    monkeypatch.setattr(native_readers, "surface_topography_available", lambda: False)
+    f = _x3p_with(tmp_path, edit_xml=lambda x: x.replace("<SizeX>16</SizeX>", "<SizeX>200000</SizeX>")
+                  .replace("<SizeY>16</SizeY>", "<SizeY>200000</SizeY>"))
+    assert_refused(capsys, str(f), "info", f, why="limit.*--max-pixels")
+    g = _x3p_with(tmp_path, edit_data=lambda d: d[:8] + bytes([d[8] ^ 1]) + d[9:], name="flip.x3p")
+    rc, out, err = run(capsys, "info", g)
+    assert rc == 0 and "native_readers" in out, err
+    warn = [ln for ln in err.splitlines() if "warning" in ln]
+    assert len(warn) == 1 and str(g) in warn[0] and "MD5" in warn[0]

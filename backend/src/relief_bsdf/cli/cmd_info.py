@@ -135,7 +135,8 @@ def _print_relief(d: dict) -> None:
         extra = f", channel {md['channel']!r}" if md.get("channel") else ""
         print(f"  read by    {md['reader']}{extra}, heights in file: {md.get('file_unit', '?')}")
     if md.get("instrument"):
-        print(f"  instrument {md['instrument'].get('name', md['instrument'])}")
+        inst = md["instrument"]         # a dict (SurfaceTopography) or a name (io.native_readers)
+        print(f"  instrument {inst.get('name', inst) if isinstance(inst, dict) else inst}")
     print(f"  grid       {nx} x {ny} px, pitch {_fmt_len(dx)} x {_fmt_len(dy)}, size {_fmt_len(sx)} x {_fmt_len(sy)}"
           + (" (periodic tile)" if d.get("periodic") else ""))
     print(f"  valid      {d['valid_fraction']:.1%} of the points (invalid points are kept as holes, not filled)")

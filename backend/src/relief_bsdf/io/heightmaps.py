@@ -216,6 +216,8 @@ def read_relief(path: str | Path, pitch_m: Any = None, channel: int | str | None
         return _read_image(path, pitch, channel, z_unit)
     if suffix == ".sdf":
         return _read_sdf(path, pitch)
+    if suffix == ".x3p":
+        check_x3p(path)                 # size, increments, checksums: before any reader allocates anything
     # --- hook (issue 16): the project's own readers where SurfaceTopography is missing (io/native_readers.py)
     from relief_bsdf.io import native_readers
     if native_readers.wanted(suffix):
@@ -410,8 +412,6 @@ def _surface_topography_version() -> str:
 
 
 def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str | None) -> Relief:
-    if path.suffix.lower() == ".x3p":
-        check_x3p(path)                 # before SurfaceTopography allocates anything
     import SurfaceTopography as ST
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
