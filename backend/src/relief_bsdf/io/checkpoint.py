@@ -169,6 +169,8 @@ def _dataclass_from(name: str, values: dict) -> Any:
     module, _, qualname = name.partition(":")
     if not module.startswith("relief_bsdf.") or not qualname or not all(p.isidentifier() for p in qualname.split(".")):
         raise ValueError(f"{name!r} is not a relief_bsdf data class")
+    if "__main__" in module.split("."):     # importing an entry point runs the command line: never
+        raise ValueError(f"{name!r}: {module} is an entry point, not a module of data classes")
     try:
         obj: Any = importlib.import_module(module)
         for part in qualname.split("."):
