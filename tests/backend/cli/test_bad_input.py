@@ -371,3 +371,22 @@ def test_x3p_bounds_hold_for_the_native_reader_too(tmp_path, capsys, monkeypatch
     assert rc == 0 and "native_readers" in out, err
     warn = [ln for ln in err.splitlines() if "warning" in ln]
     assert len(warn) == 1 and str(g) in warn[0] and "MD5" in warn[0]
+
+
+def test_hdf5_table_declaring_a_huge_dataset_is_refused_before_reading(tmp_path, capsys):
+    """A tiny file whose unwritten dataset declares 10^11 values (h5py would allocate 800 GB on read)."""
+    import h5py
+    f = tmp_path / "huge.h5"
+    with h5py.File(f, "w") as h:
+        h.attrs["format"] = "relief-bsdf-table/1"
+        h.attrs["tables"] = "outside"
+        g = h.create_group("outside")
+        for k, n in (("wavelength_nm", 10), ("theta_i_deg", 100), ("phi_i_deg", 100), ("theta_s_edges_deg", 1001),
+                     ("phi_s_edges_deg", 1001)):
+            g[k] = np.linspace(0.0, 90.0, n)
+        for k in ("specular_R", "specular_T", "lost"):
+            g[k] = np.zeros((10, 100, 100))
+        g.create_dataset("values_per_sr", shape=(10, 100, 100, 1000, 1000), dtype="f8", chunks=(1, 1, 1, 1000, 1000),
+                         compression="gzip")
+    assert f.stat().st_size < 5_000_000             # a few MB that declare 800 GB
+    assert_refused(capsys, str(f), "info", f, why=r"'values_per_sr'.*limit.*--max-pixels")
