@@ -390,3 +390,15 @@ def test_hdf5_table_declaring_a_huge_dataset_is_refused_before_reading(tmp_path,
                          compression="gzip")
     assert f.stat().st_size < 5_000_000             # a few MB that declare 800 GB
     assert_refused(capsys, str(f), "info", f, why=r"'values_per_sr'.*limit.*--max-pixels")
+
+
+def test_isbsdf_declaring_a_huge_grid_is_refused_before_allocating(tmp_path, capsys):
+    """Four axis lists of 3000 angles (90 KB) declare 8.1e13 values: refused, not a MemoryError."""
+    n = 3000
+    angles = " ".join(f"{k * 0.01:.2f}" for k in range(n))
+    f = tmp_path / "big.bsdf"
+    f.write_text("Source Measured\nSymmetry Asymmetrical\nSpectralContent Monochrome\nScatterType BRDF\n"
+                 + "".join(f"{key} {n}\n{angles}\n" for key in ("SampleRotation", "AngleOfIncidence",
+                                                                 "ScatterAzimuth", "ScatterRadial"))
+                 + "Monochrome\nDataBegin\nTIS 0.5\nDataEnd\n")
+    assert_refused(capsys, str(f), "info", f, why=r"3000 x 3000 x 3000 x 3000.*limit.*--max-pixels")
