@@ -263,10 +263,13 @@ class CheckpointStore:
             digest, data = str(doc.get("key_digest")), decode(doc.get("data"))
         else:
             with np.load(self.path, allow_pickle=False) as z:
+                # format and key first: the (possibly large) arrays of another run's file are never read
+                if "format" not in z.files or str(z["format"]) != FORMAT:
+                    raise ValueError(f"format is not {FORMAT!r}")
+                digest = str(z["key_digest"])
+                if digest != self.digest:
+                    return digest, {}
                 entries = {k: z[k] for k in z.files}
-            if str(entries.get("format")) != FORMAT:
-                raise ValueError(f"format is not {FORMAT!r}")
-            digest = str(entries["key_digest"])
             data = decode(json.loads(str(entries["tree"])), entries)
         if not isinstance(data, dict):
             raise ValueError("the saved value is not a dict")
