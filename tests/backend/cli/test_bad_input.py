@@ -331,3 +331,74 @@ def test_sample_that_is_a_fifo_or_folder_and_a_checkpoint_dir_that_is_a_file(tmp
     (tmp_path / "ck").write_text("x")
     assert_refused(capsys, str(tmp_path / "ck"), "simulate", s, "-o", tmp_path / "out", "--checkpoint-dir",
                    tmp_path / "ck", why="is a file")
+
+
+# ---------------------------------------------------------------------------------------------
+# flat maps: accepted, described without RuntimeWarnings and in strict JSON; refused by name where no
+# slope can be formed
+
+def test_flat_map_info_has_no_runtime_warnings_and_strict_json(tmp_path, capsys):
+    import warnings
+    f = tmp_path / "flat.npz"
+    np.savez(f, heights=np.zeros((32, 32)), dx=1e-6, dy=1e-6)
+    for extra in ([], ["--json"]):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)      # a RuntimeWarning becomes an internal error
+            rc, out, err = run(capsys, "info", f, *extra)
+        assert rc == 0 and err == "", err
+        assert "nan" not in out.lower()
+    d = json.loads(out, parse_constant=lambda c: pytest.fail(f"literal {c} is not JSON"))
+    assert d["rms_height_m"] == 0.0 and d["correlation_length_m"] is None
+    assert d["noise_floor"]["fraction_of_rms"] is None and d["flags"]["kurtosis"] is None
+
+
+def test_flat_map_for_a_slope_method_is_refused_naming_the_file(tmp_path, capsys):
+    f = tmp_path / "flat.npz"
+    np.savez(f, heights=np.zeros((32, 32)), dx=1e-6, dy=1e-6)
+    assert_refused(capsys, str(f), "reconstruct", f, "--method", "microfacet", "--n", "1.5", "--wavelengths-nm",
+                   "550", "--theta-i-deg", "0", "--workers", "1", "-o", tmp_path / "t.h5", why="no measurable slopes")
+
+
+def test_x3p_bounds_hold_for_the_native_reader_too(tmp_path, capsys, monkeypatch):
+    """Without SurfaceTopography (io.native_readers reads the X3P) the same checks run first."""
+    from relief_bsdf.io import native_readers
+    monkeypatch.setattr(native_readers, "surface_topography_available", lambda: False)
+    f = _x3p_with(tmp_path, edit_xml=lambda x: x.replace("<SizeX>16</SizeX>", "<SizeX>200000</SizeX>")
+                  .replace("<SizeY>16</SizeY>", "<SizeY>200000</SizeY>"))
+    assert_refused(capsys, str(f), "info", f, why="limit.*--max-pixels")
+    g = _x3p_with(tmp_path, edit_data=lambda d: d[:8] + bytes([d[8] ^ 1]) + d[9:], name="flip.x3p")
+    rc, out, err = run(capsys, "info", g)
+    assert rc == 0 and "native_readers" in out, err
+    warn = [ln for ln in err.splitlines() if "warning" in ln]
+    assert len(warn) == 1 and str(g) in warn[0] and "MD5" in warn[0]
+
+
+def test_hdf5_table_declaring_a_huge_dataset_is_refused_before_reading(tmp_path, capsys):
+    """A tiny file whose unwritten dataset declares 10^11 values (h5py would allocate 800 GB on read)."""
+    import h5py
+    f = tmp_path / "huge.h5"
+    with h5py.File(f, "w") as h:
+        h.attrs["format"] = "relief-bsdf-table/1"
+        h.attrs["tables"] = "outside"
+        g = h.create_group("outside")
+        for k, n in (("wavelength_nm", 10), ("theta_i_deg", 100), ("phi_i_deg", 100), ("theta_s_edges_deg", 1001),
+                     ("phi_s_edges_deg", 1001)):
+            g[k] = np.linspace(0.0, 90.0, n)
+        for k in ("specular_R", "specular_T", "lost"):
+            g[k] = np.zeros((10, 100, 100))
+        g.create_dataset("values_per_sr", shape=(10, 100, 100, 1000, 1000), dtype="f8", chunks=(1, 1, 1, 1000, 1000),
+                         compression="gzip")
+    assert f.stat().st_size < 5_000_000             # a few MB that declare 800 GB
+    assert_refused(capsys, str(f), "info", f, why=r"'values_per_sr'.*limit.*--max-pixels")
+
+
+def test_isbsdf_declaring_a_huge_grid_is_refused_before_allocating(tmp_path, capsys):
+    """Four axis lists of 3000 angles (90 KB) declare 8.1e13 values: refused, not a MemoryError."""
+    n = 3000
+    angles = " ".join(f"{k * 0.01:.2f}" for k in range(n))
+    f = tmp_path / "big.bsdf"
+    f.write_text("Source Measured\nSymmetry Asymmetrical\nSpectralContent Monochrome\nScatterType BRDF\n"
+                 + "".join(f"{key} {n}\n{angles}\n" for key in ("SampleRotation", "AngleOfIncidence",
+                                                                 "ScatterAzimuth", "ScatterRadial"))
+                 + "Monochrome\nDataBegin\nTIS 0.5\nDataEnd\n")
+    assert_refused(capsys, str(f), "info", f, why=r"3000 x 3000 x 3000 x 3000.*limit.*--max-pixels")

@@ -96,3 +96,29 @@ def _saved_evaluations(path):
     """The evaluations a fit checkpoint holds (io.checkpoint's JSON layout, read without its key)."""
     from relief_bsdf.io.checkpoint import decode
     return decode(json.loads(path.read_text())["data"])["evaluations"]
+
+
+def test_a_damaged_checkpoint_of_the_same_run_is_ignored_with_a_note(tmp_path, capsys):
+    """A checkpoint under this run's key whose values are damaged (a NaN, a short row list) is not
+    replayed: one note, and the result of a fit without any checkpoint (never a NaN metric)."""
+    from relief_bsdf.io.checkpoint import encode
+    truth = _CheapForward([]).simulate(1.4, 0.1)
+    sigma = 0.02 * truth
+    plain = fit_relief(_CheapForward([]), truth, sigma, FitSettings(max_iter=8))
+    ck = tmp_path / "checkpoint.json"
+    fit_relief(_CheapForward([]), truth, sigma, FitSettings(max_iter=8), checkpoint=ck)
+    saved = _saved_evaluations(ck)
+    first = next(iter(saved))
+    for damage, why in ((lambda v: v[:3] + [float("nan")] + v[4:], "non-finite"), (lambda v: v[:-1], "recording rows")):
+        doc = json.loads(ck.read_text())
+        bad = dict(saved)
+        bad[first] = damage(list(saved[first]))
+        doc["data"] = encode({"evaluations": bad})
+        ck.write_text(json.dumps(doc))
+        capsys.readouterr()
+        again = fit_relief(_CheapForward([]), truth, sigma, FitSettings(max_iter=8), checkpoint=ck)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "ignored checkpoint" in err[0] and why in err[0] and str(ck) in err[0]
+        assert np.isfinite(again.rms_before) and again.rms_before == plain.rms_before
+        assert (again.height_scale, again.filter_sigma_um, again.rms_after) == \
+            (plain.height_scale, plain.filter_sigma_um, plain.rms_after)

@@ -113,6 +113,18 @@ def test_package_dataclasses_round_trip_others_are_refused(tmp_path):
         x: int = 1
     with pytest.raises(TypeError):
         encode(Foreign())
-    for name in ("os:system", "builtins:eval", "relief_bsdf.io.checkpoint:decode", "relief_bsdf.io.checkpoint:_x.y"):
+    for name in ("os:system", "builtins:eval", "relief_bsdf.io.checkpoint:decode", "relief_bsdf.io.checkpoint:_x.y",
+                 "relief_bsdf.cli.__main__:X"):      # importing it would run the command line
         with pytest.raises(ValueError):
             decode({"dataclass": [name, {}]})
+
+
+def test_arrays_of_another_runs_npz_are_never_read(tmp_path, capsys):
+    """Format and key are read first: a file of another run is set aside before its arrays are touched
+    (here an object array, which reading would refuse)."""
+    store = CheckpointStore(tmp_path / "ck.npz", {"k": 1})
+    np.savez(tmp_path / "ck.npz", allow_pickle=True, format=np.str_(FORMAT), key_digest=np.str_("0" * 64),
+             tree=np.str_('{"dict": []}'), a0=np.array([object()], dtype=object))
+    assert store.load() == {}
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "belongs to another run" in err[0]

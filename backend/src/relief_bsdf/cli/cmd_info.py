@@ -94,9 +94,11 @@ def measured_map_info(relief, wavelength_nm: float = 550.0, n: float = 1.5) -> d
     nf = noise_floor(relief)
     fl = map_flags(relief)
     f_max = propagating_f_max(wavelength_nm, n, n, 90.0)
-    out = {"noise_floor": {"psd_m4": nf.psd_m4, "rms_m": nf.rms_m, "fraction_of_rms": nf.fraction_of_rms,
+    def finite(v: float) -> float | None:       # strict JSON: undefined (a flat map's) is null, never NaN
+        return float(v) if math.isfinite(v) else None
+    out = {"noise_floor": {"psd_m4": nf.psd_m4, "rms_m": nf.rms_m, "fraction_of_rms": finite(nf.fraction_of_rms),
                            "slope_rms": nf.slope_rms, "statement": nf.statement()},
-           "flags": {"kurtosis": fl.kurtosis, "spiky": fl.spiky, "anisotropy": fl.anisotropy,
+           "flags": {"kurtosis": finite(fl.kurtosis), "spiky": fl.spiky, "anisotropy": fl.anisotropy,
                      "anisotropic": fl.anisotropic, "statements": fl.statements()}}
     if f_max < 0.5 / max(relief.dx_m, relief.dy_m):
         bl = band_limited(relief, f_max)
@@ -133,7 +135,8 @@ def _print_relief(d: dict) -> None:
         extra = f", channel {md['channel']!r}" if md.get("channel") else ""
         print(f"  read by    {md['reader']}{extra}, heights in file: {md.get('file_unit', '?')}")
     if md.get("instrument"):
-        print(f"  instrument {md['instrument'].get('name', md['instrument'])}")
+        inst = md["instrument"]         # a dict (SurfaceTopography) or a name (io.native_readers)
+        print(f"  instrument {inst.get('name', inst) if isinstance(inst, dict) else inst}")
     print(f"  grid       {nx} x {ny} px, pitch {_fmt_len(dx)} x {_fmt_len(dy)}, size {_fmt_len(sx)} x {_fmt_len(sy)}"
           + (" (periodic tile)" if d.get("periodic") else ""))
     print(f"  valid      {d['valid_fraction']:.1%} of the points (invalid points are kept as holes, not filled)")

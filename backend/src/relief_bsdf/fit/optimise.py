@@ -500,15 +500,23 @@ def _store(checkpoint: Any, measured: np.ndarray, sigma: np.ndarray | None) -> A
     return CheckpointStore(checkpoint, {"kind": "relief-fit", "recording_values": h.hexdigest()})
 
 
-def _load_cache(store: Any) -> dict[str, list]:
+def _load_cache(store: Any, n_rows: int) -> dict[str, list]:
+    """The checkpoint's evaluations {"s,g": simulated values}, validated before use: each a list of
+    `n_rows` finite numbers.  Anything else (a NaN, a wrong length, not numbers) is damage: the whole
+    checkpoint is ignored with one note and the fit starts afresh (never a NaN metric, never a crash)."""
     if store is None:
         return {}
     ev = store.load().get("evaluations", {})
     try:
-        return {str(k): [float(x) for x in v] for k, v in ev.items()}
+        cache = {str(k): [float(x) for x in v] for k, v in ev.items()}
     except (TypeError, ValueError, AttributeError):
-        raise InputError(store.path, "checkpoint evaluations are not lists of numbers; delete it to start over") \
-            from None
+        return store.ignore("its evaluations are not lists of numbers")
+    for k, v in cache.items():
+        if len(v) != n_rows:
+            return store.ignore(f"evaluation at {k} holds {len(v)} values for {n_rows} recording rows")
+        if not np.all(np.isfinite(v)):
+            return store.ignore(f"evaluation at {k} holds a non-finite value (NaN or infinity)")
+    return cache
 
 
 def _saver(store: Any) -> Callable[[dict], None]:
@@ -543,7 +551,7 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     progress = progress or silent
     t0 = time.monotonic()
     store = _store(checkpoint, measured, sigma)
-    obj = _Objective(forward, measured, sigma, settings, _load_cache(store), _saver(store), progress, on_eval)
+    obj = _Objective(forward, measured, sigma, settings, _load_cache(store, int(np.size(measured))), _saver(store), progress, on_eval)
     pitch_um = min(forward.relief.dx_m, forward.relief.dy_m) * 1e6
     gmax = settings.max_filter_um if settings.max_filter_um is not None else 20 * pitch_um
     c2 = _Coords.make(settings, True, gmax, pitch_um)

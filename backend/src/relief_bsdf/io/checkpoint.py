@@ -169,6 +169,8 @@ def _dataclass_from(name: str, values: dict) -> Any:
     module, _, qualname = name.partition(":")
     if not module.startswith("relief_bsdf.") or not qualname or not all(p.isidentifier() for p in qualname.split(".")):
         raise ValueError(f"{name!r} is not a relief_bsdf data class")
+    if "__main__" in module.split("."):     # importing an entry point runs the command line: never
+        raise ValueError(f"{name!r}: {module} is an entry point, not a module of data classes")
     try:
         obj: Any = importlib.import_module(module)
         for part in qualname.split("."):
@@ -248,6 +250,11 @@ class CheckpointStore:
             return {}
         return data
 
+    def ignore(self, why: str) -> dict:
+        """For a user of the store that finds the loaded content unfit (`why`): one note, and {} (start afresh)."""
+        self._note(f"ignored checkpoint {self.path}: {why}; starting afresh")
+        return {}
+
     def _read(self) -> tuple[str, dict]:
         if self.path.suffix.lower() == ".json":
             doc = json.loads(self.path.read_text(encoding="utf-8"))
@@ -256,10 +263,13 @@ class CheckpointStore:
             digest, data = str(doc.get("key_digest")), decode(doc.get("data"))
         else:
             with np.load(self.path, allow_pickle=False) as z:
+                # format and key first: the (possibly large) arrays of another run's file are never read
+                if "format" not in z.files or str(z["format"]) != FORMAT:
+                    raise ValueError(f"format is not {FORMAT!r}")
+                digest = str(z["key_digest"])
+                if digest != self.digest:
+                    return digest, {}
                 entries = {k: z[k] for k in z.files}
-            if str(entries.get("format")) != FORMAT:
-                raise ValueError(f"format is not {FORMAT!r}")
-            digest = str(entries["key_digest"])
             data = decode(json.loads(str(entries["tree"])), entries)
         if not isinstance(data, dict):
             raise ValueError("the saved value is not a dict")

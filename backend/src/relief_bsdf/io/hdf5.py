@@ -94,6 +94,11 @@ def _load_group(f: h5py.File, path: Path, name: str) -> BsdfTable:
     if name not in f or not isinstance(f[name], h5py.Group):
         raise InputError(path, f"table group {name!r} listed but missing")
     g = f[name]
+    from relief_bsdf.io.heightmaps import check_declared_size
+    for key, ds in g.items():            # declared shapes bounded before any dataset is read (io.heightmaps)
+        if isinstance(ds, h5py.Dataset):
+            check_declared_size(path, ds.shape or (), f"table {name!r} dataset {key!r}",
+                                per_pixel=16 if "mueller" in key else 1)
     try:
         kw = {ax: np.asarray(g[ax][()], dtype=float) for ax in _AXES}
         kw.update({n: np.asarray(g[n][()], dtype=float) for n in _PER_INCIDENCE})

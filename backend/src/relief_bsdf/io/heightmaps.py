@@ -38,6 +38,8 @@ Bounds and plausibility (checked *before* the pixels are allocated):
   ``--max-pixels N``, the environment variable ``RELIEF_MAX_PIXELS`` or `pixel_limit(n)`.
   The declared size is read from the npz member headers, the image spec, the SDF header,
   the X3P main.xml and SurfaceTopography's channel description;
+- BSDF tables (io.hdf5): every dataset's declared shape is checked the same way before it is
+  read: at most `max_pixels()` cells (16 values per cell for the Mueller matrices);
 - X3P: the declared increments must be positive and finite, the MD5 checksums of the point
   data and of main.xml are verified (a mismatch is a warning naming the file);
 - images: an error OpenImageIO records while reading (a truncated or corrupt TIFF / EXR)
@@ -122,13 +124,14 @@ def pixel_limit(n: int | None):
         _MAX_PIXELS.reset(token)
 
 
-def check_declared_size(path: Path, shape: tuple, what: str = "height map") -> None:
-    """Refuse (InputError) a declared size beyond `max_pixels()` before anything is allocated."""
+def check_declared_size(path: Path, shape: tuple, what: str = "height map", per_pixel: int = 1) -> None:
+    """Refuse (InputError) a declared size beyond `per_pixel` x `max_pixels()` values before anything is
+    allocated (`per_pixel`: values one cell may carry, e.g. 16 for a table's 4x4 Mueller matrices)."""
     dims = [int(d) for d in shape]
     if any(d < 0 for d in dims):
         raise InputError(path, f"the file declares a negative size {' x '.join(map(str, dims))}")
     n = int(np.prod(dims, dtype=object)) if dims else 1
-    limit = max_pixels()
+    limit = max_pixels() * int(per_pixel)
     if n > limit:
         raise InputError(path, f"the {what} declares {' x '.join(map(str, dims))} = {n} values, more than the limit "
                                f"of {limit} (about {8 * n / 1e9:.2g} GB as float64); raise it with --max-pixels "
@@ -216,6 +219,8 @@ def read_relief(path: str | Path, pitch_m: Any = None, channel: int | str | None
         return _read_image(path, pitch, channel, z_unit)
     if suffix == ".sdf":
         return _read_sdf(path, pitch)
+    if suffix == ".x3p":
+        check_x3p(path)                 # size, increments, checksums: before any reader allocates anything
     # --- hook (issue 16): the project's own readers where SurfaceTopography is missing (io/native_readers.py)
     from relief_bsdf.io import native_readers
     if native_readers.wanted(suffix):
@@ -410,8 +415,6 @@ def _surface_topography_version() -> str:
 
 
 def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str | None) -> Relief:
-    if path.suffix.lower() == ".x3p":
-        check_x3p(path)                 # before SurfaceTopography allocates anything
     import SurfaceTopography as ST
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

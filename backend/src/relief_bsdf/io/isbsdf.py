@@ -382,6 +382,8 @@ def _parse_block(lines: list[str], path: Path) -> IsBsdfBlock:
         if np.any(np.diff(arr) <= 0):
             raise InputError(path, f"{key} values must increase strictly")
     P, I, A, S = rot.size, aoi.size, az.size, rad.size
+    from relief_bsdf.io.heightmaps import check_declared_size
+    check_declared_size(path, (P, I, A, S), "IS-BSDF data block grid")     # before allocating (io.heightmaps)
     tis = np.zeros((P, I))
     data = np.zeros((P, I, A, S))
     for p in range(P):

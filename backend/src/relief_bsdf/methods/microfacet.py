@@ -390,7 +390,8 @@ def fit_lobes(relief_or_slopes: Any, n_lobes: int = 1, distribution: str = "beck
     s2 = sx * sx + sy * sy
     s2 = s2[np.isfinite(s2)]
     if s2.size < 16 or not np.any(s2 > 0):
-        raise InputError("relief", "the relief has no measurable slopes (flat or too few points)")
+        where = getattr(relief_or_slopes, "source", "") or "relief"      # the height-map file, when read from one
+        raise InputError(where, "the relief has no measurable slopes (flat or too few points)")
     if s2.size > 400_000:      # a deterministic thinning keeps EM fast on big maps
         s2 = s2[:: int(np.ceil(s2.size / 400_000))]
     rms = float(np.sqrt(s2.mean()))

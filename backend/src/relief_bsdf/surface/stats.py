@@ -233,6 +233,8 @@ def _first_crossing(r: np.ndarray, c: np.ndarray, level: float) -> float:
 def _axis_one_over_e(lags: np.ndarray, acf_line: np.ndarray, tile_m: float) -> float:
     """1/e point of a 1-D cut through the centred ACF (positive lags up to half the tile)."""
     c0 = int(np.argmin(np.abs(lags)))
+    if not acf_line[c0] > 0:                 # a flat map: no variance, no correlation length
+        return float("nan")
     pos = lags[c0:]
     keep = pos <= 0.5 * tile_m
     return _first_crossing(pos[keep], acf_line[c0:][keep] / acf_line[c0], np.exp(-1.0))
@@ -245,6 +247,8 @@ def _radial_one_over_e(lx: np.ndarray, ly: np.ndarray, acf: np.ndarray, relief: 
     kx = np.abs(lx) <= half + abs(lx[1] - lx[0]) if lx.size > 1 else np.ones(lx.size, bool)
     ky = np.abs(ly) <= half + abs(ly[1] - ly[0]) if ly.size > 1 else np.ones(ly.size, bool)
     c0 = acf[np.argmin(np.abs(ly)), np.argmin(np.abs(lx))]
+    if not c0 > 0:                           # a flat map: no variance, no correlation length
+        return float("nan")
     r_centres, c = radial_average(lx[kx], ly[ky], acf[np.ix_(ky, kx)])
     c = c / c0
     keep = r_centres <= 0.5 * min(lxmax, lymax)
@@ -440,8 +444,10 @@ class NoiseFloor:
     slope_rms: float              # rms slope such noise adds (forward differences)
 
     def statement(self) -> str:
+        share = (f"{self.fraction_of_rms:.1%} of the heights" if np.isfinite(self.fraction_of_rms)
+                 else "the map is flat")
         return (f"PSD noise floor {self.psd_m4:.3g} m^4: white noise of {self.rms_m * 1e9:.3g} nm rms "
-                f"({self.fraction_of_rms:.1%} of the heights) adding {self.slope_rms:.3g} rms slope")
+                f"({share}) adding {self.slope_rms:.3g} rms slope")
 
 
 def noise_floor(relief: Relief) -> NoiseFloor:
