@@ -98,3 +98,25 @@ def test_light_guide_dots_preset_haze_is_the_share_deviated_by_the_dots(addon, t
     # the dots are on the back face: the baked material is on the faces looking down (-z) only
     rough = [p.normal.z for p in plate.data.polygons if p.material_index == slot]
     assert rough and all(nz < -0.5 for nz in rough)
+
+
+@pytest.mark.slow
+def test_default_reconstruct_keeps_the_shared_x3p_anisotropic(addon, tmp_path):
+    """The shared x3p is anisotropic (correlation 2.2 um along x, 40 um along y: its slopes are about
+    twice as steep along x).  Reconstruct with its default method, then the bake: the reflection lobe
+    at normal incidence is wider along x than along y (`reflection_slope_ratio` > 1.5; any isotropic
+    lobe gives 1) and the node group gets an anisotropic closure.  Oracle for the direction and the
+    size of the effect: the relief's own slope statistics, not the table."""
+    from relief_bsdf.bsdf.bake import reflection_slope_ratio
+    from relief_bsdf.io.hdf5 import load_tables
+    x3p = REPO.parent / "shared" / "data" / "topography" / "ST_x3p-2.x3p"
+    assert bpy.ops.relief.import_heightmap(filepath=str(x3p)) == {"FINISHED"}
+    stats = bpy.context.active_object["relief_stats"]
+    assert stats["rms_slope_x"] / stats["rms_slope_y"] > 1.8                   # the relief: steeper along x
+    out = tmp_path / "x3p.h5"
+    assert bpy.ops.relief.reconstruct(wavelengths_nm="550", theta_i_deg="0,40", sides="outside",
+                                      filepath=str(out)) == {"FINISHED"}
+    (table,) = load_tables(out)
+    assert reflection_slope_ratio(table, 550.0) > 1.5
+    group = bpy.data.node_groups["Relief BSDF: ST_x3p-2"]
+    assert group["relief_anisotropy"] > 0.3
