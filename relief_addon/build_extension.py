@@ -253,6 +253,14 @@ def _zip_wheels(z: Path) -> list[str]:
         return [n.rsplit("/", 1)[-1] for n in zf.namelist() if n.endswith(".whl")]
 
 
+def surface_topography_complete(wheel_names: list[str]) -> bool:
+    """The wheels hold SurfaceTopography *and* every package it needs (muFFT, muGrid, ...: compiled
+    ones may lack a wheel for a platform where SurfaceTopography has one); without them it cannot
+    be imported there, and `io.native_readers` reads instead."""
+    has = {_norm(w.split("-")[0]) for w in wheel_names}
+    return "surfacetopography" in has and set(dependency_closure("SurfaceTopography")) <= has
+
+
 def reader_report(z: Path, cache: Path) -> dict:
     """What the zip `z` can read, checked by reading files with its own bundled readers.
 
@@ -260,13 +268,13 @@ def reader_report(z: Path, cache: Path) -> dict:
     and h5py), reads the demo X3P and an npz with SurfaceTopography made unimportable when
     the zip bundles no wheel of it (what Blender on that platform will have).  Formats: the
     project's own (x3p, gwy, plu, sdf, npz), float tif/exr (Blender's own OpenImageIO), and every
-    SurfaceTopography format when its wheel is bundled (the wheel of another platform cannot run
-    here: this Python's SurfaceTopography stands in for it in the check).  main_ok: the main
-    inputs (x3p, npz) read.
+    SurfaceTopography format when its wheel and those of all it needs are bundled
+    (`surface_topography_complete`; the wheel of another platform cannot run here: this
+    Python's SurfaceTopography stands in for it in the check).  main_ok: the main inputs
+    (x3p, npz) read.
     """
     import zipfile
     wheels = _zip_wheels(z)
-    has = {w.split("-")[0].lower() for w in wheels}
     backend = [w for w in wheels if w.startswith("relief_bsdf-")]
     if not backend:
         return {"main_ok": False, "formats": [], "text": "no relief_bsdf wheel in the zip: reads nothing"}
@@ -278,7 +286,7 @@ def reader_report(z: Path, cache: Path) -> dict:
         (unpack / backend[0]).write_bytes(zf.read(inner))
     with zipfile.ZipFile(unpack / backend[0]) as wf:
         wf.extractall(unpack / "site")
-    st = "surfacetopography" in has
+    st = surface_topography_complete(wheels)
     code = ("import sys, numpy as np\n"
             + ("" if st else "sys.modules['SurfaceTopography'] = None\n")
             + f"sys.path.insert(0, {str(unpack / 'site')!r})\n"
@@ -295,8 +303,8 @@ def reader_report(z: Path, cache: Path) -> dict:
     formats = list(OWN_FORMATS) + ["tif", "exr"]      # float images: Blender's own OpenImageIO (io/oiio.py)
     text = (f"reads {', '.join(formats)}"
             + (" and every SurfaceTopography format (dat, plu, opd, di, nid, ibw, mi, frt, ...)" if st else
-               " with its own readers (no SurfaceTopography wheel for this platform: the other instrument "
-               "formats are not available)")
+               " with its own readers (no SurfaceTopography for this platform: its wheel or one it needs is "
+               "missing; the other instrument formats are not available)")
             + (f"; checked: the demo X3P and an npz read with this zip's readers "
                f"({res.stdout.split('READ', 1)[1].strip()})"
                if ok else f"; FAILED to read the demo X3P / an npz with this zip's readers: "

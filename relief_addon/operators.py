@@ -11,7 +11,7 @@ from bpy_extras.io_utils import ImportHelper
 
 from .jobs import JobOperator
 from .presets import ITEMS as PRESET_ITEMS
-from .props import METHOD_ITEMS, SIDE_ITEMS
+from .props import DEFAULT_METHOD, METHOD_ITEMS, SIDE_ITEMS
 
 # every suffix the backend reads: npz, images (OpenImageIO), .sdf, and SurfaceTopography's readers
 BASE_SUFFIXES = ("npz", "x3p", "gwy", "sur", "sdf", "tif", "tiff", "exr")
@@ -161,7 +161,7 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
     bl_options = {"REGISTER"}
     job_label = "Reconstruct"
 
-    method: EnumProperty(name="Method", items=METHOD_ITEMS, default="microfacet")
+    method: EnumProperty(name="Method", items=METHOD_ITEMS, default=DEFAULT_METHOD)
     wavelengths_nm: StringProperty(name="Wavelengths (nm)", default="")
     theta_i_deg: StringProperty(name="Incidences (deg)", default="")
     sides: EnumProperty(name="Sides", items=SIDE_ITEMS, default="both")

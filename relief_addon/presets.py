@@ -2,7 +2,10 @@
 
 Each preset is a synthetic relief from the backend's generators (`relief_bsdf.surface.synth`),
 a material and a plate; `preset_plate` derives the boundary tables and bakes them exactly as a
-measured relief is (`plate_scene._tables`, `relief_bsdf.bsdf.bake.bake_lut`), and the scene is
+measured relief is (`plate_scene._tables` with the relief's own physics, method `auto`,
+`relief_bsdf.plate.choice.DEFAULT_METHOD`: ray tracing for these reliefs; the Gaussian-statistics
+surrogate `microfacet+dw` would spread the flat 69 % between light-guide dots into one wide lobe,
+haze 0.80 instead of the dots' 0.34; `relief_bsdf.bsdf.bake.bake_lut`), and the scene is
 `plate_scene.build_scene`: the plate over a checkerboard under diffuse light, camera set, so
 F12 (or `bpy.ops.render.render`) renders it.  The numbers are typical of each kind of surface,
 chosen for a recognisable look, not measurements of a product:
@@ -61,6 +64,7 @@ def preset_plate(key: str, albedo=None, closure: str = "metallic", progress=None
     p = PRESETS.get(key)
     if p is None:
         raise InputError("preset", f"unknown preset {key!r}; choose from {', '.join(PRESETS)}")
-    tables = _tables(_relief(p), Material(ConstantIndex(p.ior)), "microfacet+dw", progress)
+    from relief_bsdf.plate.choice import DEFAULT_METHOD
+    tables = _tables(_relief(p), Material(ConstantIndex(p.ior)), DEFAULT_METHOD, progress)
     lut = bake_lut(tables, p.label, albedo=albedo, reflection_closure=closure)
     return {"label": p.label, "lut": lut, "thickness_m": p.thickness_m, "rough_face": p.rough_face, "ior": lut.ior}

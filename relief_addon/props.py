@@ -15,6 +15,11 @@ METHOD_ITEMS = [
     ("rayleigh-rice", "Rayleigh-Rice", "First-order vector perturbation (smooth surfaces)"),
     ("auto", "Auto", "Choose the method from the relief's statistics and the wavelength"),
 ]
+#: Reconstruct's default: the relief's own physics, as everywhere in the project
+#: (`relief_bsdf.plate.choice.DEFAULT_METHOD`).  `microfacet` fits one isotropic lobe to the slopes,
+#: so an anisotropic relief (the shared x3p: correlation 2.2 um along x, 40 um along y) would bake
+#: isotropic; `auto` picks the method the panel names (kirchhoff, ray, ...), which keeps it.
+DEFAULT_METHOD = "auto"
 SIDE_ITEMS = [
     ("outside", "Outside", "Light arriving from outside (air)"),
     ("inside", "Inside", "Light arriving from inside the dielectric"),
@@ -28,7 +33,7 @@ def _z_scale_changed(obj, context):
 
 
 class ReliefSceneSettings(bpy.types.PropertyGroup):
-    method: EnumProperty(name="Method", items=METHOD_ITEMS, default="microfacet")
+    method: EnumProperty(name="Method", items=METHOD_ITEMS, default=DEFAULT_METHOD)
     wavelengths_nm: StringProperty(name="Wavelengths (nm)", default="550",
                                    description="Comma-separated vacuum wavelengths; three or more bake as RGB")
     theta_i_deg: StringProperty(name="Incidences (deg)", default="0,10,20,30,40,50,60,70,80,89",

@@ -83,3 +83,18 @@ def test_rebake_updates_the_same_group_and_keeps_existing_materials(cache, tmp_p
     node = next(n for n in bpy.data.materials["Relief BSDF: flat"].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
     assert node.node_tree.as_pointer() == ptr and node.inputs["Haze"].default_value == pytest.approx(0.3)
     assert not any(n.endswith(".001") for n in bpy.data.node_groups.keys())
+
+
+def test_worker_count_preference_reaches_the_backend(addon, tmp_path, monkeypatch):
+    # the environment asks for 4 local worker processes; the preferences' 1 worker wins: the tasks run
+    # in this process (a single worker is the serial backend), not on 4 processes
+    from relief_addon import prefs
+    from relief_bsdf.parallel import last_run
+    monkeypatch.setenv("RELIEF_BACKEND", "processes")
+    monkeypatch.setenv("RELIEF_WORKERS", "4")
+    monkeypatch.setattr(prefs, "_DEFAULTS", type(prefs._DEFAULTS)(workers=1, cache_dir=str(tmp_path / "cache")))
+    assert bpy.ops.relief.import_heightmap(filepath=str(_relief(tmp_path / "r.npz"))) == {"FINISHED"}
+    assert bpy.ops.relief.reconstruct(method="microfacet", wavelengths_nm="550", theta_i_deg="0,40", sides="both",
+                                      filepath=str(tmp_path / "t.h5"), bake=False) == {"FINISHED"}
+    run = last_run()
+    assert run["backend"] == "serial" and run["total"] > 1

@@ -34,6 +34,22 @@ def test_bundle_excludes_numpy_and_includes_backend_deps():
     assert {"scipy", "h5py", "surfacetopography", "embreex", "mufft"} <= set(deps)
 
 
+def test_surface_topography_formats_claimed_only_with_all_it_needs():
+    # SurfaceTopography cannot be imported without muFFT (a compiled package whose wheels may be missing
+    # for a platform where SurfaceTopography has one): a zip with the one but not the other reads with
+    # the project's own readers only, and must not claim SurfaceTopography's formats
+    r = subprocess.run([sys.executable, "-c", "import sys; sys.modules['muFFT'] = None; import SurfaceTopography"],
+                       capture_output=True, text=True)
+    assert r.returncode != 0 and "muFFT" in r.stderr
+    need = bx.dependency_closure("SurfaceTopography")
+    assert {"surfacetopography", "mufft", "mugrid"} <= set(need) and "numpy" not in need
+    full = [f"{k.replace('-', '_')}-1.0-cp311-cp311-macosx_14_0_arm64.whl" for k in need]
+    full.append("relief_bsdf-0.1.0-py3-none-any.whl")
+    assert bx.surface_topography_complete(full)
+    assert not bx.surface_topography_complete([w for w in full if not w.startswith("mufft-")])
+    assert not bx.surface_topography_complete([w for w in full if not w.startswith("surfacetopography-")])
+
+
 @pytest.mark.slow
 def test_linux_zip_installs_and_enables(tmp_path):
     zips = bx.build(tmp_path / "dist", ["linux-x64"], WHEEL_CACHE)

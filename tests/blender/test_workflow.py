@@ -70,3 +70,53 @@ def test_presets_make_a_scene_ready_to_render(addon, tmp_path):
         assert (tmp_path / f"{key}.png").stat().st_size > 0
     # the frosted plate scatters far more of the transmitted light out of the beam than the film
     assert 0.0 < hazes["anti_glare_film"] < hazes["frosted_acrylic"] <= 1.0
+
+
+@pytest.mark.slow
+def test_light_guide_dots_preset_haze_is_the_share_deviated_by_the_dots(addon, tmp_path):
+    """Light-guide dots: spherical caps (radius 10 um, height 3 um, 32 um grid) on a flat plate.  Geometric
+    optics (caps >> 550 nm): at normal incidence from air a facet tilted by theta refracts the beam by
+    delta = theta - asin(sin(theta) / n) (Snell); the haze (ASTM D1003) is the share of the area whose
+    delta exceeds 2.5 deg (the flat ground between the dots, ~69 %, passes undeviated; Fresnel changes
+    by < 1 % over the caps' slopes).  Oracle: that share from the relief's own height gradients, per
+    pixel, without the tables; 15 % for the finite differences on a cap 5 pixels in radius."""
+    from relief_addon.presets import PRESETS, _relief
+    p = PRESETS["light_guide_dots"]
+    relief = _relief(p)
+    gy, gx = np.gradient(relief.heights_m, relief.dy_m, relief.dx_m)
+    tilt = np.arctan(np.hypot(gx, gy))
+    delta_deg = np.degrees(tilt - np.arcsin(np.sin(tilt) / p.ior))
+    haze_oracle = float(np.mean(delta_deg > 2.5))
+    assert 0.25 < haze_oracle < 0.45                                   # ~ the dots' area share pi a^2 / s^2
+    before = set(bpy.data.scenes.keys())
+    assert bpy.ops.relief.add_preset(preset="light_guide_dots") == {"FINISHED"}
+    (name,) = set(bpy.data.scenes.keys()) - before
+    plate = next(o for o in bpy.data.scenes[name].collection.objects if o.name.startswith("Relief plate"))
+    slot = next(k for k, m in enumerate(plate.data.materials) if m.name.startswith("Relief BSDF"))
+    group = plate.data.materials[slot].node_tree.nodes[0].node_tree
+    assert group["relief_haze"] == pytest.approx(haze_oracle, rel=0.15)
+    # the dots are on the back face: the baked material is on the faces looking down (-z) only
+    rough = [p.normal.z for p in plate.data.polygons if p.material_index == slot]
+    assert rough and all(nz < -0.5 for nz in rough)
+
+
+@pytest.mark.slow
+def test_default_reconstruct_keeps_the_shared_x3p_anisotropic(addon, tmp_path):
+    """The shared x3p is anisotropic (correlation 2.2 um along x, 40 um along y: its slopes are about
+    twice as steep along x).  Reconstruct with its default method, then the bake: the reflection lobe
+    at normal incidence is wider along x than along y (`reflection_slope_ratio` > 1.5; any isotropic
+    lobe gives 1) and the node group gets an anisotropic closure.  Oracle for the direction and the
+    size of the effect: the relief's own slope statistics, not the table."""
+    from relief_bsdf.bsdf.bake import reflection_slope_ratio
+    from relief_bsdf.io.hdf5 import load_tables
+    x3p = REPO.parent / "shared" / "data" / "topography" / "ST_x3p-2.x3p"
+    assert bpy.ops.relief.import_heightmap(filepath=str(x3p)) == {"FINISHED"}
+    stats = bpy.context.active_object["relief_stats"]
+    assert stats["rms_slope_x"] / stats["rms_slope_y"] > 1.8                   # the relief: steeper along x
+    out = tmp_path / "x3p.h5"
+    assert bpy.ops.relief.reconstruct(wavelengths_nm="550", theta_i_deg="0,40", sides="outside",
+                                      filepath=str(out)) == {"FINISHED"}
+    (table,) = load_tables(out)
+    assert reflection_slope_ratio(table, 550.0) > 1.5
+    group = bpy.data.node_groups["Relief BSDF: ST_x3p-2"]
+    assert group["relief_anisotropy"] > 0.3
