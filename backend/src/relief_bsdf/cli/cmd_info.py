@@ -97,7 +97,8 @@ def measured_map_info(relief, wavelength_nm: float = 550.0, n: float = 1.5) -> d
     out = {"noise_floor": {"psd_m4": nf.psd_m4, "rms_m": nf.rms_m, "fraction_of_rms": nf.fraction_of_rms,
                            "slope_rms": nf.slope_rms, "statement": nf.statement()},
            "flags": {"kurtosis": fl.kurtosis, "spiky": fl.spiky, "anisotropy": fl.anisotropy,
-                     "anisotropic": fl.anisotropic, "statements": fl.statements()}}
+                     "anisotropic": fl.anisotropic, "lay_angle_deg": fl.lay_angle_deg,
+                     "statements": fl.statements()}}
     if f_max < 0.5 / max(relief.dx_m, relief.dy_m):
         bl = band_limited(relief, f_max)
         out["band_limit"] = {"wavelength_nm": wavelength_nm, "n": n, "f_max_per_m": bl.f_max_per_m,
