@@ -239,6 +239,8 @@ class NormalsOptions(MethodOptions):
     specular_tol_rad: float = opt(1e-5, "float", "angle within which an exit counts as the specular delta")
     batch: int = opt(250_000, "int", "paths traced per numpy batch", minimum=1)
     polarized: bool = opt(False, "bool", "not available: the normals method is unpolarised")
+    tile_uncertainty: bool = opt(True, "bool", "add the finite tile's realisation uncertainty to sigma (sub-tile "
+                                 "batch means of the first facet)")
 
     def _check(self, where):
         if self.polarized:
