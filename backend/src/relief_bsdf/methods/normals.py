@@ -68,7 +68,7 @@ from relief_bsdf.core.fresnel import fresnel_unpolarized, refract
 from relief_bsdf.parallel import map_tasks, task_rng
 from relief_bsdf.core.microfacet import smith_G1
 from relief_bsdf.methods.options import HEURISTICS, NormalsOptions  # noqa: F401  (HEURISTICS: one list)
-from relief_bsdf.methods.realisation import subtile_grid, uncertainty_meta
+from relief_bsdf.methods.realisation import facet_groups, subtile_grid, uncertainty_meta
 
 MIN_FACETS = 64
 
@@ -86,19 +86,6 @@ def triangle_slopes(relief) -> tuple[np.ndarray, np.ndarray]:
     sx, sy = sx.ravel(), sy.ravel()
     ok = np.isfinite(sx) & np.isfinite(sy)
     return sx[ok], sy[ok]
-
-
-def triangle_groups(relief, grid: tuple) -> np.ndarray:
-    """Sub-tile (0 .. gx gy - 1, row-major over a (gx, gy) grid of the map) of every valid triangle,
-    in `triangle_slopes` order (the sub-tile of its grid cell)."""
-    from relief_bsdf.surface.stats import facet_slopes
-    sx, sy = facet_slopes(relief)
-    ok = (np.isfinite(sx) & np.isfinite(sy)).ravel()
-    _, R, C = sx.shape
-    gx, gy = grid
-    r, c = np.indices((R, C))
-    g = (r * gy // R) * gx + c * gx // C
-    return np.broadcast_to(g, sx.shape).ravel()[ok]
 
 
 class SlopeSet:
@@ -358,7 +345,7 @@ def reconstruct(relief, material, request, progress=None) -> list[BsdfTable]:
                            f"needs at least {MIN_FACETS}", "RELIEF")
     grid, areas, _ = subtile_grid(relief) if opts.tile_uncertainty else ((1, 1), None, None)
     G = grid[0] * grid[1]
-    grp = triangle_groups(relief, grid) if G >= 2 else None
+    grp = facet_groups(relief, grid) if G >= 2 else None
     slopes = {"outside": SlopeSet(sx, sy, grp, G), "inside": SlopeSet(-sx, -sy, grp, G)}
     ctx = {"request": request, "material": material, "opts": opts,
            "slopes": {k: v for k, v in slopes.items() if k in request.incident_from}}

@@ -202,6 +202,8 @@ class MicrofacetOptions(MethodOptions):
     subsamples: int | None = opt(None, "int", "quadrature points per cell axis (None or 0: from the lobe width)",
                                  optional=True, minimum=0)
     polarized: bool = opt(False, "bool", "fill the Mueller matrices")
+    tile_uncertainty: bool = opt(True, "bool", "sigma from the tile's realisation (sub-tile refits of the lobes; "
+                                 "only when the lobes are fitted to a relief)")
 
 
 @dataclass(frozen=True)

@@ -161,3 +161,17 @@ def subtile_grid(relief) -> tuple:
     if not (np.isfinite(lc) and lc > 0):                    # e.g. a flat relief: no correlation length
         return tuple(grid), None, None
     return tuple(grid), float(ext[0] * ext[1] / lc**2), float(lc)
+
+
+def facet_groups(relief, grid: tuple) -> np.ndarray:
+    """Sub-tile (0 .. gx gy - 1, row-major over a (gx, gy) grid of the map) of every valid facet
+    triangle, in the order of surface.stats.facet_slopes raveled with its invalid facets dropped
+    (the order of normals.triangle_slopes and microfacet.relief_slopes)."""
+    from relief_bsdf.surface.stats import facet_slopes
+    sx, sy = facet_slopes(relief)
+    ok = (np.isfinite(sx) & np.isfinite(sy)).ravel()
+    _, R, C = sx.shape
+    gx, gy = grid
+    r, c = np.indices((R, C))
+    g = (r * gy // R) * gx + c * gx // C
+    return np.broadcast_to(g, sx.shape).ravel()[ok]
