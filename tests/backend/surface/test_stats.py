@@ -126,3 +126,26 @@ def test_as_dict_has_contract_keys():
         assert k in d
     import json
     json.dumps(d, allow_nan=False)
+
+
+# ---------------------------------------------------------------- anisotropy flag (issue 13, item 3)
+
+@pytest.mark.parametrize("angle_deg", [0.0, 45.0, 120.0])
+def test_anisotropy_flag_finds_a_lay_at_any_angle(angle_deg):
+    """A Gaussian relief with its correlation length stretched 3x along `angle_deg` (surface.synth) has
+    rms slopes 3x smaller along the lay than across it, whatever the lay's angle to the pixel axes
+    (per-axis rms slopes are equal for a lay at 45 deg and would miss it).  The flag finds the ratio
+    (within 10 %: finite tile) and the lay's direction (within 5 deg); an isotropic relief and
+    uncorrelated pixel noise are not flagged."""
+    from relief_bsdf.surface.stats import map_flags
+    from relief_bsdf.surface.synth import RandomFieldSpec, relief_from_spec
+    spec = dict(nx=256, ny=256, pitch_m=0.5e-6, rms_height_m=0.2e-6, corr_length_m=4e-6)
+    f = map_flags(relief_from_spec(RandomFieldSpec(**spec, anisotropy=3.0, angle_deg=angle_deg), 1))
+    assert f.anisotropic and abs(f.anisotropy / 3.0 - 1.0) < 0.1, f
+    assert abs((f.lay_angle_deg - angle_deg + 90.0) % 180.0 - 90.0) < 5.0, f
+    assert "across it" in f.statements()[0]
+    iso = map_flags(relief_from_spec(RandomFieldSpec(**spec), 1))
+    assert not iso.anisotropic and iso.anisotropy < 1.1
+    noise = Relief(1e-9 * np.random.default_rng(0).standard_normal((256, 256)), 1e-6, 1e-6, periodic=False,
+                   source="white noise")
+    assert not map_flags(noise).anisotropic and map_flags(noise).anisotropy < 1.1

@@ -99,7 +99,8 @@ def measured_map_info(relief, wavelength_nm: float = 550.0, n: float = 1.5) -> d
     out = {"noise_floor": {"psd_m4": nf.psd_m4, "rms_m": nf.rms_m, "fraction_of_rms": finite(nf.fraction_of_rms),
                            "slope_rms": nf.slope_rms, "statement": nf.statement()},
            "flags": {"kurtosis": finite(fl.kurtosis), "spiky": fl.spiky, "anisotropy": fl.anisotropy,
-                     "anisotropic": fl.anisotropic, "statements": fl.statements()}}
+                     "anisotropic": fl.anisotropic, "lay_angle_deg": finite(fl.lay_angle_deg),
+                     "statements": fl.statements()}}
     if f_max < 0.5 / max(relief.dx_m, relief.dy_m):
         bl = band_limited(relief, f_max)
         out["band_limit"] = {"wavelength_nm": wavelength_nm, "n": n, "f_max_per_m": bl.f_max_per_m,
@@ -198,7 +199,9 @@ def _info_bsdf(path: Path, args) -> int:
          "tables": [{k: v for k, v in t.summary().items() if k != "albedo"} for t in tables],
          "appearance": [a.as_dict() for t in tables for a in appearance(t)],
          "energy_defect": {t.incident_from: t.metadata.get("energy_defect") for t in tables
-                           if isinstance(t.metadata, dict) and t.metadata.get("energy_defect")}}
+                           if isinstance(t.metadata, dict) and t.metadata.get("energy_defect")},
+         "height_band_limit": {t.incident_from: t.metadata.get("height_band_limit") for t in tables
+                               if isinstance(t.metadata, dict) and t.metadata.get("height_band_limit")}}
     if args.json:
         print(json.dumps(d, default=str))
         return 0
@@ -220,8 +223,23 @@ def _info_bsdf(path: Path, args) -> int:
         if isinstance(ed, dict) and ed.get("meaning") != "absorption" and ed.get("max_abs", 0) > 0.01:
             print(f"  WARNING    light from {t.incident_from}: R + T misses 1 by up to {-ed['worst_signed']:+.2%} "
                   f"({ed['meaning']}; the plate must not read it as absorption)")
+    for line in band_limit_lines(tables):
+        print(line)
     _print_appearance(d["appearance"])
     return 0
+
+
+def band_limit_lines(tables) -> list[str]:
+    """What a wave method removed from the heights before diffracting them (its metadata
+    height_band_limit: components finer than the propagating band, mostly instrument noise), one line
+    per distinct statement, for `relief reconstruct` and `relief info TABLE`."""
+    said = []
+    for t in tables:
+        b = t.metadata.get("height_band_limit") if isinstance(t.metadata, dict) else None
+        if isinstance(b, dict) and b.get("statement") and b["statement"] not in said:
+            said.append(b["statement"])
+    return [f"  heights    {s} ({tables[0].method}: finer components scatter into no propagating direction)"
+            for s in said]
 
 
 def _print_appearance(rows: list) -> None:

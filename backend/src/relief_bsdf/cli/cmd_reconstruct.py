@@ -151,4 +151,7 @@ def run(args) -> int:
         for r in t.albedo_rows():
             print(f"{r['from']:8s} {r['wavelength_nm']:9g} {r['theta_i_deg']:7g} {r['phi_i_deg']:6g} {r['R']:8.5f} "
                   f"{r['T']:8.5f} {r['specular_R']:8.5f} {r['specular_T']:8.5f} {r['lost']:8.5f}")
+    from relief_bsdf.cli.cmd_info import band_limit_lines
+    for line in band_limit_lines(tables):          # what the wave method removed from the heights
+        print(line.strip())
     return 0

@@ -31,6 +31,13 @@ Model (W07):
   derivation is for reflection);
   "incident": G = G1(wi) only (no masking of wo) - what the `normals` Monte Carlo samples;
   "none": G = 1.
+Uncertainty (lobes fitted to a relief, option tile_uncertainty, default True): the finite tile's
+realisation uncertainty of the fitted lobe parameters p = (ln alpha_j, w_1 .. w_{L-1}) by sub-tile
+batch means (the lobes refitted on each sub-tile of methods.realisation.subtile_grid: Cov(p_tile)
+= Cov_g(p_g) / G, exact for alpha^2 = <s^2> of one Beckmann lobe, asymptotic for the EM mixture),
+carried into every cell by central differences along the covariance's principal axes (2 extra
+evaluations per parameter); sigma_per_sr, metadata["uncertainty"], and the too-few-correlation-areas
+warning as the other methods.  Roughness given as an option has no tile: sigma_per_sr is None.
 Regime of validity: geometric optics (relief heights and facet sizes >> wavelength), a
 single scattering event per path (inter-reflections are neglected, so R + T < 1 at high
 roughness and grazing angles; the deficit is reported as `lost`), facet slopes distributed
@@ -546,18 +553,20 @@ def check_indices(material: Material, request) -> None:
 
 
 def _task(ctx: dict, task: tuple) -> dict:
-    side_from, iw, ii, ip = task
+    """One incidence of one lobe variant (0: the fitted lobes; others: the uncertainty's perturbations,
+    unpolarised)."""
+    side_from, iw, ii, ip, var = task
     req = ctx["request"]
     wl = req.wavelengths_nm[iw]
     n_a, n_b = ctx["material"].n_pair(float(wl), side_from)
     wi = direction(req.theta_i_deg[ii], req.phi_i_deg[ip])[None, :]
-    lob = ctx["lobes"]
+    lob = ctx["variants"][var]
     rough = Roughness(lob.alpha, lob.distribution, lob.weight, ctx["shadowing"])
     out = {}
     k, k_fine = ctx["subsamples"]
     refine = (k_fine, 1e-5) if k_fine > k else None
     for s, side in enumerate(("R", "T")):
-        if ctx["polarized"]:
+        if ctx["polarized"] and var == 0:
             M = cell_average(lambda wo, ph: walter_mueller(wi, wo, np.real(n_a), n_b, rough,
                                                            np.radians(req.phi_i_deg[ip]), ph),
                              req.theta_s_edges_deg, req.phi_s_edges_deg, side, k, refine, with_phi=True)
@@ -567,6 +576,78 @@ def _task(ctx: dict, task: tuple) -> dict:
             out[side] = cell_average(lambda wo: walter_bsdf(wi, wo, np.real(n_a), n_b, rough),
                                      req.theta_s_edges_deg, req.phi_s_edges_deg, side, k, refine)
     return out
+
+
+def _evaluate(ctx: dict, tasks: list, shape: tuple, progress=None) -> list:
+    """Per lobe variant of ctx["variants"]: {side of incidence: (values (W, I, P, 2, S, A), Mueller or
+    None)}; every variant's tasks in one map_tasks call."""
+    res = map_tasks(_task, tasks, ctx, progress=progress, label="microfacet")
+    out = [{} for _ in ctx["variants"]]
+    for (sf, iw, ii, ip, var), r in zip(tasks, res):
+        if sf not in out[var]:
+            pol = ctx["polarized"] and var == 0
+            out[var][sf] = (np.zeros(shape), np.zeros(shape + (4, 4)) if pol else None)
+        vals, mu = out[var][sf]
+        vals[iw, ii, ip, 0], vals[iw, ii, ip, 1] = r["R"], r["T"]
+        if mu is not None:
+            mu[iw, ii, ip, 0], mu[iw, ii, ip, 1] = r["R_mueller"], r["T_mueller"]
+    return out
+
+
+def _lobe_params(lobes: Lobes) -> np.ndarray:
+    return np.concatenate([np.log(lobes.alpha), lobes.weight[:-1]])
+
+
+def _lobes_at(p: np.ndarray, like: Lobes) -> Lobes:
+    L = like.alpha.size
+    w = np.clip(np.append(p[L:], 1.0 - p[L:].sum()), 0.0, None)
+    return Lobes(np.exp(p[:L]), w / w.sum(), like.distribution)
+
+
+def lobe_covariance(relief, lobes: Lobes) -> tuple[np.ndarray | None, tuple]:
+    """(Cov of the tile's lobe parameters over realisations, sub-tile grid) by sub-tile batch means
+    (module doc); None when the tile holds fewer than two sub-tiles."""
+    from relief_bsdf.methods.realisation import facet_groups, subtile_grid
+    grid = subtile_grid(relief)[0]
+    if grid[0] * grid[1] < 2:
+        return None, grid
+    sx, sy = relief_slopes(relief)
+    g = facet_groups(relief, grid)
+    P = np.array([_lobe_params(fit_lobes((sx[g == k], sy[g == k]), lobes.alpha.size, lobes.distribution))
+                  for k in range(grid[0] * grid[1]) if np.count_nonzero(g == k) >= 16])
+    if P.shape[0] < 2:
+        return None, grid
+    return np.atleast_2d(np.cov(P, rowvar=False, ddof=1)) / P.shape[0], grid
+
+
+def _perturbed(cov: np.ndarray | None, lobes: Lobes) -> list:
+    """Lobes at p0 + s and p0 - s for every principal axis s = sqrt(lambda) v of Cov (module doc)."""
+    if cov is None:
+        return []
+    lam, vec = np.linalg.eigh(cov)
+    p0 = _lobe_params(lobes)
+    return [_lobes_at(p0 + sgn * np.sqrt(l_) * v, lobes) for l_, v in zip(lam, vec.T) if l_ > 0 for sgn in (1.0, -1.0)]
+
+
+def _tile_sigma(evaluated: list) -> dict:
+    """{side: sigma (W, I, P, 2, S, A)}: the central differences of the perturbed variants (pairs after
+    the fitted lobes) added in quadrature (exact to first order, correlations included)."""
+    var: dict = {}
+    for up, down in zip(evaluated[1::2], evaluated[2::2]):
+        for sf in up:
+            var[sf] = var.get(sf, 0.0) + (0.5 * (up[sf][0] - down[sf][0])) ** 2
+    return {sf: np.sqrt(v) for sf, v in var.items()}
+
+
+def _uncertainty(side: str, vals, sigma, relief, opts: MicrofacetOptions, grid, edges) -> tuple[dict, list]:
+    """metadata["uncertainty"] and the too-few-correlation-areas warnings (methods.realisation)."""
+    if sigma is None:
+        return {"sigma": "none: roughness given as an option (no tile)" if opts.alpha is not None else
+                "none (option tile_uncertainty=False, or the tile holds one sub-tile)"}, []
+    from relief_bsdf.methods.realisation import correlation_areas, uncertainty_meta
+    unc, warn = uncertainty_meta("microfacet", side, vals, sigma, "sub-tile batch means of the fitted lobe "
+                                 "parameters", correlation_areas(relief), edges, stacklevel=4)
+    return {**unc, "subtiles": list(grid)}, warn
 
 
 def reconstruct(relief, material: Material, request, progress=None) -> list[BsdfTable]:
@@ -606,33 +687,30 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
         sub = (opts.subsamples, opts.subsamples)
     else:
         sub = auto_subsamples(request.theta_s_edges_deg, request.phi_s_edges_deg, float(lobes.alpha.min()), n_ratio)
-    ctx = {"request": request, "material": material, "lobes": lobes, "shadowing": opts.shadowing,
+    ctx = {"request": request, "material": material, "shadowing": opts.shadowing,
            "polarized": polarized, "subsamples": sub}
     W, I, P = len(request.wavelengths_nm), len(request.theta_i_deg), len(request.phi_i_deg)
     tables = []
     sides = list(request.incident_from)
-    tasks = [(sf, iw, ii, ip) for sf in sides for iw in range(W) for ii in range(I) for ip in range(P)]
-    res = map_tasks(_task, tasks, ctx, progress=progress, label="microfacet")
+    cov, grid = lobe_covariance(relief, lobes) if opts.alpha is None and opts.tile_uncertainty else (None, None)
+    ctx["variants"] = [lobes] + _perturbed(cov, lobes)
+    tasks = [(sf, iw, ii, ip, v) for v in range(len(ctx["variants"])) for sf in sides for iw in range(W)
+             for ii in range(I) for ip in range(P)]
     te, pe = np.asarray(request.theta_s_edges_deg), np.asarray(request.phi_s_edges_deg)
+    shape = (W, I, P, 2, te.size - 1, pe.size - 1)
+    evaluated = _evaluate(ctx, tasks, shape, progress)
+    sigma = _tile_sigma(evaluated)
     psa = projected_solid_angle(te, pe)
     for sf in sides:
-        vals = np.zeros((W, I, P, 2, te.size - 1, pe.size - 1))
-        mu = np.zeros(vals.shape + (4, 4)) if polarized else None
-        for (tsf, iw, ii, ip), r in zip(tasks, res):
-            if tsf != sf:
-                continue
-            vals[iw, ii, ip, 0] = r["R"]
-            vals[iw, ii, ip, 1] = r["T"]
-            if polarized:
-                mu[iw, ii, ip, 0] = r["R_mueller"]
-                mu[iw, ii, ip, 1] = r["T_mueller"]
+        vals, mu = evaluated[0][sf]
+        unc, warn = _uncertainty(sf, vals, sigma.get(sf), relief, opts, grid, (te, pe))
         tot = np.einsum("wipksa,sa->wip", vals, psa)
         lost = 1.0 - tot
         desc = relief.describe() if relief is not None else {}
         desc["lobes"] = lobes.describe()
         tables.append(BsdfTable(request.wavelengths_nm,
                                 request.theta_i_deg, request.phi_i_deg, te, pe, vals, incident_from=sf,
-                                lost=lost, mueller_per_sr=mu,
+                                lost=lost, mueller_per_sr=mu, sigma_per_sr=sigma.get(sf),
                                 specular_mueller_R=np.zeros((W, I, P, 4, 4)) if polarized else None,
                                 specular_mueller_T=np.zeros((W, I, P, 4, 4)) if polarized else None,
                                 method="microfacet", material=material.describe(), relief=desc,
@@ -642,5 +720,5 @@ def reconstruct(relief, material: Material, request, progress=None) -> list[Bsdf
                                           "lost_meaning": "1 - R - T: energy the single-scattering model does not "
                                                           "conserve (inter-reflections neglected) plus cell "
                                                           "quadrature error",
-                                          "polarized": polarized}))
+                                          "polarized": polarized, "uncertainty": unc, "warnings": warn}))
     return tables

@@ -41,6 +41,12 @@ Model
   direction go to `specular_R/T` (only exactly flat facets produce them).
 - `lost`: transmission into an absorbing medium, rays still bouncing after `max_bounces`,
   rays that can meet no facet; the split is in metadata.  Nothing is dropped silently.
+- Uncertainty: sigma = Monte-Carlo noise combined with the finite tile's realisation uncertainty
+  (option tile_uncertainty, default True): every path is tagged with the sub-tile of its first
+  facet (sub-tiles of methods.realisation.subtile_grid, as `ray`) and the builder's sub-tile
+  batch means (bsdf.builder) add the scatter another tile of the same statistics would give.
+  Later facets are drawn from the whole tile, so their share of the realisation scatter is not
+  seen: exact for single scattering (gentle slopes), low where rescattering matters.
 Light from inside: the frame is mirrored (+z into the medium of incidence), which negates
 the slopes.  Validity: geometric optics, and the assumption that successive facets are
 statistically independent of each other and of the ray position (no correlation of
@@ -62,6 +68,7 @@ from relief_bsdf.core.fresnel import fresnel_unpolarized, refract
 from relief_bsdf.parallel import map_tasks, task_rng
 from relief_bsdf.core.microfacet import smith_G1
 from relief_bsdf.methods.options import HEURISTICS, NormalsOptions  # noqa: F401  (HEURISTICS: one list)
+from relief_bsdf.methods.realisation import facet_groups, subtile_grid, uncertainty_meta
 
 MIN_FACETS = 64
 
@@ -84,9 +91,11 @@ def triangle_slopes(relief) -> tuple[np.ndarray, np.ndarray]:
 class SlopeSet:
     """Facet slopes and the convex hull of the slope points (for exact rejection bounds)."""
 
-    def __init__(self, sx: np.ndarray, sy: np.ndarray):
+    def __init__(self, sx: np.ndarray, sy: np.ndarray, group: np.ndarray | None = None, n_groups: int = 0):
         self.sx = np.ascontiguousarray(sx, float)
         self.sy = np.ascontiguousarray(sy, float)
+        self.group = None if group is None or n_groups < 2 else np.asarray(group, np.int64)   # sub-tile per facet
+        self.n_groups = int(n_groups) if self.group is not None else 0
         if self.sx.size == 0:
             raise InputError("relief", "no valid facets (every triangle has an invalid corner)")
         pts = np.column_stack([self.sx, self.sy])
@@ -176,7 +185,8 @@ def trace_normals(slopes: SlopeSet, beam: NormalsBeam, rng, theta_edges_deg, phi
     wt, ok_t = refract(wi[None, :], np.array([[0.0, 0.0, 1.0]]), np.real(n_a) / np.real(n_b))
     spec_T = wt[0] if (bool(ok_t[0]) and not absorbing[1]) else None
     run = _Run(slopes, opts, (complex(n_a), complex(n_b)), absorbing, (spec_R, spec_T),
-               CellAccumulator(CellIndex(te, pe), lost_names=("absorbed", "max_bounces", "no_facet")),
+               CellAccumulator(CellIndex(te, pe), lost_names=("absorbed", "max_bounces", "no_facet"),
+                               n_groups=slopes.n_groups),
                {"specular_R": 0, "specular_T": 0, "absorbed": 0, "max_bounces": 0, "no_facet": 0, "events": 0})
     for lo in range(0, n_rays, opts.batch):
         _trace_batch(run, np.tile(-wi, (min(opts.batch, n_rays - lo), 1)), rng)
@@ -192,6 +202,7 @@ def trace_normals(slopes: SlopeSet, beam: NormalsBeam, rng, theta_edges_deg, phi
 def _trace_batch(run: _Run, d: np.ndarray, rng) -> None:
     """Bounce the rays d (all in the incidence medium) until they leave or are lost; bin the exits."""
     med = np.zeros(d.shape[0], np.int8)              # 0: incidence medium (above), 1: other (below)
+    grp = None                                       # sub-tile of each path's first facet (tile uncertainty)
     cos_tol = np.cos(run.opts.specular_tol_rad)
     for bounce in range(run.opts.max_bounces + 1):
         if d.shape[0] == 0:
@@ -201,17 +212,24 @@ def _trace_batch(run: _Run, d: np.ndarray, rng) -> None:
         leave = ~need
         if leave.any():                               # the one table builder bins the exits
             dl, ml = d[leave], med[leave]
-            run.acc.add(ExitSamples(dl, np.ones(dl.shape[0]), ml, None, specular_flags(dl, ml, run.specular, cos_tol)))
+            run.acc.add(ExitSamples(dl, np.ones(dl.shape[0]), ml, None, specular_flags(dl, ml, run.specular, cos_tol),
+                                    None if grp is None else grp[leave]))
         d, med, sigma = d[need], med[need], sigma[need]
+        grp = None if grp is None else grp[need]
         if d.shape[0] == 0:
             break
         j = _draw_facets(run.slopes, d, sigma, rng, same_direction=bounce == 0)
+        if bounce == 0 and run.slopes.group is not None:   # every path meets its first facet here
+            grp = np.where(j >= 0, run.slopes.group[np.maximum(j, 0)], np.arange(j.size) % run.slopes.n_groups)
+            run.acc.count_paths(grp)
         none = j < 0
         if none.any():
             run.tally["no_facet"] += int(none.sum())
             d, med, sigma, j = d[~none], med[~none], sigma[~none], j[~none]
+            grp = None if grp is None else grp[~none]
         run.tally["events"] += d.shape[0]
-        d, med = _facet_event(run, d, med, sigma, j, rng)
+        d, med, alive = _facet_event(run, d, med, sigma, j, rng)
+        grp = None if grp is None else grp[alive]
 
 
 def _needs_facet(run: _Run, d: np.ndarray, sigma: np.ndarray, bounce: int, rng) -> np.ndarray:
@@ -235,7 +253,7 @@ def _needs_facet(run: _Run, d: np.ndarray, sigma: np.ndarray, bounce: int, rng) 
 def _facet_event(run: _Run, d: np.ndarray, med: np.ndarray, sigma: np.ndarray, j: np.ndarray, rng):
     """Fresnel roulette at facets j: reflect, refract (Snell; TIR keeps the mirror) or be absorbed.
 
-    Returns the new unit directions and media of the rays still alive.
+    Returns the new unit directions and media of the rays still alive, and the mask of those.
     """
     nf = np.column_stack([-run.slopes.sx[j], -run.slopes.sy[j], np.ones(j.size)]) * sigma[:, None]
     nf /= np.linalg.norm(nf, axis=1, keepdims=True)   # facet normal facing the ray's medium
@@ -271,7 +289,7 @@ def _facet_event(run: _Run, d: np.ndarray, med: np.ndarray, sigma: np.ndarray, j
     run.tally["absorbed"] += int((~alive).sum())
     d, med = new_d[alive], new_med[alive]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return d, med
+    return d, med, alive
 
 
 # ------------------------------------------------------------------ reconstruct
@@ -300,6 +318,19 @@ def _task(ctx: dict, task: tuple) -> dict:
                          req.phi_s_edges_deg, ctx["opts"])
 
 
+def _uncertainty(side: str, vals, sig_tile, grid: tuple, areas, opts: NormalsOptions, edges) -> tuple[dict, list]:
+    """metadata["uncertainty"] and the warnings (tile part of sigma above 10 % in the lobe: too few
+    correlation areas for the cells asked for; methods.realisation.uncertainty_meta)."""
+    if grid[0] * grid[1] < 2:
+        why = " (option tile_uncertainty=False)" if not opts.tile_uncertainty else " (the tile holds one sub-tile)"
+        return {"sigma": "Monte-Carlo only" + why}, []
+    unc, warn = uncertainty_meta("normals", side, vals, sig_tile, "sub-tile batch means of the first facet, "
+                                 "bsdf.builder", areas, edges, stacklevel=4)
+    unc["sigma"] = "Monte-Carlo and " + unc["sigma"]
+    unc["subtiles"] = list(grid)
+    return unc, warn
+
+
 def reconstruct(relief, material, request, progress=None) -> list[BsdfTable]:
     """Normal-density Monte Carlo tables for every side in `request.incident_from` (module doc).
 
@@ -312,7 +343,10 @@ def reconstruct(relief, material, request, progress=None) -> list[BsdfTable]:
     if sx.size < MIN_FACETS:
         raise RequestError(f"relief {relief.source or ''} has only {sx.size} valid facets; a slope distribution "
                            f"needs at least {MIN_FACETS}", "RELIEF")
-    slopes = {"outside": SlopeSet(sx, sy), "inside": SlopeSet(-sx, -sy)}
+    grid, areas, _ = subtile_grid(relief) if opts.tile_uncertainty else ((1, 1), None, None)
+    G = grid[0] * grid[1]
+    grp = facet_groups(relief, grid) if G >= 2 else None
+    slopes = {"outside": SlopeSet(sx, sy, grp, G), "inside": SlopeSet(-sx, -sy, grp, G)}
     ctx = {"request": request, "material": material, "opts": opts,
            "slopes": {k: v for k, v in slopes.items() if k in request.incident_from}}
     W, I, P = len(request.wavelengths_nm), len(request.theta_i_deg), len(request.phi_i_deg)
@@ -325,6 +359,7 @@ def reconstruct(relief, material, request, progress=None) -> list[BsdfTable]:
     for sf in request.incident_from:
         vals = np.zeros((W, I, P, 2, te.size - 1, pe.size - 1))
         sig = np.zeros_like(vals)
+        sig_tile = np.zeros_like(vals)
         spR, spT, lost = np.zeros((W, I, P)), np.zeros((W, I, P)), np.zeros((W, I, P))
         detail = []
         for (tsf, iw, ii, ip, _), r in zip(tasks, res):
@@ -333,6 +368,8 @@ def reconstruct(relief, material, request, progress=None) -> list[BsdfTable]:
             c = r["cells"]                                # the one table builder's rows
             vals[iw, ii, ip] = c.values_per_sr
             sig[iw, ii, ip] = c.sigma_per_sr
+            if c.sigma_tile_per_sr is not None:
+                sig_tile[iw, ii, ip] = c.sigma_tile_per_sr
             spR[iw, ii, ip] = c.specular_R
             spT[iw, ii, ip] = c.specular_T
             lost[iw, ii, ip] = c.lost
@@ -340,6 +377,7 @@ def reconstruct(relief, material, request, progress=None) -> list[BsdfTable]:
                            "theta_i_deg": float(request.theta_i_deg[ii]), "phi_i_deg": float(request.phi_i_deg[ip]),
                            "absorbed": r["absorbed"] / N, "max_bounces": r["max_bounces"] / N,
                            "no_facet": r["no_facet"] / N, "events_per_path": r["events_per_path"]})
+        unc, warn = _uncertainty(sf, vals, sig_tile, grid, areas, opts, (te, pe))
         desc = relief.describe()
         desc.update({"n_facets": int(sx.size), "rms_slope": slopes["outside"].rms_slope})
         tables.append(BsdfTable(request.wavelengths_nm, request.theta_i_deg, request.phi_i_deg, te, pe, vals,
@@ -349,5 +387,6 @@ def reconstruct(relief, material, request, progress=None) -> list[BsdfTable]:
                                           "samples_per_incidence": int(request.samples), "seed": int(request.seed),
                                           "grazing_heuristic": opts.grazing_heuristic or "off",
                                           "max_bounces": opts.max_bounces, "lost_detail": detail,
+                                          "uncertainty": unc, "warnings": warn,
                                           "seconds": time.perf_counter() - t0}))
     return tables

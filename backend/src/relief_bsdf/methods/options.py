@@ -202,6 +202,8 @@ class MicrofacetOptions(MethodOptions):
     subsamples: int | None = opt(None, "int", "quadrature points per cell axis (None or 0: from the lobe width)",
                                  optional=True, minimum=0)
     polarized: bool = opt(False, "bool", "fill the Mueller matrices")
+    tile_uncertainty: bool = opt(True, "bool", "sigma from the tile's realisation (sub-tile refits of the lobes; "
+                                 "only when the lobes are fitted to a relief)")
 
 
 @dataclass(frozen=True)
@@ -239,6 +241,8 @@ class NormalsOptions(MethodOptions):
     specular_tol_rad: float = opt(1e-5, "float", "angle within which an exit counts as the specular delta")
     batch: int = opt(250_000, "int", "paths traced per numpy batch", minimum=1)
     polarized: bool = opt(False, "bool", "not available: the normals method is unpolarised")
+    tile_uncertainty: bool = opt(True, "bool", "add the finite tile's realisation uncertainty to sigma (sub-tile "
+                                 "batch means of the first facet)")
 
     def _check(self, where):
         if self.polarized:

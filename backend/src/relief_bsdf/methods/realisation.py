@@ -39,6 +39,8 @@ from scipy.special import erf
 TILE_WARN_REL = 0.10          # as methods.ray: warn when the lobe's cells scatter more than this between tiles
 LOBE_FRACTION = 0.01          # the lobe: cells above this fraction of the table's largest diffuse value
 MIN_DIFFUSE = 1e-3            # rows with less diffuse power than this (of the incident) are not warned about
+SUBTILE_CORR = 4.0            # sub-tile side in correlation lengths (sampling methods: sub-tile batch means)
+MAX_SUBTILES = 8              # per axis (64 groups: sigma known to ~10 %)
 
 
 def window_grain_factor(window: np.ndarray | None) -> float:
@@ -137,3 +139,39 @@ def correlation_areas(relief) -> float | None:
         return None
     ny, nx = relief.shape
     return float(nx * relief.dx_m * ny * relief.dy_m / lc ** 2)
+
+
+# ---------------------------------------------------------------- sampling methods (ray, normals)
+
+def subtile_grid(relief) -> tuple:
+    """((gx, gy) sub-tiles of at least SUBTILE_CORR correlation lengths, at most MAX_SUBTILES per
+    axis, over the relief's own extent; number of correlation areas l^2 in it; l in metres)."""
+    from relief_bsdf.surface.stats import relief_stats
+
+    with np.errstate(invalid="ignore", divide="ignore"):      # a flat relief has no correlation length
+        st = relief_stats(relief)
+    ny, nx = relief.shape
+    ext = (nx * relief.dx_m, ny * relief.dy_m)
+    ls = (st.correlation_length_x_m, st.correlation_length_y_m)
+    grid = []
+    for e, l_m in zip(ext, ls):
+        g = MAX_SUBTILES if not (np.isfinite(l_m) and l_m > 0) else int(e // (SUBTILE_CORR * l_m))
+        grid.append(int(min(MAX_SUBTILES, max(1, g))))
+    lc = st.correlation_length_m
+    if not (np.isfinite(lc) and lc > 0):                    # e.g. a flat relief: no correlation length
+        return tuple(grid), None, None
+    return tuple(grid), float(ext[0] * ext[1] / lc**2), float(lc)
+
+
+def facet_groups(relief, grid: tuple) -> np.ndarray:
+    """Sub-tile (0 .. gx gy - 1, row-major over a (gx, gy) grid of the map) of every valid facet
+    triangle, in the order of surface.stats.facet_slopes raveled with its invalid facets dropped
+    (the order of normals.triangle_slopes and microfacet.relief_slopes)."""
+    from relief_bsdf.surface.stats import facet_slopes
+    sx, sy = facet_slopes(relief)
+    ok = (np.isfinite(sx) & np.isfinite(sy)).ravel()
+    _, R, C = sx.shape
+    gx, gy = grid
+    r, c = np.indices((R, C))
+    g = (r * gy // R) * gx + c * gx // C
+    return np.broadcast_to(g, sx.shape).ravel()[ok]

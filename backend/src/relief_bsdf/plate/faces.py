@@ -89,17 +89,13 @@ ANISOTROPY_WARN = 1.3      # principal rms-slope ratio above which the isotropic
 
 def slope_anisotropy(relief: Relief) -> tuple[float, float]:
     """(ratio, angle_deg) of the relief's slope statistics: the ratio of the principal rms slopes
-    (square root of the eigenvalue ratio of the 2x2 covariance of the height gradient, forward
-    differences, wrapped on a periodic tile) and the azimuth of the steeper axis.  1 for a
-    rotation-invariant relief (up to the sampling scatter of a finite tile, a few per cent for
-    hundreds of correlation areas)."""
-    from relief_bsdf.surface.stats import slopes         # the project's one slope definition
-    gx, gy = slopes(relief)
-    ny, nx = min(gx.shape[0], gy.shape[0]), min(gx.shape[1], gy.shape[1])   # non-periodic: common cells
-    gx, gy = gx[:ny, :nx], gy[:ny, :nx]
-    ok = np.isfinite(gx) & np.isfinite(gy)
-    gx, gy = gx[ok] - gx[ok].mean(), gy[ok] - gy[ok].mean()
-    C = np.array([[np.mean(gx * gx), np.mean(gx * gy)], [np.mean(gx * gy), np.mean(gy * gy)]])
+    (square root of the eigenvalue ratio of surface.stats.slope_tensor, the project's one slope
+    tensor) and the azimuth of the steeper axis.  1 for a rotation-invariant relief (up to the
+    sampling scatter of a finite tile, a few per cent for hundreds of correlation areas)."""
+    from relief_bsdf.surface.stats import slope_tensor
+    C = slope_tensor(relief)
+    if not np.all(np.isfinite(C)):
+        return 1.0, 0.0
     lam, vec = np.linalg.eigh(C)
     if lam[1] <= 0:
         return 1.0, 0.0

@@ -466,14 +466,35 @@ def noise_floor(relief: Relief) -> NoiseFloor:
                       else float("nan"), slope_rms=float(np.sqrt(2 * var * (relief.dx_m ** -2 + relief.dy_m ** -2))))
 
 
+def slope_tensor(relief: Relief) -> np.ndarray:
+    """2 x 2 rms slope tensor <g g^T> of the levelled relief, g = (dz/dx, dz/dy) per grid cell.
+
+    g of a cell is the mean of its two triangles' facet slopes (`facet_slopes`: the two forward
+    differences along each axis), the gradient at the centre of the bilinear cell, so both
+    components belong to the same place.  (Pairing one triangle's x and y slopes instead correlates
+    them through the shared corner: uncorrelated pixel noise would look anisotropic, ratio sqrt(3).)
+    In geometric optics the lobe's covariance follows this tensor (anisotropic Beckmann: Walter et
+    al. 2007 / Heitz 2014, slope covariance), so its eigenvalues are the rms slopes along and across
+    the lay whatever the map's orientation; trace = rms_slope^2 up to the cell averaging.
+    """
+    sx, sy = facet_slopes(levelled(relief))
+    gx, gy = sx.mean(axis=0), sy.mean(axis=0)
+    ok = np.isfinite(gx) & np.isfinite(gy)
+    gx, gy = gx[ok], gy[ok]
+    if gx.size == 0:
+        return np.full((2, 2), np.nan)
+    return np.array([[np.mean(gx * gx), np.mean(gx * gy)], [np.mean(gx * gy), np.mean(gy * gy)]])
+
+
 @dataclass(frozen=True)
 class MapFlags:
     """Flags of a measured map that change its BSDF (`map_flags`)."""
 
     kurtosis: float
     spiky: bool                   # kurtosis > 5: spikes / outliers dominate the high moments
-    anisotropy: float             # ratio of the larger to the smaller rms slope of the two axes
+    anisotropy: float             # ratio of the largest to the smallest rms slope over all directions
     anisotropic: bool             # anisotropy > 1.5
+    lay_angle_deg: float = float("nan")   # direction of the smallest rms slope (the lay), deg from +x, [0, 180)
 
     def statements(self) -> list[str]:
         out = []
@@ -482,13 +503,22 @@ class MapFlags:
                        "scatter and lower the coherent specular part beyond what the rms height says; remove "
                        "outliers before reconstructing if they are measurement artefacts")
         if self.anisotropic:
-            out.append(f"anisotropic: rms slopes differ {self.anisotropy:.3g}x between the axes: the BSDF is "
-                       "not rotationally symmetric (lobes stretched across the lay); keep phi_i and the azimuth cells")
+            out.append(f"anisotropic: rms slopes differ {self.anisotropy:.3g}x between along the lay "
+                       f"({self.lay_angle_deg:.0f} deg from x) and across it: the BSDF is not rotationally symmetric "
+                       "(lobes stretched across the lay); keep phi_i and the azimuth cells")
         return out
 
 
 def map_flags(relief: Relief) -> MapFlags:
+    """Spike flag from the height kurtosis; anisotropy from the eigenvalues of `slope_tensor`
+    (rotation invariant: a lay at 45 deg to the pixel axes is found as one along x)."""
     st = relief_stats(relief)
-    a = max(st.rms_slope_x, st.rms_slope_y) / max(min(st.rms_slope_x, st.rms_slope_y), 1e-300)
-    return MapFlags(kurtosis=st.kurtosis, spiky=bool(st.kurtosis > 5.0), anisotropy=float(a),
-                    anisotropic=bool(a > 1.5))
+    t = slope_tensor(relief)
+    if not np.all(np.isfinite(t)):
+        return MapFlags(kurtosis=st.kurtosis, spiky=bool(st.kurtosis > 5.0), anisotropy=float("nan"),
+                        anisotropic=False)
+    ev, vec = np.linalg.eigh(t)                                   # ascending: ev[0] along the lay
+    a = float(np.sqrt(max(ev[1], 0.0) / max(ev[0], 1e-300)))
+    lay = float(np.degrees(np.arctan2(vec[1, 0], vec[0, 0])) % 180.0)
+    return MapFlags(kurtosis=st.kurtosis, spiky=bool(st.kurtosis > 5.0), anisotropy=a, anisotropic=bool(a > 1.5),
+                    lay_angle_deg=lay)

@@ -46,6 +46,8 @@ from relief_bsdf.core.stokes import s_axis
 from relief_bsdf.errors import RequestError
 from relief_bsdf.methods.options import RayOptions
 from relief_bsdf.methods.ray.exits import BELOW, STATE_NAMES, Exits
+from relief_bsdf.methods.realisation import MAX_SUBTILES, SUBTILE_CORR  # noqa: F401  (module doc)
+from relief_bsdf.methods.realisation import subtile_grid as _subtile_grid
 from relief_bsdf.methods.ray.tracer import CHUNK, ReliefTracer, cached_tracer, forget_tracer, relief_hash
 from relief_bsdf.methods.ray.transport import Media, Rays, TraceSettings, carrier_for, trace_chunk
 from relief_bsdf.parallel import default_workers, in_worker, last_run, map_tasks, task_rng, worker_cached
@@ -57,8 +59,6 @@ MIN_SAMPLES_PER_SIDE = 16
 MIN_WAVELENGTHS_PER_TILE = 10.0
 _MIRROR_DD = np.outer([1.0, 1.0, -1.0, -1.0], [1.0, 1.0, -1.0, -1.0])
 _ROWS = ("vals", "sig", "mue", "specR", "specT", "lost", "smR", "smT")
-SUBTILE_CORR = 4.0            # sub-tile side in correlation lengths (realisation uncertainty)
-MAX_SUBTILES = 8              # per axis (64 groups: sigma known to ~10 %)
 TILE_WARN_REL = 0.10          # warn when the lobe's cells scatter more than this between tile realisations
 
 
@@ -148,26 +148,6 @@ class _RayContext:
             return self.tracer
         return cached_tracer(self.tracer_key, self.relief, self.max_bounces, self.fill_holes,
                              1 if in_worker() else self.threads)
-
-
-def _subtile_grid(relief: Relief) -> tuple:
-    """((gx, gy) sub-tiles of at least SUBTILE_CORR correlation lengths, at most MAX_SUBTILES per
-    axis, over the relief's own extent; number of correlation areas l^2 in it; l in metres)."""
-    from relief_bsdf.surface.stats import relief_stats
-
-    with np.errstate(invalid="ignore", divide="ignore"):      # a flat relief has no correlation length
-        st = relief_stats(relief)
-    ny, nx = relief.shape
-    ext = (nx * relief.dx_m, ny * relief.dy_m)
-    ls = (st.correlation_length_x_m, st.correlation_length_y_m)
-    grid = []
-    for e, l_m in zip(ext, ls):
-        g = MAX_SUBTILES if not (np.isfinite(l_m) and l_m > 0) else int(e // (SUBTILE_CORR * l_m))
-        grid.append(int(min(MAX_SUBTILES, max(1, g))))
-    lc = st.correlation_length_m
-    if not (np.isfinite(lc) and lc > 0):                    # e.g. a flat relief: no correlation length
-        return tuple(grid), None, None
-    return tuple(grid), float(ext[0] * ext[1] / lc**2), float(lc)
 
 
 def _beam_strata(n: int, Lx: float, Ly: float, block_px: float = 32.0):
