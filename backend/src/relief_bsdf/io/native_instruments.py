@@ -1,0 +1,297 @@
+"""The project's own readers of proprietary instrument formats (issue 16), used where
+SurfaceTopography is missing; registered in `io.native_readers.READERS`.
+
+Each reader follows the vendor's or a public description of the layout (named in its doc),
+checked against the real files in shared/data/topography.  Every reader returns
+(heights_m[y, x], dx_m, dy_m, metadata): heights and pitch in metres, NaN where the instrument
+marks a point as not measured, row 0 = the first line of the map as SurfaceTopography and
+Gwyddion show it.  Declared sizes go through `heightmaps.check_declared_size` before any array
+is allocated, and every offset is checked against the file length, so a truncated or
+malformed file is an `InputError` naming the file, never an IndexError or a huge allocation.
+
+The height of an interferometer pixel is a phase count times a length per count (MetroPro,
+Wyko); of an AFM pixel a digitiser count times volts per count times the scanner's nm per
+volt (NanoScope).  These calibrations are the instrument's own; nothing here re-derives them.
+"""
+from __future__ import annotations
+
+import re
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from relief_bsdf.errors import InputError
+
+_SI_PREFIX = {"": 1.0, "m": 1e-3, "u": 1e-6, "µ": 1e-6, "μ": 1e-6, "~": 1e-6, "n": 1e-9, "p": 1e-12,
+              "k": 1e3, "c": 1e-2, "d": 1e-1}
+_ANGSTROM = ("Å", "A", "Ang", "ang", "Angstrom")
+
+
+def length_factor(unit: str) -> float | None:
+    """Metres per `unit` ("nm", "um", "µm", "mm", "m", "Å"...); None when it is not a length."""
+    u = (unit or "").strip()
+    if u in _ANGSTROM:
+        return 1e-10
+    if u.endswith("m") and u[:-1] in _SI_PREFIX:
+        return _SI_PREFIX[u[:-1]]
+    return None
+
+
+def _need(path: Path, buf: bytes, end: int, what: str) -> None:
+    """InputError unless the file holds `end` bytes (a truncated file stops here, not in numpy)."""
+    if end > len(buf):
+        raise InputError(path, f"truncated file: the {what} needs {end} bytes, the file has {len(buf)}")
+
+
+def _check_size(path: Path, shape: tuple, what: str) -> None:
+    from relief_bsdf.io.heightmaps import check_declared_size
+    check_declared_size(path, shape, what)
+
+
+def _single(path: Path, channel, name: str) -> None:
+    if channel not in (None, 0, "0", name):
+        raise InputError(path, f"the file holds one height channel ({name!r}); no channel {channel!r}")
+
+
+def _select(path: Path, names: list[str], usable: list[bool], channel) -> int:
+    """Index of the requested channel (index or name), default the first height (length) channel."""
+    if channel is None:
+        if not any(usable):
+            raise InputError(path, f"no height channel among {names}")
+        return usable.index(True)
+    if isinstance(channel, str) and not channel.lstrip("-").isdigit():
+        hits = [i for i, n in enumerate(names) if n == channel] or \
+               [i for i, n in enumerate(names) if n.lower() == channel.lower()]
+        if not hits:
+            raise InputError(path, f"no channel {channel!r}; channels are {names}")
+        i = hits[0]
+    else:
+        i = int(channel)
+        if not 0 <= i < len(names):
+            raise InputError(path, f"channel {i} out of range 0..{len(names) - 1} ({names})")
+    if not usable[i]:
+        raise InputError(path, f"channel {names[i]!r} does not hold heights (no length unit); choose one of "
+                               f"{[n for n, u in zip(names, usable) if u]}")
+    return i
+
+
+def _meta(unit: str, lateral: str, channels: list[str], index: int, **extra) -> dict:
+    return {"file_unit": unit, "lateral_unit": lateral, "channel": channels[index], "channel_index": index,
+            "channels": channels, **extra}
+
+
+# ------------------------------------------------------------------------ Zygo MetroPro .dat
+
+_METROPRO_MAGIC = {b"\x88\x1b\x03\x6f": 834, b"\x88\x1b\x03\x70": 834, b"\x88\x1b\x03\x71": 4096}
+_METROPRO_PHASE_COUNTS = {0: 4096, 1: 32768, 2: 131072}
+_METROPRO_INVALID = 2147483640
+
+
+def read_metropro(path: Path, channel=None) -> tuple[np.ndarray, float, float, dict]:
+    """Zygo MetroPro .dat (MetroPro Reference Guide, "Data Format" chapter): a big-endian header
+    (834 bytes for header formats 1-2, 4096 for format 3), then the intensity arrays
+    (uint16, buckets x width x height), then the connected phase array (int32, height rows of
+    width values; >= 2147483640 = invalid).  The height of a phase count is
+    h = count * S * O * lambda / R  [Reference Guide eq. for the "phase to height" conversion],
+    with S the interferometric scale factor (0.5 for a reflection set-up), O the obliquity
+    factor, lambda the wavelength in metres and R the phase resolution (4096, 32768 or 131072
+    counts per fringe for phase_res 0, 1, 2: using 4096 for a file with phase_res 1 is the 8x
+    error one reader library makes); the sign flag inverts it.  Pitch = lateral_res (m).
+    Header offsets used: 4 header format, 6 header size, 48 intensity origin/size/buckets,
+    64 phase origin/size/bytes, 164 scale factor, 168 wavelength, 176 obliquity,
+    184 lateral resolution, 218 phase resolution, 232 sign.
+    """
+    _single(path, channel, "Default")
+    buf = path.read_bytes()
+    header_size = _METROPRO_MAGIC.get(buf[:4])
+    if header_size is None:
+        raise InputError(path, "not a Zygo MetroPro .dat file (magic number 0x881b036f/70/71 missing)")
+    _need(path, buf, header_size, "MetroPro header")
+    declared = struct.unpack_from(">I", buf, 6)[0]
+    if declared != header_size:
+        raise InputError(path, f"MetroPro header declares {declared} bytes, its format has {header_size}")
+    _, _, ac_w, ac_h, buckets = struct.unpack_from(">hhHHH", buf, 48)
+    _, _, nx, ny, cn_bytes = struct.unpack_from(">hhHHI", buf, 64)
+    if nx == 0 or ny == 0:
+        raise InputError(path, "the MetroPro file holds no phase (height) map (connected size 0)")
+    _check_size(path, (ny, nx), "MetroPro phase map")
+    _check_size(path, (buckets, ac_h, ac_w), "MetroPro intensity data")
+    if cn_bytes != 4 * nx * ny:
+        raise InputError(path, f"MetroPro phase map declares {cn_bytes} bytes for {nx} x {ny} int32 values")
+    scale, wavelength_m = struct.unpack_from(">ff", buf, 164)
+    obliquity, _, lateral_m = struct.unpack_from(">fff", buf, 176)
+    phase_res, = struct.unpack_from(">h", buf, 218)
+    sign, = struct.unpack_from(">h", buf, 232)
+    counts = _METROPRO_PHASE_COUNTS.get(phase_res)
+    if counts is None:
+        raise InputError(path, f"MetroPro phase resolution code {phase_res} unknown (0, 1 or 2)")
+    start = header_size + 2 * buckets * ac_w * ac_h
+    _need(path, buf, start + cn_bytes, f"MetroPro phase map of {nx} x {ny}")
+    raw = np.frombuffer(buf, ">i4", nx * ny, start).reshape(ny, nx)
+    per_count_m = float(scale) * float(obliquity) * float(wavelength_m) / counts
+    h = raw * (-per_count_m if sign else per_count_m)
+    h[raw >= _METROPRO_INVALID] = np.nan
+    meta = _meta("m", "m", ["Default"], 0, wavelength_m=float(wavelength_m), phase_counts_per_fringe=counts)
+    return h, float(lateral_m), float(lateral_m), meta
+
+
+# ------------------------------------------------------------------------ Wyko / Vision .opd
+
+_OPD_ENTRY = 24                     # directory entry: name 16 bytes, int16 type, int32 length, uint16 attr
+_OPD_DATA_NAMES = ("RAW DATA", "RAW_DATA", "OPD", "Raw")
+_OPD_INVALID = 1e32                 # |value| at or above: not measured (Vision writes ~1e38)
+
+
+def _opd_blocks(path: Path, buf: bytes) -> list[tuple[str, int, int]]:
+    """(name, data offset, length) of each block, from the directory after the 2-byte version."""
+    _need(path, buf, 2 + _OPD_ENTRY, "OPD directory")
+    name = buf[2:18].split(b"\0", 1)[0].decode("latin-1")
+    if name != "Directory":
+        raise InputError(path, f"not a Wyko/Vision OPD file (first block {name!r}, expected 'Directory')")
+    dir_len = struct.unpack_from("<i", buf, 20)[0]
+    if dir_len <= 0 or dir_len % _OPD_ENTRY:
+        raise InputError(path, f"OPD directory length {dir_len} is not a positive multiple of {_OPD_ENTRY}")
+    _need(path, buf, 2 + dir_len, "OPD directory")
+    blocks, pos = [], 2 + dir_len
+    for k in range(1, dir_len // _OPD_ENTRY):
+        at = 2 + k * _OPD_ENTRY
+        bname = buf[at:at + 16].split(b"\0", 1)[0].decode("latin-1")
+        length = struct.unpack_from("<i", buf, at + 18)[0]
+        if length <= 0:
+            continue
+        blocks.append((bname, pos, length))
+        pos += length
+    _need(path, buf, pos, f"OPD directory's {len(blocks)} blocks")
+    return blocks
+
+
+def read_opd(path: Path, channel=None) -> tuple[np.ndarray, float, float, dict]:
+    """Wyko / Veeco / Bruker Vision .opd (layout as documented by Gwyddion's opdfile module and the
+    Vision export notes): a 2-byte version, a directory of 24-byte entries (the first, 'Directory',
+    gives the directory's length), then each block's data in directory order.  Scalars used:
+    'Wavelength' (float32, nm), 'Mult' (uint16), 'Pixel_size' (float32, mm), 'Aspect' (float32,
+    y pitch / x pitch).  The height array block ('RAW DATA', 'OPD' or 'Raw') starts with uint16
+    nx, ny, bytes per value (2: int16, 4: float32), then nx columns of ny values, each column
+    stored from the top of the image down.  Heights are in waves: h = value * lambda / Mult;
+    |value| >= 1e32 marks a point not measured.  Pitch dx = Pixel_size, dy = Pixel_size * Aspect.
+    """
+    buf = path.read_bytes()
+    blocks = _opd_blocks(path, buf)
+    scal = {"Wavelength": ("<f", None), "Mult": ("<H", 1), "Pixel_size": ("<f", None), "Aspect": ("<f", 1.0)}
+    val = {k: d for k, (_, d) in scal.items()}
+    data = [(n, at, ln) for n, at, ln in blocks if n in _OPD_DATA_NAMES]
+    for n, at, ln in blocks:
+        if n in scal:
+            _need(path, buf, at + struct.calcsize(scal[n][0]), f"OPD block {n!r}")
+            val[n] = struct.unpack_from(scal[n][0], buf, at)[0]
+    if not data:
+        raise InputError(path, f"the OPD file holds no height array (blocks: {[b[0] for b in blocks]})")
+    names = [d[0] for d in data]
+    i = _select(path, names, [True] * len(names), channel)
+    _, at, ln = data[i]
+    _need(path, buf, at + 6, "OPD array header")
+    nx, ny, elsize = struct.unpack_from("<HHH", buf, at)
+    dtype = {2: "<i2", 4: "<f4"}.get(elsize)
+    if dtype is None:
+        raise InputError(path, f"OPD array of {elsize}-byte values (only 2 and 4 are read)")
+    _check_size(path, (nx, ny), "OPD height array")
+    _need(path, buf, at + 6 + nx * ny * elsize, f"OPD height array of {nx} x {ny}")
+    if val["Wavelength"] is None or val["Pixel_size"] is None or not val["Mult"]:
+        raise InputError(path, "the OPD file lacks Wavelength, Mult or Pixel_size: heights or pitch unknown")
+    raw = np.frombuffer(buf, dtype, nx * ny, at + 6).astype(float).reshape(nx, ny)
+    h = raw[:, ::-1].T * (float(val["Wavelength"]) / val["Mult"] * 1e-6) * 1e-3
+    h[~(np.abs(raw[:, ::-1].T) < _OPD_INVALID)] = np.nan
+    dx = float(val["Pixel_size"]) * 1e-3
+    meta = _meta("mm", "mm", names, i, wavelength_nm=float(val["Wavelength"]))
+    return h, dx, dx * float(val["Aspect"]), meta
+
+
+# ------------------------------------------------------------------------ Bruker NanoScope .di/.spm
+
+_DI_ZSCALE = re.compile(r"^V\s*(?:\[(?P<q>[^\]]*)\])?\s*\((?P<lsb>[-+0-9.eE]+)\s*(?P<hu>\S*)/LSB\)\s*"
+                        r"(?P<val>[-+0-9.eE]+)\s*(?P<vu>\S*)")
+
+
+def _di_header(path: Path, buf: bytes) -> list[tuple[str, dict]]:
+    """Sections of the text header: [(section name lower-case, {key lower-case: value})]."""
+    end = buf.find(b"\\*File list end")
+    if not buf.startswith(b"\\*File list") or end < 0:
+        raise InputError(path, "not a Bruker NanoScope file (no '\\*File list' ... '\\*File list end' header)")
+    sections: list[tuple[str, dict]] = []
+    for line in buf[:end].decode("latin-1").splitlines():
+        line = line.strip()
+        if line.startswith("\\*"):
+            sections.append((line[2:].strip().lower(), {}))
+        elif line.startswith("\\") and sections:
+            key, _, value = line[1:].partition(": ")
+            sections[-1][1][key.strip().lower()] = value.strip()
+    return sections
+
+
+def _di_sensitivity(path: Path, scanner: dict, quantity: str | None) -> tuple[float, str | None]:
+    """(soft scale, its unit per volt) of a '@Sens. ...' scanner entry, e.g. 'V 20.8 nm/V'."""
+    if quantity is None:
+        return 1.0, None
+    parts = scanner.get("@" + quantity.lower(), "").split()
+    if len(parts) < 2 or parts[0] != "V":
+        raise InputError(path, f"NanoScope sensitivity '@{quantity}' missing or malformed")
+    unit = parts[2].split("/")[0] if len(parts) > 2 and "/" in parts[2] else None
+    return float(parts[1]), unit
+
+
+def _di_image(path: Path, p: dict, scanner: dict) -> dict:
+    """One '*Ciao image list' section -> its channel description (offsets, sizes, scale)."""
+    try:
+        name = re.match(r"^S \[(.*?)\]", p["@2:image data"]).group(1)
+        nx, ny, offset = int(p["samps/line"]), int(p["number of lines"]), int(p["data offset"])
+        elsize, length = int(p["bytes/pixel"]), int(p["data length"])
+        sx, sy, xy_unit = p["scan size"].split(None, 2)
+        z = _DI_ZSCALE.match(p["@2:z scale"])
+        soft, z_unit = _di_sensitivity(path, scanner, z.group("q"))
+        per_count = float(z.group("val")) / 2.0 ** (8 * elsize) * soft
+    except (KeyError, AttributeError, ValueError, TypeError) as e:
+        raise InputError(path, f"NanoScope image header incomplete or malformed ({type(e).__name__}: {e})") from None
+    return {"name": name, "nx": nx, "ny": ny, "offset": offset, "elsize": elsize, "length": length,
+            "sx": float(sx), "sy": float(sy), "xy_unit": xy_unit, "z_unit": z_unit, "per_count": per_count}
+
+
+def read_nanoscope(path: Path, channel=None) -> tuple[np.ndarray, float, float, dict]:
+    """Bruker / Veeco / Digital Instruments NanoScope (.di, .spm, .001 ...; NanoScope Analysis
+    manual, "File format"): a latin-1 text header of '\\*Section' lines and '\\Key: value'
+    lines up to '\\*File list end', one '\\*Ciao image list' section per channel giving
+    'Data offset', 'Bytes/pixel' (2 or 4, little-endian signed), 'Samps/line' (x),
+    'Number of lines' (y), 'Scan Size: sx sy unit' and '@2:Z scale: V [Sens. Q] (a V/LSB) b V'.
+    Height = count * b / 2^(8 * bytes per pixel) * s, with s the sensitivity of quantity Q in the
+    scanner list ('@Sens. Zsens: V 20.8 nm/V'): the full digitiser span 2^16 (2^32) counts maps to
+    b volts, and s converts volts to length.  Lines are stored from the bottom of the image up.
+    Default channel: the first whose sensitivity is a length per volt (a height).
+    """
+    buf = path.read_bytes()
+    sections = _di_header(path, buf)
+    scanner: dict = {}
+    for name, p in sections:
+        if name in ("scanner list", "ciao scan list"):
+            scanner.update(p)
+    images = [_di_image(path, p, scanner) for name, p in sections if name == "ciao image list"]
+    if not images:
+        raise InputError(path, "the NanoScope file holds no image ('\\*Ciao image list')")
+    last = max(images, key=lambda im: im["offset"] + im["length"])
+    _need(path, buf, last["offset"] + last["length"], f"NanoScope image {last['name']!r} (declared data length)")
+    names = [im["name"] for im in images]
+    usable = [length_factor(im["z_unit"] or "") is not None for im in images]
+    i = _select(path, names, usable, channel)
+    im = images[i]
+    nx, ny, e = im["nx"], im["ny"], im["elsize"]
+    _check_size(path, (ny, nx), f"NanoScope image {im['name']!r}")
+    if e not in (2, 4) or nx * ny * e > im["length"]:
+        raise InputError(path, f"NanoScope image {im['name']!r}: {nx} x {ny} x {e} bytes per pixel does not fit "
+                               f"its declared data length {im['length']}")
+    _need(path, buf, im["offset"] + nx * ny * e, f"NanoScope image {im['name']!r} of {nx} x {ny}")
+    lat = length_factor(im["xy_unit"])
+    if lat is None:
+        raise InputError(path, f"NanoScope scan size unit {im['xy_unit']!r} is not a length")
+    raw = np.frombuffer(buf, f"<i{e}", nx * ny, im["offset"]).reshape(ny, nx)[::-1]
+    h = raw * (im["per_count"] * length_factor(im["z_unit"]))
+    meta = _meta(im["z_unit"], im["xy_unit"], names, i)
+    return h, im["sx"] * lat / nx, im["sy"] * lat / ny, meta
