@@ -121,13 +121,16 @@ def test_surface_topography_still_preferred_when_installed():
 # ------------------------------------------------------------- instrument formats (io/native_instruments.py)
 # Oracles: SurfaceTopography's reader of the same real file (heights, pitch, invalid points), and the rms
 # height after mean-plane levelling that shared/data/topography/README.md gives from SurfaceTopography and
-# Gwyddion (3 significant figures).  Agreement measured: MetroPro and OPD bit-identical, NanoScope 2.2e-16
-# relative (the same product in another order); the tests hold 1e-12 relative.
+# Gwyddion (3 significant figures).  Agreement measured: MetroPro, OPD, NanoScope, Nanosurf, PicoView and FRT
+# bit-identical (NanoScope once 2.2e-16 relative); the tests hold 1e-12 relative.
 
 INSTRUMENT_FILES = [  # name, shape (ny, nx), README rms height (m)
     ("ST_metropro-1.dat", (480, 640), 13.3e-9),
     ("ST_opd-1.opd", (480, 640), 6.72e-9),
     ("ST_di-1.di", (512, 512), 9.84e-9),
+    ("ST_nid-1.nid", (256, 256), 7.11e-9),
+    ("ST_mi-1.mi", (256, 256), 3.43e-9),
+    ("ST_frt-1.frt", (500, 500), 4.40e-6),
 ]
 
 
@@ -191,3 +194,20 @@ def test_metropro_declared_size_checked_before_allocation(no_surface_topography,
     path.write_bytes(bytes(data))
     with pixel_limit(1000), pytest.raises(InputError, match="big.dat.*limit"):
         read_relief(path)
+
+
+def test_frt_points_not_measured_are_nan_not_zero(no_surface_topography):
+    # README: 31 % of the FRT map is not measured; filling it in inflates the rms to ~19 um
+    r = read_relief(SHARED / "data" / "topography" / "ST_frt-1.frt")
+    assert 0.30 < np.isnan(r.heights_m).mean() < 0.32
+
+
+def test_nanosurf_and_picoview_channels(no_surface_topography):
+    nid = SHARED / "data" / "topography" / "ST_nid-1.nid"
+    back = read_relief(nid, channel="Scan backward (Z-Axis)")
+    assert back.metadata["channel_index"] == 2 and back.shape == (256, 256)
+    fwd = read_relief(nid)
+    # forward and backward traces of one scan: the same surface, to within the AFM's noise and hysteresis
+    assert np.corrcoef(fwd.heights_m.ravel(), back.heights_m.ravel())[0, 1] > 0.9
+    with pytest.raises(InputError, match="ST_mi-1.mi.*'Deflection'.*not hold heights"):
+        read_relief(SHARED / "data" / "topography" / "ST_mi-1.mi", channel="Deflection")

@@ -295,3 +295,206 @@ def read_nanoscope(path: Path, channel=None) -> tuple[np.ndarray, float, float, 
     h = raw * (im["per_count"] * length_factor(im["z_unit"]))
     meta = _meta(im["z_unit"], im["xy_unit"], names, i)
     return h, im["sx"] * lat / nx, im["sy"] * lat / ny, meta
+
+
+# ------------------------------------------------------------------------ Nanosurf .nid / .ezd
+
+def _ini_sections(text: str) -> dict[str, dict[str, str]]:
+    """'[Section]' / 'key=value' text -> {section: {key: value}} (values stripped)."""
+    out: dict[str, dict[str, str]] = {}
+    cur = out.setdefault("", {})
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith("[") and line.endswith("]"):
+            cur = out.setdefault(line[1:-1], {})
+        elif "=" in line:
+            k, _, v = line.partition("=")
+            cur[k.strip()] = v.strip()
+    return out
+
+
+def _nid_channels(path: Path, sec: dict) -> list[dict]:
+    """The data sets in file order, each with its name, grid, dtype, z scale and offset."""
+    top = sec.get("DataSet", {})
+    out, offset = [], 0
+    try:
+        for g in range(int(top["GroupCount"])):
+            for c in range(int(top[f"Gr{g}-Count"])):
+                d = sec.get(top.get(f"Gr{g}-Ch{c}") or "\0")
+                if d is None:           # a channel listed in the count but not saved
+                    continue
+                if d.get("SaveMode", "Binary") != "Binary":
+                    raise InputError(path, f"Nanosurf data set saved as {d['SaveMode']!r}; only Binary is read")
+                nx, ny, bits = int(d["Points"]), int(d["Lines"]), int(d["SaveBits"])
+                _check_size(path, (ny, nx), "Nanosurf data set")
+                signed = d.get("SaveSign", "Signed") == "Signed"
+                dtype = np.dtype(("<" if d.get("SaveOrder", "Intel") == "Intel" else ">")
+                                 + ("i" if signed else "u") + str(bits // 8))
+                z_range, z_min = float(d["Dim2Range"]), float(d["Dim2Min"])
+                out.append({"name": f"{d.get('Frame', f'group {g}')} ({d.get('Dim2Name', c)})", "nx": nx,
+                            "ny": ny, "dtype": dtype, "offset": offset, "unit": d.get("Dim2Unit", ""),
+                            "per_count": z_range / 2.0 ** bits, "zero": z_min + (z_range / 2 if signed else 0.0),
+                            "sx": float(d["Dim0Range"]), "sy": float(d["Dim1Range"]),
+                            "lat_unit": d.get("Dim0Unit", "m")})
+                offset += nx * ny * dtype.itemsize
+    except (KeyError, ValueError, TypeError) as e:
+        raise InputError(path, f"Nanosurf header incomplete or malformed ({type(e).__name__}: {e})") from None
+    return out
+
+
+def read_nid(path: Path, channel=None) -> tuple[np.ndarray, float, float, dict]:
+    """Nanosurf easyScan / DriveAFM .nid / .ezd (Nanosurf "NID file format" notes): an INI-style
+    latin-1 header ('[DataSet]' lists groups 'Gr<g>-Count' and data sets 'Gr<g>-Ch<c>' = the
+    section describing each), then '#!' and the binary data sets back to back in that order.
+    Each set: 'Points' (x) x 'Lines' (y) integers of 'SaveBits' bits, 'SaveSign', 'SaveOrder'
+    (Intel = little-endian); the full integer span 2^bits maps to 'Dim2Range' starting at
+    'Dim2Min': z = Dim2Min + (count + 2^(bits-1) [signed]) * Dim2Range / 2^bits, in 'Dim2Unit';
+    'Dim0Range' x 'Dim1Range' is the scanned area.  Lines are stored from the bottom up (scan
+    direction Up; a 'Down' scan is stored top down).  The channels offered are the data sets
+    whose Dim2Unit is a length (as SurfaceTopography numbers them); default the first.
+    """
+    buf = path.read_bytes()
+    if not buf.startswith(b"[DataSet]"):
+        raise InputError(path, "not a Nanosurf NID file (no '[DataSet]' header)")
+    mark = buf.find(b"\n#!")
+    if mark < 0:
+        raise InputError(path, "Nanosurf header has no '#!' data marker (truncated file?)")
+    sec = _ini_sections(buf[:mark].decode("latin-1"))
+    sets = _nid_channels(path, sec)
+    heights = [s for s in sets if length_factor(s["unit"]) is not None]
+    if not heights:
+        raise InputError(path, f"the Nanosurf file holds no height data set ({[s['name'] for s in sets]})")
+    start = mark + 3
+    if sets:
+        last = sets[-1]
+        _need(path, buf, start + last["offset"] + last["nx"] * last["ny"] * last["dtype"].itemsize,
+              f"Nanosurf data sets ({len(sets)} declared)")
+    names = [s["name"] for s in heights]
+    i = _select(path, names, [True] * len(names), channel)
+    s = heights[i]
+    raw = np.frombuffer(buf, s["dtype"], s["nx"] * s["ny"], start + s["offset"]).reshape(s["ny"], s["nx"])
+    if sec.get("DataSet-Info", {}).get("Scan direction", "Up") != "Down":
+        raw = raw[::-1]
+    h = (raw * s["per_count"] + s["zero"]) * length_factor(s["unit"])
+    lat = length_factor(s["lat_unit"])
+    if lat is None:
+        raise InputError(path, f"Nanosurf lateral unit {s['lat_unit']!r} is not a length")
+    meta = _meta(s["unit"], s["lat_unit"], names, i)
+    return h, s["sx"] * lat / s["nx"], s["sy"] * lat / s["ny"], meta
+
+
+# ------------------------------------------------------------------------ Agilent / Molecular Imaging .mi
+
+_MI_KEY = 14                        # header lines: a 14-character key field, then the value
+
+
+def read_mi(path: Path, channel=None) -> tuple[np.ndarray, float, float, dict]:
+    """Agilent / Molecular Imaging PicoView .mi image (PicoView file description): text lines of
+    a 14-character key field and a value; 'fileType Image'; 'xPixels', 'yPixels', 'xLength',
+    'yLength' (metres), 'scanUp' (TRUE: lines stored from the bottom up); one block per buffer
+    starting at 'bufferLabel' with 'bufferRange' and 'bufferUnit'; then a line 'data BINARY'
+    (int16) or 'data BINARY_32' (int32) and the buffers back to back, each yPixels lines of
+    xPixels little-endian integers.  z = count / 2^(bits-1) * bufferRange, in bufferUnit.
+    Default channel: the first buffer whose unit is a length (the topography).
+    """
+    buf = path.read_bytes()
+    if not buf.startswith(b"fileType      Image"):
+        raise InputError(path, "not a PicoView .mi image (no 'fileType Image'; spectroscopy files are not read)")
+    at = buf.find(b"\ndata ")
+    if at < 0:
+        raise InputError(path, "PicoView header has no 'data' line (truncated file?)")
+    end = buf.find(b"\n", at + 1)
+    kind = buf[at + 1:end if end >= 0 else len(buf)].decode("latin-1")[_MI_KEY:].strip()
+    dtype = {"BINARY": "<i2", "BINARY_32": "<i4"}.get(kind)
+    if dtype is None:
+        raise InputError(path, f"PicoView data stored as {kind!r}; only BINARY and BINARY_32 are read")
+    glob, bufs = {}, []
+    for line in buf[:at].decode("latin-1").splitlines():
+        key, value = line[:_MI_KEY].strip(), line[_MI_KEY:].strip()
+        if key == "bufferLabel":
+            bufs.append({})
+        (bufs[-1] if bufs else glob)[key] = value
+    try:
+        nx, ny = int(glob["xPixels"]), int(glob["yPixels"])
+        sx, sy = float(glob["xLength"]), float(glob["yLength"])
+        ranges = [float(b["bufferRange"]) for b in bufs]
+    except (KeyError, ValueError) as e:
+        raise InputError(path, f"PicoView header incomplete or malformed ({type(e).__name__}: {e})") from None
+    _check_size(path, (len(bufs), ny, nx), "PicoView buffers")
+    item = np.dtype(dtype).itemsize
+    start = end + 1
+    _need(path, buf, start + len(bufs) * nx * ny * item, f"PicoView data ({len(bufs)} buffers of {nx} x {ny})")
+    names = [b["bufferLabel"] for b in bufs]
+    units = [b.get("bufferUnit", "") for b in bufs]
+    i = _select(path, names, [length_factor(u) is not None for u in units], channel)
+    raw = np.frombuffer(buf, dtype, nx * ny, start + i * nx * ny * item).reshape(ny, nx)
+    if glob.get("scanUp", "FALSE").upper() == "TRUE":
+        raw = raw[::-1]
+    h = raw / 2.0 ** (8 * item - 1) * ranges[i] * length_factor(units[i])
+    return h, sx / nx, sy / ny, _meta(units[i], "m", names, i)
+
+
+# ------------------------------------------------------------------------ FRT MicroProf .frt
+
+_FRT_MAGIC = b"FRTM_GLIDERV"
+_FRT_DTYPE = {16: "<u2", 32: "<i4"}        # block 0x66 gives bits per value
+_FRT_UNDEFINED = 1                         # raw value of a point not measured
+
+
+def _frt_blocks(path: Path, buf: bytes) -> dict[int, tuple[int, int]]:
+    """Block id -> (data offset, size) after the 16-byte magic+version and the uint16 block count."""
+    version = buf[12:16]
+    head = {b"1.00": "<HI", b"1.01": "<HQ"}.get(version)
+    if head is None:
+        raise InputError(path, f"FRT file version {version!r} not read (1.00, 1.01)")
+    _need(path, buf, 18, "FRT header")
+    n, = struct.unpack_from("<H", buf, 16)
+    pos, blocks, step = 18, {}, struct.calcsize(head)
+    for k in range(n):
+        if pos == len(buf):             # fewer blocks than counted, ending on a block boundary: accepted
+            break
+        _need(path, buf, pos + step, f"FRT block header {k} of {n}")
+        bid, size = struct.unpack_from(head, buf, pos)
+        pos += step
+        _need(path, buf, pos + size, f"FRT block 0x{bid:02x} ({k} of {n})")
+        blocks.setdefault(bid, (pos, size))
+        pos += size
+    return blocks
+
+
+def read_frt(path: Path, channel=None) -> tuple[np.ndarray, float, float, dict]:
+    """FRT MicroProf .frt (FRT's block file description, as also read by Gwyddion's frtfile):
+    'FRTM_GLIDERV' + version '1.00' (block header uint16 id, uint32 size) or '1.01' (uint64
+    size), a uint16 block count, then blocks.  Used: 0x66 (uint32 nx, ny, bits per value 16 or
+    32), 0x67 (float64 scanned size x, y in metres), 0x6c (uint32 range, float64 metres per
+    count) and 0x0b (the height counts, ny lines of nx, uint16 or int32).  z = count * metres
+    per count; a count of 1 marks a point not measured (NaN; typically a large share of an
+    optical scan, which must not be filled in).  Pitch = size / points.
+    """
+    _single(path, channel, "default")
+    buf = path.read_bytes()
+    if not buf.startswith(_FRT_MAGIC):
+        raise InputError(path, "not an FRT MicroProf file (no FRTM_GLIDERV magic)")
+    blocks = _frt_blocks(path, buf)
+    for bid in (0x66, 0x67, 0x6C, 0x0B):
+        if bid not in blocks:
+            raise InputError(path, f"FRT file lacks block 0x{bid:02x} (truncated file?)")
+    at = blocks[0x66][0]
+    _need(path, buf, at + 12, "FRT block 0x66")
+    nx, ny, bits = struct.unpack_from("<3I", buf, at)
+    dtype = _FRT_DTYPE.get(bits)
+    if dtype is None:
+        raise InputError(path, f"FRT height values of {bits} bits (16 or 32 are read)")
+    _check_size(path, (ny, nx), "FRT height map")
+    _need(path, buf, blocks[0x67][0] + 16, "FRT block 0x67")
+    sx, sy = struct.unpack_from("<2d", buf, blocks[0x67][0])
+    _need(path, buf, blocks[0x6C][0] + 12, "FRT block 0x6c")
+    per_count_m, = struct.unpack_from("<d", buf, blocks[0x6C][0] + 4)
+    at, size = blocks[0x0B]
+    if size != nx * ny * bits // 8:
+        raise InputError(path, f"FRT height block holds {size} bytes, {nx} x {ny} x {bits // 8} declared")
+    _need(path, buf, at + size, f"FRT height map of {nx} x {ny}")
+    raw = np.frombuffer(buf, dtype, nx * ny, at).reshape(ny, nx)
+    h = raw * per_count_m
+    h[raw == _FRT_UNDEFINED] = np.nan
+    return h, sx / nx, sy / ny, _meta("m", "m", ["default"], 0)
