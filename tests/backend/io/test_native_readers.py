@@ -121,7 +121,7 @@ def test_surface_topography_still_preferred_when_installed():
 # ------------------------------------------------------------- instrument formats (io/native_instruments.py)
 # Oracles: SurfaceTopography's reader of the same real file (heights, pitch, invalid points), and the rms
 # height after mean-plane levelling that shared/data/topography/README.md gives from SurfaceTopography and
-# Gwyddion (3 significant figures).  Agreement measured: MetroPro, OPD, NanoScope, Nanosurf, PicoView and FRT
+# Gwyddion (3 significant figures).  Agreement measured: MetroPro, OPD, NanoScope, Nanosurf, PicoView, FRT and Igor
 # bit-identical (NanoScope once 2.2e-16 relative); the tests hold 1e-12 relative.
 
 INSTRUMENT_FILES = [  # name, shape (ny, nx), README rms height (m)
@@ -131,6 +131,7 @@ INSTRUMENT_FILES = [  # name, shape (ny, nx), README rms height (m)
     ("ST_nid-1.nid", (256, 256), 7.11e-9),
     ("ST_mi-1.mi", (256, 256), 3.43e-9),
     ("ST_frt-1.frt", (500, 500), 4.40e-6),
+    ("ST_spot_1-1000nm.ibw", (256, 256), 9.55e-9),
 ]
 
 
@@ -211,3 +212,15 @@ def test_nanosurf_and_picoview_channels(no_surface_topography):
     assert np.corrcoef(fwd.heights_m.ravel(), back.heights_m.ravel())[0, 1] > 0.9
     with pytest.raises(InputError, match="ST_mi-1.mi.*'Deflection'.*not hold heights"):
         read_relief(SHARED / "data" / "topography" / "ST_mi-1.mi", channel="Deflection")
+
+
+def test_igor_wave_channels_and_checksum(no_surface_topography, tmp_path):
+    path = SHARED / "data" / "topography" / "ST_spot_1-1000nm.ibw"
+    r = read_relief(path, channel="HeightRetrace")
+    assert r.metadata["channel_index"] == 1 and r.metadata["channels"][0] == "HeightTrace"
+    data = bytearray(path.read_bytes())
+    data[100] ^= 0x01                              # one bit of the wave header flipped
+    bad = tmp_path / "flipped.ibw"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="flipped.ibw.*checksum"):
+        read_relief(bad)
