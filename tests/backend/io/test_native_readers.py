@@ -167,14 +167,30 @@ def test_instrument_reader_matches_surface_topography(name, shape, rms_m):
     assert _levelled_rms_m(own.heights_m) == pytest.approx(rms_m, rel=0.01)
 
 
-@pytest.mark.parametrize("name", [f[0] for f in INSTRUMENT_FILES])
-@pytest.mark.parametrize("keep", [0.25, 0.9, 200])
+# where the format's declared content ends: an Asylum .ibw carries 131578 bytes after the sections its
+# header declares (not part of the wave), so cutting there truncates nothing the reader uses
+DECLARED_END = {"ST_spot_1-1000nm.ibw": 2112969}
+TRUNCATIONS = [(name, keep) for name in [f[0] for f in INSTRUMENT_FILES] for keep in (0.25, 0.9, -1)] + \
+              [("ST_dektak-1.csv", 0.25), ("ST_dektak-1.csv", 0.9)]   # a text file cut in its last line is
+#                                                                      indistinguishable from a complete one
+
+
+@pytest.mark.parametrize("name, keep", TRUNCATIONS)
 def test_truncated_instrument_file_is_an_input_error(no_surface_topography, tmp_path, name, keep):
     data = (SHARED / "data" / "topography" / name).read_bytes()
+    n = DECLARED_END.get(name, len(data)) - 1 if keep == -1 else int(len(data) * keep)
     cut = tmp_path / ("cut" + Path(name).suffix)
-    cut.write_bytes(data[:int(len(data) * keep) if keep < 1 else keep])
-    with pytest.raises(InputError, match=f"cut{Path(name).suffix}"):
+    cut.write_bytes(data[:n])
+    with pytest.raises(InputError, match=f"cut{Path(name).suffix}: truncated file"):
         read_relief(cut)
+
+
+@pytest.mark.parametrize("name", [f[0] for f in INSTRUMENT_FILES] + ["ST_dektak-1.csv"])
+def test_header_only_fragment_is_an_input_error(no_surface_topography, tmp_path, name):
+    frag = tmp_path / ("frag" + Path(name).suffix)
+    frag.write_bytes((SHARED / "data" / "topography" / name).read_bytes()[:200])
+    with pytest.raises(InputError, match=f"frag{Path(name).suffix}"):
+        read_relief(frag)
 
 
 def test_nanoscope_channels(no_surface_topography):
@@ -224,3 +240,26 @@ def test_igor_wave_channels_and_checksum(no_surface_topography, tmp_path):
     bad.write_bytes(bytes(data))
     with pytest.raises(InputError, match="flipped.ibw.*checksum"):
         read_relief(bad)
+
+
+def test_dektak_profile_matches_surface_topography_and_is_refused_as_a_map(no_surface_topography):
+    from relief_bsdf.io.native_instruments import read_dektak
+    path = SHARED / "data" / "topography" / "ST_dektak-1.csv"
+    h, dx, dy, meta = read_dektak(path)
+    assert h.shape == (1, 9600) and dx == dy and meta["file_unit"] == "Micrometer"
+    with pytest.raises(InputError, match="ST_dektak-1.csv.*1-D line profile \\(9600 points\\)"):
+        read_relief(path)
+    # README: rms 94 nm (after removing the mean line)
+    x = np.arange(h.shape[1])
+    assert np.std(h[0] - np.polyval(np.polyfit(x, h[0], 1), x)) == pytest.approx(94e-9, rel=0.01)
+
+
+def test_dektak_profile_agrees_with_surface_topography():
+    import SurfaceTopography as ST
+    from relief_bsdf.io.native_instruments import read_dektak
+    path = SHARED / "data" / "topography" / "ST_dektak-1.csv"
+    h, dx, _, _ = read_dektak(path)
+    st = ST.open_topography(str(path)).topography()
+    assert st.unit == "µm"
+    np.testing.assert_allclose(h[0], np.asarray(st.heights()) * 1e-6, rtol=1e-12, atol=0)
+    assert dx * (h.shape[1] - 1) == pytest.approx(st.physical_sizes[0] * 1e-6, rel=1e-12)

@@ -230,12 +230,13 @@ def _di_header(path: Path, buf: bytes) -> list[tuple[str, dict]]:
 
 
 def _di_sensitivity(path: Path, scanner: dict, quantity: str | None) -> tuple[float, str | None]:
-    """(soft scale, its unit per volt) of a '@Sens. ...' scanner entry, e.g. 'V 20.8 nm/V'."""
+    """(soft scale, its unit per volt) of a '@Sens. ...' scanner entry, e.g. 'V 20.8 nm/V'; unit None
+    when the entry is missing or gives no length per volt (such a channel is offered but not as heights)."""
     if quantity is None:
         return 1.0, None
     parts = scanner.get("@" + quantity.lower(), "").split()
     if len(parts) < 2 or parts[0] != "V":
-        raise InputError(path, f"NanoScope sensitivity '@{quantity}' missing or malformed")
+        return float("nan"), None       # no calibration: the channel cannot be read as heights
     unit = parts[2].split("/")[0] if len(parts) > 2 and "/" in parts[2] else None
     return float(parts[1]), unit
 
@@ -584,3 +585,58 @@ def read_ibw(path: Path, channel=None) -> tuple[np.ndarray, float, float, dict]:
     i = _select(path, names, [True] * nc, channel)
     raw = np.frombuffer(buf, dtype, nx * ny, start + i * nx * ny * dtype.itemsize).reshape(ny, nx)[::-1]
     return raw * zf, hd["sfa"][0] * fx, hd["sfa"][1] * fy, _meta(units, dim_units[0], names, i)
+
+
+# ------------------------------------------------------------------------ Bruker Dektak stylus .csv
+
+_DEKTAK_Z_UNITS = {"micrometer": 1e-6, "um": 1e-6, "µm": 1e-6, "nanometer": 1e-9, "nm": 1e-9,
+                   "angstrom": 1e-10, "å": 1e-10, "a": 1e-10, "millimeter": 1e-3, "mm": 1e-3}
+
+
+def _dektak_number(path: Path, text: str, what: str) -> float:
+    m = re.match(r"\s*([-+0-9.eE]+)\s*um", text)
+    if m is None:
+        raise InputError(path, f"Dektak header {what} {text!r} is not a length in um")
+    return float(m.group(1))
+
+
+def read_dektak(path: Path, channel=None) -> tuple[np.ndarray, float, float, dict]:
+    """Bruker Dektak stylus profiler CSV export (Vision64 'Export to CSV'): a 'Scan Parameters'
+    block of 'name,value' lines ('Length,1500.0 um', 'Resolution,0.156 um/sample'), 'Analytical
+    Results', then 'Scan Data', a header 'Lateral um,<kind> <unit>,' and one 'x,z,' line per
+    sample.  A stylus scan is one line: the result is a 1 x n profile (z in metres, uniform
+    spacing (x_last - x_first) / (n - 1), the file's x being rounded to 0.1 um), which
+    `read_relief` refuses as not a height map, like SurfaceTopography's reading.  A scan shorter
+    than its declared Length (by more than two samples) is a truncated file.
+    """
+    _single(path, channel, "default")
+    text = path.read_bytes().decode("latin-1")
+    head, sep, body = text.partition("Scan Data")
+    if not head.lstrip().startswith("Scan Parameters") or not sep:
+        raise InputError(path, "not a Bruker Dektak CSV export (no 'Scan Parameters' ... 'Scan Data')")
+    params = dict(line.split(",", 1) for line in head.splitlines() if line.count(",") >= 1)
+    lines = [ln for ln in body.splitlines() if ln.strip()]
+    if len(lines) < 3:
+        raise InputError(path, "Dektak export holds no scan data (truncated file?)")
+    cols = [c.strip() for c in lines[0].split(",")]
+    zf = _DEKTAK_Z_UNITS.get(cols[1].split()[-1].lower() if len(cols) > 1 and cols[1] else "")
+    if not cols[0].lower().endswith(" um") or zf is None:
+        raise InputError(path, f"Dektak data columns {cols[:2]}: expected 'Lateral um' and a height in a length unit")
+    _check_size(path, (len(lines) - 1,), "Dektak profile")
+    rows = [ln.split(",")[:2] for ln in lines[1:]]
+    try:
+        bad = next((k for k, r in enumerate(rows) if len(r) < 2), None)
+        if bad is not None:
+            raise ValueError(f"line {bad + 1} of the scan data, {lines[bad + 1]!r}, has one value")
+        xz = np.array([[float(r[0]), float(r[1])] for r in rows])
+    except ValueError as e:
+        raise InputError(path, f"Dektak scan data is not pairs of numbers ({e}; truncated file?)") from None
+    length_um = _dektak_number(path, params.get("Length", ""), "Length")
+    step_um = _dektak_number(path, params.get("Resolution", ""), "Resolution")
+    span_um = xz[-1, 0] - xz[0, 0]
+    if span_um < length_um - 2 * step_um:
+        raise InputError(path, f"truncated file: the Dektak scan data ends at {span_um:g} um of the declared "
+                               f"Length {length_um:g} um")
+    dx = span_um * 1e-6 / (len(xz) - 1)
+    return xz[:, 1][None, :] * zf, dx, dx, _meta(cols[1].split()[-1], "um", ["default"], 0,
+                                                           profile_points=len(xz))

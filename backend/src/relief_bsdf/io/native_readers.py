@@ -292,4 +292,5 @@ from relief_bsdf.io import native_instruments as _inst  # noqa: E402 - after thi
 READERS = {".x3p": _one_channel(read_x3p), ".gwy": _one_channel(read_gwy), ".plu": _one_channel(read_plu),
            ".dat": _inst.read_metropro, ".opd": _inst.read_opd,
            ".di": _inst.read_nanoscope, ".spm": _inst.read_nanoscope, ".nid": _inst.read_nid, ".ezd": _inst.read_nid,
-           ".mi": _inst.read_mi, ".frt": _inst.read_frt, ".ibw": _inst.read_ibw}
+           ".mi": _inst.read_mi, ".frt": _inst.read_frt, ".ibw": _inst.read_ibw,
+           ".csv": _inst.read_dektak}
