@@ -22,7 +22,9 @@ Steps:
 
 A package with no wheel for a platform is reported and left out of that platform's zip (the
 feature needing it then fails there with a clear error; SurfaceTopography's instrument formats
-fall back to the project's own X3P / GWY / PLU / SDF readers, io/native_readers.py).
+fall back to the project's own readers (io/native_readers.py, io/native_instruments.py: X3P, GWY,
+PLU, SDF, Zygo MetroPro .dat, Wyko .opd, NanoScope .di/.spm, ...); the report lists the suffixes
+the zip's own relief_bsdf registers and the common instrument formats it still cannot read.
 """
 from __future__ import annotations
 
@@ -244,7 +246,10 @@ def build(out: Path, platforms: list[str], cache: Path, offline: bool = False) -
 
 
 MAIN_INPUTS = ("x3p", "npz")
-OWN_FORMATS = ("x3p", "gwy", "plu", "sdf", "npz")     # relief_bsdf's own readers (io.heightmaps, io.native_readers)
+OWN_FORMATS = ("sdf", "npz")     # read by io.heightmaps itself; the rest come from the zip's io.native_readers.READERS
+#: instrument formats a user is likely to bring (SurfaceTopography reads them all); the report names
+#: those a zip without SurfaceTopography cannot read
+COMMON_FORMATS = ("x3p", "gwy", "plu", "dat", "opd", "di", "spm", "nid", "mi", "frt", "ibw", "sur", "datx", "plux")
 
 
 def _zip_wheels(z: Path) -> list[str]:
@@ -267,7 +272,8 @@ def reader_report(z: Path, cache: Path) -> dict:
     The zip's relief_bsdf wheel is unpacked and, in a fresh Python (this one's numpy, scipy
     and h5py), reads the demo X3P and an npz with SurfaceTopography made unimportable when
     the zip bundles no wheel of it (what Blender on that platform will have).  Formats: the
-    project's own (x3p, gwy, plu, sdf, npz), float tif/exr (Blender's own OpenImageIO), and every
+    project's own (sdf, npz and the suffixes the zip's own `io.native_readers.READERS` registers:
+    x3p, gwy, plu, dat, opd, di, ...), float tif/exr (Blender's own OpenImageIO), and every
     SurfaceTopography format when its wheel and those of all it needs are bundled
     (`surface_topography_complete`; the wheel of another platform cannot run here: this
     Python's SurfaceTopography stands in for it in the check).  main_ok: the main inputs
@@ -296,15 +302,20 @@ def reader_report(z: Path, cache: Path) -> dict:
             f"p = write_relief({str(unpack / 'probe.npz')!r}, Relief(np.zeros((4, 4)), 1e-6, 1e-6))\n"
             "read_relief(p)\n"
             "import relief_bsdf; assert relief_bsdf.__file__.startswith(sys.path[0]), relief_bsdf.__file__\n"
+            "from relief_bsdf.io.native_readers import READERS\n"
+            "print('OWN', ' '.join(sorted(k.lstrip('.') for k in READERS)))\n"
             "print('READ', r.metadata['reader'], r.shape)\n")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env={k: v for k, v in __import__("os").environ.items() if k != "PYTHONPATH"})
     ok = res.returncode == 0 and "READ" in res.stdout
-    formats = list(OWN_FORMATS) + ["tif", "exr"]      # float images: Blender's own OpenImageIO (io/oiio.py)
+    own = res.stdout.split("OWN", 1)[1].split("\n", 1)[0].split() if "OWN" in res.stdout else []
+    formats = list(dict.fromkeys(own + list(OWN_FORMATS) + ["tif", "exr"]))  # tif/exr: Blender's OpenImageIO
+    missing = [f for f in COMMON_FORMATS if f not in formats]
     text = (f"reads {', '.join(formats)}"
             + (" and every SurfaceTopography format (dat, plu, opd, di, nid, ibw, mi, frt, ...)" if st else
                " with its own readers (no SurfaceTopography for this platform: its wheel or one it needs is "
-               "missing; the other instrument formats are not available)")
+               "missing; " + (f"{', '.join(missing)} not available" if missing else
+                              "every common instrument format covered") + ")")
             + (f"; checked: the demo X3P and an npz read with this zip's readers "
                f"({res.stdout.split('READ', 1)[1].strip()})"
                if ok else f"; FAILED to read the demo X3P / an npz with this zip's readers: "

@@ -112,6 +112,7 @@ def test_reader_report_checks_each_zip_by_reading(tmp_path):
         zf.write(wheel, "wheels/" + wheel.name)
     rep = bx.reader_report(win, tmp_path / "cache")
     assert rep["main_ok"] and {"x3p", "gwy", "npz"} <= set(rep["formats"]) and "surfacetopography" not in rep["formats"]
+    assert {"dat", "opd", "di", "nid", "mi", "frt", "ibw"} <= set(rep["formats"])          # the instrument readers of io/native_instruments.py
     assert "native_readers (x3p)" in rep["text"] and "not available" in rep["text"]
     bare = tmp_path / "bare.zip"
     with zipfile.ZipFile(bare, "w") as zf:

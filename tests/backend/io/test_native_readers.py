@@ -116,3 +116,150 @@ def test_surface_topography_still_preferred_when_installed():
     from relief_bsdf.io import native_readers
     assert native_readers.surface_topography_available()
     assert not native_readers.wanted(".x3p")
+
+
+# ------------------------------------------------------------- instrument formats (io/native_instruments.py)
+# Oracles: SurfaceTopography's reader of the same real file (heights, pitch, invalid points), and the rms
+# height after mean-plane levelling that shared/data/topography/README.md gives from SurfaceTopography and
+# Gwyddion (3 significant figures).  Agreement measured: MetroPro, OPD, NanoScope, Nanosurf, PicoView, FRT and Igor
+# bit-identical (NanoScope once 2.2e-16 relative); the tests hold 1e-12 relative.
+
+INSTRUMENT_FILES = [  # name, shape (ny, nx), README rms height (m)
+    ("ST_metropro-1.dat", (480, 640), 13.3e-9),
+    ("ST_opd-1.opd", (480, 640), 6.72e-9),
+    ("ST_di-1.di", (512, 512), 9.84e-9),
+    ("ST_nid-1.nid", (256, 256), 7.11e-9),
+    ("ST_mi-1.mi", (256, 256), 3.43e-9),
+    ("ST_frt-1.frt", (500, 500), 4.40e-6),
+    ("ST_spot_1-1000nm.ibw", (256, 256), 9.55e-9),
+]
+
+
+def _read_blocked(path, **kw):
+    mp = pytest.MonkeyPatch()
+    try:
+        mp.setitem(sys.modules, "SurfaceTopography", None)
+        return read_relief(path, **kw)
+    finally:
+        mp.undo()
+
+
+def _levelled_rms_m(h):
+    ny, nx = h.shape
+    y, x = np.mgrid[:ny, :nx]
+    v = np.isfinite(h)
+    a = np.c_[np.ones(v.sum()), x[v], y[v]]
+    return float(np.std(h[v] - a @ np.linalg.lstsq(a, h[v], rcond=None)[0]))
+
+
+@pytest.mark.parametrize("name, shape, rms_m", INSTRUMENT_FILES)
+def test_instrument_reader_matches_surface_topography(name, shape, rms_m):
+    path = SHARED / "data" / "topography" / name
+    with_st = read_relief(path)
+    assert with_st.metadata["reader"].startswith("SurfaceTopography")
+    own = _read_blocked(path)
+    assert own.metadata["reader"] == f"relief_bsdf.io.native_readers ({path.suffix[1:]})"
+    assert own.shape == with_st.shape == shape
+    assert own.dx_m == pytest.approx(with_st.dx_m, rel=1e-12)
+    assert own.dy_m == pytest.approx(with_st.dy_m, rel=1e-12)
+    np.testing.assert_array_equal(np.isnan(own.heights_m), np.isnan(with_st.heights_m))
+    np.testing.assert_allclose(own.heights_m, with_st.heights_m, rtol=1e-12, atol=0)
+    assert _levelled_rms_m(own.heights_m) == pytest.approx(rms_m, rel=0.01)
+
+
+# where the format's declared content ends: an Asylum .ibw carries 131578 bytes after the sections its
+# header declares (not part of the wave), so cutting there truncates nothing the reader uses
+DECLARED_END = {"ST_spot_1-1000nm.ibw": 2112969}
+TRUNCATIONS = [(name, keep) for name in [f[0] for f in INSTRUMENT_FILES] for keep in (0.25, 0.9, -1)] + \
+              [("ST_dektak-1.csv", 0.25), ("ST_dektak-1.csv", 0.9)]   # a text file cut in its last line is
+#                                                                      indistinguishable from a complete one
+
+
+@pytest.mark.parametrize("name, keep", TRUNCATIONS)
+def test_truncated_instrument_file_is_an_input_error(no_surface_topography, tmp_path, name, keep):
+    data = (SHARED / "data" / "topography" / name).read_bytes()
+    n = DECLARED_END.get(name, len(data)) - 1 if keep == -1 else int(len(data) * keep)
+    cut = tmp_path / ("cut" + Path(name).suffix)
+    cut.write_bytes(data[:n])
+    with pytest.raises(InputError, match=f"cut{Path(name).suffix}: truncated file"):
+        read_relief(cut)
+
+
+@pytest.mark.parametrize("name", [f[0] for f in INSTRUMENT_FILES] + ["ST_dektak-1.csv"])
+def test_header_only_fragment_is_an_input_error(no_surface_topography, tmp_path, name):
+    frag = tmp_path / ("frag" + Path(name).suffix)
+    frag.write_bytes((SHARED / "data" / "topography" / name).read_bytes()[:200])
+    with pytest.raises(InputError, match=f"frag{Path(name).suffix}"):
+        read_relief(frag)
+
+
+def test_nanoscope_channels(no_surface_topography):
+    path = SHARED / "data" / "topography" / "ST_di-1.di"
+    retrace = read_relief(path, channel=1)
+    assert retrace.metadata["channel"] == "Height" and retrace.metadata["channel_index"] == 1
+    assert retrace.shape == (512, 512) and np.isfinite(retrace.heights_m).all()
+    with pytest.raises(InputError, match="ST_di-1.di.*'Phase'.*not hold heights"):
+        read_relief(path, channel="Phase")
+    with pytest.raises(InputError, match="ST_di-1.di.*out of range"):
+        read_relief(path, channel=7)
+
+
+def test_metropro_declared_size_checked_before_allocation(no_surface_topography, tmp_path):
+    from relief_bsdf.io.heightmaps import pixel_limit
+    data = bytearray((SHARED / "data" / "topography" / "ST_metropro-1.dat").read_bytes())
+    path = tmp_path / "big.dat"
+    path.write_bytes(bytes(data))
+    with pixel_limit(1000), pytest.raises(InputError, match="big.dat.*limit"):
+        read_relief(path)
+
+
+def test_frt_points_not_measured_are_nan_not_zero(no_surface_topography):
+    # README: 31 % of the FRT map is not measured; filling it in inflates the rms to ~19 um
+    r = read_relief(SHARED / "data" / "topography" / "ST_frt-1.frt")
+    assert 0.30 < np.isnan(r.heights_m).mean() < 0.32
+
+
+def test_nanosurf_and_picoview_channels(no_surface_topography):
+    nid = SHARED / "data" / "topography" / "ST_nid-1.nid"
+    back = read_relief(nid, channel="Scan backward (Z-Axis)")
+    assert back.metadata["channel_index"] == 2 and back.shape == (256, 256)
+    fwd = read_relief(nid)
+    # forward and backward traces of one scan: the same surface, to within the AFM's noise and hysteresis
+    assert np.corrcoef(fwd.heights_m.ravel(), back.heights_m.ravel())[0, 1] > 0.9
+    with pytest.raises(InputError, match="ST_mi-1.mi.*'Deflection'.*not hold heights"):
+        read_relief(SHARED / "data" / "topography" / "ST_mi-1.mi", channel="Deflection")
+
+
+def test_igor_wave_channels_and_checksum(no_surface_topography, tmp_path):
+    path = SHARED / "data" / "topography" / "ST_spot_1-1000nm.ibw"
+    r = read_relief(path, channel="HeightRetrace")
+    assert r.metadata["channel_index"] == 1 and r.metadata["channels"][0] == "HeightTrace"
+    data = bytearray(path.read_bytes())
+    data[100] ^= 0x01                              # one bit of the wave header flipped
+    bad = tmp_path / "flipped.ibw"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="flipped.ibw.*checksum"):
+        read_relief(bad)
+
+
+def test_dektak_profile_matches_surface_topography_and_is_refused_as_a_map(no_surface_topography):
+    from relief_bsdf.io.native_instruments import read_dektak
+    path = SHARED / "data" / "topography" / "ST_dektak-1.csv"
+    h, dx, dy, meta = read_dektak(path)
+    assert h.shape == (1, 9600) and dx == dy and meta["file_unit"] == "Micrometer"
+    with pytest.raises(InputError, match="ST_dektak-1.csv.*1-D line profile \\(9600 points\\)"):
+        read_relief(path)
+    # README: rms 94 nm (after removing the mean line)
+    x = np.arange(h.shape[1])
+    assert np.std(h[0] - np.polyval(np.polyfit(x, h[0], 1), x)) == pytest.approx(94e-9, rel=0.01)
+
+
+def test_dektak_profile_agrees_with_surface_topography():
+    import SurfaceTopography as ST
+    from relief_bsdf.io.native_instruments import read_dektak
+    path = SHARED / "data" / "topography" / "ST_dektak-1.csv"
+    h, dx, _, _ = read_dektak(path)
+    st = ST.open_topography(str(path)).topography()
+    assert st.unit == "µm"
+    np.testing.assert_allclose(h[0], np.asarray(st.heights()) * 1e-6, rtol=1e-12, atol=0)
+    assert dx * (h.shape[1] - 1) == pytest.approx(st.physical_sizes[0] * 1e-6, rel=1e-12)

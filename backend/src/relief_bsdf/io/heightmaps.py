@@ -224,7 +224,7 @@ def read_relief(path: str | Path, pitch_m: Any = None, channel: int | str | None
     # --- hook (issue 16): the project's own readers where SurfaceTopography is missing (io/native_readers.py)
     from relief_bsdf.io import native_readers
     if native_readers.wanted(suffix):
-        return _finish(path, *native_readers.read(path, pitch))
+        return _finish(path, *native_readers.read(path, pitch, channel))
     # --- end of hook
     return _read_surface_topography(path, pitch, channel)
 

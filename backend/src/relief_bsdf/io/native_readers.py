@@ -28,8 +28,11 @@ descriptions, with numpy and the standard library only:
   uint32 factor), then per layer uint32 rows and columns and rows x columns float32 heights
   in micrometres (1000001 = not measured), then float32 min and max.  Pitch = um per pixel.
 
+The proprietary instrument formats (Zygo MetroPro .dat, Wyko .opd, Bruker NanoScope .di/.spm, ...)
+are read by `io.native_instruments`, registered in `READERS` below.
+
 `wanted(suffix)` says whether `read_relief` should use these readers: the format is one of
-them and SurfaceTopography cannot be imported.  `read(path, pitch)` returns
+them and SurfaceTopography cannot be imported.  `read(path, pitch, channel)` returns
 (heights_m[y, x], dx_m, dy_m, periodic, metadata); `read_relief` finishes it as for any file.
 Errors are `InputError`s naming the file.
 """
@@ -63,8 +66,10 @@ def wanted(suffix: str) -> bool:
     return suffix.lower() in READERS and not surface_topography_available()
 
 
-def read(path: Path, pitch: tuple | None) -> tuple[np.ndarray, float, float, bool, dict]:
-    h, dx, dy, meta = READERS[path.suffix.lower()](path)
+def read(path: Path, pitch: tuple | None, channel=None) -> tuple[np.ndarray, float, float, bool, dict]:
+    """Read `path` with the reader of its suffix; `channel` (index or name) picks a channel of a
+    multi-channel file (default: its first height channel)."""
+    h, dx, dy, meta = READERS[path.suffix.lower()](path, channel)
     meta["reader"] = f"relief_bsdf.io.native_readers ({path.suffix.lower()[1:]})"
     if pitch is not None:
         meta["pitch_in_file_m"] = [dx, dy]
@@ -272,4 +277,20 @@ def read_plu(path: Path) -> tuple[np.ndarray, float, float, dict]:
     return h * 1e-6, um_x * 1e-6, um_y * 1e-6, meta
 
 
-READERS = {".x3p": read_x3p, ".gwy": read_gwy, ".plu": read_plu}
+def _one_channel(reader):
+    """A reader of single-channel files, taking (path, channel) like the others."""
+    def read_one(path: Path, channel=None):
+        if channel not in (None, 0, "0"):
+            raise InputError(path, f"the file holds one height channel; no channel {channel!r}")
+        return reader(path)
+    return read_one
+
+
+from relief_bsdf.io import native_instruments as _inst  # noqa: E402 - after this module's own readers
+
+#: suffix -> reader(path, channel) -> (heights_m[y, x], dx_m, dy_m, metadata)
+READERS = {".x3p": _one_channel(read_x3p), ".gwy": _one_channel(read_gwy), ".plu": _one_channel(read_plu),
+           ".dat": _inst.read_metropro, ".opd": _inst.read_opd,
+           ".di": _inst.read_nanoscope, ".spm": _inst.read_nanoscope, ".nid": _inst.read_nid, ".ezd": _inst.read_nid,
+           ".mi": _inst.read_mi, ".frt": _inst.read_frt, ".ibw": _inst.read_ibw,
+           ".csv": _inst.read_dektak}
