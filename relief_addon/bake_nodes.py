@@ -9,7 +9,8 @@ only builds Blender data:
   theta_v = acos(|I . N|) and Backfacing (selects the inside row block);
 - node group "Relief LUT BSDF: <name>": four Cycles closures whose colours and roughnesses are
   read from the image (Linear interpolation, EXTEND), summed into one BSDF output
-  (anisotropic reflection lobe when the table is);
+  (anisotropic reflection lobe when the table is; the transmitted lobes are isotropic, as Cycles
+  has no anisotropic rough transmission: relief_bsdf.bsdf.bake, module doc);
 - node group "Relief BSDF: <name>": what a user drops into a material, with inputs Tint,
   Haze, Fitted (fitted / measured-as-is table) and Rotation (`build_node_group`).
 Re-baking updates images and groups in place; baking onto an object adds a material slot.
@@ -213,8 +214,11 @@ def build_lut_group(lut, img: bpy.types.Image | None = None) -> bpy.types.Shader
 
     Four Cycles closures whose colours and roughnesses are read from the LUT image; the
     reflection lobe is anisotropic when the table is (Anisotropy from the roughness row's third
-    channel, tangent = the object's x axis, turned by Rotation: 0.25 = 90 deg); Tint multiplies
-    the transmitted closures (a coloured plate)."""
+    channel, tangent = the object's x axis, turned by Rotation: 0.25 = 90 deg); the two
+    transmission closures are Refraction BSDFs, isotropic whatever the table (no Cycles closure
+    transmits anisotropically: Refraction and Glass have no anisotropy, Principled's reaches its
+    specular layer only, and OSL's microfacet refraction drops alpha_y); Tint multiplies the
+    transmitted closures (a coloured plate)."""
     from relief_bsdf.bsdf.bake import ROW_NAMES, ROWS_PER_SIDE
     img = img or lut_image(lut)
     n_cols, n_rows = lut.rows.shape[1], lut.rows.shape[0]
@@ -348,6 +352,7 @@ def build_node_group(lut, img: bpy.types.Image | None = None, fitted=None, name:
     g["relief_closure_albedo"] = str(lut.info.get("closure_albedo", ""))
     g["relief_haze"] = float(lut.haze)
     g["relief_anisotropy"] = float(lut.anisotropy)
+    g["relief_transmission"] = str(lut.info.get("transmission", ""))
     g["relief_fitted"] = fitted is not None
     if table:
         g["relief_table"] = str(table)

@@ -214,3 +214,19 @@ def test_panels_draw_units_regime_and_haze(addon, tmp_path):
     assert "Optical regime:" in text and "auto would pick:" in text
     assert any(t.startswith("haze (T, normal incidence):") and t.endswith("%") for t in labels)
     assert ("operator", "relief.add_preset") in log
+
+
+def test_bake_panel_names_the_isotropic_transmission_of_an_anisotropic_bake(addon):
+    """An anisotropic bake: the panel says the transmitted lobes are isotropic (Cycles has no anisotropic
+    refraction; README, Blender extension); an isotropic bake: no such warning."""
+    from types import SimpleNamespace
+    from relief_addon import panels
+    for an, warned in ((0.6, True), (0.0, False)):
+        g = bpy.data.node_groups.new(f"Relief BSDF: a{an}", "ShaderNodeTree")
+        g["relief_haze"], g["relief_anisotropy"] = 0.3, an
+        bpy.context.scene.relief.last_group = g.name
+        log = []
+        panels.RELIEF_PT_bake_render.draw(SimpleNamespace(layout=_Layout(log)), bpy.context)
+        text = " ".join(t for k, t in log if k == "label")              # wrapped lines joined
+        assert ("transmitted lobes: isotropic" in text) is warned, text
+        assert ("no anisotropic refraction closure" in text) is warned, text

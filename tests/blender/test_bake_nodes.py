@@ -185,6 +185,7 @@ def test_anisotropic_relief_bakes_anisotropic_lobe_checked_at_two_azimuths(clean
     assert reflection_slope_ratio(out, 550.0) == pytest.approx(0.277 / 0.068, rel=0.15)   # the relief's slopes
     lut, _, group = bake_nodes.bake_tables(tables, "aniso")
     assert lut.anisotropy > 0.5 and group["relief_anisotropy"] == pytest.approx(lut.anisotropy)
+    assert "isotropic" in group["relief_transmission"]          # the documented limitation, kept with the group
     m = bake_nodes.material_for_group(group)
     node = next(n for n in m.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
     ti = 40.0
@@ -238,3 +239,92 @@ def test_group_inputs_haze_tint_and_fitted_switch(clean_bpy, tables):
     for fitted, want in R_want.items():
         node.inputs["Fitted"].default_value = fitted
         assert G.directional(m, 70.0, "R", samples=32)[1] == pytest.approx(want, rel=0.05), fitted
+
+
+def test_cycles_transmission_closures_are_isotropic():
+    """Why the bake's transmitted lobes stay isotropic (README, Blender extension): Cycles 5.0 has no
+    anisotropic rough transmission.  The Refraction and Glass BSDFs have no anisotropy input, and the
+    Principled BSDF's Anisotropic / Tangent reach only its specular layer: with Transmission Weight 0.5
+    (half glass closure, half specular layer over diffuse), Anisotropic 0.9 and the tangent along x, the
+    goniophotometer sees the reflected lobe stretched (azimuth 0 vs 90, far apart) and the transmitted lobe
+    the same at both azimuths, equal to the Anisotropic 0 render.  (Cycles' bsdf_microfacet_ggx_refraction_setup / _glass_setup set alpha_y = alpha_x, for SVM and
+    OSL closures alike.)  Should a later Blender pass this anisotropy to transmission, this test fails and the
+    bake can use it."""
+    from relief_addon import goniophotometer as G
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    for kind in ("ShaderNodeBsdfRefraction", "ShaderNodeBsdfGlass"):
+        nt = bpy.data.materials.new(kind).node_tree
+        node = nt.nodes.new(kind)
+        assert not any("aniso" in s.name.lower() or s.name == "Tangent" for s in node.inputs), kind
+    got = {}
+    for aniso in (0.0, 0.9):
+        m = bpy.data.materials.new(f"principled {aniso}")
+        nt = m.node_tree
+        nt.nodes.clear()
+        b = nt.nodes.new("ShaderNodeBsdfPrincipled")
+        b.inputs["Transmission Weight"].default_value = 0.5
+        b.inputs["Roughness"].default_value = 0.3
+        b.inputs["Anisotropic"].default_value = aniso
+        b.inputs["IOR"].default_value = 1.5
+        b.inputs["Base Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+        t = nt.nodes.new("ShaderNodeCombineXYZ")
+        t.inputs["X"].default_value = 1.0
+        nt.links.new(t.outputs[0], b.inputs["Tangent"])
+        out = nt.nodes.new("ShaderNodeOutputMaterial")
+        nt.links.new(b.outputs[0], out.inputs["Surface"])
+        for phi in (0.0, 90.0):
+            got[aniso, "R", phi] = G.bsdf(m, 0.0, 30.0, phi, "R", samples=16)[1]
+            got[aniso, "T", phi] = G.bsdf(m, 0.0, 12.0, phi, "T", samples=16)[1]
+    # the tangent is seen: the specular layer's lobe is stretched (R also holds the diffuse base, the same at
+    # every azimuth; measured 0.191 vs 0.155, isotropic 0.158 at both)
+    assert got[0.9, "R", 0.0] > 1.15 * got[0.9, "R", 90.0], got
+    assert got[0.0, "R", 0.0] == pytest.approx(got[0.0, "R", 90.0], rel=0.01), got
+    assert got[0.9, "T", 0.0] > 0.01, got                                # light is transmitted there
+    assert got[0.9, "T", 0.0] == pytest.approx(got[0.9, "T", 90.0], rel=0.02), got
+    assert got[0.9, "T", 0.0] == pytest.approx(got[0.0, "T", 0.0], rel=0.02), got
+
+
+_OSL_MICROFACET = """
+shader relief_probe_microfacet(float AlphaX = 0.5, float AlphaY = 0.1, float IOR = 1.5, int Refract = 0,
+                               vector Tangent = vector(1, 0, 0), output closure color BSDF = 0)
+{
+  BSDF = microfacet("ggx", N, normalize(Tangent), AlphaX, AlphaY, backfacing() ? 1.0 / IOR : IOR, Refract);
+}
+"""
+
+
+def test_osl_microfacet_refraction_is_isotropic_too(monkeypatch):
+    """The last route, an OSL script with the anisotropic `microfacet` closure (shading system OSL): the same
+    (alpha_x, alpha_y) = (0.5, 0.1) and tangent x give a stretched lobe in reflection (refract 0) and one
+    value at every azimuth in refraction (refract 1); measured 1.249 / 0.093 / 0.032 at azimuths 0 / 45 / 90
+    against 0.098 at all three."""
+    import glob
+    from relief_addon import goniophotometer as G
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    for d in glob.glob(bpy.utils.resource_path("LOCAL") + "/python/lib/python3*/site-packages"):
+        monkeypatch.syspath_prepend(d)                 # oslquery, which the Cycles add-on's compiler needs
+    from cycles import osl as cycles_osl
+    text = bpy.data.texts.new("relief_probe_microfacet.osl")
+    text.write(_OSL_MICROFACET)
+    new_scene = G.new_scene
+
+    def osl_scene(*a, **k):
+        scene = new_scene(*a, **k)
+        scene.cycles.shading_system = True
+        return scene
+    monkeypatch.setattr(G, "new_scene", osl_scene)
+    got = {}
+    for refract, side, ts in ((0, "R", 30.0), (1, "T", 25.0)):
+        m = bpy.data.materials.new(f"osl {refract}")
+        nt = m.node_tree
+        nt.nodes.clear()
+        s = nt.nodes.new("ShaderNodeScript")
+        s.mode, s.script = "INTERNAL", text
+        assert cycles_osl.update_script_node(s, lambda *_: None)
+        s.inputs["Refract"].default_value = refract
+        out = nt.nodes.new("ShaderNodeOutputMaterial")
+        nt.links.new(s.outputs["BSDF"], out.inputs["Surface"])
+        for phi in (0.0, 90.0):
+            got[side, phi] = G.bsdf(m, 0.0, ts, phi, side, samples=16)[1]
+    assert got["R", 0.0] > 10.0 * got["R", 90.0], got
+    assert got["T", 0.0] > 0.01 and got["T", 0.0] == pytest.approx(got["T", 90.0], rel=0.02), got

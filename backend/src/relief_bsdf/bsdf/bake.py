@@ -41,8 +41,15 @@ roughness and IOR are scalar in Cycles and use the green wavelength.
 
 Anisotropy: the reflection lobe's aspect ratio alpha_x / alpha_y is read from the table's
 own lobe at normal incidence (`reflection_slope_ratio`) and baked as Cycles' Anisotropy
-with the tangent along the relief's x axis (`closure_anisotropy`, `_lobe_roughness`); transmission lobes stay
-isotropic (Cycles' Refraction BSDF has none).
+with the tangent along the relief's x axis (`closure_anisotropy`, `_lobe_roughness`).  Transmission lobes stay
+isotropic (roughness = the fitted geometric mean of the two axes): Cycles 5.0 has no anisotropic rough
+transmission.  Its Refraction and Glass BSDFs have no anisotropy input; the Principled BSDF's Anisotropic
+and Tangent reach its specular layer only; and the closure setups behind every transmission, SVM and OSL
+alike (bsdf_microfacet_ggx_refraction_setup / _glass_setup in kernel/closure/bsdf_microfacet.h), set
+alpha_y = alpha_x, so even an OSL `microfacet(..., alpha_x, alpha_y, eta, 1)` renders isotropic
+(measured by tests/blender/test_bake_nodes.py::test_cycles_transmission_closures_are_isotropic and
+::test_osl_microfacet_refraction_is_isotropic_too).  A plate seen in transmission therefore shows the
+azimuth-averaged lobe width of an anisotropic relief; `BakedLut.info["transmission"]` says so.
 
 Assumptions and limits: other tables are taken as isotropic (several incidence azimuths are
 averaged); lobe shapes are GGX (Walter et al. 2007, eqs. 20-21, 33) so tables of another
@@ -68,6 +75,10 @@ ROW_NAMES = ("specular_R", "diffuse_R", "specular_T", "diffuse_T", "roughness")
 ROWS_PER_SIDE = len(ROW_NAMES)
 SIDES = ("outside", "inside")          # row block 0: front-facing view, 1: back-facing view
 DEFAULT_RGB_NM = (610.0, 550.0, 465.0)
+
+#: what the bake does with the transmitted lobes (see the module doc: Cycles has no anisotropic transmission)
+TRANSMISSION_NOTE = ("isotropic GGX (the fitted mean width): Cycles has no anisotropic rough transmission, "
+                     "so an anisotropic relief keeps its anisotropy in reflection only")
 
 Albedo = Callable[[str, np.ndarray, np.ndarray, float], np.ndarray]
 
@@ -284,7 +295,7 @@ def _lobe_roughness(table: BsdfTable, wl_nm: float, closure: str) -> tuple[np.nd
     reflection lobe at normal incidence (`reflection_slope_ratio`, rho = alpha_x / alpha_y,
     tangent along x) in the convention of the closure (`closure_anisotropy`), the same for every
     incidence.  A table without a normal incidence bakes isotropic.  Transmission stays
-    isotropic (Cycles' Refraction BSDF has no anisotropy).
+    isotropic (Cycles has no anisotropic transmission closure, see the module doc).
     """
     rough = _fit_roughness(table, wl_nm).mean(axis=1)
     a = closure_anisotropy(reflection_slope_ratio(table, wl_nm), closure)
@@ -415,7 +426,7 @@ def bake_lut(tables: Sequence[BsdfTable], name: str, albedo: Albedo | None = Non
                       reflection_closure=reflection_closure)
     front, info_f = _side_rows(out, cols, bc, back=False)
     info = {"outside": info_f, "method": out.method, "closure_albedo": getattr(albedo, "source", "ideal (1)"),
-            "haze_T": transmission_haze(out, green)}
+            "haze_T": transmission_haze(out, green), "transmission": TRANSMISSION_NOTE}
     if "inside" in by_side:
         back, info_b = _side_rows(by_side["inside"], cols, bc, back=True)
         info["inside"] = info_b
