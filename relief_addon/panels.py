@@ -78,7 +78,7 @@ def _baked_box(layout, context) -> None:
         # Cycles has no anisotropic rough transmission (relief_bsdf.bsdf.bake, module doc)
         box.label(text=f"transmitted lobe stretched: facet tilt {tilt:.2f}")
         _wrapped(box, "Cycles has no anisotropic refraction closure: a random facet tilt per "
-                 "sample stretches it (needs a few more samples)")
+                 "path sample stretches it")
     elif an:
         box.label(text="transmitted lobes: isotropic (mean width)", icon="ERROR")
 
