@@ -227,6 +227,7 @@ def _tilted_normal(g, tilt_tex, geo, tangent, rotation_socket, loc):
     angle = _math(g, "ADD", quarter.outputs[0], turn.outputs[0], location=(x - 400, y - 200), label="tilt azimuth")
     rot = g.nodes.new("ShaderNodeVectorRotate")
     rot.rotation_type = "AXIS_ANGLE"
+    rot.invert = True      # the closures' Rotation turns the other way round N than this node (measured)
     rot.location = (x - 250, y - 250)
     g.links.new(tangent, rot.inputs["Vector"])
     g.links.new(geo.outputs["Normal"], rot.inputs["Axis"])

@@ -244,6 +244,10 @@ def test_anisotropic_relief_transmits_anisotropic_lobe_checked_at_two_azimuths(c
     node.inputs["Rotation"].default_value = 0.25
     assert lobe(90.0, 3.0) == pytest.approx(got[0.0, 3.0], rel=0.1)
     assert lobe(0.0, 3.0) == pytest.approx(got[90.0, 3.0], rel=0.1)
+    # ... and 0.125 by 45 degrees, the same way as the reflection lobe (both wide at azimuth 45, not 135)
+    node.inputs["Rotation"].default_value = 0.125
+    assert lobe(45.0, 3.0) > 3.0 * lobe(135.0, 3.0)
+    assert G.bsdf(m, 0.0, 20.0, 45.0, "R", samples=64)[1] > 3.0 * G.bsdf(m, 0.0, 20.0, 135.0, "R", samples=64)[1]
 
 
 @pytest.mark.slow
