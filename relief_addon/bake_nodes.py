@@ -9,7 +9,9 @@ only builds Blender data:
   theta_v = acos(|I . N|) and Backfacing (selects the inside row block);
 - node group "Relief LUT BSDF: <name>": four Cycles closures whose colours and roughnesses are
   read from the image (Linear interpolation, EXTEND), summed into one BSDF output
-  (anisotropic reflection lobe when the table is);
+  (anisotropic reflection lobe when the table is; as Cycles has no anisotropic rough
+  transmission, an anisotropic transmitted lobe is an isotropic Refraction closure whose normal
+  a random facet slope tilts per shading point: `_tilted_normal`, relief_bsdf.bsdf.bake);
 - node group "Relief BSDF: <name>": what a user drops into a material, with inputs Tint,
   Haze, Fitted (fitted / measured-as-is table) and Rotation (`build_node_group`).
 Re-baking updates images and groups in place; baking onto an object adds a material slot.
@@ -198,6 +200,60 @@ def _relief_x_tangent(g, location):
     return vt.outputs["Vector"]
 
 
+def _vmath(g, op, a, b=None, location=(0, 0)):
+    n = g.nodes.new("ShaderNodeVectorMath")
+    n.operation = op
+    n.location = location
+    g.links.new(a, n.inputs[0])
+    if b is not None:
+        g.links.new(b, n.inputs[1 if op != "SCALE" else "Scale"])
+    return n.outputs["Value" if op == "DOT_PRODUCT" else "Vector"]
+
+
+def _tilted_normal(g, tilt_tex, geo, tangent, rotation_socket, loc):
+    """Normal of one random facet per shading point for the stretched transmitted lobe
+    (relief_bsdf.bsdf.bake.transmission_tilt): m = normalize(N - s t), t the relief's x axis turned
+    about N by Rotation (a quarter more where c_T < 0) and made perpendicular to N,
+    s = |c_T| (2u - 1) / (2 sqrt(u (1 - u))) (`tilt_slope`), u from a White Noise texture of the
+    position, so every path sample sees another facet."""
+    x, y = loc
+    sep = g.nodes.new("ShaderNodeSeparateColor")
+    sep.location = (x - 900, y)
+    g.links.new(tilt_tex.outputs["Color"], sep.inputs["Color"])
+    c = _math(g, "ABSOLUTE", sep.outputs["Red"], location=(x - 700, y), label="tilt scale c_T")
+    quarter = _math(g, "MULTIPLY", _math(g, "LESS_THAN", sep.outputs["Red"], 0.0, location=(x - 700, y - 150)).outputs[0],
+                    0.5 * math.pi, location=(x - 550, y - 150))
+    turn = _math(g, "MULTIPLY", rotation_socket, 2.0 * math.pi, location=(x - 550, y - 300))
+    angle = _math(g, "ADD", quarter.outputs[0], turn.outputs[0], location=(x - 400, y - 200), label="tilt azimuth")
+    rot = g.nodes.new("ShaderNodeVectorRotate")
+    rot.rotation_type = "AXIS_ANGLE"
+    rot.invert = True      # the closures' Rotation turns the other way round N than this node (measured)
+    rot.location = (x - 250, y - 250)
+    g.links.new(tangent, rot.inputs["Vector"])
+    g.links.new(geo.outputs["Normal"], rot.inputs["Axis"])
+    g.links.new(angle.outputs[0], rot.inputs["Angle"])
+    along = _vmath(g, "DOT_PRODUCT", rot.outputs["Vector"], geo.outputs["Normal"], (x - 100, y - 400))
+    perp = _vmath(g, "SUBTRACT", rot.outputs["Vector"],
+                  _vmath(g, "SCALE", geo.outputs["Normal"], along, (x - 100, y - 250)), (x + 50, y - 250))
+    noise = g.nodes.new("ShaderNodeTexWhiteNoise")
+    noise.noise_dimensions = "3D"
+    noise.location = (x - 700, y + 250)
+    g.links.new(geo.outputs["Position"], noise.inputs["Vector"])
+    u = _math(g, "MAXIMUM", _math(g, "MINIMUM", noise.outputs["Value"], 1.0 - 1e-6,
+                                  location=(x - 550, y + 250)).outputs[0], 1e-6, location=(x - 400, y + 250))
+    num = _math(g, "SUBTRACT", _math(g, "MULTIPLY", u.outputs[0], 2.0, location=(x - 250, y + 350)).outputs[0], 1.0,
+                location=(x - 100, y + 350))
+    one_minus = _math(g, "SUBTRACT", 1.0, u.outputs[0], location=(x - 250, y + 200))
+    root = _math(g, "SQRT", _math(g, "MULTIPLY", u.outputs[0], one_minus.outputs[0], location=(x - 100, y + 200)).outputs[0],
+                 location=(x + 50, y + 200))
+    t = _math(g, "DIVIDE", num.outputs[0], _math(g, "MULTIPLY", root.outputs[0], 2.0, location=(x + 200, y + 200)).outputs[0],
+              location=(x + 350, y + 300))
+    slope = _math(g, "MULTIPLY", t.outputs[0], c.outputs[0], location=(x + 500, y + 300), label="facet slope")
+    m = _vmath(g, "SUBTRACT", geo.outputs["Normal"], _vmath(g, "SCALE", perp, slope.outputs[0], (x + 650, y)),
+               (x + 800, y))
+    return _vmath(g, "NORMALIZE", m, location=(x + 950, y))
+
+
 def _tinted(g, colour_socket, tint_socket, location):
     m = g.nodes.new("ShaderNodeMix")
     m.data_type, m.blend_type = "RGBA", "MULTIPLY"
@@ -213,8 +269,13 @@ def build_lut_group(lut, img: bpy.types.Image | None = None) -> bpy.types.Shader
 
     Four Cycles closures whose colours and roughnesses are read from the LUT image; the
     reflection lobe is anisotropic when the table is (Anisotropy from the roughness row's third
-    channel, tangent = the object's x axis, turned by Rotation: 0.25 = 90 deg); Tint multiplies
-    the transmitted closures (a coloured plate)."""
+    channel, tangent = the object's x axis, turned by Rotation: 0.25 = 90 deg).  The two
+    transmission closures are Refraction BSDFs, isotropic in Cycles whatever their inputs (no
+    Cycles closure transmits anisotropically: Refraction and Glass have no anisotropy,
+    Principled's reaches its specular layer only, OSL's microfacet refraction drops alpha_y); for
+    an anisotropic table the rough one gets the narrow width and a randomly tilted normal
+    (`_tilted_normal`, the same tangent and Rotation), which stretches the rendered lobe along
+    the wide axis.  Tint multiplies the transmitted closures (a coloured plate)."""
     from relief_bsdf.bsdf.bake import ROW_NAMES, ROWS_PER_SIDE
     img = img or lut_image(lut)
     n_cols, n_rows = lut.rows.shape[1], lut.rows.shape[0]
@@ -237,7 +298,8 @@ def build_lut_group(lut, img: bpy.types.Image | None = None) -> bpy.types.Shader
     neg = _math(g, "LESS_THAN", sep.outputs["Blue"], 0.0, location=(150, -1550))
     quarter = _math(g, "MULTIPLY", neg.outputs[0], 0.25, location=(300, -1550))
     rot = _math(g, "ADD", quarter.outputs[0], gi.outputs["Rotation"], location=(450, -1550), label="rotation")
-    aniso = (a_abs.outputs[0], _relief_x_tangent(g, (-300, -1500)), rot.outputs[0])
+    tangent = _relief_x_tangent(g, (-300, -1500))
+    aniso = (a_abs.outputs[0], tangent, rot.outputs[0])
     closures = []
     spec = [("specular_R", "ShaderNodeBsdfGlossy", None), ("diffuse_R", None, "Red"),
             ("specular_T", "ShaderNodeBsdfRefraction", None), ("diffuse_T", "ShaderNodeBsdfRefraction", "Green")]
@@ -254,6 +316,9 @@ def build_lut_group(lut, img: bpy.types.Image | None = None) -> bpy.types.Shader
         if b.bl_idname == "ShaderNodeBsdfRefraction":
             b.inputs["IOR"].default_value = lut.ior
             colour = _tinted(g, colour, gi.outputs["Tint"], (loc[0] - 150, loc[1] - 120))
+            if row == "diffuse_T" and lut.transmission_tilt > 0:
+                g.links.new(_tilted_normal(g, tex["transmission_tilt"], geo, tangent, gi.outputs["Rotation"],
+                                           (loc[0] - 1200, loc[1] - 2200)), b.inputs["Normal"])
         else:
             b.distribution = "MULTI_GGX"
             if row == "diffuse_R":
@@ -348,6 +413,8 @@ def build_node_group(lut, img: bpy.types.Image | None = None, fitted=None, name:
     g["relief_closure_albedo"] = str(lut.info.get("closure_albedo", ""))
     g["relief_haze"] = float(lut.haze)
     g["relief_anisotropy"] = float(lut.anisotropy)
+    g["relief_transmission"] = str(lut.info.get("transmission", ""))
+    g["relief_transmission_tilt"] = float(lut.transmission_tilt)
     g["relief_fitted"] = fitted is not None
     if table:
         g["relief_table"] = str(table)

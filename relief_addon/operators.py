@@ -199,10 +199,11 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
             from .bake_nodes import closure_albedo
             albedo = closure_albedo()
         from .bake_nodes import GROUP_PREFIX, group_for_table, has_metallic_bsdf
-        from .paths import stored
+        from .paths import in_cache, stored
         before = group_for_table(stored(out))          # a re-run updates the group baked from this table
         return {"relief": src, "pitch": pitch, "material": Material(ConstantIndex(float(self.ior or s.ior))),
                 "request": req, "method": self.method, "out": out, "bake": self.bake, "albedo": albedo,
+                "content_named": in_cache(out),        # the shared cache of unsaved sessions (paths.py)
                 "closure": "metallic" if has_metallic_bsdf() else "glossy",
                 "name": before.name[len(GROUP_PREFIX):] if before is not None else Path(src).stem}
 
@@ -213,12 +214,20 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
         from relief_bsdf.io.heightmaps import read_relief
         relief = read_relief(p["relief"], pitch_m=p["pitch"])
         tables = reconstruct(relief, p["material"], p["request"], p["method"], progress=progress)
-        save_tables(p["out"], tables)
+        out = p["out"]
+        if p.get("content_named"):
+            # unsaved sessions share the cache: write under a private name, then name the file by its content
+            from .paths import content_named, scratch_name
+            part = scratch_name(out)
+            save_tables(part, tables)
+            out = content_named(part)
+        else:
+            save_tables(out, tables)
         lut = None
         if p["bake"]:
             from relief_bsdf.bsdf.bake import bake_lut
             lut = bake_lut(tables, p["name"], albedo=p["albedo"], reflection_closure=p["closure"])
-        return {"tables": tables, "out": p["out"], "lut": lut}
+        return {"tables": tables, "out": out, "lut": lut}
 
     def finish(self, context, r):
         from .paths import stored

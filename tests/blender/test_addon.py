@@ -214,3 +214,21 @@ def test_panels_draw_units_regime_and_haze(addon, tmp_path):
     assert "Optical regime:" in text and "auto would pick:" in text
     assert any(t.startswith("haze (T, normal incidence):") and t.endswith("%") for t in labels)
     assert ("operator", "relief.add_preset") in log
+
+
+def test_bake_panel_says_how_the_transmitted_lobe_is_baked(addon):
+    """An anisotropic bake with a facet tilt: the panel says the transmitted lobe is stretched by it (Cycles
+    has no anisotropic refraction closure; README, Blender extension); anisotropic without a tilt (a table
+    without normal incidence for its inside, say): isotropic transmission named; isotropic: neither."""
+    from types import SimpleNamespace
+    from relief_addon import panels
+    for an, tilt, say in ((0.6, 0.4, "transmitted lobe stretched: facet tilt 0.40"),
+                          (0.6, 0.0, "transmitted lobes: isotropic"), (0.0, 0.0, None)):
+        g = bpy.data.node_groups.new(f"Relief BSDF: a{an} {tilt}", "ShaderNodeTree")
+        g["relief_haze"], g["relief_anisotropy"], g["relief_transmission_tilt"] = 0.3, an, tilt
+        bpy.context.scene.relief.last_group = g.name
+        log = []
+        panels.RELIEF_PT_bake_render.draw(SimpleNamespace(layout=_Layout(log)), bpy.context)
+        text = " ".join(t for k, t in log if k == "label")              # wrapped lines joined
+        assert (say in text) if say else ("transmitted" not in text), text
+        assert ("no anisotropic refraction closure" in text) is (tilt > 0), text

@@ -51,15 +51,55 @@ def test_unsaved_file_uses_cache_and_saved_file_gets_tables_beside_it(cache, tmp
     assert bpy.ops.relief.reconstruct(method="microfacet", wavelengths_nm="550", theta_i_deg="0,40",
                                       sides="both") == {"FINISHED"}
     s = bpy.context.scene.relief
-    assert s.table_path == "//relief_table.h5"                 # the .blend keeps the relative path
-    assert (cache / "relief_table.h5").is_file()
-    assert bpy.data.node_groups["Relief BSDF: r"]["relief_table"] == "//relief_table.h5"
+    name = s.table_path[2:]
+    assert s.table_path.startswith("//relief_table-")          # the .blend keeps the relative path
+    assert (cache / name).is_file()
+    assert bpy.data.node_groups["Relief BSDF: r"]["relief_table"] == s.table_path
     blend = tmp_path / "saved" / "scene.blend"
     blend.parent.mkdir()
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-    assert (blend.parent / "relief_table.h5").is_file()        # copied beside the .blend on save
+    assert (blend.parent / name).read_bytes() == (cache / name).read_bytes()   # copied beside the .blend on save
     raw = blend.read_bytes()
     assert str(cache).encode() not in raw and tempfile.gettempdir().encode() + b"/relief" not in raw
+
+
+def _sha12(path: Path) -> str:
+    import hashlib
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:12]
+
+
+def test_unsaved_sessions_get_distinct_tables_and_save_replaces_a_stale_one(cache, tmp_path):
+    """Two unsaved sessions share the cache: each table is named by its content (SHA-256), so a second
+    session's different table does not overwrite the first's; saving copies the session's table beside
+    the .blend, replacing a stale file of the same name there; a later save copies nothing back."""
+    import shutil
+    from relief_bsdf.core.index import Material
+    from relief_bsdf.io.hdf5 import load_tables
+    assert bpy.ops.relief.import_heightmap(filepath=str(_relief(tmp_path / "r.npz"))) == {"FINISHED"}
+    names = []
+    for ior in (1.5, 1.6):                                        # session 1, then "session 2" (another table)
+        bpy.context.scene.relief.table_path = "//relief_table.h5"  # each session starts from the default
+        assert bpy.ops.relief.reconstruct(method="microfacet", wavelengths_nm="550", theta_i_deg="0,40",
+                                          sides="outside", ior=ior, bake=False) == {"FINISHED"}
+        names.append(bpy.context.scene.relief.table_path[2:])
+    assert names[0] != names[1]
+    for name, ior in zip(names, (1.5, 1.6)):                     # both tables still there, each its own
+        path = cache / name
+        assert name == f"relief_table-{_sha12(path)}.h5"
+        (t,) = load_tables(path)
+        assert float(np.real(Material.from_dict(t.material).n_pair(550.0, "outside")[1])) == pytest.approx(ior)
+    assert not list(cache.glob("*.writing-*"))                   # no scratch file left
+    # a stale file of the same name beside the future .blend (another session's, or a hand copy): replaced
+    saved = tmp_path / "saved"
+    saved.mkdir()
+    shutil.copy(cache / names[0], saved / names[1])
+    blend = saved / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    assert (saved / names[1]).read_bytes() == (cache / names[1]).read_bytes()
+    # saved: `//` is the .blend's folder now; a later save never copies the cache's file back over it
+    (saved / names[1]).write_bytes(b"written after the save")
+    bpy.ops.wm.save_mainfile()
+    assert (saved / names[1]).read_bytes() == b"written after the save"
 
 
 def test_rebake_updates_the_same_group_and_keeps_existing_materials(cache, tmp_path):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import zipfile
@@ -95,9 +96,10 @@ def test_linux_zip_installs_and_enables(tmp_path):
     assert {"import_heightmap", "reconstruct", "bake_bsdf", "render_plate", "add_preset"} <= set(res["ops"])
     assert str(tmp_path / "user") in res["backend_file"]                      # the bundled wheel's relief_bsdf
     assert res["res"] == ["FINISHED"] and res["run"]["backend"] == "processes" and res["run"]["total"] > 1
-    # unsaved file: the table went to the extension's per-user folder, the scene keeps "//relief_table.h5"
-    assert res["table"] == "//relief_table.h5" and str(tmp_path / "user") in res["cache"]
-    assert (Path(res["cache"]) / "relief_table.h5").is_file()
+    # unsaved file: the table went to the extension's per-user folder under its content name, and the
+    # scene keeps "//relief_table-<sha256 12>.h5"
+    assert re.fullmatch(r"//relief_table-[0-9a-f]{12}\.h5", res["table"]) and str(tmp_path / "user") in res["cache"]
+    assert (Path(res["cache"]) / res["table"][2:]).is_file()
     assert "Relief BSDF: relief" in res["groups"]
 
 

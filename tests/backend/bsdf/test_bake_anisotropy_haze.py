@@ -71,3 +71,48 @@ def test_slope_ratio_of_an_elliptical_lobe():
     t = _table(lambda te, pe: np.zeros((te.size - 1, pe.size - 1)), values_R=lobe)
     # cell quantisation (2 x 10 deg cells) blurs the narrow axis: within 15 %
     assert reflection_slope_ratio(t, 550.0) == pytest.approx(ax / ay, rel=0.15)
+
+
+def test_tilt_slope_follows_the_ggx_one_axis_marginal():
+    """The node group's random facet slope: its distribution is the one-axis marginal of the GGX slope
+    density P(s) = 1 / (pi c^2 (1 + |s|^2 / c^2)^2) (Walter et al. 2007 eq. 33 in slope space), here
+    integrated over the other axis by quadrature (independent of the closed form the bake inverts)."""
+    from scipy.integrate import quad
+    from relief_bsdf.bsdf.bake import tilt_slope
+    c = 0.3
+    s = tilt_slope((np.arange(400_000) + 0.5) / 400_000, c)          # stratified uniform u
+    edges = np.array([-1.0, -0.5, -0.2, -0.05, 0.0, 0.1, 0.3, 0.6, 1.5])
+    got = np.histogram(s, edges)[0] / s.size
+
+    def marginal(x):
+        return quad(lambda y: 1.0 / (np.pi * c * c * (1.0 + (x * x + y * y) / (c * c)) ** 2), -np.inf, np.inf)[0]
+    want = np.array([quad(marginal, a, b)[0] for a, b in zip(edges[:-1], edges[1:])])
+    np.testing.assert_allclose(got, want, rtol=2e-3, atol=1e-5)
+
+
+def test_tilt_scale_adds_widths_between_cauchy_and_gauss():
+    """c / alpha_narrow for a lobe alpha_wide / alpha_narrow = q: widths of independent slopes add linearly
+    for Cauchy-tailed and in quadrature for Gaussian ones; GGX marginals (t with 2 degrees of freedom) lie in
+    between, so q - 1 < c / alpha_narrow < sqrt(q^2 - 1); it grows with q and vanishes for a round lobe."""
+    from relief_bsdf.bsdf.bake import MIN_TILT_ASPECT, tilt_scale_ratio
+    ratios = [tilt_scale_ratio(q) for q in (1.5, 2.0, 4.0, 8.0)]
+    for q, r in zip((1.5, 2.0, 4.0, 8.0), ratios):
+        assert q - 1.0 < r < np.sqrt(q * q - 1.0), (q, r)
+    assert np.all(np.diff(ratios) > 0)
+    assert tilt_scale_ratio(1.0) == 0.0 and tilt_scale_ratio(0.5 * (1.0 + MIN_TILT_ASPECT)) == 0.0
+    assert tilt_scale_ratio(float("nan")) == 0.0
+
+
+def test_transmission_tilt_keeps_the_mean_width_and_points_along_the_wide_axis():
+    """alpha_wide alpha_narrow = alpha_mean^2 (the fitted roughness is the lobes' geometric mean), the
+    closure keeps the narrow width, the tilt's sign names the wide axis (x: +, y: -); round lobes: no tilt,
+    the fitted roughness unchanged."""
+    from relief_bsdf.bsdf.bake import tilt_scale_ratio, transmission_tilt
+    r = np.array([0.3, 0.5, 0.7])
+    for rho, sign in ((4.0, 1.0), (0.25, -1.0)):
+        r_closure, c = transmission_tilt(r, rho)
+        np.testing.assert_allclose(r_closure ** 2, r ** 2 / 2.0, rtol=1e-12)          # narrow = mean / sqrt(4)
+        np.testing.assert_allclose(c, sign * tilt_scale_ratio(4.0) * r ** 2 / 2.0, rtol=1e-12)
+    r_closure, c = transmission_tilt(r, 1.02)
+    np.testing.assert_array_equal(r_closure, r)
+    np.testing.assert_array_equal(c, 0.0)

@@ -41,8 +41,20 @@ roughness and IOR are scalar in Cycles and use the green wavelength.
 
 Anisotropy: the reflection lobe's aspect ratio alpha_x / alpha_y is read from the table's
 own lobe at normal incidence (`reflection_slope_ratio`) and baked as Cycles' Anisotropy
-with the tangent along the relief's x axis (`closure_anisotropy`, `_lobe_roughness`); transmission lobes stay
-isotropic (Cycles' Refraction BSDF has none).
+with the tangent along the relief's x axis (`closure_anisotropy`, `_lobe_roughness`).  Cycles 5.0
+has no anisotropic rough transmission: its Refraction and Glass BSDFs have no anisotropy input, the
+Principled BSDF's Anisotropic and Tangent reach its specular layer only, and the closure setups
+behind every transmission, SVM and OSL alike (bsdf_microfacet_ggx_refraction_setup / _glass_setup
+in kernel/closure/bsdf_microfacet.h), set alpha_y = alpha_x, so even an OSL
+`microfacet(..., alpha_x, alpha_y, eta, 1)` renders isotropic (measured by
+tests/blender/test_bake_nodes.py::test_cycles_transmission_closures_are_isotropic and
+::test_osl_microfacet_refraction_is_isotropic_too).  The transmitted lobe of an anisotropic table
+is therefore built from an isotropic Refraction closure of the lobe's narrow width whose normal is
+tilted, per shading point, by a random facet slope along the wide axis (`transmission_tilt`; the
+node group draws it from a White Noise texture), so that the path tracer's average over samples is
+the stretched lobe; the signed tilt scale per view angle is the `transmission_tilt` row.  The
+closure albedo calibration is the isotropic one at the narrow roughness (the tilt changes the
+rendered directional T by under 1 %, measured).
 
 Assumptions and limits: other tables are taken as isotropic (several incidence azimuths are
 averaged); lobe shapes are GGX (Walter et al. 2007, eqs. 20-21, 33) so tables of another
@@ -64,10 +76,15 @@ from relief_bsdf.errors import InputError
 from relief_bsdf.core.fresnel import fresnel_unpolarized
 from relief_bsdf.core.index import Material
 
-ROW_NAMES = ("specular_R", "diffuse_R", "specular_T", "diffuse_T", "roughness")
+ROW_NAMES = ("specular_R", "diffuse_R", "specular_T", "diffuse_T", "roughness", "transmission_tilt")
 ROWS_PER_SIDE = len(ROW_NAMES)
 SIDES = ("outside", "inside")          # row block 0: front-facing view, 1: back-facing view
 DEFAULT_RGB_NM = (610.0, 550.0, 465.0)
+
+#: what the bake does with the transmitted lobes (module doc: Cycles has no anisotropic transmission)
+TRANSMISSION_NOTE = ("Cycles has no anisotropic rough transmission: an anisotropic table's transmitted lobe "
+                     "is an isotropic Refraction closure of the narrow width, its normal tilted per shading "
+                     "point by a random facet slope along the wide axis (transmission_tilt row)")
 
 Albedo = Callable[[str, np.ndarray, np.ndarray, float], np.ndarray]
 
@@ -136,7 +153,10 @@ class BakedLut:
     holds ROW_NAMES in order; colour rows are (R, G, B, 1) weights, the roughness row is
     (r_R, r_T, anisotropy_R, 1) in Cycles' roughness (sqrt of GGX alpha) and Cycles'
     anisotropy of the reflection lobe (`closure_anisotropy`: tangent along the relief's x
-    axis, turned 90 degrees where negative; 0: isotropic).  Columns sample theta_v
+    axis, turned 90 degrees where negative; 0: isotropic); the transmission_tilt row is
+    (c_T, 0, 0, 1), the signed scale of the random facet slope that stretches the transmitted
+    lobe (`transmission_tilt`; along the relief's x axis, along y where negative; 0: the
+    transmitted lobe is isotropic and r_T its mean roughness).  Columns sample theta_v
     uniformly from 0 to 90 degrees.
     """
 
@@ -177,6 +197,12 @@ class BakedLut:
         """Largest |anisotropy| of the reflection lobe (0 for an isotropic bake)."""
         k = self.row_index("outside", "roughness")
         return float(np.max(np.abs(self.rows[k, :, 2])))
+
+    @property
+    def transmission_tilt(self) -> float:
+        """Largest |c_T| of the transmitted lobe's random facet tilt (0: isotropic transmission)."""
+        k = [self.row_index(side, "transmission_tilt") for side in SIDES]
+        return float(np.max(np.abs(self.rows[k, :, 0])))
 
     @property
     def haze(self) -> float:
@@ -283,12 +309,77 @@ def _lobe_roughness(table: BsdfTable, wl_nm: float, closure: str) -> tuple[np.nd
     what Cycles' (roughness, anisotropy) pair keeps.  Anisotropy: from the table's own
     reflection lobe at normal incidence (`reflection_slope_ratio`, rho = alpha_x / alpha_y,
     tangent along x) in the convention of the closure (`closure_anisotropy`), the same for every
-    incidence.  A table without a normal incidence bakes isotropic.  Transmission stays
-    isotropic (Cycles' Refraction BSDF has no anisotropy).
+    incidence.  A table without a normal incidence bakes isotropic.  Transmission: an
+    isotropic closure plus a random facet tilt (`transmission_tilt`, module doc).
     """
     rough = _fit_roughness(table, wl_nm).mean(axis=1)
     a = closure_anisotropy(reflection_slope_ratio(table, wl_nm), closure)
     return rough, np.full(rough.shape[0], a)
+
+
+#: below this aspect ratio of the lobe (alpha_wide / alpha_narrow) the transmission bakes isotropic
+MIN_TILT_ASPECT = 1.1
+
+
+def _ggx_x_slopes(alpha_x: float, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """x slopes of GGX facets (Walter et al. 2007 eq. 33, stretched to alpha_x along x as in Heitz
+    2014 sec. 5.3; alpha_y does not enter the x marginal) from uniform (u, v): the radial CDF of
+    the unit slope density 1 / (pi (1 + r^2)^2) is r^2 / (1 + r^2) = u, so r = sqrt(u / (1 - u))."""
+    return alpha_x * np.sqrt(u / (1.0 - u)) * np.cos(2.0 * np.pi * v)
+
+
+def tilt_slope(u: np.ndarray, scale: float) -> np.ndarray:
+    """Random slope of scale `scale` from uniform u: the inverse CDF of the one-axis marginal of the
+    GGX slope density, p(s) = 1 / (2 c) (1 + s^2 / c^2)^(-3/2) (a Student t with 2 degrees of
+    freedom scaled by c / sqrt(2)): s = c (2u - 1) / (2 sqrt(u (1 - u))).  The node group evaluates
+    the same formula with u from a White Noise texture (one facet per shading point)."""
+    u = np.clip(u, 1e-9, 1.0 - 1e-9)
+    return scale * (2.0 * u - 1.0) / (2.0 * np.sqrt(u * (1.0 - u)))
+
+
+def tilt_scale_ratio(aspect: float, samples: int = 200_000, seed: int = 0) -> float:
+    """c / alpha_narrow: the tilt scale that stretches an isotropic GGX lobe of alpha_narrow to the
+    width of GGX(alpha_wide = aspect * alpha_narrow) along the tilt.
+
+    The rendered transmission is the isotropic Refraction closure averaged over one random facet
+    tilt s per shading point (`tilt_slope`), i.e. facet slopes s_iso + s along the tilt: the
+    distribution of the sum is matched to the anisotropic GGX marginal by its median |slope|
+    (robust where the heavy tails make the variance infinite).  Across the tilt the lobe keeps
+    alpha_narrow.  Deterministic (seeded Monte Carlo; both medians scale with alpha_narrow)."""
+    if not np.isfinite(aspect) or aspect < MIN_TILT_ASPECT:
+        return 0.0
+    rng = np.random.default_rng(seed)
+    u, v, w = rng.random((3, samples))
+    target = np.median(np.abs(_ggx_x_slopes(aspect, u, v)))
+    base = _ggx_x_slopes(1.0, u, v)
+    t = tilt_slope(w, 1.0)
+    lo, hi = 0.0, aspect
+    for _ in range(40):                                   # median |base + c t| grows with c
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.median(np.abs(base + mid * t)) < target else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def transmission_tilt(rough_T: np.ndarray, rho: float) -> tuple[np.ndarray, np.ndarray]:
+    """(roughness of the isotropic Refraction closure, signed tilt scale c_T) per incidence.
+
+    Cycles has no anisotropic rough transmission (module doc).  The transmitted lobe of facets
+    with slope widths alpha_x = alpha sqrt(rho), alpha_y = alpha / sqrt(rho) (alpha = rough_T^2,
+    the fitted mean; rho = alpha_x / alpha_y of the same facets, `reflection_slope_ratio`) is
+    rendered as the isotropic closure of the narrow width, its normal tilted per shading point by
+    a random slope of scale c_T along the wide axis (`tilt_scale_ratio`); c_T > 0: along the
+    relief's x axis, < 0: along y.  An aspect below `MIN_TILT_ASPECT` (or unknown) keeps the
+    isotropic closure of the mean roughness and c_T = 0.  Assumptions: the tilt is not weighted
+    by the facet's projected area (normal-map semantics; a second-order change of the energy for
+    slopes below ~0.3, checked by the goniophotometer's directional T) and the random slope adds
+    to the closure's own as independent facets."""
+    rough_T = np.asarray(rough_T, float)
+    aspect = max(rho, 1.0 / rho) if np.isfinite(rho) and rho > 0 else float("nan")
+    ratio = tilt_scale_ratio(aspect)
+    if ratio == 0.0:
+        return rough_T, np.zeros_like(rough_T)
+    narrow = rough_T ** 2 / np.sqrt(aspect)
+    return np.sqrt(narrow), np.sign(np.log(rho)) * ratio * narrow
 
 
 def _interp_wl(values: np.ndarray, wl_axis: np.ndarray, targets: Sequence[float]) -> np.ndarray:
@@ -322,8 +413,9 @@ def _side_rows(table: BsdfTable, cols: np.ndarray, bc: _BakeColours, back: bool)
     integ = _per_incidence(table)
     ti = table.theta_i_deg
     rough, aniso = _lobe_roughness(table, green_nm, reflection_closure)   # (I, 2), (I,)
+    r_T_closure, tilt = transmission_tilt(rough[:, 1], reflection_slope_ratio(table, green_nm))
     r_R = np.interp(cols, ti, rough[:, 0])
-    r_T = np.interp(cols, ti, rough[:, 1])
+    r_T = np.interp(cols, ti, r_T_closure)
     rows = np.zeros((ROWS_PER_SIDE, cols.size, 4))
     rows[..., 3] = 1.0
     kinds = {"specular_R": ("glossy", np.zeros_like(cols)), "diffuse_R": (reflection_closure, r_R),
@@ -342,8 +434,10 @@ def _side_rows(table: BsdfTable, cols: np.ndarray, bc: _BakeColours, back: bool)
     rows[4, :, 0] = r_R
     rows[4, :, 1] = r_T
     rows[4, :, 2] = np.interp(cols, ti, aniso)
+    rows[5, :, 0] = np.interp(cols, ti, tilt)
     return rows, {"roughness_R_at_table": rough[:, 0].tolist(), "roughness_T_at_table": rough[:, 1].tolist(),
-                  "anisotropy_R": float(aniso.mean()), "albedo_clamped_columns": clamped}
+                  "anisotropy_R": float(aniso.mean()), "transmission_tilt": tilt.tolist(),
+                  "albedo_clamped_columns": clamped}
 
 
 def _smooth_inside_rows(material: Material, cols: np.ndarray, rgb_nm, green_nm: float, albedo: Albedo,
@@ -415,7 +509,7 @@ def bake_lut(tables: Sequence[BsdfTable], name: str, albedo: Albedo | None = Non
                       reflection_closure=reflection_closure)
     front, info_f = _side_rows(out, cols, bc, back=False)
     info = {"outside": info_f, "method": out.method, "closure_albedo": getattr(albedo, "source", "ideal (1)"),
-            "haze_T": transmission_haze(out, green)}
+            "haze_T": transmission_haze(out, green), "transmission": TRANSMISSION_NOTE}
     if "inside" in by_side:
         back, info_b = _side_rows(by_side["inside"], cols, bc, back=True)
         info["inside"] = info_b
