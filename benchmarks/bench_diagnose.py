@@ -53,6 +53,7 @@ def _diag(context, name):
     t = time.time()
     r = diagnose(Path(root) / name / "sample.toml", Path(root) / name / "diagnosis", method=method, photons=photons,
                  effects=candidates, workers=1)
+    (Path(root) / name / "diagnosis" / "bench_seconds.txt").write_text(f"{time.time() - t:.1f}\n")
     return {"effects": r["effects"], "parameters": r["parameters"], "intervals": r["intervals"],
             "rms_before": r["rms_before"], "rms_after": r["rms_after"], "seconds": time.time() - t,
             "candidates": [(c["effect"], c["score"]) for c in r["candidates"][:3]]}
@@ -69,6 +70,9 @@ def _read_results(root: Path, cases) -> tuple[list, list]:
     res, done = [], []
     for c in cases:
         f = root / c.name / "diagnosis" / "diagnosis.json"
+        kept = f.with_name("bench_seconds.txt")
+        if kept.is_file() and c.name not in secs:
+            secs[c.name] = float(kept.read_text())
         if f.is_file():
             r = json.loads(f.read_text())
             res.append({"effects": r.get("effects") or [r["effect"]], "parameters": r["parameters"],
@@ -145,6 +149,9 @@ def main(argv=None) -> int:
     ap.add_argument("--case-photons", type=int, default=None, help="generator photons per incidence (default: its own)")
     ap.add_argument("--reuse", action="store_true", help="reuse cases already in --out")
     ap.add_argument("--serial", action="store_true", help="diagnose one case after the other, printing each result")
+    ap.add_argument("--resume", action="store_true",
+                    help="diagnose only the cases without a diagnosis.json under --out (implies --reuse); "
+                         "summarise all")
     ap.add_argument("--summarise-only", action="store_true",
                     help="no diagnosis: summarise the diagnosis.json files already under --out (implies --reuse)")
     a = ap.parse_args(argv)
@@ -161,7 +168,7 @@ def main(argv=None) -> int:
             c.photons = int(a.case_photons)
     candidates = a.candidates.split(",") if a.candidates else None
     t0 = time.time()
-    if not ((a.reuse or a.summarise_only) and (root / "key.json").is_file()):
+    if not ((a.reuse or a.resume or a.summarise_only) and (root / "key.json").is_file()):
         generate(root, cases)
     t_gen = time.time() - t0
     keys = {k["case"]: k for k in json.loads((root / "key.json").read_text())["cases"]}
@@ -169,6 +176,13 @@ def main(argv=None) -> int:
     t1 = time.time()
     ctx = (str(root), a.photons, a.method, candidates)
     if a.summarise_only:          # the diagnoses already written (e.g. a run stopped part-way)
+        res, cases = _read_results(root, cases)
+    elif a.resume:                # a run stopped part-way: diagnose the rest, then summarise every case
+        _, done = _read_results(root, cases)
+        todo = [c.name for c in cases if c not in done]
+        for name, r in zip(todo, map_tasks(_diag, todo, ctx, label="diagnose")):
+            with open(root / "bench_results.jsonl", "a") as fh:
+                fh.write(json.dumps({"case": name, **r}) + "\n")
         res, cases = _read_results(root, cases)
     elif a.serial:                # one case after the other, each result kept as it comes
         res = []

@@ -243,3 +243,18 @@ def test_a_budgeted_effect_that_changes_the_lobe_shape_passes_the_screen_and_is_
     steps = stepwise(fwd, ["bulk_absorption", "stray_light", "instrument_blur"], workers=1)
     assert steps[-1].effects == ("instrument_blur",)
     assert steps[-1].values["blur_deg"] == pytest.approx(blur_deg, rel=0.1)
+
+
+def test_a_budgeted_candidate_that_cannot_win_its_step_is_fitted_only_at_a_later_step():
+    """A strong absorption and a blur of 3 deg: at step 1 the blur passes the screen, but its screened
+    gain is below what the fitted absorption gains, so it is not fitted there (listed as outgained);
+    at step 2, given the absorption, it is fitted and named with its value."""
+    fwd = BlurForward({"absorption_per_mm": 0.3, "blur_deg": 3.0}, seed=6)
+    steps = stepwise(fwd, ["bulk_absorption", "stray_light", "instrument_blur"], workers=1)
+    first = {f["effect"]: f for f in steps[1].tried}
+    assert first["instrument_blur"].get("outgained_by") == "bulk_absorption"
+    assert "chi2" not in first["instrument_blur"]
+    assert steps[1].effects == ("bulk_absorption",)
+    assert set(steps[-1].effects) == {"bulk_absorption", "instrument_blur"}
+    assert steps[-1].values["blur_deg"] == pytest.approx(3.0, rel=0.1)
+    assert steps[-1].values["absorption_per_mm"] == pytest.approx(0.3, rel=0.05)

@@ -18,8 +18,13 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    r.D (D^T D)^+ D^T.r (a linear least-squares search in the probes' span: Rao's score test,
    with the second probe catching a change of shape with the amplitude), must pass the same
    bar as a fit (`passes`, with chi^2_S minus that gain as the larger model's chi^2), else the
-   candidate is listed as screened out and not fitted.  A screen cannot name an effect, only
-   save the fit of one that could not pass: what is named is always decided on fitted chi^2;
+   candidate is listed as screened out and not fitted.  The cheap candidates are fitted first;
+   then the budgeted ones that passed, in decreasing screen gain, each only while it could
+   still be the step's best: its screened BIC gain (gain - k ln n) must exceed the best BIC gain
+   already fitted at this step, else it is listed as outgained (the step's winner is the
+   largest gain, and the span of two probes estimates a one-parameter fit's gain from above
+   in the linear regime).  A screen cannot name an effect, only save the fit of one that
+   could not pass or win: what is named is always decided on fitted chi^2;
 2. the candidate with the lowest BIC(S + c) is the one that gains most; it passes the bar
    (`passes`) when
    - Delta BIC = BIC(S) - BIC(S + c) > BIC_MARGIN = 10 ("very strong", Kass & Raftery 1995),
@@ -131,14 +136,15 @@ def line_gain(forward, cur: "Step", effect, probes: list[dict]) -> float:
     return float(fit @ fit)
 
 
-def _screen(forward, cur: "Step", names: list[str], first: dict, n: int) -> tuple[list[str], list[dict]]:
-    """(candidates to fit, screened-out entries) of a step (module docstring, step 1)."""
+def _screen(forward, cur: "Step", names: list[str], first: dict, n: int) -> tuple[list[tuple], list[dict]]:
+    """([(name, screen gain or None when fitted unscreened)], screened-out entries) of a step
+    (module docstring, step 1)."""
     keep, out = [], []
     for name in names:
         e = get_effect(name)
         probes = _probes(e, first.get(name)) if e.budgeted else []
         if not probes or dict(forward.context.known).get(name) or e.skip_reason(forward.context):
-            keep.append(name)            # fitted (or listed as skipped by fit_effect, with its reason)
+            keep.append((name, None))    # fitted (or listed as skipped by fit_effect, with its reason)
             continue
         try:
             g = line_gain(forward, cur, e, probes)
@@ -146,10 +152,40 @@ def _screen(forward, cur: "Step", names: list[str], first: dict, n: int) -> tupl
             out.append({"effect": name, "skipped": str(err)})
             continue
         if passes(cur.chi2, cur.k, cur.chi2 - g, cur.k + e.k, n):
-            keep.append(name)
+            keep.append((name, g))
         else:
             out.append({"effect": name, "screened": round(g, 3)})
     return keep, out
+
+
+def _fit_step(forward, cur: "Step", keep: list[tuple], n: int, progress, workers: int | None,
+              label: str) -> tuple[list[dict], list[dict]]:
+    """(fits, outgained entries): the unscreened candidates fitted, then the screened ones in
+    decreasing screen gain while each could still win the step (module docstring, step 1)."""
+    from relief_bsdf.parallel.tasks import current_settings
+    ln = math.log(max(n, 2))
+    context = (forward, cur.effects, cur.values, bool(cur.effects))
+    fits = map_tasks(_cond_task, [m for m, g in keep if g is None], context, progress=progress,
+                     label=label, workers=workers)
+    costly = sorted(((g, m) for m, g in keep if g is not None), reverse=True)
+    batch_size = max(1, workers or current_settings().worker_count())
+    outgained = []
+
+    def best() -> tuple[float, str]:
+        ok = [f for f in fits if "chi2" in f]
+        if not ok:
+            return -math.inf, ""
+        f = max(ok, key=lambda f: cur.chi2 - f["chi2"] - f["k"] * ln)
+        return cur.chi2 - f["chi2"] - f["k"] * ln, f["effect"]
+    while costly:
+        top, leader = best()
+        batch = [m for g, m in costly if g - get_effect(m).k * ln > top][:batch_size]
+        if not batch:
+            outgained += [{"effect": m, "screened": round(g, 3), "outgained_by": leader} for g, m in costly]
+            break
+        fits += map_tasks(_cond_task, batch, context, progress=progress, label=label, workers=workers)
+        costly = [(g, m) for g, m in costly if m not in batch]
+    return fits, outgained
 
 
 def _cond_task(context, name: str) -> dict:
@@ -191,10 +227,10 @@ def stepwise(forward, names: list[str], progress=None, workers: int | None = Non
             break
         first = {f["effect"]: f for f in first_fits(steps)} if cur.effects else {}
         remaining, screened = _screen(forward, cur, remaining, first, n)
-        fits = map_tasks(_cond_task, remaining, (forward, cur.effects, cur.values, bool(cur.effects)),
-                         progress=progress, label=f"candidate effects, step {len(steps)}", workers=workers)
+        fits, outgained = _fit_step(forward, cur, remaining, n, progress, workers,
+                                    f"candidate effects, step {len(steps)}")
         ok = [f for f in fits if not f.get("skipped")]
-        step_tried = fits + screened
+        step_tried = fits + outgained + screened
         if not ok:
             steps.append(Step(cur.effects, cur.values, cur.chi2, cur.k, cur.model, "stop", 0.0, (), step_tried))
             break
