@@ -8,6 +8,7 @@ import pytest
 from relief_bsdf.cli import main as cli_main
 from relief_bsdf.validation.conceal import CaseSpec, make_case
 from relief_bsdf.diagnose.run import BIC_MARGIN, diagnose, select
+from relief_bsdf.diagnose.stepwise import consistent_with_noise
 
 
 def _fit(name, chi2, k=1):
@@ -78,8 +79,20 @@ def test_end_to_end_absorption_named(tmp_path):
     r = diagnose(s_abs, tmp_path / "out_abs", method="normals", photons=60000, effects=subset, workers=1)
     assert r["effect"] == "bulk_absorption"
     assert r["parameters"]["absorption_per_mm"] == pytest.approx(0.3, rel=0.2)
-    assert r["rms_after"] < 0.35 * r["rms_before"]
-    assert r["mismatch"] and r["mismatch"][0]["side"] == "T"
+    # the named effect explains the misfit: with it the rows agree to the noise (the chi^2 test of
+    # stepwise.consistent_with_noise), without it they do not.  (A ratio rms_after / rms_before < 0.35
+    # was asserted while `normals` tables stated only their Monte-Carlo noise; with the tile's
+    # realisation in their sigma, issue 13, the baseline's rms is 2.52 and the named model's 0.89,
+    # below 1: the ratio pinned the old sigma, the noise test does not.)
+    n = r["selection"]["n_rows"]
+    assert consistent_with_noise(r["rms_after"] ** 2 * n, n)
+    assert not consistent_with_noise(r["rms_before"] ** 2 * n, n)
+    # the largest misfit is a deficit that the absorption explains; it was a T region while the T lobe's
+    # sigma held Monte-Carlo noise only; with the tile's realisation in it, the R rows at 40 deg (light
+    # reflected by the back face crosses the bulk twice) carry the largest share, 97 % explained
+    top = r["mismatch"][0]
+    assert top["sign"] == "deficit" and top["explained_by"] == "bulk_absorption"
+    assert any(m["side"] == "T" and m["explained_by"] == "bulk_absorption" for m in r["mismatch"][:3])
     doc = json.loads((tmp_path / "out_abs" / "diagnosis.json").read_text())
     for key in ("format", "metric", "rms_before", "rms_after", "effect", "parameters", "mismatch", "candidates",
                 "explanation", "effects", "intervals"):
