@@ -116,6 +116,11 @@ def _search(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | Non
     return values
 
 
+def why_skipped(forward, effect: Effect) -> str | None:
+    """Why `effect` is not fitted for this sample: held fixed by sample.toml, or its own skip reason."""
+    return dict(forward.context.known).get(effect.name) or effect.skip_reason(forward.context)
+
+
 def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | None = None,
                coarse: bool = False) -> dict:
     """{effect, parameters, chi2, k, values, model_sigma} or {effect, skipped: reason}.
@@ -123,8 +128,7 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
     `fixed`/`fixed_values`: effects already named, held at their values (chi2 and values are then
     those of all of them together, k counts this effect's parameters only).
     """
-    known = dict(forward.context.known)
-    reason = known.get(effect.name) or effect.skip_reason(forward.context)
+    reason = why_skipped(forward, effect)
     if reason:
         return {"effect": effect.name, "skipped": reason}
     try:

@@ -55,7 +55,7 @@ import math
 from dataclasses import dataclass, field
 
 from relief_bsdf.diagnose.effects import compatible, get_effect
-from relief_bsdf.diagnose.fitting import fit_effect, refit_joint
+from relief_bsdf.diagnose.fitting import fit_effect, refit_joint, why_skipped
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.selection import BIC_MARGIN, bic, bic_gain
 from relief_bsdf.parallel import map_tasks
@@ -143,7 +143,7 @@ def _screen(forward, cur: "Step", names: list[str], first: dict, n: int) -> tupl
     for name in names:
         e = get_effect(name)
         probes = _probes(e, first.get(name)) if e.budgeted else []
-        if not probes or dict(forward.context.known).get(name) or e.skip_reason(forward.context):
+        if not probes or why_skipped(forward, e):
             keep.append((name, None))    # fitted (or listed as skipped by fit_effect, with its reason)
             continue
         try:
