@@ -110,7 +110,12 @@ def test_intervals_match_the_analytic_standard_error_and_null_when_not_seen():
     inflate = max(1.0, fwd.evaluate_set(effs, best)[0] / (len(s) - 3))
     for j, name in enumerate(("absorption_per_mm", "background_per_sr")):
         lo, hi = iv[name]
-        assert (hi - lo) / 2 == pytest.approx(math.sqrt(cov[j, j] * inflate), rel=0.03)
+        half, sd = (hi - lo) / 2, math.sqrt(cov[j, j] * inflate)
+        # the curvature's standard error, widened only to the Newey-West estimate (fit.covariance, tested
+        # for coverage in tests/backend/fit/test_covariance.py), which on white noise stays close to it
+        assert sd * 0.97 <= half <= 1.3 * sd
+        if half > 1.03 * sd:
+            assert "correlated along the scans" in notes[name]
     assert iv["polarization_q"] is None and "not determined" in notes["polarization_q"]
 
 

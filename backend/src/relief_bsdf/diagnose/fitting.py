@@ -16,16 +16,19 @@ in an interval around its current value by a short grid + Brent; at most `JOINT_
 passes, stopping when a pass gains less than one unit of chi^2.  Budgeted: a `budgeted`
 coordinate gets a 3-point grid and 3 Brent steps, a cheap one 5 and 6.
 
-Intervals (`intervals`): the curvature of chi^2 at the best point in the Gauss-Newton form.
-With the residual vector r = (y - m) / s (s^2 = sigma_recording^2 + sigma_model^2, the s of
-the chi^2 the selection uses) and its Jacobian J (central differences), cov = (J^T J)^-1 is
-the covariance for Delta chi^2 = 1 (Press et al., Numerical Recipes 15.6); when the best
-model still misses the noise (chi^2 / (n - k) > 1) the covariance is inflated by that
-reduced chi^2 (Birge ratio).  A parameter is *not determined* (no interval, a note instead)
-when moving it across its whole search range changes chi^2 by less than 1 (the rows do not
-respond to it, e.g. a source polarisation seen through depolarising tables), when J^T J of
-the responding parameters is singular (their effects cannot be told apart), or when its
-1-sigma reaches past its whole search range.  An
+Intervals (`intervals`): the curvature of chi^2 at the best point in the Gauss-Newton form,
+widened for correlated residuals (fit.covariance, one definition with `relief fit`).  With
+the residual vector r = (y - m) / s (s^2 = sigma_recording^2 + sigma_model^2, the s of the
+chi^2 the selection uses) and its Jacobian J (central differences), cov = (J^T J)^-1 is the
+covariance for Delta chi^2 = 1 (Press et al., Numerical Recipes 15.6); when the best model
+still misses the noise (chi^2 / (n - k) > 1) it is inflated by that reduced chi^2 (Birge
+ratio), and each parameter's variance is raised to the Newey-West (HAC) estimate when that is
+larger: a forward model's error runs with the angle along a scan, and rows whose residuals
+are correlated carry less information than their number.  A parameter is *not determined*
+(no interval, a note instead) when moving it across its whole search range changes chi^2
+by less than 1 (the rows do not respond to it, e.g. a source polarisation seen through
+depolarising tables), when J^T J of the responding parameters is singular (their effects
+cannot be told apart), or when its 1-sigma reaches past its whole search range.  An
 interval is clipped to the parameter's bounds.
 
 An effect the plate model cannot express for this sample (an InputError of the plate or a
@@ -42,11 +45,11 @@ from scipy import optimize
 
 from relief_bsdf.diagnose.effects import Effect, Param
 from relief_bsdf.errors import InputError
+from relief_bsdf.fit.covariance import parameter_covariance, scans_of
 
 GRID_CHEAP, REFINE_CHEAP = 9, 10
 GRID_TABLES, REFINE_TABLES = 5, 5
 JOINT_PASSES = 2
-SINGULAR_COND = 1e12
 
 
 def _fit_1d(f, lo: float, hi: float, grid: int, refine: int, extra: tuple = ()) -> tuple[float, float]:
@@ -184,7 +187,7 @@ def intervals(forward, effects: tuple, values: dict) -> tuple[dict, dict]:
     if not params:
         return {}, {}
     rows = forward.rows
-    chi, v0, s0 = forward.evaluate_set(effects, values)
+    _, v0, s0 = forward.evaluate_set(effects, values)
     s = np.sqrt(np.asarray(rows.sigma_sr, float) ** 2 + s0**2)
     bounds = {}
     for e in effects:
@@ -198,16 +201,10 @@ def intervals(forward, effects: tuple, values: dict) -> tuple[dict, dict]:
         mp = forward.evaluate_set(effects, {**values, p.name: xp})[1]
         mm = forward.evaluate_set(effects, {**values, p.name: xm})[1]
         J[:, j] = -(mp - mm) / (xp - xm) / s
-    A = J.T @ J
-    n, k = len(rows), len(params)
-    inflate = max(1.0, chi / max(n - k, 1))
     ranges = np.array([bounds[p.name][1] - bounds[p.name][0] for p in params])
-    live = np.diag(A) * ranges**2 >= 1.0        # moving it across its whole range changes chi^2 by >= 1
-    cov = np.full((k, k), np.nan)
-    idx = np.nonzero(live)[0]
-    sub = A[np.ix_(idx, idx)]
-    if idx.size and np.all(np.isfinite(sub)) and np.linalg.cond(sub) < SINGULAR_COND:
-        cov[np.ix_(idx, idx)] = np.linalg.inv(sub) * inflate
+    live = np.sum(J**2, axis=0) * ranges**2 >= 1.0   # moving it across its whole range changes chi^2 by >= 1
+    c = parameter_covariance(J, _signed_residuals(rows, v0, s), scans_of(rows), live)
+    cov = c.cov
     out, notes = {}, {}
     for j, p in enumerate(params):
         lo, hi = bounds[p.name]
@@ -224,6 +221,19 @@ def intervals(forward, effects: tuple, values: dict) -> tuple[dict, dict]:
             continue
         x = values[p.name]
         out[p.name] = [round(max(x - sd, p.lower), 6), round(min(x + sd, p.upper), 6)]
-        if inflate > 1.0:
-            notes[p.name] = f"widened by sqrt of the reduced chi^2 {inflate:.2f} (the model misses the noise)"
+        why = c.note(j)
+        if why:
+            notes[p.name] = why
     return out, notes
+
+
+def _signed_residuals(rows, model: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """r with r @ r = the censored chi^2 (fit.residual.chi2): (y - m) / s, and for a reading clipped
+    at zero minus the square root of its censored term."""
+    from scipy.special import log_ndtr
+    y = np.asarray(rows.bsdf_sr, float)
+    r = (y - model) / s
+    cens = y <= 0
+    if cens.any():
+        r[cens] = -np.sqrt(np.maximum(-2.0 * (log_ndtr(-model[cens] / s[cens]) + np.log(2.0)), 0.0))
+    return r

@@ -48,6 +48,7 @@ import numpy as np
 
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
+from relief_bsdf.fit.covariance import parameter_covariance, scans_of
 from relief_bsdf.fit.residual import DEFAULT_METRIC, LogChiMetric
 from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain, overdispersion
 from relief_bsdf.io.atomic import write_text_atomic
@@ -436,25 +437,28 @@ def _line_search(obj: _Objective, c: _Coords, x: np.ndarray, d: np.ndarray, f: f
     return best
 
 
-def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float, rms: float
-               ) -> tuple[dict, float | None, list]:
-    """68 % intervals from the Jacobian at (s, g): cov(x) = (J^T J)^-1 (Delta chi^2 = 1), inflated by
-    the reduced chi^2 when it exceeds 1 (Birge ratio: the model misses the noise); a parameter is
-    'not determined' (None) when J^T J is singular or its interval reaches past the bounds."""
-    J = _jacobian(obj, c, c.x(s, g), stop_at_threshold=False)
-    A = J.T @ J
-    inflate = max(1.0, obj.chi2(rms) / max(obj.n - A.shape[0], 1))
+def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float) -> tuple[dict, float | None, list]:
+    """68 % intervals from the Jacobian at (s, g) (fit.covariance): cov(x) = (J^T J)^-1 (Delta chi^2 = 1),
+    inflated by the reduced chi^2 when it exceeds 1 (Birge ratio: the model misses the noise) and,
+    per parameter, to the Newey-West (HAC) variance when the residuals run correlated along the scans;
+    a parameter is 'not determined' (None) when J^T J is singular or its interval reaches past the
+    bounds."""
+    x0 = c.x(s, g)
+    J = _jacobian(obj, c, x0, stop_at_threshold=False)
+    r = obj.residuals(*c.sg(x0), stop_at_threshold=False)
+    rows = getattr(obj.forward, "rows", None)
+    cv = parameter_covariance(J, r, scans_of(rows) if rows is not None and len(rows) == r.size else None)
+    cov = cv.cov
     warnings: list[str] = []
     iv: dict = {"height_scale": None, "filter_sigma_um": [0.0, 0.0] if not c.with_filter else None}
     corr = None
-    try:
-        if np.linalg.cond(A) > 1e12:
-            raise np.linalg.LinAlgError
-        cov = np.linalg.inv(A) * inflate
-    except np.linalg.LinAlgError:
+    if not np.all(np.isfinite(cov)):
         warnings.append("the recording does not pin down the relief parameters (their effects on the rows are "
                         "not independent here): no intervals are given")
         return iv, (1.0 if c.with_filter else None), warnings
+    if np.any(cv.hac_widening > 1.0 + 1e-9):
+        warnings.append("the intervals are widened for residuals correlated along the scans (lag-1 "
+                        f"{cv.lag1:.2f}, {cv.bandwidth} lags; Newey-West): the model's error runs with the angle")
     lo, hi = obj.settings.scale_bounds
     sv = float(np.sqrt(cov[0, 0]))
     if s * np.exp(-sv) <= lo or s * np.exp(sv) >= hi:
@@ -577,10 +581,10 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     needed = both["parameters"]["filter_sigma_um"] > 0 and gain > BIC_MARGIN
     chosen = both if needed else alone
     s, g = chosen["parameters"]["height_scale"], chosen["parameters"]["filter_sigma_um"]
-    iv, corr, warnings = _intervals(obj, c2 if needed else c1, s, g, gmax, chosen["rms"])
+    iv, corr, warnings = _intervals(obj, c2 if needed else c1, s, g, gmax)
     if not needed:
         bp = both["parameters"]
-        _, corr, _ = _intervals(obj, c2, bp["height_scale"], bp["filter_sigma_um"], gmax, both["rms"])
+        _, corr, _ = _intervals(obj, c2, bp["height_scale"], bp["filter_sigma_um"], gmax)
         warnings.append(f"the recording does not ask for filtering the relief (BIC gain of the filter "
                         f"{gain:.3g} <= {BIC_MARGIN:g}): reported without filter")
     ridge, probe = _ridge_probe(obj, forward.relief, both, gmax, pitch_um)
