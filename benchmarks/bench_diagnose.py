@@ -55,6 +55,7 @@ def _diag(context, name):
                  effects=candidates, workers=1)
     (Path(root) / name / "diagnosis" / "bench_seconds.txt").write_text(f"{time.time() - t:.1f}\n")
     return {"effects": r["effects"], "parameters": r["parameters"], "intervals": r["intervals"],
+            "alternatives": r.get("alternatives", []),
             "rms_before": r["rms_before"], "rms_after": r["rms_after"], "seconds": time.time() - t,
             "candidates": [(c["effect"], c["score"]) for c in r["candidates"][:3]]}
 
@@ -76,7 +77,8 @@ def _read_results(root: Path, cases) -> tuple[list, list]:
         if f.is_file():
             r = json.loads(f.read_text())
             res.append({"effects": r.get("effects") or [r["effect"]], "parameters": r["parameters"],
-                        "intervals": r.get("intervals", {}), "rms_before": r["rms_before"],
+                        "intervals": r.get("intervals", {}), "alternatives": r.get("alternatives", []),
+                        "rms_before": r["rms_before"],
                         "rms_after": r["rms_after"], "seconds": secs.get(c.name, float("nan")), "candidates": []})
             done.append(c)
     return res, done
@@ -114,6 +116,10 @@ def summarise(cases, keys: dict, res: list) -> dict:
         ok = (sorted(r["effects"]) == sorted(truth))
         groups[g]["cases"] += 1
         groups[g]["right"] += ok
+        if not ok:       # a wrong case whose missing effect the diagnosis itself called an open alternative
+            alts = {a["alternative"] for a in r.get("alternatives", [])}
+            groups[g]["wrong_but_flagged"] = groups[g].get("wrong_but_flagged", 0) + bool(
+                set(truth) - set(r["effects"]) and set(truth) - set(r["effects"]) <= alts)
         if g != "clean":
             ratios.append(r["rms_after"] / r["rms_before"])
         _param_checks(k, r, perr, cover)

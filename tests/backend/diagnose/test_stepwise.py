@@ -263,3 +263,27 @@ def test_a_budgeted_candidate_that_cannot_win_its_step_is_fitted_only_at_a_later
     assert set(steps[-1].effects) == {"bulk_absorption", "instrument_blur"}
     assert steps[-1].values["blur_deg"] == pytest.approx(3.0, rel=0.1)
     assert steps[-1].values["absorption_per_mm"] == pytest.approx(0.3, rel=0.05)
+
+
+def test_an_effect_the_recording_cannot_tell_from_the_named_one_is_reported_as_an_alternative():
+    """At the step that named relief_scale, relief_smoothing fitted within BIC_MARGIN of it (both act on
+    the slopes): reported, and said in the explanation; a candidate far behind, or one named itself, is not."""
+    from relief_bsdf.diagnose.run import explain
+    from relief_bsdf.diagnose.stepwise import Step, alternatives
+    n, ln = 400, math.log(400)
+    base = Step((), {}, 2000.0, 0, (None, None))
+    tried = [{"effect": "relief_scale", "chi2": 500.0, "k": 1, "parameters": {"height_scale": 0.8}},
+             {"effect": "relief_smoothing", "chi2": 500.0 + BIC_MARGIN - 2.0, "k": 1,
+              "parameters": {"filter_sigma_um": 1.2}},
+             {"effect": "stray_light", "chi2": 1500.0, "k": 1, "parameters": {"background_per_sr": 0.01}},
+             {"effect": "sample_tilt", "screened": 3.0}]
+    s1 = Step(("relief_scale",), {"height_scale": 0.8}, 500.0, 1, (None, None), "relief_scale", 1500.0 - ln, (),
+              tried)
+    alt = alternatives([base, s1], n)
+    assert [(a["named"], a["alternative"]) for a in alt] == [("relief_scale", "relief_smoothing")]
+    assert alt[0]["bic_difference"] == pytest.approx(BIC_MARGIN - 2.0)
+    s2 = Step(("relief_scale", "relief_smoothing"), {}, 420.0, 2, (None, None), "relief_smoothing", 70.0, (), [])
+    assert alternatives([base, s1, s2], n) == []                 # named itself: no alternative
+    text = explain(["relief_scale"], {"height_scale": 0.8},
+                   {"rms0": 2.2, "rms1": 1.1, "n": n, "chi0": 2000.0, "consistent": False}, ([], []), alike=alt)
+    assert "barely tells relief scale from relief smoothing" in text

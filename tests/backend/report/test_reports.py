@@ -117,6 +117,8 @@ def test_diagnosis_report_same_style(tmp_path):
               "candidates": [{"effect": "bulk_absorption", "rms_after": 1.23456, "score": -812.0,
                               "parameters": {"absorption_per_mm": 0.1234567}},
                              {"effect": "stray_light", "skipped": "no T rows"}],
+              "alternatives": [{"named": "bulk_absorption", "alternative": "volume_scattering", "bic_difference": 4.25,
+                                "alternative_parameters": {"scatter_per_mm": 0.0871}}],
               "explanation": "light is absorbed in the bulk"}
     s = np.full(len(rec), 0.05) * rec.bsdf_sr
     path = write_report(tmp_path / "report.html", rec, rec.bsdf_sr * 1.5, s, rec.bsdf_sr, s, result)
@@ -126,6 +128,7 @@ def test_diagnosis_report_same_style(tmp_path):
     assert H.STYLE.strip()[:30] in body                                # the house style
     assert "0.1235" in body and "[0.11, 0.135]" in body and "55.0 %" in body
     assert "not tried" in body and "1/sr" in body
+    assert "Not told apart" in body and "volume_scattering" in body and "scatter_per_mm = 0.0871" in body
 
 
 def test_relief_render_of_a_fit_folder_embeds_the_plate_render_in_its_report(tmp_path):

@@ -97,6 +97,15 @@ def _notes_html(notes: dict) -> str:
     return "<ul class='small'>" + "".join(f"<li><b>{H.esc(k)}</b>: {H.esc(v)}</li>" for k, v in notes.items()) + "</ul>"
 
 
+def _alternatives_html(alts: list) -> str:
+    from relief_bsdf.report import html as H
+    rows = [[a["named"], a["alternative"], H.fmt(a["bic_difference"], 3),
+             ", ".join(f"{k} = {H.fmt(v)}" for k, v in a["alternative_parameters"].items())] for a in alts]
+    return ("<p>Candidates that fitted almost as well as a named effect at the step that named it (BIC within the "
+            "selection's margin): the recording does not decide between them.</p>"
+            + H.table_html(["named", "fits almost as well", "BIC difference", "its parameters"], rows))
+
+
 def _unexplained_html(u: dict) -> str:
     from relief_bsdf.report import html as H
     best = ", ".join(u["best_combination"]) or "no candidate passed the bar"
@@ -131,8 +140,10 @@ def write_report(path: Path, rows, v0, s0, v1, s1, result: dict) -> Path:
                        [[m["side"], m["theta_i_deg"], m["phi_s_deg"],
                          f"{H.fmt(m['theta_s_deg'][0])} - {H.fmt(m['theta_s_deg'][1])}", f"{100 * m['share']:.1f} %",
                          m.get("shape", ""), m.get("explained_by", "")] for m in result["mismatch"]])
-    sections = [H.section("Verdict", verdict), H.section("Fitted parameters", params),
-                H.section("Where the baseline misses", mis)]
+    sections = [H.section("Verdict", verdict), H.section("Fitted parameters", params)]
+    if result.get("alternatives"):
+        sections.append(H.section("Not told apart", _alternatives_html(result["alternatives"])))
+    sections.append(H.section("Where the baseline misses", mis))
     if result.get("unexplained"):
         sections.append(H.section("What no candidate explains", _unexplained_html(result["unexplained"])))
     sections += [

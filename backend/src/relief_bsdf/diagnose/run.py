@@ -43,7 +43,7 @@ from relief_bsdf.diagnose.fitting import intervals as fit_intervals
 from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build_forward
 from relief_bsdf.diagnose.mismatch import SHAPE_PHYSICS, attribute, classify, locate, regions
 from relief_bsdf.diagnose.report import write_report
-from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODEL_ACCURACY_RMS, adequate,
+from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODEL_ACCURACY_RMS, adequate, alternatives,
                                            consistent_with_noise, first_fits, overwhelming_bar, passes, stepwise)
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.selection import BIC_MARGIN
@@ -127,10 +127,11 @@ def _effects_words(effects: list[str], params: dict) -> str:
 
 
 def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexplained: dict | None = None,
-            remainder: dict | None = None) -> str:
+            remainder: dict | None = None, alike: list | None = None) -> str:
     """Plain-language account; `fit` = {rms0, rms1, n, chi0, consistent}, `located` = (mismatch, shapes);
     `unexplained` = {tried, rms_tried, mismatch, shapes} when even the best combination misses the noise;
-    `remainder` = {mismatch, shapes} of what named effects leave beyond the noise."""
+    `remainder` = {mismatch, shapes} of what named effects leave beyond the noise; `alike` =
+    `stepwise.alternatives` (candidates the recording cannot tell apart from a named effect)."""
     where = _where(*located)
     if unexplained is not None:
         tried = unexplained["tried"]
@@ -154,9 +155,14 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
     if remainder is not None:
         rest = (f" A remainder beyond the noise and the model's stated accuracy is left unexplained."
                 f"{_where(remainder['mismatch'], [], 'largest remaining residual')}{_resembles(remainder['shapes'])}")
+    weak = "".join(f" The recording barely tells {a['named'].replace('_', ' ')} from "
+                   f"{a['alternative'].replace('_', ' ')} ({get_effect(a['alternative']).explain(a['alternative_parameters'])}"
+                   f" fits almost as well, BIC {a['bic_difference']:.1f} worse; a difference under {BIC_MARGIN:g} "
+                   f"is not strong evidence): treat the choice between them as open."
+                   for a in (alike or []))
     return (f"The baseline simulation misses the recording (normalised rms {fit['rms0']:.2f}).{where} {lead} "
             f"{_effects_words(effects, params)}. Modelling {'it' if len(effects) == 1 else 'them together'} "
-            f"brings the rms down to {fit['rms1']:.2f}.{rest}")
+            f"brings the rms down to {fit['rms1']:.2f}.{rest}{weak}")
 
 
 def _rounded(d: dict) -> dict:
@@ -228,6 +234,7 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
                            "mismatch": locate(rows, v, s, n_glass=n_glass),
                            "shapes": classify(rows, v, s, n_glass=n_glass)}
     fits = first_fits(steps)
+    alike = alternatives(steps, n) if effects != ["none"] else []
     ctx = forward.context
     facts = {"rms0": rms0, "rms1": rms1, "n": n, "chi0": base.chi2, "consistent": consistent_with_noise(base.chi2, n)}
     result = {
@@ -237,8 +244,8 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
         "mismatch": mismatch,
         "candidates": _candidate_list(fits + _known(forward, fits), base.chi2, n),
         "explanation": explain(effects, params, facts, ([e for e, _ in located[0]], located[1]), unexplained,
-                               remainder),
-        "effects": effects, "intervals": ivals, "interval_notes": notes,
+                               remainder, alike),
+        "effects": effects, "alternatives": alike, "intervals": ivals, "interval_notes": notes,
         "shape": located[1][:3],
         "selection": _selection_doc(n, steps, closed),
         "forward_model": {"engine": "deterministic", "method": ctx.method, "samples": ctx.samples, "seed": ctx.seed,

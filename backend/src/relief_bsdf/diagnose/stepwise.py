@@ -248,6 +248,30 @@ def stepwise(forward, names: list[str], progress=None, workers: int | None = Non
     return steps
 
 
+def alternatives(steps: list[Step], n: int) -> list[dict]:
+    """Effects the recording cannot tell apart from a named one: at the step that added a named
+    effect, another candidate whose fitted BIC came within BIC_MARGIN of the winner's (no "very
+    strong" evidence between them, Kass & Raftery 1995) and that is not named itself.  In
+    geometric optics, for example, relief_scale and relief_smoothing both act on the slopes, so
+    one can stand for the other; the user should know that the choice between them is weak."""
+    final = steps[-1].effects
+    out = []
+    for prev, step in zip(steps, steps[1:]):
+        if step.added in ("stop", "none") or step.added not in final:
+            continue
+        fitted = [f for f in step.tried if "chi2" in f and not f.get("skipped")]
+        won = next((f for f in fitted if f["effect"] == step.added), None)
+        if won is None:
+            continue
+        b0 = bic(won["chi2"], prev.k + won["k"], n)
+        for f in fitted:
+            d = bic(f["chi2"], prev.k + f["k"], n) - b0
+            if f["effect"] != step.added and f["effect"] not in final and d < BIC_MARGIN:
+                out.append({"named": step.added, "alternative": f["effect"], "bic_difference": round(d, 3),
+                            "alternative_parameters": {k: round(float(v), 6) for k, v in f["parameters"].items()}})
+    return out
+
+
 def first_fits(steps: list[Step]) -> list[dict]:
     """The first step's fits: every candidate alone (or skipped with its reason)."""
     return steps[1].tried if len(steps) > 1 else steps[0].tried
