@@ -43,6 +43,9 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    redundant (removing it and refitting the rest jointly does not fail the bar) is dropped;
 4. stop when no candidate passes, or at MAX_EFFECTS effects (a dropped effect is not offered
    again, so the search ends).
+5. (reporting only) a candidate whose fitted BIC came within BIC_MARGIN of the winner's at the
+   step that named an effect, and that is not named itself, is an `alternatives` entry: the
+   recording does not decide between them (relief scale and smoothing in geometric optics).
 
 The effects come out in the order they were added: each was the largest gain of its step,
 so the most important is first.  The same thresholds as the single-effect selection of the
