@@ -325,7 +325,8 @@ def _sample_and_out(op, context, sub: str):
     sample = abspath(op.sample or s.sample_path) if (op.sample or s.sample_path) else None
     if sample is None or not sample.is_file():
         raise InputError(sample or "sample", "choose a sample.toml (Plate & recording panel)")
-    out = abspath(op.output_dir or s.output_dir) / sub
+    from .paths import session_output
+    out = session_output(abspath(op.output_dir or s.output_dir) / sub)    # unsaved: this session's own folder
     return sample, out
 
 

@@ -11,6 +11,10 @@
   then saved, `copy_cached_beside_blend` (a save handler) copies the files the scene names from
   the cache to beside the .blend, where `//name` now points, replacing a different file of the
   same name there (never keeping a stale one).
+- A job's output folder (simulate, fit, diagnose) in an unsaved session would be shared the
+  same way, and its files are not content-named (fit.json, report.html): `session_output`
+  gives each unsaved session its own folder, `<job>-<session tag>` (a random tag drawn once per
+  Blender process), so two unsaved sessions never write into each other's results.
 - The lookup images of baked node groups are packed into the .blend (bake_nodes.lut_image),
   so a saved file renders without its tables.
 """
@@ -52,6 +56,16 @@ def stored(path) -> str:
         except ValueError:                         # another drive (Windows)
             pass
     return str(path)
+
+
+_SESSION_TAG = uuid.uuid4().hex[:8]
+
+
+def session_output(folder) -> Path:
+    """`folder` for a job's outputs; in the per-user cache (an unsaved session) the session's own
+    `<name>-<tag>` beside it (module doc)."""
+    folder = Path(folder)
+    return folder.with_name(f"{folder.name}-{_SESSION_TAG}") if in_cache(folder) else folder
 
 
 def in_cache(path) -> bool:

@@ -138,3 +138,22 @@ def test_worker_count_preference_reaches_the_backend(addon, tmp_path, monkeypatc
                                       filepath=str(tmp_path / "t.h5"), bake=False) == {"FINISHED"}
     run = last_run()
     assert run["backend"] == "serial" and run["total"] > 1
+
+
+def test_unsaved_sessions_write_job_results_into_their_own_folders(cache, tmp_path):
+    """An unsaved session's `//relief_out/` is in the shared cache: a job's results (fit.json, report.html,
+    not content-named) go to a folder of this session's own, `<job>-<tag>`, the same for every job of the
+    session; a chosen absolute folder is used as it is."""
+    from types import SimpleNamespace
+    from relief_addon import paths
+    from relief_addon.operators import _sample_and_out
+    sample = Path(__file__).resolve().parents[2] / "scenes" / "demo" / "sample.toml"
+    assert not bpy.data.filepath
+    op = SimpleNamespace(sample=str(sample), output_dir="")
+    _, fit = _sample_and_out(op, bpy.context, "fit")
+    _, diag = _sample_and_out(op, bpy.context, "diagnose")
+    assert bpy.context.scene.relief.output_dir == "//relief_out/"
+    assert fit.parent == diag.parent == cache / "relief_out"
+    assert fit.name == f"fit-{paths._SESSION_TAG}" and diag.name == f"diagnose-{paths._SESSION_TAG}"
+    _, mine = _sample_and_out(SimpleNamespace(sample=str(sample), output_dir=str(tmp_path / "out")), bpy.context, "fit")
+    assert mine == tmp_path / "out" / "fit"
