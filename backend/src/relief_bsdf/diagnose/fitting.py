@@ -46,6 +46,7 @@ from scipy import optimize
 from relief_bsdf.diagnose.effects import Effect, Param
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.covariance import parameter_covariance, scans_of
+from relief_bsdf.fit.residual import signed_residuals
 
 GRID_CHEAP, REFINE_CHEAP = 9, 10
 GRID_TABLES, REFINE_TABLES = 5, 5
@@ -203,7 +204,7 @@ def intervals(forward, effects: tuple, values: dict) -> tuple[dict, dict]:
         J[:, j] = -(mp - mm) / (xp - xm) / s
     ranges = np.array([bounds[p.name][1] - bounds[p.name][0] for p in params])
     live = np.sum(J**2, axis=0) * ranges**2 >= 1.0   # moving it across its whole range changes chi^2 by >= 1
-    c = parameter_covariance(J, _signed_residuals(rows, v0, s), scans_of(rows), live)
+    c = parameter_covariance(J, signed_residuals(rows.bsdf_sr, v0, s), scans_of(rows), live)
     cov = c.cov
     out, notes = {}, {}
     for j, p in enumerate(params):
@@ -226,14 +227,3 @@ def intervals(forward, effects: tuple, values: dict) -> tuple[dict, dict]:
             notes[p.name] = why
     return out, notes
 
-
-def _signed_residuals(rows, model: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """r with r @ r = the censored chi^2 (fit.residual.chi2): (y - m) / s, and for a reading clipped
-    at zero minus the square root of its censored term."""
-    from scipy.special import log_ndtr
-    y = np.asarray(rows.bsdf_sr, float)
-    r = (y - model) / s
-    cens = y <= 0
-    if cens.any():
-        r[cens] = -np.sqrt(np.maximum(-2.0 * (log_ndtr(-model[cens] / s[cens]) + np.log(2.0)), 0.0))
-    return r

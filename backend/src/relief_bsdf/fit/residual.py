@@ -123,13 +123,21 @@ def chi2(rows: Any, model: np.ndarray, model_sigma: np.ndarray | None = None) ->
     costs nothing (as z^2 would).  Without this, clipped noise reads as a positive background.
     Used by the diagnosis (selection by BIC = chi2 + k ln n).
     """
-    from scipy.special import log_ndtr
     model = np.asarray(model, float)
     ms = np.zeros_like(model) if model_sigma is None else np.asarray(model_sigma, float)
     s = np.sqrt(np.asarray(rows.sigma_sr, float) ** 2 + ms**2)
-    y = np.asarray(rows.bsdf_sr, float)
+    r = signed_residuals(np.asarray(rows.bsdf_sr, float), model, s)
+    return float(r @ r)
+
+
+def signed_residuals(measured: np.ndarray, model: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """The residuals r of `chi2` (r @ r = chi^2): (y - m) / s, and for a reading clipped at zero minus
+    the square root of its censored term -2 ln(2 Phi(-m / s)) (the model above the reading)."""
+    from scipy.special import log_ndtr
+    y = np.asarray(measured, float)
+    model = np.asarray(model, float)
+    r = (y - model) / s
     cens = y <= 0
-    z2 = ((y - model) / s) ** 2
     if cens.any():
-        z2[cens] = np.maximum(-2.0 * (log_ndtr(-model[cens] / s[cens]) + np.log(2.0)), 0.0)
-    return float(np.sum(z2))
+        r[cens] = -np.sqrt(np.maximum(-2.0 * (log_ndtr(-model[cens] / s[cens]) + np.log(2.0)), 0.0))
+    return r

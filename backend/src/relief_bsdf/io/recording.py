@@ -59,6 +59,20 @@ SIGMA_FALLBACK_FLOOR_MIN_SR = 1e-6
 # ====================================================================== recording
 
 
+def sigma_with_fallback(bsdf_sr: Any, sigma_sr: Any, rel: float = SIGMA_FALLBACK_REL,
+                        floor_rel: float = SIGMA_FALLBACK_FLOOR_REL,
+                        floor_min_sr: float = SIGMA_FALLBACK_FLOOR_MIN_SR) -> np.ndarray:
+    """sigma per row with every unknown one (None, NaN, <= 0) replaced by the fallback of
+    `Recording.with_sigma_fallback` (the one definition)."""
+    y = np.abs(np.asarray(bsdf_sr, float))
+    sig = np.full(y.shape, np.nan) if sigma_sr is None else np.asarray(sigma_sr, float).copy()
+    bad = ~np.isfinite(sig) | (sig <= 0)
+    if bad.any():
+        floor = max(floor_rel * float(np.max(y)) if y.size else floor_rel, floor_min_sr)
+        sig[bad] = np.sqrt((rel * y[bad]) ** 2 + floor**2)
+    return sig
+
+
 @dataclass
 class Recording:
     """Measured (or simulated) BSDF values, one entry per row of recording.csv.
@@ -128,12 +142,7 @@ class Recording:
         weight).  Known sigmas are kept unchanged; the result is a new Recording (same
         path and comments), this one is not modified.
         """
-        sig = np.asarray(self.sigma_sr, float).copy()
-        bad = ~np.isfinite(sig) | (sig <= 0)
-        if bad.any():
-            y = np.abs(self.bsdf_sr)
-            floor = max(floor_rel * float(np.max(y)) if y.size else floor_rel, floor_min_sr)
-            sig[bad] = np.sqrt((rel * y[bad]) ** 2 + floor**2)
+        sig = sigma_with_fallback(self.bsdf_sr, self.sigma_sr, rel, floor_rel, floor_min_sr)
         fields = {name: getattr(self, name).copy() for name in self._FLOAT_FIELDS + ("side",)}
         fields["sigma_sr"] = sig
         return Recording(**fields, path=self.path, comments=list(self.comments))
