@@ -29,7 +29,7 @@ non-Gaussian reliefs.  The fit therefore reports what the recording determines:
 - the estimate is the likelihood's optimum: the log metric steers the search from far away, then
   a few Gauss-Newton steps on the noise-weighted residuals (y - m) / S (S^2 = sigma_recording^2
   + sigma_model^2, the diagnosis's misfit) finish it (`_polish`); the log metric's weights hold
-  the measured values, so its optimum is biased by the noise (on the demo 2.7 sigma in the filter);
+  the measured values, so its optimum moves with the noise (on the demo 2.7 half-widths in the filter);
 - 68 % intervals from the curvature of that chi^2 at the optimum (cov = (J^T J)^-1, Delta chi^2 =
   1; fit.covariance), inflated by the reduced chi^2 when the model misses the noise and raised to
   the Newey-West variance where the residuals run correlated along the scans; the correlation of
@@ -292,8 +292,8 @@ class _Objective:
 
     def likelihood_residuals(self, s: float, g: float) -> np.ndarray:
         """z with z @ z = the noise-weighted chi^2 of the likelihood at (s, g): (measured - simulated) / S,
-        S^2 = sigma_recording^2 + sigma_model^2 (sigma unknown: io.recording's documented fallback), readings clipped at zero censored (fit.residual.signed_residuals: the diagnosis's
-        misfit).  The simulation is the objective's own (cached, checkpointed)."""
+        S^2 = sigma_recording^2 + sigma_model^2 (sigma unknown: io.recording's documented fallback),
+        readings clipped at zero censored (fit.residual.signed_residuals: the diagnosis's misfit).  The simulation is the objective's own (cached, checkpointed)."""
         self.residuals(s, g, stop_at_threshold=False)
         sim = np.asarray(self.cache[_key(np.array([s, g]))], float)
         meas = np.asarray(self.measured, float)
@@ -465,7 +465,7 @@ def _polish(obj: _Objective, c: _Coords, s: float, g: float, steps: int = POLISH
     lowers z @ z (else halved, twice); stops when a step is below a tenth of the finite-difference
     step in every coordinate.  The search minimises the log metric, whose weights hold the
     measurement itself (its noise enters them) and which is a search device, not the likelihood: on
-    the demo its optimum sat 2.7 sigma off the true filter, the likelihood's 0.5 sigma."""
+    the demo the log metric's optimum sat 2.7 half-widths off the true filter, the polished one 1.4."""
     x = c.x(s, g)
     z = obj.likelihood_residuals(*c.sg(x))
     f = float(z @ z)
