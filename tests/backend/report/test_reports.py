@@ -151,3 +151,15 @@ def test_relief_render_of_a_fit_folder_embeds_the_plate_render_in_its_report(tmp
     assert not re.search(r'src="(?!data:)', text)
     body = strip_images(text)
     assert "Plate renders" in body and "before | after" in body
+
+
+def test_fit_report_says_how_the_estimate_and_its_intervals_were_made(tmp_path):
+    rec = recording()
+    plots = fit_plots(tmp_path, rec, rec.bsdf_sr * 2, rec.bsdf_sr)
+    doc = fit_doc(identifiability={"filter_needed": False, "criterion": "BIC rule",
+                                   "estimate": "likelihood optimum", "interval_method": "Newey-West"})
+    body = strip_images(write_fit_report(tmp_path / "r.html", doc, plots).read_text())
+    assert "BIC rule; likelihood optimum; Newey-West." in body
+    del doc["identifiability"]["estimate"]                       # a fit.json of an earlier round
+    body = strip_images(write_fit_report(tmp_path / "r.html", doc, plots).read_text())
+    assert "BIC rule; Newey-West." in body

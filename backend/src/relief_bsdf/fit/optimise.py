@@ -196,10 +196,15 @@ class FitResult:
                                  "ridge": self.ridge, "criterion": f"BIC = chi2 / c + k ln n, chi2 = n metric^2, c = "
                                  "max(1, reduced chi2 of the two-parameter fit) (QBIC); the filter is kept when "
                                  f"it lowers the BIC by more than {BIC_MARGIN:g}",
-                                 "interval_method": "cov = (J^T J)^-1 from the Jacobian of the normalised "
-                                                    "residuals (central differences) at the optimum, 68 % = "
-                                                    "Delta chi2 of 1, inflated by the reduced chi2 when it "
-                                                    "exceeds 1"},
+                                 "estimate": "the likelihood's optimum: the search on the metric, then up to "
+                                             f"{POLISH_STEPS} Gauss-Newton steps on the noise-weighted residuals "
+                                             "(measured - simulated) / S, S^2 = sigma^2 + the simulation's own "
+                                             "sigma^2",
+                                 "interval_method": "cov = (J^T J)^-1 from the Jacobian of those residuals "
+                                                    "(central differences) at the optimum, 68 % = Delta chi2 of 1, "
+                                                    "inflated by the reduced chi2 when it exceeds 1 and raised per "
+                                                    "parameter to the Newey-West variance when the residuals run "
+                                                    "correlated along the scans (fit.covariance)"},
              "warnings": self.warnings, "iterations": self.iterations, "evaluations_computed": self.computed,
              "stopped": self.stopped,
              "seconds": self.seconds}

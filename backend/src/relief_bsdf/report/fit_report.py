@@ -192,7 +192,8 @@ def write_fit_report(path: str | Path, doc: dict, plots: dict, renders: dict | N
                     + "".join(f"<li>{H.esc(w)}</li>" for w in doc["warnings"]) + "</ul>")
     ident = doc.get("identifiability") or {}
     if ident.get("criterion"):
-        fit_sec += f"<p class='small'>{H.esc(ident['criterion'])}; {H.esc(ident.get('interval_method', ''))}.</p>"
+        parts = [ident[k] for k in ("criterion", "estimate", "interval_method") if ident.get(k)]
+        fit_sec += f"<p class='small'>{H.esc('; '.join(parts))}.</p>"
     figs = "".join(H.figure_html(base / f, CAPTIONS.get(k, k)) for k, f in plots.items() if (base / f).exists())
     sections = [H.section("Summary", summary), H.section("Fitted parameters", fit_sec),
                 H.section("Plate BSDF before and after", figs)]
