@@ -415,7 +415,8 @@ class RELIEF_OT_diagnose(JobOperator, bpy.types.Operator):
         return diag.diagnose(p["sample"], p["out"], progress=progress)      # the diagnosis.json document
 
     def finish(self, context, res):
-        self.report({"INFO"}, f"Diagnosis: {res['effect']} (rms {res['rms_before']:.4g} -> {res['rms_after']:.4g}): "
+        named = " + ".join(res.get("effects") or [res["effect"]])     # every effect named, most important first
+        self.report({"INFO"}, f"Diagnosis: {named} (rms {res['rms_before']:.4g} -> {res['rms_after']:.4g}): "
                               f"{res['explanation']}")
 
 

@@ -232,3 +232,14 @@ def test_bake_panel_says_how_the_transmitted_lobe_is_baked(addon):
         text = " ".join(t for k, t in log if k == "label")              # wrapped lines joined
         assert (say in text) if say else ("transmitted" not in text), text
         assert ("no anisotropic refraction closure" in text) is (tilt > 0), text
+
+
+def test_diagnose_reports_every_named_effect(addon):
+    """A compound diagnosis names all its effects in Blender's report line, most important first."""
+    from types import SimpleNamespace
+    from relief_addon.operators import RELIEF_OT_diagnose
+    said = []
+    fake = SimpleNamespace(report=lambda kind, msg: said.append((kind, msg)))
+    RELIEF_OT_diagnose.finish(fake, bpy.context, {"effect": "stray_light", "effects": ["stray_light", "bulk_absorption"],
+                                                  "rms_before": 17.97, "rms_after": 0.697, "explanation": "both"})
+    assert said == [({"INFO"}, "Diagnosis: stray_light + bulk_absorption (rms 17.97 -> 0.697): both")]
