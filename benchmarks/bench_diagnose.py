@@ -117,9 +117,9 @@ def summarise(cases, keys: dict, res: list) -> dict:
         groups[g]["cases"] += 1
         groups[g]["right"] += ok
         if not ok:       # a wrong case whose missing effect the diagnosis itself called an open alternative
-            alts = {a["alternative"] for a in r.get("alternatives", [])}
-            groups[g]["wrong_but_flagged"] = groups[g].get("wrong_but_flagged", 0) + bool(
-                set(truth) - set(r["effects"]) and set(truth) - set(r["effects"]) <= alts)
+            missed = set(truth) - set(r["effects"])
+            flagged = bool(missed) and missed <= {a["alternative"] for a in r.get("alternatives", [])}
+            groups[g]["wrong_but_flagged"] = groups[g].get("wrong_but_flagged", 0) + flagged
         if g != "clean":
             ratios.append(r["rms_after"] / r["rms_before"])
         _param_checks(k, r, perr, cover)

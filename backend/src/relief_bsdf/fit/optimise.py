@@ -266,6 +266,14 @@ class _Objective:
         self.new_evals = 0
         self.n = int(np.size(measured))
         self.limit: int | None = None
+        # the likelihood's recording sigma (unknown ones: io.recording's fallback), fixed for the run
+        self._likelihood_sigma = sigma_with_fallback(np.asarray(measured, float), sigma)
+
+    def _model_sigma(self, sim: np.ndarray) -> np.ndarray | None:
+        """The simulation's own 1-sigma at these values (the forward model's relative sigma, computed
+        once, times the values; NaN where no table carries a sigma: 0), or None without one."""
+        rel = getattr(self.forward, "model_rel_sigma", None)
+        return None if rel is None else np.nan_to_num(rel() * np.abs(sim))
 
     def chi2(self, m: float) -> float:
         return self.n * float(m) ** 2
@@ -283,9 +291,7 @@ class _Objective:
             if self.on_eval:
                 self.on_eval(self.new_evals)
         sim = np.asarray(self.cache[key])
-        rel = getattr(self.forward, "model_rel_sigma", None)
-        model_sigma = None if rel is None else rel() * np.abs(sim)
-        r = self.settings.metric.residuals(sim, self.measured, self.sigma, model_sigma)
+        r = self.settings.metric.residuals(sim, self.measured, self.sigma, self._model_sigma(sim))
         self._seen[key] = r
         m = float(np.sqrt(np.mean(r**2))) if r.size else 0.0
         self.iterations.append({"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": m})
@@ -298,14 +304,13 @@ class _Objective:
     def likelihood_residuals(self, s: float, g: float) -> np.ndarray:
         """z with z @ z = the noise-weighted chi^2 of the likelihood at (s, g): (measured - simulated) / S,
         S^2 = sigma_recording^2 + sigma_model^2 (sigma unknown: io.recording's documented fallback),
-        readings clipped at zero censored (fit.residual.signed_residuals: the diagnosis's misfit).  The simulation is the objective's own (cached, checkpointed)."""
+        readings clipped at zero censored (fit.residual.signed_residuals: the diagnosis's misfit).
+        The simulation is the objective's own (cached, checkpointed)."""
         self.residuals(s, g, stop_at_threshold=False)
         sim = np.asarray(self.cache[_key(np.array([s, g]))], float)
-        meas = np.asarray(self.measured, float)
-        sig = sigma_with_fallback(meas, self.sigma)
-        rel = getattr(self.forward, "model_rel_sigma", None)
-        ms = np.zeros_like(sim) if rel is None else np.nan_to_num(rel() * np.abs(sim))     # NaN: no table sigma
-        return signed_residuals(meas, sim, np.sqrt(sig**2 + ms**2))
+        ms = self._model_sigma(sim)
+        S = self._likelihood_sigma if ms is None else np.sqrt(self._likelihood_sigma**2 + ms**2)
+        return signed_residuals(np.asarray(self.measured, float), sim, S)
 
     def __call__(self, s: float, g: float, stop_at_threshold: bool = True) -> float:
         """The metric (rms of the residuals) at (s, g)."""
