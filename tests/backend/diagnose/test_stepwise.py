@@ -10,6 +10,8 @@ the plate model.  The end-to-end tests on recordings made by the independent pho
 import math
 
 import numpy as np
+
+from relief_bsdf.plate.uncertainty import FORWARD_LEVEL_SD
 import pytest
 
 from relief_bsdf.diagnose.effects import ReliefContext, apply_all, compatible, get_effect
@@ -108,14 +110,28 @@ def test_intervals_match_the_analytic_standard_error_and_null_when_not_seen():
     J = np.stack([da, 1.0 / s], axis=1)
     cov = np.linalg.inv(J.T @ J)
     inflate = max(1.0, fwd.evaluate_set(effs, best)[0] / (len(s) - 3))
+    # the stated per-side level accuracy as two more parameters u_R, u_T with unit Gaussian priors:
+    # the augmented Fisher matrix, inverted whole (not fit.covariance's Woodbury form)
+    m = fwd.evaluate_set(effs, best)[1]
+    N = np.stack([np.where(fwd.t == (side == "T"), FORWARD_LEVEL_SD[side] * m / s, 0.0) for side in ("R", "T")], 1)
+    F = np.block([[J.T @ J, J.T @ N], [N.T @ J, N.T @ N + np.eye(2)]])
+    marginal = np.linalg.inv(F)[:2, :2]
+    widened = False
     for j, name in enumerate(("absorption_per_mm", "background_per_sr")):
         lo, hi = iv[name]
-        half, sd = (hi - lo) / 2, math.sqrt(cov[j, j] * inflate)
-        # the curvature's standard error, widened only to the Newey-West estimate (fit.covariance, tested
-        # for coverage in tests/backend/fit/test_covariance.py), which on white noise stays close to it
+        extra = marginal[j, j] - cov[j, j]
+        assert extra >= 0
+        half, sd = (hi - lo) / 2, math.sqrt(cov[j, j] * inflate + extra)
+        # the curvature's standard error with the levels marginalised, widened only to the Newey-West
+        # estimate (fit.covariance, tested for coverage in tests/backend/fit/test_covariance.py), which on
+        # white noise stays close to it
         assert sd * 0.97 <= half <= 1.3 * sd
         if half > 1.03 * sd:
             assert "correlated along the scans" in notes[name]
+        if extra > 0.1 * cov[j, j] * inflate:
+            widened = True
+            assert "stated level accuracy" in notes[name]
+    assert widened            # absorption acts as a level of T: its interval holds the stated T level
     assert iv["polarization_q"] is None and "not determined" in notes["polarization_q"]
 
 

@@ -106,3 +106,31 @@ def test_bandwidth_grows_with_correlation(rho):
     c = parameter_covariance(-X, r, scans)
     assert abs(c.lag1 - rho) < 0.15
     assert (c.bandwidth == 0) if rho == 0.0 else (c.bandwidth >= 2)
+
+
+def test_stated_level_error_covered_by_the_nuisance_and_shapes_not_widened():
+    """A forward model whose level on one side is off by a draw of its stated accuracy (the same on
+    every scan, so neither the noise nor the HAC estimate sees it): a parameter that acts as that
+    level (an absorption-like amplitude) is covered about two times in three only when the level is
+    marginalised (`level_nuisance`'s columns); a shape parameter (a width change) is not widened."""
+    X, scans = _design()                              # column 0: the lobe's amplitude, 1: its width
+    truth = np.array([30.0, 4.0])
+    m0 = X @ truth
+    sd_level = 0.02
+    N = (-sd_level * m0)[:, None]                     # d r / d u, u ~ N(0, 1), r = y - m (sigma = 1)
+    rng = np.random.default_rng(21)
+    inside = inside_without = 0
+    widen_shape = []
+    for _ in range(DRAWS):
+        y = m0 * (1.0 + sd_level * rng.standard_normal()) + rng.standard_normal(len(X))
+        beta = np.linalg.lstsq(X, y, rcond=None)[0]
+        r = y - X @ beta
+        with_level = parameter_covariance(-X, r, scans, nuisance=N, nuisance_text="a level +-2 %")
+        without = parameter_covariance(-X, r, scans)
+        inside += bool(abs(beta[0] - truth[0]) <= np.sqrt(with_level.cov[0, 0]))
+        inside_without += bool(abs(beta[0] - truth[0]) <= np.sqrt(without.cov[0, 0]))
+        widen_shape.append(np.sqrt(with_level.cov[1, 1] / without.cov[1, 1]))
+    assert inside_without / DRAWS < 0.5, inside_without / DRAWS
+    assert 0.6 <= inside / DRAWS <= 0.8, inside / DRAWS
+    assert float(np.median(widen_shape)) < 1.1
+    assert "a level +-2 %" in with_level.note(0)

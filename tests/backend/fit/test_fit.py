@@ -122,3 +122,33 @@ def test_a_damaged_checkpoint_of_the_same_run_is_ignored_with_a_note(tmp_path, c
         assert np.isfinite(again.rms_before) and again.rms_before == plain.rms_before
         assert (again.height_scale, again.filter_sigma_um, again.rms_after) == \
             (plain.height_scale, plain.filter_sigma_um, plain.rms_after)
+
+
+def test_polish_ends_at_the_likelihood_optimum_and_hands_the_intervals_its_central_jacobian():
+    """`_polish` stops when the Gauss-Newton step falls below a tenth of a finite-difference step and
+    returns the central Jacobian it made there: the intervals from it equal those from a Jacobian
+    made afresh at the answer, and a further step from the answer is negligible."""
+    from relief_bsdf.fit.optimise import _Coords, _jacobian, _Objective, _intervals, _polish
+    from relief_bsdf.progress import silent
+    truth = _CheapForward([]).simulate(1.4, 0.1)
+    sigma = 0.02 * truth
+    meas = truth + sigma * np.random.default_rng(5).standard_normal(truth.size)
+    settings = FitSettings(max_iter=50)
+    obj = _Objective(_CheapForward([]), meas, sigma, settings, {}, lambda cache: None, silent, None)
+    gmax = 2.5
+    c = _Coords.make(settings, True, gmax, 0.125)
+    s, g, J = _polish(obj, c, 1.4, 0.1, steps=6)   # from near the optimum, as after the search
+    assert J is not None
+    x = c.x(s, g)
+    fresh = _jacobian(obj, c, x, likelihood=True)
+    z = obj.likelihood_residuals(s, g)
+    d = np.linalg.lstsq(fresh, -z, rcond=None)[0]
+    assert np.all(np.abs(d) < 0.2 * c.step)                     # converged: the next step is negligible
+    iv_given = _intervals(obj, c, s, g, gmax, J)[0]
+    iv_fresh = _intervals(obj, c, s, g, gmax)[0]
+    for k in ("height_scale", "filter_sigma_um"):
+        assert iv_given[k] is not None and iv_fresh[k] is not None
+        w_given, w_fresh = np.diff(iv_given[k])[0], np.diff(iv_fresh[k])[0]
+        assert w_given == pytest.approx(w_fresh, rel=0.05)
+    lo, hi = iv_fresh["height_scale"]
+    assert lo - 3 * (hi - lo) < 1.4 < hi + 3 * (hi - lo)       # the truth near the interval (a noisy draw)

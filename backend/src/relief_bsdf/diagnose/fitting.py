@@ -24,7 +24,10 @@ covariance for Delta chi^2 = 1 (Press et al., Numerical Recipes 15.6); when the 
 still misses the noise (chi^2 / (n - k) > 1) it is inflated by that reduced chi^2 (Birge
 ratio), and each parameter's variance is raised to the Newey-West (HAC) estimate when that is
 larger: a forward model's error runs with the angle along a scan, and rows whose residuals
-are correlated carry less information than their number.  A parameter is *not determined*
+are correlated carry less information than their number; the forward model's stated per-side
+level accuracy (plate.uncertainty.FORWARD_LEVEL_SD, measured against the independent photon
+Monte Carlo) is marginalised as a nuisance, which widens what acts as a level (absorption in T,
+the index or the polarisation in R).  A parameter is *not determined*
 (no interval, a note instead) when moving it across its whole search range changes chi^2
 by less than 1 (the rows do not respond to it, e.g. a source polarisation seen through
 depolarising tables), when J^T J of the responding parameters is singular (their effects
@@ -45,7 +48,7 @@ from scipy import optimize
 
 from relief_bsdf.diagnose.effects import Effect, Param
 from relief_bsdf.errors import InputError
-from relief_bsdf.fit.covariance import parameter_covariance, scans_of
+from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of
 from relief_bsdf.fit.residual import signed_residuals
 
 GRID_CHEAP, REFINE_CHEAP = 9, 10
@@ -204,7 +207,8 @@ def intervals(forward, effects: tuple, values: dict) -> tuple[dict, dict]:
         J[:, j] = -(mp - mm) / (xp - xm) / s
     ranges = np.array([bounds[p.name][1] - bounds[p.name][0] for p in params])
     live = np.sum(J**2, axis=0) * ranges**2 >= 1.0   # moving it across its whole range changes chi^2 by >= 1
-    c = parameter_covariance(J, signed_residuals(rows.bsdf_sr, v0, s), scans_of(rows), live)
+    nuisance, text = level_nuisance(rows, v0, s)
+    c = parameter_covariance(J, signed_residuals(rows.bsdf_sr, v0, s), scans_of(rows), live, nuisance, text)
     cov = c.cov
     out, notes = {}, {}
     for j, p in enumerate(params):

@@ -52,12 +52,10 @@ class DiagnosisForward:
         return sim.values_per_sr, self.model_rel_sigma() * np.abs(sim.values_per_sr)
 
     def model_rel_sigma(self) -> np.ndarray:
+        """The baseline's relative 1-sigma per row (plate.uncertainty.relative_sigma), computed once."""
         if self._rel_sigma is None:
-            sim = simulate(self.experiment, self.rows, engine="deterministic", grid=self.grid,
-                           table_sigma_draws=SIGMA_DRAWS)
-            v = np.abs(sim.values_per_sr)
-            rel = np.divide(sim.sigma_per_sr, v, out=np.zeros_like(v), where=v > 0)
-            self._rel_sigma = np.clip(np.nan_to_num(rel, nan=0.0), 0.0, 1.0)
+            from relief_bsdf.plate.uncertainty import relative_sigma
+            self._rel_sigma = relative_sigma(self.experiment, self.rows, self.grid, SIGMA_DRAWS)
         return self._rel_sigma
 
     def baseline(self) -> tuple[np.ndarray, np.ndarray]:

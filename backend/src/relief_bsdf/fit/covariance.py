@@ -28,9 +28,24 @@ alpha = (2 rho / (1 - rho^2))^2, L = 1.1447 (alpha T)^(1/3) with T the median sc
 Each parameter's variance is the larger of the two (`parameter_covariance`): the curvature
 one when the model is right (the HAC estimate is then noisy around it), the HAC one when
 the residuals are correlated or larger than the noise somewhere the parameter acts; their
-correlations are the curvature's.  Regime: residuals whose correlation falls off within a
-scan (a model error that shifts every scan alike, e.g. a wrong overall level, is left to
-the Birge inflation); a score that is roughly linear within the interval.
+correlations are the curvature's.
+
+*Stated model accuracy* (`nuisance`).  A model error that shifts every scan alike, a wrong
+overall level of one side, is neither in the noise nor in the HAC estimate (its residuals are
+correlated across scans, not only within one); where the forward model's accuracy has been
+measured independently, it is a nuisance parameter u with a Gaussian prior: the columns
+N = d r / d u (u in units of its prior 1-sigma), marginalised analytically (the residuals'
+covariance becomes I + N N^T; Woodbury):
+
+    A_marg = J^T J - J^T N (I + N^T N)^-1 N^T J,    Delta = A_marg^-1 - (J^T J)^-1  (>= 0),
+
+and Delta is added to the covariance above: a parameter that moves the rows as a level does
+(bulk absorption in T, the index or the source polarisation in R) gets the level's uncertainty,
+one that changes shapes (blur, tilt, a lobe width) hardly any.  `level_nuisance` makes the
+columns of the plate's stated per-side level accuracy (plate.uncertainty.FORWARD_LEVEL_SD).
+
+Regime: residuals whose correlation falls off within a scan, besides the stated levels; a score
+that is roughly linear within the interval.
 """
 from __future__ import annotations
 
@@ -39,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Covariance", "parameter_covariance", "scans_of"]
+__all__ = ["Covariance", "level_nuisance", "parameter_covariance", "scans_of"]
 
 SINGULAR_COND = 1e12
 
@@ -53,6 +68,8 @@ class Covariance:
     hac_widening: np.ndarray     # per parameter: sd_final / sd_curvature (>= 1)
     bandwidth: int               # Bartlett lags L
     lag1: float                  # pooled lag-1 correlation of the residuals along the scans
+    nuisance_widening: np.ndarray | None = None   # per parameter: sd with / without the stated levels (>= 1)
+    nuisance_text: str = ""      # what the nuisance levels are (for the notes)
 
     def note(self, j: int) -> str | None:
         """Why parameter j's interval is wider than the curvature's, or None."""
@@ -62,6 +79,8 @@ class Covariance:
         if self.hac_widening[j] > 1.0 + 1e-9:
             parts.append(f"x{self.hac_widening[j]:.2f} for residuals correlated along the scans "
                          f"(lag-1 {self.lag1:.2f}, {self.bandwidth} lags)")
+        if self.nuisance_widening is not None and self.nuisance_widening[j] > 1.005:
+            parts.append(f"x{self.nuisance_widening[j]:.2f} for {self.nuisance_text or 'the stated model accuracy'}")
         return ("widened by " + " and ".join(parts)) if parts else None
 
 
@@ -103,12 +122,42 @@ def _meat(g: np.ndarray, scans: list[np.ndarray], lag: int) -> np.ndarray:
     return m
 
 
+def level_nuisance(rows: Any, model: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, str]:
+    """(N, text): the columns d r / d u of the plate's stated per-side level accuracy (module doc), one
+    per side present, r = (y - m) / s and m -> m (1 + sd_side u) with u ~ N(0, 1), so N = -sd m / s on
+    that side's rows; text says the levels (plate.uncertainty.FORWARD_LEVEL_SD)."""
+    from relief_bsdf.plate.uncertainty import FORWARD_LEVEL_SD
+    side = np.asarray(rows.side).astype(str)
+    m = np.asarray(model, float)
+    s = np.asarray(s, float)
+    cols, said = [], []
+    for name, sd in FORWARD_LEVEL_SD.items():
+        on = side == name
+        if on.any() and sd > 0:
+            cols.append(np.where(on, -sd * m / np.where(s > 0, s, np.inf), 0.0))
+            said.append(f"{name} +-{100 * sd:.1f} %")
+    N = np.stack(cols, axis=1) if cols else np.zeros((m.size, 0))
+    return N, "the forward model's stated level accuracy (" + ", ".join(said) + ")"
+
+
+def _marginal_extra(Js: np.ndarray, N: np.ndarray) -> np.ndarray | None:
+    """Delta = A_marg^-1 - A^-1 of the module doc (k x k), or None when A_marg is singular."""
+    A = Js.T @ Js
+    B = Js.T @ N
+    A_marg = A - B @ np.linalg.solve(np.eye(N.shape[1]) + N.T @ N, B.T)
+    if not np.all(np.isfinite(A_marg)) or np.linalg.cond(A_marg) >= SINGULAR_COND:
+        return None
+    return np.linalg.inv(A_marg) - np.linalg.inv(A)
+
+
 def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] | None = None,
-                         live: np.ndarray | None = None) -> Covariance:
+                         live: np.ndarray | None = None, nuisance: np.ndarray | None = None,
+                         nuisance_text: str = "") -> Covariance:
     """Covariance of the parameters (module doc).  `J` (n x k) = d r / d x, `r` (n) the normalised
     residuals at the best point, `scans` from `scans_of` (None: every row its own scan, White's
     estimator), `live` (k bools, default all): the parameters the rows respond to; the others, and
-    all when J^T J of the live ones is singular, are NaN."""
+    all when J^T J of the live ones is singular, are NaN.  `nuisance` (n x q): d r / d u of
+    nuisance parameters with unit Gaussian priors (`level_nuisance`), marginalised (module doc)."""
     J = np.asarray(J, float)
     r = np.asarray(r, float)
     n, k = J.shape
@@ -118,6 +167,7 @@ def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] |
     lag, rho = _bandwidth(r, scans)
     cov = np.full((k, k), np.nan)
     widen = np.ones(k)
+    nw = np.ones(k)
     idx = np.flatnonzero(live)
     if idx.size:
         Js = J[:, idx]
@@ -128,6 +178,16 @@ def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] |
             hac = ainv @ _meat(Js * r[:, None], scans, lag) @ ainv * (n / max(n - idx.size, 1))
             sd_c = np.sqrt(np.diag(curv))
             f = np.maximum(1.0, np.sqrt(np.maximum(np.diag(hac), 0.0)) / np.where(sd_c > 0, sd_c, np.inf))
-            cov[np.ix_(idx, idx)] = curv * np.outer(f, f)
+            final = curv * np.outer(f, f)
+            if nuisance is not None and np.size(nuisance) and np.asarray(nuisance).shape[1]:
+                extra = _marginal_extra(Js, np.asarray(nuisance, float))
+                if extra is None:
+                    final = np.full_like(final, np.nan)      # a parameter that only a level moves
+                else:
+                    before = np.sqrt(np.diag(final))
+                    final = final + extra
+                    nw[idx] = np.sqrt(np.maximum(np.diag(final), 0.0)) / np.where(before > 0, before, np.inf)
+            cov[np.ix_(idx, idx)] = final
             widen[idx] = f
-    return Covariance(cov=cov, birge=birge, hac_widening=widen, bandwidth=lag, lag1=rho)
+    return Covariance(cov=cov, birge=birge, hac_widening=widen, bandwidth=lag, lag1=rho,
+                      nuisance_widening=None if nuisance is None else np.maximum(nw, 1.0), nuisance_text=nuisance_text)

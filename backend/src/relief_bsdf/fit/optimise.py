@@ -53,7 +53,7 @@ import numpy as np
 
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
-from relief_bsdf.fit.covariance import parameter_covariance, scans_of
+from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of
 from relief_bsdf.fit.residual import DEFAULT_METRIC, LogChiMetric, signed_residuals
 from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain, overdispersion
 from relief_bsdf.io.atomic import write_text_atomic
@@ -68,7 +68,7 @@ from relief_bsdf.surface.stats import rms_height_and_slope
 
 FIT_FORMAT = "relief-fit/1"
 NOISE_METRIC = 1.2          # a fit "reaches the noise" at a log-chi metric <= this (issue 18: rms z <= 1.2)
-POLISH_STEPS = 3            # Gauss-Newton steps on the likelihood from the search's answer (`_polish`)
+POLISH_STEPS = 4            # Gauss-Newton steps on the likelihood from the search's answer (`_polish`)
 
 
 def relief_rms(relief: Relief) -> tuple[float, float]:
@@ -137,10 +137,9 @@ class Forward:
         scaled with the values at other parameters (the relative noise of a table hardly moves
         with scale and filter; common random numbers keep it the same draw)."""
         if self._rel_sigma is None:
+            from relief_bsdf.plate.uncertainty import relative_sigma
             _, ex = self.experiment_at(1.0, 0.0)
-            sim = simulate(ex, self.rows, grid=self.grid, where=self.where, table_sigma_draws=self.sigma_draws)
-            v = np.abs(sim.values_per_sr)
-            self._rel_sigma = np.clip(np.divide(sim.sigma_per_sr, v, out=np.zeros_like(v), where=v > 0), 0.0, 1.0)
+            self._rel_sigma = relative_sigma(ex, self.rows, self.grid, self.sigma_draws, self.where)
         return self._rel_sigma
 
     def simulated(self, height_scale: float, filter_sigma_um: float, table_sigma_draws: int = 0) -> Simulated:
@@ -201,10 +200,13 @@ class FitResult:
                                              "(measured - simulated) / S, S^2 = sigma^2 + the simulation's own "
                                              "sigma^2",
                                  "interval_method": "cov = (J^T J)^-1 from the Jacobian of those residuals "
-                                                    "(central differences) at the optimum, 68 % = Delta chi2 of 1, "
+                                                    "(central differences) at the optimum (or within a tenth of a "
+                                                    "finite-difference step of it), 68 % = Delta chi2 of 1, "
                                                     "inflated by the reduced chi2 when it exceeds 1 and raised per "
                                                     "parameter to the Newey-West variance when the residuals run "
-                                                    "correlated along the scans (fit.covariance)"},
+                                                    "correlated along the scans, plus the forward model's "
+                                                    "stated per-side level accuracy marginalised as a nuisance "
+                                                    "(fit.covariance)"},
              "warnings": self.warnings, "iterations": self.iterations, "evaluations_computed": self.computed,
              "stopped": self.stopped,
              "seconds": self.seconds}
@@ -306,11 +308,16 @@ class _Objective:
         S^2 = sigma_recording^2 + sigma_model^2 (sigma unknown: io.recording's documented fallback),
         readings clipped at zero censored (fit.residual.signed_residuals: the diagnosis's misfit).
         The simulation is the objective's own (cached, checkpointed)."""
+        sim, S = self.simulated_and_sigma(s, g)
+        return signed_residuals(np.asarray(self.measured, float), sim, S)
+
+    def simulated_and_sigma(self, s: float, g: float) -> tuple[np.ndarray, np.ndarray]:
+        """(simulated values, the likelihood's S) at (s, g) (`likelihood_residuals`)."""
         self.residuals(s, g, stop_at_threshold=False)
         sim = np.asarray(self.cache[_key(np.array([s, g]))], float)
         ms = self._model_sigma(sim)
         S = self._likelihood_sigma if ms is None else np.sqrt(self._likelihood_sigma**2 + ms**2)
-        return signed_residuals(np.asarray(self.measured, float), sim, S)
+        return sim, S
 
     def __call__(self, s: float, g: float, stop_at_threshold: bool = True) -> float:
         """The metric (rms of the residuals) at (s, g)."""
@@ -469,19 +476,34 @@ def _line_search(obj: _Objective, c: _Coords, x: np.ndarray, d: np.ndarray, f: f
     return best
 
 
-def _polish(obj: _Objective, c: _Coords, s: float, g: float, steps: int = POLISH_STEPS) -> tuple[float, float]:
+def _polish(obj: _Objective, c: _Coords, s: float, g: float,
+            steps: int = POLISH_STEPS) -> tuple[float, float, np.ndarray | None]:
     """The likelihood's optimum near (s, g): at most `steps` Gauss-Newton steps of the noise-weighted
-    residuals z (`_Objective.likelihood_residuals`, central-difference Jacobian), each kept only when it
-    lowers z @ z (else halved, twice); stops when a step is below a tenth of the finite-difference
-    step in every coordinate.  The search minimises the log metric, whose weights hold the
+    residuals z (`_Objective.likelihood_residuals`), each kept only when it lowers z @ z (else halved,
+    twice).  The steps take forward-difference Jacobians (one new point per parameter) while far off;
+    once a step is below one finite-difference step in every coordinate, central ones (a forward
+    difference's bias is then as large as the step: on a curved objective it never converges); when
+    the central step is below a tenth of a finite-difference step, it is taken and the search stops.  Returns (s, g, J): J the central Jacobian at a point within that tenth of a
+    step of the answer (the intervals' Jacobian: the residuals are linear over so small a move), or
+    None when the steps ran out first.  The search minimises the log metric, whose weights hold the
     measurement itself (its noise enters them) and which is a search device, not the likelihood: on
     the demo the log metric's optimum sat 2.7 half-widths off the true filter, the polished one 1.4."""
     x = c.x(s, g)
     z = obj.likelihood_residuals(*c.sg(x))
     f = float(z @ z)
+    J_final = None
+    central = False
     for _ in range(steps):
-        J = _jacobian(obj, c, x, likelihood=True)
+        J = _jacobian(obj, c, x, central=central, likelihood=True)
         d = np.linalg.lstsq(J, -z, rcond=None)[0]
+        if not central and np.all(np.abs(d) < c.step):
+            # near the optimum a forward difference's bias (half a step times the curvature) is as large
+            # as the step it proposes: central from here on (the forward points are memoised)
+            central = True
+            J = _jacobian(obj, c, x, central=True, likelihood=True)
+            d = np.linalg.lstsq(J, -z, rcond=None)[0]
+        small = central and bool(np.all(np.abs(d) < 0.1 * c.step))
+        J_final = J if small else None
         for t in (1.0, 0.5, 0.25):
             xn = np.clip(x + t * d, c.lower, c.upper)
             zn = obj.likelihood_residuals(*c.sg(xn))
@@ -489,24 +511,31 @@ def _polish(obj: _Objective, c: _Coords, s: float, g: float, steps: int = POLISH
                 break
         else:
             break
-        moved = np.abs(xn - x)
         x, z, f = xn, zn, float(zn @ zn)
-        if np.all(moved < 0.1 * c.step):
+        if small:
             break
-    return c.sg(x)
+    s, g = c.sg(x)
+    return s, g, J_final
 
 
-def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float) -> tuple[dict, float | None, list]:
+def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float,
+               J: np.ndarray | None = None) -> tuple[dict, float | None, list]:
     """68 % intervals from the likelihood's Jacobian at (s, g) (fit.covariance): cov(x) = (J^T J)^-1 (Delta chi^2 = 1),
     inflated by the reduced chi^2 when it exceeds 1 (Birge ratio: the model misses the noise) and,
     per parameter, to the Newey-West (HAC) variance when the residuals run correlated along the scans;
     a parameter is 'not determined' (None) when J^T J is singular or its interval reaches past the
-    bounds."""
+    bounds.  `J`: a central Jacobian already made within a tenth of a step of (s, g) (`_polish`)."""
     x0 = c.x(s, g)
-    J = _jacobian(obj, c, x0, likelihood=True)
+    if J is None:
+        J = _jacobian(obj, c, x0, likelihood=True)
     r = obj.likelihood_residuals(*c.sg(x0))
     rows = getattr(obj.forward, "rows", None)
-    cv = parameter_covariance(J, r, scans_of(rows) if rows is not None and len(rows) == r.size else None)
+    scans = nuisance = None
+    text = ""
+    if rows is not None and len(rows) == r.size:
+        scans = scans_of(rows)
+        nuisance, text = level_nuisance(rows, *obj.simulated_and_sigma(*c.sg(x0)))
+    cv = parameter_covariance(J, r, scans, nuisance=nuisance, nuisance_text=text)
     cov = cv.cov
     warnings: list[str] = []
     iv: dict = {"height_scale": None, "filter_sigma_um": [0.0, 0.0] if not c.with_filter else None}
@@ -518,6 +547,9 @@ def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float) -> 
     if np.any(cv.hac_widening > 1.0 + 1e-9):
         warnings.append("the intervals are widened for residuals correlated along the scans (lag-1 "
                         f"{cv.lag1:.2f}, {cv.bandwidth} lags; Newey-West): the model's error runs with the angle")
+    if cv.nuisance_widening is not None and np.any(cv.nuisance_widening > 1.005):
+        warnings.append(f"the intervals are widened x{float(np.max(cv.nuisance_widening)):.2f} at most for "
+                        f"{cv.nuisance_text}")
     lo, hi = obj.settings.scale_bounds
     sv = float(np.sqrt(cov[0, 0]))
     if s * np.exp(-sv) <= lo or s * np.exp(sv) >= hi:
@@ -642,9 +674,9 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     needed = both["parameters"]["filter_sigma_um"] > 0 and gain > BIC_MARGIN
     chosen = both if needed else alone
     s, g = chosen["parameters"]["height_scale"], chosen["parameters"]["filter_sigma_um"]
-    s, g = _polish(obj, c2 if needed else c1, s, g)            # the likelihood's optimum (step 5)
+    s, g, J = _polish(obj, c2 if needed else c1, s, g)         # the likelihood's optimum (step 5)
     chosen = {"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": obj(s, g, stop_at_threshold=False)}
-    iv, corr, warnings = _intervals(obj, c2 if needed else c1, s, g, gmax)
+    iv, corr, warnings = _intervals(obj, c2 if needed else c1, s, g, gmax, J)
     if not needed:
         bp = both["parameters"]
         _, corr, _ = _intervals(obj, c2, bp["height_scale"], bp["filter_sigma_um"], gmax)

@@ -29,6 +29,15 @@ from relief_bsdf.plate.grid import TableGrid
 
 DEFAULT_DRAWS = 8
 
+# The deterministic plate's stated level accuracy per side (1-sigma, relative): what the forward
+# model's in-lobe level misses an independent photon Monte Carlo through the real relief by, not
+# its noise.  Measured with benchmarks/bench_forward_accuracy.py (2026-12-02; 8 reliefs: Gaussian
+# slope 0.12 / 0.24 / 0.34, dots, exponential, two scales, anisotropic, a measured map; 1 M photons,
+# 0/30/60 deg, 400k rays, in-lobe sum forward / recording): R 0.961-1.000, rms deviation 2.0 %;
+# T 0.992-1.002, rms deviation 0.3 % (rounded up to 0.5 %: eight cases).  Used as nuisance levels
+# in the fit's and the diagnosis's intervals (fit.covariance), never in the estimate.
+FORWARD_LEVEL_SD = {"R": 0.02, "T": 0.005}
+
 
 def perturbed(table: BsdfTable | None, rng: np.random.Generator) -> BsdfTable | None:
     """One draw of `table` within its cells' 1-sigma (None, or a table without sigma, unchanged)."""
@@ -77,3 +86,17 @@ def rows_sigma(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
         swaps = {name: TableFace(perturbed(t_in, rng), perturbed(t_out, rng)) for name, (t_out, t_in) in faces.items()}
         runs[k], _ = deterministic.run(experiment.with_plate(**swaps), rows, grid)
     return runs.std(axis=0, ddof=1)
+
+
+def relative_sigma(experiment: Experiment, rows: Any, grid: TableGrid | None = None, draws: int = DEFAULT_DRAWS,
+                   where: str = "recording") -> np.ndarray:
+    """The simulation's relative 1-sigma per row, sigma / |value| (`rows_sigma` over the deterministic
+    engine's values), 0 where the value is 0 or no table carries a sigma, at most 1.  The fit and the
+    diagnosis compute it once on their baseline and scale it with the values at other parameters: the
+    relative noise of a table hardly moves with the relief's scale and filter or a plate effect, and
+    common random numbers keep it the same draw."""
+    from relief_bsdf.plate.simulate import simulate
+    sim = simulate(experiment, rows, engine="deterministic", grid=grid, where=where, table_sigma_draws=draws)
+    v = np.abs(sim.values_per_sr)
+    rel = np.divide(sim.sigma_per_sr, v, out=np.zeros_like(v), where=v > 0)
+    return np.clip(np.nan_to_num(rel, nan=0.0), 0.0, 1.0)
