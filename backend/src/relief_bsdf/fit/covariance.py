@@ -76,9 +76,12 @@ class Covariance:
         parts = []
         if self.birge > 1.0:
             parts.append(f"the reduced chi^2 {self.birge:.2f} (the model misses the noise)")
-        if self.hac_widening[j] > 1.0 + 1e-9:
+        if self.hac_widening[j] > 1.0 + 1e-9 and self.bandwidth > 0:
             parts.append(f"x{self.hac_widening[j]:.2f} for residuals correlated along the scans "
                          f"(lag-1 {self.lag1:.2f}, {self.bandwidth} lags)")
+        elif self.hac_widening[j] > 1.0 + 1e-9:
+            parts.append(f"x{self.hac_widening[j]:.2f} for residuals larger than the noise where it acts "
+                         "(White's estimate: no correlation along the scans)")
         if self.nuisance_widening is not None and self.nuisance_widening[j] > 1.005:
             parts.append(f"x{self.nuisance_widening[j]:.2f} for {self.nuisance_text or 'the stated model accuracy'}")
         return ("widened by " + " and ".join(parts)) if parts else None

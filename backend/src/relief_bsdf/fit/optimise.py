@@ -544,9 +544,12 @@ def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float,
         warnings.append("the recording does not pin down the relief parameters (their effects on the rows are "
                         "not independent here): no intervals are given")
         return iv, (1.0 if c.with_filter else None), warnings
-    if np.any(cv.hac_widening > 1.0 + 1e-9):
+    if np.any(cv.hac_widening > 1.0 + 1e-9) and cv.bandwidth > 0:
         warnings.append("the intervals are widened for residuals correlated along the scans (lag-1 "
                         f"{cv.lag1:.2f}, {cv.bandwidth} lags; Newey-West): the model's error runs with the angle")
+    elif np.any(cv.hac_widening > 1.0 + 1e-9):
+        warnings.append("the intervals are widened for residuals larger than the noise where the parameters act "
+                        "(White's estimate; no correlation along the scans)")
     if cv.nuisance_widening is not None and np.any(cv.nuisance_widening > 1.005):
         warnings.append(f"the intervals are widened x{float(np.max(cv.nuisance_widening)):.2f} at most for "
                         f"{cv.nuisance_text}")

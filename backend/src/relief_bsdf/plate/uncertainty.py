@@ -35,7 +35,10 @@ DEFAULT_DRAWS = 8
 # slope 0.12 / 0.24 / 0.34, dots, exponential, two scales, anisotropic, a measured map; 1 M photons,
 # 0/30/60 deg, 400k rays, in-lobe sum forward / recording): R 0.961-1.000, rms deviation 2.0 %;
 # T 0.992-1.002, rms deviation 0.3 % (rounded up to 0.5 %: eight cases).  Used as nuisance levels
-# in the fit's and the diagnosis's intervals (fit.covariance), never in the estimate.
+# in the fit's and the diagnosis's intervals (fit.covariance), never in the estimate.  Measured for
+# the ray method's tables on the default grid (auto's choice for reliefs rough on the wavelength
+# scale); a surrogate (microfacet+dw) misses by far more and says so in its own output, a wave
+# method's accuracy is checked against the direct-integration Kirchhoff instead (not a level).
 FORWARD_LEVEL_SD = {"R": 0.02, "T": 0.005}
 
 
