@@ -21,7 +21,7 @@ from relief_bsdf.diagnose.stepwise import passes, stepwise
 from relief_bsdf.fit.residual import chi2
 from relief_bsdf.fit.selection import BIC_MARGIN
 
-from conftest import in_plane_rows  # noqa: E402  (tests/backend/diagnose/conftest.py)
+from diagnosis_rows import in_plane_rows  # noqa: E402  (tests/backend/diagnose/diagnosis_rows.py)
 
 T_MM = 2.0
 
