@@ -71,19 +71,25 @@ class Covariance:
     nuisance_widening: np.ndarray | None = None   # per parameter: sd with / without the stated levels (>= 1)
     nuisance_text: str = ""      # what the nuisance levels are (for the notes)
 
+    def hac_reason(self) -> str:
+        """What the HAC rule widened for: correlation along the scans when it found lags, else residuals
+        larger than the noise (White's estimate, lag 0)."""
+        if self.bandwidth > 0:
+            return (f"residuals correlated along the scans (lag-1 {self.lag1:.2f}, {self.bandwidth} lags; "
+                    "Newey-West)")
+        return ("residuals larger than the noise where the parameters act (White's estimate: no correlation "
+                "along the scans)")
+
     def note(self, j: int) -> str | None:
         """Why parameter j's interval is wider than the curvature's, or None."""
         parts = []
         if self.birge > 1.0:
             parts.append(f"the reduced chi^2 {self.birge:.2f} (the model misses the noise)")
-        if self.hac_widening[j] > 1.0 + 1e-9 and self.bandwidth > 0:
-            parts.append(f"x{self.hac_widening[j]:.2f} for residuals correlated along the scans "
-                         f"(lag-1 {self.lag1:.2f}, {self.bandwidth} lags)")
-        elif self.hac_widening[j] > 1.0 + 1e-9:
-            parts.append(f"x{self.hac_widening[j]:.2f} for residuals larger than the noise where it acts "
-                         "(White's estimate: no correlation along the scans)")
+        if self.hac_widening[j] > 1.0 + 1e-9:
+            parts.append(f"x{self.hac_widening[j]:.2f} for {self.hac_reason()}")
         if self.nuisance_widening is not None and self.nuisance_widening[j] > 1.005:
-            parts.append(f"x{self.nuisance_widening[j]:.2f} for {self.nuisance_text or 'the stated model accuracy'}")
+            why = self.nuisance_text or "the stated model accuracy"
+            parts.append(f"x{self.nuisance_widening[j]:.2f} for {why}")
         return ("widened by " + " and ".join(parts)) if parts else None
 
 
@@ -171,6 +177,7 @@ def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] |
     cov = np.full((k, k), np.nan)
     widen = np.ones(k)
     nw = np.ones(k)
+    N = None if nuisance is None else np.asarray(nuisance, float).reshape(n, -1)
     idx = np.flatnonzero(live)
     if idx.size:
         Js = J[:, idx]
@@ -182,8 +189,8 @@ def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] |
             sd_c = np.sqrt(np.diag(curv))
             f = np.maximum(1.0, np.sqrt(np.maximum(np.diag(hac), 0.0)) / np.where(sd_c > 0, sd_c, np.inf))
             final = curv * np.outer(f, f)
-            if nuisance is not None and np.size(nuisance) and np.asarray(nuisance).shape[1]:
-                extra = _marginal_extra(Js, np.asarray(nuisance, float))
+            if N is not None and N.shape[1]:
+                extra = _marginal_extra(Js, N)
                 if extra is None:
                     final = np.full_like(final, np.nan)      # a parameter that only a level moves
                 else:
@@ -193,4 +200,4 @@ def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] |
             cov[np.ix_(idx, idx)] = final
             widen[idx] = f
     return Covariance(cov=cov, birge=birge, hac_widening=widen, bandwidth=lag, lag1=rho,
-                      nuisance_widening=None if nuisance is None else np.maximum(nw, 1.0), nuisance_text=nuisance_text)
+                      nuisance_widening=None if N is None else np.maximum(nw, 1.0), nuisance_text=nuisance_text)
