@@ -3,7 +3,8 @@ two effects concealed at once, a stated absorption, a clean plate, and an effect
 
 The cases are simulated by validation/ (photons through the ray-traced 96 px relief, shot, gain
 and floor noise), never by the plate model the diagnosis runs, so a pass is evidence.  The
-candidates are restricted to the cheap effects (tables re-used) to keep each diagnosis short;
+candidates are restricted to the instrument and bulk effects (no relief operation, no face swap)
+to keep each diagnosis short;
 the baseline is the default (`auto`: ray tables of the relief).
 """
 import json

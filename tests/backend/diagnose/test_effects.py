@@ -48,13 +48,16 @@ def test_cheap_effects_reuse_the_baseline_tables(small):
     from relief_bsdf.plate import TABLE_CACHE
     small.baseline()
     misses = TABLE_CACHE.misses
-    for name, values in (("bulk_absorption", {"absorption_per_mm": 0.2}), ("instrument_blur", {"blur_deg": 2.0}),
+    for name, values in (("bulk_absorption", {"absorption_per_mm": 0.2}),
                          ("stray_light", {"background_per_sr": 0.1}), ("polarization", {"polarization_q": 0.5})):
         assert get_effect(name).cheap
         small.evaluate(get_effect(name), values)
     assert TABLE_CACHE.misses == misses
     small.evaluate(get_effect("sample_tilt"), {"tilt_deg": 2.0})
     assert TABLE_CACHE.misses == misses + 1     # tilted incidences: the outside table only
+    assert not get_effect("instrument_blur").cheap
+    small.evaluate(get_effect("instrument_blur"), {"blur_deg": 2.0})
+    assert TABLE_CACHE.misses == misses + 2     # the beam's quadrature of incidences: the outside table only
 
 
 def test_absorption_follows_beer_lambert(small):

@@ -303,3 +303,37 @@ def test_an_effect_the_recording_cannot_tell_from_the_named_one_is_reported_as_a
     text = explain(["relief_scale"], {"height_scale": 0.8},
                    {"rms0": 2.2, "rms1": 1.1, "n": n, "chi0": 2000.0, "consistent": False}, ([], []), alike=alt)
     assert "barely tells relief scale from relief smoothing" in text
+
+
+def test_polish_takes_a_correlated_pair_to_the_least_squares_optimum_and_hands_the_intervals_its_jacobian():
+    """Absorption and blur both dim the transmitted lobe's peak, so they trade off; from a point the
+    coordinate search could end at (both off), the polish reaches the least-squares optimum that an
+    independent solver (scipy's least_squares on the closed-form model) finds, and the stepwise
+    selection's chosen model ends there too.  Its Jacobian, handed to the intervals, gives the
+    intervals computed afresh at the answer."""
+    from scipy.optimize import least_squares
+    from relief_bsdf.diagnose.fitting import polish
+    truth = {"absorption_per_mm": 0.3, "blur_deg": 3.0}
+    fwd = BlurForward(truth, seed=6)
+    names = ("absorption_per_mm", "blur_deg")
+    y, s = fwd.rows.bsdf_sr, fwd.rows.sigma_sr
+    assert np.all(y > 0)                       # no censored row: plain least squares is the oracle
+    ls = least_squares(lambda x: (y - fwd.model(dict(zip(names, x)))) / s, [0.3, 3.0], x_scale=[0.01, 0.1],
+                       xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    oracle, chi_oracle = dict(zip(names, ls.x)), float(2 * ls.cost)
+    se = np.sqrt(np.diag(np.linalg.inv(ls.jac.T @ ls.jac)))
+    effs = (get_effect("bulk_absorption"), get_effect("instrument_blur"))
+    start = {"absorption_per_mm": oracle["absorption_per_mm"] + 4 * se[0], "blur_deg": oracle["blur_deg"] - 4 * se[1]}
+    assert fwd.evaluate_set(effs, start)[0] > chi_oracle + 10
+    vals, chi, J = polish(fwd, effs, start)
+    assert chi == pytest.approx(chi_oracle, abs=0.05)
+    for j, name in enumerate(names):
+        assert abs(vals[name] - oracle[name]) < 0.05 * se[j]
+    assert J is not None
+    handed, fresh = intervals(fwd, effs, vals, J), intervals(fwd, effs, vals)
+    assert handed[1] == fresh[1]
+    for j, name in enumerate(names):
+        assert np.allclose(handed[0][name], fresh[0][name], rtol=0, atol=0.01 * se[j])
+    final = stepwise(fwd, ["bulk_absorption", "stray_light", "instrument_blur"], workers=1)[-1]
+    assert set(final.effects) == {"bulk_absorption", "instrument_blur"}
+    assert final.chi2 == pytest.approx(chi_oracle, abs=0.05) and final.jacobian is not None

@@ -222,7 +222,8 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
     unexplained = remainder = None
     if final.effects and closed:
         effects, params, (v1, s1), rms1 = list(final.effects), final.values, final.model, math.sqrt(final.chi2 / n)
-        ivals, notes = fit_intervals(forward, tuple(get_effect(e) for e in final.effects), final.values)
+        ivals, notes = fit_intervals(forward, tuple(get_effect(e) for e in final.effects), final.values,
+                                     final.jacobian)
         if not adequate(final.chi2, n):
             remainder = {"mismatch": locate(rows, v1, s1, n_glass=n_glass),
                          "shapes": classify(rows, v1, s1, n_glass=n_glass)}

@@ -3,7 +3,7 @@
     experiment = Experiment(Plate(thickness_m, index, front=ReliefFace(relief), back=FlatFace(),
                                   bulk=Bulk(absorption_per_m, scatter_per_m, hg_g)),
                             Instrument(detector_half_angle_deg, polarization_q, blur_deg, tilt_deg,
-                                       background_per_sr, cone_points))
+                                       background_per_sr, cone_points, beam_divergence_deg))
     sim = simulate(experiment, rows, engine="deterministic" | "photon", photons=..., seed=...)
     sim.values_per_sr, sim.sigma_per_sr, sim.info      # info: the physics used (faces, engine)
 
@@ -13,7 +13,8 @@
 - `plate.grid`: TableGrid, the tables' axes = the deterministic discretisation;
 - `plate.deterministic`: radiative transfer between the faces' tables (adding / azimuthal modes);
 - `plate.photon`: photon Monte Carlo of the same description (independent code, checks the first);
-- `plate.detector`: the one detector and the one instrument blur (cone (x) Gaussian).
+- `plate.detector`: the one detector, its aperture blur (cone (x) Gaussian) and the beam
+  divergence's quadrature of incidences (solved by the engines, not a blur of the reading).
 
 Rows are any object with wavelength_nm, theta_i_deg, phi_i_deg, side, theta_s_deg, phi_s_deg
 arrays (a Recording, `Rows`, `in_plane_rows(...)`); values follow formats.md's goniophotometer

@@ -83,11 +83,29 @@ def quadrature_offsets(half_angle_deg: float, cone_points: int = 19, blur_deg: f
     cone = np.stack([r * np.cos(psi), r * np.sin(psi)], axis=1)
     if blur_deg <= 0:
         return cone
-    j = np.arange(GAUSS_POINTS)
-    rg = np.radians(blur_deg) * np.sqrt(2.0 * _exp_bin_means(GAUSS_POINTS))
-    pg = j * _GOLDEN + 0.5
-    gauss = np.stack([rg * np.cos(pg), rg * np.sin(pg)], axis=1)
+    gauss = gaussian_offsets(blur_deg, GAUSS_POINTS)
     return (cone[:, None, :] + gauss[None, :, :]).reshape(-1, 2)
+
+
+def gaussian_offsets(sigma_deg: float, n: int) -> np.ndarray:
+    """(n, 2) equal-weight tangent-plane offsets (rad) of a 2-D Gaussian of 1-sigma `sigma_deg` per
+    axis: n equal-probability rings, each at the radius of its ring's mean r^2 (sigma sqrt(2 E_j)),
+    golden-angle azimuths; the exact second moment.  The one construction of the aperture blur's
+    points (`quadrature_offsets`) and the beam divergence's incidences (`beam_offsets`)."""
+    j = np.arange(n)
+    rg = np.radians(sigma_deg) * np.sqrt(2.0 * _exp_bin_means(n))
+    pg = j * _GOLDEN + 0.5
+    return np.stack([rg * np.cos(pg), rg * np.sin(pg)], axis=1)
+
+
+BEAM_POINTS = 16        # incidences of the beam divergence's quadrature (deterministic engine)
+
+
+def beam_offsets(sigma_deg: float, n: int | None = None) -> np.ndarray:
+    """(n, 2) equal-weight tangent-plane offsets (rad) of the incidence direction for a source beam of
+    Gaussian divergence `sigma_deg` per axis (`gaussian_offsets`): the deterministic engine solves the
+    plate at each and averages what the detector reads (plate.deterministic.simulate_rows)."""
+    return gaussian_offsets(sigma_deg, BEAM_POINTS if n is None else int(n))
 
 
 def _exp_bin_means(n: int) -> np.ndarray:
@@ -396,11 +414,15 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
     return out
 
 
-def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndarray, det: Any) -> np.ndarray:
+def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndarray, det: Any,
+                 parts: tuple = ("diffuse", "deltas", "background")) -> np.ndarray:
     """Detector readings (1/sr) of the rows of one incidence from a deterministic result.
 
     `res`: a PlateResult (grid_R / grid_T on theta_out_deg x delta_deg, delta beams); `det`:
-    anything with detector_half_angle_deg, cone_points, blur_deg, background_per_sr.
+    anything with detector_half_angle_deg, cone_points, blur_deg, background_per_sr.  `parts`:
+    what is read, the diffuse field (direct and loop parts), the delta beams, the stray light
+    (the beam divergence reads the diffuse field at each incidence of its quadrature and the
+    delta beams once, plate.deterministic.simulate_rows).
     """
     off = quadrature_offsets(det.detector_half_angle_deg, det.cone_points, det.blur_deg)
     th, ph = offset_directions(theta_s, phi_s, off)
@@ -409,6 +431,8 @@ def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndar
     out = np.zeros(theta_s.size)
     direct = getattr(res, "direct", None)
     grids = (("R", res.grid_R), ("T", res.grid_T)) if direct is None else (("R", res.loop_R), ("T", res.loop_T))
+    if "diffuse" not in parts:
+        grids, direct = (), None
     if direct is not None:
         out += direct_reading(direct, side, theta_s, np.mod(phi_s - (res.phi_i_deg + 180.0), 360.0), det)
     for sd, grid in grids:
@@ -417,10 +441,10 @@ def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndar
             v = _bilinear_periodic(centre_values(grid), res.theta_out_deg, res.delta_deg, th[sel].ravel(),
                                    dl[sel].ravel())
             out[sel] += (v.reshape(-1, off.shape[0]) * proj[sel]).mean(axis=1)
-    for sd, tdeg, ddeg, p in res.deltas:
+    for sd, tdeg, ddeg, p in (res.deltas if "deltas" in parts else ()):
         sel = np.nonzero(side == sd)[0]
         if p != 0.0 and sel.size:
             out[sel] += delta_reading(tdeg, res.phi_i_deg + 180.0 + ddeg, p, theta_s[sel], phi_s[sel],
                                       det.detector_half_angle_deg, det.blur_deg)
     # FFT round-off can leave -1e-20 where the field is zero: a BSDF is never negative
-    return np.maximum(out, 0.0) + det.background_per_sr
+    return np.maximum(out, 0.0) + (det.background_per_sr if "background" in parts else 0.0)

@@ -82,7 +82,7 @@ from relief_bsdf.core.frames import rot_y
 from relief_bsdf.core.fresnel import mueller_interface
 from relief_bsdf.core.index import ConstantIndex, IndexModel, Material
 from relief_bsdf.plate.description import Bulk, Instrument
-from relief_bsdf.plate.detector import grid_reading
+from relief_bsdf.plate.detector import beam_offsets, grid_reading, offset_directions
 
 _DEPOL = np.diag([1.0, 0.0, 0.0, 0.0])
 
@@ -130,6 +130,7 @@ class PlateModel:
     cone_points: int = 19
     scatter_per_m: float = 0.0
     hg_g: float = 0.0
+    beam_divergence_deg: float = 0.0
 
     def __post_init__(self) -> None:
         """The checks are the description's (plate.description: Instrument, Bulk): one owner each."""
@@ -141,7 +142,7 @@ class PlateModel:
             raise InputError("instrument.polarization",
                              f"must be unpolarized, s or p, got {self.polarization!r}")
         Instrument(self.detector_half_angle_deg, float(self.source_stokes[1]), self.blur_deg, self.tilt_deg,
-                   self.background_per_sr, self.cone_points)
+                   self.background_per_sr, self.cone_points, self.beam_divergence_deg)
         Bulk(self.absorption_per_m, self.scatter_per_m, self.hg_g)
 
     @property
@@ -907,6 +908,34 @@ def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | Non
     check_rows(model, rows, where)
     solver = solver or PlateSolver(model, inside, outside, back, front)
     wl, ti, pi, side, ts, ps = row_arrays(rows)
+    beam = model.beam_divergence_deg
+    if beam <= 0:
+        out = _readings(solver, model, wl, ti, pi, side, ts, ps, model, ("diffuse", "deltas"))
+        return out + model.background_per_sr
+    q = beam_offsets(beam).shape[0]
+    tq, pq = beam_incidences(ti, pi, beam)
+    rep = lambda a: np.repeat(a, q)       # noqa: E731  (row k's q incidences are entries k q .. k q + q - 1)
+    diffuse = _readings(solver, model, rep(wl), tq.ravel(), pq.ravel(), rep(side), rep(ts), rep(ps), model,
+                        ("diffuse",)).reshape(-1, q).mean(axis=1)
+    wide = replace(model, blur_deg=float(np.hypot(model.blur_deg, beam)))
+    deltas = _readings(solver, model, wl, ti, pi, side, ts, ps, wide, ("deltas",))
+    return diffuse + deltas + model.background_per_sr
+
+
+def beam_incidences(theta_i_deg: Any, phi_i_deg: Any, beam_divergence_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(theta, phi) in degrees, shape (rows, BEAM_POINTS): the incidences of the beam divergence's
+    quadrature (`plate.detector.beam_offsets`) around each row's nominal incidence, instrument frame."""
+    th, ph = offset_directions(np.asarray(theta_i_deg, float), np.asarray(phi_i_deg, float),
+                               beam_offsets(beam_divergence_deg))
+    return np.round(th, 9), np.round(np.mod(ph, 360.0), 9)
+
+
+def _readings(solver: PlateSolver, model: PlateModel, wl, ti, pi, side, ts, ps, det: Any,
+              parts: tuple) -> np.ndarray:
+    """Detector readings (1/sr, stray light not added) of rows given in the instrument frame: the
+    sample tilt applied (rows seen in the tilted sample's frame, f = f' cos theta_s' / cos theta_s),
+    the plate solved once per incidence; `det` the detector (cone, aperture blur), `parts` which
+    parts of the field are read (`plate.detector.grid_reading`)."""
     factor = 1.0
     if model.tilt_deg:
         ti, pi = to_sample_frame(ti, pi, np.full(ti.shape, "R"), model.tilt_deg)
@@ -924,8 +953,8 @@ def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | Non
             sel = mw & (ti == t) & (pi == p)
             r = res[float(t)]
             r = replace(r, phi_i_deg=float(p))
-            out[sel] = grid_reading(r, side[sel], ts[sel], ps[sel], model)
-    return (out - model.background_per_sr) * factor + model.background_per_sr
+            out[sel] = grid_reading(r, side[sel], ts[sel], ps[sel], det, parts)
+    return out * factor
 
 
 def to_sample_frame(theta_deg: Any, phi_deg: Any, side: Any, tilt_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -969,19 +998,24 @@ def model_of(experiment: Any, grid: Any, rough_face: str = "front") -> PlateMode
                       polarization=float(ins.polarization_q), outside_index=p.outside_index,
                       background_per_sr=ins.background_per_sr, blur_deg=ins.blur_deg, tilt_deg=ins.tilt_deg,
                       azimuth_cells=grid.azimuth_cells, cone_points=ins.cone_points,
-                      scatter_per_m=b.scatter_per_m, hg_g=b.hg_g)
+                      scatter_per_m=b.scatter_per_m, hg_g=b.hg_g, beam_divergence_deg=ins.beam_divergence_deg)
 
 
 def table_incidences(experiment: Any, rows: Any) -> tuple[np.ndarray, np.ndarray]:
     """(wavelengths, outside incidences) the faces' tables need for these rows: the rows' own, or
     under a sample tilt the incidences the tilted sample sees (those the engine will solve)."""
     wl = np.unique(np.asarray(rows.wavelength_nm, float))
-    ti = np.unique(np.abs(np.asarray(rows.theta_i_deg, float)))
+    ti = np.abs(np.asarray(rows.theta_i_deg, float))
+    pi = np.asarray(rows.phi_i_deg, float) + 0 * ti
+    beam = experiment.instrument.beam_divergence_deg
+    if beam > 0:                      # the nominal incidences (delta parts) and the quadrature's
+        tq, pq = beam_incidences(ti, pi, beam)
+        ti, pi = np.concatenate([ti, tq.ravel()]), np.concatenate([pi, pq.ravel()])
     tilt = experiment.instrument.tilt_deg
     if tilt:
-        t_s, _ = to_sample_frame(rows.theta_i_deg, rows.phi_i_deg, np.full(np.size(rows.theta_i_deg), "R"), tilt)
-        ti = np.unique(np.round(t_s, 9))
-    return wl, ti
+        ti, _ = to_sample_frame(ti, pi, np.full(ti.shape, "R"), tilt)
+        ti = np.round(ti, 9)
+    return wl, np.unique(ti)
 
 
 def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> PlateSolver:
@@ -1007,7 +1041,7 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> Pl
 _SOLVERS: list = []          # (tables, plate fields, solver): the last few, newest last
 _SOLVERS_KEPT = 4
 _INSTRUMENT_FIELDS = ("detector_half_angle_deg", "polarization", "background_per_sr", "blur_deg", "tilt_deg",
-                      "cone_points")
+                      "cone_points", "beam_divergence_deg")
 
 
 def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | None,

@@ -7,8 +7,9 @@ core (Fresnel Mueller matrices, Henyey-Greenstein sampling) and the one detector
 
 Transport (geometry as formats.md: plate -t < z < 0, light from z > 0, laterally infinite):
 
-1. source: propagation direction of the beam in the (tilted) sample frame, Stokes (1, q, 0, 0)
-   in the frame s = z x k (the plane of incidence);
+1. source: propagation direction of the beam in the (tilted) sample frame, each photon's
+   deviated by the beam divergence (`beam_directions`), Stokes (1, q, 0, 0) in the frame
+   s = z x k (the plane of incidence);
 2. the front face scatters it (face-local frame = plate frame); what goes up leaves as R;
 3. in the glass a photon at depth z draws a free path l ~ Exp(mu_s) (mu_s = scatter_per_m);
    if l is shorter than the distance to the next face along k it scatters there into a
@@ -121,9 +122,9 @@ def trace(experiment: Any, wavelength_nm: float, theta_i_deg: float, phi_i_deg: 
     p, ins = experiment.plate, experiment.instrument
     ctx = PhotonContext(p.material, float(wavelength_nm), grid or TableGrid(), (float(abs(theta_i_deg)),))
     t, ph_ = np.radians(theta_i_deg), np.radians(phi_i_deg)
-    k0 = rot_y(ins.tilt_deg).T @ np.array([-np.sin(t) * np.cos(ph_), -np.sin(t) * np.sin(ph_), -np.cos(t)])
+    k_ins = np.array([-np.sin(t) * np.cos(ph_), -np.sin(t) * np.sin(ph_), -np.cos(t)])
     tally = _Tally()
-    d = np.tile(k0, (n_photons, 1))
+    d = beam_directions(k_ins, ins.beam_divergence_deg, n_photons, rng) @ rot_y(ins.tilt_deg)
     S = np.tile([1.0, float(ins.polarization_q), 0.0, 0.0], (n_photons, 1))
     ev = p.front.interact(d, S, False, ctx, rng)
     tally.lost += float(np.sum(S[ev.lost, 0]))
@@ -148,6 +149,24 @@ def trace(experiment: Any, wavelength_nm: float, theta_i_deg: float, phi_i_deg: 
     if ins.tilt_deg:
         dirs = dirs @ rot_y(ins.tilt_deg).T          # back to the instrument frame
     return Exits(np.concatenate(tally.side), dirs, np.concatenate(tally.w), n_photons, tally.lost)
+
+
+def beam_directions(k: np.ndarray, sigma_deg: float, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) propagation directions of a source beam along `k` whose rays deviate by a 2-D Gaussian
+    tangent-plane angle of 1-sigma `sigma_deg` per axis (plate.description.Instrument.beam_divergence_deg):
+    the angle vector g ~ N(0, sigma^2 I_2) on an orthonormal basis (e1, e2) normal to k, the ray
+    cos|g| k + sin|g| g / |g| (a rotation by |g| toward g).  sigma = 0: every ray along k."""
+    k = np.asarray(k, float) / np.linalg.norm(k)
+    if sigma_deg <= 0:
+        return np.tile(k, (n, 1))
+    helper = np.array([0.0, 1.0, 0.0]) if abs(k[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(helper, k)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(k, e1)
+    g = rng.normal(0.0, np.radians(sigma_deg), size=(n, 2))
+    r = np.hypot(g[:, 0], g[:, 1])
+    s = np.where(r > 0, np.sin(r) / np.where(r > 0, r, 1.0), 1.0)
+    return np.cos(r)[:, None] * k + s[:, None] * (g[:, :1] * e1 + g[:, 1:] * e2)
 
 
 def detect(exits: Exits, side: np.ndarray, theta_s_deg: np.ndarray, phi_s_deg: np.ndarray,
@@ -213,5 +232,5 @@ def experiment_of_model(model: Any, relief: Any, method: str = "ray") -> Any:
     plate = Plate(model.thickness_m, model.index, front, back,
                   Bulk(model.absorption_per_m, model.scatter_per_m, model.hg_g), model.outside_index)
     ins = Instrument(model.detector_half_angle_deg, float(model.source_stokes[1]), model.blur_deg, model.tilt_deg,
-                     model.background_per_sr, model.cone_points)
+                     model.background_per_sr, model.cone_points, model.beam_divergence_deg)
     return Experiment(plate, ins)

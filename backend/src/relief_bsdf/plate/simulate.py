@@ -33,6 +33,7 @@ def describe(experiment: Experiment) -> dict:
                                                   "scatter_per_m": b.scatter_per_m, "hg_g": b.hg_g},
             "instrument": {"detector_half_angle_deg": ins.detector_half_angle_deg,
                            "polarization_q": ins.polarization_q, "blur_deg": ins.blur_deg, "tilt_deg": ins.tilt_deg,
+                           "beam_divergence_deg": ins.beam_divergence_deg,
                            "background_per_sr": ins.background_per_sr}}
 
 

@@ -16,11 +16,15 @@ Every module of `relief_bsdf.diagnose.effects` defines one `EFFECT = Effect(...)
 - `cheap`: True when the effect leaves every boundary table as it is (bulk, instrument),
   so an evaluation re-uses the baseline's tables (the fit grid can then be finer);
 - `slow`: True for a cheap effect whose evaluation still takes seconds (the adding-doubling
-  slab of a scattering bulk, the blurred detector's quadrature); `budgeted` (not cheap, or
+  slab of a scattering bulk); `budgeted` (not cheap, or
   slow) effects get the short fit grid and are screened before they are fitted
   (`stepwise`);
 - `bracket(context, forward) -> {param: (lo, hi)}`: optional narrower search interval
   derived from the data (e.g. the weighted-mean background for stray light);
+- `coordinate(context) -> {param: (to_u, from_u)}`: optional monotone search coordinate u of a
+  parameter on which the rows depend very unevenly (the relief filter: the rows follow the
+  slopes it leaves, which fall steeply over a small range of the filter width, so a grid on the
+  width misses the optimum); the fits search on u (`diagnose.fitting`);
 - `face`: "" for an effect that leaves the relief face alone, "relief" for an operation on the
   measured relief (relief_scale, relief_smoothing: they compose into the one
   scale-and-filter operation, `apply_all`), "swap" for a different face physics
@@ -121,6 +125,7 @@ class Effect:
     skip_reason: Callable[[ReliefContext], "str | None"] = _no_skip
     bracket: Callable[[ReliefContext, Any], dict] | None = None
     face: str = ""
+    coordinate: Callable[[ReliefContext], dict] | None = None
 
     @property
     def neutral(self) -> dict:

@@ -1,13 +1,16 @@
-"""instrument_blur: beam divergence / detector aperture wider than stated.
+"""instrument_blur: the source beam diverges more than stated (angular blur of the incidence).
 
-Physics: the instrument's angular response is the detector cone convolved with a 2-D
-Gaussian of 1-sigma b (`Instrument.blur_deg`, the plate engine's one blur definition);
-Gaussians convolve by adding variances, so the fitted extra blur adds in quadrature to the
-stated one.  Tables unchanged (cheap).
-Validity: small angles (b of a few degrees), blur independent of the direction.  The search
-stops at b = 5 deg: the detector's tangent-plane offsets hold while h + 5 b stays well below
-45 deg (plate.detector, Regime), and a 5-deg 1-sigma (12 deg FWHM) is already far beyond a
-goniophotometer's divergence.
+Physics: the incident beam's rays deviate from the nominal incidence by a 2-D Gaussian angle of
+1-sigma b per axis (`Instrument.beam_divergence_deg`, one definition in the plate engine: the
+deterministic engine solves the plate at a quadrature of incidences, the photon engine draws each
+photon's); Gaussians compose by adding variances, so the fitted divergence adds in quadrature to
+a stated one.  Not the same as blurring the reading: off normal incidence a lobe does not move
+rigidly with the incidence (the grazing flank of a reflected lobe and the transmitted lobe's
+shape at 55 deg differ by up to 8-20 % between the two, independent photon Monte Carlo,
+2026-12-02); a too-wide detector aperture is the other blur (`Instrument.blur_deg`).
+Tables: the outside tables at the quadrature's incidences are new (budgeted: slow).
+Validity: small angles (b of a few degrees, tangent-plane offsets); the search stops at b = 5 deg,
+already far beyond a goniophotometer's divergence.
 """
 import math
 
@@ -15,17 +18,16 @@ from relief_bsdf.diagnose.effects._base import Effect, Param
 
 
 def _apply(experiment, context, values):
-    b = math.hypot(experiment.instrument.blur_deg, float(values["blur_deg"]))
-    return experiment.with_instrument(blur_deg=b)
+    b = math.hypot(experiment.instrument.beam_divergence_deg, float(values["blur_deg"]))
+    return experiment.with_instrument(beam_divergence_deg=b)
 
 
 EFFECT = Effect(
     name="instrument_blur",
     params=(Param("blur_deg", 0.0, 5.0, 0.0, "deg"),),
-    physics="beam divergence / detector aperture wider than stated (angular blur)",
-    validity="Gaussian angular response of a few degrees, the same in every direction",
+    physics="the source beam diverges more than stated (a Gaussian spread of the incidence)",
+    validity="Gaussian divergence of a few degrees, the same in every direction",
     apply=_apply,
-    explain=lambda v: f"an extra angular blur of {v['blur_deg']:.2f} deg (1-sigma)",
-    cheap=True,
-    slow=True,
+    explain=lambda v: f"a beam divergence of {v['blur_deg']:.2f} deg (1-sigma per axis)",
+    cheap=False,
 )

@@ -1,0 +1,112 @@
+"""The source's beam divergence (Instrument.beam_divergence_deg): a spread of the incidence, not of the reading.
+
+Checks: the photon engine draws each photon's incidence with the stated divergence per axis; a flat
+plate's specular beams are read, by both engines, as the aperture-blurred cone of the exact law
+(a flat face maps an incidence deviation one to one onto the exit); on a rough relief off normal
+incidence the deterministic engine's quadrature of incidences agrees with the validation's own
+independent photon Monte Carlo (`validation.photon`, the beam drawn per photon), and a blur of
+the reading of the same width does not (slow).
+"""
+import numpy as np
+import pytest
+
+from relief_bsdf.core.index import ConstantIndex
+from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, Rows, simulate
+from relief_bsdf.plate.detector import response
+from relief_bsdf.plate.deterministic import table_incidences
+from relief_bsdf.plate.photon import beam_directions
+from relief_bsdf.plate.uncertainty import FORWARD_LEVEL_SD
+
+
+def test_photon_beam_directions_deviate_by_the_stated_gaussian_per_axis():
+    k = np.array([-np.sin(np.radians(55.0)), 0.0, -np.cos(np.radians(55.0))])
+    d = beam_directions(k, 2.0, 200_000, np.random.default_rng(1))
+    assert np.allclose(np.linalg.norm(d, axis=1), 1.0)
+    e_in = np.cross(np.array([0.0, 1.0, 0.0]), k)          # in the plane of incidence, normal to k
+    e_out = np.array([0.0, 1.0, 0.0])
+    for e in (e_in / np.linalg.norm(e_in), e_out):
+        a = np.degrees(np.arcsin(d @ e))
+        assert abs(a.mean()) < 0.02 and np.std(a) == pytest.approx(2.0, rel=0.01)
+    assert np.array_equal(beam_directions(k, 0.0, 3, np.random.default_rng(1)), np.tile(k, (3, 1)))
+
+
+def test_the_tables_are_asked_for_at_the_incidences_of_the_beam_quadrature():
+    ex = Experiment(Plate(2e-3, ConstantIndex(1.5), FlatFace(), FlatFace()),
+                    Instrument(detector_half_angle_deg=2.0, beam_divergence_deg=2.0, tilt_deg=1.0))
+    rows = Rows(np.full(2, 550.0), np.array([0.0, 40.0]), np.zeros(2), ["R", "T"], np.array([10.0, 40.0]),
+                np.array([0.0, 180.0]))
+    _, ti = table_incidences(ex, rows)
+    _, plain = table_incidences(ex.with_instrument(beam_divergence_deg=0.0), rows)
+    assert set(np.round(plain, 6)) <= set(np.round(ti, 6))       # the nominal ones (delta beams) are kept
+    assert ti.size >= 2 + 16 and ti.min() >= 0.0
+    c = plain[np.argmin(np.abs(plain - 40.0))]                    # 40 deg as the tilted sample sees it
+    near = ti[np.abs(ti - c) < 8]
+    assert near.min() < c - 2.0 and near.max() > c + 2.0           # the quadrature spreads to both sides
+
+
+def test_both_engines_read_a_flat_plates_specular_beams_through_the_divergence():
+    """A flat face maps a deviation of the incidence one to one onto the specular exit, so the reading
+    is response(psi; h, sqrt(b^2 + s^2)) P / (Omega cos theta_s) (plate.detector): the exact law for the
+    deterministic engine; the photon engine, which draws each photon's incidence, agrees within its noise."""
+    h, s = 1.0, 0.7
+    ex = Experiment(Plate(2e-3, ConstantIndex(1.5), FlatFace(), FlatFace()),
+                    Instrument(detector_half_angle_deg=h, beam_divergence_deg=s))
+    offs = np.array([0.0, 0.5, 1.0, 1.5, 2.2])
+    ts = 30.0 + offs
+    n = ts.size
+    rows = Rows(np.full(2 * n, 550.0), np.full(2 * n, 30.0), np.zeros(2 * n), ["R"] * n + ["T"] * n,
+                np.concatenate([ts, ts]), np.full(2 * n, 180.0))
+    det = simulate(ex, rows).values_per_sr
+    shape = (response(np.radians(offs), h, s) / response(0.0, h, s) * np.cos(np.radians(30.0))
+             / np.cos(np.radians(ts)))
+    for k in (slice(0, n), slice(n, 2 * n)):
+        assert det[k][0] > 1.0
+        np.testing.assert_allclose(det[k] / det[k][0], shape, rtol=1e-6)
+    mc = simulate(ex, rows, engine="photon", photons=200_000, seed=4)
+    z = (mc.values_per_sr - det) / (mc.sigma_per_sr + 1e-3 * det.max())
+    assert np.all(np.abs(z) < 4.0), z
+    sharp = simulate(ex.with_instrument(beam_divergence_deg=0.0), rows).values_per_sr
+    assert det[0] < 0.8 * sharp[0]                                 # the divergence is seen
+
+
+def _lobe_rows(theta_i: float) -> Rows:
+    ts = np.arange(25.0, 90.0, 5.0)
+    n = ts.size
+    return Rows(np.full(2 * n, 550.0), np.full(2 * n, theta_i), np.zeros(2 * n), ["R"] * n + ["T"] * n,
+                np.concatenate([ts, ts]), np.full(2 * n, 180.0))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [21])
+def test_rough_plate_off_normal_the_quadrature_of_incidences_agrees_with_the_independent_monte_carlo(seed):
+    """Gaussian relief (rms 0.4 um, correlation 5 um, 1 um pitch: rms slope ~0.11, the diagnosis benchmark's
+    kind), n 1.5, 2 mm, theta_i 55 deg, beam divergence 2.5 deg, 2.5-deg cone.  In the bright part of both
+    lobes the deterministic engine's beam divergence stays within a few percent of the validation's photon
+    Monte Carlo; the same width as a blur of the reading misses it several times more.  (Set on seed 5's
+    concealed relief, 2026-12-02: T within 1-1.5 %, R 2-4.5 %, the reading blur 5-12 %; this tile is a
+    fresh one: rms T 1.7 % against 5.3 %, R 3.9 % (its level, 0.96) against 7.2 %.)"""
+    from relief_bsdf.plate import ReliefFace
+    from relief_bsdf.surface.synth import random_relief
+    from relief_bsdf.validation.conceal import HeightFieldFace
+    from relief_bsdf.validation.photon import PlatePhysics, detect, run_photons
+    relief = random_relief(96, 1e-6, 0.4e-6, 5e-6, kind="gaussian", seed=seed)
+    rows = _lobe_rows(55.0)
+    phys = PlatePhysics(thickness_mm=2.0, n_glass=1.5, beam_sigma_deg=2.5)
+    ex_mc = run_photons(HeightFieldFace(relief.heights_m, relief.dx_m, relief.dy_m), phys, 55.0, 0.0,
+                        (1.0, 0.0, 0.0, 0.0), 1_500_000, np.random.default_rng(seed))
+    mc, mc_sigma = detect(ex_mc, np.asarray(rows.side), rows.theta_s_deg, rows.phi_s_deg, 2.5)
+    plate = Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", 400_000, seed), FlatFace())
+    beam = simulate(Experiment(plate, Instrument(detector_half_angle_deg=2.5, beam_divergence_deg=2.5)),
+                    rows).values_per_sr
+    blur = simulate(Experiment(plate, Instrument(detector_half_angle_deg=2.5, blur_deg=2.5)), rows).values_per_sr
+    side = np.asarray(rows.side)
+    dev = {}
+    for sd in ("R", "T"):
+        # the bright part of the lobe where the Monte Carlo's own noise is below 3 %
+        bright = (side == sd) & (mc > 0.1 * mc[side == sd].max()) & (mc_sigma < 0.03 * mc)
+        assert bright.sum() >= 5
+        dev[sd] = [np.sqrt(np.mean((m[bright] / mc[bright] - 1) ** 2)) for m in (beam, blur)]
+    assert dev["T"][0] < 0.03 and dev["T"][1] > 2 * dev["T"][0]
+    # R: the forward's stated R level accuracy (2 %) is the larger part here; within 3x it, and closer
+    # than the reading blur
+    assert dev["R"][0] < 3 * FORWARD_LEVEL_SD["R"] and dev["R"][1] > dev["R"][0]
