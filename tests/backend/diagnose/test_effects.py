@@ -218,3 +218,32 @@ def test_interreflection_is_the_ray_traced_relief_and_is_named(plate_forward, ga
     fwd = plate_forward(gaussian_relief(96, 1e-6, 2e-6, 2e-6, 6), tis=(0.0, 70.0))
     name, fit = _names_it(fwd, "interreflection", {}, ("relief_scale", "instrument_blur"))
     assert name == "interreflection" and fit["k"] == 0
+
+
+def test_the_relief_filter_is_searched_on_the_rms_slope_it_leaves(small):
+    """relief_smoothing's search coordinate u(sigma) = rms slope after the filter / the relief's: 1 at
+    sigma = 0, monotone decreasing, equal to the slope of the very relief the effect applies (one
+    scale-and-filter, one rms slope), and inverted consistently; a cost with a narrow valley in sigma
+    (as the lobes' chi^2: seed-5 case06) is found by the coarse search on u, not on sigma."""
+    from relief_bsdf.diagnose.fitting import GRID_TABLES, REFINE_TABLES, _fit_param
+    from relief_bsdf.surface.stats import rms_height_and_slope
+    e = get_effect("relief_smoothing")
+    to_u, from_u = e.coordinate(small.context)["filter_sigma_um"]
+    sig = np.linspace(0.0, 8.0, 33)
+    u = np.array([to_u(s) for s in sig])
+    assert u[0] == pytest.approx(1.0) and np.all(np.diff(u) <= 0) and u[-1] < 0.3
+    m0 = rms_height_and_slope(small.context.relief)[1]
+    m2 = rms_height_and_slope(small.context.processed_relief(1.0, 2.0e-6))[1]
+    assert to_u(2.0) == pytest.approx(m2 / m0, rel=0.01)
+    for s in (0.5, 1.7, 3.0):
+        assert from_u(to_u(s)) == pytest.approx(s, abs=0.02)
+    p = e.params[0]
+    truth_u = to_u(2.36)
+
+    def cost(x):          # chi^2 rising by ~2000 within +-0.1 of the slope fraction, like a narrow lobe's
+        return 250.0 + 2e5 * (to_u(x) - truth_u) ** 2
+    # a first step's search budget, then a later step's (coarse): on u the valley is found, on sigma less well
+    for grid, refine, bar in ((GRID_TABLES, REFINE_TABLES, 260.0), (4, 3, 400.0)):
+        found_u = _fit_param(cost, p, 0.0, 8.0, grid, refine, coord=(to_u, from_u))
+        found_sigma = _fit_param(cost, p, 0.0, 8.0, grid, refine)
+        assert cost(found_u) < bar and cost(found_u) < cost(found_sigma)

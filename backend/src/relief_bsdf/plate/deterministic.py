@@ -912,21 +912,22 @@ def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | Non
     if beam <= 0:
         out = _readings(solver, model, wl, ti, pi, side, ts, ps, model, ("diffuse", "deltas"))
         return out + model.background_per_sr
-    q = beam_offsets(beam).shape[0]
+    _, weights = beam_offsets(beam)
+    q = weights.size
     tq, pq = beam_incidences(ti, pi, beam)
     rep = lambda a: np.repeat(a, q)       # noqa: E731  (row k's q incidences are entries k q .. k q + q - 1)
     diffuse = _readings(solver, model, rep(wl), tq.ravel(), pq.ravel(), rep(side), rep(ts), rep(ps), model,
-                        ("diffuse",)).reshape(-1, q).mean(axis=1)
+                        ("diffuse",)).reshape(-1, q) @ weights
     wide = replace(model, blur_deg=float(np.hypot(model.blur_deg, beam)))
     deltas = _readings(solver, model, wl, ti, pi, side, ts, ps, wide, ("deltas",))
     return diffuse + deltas + model.background_per_sr
 
 
 def beam_incidences(theta_i_deg: Any, phi_i_deg: Any, beam_divergence_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """(theta, phi) in degrees, shape (rows, BEAM_POINTS): the incidences of the beam divergence's
-    quadrature (`plate.detector.beam_offsets`) around each row's nominal incidence, instrument frame."""
+    """(theta, phi) in degrees, shape (rows, Q): the incidences of the beam divergence's quadrature
+    (`plate.detector.beam_offsets`) around each row's nominal incidence, instrument frame."""
     th, ph = offset_directions(np.asarray(theta_i_deg, float), np.asarray(phi_i_deg, float),
-                               beam_offsets(beam_divergence_deg))
+                               beam_offsets(beam_divergence_deg)[0])
     return np.round(th, 9), np.round(np.mod(ph, 360.0), 9)
 
 
