@@ -111,3 +111,69 @@ def test_rough_plate_off_normal_the_quadrature_of_incidences_agrees_with_the_ind
     # R: the forward's stated R level accuracy (2 %) is the larger part here; within 3x it, and closer
     # than the reading blur
     assert dev["R"][0] < 3 * FORWARD_LEVEL_SD["R"] and dev["R"][1] > dev["R"][0]
+
+
+def test_an_incidence_of_the_beam_is_solved_in_the_nominal_plane_and_its_specular_lands_where_it_belongs():
+    """beam_split: a divergent ray's source direction (theta', phi') around the nominal (30, 0) is solved at
+    the in-plane incidence theta'' (azimuth 0, or 180 when it crosses the normal) and its field shifted;
+    the shift takes the ray's own specular direction (theta', phi' + 180) onto the solved incidence's
+    specular direction (theta'', phi'' + 180), for the reflected and the straight-through transmitted ray."""
+    from relief_bsdf.plate.deterministic import _shifted, beam_split
+    th = np.array([33.0, 31.0, 2.0, 4.0])
+    ph = np.array([10.0, -7.0, 120.0, 250.0])
+    nom_t = np.array([30.0, 30.0, 0.0, 0.0])
+    t2, p2, shift = beam_split(th, ph, nom_t, np.zeros(4))
+    assert np.allclose(np.sin(np.radians(t2)), np.abs(np.sin(np.radians(th)) * np.cos(np.radians(ph))))
+    assert np.allclose(p2, [0.0, 0.0, 180.0, 180.0])
+    got_t, got_p, ok = _shifted(th, np.mod(ph + 180.0, 360.0), shift)
+    assert ok.all()
+    np.testing.assert_allclose(got_t, t2, atol=1e-7)
+    d = np.mod(got_p - (p2 + 180.0) + 180.0, 360.0) - 180.0
+    assert np.all(np.abs(d[t2 > 1e-6]) < 1e-6)
+    # in the nominal plane nothing is shifted; far beyond the horizon the shifted field is evanescent
+    t3, p3, s3 = beam_split(np.array([35.0]), np.array([0.0]), np.array([30.0]), np.array([0.0]))
+    assert t3[0] == pytest.approx(35.0) and np.allclose(s3, 0.0)
+    assert not _shifted(np.array([80.0]), np.array([90.0]), np.array([[0.0], [0.2]]))[2][0]
+
+
+@pytest.mark.slow
+def test_anisotropic_relief_at_normal_incidence_the_divergent_lobe_keeps_the_reliefs_orientation(monkeypatch):
+    """Anisotropic Gaussian relief (correlation 10 um along x, 4 um along y: rms slopes ~2.5x apart), n 1.5,
+    2 mm, theta_i 0, beam divergence 3 deg, 2.5-deg cone; rows across both principal planes.  The divergent
+    rays come from every azimuth; solved in the nominal plane and shifted (plate.deterministic.beam_split)
+    the lobe keeps the relief's orientation and agrees with the validation's photon Monte Carlo through the
+    relief; turned about the normal (exact only for an isotropic relief) it is smeared round and misses.
+    (The measured map of seed-6 case14 missed by chi^2 3590 on its 70 rows at normal incidence before.)
+    R is held to less: without any divergence the engine's R misses this relief's Monte Carlo by 20-30 %
+    already (its back-face loop is azimuth-averaged, plate.faces.isotropy_warning); measured 2026-12-03:
+    T 5.0 % (its flank across the steep axis 12 % low: the lobe shape of the in-plane incidence, second
+    order) against 58 % turned, R 21 % against 43 %."""
+    import relief_bsdf.plate.deterministic as det
+    from relief_bsdf.plate import ReliefFace
+    from relief_bsdf.surface.synth import RandomFieldSpec, relief_from_spec
+    from relief_bsdf.validation.conceal import HeightFieldFace
+    from relief_bsdf.validation.photon import PlatePhysics, detect, run_photons
+    relief = relief_from_spec(RandomFieldSpec(128, 128, 1e-6, 0.5e-6, 4e-6, anisotropy=2.5, angle_deg=0.0), 33)
+    ts = np.arange(2.5, 40.0, 2.5)
+    n = ts.size
+    side = (["R"] * n + ["T"] * n) * 2
+    rows = Rows(np.full(4 * n, 550.0), np.zeros(4 * n), np.zeros(4 * n), side, np.tile(ts, 4),
+                np.repeat([0.0, 90.0], 2 * n))
+    phys = PlatePhysics(thickness_mm=2.0, n_glass=1.5, beam_sigma_deg=3.0)
+    ex_mc = run_photons(HeightFieldFace(relief.heights_m, relief.dx_m, relief.dy_m), phys, 0.0, 0.0,
+                        (1.0, 0.0, 0.0, 0.0), 1_500_000, np.random.default_rng(33))
+    mc, mc_sigma = detect(ex_mc, np.asarray(rows.side), rows.theta_s_deg, rows.phi_s_deg, 2.5)
+    plate = Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", 400_000, 33), FlatFace())
+    ex = Experiment(plate, Instrument(detector_half_angle_deg=2.5, beam_divergence_deg=3.0))
+    assert det.relief_anisotropic(ex)
+    split = simulate(ex, rows).values_per_sr
+    monkeypatch.setattr(det, "relief_anisotropic", lambda experiment: False)
+    turned = simulate(ex, rows).values_per_sr
+    sides = np.asarray(rows.side)
+    dev = {}
+    for sd in ("R", "T"):
+        bright = (sides == sd) & (mc > 0.1 * mc[sides == sd].max()) & (mc_sigma < 0.03 * mc)
+        assert bright.sum() >= 8
+        dev[sd] = [np.sqrt(np.mean((m[bright] / mc[bright] - 1) ** 2)) for m in (split, turned)]
+    assert dev["T"][0] < 0.07 and dev["T"][1] > 5 * dev["T"][0], dev
+    assert dev["R"][0] < 0.3 and dev["R"][1] > 1.5 * dev["R"][0], dev

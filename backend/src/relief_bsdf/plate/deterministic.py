@@ -131,6 +131,7 @@ class PlateModel:
     scatter_per_m: float = 0.0
     hg_g: float = 0.0
     beam_divergence_deg: float = 0.0
+    relief_anisotropic: bool = False     # the beam divergence's incidences solved in-plane and shifted (beam_split)
 
     def __post_init__(self) -> None:
         """The checks are the description's (plate.description: Instrument, Bulk): one owner each."""
@@ -917,7 +918,7 @@ def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | Non
     tq, pq = beam_incidences(ti, pi, beam)
     rep = lambda a: np.repeat(a, q)       # noqa: E731  (row k's q incidences are entries k q .. k q + q - 1)
     diffuse = _readings(solver, model, rep(wl), tq.ravel(), pq.ravel(), rep(side), rep(ts), rep(ps), model,
-                        ("diffuse",)).reshape(-1, q) @ weights
+                        ("diffuse",), nominal=(rep(ti), rep(pi))).reshape(-1, q) @ weights
     wide = replace(model, blur_deg=float(np.hypot(model.blur_deg, beam)))
     deltas = _readings(solver, model, wl, ti, pi, side, ts, ps, wide, ("deltas",))
     return diffuse + deltas + model.background_per_sr
@@ -931,19 +932,76 @@ def beam_incidences(theta_i_deg: Any, phi_i_deg: Any, beam_divergence_deg: float
     return np.round(th, 9), np.round(np.mod(ph, 360.0), 9)
 
 
+def beam_split(theta_deg: Any, phi_deg: Any, nominal_theta_deg: Any, nominal_phi_deg: Any
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How the engine solves a beam-divergence incidence: (theta, phi) of the incidence it solves and
+    the shift (2, ...) of the scattered field's tangential directions, all in the sample's frame.
+
+    A divergent ray's source direction has tangential part s = sin(theta) (cos phi, sin phi).  Split
+    along the nominal plane of incidence (unit u) and across it (v): s = a u + b v.  The engine solves
+    the in-plane part exactly, at the incidence theta'' = asin|a| in that plane (phi'' = the nominal
+    azimuth, + 180 deg when a < 0: a relief's statistics are unchanged by a half turn), and moves the
+    cross-plane part b as a translation of the scattered field in direction cosines: for a surface
+    whose statistics do not vary along it, scattering depends to first order on the change of
+    tangential wave vector only (Kirchhoff's phase term is exp(i k (s_out - s_in) . r); Beckmann &
+    Spizzichino 1963, ch. 3), and the BSDF, power per projected solid angle d(s_x) d(s_y), is carried
+    along: f_b(s_out) = f''(s_out + b v).  The specular direction lands exactly where it belongs; the
+    lobe's shape is that of theta'' instead of theta (second order in b).
+
+    Why not rotate: an isotropic table turned about the normal by phi' - phi would be exact for an
+    isotropic relief, but it turns the lobe's shape with it; at normal incidence the divergent rays
+    come from every azimuth, and an anisotropic relief's lobe (wide along its steep axis) was smeared
+    round the normal: seed-6 case14 (measured map, slopes 2.3x apart, 3.25-deg divergence) missed the
+    independent photon Monte Carlo through the relief by chi^2 3590 on the 70 rows at theta_i = 0
+    (2026-12-03).  The shift keeps the lobe oriented with the relief.
+    """
+    t = np.radians(np.asarray(theta_deg, float))
+    p = np.radians(np.asarray(phi_deg, float))
+    pn = np.radians(np.asarray(nominal_phi_deg, float) + 0 * t)
+    s = np.sin(t)
+    a = s * np.cos(p - pn)
+    b = s * np.sin(p - pn)
+    theta2 = np.round(np.degrees(np.arcsin(np.clip(np.abs(a), 0.0, 1.0))), 9)
+    phi2 = np.round(np.mod(np.degrees(pn) + np.where(a < 0, 180.0, 0.0), 360.0), 9)
+    shift = np.stack([-b * np.sin(pn), b * np.cos(pn)])
+    return theta2, phi2, shift
+
+
+def _shifted(theta_deg: np.ndarray, phi_deg: np.ndarray, shift: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Directions whose tangential part is that of (theta, phi) plus `shift` (2, N), and whether each
+    exists (|s| < 1; beyond, the shifted field is evanescent and reads 0)."""
+    t, p = np.radians(theta_deg), np.radians(phi_deg)
+    sx = np.sin(t) * np.cos(p) + shift[0]
+    sy = np.sin(t) * np.sin(p) + shift[1]
+    r = np.hypot(sx, sy)
+    ok = r < 1.0
+    th = np.degrees(np.arcsin(np.clip(r, 0.0, 1.0)))
+    ph = np.mod(np.degrees(np.arctan2(sy, sx)), 360.0)
+    return np.round(th, 9), np.round(ph, 9), ok
+
+
 def _readings(solver: PlateSolver, model: PlateModel, wl, ti, pi, side, ts, ps, det: Any,
-              parts: tuple) -> np.ndarray:
+              parts: tuple, nominal: tuple | None = None) -> np.ndarray:
     """Detector readings (1/sr, stray light not added) of rows given in the instrument frame: the
     sample tilt applied (rows seen in the tilted sample's frame, f = f' cos theta_s' / cos theta_s),
     the plate solved once per incidence; `det` the detector (cone, aperture blur), `parts` which
-    parts of the field are read (`plate.detector.grid_reading`)."""
+    parts of the field are read (`plate.detector.grid_reading`).  `nominal`: (theta, phi) of each
+    row's nominal incidence when (ti, pi) are the beam divergence's incidences around it: they are
+    then solved in the nominal plane with the field shifted across it (`beam_split`)."""
     factor = 1.0
+    ok = np.ones(wl.size, bool)
     if model.tilt_deg:
         ti, pi = to_sample_frame(ti, pi, np.full(ti.shape, "R"), model.tilt_deg)
+        if nominal is not None:
+            nominal = to_sample_frame(nominal[0], nominal[1], np.full(ti.shape, "R"), model.tilt_deg)
         ts0 = ts
         ts, ps = to_sample_frame(ts, ps, side, model.tilt_deg)
         factor = np.cos(np.radians(ts)) / np.cos(np.radians(ts0))
         ti, pi, ts, ps = (np.round(a, 9) for a in (ti, pi, ts, ps))
+    if nominal is not None and model.relief_anisotropic:
+        ti, pi, shift = beam_split(ti, pi, nominal[0], nominal[1])
+        ts, ps, ok = _shifted(ts, ps, shift)
     out = np.zeros(wl.size)
     for w in np.unique(wl):
         mw = wl == w
@@ -955,7 +1013,7 @@ def _readings(solver: PlateSolver, model: PlateModel, wl, ti, pi, side, ts, ps, 
             r = res[float(t)]
             r = replace(r, phi_i_deg=float(p))
             out[sel] = grid_reading(r, side[sel], ts[sel], ps[sel], det, parts)
-    return out * factor
+    return np.where(ok, out, 0.0) * factor
 
 
 def to_sample_frame(theta_deg: Any, phi_deg: Any, side: Any, tilt_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -999,7 +1057,15 @@ def model_of(experiment: Any, grid: Any, rough_face: str = "front") -> PlateMode
                       polarization=float(ins.polarization_q), outside_index=p.outside_index,
                       background_per_sr=ins.background_per_sr, blur_deg=ins.blur_deg, tilt_deg=ins.tilt_deg,
                       azimuth_cells=grid.azimuth_cells, cone_points=ins.cone_points,
-                      scatter_per_m=b.scatter_per_m, hg_g=b.hg_g, beam_divergence_deg=ins.beam_divergence_deg)
+                      scatter_per_m=b.scatter_per_m, hg_g=b.hg_g, beam_divergence_deg=ins.beam_divergence_deg,
+                      relief_anisotropic=relief_anisotropic(experiment))
+
+
+def relief_anisotropic(experiment: Any) -> bool:
+    """Whether a face's relief is anisotropic beyond what isotropic tables stand for
+    (`plate.faces.isotropy_warning`, the one test of it)."""
+    from relief_bsdf.plate.faces import isotropy_warning
+    return any(isotropy_warning(f) for f in (experiment.plate.front, experiment.plate.back))
 
 
 def table_incidences(experiment: Any, rows: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -1009,13 +1075,20 @@ def table_incidences(experiment: Any, rows: Any) -> tuple[np.ndarray, np.ndarray
     ti = np.abs(np.asarray(rows.theta_i_deg, float))
     pi = np.asarray(rows.phi_i_deg, float) + 0 * ti
     beam = experiment.instrument.beam_divergence_deg
-    if beam > 0:                      # the nominal incidences (delta parts) and the quadrature's
-        tq, pq = beam_incidences(ti, pi, beam)
-        ti, pi = np.concatenate([ti, tq.ravel()]), np.concatenate([pi, pq.ravel()])
     tilt = experiment.instrument.tilt_deg
+    tq = pq = None
+    if beam > 0:                      # the nominal incidences (delta parts) and the quadrature's
+        tq, pq = (a.ravel() for a in beam_incidences(ti, pi, beam))
+    q = 0 if tq is None else tq.size // max(ti.size, 1)
     if tilt:
-        ti, _ = to_sample_frame(ti, pi, np.full(ti.shape, "R"), tilt)
+        if tq is not None:
+            tq, pq = to_sample_frame(tq, pq, np.full(tq.shape, "R"), tilt)
+        ti, pi = to_sample_frame(ti, pi, np.full(ti.shape, "R"), tilt)
         ti = np.round(ti, 9)
+    if tq is not None:
+        if relief_anisotropic(experiment):          # solved in the nominal plane (beam_split)
+            tq = beam_split(tq, pq, np.repeat(ti, q), np.repeat(pi, q))[0]
+        ti = np.concatenate([ti, np.round(tq, 9)])
     return wl, np.unique(ti)
 
 
