@@ -539,3 +539,47 @@ def test_cell_to_cell_reciprocity_like_with_like():
         z.append((u - v) / np.hypot(su, sv))
     assert np.all(np.abs(z) < 4), z
     assert abs(np.mean(z)) < 2.5, z
+
+
+# ----------------------------------------------------------------------------- divergent beam
+
+def test_a_divergent_beam_on_a_flat_relief_spreads_the_mirror_and_the_refraction_by_the_beams_law():
+    """Option beam_divergence_deg: each ray's incidence drawn from a 2-D Gaussian of 1-sigma s per axis.
+    On a flat relief the mirror maps an incidence deviation one to one onto the exit, so the reflected
+    power (the Fresnel average over the beam) leaves no specular delta and spreads over the cells with
+    an rms angle of sqrt(2) s about the mirror direction; the refracted beam is narrowed by Snell's law
+    (d theta_t = cos(theta_i) / (n cos(theta_t)) d theta_i in the plane of incidence, 1 / n across
+    it).  Collimated, the same request is the exact Fresnel delta."""
+    from relief_bsdf.core.frames import projected_solid_angle
+    s_deg, ti = 2.0, 30.0
+    te = tuple(np.arange(0.0, 90.01, 0.5))
+    pe = tuple(np.arange(-1.0, 360.0, 2.0))
+    base = dict(theta_i_deg=(ti,), samples=40_000, theta_s_edges_deg=te, phi_s_edges_deg=pe)
+    req = Request(**base, options={"polarized": False, "beam_divergence_deg": s_deg, "sparse_cells": True})
+    tab = ray.reconstruct(flat(64), GLASS, req)[0]
+    h = tab.hemispherical()
+    R = fresnel_unpolarized(np.cos(np.radians(ti)), 1.0, N_GLASS)
+    assert h["specular_R"][0, 0, 0] < 1e-3 * R
+    assert h["diffuse_R"][0, 0, 0] == pytest.approx(R, rel=0.01)
+    w = projected_solid_angle(te, pe)
+    t_c = np.radians(0.5 * (np.asarray(te[1:]) + np.asarray(te[:-1])))
+    p_c = np.radians(0.5 * (np.asarray(pe[1:]) + np.asarray(pe[:-1])))
+    d = np.stack(np.broadcast_arrays(np.sin(t_c)[:, None] * np.cos(p_c)[None, :],
+                                     np.sin(t_c)[:, None] * np.sin(p_c)[None, :], np.cos(t_c)[:, None] + 0 * p_c),
+                 -1)
+    for k, spread in ((0, np.sqrt(2) * s_deg), (1, None)):
+        P = tab.values_per_sr[0, 0, 0, k] * w
+        c = np.sum(P[..., None] * d, axis=(0, 1)) / P.sum()
+        c /= np.linalg.norm(c)
+        ang = np.degrees(np.arccos(np.clip(d @ c, -1, 1)))
+        rms = float(np.sqrt(np.sum(P * ang**2) / P.sum()))
+        if k == 0:
+            assert np.degrees(np.arccos(c[2])) == pytest.approx(ti, abs=0.1)
+            assert rms == pytest.approx(spread, rel=0.08)
+        else:
+            tt = np.arcsin(np.sin(np.radians(ti)) / N_GLASS)
+            along = np.cos(np.radians(ti)) / (N_GLASS * np.cos(tt))
+            assert np.degrees(np.arccos(c[2])) == pytest.approx(np.degrees(tt), abs=0.1)
+            assert rms == pytest.approx(s_deg * np.hypot(along, 1 / N_GLASS), rel=0.08)
+    sharp = ray.reconstruct(flat(64), GLASS, Request(**base, options={"polarized": False, "sparse_cells": True}))[0]
+    assert sharp.hemispherical()["specular_R"][0, 0, 0] == pytest.approx(R, rel=1e-3)

@@ -44,6 +44,34 @@ def test_the_tables_are_asked_for_at_the_incidences_of_the_beam_quadrature():
     assert near.min() < c - 2.0 and near.max() > c + 2.0           # the quadrature spreads to both sides
 
 
+def test_a_ray_traced_relief_holds_the_beam_in_its_outside_table_and_other_faces_use_the_quadrature():
+    """plate.deterministic.front_traces_beam: a relief face traced by rays draws each ray's incidence from
+    the beam (one outside table per nominal incidence, its request says so); a flat face or a wave
+    method's relief is solved at the quadrature's incidences; the collimated tables are other tables."""
+    from relief_bsdf.plate import ReliefFace, TableGrid
+    from relief_bsdf.plate.deterministic import front_tables, front_traces_beam
+    from relief_bsdf.plate.faces import beam_in_table
+    from relief_bsdf.surface.synth import random_relief
+    relief = random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2)
+    rows = Rows(np.full(2, 550.0), np.array([0.0, 30.0]), np.zeros(2), ["R", "T"], np.array([10.0, 30.0]),
+                np.array([0.0, 180.0]))
+    ins = Instrument(detector_half_angle_deg=2.0, beam_divergence_deg=1.5)
+    grid = TableGrid()
+    ray_ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", 2000, 1), FlatFace()), ins)
+    wave_ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "kirchhoff", 2000, 1), FlatFace()), ins)
+    flat_ex = Experiment(Plate(2e-3, ConstantIndex(1.5), FlatFace(), FlatFace()), ins)
+    assert front_traces_beam(ray_ex, rows, grid)
+    assert not front_traces_beam(wave_ex, rows, grid) and not front_traces_beam(flat_ex, rows, grid)
+    assert not front_traces_beam(ray_ex.with_instrument(beam_divergence_deg=0.0), rows, grid)
+    wl, ti = table_incidences(ray_ex, rows, True)
+    assert np.allclose(ti, [0.0, 30.0])
+    assert table_incidences(ray_ex, rows)[1].size > 2
+    out, _ = front_tables(ray_ex, grid, wl, ti, True)
+    sharp, _ = front_tables(ray_ex, grid, wl, ti, False)
+    assert beam_in_table(out) == 1.5 and beam_in_table(sharp) == 0.0
+    assert not np.array_equal(out.values_per_sr, sharp.values_per_sr)
+
+
 def test_both_engines_read_a_flat_plates_specular_beams_through_the_divergence():
     """A flat face maps a deviation of the incidence one to one onto the specular exit, so the reading
     is response(psi; h, sqrt(b^2 + s^2)) P / (Omega cos theta_s) (plate.detector): the exact law for the
@@ -78,14 +106,16 @@ def _lobe_rows(theta_i: float) -> Rows:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [21])
-def test_rough_plate_off_normal_the_quadrature_of_incidences_agrees_with_the_independent_monte_carlo(seed):
+def test_rough_plate_off_normal_the_traced_beam_and_the_quadrature_agree_with_the_independent_monte_carlo(seed):
     """Gaussian relief (rms 0.4 um, correlation 5 um, 1 um pitch: rms slope ~0.11, the diagnosis benchmark's
     kind), n 1.5, 2 mm, theta_i 55 deg, beam divergence 2.5 deg, 2.5-deg cone.  In the bright part of both
     lobes the deterministic engine's beam divergence stays within a few percent of the validation's photon
     Monte Carlo; the same width as a blur of the reading misses it several times more.  (Set on seed 5's
     concealed relief, 2026-12-02: T within 1-1.5 %, R 2-4.5 %, the reading blur 5-12 %; this tile is a
     fresh one: rms T 1.7 % against 5.3 %, R 3.9 % (its level, 0.96) against 7.2 %; with the Gauss-Laguerre
-    rule of plate.detector.beam_offsets, T 0.8 %, R 3.9 %.)"""
+    rule of plate.detector.beam_offsets, T 0.8 %, R 3.9 %; 2026-12-03, the beam traced into the outside
+    table (the default for a ray-traced relief, plate.deterministic.front_traces_beam): T 1.4 %, R 3.9 %,
+    the quadrature beside it 0.8 % and 3.9 %, the reading blur 5.3 % and 7.2 %.)"""
     from relief_bsdf.plate import ReliefFace
     from relief_bsdf.surface.synth import random_relief
     from relief_bsdf.validation.conceal import HeightFieldFace
@@ -97,8 +127,12 @@ def test_rough_plate_off_normal_the_quadrature_of_incidences_agrees_with_the_ind
                         (1.0, 0.0, 0.0, 0.0), 1_500_000, np.random.default_rng(seed))
     mc, mc_sigma = detect(ex_mc, np.asarray(rows.side), rows.theta_s_deg, rows.phi_s_deg, 2.5)
     plate = Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", 400_000, seed), FlatFace())
-    beam = simulate(Experiment(plate, Instrument(detector_half_angle_deg=2.5, beam_divergence_deg=2.5)),
-                    rows).values_per_sr
+    ex = Experiment(plate, Instrument(detector_half_angle_deg=2.5, beam_divergence_deg=2.5))
+    traced = simulate(ex, rows).values_per_sr
+    with pytest.MonkeyPatch.context() as m:
+        import relief_bsdf.plate.deterministic as det
+        m.setattr(det, "front_traces_beam", lambda experiment, rows, grid: False)
+        beam = simulate(ex, rows).values_per_sr
     blur = simulate(Experiment(plate, Instrument(detector_half_angle_deg=2.5, blur_deg=2.5)), rows).values_per_sr
     side = np.asarray(rows.side)
     dev = {}
@@ -106,11 +140,12 @@ def test_rough_plate_off_normal_the_quadrature_of_incidences_agrees_with_the_ind
         # the bright part of the lobe where the Monte Carlo's own noise is below 3 %
         bright = (side == sd) & (mc > 0.1 * mc[side == sd].max()) & (mc_sigma < 0.03 * mc)
         assert bright.sum() >= 5
-        dev[sd] = [np.sqrt(np.mean((m[bright] / mc[bright] - 1) ** 2)) for m in (beam, blur)]
-    assert dev["T"][0] < 0.03 and dev["T"][1] > 2 * dev["T"][0]
+        dev[sd] = [np.sqrt(np.mean((m[bright] / mc[bright] - 1) ** 2)) for m in (traced, beam, blur)]
+    print(dev)
+    assert dev["T"][0] < 0.03 and dev["T"][1] < 0.03 and dev["T"][2] > 2 * max(dev["T"][:2]), dev
     # R: the forward's stated R level accuracy (2 %) is the larger part here; within 3x it, and closer
     # than the reading blur
-    assert dev["R"][0] < 3 * FORWARD_LEVEL_SD["R"] and dev["R"][1] > dev["R"][0]
+    assert max(dev["R"][:2]) < 3 * FORWARD_LEVEL_SD["R"] and dev["R"][2] > max(dev["R"][:2]), dev
 
 
 def test_an_incidence_of_the_beam_is_solved_in_the_nominal_plane_and_its_specular_lands_where_it_belongs():
@@ -139,15 +174,21 @@ def test_an_incidence_of_the_beam_is_solved_in_the_nominal_plane_and_its_specula
 @pytest.mark.slow
 def test_anisotropic_relief_at_normal_incidence_the_divergent_lobe_keeps_the_reliefs_orientation(monkeypatch):
     """Anisotropic Gaussian relief (correlation 10 um along x, 4 um along y: rms slopes ~2.5x apart), n 1.5,
-    2 mm, theta_i 0, beam divergence 3 deg, 2.5-deg cone; rows across both principal planes.  The divergent
-    rays come from every azimuth; solved in the nominal plane and shifted (plate.deterministic.beam_split)
-    the lobe keeps the relief's orientation and agrees with the validation's photon Monte Carlo through the
-    relief; turned about the normal (exact only for an isotropic relief) it is smeared round and misses.
-    (The measured map of seed-6 case14 missed by chi^2 3590 on its 70 rows at normal incidence before.)
+    2 mm, theta_i 0, beam divergence 3 deg, 2.5-deg cone; rows across both principal planes; against the
+    validation's photon Monte Carlo through the relief.  Three ways to the divergent beam:
+
+    - traced (the default for a relief traced by rays, plate.deterministic.front_traces_beam): each ray of
+      the outside table drawn from the beam, exact for any relief;
+    - the quadrature of incidences solved in the nominal plane and shifted (plate.deterministic.beam_split,
+      the engine's way for tables of single incidences on an anisotropic relief): first order;
+    - the quadrature with each incidence's table turned about the normal (exact only for an isotropic
+      relief): the divergent rays come from every azimuth, and the lobe is smeared round.
+
     R is held to less: without any divergence the engine's R misses this relief's Monte Carlo by 20-30 %
-    already (its back-face loop is azimuth-averaged, plate.faces.isotropy_warning); measured 2026-12-03:
-    T 5.0 % (its flank across the steep axis 12 % low: the lobe shape of the in-plane incidence, second
-    order) against 58 % turned, R 21 % against 43 %."""
+    already (its back-face loop is azimuth-averaged, plate.faces.isotropy_warning).  Measured 2026-12-03,
+    rms deviation in the bright part: T traced 1.1 %, shifted 5.0 % (its flank across the steep axis
+    12 % low: the lobe shape of the in-plane incidence, second order), turned 58 %; R 21.6 %, 21 %, 43 %.
+    (The measured map of seed-6 case14 missed by chi^2 3590 on its 70 rows at normal incidence turned.)"""
     import relief_bsdf.plate.deterministic as det
     from relief_bsdf.plate import ReliefFace
     from relief_bsdf.surface.synth import RandomFieldSpec, relief_from_spec
@@ -166,7 +207,9 @@ def test_anisotropic_relief_at_normal_incidence_the_divergent_lobe_keeps_the_rel
     plate = Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", 400_000, 33), FlatFace())
     ex = Experiment(plate, Instrument(detector_half_angle_deg=2.5, beam_divergence_deg=3.0))
     assert det.relief_anisotropic(ex)
-    split = simulate(ex, rows).values_per_sr
+    traced = simulate(ex, rows).values_per_sr
+    monkeypatch.setattr(det, "front_traces_beam", lambda experiment, rows, grid: False)
+    shifted = simulate(ex, rows).values_per_sr
     monkeypatch.setattr(det, "relief_anisotropic", lambda experiment: False)
     turned = simulate(ex, rows).values_per_sr
     sides = np.asarray(rows.side)
@@ -174,6 +217,6 @@ def test_anisotropic_relief_at_normal_incidence_the_divergent_lobe_keeps_the_rel
     for sd in ("R", "T"):
         bright = (sides == sd) & (mc > 0.1 * mc[sides == sd].max()) & (mc_sigma < 0.03 * mc)
         assert bright.sum() >= 8
-        dev[sd] = [np.sqrt(np.mean((m[bright] / mc[bright] - 1) ** 2)) for m in (split, turned)]
-    assert dev["T"][0] < 0.07 and dev["T"][1] > 5 * dev["T"][0], dev
-    assert dev["R"][0] < 0.3 and dev["R"][1] > 1.5 * dev["R"][0], dev
+        dev[sd] = [np.sqrt(np.mean((m[bright] / mc[bright] - 1) ** 2)) for m in (traced, shifted, turned)]
+    assert dev["T"][0] < 0.025 and dev["T"][1] < 0.07 and dev["T"][2] > 5 * dev["T"][1], dev
+    assert dev["R"][0] < 0.3 and dev["R"][1] < 0.3 and dev["R"][2] > 1.5 * dev["R"][1], dev

@@ -121,3 +121,21 @@ def solid_angle(theta_edges_deg: Any, phi_edges_deg: Any) -> np.ndarray:
     p = np.radians(np.asarray(phi_edges_deg, float))
     ring = -np.diff(np.cos(t))
     return ring[:, None] * np.diff(p)[None, :]
+
+
+def beam_directions(k: np.ndarray, sigma_deg: float, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) propagation directions of a source beam along `k` whose rays deviate by a 2-D Gaussian
+    tangent-plane angle of 1-sigma `sigma_deg` per axis (plate.description.Instrument.beam_divergence_deg):
+    the angle vector g ~ N(0, sigma^2 I_2) on an orthonormal basis (e1, e2) normal to k, the ray
+    cos|g| k + sin|g| g / |g| (a rotation by |g| toward g).  sigma = 0: every ray along k."""
+    k = np.asarray(k, float) / np.linalg.norm(k)
+    if sigma_deg <= 0:
+        return np.tile(k, (n, 1))
+    helper = np.array([0.0, 1.0, 0.0]) if abs(k[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(helper, k)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(k, e1)
+    g = rng.normal(0.0, np.radians(sigma_deg), size=(n, 2))
+    r = np.hypot(g[:, 0], g[:, 1])
+    s = np.where(r > 0, np.sin(r) / np.where(r > 0, r, 1.0), 1.0)
+    return np.cos(r)[:, None] * k + s[:, None] * (g[:, :1] * e1 + g[:, 1:] * e2)

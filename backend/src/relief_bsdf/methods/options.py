@@ -281,6 +281,9 @@ class RayOptions(MethodOptions):
                                  "means) to sigma; False: Monte-Carlo sigma only (comparisons on one tile)")
     sparse_cells: bool = opt(False, "bool", "allow more scatter cells than the tile has facets (cells read "
                              "together, e.g. the plate's direct grid integrated over a detector cone)")
+    beam_divergence_deg: float = opt(0.0, "float", "each ray's incidence spread by a 2-D Gaussian of this 1-sigma "
+                                     "per axis, deg (a divergent source beam; 0: collimated)", minimum=0.0,
+                                     maximum_excl=15.0)
 
 
 @dataclass(frozen=True)

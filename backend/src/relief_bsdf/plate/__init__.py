@@ -14,7 +14,8 @@
 - `plate.deterministic`: radiative transfer between the faces' tables (adding / azimuthal modes);
 - `plate.photon`: photon Monte Carlo of the same description (independent code, checks the first);
 - `plate.detector`: the one detector, its aperture blur (cone (x) Gaussian) and the beam
-  divergence's quadrature of incidences (solved by the engines, not a blur of the reading).
+  divergence (each ray's incidence drawn in a ray-traced relief's table, else a quadrature of
+  incidences; not a blur of the reading).
 
 Rows are any object with wavelength_nm, theta_i_deg, phi_i_deg, side, theta_s_deg, phi_s_deg
 arrays (a Recording, `Rows`, `in_plane_rows(...)`); values follow formats.md's goniophotometer

@@ -48,8 +48,9 @@ class Instrument:
     cone_points: quadrature points of the detector cone (deterministic engine).
     beam_divergence_deg: 1-sigma per axis of the source beam's Gaussian divergence: each ray of
         the beam arrives from the nominal incidence offset by a 2-D Gaussian tangent-plane angle
-        (the photon engine draws it per photon; the deterministic engine solves the plate at a
-        quadrature of incidences, plate.deterministic.simulate_rows).
+        (the photon engine draws it per photon; the deterministic engine traces it into a ray-traced
+        relief's outside table, each ray drawn, and otherwise solves the plate at a quadrature of
+        incidences, plate.deterministic.front_traces_beam / simulate_rows).
     """
 
     detector_half_angle_deg: float = 1.0

@@ -99,7 +99,7 @@ def gaussian_offsets(sigma_deg: float, n: int) -> np.ndarray:
 
 
 BEAM_RINGS = 3          # radial Gauss-Laguerre nodes of the beam divergence's quadrature
-BEAM_AZIMUTHS = 8       # incidences per ring (deterministic engine: BEAM_RINGS x BEAM_AZIMUTHS solves)
+BEAM_AZIMUTHS = 8       # incidences per ring (deterministic engine, tables of single incidences: BEAM_RINGS x BEAM_AZIMUTHS solves)
 
 
 def beam_offsets(sigma_deg: float) -> tuple[np.ndarray, np.ndarray]:

@@ -132,6 +132,7 @@ class PlateModel:
     hg_g: float = 0.0
     beam_divergence_deg: float = 0.0
     relief_anisotropic: bool = False     # the beam divergence's incidences solved in-plane and shifted (beam_split)
+    beam_in_tables: bool = False         # the outside table was traced with the divergent beam (read once)
 
     def __post_init__(self) -> None:
         """The checks are the description's (plate.description: Instrument, Bulk): one owner each."""
@@ -913,13 +914,16 @@ def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | Non
     if beam <= 0:
         out = _readings(solver, model, wl, ti, pi, side, ts, ps, model, ("diffuse", "deltas"))
         return out + model.background_per_sr
+    wide = replace(model, blur_deg=float(np.hypot(model.blur_deg, beam)))
+    if model.beam_in_tables:          # the outside table holds the beam: read at the nominal incidence
+        diffuse = _readings(solver, model, wl, ti, pi, side, ts, ps, model, ("diffuse",))
+        return diffuse + _readings(solver, model, wl, ti, pi, side, ts, ps, wide, ("deltas",)) + model.background_per_sr
     _, weights = beam_offsets(beam)
     q = weights.size
     tq, pq = beam_incidences(ti, pi, beam)
     rep = lambda a: np.repeat(a, q)       # noqa: E731  (row k's q incidences are entries k q .. k q + q - 1)
     diffuse = _readings(solver, model, rep(wl), tq.ravel(), pq.ravel(), rep(side), rep(ts), rep(ps), model,
                         ("diffuse",), nominal=(rep(ti), rep(pi))).reshape(-1, q) @ weights
-    wide = replace(model, blur_deg=float(np.hypot(model.blur_deg, beam)))
     deltas = _readings(solver, model, wl, ti, pi, side, ts, ps, wide, ("deltas",))
     return diffuse + deltas + model.background_per_sr
 
@@ -1049,8 +1053,9 @@ def flat_tables(material: Material, wavelengths_nm: Sequence[float], theta_i_out
 
 # ---------------------------------------------------------------- the Experiment on this engine
 
-def model_of(experiment: Any, grid: Any, rough_face: str = "front") -> PlateModel:
-    """The engine's flat configuration of an Experiment (plate, bulk, instrument) on `grid`."""
+def model_of(experiment: Any, grid: Any, rough_face: str = "front", beam_in_tables: bool = False) -> PlateModel:
+    """The engine's flat configuration of an Experiment (plate, bulk, instrument) on `grid`;
+    `beam_in_tables`: the front's outside table holds the beam divergence (`front_traces_beam`)."""
     p, ins, b = experiment.plate, experiment.instrument, experiment.plate.bulk
     return PlateModel(thickness_m=p.thickness_m, index=p.index, rough_face=rough_face,
                       absorption_per_m=b.absorption_per_m, detector_half_angle_deg=ins.detector_half_angle_deg,
@@ -1058,7 +1063,7 @@ def model_of(experiment: Any, grid: Any, rough_face: str = "front") -> PlateMode
                       background_per_sr=ins.background_per_sr, blur_deg=ins.blur_deg, tilt_deg=ins.tilt_deg,
                       azimuth_cells=grid.azimuth_cells, cone_points=ins.cone_points,
                       scatter_per_m=b.scatter_per_m, hg_g=b.hg_g, beam_divergence_deg=ins.beam_divergence_deg,
-                      relief_anisotropic=relief_anisotropic(experiment))
+                      relief_anisotropic=relief_anisotropic(experiment), beam_in_tables=bool(beam_in_tables))
 
 
 def relief_anisotropic(experiment: Any) -> bool:
@@ -1068,13 +1073,15 @@ def relief_anisotropic(experiment: Any) -> bool:
     return any(isotropy_warning(f) for f in (experiment.plate.front, experiment.plate.back))
 
 
-def table_incidences(experiment: Any, rows: Any) -> tuple[np.ndarray, np.ndarray]:
+def table_incidences(experiment: Any, rows: Any, beam_traced: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(wavelengths, outside incidences) the faces' tables need for these rows: the rows' own, or
-    under a sample tilt the incidences the tilted sample sees (those the engine will solve)."""
+    under a sample tilt the incidences the tilted sample sees (those the engine will solve); with a
+    beam divergence the quadrature's incidences too, unless the outside table traces the beam itself
+    (`beam_traced`, `front_traces_beam`)."""
     wl = np.unique(np.asarray(rows.wavelength_nm, float))
     ti = np.abs(np.asarray(rows.theta_i_deg, float))
     pi = np.asarray(rows.phi_i_deg, float) + 0 * ti
-    beam = experiment.instrument.beam_divergence_deg
+    beam = 0.0 if beam_traced else experiment.instrument.beam_divergence_deg
     tilt = experiment.instrument.tilt_deg
     tq = pq = None
     if beam > 0:                      # the nominal incidences (delta parts) and the quadrature's
@@ -1102,14 +1109,46 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> Pl
     """
     p = experiment.plate
     mat = p.material
-    wl, ti = table_incidences(experiment, rows)
+    traced = front_traces_beam(experiment, rows, grid)
+    wl, ti = table_incidences(experiment, rows, traced)
     front, back = p.front, p.back
     if front.is_flat and not back.is_flat:
         _, b_in = back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)
         return _reused_solver(model_of(experiment, grid, "back"), b_in, None, None)
-    f_out, f_in = front.tables(mat, grid, wl, ti, need_outside=True, progress=progress)
+    f_out, f_in = front_tables(experiment, grid, wl, ti, traced, progress)
     b_in = None if back.is_flat else back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)[1]
-    return _reused_solver(model_of(experiment, grid, "front"), f_in, f_out, b_in)
+    return _reused_solver(model_of(experiment, grid, "front", traced), f_in, f_out, b_in)
+
+
+def front_traces_beam(experiment: Any, rows: Any, grid: Any) -> bool:
+    """Whether the front face's outside table holds the source's beam divergence itself: a relief
+    traced by rays draws each ray's incidence from the beam (methods.ray, option beam_divergence_deg),
+    exact for any relief, isotropic or not, and one table per nominal incidence instead of the
+    quadrature's BEAM_RINGS x BEAM_AZIMUTHS; other methods (wave optics, surrogates) give tables of
+    single incidences, which `simulate_rows` sums over the quadrature."""
+    from relief_bsdf.plate.faces import beam_in_table
+    beam = experiment.instrument.beam_divergence_deg
+    front = experiment.plate.front
+    if beam <= 0 or front.is_flat or not hasattr(front, "traces_beam"):
+        return False
+    wl, ti = table_incidences(experiment, rows, True)
+    if not front.traces_beam(experiment.plate.material, grid, wl, ti):
+        return False
+    held = beam_in_table(getattr(front, "outside", None))
+    if held and abs(held - beam) > 1e-9:
+        raise InputError("instrument.beam_divergence_deg",
+                         f"the front face's outside table was traced with a beam divergence of {held:g} deg, "
+                         f"the instrument states {beam:g} deg")
+    return True
+
+
+def front_tables(experiment: Any, grid: Any, wl: Any, ti: Any, traced: bool, progress: Any = None) -> tuple:
+    """(outside, inside) tables of the front face, the beam traced into the outside one when `traced`."""
+    p = experiment.plate
+    if traced and not hasattr(p.front, "outside"):          # a relief face: trace it
+        return p.front.tables(p.material, grid, wl, ti, need_outside=True, progress=progress,
+                              beam_divergence_deg=experiment.instrument.beam_divergence_deg)
+    return p.front.tables(p.material, grid, wl, ti, need_outside=True, progress=progress)
 
 
 _SOLVERS: list = []          # (tables, plate fields, solver): the last few, newest last

@@ -119,6 +119,13 @@ def isotropy_warning(face: Any) -> str:
             "at other phi_i are a rotation of phi_i = 0; check with engine='photon'")
 
 
+def beam_in_table(table: BsdfTable | None) -> float:
+    """The beam divergence (deg, 1-sigma per axis) a table's incidences were traced with (0: collimated)."""
+    if table is None:
+        return 0.0
+    return float(table.metadata.get("request", {}).get("options", {}).get("beam_divergence_deg", 0.0) or 0.0)
+
+
 def _material_key(material: Material) -> str:
     return json.dumps(material.describe(), sort_keys=True, default=str)
 
@@ -323,19 +330,24 @@ def _table_args_key(material: Material, grid: TableGrid, wavelengths_nm: Any, th
 
 
 def _derive(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
-            need_outside: bool, progress: Any = None) -> tuple[BsdfTable | None, BsdfTable]:
+            need_outside: bool, progress: Any = None, beam_divergence_deg: float = 0.0
+            ) -> tuple[BsdfTable | None, BsdfTable]:
     """(outside | None, inside) tables of a relief face by its method (`methods.reconstruct`) on `grid`.
 
     Each side is cached on its own (the inside table does not depend on the outside incidences,
-    so a tilt or a new incidence re-derives only the outside table).
+    so a tilt or a new incidence re-derives only the outside table).  `beam_divergence_deg`: the
+    source's divergence, traced into the outside table where the method draws rays (`ray`: each ray's
+    incidence spread, `beam_in_table` tells); other methods ignore it (the plate then spreads the
+    incidence itself, plate.deterministic).
     """
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
     base = (face.cache_key(), _material_key(material), _grid_key(grid), wl)
     out = None
     if need_outside:
         th = tuple(float(t) for t in np.unique(np.asarray(theta_i_outside_deg, float)))
-        out = TABLE_CACHE.get(base + ("outside", th), lambda: _reconstruct_side(face, material, grid, wl, th,
-                                                                               "outside", progress))
+        beam = float(beam_divergence_deg) if face.method == "ray" else 0.0
+        out = TABLE_CACHE.get(base + ("outside", th) + (("beam", beam) if beam else ()),
+                              lambda: _reconstruct_side(face, material, grid, wl, th, "outside", progress, beam))
     ins = TABLE_CACHE.get(base + ("inside",), lambda: _reconstruct_side(face, material, grid, wl,
                                                                         grid.inside_incidences_deg(), "inside",
                                                                         progress))
@@ -343,10 +355,12 @@ def _derive(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths
 
 
 def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, wl: Any, theta: Any, side: str,
-                      progress: Any) -> BsdfTable:
+                      progress: Any, beam_divergence_deg: float = 0.0) -> BsdfTable:
     from dataclasses import replace as _replace
     from relief_bsdf.methods import reconstruct
     req = face_request(face, material, grid, wl, theta, side)
+    if beam_divergence_deg:
+        req = _replace(req, options={**req.options, "beam_divergence_deg": float(beam_divergence_deg)})
     if face.coherence_length_m is not None:
         req = _replace(req, coherence_length_m=float(face.coherence_length_m))
     if face.method in TRACED_METHODS and _trace_here(face):
@@ -502,12 +516,25 @@ class ReliefFace:
                 int(self.samples), int(self.seed), self.coherence_length_m)
 
     def tables(self, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
-               need_outside: bool = True, progress: Any = None) -> tuple[BsdfTable | None, BsdfTable]:
+               need_outside: bool = True, progress: Any = None, beam_divergence_deg: float = 0.0
+               ) -> tuple[BsdfTable | None, BsdfTable]:
+        """(outside | None, inside) tables; `beam_divergence_deg` traced into the outside table where
+        the method can (`_derive`, `beam_in_table`)."""
         if self.method == "auto":          # one choice for both sides (plate.choice)
             from relief_bsdf.plate.choice import resolve_face
             face = resolve_face(self, material, grid, wavelengths_nm, theta_i_outside_deg)
-            return face.tables(material, grid, wavelengths_nm, theta_i_outside_deg, need_outside, progress)
-        return _derive(self, material, grid, wavelengths_nm, theta_i_outside_deg, need_outside, progress)
+            return face.tables(material, grid, wavelengths_nm, theta_i_outside_deg, need_outside, progress,
+                               beam_divergence_deg)
+        return _derive(self, material, grid, wavelengths_nm, theta_i_outside_deg, need_outside, progress,
+                       beam_divergence_deg)
+
+    def traces_beam(self, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any) -> bool:
+        """Whether this face's outside table holds a divergent beam itself (its method draws rays)."""
+        face = self
+        if self.method == "auto":
+            from relief_bsdf.plate.choice import resolve_face
+            face = resolve_face(self, material, grid, wavelengths_nm, theta_i_outside_deg)
+        return face.method == "ray"
 
     def tracer(self) -> Any:
         """The relief's ReliefTracer (BVH built once per relief content)."""
@@ -544,6 +571,10 @@ class TableFace:
         if need_outside and self.outside is None:
             raise InputError("plate", "this table face is lit from outside but has no outside table")
         return (self.outside if need_outside else None), self.inside
+
+    def traces_beam(self, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any) -> bool:
+        """Whether the outside table was traced with a divergent beam (`beam_in_table`)."""
+        return beam_in_table(self.outside) > 0
 
     def interact(self, d: np.ndarray, S: np.ndarray, from_inside: Any, ctx: PhotonContext,
                  rng: np.random.Generator) -> FaceEvent:

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from relief_bsdf.core.bulk import scatter_directions
-from relief_bsdf.core.frames import rot_y
+from relief_bsdf.core.frames import beam_directions, rot_y
 from relief_bsdf.errors import InputError
 from relief_bsdf.plate.detector import photon_reading
 from relief_bsdf.plate.faces import PhotonContext
@@ -149,24 +149,6 @@ def trace(experiment: Any, wavelength_nm: float, theta_i_deg: float, phi_i_deg: 
     if ins.tilt_deg:
         dirs = dirs @ rot_y(ins.tilt_deg).T          # back to the instrument frame
     return Exits(np.concatenate(tally.side), dirs, np.concatenate(tally.w), n_photons, tally.lost)
-
-
-def beam_directions(k: np.ndarray, sigma_deg: float, n: int, rng: np.random.Generator) -> np.ndarray:
-    """(n, 3) propagation directions of a source beam along `k` whose rays deviate by a 2-D Gaussian
-    tangent-plane angle of 1-sigma `sigma_deg` per axis (plate.description.Instrument.beam_divergence_deg):
-    the angle vector g ~ N(0, sigma^2 I_2) on an orthonormal basis (e1, e2) normal to k, the ray
-    cos|g| k + sin|g| g / |g| (a rotation by |g| toward g).  sigma = 0: every ray along k."""
-    k = np.asarray(k, float) / np.linalg.norm(k)
-    if sigma_deg <= 0:
-        return np.tile(k, (n, 1))
-    helper = np.array([0.0, 1.0, 0.0]) if abs(k[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    e1 = np.cross(helper, k)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(k, e1)
-    g = rng.normal(0.0, np.radians(sigma_deg), size=(n, 2))
-    r = np.hypot(g[:, 0], g[:, 1])
-    s = np.where(r > 0, np.sin(r) / np.where(r > 0, r, 1.0), 1.0)
-    return np.cos(r)[:, None] * k + s[:, None] * (g[:, :1] * e1 + g[:, 1:] * e2)
 
 
 def detect(exits: Exits, side: np.ndarray, theta_s_deg: np.ndarray, phi_s_deg: np.ndarray,

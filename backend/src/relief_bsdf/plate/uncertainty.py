@@ -59,15 +59,17 @@ def perturbed(table: BsdfTable | None, rng: np.random.Generator) -> BsdfTable | 
 
 def _face_tables(experiment: Experiment, rows: Any, grid: TableGrid) -> dict:
     """{face name: (outside | None, inside)} of the non-flat faces whose tables carry a sigma."""
-    from relief_bsdf.plate.deterministic import table_incidences
+    from relief_bsdf.plate.deterministic import front_tables, front_traces_beam, table_incidences
     p = experiment.plate
-    wl, ti = table_incidences(experiment, rows)
+    traced = front_traces_beam(experiment, rows, grid)
+    wl, ti = table_incidences(experiment, rows, traced)
     out = {}
     for name in ("front", "back"):
         face = getattr(p, name)
         if face.is_flat:
             continue
-        t_out, t_in = face.tables(p.material, grid, wl, ti, need_outside=(name == "front"))
+        t_out, t_in = (front_tables(experiment, grid, wl, ti, traced) if name == "front"
+                       else face.tables(p.material, grid, wl, ti, need_outside=False))
         if any(t is not None and t.sigma_per_sr is not None for t in (t_out, t_in)):
             out[name] = (t_out, t_in)
     return out

@@ -36,12 +36,13 @@ import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from relief_bsdf.bsdf.builder import CellAccumulator, CellIndex, ExitSamples, specular_flags
 from relief_bsdf.bsdf.table import BsdfTable
-from relief_bsdf.core.frames import direction
+from relief_bsdf.core.frames import beam_directions, direction
 from relief_bsdf.core.stokes import s_axis
 from relief_bsdf.errors import RequestError
 from relief_bsdf.methods.options import RayOptions
@@ -125,6 +126,7 @@ class _RayContext:
         self.pe = np.asarray(request.phi_s_edges_deg, float)
         self.tracer = tracer
         self.tile_uncertainty = bool(opts.tile_uncertainty)
+        self.beam_divergence_deg = float(opts.beam_divergence_deg)
         mesh_options = (self.max_bounces, repr(self.fill_holes))
         h = tracer.relief_key(relief, mesh_options) if tracer is not None else relief_hash(relief, mesh_options)
         self.tracer_key = ("ray.ReliefTracer", h.hexdigest())
@@ -132,7 +134,8 @@ class _RayContext:
             worker_cached(("ray.subtiles", self.tracer_key[1]), lambda: _subtile_grid(relief))
             if self.tile_uncertainty else (None, None, None))
         h.update(repr((self.polarized, self.first_hit_split, float(opts.specular_tol_rad), self.seed,
-                       self.samples, self.te.tolist(), self.pe.tolist(), self.subtiles)).encode())
+                       self.samples, self.te.tolist(), self.pe.tolist(), self.subtiles)
+                      + ((self.beam_divergence_deg,) if self.beam_divergence_deg else ())).encode())
         self._digest = h.hexdigest()
 
     def digest(self) -> str:
@@ -249,6 +252,27 @@ def _bin_exits(t: _Tally, ex: Exits, inc: _Incidence, cos_tol: float) -> None:
     t.acc.add(ExitSamples(kd, wd, side, M, specular_flags(kd, side, inc.ideal_dirs, cos_tol), grp))
 
 
+def _beam(inc: _Incidence, sigma_deg: float, n: int, rng: np.random.Generator) -> tuple[np.ndarray, Any]:
+    """((n, 3) float32 ray directions, s-axis of their Stokes basis) of one chunk's beam.
+
+    Collimated (sigma 0): every ray along the incidence, the incidence's s-axis.  Divergent: each
+    ray's direction drawn around it by `core.frames.beam_directions` (a 2-D Gaussian of 1-sigma
+    `sigma_deg` per axis, the validation Monte Carlo's and the photon engine's law), and its s-axis
+    the incidence's made normal to the ray: the source's polarisation is fixed in the laboratory,
+    so a ray tilted off the plane of incidence keeps the lab's s direction, not that of its own plane.
+    The table then holds the beam's average over its directions (power-weighted: every ray carries the
+    same power), which is what a detector sees of a divergent source; a flat patch's mirror exit is
+    spread with the beam and lands in the cells, not in the specular delta."""
+    if sigma_deg <= 0:
+        return np.broadcast_to(inc.k_in.astype(F32), (n, 3)).copy(), inc.s_init
+    k = beam_directions(inc.k_in, sigma_deg, n, rng)
+    s0 = inc.s_init
+    if s0 is not None:
+        s0 = s0 - (k @ s0)[:, None] * k
+        s0 = (s0 / np.linalg.norm(s0, axis=1, keepdims=True)).astype(F32)
+    return k.astype(F32), s0
+
+
 def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
     """Trace one (side, wavelength, incidence) with `ctx.samples` rays; its finished table rows.
 
@@ -278,10 +302,11 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
         o[:, 0] = (ix + jit[:, 0]) * (tracer.Lx / nxs) - tracer.hx
         o[:, 1] = (iy + jit[:, 1]) * (tracer.Ly / nys) - tracer.hy
         o[:, 2] = tracer.z_bot if inc.from_below else tracer.z_top
-        rays = Rays(o, np.broadcast_to(inc.k_in.astype(F32), o.shape).copy(), np.full(hi - lo, inc.from_below),
+        k, s_init = _beam(inc, ctx.beam_divergence_deg, hi - lo, rng)
+        rays = Rays(o, k, np.full(hi - lo, inc.from_below),
                     np.ones(hi - lo, F32), np.zeros(hi - lo, np.int16), np.arange(hi - lo, dtype=np.int64),
                     None)                      # polarised: None = the identity columns (StokesCarrier)
-        ex = trace_chunk(tracer, rays, carrier_for(K), inc.media, inc.settings, rng, s_init=inc.s_init)
+        ex = trace_chunk(tracer, rays, carrier_for(K), inc.media, inc.settings, rng, s_init=s_init)
         t = _new_tally(cells, K, ctx.subtiles)
         _bin_exits(t, ex, inc, ctx.cos_tol)
         return t
