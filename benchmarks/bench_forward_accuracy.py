@@ -95,6 +95,10 @@ Findings:
   single-grid engine spread the edge over a 1-deg internal cell (1.7 deg outside) and linear
   interpolation between cell centres (6x at z 17); on the direct grid T 15 ts 33 / 35 read
   1.26x / 1.5x at z 5.7 / 1.8 (gauss_mid), the test tile's 150x became 1.6x (z 0.7).
+- The second pass by azimuth sector (2026-12-03, plate.faces.inside_sectors: an anisotropic relief's
+  inside table traced at incidence azimuths 0-150 every 30, each sector of the flat-reflected first
+  transmission leaving through the nearest): anisotropic 3.09 -> 1.72 (R 4.09 -> 1.88; R width at
+  normal incidence 1.26 -> 1.03), measured 2.07 -> 1.70 (R 2.38 -> 1.70), same runs otherwise.
 - Inside incidences every 2.5 deg (not 5) fixed the second pass (front -> back face -> out through
   the relief from inside): R 15 phi 180 was 7 % low at its peak and 20 % high at ts 1-5 (two
   inside tables blended); same rays in total (0.5x per incidence), same accuracy as 1x.

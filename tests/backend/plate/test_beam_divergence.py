@@ -184,11 +184,12 @@ def test_anisotropic_relief_at_normal_incidence_the_divergent_lobe_keeps_the_rel
     - the quadrature with each incidence's table turned about the normal (exact only for an isotropic
       relief): the divergent rays come from every azimuth, and the lobe is smeared round.
 
-    R is held to less: without any divergence the engine's R misses this relief's Monte Carlo by 20-30 %
-    already (its back-face loop is azimuth-averaged, plate.faces.isotropy_warning).  Measured 2026-12-03,
-    rms deviation in the bright part: T traced 1.1 %, shifted 5.0 % (its flank across the steep axis
-    12 % low: the lobe shape of the in-plane incidence, second order), turned 58 %; R 21.6 %, 21 %, 43 %.
-    (The measured map of seed-6 case14 missed by chi^2 3590 on its 70 rows at normal incidence turned.)"""
+    R's second pass leaves through the relief's inside tables by azimuth sector (plate.faces.inside_sectors;
+    before them R missed this relief's Monte Carlo by 20-30 % with or without a divergence).  Measured
+    2026-12-03, rms deviation in the bright part: T traced 1.1 %, shifted 5.0 % (its flank across the
+    steep axis 12 % low: the lobe shape of the in-plane incidence, second order), turned 58 %; R 2.8 %,
+    3.0 %, 40 % (without the sectors 21.6 %, 21 %, 43 %).  (The measured map of seed-6 case14 missed by
+    chi^2 3590 on its 70 rows at normal incidence turned.)"""
     import relief_bsdf.plate.deterministic as det
     from relief_bsdf.plate import ReliefFace
     from relief_bsdf.surface.synth import RandomFieldSpec, relief_from_spec
@@ -219,4 +220,4 @@ def test_anisotropic_relief_at_normal_incidence_the_divergent_lobe_keeps_the_rel
         assert bright.sum() >= 8
         dev[sd] = [np.sqrt(np.mean((m[bright] / mc[bright] - 1) ** 2)) for m in (traced, shifted, turned)]
     assert dev["T"][0] < 0.025 and dev["T"][1] < 0.07 and dev["T"][2] > 5 * dev["T"][1], dev
-    assert dev["R"][0] < 0.3 and dev["R"][1] < 0.3 and dev["R"][2] > 1.5 * dev["R"][1], dev
+    assert dev["R"][0] < 0.06 and dev["R"][1] < 0.06 and dev["R"][2] > 5 * dev["R"][1], dev

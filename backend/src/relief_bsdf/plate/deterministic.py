@@ -371,6 +371,17 @@ class _TableView:
         return np.tensordot(W, pm, axes=(1, 0))
 
 
+def _phi_slice(table: BsdfTable, ip: int) -> BsdfTable:
+    """The table at its ip-th incidence azimuth only (every array's phi_i axis, axis 2, cut to one)."""
+    kw = {"phi_i_deg": np.asarray(table.phi_i_deg)[ip:ip + 1]}
+    for name in ("values_per_sr", "specular_R", "specular_T", "lost", "sigma_per_sr", "mueller_per_sr",
+                 "specular_mueller_R", "specular_mueller_T"):
+        a = getattr(table, name)
+        if a is not None:
+            kw[name] = a[:, :, ip:ip + 1]
+    return replace(table, **kw)
+
+
 def _blocks(Xh: np.ndarray, c: int) -> np.ndarray:
     """(T, J, M[, 4, 4]) kernel in Fourier space -> (M, T c, J c) matrices."""
     if c == 1:
@@ -529,8 +540,13 @@ class PlateSolver:
     """
 
     def __init__(self, model: PlateModel, inside: BsdfTable, outside: BsdfTable | None = None,
-                 back: BsdfTable | None = None, front: tuple[BsdfTable, BsdfTable] | None = None):
+                 back: BsdfTable | None = None, front: tuple[BsdfTable, BsdfTable] | None = None,
+                 inside_sectors: BsdfTable | None = None):
         """`back`: optional BSDF table (light from inside) of the second, back face; None = flat.
+
+        `inside_sectors`: the relief's inside table at more incidence azimuths (an anisotropic relief,
+        `plate.faces.inside_sectors`); the second pass (relief -> flat back face -> out through the
+        relief) then leaves through the sector nearest its azimuth (`_second_pass_sectors`).
 
         `front`: optional (outside, inside) tables of the FRONT face when the relief is on the back
         (None = flat).  The plate is then solved with the roles swapped: the front face is the first
@@ -554,6 +570,10 @@ class PlateSolver:
             if back.incident_from != "inside":
                 raise InputError("plate", "the back-face table must have incident_from = 'inside'")
         self.back = back
+        self.inside_sectors = inside_sectors
+        if inside_sectors is not None and (model.rough_face != "front" or inside_sectors.incident_from != "inside"):
+            raise InputError("plate", "inside sector tables need the relief on the front face and incident_from "
+                             "= 'inside'")
         if inside.incident_from != "inside":
             raise InputError("plate", "the inside table must have incident_from = 'inside'")
         if model.rough_face == "front":
@@ -652,7 +672,10 @@ class PlateSolver:
         # the outside table on its own finer grid: the direct reflection and the first transmitted pass
         # are read from it (plate.detector.direct_reading), the loop from the engine grid
         direct = (not out_on_grid and m.rough_face == "front" and vB is None and slab_ops is None)
-        ops = dict(n=n, n0=n0, vin=vin, vout=vout, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
+        sectors = []
+        if self.inside_sectors is not None and vB is None and slab_ops is None and m.rough_face == "front":
+            sectors = [(0.0, GhT)] + self._sector_kernels(wl, c)
+        ops = dict(n=n, n0=n0, vin=vin, vout=vout, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT, sectors=sectors,
                    Wflat=Wflat, Wspec=Wspec, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT, slab=slab_ops,
                    out_on_grid=out_on_grid, direct=direct)
         self._ops[wl] = ops
@@ -668,13 +691,7 @@ class PlateSolver:
         each slice's pre-image in one internal cell, exact transmission per slice, Mueller row 0).
         """
         tc, N, e = self.theta_c, self.theta_c.size, np.radians(self.theta_edges)
-        G = vin.diffuse("T", tc, tc, self.delta)                                           # (J, O, A[,4,4])
-        if c == 4:
-            G = np.ascontiguousarray(G[..., 0, :])                                          # detector: S0 row
-        Gh = np.fft.rfft(G, axis=2)                                                         # (J, O, M[,4])
-        del G
-        GhT = (np.moveaxis(Gh, 2, 0) if c == 1 else np.moveaxis(Gh, (2, 3), (0, 2))).reshape(Gh.shape[2], -1,
-                                                                                            Gh.shape[1])
+        GhT = self._exit_kernel(vin, c)
         ns = 64
         u = (np.sin(e[:-1])[:, None] ** 2 + (np.arange(ns) + 0.5)[None] / ns
              * (np.sin(e[1:]) ** 2 - np.sin(e[:-1]) ** 2)[:, None])                           # (O, ns)
@@ -695,6 +712,63 @@ class PlateSolver:
             return W
         Wspec = exit_remap(vin.specular_many("T", th_int).reshape(N, ns, 4, 4)[..., 0, :c] / ns)
         return GhT, exit_remap(tf), Wspec
+
+    def _exit_kernel(self, vin: "_TableView", c: int) -> np.ndarray:
+        """(M, J c, O): a table's inside T cells (diffuse light leaving through the rough face from inside)
+        per azimuthal mode, detector row S0 of the Mueller matrix."""
+        tc = self.theta_c
+        G = vin.diffuse("T", tc, tc, self.delta)                                           # (J, O, A[,4,4])
+        if c == 4:
+            G = np.ascontiguousarray(G[..., 0, :])                                          # detector: S0 row
+        Gh = np.fft.rfft(G, axis=2)                                                         # (J, O, M[,4])
+        del G
+        return (np.moveaxis(Gh, 2, 0) if c == 1 else np.moveaxis(Gh, (2, 3), (0, 2))).reshape(Gh.shape[2], -1,
+                                                                                              Gh.shape[1])
+
+    def _sector_kernels(self, wl: float, c: int) -> list:
+        """[(incidence azimuth deg, exit kernel)] of the inside sector tables (`inside_sectors`), the
+        inside table's own 0 deg first; [] without sectors."""
+        if self.inside_sectors is None:
+            return []
+        t = self.inside_sectors
+        out = []
+        for ip, p in enumerate(np.asarray(t.phi_i_deg, float)):
+            one = _phi_slice(t, ip)
+            out.append((float(p), self._exit_kernel(_TableView(one, wl, self.mueller, "inside sector table"), c)))
+        return out
+
+    def _second_pass_sectors(self, ops: dict, src: "_Sources", Um_shape: tuple) -> np.ndarray:
+        """(q, O, A): the second pass's exit through the rough face by azimuth sector, minus what the
+        azimuth-circulant exit gave it (added to the rough face's diffuse exit).
+
+        Second pass: the first transmission S_first (the outside table's own cells, in the relief's
+        orientation), one traversal, the flat face's Fresnel R, the traversal back, arriving at the
+        relief from inside at propagation azimuth phi_i + 180 + delta.  The inside table traced at
+        incidence azimuth p stands for light arriving at propagation azimuth p + 180 (methods.ray's
+        frame): each cell goes through the sector table nearest to p = delta (mod 180: a half turn
+        leaves a relief's statistics unchanged; the rows lit at phi_i = 0, as the engine assumes for
+        an anisotropic relief), turned by the remaining <= 15 deg.  Higher orders keep the circulant
+        loop (their light has crossed the relief from inside at least twice more)."""
+        c, Mk = ops["c"], ops["M"]
+        nI, N, A = Um_shape
+        absorb = ops["absorb"]
+        at1 = src.S_first * absorb[None, :, None, None]
+        U1 = ((at1[..., 0] * (ops["RF"][:, 0, 0] * absorb)[None, :, None])[..., None] if c == 1
+              else np.einsum("jab,qjkb->qjka", ops["RF"], at1) * absorb[None, :, None, None])
+
+        def exit_of(U: np.ndarray, GhT: np.ndarray) -> np.ndarray:
+            Um = np.moveaxis(np.fft.rfft(U, axis=2), 2, 0).reshape(Mk, nI, N * c)
+            return np.fft.irfft(np.moveaxis(Um @ GhT, 0, 2), n=A, axis=2)
+        sectors = ops["sectors"]
+        ps = np.array([p for p, _ in sectors])
+        d = np.abs(np.mod(self.delta[:, None] - ps[None, :] + 90.0, 180.0) - 90.0)       # (A, sectors)
+        near = np.argmin(d, axis=1)
+        out = -exit_of(U1, ops["GhT"])
+        for k, (_, GhT) in enumerate(sectors):
+            mask = (near == k).astype(float)[None, None, :, None]
+            if mask.any():
+                out = out + exit_of(U1 * mask, GhT)
+        return out
 
     def solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
         """Plate BSDF for each incidence angle (degrees) at one wavelength."""
@@ -854,6 +928,8 @@ class PlateSolver:
         Um = d["Um"]
         # rough-face exit: circular convolution over azimuth with the inside T kernel
         out_rough = np.fft.irfft(np.moveaxis(Um @ ops["GhT"], 0, 2), n=A, axis=2) + src.direct_rough
+        if ops["sectors"]:         # an anisotropic relief: the second pass leaves by azimuth sector
+            out_rough = out_rough + self._second_pass_sectors(ops, src, (nI, N, A))
         if np.any(ops["Wspec"]):   # specular exit of the diffuse light arriving at the rough face from inside
             U = d["U"] if d["U"] is not None else np.fft.irfft(np.moveaxis(Um.reshape(Mk, nI, N, c), 0, 2), n=A, axis=2)
             LU = np.moveaxis(U / psa[None, :, None, None], 2, 3).reshape(nI, N * c, A)
@@ -1117,7 +1193,9 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> Pl
         return _reused_solver(model_of(experiment, grid, "back"), b_in, None, None)
     f_out, f_in = front_tables(experiment, grid, wl, ti, traced, progress)
     b_in = None if back.is_flat else back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)[1]
-    return _reused_solver(model_of(experiment, grid, "front", traced), f_in, f_out, b_in)
+    from relief_bsdf.plate.faces import inside_sectors
+    sectors = inside_sectors(front, mat, grid, wl, ti, progress) if b_in is None else None
+    return _reused_solver(model_of(experiment, grid, "front", traced), f_in, f_out, b_in, sectors)
 
 
 def front_traces_beam(experiment: Any, rows: Any, grid: Any) -> bool:
@@ -1158,21 +1236,21 @@ _INSTRUMENT_FIELDS = ("detector_half_angle_deg", "polarization", "background_per
 
 
 def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | None,
-                   back: BsdfTable | None) -> PlateSolver:
+                   back: BsdfTable | None, sectors: BsdfTable | None = None) -> PlateSolver:
     """A PlateSolver whose per-wavelength operators (round-trip system, exit maps) are those of an
     earlier solver on the SAME table objects and the same plate (thickness, indices, bulk, grid):
     they do not depend on the instrument (source polarisation, cone, blur, tilt, stray light),
     which acts only on the incident Stokes vector and the detector reading.  A fit or diagnosis
     that changes only the instrument then reuses them; the numbers are those of a fresh solver."""
     plate = tuple((f, getattr(model, f)) for f in PlateModel.__dataclass_fields__ if f not in _INSTRUMENT_FIELDS)
-    tables = (inside, outside, back)
+    tables = (inside, outside, back, sectors)
     for i, (t, key, solver) in enumerate(_SOLVERS):
         if all(a is b for a, b in zip(t, tables)) and key == plate:
             _SOLVERS.append(_SOLVERS.pop(i))
             new = copy.copy(solver)          # shares the operators (solver._ops), carries the new instrument
             new.model = model
             return new
-    solver = PlateSolver(model, inside, outside, back=back)
+    solver = PlateSolver(model, inside, outside, back=back, inside_sectors=sectors)
     _SOLVERS.append((tables, plate, solver))
     del _SOLVERS[:-_SOLVERS_KEPT]
     return solver

@@ -115,7 +115,8 @@ def isotropy_warning(face: Any) -> str:
     return (f"relief {getattr(relief, 'source', '') or 'map'} is anisotropic (principal rms slopes differ "
             f"{ratio:.2g}x, steeper axis at {ang:.0f} deg): the deterministic engine assumes isotropic boundary "
             "tables; its direct reflection and first transmitted pass are the relief's own only for rows lit at "
-            "the tables' incidence azimuth (phi_i = 0), its multiple scattering is the azimuth average, and rows "
+            "the tables' incidence azimuth (phi_i = 0), its second pass leaves through the relief by azimuth "
+            "sector (inside_sectors) but its higher orders are the azimuth average, and rows "
             "at other phi_i are a rotation of phi_i = 0; check with engine='photon'")
 
 
@@ -354,13 +355,44 @@ def _derive(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths
     return out, ins
 
 
+SECTOR_AZIMUTHS_DEG = (30.0, 60.0, 90.0, 120.0, 150.0)   # inside tables' extra incidence azimuths (anisotropic)
+
+
+def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
+                   progress: Any = None) -> BsdfTable | None:
+    """The inside table of an anisotropic relief traced by rays at the incidence azimuths
+    SECTOR_AZIMUTHS_DEG besides the inside table's own 0 deg, or None (an isotropic relief, another
+    method, a flat or tabulated face).
+
+    The deterministic engine's loop turns the one inside table about the normal (azimuth-circulant
+    kernels), exact for an isotropic relief.  On an anisotropic one the light that crossed the relief,
+    was reflected by the flat back face and leaves through the relief from inside (the second pass,
+    most of R at normal incidence after the direct reflection) meets the relief at its own azimuths:
+    the engine then lets each azimuth sector of that light leave through the table traced at the
+    nearest of these azimuths (0-150 deg every 30: a relief's statistics are unchanged by a half
+    turn; PlateSolver `inside_sectors`).  Five more inside tables: the rays of the inside side x 5."""
+    if not isinstance(face, ReliefFace) or face.is_flat:
+        return None
+    if face.method == "auto":
+        from relief_bsdf.plate.choice import resolve_face
+        face = resolve_face(face, material, grid, wavelengths_nm, theta_i_outside_deg)
+    if face.method != "ray" or slope_anisotropy(face.relief)[0] <= ANISOTROPY_WARN:
+        return None
+    wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
+    key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "inside_sectors", SECTOR_AZIMUTHS_DEG)
+    return TABLE_CACHE.get(key, lambda: _reconstruct_side(face, material, grid, wl, grid.inside_incidences_deg(),
+                                                          "inside", progress, phi_i_deg=SECTOR_AZIMUTHS_DEG))
+
+
 def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, wl: Any, theta: Any, side: str,
-                      progress: Any, beam_divergence_deg: float = 0.0) -> BsdfTable:
+                      progress: Any, beam_divergence_deg: float = 0.0, phi_i_deg: tuple = (0.0,)) -> BsdfTable:
     from dataclasses import replace as _replace
     from relief_bsdf.methods import reconstruct
     req = face_request(face, material, grid, wl, theta, side)
     if beam_divergence_deg:
         req = _replace(req, options={**req.options, "beam_divergence_deg": float(beam_divergence_deg)})
+    if tuple(phi_i_deg) != (0.0,):
+        req = _replace(req, phi_i_deg=tuple(float(p) for p in phi_i_deg))
     if face.coherence_length_m is not None:
         req = _replace(req, coherence_length_m=float(face.coherence_length_m))
     if face.method in TRACED_METHODS and _trace_here(face):
