@@ -15,6 +15,8 @@ from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFac
 from relief_bsdf.plate.faces import SECTOR_AZIMUTHS_DEG, inside_sectors
 from relief_bsdf.surface.synth import RandomFieldSpec, random_relief, relief_from_spec
 
+from lobe_deviation import bright_deviation  # tests/backend/plate/lobe_deviation.py
+
 
 def _anisotropic():
     return relief_from_spec(RandomFieldSpec(128, 128, 1e-6, 0.5e-6, 4e-6, anisotropy=2.5, angle_deg=0.0), 33)
@@ -57,12 +59,7 @@ def test_the_second_pass_by_azimuth_sector_agrees_with_the_independent_monte_car
     import relief_bsdf.plate.faces as faces
     monkeypatch.setattr(faces, "inside_sectors", lambda *a, **k: None)
     plain = simulate(ex, rows).values_per_sr
-    sides = np.asarray(rows.side)
-    dev = {}
-    for sd in ("R", "T"):
-        bright = (sides == sd) & (mc > 0.1 * mc[sides == sd].max()) & (mc_sigma < 0.03 * mc)
-        assert bright.sum() >= 5
-        dev[sd] = [np.sqrt(np.mean((m[bright] / mc[bright] - 1) ** 2)) for m in (sectors, plain)]
+    dev = {sd: bright_deviation((sectors, plain), mc, mc_sigma, np.asarray(rows.side), sd, 5) for sd in ("R", "T")}
     print(dev)
     assert dev["R"][0] < 0.08 and dev["R"][1] > 4 * dev["R"][0], dev
     assert abs(dev["T"][0] - dev["T"][1]) < 0.005 and dev["T"][0] < 0.03, dev

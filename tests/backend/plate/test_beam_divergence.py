@@ -17,6 +17,8 @@ from relief_bsdf.plate.deterministic import table_incidences
 from relief_bsdf.plate.photon import beam_directions
 from relief_bsdf.plate.uncertainty import FORWARD_LEVEL_SD
 
+from lobe_deviation import bright_deviation  # tests/backend/plate/lobe_deviation.py
+
 
 def test_photon_beam_directions_deviate_by_the_stated_gaussian_per_axis():
     k = np.array([-np.sin(np.radians(55.0)), 0.0, -np.cos(np.radians(55.0))])
@@ -134,13 +136,7 @@ def test_rough_plate_off_normal_the_traced_beam_and_the_quadrature_agree_with_th
         m.setattr(det, "front_traces_beam", lambda experiment, rows, grid: False)
         beam = simulate(ex, rows).values_per_sr
     blur = simulate(Experiment(plate, Instrument(detector_half_angle_deg=2.5, blur_deg=2.5)), rows).values_per_sr
-    side = np.asarray(rows.side)
-    dev = {}
-    for sd in ("R", "T"):
-        # the bright part of the lobe where the Monte Carlo's own noise is below 3 %
-        bright = (side == sd) & (mc > 0.1 * mc[side == sd].max()) & (mc_sigma < 0.03 * mc)
-        assert bright.sum() >= 5
-        dev[sd] = [np.sqrt(np.mean((m[bright] / mc[bright] - 1) ** 2)) for m in (traced, beam, blur)]
+    dev = {sd: bright_deviation((traced, beam, blur), mc, mc_sigma, np.asarray(rows.side), sd, 5) for sd in ("R", "T")}
     print(dev)
     assert dev["T"][0] < 0.03 and dev["T"][1] < 0.03 and dev["T"][2] > 2 * max(dev["T"][:2]), dev
     # R: the forward's stated R level accuracy (2 %) is the larger part here; within 3x it, and closer
@@ -213,11 +209,7 @@ def test_anisotropic_relief_at_normal_incidence_the_divergent_lobe_keeps_the_rel
     shifted = simulate(ex, rows).values_per_sr
     monkeypatch.setattr(det, "relief_anisotropic", lambda experiment: False)
     turned = simulate(ex, rows).values_per_sr
-    sides = np.asarray(rows.side)
-    dev = {}
-    for sd in ("R", "T"):
-        bright = (sides == sd) & (mc > 0.1 * mc[sides == sd].max()) & (mc_sigma < 0.03 * mc)
-        assert bright.sum() >= 8
-        dev[sd] = [np.sqrt(np.mean((m[bright] / mc[bright] - 1) ** 2)) for m in (traced, shifted, turned)]
+    dev = {sd: bright_deviation((traced, shifted, turned), mc, mc_sigma, np.asarray(rows.side), sd, 8)
+           for sd in ("R", "T")}
     assert dev["T"][0] < 0.025 and dev["T"][1] < 0.07 and dev["T"][2] > 5 * dev["T"][1], dev
     assert dev["R"][0] < 0.06 and dev["R"][1] < 0.06 and dev["R"][2] > 5 * dev["R"][1], dev

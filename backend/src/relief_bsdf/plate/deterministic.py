@@ -675,7 +675,8 @@ class PlateSolver:
         sectors = []
         if self.inside_sectors is not None and vB is None and slab_ops is None and m.rough_face == "front":
             sectors = [(0.0, GhT)] + self._sector_kernels(wl, c)
-        ops = dict(n=n, n0=n0, vin=vin, vout=vout, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT, sectors=sectors,
+        ops = dict(n=n, n0=n0, vin=vin, vout=vout, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
+                   sectors=sectors,
                    Wflat=Wflat, Wspec=Wspec, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT, slab=slab_ops,
                    out_on_grid=out_on_grid, direct=direct)
         self._ops[wl] = ops
