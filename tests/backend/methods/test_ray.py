@@ -550,7 +550,7 @@ def test_a_divergent_beam_on_a_flat_relief_spreads_the_mirror_and_the_refraction
     an rms angle of sqrt(2) s about the mirror direction; the refracted beam is narrowed by Snell's law
     (d theta_t = cos(theta_i) / (n cos(theta_t)) d theta_i in the plane of incidence, 1 / n across
     it).  Collimated, the same request is the exact Fresnel delta."""
-    from relief_bsdf.core.frames import projected_solid_angle
+    from relief_bsdf.core.frames import direction, projected_solid_angle
     s_deg, ti = 2.0, 30.0
     te = tuple(np.arange(0.0, 90.01, 0.5))
     pe = tuple(np.arange(-1.0, 360.0, 2.0))
@@ -562,11 +562,9 @@ def test_a_divergent_beam_on_a_flat_relief_spreads_the_mirror_and_the_refraction
     assert h["specular_R"][0, 0, 0] < 1e-3 * R
     assert h["diffuse_R"][0, 0, 0] == pytest.approx(R, rel=0.01)
     w = projected_solid_angle(te, pe)
-    t_c = np.radians(0.5 * (np.asarray(te[1:]) + np.asarray(te[:-1])))
-    p_c = np.radians(0.5 * (np.asarray(pe[1:]) + np.asarray(pe[:-1])))
-    d = np.stack(np.broadcast_arrays(np.sin(t_c)[:, None] * np.cos(p_c)[None, :],
-                                     np.sin(t_c)[:, None] * np.sin(p_c)[None, :], np.cos(t_c)[:, None] + 0 * p_c),
-                 -1)
+    t_c = 0.5 * (np.asarray(te[1:]) + np.asarray(te[:-1]))
+    p_c = 0.5 * (np.asarray(pe[1:]) + np.asarray(pe[:-1]))
+    d = direction(t_c[:, None], p_c[None, :])                  # cell centres, upper hemisphere
     for k, spread in ((0, np.sqrt(2) * s_deg), (1, None)):
         P = tab.values_per_sr[0, 0, 0, k] * w
         c = np.sum(P[..., None] * d, axis=(0, 1)) / P.sum()

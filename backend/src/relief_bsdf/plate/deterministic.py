@@ -371,6 +371,28 @@ class _TableView:
         return np.tensordot(W, pm, axes=(1, 0))
 
 
+def _reflect_up(ops: dict, at: np.ndarray) -> np.ndarray:
+    """(q, N, A, c) power per cell arriving back at the rough face from inside: `at` (power per cell at the
+    flat face) times the flat face's cell-averaged Fresnel R (Mueller for c = 4) and one traversal."""
+    absorb = ops["absorb"]
+    if ops["c"] == 1:
+        return (at[..., 0] * (ops["RF"][:, 0, 0] * absorb)[None, :, None])[..., None]
+    return np.einsum("jab,qjkb->qjka", ops["RF"], at) * absorb[None, :, None, None]
+
+
+def _exit_modes(U: np.ndarray) -> np.ndarray:
+    """(q, N, A, c) cells -> (M, q, N c) azimuthal Fourier modes."""
+    nI, N, _, c = U.shape
+    Uh = np.fft.rfft(U, axis=2)
+    return np.moveaxis(Uh, 2, 0).reshape(Uh.shape[2], nI, N * c)
+
+
+def _rough_exit(Um: np.ndarray, GhT: np.ndarray, A: int) -> np.ndarray:
+    """(q, O, A) BSDF leaving through the rough face of the light arriving from inside in modes Um (M, q, J c),
+    by the exit kernel GhT (M, J c, O): a circular convolution over azimuth."""
+    return np.fft.irfft(np.moveaxis(Um @ GhT, 0, 2), n=A, axis=2)
+
+
 def _phi_slice(table: BsdfTable, ip: int) -> BsdfTable:
     """The table at its ip-th incidence azimuth only (every array's phi_i axis, axis 2, cut to one)."""
     kw = {"phi_i_deg": np.asarray(table.phi_i_deg)[ip:ip + 1]}
@@ -674,7 +696,7 @@ class PlateSolver:
         direct = (not out_on_grid and m.rough_face == "front" and vB is None and slab_ops is None)
         sectors = []
         if self.inside_sectors is not None and vB is None and slab_ops is None and m.rough_face == "front":
-            sectors = [(0.0, GhT)] + self._sector_kernels(wl, c)
+            sectors = [(p, G - GhT) for p, G in self._sector_kernels(wl, c)]
         ops = dict(n=n, n0=n0, vin=vin, vout=vout, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
                    sectors=sectors,
                    Wflat=Wflat, Wspec=Wspec, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT, slab=slab_ops,
@@ -727,10 +749,7 @@ class PlateSolver:
                                                                                               Gh.shape[1])
 
     def _sector_kernels(self, wl: float, c: int) -> list:
-        """[(incidence azimuth deg, exit kernel)] of the inside sector tables (`inside_sectors`), the
-        inside table's own 0 deg first; [] without sectors."""
-        if self.inside_sectors is None:
-            return []
+        """[(incidence azimuth deg, exit kernel)] of the inside sector tables (`inside_sectors`)."""
         t = self.inside_sectors
         out = []
         for ip, p in enumerate(np.asarray(t.phi_i_deg, float)):
@@ -738,37 +757,29 @@ class PlateSolver:
             out.append((float(p), self._exit_kernel(_TableView(one, wl, self.mueller, "inside sector table"), c)))
         return out
 
-    def _second_pass_sectors(self, ops: dict, src: "_Sources", Um_shape: tuple) -> np.ndarray:
-        """(q, O, A): the second pass's exit through the rough face by azimuth sector, minus what the
-        azimuth-circulant exit gave it (added to the rough face's diffuse exit).
+    def _second_pass_sectors(self, ops: dict, src: "_Sources", A: int) -> np.ndarray:
+        """(q, O, A): what the second pass's exit through the rough face changes when each azimuth sector
+        leaves through its own inside table instead of the 0-deg one turned (added to the rough face's
+        diffuse exit; `ops["sectors"]` holds each sector's kernel minus the 0-deg one, and the exit is
+        linear in the kernel).
 
         Second pass: the first transmission S_first (the outside table's own cells, in the relief's
         orientation), one traversal, the flat face's Fresnel R, the traversal back, arriving at the
         relief from inside at propagation azimuth phi_i + 180 + delta.  The inside table traced at
         incidence azimuth p stands for light arriving at propagation azimuth p + 180 (methods.ray's
-        frame): each cell goes through the sector table nearest to p = delta (mod 180: a half turn
-        leaves a relief's statistics unchanged; the rows lit at phi_i = 0, as the engine assumes for
-        an anisotropic relief), turned by the remaining <= 15 deg.  Higher orders keep the circulant
+        frame): each cell goes through the table nearest to p = delta (mod 180: a half turn leaves a
+        relief's statistics unchanged; the rows lit at phi_i = 0, as the engine assumes for an
+        anisotropic relief), turned by the remaining <= 15 deg.  Higher orders keep the circulant
         loop (their light has crossed the relief from inside at least twice more)."""
-        c, Mk = ops["c"], ops["M"]
-        nI, N, A = Um_shape
-        absorb = ops["absorb"]
-        at1 = src.S_first * absorb[None, :, None, None]
-        U1 = ((at1[..., 0] * (ops["RF"][:, 0, 0] * absorb)[None, :, None])[..., None] if c == 1
-              else np.einsum("jab,qjkb->qjka", ops["RF"], at1) * absorb[None, :, None, None])
-
-        def exit_of(U: np.ndarray, GhT: np.ndarray) -> np.ndarray:
-            Um = np.moveaxis(np.fft.rfft(U, axis=2), 2, 0).reshape(Mk, nI, N * c)
-            return np.fft.irfft(np.moveaxis(Um @ GhT, 0, 2), n=A, axis=2)
-        sectors = ops["sectors"]
-        ps = np.array([p for p, _ in sectors])
-        d = np.abs(np.mod(self.delta[:, None] - ps[None, :] + 90.0, 180.0) - 90.0)       # (A, sectors)
+        U1 = _reflect_up(ops, src.S_first * ops["absorb"][None, :, None, None])
+        ps = np.array([0.0] + [p for p, _ in ops["sectors"]])
+        d = np.abs(np.mod(self.delta[:, None] - ps[None, :] + 90.0, 180.0) - 90.0)       # (A, 1 + sectors)
         near = np.argmin(d, axis=1)
-        out = -exit_of(U1, ops["GhT"])
-        for k, (_, GhT) in enumerate(sectors):
+        out = 0.0
+        for k, (_, dG) in enumerate(ops["sectors"], start=1):
             mask = (near == k).astype(float)[None, None, :, None]
             if mask.any():
-                out = out + exit_of(U1 * mask, GhT)
+                out = out + _rough_exit(_exit_modes(U1 * mask), dG, A)
         return out
 
     def solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
@@ -911,10 +922,8 @@ class PlateSolver:
         else:
             out["at_flat"] = to_cells(XhM) * absorb[None, :, None, None]
         if vB is None and slab is None:    # back up to the rough face through the flat face's Fresnel R
-            at = out["at_flat"]
-            U = ((at[..., 0] * (ops["RF"][:, 0, 0] * absorb)[None, :, None])[..., None] if c == 1
-                 else np.einsum("jab,qjkb->qjka", ops["RF"], at) * absorb[None, :, None, None])
-            out["Um"] = np.moveaxis(np.fft.rfft(U, axis=2), 2, 0).reshape(Mk, nI, N * c)      # (M, q, J c)
+            U = _reflect_up(ops, out["at_flat"])
+            out["Um"] = _exit_modes(U)                                                          # (M, q, J c)
             out["U"] = U
         else:
             out["Um"] = np.moveaxis(ops["Rtrip"] @ XhM + Uxh, 2, 1)                         # (M, q, J c)
@@ -928,9 +937,9 @@ class PlateSolver:
         d = self._diffuse_loop(ops, src, thetas)
         Um = d["Um"]
         # rough-face exit: circular convolution over azimuth with the inside T kernel
-        out_rough = np.fft.irfft(np.moveaxis(Um @ ops["GhT"], 0, 2), n=A, axis=2) + src.direct_rough
+        out_rough = _rough_exit(Um, ops["GhT"], A) + src.direct_rough
         if ops["sectors"]:         # an anisotropic relief: the second pass leaves by azimuth sector
-            out_rough = out_rough + self._second_pass_sectors(ops, src, (nI, N, A))
+            out_rough = out_rough + self._second_pass_sectors(ops, src, A)
         if np.any(ops["Wspec"]):   # specular exit of the diffuse light arriving at the rough face from inside
             U = d["U"] if d["U"] is not None else np.fft.irfft(np.moveaxis(Um.reshape(Mk, nI, N, c), 0, 2), n=A, axis=2)
             LU = np.moveaxis(U / psa[None, :, None, None], 2, 3).reshape(nI, N * c, A)
@@ -1072,15 +1081,16 @@ def _readings(solver: PlateSolver, model: PlateModel, wl, ti, pi, side, ts, ps, 
     then solved in the nominal plane with the field shifted across it (`beam_split`)."""
     factor = 1.0
     ok = np.ones(wl.size, bool)
+    split = nominal is not None and model.relief_anisotropic
     if model.tilt_deg:
         ti, pi = to_sample_frame(ti, pi, np.full(ti.shape, "R"), model.tilt_deg)
-        if nominal is not None:
+        if split:
             nominal = to_sample_frame(nominal[0], nominal[1], np.full(ti.shape, "R"), model.tilt_deg)
         ts0 = ts
         ts, ps = to_sample_frame(ts, ps, side, model.tilt_deg)
         factor = np.cos(np.radians(ts)) / np.cos(np.radians(ts0))
         ti, pi, ts, ps = (np.round(a, 9) for a in (ti, pi, ts, ps))
-    if nominal is not None and model.relief_anisotropic:
+    if split:
         ti, pi, shift = beam_split(ti, pi, nominal[0], nominal[1])
         ts, ps, ok = _shifted(ts, ps, shift)
     out = np.zeros(wl.size)
@@ -1145,9 +1155,9 @@ def model_of(experiment: Any, grid: Any, rough_face: str = "front", beam_in_tabl
 
 def relief_anisotropic(experiment: Any) -> bool:
     """Whether a face's relief is anisotropic beyond what isotropic tables stand for
-    (`plate.faces.isotropy_warning`, the one test of it)."""
-    from relief_bsdf.plate.faces import isotropy_warning
-    return any(isotropy_warning(f) for f in (experiment.plate.front, experiment.plate.back))
+    (`plate.faces.anisotropic_face`, the one test of it)."""
+    from relief_bsdf.plate.faces import anisotropic_face
+    return any(anisotropic_face(f) for f in (experiment.plate.front, experiment.plate.back))
 
 
 def table_incidences(experiment: Any, rows: Any, beam_traced: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -1224,10 +1234,8 @@ def front_traces_beam(experiment: Any, rows: Any, grid: Any) -> bool:
 def front_tables(experiment: Any, grid: Any, wl: Any, ti: Any, traced: bool, progress: Any = None) -> tuple:
     """(outside, inside) tables of the front face, the beam traced into the outside one when `traced`."""
     p = experiment.plate
-    if traced and not hasattr(p.front, "outside"):          # a relief face: trace it
-        return p.front.tables(p.material, grid, wl, ti, need_outside=True, progress=progress,
-                              beam_divergence_deg=experiment.instrument.beam_divergence_deg)
-    return p.front.tables(p.material, grid, wl, ti, need_outside=True, progress=progress)
+    beam = experiment.instrument.beam_divergence_deg if traced else 0.0
+    return p.front.tables(p.material, grid, wl, ti, need_outside=True, progress=progress, beam_divergence_deg=beam)
 
 
 _SOLVERS: list = []          # (tables, plate fields, solver): the last few, newest last

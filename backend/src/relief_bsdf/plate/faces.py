@@ -103,15 +103,22 @@ def slope_anisotropy(relief: Relief) -> tuple[float, float]:
     return ratio, float(np.degrees(np.arctan2(vec[1, 1], vec[0, 1])) % 180)
 
 
+def anisotropic_face(face: Any) -> bool:
+    """Whether a face carries a relief whose principal rms slopes differ more than ANISOTROPY_WARN (the
+    one test: the engine's warning, the beam's in-plane split and the inside sector tables use it)."""
+    relief = getattr(face, "relief", None)
+    if relief is None or getattr(face, "method", "") == "microfacet":
+        return False
+    return slope_anisotropy(relief)[0] > ANISOTROPY_WARN
+
+
 def isotropy_warning(face: Any) -> str:
     """A plain warning when a relief face is anisotropic (the deterministic engine assumes isotropic
     tables: one incidence azimuth, azimuth-circulant loop kernels), else ''."""
-    relief = getattr(face, "relief", None)
-    if relief is None or getattr(face, "method", "") == "microfacet":
+    if not anisotropic_face(face):
         return ""
+    relief = face.relief
     ratio, ang = slope_anisotropy(relief)
-    if ratio <= ANISOTROPY_WARN:
-        return ""
     return (f"relief {getattr(relief, 'source', '') or 'map'} is anisotropic (principal rms slopes differ "
             f"{ratio:.2g}x, steeper axis at {ang:.0f} deg): the deterministic engine assumes isotropic boundary "
             "tables; its direct reflection and first transmitted pass are the relief's own only for rows lit at "
@@ -376,7 +383,7 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     if face.method == "auto":
         from relief_bsdf.plate.choice import resolve_face
         face = resolve_face(face, material, grid, wavelengths_nm, theta_i_outside_deg)
-    if face.method != "ray" or slope_anisotropy(face.relief)[0] <= ANISOTROPY_WARN:
+    if face.method != "ray" or not anisotropic_face(face):
         return None
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
     key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "inside_sectors", SECTOR_AZIMUTHS_DEG)
@@ -492,7 +499,9 @@ class FlatFace:
         return {"face": "flat", "physics": "Fresnel (plane interface)"}
 
     def tables(self, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
-               need_outside: bool = True, progress: Any = None) -> tuple[BsdfTable | None, BsdfTable]:
+               need_outside: bool = True, progress: Any = None, beam_divergence_deg: float = 0.0
+               ) -> tuple[BsdfTable | None, BsdfTable]:
+        """Fresnel tables (a plane face maps the beam one to one: the engine reads its deltas through it)."""
         def make():
             from relief_bsdf.plate.deterministic import flat_tables
             o, i = flat_tables(material, list(np.unique(wavelengths_nm)), np.unique(theta_i_outside_deg),
@@ -599,7 +608,9 @@ class TableFace:
         return {"face": "table", "method": self.inside.method, "photons": "sampled from the tables"}
 
     def tables(self, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
-               need_outside: bool = True, progress: Any = None) -> tuple[BsdfTable | None, BsdfTable]:
+               need_outside: bool = True, progress: Any = None, beam_divergence_deg: float = 0.0
+               ) -> tuple[BsdfTable | None, BsdfTable]:
+        """The given tables (whatever beam they were traced with, `traces_beam`)."""
         if need_outside and self.outside is None:
             raise InputError("plate", "this table face is lit from outside but has no outside table")
         return (self.outside if need_outside else None), self.inside
@@ -638,7 +649,9 @@ class MicrofacetFace:
                 "photons": "sampled Beckmann facet normals"}
 
     def tables(self, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
-               need_outside: bool = True, progress: Any = None) -> tuple[BsdfTable | None, BsdfTable]:
+               need_outside: bool = True, progress: Any = None, beam_divergence_deg: float = 0.0
+               ) -> tuple[BsdfTable | None, BsdfTable]:
+        """The `microfacet` method's tables (single incidences: the engine spreads the beam itself)."""
         flat = Relief(np.zeros((8, 8)), 1e-6, 1e-6, periodic=True, source="microfacet face (alpha given)")
         as_relief = ReliefFace(flat, method="microfacet", samples=self.samples, seed=0,
                                options={"alpha": float(self.alpha), "distribution": self.distribution})

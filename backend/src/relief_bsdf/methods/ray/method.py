@@ -42,7 +42,7 @@ import numpy as np
 
 from relief_bsdf.bsdf.builder import CellAccumulator, CellIndex, ExitSamples, specular_flags
 from relief_bsdf.bsdf.table import BsdfTable
-from relief_bsdf.core.frames import beam_directions, direction
+from relief_bsdf.core.frames import beam_directions, direction, normalize
 from relief_bsdf.core.stokes import s_axis
 from relief_bsdf.errors import RequestError
 from relief_bsdf.methods.options import RayOptions
@@ -268,8 +268,7 @@ def _beam(inc: _Incidence, sigma_deg: float, n: int, rng: np.random.Generator) -
     k = beam_directions(inc.k_in, sigma_deg, n, rng)
     s0 = inc.s_init
     if s0 is not None:
-        s0 = s0 - (k @ s0)[:, None] * k
-        s0 = (s0 / np.linalg.norm(s0, axis=1, keepdims=True)).astype(F32)
+        s0 = normalize(s0 - (k @ s0)[:, None] * k).astype(F32)
     return k.astype(F32), s0
 
 
