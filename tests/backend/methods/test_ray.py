@@ -97,6 +97,15 @@ def test_spectral_index_and_thread_count_do_not_change_results():
     np.testing.assert_array_equal(one.mueller_per_sr, two.mueller_per_sr)
     other_seed = ray.reconstruct(relief, GLASS, Request(seed=1, options={"threads": 2}, **kw))[0]
     assert not np.array_equal(one.values_per_sr, other_seed.values_per_sr)
+    # many one-chunk incidences in this process run several at once on threads: same numbers
+    kw = dict(theta_i_deg=(0.0, 20.0, 40.0, 60.0, 80.0), incident_from=("outside", "inside"), samples=5000,
+              theta_s_edges_deg=TE, phi_s_edges_deg=PE)
+    one = ray.reconstruct(relief, GLASS, Request(options={"threads": 1, "backend": "serial"}, **kw))
+    two = ray.reconstruct(relief, GLASS, Request(options={"threads": 2, "backend": "serial"}, **kw))
+    assert one[0].metadata["parallel"]["threads"] == 1 and two[0].metadata["parallel"]["threads"] == 2
+    for a, b in zip(one, two):
+        for name in ("values_per_sr", "sigma_per_sr", "mueller_per_sr", "specular_R", "specular_T", "lost"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
 def test_metal_flat_reflects_fresnel_and_counts_absorption_as_lost():

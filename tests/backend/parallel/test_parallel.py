@@ -103,7 +103,8 @@ def test_checkpoints_resume_after_a_failed_run(tmp_path):
                              progress=lambda d, n, w: seen.append(d))
     assert _same(out, clean)
     assert _executions(ctx) == list(range(5, N))           # only the unfinished ones ran
-    assert parallel.last_run() == {"backend": "processes", "total": N, "loaded": 5, "computed": N - 5}
+    assert parallel.last_run() == {"backend": "processes", "total": N, "loaded": 5, "computed": N - 5,
+                                  "threads": 1}
     assert seen[0] == 5 and seen[-1] == N
     # a third run computes nothing
     _clear_log(ctx)
@@ -373,3 +374,38 @@ def test_foreign_and_planted_checkpoints_are_never_trusted(tmp_path, capsys):
     assert not (tmp_path / "pwned").exists()
     notes = capsys.readouterr().err.strip().splitlines()
     assert len(notes) == 2 and "ignored 1 checkpoint" in notes[0] and "pkl.z" in notes[1]
+
+
+def _thread_probe(ctx, task):
+    """A task that reports where it ran; task -1 fails (after the others had a chance to start)."""
+    import threading
+    (k,) = task
+    if k == -1:
+        time.sleep(0.05)
+        raise ValueError("task -1 fails")
+    time.sleep(0.02)
+    return (k * k, parallel.in_task_thread(), threading.get_ident(), parallel.current_settings().retries)
+
+
+def test_serial_tasks_on_threads_give_the_same_results_in_task_order_and_errors_propagate():
+    """`map_tasks(..., threads=N)` on the serial backend: the tasks run on N threads of this process
+    (they say so through `in_task_thread`, and more than one thread served them), results come back
+    in task order, equal to the plain serial run, the settings in force reach the tasks, and a failing
+    task's error reaches the caller."""
+    plain = parallel.map_tasks(_thread_probe, TASKS, None, backend="serial")
+    with parallel.parallel_settings(retries=5):
+        seen = []
+        threaded = parallel.map_tasks(_thread_probe, TASKS, None, backend="serial", threads=2,
+                                      progress=lambda d, n, w: seen.append(d))
+    assert [r[0] for r in threaded] == [r[0] for r in plain] == [k * k for k in range(N)]
+    assert not any(r[1] for r in plain) and all(r[1] for r in threaded)
+    assert len({r[2] for r in threaded}) == 2
+    assert all(r[3] == 5 for r in threaded)
+    assert seen == list(range(1, N + 1))
+    assert parallel.last_run()["threads"] == 2
+    assert not parallel.in_task_thread()
+    with pytest.raises(ValueError, match="task -1 fails"):
+        parallel.map_tasks(_thread_probe, TASKS[:4] + [(-1,)], None, backend="serial", threads=2)
+    # processes and workers are untouched by `threads` (they use their own processes)
+    out = parallel.map_tasks(_thread_probe, TASKS[:4], None, backend="processes", workers=2, threads=2)
+    assert [r[0] for r in out] == [0, 1, 4, 9] and not any(r[1] for r in out)

@@ -18,7 +18,11 @@ in force) win over both.
 
 Backends:
 - "serial": in this process (one task, debugging, and always inside a worker, so a
-  task that itself calls `map_tasks` never nests pools).
+  task that itself calls `map_tasks` never nests pools).  A call may let its tasks run
+  here on up to `threads` threads at once (`map_tasks(..., threads=N)`, never inside a
+  worker): for tasks whose heavy work releases the GIL (Embree, numpy on big arrays),
+  e.g. a ray table's many one-chunk incidences; `in_task_thread()` tells a task it runs
+  on such a thread (so it does not spread its own work over threads again).
 - "processes" (default): local worker processes, one per core, no setup; the context
   is sent once per worker through the pool initializer (parallel/worker.py).  A worker
   that dies (segfault, out-of-memory kill) breaks the pool: finished results are kept,
@@ -57,7 +61,7 @@ import multiprocessing.context
 import os
 import pickle
 import sys
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -77,15 +81,18 @@ class WorkerCrashed(RuntimeError):
 
 @dataclass
 class RunStats:
-    """Counts of one `map_tasks` call: backend used, total tasks, loaded from checkpoints, computed."""
+    """Counts of one `map_tasks` call: backend used, total tasks, loaded from checkpoints, computed,
+    and the threads of this process the serial backend ran them on (1: one at a time)."""
 
     backend: str
     total: int
     loaded: int = 0
     computed: int = 0
+    threads: int = 1
 
     def as_dict(self) -> dict[str, Any]:
-        return {"backend": self.backend, "total": self.total, "loaded": self.loaded, "computed": self.computed}
+        return {"backend": self.backend, "total": self.total, "loaded": self.loaded, "computed": self.computed,
+                "threads": self.threads}
 
 
 # the settings in force in this thread / asyncio task (see the module doc), and the last run's counts
@@ -237,6 +244,35 @@ def _run_serial(fn: Callable, context: Any, items: list[tuple[int, Any]], settin
                 label: str) -> Iterator[tuple[int, Any]]:
     for i, t in items:
         yield i, fn(context, t)
+
+
+_IN_TASK_THREAD: contextvars.ContextVar[bool] = contextvars.ContextVar("relief_in_task_thread", default=False)
+
+
+def in_task_thread() -> bool:
+    """True inside a task that `map_tasks(..., threads=N)` runs on one of N threads of this process."""
+    return _IN_TASK_THREAD.get()
+
+
+def _call_in_task_thread(fn: Callable, context: Any, task: Any) -> Any:
+    _IN_TASK_THREAD.set(True)
+    return fn(context, task)
+
+
+def _run_threads(fn: Callable, context: Any, items: list[tuple[int, Any]], threads: int) -> Iterator[tuple[int, Any]]:
+    """The serial backend on `threads` threads of this process: results in completion order.
+
+    Each task runs in a copy of the caller's context (the settings in force travel with it), with
+    `in_task_thread()` True.  A failing task raises here; the tasks not yet started are cancelled
+    and the running ones finish before the error propagates (no thread is left tracing)."""
+    pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="relief-task")
+    try:
+        futures = {pool.submit(contextvars.copy_context().run, _call_in_task_thread, fn, context, t): i
+                   for i, t in items}
+        for f in as_completed(futures):
+            yield futures[f], f.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _stop_pool(pool: ProcessPoolExecutor, kill: bool) -> None:
@@ -399,7 +435,7 @@ def _load_checkpoints(cks: _TaskCheckpoints, items: list[tuple[int, Any]],
 
 def map_tasks(fn: Callable[[Any, Any], Any], tasks: Sequence[Any], context: Any = None, *,
               settings: ParallelSettings | None = None, progress: Progress | None = None, label: str = "task",
-              on_result: Callable[[int, Any], None] | None = None, **overrides: Any) -> list:
+              on_result: Callable[[int, Any], None] | None = None, threads: int = 1, **overrides: Any) -> list:
     """Run `fn(context, task)` for every task and return the results in task order.
 
     `fn` must be a module-level function (picklable); `context` is shipped to each worker
@@ -412,6 +448,9 @@ def map_tasks(fn: Callable[[Any, Any], Any], tasks: Sequence[Any], context: Any 
     from a checkpoint), in completion order; the returned list then holds None, so a big
     request can write each task's values straight into its table (float32) instead of
     keeping every task's result until the end.
+
+    `threads`: where the tasks run in this process (the serial backend, not inside a worker),
+    up to this many run at once on threads (module doc); the results are the same.
     """
     progress = progress or silent
     tasks = list(tasks)
@@ -442,7 +481,12 @@ def map_tasks(fn: Callable[[Any, Any], Any], tasks: Sequence[Any], context: Any 
             if stats.loaded:
                 progress(stats.loaded, n, f"{label} (resumed)")
         if items:
-            with contextlib.closing(_RUNNERS[backend](fn, context, items, s, label)) as runner:
+            if backend == "serial" and int(threads) > 1 and len(items) > 1 and not in_worker():
+                stats.threads = min(int(threads), len(items))
+                runner = _run_threads(fn, context, items, stats.threads)
+            else:
+                runner = _RUNNERS[backend](fn, context, items, s, label)
+            with contextlib.closing(runner):
                 for i, r in runner:
                     if cks is not None:
                         cks.save(i, r)

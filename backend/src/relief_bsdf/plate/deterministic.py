@@ -265,10 +265,30 @@ def _periodic_matrix(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 def _apply(W: np.ndarray, arr: np.ndarray, axis: int) -> np.ndarray:
-    """Contract interpolation matrix W (new, old) with `arr` along `axis`."""
+    """Contract interpolation matrix W (new, old) with `arr` along `axis`.
+
+    Linear interpolation has at most two weights per row: the contraction is then two gathers
+    along the axis (a dense product would pass over every old index for each new one and copy
+    the big Mueller arrays through transposes)."""
     if W.shape[0] == W.shape[1] and np.all(np.diagonal(W) == 1.0):   # rows sum to 1: identity
         return arr
-    return np.moveaxis(np.tensordot(W, arr, axes=([1], [axis])), 0, axis)
+    nz = W != 0
+    if nz.sum(axis=1).max(initial=0) > 2:
+        return np.moveaxis(np.tensordot(W, arr, axes=([1], [axis])), 0, axis)
+    order = np.argsort(~nz, axis=1, kind="stable")[:, :2]              # the (up to) two weights of each row
+    w = np.take_along_axis(W, order, axis=1)
+    if np.all(w[:, 0] == 1.0) and (W.shape[1] == 1 or not np.any(w[:, 1])):
+        return np.take(arr, order[:, 0], axis=axis).astype(np.result_type(arr.dtype, W.dtype), copy=False)
+    shape = [1] * arr.ndim
+    shape[axis] = -1
+    dtype = np.result_type(arr.dtype, W.dtype)
+    out = np.take(arr, order[:, 0], axis=axis).astype(dtype, copy=False)
+    out *= w[:, 0].reshape(shape)
+    if W.shape[1] > 1 and np.any(w[:, 1]):
+        second = np.take(arr, order[:, 1], axis=axis).astype(dtype, copy=False)
+        second *= w[:, 1].reshape(shape)
+        out += second
+    return out
 
 
 def _overlap_theta(edges_deg: np.ndarray, coarse_edges_deg: np.ndarray) -> np.ndarray:
@@ -328,10 +348,25 @@ class _TableView:
         k = 0 if side == "R" else 1
         t = self.table
         arr = self.v[:, k]                                                   # (I, S, P, ...)
-        arr = _apply(_lin_matrix(t.theta_i_deg, theta_in), arr, 0)
-        arr = _apply(_lin_matrix(t.theta_s_deg, theta_out), arr, 1)
         arr = _apply(_periodic_matrix(t.phi_s_deg, self.phi0 + 180.0 + np.asarray(delta_deg)), arr, 2)
-        return arr
+        arr = _apply(_lin_matrix(t.theta_s_deg, theta_out), arr, 1)
+        return _apply(_lin_matrix(t.theta_i_deg, theta_in), arr, 0)      # last: it makes the array grow
+
+    def diffuse_modes(self, side: str, theta_in: np.ndarray, theta_out: np.ndarray, delta_deg: np.ndarray,
+                      detector_row: bool = False) -> np.ndarray:
+        """rfft over the azimuth cells of `diffuse` (J, T, M[, 4, 4]; with `detector_row` the Mueller
+        row S0 alone, (J, T, M[, 4])): the Fourier modes the circulant loop works with.  The FFT is taken
+        on the table's own incidences and then interpolated in theta_i (linear maps on different axes
+        commute), so the (J, T, A, 4, 4) kernel on the engine grid is never built."""
+        k = 0 if side == "R" else 1
+        t = self.table
+        arr = self.v[:, k]
+        arr = _apply(_periodic_matrix(t.phi_s_deg, self.phi0 + 180.0 + np.asarray(delta_deg)), arr, 2)
+        arr = _apply(_lin_matrix(t.theta_s_deg, theta_out), arr, 1)
+        if detector_row and self.mueller:
+            arr = arr[..., 0, :]
+        modes = np.ascontiguousarray(np.fft.rfft(arr, axis=2))        # rfft leaves the modes strided
+        return _apply(_lin_matrix(t.theta_i_deg, theta_in), modes, 0)
 
     def on_grid(self, theta_edges_deg: np.ndarray, azimuth_cells: int) -> bool:
         """The table's cells are the engine's (same polar edges, azimuth cells centred on the engine's)."""
@@ -647,10 +682,8 @@ class PlateSolver:
         # loop singular; it is fed nothing, and 1e-9 per round trip stands for the plate's finite size)
         SR = vin.specular_many("R", th_sub).reshape(N, nsub, 4, 4).mean(axis=1) * (1 - 1e-9)  # (N, 4, 4)
         # kernel K[t, j, a] from the inside table's R cells, times the receiving cell's projected solid angle
-        K = vin.diffuse("R", tc, tc, self.delta)                                           # (J, T, A[,4,4])
-        K = np.moveaxis(K, 0, 1) * (self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None])
-        Kh = np.fft.rfft(K, axis=2)                                                         # (T, J, M[,4,4])
-        del K                                                    # big tables: keep one kernel copy at a time
+        Kh = np.moveaxis(vin.diffuse_modes("R", tc, tc, self.delta), 0, 1)                 # (T, J, M[,4,4])
+        Kh *= self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None]
         # round trip diagonal D_j = A_j R_F,j A_j (4x4 or scalar R_F,00)
         if c == 1:
             Dj = absorb**2 * RF[:, 0, 0]
@@ -670,17 +703,14 @@ class PlateSolver:
         Kb = Rtrip = GBT = KBm = None
         if vB is not None:
             # second face with its own table: round trip K A (K_B + R_B,delta) A as full matrices per m
-            KB = vB.diffuse("R", tc, tc, self.delta)
-            KB = np.moveaxis(KB, 0, 1) * (self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None])
+            KBh = np.moveaxis(vB.diffuse_modes("R", tc, tc, self.delta), 0, 1)
+            KBh *= self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None]
             Kb = _blocks(Kh, c) + _block_diag(SR, c)[None]
             Aa = np.repeat(absorb, c)
-            KBm = _blocks(np.fft.rfft(KB, axis=2), c)
+            KBm = _blocks(KBh, c)
             Rtrip = (KBm + _block_diag(RF, c)[None]) * Aa[None, :, None] * Aa[None, None, :]
             sysm = np.eye(N * c)[None] - Kb @ Rtrip
-            GB = vB.diffuse("T", tc, tc, self.delta)
-            if c == 4:
-                GB = GB[..., 0, :]
-            GBh = np.fft.rfft(GB, axis=2)
+            GBh = vB.diffuse_modes("T", tc, tc, self.delta, detector_row=True)
             GBT = (np.moveaxis(GBh, 2, 0) if c == 1 else np.moveaxis(GBh, (2, 3), (0, 2))).reshape(
                 GBh.shape[2], -1, GBh.shape[1])
         slab_ops = None
@@ -740,11 +770,7 @@ class PlateSolver:
         """(M, J c, O): a table's inside T cells (diffuse light leaving through the rough face from inside)
         per azimuthal mode, detector row S0 of the Mueller matrix."""
         tc = self.theta_c
-        G = vin.diffuse("T", tc, tc, self.delta)                                           # (J, O, A[,4,4])
-        if c == 4:
-            G = np.ascontiguousarray(G[..., 0, :])                                          # detector: S0 row
-        Gh = np.fft.rfft(G, axis=2)                                                         # (J, O, M[,4])
-        del G
+        Gh = vin.diffuse_modes("T", tc, tc, self.delta, detector_row=True)                 # (J, O, M[,4])
         return (np.moveaxis(Gh, 2, 0) if c == 1 else np.moveaxis(Gh, (2, 3), (0, 2))).reshape(Gh.shape[2], -1,
                                                                                               Gh.shape[1])
 

@@ -3,7 +3,9 @@
 Each (side, wavelength, incidence) is one `parallel.map_tasks` task (`_incidence_task`), so
 local processes and `--dask` spread them; a worker builds the BVH once (`parallel.worker_cached`,
 keyed by a digest of the heights and mesh options) and traces with one thread, while in this
-process (serial backend, or a single incidence) the task's chunks use every core.  Rays are
+process (serial backend, or a single incidence) every core works: on the chunks of one task at a
+time, or, when a task has fewer chunks than there are threads (an inside table's many small
+incidences), on several tasks at once (`map_tasks(..., threads=)`).  Rays are
 traced in fixed chunks of CHUNK (own seed each: `parallel.task_rng(seed, side, wavelength,
 theta, phi, chunk)`) whose sums are added in chunk order, so the numbers do not depend on the
 backend, worker or thread count.  The beam's entry points are stratified over the tile and
@@ -51,7 +53,8 @@ from relief_bsdf.methods.realisation import MAX_SUBTILES, SUBTILE_CORR  # noqa: 
 from relief_bsdf.methods.realisation import subtile_grid as _subtile_grid
 from relief_bsdf.methods.ray.tracer import CHUNK, ReliefTracer, cached_tracer, forget_tracer, relief_hash
 from relief_bsdf.methods.ray.transport import Media, Rays, TraceSettings, carrier_for, trace_chunk
-from relief_bsdf.parallel import default_workers, in_worker, last_run, map_tasks, task_rng, worker_cached
+from relief_bsdf.parallel import (default_workers, in_task_thread, in_worker, last_run, map_tasks, task_rng,
+                                  worker_cached)
 from relief_bsdf.progress import silent
 from relief_bsdf.surface.relief import Relief
 
@@ -282,7 +285,7 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
     """
     si, side, iw, ii, ip, n_out, n_in, ti, pi_ = task
     tracer = ctx.get_tracer()
-    threads = 1 if in_worker() else int(ctx.threads or tracer.threads or default_workers())
+    threads = 1 if in_worker() or in_task_thread() else int(ctx.threads or tracer.threads or default_workers())
     K = 4 if ctx.polarized else 0
     cells = CellIndex(ctx.te, ctx.pe)
     Lx, Ly = float(tracer.Lx), float(tracer.Ly)
@@ -434,9 +437,12 @@ def _reconstruct(tracer, relief, material, request, progress, opts) -> list[Bsdf
         d["diag"][(iw, ii, ip)] = diag
 
     t_trace = time.perf_counter()
+    threads = int(ctx.threads or (tracer.threads if tracer is not None else 0) or default_workers())
+    chunks_per_task = -(-ctx.samples // CHUNK)     # about: the strata round the samples up a little
     try:
         map_tasks(_incidence_task, tasks, ctx, progress=progress or silent, label="ray tracing",
-                  backend=opts.backend, on_result=collect)
+                  backend=opts.backend, on_result=collect,
+                  threads=threads if chunks_per_task < threads else 1)   # else the chunks share the cores
     finally:
         if tracer is None:
             forget_tracer(ctx.tracer_key)             # a BVH built here is not kept past the request
