@@ -337,3 +337,23 @@ def test_polish_takes_a_correlated_pair_to_the_least_squares_optimum_and_hands_t
     final = stepwise(fwd, ["bulk_absorption", "stray_light", "instrument_blur"], workers=1)[-1]
     assert set(final.effects) == {"bulk_absorption", "instrument_blur"}
     assert final.chi2 == pytest.approx(chi_oracle, abs=0.05) and final.jacobian is not None
+
+
+def test_the_forward_travels_to_workers_with_its_baseline_tables(plate_forward):
+    """A pickled DiagnosisForward (the candidate fits' context) carries the baseline's boundary tables;
+    unpickled, they are in the table cache: nothing is derived again and the baseline is the same."""
+    import pickle
+    from relief_bsdf.plate import TABLE_CACHE
+    from relief_bsdf.surface.synth import random_relief
+    fwd = plate_forward(random_relief(48, 1.0e-6, 0.4e-6, 5.0e-6, "gaussian", seed=2), method="ray", samples=4_000)
+    v0, _ = fwd.baseline()
+    assert fwd._baseline_keys and set(TABLE_CACHE.tables(fwd._baseline_keys)) == set(fwd._baseline_keys)
+    blob = pickle.dumps(fwd)
+    TABLE_CACHE.clear()
+    twin = pickle.loads(blob)
+    assert set(TABLE_CACHE.tables(fwd._baseline_keys)) == set(fwd._baseline_keys)
+    misses = TABLE_CACHE.misses
+    twin._baseline = None                                       # simulate the baseline again from the tables
+    v1, _ = twin.baseline()
+    assert TABLE_CACHE.misses == misses
+    np.testing.assert_array_equal(v0, v1)

@@ -81,3 +81,28 @@ def test_experiment_from_sample_puts_the_relief_on_its_face():
         assert getattr(ex.plate, "back" if face == "front" else "front").is_flat
         assert ex.plate.thickness_m == pytest.approx(1.5e-3) and ex.plate.bulk.absorption_per_m == pytest.approx(200)
         assert ex.instrument.polarization_q == -1.0 and ex.instrument.detector_half_angle_deg == 2.0
+
+
+def test_a_microfacet_faces_tables_on_threads_equal_those_of_one_process(monkeypatch):
+    """THREADED_METHODS: a plate derives a microfacet face's tables on this process's threads (no worker
+    pool); the numbers are those of the method run serially."""
+    from dataclasses import replace
+    from relief_bsdf.methods import reconstruct
+    from relief_bsdf.parallel import default_workers, last_run, parallel_settings
+    from relief_bsdf.plate.energy import closed
+    from relief_bsdf.plate.faces import face_request
+    from relief_bsdf.surface.relief import Relief
+    grid = TableGrid(3.0, 15.0, 15.0)
+    mat = Material(ConstantIndex(1.5))
+    TABLE_CACHE.clear()
+    _, inside = MicrofacetFace(0.2).tables(mat, grid, [550.0], [0.0, 30.0], need_outside=False)
+    run = last_run()
+    assert run["backend"] == "serial" and run["threads"] == min(default_workers(), run["total"])
+    flat = Relief(np.zeros((8, 8)), 1e-6, 1e-6, periodic=True)
+    face = ReliefFace(flat, method="microfacet", samples=200_000, seed=0,
+                      options={"alpha": 0.2, "distribution": "beckmann"})
+    req = face_request(face, mat, grid, (550.0,), grid.inside_incidences_deg(), "inside")
+    with parallel_settings(backend="serial"):
+        (ref,) = reconstruct(flat, mat, req, "microfacet")
+    ref = closed(ref)
+    np.testing.assert_array_equal(inside.values_per_sr, ref.values_per_sr)

@@ -1,5 +1,7 @@
-"""The deterministic engine reuses a plate's operators when only the instrument changes
-(plate.deterministic._reused_solver): the numbers must be those of a fresh solver."""
+"""The deterministic engine reuses a plate's operators when only the instrument changes, or only the
+outside table with it (plate.deterministic._reused_solver, PlateSolver.with_outside): the numbers
+must be those of a fresh solver.  Its kernels are interpolated by gathers (`_apply`): equal to the
+dense contraction."""
 import numpy as np
 
 from relief_bsdf.core.index import ConstantIndex
@@ -26,7 +28,6 @@ def test_an_instrument_change_reuses_the_operators_and_gives_a_fresh_solvers_num
     ex = _experiment()
     _fresh(ex)                                             # operators of this plate built and kept
     ops = deterministic._SOLVERS[-1][2]._ops
-    # (a tilt shows the sample other incidences: other outside tables, so other operators)
     changed = ex.with_instrument(polarization_q=1.0, blur_deg=1.5, background_per_sr=0.01)
     reused = simulate(changed, ROWS, grid=GRID).values_per_sr
     assert len(deterministic._SOLVERS) == 1 and deterministic._SOLVERS[-1][2]._ops is ops
@@ -42,3 +43,37 @@ def test_a_plate_change_builds_new_operators():
     assert len(deterministic._SOLVERS) == 2
     np.testing.assert_allclose(got, _fresh(absorbing), rtol=1e-12, atol=0)
     assert got.sum() < _fresh(ex).sum()
+
+
+def test_a_tilt_reuses_the_loop_operators_with_its_own_outside_table():
+    """A tilt shows the sample other incidences: new outside tables, the same inside table.  The loop's
+    operators (kernels, round trip, exit maps) are kept, the outside table's part re-derived."""
+    ex = _experiment()
+    _fresh(ex)
+    loop = deterministic._SOLVERS[-1][2]._ops[550.0]["sys"]
+    tilted = ex.with_instrument(tilt_deg=3.0)
+    got = simulate(tilted, ROWS, grid=GRID).values_per_sr
+    solver = deterministic._SOLVERS[-1][2]
+    assert solver._ops[550.0]["sys"] is loop and solver.outside is not deterministic._SOLVERS[0][2].outside
+    np.testing.assert_allclose(got, _fresh(tilted), rtol=1e-12, atol=0)
+    assert not np.allclose(got, _fresh(ex))
+
+
+def test_interpolation_by_gathers_equals_the_dense_contraction():
+    rng = np.random.default_rng(1)
+    arr = rng.random((7, 9, 12, 4, 4)).astype(np.float32)
+    cases = [(deterministic._lin_matrix(np.arange(7) * 2.5, rng.uniform(-3, 20, 11)), 0),
+             (deterministic._lin_matrix(np.arange(9) + 0.5, rng.uniform(0, 9, 5)), 1),
+             (deterministic._periodic_matrix(np.arange(12) * 30.0, rng.uniform(-400, 400, 8)), 2),
+             (deterministic._periodic_matrix(np.arange(12) * 30.0, np.arange(12) * 30.0 + 60.0), 2),   # a rotation
+             (deterministic._lin_matrix([5.0], [1.0, 7.0]), 0)]
+    for W, axis in cases:
+        a = arr[:W.shape[1]] if axis == 0 else arr
+        dense = np.moveaxis(np.tensordot(W, a, axes=([1], [axis])), 0, axis)
+        got = deterministic._apply(W, a, axis)
+        assert got.dtype == dense.dtype and got.shape == dense.shape
+        np.testing.assert_allclose(got, dense, rtol=1e-13, atol=1e-15)
+    modes = np.fft.rfft(arr, axis=2)
+    W = cases[0][0]
+    np.testing.assert_allclose(deterministic._apply(W, np.ascontiguousarray(modes), 0),
+                               np.moveaxis(np.tensordot(W, modes, axes=([1], [0])), 0, 0), rtol=1e-12, atol=1e-14)

@@ -105,3 +105,18 @@ def test_detector_weights_each_cone_direction_by_its_own_projection(theta_s, hal
     assert got == pytest.approx(want, rel=tol)
     if theta_s >= 85:
         assert abs(np.mean(f) / got - 1.0) > 0.005       # equal weights (the old reading) were off here
+
+
+def test_the_draws_on_threads_give_the_numbers_of_one_thread(monkeypatch):
+    """rows_sigma solves its draws on threads, the perturbations drawn in order: the same sigma."""
+    import relief_bsdf.plate.uncertainty as unc
+    relief = random_relief(48, 1.0e-6, 0.6e-6, 5.0e-6, "gaussian", seed=4)
+    ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", samples=3_000, seed=0), FlatFace()))
+    rows = in_plane_rows(550.0, [0.0, 30.0], np.arange(2.0, 88.0, 8.0))
+    grid = TableGrid(3.0, 15.0, 15.0)
+    monkeypatch.setattr(unc, "default_workers", lambda: 1)
+    one = rows_sigma(ex, rows, grid, draws=4)
+    monkeypatch.setattr(unc, "default_workers", lambda: 3)
+    three = rows_sigma(ex, rows, grid, draws=4)
+    assert np.all(np.isfinite(one)) and np.any(one > 0)
+    np.testing.assert_array_equal(one, three)

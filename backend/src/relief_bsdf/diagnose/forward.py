@@ -43,6 +43,20 @@ class DiagnosisForward:
     _baseline: tuple | None = field(default=None, repr=False)
     _memo: dict = field(default_factory=dict, repr=False)
     _rel_sigma: np.ndarray | None = field(default=None, repr=False)
+    _baseline_keys: frozenset = field(default=frozenset(), repr=False)
+
+    def __getstate__(self) -> dict:
+        """Pickled for worker processes (the candidate fits) with the baseline's boundary tables: a
+        worker puts them in its own table cache (`__setstate__`) instead of deriving them again
+        (seconds per worker and pool; the numbers are the same: the tables are data)."""
+        from relief_bsdf.plate.faces import TABLE_CACHE
+        return {**self.__dict__, "_baseline_tables": TABLE_CACHE.tables(self._baseline_keys)}
+
+    def __setstate__(self, state: dict) -> None:
+        from relief_bsdf.plate.faces import TABLE_CACHE
+        for key, table in state.pop("_baseline_tables", {}).items():
+            TABLE_CACHE.put(key, table)
+        self.__dict__.update(state)
 
     def simulate(self, experiment: Experiment) -> tuple[np.ndarray, np.ndarray]:
         """(values, model sigma): the sigma is the baseline's relative 1-sigma (its tables' Monte-Carlo
@@ -61,7 +75,10 @@ class DiagnosisForward:
     def baseline(self) -> tuple[np.ndarray, np.ndarray]:
         """(values, model sigma) of the sample as stated (computed once)."""
         if self._baseline is None:
-            self._baseline = self.simulate(self.experiment)
+            from relief_bsdf.plate.faces import TABLE_CACHE
+            with TABLE_CACHE.recording() as used:
+                self._baseline = self.simulate(self.experiment)
+            self._baseline_keys = frozenset(used)
         return self._baseline
 
     def with_effect(self, effect: Effect, values: dict) -> Experiment:

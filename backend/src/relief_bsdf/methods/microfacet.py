@@ -59,7 +59,7 @@ from relief_bsdf.core.frames import dot as _dot, normalize as _normalize
 from relief_bsdf.errors import InputError, RequestError
 from relief_bsdf.core.fresnel import fresnel_unpolarized, mueller_interface
 from relief_bsdf.core.index import Material
-from relief_bsdf.parallel import map_tasks
+from relief_bsdf.parallel import default_workers, map_tasks
 from relief_bsdf.core.microfacet import (  # the one copy of the distributions
     DISTRIBUTIONS, distribution_D, lobes as _lobes, smith_G1, smith_lambda, vcavity_G1)
 from relief_bsdf.core.stokes import s_axis as _s_vector, stokes_rotation
@@ -581,7 +581,7 @@ def _task(ctx: dict, task: tuple) -> dict:
 def _evaluate(ctx: dict, tasks: list, shape: tuple, progress=None) -> list:
     """Per lobe variant of ctx["variants"]: {side of incidence: (values (W, I, P, 2, S, A), Mueller or
     None)}; every variant's tasks in one map_tasks call."""
-    res = map_tasks(_task, tasks, ctx, progress=progress, label="microfacet")
+    res = map_tasks(_task, tasks, ctx, progress=progress, label="microfacet", threads=default_workers())
     out = [{} for _ in ctx["variants"]]
     for (sf, iw, ii, ip, var), r in zip(tasks, res):
         if sf not in out[var]:

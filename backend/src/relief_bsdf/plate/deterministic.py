@@ -87,7 +87,7 @@ from relief_bsdf.plate.detector import beam_offsets, grid_reading, offset_direct
 _DEPOL = np.diag([1.0, 0.0, 0.0, 0.0])
 
 
-def _blas_single_thread():
+def blas_single_thread():
     """The plate's matrices are small (N ~ 90): BLAS threads only add wake-up cost, and on a loaded
     machine OpenBLAS's spinning threads make a 5 ms batched solve take seconds.  One thread."""
     try:
@@ -661,7 +661,6 @@ class PlateSolver:
         N = tc.size
         c = 4 if self.mueller else 1
         vin = _TableView(self.inside, wl, self.mueller, "inside table")
-        vout = _TableView(self.outside, wl, self.mueller, "outside table") if self.outside is not None else None
         cos_c = np.maximum(np.cos(np.radians(tc)), 1e-6)
         absorb = np.exp(-m.absorption_per_m * m.thickness_m / cos_c)                       # (N,)
         # Fresnel of the flat face averaged over each internal cell (projected solid angle): the cell
@@ -720,19 +719,34 @@ class PlateSolver:
             slab_ops = _slab_system(m, self.theta_edges, self.delta.size, Kb, R2, c)
             Rtrip, sysm = slab_ops["Rtrip"], slab_ops["sys"]
         GhT, Wflat, Wspec = self._exit_maps(vin, vB, n, n0, c)
-        out_on_grid = vout is None or vout.on_grid(self.theta_edges, self.delta.size)
-        # the outside table on its own finer grid: the direct reflection and the first transmitted pass
-        # are read from it (plate.detector.direct_reading), the loop from the engine grid
-        direct = (not out_on_grid and m.rough_face == "front" and vB is None and slab_ops is None)
         sectors = []
         if self.inside_sectors is not None and vB is None and slab_ops is None and m.rough_face == "front":
             sectors = [(p, G - GhT) for p, G in self._sector_kernels(wl, c)]
-        ops = dict(n=n, n0=n0, vin=vin, vout=vout, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
+        ops = dict(n=n, n0=n0, vin=vin, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
                    sectors=sectors,
-                   Wflat=Wflat, Wspec=Wspec, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT, slab=slab_ops,
-                   out_on_grid=out_on_grid, direct=direct)
+                   Wflat=Wflat, Wspec=Wspec, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT, slab=slab_ops)
+        ops.update(self._outside_ops(wl, ops))
         self._ops[wl] = ops
         return ops
+
+    def _outside_ops(self, wl: float, ops: dict) -> dict:
+        """The outside table's part of a wavelength's operators: its view, and whether the direct
+        reflection and the first transmitted pass are read from its own finer grid
+        (plate.detector.direct_reading) while the loop works on the engine grid."""
+        vout = _TableView(self.outside, wl, self.mueller, "outside table") if self.outside is not None else None
+        out_on_grid = vout is None or vout.on_grid(self.theta_edges, self.delta.size)
+        direct = (not out_on_grid and self.model.rough_face == "front" and ops["vB"] is None and ops["slab"] is None)
+        return dict(vout=vout, out_on_grid=out_on_grid, direct=direct)
+
+    def with_outside(self, model: PlateModel, outside: BsdfTable) -> "PlateSolver":
+        """This solver for another outside table (and instrument) on the same inside, back and sector
+        tables and plate: the loop's operators (kernels, round trip, exit maps) depend on those alone,
+        so only the outside table's part is re-derived (a tilt or a beam traced into the outside
+        table changes that table alone).  The numbers are those of a fresh solver."""
+        new = copy.copy(self)
+        new.model, new.outside = model, outside
+        new._ops = {wl: {**ops, **new._outside_ops(wl, ops)} for wl, ops in self._ops.items()}
+        return new
 
     def _exit_maps(self, vin: "_TableView", vB: "_TableView | None", n: float, n0: float,
                    c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -810,7 +824,7 @@ class PlateSolver:
 
     def solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
         """Plate BSDF for each incidence angle (degrees) at one wavelength."""
-        with _blas_single_thread():
+        with blas_single_thread():
             return self._solve(wavelength_nm, theta_i_deg, phi_i_deg)
 
     def _solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
@@ -1284,6 +1298,13 @@ def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | No
             _SOLVERS.append(_SOLVERS.pop(i))
             new = copy.copy(solver)          # shares the operators (solver._ops), carries the new instrument
             new.model = model
+            return new
+    for t, key, solver in reversed(_SOLVERS):     # same loop tables, another outside table (a tilt)
+        if (key == plate and t[0] is inside and t[2] is back and t[3] is sectors and outside is not None
+                and t[1] is not None and outside.is_polarized == t[1].is_polarized):
+            new = solver.with_outside(model, outside)
+            _SOLVERS.append((tables, plate, new))
+            del _SOLVERS[:-_SOLVERS_KEPT]
             return new
     solver = PlateSolver(model, inside, outside, back=back, inside_sectors=sectors)
     _SOLVERS.append((tables, plate, solver))

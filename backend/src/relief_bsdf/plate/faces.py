@@ -30,6 +30,7 @@ content digest, method, options, grid, material, wavelengths, incidences, sample
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 from collections import OrderedDict
@@ -46,6 +47,9 @@ from relief_bsdf.plate.grid import TableGrid
 from relief_bsdf.surface.relief import Relief
 
 TRACED_METHODS = ("ray",)          # methods whose photons trace the relief itself
+THREADED_METHODS = ("microfacet",)  # analytic tables computed on this process's threads (numpy releases the GIL):
+                                    # a plate's table (a back-face probe of a diagnosis: 37 incidences,
+                                    # ~2 s) costs less than starting worker processes
 
 
 class TableCache:
@@ -54,20 +58,42 @@ class TableCache:
     def __init__(self, maxsize: int = 24):
         self.maxsize = maxsize
         self._d: OrderedDict = OrderedDict()
+        self._recorders: list[set] = []
         self.hits = 0
         self.misses = 0
 
     def get(self, key: tuple, make: Callable[[], Any]) -> Any:
+        for used in self._recorders:
+            used.add(key)
         if key in self._d:
             self._d.move_to_end(key)
             self.hits += 1
             return self._d[key]
         self.misses += 1
         v = make()
-        self._d[key] = v
+        self.put(key, v)
+        return v
+
+    def put(self, key: tuple, value: Any) -> None:
+        self._d[key] = value
+        self._d.move_to_end(key)
         while len(self._d) > self.maxsize:
             self._d.popitem(last=False)
-        return v
+
+    @contextlib.contextmanager
+    def recording(self):
+        """Collect the keys of every table asked for inside the block (a set, filled as they come)."""
+        used: set = set()
+        self._recorders.append(used)
+        try:
+            yield used
+        finally:
+            self._recorders.remove(used)
+
+    def tables(self, keys: Any) -> dict:
+        """{key: table} of those of `keys` still held whose value is a table (data that can travel to a
+        worker process: `put` there spares it the tables' derivation)."""
+        return {k: self._d[k] for k in keys if isinstance(self._d.get(k), BsdfTable)}
 
     def clear(self) -> None:
         self._d.clear()
@@ -408,7 +434,12 @@ def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, w
         (table,) = reconstruct_with(_topology_tracer(face.relief, req), face.relief, material, req, progress=progress)
         return table
     from relief_bsdf.plate.energy import closed
-    (table,) = reconstruct(face.relief, material, req, face.method, progress=progress)
+    if face.method in THREADED_METHODS and _trace_here(face):
+        from relief_bsdf.parallel import parallel_settings
+        with parallel_settings(backend="serial"):          # threads here, no worker pool to start
+            (table,) = reconstruct(face.relief, material, req, face.method, progress=progress)
+    else:
+        (table,) = reconstruct(face.relief, material, req, face.method, progress=progress)
     return closed(table)          # a wave model's energy defect is the model's, not absorption (plate.energy)
 
 
@@ -439,8 +470,8 @@ def _index_ratio(material: Material, wavelengths_nm: Any) -> float:
 
 
 def _trace_here(face: "ReliefFace") -> bool:
-    """Trace a relief face's tables in this process (threads on one reused tracer) unless the run is
-    spread over Dask or the face names its own backend: a fit re-traces the same grid with new
+    """Trace a relief face's tables in this process (threads on one reused tracer; THREADED_METHODS on
+    threads too) unless the run is spread over Dask or the face names its own backend: a fit re-traces the same grid with new
     heights every evaluation, and one tracer whose heights are rewritten in place (BVH refitted)
     costs ~0.03 s where worker processes rebuild a BVH each (~0.5-1 s per worker per side)."""
     from relief_bsdf.parallel import current_settings, in_worker

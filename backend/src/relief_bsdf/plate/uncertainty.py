@@ -18,11 +18,13 @@ Tables without a sigma (wave methods, Fresnel faces) contribute nothing.
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
 from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.parallel import default_workers, in_worker
 from relief_bsdf.plate.description import Experiment
 from relief_bsdf.plate.faces import TableFace
 from relief_bsdf.plate.grid import TableGrid
@@ -87,9 +89,19 @@ def rows_sigma(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
         return np.full(n, np.nan)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5161]))
     runs = np.empty((draws, n))
-    for k in range(draws):
-        swaps = {name: TableFace(perturbed(t_in, rng), perturbed(t_out, rng)) for name, (t_out, t_in) in faces.items()}
-        runs[k], _ = deterministic.run(experiment.with_plate(**swaps), rows, grid)
+
+    def solve(swaps: dict) -> np.ndarray:
+        return deterministic.run(experiment.with_plate(**swaps), rows, grid)[0]
+    # the draws' plate solves run on this process's threads, a batch of `threads` at a time (numpy and
+    # LAPACK release the GIL); the perturbations are drawn in order in this thread: the same numbers
+    threads = 1 if in_worker() else max(1, min(default_workers(), draws))
+    # one BLAS thread for the whole block (each solve asks for it too; set once here, no thread
+    # restores the process's setting while another still solves)
+    with deterministic.blas_single_thread(), ThreadPoolExecutor(max_workers=threads) as pool:
+        for lo in range(0, draws, threads):
+            batch = [{name: TableFace(perturbed(t_in, rng), perturbed(t_out, rng))
+                      for name, (t_out, t_in) in faces.items()} for _ in range(lo, min(draws, lo + threads))]
+            runs[lo:lo + len(batch)] = list(pool.map(solve, batch))
     return runs.std(axis=0, ddof=1)
 
 
