@@ -13,6 +13,7 @@ lies inside the reported interval; intervals reported as not determined are coun
     PYTHONPATH=backend/src .venv/bin/python benchmarks/bench_diagnose.py [--out DIR] [--seed 2]
         [--per-effect 2] [--none 4] [--compound 1] [--no-relief-cases] [--method auto]
         [--only bulk_absorption,...] [--candidates ...] [--case-photons N] [--photons N]
+        [--serial [--workers N]]   (one case at a time, each with every core: the latency a user sees)
 
 Seeds: the selection rule's thresholds (BIC_MARGIN 10 of fit.selection, the noise-consistency
 gate 3 sqrt(2n), the overwhelming bar max(40, 3 sqrt(2n))) were set on seed 1 in the first
@@ -49,10 +50,10 @@ PARAMETER_FREE = ("interreflection", "diffraction")     # a face swap: the key's
 
 
 def _diag(context, name):
-    root, photons, method, candidates = context
+    root, photons, method, candidates, workers = context
     t = time.time()
     r = diagnose(Path(root) / name / "sample.toml", Path(root) / name / "diagnosis", method=method, photons=photons,
-                 effects=candidates, workers=1)
+                 effects=candidates, workers=workers)
     (Path(root) / name / "diagnosis" / "bench_seconds.txt").write_text(f"{time.time() - t:.1f}\n")
     return {"effects": r["effects"], "parameters": r["parameters"], "intervals": r["intervals"],
             "alternatives": r.get("alternatives", []),
@@ -154,7 +155,11 @@ def main(argv=None) -> int:
     ap.add_argument("--candidates", default=None, help="comma-separated candidate effects the diagnosis tries")
     ap.add_argument("--case-photons", type=int, default=None, help="generator photons per incidence (default: its own)")
     ap.add_argument("--reuse", action="store_true", help="reuse cases already in --out")
-    ap.add_argument("--serial", action="store_true", help="diagnose one case after the other, printing each result")
+    ap.add_argument("--serial", action="store_true", help="diagnose one case after the other, printing each result "
+                    "(each diagnosis then has the machine to itself: what a user waits for one case)")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="worker processes of each diagnosis (default: 1 while the cases run side by side, every "
+                         "core with --serial)")
     ap.add_argument("--resume", action="store_true",
                     help="diagnose only the cases without a diagnosis.json under --out (implies --reuse); "
                          "summarise all")
@@ -180,7 +185,8 @@ def main(argv=None) -> int:
     keys = {k["case"]: k for k in json.loads((root / "key.json").read_text())["cases"]}
     cases = [c for c in cases if c.name in keys]
     t1 = time.time()
-    ctx = (str(root), a.photons, a.method, candidates)
+    workers = a.workers if a.workers is not None else (None if a.serial else 1)
+    ctx = (str(root), a.photons, a.method, candidates, workers)
     if a.summarise_only:          # the diagnoses already written (e.g. a run stopped part-way)
         res, cases = _read_results(root, cases)
     elif a.resume:                # a run stopped part-way: diagnose the rest, then summarise every case
@@ -200,7 +206,8 @@ def main(argv=None) -> int:
     else:
         res = map_tasks(_diag, [c.name for c in cases], ctx, label="diagnose")
     summary = summarise(cases, keys, res)
-    summary.update({"seed": a.seed, "method": a.method, "diagnosis_photons": a.photons,
+    summary.update({"seed": a.seed, "method": a.method, "mode": "one case at a time" if a.serial else
+                    "cases side by side, one worker each", "workers_per_diagnosis": workers or "every core", "diagnosis_photons": a.photons,
                     "case_photons": a.case_photons or "default", "candidates": candidates or "all",
                     "seconds_generate": round(t_gen, 1), "seconds_diagnose_total": round(time.time() - t1, 1),
                     "cases_dir": str(root),
