@@ -35,14 +35,22 @@ def test_an_instrument_change_reuses_the_operators_and_gives_a_fresh_solvers_num
     assert not np.allclose(reused, _fresh(ex))             # the instrument did change the rows
 
 
-def test_a_plate_change_builds_new_operators():
+def test_a_bulk_change_builds_new_loop_operators_on_the_tables_kernels():
+    """Absorption acts on the round trip, not on the tables: new loop operators, the tables' part
+    (kernels in azimuthal modes, exit maps: `_table_ops`) shared; a fresh solver's numbers."""
     ex = _experiment()
     _fresh(ex)
+    first = deterministic._SOLVERS[-1][2]
     absorbing = ex.with_bulk(absorption_per_m=200.0)
     got = simulate(absorbing, ROWS, grid=GRID).values_per_sr
     assert len(deterministic._SOLVERS) == 2
+    second = deterministic._SOLVERS[-1][2]
+    assert second._ops is not first._ops and second._tops is first._tops
+    assert second._ops[550.0]["sys"] is not first._ops[550.0]["sys"]
     np.testing.assert_allclose(got, _fresh(absorbing), rtol=1e-12, atol=0)
     assert got.sum() < _fresh(ex).sum()
+    thicker = ex.with_plate(thickness_m=3e-3)          # the thickness too is the bulk's
+    np.testing.assert_allclose(simulate(thicker, ROWS, grid=GRID).values_per_sr, _fresh(thicker), rtol=1e-12, atol=0)
 
 
 def test_a_tilt_reuses_the_loop_operators_with_its_own_outside_table():

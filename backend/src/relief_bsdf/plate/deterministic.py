@@ -649,11 +649,16 @@ class PlateSolver:
         self.delta = np.arange(A) * (360.0 / A)
         self.psa = projected_solid_angle(self.theta_edges, [0.0, 360.0 / A])[:, 0]        # (N,)
         self._ops: dict = {}
+        self._tops: dict = {}          # the tables' part of the operators (`_table_ops`), shared across bulks
 
     # -- per wavelength operators
-    def _operators(self, wl: float) -> dict:
-        if wl in self._ops:
-            return self._ops[wl]
+    def _table_ops(self, wl: float) -> dict:
+        """The part of a wavelength's operators that the boundary tables and the indices fix (the
+        kernels in azimuthal modes, the faces' delta parts and exit maps); the bulk (thickness,
+        absorption, volume scattering) acts through `_operators` alone.  Shared by the solvers of
+        one plate's tables whose bulk differs (`_reused_solver`: a fit of the absorption)."""
+        if wl in self._tops:
+            return self._tops[wl]
         m = self.model
         n = float(np.real(m.index.n(wl)))
         n0 = float(np.real(m.outside_index.n(wl)))
@@ -661,8 +666,6 @@ class PlateSolver:
         N = tc.size
         c = 4 if self.mueller else 1
         vin = _TableView(self.inside, wl, self.mueller, "inside table")
-        cos_c = np.maximum(np.cos(np.radians(tc)), 1e-6)
-        absorb = np.exp(-m.absorption_per_m * m.thickness_m / cos_c)                       # (N,)
         # Fresnel of the flat face averaged over each internal cell (projected solid angle): the cell
         # straddling the critical angle then loses exactly what the exit remap below lets out
         e = np.radians(self.theta_edges)
@@ -683,15 +686,40 @@ class PlateSolver:
         # kernel K[t, j, a] from the inside table's R cells, times the receiving cell's projected solid angle
         Kh = np.moveaxis(vin.diffuse_modes("R", tc, tc, self.delta), 0, 1)                 # (T, J, M[,4,4])
         Kh *= self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None]
+        KBh = GBT = None
+        if vB is not None:
+            KBh = np.moveaxis(vB.diffuse_modes("R", tc, tc, self.delta), 0, 1)
+            KBh *= self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None]
+            GBh = vB.diffuse_modes("T", tc, tc, self.delta, detector_row=True)
+            GBT = (np.moveaxis(GBh, 2, 0) if c == 1 else np.moveaxis(GBh, (2, 3), (0, 2))).reshape(
+                GBh.shape[2], -1, GBh.shape[1])
+        GhT, Wflat, Wspec = self._exit_maps(vin, vB, n, n0, c)
+        sector_kernels = []
+        if self.inside_sectors is not None and vB is None and m.rough_face == "front":
+            sector_kernels = [(p, G - GhT) for p, G in self._sector_kernels(wl, c)]
+        t = dict(n=n, n0=n0, c=c, vin=vin, vB=vB, RF=RF, SR=SR, Kh=Kh, KBh=KBh, GBT=GBT, GhT=GhT,
+                 Wflat=Wflat, Wspec=Wspec, sector_kernels=sector_kernels)
+        self._tops[wl] = t
+        return t
+
+    def _operators(self, wl: float) -> dict:
+        if wl in self._ops:
+            return self._ops[wl]
+        m = self.model
+        t = self._table_ops(wl)
+        c, RF, SR, Kh, KBh = t["c"], t["RF"], t["SR"], t["Kh"], t["KBh"]
+        tc = self.theta_c
+        N = tc.size
+        cos_c = np.maximum(np.cos(np.radians(tc)), 1e-6)
+        absorb = np.exp(-m.absorption_per_m * m.thickness_m / cos_c)                       # (N,)
+        Mk = Kh.shape[2]
         # round trip diagonal D_j = A_j R_F,j A_j (4x4 or scalar R_F,00)
         if c == 1:
             Dj = absorb**2 * RF[:, 0, 0]
-            Mk = Kh.shape[2]
             Kmat = np.moveaxis(Kh, 2, 0) + np.diag(SR[:, 0, 0])[None]                      # (M, T, J)
             sysm = np.eye(N)[None] - Kmat * Dj[None, None, :]
         else:
             Dj = absorb[:, None, None] ** 2 * RF                                            # (N, 4, 4)
-            Mk = Kh.shape[2]
             KD = np.einsum("tjmab,jbc->mtajc", Kh, Dj)
             idx = np.arange(N)
             KD[:, idx, :, idx, :] += np.einsum("jab,jbc->jac", SR, Dj)[:, None]
@@ -699,32 +727,23 @@ class PlateSolver:
             sysm *= -1.0                                                                    # I - K D in place
             sysm[:, np.arange(N * 4), np.arange(N * 4)] += 1.0
             del KD
-        Kb = Rtrip = GBT = KBm = None
-        if vB is not None:
+        Kb = Rtrip = KBm = None
+        if t["vB"] is not None:
             # second face with its own table: round trip K A (K_B + R_B,delta) A as full matrices per m
-            KBh = np.moveaxis(vB.diffuse_modes("R", tc, tc, self.delta), 0, 1)
-            KBh *= self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None]
             Kb = _blocks(Kh, c) + _block_diag(SR, c)[None]
             Aa = np.repeat(absorb, c)
             KBm = _blocks(KBh, c)
             Rtrip = (KBm + _block_diag(RF, c)[None]) * Aa[None, :, None] * Aa[None, None, :]
             sysm = np.eye(N * c)[None] - Kb @ Rtrip
-            GBh = vB.diffuse_modes("T", tc, tc, self.delta, detector_row=True)
-            GBT = (np.moveaxis(GBh, 2, 0) if c == 1 else np.moveaxis(GBh, (2, 3), (0, 2))).reshape(
-                GBh.shape[2], -1, GBh.shape[1])
         slab_ops = None
         if m.scatter_per_m > 0:   # volume scattering: the slab's operators replace the diagonal traversal
             Kb = _blocks(Kh, c) + _block_diag(SR, c)[None]
             R2 = (0.0 if KBm is None else KBm) + _block_diag(RF, c)[None]
             slab_ops = _slab_system(m, self.theta_edges, self.delta.size, Kb, R2, c)
             Rtrip, sysm = slab_ops["Rtrip"], slab_ops["sys"]
-        GhT, Wflat, Wspec = self._exit_maps(vin, vB, n, n0, c)
-        sectors = []
-        if self.inside_sectors is not None and vB is None and slab_ops is None and m.rough_face == "front":
-            sectors = [(p, G - GhT) for p, G in self._sector_kernels(wl, c)]
-        ops = dict(n=n, n0=n0, vin=vin, vB=vB, absorb=absorb, RF=RF, sys=sysm, Dj=Dj, GhT=GhT,
-                   sectors=sectors,
-                   Wflat=Wflat, Wspec=Wspec, c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=GBT, slab=slab_ops)
+        ops = dict(n=t["n"], n0=t["n0"], vin=t["vin"], vB=t["vB"], absorb=absorb, RF=RF, sys=sysm, Dj=Dj,
+                   GhT=t["GhT"], sectors=t["sector_kernels"] if slab_ops is None else [],
+                   Wflat=t["Wflat"], Wspec=t["Wspec"], c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=t["GBT"], slab=slab_ops)
         ops.update(self._outside_ops(wl, ops))
         self._ops[wl] = ops
         return ops
@@ -1280,6 +1299,7 @@ def front_tables(experiment: Any, grid: Any, wl: Any, ti: Any, traced: bool, pro
 
 _SOLVERS: list = []          # (tables, plate fields, solver): the last few, newest last
 _SOLVERS_KEPT = 4
+_BULK_FIELDS = ("thickness_m", "absorption_per_m", "scatter_per_m", "hg_g")    # act on `_operators` alone
 _INSTRUMENT_FIELDS = ("detector_half_angle_deg", "polarization", "background_per_sr", "blur_deg", "tilt_deg",
                       "cone_points", "beam_divergence_deg")
 
@@ -1298,6 +1318,14 @@ def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | No
             _SOLVERS.append(_SOLVERS.pop(i))
             new = copy.copy(solver)          # shares the operators (solver._ops), carries the new instrument
             new.model = model
+            return new
+    tabs = tuple((f, getattr(model, f)) for f, _ in plate if f not in _BULK_FIELDS)
+    for t, key, solver in reversed(_SOLVERS):     # the same tables, another bulk (an absorption)
+        if all(a is b for a, b in zip(t, tables)) and tuple(kv for kv in key if kv[0] not in _BULK_FIELDS) == tabs:
+            new = copy.copy(solver)
+            new.model, new._ops = model, {}        # the bulk's part anew, the tables' part (solver._tops) shared
+            _SOLVERS.append((tables, plate, new))
+            del _SOLVERS[:-_SOLVERS_KEPT]
             return new
     for t, key, solver in reversed(_SOLVERS):     # same loop tables, another outside table (a tilt)
         if (key == plate and t[0] is inside and t[2] is back and t[3] is sectors and outside is not None
