@@ -11,25 +11,35 @@ recording cached by bench_forward_accuracy.py --cache DIR (1 M photons, 0/30/60 
 
     RELIEF_BACKEND=serial .venv/bin/python benchmarks/orientation_average.py dots --cache DIR
 """
-import sys, warnings; warnings.simplefilter("ignore")
-sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
+import argparse
+import sys
+import warnings
 from dataclasses import replace
+from pathlib import Path
+
 import numpy as np
-import bench_forward_accuracy as B
-from relief_bsdf.core.index import ConstantIndex
-from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, TableFace, TableGrid, simulate
-from relief_bsdf.plate.faces import _reconstruct_side
-from relief_bsdf.plate.deterministic import _phi_slice
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_forward_accuracy as B  # noqa: E402  (the cases and plates of the forward-accuracy benchmark)
+from relief_bsdf.core.index import ConstantIndex  # noqa: E402
+from relief_bsdf.plate import (Experiment, FlatFace, Instrument, Plate, ReliefFace, TableFace, TableGrid,  # noqa: E402
+                               simulate)
+# internal pieces on purpose: the public `plate.faces.inside_sectors` traces sector tables only for reliefs
+# anisotropic in rms slope, and the dots are not
+from relief_bsdf.plate.deterministic import _phi_slice  # noqa: E402
+from relief_bsdf.plate.faces import _reconstruct_side  # noqa: E402
+
 if __name__ == "__main__":
-    import argparse
-    ap = argparse.ArgumentParser()
+    warnings.simplefilter("ignore")
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("case", nargs="?", default="dots")
     ap.add_argument("--cache", required=True, help="bench_forward_accuracy.py's --cache folder")
     a = ap.parse_args()
     name = a.case
-    case = B.CASES[name]; relief = B.make_relief(name)
+    case, relief = B.CASES[name], B.make_relief(name)
     rows = B.rows_of((0.0, 30.0, 60.0))
-    d = np.load(f"{a.cache}/rec_{name}_1000000_0_30_60.npz"); rec, sig = d["rec"], d["sig"]
+    d = np.load(f"{a.cache}/rec_{name}_1000000_0_30_60.npz")
+    rec, sig = d["rec"], d["sig"]
     grid = TableGrid()
     face = ReliefFace(relief, method="ray", samples=400000, seed=0)
     ex = Experiment(Plate(case.thickness_mm * 1e-3, ConstantIndex(case.n_glass), face, FlatFace()),
@@ -56,12 +66,12 @@ if __name__ == "__main__":
     avg = replace(_phi_slice(sec, 0), phi_i_deg=np.array([0.0]),
                   **{k: (v.astype(np.float32) if k in ("values_per_sr", "mueller_per_sr", "sigma_per_sr") else v)
                      for k, v in acc.items()})
-    side = np.asarray(rows.side).astype(str); ti = np.asarray(rows.theta_i_deg); ts = np.asarray(rows.theta_s_deg)
+    side, ti, ts = np.asarray(rows.side).astype(str), np.asarray(rows.theta_i_deg), np.asarray(rows.theta_s_deg)
     m = (side == "T") & (ti == 60) & (ts <= 11)
     print("rec    ", " ".join(f"{v:.4f}" for v in rec[m]))
     for label, tin in (("as is", t_in), ("phi 0 of sectors", _phi_slice(sec, 0)), ("averaged", avg)):
         e2 = ex.with_plate(front=TableFace(tin, t_out))
         v = simulate(e2, rows, grid=grid).values_per_sr
-        z = (v - rec) / sig
-        print(f"{label:16s} rms z {np.sqrt(np.mean(z**2)):.2f} (R {np.sqrt(np.mean(z[side=='R']**2)):.2f}, T {np.sqrt(np.mean(z[side=='T']**2)):.2f})",
+        z = B.zstats(v, rec, sig, rows)
+        print(f"{label:16s} rms z {z['rms_z']:.2f} (R {z['rms_z_R']:.2f}, T {z['rms_z_T']:.2f})",
               " ".join(f"{x:.4f}" for x in v[m]), flush=True)

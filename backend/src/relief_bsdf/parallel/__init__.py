@@ -18,10 +18,11 @@ can sit above it.
 from relief_bsdf.parallel.settings import (DEFAULT_SETTINGS, ParallelSettings, add_parallel_args, default_workers,
                                            group_size, settings_from_args)
 from relief_bsdf.parallel.tasks import (RunStats, WorkerCrashed, apply_parallel_args, current_settings,
-                                        in_task_thread, last_run, map_tasks, parallel_from_args, parallel_settings, resolve_backend, task_keys)
+                                        in_task_thread, last_run, map_tasks, parallel_from_args, parallel_settings,
+                                        resolve_backend, task_keys)
 from relief_bsdf.parallel.worker import forget_worker_cached, in_worker, task_rng, worker_cached
 
 __all__ = ["DEFAULT_SETTINGS", "ParallelSettings", "RunStats", "WorkerCrashed", "add_parallel_args",
            "apply_parallel_args", "current_settings", "default_workers", "forget_worker_cached", "group_size",
-           "in_task_thread", "in_worker", "last_run", "map_tasks", "parallel_from_args", "parallel_settings", "resolve_backend",
-           "settings_from_args", "task_keys", "task_rng", "worker_cached"]
+           "in_task_thread", "in_worker", "last_run", "map_tasks", "parallel_from_args", "parallel_settings",
+           "resolve_backend", "settings_from_args", "task_keys", "task_rng", "worker_cached"]

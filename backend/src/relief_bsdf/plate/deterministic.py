@@ -277,14 +277,15 @@ def _apply(W: np.ndarray, arr: np.ndarray, axis: int) -> np.ndarray:
         return np.moveaxis(np.tensordot(W, arr, axes=([1], [axis])), 0, axis)
     order = np.argsort(~nz, axis=1, kind="stable")[:, :2]              # the (up to) two weights of each row
     w = np.take_along_axis(W, order, axis=1)
-    if np.all(w[:, 0] == 1.0) and (W.shape[1] == 1 or not np.any(w[:, 1])):
-        return np.take(arr, order[:, 0], axis=axis).astype(np.result_type(arr.dtype, W.dtype), copy=False)
-    shape = [1] * arr.ndim
-    shape[axis] = -1
     dtype = np.result_type(arr.dtype, W.dtype)
     out = np.take(arr, order[:, 0], axis=axis).astype(dtype, copy=False)
+    second = W.shape[1] > 1 and np.any(w[:, 1])
+    if not second and np.all(w[:, 0] == 1.0):
+        return out                                                      # a selection (a rotation of the azimuths)
+    shape = [1] * arr.ndim
+    shape[axis] = -1
     out *= w[:, 0].reshape(shape)
-    if W.shape[1] > 1 and np.any(w[:, 1]):
+    if second:
         second = np.take(arr, order[:, 1], axis=axis).astype(dtype, copy=False)
         second *= w[:, 1].reshape(shape)
         out += second
@@ -345,12 +346,16 @@ class _TableView:
 
     def diffuse(self, side: str, theta_in: np.ndarray, theta_out: np.ndarray, delta_deg: np.ndarray) -> np.ndarray:
         """f(theta_in -> theta_out, relative propagation azimuth delta): (J, T, A[, 4, 4])."""
-        k = 0 if side == "R" else 1
+        arr = self._on_exit_grid(side, theta_out, delta_deg)
+        return _apply(_lin_matrix(self.table.theta_i_deg, theta_in), arr, 0)   # last: it makes the array grow
+
+    def _on_exit_grid(self, side: str, theta_out: np.ndarray, delta_deg: np.ndarray) -> np.ndarray:
+        """The table's cells of one side at its own incidences, sampled on the exit angles and the
+        relative propagation azimuths delta: (I, T, A[, 4, 4])."""
         t = self.table
-        arr = self.v[:, k]                                                   # (I, S, P, ...)
+        arr = self.v[:, 0 if side == "R" else 1]                              # (I, S, P, ...)
         arr = _apply(_periodic_matrix(t.phi_s_deg, self.phi0 + 180.0 + np.asarray(delta_deg)), arr, 2)
-        arr = _apply(_lin_matrix(t.theta_s_deg, theta_out), arr, 1)
-        return _apply(_lin_matrix(t.theta_i_deg, theta_in), arr, 0)      # last: it makes the array grow
+        return _apply(_lin_matrix(t.theta_s_deg, theta_out), arr, 1)
 
     def diffuse_modes(self, side: str, theta_in: np.ndarray, theta_out: np.ndarray, delta_deg: np.ndarray,
                       detector_row: bool = False) -> np.ndarray:
@@ -358,15 +363,11 @@ class _TableView:
         row S0 alone, (J, T, M[, 4])): the Fourier modes the circulant loop works with.  The FFT is taken
         on the table's own incidences and then interpolated in theta_i (linear maps on different axes
         commute), so the (J, T, A, 4, 4) kernel on the engine grid is never built."""
-        k = 0 if side == "R" else 1
-        t = self.table
-        arr = self.v[:, k]
-        arr = _apply(_periodic_matrix(t.phi_s_deg, self.phi0 + 180.0 + np.asarray(delta_deg)), arr, 2)
-        arr = _apply(_lin_matrix(t.theta_s_deg, theta_out), arr, 1)
+        arr = self._on_exit_grid(side, theta_out, delta_deg)
         if detector_row and self.mueller:
             arr = arr[..., 0, :]
         modes = np.ascontiguousarray(np.fft.rfft(arr, axis=2))        # rfft leaves the modes strided
-        return _apply(_lin_matrix(t.theta_i_deg, theta_in), modes, 0)
+        return _apply(_lin_matrix(self.table.theta_i_deg, theta_in), modes, 0)
 
     def on_grid(self, theta_edges_deg: np.ndarray, azimuth_cells: int) -> bool:
         """The table's cells are the engine's (same polar edges, azimuth cells centred on the engine's)."""
@@ -1310,7 +1311,10 @@ def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | No
     earlier solver on the SAME table objects and the same plate (thickness, indices, bulk, grid):
     they do not depend on the instrument (source polarisation, cone, blur, tilt, stray light),
     which acts only on the incident Stokes vector and the detector reading.  A fit or diagnosis
-    that changes only the instrument then reuses them; the numbers are those of a fresh solver."""
+    that changes only the instrument then reuses them.  Short of that: the same tables with another
+    bulk (absorption, thickness, volume scattering) share the tables' part (`PlateSolver._table_ops`);
+    another outside table on the same loop tables and plate (a tilt) shares the loop's operators
+    (`PlateSolver.with_outside`).  The numbers are always those of a fresh solver."""
     plate = tuple((f, getattr(model, f)) for f in PlateModel.__dataclass_fields__ if f not in _INSTRUMENT_FIELDS)
     tables = (inside, outside, back, sectors)
     for i, (t, key, solver) in enumerate(_SOLVERS):
@@ -1324,17 +1328,16 @@ def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | No
         if all(a is b for a, b in zip(t, tables)) and tuple(kv for kv in key if kv[0] not in _BULK_FIELDS) == tabs:
             new = copy.copy(solver)
             new.model, new._ops = model, {}        # the bulk's part anew, the tables' part (solver._tops) shared
-            _SOLVERS.append((tables, plate, new))
-            del _SOLVERS[:-_SOLVERS_KEPT]
-            return new
+            return _kept(tables, plate, new)
     for t, key, solver in reversed(_SOLVERS):     # same loop tables, another outside table (a tilt)
         if (key == plate and t[0] is inside and t[2] is back and t[3] is sectors and outside is not None
                 and t[1] is not None and outside.is_polarized == t[1].is_polarized):
-            new = solver.with_outside(model, outside)
-            _SOLVERS.append((tables, plate, new))
-            del _SOLVERS[:-_SOLVERS_KEPT]
-            return new
-    solver = PlateSolver(model, inside, outside, back=back, inside_sectors=sectors)
+            return _kept(tables, plate, solver.with_outside(model, outside))
+    return _kept(tables, plate, PlateSolver(model, inside, outside, back=back, inside_sectors=sectors))
+
+
+def _kept(tables: tuple, plate: tuple, solver: PlateSolver) -> PlateSolver:
+    """Remember `solver` (newest last, the last _SOLVERS_KEPT only) and return it."""
     _SOLVERS.append((tables, plate, solver))
     del _SOLVERS[:-_SOLVERS_KEPT]
     return solver

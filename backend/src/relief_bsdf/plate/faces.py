@@ -471,8 +471,8 @@ def _index_ratio(material: Material, wavelengths_nm: Any) -> float:
 
 def _trace_here(face: "ReliefFace") -> bool:
     """Trace a relief face's tables in this process (threads on one reused tracer; THREADED_METHODS on
-    threads too) unless the run is spread over Dask or the face names its own backend: a fit re-traces the same grid with new
-    heights every evaluation, and one tracer whose heights are rewritten in place (BVH refitted)
+    threads too) unless the run is spread over Dask or the face names its own backend: a fit re-traces
+    the same grid with new heights every evaluation, and one tracer whose heights are rewritten in place (BVH refitted)
     costs ~0.03 s where worker processes rebuild a BVH each (~0.5-1 s per worker per side)."""
     from relief_bsdf.parallel import current_settings, in_worker
     if in_worker() or face.options.get("backend") is not None:

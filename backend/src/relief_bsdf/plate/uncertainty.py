@@ -93,7 +93,8 @@ def rows_sigma(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
     def solve(swaps: dict) -> np.ndarray:
         return deterministic.run(experiment.with_plate(**swaps), rows, grid)[0]
     # the draws' plate solves run on this process's threads, a batch of `threads` at a time (numpy and
-    # LAPACK release the GIL); the perturbations are drawn in order in this thread: the same numbers
+    # LAPACK release the GIL); the perturbations are drawn in order in this thread: the same numbers.
+    # (Not map_tasks(threads=): its tasks would all be made first, every draw's tables held at once.)
     threads = 1 if in_worker() else max(1, min(default_workers(), draws))
     # one BLAS thread for the whole block (each solve asks for it too; set once here, no thread
     # restores the process's setting while another still solves)

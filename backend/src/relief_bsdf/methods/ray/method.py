@@ -149,6 +149,10 @@ class _RayContext:
         d["tracer"] = None                       # an Embree scene does not travel: rebuilt per worker
         return d
 
+    def threads_here(self, tracer: ReliefTracer | None) -> int:
+        """Threads this process traces with: the option, else the tracer's, else every core."""
+        return int(self.threads or (tracer.threads if tracer is not None else 0) or default_workers())
+
     def get_tracer(self) -> ReliefTracer:
         if self.tracer is not None:
             return self.tracer
@@ -285,7 +289,7 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
     """
     si, side, iw, ii, ip, n_out, n_in, ti, pi_ = task
     tracer = ctx.get_tracer()
-    threads = 1 if in_worker() or in_task_thread() else int(ctx.threads or tracer.threads or default_workers())
+    threads = 1 if in_worker() or in_task_thread() else ctx.threads_here(tracer)
     K = 4 if ctx.polarized else 0
     cells = CellIndex(ctx.te, ctx.pe)
     Lx, Ly = float(tracer.Lx), float(tracer.Ly)
@@ -437,7 +441,7 @@ def _reconstruct(tracer, relief, material, request, progress, opts) -> list[Bsdf
         d["diag"][(iw, ii, ip)] = diag
 
     t_trace = time.perf_counter()
-    threads = int(ctx.threads or (tracer.threads if tracer is not None else 0) or default_workers())
+    threads = ctx.threads_here(tracer)
     chunks_per_task = -(-ctx.samples // CHUNK)     # about: the strata round the samples up a little
     try:
         map_tasks(_incidence_task, tasks, ctx, progress=progress or silent, label="ray tracing",
