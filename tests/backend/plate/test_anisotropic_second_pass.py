@@ -40,7 +40,7 @@ def test_the_second_pass_by_azimuth_sector_agrees_with_the_independent_monte_car
     2.5-deg cone, rows across both principal planes.  Measured 2026-12-03, rms deviation in the bright
     part: R 5.5 % with the sectors, 46 % without (the flank along the shallow axis 2x high, the steep
     axis 0.7x); T (no second pass in its bright part) 0.7 % alike with and without.  Left: the sectors'
-    +-15 deg turn and the higher orders, still circulant."""
+    +-15 deg turn.  (Since session 29 every order of the loop goes by sector, test_sector_loop.py.)"""
     from relief_bsdf.validation.conceal import HeightFieldFace
     from relief_bsdf.validation.photon import PlatePhysics, detect, run_photons
     relief = _anisotropic()

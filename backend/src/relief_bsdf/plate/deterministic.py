@@ -34,7 +34,10 @@ Method (radiative transfer between two faces, discrete ordinates):
   after further scattering, is summed exactly (no truncated series).
 * Isotropy makes K circulant in azimuth: a real FFT over the azimuth axis block-diagonalises
   it (azimuthal reduction), so the solve is A/2+1 small (N x N) systems instead of one
-  (N A) x (N A) system.
+  (N A) x (N A) system.  An anisotropic relief traced by rays gives its inside table at six
+  incidence azimuths (`inside_sectors`): light at propagation azimuth delta then scatters by the
+  table nearest delta, K = K_0 + sum_k (K_k - K_0) P_k is not circulant, and the loop is solved by
+  GMRES preconditioned by the circulant system (`_sector_loop`).
 * The delta parts of the tables (specular reflection and transmission of the flat fraction of
   the relief, or a flat face) are kept apart as exact beams: their chain between the faces is
   a 4x4 geometric series (Mueller matrices), and what they scatter diffusely feeds S.
@@ -603,8 +606,9 @@ class PlateSolver:
         """`back`: optional BSDF table (light from inside) of the second, back face; None = flat.
 
         `inside_sectors`: the relief's inside table at more incidence azimuths (an anisotropic relief,
-        `plate.faces.inside_sectors`); the second pass (relief -> flat back face -> out through the
-        relief) then leaves through the sector nearest its azimuth (`_second_pass_sectors`).
+        `plate.faces.inside_sectors`); the light inside the plate (every order of the loop: the second
+        pass and the trapped light) then scatters and leaves through the sector nearest its azimuth
+        (`_sector_loop`, `_sector_exits`).
 
         `front`: optional (outside, inside) tables of the FRONT face when the relief is on the back
         (None = flat).  The plate is then solved with the roles swapped: the front face is the first
@@ -697,7 +701,7 @@ class PlateSolver:
         GhT, Wflat, Wspec = self._exit_maps(vin, vB, n, n0, c)
         sector_kernels = []
         if self.inside_sectors is not None and vB is None and m.rough_face == "front":
-            sector_kernels = [(p, G - GhT) for p, G in self._sector_kernels(wl, c)]
+            sector_kernels = [(p, _blocks(K - Kh, c), G - GhT) for p, K, G in self._sector_kernels(wl, c)]
         t = dict(n=n, n0=n0, c=c, vin=vin, vB=vB, RF=RF, SR=SR, Kh=Kh, KBh=KBh, GBT=GBT, GhT=GhT,
                  Wflat=Wflat, Wspec=Wspec, sector_kernels=sector_kernels)
         self._tops[wl] = t
@@ -809,37 +813,80 @@ class PlateSolver:
                                                                                               Gh.shape[1])
 
     def _sector_kernels(self, wl: float, c: int) -> list:
-        """[(incidence azimuth deg, exit kernel)] of the inside sector tables (`inside_sectors`)."""
+        """[(incidence azimuth deg, loop kernel (T, J, M[, 4, 4]), exit kernel (M, J c, O))] of the inside
+        sector tables (`inside_sectors`), in the engine's modes like the 0-deg table's."""
         t = self.inside_sectors
         out = []
         for ip, p in enumerate(np.asarray(t.phi_i_deg, float)):
-            one = _phi_slice(t, ip)
-            out.append((float(p), self._exit_kernel(_TableView(one, wl, self.mueller, "inside sector table"), c)))
+            v = _TableView(_phi_slice(t, ip), wl, self.mueller, "inside sector table")
+            K = np.moveaxis(v.diffuse_modes("R", self.theta_c, self.theta_c, self.delta), 0, 1)
+            K *= self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None]
+            out.append((float(p), K, self._exit_kernel(v, c)))
         return out
 
-    def _second_pass_sectors(self, ops: dict, src: "_Sources", A: int) -> np.ndarray:
-        """(q, O, A): what the second pass's exit through the rough face changes when each azimuth sector
-        leaves through its own inside table instead of the 0-deg one turned (added to the rough face's
-        diffuse exit; `ops["sectors"]` holds each sector's kernel minus the 0-deg one, and the exit is
-        linear in the kernel).
-
-        Second pass: the first transmission S_first (the outside table's own cells, in the relief's
-        orientation), one traversal, the flat face's Fresnel R, the traversal back, arriving at the
-        relief from inside at propagation azimuth phi_i + 180 + delta.  The inside table traced at
-        incidence azimuth p stands for light arriving at propagation azimuth p + 180 (methods.ray's
-        frame): each cell goes through the table nearest to p = delta (mod 180: a half turn leaves a
-        relief's statistics unchanged; the rows lit at phi_i = 0, as the engine assumes for an
-        anisotropic relief), turned by the remaining <= 15 deg.  Higher orders keep the circulant
-        loop (their light has crossed the relief from inside at least twice more)."""
-        U1 = _reflect_up(ops, src.S_first * ops["absorb"][None, :, None, None])
-        ps = np.array([0.0] + [p for p, _ in ops["sectors"]])
+    def _sector_masks(self, ops: dict) -> list:
+        """[(sector k's loop kernel minus the 0-deg one, its exit kernel minus the 0-deg one, (A,) mask of the
+        propagation azimuths delta that meet the relief through sector k)]: the inside table traced at
+        incidence azimuth p stands for light arriving at propagation azimuth p + 180 (methods.ray's frame),
+        i.e. at delta = p for rows lit at phi_i = 0 (the engine's frame for an anisotropic relief); each
+        cell takes the nearest p mod 180 (a half turn leaves a relief's statistics unchanged), turned by
+        the remaining <= 15 deg."""
+        ps = np.array([0.0] + [s[0] for s in ops["sectors"]])
         d = np.abs(np.mod(self.delta[:, None] - ps[None, :] + 90.0, 180.0) - 90.0)       # (A, 1 + sectors)
         near = np.argmin(d, axis=1)
+        return [(dK, dG, (near == k).astype(float)) for k, (_, dK, dG) in enumerate(ops["sectors"], start=1)]
+
+    def _sector_loop(self, ops: dict, S: np.ndarray, to_modes: Any, to_cells: Any) -> np.ndarray:
+        """X (M, N c, q) in modes solving X = S + K D X with the rough face's loop kernel K taken by azimuth
+        sector (an anisotropic relief, `inside_sectors`): light arriving at the relief from inside at
+        propagation azimuth delta scatters by the table traced nearest delta (`_sector_masks`), so K is
+        K_0 + sum_k dK_k P_k (P_k: the cells of sector k) and no longer circulant.  Every order of the
+        loop meets the relief by its own azimuth: the second pass (the light transmitted by the relief and
+        reflected by the flat face) and the trapped light.
+
+        Solved by GMRES, preconditioned by the circulant loop of the sectors' azimuth-weighted kernel
+        Kw = K_0 + sum_k w_k dK_k (w_k: sector k's share of the azimuth cells; exact when the light is
+        uniform in azimuth): (I - (I - Kw D)^-1 sum_k dK_k (P_k - w_k) D) X = (I - Kw D)^-1 S, all
+        incidences in one Krylov space (the operator is the same for each)."""
+        from scipy.sparse.linalg import LinearOperator, gmres
+        c, Dj = ops["c"], ops["Dj"]
+        if "sector_loop" not in ops:    # the sectors' kernels in single precision: their part to ~1e-7
+            secs = self._sector_masks(ops)
+            Db = _block_diag(Dj if c == 4 else np.asarray(Dj)[:, None, None] * np.eye(4), c)
+            avg = sum(mask.mean() * dK for dK, _, mask in secs)
+            ops["sector_loop"] = (np.linalg.inv(ops["sys"] - avg @ Db),
+                                  [(dK.astype(np.complex64), (mask - mask.mean())[None, None, :, None])
+                                   for dK, _, mask in secs])
+        sys_inv, secs = ops["sector_loop"]
+        shape = to_cells(S).shape                                                          # (q, N, A, c)
+
+        def round_trip(X: np.ndarray) -> np.ndarray:       # D X: absorb, flat face's Fresnel R, absorb
+            if c == 1:
+                return X * Dj[None, :, None, None]
+            return np.einsum("jab,qjkb->qjka", Dj, X)
+
+        def extra(X: np.ndarray) -> np.ndarray:            # (I - Kw D)^-1 sum_k dK_k (P_k - w_k) D X, cells
+            Y = round_trip(X)
+            Z = 0.0
+            for dK, mask in secs:
+                Z = Z + dK @ to_modes(Y * mask).astype(np.complex64)
+            return to_cells(sys_inv @ Z.astype(complex))
+
+        b = to_cells(sys_inv @ S).ravel()
+        op = LinearOperator((b.size, b.size), matvec=lambda x: x - extra(x.reshape(shape)).ravel(), dtype=float)
+        x, info = gmres(op, b, x0=b.copy(), rtol=1e-7, atol=0.0, restart=40, maxiter=20)
+        if info != 0:
+            raise RuntimeError(f"plate loop by azimuth sector: GMRES did not converge ({info} iterations)")
+        return to_modes(x.reshape(shape))
+
+    def _sector_exits(self, ops: dict, U: np.ndarray, A: int) -> np.ndarray:
+        """(q, O, A): what the exit through the rough face changes when the light arriving there from inside
+        (U, cells, every order) leaves by azimuth sector, each through its own inside table instead of the
+        0-deg one turned (added to the rough face's diffuse exit; the exit is linear in the kernel)."""
         out = 0.0
-        for k, (_, dG) in enumerate(ops["sectors"], start=1):
-            mask = (near == k).astype(float)[None, None, :, None]
+        for _, dG, mask in self._sector_masks(ops):
             if mask.any():
-                out = out + _rough_exit(_exit_modes(U1 * mask), dG, A)
+                out = out + _rough_exit(_exit_modes(U * mask[None, None, :, None]), dG, A)
         return out
 
     def solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
@@ -973,7 +1020,10 @@ class PlateSolver:
             if slab is not None:   # with the slab: U_extra leaves the back face upward; beams shed light
                 Uxh, Dxh = _slab_sources(slab, Uxh, src.beams, self.theta_edges, thetas, ops["n0"], ops["n"], c)
             rhs = rhs + ops["Kb"] @ Uxh
-        XhM = np.linalg.solve(ops["sys"], rhs)                               # (M, N c, nI)
+        if ops["sectors"]:         # an anisotropic relief: the loop meets the relief by azimuth sector
+            XhM = self._sector_loop(ops, rhs, to_modes, to_cells)
+        else:
+            XhM = np.linalg.solve(ops["sys"], rhs)                           # (M, N c, nI)
         absorb = ops["absorb"]
         out = {"XhM": XhM, "Uxh": Uxh}
         if slab is not None:       # light arriving at the second face: B X + what the beams shed there
@@ -998,8 +1048,8 @@ class PlateSolver:
         Um = d["Um"]
         # rough-face exit: circular convolution over azimuth with the inside T kernel
         out_rough = _rough_exit(Um, ops["GhT"], A) + src.direct_rough
-        if ops["sectors"]:         # an anisotropic relief: the second pass leaves by azimuth sector
-            out_rough = out_rough + self._second_pass_sectors(ops, src, A)
+        if ops["sectors"]:         # an anisotropic relief: every order leaves by azimuth sector
+            out_rough = out_rough + self._sector_exits(ops, d["U"], A)
         if np.any(ops["Wspec"]):   # specular exit of the diffuse light arriving at the rough face from inside
             U = d["U"] if d["U"] is not None else np.fft.irfft(np.moveaxis(Um.reshape(Mk, nI, N, c), 0, 2), n=A, axis=2)
             LU = np.moveaxis(U / psa[None, :, None, None], 2, 3).reshape(nI, N * c, A)

@@ -148,9 +148,9 @@ def isotropy_warning(face: Any) -> str:
     return (f"relief {getattr(relief, 'source', '') or 'map'} is anisotropic (principal rms slopes differ "
             f"{ratio:.2g}x, steeper axis at {ang:.0f} deg): the deterministic engine assumes isotropic boundary "
             "tables; its direct reflection and first transmitted pass are the relief's own only for rows lit at "
-            "the tables' incidence azimuth (phi_i = 0), its second pass leaves through the relief by azimuth "
-            "sector (inside_sectors) but its higher orders are the azimuth average, and rows "
-            "at other phi_i are a rotation of phi_i = 0; check with engine='photon'")
+            "the tables' incidence azimuth (phi_i = 0), the light inside meets the relief by 30-deg azimuth "
+            "sector (inside_sectors), and rows at other phi_i are a rotation of phi_i = 0; check with "
+            "engine='photon'")
 
 
 def beam_in_table(table: BsdfTable | None) -> float:
@@ -398,12 +398,13 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     method, a flat or tabulated face).
 
     The deterministic engine's loop turns the one inside table about the normal (azimuth-circulant
-    kernels), exact for an isotropic relief.  On an anisotropic one the light that crossed the relief,
-    was reflected by the flat back face and leaves through the relief from inside (the second pass,
-    most of R at normal incidence after the direct reflection) meets the relief at its own azimuths:
-    the engine then lets each azimuth sector of that light leave through the table traced at the
-    nearest of these azimuths (0-150 deg every 30: a relief's statistics are unchanged by a half
-    turn; PlateSolver `inside_sectors`).  Five more inside tables: the rays of the inside side x 5."""
+    kernels), exact for an isotropic relief.  On an anisotropic one the light inside the plate meets
+    the relief at its own azimuths: the second pass (crossed the relief, reflected by the flat back
+    face, most of R at normal incidence after the direct reflection) and every later order (the
+    trapped light): the engine then lets each azimuth sector of that light scatter and leave through
+    the table traced at the nearest of these azimuths (0-150 deg every 30: a relief's statistics are
+    unchanged by a half turn; PlateSolver `inside_sectors`).  Five more inside tables: the rays of the
+    inside side x 5."""
     if not isinstance(face, ReliefFace) or face.is_flat:
         return None
     if face.method == "auto":
