@@ -830,7 +830,9 @@ class PlateSolver:
         incidence azimuth p stands for light arriving at propagation azimuth p + 180 (methods.ray's frame),
         i.e. at delta = p for rows lit at phi_i = 0 (the engine's frame for an anisotropic relief); each
         cell takes the nearest p mod 180 (a half turn leaves a relief's statistics unchanged), turned by
-        the remaining <= 15 deg."""
+        the remaining <= 7.5 deg (SECTOR_AZIMUTHS_DEG every 15 deg; measured on the anisotropic relief of
+        bench_forward_accuracy: rms z 1.45 with 30-deg sectors, 1.12 with 15; blending the two nearest
+        tables instead of taking the nearest: 1.37 / 1.15, but the measured map 1.70 -> 1.75 / 1.77)."""
         ps = np.array([0.0] + [s[0] for s in ops["sectors"]])
         d = np.abs(np.mod(self.delta[:, None] - ps[None, :] + 90.0, 180.0) - 90.0)       # (A, 1 + sectors)
         near = np.argmin(d, axis=1)
