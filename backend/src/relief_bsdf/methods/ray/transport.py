@@ -36,7 +36,10 @@ Regime: geometric optics (features >> wavelength), no interference between rays.
 
 Speed: a handful of float32 numpy passes per bounce, one gather per bounce (the rays that
 hit), finished rays written once into the preallocated `Exits` (their exit-frame Stokes
-columns gathered and rotated in the record's own slot); freed temporaries stay in the heap
+columns gathered and rotated in the record's own slot); a ray's first interaction kept as the
+6 factors of its Mueller columns (`first_interaction_factors`: most rays leave after it, and their
+exit columns are computed from the factors in the record's slot, `exit_columns_of_factors`, the same
+float32 operations as materialising and rotating the 16); freed temporaries stay in the heap
 (`keep_freed_heap`: no page faults per bounce); no
 BLAS call (a matrix product wakes OpenBLAS's spinning thread pool); the in-place float32
 kernels on the (4, K, n) Stokes columns are the core's (`core.stokes.rotate_stokes_columns`,
@@ -146,6 +149,7 @@ class Rays:
     ids: np.ndarray
     A: np.ndarray | None = None
     s: np.ndarray | None = None
+    F: np.ndarray | None = None      # factored columns of a ray's first interaction (`first_interaction_factors`)
 
     @property
     def size(self) -> int:
@@ -154,21 +158,33 @@ class Rays:
     def take(self, idx: np.ndarray) -> "Rays":
         return Rays(np.take(self.o, idx, axis=0), np.take(self.k, idx, axis=0), self.below[idx], self.w[idx],
                     self.nb[idx], self.ids[idx], None if self.A is None else np.take(self.A, idx, axis=2),
-                    None if self.s is None else np.take(self.s, idx, axis=0))
+                    None if self.s is None else np.take(self.s, idx, axis=0),
+                    None if self.F is None else np.take(self.F, idx, axis=1))
+
+    def columns(self, K: int) -> np.ndarray:
+        """The Stokes columns (4, K, n), materialised from the factors or the identity when not held."""
+        if self.A is not None:
+            return self.A
+        if self.F is not None:
+            return columns_of_factors(self.F)
+        return identity_columns(K, self.size)
 
     @staticmethod
     def concat(parts: list) -> "Rays":
         if len(parts) == 1:
             return parts[0]
         cat = np.concatenate
-        A = None
+        A = F = None
         withA = [p.A for p in parts if p.A is not None]
-        if withA:                                   # A None = identity columns (StokesCarrier): materialise
-            K = withA[0].shape[1]
-            A = cat([p.A if p.A is not None else identity_columns(K, p.size) for p in parts], axis=2)
+        if withA:                                   # full columns somewhere: materialise the others
+            A = cat([p.columns(withA[0].shape[1]) for p in parts], axis=2)
+        elif all(p.F is not None for p in parts):   # every ray still after its first interaction: factors
+            F = cat([p.F for p in parts], axis=1)
+        elif any(p.F is not None for p in parts):   # factors and identities (no first-hit split)
+            A = cat([p.columns(4) for p in parts], axis=2)
         s = None if parts[0].s is None else cat([p.s for p in parts])
         return Rays(cat([p.o for p in parts]), cat([p.k for p in parts]), cat([p.below for p in parts]),
-                    cat([p.w for p in parts]), cat([p.nb for p in parts]), cat([p.ids for p in parts]), A, s)
+                    cat([p.w for p in parts]), cat([p.nb for p in parts]), cat([p.ids for p in parts]), A, s, F)
 
     @staticmethod
     def empty(K: int = 0) -> "Rays":
@@ -185,16 +201,33 @@ def identity_columns(K: int, n: int) -> np.ndarray:
     return A
 
 
-def first_interaction_columns(coef, c2, s2, inv_p) -> np.ndarray:
-    """Mueller columns (4, 4, n) of M Rot / p for rays still in their incident basis (A = identity):
-    Rot the frame rotation by psi (core.stokes: cos 2psi = c2, sin 2psi = s2), M = [[a,b,0,0],
-    [b,a,0,0],[0,0,c,d],[0,0,-d,c]] the facet's interface matrix (core.fresnel coefficients), the
+def first_interaction_factors(coef, c2, s2, inv_p) -> np.ndarray:
+    """The factors (6, n) of the Mueller columns M Rot / p of rays still in their incident basis:
+    rows a, b, c, d (the facet's interface coefficients times inv_p, core.fresnel) and c2, s2
+    (cos 2psi, sin 2psi of the frame rotation, core.stokes).  Six numbers per ray instead of the
+    16 of the product (`columns_of_factors`): what a ray carries after its first interaction until
+    it interacts again (most rays leave first: their exit columns come from the factors,
+    `StokesCarrier.exit_columns`)."""
+    F = np.empty((6, np.size(coef[0])), F32)
+    for x, o in zip(coef, F[:4]):
+        np.multiply(x, inv_p, out=o)
+    F[4] = c2
+    F[5] = s2
+    return F
+
+
+def columns_of_factors(F: np.ndarray) -> np.ndarray:
+    """Mueller columns (4, 4, n) of M Rot / p from its factors (`first_interaction_factors`): Rot the
+    frame rotation by psi (core.stokes: cos 2psi = c2, sin 2psi = s2), M = [[a,b,0,0], [b,a,0,0],
+    [0,0,c,d],[0,0,-d,c]] the facet's interface matrix over p (core.fresnel coefficients), the
     product written out: [[a, b c2, b s2, 0], [b, a c2, a s2, 0], [0, -c s2, c c2, d], [0, d s2, -d c2, c]]
     (tested equal to the core's matrices multiplied)."""
-    A = np.empty((4, 4, np.size(coef[0])), F32)
-    a, b, c, d = A[0, 0], A[1, 0], A[3, 3], A[2, 3]       # the scaled coefficients, computed in place
-    for x, o in zip(coef, (a, b, c, d)):
-        np.multiply(x, inv_p, out=o)
+    a, b, c, d, c2, s2 = F
+    A = np.empty((4, 4, a.size), F32)
+    A[0, 0] = a
+    A[1, 0] = b
+    A[3, 3] = c
+    A[2, 3] = d
     A[0, 3] = A[1, 3] = A[2, 0] = A[3, 0] = 0
     np.multiply(b, c2, out=A[0, 1])
     np.multiply(b, s2, out=A[0, 2])
@@ -207,6 +240,52 @@ def first_interaction_columns(coef, c2, s2, inv_p) -> np.ndarray:
     np.multiply(d, c2, out=A[3, 2])
     np.negative(A[3, 2], out=A[3, 2])
     return A
+
+
+def first_interaction_columns(coef, c2, s2, inv_p) -> np.ndarray:
+    """Mueller columns (4, 4, n) of M Rot / p for rays still in their incident basis (A = identity):
+    `columns_of_factors` of `first_interaction_factors`."""
+    return columns_of_factors(first_interaction_factors(coef, c2, s2, inv_p))
+
+
+def exit_columns_of_factors(F: np.ndarray, c: np.ndarray, d: np.ndarray, out: np.ndarray) -> None:
+    """out (4, 4, m) <- Rot_exit (M Rot / p) from the factors F (6, m) (`first_interaction_factors`) and
+    the exit rotation's c ~ s . s_exit, d ~ p . s_exit (`core.stokes.rotate_stokes_columns_cd`; c, d
+    overwritten).  The same float32 operations as `rotate_stokes_columns_cd(columns_of_factors(F), c, d)`
+    entry by entry (rows 1, 2: E x1 + S x2 and x2 E - x1 S with E, S = cos 2psi', sin 2psi'), skipping
+    only the products with the structural zeros of M Rot: equal to it (up to the sign of a zero, which
+    no sum sees).  10 of the 16 entries are one or two products."""
+    a, b, cc, dd, c2, s2 = F
+    E, S = double_angle_cd(c, d)
+    mul = np.multiply
+    out[0, 0] = a
+    out[0, 3] = 0
+    mul(b, c2, out=out[0, 1])
+    mul(b, s2, out=out[0, 2])
+    out[3, 0] = 0
+    mul(dd, s2, out=out[3, 1])
+    mul(dd, c2, out=out[3, 2])
+    np.negative(out[3, 2], out=out[3, 2])
+    out[3, 3] = cc
+    mul(E, b, out=out[1, 0])                        # column 0: (b, 0) rotated
+    mul(b, S, out=out[2, 0])
+    np.negative(out[2, 0], out=out[2, 0])
+    mul(S, dd, out=out[1, 3])                       # column 3: (0, d) rotated
+    mul(dd, E, out=out[2, 3])
+    x1 = np.empty_like(a)
+    x2 = np.empty_like(a)
+    t = np.empty_like(a)
+    for j, (u1, v1, u2, v2) in ((1, (a, c2, cc, s2)), (2, (a, s2, cc, c2))):
+        mul(u1, v1, out=x1)                         # row 1 of M Rot: a c2, a s2
+        mul(u2, v2, out=x2)                         # row 2: -c s2, c c2
+        if j == 1:
+            np.negative(x2, out=x2)
+        mul(E, x1, out=out[1, j])
+        mul(S, x2, out=t)
+        out[1, j] += t
+        mul(x2, E, out=out[2, j])
+        x1 *= S
+        out[2, j] -= x1
 
 
 @dataclass
@@ -249,7 +328,7 @@ class IntensityCarrier:
         return pR
 
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
-        return None, None
+        return None, None, None
 
     def reflected(self, rays: Rays, pR) -> None:
         """Nothing but the weight changes."""
@@ -262,7 +341,16 @@ class IntensityCarrier:
 
 
 class StokesCarrier:
-    """K Stokes columns per ray, rotated onto each facet's s/p basis (module doc)."""
+    """K Stokes columns per ray, rotated onto each facet's s/p basis (module doc).
+
+    A ray's first interaction (from the identity columns) leaves it with the factors of M Rot / p
+    (`first_interaction_factors`, rays.F: 6 numbers, not 16); they become columns (rays.A) only
+    when the ray interacts again or meets rays with columns (`Rays.concat`), and a ray that leaves
+    first has its exit columns computed from them (`exit_columns_of_factors`): the same numbers.
+    `factored = False` materialises the columns at once (the reference the tests compare with).
+    """
+
+    factored = True
 
     def __init__(self, K: int):
         self.K = int(K)
@@ -313,6 +401,8 @@ class StokesCarrier:
         s_new = u
         n1, n2 = media.pair(rays.below)
         R, T = interface_coefficients_f32(f.ci, n1, n2)
+        if rays.F is not None:                      # a second interaction: the factors become columns
+            rays.A, rays.F = columns_of_factors(rays.F), None
         if rays.A is None:                          # still the identity (first interaction): no rotation yet
             self._ev = (R, T, s_new, double_angle_cd(c, d))
             return np.clip(R[0], 0, 1).astype(F32, copy=False)  # column 0 (unpolarised) is not changed by a rotation
@@ -321,24 +411,26 @@ class StokesCarrier:
         return np.clip(R[0] + R[1] * rays.A[1, 0], 0, 1).astype(F32, copy=False)
 
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
-        """(A, s) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R."""
+        """(A, s, F) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R
+        (F: the factors of a first interaction, A None; else A)."""
         _, T, s_new, rot = self._ev
         inv = 1 / np.maximum(1 - pR_j, F32(1e-30))
         full = j.size == s_new.shape[0]                 # usually every ray transmits something: no gathers
         sel = (lambda a: a) if full else (lambda a: np.take(a, j, axis=0))
         s_t = s_new if full else np.take(s_new, j, axis=0)   # never modified in place (replaced per event)
         if rot is not None:
-            return first_interaction_columns([sel(x) for x in T], sel(rot[0]), sel(rot[1]), inv), s_t
+            F = first_interaction_factors([sel(x) for x in T], sel(rot[0]), sel(rot[1]), inv)
+            return (None, s_t, F) if self.factored else (columns_of_factors(F), s_t, None)
         A = rays.A.copy() if full else np.take(rays.A, j, axis=2)
         apply_interface_mueller_columns(A, *(sel(x) for x in T), inv)
-        return A, s_t
+        return A, s_t, None
 
     def reflected(self, rays: Rays, pR) -> None:
         """Every ray keeps its reflected branch (first-hit split), renormalised by P_R."""
         R, _, s_new, rot = self._ev
         inv = 1 / np.maximum(pR, F32(1e-30))
         if rot is not None:
-            rays.A = first_interaction_columns(R, rot[0], rot[1], inv)
+            self._first(rays, first_interaction_factors(R, rot[0], rot[1], inv))
         else:
             apply_interface_mueller_columns(rays.A, *R, inv)
         rays.s = s_new
@@ -349,16 +441,27 @@ class StokesCarrier:
         pc = np.where(refl, pR, 1 - pR)
         coef = [np.where(refl, r, t) for r, t in zip(R, T)]
         if rot is not None:
-            rays.A = first_interaction_columns(coef, rot[0], rot[1], 1 / np.maximum(pc, F32(1e-30)))
+            self._first(rays, first_interaction_factors(coef, rot[0], rot[1], 1 / np.maximum(pc, F32(1e-30))))
         else:
             apply_interface_mueller_columns(rays.A, *coef, 1 / np.maximum(pc, F32(1e-30)))
         rays.s = s_new
 
+    def _first(self, rays: Rays, F: np.ndarray) -> None:
+        """The rays' state after their first interaction: its factors (or, not factored, columns)."""
+        if self.factored:
+            rays.F = F
+        else:
+            rays.A = columns_of_factors(F)
+
     def exit_columns(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out) -> None:
         """Write the columns of the rays idx (all when None), re-expressed in the exit frame
         s = z x k, into `out` (4, K, m): the exit record's slot, filled row by row without a
-        temporary (`np.take` into each contiguous row); k_exit (m, 3) their directions."""
-        if rays.A is None:
+        temporary (`np.take` into each contiguous row); k_exit (m, 3) their directions.  Rays that
+        hold the factors of their first interaction: `exit_columns_of_factors`."""
+        F = None
+        if rays.F is not None:
+            F = rays.F if idx is None else np.take(rays.F, idx, axis=1, mode="clip")
+        elif rays.A is None:
             out[...] = identity_columns(self.K, k_exit.shape[0])
         elif idx is None:
             out[...] = rays.A
@@ -382,7 +485,10 @@ class StokesCarrier:
             s_to = s_axis_rows(k[zi], phi_exit_rad)
             c[zi] = dot_rows(s[zi], s_to)
             d[zi] = dot_rows(cross_rows(s[zi], k[zi]), s_to)
-        rotate_stokes_columns_cd(out, c, d)
+        if F is not None:
+            exit_columns_of_factors(F, c, d, out)
+        else:
+            rotate_stokes_columns_cd(out, c, d)
 
 
 def carrier_for(K: int):
@@ -633,8 +739,8 @@ def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR) -> Rays | None:
     ot[:, 0] -= eps * fx
     ot[:, 1] -= eps * fy
     ot[:, 2] -= eps * fz
-    A, s = ch.carrier.transmitted_copy(h, j, sel(pR))
-    tr = Rays(ot, kt, ~sel(h.below), sel(h.w) * (1 - sel(pR)), sel(h.nb), sel(h.ids) + ch.n0, A, s)
+    A, s, F = ch.carrier.transmitted_copy(h, j, sel(pR))
+    tr = Rays(ot, kt, ~sel(h.below), sel(h.w) * (1 - sel(pR)), sel(h.nb), sel(h.ids) + ch.n0, A, s, F)
     if ch.media.absorbing_below:
         gone = ~sel(h.below)                        # copies from above went into the absorbing medium
         if gone.any():
