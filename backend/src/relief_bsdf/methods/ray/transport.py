@@ -158,7 +158,7 @@ class Rays:
     def take(self, idx: np.ndarray) -> "Rays":
         return Rays(np.take(self.o, idx, axis=0), np.take(self.k, idx, axis=0), self.below[idx], self.w[idx],
                     self.nb[idx], self.ids[idx], None if self.A is None else np.take(self.A, idx, axis=2),
-                    None if self.s is None else np.take(self.s, idx, axis=0),
+                    None if self.s is None else take_rows(self.s, idx),
                     None if self.F is None else np.take(self.F, idx, axis=1))
 
     def columns(self, K: int) -> np.ndarray:
@@ -191,6 +191,15 @@ class Rays:
         return Rays(np.zeros((0, 3), F32), np.zeros((0, 3), F32), np.zeros(0, bool), np.zeros(0, F32),
                     np.zeros(0, np.int16), np.zeros(0, np.int64), np.zeros((4, K, 0), F32) if K else None,
                     np.zeros((0, 3), F32) if K else None)
+
+
+def take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """np.take(a, idx, axis=0), except that a broadcast row (stride 0: the one Stokes basis of a beam's
+    rays before they interact, `StokesCarrier.start`) stays a broadcast view: no copy (numpy's take
+    from a stride-0 array is 3x slower than from a contiguous one)."""
+    if a.shape[0] and a.strides[0] == 0:
+        return np.broadcast_to(a[0], (idx.size,) + a.shape[1:])
+    return np.take(a, idx, axis=0)
 
 
 def identity_columns(K: int, n: int) -> np.ndarray:
@@ -469,7 +478,7 @@ class StokesCarrier:
             for i in range(4):
                 for j in range(self.K):
                     np.take(rays.A[i, j], idx, out=out[i, j], mode="clip")
-        s = rays.s if idx is None else np.take(rays.s, idx, axis=0)
+        s = rays.s if idx is None else take_rows(rays.s, idx)
         k = k_exit
         # exit basis s' = z x k / |z x k|: with u = z x k = (-k_y, k_x, 0), s . u = s_y k_x - s_x k_y and
         # p . u = (s x k) . (z x k) = s_z (as in `reflectance`); along z the fallback azimuth, generically
