@@ -254,3 +254,24 @@ def test_factored_first_interactions_give_the_tables_of_materialised_columns(mon
                 np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{name} split={split} {sides}")
         mb = [t["lost"]["max_bounces"] for t in fast[0].metadata["tasks"]]
         assert split is False or mat is metal or max(mb) > 0            # rays still bouncing after 6: the loop ran deep
+
+
+def test_row_helpers_equal_numpys_copies():
+    """transport.take_rows keeps a broadcast basis a view with np.take's values; method._repeat_row (a
+    collimated beam's directions) equals a copy of the broadcast row, C-contiguous, for any length."""
+    from relief_bsdf.methods.ray.method import _repeat_row
+    from relief_bsdf.methods.ray.transport import take_rows
+    v = np.array([0.25, -0.5, -0.8291562], np.float32)
+    for n in (0, 1, 2, 3, 5, 64, 1000, 65536 + 7):
+        r = _repeat_row(v, n)
+        assert r.flags.c_contiguous and r.dtype == np.float32
+        np.testing.assert_array_equal(r, np.broadcast_to(v, (n, 3)))
+    rng = np.random.default_rng(1)
+    idx = np.flatnonzero(rng.random(500) < 0.7)
+    b = np.broadcast_to(v, (500, 3))
+    got = take_rows(b, idx)
+    assert got.strides[0] == 0 and got.shape == (idx.size, 3)
+    np.testing.assert_array_equal(got, np.take(b, idx, axis=0))
+    a = rng.random((500, 3)).astype(np.float32)
+    np.testing.assert_array_equal(take_rows(a, idx), a[idx])
+    assert take_rows(np.zeros((0, 3), np.float32), idx[:0]).shape == (0, 3)
