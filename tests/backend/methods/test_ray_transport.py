@@ -237,7 +237,8 @@ def test_factored_first_interactions_give_the_tables_of_materialised_columns(mon
     from relief_bsdf.methods.ray.transport import StokesCarrier
     metal = Material(ConstantIndex(0.2, 3.0))
     r = relief(0.45, n=96)
-    cases = [(GLASS, ("outside", "inside"), True), (GLASS, ("outside", "inside"), False), (metal, ("outside",), True)]
+    both = ("outside", "inside")
+    cases = [(GLASS, both, True), (GLASS, both, False), (metal, ("outside",), True)]
     names = ("values_per_sr", "sigma_per_sr", "mueller_per_sr", "specular_R", "specular_T", "lost",
              "specular_mueller_R", "specular_mueller_T")
     for mat, sides, split in cases:
@@ -251,7 +252,8 @@ def test_factored_first_interactions_give_the_tables_of_materialised_columns(mon
         for a, b in zip(fast, ref):
             assert a.mueller_per_sr is not None and np.abs(a.mueller_per_sr).max() > 0
             for name in names:
-                np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{name} split={split} {sides}")
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name),
+                                              err_msg=f"{name} split={split} {sides}")
         mb = [t["lost"]["max_bounces"] for t in fast[0].metadata["tasks"]]
         assert split is False or mat is metal or max(mb) > 0            # rays still bouncing after 6: the loop ran deep
 

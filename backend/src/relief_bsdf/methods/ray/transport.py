@@ -259,11 +259,11 @@ def first_interaction_columns(coef, c2, s2, inv_p) -> np.ndarray:
 
 def exit_columns_of_factors(F: np.ndarray, c: np.ndarray, d: np.ndarray, out: np.ndarray) -> None:
     """out (4, 4, m) <- Rot_exit (M Rot / p) from the factors F (6, m) (`first_interaction_factors`) and
-    the exit rotation's c ~ s . s_exit, d ~ p . s_exit (`core.stokes.rotate_stokes_columns_cd`; c, d
-    overwritten).  The same float32 operations as `rotate_stokes_columns_cd(columns_of_factors(F), c, d)`
-    entry by entry (rows 1, 2: E x1 + S x2 and x2 E - x1 S with E, S = cos 2psi', sin 2psi'), skipping
-    only the products with the structural zeros of M Rot: equal to it (up to the sign of a zero, which
-    no sum sees).  10 of the 16 entries are one or two products."""
+    the exit rotation's c ~ s . s_exit, d ~ p . s_exit (as `core.stokes.rotate_stokes_columns_cd`).
+    The same float32 operations as `rotate_stokes_columns_cd(columns_of_factors(F), c, d)` entry by
+    entry (rows 1, 2: E x1 + S x2 and x2 E - x1 S with E, S = cos 2psi', sin 2psi'), skipping only
+    the products with the structural zeros of M Rot: equal to it (up to the sign of a zero, which no
+    sum sees).  10 of the 16 entries are one or two products."""
     a, b, cc, dd, c2, s2 = F
     E, S = double_angle_cd(c, d)
     mul = np.multiply
