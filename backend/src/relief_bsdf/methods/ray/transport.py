@@ -609,7 +609,8 @@ def _misses(ch: _Chunk, cur: Rays, q) -> Rays | None:
         wrapped = cur.take(wi)
         wrapped.o = ch.tracer.wrap(wrapped.o, wrapped.k, q.t_lat[wi], q.tx[wi], q.ty[wi])
     if mi.size:
-        st = _exit_state(np.take(cur.k[:, 2], mi) > 0, cur.below[mi])
+        # the states of every ray (cheap int8 passes), then one int8 gather: no gather of a strided column
+        st = np.take(_exit_state(cur.k[:, 2] > 0, cur.below), mi)
         _record(ch, cur, mi, st)
     return wrapped
 
