@@ -277,3 +277,17 @@ def test_row_helpers_equal_numpys_copies():
     a = rng.random((500, 3)).astype(np.float32)
     np.testing.assert_array_equal(take_rows(a, idx), a[idx])
     assert take_rows(np.zeros((0, 3), np.float32), idx[:0]).shape == (0, 3)
+
+
+def test_copysign_positive_is_numpys_copysign_bit_for_bit():
+    """tracer.copysign_positive (the query's slab bounds by the sign of k) gives np.copysign's bits
+    for magnitudes >= 0, whatever the sign source: +-0, +-inf, NaN, denormals."""
+    from relief_bsdf.methods.ray.tracer import copysign_positive
+    rng = np.random.default_rng(3)
+    mag = np.abs(rng.normal(size=3000)).astype(np.float32)
+    mag[:4] = (0.0, np.inf, 1e-42, 3.4e38)
+    sgn = rng.normal(size=3000).astype(np.float32)
+    sgn[:8] = (0.0, -0.0, np.inf, -np.inf, np.nan, -np.nan, 1e-42, -1e-42)
+    got, want = copysign_positive(mag, sgn), np.copysign(mag, sgn)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
