@@ -161,14 +161,15 @@ class _RayContext:
 
 
 def _beam_strata(n: int, Lx: float, Ly: float, block_px: float = 32.0):
-    """Stratified beam: (nxs, nys) strata covering the tile and their order by 32 x 32 px blocks."""
+    """Stratified beam: (nxs, nys) strata covering the tile, their order by 32 x 32 px blocks, and the
+    row and column of each stratum in that order (`divmod(order, nxs)`, once per task, not per chunk)."""
     nxs = max(1, int(round(math.sqrt(n * Lx / Ly))))
     nys = max(1, -(-n // nxs))
     iy, ix = np.divmod(np.arange(nxs * nys, dtype=np.int64), nxs)
     bx = (ix * (Lx / nxs) // block_px).astype(np.int64)
     by = (iy * (Ly / nys) // block_px).astype(np.int64)
     order = np.argsort(by * (int(Lx // block_px) + 2) + bx, kind="stable")
-    return nxs, nys, order
+    return nxs, nys, order, np.take(iy, order), np.take(ix, order)
 
 
 @dataclass
@@ -308,8 +309,8 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
     K = 4 if ctx.polarized else 0
     cells = CellIndex(ctx.te, ctx.pe)
     Lx, Ly = float(tracer.Lx), float(tracer.Ly)
-    nxs, nys, strata_order = worker_cached(("ray.strata", ctx.samples, Lx, Ly),
-                                           lambda: _beam_strata(ctx.samples, Lx, Ly))
+    nxs, nys, _, strata_iy, strata_ix = worker_cached(("ray.strata", ctx.samples, Lx, Ly),
+                                                      lambda: _beam_strata(ctx.samples, Lx, Ly))
     N = nxs * nys
     chunks = [(lo, min(N, lo + CHUNK)) for lo in range(0, N, CHUNK)]
     inc = _incidence(side, n_out, n_in, ti, pi_, K, tracer.max_bounces, ctx.first_hit_split, ctx.subtiles)
@@ -317,7 +318,7 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
     def job(ci):
         lo, hi = chunks[ci]
         rng = task_rng(ctx.seed, si, iw, ii, ip, ci)
-        iy, ix = np.divmod(strata_order[lo:hi], nxs)
+        iy, ix = strata_iy[lo:hi], strata_ix[lo:hi]
         jit = rng.random((hi - lo, 2))
         o = np.empty((hi - lo, 3), F32)
         o[:, 0] = (ix + jit[:, 0]) * (tracer.Lx / nxs) - tracer.hx
