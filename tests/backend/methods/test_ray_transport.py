@@ -196,3 +196,98 @@ def test_the_loop_keeps_freed_heap_under_glibc():
     tr.scatter(np.tile([0.0, 0.0, -1.0], (100, 1)), 1.0, 1.5, np.random.default_rng(1))
     glibc = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
     assert keep_freed_heap() is glibc
+
+
+def test_exit_columns_of_factors_equal_the_rotated_materialised_columns():
+    """The exit columns computed from a first interaction's factors (the fast path: 6 numbers per ray)
+    equal the reference: the 16 columns materialised, then rotated onto the exit frame by core.stokes'
+    kernel - bit for bit (array_equal: only the sign of a zero may differ), below and past TIR."""
+    from relief_bsdf.core.fresnel import interface_coefficients_f32
+    from relief_bsdf.core.stokes import double_angle_cd, rotate_stokes_columns_cd
+    from relief_bsdf.methods.ray.transport import (columns_of_factors, exit_columns_of_factors,
+                                                   first_interaction_columns, first_interaction_factors)
+    rng = np.random.default_rng(5)
+    n = 5000
+    ci = rng.uniform(0.01, 1.0, n).astype(np.float32)
+    psi, psi_exit = rng.uniform(-180, 180, (2, n))
+    c, d = (np.cos(np.radians(psi)) * 0.7).astype(np.float32), (np.sin(np.radians(psi)) * 0.7).astype(np.float32)
+    c2, s2 = double_angle_cd(c, d)
+    ce, de = np.cos(np.radians(psi_exit)).astype(np.float32), np.sin(np.radians(psi_exit)).astype(np.float32)
+    ce[:7], de[:7] = 0, 0                                         # r = 0: the identity rotation
+    inv = rng.uniform(0.5, 30.0, n).astype(np.float32)
+    for n1, n2 in ((1.0, 1.5), (1.5, 1.0)):
+        R, T = interface_coefficients_f32(ci, np.float32(n1), np.float32(n2))
+        for coef in (R, T):
+            F = first_interaction_factors(coef, c2, s2, inv)
+            A = columns_of_factors(F)
+            np.testing.assert_array_equal(A, first_interaction_columns(coef, c2, s2, inv))
+            rotate_stokes_columns_cd(A, ce.copy(), de.copy())
+            out = np.full((4, 4, 3 * n), np.nan, np.float32)
+            exit_columns_of_factors(F, ce.copy(), de.copy(), out[:, :, n:2 * n])   # a slot of a record
+            np.testing.assert_array_equal(out[:, :, n:2 * n], A)
+            assert np.isnan(out[:, :, :n]).all() and np.isnan(out[:, :, 2 * n:]).all()
+            assert coef is T or np.count_nonzero(A) > 0.6 * A.size     # (T past TIR is 0)
+    assert np.any(np.abs(R[3]) > 0.1)                             # TIR retardance (d) was exercised
+
+
+def test_factored_first_interactions_give_the_tables_of_materialised_columns(monkeypatch):
+    """The Stokes carrier keeps a ray's first interaction as factors (StokesCarrier.factored); the
+    tables are bit for bit those of the columns materialised at once (the reference path), with and
+    without the first-hit split, from both sides (TIR, re-entering rays, several bounces), for a metal."""
+    from relief_bsdf.methods.ray.transport import StokesCarrier
+    metal = Material(ConstantIndex(0.2, 3.0))
+    r = relief(0.45, n=96)
+    both = ("outside", "inside")
+    cases = [(GLASS, both, True), (GLASS, both, False), (metal, ("outside",), True)]
+    names = ("values_per_sr", "sigma_per_sr", "mueller_per_sr", "specular_R", "specular_T", "lost",
+             "specular_mueller_R", "specular_mueller_T")
+    for mat, sides, split in cases:
+        req = Request(theta_i_deg=(0.0, 35.0, 70.0), incident_from=sides, samples=30_000, seed=6,
+                      theta_s_edges_deg=TE, phi_s_edges_deg=PE,
+                      options={"first_hit_split": split, "max_bounces": 6, "backend": "serial"})
+        fast = ray.reconstruct(r, mat, req)
+        monkeypatch.setattr(StokesCarrier, "factored", False)
+        ref = ray.reconstruct(r, mat, req)
+        monkeypatch.setattr(StokesCarrier, "factored", True)
+        for a, b in zip(fast, ref):
+            assert a.mueller_per_sr is not None and np.abs(a.mueller_per_sr).max() > 0
+            for name in names:
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name),
+                                              err_msg=f"{name} split={split} {sides}")
+        mb = [t["lost"]["max_bounces"] for t in fast[0].metadata["tasks"]]
+        assert split is False or mat is metal or max(mb) > 0            # rays still bouncing after 6: the loop ran deep
+
+
+def test_row_helpers_equal_numpys_copies():
+    """transport.take_rows keeps a broadcast basis a view with np.take's values; method._repeat_row (a
+    collimated beam's directions) equals a copy of the broadcast row, C-contiguous, for any length."""
+    from relief_bsdf.methods.ray.method import _repeat_row
+    from relief_bsdf.methods.ray.transport import take_rows
+    v = np.array([0.25, -0.5, -0.8291562], np.float32)
+    for n in (0, 1, 2, 3, 5, 64, 1000, 65536 + 7):
+        r = _repeat_row(v, n)
+        assert r.flags.c_contiguous and r.dtype == np.float32
+        np.testing.assert_array_equal(r, np.broadcast_to(v, (n, 3)))
+    rng = np.random.default_rng(1)
+    idx = np.flatnonzero(rng.random(500) < 0.7)
+    b = np.broadcast_to(v, (500, 3))
+    got = take_rows(b, idx)
+    assert got.strides[0] == 0 and got.shape == (idx.size, 3)
+    np.testing.assert_array_equal(got, np.take(b, idx, axis=0))
+    a = rng.random((500, 3)).astype(np.float32)
+    np.testing.assert_array_equal(take_rows(a, idx), a[idx])
+    assert take_rows(np.zeros((0, 3), np.float32), idx[:0]).shape == (0, 3)
+
+
+def test_copysign_positive_is_numpys_copysign_bit_for_bit():
+    """tracer.copysign_positive (the query's slab bounds by the sign of k) gives np.copysign's bits
+    for magnitudes >= 0, whatever the sign source: +-0, +-inf, NaN, denormals."""
+    from relief_bsdf.methods.ray.tracer import copysign_positive
+    rng = np.random.default_rng(3)
+    mag = np.abs(rng.normal(size=3000)).astype(np.float32)
+    mag[:4] = (0.0, np.inf, 1e-42, 3.4e38)
+    sgn = rng.normal(size=3000).astype(np.float32)
+    sgn[:8] = (0.0, -0.0, np.inf, -np.inf, np.nan, -np.nan, 1e-42, -1e-42)
+    got, want = copysign_positive(mag, sgn), np.copysign(mag, sgn)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))

@@ -65,9 +65,10 @@ class Exits:
         if self.first_group is None:
             return None
         ids = self.ids[:self.n]
-        if self.m > self.n_paths:                   # ids < 2 n_paths: i % n_paths without an integer division
-            ids = np.where(ids >= self.n_paths, ids - self.n_paths, ids)
-        return np.take(self.first_group, ids)
+        g = self.first_group
+        if self.m > self.n_paths:                   # ids < 2 n_paths: the table twice, not i % n_paths per record
+            g = np.concatenate([g, g])
+        return np.take(g, ids)
 
     def records(self):
         """(k, w, state, nb, A or None) of the n valid records, in the order they ended."""

@@ -172,7 +172,7 @@ class ReliefTracer:
         n = k.shape[0]
         bnd_hi, bnd_c = self._slab_bounds(n)
         # ((+-hx, +-hy, +-zh) by the sign of k - (o - (0, 0, zc))) / k on the flat (3 n) views
-        T = np.copysign(bnd_hi, k.reshape(-1))
+        T = copysign_positive(bnd_hi, k.reshape(-1))
         T -= o.reshape(-1)
         T += bnd_c
         T /= k.reshape(-1)
@@ -305,6 +305,18 @@ class ReliefTracer:
 
 
 # ----------------------------------------------------------------------------- helpers
+
+
+_SIGN_BIT = np.uint32(0x80000000)
+
+
+def copysign_positive(mag: np.ndarray, sgn: np.ndarray) -> np.ndarray:
+    """np.copysign(mag, sgn) for float32 arrays whose mag has a clear sign bit (mag >= 0, as the slab's
+    half-extents): sgn's sign bit or-ed into mag's bits, bit for bit np.copysign's result (numpy's
+    copysign has no vector loop: ~4x the time of a multiply on the query's 3 n numbers)."""
+    r = np.bitwise_and(sgn.view(np.uint32), _SIGN_BIT)
+    r |= mag.view(np.uint32)
+    return r.view(F32)
 
 
 def _check_dirs(dirs) -> np.ndarray:

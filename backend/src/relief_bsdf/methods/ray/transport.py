@@ -36,13 +36,18 @@ Regime: geometric optics (features >> wavelength), no interference between rays.
 
 Speed: a handful of float32 numpy passes per bounce, one gather per bounce (the rays that
 hit), finished rays written once into the preallocated `Exits` (their exit-frame Stokes
-columns gathered and rotated in the record's own slot); freed temporaries stay in the heap
+columns gathered and rotated in the record's own slot); a ray's first interaction kept as the
+6 factors of its Mueller columns (`first_interaction_factors`: most rays leave after it, and their
+exit columns are computed from the factors in the record's slot, `exit_columns_of_factors`, the same
+float32 operations as materialising and rotating the 16); freed temporaries stay in the heap
 (`keep_freed_heap`: no page faults per bounce); no
 BLAS call (a matrix product wakes OpenBLAS's spinning thread pool); the in-place float32
 kernels on the (4, K, n) Stokes columns are the core's (`core.stokes.rotate_stokes_columns`,
-`apply_interface_mueller_columns`, `s_axis_rows`; `core.frames.dot_rows`, `cross_rows`,
-`divide_rows`, `scale_rows`),
-tested equal to the reference definitions beside them.
+`apply_interface_mueller_columns`, `s_axis_rows`; `core.frames.dot_rows`, `cross_rows`),
+tested equal to the reference definitions beside them; the (n, 3) vectors of an interaction
+(directions, normals, the facet basis) are worked on as contiguous component arrays and written
+into (n, 3) rows once (`_columns`, `_unit_rows`: the operations of `core.frames.dot_rows`,
+`divide_rows`, `scale_rows` in the same order, on unstrided arrays, ~3x faster per operation).
 """
 from __future__ import annotations
 
@@ -52,7 +57,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from relief_bsdf.core.frames import cross_rows, divide_rows, dot_rows, scale_rows
+from relief_bsdf.core.frames import cross_rows, dot_rows
 from relief_bsdf.core.fresnel import interface_coefficients_f32, reflectance_unpolarized_f32
 from relief_bsdf.core.stokes import (apply_interface_mueller_columns, double_angle_cd,
                                      rotate_stokes_columns_cd, s_axis_rows)
@@ -146,6 +151,7 @@ class Rays:
     ids: np.ndarray
     A: np.ndarray | None = None
     s: np.ndarray | None = None
+    F: np.ndarray | None = None      # factored columns of a ray's first interaction (`first_interaction_factors`)
 
     @property
     def size(self) -> int:
@@ -154,27 +160,48 @@ class Rays:
     def take(self, idx: np.ndarray) -> "Rays":
         return Rays(np.take(self.o, idx, axis=0), np.take(self.k, idx, axis=0), self.below[idx], self.w[idx],
                     self.nb[idx], self.ids[idx], None if self.A is None else np.take(self.A, idx, axis=2),
-                    None if self.s is None else np.take(self.s, idx, axis=0))
+                    None if self.s is None else take_rows(self.s, idx),
+                    None if self.F is None else np.take(self.F, idx, axis=1))
+
+    def columns(self, K: int) -> np.ndarray:
+        """The Stokes columns (4, K, n), materialised from the factors or the identity when not held."""
+        if self.A is not None:
+            return self.A
+        if self.F is not None:
+            return columns_of_factors(self.F)
+        return identity_columns(K, self.size)
 
     @staticmethod
     def concat(parts: list) -> "Rays":
         if len(parts) == 1:
             return parts[0]
         cat = np.concatenate
-        A = None
+        A = F = None
         withA = [p.A for p in parts if p.A is not None]
-        if withA:                                   # A None = identity columns (StokesCarrier): materialise
-            K = withA[0].shape[1]
-            A = cat([p.A if p.A is not None else identity_columns(K, p.size) for p in parts], axis=2)
+        if withA:                                   # full columns somewhere: materialise the others
+            A = cat([p.columns(withA[0].shape[1]) for p in parts], axis=2)
+        elif all(p.F is not None for p in parts):   # every ray still after its first interaction: factors
+            F = cat([p.F for p in parts], axis=1)
+        elif any(p.F is not None for p in parts):   # factors and identities (no first-hit split)
+            A = cat([p.columns(4) for p in parts], axis=2)
         s = None if parts[0].s is None else cat([p.s for p in parts])
         return Rays(cat([p.o for p in parts]), cat([p.k for p in parts]), cat([p.below for p in parts]),
-                    cat([p.w for p in parts]), cat([p.nb for p in parts]), cat([p.ids for p in parts]), A, s)
+                    cat([p.w for p in parts]), cat([p.nb for p in parts]), cat([p.ids for p in parts]), A, s, F)
 
     @staticmethod
     def empty(K: int = 0) -> "Rays":
         return Rays(np.zeros((0, 3), F32), np.zeros((0, 3), F32), np.zeros(0, bool), np.zeros(0, F32),
                     np.zeros(0, np.int16), np.zeros(0, np.int64), np.zeros((4, K, 0), F32) if K else None,
                     np.zeros((0, 3), F32) if K else None)
+
+
+def take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """np.take(a, idx, axis=0), except that a broadcast row (stride 0: the one Stokes basis of a beam's
+    rays before they interact, `StokesCarrier.start`) stays a broadcast view: no copy (numpy's take
+    from a stride-0 array is 3x slower than from a contiguous one)."""
+    if a.shape[0] and a.strides[0] == 0:
+        return np.broadcast_to(a[0], (idx.size,) + a.shape[1:])
+    return np.take(a, idx, axis=0)
 
 
 def identity_columns(K: int, n: int) -> np.ndarray:
@@ -185,16 +212,33 @@ def identity_columns(K: int, n: int) -> np.ndarray:
     return A
 
 
-def first_interaction_columns(coef, c2, s2, inv_p) -> np.ndarray:
-    """Mueller columns (4, 4, n) of M Rot / p for rays still in their incident basis (A = identity):
-    Rot the frame rotation by psi (core.stokes: cos 2psi = c2, sin 2psi = s2), M = [[a,b,0,0],
-    [b,a,0,0],[0,0,c,d],[0,0,-d,c]] the facet's interface matrix (core.fresnel coefficients), the
+def first_interaction_factors(coef, c2, s2, inv_p) -> np.ndarray:
+    """The factors (6, n) of the Mueller columns M Rot / p of rays still in their incident basis:
+    rows a, b, c, d (the facet's interface coefficients times inv_p, core.fresnel) and c2, s2
+    (cos 2psi, sin 2psi of the frame rotation, core.stokes).  Six numbers per ray instead of the
+    16 of the product (`columns_of_factors`): what a ray carries after its first interaction until
+    it interacts again (most rays leave first: their exit columns come from the factors,
+    `StokesCarrier.exit_columns`)."""
+    F = np.empty((6, np.size(coef[0])), F32)
+    for x, o in zip(coef, F[:4]):
+        np.multiply(x, inv_p, out=o)
+    F[4] = c2
+    F[5] = s2
+    return F
+
+
+def columns_of_factors(F: np.ndarray) -> np.ndarray:
+    """Mueller columns (4, 4, n) of M Rot / p from its factors (`first_interaction_factors`): Rot the
+    frame rotation by psi (core.stokes: cos 2psi = c2, sin 2psi = s2), M = [[a,b,0,0], [b,a,0,0],
+    [0,0,c,d],[0,0,-d,c]] the facet's interface matrix over p (core.fresnel coefficients), the
     product written out: [[a, b c2, b s2, 0], [b, a c2, a s2, 0], [0, -c s2, c c2, d], [0, d s2, -d c2, c]]
     (tested equal to the core's matrices multiplied)."""
-    A = np.empty((4, 4, np.size(coef[0])), F32)
-    a, b, c, d = A[0, 0], A[1, 0], A[3, 3], A[2, 3]       # the scaled coefficients, computed in place
-    for x, o in zip(coef, (a, b, c, d)):
-        np.multiply(x, inv_p, out=o)
+    a, b, c, d, c2, s2 = F
+    A = np.empty((4, 4, a.size), F32)
+    A[0, 0] = a
+    A[1, 0] = b
+    A[3, 3] = c
+    A[2, 3] = d
     A[0, 3] = A[1, 3] = A[2, 0] = A[3, 0] = 0
     np.multiply(b, c2, out=A[0, 1])
     np.multiply(b, s2, out=A[0, 2])
@@ -209,6 +253,52 @@ def first_interaction_columns(coef, c2, s2, inv_p) -> np.ndarray:
     return A
 
 
+def first_interaction_columns(coef, c2, s2, inv_p) -> np.ndarray:
+    """Mueller columns (4, 4, n) of M Rot / p for rays still in their incident basis (A = identity):
+    `columns_of_factors` of `first_interaction_factors`."""
+    return columns_of_factors(first_interaction_factors(coef, c2, s2, inv_p))
+
+
+def exit_columns_of_factors(F: np.ndarray, c: np.ndarray, d: np.ndarray, out: np.ndarray) -> None:
+    """out (4, 4, m) <- Rot_exit (M Rot / p) from the factors F (6, m) (`first_interaction_factors`) and
+    the exit rotation's c ~ s . s_exit, d ~ p . s_exit (as `core.stokes.rotate_stokes_columns_cd`).
+    The same float32 operations as `rotate_stokes_columns_cd(columns_of_factors(F), c, d)` entry by
+    entry (rows 1, 2: E x1 + S x2 and x2 E - x1 S with E, S = cos 2psi', sin 2psi'), skipping only
+    the products with the structural zeros of M Rot: equal to it (up to the sign of a zero, which no
+    sum sees).  10 of the 16 entries are one or two products."""
+    a, b, cc, dd, c2, s2 = F
+    E, S = double_angle_cd(c, d)
+    mul = np.multiply
+    out[0, 0] = a
+    out[0, 3] = 0
+    mul(b, c2, out=out[0, 1])
+    mul(b, s2, out=out[0, 2])
+    out[3, 0] = 0
+    mul(dd, s2, out=out[3, 1])
+    mul(dd, c2, out=out[3, 2])
+    np.negative(out[3, 2], out=out[3, 2])
+    out[3, 3] = cc
+    mul(E, b, out=out[1, 0])                        # column 0: (b, 0) rotated
+    mul(b, S, out=out[2, 0])
+    np.negative(out[2, 0], out=out[2, 0])
+    mul(S, dd, out=out[1, 3])                       # column 3: (0, d) rotated
+    mul(dd, E, out=out[2, 3])
+    x1 = np.empty_like(a)
+    x2 = np.empty_like(a)
+    t = np.empty_like(a)
+    for j, (u1, v1, u2, v2) in ((1, (a, c2, cc, s2)), (2, (a, s2, cc, c2))):
+        mul(u1, v1, out=x1)                         # row 1 of M Rot: a c2, a s2
+        mul(u2, v2, out=x2)                         # row 2: -c s2, c c2
+        if j == 1:
+            np.negative(x2, out=x2)
+        mul(E, x1, out=out[1, j])
+        mul(S, x2, out=t)
+        out[1, j] += t
+        mul(x2, E, out=out[2, j])
+        x1 *= S
+        out[2, j] -= x1
+
+
 @dataclass
 class Facet:
     """The facets hit by a batch: unit normal on the incident side (components), cos of the
@@ -221,6 +311,7 @@ class Facet:
     ct: np.ndarray
     eta: np.ndarray
     tir: np.ndarray
+    k3: tuple = ()          # the rays' direction components (kx, ky, kz), contiguous (`_hits`)
 
     def normal(self) -> np.ndarray:
         return np.stack([self.nfx, self.nfy, self.nfz], axis=1)
@@ -249,7 +340,7 @@ class IntensityCarrier:
         return pR
 
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
-        return None, None
+        return None, None, None
 
     def reflected(self, rays: Rays, pR) -> None:
         """Nothing but the weight changes."""
@@ -262,7 +353,16 @@ class IntensityCarrier:
 
 
 class StokesCarrier:
-    """K Stokes columns per ray, rotated onto each facet's s/p basis (module doc)."""
+    """K Stokes columns per ray, rotated onto each facet's s/p basis (module doc).
+
+    A ray's first interaction (from the identity columns) leaves it with the factors of M Rot / p
+    (`first_interaction_factors`, rays.F: 6 numbers, not 16); they become columns (rays.A) only
+    when the ray interacts again or meets rays with columns (`Rays.concat`), and a ray that leaves
+    first has its exit columns computed from them (`exit_columns_of_factors`): the same numbers.
+    `factored = False` materialises the columns at once (the reference the tests compare with).
+    """
+
+    factored = True
 
     def __init__(self, K: int):
         self.K = int(K)
@@ -286,33 +386,40 @@ class StokesCarrier:
         needs them only up to that factor): two dot products instead of a cross product.
         """
         k, s_old = rays.k, rays.s
-        kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
-        u = np.empty(k.shape, F32)                  # n x k
-        np.multiply(f.nfy, kz, out=u[:, 0])
-        u[:, 0] -= f.nfz * ky
-        np.multiply(f.nfz, kx, out=u[:, 1])
-        u[:, 1] -= f.nfx * kz
-        np.multiply(f.nfx, ky, out=u[:, 2])
-        u[:, 2] -= f.nfy * kx
+        kx, ky, kz = f.k3
+        # u = n x k in three contiguous arrays (column ops on an (n, 3) array are strided, ~3x slower),
+        # written into the new basis's (n, 3) rows once, by the division s' = u / |u|
+        u0 = f.nfy * kz
+        u0 -= f.nfz * ky
+        u1 = f.nfz * kx
+        u1 -= f.nfx * kz
+        u2 = f.nfx * ky
+        u2 -= f.nfy * kx
         sx, sy, sz = s_old[:, 0], s_old[:, 1], s_old[:, 2]
-        c = sx * u[:, 0]
-        c += sy * u[:, 1]
-        c += sz * u[:, 2]
+        c = sx * u0
+        c += sy * u1
+        c += sz * u2
         d = sx * f.nfx
         d += sy * f.nfy
         d += sz * f.nfz
-        sn = dot_rows(u, u)
+        sn = u0 * u0                                # |u|^2 = u . u (as core.frames.dot_rows)
+        sn += u1 * u1
+        sn += u2 * u2
         np.sqrt(sn, out=sn)
         degenerate = sn < 1e-6                      # normal incidence on the facet: keep the basis
         if degenerate.any():
             sn[degenerate] = 1
-            u[degenerate] = s_old[degenerate]
+            for i, ui in enumerate((u0, u1, u2)):
+                ui[degenerate] = s_old[degenerate, i]
             c[degenerate] = 1
             d[degenerate] = 0
-        divide_rows(u, sn)
-        s_new = u
+        s_new = np.empty(k.shape, F32)
+        for i, ui in enumerate((u0, u1, u2)):       # as core.frames.divide_rows
+            np.divide(ui, sn, out=s_new[:, i])
         n1, n2 = media.pair(rays.below)
         R, T = interface_coefficients_f32(f.ci, n1, n2)
+        if rays.F is not None:                      # a second interaction: the factors become columns
+            rays.A, rays.F = columns_of_factors(rays.F), None
         if rays.A is None:                          # still the identity (first interaction): no rotation yet
             self._ev = (R, T, s_new, double_angle_cd(c, d))
             return np.clip(R[0], 0, 1).astype(F32, copy=False)  # column 0 (unpolarised) is not changed by a rotation
@@ -321,24 +428,26 @@ class StokesCarrier:
         return np.clip(R[0] + R[1] * rays.A[1, 0], 0, 1).astype(F32, copy=False)
 
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
-        """(A, s) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R."""
+        """(A, s, F) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R
+        (F: the factors of a first interaction, A None; else A)."""
         _, T, s_new, rot = self._ev
         inv = 1 / np.maximum(1 - pR_j, F32(1e-30))
         full = j.size == s_new.shape[0]                 # usually every ray transmits something: no gathers
         sel = (lambda a: a) if full else (lambda a: np.take(a, j, axis=0))
         s_t = s_new if full else np.take(s_new, j, axis=0)   # never modified in place (replaced per event)
         if rot is not None:
-            return first_interaction_columns([sel(x) for x in T], sel(rot[0]), sel(rot[1]), inv), s_t
+            F = first_interaction_factors([sel(x) for x in T], sel(rot[0]), sel(rot[1]), inv)
+            return (None, s_t, F) if self.factored else (columns_of_factors(F), s_t, None)
         A = rays.A.copy() if full else np.take(rays.A, j, axis=2)
         apply_interface_mueller_columns(A, *(sel(x) for x in T), inv)
-        return A, s_t
+        return A, s_t, None
 
     def reflected(self, rays: Rays, pR) -> None:
         """Every ray keeps its reflected branch (first-hit split), renormalised by P_R."""
         R, _, s_new, rot = self._ev
         inv = 1 / np.maximum(pR, F32(1e-30))
         if rot is not None:
-            rays.A = first_interaction_columns(R, rot[0], rot[1], inv)
+            self._first(rays, first_interaction_factors(R, rot[0], rot[1], inv))
         else:
             apply_interface_mueller_columns(rays.A, *R, inv)
         rays.s = s_new
@@ -349,16 +458,27 @@ class StokesCarrier:
         pc = np.where(refl, pR, 1 - pR)
         coef = [np.where(refl, r, t) for r, t in zip(R, T)]
         if rot is not None:
-            rays.A = first_interaction_columns(coef, rot[0], rot[1], 1 / np.maximum(pc, F32(1e-30)))
+            self._first(rays, first_interaction_factors(coef, rot[0], rot[1], 1 / np.maximum(pc, F32(1e-30))))
         else:
             apply_interface_mueller_columns(rays.A, *coef, 1 / np.maximum(pc, F32(1e-30)))
         rays.s = s_new
 
+    def _first(self, rays: Rays, F: np.ndarray) -> None:
+        """The rays' state after their first interaction: its factors (or, not factored, columns)."""
+        if self.factored:
+            rays.F = F
+        else:
+            rays.A = columns_of_factors(F)
+
     def exit_columns(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out) -> None:
         """Write the columns of the rays idx (all when None), re-expressed in the exit frame
         s = z x k, into `out` (4, K, m): the exit record's slot, filled row by row without a
-        temporary (`np.take` into each contiguous row); k_exit (m, 3) their directions."""
-        if rays.A is None:
+        temporary (`np.take` into each contiguous row); k_exit (m, 3) their directions.  Rays that
+        hold the factors of their first interaction: `exit_columns_of_factors`."""
+        F = None
+        if rays.F is not None:
+            F = rays.F if idx is None else np.take(rays.F, idx, axis=1, mode="clip")
+        elif rays.A is None:
             out[...] = identity_columns(self.K, k_exit.shape[0])
         elif idx is None:
             out[...] = rays.A
@@ -366,7 +486,7 @@ class StokesCarrier:
             for i in range(4):
                 for j in range(self.K):
                     np.take(rays.A[i, j], idx, out=out[i, j], mode="clip")
-        s = rays.s if idx is None else np.take(rays.s, idx, axis=0)
+        s = rays.s if idx is None else take_rows(rays.s, idx)
         k = k_exit
         # exit basis s' = z x k / |z x k|: with u = z x k = (-k_y, k_x, 0), s . u = s_y k_x - s_x k_y and
         # p . u = (s x k) . (z x k) = s_z (as in `reflectance`); along z the fallback azimuth, generically
@@ -382,7 +502,10 @@ class StokesCarrier:
             s_to = s_axis_rows(k[zi], phi_exit_rad)
             c[zi] = dot_rows(s[zi], s_to)
             d[zi] = dot_rows(cross_rows(s[zi], k[zi]), s_to)
-        rotate_stokes_columns_cd(out, c, d)
+        if F is not None:
+            exit_columns_of_factors(F, c, d, out)
+        else:
+            rotate_stokes_columns_cd(out, c, d)
 
 
 def carrier_for(K: int):
@@ -486,9 +609,16 @@ def _misses(ch: _Chunk, cur: Rays, q) -> Rays | None:
         wrapped = cur.take(wi)
         wrapped.o = ch.tracer.wrap(wrapped.o, wrapped.k, q.t_lat[wi], q.tx[wi], q.ty[wi])
     if mi.size:
-        st = _exit_state(np.take(cur.k[:, 2], mi) > 0, cur.below[mi])
+        # the states of every ray (cheap int8 passes), then one int8 gather: no gather of a strided column
+        st = np.take(_exit_state(cur.k[:, 2] > 0, cur.below), mi)
         _record(ch, cur, mi, st)
     return wrapped
+
+
+def _columns(v: np.ndarray) -> tuple:
+    """The three components of (n, 3) vectors as contiguous arrays: the column ops of the interaction
+    read them several times each, and numpy's ops on an (n, 3) array's strided columns are ~3x slower."""
+    return tuple(np.ascontiguousarray(v[:, i]) for i in range(3))
 
 
 def _hits(ch: _Chunk, cur: Rays, q, pending: bool) -> list:
@@ -498,8 +628,8 @@ def _hits(ch: _Chunk, cur: Rays, q, pending: bool) -> list:
     else:
         hi = np.flatnonzero(q.hit)
         h, ng, th = cur.take(hi), np.take(q.ng, hi, axis=0), q.t_hit[hi]
-    k = h.k
-    gx, gy, gz = ng[:, 0], ng[:, 1], ng[:, 2]
+    g3, k3 = _columns(ng), _columns(h.k)
+    gx, gy, gz = g3
     # unit facet normal oriented up (+z): g / |g| with the sign of g_z
     inv = gx * gx
     inv += gy * gy
@@ -507,22 +637,23 @@ def _hits(ch: _Chunk, cur: Rays, q, pending: bool) -> list:
     np.sqrt(inv, out=inv)
     np.divide(F32(1), inv, out=inv)
     np.copysign(inv, gz, out=inv)
-    dot = k[:, 0] * gx
-    dot += k[:, 1] * gy
-    dot += k[:, 2] * gz
+    dot = k3[0] * gx
+    dot += k3[1] * gy
+    dot += k3[2] * gz
     dot *= inv                                        # k . n_up
     leak = (dot > 0) != h.below                       # above must hit from above, below from below
     if leak.any():
         li = np.flatnonzero(leak)
         _record(ch, h, li, LOST_LEAK)
         g = np.flatnonzero(~leak)
-        h, ng, th, inv, dot = h.take(g), np.take(ng, g, axis=0), th[g], inv[g], dot[g]
+        h, th, inv, dot = h.take(g), th[g], inv[g], dot[g]
+        g3, k3 = tuple(x[g] for x in g3), tuple(x[g] for x in k3)
     if h.size == 0:
         return []
-    return _interact(ch, h, _facet(h, ng, inv, dot, ch.media), th, pending)
+    return _interact(ch, h, _facet(h, g3, k3, inv, dot, ch.media), th, pending)
 
 
-def _facet(h: Rays, ng, inv, dot, media: Media) -> Facet:
+def _facet(h: Rays, g3, k3, inv, dot, media: Media) -> Facet:
     """Incident-side unit normal, cos i, cos t (Snell), n1 / n2 and TIR of each hit."""
     s = np.where(h.below, -inv, inv)                 # nf = n_up above the surface, -n_up below
     ci = np.abs(dot)
@@ -534,14 +665,16 @@ def _facet(h: Rays, ng, inv, dot, media: Media) -> Facet:
     ct = np.subtract(F32(1), sin2t, out=sin2t)
     np.maximum(ct, 0, out=ct)
     np.sqrt(ct, out=ct)
-    return Facet(ng[:, 0] * s, ng[:, 1] * s, ng[:, 2] * s, ci, ct, eta, tir)
+    return Facet(g3[0] * s, g3[1] * s, g3[2] * s, ci, ct, eta, tir, k3)
 
 
 def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
     """One interaction for rays that all hit: the continuing rays (and split copies)."""
     carrier, eps = ch.carrier, ch.tracer.eps
     pR = carrier.reflectance(h, f, ch.media)
-    p = scale_rows(h.k, th)                          # hit point
+    p = np.empty(h.k.shape, F32)                     # hit point (`core.frames.scale_rows` of k, th)
+    for i in range(3):
+        np.multiply(f.k3[i], th, out=p[:, i])
     p += h.o
     if ch.group is not None:
         _tag_first_hits(ch, h, p, pending)
@@ -565,7 +698,7 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
         if ch.media.absorbing_below:
             absorbed = ~refl & ~h.below               # refracted into the absorbing medium
         h.below = h.below ^ ~refl
-    h.k = _new_directions(h.k, f, a, b)
+    h.k = _new_directions(f, a, b)
     p[:, 0] += off * f.nfx
     p[:, 1] += off * f.nfy
     p[:, 2] += off * f.nfz
@@ -622,19 +755,14 @@ def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR) -> Rays | None:
     sel = (lambda a: a) if full else (lambda a: a[j])
     etj, btj = sel(f.eta), sel(bt)
     fx, fy, fz = sel(f.nfx), sel(f.nfy), sel(f.nfz)
-    k = h.k
-    kt = np.empty((j.size, 3), F32)
-    kt[:, 0] = etj * sel(k[:, 0]) + btj * fx
-    kt[:, 1] = etj * sel(k[:, 1]) + btj * fy
-    kt[:, 2] = etj * sel(k[:, 2]) + btj * fz
-    divide_rows(kt, np.sqrt(dot_rows(kt, kt)))
+    kt = _unit_rows([etj * sel(ki) + btj * fi for ki, fi in zip(f.k3, (fx, fy, fz))])
     ot = np.take(p, j, axis=0) if not full else p.copy()
     eps = ch.tracer.eps
     ot[:, 0] -= eps * fx
     ot[:, 1] -= eps * fy
     ot[:, 2] -= eps * fz
-    A, s = ch.carrier.transmitted_copy(h, j, sel(pR))
-    tr = Rays(ot, kt, ~sel(h.below), sel(h.w) * (1 - sel(pR)), sel(h.nb), sel(h.ids) + ch.n0, A, s)
+    A, s, F = ch.carrier.transmitted_copy(h, j, sel(pR))
+    tr = Rays(ot, kt, ~sel(h.below), sel(h.w) * (1 - sel(pR)), sel(h.nb), sel(h.ids) + ch.n0, A, s, F)
     if ch.media.absorbing_below:
         gone = ~sel(h.below)                        # copies from above went into the absorbing medium
         if gone.any():
@@ -644,27 +772,31 @@ def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR) -> Rays | None:
     return tr
 
 
-def _new_directions(k, f: Facet, a, b) -> np.ndarray:
-    """a k + b nf per ray (a None: 1, a reflection, norm preserved; else renormalised)."""
-    kx, ky, kz = k[:, 0], k[:, 1], k[:, 2]
-    knew = np.empty(k.shape, F32)
-    if a is None:
-        np.multiply(b, f.nfx, out=knew[:, 0])
-        knew[:, 0] += kx
-        np.multiply(b, f.nfy, out=knew[:, 1])
-        knew[:, 1] += ky
-        np.multiply(b, f.nfz, out=knew[:, 2])
-        knew[:, 2] += kz
-        return knew
-    knew[:, 0] = a * kx + b * f.nfx
-    knew[:, 1] = a * ky + b * f.nfy
-    knew[:, 2] = a * kz + b * f.nfz
-    nr = knew[:, 0] * knew[:, 0]
-    nr += knew[:, 1] * knew[:, 1]
-    nr += knew[:, 2] * knew[:, 2]
+def _unit_rows(v3) -> np.ndarray:
+    """(n, 3) rows v / |v| from the components v3 (contiguous): the operations of
+    `divide_rows(v, np.sqrt(dot_rows(v, v)))` on the rows written from v3, read from v3."""
+    x, y, z = v3
+    nr = x * x
+    nr += y * y
+    nr += z * z
     np.sqrt(nr, out=nr)
-    divide_rows(knew, nr)
-    return knew
+    out = np.empty((x.size, 3), F32)
+    for i, vi in enumerate(v3):
+        np.divide(vi, nr, out=out[:, i])
+    return out
+
+
+def _new_directions(f: Facet, a, b) -> np.ndarray:
+    """a k + b nf per ray (a None: 1, a reflection, norm preserved; else renormalised); k the rays'
+    directions (f.k3)."""
+    nf = (f.nfx, f.nfy, f.nfz)
+    if a is None:
+        knew = np.empty((f.nfx.size, 3), F32)
+        for i in range(3):
+            np.multiply(b, nf[i], out=knew[:, i])
+            knew[:, i] += f.k3[i]
+        return knew
+    return _unit_rows([a * ki + b * ni for ki, ni in zip(f.k3, nf)])
 
 
 def _end_rays(ch: _Chunk, h: Rays, absorbed):
