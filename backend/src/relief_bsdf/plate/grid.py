@@ -9,7 +9,7 @@ Two grids (issue 18 item 2: cells narrower than the detector cone where the lobe
   reflected inside the plate, so it is broad; a cell error of the order of a cell is
   tolerable there, but a lobe must MOVE between two inside incidences rather than blend
   (a second pass through the relief from inside is read from the two tables around its
-  incidence): every 1.25 deg, with an eighth of the rays per incidence (`inside_samples_scale`:
+  incidence): every 2.5 deg, with a quarter of the rays per incidence (`inside_samples_scale`:
   the loop averages their noise over the incidences of the light inside).
 - the DIRECT grid of the outside tables (light from outside, at the recording's own
   incidences): `direct_theta_step_deg` rings and azimuth cells of `direct_phi_step_deg` in a
@@ -25,8 +25,8 @@ Two grids (issue 18 item 2: cells narrower than the detector cone where the lobe
   on the engine grid (the engine's old single-grid behaviour).
 
 Cost (gauss_mid, 6 incidences, 400k rays): the outside tables hold 544 x 112 cells per side
-(9.4x the engine grid's, the same rays; 60 MB with Mueller matrices); the inside tables 73
-incidences at an eighth of the rays each; the engine's operators on 73 inside incidences
+(9.4x the engine grid's, the same rays; 60 MB with Mueller matrices); the inside tables 37
+incidences at a quarter of the rays each; the engine's operators on 37 inside incidences
 and the cone integral of the direct cells add ~1-2 s per evaluation on one quiet core (the cone
 weights are kept across a fit's evaluations).  Regime: the direct grid applies with a flat second
 face and no volume scattering (plate.deterministic), for the ray method's tables
@@ -63,7 +63,7 @@ class TableGrid:
         face's `samples` (the outside tables get `samples`): the loop integrates the inside
         tables over the incidences of the light inside, which averages their noise, so denser
         inside incidences can share the same total effort.  None: min(1, inside step / 10 deg),
-        one full-effort table every 10 deg whatever the step (0.125 at the default 1.25 deg).
+        one full-effort table every 10 deg whatever the step (0.25 at the default 2.5 deg).
         Chosen by measuring (benchmarks/bench_forward_accuracy.py, 2026-12-02, 8 reliefs, 1 M
         photons, 0/30/60 deg): 0.25 instead of 0.5 moved rms z by at most 0.04 (400k rays: every
         case within 0.01 but dots 1.62 -> 1.66; 200k rays, the fit's default: gauss_mid 1.01 ->
@@ -74,14 +74,17 @@ class TableGrid:
     2026-12-03, 8 reliefs, 400k rays, 1 M photons, 0/30/60 deg; nothing else chosen on them):
     direct rings 0.25 deg (was 0.5) with 5 x 5 sub-points per cell in the cone integral (was 3 x 3;
     plate.detector.SUB_POINTS): the measured map's transmitted lobe has a cusp narrower than a
-    0.5-deg ring (its peak read 2.3 % low: T 1.69 -> 1.21), no case worse; inside incidences every
-    1.25 deg (was 2.5), the same rays in total: gauss_low 1.08 -> 0.87, anisotropic 1.12 -> 1.01,
-    measured 1.47 -> 1.36, every case better or equal.
+    0.5-deg ring (its peak read 2.3 % low: T 1.69 -> 1.21), no case worse; with the anisotropic
+    relief's 15-deg sectors every case but dots (1.65) and the measured map (1.47) at or below 1.2.
+    Inside incidences every 1.25 deg (`inside_theta_i_step_deg=1.25`, the same rays in total) are
+    better still (gauss_low 1.08 -> 0.87, anisotropic 1.12 -> 1.01, measured 1.47 -> 1.36, every case
+    better or equal) but cost a fit evaluation ~1 s more (5.35 s instead of 4.4 s on the demo): not
+    the default while the demo fit must stay under 5 minutes.
     """
 
     theta_step_deg: float = 1.0
     phi_step_deg: float = 5.0
-    inside_theta_i_step_deg: float = 1.25
+    inside_theta_i_step_deg: float = 2.5
     direct_theta_step_deg: float | None = 0.25
     direct_phi_step_deg: float = 1.0
     direct_band_deg: float = 12.5
