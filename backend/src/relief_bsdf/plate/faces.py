@@ -396,7 +396,8 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
                    progress: Any = None) -> BsdfTable | None:
     """The inside table of an anisotropic relief traced by rays at the incidence azimuths
     SECTOR_AZIMUTHS_DEG besides the inside table's own 0 deg, or None (an isotropic relief, another
-    method, a flat or tabulated face).
+    method, a flat or tabulated face).  Anisotropic: in its rms slopes (`anisotropic_face`) or in how it
+    scatters the light trapped in the glass (`azimuth_dependent`: light-guide dots).
 
     The deterministic engine's loop turns the one inside table about the normal (azimuth-circulant
     kernels), exact for an isotropic relief.  On an anisotropic one the light inside the plate meets
@@ -413,13 +414,74 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     if face.method == "auto":
         from relief_bsdf.plate.choice import resolve_face
         face = resolve_face(face, material, grid, wavelengths_nm, theta_i_outside_deg)
-    if face.method != "ray" or not anisotropic_face(face):
+    if face.method != "ray" or not (anisotropic_face(face) or azimuth_dependent(face, material, grid, wavelengths_nm,
+                                                                                progress)):
         return None
     face = replace(face, samples=max(int(face.samples * SECTOR_RAY_TABLES / len(SECTOR_AZIMUTHS_DEG)), 1))
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
     key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "inside_sectors", SECTOR_AZIMUTHS_DEG)
     return TABLE_CACHE.get(key, lambda: _reconstruct_side(face, material, grid, wl, grid.inside_incidences_deg(),
                                                           "inside", progress, phi_i_deg=SECTOR_AZIMUTHS_DEG))
+
+
+PROBE_THETA_DEG = 85.0        # incidence of the azimuth probe: light trapped in the glass, grazing the relief
+PROBE_AZIMUTH_DEG = 45.0      # the probe's second incidence azimuth (the first is the inside table's 0 deg)
+PROBE_L1 = 0.17               # relative difference above which the relief scatters trapped light by azimuth
+
+
+def azimuth_dependent(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths_nm: Any,
+                      progress: Any = None) -> bool:
+    """Whether a ray-traced relief whose rms slopes are isotropic still scatters the light trapped in the
+    glass differently by its azimuth (a lattice of light-guide dots: light grazing along a row of dots
+    meets them otherwise than light crossing the rows; the rms-slope tensor sees only a two-fold
+    anisotropy of the slopes, not their arrangement), so that the plate's loop needs the inside sector
+    tables (`inside_sectors`).
+
+    The probe: the inside table at PROBE_THETA_DEG traced at incidence azimuths 0 and PROBE_AZIMUTH_DEG,
+    the second turned back by that angle; the light each sends back into the glass (R side) summed in
+    coarse bins (10 deg x 30 deg); `azimuth_probe_l1` their relative L1 difference less what the
+    tables' sigma (Monte-Carlo noise and the tile's realisation) alone would give.  PROBE_L1 is the
+    midpoint between the Gaussian reliefs' largest value and the others' smallest on
+    bench_forward_accuracy's reliefs at seed 1 (Gaussian slope 0.12 / 0.24 / 0.34: 0.05 / 0.06 / 0.11,
+    two scales 0.02; light-guide dots 0.23, exponential 0.24), not on the seed the benchmark reports
+    (seed 11: Gaussian <= 0.07, two scales 0.03, dots 0.27, exponential 0.24; there the sectors take
+    dots 1.65 -> 1.30, exponential 1.07 -> 1.05, and Gaussian slope 0.34, below the gate, 1.15 -> 1.11:
+    the sectors are the better physics everywhere, the gate decides only where they are worth their
+    cost).  Same verdicts at 20k and 200k rays.  Cost: two inside incidences at the inside tables' rays."""
+    wl = (float(np.median(np.asarray(wavelengths_nm, float))),)
+    key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "azimuth_probe", PROBE_THETA_DEG,
+           PROBE_AZIMUTH_DEG)
+    t = TABLE_CACHE.get(key, lambda: _reconstruct_side(face, material, grid, wl, (PROBE_THETA_DEG,), "inside",
+                                                       progress, phi_i_deg=(0.0, PROBE_AZIMUTH_DEG)))
+    return azimuth_probe_l1(t) > PROBE_L1
+
+
+def azimuth_probe_l1(table: BsdfTable) -> float:
+    """The relative L1 difference sum |a - b| / sum (a + b) / 2 between a table's R sides (first incidence)
+    at its two incidence azimuths, the second turned back onto the first, in 10-deg x 30-deg bins of power,
+    less the difference the cells' sigma alone would make (sqrt(2 / pi) sqrt(var_a + var_b) per bin, the
+    mean |difference| of two Gaussian estimates of one value); the statistic of `azimuth_dependent`."""
+    pe = np.asarray(table.phi_s_edges_deg, float)
+    step = float(np.median(np.diff(pe)))
+    shift = int(round((float(table.phi_i_deg[1]) - float(table.phi_i_deg[0])) / step))
+    te = np.asarray(table.theta_s_edges_deg, float)
+    psa = projected_solid_angle_cells(te, pe)                                             # (S, P)
+    tb = np.minimum((0.5 * (te[1:] + te[:-1]) // 10).astype(int), 8)                      # 10-deg rings
+    pb = (np.mod(0.5 * (pe[1:] + pe[:-1]), 360.0) // 30).astype(int)                      # 30-deg sectors
+    bins = (tb[:, None] * 12 + pb[None, :]).ravel()
+
+    def binned(values: np.ndarray, sigma: np.ndarray, roll: int) -> tuple[np.ndarray, np.ndarray]:
+        p = np.roll(values * psa, -roll, axis=1).ravel()
+        v = np.roll((sigma * psa) ** 2, -roll, axis=1).ravel()
+        return np.bincount(bins, p, minlength=108), np.bincount(bins, v, minlength=108)
+    v = np.asarray(table.values_per_sr, float)
+    sg = np.asarray(table.sigma_per_sr if table.sigma_per_sr is not None else np.zeros_like(v), float)
+    a, va = binned(v[0, 0, 0, 0], sg[0, 0, 0, 0], 0)
+    b, vb = binned(v[0, 0, 1, 0], sg[0, 0, 1, 0], shift)
+    total = 0.5 * float(np.sum(a + b))
+    if total <= 0:
+        return 0.0
+    return float(np.sum(np.abs(a - b)) - np.sqrt(2.0 / np.pi) * np.sum(np.sqrt(va + vb))) / total
 
 
 def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, wl: Any, theta: Any, side: str,
