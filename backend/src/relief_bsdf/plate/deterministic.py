@@ -725,7 +725,8 @@ class PlateSolver:
             sysm = np.eye(N)[None] - Kmat * Dj[None, None, :]
         else:
             Dj = absorb[:, None, None] ** 2 * RF                                            # (N, 4, 4)
-            KD = np.einsum("tjmab,jbc->mtajc", Kh, Dj)
+            KD = np.empty((Mk, N, 4, N, 4), np.result_type(Kh, Dj))                       # C order: the reshape
+            np.einsum("tjmab,jbc->mtajc", Kh, Dj, out=KD)                                  # below is a view
             idx = np.arange(N)
             KD[:, idx, :, idx, :] += np.einsum("jab,jbc->jac", SR, Dj)[:, None]
             sysm = KD.reshape(Mk, N * 4, N * 4)
