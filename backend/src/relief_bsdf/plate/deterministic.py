@@ -34,8 +34,8 @@ Method (radiative transfer between two faces, discrete ordinates):
   after further scattering, is summed exactly (no truncated series).
 * Isotropy makes K circulant in azimuth: a real FFT over the azimuth axis block-diagonalises
   it (azimuthal reduction), so the solve is A/2+1 small (N x N) systems instead of one
-  (N A) x (N A) system.  An anisotropic relief traced by rays gives its inside table at six
-  incidence azimuths (`inside_sectors`): light at propagation azimuth delta then scatters by the
+  (N A) x (N A) system.  An anisotropic relief traced by rays gives its inside table at twelve
+  incidence azimuths (every 15 deg, `inside_sectors`): light at propagation azimuth delta then scatters by the
   table nearest delta, K = K_0 + sum_k (K_k - K_0) P_k is not circulant, and the loop is solved by
   GMRES preconditioned by the circulant system (`_sector_loop`).
 * The delta parts of the tables (specular reflection and transmission of the flat fraction of
@@ -701,7 +701,10 @@ class PlateSolver:
         GhT, Wflat, Wspec = self._exit_maps(vin, vB, n, n0, c)
         sector_kernels = []
         if self.inside_sectors is not None and vB is None and m.rough_face == "front":
-            sector_kernels = [(p, _blocks(K - Kh, c), G - GhT) for p, K, G in self._sector_kernels(wl, c)]
+            # the loop kernels' differences in single precision (their part of the rows to ~1e-7): twelve
+            # sectors' (M, N c, N c) blocks are 0.4 GB per wavelength in double
+            sector_kernels = [(p, _blocks(K - Kh, c).astype(np.complex64), G - GhT)
+                              for p, K, G in self._sector_kernels(wl, c)]
         t = dict(n=n, n0=n0, c=c, vin=vin, vB=vB, RF=RF, SR=SR, Kh=Kh, KBh=KBh, GBT=GBT, GhT=GhT,
                  Wflat=Wflat, Wspec=Wspec, sector_kernels=sector_kernels)
         self._tops[wl] = t
@@ -853,13 +856,12 @@ class PlateSolver:
         incidences in one Krylov space (the operator is the same for each)."""
         from scipy.sparse.linalg import LinearOperator, gmres
         c, Dj = ops["c"], ops["Dj"]
-        if "sector_loop" not in ops:    # the sectors' kernels in single precision: their part to ~1e-7
+        if "sector_loop" not in ops:
             secs = self._sector_masks(ops)
             Db = _block_diag(Dj if c == 4 else np.asarray(Dj)[:, None, None] * np.eye(4), c)
-            avg = sum(mask.mean() * dK for dK, _, mask in secs)
+            avg = sum(mask.mean() * dK.astype(complex) for dK, _, mask in secs)
             ops["sector_loop"] = (np.linalg.inv(ops["sys"] - avg @ Db),
-                                  [(dK.astype(np.complex64), (mask - mask.mean())[None, None, :, None])
-                                   for dK, _, mask in secs])
+                                  [(dK, (mask - mask.mean())[None, None, :, None]) for dK, _, mask in secs])
         sys_inv, secs = ops["sector_loop"]
         shape = to_cells(S).shape                                                          # (q, N, A, c)
 
