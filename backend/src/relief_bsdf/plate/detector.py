@@ -240,7 +240,7 @@ def centre_values(grid: np.ndarray) -> np.ndarray:
     return np.maximum(grid - lap / 24.0, 0.0)
 
 
-SUB_POINTS = 3          # per axis of a direct-grid cell: equal-solid-angle sub-points of the cone integral
+SUB_POINTS = 5          # per axis of a direct-grid cell: equal-solid-angle sub-points of the cone integral
 
 
 @dataclass(frozen=True)

@@ -72,10 +72,10 @@ class TableGrid:
 
     Defaults measured against the independent photon Monte Carlo (bench_forward_accuracy.py,
     2026-12-03, 8 reliefs, 400k rays, 1 M photons, 0/30/60 deg; nothing else chosen on them):
-    direct rings 0.25 deg (was 0.5): the measured map's transmitted lobe has a cusp narrower than a
-    0.5-deg ring (its peak read 2.3 % low: T 1.69 -> 1.27; 1.21 with 5 x 5 sub-points per cell in the
-    cone integral instead of 3 x 3, plate.detector.SUB_POINTS, at 2.8x the reading's cost), no case
-    worse; with the anisotropic
+    direct rings 0.25 deg (was 0.5) with 5 x 5 sub-points per cell in the cone integral (was 3 x 3;
+    plate.detector.SUB_POINTS: on 0.25 x 1-deg cells 3 x 3 misreads a uniform field by 0.4 % at 45 deg and
+    moved the demo fit's scale by 0.3 %, 3 half-widths): the measured map's transmitted lobe has a cusp
+    narrower than a 0.5-deg ring (its peak read 2.3 % low: T 1.69 -> 1.21), no case worse; with the anisotropic
     relief's 15-deg sectors every case but dots (1.65) and the measured map (1.47) at or below 1.2.
     Inside incidences every 1.25 deg (`inside_theta_i_step_deg=1.25`, the same rays in total) are
     better still (gauss_low 1.08 -> 0.87, anisotropic 1.12 -> 1.01, measured 1.47 -> 1.36, every case
