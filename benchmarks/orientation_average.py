@@ -24,8 +24,9 @@ import bench_forward_accuracy as B  # noqa: E402  (the cases and plates of the f
 from relief_bsdf.core.index import ConstantIndex  # noqa: E402
 from relief_bsdf.plate import (Experiment, FlatFace, Instrument, Plate, ReliefFace, TableFace, TableGrid,  # noqa: E402
                                simulate)
-# internal pieces on purpose: the public `plate.faces.inside_sectors` traces sector tables only for reliefs
-# anisotropic in rms slope, and the dots are not
+# internal pieces on purpose: the experiment compares the one 0-deg inside table with its orientation average,
+# neither of which the public `plate.faces.inside_sectors` gives (session 29: the engine's sector loop for every
+# order, which the dots now get through `plate.faces.azimuth_dependent`, replaced this average: dots 1.30)
 from relief_bsdf.plate.deterministic import _phi_slice  # noqa: E402
 from relief_bsdf.plate.faces import _reconstruct_side  # noqa: E402
 

@@ -858,7 +858,7 @@ class PlateSolver:
         c, Dj = ops["c"], ops["Dj"]
         if "sector_loop" not in ops:
             secs = self._sector_masks(ops)
-            Db = _block_diag(Dj if c == 4 else np.asarray(Dj)[:, None, None] * np.eye(4), c)
+            Db = _block_diag(Dj, c) if c == 4 else np.diag(Dj)                          # D as one matrix
             avg = sum(mask.mean() * dK.astype(complex) for dK, _, mask in secs)
             ops["sector_loop"] = (np.linalg.inv(ops["sys"] - avg @ Db),
                                   [(dK, (mask - mask.mean())[None, None, :, None]) for dK, _, mask in secs])

@@ -148,7 +148,7 @@ def isotropy_warning(face: Any) -> str:
     return (f"relief {getattr(relief, 'source', '') or 'map'} is anisotropic (principal rms slopes differ "
             f"{ratio:.2g}x, steeper axis at {ang:.0f} deg): the deterministic engine assumes isotropic boundary "
             "tables; its direct reflection and first transmitted pass are the relief's own only for rows lit at "
-            "the tables' incidence azimuth (phi_i = 0), the light inside meets the relief by 30-deg azimuth "
+            "the tables' incidence azimuth (phi_i = 0), the light inside meets the relief by 15-deg azimuth "
             "sector (inside_sectors), and rows at other phi_i are a rotation of phi_i = 0; check with "
             "engine='photon'")
 
