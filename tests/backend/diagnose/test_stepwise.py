@@ -250,9 +250,10 @@ def test_a_budgeted_candidate_the_rows_do_not_see_is_screened_out_after_two_eval
     assert tried["volume_scattering"] == {"effect": "volume_scattering", "screened": 0.0}
     assert "chi2" in tried["bulk_absorption"] and "chi2" in tried["stray_light"]
     fwd.evaluations = 0
-    from relief_bsdf.diagnose.stepwise import _screen
-    keep, out = _screen(fwd, steps[0], ["relief_scale"], {}, len(fwd.rows))
-    assert keep == [] and fwd.evaluations == 2
+    from relief_bsdf.diagnose.stepwise import _fit_step
+    fits, outgained, screened = _fit_step(fwd, steps[0], ["relief_scale"], {}, len(fwd.rows), None, 1, "step 1")
+    assert fits == [] and outgained == [] and fwd.evaluations == 2
+    assert screened == [{"effect": "relief_scale", "screened": 0.0}]
 
 
 @pytest.mark.parametrize("blur_deg", [1.5, 4.0])

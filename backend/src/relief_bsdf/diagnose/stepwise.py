@@ -19,7 +19,8 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    r.D (D^T D)^+ D^T.r (a linear least-squares search in the probes' span: Rao's score test,
    with the second probe catching a change of shape with the amplitude), must pass the same
    bar as a fit (`passes`, with chi^2_S minus that gain as the larger model's chi^2), else the
-   candidate is listed as screened out and not fitted.  The cheap candidates are fitted first;
+   candidate is listed as screened out and not fitted.  The screens and the fits of the cheap
+   candidates do not depend on each other and run as one batch of tasks (on the workers);
    then the budgeted ones that passed, in decreasing screen gain, each only while it could
    still be the step's best: its screened BIC gain (gain - k ln n) must exceed the best BIC gain
    already fitted at this step, else it is listed as outgained (the step's winner is the
@@ -148,38 +149,40 @@ def line_gain(forward, cur: "Step", effect, probes: list[dict]) -> float:
     return float(fit @ fit)
 
 
-def _screen(forward, cur: "Step", names: list[str], first: dict, n: int) -> tuple[list[tuple], list[dict]]:
-    """([(name, screen gain or None when fitted unscreened)], screened-out entries) of a step
-    (module docstring, step 1)."""
-    keep, out = [], []
+def _plan(forward, names: list[str], first: dict) -> list[tuple]:
+    """[(name, probes)] of a step: a budgeted candidate's screening points (`_probes`), None for a
+    candidate fitted unscreened (or listed as skipped by fit_effect, with its reason)."""
+    plan = []
     for name in names:
         e = get_effect(name)
         probes = _probes(e, first.get(name)) if e.budgeted else []
-        if not probes or why_skipped(forward, e):
-            keep.append((name, None))    # fitted (or listed as skipped by fit_effect, with its reason)
-            continue
-        try:
-            g = line_gain(forward, cur, e, probes)
-        except InputError as err:
-            out.append({"effect": name, "skipped": str(err)})
-            continue
-        if passes(cur.chi2, cur.k, cur.chi2 - g, cur.k + e.k, n):
-            keep.append((name, g))
-        else:
-            out.append({"effect": name, "screened": round(g, 3)})
-    return keep, out
+        plan.append((name, probes if probes and not why_skipped(forward, e) else None))
+    return plan
 
 
-def _fit_step(forward, cur: "Step", keep: list[tuple], n: int, progress, workers: int | None,
-              label: str) -> tuple[list[dict], list[dict]]:
-    """(fits, outgained entries): the unscreened candidates fitted, then the screened ones in
-    decreasing screen gain while each could still win the step (module docstring, step 1)."""
+def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progress, workers: int | None,
+              label: str) -> tuple[list[dict], list[dict], list[dict]]:
+    """(fits, outgained entries, screened-out entries) of a step (module docstring, step 1).
+
+    The unscreened candidates' fits and the budgeted candidates' screens do not depend on each
+    other, so they run as one batch of tasks (the fits first: they are the longer tasks); then the
+    screened candidates that passed are fitted in decreasing screen gain while each could still win."""
     from relief_bsdf.parallel.tasks import current_settings
     ln = math.log(max(n, 2))
-    context = (forward, cur.effects, cur.values, bool(cur.effects))
-    fits = map_tasks(_cond_task, [m for m, g in keep if g is None], context, progress=progress,
-                     label=label, workers=workers)
-    costly = sorted(((g, m) for m, g in keep if g is not None), reverse=True)
+    context = (forward, cur, bool(cur.effects))
+    plan = _plan(forward, names, first)
+    plan = [t for t in plan if t[1] is None] + [t for t in plan if t[1] is not None]
+    fits, costly, screened = [], [], []
+    for r in map_tasks(_step_task, plan, context, progress=progress, label=label, workers=workers):
+        if "screen" not in r:
+            fits.append(r)
+        elif r["screen"] is None:
+            screened.append({"effect": r["effect"], "skipped": r["skipped"]})
+        elif passes(cur.chi2, cur.k, cur.chi2 - r["screen"], cur.k + get_effect(r["effect"]).k, n):
+            costly.append((r["screen"], r["effect"]))
+        else:
+            screened.append({"effect": r["effect"], "screened": round(r["screen"], 3)})
+    costly.sort(reverse=True)
     batch_size = max(1, workers or current_settings().worker_count())
     outgained = []
 
@@ -195,14 +198,23 @@ def _fit_step(forward, cur: "Step", keep: list[tuple], n: int, progress, workers
         if not batch:
             outgained += [{"effect": m, "screened": round(g, 3), "outgained_by": leader} for g, m in costly]
             break
-        fits += map_tasks(_cond_task, batch, context, progress=progress, label=label, workers=workers)
+        fits += map_tasks(_step_task, [(m, None) for m in batch], context, progress=progress, label=label,
+                          workers=workers)
         costly = [(g, m) for g, m in costly if m not in batch]
-    return fits, outgained
+    return fits, outgained, screened
 
 
-def _cond_task(context, name: str) -> dict:
-    forward, named, values, coarse = context
-    return fit_effect(forward, get_effect(name), tuple(get_effect(e) for e in named), values, coarse)
+def _step_task(context, task: tuple) -> dict:
+    """One task of a step: the conditional fit of a candidate (probes None), or its screen (the
+    chi^2 gain of its probes, `line_gain`; an InputError of the plate lists it as skipped)."""
+    forward, cur, coarse = context
+    name, probes = task
+    if probes is None:
+        return fit_effect(forward, get_effect(name), tuple(get_effect(e) for e in cur.effects), cur.values, coarse)
+    try:
+        return {"effect": name, "screen": line_gain(forward, cur, get_effect(name), probes)}
+    except InputError as err:
+        return {"effect": name, "screen": None, "skipped": str(err)}
 
 
 def _drop_redundant(forward, step: Step, n: int) -> Step:
@@ -238,9 +250,8 @@ def stepwise(forward, names: list[str], progress=None, workers: int | None = Non
         if not remaining:
             break
         first = {f["effect"]: f for f in first_fits(steps)} if cur.effects else {}
-        remaining, screened = _screen(forward, cur, remaining, first, n)
-        fits, outgained = _fit_step(forward, cur, remaining, n, progress, workers,
-                                    f"candidate effects, step {len(steps)}")
+        fits, outgained, screened = _fit_step(forward, cur, remaining, first, n, progress, workers,
+                                              f"candidate effects, step {len(steps)}")
         ok = [f for f in fits if not f.get("skipped")]
         step_tried = fits + outgained + screened
         if not ok:

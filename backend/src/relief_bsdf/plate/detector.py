@@ -268,33 +268,50 @@ class DirectField:
         object.__setattr__(self, "_slopes", {"R": _limited_slopes(self.R, tc, pc),
                                              "T": _limited_slopes(self.T, tc, pc)})
 
-    def _reconstruct(self, side: str, ring: np.ndarray, az: np.ndarray, theta_deg: np.ndarray,
-                     delta_deg: np.ndarray) -> np.ndarray:
-        """Cell average + limited slopes x offset from the cell centre (second order, conservative:
-        the slope terms integrate to ~0 over a cell; minmod: no new extrema at a lobe's hard edge)."""
+    def gather(self, side: str, pts: "_SubPoints", idx: np.ndarray) -> "_Gather":
+        """Where the sub-points `idx` read this field's cells (the same for every field on these cells
+        and index ratio, so `direct_reading` keeps it): each sub-point's cell and its offsets from the
+        cell centre; T: each exit direction's Snell pre-image in the internal cells, and its sub-ring
+        (the exit factor depends on the polar angle only)."""
+        tc, pc = self._centres
+        az = pts.az[idx]
+        sr = th_int = None
+        if side == "R":
+            ring, th = pts.ring[idx], pts.sub_theta_deg[pts.sub_ring[idx]]
+        else:
+            th_int = np.degrees(np.arcsin(np.clip(np.sin(np.radians(pts.sub_theta_deg)) * self.eta, 0.0, 1.0)))
+            ring_int = np.clip(np.searchsorted(self.theta_edges_deg, th_int, side="right") - 1, 0,
+                               self.R.shape[0] - 1)
+            sr = pts.sub_ring[idx]
+            ring, th = ring_int[sr], th_int[sr]
+        dt = th - tc[ring]
+        dp = np.mod(pts.delta_deg[idx] - pc[az] + 180.0, 360.0) - 180.0
+        return _Gather(ring * pc.size + az, dt, dp, sr, th_int)
+
+    def values(self, side: str, g: "_Gather") -> np.ndarray:
+        """The field at the gathered sub-points: cell average + limited slopes x offset from the cell
+        centre (second order, conservative: the slope terms integrate to ~0 over a cell; minmod: no
+        new extrema at a lobe's hard edge).  T: the internal Stokes vector times the exit's row."""
         F = self.R if side == "R" else self.T
         gt, gp = self._slopes[side]
-        tc, pc = self._centres
-        dt = theta_deg - tc[ring]
-        dp = np.mod(delta_deg - pc[az] + 180.0, 360.0) - 180.0
-        if F.ndim == 3:
-            dt, dp = dt[:, None], dp[:, None]
-        return F[ring, az] + gt[ring, az] * dt + gp[ring, az] * dp
-
-    def values(self, side: str, pts: "_SubPoints", idx: np.ndarray) -> np.ndarray:
-        """The field at the sub-points `idx`, reconstructed from the cells (`_reconstruct`).  T: each
-        exit direction's Snell pre-image is looked up in the internal cells (the exit factor per
-        sub-ring: it depends on the polar angle only)."""
-        az = pts.az[idx]
+        flat = lambda a: a.reshape((-1,) + a.shape[2:])            # noqa: E731  (cells first)
+        Fc, gtc, gpc = flat(F)[g.cell], flat(gt)[g.cell], flat(gp)[g.cell]
         if side == "R":
-            return np.maximum(self._reconstruct("R", pts.ring[idx], az, pts.sub_theta_deg[pts.sub_ring[idx]],
-                                                pts.delta_deg[idx]), 0.0)
-        th_int = np.degrees(np.arcsin(np.clip(np.sin(np.radians(pts.sub_theta_deg)) * self.eta, 0.0, 1.0)))
-        ring_int = np.clip(np.searchsorted(self.theta_edges_deg, th_int, side="right") - 1, 0, self.R.shape[0] - 1)
-        t_exit = self.t_exit(th_int)                                        # (sub-rings, c)
-        sr = pts.sub_ring[idx]
-        T = self._reconstruct("T", ring_int[sr], az, th_int[sr], pts.delta_deg[idx])
-        return np.maximum(np.einsum("nc,nc->n", T, t_exit[sr]), 0.0)
+            return np.maximum(Fc + gtc * g.dt + gpc * g.dp, 0.0)
+        T = Fc + gtc * g.dt[:, None] + gpc * g.dp[:, None]
+        return np.maximum(np.einsum("nc,nc->n", T, self.t_exit(g.th_int)[g.sub_ring]), 0.0)
+
+
+@dataclass(frozen=True)
+class _Gather:
+    """Sub-points' cells (flat index ring x azimuths + azimuth), offsets from the cell centres (deg),
+    and for T each sub-point's sub-ring and the internal polar angle of every sub-ring."""
+
+    cell: np.ndarray
+    dt: np.ndarray
+    dp: np.ndarray
+    sub_ring: np.ndarray | None
+    th_int: np.ndarray | None
 
 
 def _minmod(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -387,9 +404,9 @@ def direct_reading(field: DirectField, side: np.ndarray, theta_s: np.ndarray, de
         sel = np.nonzero(side == sd)[0]
         if sel.size == 0:
             continue
-        row, idx, inv, wt = _reading_weights(pts, field, theta_s[sel], delta_s[sel], det)
+        row, idx, inv, wt, gather = _reading_weights(pts, field, theta_s[sel], delta_s[sel], det, sd)
         if idx.size:
-            val = field.values(sd, pts, idx) * pts.weight_sr[idx] * pts.cos_theta[idx]
+            val = field.values(sd, gather) * pts.weight_sr[idx] * pts.cos_theta[idx]
             out[sel] = np.bincount(row, weights=val[inv] * wt, minlength=sel.size)
     return out / (cone_solid_angle(det.detector_half_angle_deg) * np.cos(np.radians(theta_s)))
 
@@ -398,12 +415,14 @@ _WEIGHT_CACHE: dict = {}
 
 
 def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, delta_s: np.ndarray,
-                     det: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(row, idx, inv, response) of the rows' cones: the (row, sub-point idx[inv], response) triplets,
-    idx the sub-points seen (sorted, each once).  The same for every evaluation of a fit (rows,
-    cells and instrument fixed), so they are kept (a few entries)."""
+                     det: Any, side: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, "_Gather"]:
+    """(row, idx, inv, response, gather) of the rows' cones on one side: the (row, sub-point idx[inv],
+    response) triplets, idx the sub-points seen (sorted, each once), and where they read the cells
+    (`DirectField.gather`).  The same for every evaluation of a fit (rows, cells, index ratio and
+    instrument fixed), so they are kept (a few entries)."""
     key = (field.theta_edges_deg.tobytes(), field.delta_edges_deg.tobytes(), theta_s.tobytes(), delta_s.tobytes(),
-           float(det.detector_half_angle_deg), float(det.blur_deg), pts.cos_theta.size)
+           float(det.detector_half_angle_deg), float(det.blur_deg), pts.cos_theta.size, side,
+           float(field.eta) if side == "T" else None)
     if key in _WEIGHT_CACHE:
         return _WEIGHT_CACHE[key]
     h = np.radians(det.detector_half_angle_deg)
@@ -423,7 +442,8 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
     col = col[keep]
     seen = np.zeros(pts.cos_theta.size, bool)       # np.unique(col, return_inverse=True) without its sort
     seen[col] = True
-    out = (row[keep], np.flatnonzero(seen), (np.cumsum(seen) - 1)[col], wt[keep])
+    idx = np.flatnonzero(seen)
+    out = (row[keep], idx, (np.cumsum(seen) - 1)[col], wt[keep], field.gather(side, pts, idx))
     if len(_WEIGHT_CACHE) > 16:
         _WEIGHT_CACHE.clear()
     _WEIGHT_CACHE[key] = out

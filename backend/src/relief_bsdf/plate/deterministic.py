@@ -860,9 +860,9 @@ class PlateSolver:
             secs = self._sector_masks(ops)
             Db = _block_diag(Dj, c) if c == 4 else np.diag(Dj)                          # D as one matrix
             avg = sum(mask.mean() * dK.astype(complex) for dK, _, mask in secs)
-            ops["sector_loop"] = (np.linalg.inv(ops["sys"] - avg @ Db),
+            ops["sector_loop"] = (_lu_factors(ops["sys"] - avg @ Db),
                                   [(dK, (mask - mask.mean())[None, None, :, None]) for dK, _, mask in secs])
-        sys_inv, secs = ops["sector_loop"]
+        pre, secs = ops["sector_loop"]
         shape = to_cells(S).shape                                                          # (q, N, A, c)
 
         def round_trip(X: np.ndarray) -> np.ndarray:       # D X: absorb, flat face's Fresnel R, absorb
@@ -875,9 +875,9 @@ class PlateSolver:
             Z = 0.0
             for dK, mask in secs:
                 Z = Z + dK @ to_modes(Y * mask).astype(np.complex64)
-            return to_cells(sys_inv @ Z.astype(complex))
+            return to_cells(_lu_apply(pre, Z.astype(complex)))
 
-        b = to_cells(sys_inv @ S).ravel()
+        b = to_cells(_lu_apply(pre, S)).ravel()
         op = LinearOperator((b.size, b.size), matvec=lambda x: x - extra(x.reshape(shape)).ravel(), dtype=float)
         x, info = gmres(op, b, x0=b.copy(), rtol=1e-7, atol=0.0, restart=40, maxiter=20)
         if info != 0:
@@ -1028,7 +1028,7 @@ class PlateSolver:
         if ops["sectors"]:         # an anisotropic relief: the loop meets the relief by azimuth sector
             XhM = self._sector_loop(ops, rhs, to_modes, to_cells)
         else:
-            XhM = np.linalg.solve(ops["sys"], rhs)                           # (M, N c, nI)
+            XhM = _loop_solve(ops, rhs)                                      # (M, N c, nI)
         absorb = ops["absorb"]
         out = {"XhM": XhM, "Uxh": Uxh}
         if slab is not None:       # light arriving at the second face: B X + what the beams shed there
@@ -1220,6 +1220,29 @@ def _readings(solver: PlateSolver, model: PlateModel, wl, ti, pi, side, ts, ps, 
             r = replace(r, phi_i_deg=float(p))
             out[sel] = grid_reading(r, side[sel], ts[sel], ps[sel], det, parts)
     return np.where(ok, out, 0.0) * factor
+
+
+def _loop_solve(ops: dict, rhs: np.ndarray) -> np.ndarray:
+    """X = (I - K D)^-1 rhs per azimuthal mode, (M, N c, nI).  The LU factors of the round-trip
+    system are kept in `ops`: the operators are shared by every solve on the same tables and plate
+    (`_reused_solver`: a source polarisation, stray light, cone, blur or tilt changes only the
+    sources), so an evaluation that changes only those solves with the factors instead of
+    factoring the (M, N c, N c) system again."""
+    if "sys_lu" not in ops:
+        ops["sys_lu"] = _lu_factors(ops["sys"])
+    return _lu_apply(ops["sys_lu"], rhs)
+
+
+def _lu_factors(mats: np.ndarray) -> list:
+    """LU factors (LAPACK getrf) of each matrix of a stack (M, n, n)."""
+    from scipy.linalg import lu_factor
+    return [lu_factor(a, check_finite=False) for a in mats]
+
+
+def _lu_apply(factors: list, rhs: np.ndarray) -> np.ndarray:
+    """A_m^-1 rhs_m for each matrix m of the stack whose `_lu_factors` are given (getrs), (M, n, k)."""
+    from scipy.linalg import lu_solve
+    return np.stack([lu_solve(f, b, check_finite=False) for f, b in zip(factors, rhs)])
 
 
 def to_sample_frame(theta_deg: Any, phi_deg: Any, side: Any, tilt_deg: float) -> tuple[np.ndarray, np.ndarray]:
