@@ -358,3 +358,53 @@ def test_the_forward_travels_to_workers_with_its_baseline_tables(plate_forward):
     v1, _ = twin.baseline()
     assert TABLE_CACHE.misses == misses
     np.testing.assert_array_equal(v0, v1)
+
+
+def _plain(x):
+    """Arrays as lists, recursively (fits carry their model rows)."""
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    return x
+
+
+def test_a_step_round_on_worker_processes_gives_the_steps_of_one_process():
+    """A step's fits and screens run as one round on worker processes (`stepwise._step_round`): the
+    steps, their fits, screens and values are those of one process."""
+    names = ["bulk_absorption", "stray_light", "relief_scale", "instrument_blur"]
+    truth = {"absorption_per_mm": 0.3, "blur_deg": 3.0}
+    one = stepwise(BlurForward(truth, seed=6), names, workers=1)
+    two = stepwise(BlurForward(truth, seed=6), names, workers=2)
+    assert [s.effects for s in one][:3] == [(), ("bulk_absorption",), ("bulk_absorption", "instrument_blur")]
+    assert [s.effects for s in two] == [s.effects for s in one]
+    assert _plain([s.tried for s in two]) == _plain([s.tried for s in one])
+    assert two[-1].values == one[-1].values
+
+
+def test_a_screen_whose_tables_this_process_holds_runs_here_beside_the_workers():
+    """A screen whose probes' tables this process's cache holds from an earlier step runs in this process
+    (its evaluations counted here) while the fits and the other screens run on the workers; the round's
+    results are those of one process."""
+    import sys
+    from relief_bsdf.plate.faces import TABLE_CACHE
+    sw = sys.modules["relief_bsdf.diagnose.stepwise"]           # the package exports the function of that name
+    names = ["bulk_absorption", "stray_light", "relief_scale", "instrument_blur"]
+    truth = {"absorption_per_mm": 0.3, "blur_deg": 3.0}
+    rounds = []
+    for workers in (1, 2):
+        fwd = BlurForward(truth, seed=6)
+        v0, s0 = fwd.baseline()
+        base = sw.Step((), {}, fwd.misfit(v0, s0), 0, (v0, s0))
+        plan = sw._plan(fwd, names, {})
+        scale = next(t for t in plan if t[0] == "relief_scale")
+        TABLE_CACHE.put(("test", "held table"), "held")
+        held = {sw._screen_id(scale): (("test", "held table"),)}
+        rounds.append(sw._step_round((fwd, base, False), plan, None, workers, "step 1", held))
+        if workers == 2:
+            assert fwd.evaluations == len(scale[1])     # the held screen's probes alone were evaluated here
+    assert _plain(rounds[1]) == _plain(rounds[0])
+    assert [f["effect"] for f in rounds[0][0]] == ["bulk_absorption", "stray_light"]
+    assert [r["effect"] for r in rounds[0][1]] == ["relief_scale", "instrument_blur"]

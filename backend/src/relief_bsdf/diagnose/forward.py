@@ -14,6 +14,7 @@ sigma_model^2.
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -57,6 +58,13 @@ class DiagnosisForward:
         for key, table in state.pop("_baseline_tables", {}).items():
             TABLE_CACHE.put(key, table)
         self.__dict__.update(state)
+
+    def twin(self) -> "DiagnosisForward":
+        """A shallow copy with its own memo: it evaluates in this process while another thread pickles
+        the original for worker processes (`stepwise._fits_beside_screens`)."""
+        t = copy.copy(self)
+        t._memo = dict(self._memo)
+        return t
 
     def simulate(self, experiment: Experiment) -> tuple[np.ndarray, np.ndarray]:
         """(values, model sigma): the sigma is the baseline's relative 1-sigma (its tables' Monte-Carlo

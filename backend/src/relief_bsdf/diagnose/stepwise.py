@@ -19,8 +19,9 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    r.D (D^T D)^+ D^T.r (a linear least-squares search in the probes' span: Rao's score test,
    with the second probe catching a change of shape with the amplitude), must pass the same
    bar as a fit (`passes`, with chi^2_S minus that gain as the larger model's chi^2), else the
-   candidate is listed as screened out and not fitted.  The screens and the fits of the cheap
-   candidates do not depend on each other and run as one batch of tasks (on the workers);
+   candidate is listed as screened out and not fitted.  The fits of the cheap candidates and the
+   screens run as one round on the worker processes, except a screen whose probes' tables this
+   process already holds from an earlier step, which runs here beside them (`_step_round`);
    then the budgeted ones that passed, in decreasing screen gain, each only while it could
    still be the step's best: its screened BIC gain (gain - k ln n) must exceed the best BIC gain
    already fitted at this step, else it is listed as outgained (the step's winner is the
@@ -62,7 +63,10 @@ fresh seeds there); nothing here was tuned on the compound benchmark.
 """
 from __future__ import annotations
 
+import contextvars
+import copy
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -161,22 +165,21 @@ def _plan(forward, names: list[str], first: dict) -> list[tuple]:
 
 
 def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progress, workers: int | None,
-              label: str) -> tuple[list[dict], list[dict], list[dict]]:
+              label: str, held: dict | None = None) -> tuple[list[dict], list[dict], list[dict]]:
     """(fits, outgained entries, screened-out entries) of a step (module docstring, step 1).
 
     The unscreened candidates' fits and the budgeted candidates' screens do not depend on each
-    other, so they run as one batch of tasks (the fits first: they are the longer tasks); then the
-    screened candidates that passed are fitted in decreasing screen gain while each could still win."""
+    other and run as one round (`_step_round`; `held`: which tables each earlier screen used); then
+    the screened candidates that passed are fitted in decreasing screen gain while each could
+    still win."""
     from relief_bsdf.parallel.tasks import current_settings
     ln = math.log(max(n, 2))
     context = (forward, cur, bool(cur.effects))
-    plan = _plan(forward, names, first)
-    plan = [t for t in plan if t[1] is None] + [t for t in plan if t[1] is not None]
-    fits, costly, screened = [], [], []
-    for r in map_tasks(_step_task, plan, context, progress=progress, label=label, workers=workers):
-        if "screen" not in r:
-            fits.append(r)
-        elif r["screen"] is None:
+    fits, screens = _step_round(context, _plan(forward, names, first), progress, workers, label,
+                                {} if held is None else held)
+    costly, screened = [], []
+    for r in screens:
+        if r["screen"] is None:
             screened.append({"effect": r["effect"], "skipped": r["skipped"]})
         elif passes(cur.chi2, cur.k, cur.chi2 - r["screen"], cur.k + get_effect(r["effect"]).k, n):
             costly.append((r["screen"], r["effect"]))
@@ -204,17 +207,75 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
     return fits, outgained, screened
 
 
+def _screen_id(task: tuple) -> tuple:
+    name, probes = task
+    return name, tuple(tuple(sorted((k, round(float(v), 12)) for k, v in p.items())) for p in probes)
+
+
+def _step_round(context: tuple, plan: list, progress, workers: int | None, label: str,
+                held: dict) -> tuple[list[dict], list[dict]]:
+    """(fits, screens) of a step's first round, in plan order.
+
+    The round is one batch of tasks on the worker processes (the fits first: the longer tasks),
+    except the screens whose probes' tables this process's cache (`plate.faces.TABLE_CACHE`)
+    already holds: the same candidate screened at the same probe values at an earlier step
+    (`held`: the table keys each screen used).  Those run here, beside the batch (plate solves
+    only), so a step derives no probe table that an earlier step derived; a worker sends the
+    tables of its screens back to this process's cache.  The fits' context is pickled from the
+    forward model while a copy of it screens here (its own memo).  Without worker processes (one
+    worker, another backend, or inside a worker) everything runs here, one task after the other."""
+    from relief_bsdf.parallel.tasks import current_settings, in_worker, resolve_backend
+    from relief_bsdf.plate.faces import TABLE_CACHE
+    settings = current_settings().updated(workers=workers)
+    workers_here = (not in_worker() and settings.worker_count() > 1
+                    and resolve_backend(None, settings) == "processes")
+    here = [t for t in plan if t[1] is not None and workers_here and TABLE_CACHE.holds(held.get(_screen_id(t)))]
+    there = [t for t in plan if t[1] is None] + [t for t in plan if t[1] is not None and t not in here]
+    forward = context[0]
+    if here and there:
+        mine = forward.twin() if hasattr(forward, "twin") else copy.copy(forward)
+        with ThreadPoolExecutor(1) as pool:
+            pending = pool.submit(contextvars.copy_context().run, map_tasks, _step_task, there, context,
+                                  progress=progress, label=label, workers=workers)   # the settings in force travel
+            try:
+                done = [_step_task((mine,) + context[1:], t) for t in here]
+            finally:
+                done = pending.result() + done
+        if hasattr(forward, "_memo"):
+            forward._memo.update(mine._memo)
+        forward.evaluations = mine.evaluations
+    else:
+        done = (map_tasks(_step_task, there, context, progress=progress, label=label, workers=workers)
+                + [_step_task(context, t) for t in here])
+    result = dict(zip([t[0] for t in there + here], done))
+    for t in plan:
+        r = result[t[0]]
+        for key, table in r.pop("tables", {}).items():
+            TABLE_CACHE.put(key, table)
+        if "table_keys" in r:
+            held[_screen_id(t)] = r.pop("table_keys")
+    return ([result[t[0]] for t in plan if t[1] is None], [result[t[0]] for t in plan if t[1] is not None])
+
+
 def _step_task(context, task: tuple) -> dict:
     """One task of a step: the conditional fit of a candidate (probes None), or its screen (the
-    chi^2 gain of its probes, `line_gain`; an InputError of the plate lists it as skipped)."""
+    chi^2 gain of its probes, `line_gain`, with the keys of the tables it used and, in a worker
+    process, those tables that are not the baseline's; an InputError of the plate lists it as skipped)."""
+    from relief_bsdf.parallel.tasks import in_worker
+    from relief_bsdf.plate.faces import TABLE_CACHE
     forward, cur, coarse = context
     name, probes = task
     if probes is None:
         return fit_effect(forward, get_effect(name), tuple(get_effect(e) for e in cur.effects), cur.values, coarse)
     try:
-        return {"effect": name, "screen": line_gain(forward, cur, get_effect(name), probes)}
+        with TABLE_CACHE.recording() as used:
+            gain = line_gain(forward, cur, get_effect(name), probes)
     except InputError as err:
         return {"effect": name, "screen": None, "skipped": str(err)}
+    tables = TABLE_CACHE.tables(used)
+    base = getattr(forward, "_baseline_keys", frozenset())
+    return {"effect": name, "screen": gain, "table_keys": tuple(tables),
+            "tables": {k: v for k, v in tables.items() if k not in base} if in_worker() else {}}
 
 
 def _drop_redundant(forward, step: Step, n: int) -> Step:
@@ -242,6 +303,7 @@ def stepwise(forward, names: list[str], progress=None, workers: int | None = Non
     v0, s0 = forward.baseline()
     steps = [Step((), {}, forward.misfit(v0, s0), 0, (v0, s0))]
     dropped: set = set()
+    held: dict = {}                 # the table keys of each screen so far (`_step_round`)
     while len(steps[-1].effects) < MAX_EFFECTS and len(steps) <= MAX_EFFECTS + 2:
         cur = steps[-1]
         named = tuple(get_effect(e) for e in cur.effects)
@@ -251,7 +313,7 @@ def stepwise(forward, names: list[str], progress=None, workers: int | None = Non
             break
         first = {f["effect"]: f for f in first_fits(steps)} if cur.effects else {}
         fits, outgained, screened = _fit_step(forward, cur, remaining, first, n, progress, workers,
-                                              f"candidate effects, step {len(steps)}")
+                                              f"candidate effects, step {len(steps)}", held)
         ok = [f for f in fits if not f.get("skipped")]
         step_tried = fits + outgained + screened
         if not ok:

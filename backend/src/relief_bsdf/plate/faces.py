@@ -53,11 +53,20 @@ THREADED_METHODS = ("microfacet",)  # analytic tables computed on this process's
 
 
 class TableCache:
-    """Small in-memory LRU cache of derived tables (key: a tuple of everything that determines them)."""
+    """In-memory LRU cache of derived tables (key: a tuple of everything that determines them), held
+    to `maxsize` entries and `max_bytes` of table arrays (the least recently used go first).
 
-    def __init__(self, maxsize: int = 24):
+    A diagnosis screens each budgeted candidate at the same probe values at every step (its tables
+    re-derived at each step cost it ~5 s per probe on a Gaussian relief, 17 s with sector tables),
+    and one probe holds 4-5 entries (outside, inside, azimuth probe, sector tables, the relief's
+    BVH): the budget keeps a step's probes for the next (1.5 GB for 16 probes of a Gaussian relief; 4 GB per
+    process, a main process and two workers within 12 GB)."""
+
+    def __init__(self, maxsize: int = 160, max_bytes: float = 4e9):
         self.maxsize = maxsize
+        self.max_bytes = max_bytes
         self._d: OrderedDict = OrderedDict()
+        self._bytes: dict = {}
         self._recorders: list[set] = []
         self.hits = 0
         self.misses = 0
@@ -77,8 +86,10 @@ class TableCache:
     def put(self, key: tuple, value: Any) -> None:
         self._d[key] = value
         self._d.move_to_end(key)
-        while len(self._d) > self.maxsize:
-            self._d.popitem(last=False)
+        self._bytes[key] = _table_bytes(value)
+        while len(self._d) > 1 and (len(self._d) > self.maxsize or sum(self._bytes.values()) > self.max_bytes):
+            old, _ = self._d.popitem(last=False)
+            self._bytes.pop(old, None)
 
     @contextlib.contextmanager
     def recording(self):
@@ -95,8 +106,20 @@ class TableCache:
         worker process: `put` there spares it the tables' derivation)."""
         return {k: self._d[k] for k in keys if isinstance(self._d.get(k), BsdfTable)}
 
+    def holds(self, keys: Any) -> bool:
+        """Whether every one of `keys` is held (False for None or no keys)."""
+        return bool(keys) and all(k in self._d for k in keys)
+
     def clear(self) -> None:
         self._d.clear()
+        self._bytes.clear()
+
+
+def _table_bytes(value: Any) -> int:
+    """Bytes of a cached table's arrays (0 for what is not a table: a BVH, a verdict)."""
+    if not isinstance(value, BsdfTable):
+        return 0
+    return int(sum(a.nbytes for a in vars(value).values() if isinstance(a, np.ndarray)))
 
 
 TABLE_CACHE = TableCache()
