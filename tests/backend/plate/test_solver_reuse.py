@@ -46,7 +46,7 @@ def test_a_bulk_change_builds_new_loop_operators_on_the_tables_kernels():
     assert len(deterministic._SOLVERS) == 2
     second = deterministic._SOLVERS[-1][2]
     assert second._ops is not first._ops and second._tops is first._tops
-    assert second._ops[550.0]["sys"] is not first._ops[550.0]["sys"]
+    assert second._ops[550.0]["sys_lu"] is not first._ops[550.0]["sys_lu"]
     np.testing.assert_allclose(got, _fresh(absorbing), rtol=1e-12, atol=0)
     assert got.sum() < _fresh(ex).sum()
     thicker = ex.with_plate(thickness_m=3e-3)          # the thickness too is the bulk's
@@ -58,11 +58,11 @@ def test_a_tilt_reuses_the_loop_operators_with_its_own_outside_table():
     operators (kernels, round trip, exit maps) are kept, the outside table's part re-derived."""
     ex = _experiment()
     _fresh(ex)
-    loop = deterministic._SOLVERS[-1][2]._ops[550.0]["sys"]
+    loop = deterministic._SOLVERS[-1][2]._ops[550.0]["sys_lu"]
     tilted = ex.with_instrument(tilt_deg=3.0)
     got = simulate(tilted, ROWS, grid=GRID).values_per_sr
     solver = deterministic._SOLVERS[-1][2]
-    assert solver._ops[550.0]["sys"] is loop and solver.outside is not deterministic._SOLVERS[0][2].outside
+    assert solver._ops[550.0]["sys_lu"] is loop and solver.outside is not deterministic._SOLVERS[0][2].outside
     np.testing.assert_allclose(got, _fresh(tilted), rtol=1e-12, atol=0)
     assert not np.allclose(got, _fresh(ex))
 

@@ -260,7 +260,8 @@ def _step_round(context: tuple, plan: list, progress, workers: int | None, label
 def _step_task(context, task: tuple) -> dict:
     """One task of a step: the conditional fit of a candidate (probes None), or its screen (the
     chi^2 gain of its probes, `line_gain`, with the keys of the tables it used and, in a worker
-    process, those tables that are not the baseline's; an InputError of the plate lists it as skipped)."""
+    process, those tables that are not the baseline's when they are small enough to be held there,
+    `TableCache.worth_sending`; an InputError of the plate lists it as skipped)."""
     from relief_bsdf.parallel.tasks import in_worker
     from relief_bsdf.plate.faces import TABLE_CACHE
     forward, cur, coarse = context
@@ -274,8 +275,9 @@ def _step_task(context, task: tuple) -> dict:
         return {"effect": name, "screen": None, "skipped": str(err)}
     tables = TABLE_CACHE.tables(used)
     base = getattr(forward, "_baseline_keys", frozenset())
+    new = {k: v for k, v in tables.items() if k not in base} if in_worker() else {}
     return {"effect": name, "screen": gain, "table_keys": tuple(tables),
-            "tables": {k: v for k, v in tables.items() if k not in base} if in_worker() else {}}
+            "tables": new if TABLE_CACHE.worth_sending(new) else {}}
 
 
 def _drop_redundant(forward, step: Step, n: int) -> Step:

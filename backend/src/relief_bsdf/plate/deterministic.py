@@ -860,7 +860,7 @@ class PlateSolver:
             secs = self._sector_masks(ops)
             Db = _block_diag(Dj, c) if c == 4 else np.diag(Dj)                          # D as one matrix
             avg = sum(mask.mean() * dK.astype(complex) for dK, _, mask in secs)
-            ops["sector_loop"] = (_lu_factors(ops["sys"] - avg @ Db),
+            ops["sector_loop"] = (_lu_factors(ops.pop("sys") - avg @ Db),     # the factors replace the system
                                   [(dK, (mask - mask.mean())[None, None, :, None]) for dK, _, mask in secs])
         pre, secs = ops["sector_loop"]
         shape = to_cells(S).shape                                                          # (q, N, A, c)
@@ -1229,7 +1229,7 @@ def _loop_solve(ops: dict, rhs: np.ndarray) -> np.ndarray:
     sources), so an evaluation that changes only those solves with the factors instead of
     factoring the (M, N c, N c) system again."""
     if "sys_lu" not in ops:
-        ops["sys_lu"] = _lu_factors(ops["sys"])
+        ops["sys_lu"] = _lu_factors(ops.pop("sys"))          # the factors replace the system (memory)
     return _lu_apply(ops["sys_lu"], rhs)
 
 

@@ -59,10 +59,11 @@ class TableCache:
     A diagnosis screens each budgeted candidate at the same probe values at every step (its tables
     re-derived at each step cost it ~5 s per probe on a Gaussian relief, 17 s with sector tables),
     and one probe holds 4-5 entries (outside, inside, azimuth probe, sector tables, the relief's
-    BVH): the budget keeps a step's probes for the next (1.5 GB for 16 probes of a Gaussian relief; 4 GB per
-    process, a main process and two workers within 12 GB)."""
+    BVH): the budget keeps most of a step's probes for the next (~1.5 GB for 16 probes of a Gaussian relief;
+    a relief with sector tables needs 0.4 GB per probe, and its plate solvers hold ~1.5 GB each, so a
+    larger budget ran a seed-10 dots diagnosis out of 24 GB with the main process at 10.5 GB)."""
 
-    def __init__(self, maxsize: int = 160, max_bytes: float = 4e9):
+    def __init__(self, maxsize: int = 160, max_bytes: float = 1.5e9):
         self.maxsize = maxsize
         self.max_bytes = max_bytes
         self._d: OrderedDict = OrderedDict()
@@ -105,6 +106,12 @@ class TableCache:
         """{key: table} of those of `keys` still held whose value is a table (data that can travel to a
         worker process: `put` there spares it the tables' derivation)."""
         return {k: self._d[k] for k in keys if isinstance(self._d.get(k), BsdfTable)}
+
+    def worth_sending(self, tables: dict) -> bool:
+        """Whether a worker's tables are small enough to be sent to this cache and held: at most a sixth
+        of the byte budget (a step's screens must not evict one another; a probe's sector tables,
+        0.4 GB, are re-derived instead: 300-400 MB per probe through a pipe cost more than they save)."""
+        return sum(_table_bytes(t) for t in tables.values()) <= self.max_bytes / 6
 
     def holds(self, keys: Any) -> bool:
         """Whether every one of `keys` is held (False for None or no keys)."""
