@@ -220,8 +220,9 @@ def _step_round(context: tuple, plan: list, progress, workers: int | None, label
     except the screens whose probes' tables this process's cache (`plate.faces.TABLE_CACHE`)
     already holds: the same candidate screened at the same probe values at an earlier step
     (`held`: the table keys each screen used).  Those run here, beside the batch (plate solves
-    only), so a step derives no probe table that an earlier step derived; a worker sends the
-    tables of its screens back to this process's cache.  The fits' context is pickled from the
+    only), so a step derives no probe table that an earlier step derived and this cache still
+    holds; a worker sends the tables of its screens back to this process's cache when they are
+    small enough to be held (`TableCache.worth_sending`).  The fits' context is pickled from the
     forward model while a copy of it screens here (its own memo).  Without worker processes (one
     worker, another backend, or inside a worker) everything runs here, one task after the other."""
     from relief_bsdf.parallel.tasks import current_settings, in_worker, resolve_backend
