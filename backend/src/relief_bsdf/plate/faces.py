@@ -60,14 +60,15 @@ class TableCache:
     re-derived at each step cost it ~5 s per probe on a Gaussian relief, 17 s with sector tables),
     and one probe holds 4-5 entries (outside, inside, azimuth probe, sector tables, the relief's
     BVH): the budget keeps most of a step's probes for the next (~1.5 GB for 16 probes of a Gaussian relief;
-    a relief with sector tables needs 0.4 GB per probe, and its plate solvers hold ~1.5 GB each, so a
+    a relief with sector tables needs ~0.5 GB per probe, and its plate solvers hold ~1.5 GB each, so a
     larger budget ran a seed-10 dots diagnosis out of 24 GB with the main process at 10.5 GB)."""
 
     def __init__(self, maxsize: int = 160, max_bytes: float = 1.5e9):
         self.maxsize = maxsize
         self.max_bytes = max_bytes
         self._d: OrderedDict = OrderedDict()
-        self._bytes: dict = {}
+        self._bytes: dict = {}           # key -> bytes of its table arrays
+        self._total = 0                  # their sum
         self._recorders: list[set] = []
         self.hits = 0
         self.misses = 0
@@ -87,10 +88,12 @@ class TableCache:
     def put(self, key: tuple, value: Any) -> None:
         self._d[key] = value
         self._d.move_to_end(key)
+        self._total -= self._bytes.get(key, 0)
         self._bytes[key] = _table_bytes(value)
-        while len(self._d) > 1 and (len(self._d) > self.maxsize or sum(self._bytes.values()) > self.max_bytes):
+        self._total += self._bytes[key]
+        while len(self._d) > 1 and (len(self._d) > self.maxsize or self._total > self.max_bytes):
             old, _ = self._d.popitem(last=False)
-            self._bytes.pop(old, None)
+            self._total -= self._bytes.pop(old, 0)
 
     @contextlib.contextmanager
     def recording(self):
@@ -109,8 +112,8 @@ class TableCache:
 
     def worth_sending(self, tables: dict) -> bool:
         """Whether a worker's tables are small enough to be sent to this cache and held: at most a sixth
-        of the byte budget (a step's screens must not evict one another; a probe's sector tables,
-        0.4 GB, are re-derived instead: 300-400 MB per probe through a pipe cost more than they save)."""
+        of the byte budget (a step's screens must not evict one another; a probe with sector tables,
+        ~0.5 GB, is re-derived instead: that much per probe through a pipe cost more than it saved)."""
         return sum(_table_bytes(t) for t in tables.values()) <= self.max_bytes / 6
 
     def holds(self, keys: Any) -> bool:
@@ -120,6 +123,7 @@ class TableCache:
     def clear(self) -> None:
         self._d.clear()
         self._bytes.clear()
+        self._total = 0
 
 
 def _table_bytes(value: Any) -> int:
