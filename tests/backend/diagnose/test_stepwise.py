@@ -402,9 +402,51 @@ def test_a_screen_whose_tables_this_process_holds_runs_here_beside_the_workers()
         scale = next(t for t in plan if t[0] == "relief_scale")
         TABLE_CACHE.put(("test", "held table"), "held")
         held = {sw._screen_id(scale): (("test", "held table"),)}
-        rounds.append(sw._step_round((fwd, base, False), plan, None, workers, "step 1", held))
+        rounds.append(sw._step_round(fwd, base, plan, None, workers, "step 1", held))
         if workers == 2:
             assert fwd.evaluations == len(scale[1])     # the held screen's probes alone were evaluated here
     assert _plain(rounds[1]) == _plain(rounds[0])
     assert [f["effect"] for f in rounds[0][0]] == ["bulk_absorption", "stray_light"]
     assert [r["effect"] for r in rounds[0][1]] == ["relief_scale", "instrument_blur"]
+
+
+def test_independent_points_are_evaluated_on_the_kept_workers_with_the_results_of_this_process(plate_forward):
+    """`DiagnosisForward.prefetch` inside the diagnosis's kept pool evaluates the points not yet memoised
+    on the workers, into the memo, with the values one process computes; outside a kept pool (or for
+    points already known) it evaluates nothing.  A joint refit and its Jacobian give the same answer
+    with the pool as without."""
+    from relief_bsdf.diagnose.fitting import _jacobian, _bounds, refit_joint
+    from relief_bsdf.parallel import kept_workers
+    from relief_bsdf.surface.synth import random_relief
+    relief = random_relief(48, 1.0e-6, 0.4e-6, 5.0e-6, "gaussian", seed=2)
+    effs = (get_effect("bulk_absorption"), get_effect("stray_light"))
+    points = [{"absorption_per_mm": a, "background_per_sr": b} for a in (0.0, 0.3) for b in (0.0, 0.02)]
+    here = plate_forward(relief)
+    expected = [here.evaluate_set(effs, p) for p in points]
+    fwd = plate_forward(relief)
+    fwd.baseline()
+    fwd.prefetch(effs, points, workers=2)                      # no kept pool: nothing happens
+    assert fwd._memo == {} and fwd.evaluations == 1
+    with kept_workers(fwd):
+        fwd.prefetch(effs, points, workers=2)
+        assert len(fwd._memo) == 3 and fwd.evaluations == 4    # the baseline point is not evaluated again
+        n = fwd.evaluations
+        got = [fwd.evaluate_set(effs, p) for p in points]
+        assert fwd.evaluations == n                            # every point was memoised
+        for (c0, v0, s0), (c1, v1, s1) in zip(expected, got):
+            np.testing.assert_allclose(v1, v0, rtol=1e-12)
+            np.testing.assert_allclose(s1, s0, rtol=1e-12)
+            assert c1 == pytest.approx(c0, rel=1e-12)
+        truth = here.evaluate_set(effs, {"absorption_per_mm": 0.25, "background_per_sr": 4e-4})[1]
+        noise = np.random.default_rng(5).standard_normal(truth.size)
+        for f in (fwd, here):                                  # a recording both fit: the truth, 2 % noise
+            f.rows.sigma_sr = 0.02 * truth + 1e-5
+            f.rows.bsdf_sr = truth + f.rows.sigma_sr * noise
+        start = {"absorption_per_mm": 0.2, "background_per_sr": 2e-4}
+        pooled = refit_joint(fwd, effs, start)
+        s = np.full(len(fwd.rows), 0.01)
+        J_pooled = _jacobian(fwd, effs, pooled[0], s, _bounds(fwd, effs))
+    alone = refit_joint(here, effs, start)
+    assert pooled[0] == pytest.approx(alone[0], rel=1e-9) and pooled[1] == pytest.approx(alone[1], rel=1e-9)
+    assert pooled[0]["absorption_per_mm"] == pytest.approx(0.25, rel=0.1)
+    np.testing.assert_allclose(J_pooled, _jacobian(here, effs, alone[0], s, _bounds(here, effs)), rtol=1e-9)

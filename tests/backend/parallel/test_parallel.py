@@ -409,3 +409,39 @@ def test_serial_tasks_on_threads_give_the_same_results_in_task_order_and_errors_
     # processes and workers are untouched by `threads` (they use their own processes)
     out = parallel.map_tasks(_thread_probe, TASKS[:4], None, backend="processes", workers=2, threads=2)
     assert [r[0] for r in out] == [0, 1, 4, 9] and not any(r[1] for r in out)
+
+
+def _pid_and_calls(ctx, task):
+    """(this process's id, how many tasks this process ran before this one)."""
+    from relief_bsdf.parallel import worker
+    state = worker.worker_cached(("test kept pool", "calls"), lambda: [0])
+    state[0] += 1
+    time.sleep(0.05)                       # let both workers take tasks
+    return os.getpid(), state[0] - 1
+
+
+def test_kept_workers_run_every_call_of_the_block_on_the_same_processes_then_stop_them():
+    ctx = {"what": "kept"}
+    with parallel.kept_workers(ctx):
+        first = parallel.map_tasks(_pid_and_calls, range(8), ctx, backend="processes", workers=2)
+        second = parallel.map_tasks(_pid_and_calls, range(8), ctx, backend="processes", workers=2)
+        other = parallel.map_tasks(_pid_and_calls, range(8), {"what": "other"}, backend="processes", workers=2)
+    pids = {p for p, _ in first}
+    assert len(pids) == 2 and {p for p, _ in second} == pids         # the same two processes
+    assert min(c for _, c in second) >= 1                             # which kept what the first call left
+    assert not pids & {p for p, _ in other}                           # another context: a pool of its own
+    assert min(c for _, c in other) == 0                              # ... started bare
+    time.sleep(0.5)
+    assert not any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE for p in pids)
+    after = parallel.map_tasks(_pid_and_calls, range(8), ctx, backend="processes", workers=2)
+    assert not pids & {p for p, _ in after}                           # outside the block: a fresh pool
+
+
+def test_a_crash_in_a_kept_pool_reruns_its_tasks_on_a_fresh_one(tmp_path):
+    ctx = _ctx(tmp_path, crash_file=str(tmp_path / "crashed"), crash_at=4)
+    with parallel.kept_workers(ctx):
+        out = parallel.map_tasks(synthetic_task, TASKS, ctx, backend="processes", workers=2)
+        again = parallel.map_tasks(synthetic_task, TASKS, ctx, backend="processes", workers=2)
+    assert (tmp_path / "crashed").exists()
+    expected = parallel.map_tasks(synthetic_task, TASKS, _ctx(), backend="serial")
+    assert _same(out, expected) and _same(again, expected)

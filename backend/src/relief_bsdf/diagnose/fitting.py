@@ -14,8 +14,11 @@ grid than `budgeted` ones (that re-derive the boundary tables, or are slow: `Eff
 Several effects together (`refit_joint`): coordinate descent over every parameter of the
 set, starting from the values found so far (each effect's own fit), each coordinate searched
 in an interval around its current value by a short grid + Brent; at most `JOINT_PASSES`
-passes, stopping when a pass gains less than one unit of chi^2.  Budgeted: a `budgeted`
-coordinate gets a 3-point grid and 3 Brent steps, a cheap one 5 and 6.
+passes, stopping when a pass gains less than one unit of chi^2 (or, for a single parameter, when
+it ends inside its window: the next pass would search the same curve).  Budgeted: a `budgeted`
+coordinate gets a 3-point grid and 3 Brent steps, a cheap one 5 and 6.  A grid's points and a
+Jacobian's differences are independent: they are handed to the forward model first
+(`DiagnosisForward.prefetch`), which evaluates them together on the diagnosis's worker processes.
 
 Intervals (`intervals`): the curvature of chi^2 at the best point in the Gauss-Newton form,
 widened for correlated residuals (fit.covariance, one definition with `relief fit`).  With
@@ -58,10 +61,13 @@ JOINT_PASSES = 2
 POLISH_STEPS = 3
 
 
-def _fit_1d(f, lo: float, hi: float, grid: int, refine: int, extra: tuple = ()) -> tuple[float, float]:
-    """Grid (plus `extra` points) then bounded Brent between the best grid point's neighbours."""
+def _fit_1d(f, lo: float, hi: float, grid: int, refine: int, extra: tuple = (), prefetch=None) -> tuple[float, float]:
+    """Grid (plus `extra` points) then bounded Brent between the best grid point's neighbours;
+    `prefetch(xs)`, when given, is told the grid first (its points are independent)."""
     xs = np.unique(np.concatenate([np.linspace(lo, hi, grid), np.asarray(extra, float)]))
     xs = xs[(xs >= lo) & (xs <= hi)]
+    if prefetch is not None:
+        prefetch(list(xs))
     ys = [f(x) for x in xs]
     k = int(np.argmin(ys))
     best_x, best_y = float(xs[k]), float(ys[k])
@@ -75,29 +81,36 @@ def _fit_1d(f, lo: float, hi: float, grid: int, refine: int, extra: tuple = ()) 
 
 
 def _fit_param(cost, p: Param, lo: float, hi: float, grid: int, refine: int, start: float | None = None,
-               coord: tuple | None = None) -> float:
+               coord: tuple | None = None, prefetch=None) -> float:
     """Best value of one parameter (the others held) for cost(value); `start` (default the neutral
     value) unless beaten.  `coord` = (to_u, from_u): search on the effect's monotone coordinate u
-    (`Effect.coordinate`) instead of the value.
+    (`Effect.coordinate`) instead of the value.  `prefetch(values)`: told the start and the grid's
+    values before they are asked for (`DiagnosisForward.prefetch`).
 
     A parameter the data do not constrain (a flat cost, e.g. the source polarisation seen through
     depolarising tables) stays where it is instead of taking whichever grid end comes first.
     """
     x0 = p.neutral if start is None else float(start)
-    c0 = cost(x0)
     if coord is not None:
         to_u, from_u = coord
+    elif p.log_scale:
+        to_u, from_u = math.log10, (lambda u: 10.0**u)
+    else:
+        to_u = from_u = None
+    ask = None if prefetch is None else (lambda us: prefetch([x0] + [from_u(u) if from_u else u for u in us]))
+    if coord is not None:
         ua, ub = sorted((to_u(lo), to_u(hi)))
         u, cx = _fit_1d(lambda u: cost(from_u(u)), ua, ub, grid, refine,
-                        tuple(to_u(v) for v in (p.neutral, x0) if lo <= v <= hi))
+                        tuple(to_u(v) for v in (p.neutral, x0) if lo <= v <= hi), ask)
         x = from_u(u)
     elif p.log_scale:
-        u, cu = _fit_1d(lambda u: cost(10.0**u), np.log10(lo), np.log10(hi), grid, refine,
-                        (math.log10(x0),) if x0 > 0 else ())
-        x, cx = 10.0**u, cu
+        u, cu = _fit_1d(lambda u: cost(from_u(u)), np.log10(lo), np.log10(hi), grid, refine,
+                        (math.log10(x0),) if x0 > 0 else (), ask)
+        x, cx = from_u(u), cu
     else:
         extra = tuple(v for v in (p.neutral, x0) if lo <= v <= hi)
-        x, cx = _fit_1d(cost, lo, hi, grid, refine, extra)
+        x, cx = _fit_1d(cost, lo, hi, grid, refine, extra, ask)
+    c0 = cost(x0)
     return x if cx < c0 - 1e-9 * max(1.0, abs(c0)) else x0
 
 
@@ -131,8 +144,16 @@ def _search(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | Non
         def cost(x, name=p.name, held=held):
             return forward.evaluate_set(effects, {**held, name: float(x)})[0]
         values[p.name] = float(_fit_param(cost, p, min(lo, hi), max(lo, hi), grid, refine,
-                                          coord=coords.get(p.name)))
+                                          coord=coords.get(p.name), prefetch=_prefetch(forward, effects, held, p)))
     return values
+
+
+def _prefetch(forward, effects: tuple, held: dict, p: Param):
+    """prefetch(xs) for `_fit_param`: the points `held` with p at each x, evaluated together where the
+    forward model can (`DiagnosisForward.prefetch`); None for a forward model without it."""
+    if not hasattr(forward, "prefetch"):
+        return None
+    return lambda xs: forward.prefetch(effects, [{**held, p.name: float(x)} for x in xs])
 
 
 def why_skipped(forward, effect: Effect) -> str | None:
@@ -190,10 +211,12 @@ def refit_joint(forward, effects: tuple, values: dict) -> tuple[dict, float]:
 
             def cost(v, name=p.name):
                 return forward.evaluate_set(effects, {**values, name: float(v)})[0]
-            values[p.name] = float(_fit_param(cost, p, a, b, grid, refine, start=x, coord=coord))
+            values[p.name] = float(_fit_param(cost, p, a, b, grid, refine, start=x, coord=coord,
+                                              prefetch=_prefetch(forward, effects, dict(values), p)))
             best = forward.evaluate_set(effects, values)[0]
-        if start - best < 1.0:
-            break
+            edge = (values[p.name] <= a and a > lo) or (values[p.name] >= b and b < hi)
+        if start - best < 1.0 or (len(params) == 1 and not edge):
+            break           # one parameter inside its window: another pass would search the same curve
     return values, best
 
 
@@ -217,10 +240,14 @@ def _jacobian(forward, effects: tuple, values: dict, s: np.ndarray, bounds: dict
     differences with the steps of `_step` (one-sided at a bound)."""
     params = [p for e in effects for p in e.params]
     J = np.zeros((len(forward.rows), len(params)))
-    for j, p in enumerate(params):
+    ends = []
+    for p in params:
         x = values[p.name]
         h = _step(p, x, *bounds[p.name])
-        xp, xm = min(x + h, p.upper), max(x - h, p.lower)
+        ends.append((min(x + h, p.upper), max(x - h, p.lower)))
+    if hasattr(forward, "prefetch"):       # the 2k points are independent
+        forward.prefetch(effects, [{**values, p.name: x} for p, e in zip(params, ends) for x in e])
+    for j, (p, (xp, xm)) in enumerate(zip(params, ends)):
         mp = forward.evaluate_set(effects, {**values, p.name: xp})[1]
         mm = forward.evaluate_set(effects, {**values, p.name: xm})[1]
         J[:, j] = -(mp - mm) / (xp - xm) / s

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from relief_bsdf.diagnose.effects import Effect, ReliefContext, apply_all
+from relief_bsdf.diagnose.effects import Effect, ReliefContext, apply_all, get_effect
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import chi2
 from relief_bsdf.plate import DEFAULT_METHOD, Experiment, ReliefFace, TableGrid, experiment_from_sample, simulate
@@ -101,21 +101,61 @@ class DiagnosisForward:
         (`effects.apply_all`); all at their neutral values is the baseline.  Memoised on the effect
         names and parameter values (a joint refit and the intervals revisit the points of the
         single fits)."""
-        names = tuple(sorted(e.name for e in effects))
-        vals = {p.name: float(values.get(p.name, p.neutral)) for e in effects for p in e.params}
-        if all(vals[p.name] == p.neutral for e in effects for p in e.params) and all(e.params for e in effects):
+        key, vals = _memo_key(effects, values)
+        if key is None:
             v, s = self.baseline()
             return self.misfit(v, s), v, s
-        key = (names, tuple(sorted((k, round(x, 12)) for k, x in vals.items())))
         if key not in self._memo:            # the simulation is memoised, the misfit computed against the rows now
-            self._memo[key] = self.simulate(apply_all(self.experiment, self.context, effects, vals))
-            if len(self._memo) > MEMO_SIZE:
-                self._memo.pop(next(iter(self._memo)))
+            self._remember(key, self.simulate(apply_all(self.experiment, self.context, effects, vals)))
         v, s = self._memo[key]
         return self.misfit(v, s), v, s
 
+    def _remember(self, key: tuple, result: tuple) -> None:
+        self._memo[key] = result
+        if len(self._memo) > MEMO_SIZE:
+            self._memo.pop(next(iter(self._memo)))
+
+    def prefetch(self, effects, points: list[dict], workers: int | None = None) -> None:
+        """Evaluate those of `points` (values of `effects`) not yet memoised at once on the worker
+        processes this forward model keeps (`parallel.kept_workers`, the stepwise diagnosis's pool),
+        into the memo, so that the calls of `evaluate_set` that follow find them.  A search's grid, a
+        Jacobian's differences are independent points: two workers evaluate them in about half the
+        time.  Without kept workers (or fewer than two missing points) it does nothing: each point is
+        then evaluated when asked, with the same result (the simulation is a function of its inputs)."""
+        from relief_bsdf.parallel import has_kept_workers, map_tasks
+        todo: dict = {}
+        for values in points:
+            key, vals = _memo_key(effects, values)
+            if key is not None and key not in self._memo:
+                todo.setdefault(key, vals)
+        if len(todo) < 2 or not has_kept_workers(self, workers):
+            return
+        names = tuple(e.name for e in effects)
+        got = map_tasks(_evaluate_task, [(names, vals) for vals in todo.values()], self, label="evaluations",
+                        workers=workers)
+        self.evaluations += len(todo)
+        for key, result in zip(todo, got):
+            self._remember(key, result)
+
     def misfit(self, values: np.ndarray, model_sigma: np.ndarray) -> float:
         return chi2(self.rows, values, model_sigma)
+
+
+def _memo_key(effects, values: dict) -> tuple[tuple | None, dict]:
+    """(memo key, full values) of `effects` at `values` (a missing parameter at its neutral value);
+    the key is None when every effect is at its neutral values (the baseline)."""
+    vals = {p.name: float(values.get(p.name, p.neutral)) for e in effects for p in e.params}
+    if all(vals[p.name] == p.neutral for e in effects for p in e.params) and all(e.params for e in effects):
+        return None, vals
+    names = tuple(sorted(e.name for e in effects))
+    return (names, tuple(sorted((k, round(x, 12)) for k, x in vals.items()))), vals
+
+
+def _evaluate_task(forward: DiagnosisForward, task: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """(values, model sigma) of the named effects at `vals`, on a worker (`DiagnosisForward.prefetch`)."""
+    names, vals = task
+    _, v, s = forward.evaluate_set(tuple(get_effect(n) for n in names), vals)
+    return v, s
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,9 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    bar as a fit (`passes`, with chi^2_S minus that gain as the larger model's chi^2), else the
    candidate is listed as screened out and not fitted.  The fits of the cheap candidates and the
    screens run as one round on the worker processes, except a screen whose probes' tables this
-   process already holds from an earlier step, which runs here beside them (`_step_round`);
+   process already holds from an earlier step, which runs here beside them (`_step_round`;
+   the rounds of one diagnosis share one pool of worker processes, `parallel.kept_workers`, so
+   the workers keep the tables, solvers and evaluations of the rounds before);
    then the budgeted ones that passed, in decreasing screen gain, each only while it could
    still be the step's best: its screened BIC gain (gain - k ln n) must exceed the best BIC gain
    already fitted at this step, else it is listed as outgained (the step's winner is the
@@ -74,7 +76,7 @@ from relief_bsdf.diagnose.effects import compatible, get_effect
 from relief_bsdf.diagnose.fitting import fit_effect, polish, refit_joint, why_skipped
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.selection import BIC_MARGIN, bic, bic_gain
-from relief_bsdf.parallel import map_tasks
+from relief_bsdf.parallel import kept_workers, map_tasks
 from relief_bsdf.progress import silent
 
 BIC_OVERWHELMING = 40.0
@@ -174,8 +176,7 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
     still win."""
     from relief_bsdf.parallel.tasks import current_settings
     ln = math.log(max(n, 2))
-    context = (forward, cur, bool(cur.effects))
-    fits, screens = _step_round(context, _plan(forward, names, first), progress, workers, label,
+    fits, screens = _step_round(forward, cur, _plan(forward, names, first), progress, workers, label,
                                 {} if held is None else held)
     costly, screened = [], []
     for r in screens:
@@ -201,18 +202,24 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
         if not batch:
             outgained += [{"effect": m, "screened": round(g, 3), "outgained_by": leader} for g, m in costly]
             break
-        fits += map_tasks(_step_task, [(m, None) for m in batch], context, progress=progress, label=label,
+        fits += map_tasks(_step_task, [_task(m, None, cur) for m in batch], forward, progress=progress, label=label,
                           workers=workers)
         costly = [(g, m) for g, m in costly if m not in batch]
     return fits, outgained, screened
 
 
 def _screen_id(task: tuple) -> tuple:
-    name, probes = task
+    name, probes = task[:2]
     return name, tuple(tuple(sorted((k, round(float(v), 12)) for k, v in p.items())) for p in probes)
 
 
-def _step_round(context: tuple, plan: list, progress, workers: int | None, label: str,
+def _task(name: str, probes: list | None, cur: Step) -> tuple:
+    """A task of `_step_task`: the candidate, its probes (None: fit it), the current step without
+    what the task does not read (its fits, its Jacobian), and whether the search is coarse."""
+    return name, probes, replace(cur, tried=[], jacobian=None), bool(cur.effects)
+
+
+def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, label: str,
                 held: dict) -> tuple[list[dict], list[dict]]:
     """(fits, screens) of a step's first round, in plan order.
 
@@ -222,32 +229,34 @@ def _step_round(context: tuple, plan: list, progress, workers: int | None, label
     (`held`: the table keys each screen used).  Those run here, beside the batch (plate solves
     only), so a step derives no probe table that an earlier step derived and this cache still
     holds; a worker sends the tables of its screens back to this process's cache when they are
-    small enough to be held (`TableCache.worth_sending`).  The fits' context is pickled from the
-    forward model while a copy of it screens here (its own memo).  Without worker processes (one
+    small enough to be held (`TableCache.worth_sending`).  The workers' context is the forward
+    model (pickled once for the diagnosis's kept pool, `stepwise`), each task carries the current
+    step; a copy of the forward with its own memo screens here.  Without worker processes (one
     worker, another backend, or inside a worker) everything runs here, one task after the other."""
     from relief_bsdf.parallel.tasks import current_settings, in_worker, resolve_backend
     from relief_bsdf.plate.faces import TABLE_CACHE
     settings = current_settings().updated(workers=workers)
     workers_here = (not in_worker() and settings.worker_count() > 1
                     and resolve_backend(None, settings) == "processes")
-    here = [t for t in plan if t[1] is not None and workers_here and TABLE_CACHE.holds(held.get(_screen_id(t)))]
-    there = [t for t in plan if t[1] is None] + [t for t in plan if t[1] is not None and t not in here]
-    forward = context[0]
+    here = [_task(*t, cur) for t in plan if t[1] is not None and workers_here
+            and TABLE_CACHE.holds(held.get(_screen_id(t)))]
+    there = ([_task(*t, cur) for t in plan if t[1] is None]
+             + [_task(*t, cur) for t in plan if t[1] is not None and t[0] not in {h[0] for h in here}])
     if here and there:
         mine = forward.twin() if hasattr(forward, "twin") else copy.copy(forward)
         with ThreadPoolExecutor(1) as pool:
-            pending = pool.submit(contextvars.copy_context().run, map_tasks, _step_task, there, context,
+            pending = pool.submit(contextvars.copy_context().run, map_tasks, _step_task, there, forward,
                                   progress=progress, label=label, workers=workers)   # the settings in force travel
             try:
-                done = [_step_task((mine,) + context[1:], t) for t in here]
+                done = [_step_task(mine, t) for t in here]
             finally:
                 done = pending.result() + done
         if hasattr(forward, "_memo"):
             forward._memo.update(mine._memo)
         forward.evaluations = mine.evaluations
     else:
-        done = (map_tasks(_step_task, there, context, progress=progress, label=label, workers=workers)
-                + [_step_task(context, t) for t in here])
+        done = (map_tasks(_step_task, there, forward, progress=progress, label=label, workers=workers)
+                + [_step_task(forward, t) for t in here])
     result = dict(zip([t[0] for t in there + here], done))
     for t in plan:
         r = result[t[0]]
@@ -258,15 +267,14 @@ def _step_round(context: tuple, plan: list, progress, workers: int | None, label
     return ([result[t[0]] for t in plan if t[1] is None], [result[t[0]] for t in plan if t[1] is not None])
 
 
-def _step_task(context, task: tuple) -> dict:
+def _step_task(forward, task: tuple) -> dict:
     """One task of a step: the conditional fit of a candidate (probes None), or its screen (the
     chi^2 gain of its probes, `line_gain`, with the keys of the tables it used and, in a worker
     process, those tables that are not the baseline's when they are small enough to be held there,
     `TableCache.worth_sending`; an InputError of the plate lists it as skipped)."""
     from relief_bsdf.parallel.tasks import in_worker
     from relief_bsdf.plate.faces import TABLE_CACHE
-    forward, cur, coarse = context
-    name, probes = task
+    name, probes, cur, coarse = task
     if probes is None:
         return fit_effect(forward, get_effect(name), tuple(get_effect(e) for e in cur.effects), cur.values, coarse)
     try:
@@ -307,6 +315,14 @@ def stepwise(forward, names: list[str], progress=None, workers: int | None = Non
     steps = [Step((), {}, forward.misfit(v0, s0), 0, (v0, s0))]
     dropped: set = set()
     held: dict = {}                 # the table keys of each screen so far (`_step_round`)
+    with kept_workers(forward):     # one pool of worker processes for every round
+        _steps(forward, names, steps, dropped, held, n, progress, workers)
+    return steps
+
+
+def _steps(forward, names: list[str], steps: list, dropped: set, held: dict, n: int, progress,
+           workers: int | None) -> None:
+    """The steps after the baseline, appended to `steps` (`stepwise`)."""
     while len(steps[-1].effects) < MAX_EFFECTS and len(steps) <= MAX_EFFECTS + 2:
         cur = steps[-1]
         named = tuple(get_effect(e) for e in cur.effects)
@@ -336,7 +352,6 @@ def stepwise(forward, names: list[str], progress=None, workers: int | None = Non
                    bic(cur.chi2, cur.k, n) - bic(chi, cur.k + best["k"], n), (), step_tried, J)
         steps.append(_polished(forward, _drop_redundant(forward, new, n)) if len(new.effects) > 1 else new)
         dropped |= set(steps[-1].dropped)           # a dropped effect is not offered again
-    return steps
 
 
 def _polished(forward, step: Step) -> Step:

@@ -342,6 +342,61 @@ def _pool_round(pool: ProcessPoolExecutor, fn: Callable, token: int, pending: di
     return broken
 
 
+class _KeptPool:
+    """The local worker pool of a `kept_workers` block: its context, and the pool once started."""
+
+    def __init__(self, context: Any) -> None:
+        self.context = context
+        self.pool: ProcessPoolExecutor | None = None
+        self.workers = 0
+
+
+_KEPT: contextvars.ContextVar[_KeptPool | None] = contextvars.ContextVar("relief_kept_pool", default=None)
+
+
+@contextlib.contextmanager
+def kept_workers(context: Any) -> Iterator[None]:
+    """Inside the block, `map_tasks` calls on the local processes backend whose context is `context`
+    (the same object) run on one pool of worker processes, started by the first such call and
+    stopped at the block's end (also on error or Ctrl-C).
+
+    The workers receive the context once, and whatever a task leaves in its worker process (a
+    table cache, a memo of evaluations, a factorised solver, `worker_cached` objects) is there
+    for the next call's tasks: a stepwise diagnosis's rounds run on workers that keep the tables
+    and solvers of the rounds before instead of starting bare each round.  Results do not change:
+    a task must give the same result whatever ran before it in its process (the caches hold
+    data that is a pure function of its key).  A call with another context, another number of
+    workers or another backend runs as outside the block; a worker that dies breaks the kept pool
+    and the call continues on fresh pools as usual (`retries`).  Blocks do not nest (the inner
+    one wins for its context)."""
+    kept = _KeptPool(context)
+    token = _KEPT.set(kept)
+    clean = False
+    try:
+        yield
+        clean = True
+    finally:
+        _KEPT.reset(token)
+        if kept.pool is not None:
+            _stop_pool(kept.pool, kill=not clean)
+            kept.pool = None
+
+
+def has_kept_workers(context: Any, workers: int | None = None) -> bool:
+    """Would a `map_tasks` call here on `context` (with this `workers=`) run on the worker processes of
+    a `kept_workers(context)` block?  (Then sending it a few small tasks costs no pool start.)"""
+    kept = _KEPT.get()
+    if kept is None or kept.context is not context or in_worker():
+        return False
+    s = _call_settings({"workers": workers})
+    return resolve_backend(None, s) == "processes" and s.worker_count() > 1
+
+
+def _new_pool(token: int, context: Any, workers: int) -> ProcessPoolExecutor:
+    return ProcessPoolExecutor(max_workers=workers, initializer=init_worker, initargs=(token, context, os.getpid()),
+                               mp_context=_pool_context())
+
+
 def _run_processes(fn: Callable, context: Any, items: list[tuple[int, Any]], settings: ParallelSettings,
                    label: str) -> Iterator[tuple[int, Any]]:
     token = id(context)
@@ -349,16 +404,26 @@ def _run_processes(fn: Callable, context: Any, items: list[tuple[int, Any]], set
     workers = settings.worker_count()
     restarts = 0
     exit_codes: set[int] = set()
+    kept = _KEPT.get()
+    if kept is not None and kept.context is not context:
+        kept = None
     while pending:
-        pool = ProcessPoolExecutor(max_workers=max(1, min(workers, len(pending))), initializer=init_worker,
-                                   initargs=(token, context, os.getpid()), mp_context=_pool_context())
+        if kept is not None and kept.pool is not None and kept.workers != workers:   # another worker count
+            _stop_pool(kept.pool, kill=False)
+            kept.pool = None
+        if kept is not None and kept.pool is None:
+            kept.pool, kept.workers = _new_pool(token, context, workers), workers
+        pool = kept.pool if kept is not None else _new_pool(token, context, max(1, min(workers, len(pending))))
         clean = False
         try:
             broken = yield from _pool_round(pool, fn, token, pending, workers)
             clean = not broken
         finally:
             procs = list((getattr(pool, "_processes", None) or {}).values())
-            _stop_pool(pool, kill=not clean)
+            if kept is None or not clean:
+                _stop_pool(pool, kill=not clean)
+                if kept is not None:
+                    kept.pool = None
         if broken:
             exit_codes |= {p.exitcode for p in procs if p.exitcode not in (None, 0, -15)}  # -15: the pool's stop
             restarts += 1
