@@ -35,6 +35,29 @@ def test_an_instrument_change_reuses_the_operators_and_gives_a_fresh_solvers_num
     assert not np.allclose(reused, _fresh(ex))             # the instrument did change the rows
 
 
+def test_a_change_of_the_reading_alone_finds_the_field_solved_and_a_polarisation_solves_anew(monkeypatch):
+    """Stray light, cone and aperture blur act on how the rows read the field: the solved field of the
+    same incidences and source is kept with the operators and read again (no solve); another source
+    polarisation, or another outside table (a tilt), is solved anew.  A fresh solver's numbers."""
+    ex = _experiment()
+    _fresh(ex)
+    solves = []
+    real = deterministic.PlateSolver._solve
+    monkeypatch.setattr(deterministic.PlateSolver, "_solve", lambda self, *a: solves.append(a) or real(self, *a))
+    read = ex.with_instrument(blur_deg=1.5, background_per_sr=0.01, detector_half_angle_deg=2.0)
+    got = simulate(read, ROWS, grid=GRID).values_per_sr
+    assert solves == []                                    # read from the kept field
+    fresh = _fresh(read)
+    assert len(solves) == 1
+    np.testing.assert_allclose(got, fresh, rtol=1e-12, atol=0)
+    polarised = read.with_instrument(polarization_q=1.0)
+    got = simulate(polarised, ROWS, grid=GRID).values_per_sr
+    assert len(solves) == 2
+    np.testing.assert_allclose(got, _fresh(polarised), rtol=1e-12, atol=0)
+    simulate(ex.with_instrument(tilt_deg=2.0), ROWS, grid=GRID)
+    assert len(solves) == 4                                # a fresh solver of `polarised`, then the tilt
+
+
 def test_a_bulk_change_builds_new_loop_operators_on_the_tables_kernels():
     """Absorption acts on the round trip, not on the tables: new loop operators, the tables' part
     (kernels in azimuthal modes, exit maps: `_table_ops`) shared; a fresh solver's numbers."""

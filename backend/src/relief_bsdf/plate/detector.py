@@ -443,7 +443,9 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
     seen = np.zeros(pts.cos_theta.size, bool)       # np.unique(col, return_inverse=True) without its sort
     seen[col] = True
     idx = np.flatnonzero(seen)
-    out = (row[keep], idx, (np.cumsum(seen) - 1)[col], wt[keep], field.gather(side, pts, idx))
+    where = np.empty(seen.size, np.intp)            # each seen sub-point's place in idx (only those are read)
+    where[idx] = np.arange(idx.size)
+    out = (row[keep], idx, where[col], wt[keep], field.gather(side, pts, idx))
     if len(_WEIGHT_CACHE) > 16:
         _WEIGHT_CACHE.clear()
     _WEIGHT_CACHE[key] = out

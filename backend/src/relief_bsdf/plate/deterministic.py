@@ -764,7 +764,7 @@ class PlateSolver:
         vout = _TableView(self.outside, wl, self.mueller, "outside table") if self.outside is not None else None
         out_on_grid = vout is None or vout.on_grid(self.theta_edges, self.delta.size)
         direct = (not out_on_grid and self.model.rough_face == "front" and ops["vB"] is None and ops["slab"] is None)
-        return dict(vout=vout, out_on_grid=out_on_grid, direct=direct)
+        return dict(vout=vout, out_on_grid=out_on_grid, direct=direct, solved={})   # `solve`'s results: anew
 
     def with_outside(self, model: PlateModel, outside: BsdfTable) -> "PlateSolver":
         """This solver for another outside table (and instrument) on the same inside, back and sector
@@ -895,9 +895,23 @@ class PlateSolver:
         return out
 
     def solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
-        """Plate BSDF for each incidence angle (degrees) at one wavelength."""
-        with blas_single_thread():
-            return self._solve(wavelength_nm, theta_i_deg, phi_i_deg)
+        """Plate BSDF for each incidence angle (degrees) at one wavelength.
+
+        The results are kept with the wavelength's operators (the last `_SOLVED_KEPT` requests): the
+        operators are shared by the solvers that differ only in the instrument (`_reused_solver`), and
+        of the instrument only the source's polarisation enters the solve (the incidences are given),
+        so an evaluation that changes only how the rows are read (stray light, cone, aperture blur)
+        finds the field solved.  Results are never changed by their readers (`dataclasses.replace`)."""
+        ops = self._operators(float(wavelength_nm))
+        key = (np.asarray(theta_i_deg, float).tobytes(), float(phi_i_deg),
+               np.asarray(self.model.source_stokes, float).tobytes())
+        kept = ops["solved"]
+        if key not in kept:
+            with blas_single_thread():
+                kept[key] = self._solve(wavelength_nm, theta_i_deg, phi_i_deg)
+            while len(kept) > _SOLVED_KEPT:
+                kept.pop(next(iter(kept)))
+        return list(kept[key])
 
     def _solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
         ops = self._operators(float(wavelength_nm))
@@ -1378,6 +1392,7 @@ def front_tables(experiment: Any, grid: Any, wl: Any, ti: Any, traced: bool, pro
 
 _SOLVERS: list = []          # (tables, plate fields, solver): the last few, newest last
 _SOLVERS_KEPT = 4
+_SOLVED_KEPT = 2             # `PlateSolver.solve` results kept per wavelength's operators
 _BULK_FIELDS = ("thickness_m", "absorption_per_m", "scatter_per_m", "hg_g")    # act on `_operators` alone
 _INSTRUMENT_FIELDS = ("detector_half_angle_deg", "polarization", "background_per_sr", "blur_deg", "tilt_deg",
                       "cone_points", "beam_divergence_deg")
