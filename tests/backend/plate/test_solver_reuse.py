@@ -35,10 +35,11 @@ def test_an_instrument_change_reuses_the_operators_and_gives_a_fresh_solvers_num
     assert not np.allclose(reused, _fresh(ex))             # the instrument did change the rows
 
 
-def test_a_change_of_the_reading_alone_finds_the_field_solved_and_a_polarisation_solves_anew(monkeypatch):
-    """Stray light, cone and aperture blur act on how the rows read the field: the solved field of the
-    same incidences and source is kept with the operators and read again (no solve); another source
-    polarisation, or another outside table (a tilt), is solved anew.  A fresh solver's numbers."""
+def test_a_change_of_the_reading_or_the_source_polarisation_solves_only_what_it_has_not_solved(monkeypatch):
+    """Stray light, cone and aperture blur act on how the rows read the field, the source polarisation
+    linearly on the field (sum of the unit Stokes sources' fields): the unit fields kept with the
+    operators are read again; a new unit source, or another outside table (a tilt), is solved anew.
+    The numbers are a fresh solver's, and the sum of unit fields is the field of the source itself."""
     ex = _experiment()
     _fresh(ex)
     solves = []
@@ -47,15 +48,35 @@ def test_a_change_of_the_reading_alone_finds_the_field_solved_and_a_polarisation
     read = ex.with_instrument(blur_deg=1.5, background_per_sr=0.01, detector_half_angle_deg=2.0)
     got = simulate(read, ROWS, grid=GRID).values_per_sr
     assert solves == []                                    # read from the kept field
-    fresh = _fresh(read)
-    assert len(solves) == 1
-    np.testing.assert_allclose(got, fresh, rtol=1e-12, atol=0)
-    polarised = read.with_instrument(polarization_q=1.0)
+    np.testing.assert_allclose(got, _fresh(read), rtol=1e-12, atol=0)
+    assert len(solves) == 1                                # the fresh solver's own
+    polarised = read.with_instrument(polarization_q=0.6)
     got = simulate(polarised, ROWS, grid=GRID).values_per_sr
-    assert len(solves) == 2
+    assert len(solves) == 2                                # the unit source (0, 1, 0, 0) alone
+    other = simulate(read.with_instrument(polarization_q=-0.3), ROWS, grid=GRID).values_per_sr
+    assert len(solves) == 2 and not np.allclose(other, got)
     np.testing.assert_allclose(got, _fresh(polarised), rtol=1e-12, atol=0)
     simulate(ex.with_instrument(tilt_deg=2.0), ROWS, grid=GRID)
-    assert len(solves) == 4                                # a fresh solver of `polarised`, then the tilt
+    assert len(solves) == 5                                # a fresh solver of `polarised` (2), then the tilt
+
+
+def test_the_field_of_a_polarised_source_is_the_sum_of_the_unit_sources_fields():
+    """Linearity in the source's Stokes vector: solve() by unit sources equals one solve with s itself."""
+    ex = _experiment().with_instrument(polarization_q=0.6)
+    _fresh(ex)
+    solver = deterministic._SOLVERS[-1][2]
+    thetas = np.array([0.0, 30.0])
+    summed = solver.solve(550.0, thetas)
+    direct = solver._solve(550.0, thetas, 0.0, solver.model.source_stokes)
+    for a, b in zip(summed, direct):
+        for name in ("grid_R", "grid_T", "loop_R", "loop_T"):
+            np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-10, atol=1e-14)
+        np.testing.assert_allclose(a.direct.R, b.direct.R, rtol=1e-10, atol=1e-14)
+        np.testing.assert_allclose(a.direct.T, b.direct.T, rtol=1e-10, atol=1e-14)
+        assert [d[:3] for d in a.deltas] == [d[:3] for d in b.deltas]
+        np.testing.assert_allclose([d[3] for d in a.deltas], [d[3] for d in b.deltas], rtol=1e-12)
+    unpolarised = solver._solve(550.0, thetas, 0.0, np.array([1.0, 0.0, 0.0, 0.0]))
+    assert not np.allclose(summed[1].grid_R, unpolarised[1].grid_R, rtol=1e-3)   # the source did change it
 
 
 def test_a_bulk_change_builds_new_loop_operators_on_the_tables_kernels():

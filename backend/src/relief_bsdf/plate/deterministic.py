@@ -897,28 +897,49 @@ class PlateSolver:
     def solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
         """Plate BSDF for each incidence angle (degrees) at one wavelength.
 
-        The results are kept with the wavelength's operators (the last `_SOLVED_KEPT` requests): the
-        operators are shared by the solvers that differ only in the instrument (`_reused_solver`), and
-        of the instrument only the source's polarisation enters the solve (the incidences are given),
-        so an evaluation that changes only how the rows are read (stray light, cone, aperture blur)
-        finds the field solved.  Results are never changed by their readers (`dataclasses.replace`)."""
+        Of the instrument only the source's polarisation enters the solve (the incidences are given),
+        and every part of the field is linear in the source's Stokes vector s (Mueller tables, Fresnel
+        matrices, the loop's linear systems): the field of s is sum_k s_k F(e_k), F(e_k) the field of
+        the k-th unit Stokes vector, solved once each.  (With depolarising tables the diffuse parts take
+        the source's intensity alone while the flat faces' delta beams see its polarisation: not linear
+        in s, so that field is solved, and kept, for s itself.)  The fields are kept with the
+        wavelength's operators (`_SOLVED_KEPT` requests, `_SOLVED_BYTES` at most), which the solvers
+        that differ only in the instrument share
+        (`_reused_solver`): an evaluation that changes only the source's polarisation or how the rows
+        are read (stray light, cone, aperture blur) solves nothing.  An unpolarised source's field is
+        F(e_0) itself, bit for bit; the sector loop's GMRES (relative tolerance 1e-7) solves each unit
+        source to its tolerance.  Results are never changed by their readers (`dataclasses.replace`)."""
         ops = self._operators(float(wavelength_nm))
-        key = (np.asarray(theta_i_deg, float).tobytes(), float(phi_i_deg),
-               np.asarray(self.model.source_stokes, float).tobytes())
+        s = np.asarray(self.model.source_stokes, float)
+        if not self.mueller or (s[0] == 1.0 and not s[1:].any()):
+            return list(self._field(ops, wavelength_nm, theta_i_deg, phi_i_deg, s))
+        parts = [(np.eye(4)[k], float(s[k])) for k in range(4) if s[k] != 0.0]
+        fields = [self._field(ops, wavelength_nm, theta_i_deg, phi_i_deg, e) for e, _ in parts]
+        return [_stokes_sum([f[q] for f in fields], [w for _, w in parts]) for q in range(len(fields[0]))]
+
+    def _field(self, ops: dict, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float,
+               stokes: np.ndarray) -> list[PlateResult]:
+        """The plate's results for the source Stokes vector `stokes` (kept with the operators: `solve`)."""
+        key = (np.asarray(theta_i_deg, float).tobytes(), float(phi_i_deg), np.asarray(stokes, float).tobytes())
         kept = ops["solved"]
         if key not in kept:
             with blas_single_thread():
-                kept[key] = self._solve(wavelength_nm, theta_i_deg, phi_i_deg)
-            while len(kept) > _SOLVED_KEPT:
+                res = self._solve(wavelength_nm, theta_i_deg, phi_i_deg, stokes)
+            size = sum(_result_bytes(r) for r in res)
+            if size > _SOLVED_BYTES:
+                return res
+            kept[key] = (res, size)
+            while len(kept) > _SOLVED_KEPT or sum(z for _, z in kept.values()) > _SOLVED_BYTES:
                 kept.pop(next(iter(kept)))
-        return list(kept[key])
+        return kept[key][0]
 
-    def _solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float = 0.0) -> list[PlateResult]:
+    def _solve(self, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float,
+               stokes: np.ndarray) -> list[PlateResult]:
         ops = self._operators(float(wavelength_nm))
         thetas = np.atleast_1d(np.asarray(theta_i_deg, float))
         src = _Sources.empty(thetas.size, self.theta_c.size, self.delta.size, ops["c"])
         for q, ti in enumerate(thetas):
-            self._incidence(ops, src, q, abs(float(ti)))
+            self._incidence(ops, src, q, abs(float(ti)), stokes)
         out_rough, out_flat = self._diffuse_exits(ops, src, thetas)
         front = self.model.rough_face == "front"
         first_T = self._flat_exit(ops, src.S_first) if ops["direct"] else None
@@ -941,12 +962,12 @@ class PlateSolver:
         L = np.moveaxis(S * ops["absorb"][None, :, None, None] / psa[None, :, None, None], 2, 3).reshape(nI, N * c, A)
         return (ops["Wflat"].reshape(N, N * c) @ L) * (n0 / n) ** 2
 
-    def _direct_field(self, ops: dict, ti: float) -> "DirectField":
+    def _direct_field(self, ops: dict, ti: float, s_inc: np.ndarray) -> "DirectField":
         """The outside table's cells at incidence ti as the detector reads them (plate.detector.DirectField):
         R, the direct reflection's S0; T, the Stokes vector of the first transmission inside the glass,
         leaving through the flat face with Fresnel T, (n0/n)^2 (radiance law) and Beer-Lambert absorption."""
         from relief_bsdf.plate.detector import DirectField
-        vout, c, s_inc, m = ops["vout"], ops["c"], self.model.source_stokes, self.model
+        vout, c, m = ops["vout"], ops["c"], self.model
         f_r, f_t = vout.at_incidence("R", ti), vout.at_incidence("T", ti)
         R = f_r if c == 1 else f_r[..., 0, :] @ s_inc
         T = f_t[..., None] if c == 1 else f_t @ s_inc
@@ -961,11 +982,11 @@ class PlateSolver:
                            np.asarray(t.phi_s_edges_deg, float) - (vout.phi0 + 180.0),
                            np.asarray(R, float), np.asarray(T, float), n0 / n, t_exit)
 
-    def _incidence(self, ops: dict, src: "_Sources", q: int, ti: float) -> None:
-        """Incidence q: first-face scattering of the source, the delta-beam chain, and what the beams scatter."""
+    def _incidence(self, ops: dict, src: "_Sources", q: int, ti: float, s_inc: np.ndarray) -> None:
+        """Incidence q: first-face scattering of the source (Stokes vector s_inc), the delta-beam chain,
+        and what the beams scatter."""
         m, c, vin, vout, vB = self.model, ops["c"], ops["vin"], ops["vout"], ops["vB"]
         n, n0, tc, psa, delta = ops["n"], ops["n0"], self.theta_c, self.psa, self.delta
-        s_inc = m.source_stokes
         tt = float(_snell_deg(ti, n0, n))
         a_t = float(np.exp(-_beam_extinction(m, ops["slab"], self.theta_edges, tt) * m.thickness_m
                            / max(np.cos(np.radians(tt)), 1e-6)))
@@ -979,7 +1000,7 @@ class PlateSolver:
                 f_r = vout.cells("R", ti, self.theta_edges, delta)
                 f_t = vout.cells("T", ti, self.theta_edges, delta)
                 if ops["direct"]:
-                    src.direct[q] = self._direct_field(ops, ti)
+                    src.direct[q] = self._direct_field(ops, ti, s_inc)
             else:
                 f_r = vout.diffuse("R", [ti], tc, delta)[0]
                 f_t = vout.diffuse("T", [ti], tc, delta)[0]
@@ -1236,6 +1257,31 @@ def _readings(solver: PlateSolver, model: PlateModel, wl, ti, pi, side, ts, ps, 
     return np.where(ok, out, 0.0) * factor
 
 
+def _stokes_sum(results: list, weights: list) -> PlateResult:
+    """sum_k w_k results_k of one incidence's PlateResults for unit sources (`PlateSolver.solve`): every
+    field linear in the source, the delta beams' powers too (same directions in each)."""
+    first = results[0]
+
+    def add(get):
+        parts = [get(r) for r in results]
+        return None if parts[0] is None else sum(w * p for w, p in zip(weights, parts))
+    deltas = [(sd, t, d, float(sum(w * r.deltas[i][3] for w, r in zip(weights, results))))
+              for i, (sd, t, d, _) in enumerate(first.deltas)]
+    direct = first.direct
+    if direct is not None:
+        direct = replace(direct, R=add(lambda r: r.direct.R), T=add(lambda r: r.direct.T))
+    return replace(first, grid_R=add(lambda r: r.grid_R), grid_T=add(lambda r: r.grid_T), deltas=deltas,
+                   direct=direct, loop_R=add(lambda r: r.loop_R), loop_T=add(lambda r: r.loop_T))
+
+
+def _result_bytes(r: PlateResult) -> int:
+    """Bytes of a PlateResult's fields (the kept fields' budget, `_SOLVED_BYTES`)."""
+    arrays = [r.grid_R, r.grid_T, r.loop_R, r.loop_T]
+    if r.direct is not None:
+        arrays += [r.direct.R, r.direct.T, *r.direct._slopes["R"], *r.direct._slopes["T"]]
+    return int(sum(a.nbytes for a in arrays if isinstance(a, np.ndarray)))
+
+
 def _loop_solve(ops: dict, rhs: np.ndarray) -> np.ndarray:
     """X = (I - K D)^-1 rhs per azimuthal mode, (M, N c, nI).  The LU factors of the round-trip
     system are kept in `ops`: the operators are shared by every solve on the same tables and plate
@@ -1392,7 +1438,8 @@ def front_tables(experiment: Any, grid: Any, wl: Any, ti: Any, traced: bool, pro
 
 _SOLVERS: list = []          # (tables, plate fields, solver): the last few, newest last
 _SOLVERS_KEPT = 4
-_SOLVED_KEPT = 2             # `PlateSolver.solve` results kept per wavelength's operators
+_SOLVED_KEPT = 8             # unit-source fields kept per wavelength's operators (`PlateSolver.solve`) ...
+_SOLVED_BYTES = 150e6        # ... and their bytes at most (a beam divergence's many incidences: not kept)
 _BULK_FIELDS = ("thickness_m", "absorption_per_m", "scatter_per_m", "hg_g")    # act on `_operators` alone
 _INSTRUMENT_FIELDS = ("detector_half_angle_deg", "polarization", "background_per_sr", "blur_deg", "tilt_deg",
                       "cone_points", "beam_divergence_deg")
