@@ -65,3 +65,26 @@ def test_both_engines_read_a_smooth_lambertian_field_through_a_blurred_cone(lamb
     mc = simulate(ex, rows, engine="photon", photons=200_000, seed=5)
     z = (mc.values_per_sr - det) / mc.sigma_per_sr
     assert np.sqrt(np.mean(z**2)) < 1.6, z
+
+
+@pytest.mark.parametrize("delta0_deg", [0.0, -180.0, -37.5])
+def test_the_cone_members_ring_by_ring_are_a_ball_query_of_the_sub_points(delta0_deg):
+    """`_cone_members` (sub-ring by sub-ring, spherical law of cosines) finds exactly the sub-points a
+    KD-tree's ball query of their unit vectors finds, in the same order: rows at the pole, at grazing
+    angles, across the azimuth turn's end, and caps wider than whole rings."""
+    from scipy.spatial import cKDTree
+    from relief_bsdf.plate.detector import _cone_members, _sub_points, unit
+    theta_edges = np.concatenate([np.arange(0.0, 20.0, 0.5), np.arange(20.0, 90.1, 2.0)])
+    delta_edges = delta0_deg + np.concatenate([np.arange(0.0, 30.0, 1.0), np.arange(30.0, 360.1, 5.0)])
+    pts = _sub_points(theta_edges, delta_edges, 3)
+    tree = cKDTree(pts.vec)
+    rng = np.random.default_rng(4)
+    ts = np.concatenate([[0.0, 0.3, 89.5, 45.0, 10.0], rng.uniform(0, 90, 30)])
+    ds = np.concatenate([[0.0, 123.0, delta0_deg + 359.7, delta0_deg + 0.2, delta0_deg - 1.0],
+                         rng.uniform(-360, 720, 30)])
+    for reach_deg in (0.7, 2.5, 12.0):
+        reach = np.radians(reach_deg)
+        row, col = _cone_members(pts, np.radians(ts), np.radians(ds), reach)
+        hits = tree.query_ball_point(unit(ts, ds), 2 * np.sin(reach / 2), return_sorted=True)
+        assert all(np.array_equal(col[row == i], np.asarray(h, int)) for i, h in enumerate(hits)), reach_deg
+        assert np.all(np.diff(row) >= 0) and row.size == sum(len(h) for h in hits) > 0

@@ -105,3 +105,32 @@ def test_a_microfacet_faces_tables_on_threads_equal_those_of_one_process():
         (ref,) = reconstruct(flat, mat, req, "microfacet")
     ref = closed(ref)
     np.testing.assert_array_equal(inside.values_per_sr, ref.values_per_sr)
+
+
+def test_the_table_cache_holds_its_byte_budget_least_recently_used_first(lambert_table):
+    """TableCache: entries past the byte budget (or the entry count) go, least recently used first; a
+    read refreshes an entry; what is not a table (a BVH, a verdict) counts no bytes; `holds` and
+    `worth_sending` answer from the same byte count."""
+    from relief_bsdf.plate.faces import TableCache, _table_bytes
+    tables = [lambert_table("outside", 0.1 * (k + 1), 0.2, [0.0, 30.0]) for k in range(4)]
+    size = _table_bytes(tables[0])
+    assert size > 0 and all(_table_bytes(t) == size for t in tables)
+    cache = TableCache(maxsize=10, max_bytes=2.5 * size)           # room for two tables
+    cache.put("a", tables[0])
+    cache.put("b", tables[1])
+    cache.put("bvh", object())                                    # no bytes: never the reason to evict
+    assert cache._total == 2 * size and cache.holds(["a", "b", "bvh"])
+    assert cache.get("a", lambda: None) is tables[0]              # a read: "a" is now the most recent
+    cache.put("c", tables[2])                                     # over budget: "b" (least recent table) goes
+    assert not cache.holds(["b"]) and cache.holds(["a", "c"]) and cache._total == 2 * size
+    cache.put("c", tables[3])                                     # replacing an entry does not count it twice
+    assert cache._total == 2 * size and cache.get("c", lambda: None) is tables[3]
+    assert cache.worth_sending({"x": tables[0]}) is False          # a sixth of 2.5 tables: less than one
+    assert TableCache(max_bytes=6 * size).worth_sending({"x": tables[0]})
+    assert not cache.holds(None) and not cache.holds([])
+    small = TableCache(maxsize=2, max_bytes=1e12)                 # the entry count bounds it too
+    for k, t in enumerate(tables[:3]):
+        small.put(k, t)
+    assert list(small._d) == [1, 2] and small._total == 2 * size
+    cache.clear()
+    assert cache._total == 0 and not cache.holds(["a"])

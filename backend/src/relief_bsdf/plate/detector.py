@@ -335,7 +335,8 @@ def _limited_slopes(F: np.ndarray, tc: np.ndarray, pc: np.ndarray) -> tuple[np.n
 @dataclass(frozen=True)
 class _SubPoints:
     """Equal-solid-angle sub-points of every cell of a grid (k^2 per cell), their weights (sr), cells
-    and a KD-tree of their unit vectors (azimuth = delta)."""
+    and unit vectors (azimuth = delta), laid out sub-ring by sub-ring, each sub-ring with the same
+    increasing azimuths `ring_az_rad` (so a sub-point's index is sub-ring x azimuths + azimuth)."""
 
     cos_theta: np.ndarray
     weight_sr: np.ndarray
@@ -344,7 +345,9 @@ class _SubPoints:
     sub_ring: np.ndarray          # index into sub_theta_deg (k per ring)
     sub_theta_deg: np.ndarray
     delta_deg: np.ndarray
-    tree: Any
+    vec: np.ndarray               # (points, 3) unit vectors
+    sub_theta_rad: np.ndarray     # polar angle of each sub-ring
+    ring_az_rad: np.ndarray       # the azimuths of every sub-ring, increasing, within one turn
 
 
 _SUB_CACHE: dict = {}
@@ -357,7 +360,6 @@ def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int
     key = (theta_edges_deg.tobytes(), delta_edges_deg.tobytes(), k)
     if key in _SUB_CACHE:
         return _SUB_CACHE[key]
-    from scipy.spatial import cKDTree
     ct = np.cos(np.radians(theta_edges_deg))
     u = (np.arange(k) + 0.5) / k
     cos_sub = (ct[:-1, None] + u[None] * (ct[1:] - ct[:-1])[:, None]).ravel()          # (S k,) equal solid angle
@@ -376,8 +378,10 @@ def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int
     sz = np.sqrt(np.clip(1 - cz**2, 0, 1))
     vec = np.stack([sz * np.cos(ph), sz * np.sin(ph), cz], 1)
     w = cell_sr[ring, az] / (k * per[az])
-    pts = _SubPoints(cz, w, ring, az, sub_ring, np.degrees(np.arccos(np.clip(cos_sub, -1, 1))), np.degrees(ph),
-                     cKDTree(vec))
+    if np.any(np.diff(ph_sub) <= 0) or ph_sub[-1] - ph_sub[0] >= 2 * np.pi:
+        raise ValueError("cone sub-points: the azimuth edges must increase within one turn")
+    t_sub = np.arccos(np.clip(cos_sub, -1, 1))
+    pts = _SubPoints(cz, w, ring, az, sub_ring, np.degrees(t_sub), np.degrees(ph), vec, t_sub, ph_sub)
     if len(_SUB_CACHE) > 4:
         _SUB_CACHE.clear()
     _SUB_CACHE[key] = pts
@@ -429,11 +433,8 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
     size = np.sqrt(pts.weight_sr)                    # a sub-point's linear size (rad)
     reach = min(support_rad(det.detector_half_angle_deg, det.blur_deg) + float(size.max()), np.pi)
     q = unit(theta_s, delta_s)
-    hits = pts.tree.query_ball_point(q, 2 * np.sin(reach / 2))
-    n = np.array([len(x) for x in hits], int)
-    row = np.repeat(np.arange(theta_s.size), n)
-    col = np.concatenate([np.asarray(x, int) for x in hits] + [np.zeros(0, int)])
-    psi = np.arccos(np.clip(np.einsum("ij,ij->i", pts.tree.data[col], q[row]), -1, 1))
+    row, col = _cone_members(pts, np.radians(theta_s), np.radians(delta_s), reach)
+    psi = np.arccos(np.clip(np.einsum("ij,ij->i", pts.vec[col], q[row]), -1, 1))
     if det.blur_deg > 0:
         wt = response(psi, det.detector_half_angle_deg, det.blur_deg)
     else:        # the cone's edge cuts a sub-point's patch: its inside fraction, to first order
@@ -450,6 +451,40 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
         _WEIGHT_CACHE.clear()
     _WEIGHT_CACHE[key] = out
     return out
+
+
+def _cone_members(pts: _SubPoints, theta_rad: np.ndarray, delta_rad: np.ndarray,
+                  reach_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """(row, col): the sub-points within the angular distance `reach_rad` of each row's direction, rows
+    in order and each row's sub-points in increasing index (a sorted ball query), found sub-ring by
+    sub-ring: a sub-ring at polar angle t meets the cap around (ts, ds) where |d - ds| <= w,
+    cos w = (cos reach - cos t cos ts) / (sin t sin ts) (spherical law of cosines; the whole ring when
+    that is <= -1, none when > 1), one run of the ring's increasing azimuths, or two across the
+    turn's end.  Only the sub-rings with |t - ts| <= reach can meet it."""
+    t, az = pts.sub_theta_rad, pts.ring_az_rad
+    A = az.size
+    r_idx, k_idx = np.nonzero(np.abs(t[None, :] - theta_rad[:, None]) <= reach_rad)   # row-major: rows, rings
+    num = np.cos(reach_rad) - np.cos(t[k_idx]) * np.cos(theta_rad[r_idx])
+    den = np.sin(t[k_idx]) * np.sin(theta_rad[r_idx])
+    C = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.where(num <= 0, -np.inf, np.inf))
+    w = np.arccos(np.clip(C, -1.0, 1.0))
+    start = az[0] + np.mod(delta_rad[r_idx] - w - az[0], 2 * np.pi)        # the run's start within the turn
+    stop = start + 2 * w
+    end = az[0] + 2 * np.pi
+    lo1 = np.searchsorted(az, start, "left")
+    hi1 = np.searchsorted(az, np.minimum(stop, end), "right")
+    hi2 = np.where(stop > end, np.searchsorted(az, stop - 2 * np.pi, "right"), 0)     # wrapped part: [0, hi2)
+    whole, none = C <= -1.0, C > 1.0
+    lo1, hi1 = np.where(whole, 0, lo1), np.where(whole, A, np.where(none, 0, hi1))
+    hi2 = np.where(whole | none, 0, np.minimum(hi2, lo1))
+    lo1 = np.where(none, 0, lo1)
+    starts = np.stack([np.zeros_like(lo1), lo1], 1).ravel() + np.repeat(k_idx * A, 2)
+    lens = np.stack([hi2, np.maximum(hi1 - lo1, 0)], 1).ravel()
+    total = int(lens.sum())
+    first = np.cumsum(lens) - lens
+    col = np.repeat(starts, lens) + (np.arange(total) - np.repeat(first, lens))
+    row = np.repeat(np.repeat(r_idx, 2), lens)
+    return row, col
 
 
 def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndarray, det: Any,
