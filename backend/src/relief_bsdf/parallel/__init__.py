@@ -26,4 +26,5 @@ from relief_bsdf.parallel.worker import forget_worker_cached, in_worker, task_rn
 __all__ = ["DEFAULT_SETTINGS", "ParallelSettings", "RunStats", "WorkerCrashed", "add_parallel_args",
            "apply_parallel_args", "current_settings", "default_workers", "forget_worker_cached", "group_size",
            "has_kept_workers", "in_task_thread", "in_worker", "kept_workers", "last_run", "map_tasks",
-           "parallel_from_args", "parallel_settings", "resolve_backend", "settings_from_args", "task_keys", "task_rng", "worker_cached"]
+           "parallel_from_args", "parallel_settings", "resolve_backend", "settings_from_args", "task_keys", "task_rng",
+           "worker_cached"]
