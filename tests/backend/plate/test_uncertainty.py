@@ -120,3 +120,21 @@ def test_the_draws_on_threads_give_the_numbers_of_one_thread(monkeypatch):
     three = rows_sigma(ex, rows, grid, draws=4)
     assert np.all(np.isfinite(one)) and np.any(one > 0)
     np.testing.assert_array_equal(one, three)
+
+
+def test_the_draws_solvers_are_not_kept_and_the_baselines_stays():
+    """The model sigma's draws solve perturbed tables once each: their solvers are not kept for reuse, so
+    the baseline's solver (kept by the simulation before them) is still there for the next evaluation."""
+    from relief_bsdf.plate import deterministic
+    relief = random_relief(48, 1.0e-6, 0.6e-6, 5.0e-6, "gaussian", seed=4)
+    ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", samples=3_000, seed=0), FlatFace()))
+    rows = in_plane_rows(550.0, [0.0, 30.0], np.arange(2.0, 88.0, 8.0))
+    grid = TableGrid(3.0, 15.0, 15.0)
+    deterministic._SOLVERS.clear()
+    sim = simulate(ex, rows, grid=grid, table_sigma_draws=6)
+    assert np.all(np.isfinite(sim.sigma_per_sr)) and np.any(sim.sigma_per_sr > 0)
+    assert len(deterministic._SOLVERS) == 1
+    baseline = deterministic._SOLVERS[0][2]
+    again = simulate(ex.with_instrument(background_per_sr=0.01), rows, grid=grid)
+    assert len(deterministic._SOLVERS) == 1 and deterministic._SOLVERS[0][2]._ops is baseline._ops
+    np.testing.assert_allclose(again.values_per_sr, sim.values_per_sr + 0.01, rtol=1e-12)

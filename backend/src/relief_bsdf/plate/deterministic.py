@@ -1384,13 +1384,14 @@ def table_incidences(experiment: Any, rows: Any, beam_traced: bool = False) -> t
     return wl, np.unique(ti)
 
 
-def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> PlateSolver:
+def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None, keep: bool = True) -> PlateSolver:
     """PlateSolver of an Experiment: the faces' tables placed on the engine's two-face system.
 
     Front non-flat: its (outside, inside) tables, the back face's inside table if it is not flat.
     Front flat, back non-flat: relief-on-back system (the back face's inside table).  Both flat:
     the flat face's Fresnel tables on the front.  A flat back face uses the engine's exact
-    cell-averaged Fresnel (no table).
+    cell-averaged Fresnel (no table).  `keep` False: a new solver is not kept for reuse
+    (`_reused_solver`; one-off tables such as the model sigma's perturbed draws).
     """
     p = experiment.plate
     mat = p.material
@@ -1399,12 +1400,12 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None) -> Pl
     front, back = p.front, p.back
     if front.is_flat and not back.is_flat:
         _, b_in = back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)
-        return _reused_solver(model_of(experiment, grid, "back"), b_in, None, None)
+        return _reused_solver(model_of(experiment, grid, "back"), b_in, None, None, keep=keep)
     f_out, f_in = front_tables(experiment, grid, wl, ti, traced, progress)
     b_in = None if back.is_flat else back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)[1]
     from relief_bsdf.plate.faces import inside_sectors
     sectors = inside_sectors(front, mat, grid, wl, ti, progress) if b_in is None else None
-    return _reused_solver(model_of(experiment, grid, "front", traced), f_in, f_out, b_in, sectors)
+    return _reused_solver(model_of(experiment, grid, "front", traced), f_in, f_out, b_in, sectors, keep)
 
 
 def front_traces_beam(experiment: Any, rows: Any, grid: Any) -> bool:
@@ -1446,7 +1447,7 @@ _INSTRUMENT_FIELDS = ("detector_half_angle_deg", "polarization", "background_per
 
 
 def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | None,
-                   back: BsdfTable | None, sectors: BsdfTable | None = None) -> PlateSolver:
+                   back: BsdfTable | None, sectors: BsdfTable | None = None, keep: bool = True) -> PlateSolver:
     """A PlateSolver whose per-wavelength operators (round-trip system, exit maps) are those of an
     earlier solver on the SAME table objects and the same plate (thickness, indices, bulk, grid):
     they do not depend on the instrument (source polarisation, cone, blur, tilt, stray light),
@@ -1454,7 +1455,8 @@ def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | No
     that changes only the instrument then reuses them.  Short of that: the same tables with another
     bulk (absorption, thickness, volume scattering) share the tables' part (`PlateSolver._table_ops`);
     another outside table on the same loop tables and plate (a tilt) shares the loop's operators
-    (`PlateSolver.with_outside`).  The numbers are always those of a fresh solver."""
+    (`PlateSolver.with_outside`).  The numbers are always those of a fresh solver.  A new solver is
+    kept among the last `_SOLVERS_KEPT` unless `keep` is False."""
     plate = tuple((f, getattr(model, f)) for f in PlateModel.__dataclass_fields__ if f not in _INSTRUMENT_FIELDS)
     tables = (inside, outside, back, sectors)
     for i, (t, key, solver) in enumerate(_SOLVERS):
@@ -1468,26 +1470,29 @@ def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | No
         if all(a is b for a, b in zip(t, tables)) and tuple(kv for kv in key if kv[0] not in _BULK_FIELDS) == tabs:
             new = copy.copy(solver)
             new.model, new._ops = model, {}        # the bulk's part anew, the tables' part (solver._tops) shared
-            return _kept(tables, plate, new)
+            return _kept(tables, plate, new, keep)
     for t, key, solver in reversed(_SOLVERS):     # same loop tables, another outside table (a tilt)
         if (key == plate and t[0] is inside and t[2] is back and t[3] is sectors and outside is not None
                 and t[1] is not None and outside.is_polarized == t[1].is_polarized):
-            return _kept(tables, plate, solver.with_outside(model, outside))
-    return _kept(tables, plate, PlateSolver(model, inside, outside, back=back, inside_sectors=sectors))
+            return _kept(tables, plate, solver.with_outside(model, outside), keep)
+    return _kept(tables, plate, PlateSolver(model, inside, outside, back=back, inside_sectors=sectors), keep)
 
 
-def _kept(tables: tuple, plate: tuple, solver: PlateSolver) -> PlateSolver:
-    """Remember `solver` (newest last, the last _SOLVERS_KEPT only) and return it."""
-    _SOLVERS.append((tables, plate, solver))
-    del _SOLVERS[:-_SOLVERS_KEPT]
+def _kept(tables: tuple, plate: tuple, solver: PlateSolver, keep: bool = True) -> PlateSolver:
+    """Remember `solver` (newest last, the last _SOLVERS_KEPT only; not when `keep` is False) and return it."""
+    if keep:
+        _SOLVERS.append((tables, plate, solver))
+        del _SOLVERS[:-_SOLVERS_KEPT]
     return solver
 
 
-def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str = "recording") -> tuple[np.ndarray, dict]:
-    """Deterministic plate BSDF of an Experiment on every row (detector included) and what was used."""
+def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str = "recording",
+        keep_solver: bool = True) -> tuple[np.ndarray, dict]:
+    """Deterministic plate BSDF of an Experiment on every row (detector included) and what was used;
+    `keep_solver` False: its solver is not kept for reuse (`solver_of`)."""
     import warnings
     from relief_bsdf.plate.faces import isotropy_warning
-    solver = solver_of(experiment, rows, grid, progress)
+    solver = solver_of(experiment, rows, grid, progress, keep_solver)
     vals = simulate_rows(solver.model, solver.inside, solver.outside, rows, solver=solver, where=where)
     info = {"engine": "deterministic", "grid": grid.describe()}
     notes = [w for w in (isotropy_warning(f) for f in (experiment.plate.front, experiment.plate.back)) if w]

@@ -91,7 +91,8 @@ def rows_sigma(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
     runs = np.empty((draws, n))
 
     def solve(swaps: dict) -> np.ndarray:
-        return deterministic.run(experiment.with_plate(**swaps), rows, grid)[0]
+        # a draw's solver serves once: not kept for reuse, where it would push the baseline's out
+        return deterministic.run(experiment.with_plate(**swaps), rows, grid, keep_solver=False)[0]
     # the draws' plate solves run on this process's threads, a batch of `threads` at a time (numpy and
     # LAPACK release the GIL); the perturbations are drawn in order in this thread: the same numbers.
     # (Not map_tasks(threads=): its tasks would all be made first, every draw's tables held at once.)
