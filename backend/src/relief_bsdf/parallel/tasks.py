@@ -342,13 +342,13 @@ def _pool_round(pool: ProcessPoolExecutor, fn: Callable, token: int, pending: di
     return broken
 
 
+@dataclass(eq=False)
 class _KeptPool:
     """The local worker pool of a `kept_workers` block: its context, and the pool once started."""
 
-    def __init__(self, context: Any) -> None:
-        self.context = context
-        self.pool: ProcessPoolExecutor | None = None
-        self.workers = 0
+    context: Any
+    pool: ProcessPoolExecutor | None = None
+    workers: int = 0
 
 
 _KEPT: contextvars.ContextVar[_KeptPool | None] = contextvars.ContextVar("relief_kept_pool", default=None)
@@ -365,9 +365,10 @@ def kept_workers(context: Any) -> Iterator[None]:
     for the next call's tasks: a stepwise diagnosis's rounds run on workers that keep the tables
     and solvers of the rounds before instead of starting bare each round.  Results do not change:
     a task must give the same result whatever ran before it in its process (the caches hold
-    data that is a pure function of its key).  A call with another context, another number of
-    workers or another backend runs as outside the block; a worker that dies breaks the kept pool
-    and the call continues on fresh pools as usual (`retries`).  Blocks do not nest (the inner
+    data that is a pure function of its key).  A call with another context or another backend runs
+    as outside the block; one with another number of workers restarts the kept pool with that many;
+    a worker that dies breaks the kept pool and the call continues on fresh pools as usual
+    (`retries`).  Blocks do not nest (the inner
     one wins for its context)."""
     kept = _KeptPool(context)
     token = _KEPT.set(kept)

@@ -342,12 +342,15 @@ class _SubPoints:
     weight_sr: np.ndarray
     ring: np.ndarray
     az: np.ndarray
-    sub_ring: np.ndarray          # index into sub_theta_deg (k per ring)
-    sub_theta_deg: np.ndarray
+    sub_ring: np.ndarray          # index into sub_theta_rad (k per ring)
     delta_deg: np.ndarray
     vec: np.ndarray               # (points, 3) unit vectors
     sub_theta_rad: np.ndarray     # polar angle of each sub-ring
     ring_az_rad: np.ndarray       # the azimuths of every sub-ring, increasing, within one turn
+
+    @property
+    def sub_theta_deg(self) -> np.ndarray:
+        return np.degrees(self.sub_theta_rad)
 
 
 _SUB_CACHE: dict = {}
@@ -381,7 +384,7 @@ def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int
     if np.any(np.diff(ph_sub) <= 0) or ph_sub[-1] - ph_sub[0] >= 2 * np.pi:
         raise ValueError("cone sub-points: the azimuth edges must increase within one turn")
     t_sub = np.arccos(np.clip(cos_sub, -1, 1))
-    pts = _SubPoints(cz, w, ring, az, sub_ring, np.degrees(t_sub), np.degrees(ph), vec, t_sub, ph_sub)
+    pts = _SubPoints(cz, w, ring, az, sub_ring, np.degrees(ph), vec, t_sub, ph_sub)
     if len(_SUB_CACHE) > 4:
         _SUB_CACHE.clear()
     _SUB_CACHE[key] = pts
@@ -474,10 +477,10 @@ def _cone_members(pts: _SubPoints, theta_rad: np.ndarray, delta_rad: np.ndarray,
     lo1 = np.searchsorted(az, start, "left")
     hi1 = np.searchsorted(az, np.minimum(stop, end), "right")
     hi2 = np.where(stop > end, np.searchsorted(az, stop - 2 * np.pi, "right"), 0)     # wrapped part: [0, hi2)
-    whole, none = C <= -1.0, C > 1.0
-    lo1, hi1 = np.where(whole, 0, lo1), np.where(whole, A, np.where(none, 0, hi1))
+    whole, none = C <= -1.0, C > 1.0                 # every azimuth of the ring, or none
+    lo1 = np.where(whole, 0, lo1)
+    hi1 = np.where(whole, A, np.where(none, lo1, hi1))
     hi2 = np.where(whole | none, 0, np.minimum(hi2, lo1))
-    lo1 = np.where(none, 0, lo1)
     starts = np.stack([np.zeros_like(lo1), lo1], 1).ravel() + np.repeat(k_idx * A, 2)
     lens = np.stack([hi2, np.maximum(hi1 - lo1, 0)], 1).ravel()
     total = int(lens.sum())

@@ -904,10 +904,9 @@ class PlateSolver:
         the source's intensity alone while the flat faces' delta beams see its polarisation: not linear
         in s, so that field is solved, and kept, for s itself.)  The fields are kept with the
         wavelength's operators (`_SOLVED_KEPT` requests, `_SOLVED_BYTES` at most), which the solvers
-        that differ only in the instrument share
-        (`_reused_solver`): an evaluation that changes only the source's polarisation or how the rows
-        are read (stray light; a cone or blur too where the tables' direct grid does not adapt to it)
-        solves nothing.  An unpolarised source's field is
+        that differ only in the instrument share (`_reused_solver`): an evaluation that changes only
+        the source's polarisation or how the rows are read (stray light; a cone or blur too where the
+        tables' direct grid does not adapt to it) solves nothing.  An unpolarised source's field is
         F(e_0) itself, bit for bit; the sector loop's GMRES (relative tolerance 1e-7) solves each unit
         source to its tolerance.  Results are never changed by their readers (`dataclasses.replace`)."""
         ops = self._operators(float(wavelength_nm))
