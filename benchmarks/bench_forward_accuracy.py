@@ -260,18 +260,22 @@ def zstats(model, rec, sigma, rows) -> dict:
 
 
 def parse_grid(spec: str):
-    """"default": TableGrid(); "old": the single-grid engine (1,5,5, no direct grid); "t,p,i[,s]":
-    TableGrid(theta_step_deg=t, phi_step_deg=p, inside_theta_i_step_deg=i[, inside_samples_scale=s])
-    with the default direct grid; a trailing ",nodirect" drops the direct grid."""
+    """"default": TableGrid(); "old": the single-grid engine (1,5,5, no direct grid, linear in the inside
+    incidences); "t,p,i[,s]": TableGrid(theta_step_deg=t, phi_step_deg=p, inside_theta_i_step_deg=i[,
+    inside_samples_scale=s]) with the default direct grid; trailing ",nodirect" drops the direct grid,
+    ",linear" blends the inside tables between their incidences (the engine before 2026-12-03: lobes
+    that do not move); "default,linear" too."""
     from relief_bsdf.plate import TableGrid
-    if spec == "default":
-        return TableGrid()
-    if spec == "old":
-        return TableGrid(1.0, 5.0, 5.0, direct_theta_step_deg=None, inside_samples_scale=1.0)
     parts = spec.split(",")
     kw = {}
-    if parts[-1] == "nodirect":
-        parts, kw = parts[:-1], {"direct_theta_step_deg": None}
+    while parts[-1] in ("nodirect", "linear"):
+        kw.update({"direct_theta_step_deg": None} if parts[-1] == "nodirect" else {"inside_interpolation": "linear"})
+        parts = parts[:-1]
+    if parts == ["default"]:
+        return TableGrid(**kw)
+    if parts == ["old"]:
+        return TableGrid(1.0, 5.0, 5.0, direct_theta_step_deg=None, inside_samples_scale=1.0,
+                         inside_interpolation="linear")
     v = [float(x) for x in parts]
     if len(v) > 3:
         kw["inside_samples_scale"] = v[3]
@@ -281,14 +285,15 @@ def parse_grid(spec: str):
 def run_case(name: str, args) -> dict:
     from relief_bsdf.surface.stats import rms_height_and_slope
     case = CASES[name]
-    relief = make_relief(name)
+    relief = make_relief(name, args.relief_seed)
     rows = rows_of(args.theta_i)
     h, m = rms_height_and_slope(relief)
     out = {"case": name, "relief": {"shape": list(relief.shape), "rms_height_um": h * 1e6, "rms_slope": m},
            "theta_i_deg": list(args.theta_i),
            "plate": case.__dict__, "photons": args.photons, "grids": []}
     t0 = time.time()
-    cache = Path(args.cache) / f"rec_{name}_{args.photons}_{'_'.join(f'{t:g}' for t in args.theta_i)}.npz" \
+    tag = "" if args.relief_seed == 11 else f"_relief{args.relief_seed}"
+    cache = Path(args.cache) / f"rec_{name}{tag}_{args.photons}_{'_'.join(f'{t:g}' for t in args.theta_i)}.npz" \
         if args.cache else None
     if cache is not None and cache.exists():
         d = np.load(cache)
@@ -338,6 +343,9 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", nargs="+", type=int, default=[200_000])
     ap.add_argument("--photons", type=int, default=4_000_000)
     ap.add_argument("--seeds", type=int, default=1)
+    ap.add_argument("--relief-seed", type=int, default=11,
+                    help="the synthetic reliefs' realisation (11: the one every grid choice was made on; the "
+                         "measured map has none)")
     ap.add_argument("--check-generator", action="store_true")
     ap.add_argument("--theta-i", type=lambda v: tuple(float(x) for x in v.split(",")), default=THETA_I,
                     help="incidences, comma separated (default 0,15,...,75)")

@@ -10,7 +10,9 @@ Two grids (issue 18 item 2: cells narrower than the detector cone where the lobe
   tolerable there, but a lobe must MOVE between two inside incidences rather than blend
   (a second pass through the relief from inside is read from the two tables around its
   incidence): every 2.5 deg, with a quarter of the rays per incidence (`inside_samples_scale`:
-  the loop averages their noise over the incidences of the light inside).
+  the loop averages their noise over the incidences of the light inside), and read in between
+  with the lobes moved to the incidence's own specular or Snell exit direction
+  (`inside_interpolation`, plate.deterministic._TableView._between_incidences).
 - the DIRECT grid of the outside tables (light from outside, at the recording's own
   incidences): `direct_theta_step_deg` rings and azimuth cells of `direct_phi_step_deg` in a
   band of half-width `direct_band_deg` around the plane of incidence (both the specular side
@@ -44,6 +46,7 @@ from relief_bsdf.methods.request import Request
 
 
 INSIDE_EFFORT_STEP_DEG = 10.0   # the inside tables' total effort: one full-effort table every 10 deg of incidence
+INSIDE_INTERPOLATIONS = ("moving", "linear")   # how the loop reads the inside tables between their incidences
 DIRECT_METHODS = ("ray",)     # methods whose outside tables go on the direct grid (cost per ray, not per cell)
 
 
@@ -59,6 +62,10 @@ class TableGrid:
     direct_phi_step_deg: azimuth cell size of the outside tables inside the band.
     direct_band_deg: half-width of the fine azimuth band around phi 0 and 180 (rounded so that
         its edges fall on the engine grid's azimuth edges).
+    inside_interpolation: how the loop reads the inside tables between their incidences: "moving"
+        (each neighbour's transmitted lobe shifted to the incidence's own Snell exit direction, scaled
+        to the linear blend's albedo) or "linear" (the blend of the two tables: the engine before
+        2026-12-03).  Does not change the tables (not in `key`).
     inside_samples_scale: a sampled method's effort per inside incidence, as a fraction of the
         face's `samples` (the outside tables get `samples`): the loop integrates the inside
         tables over the incidences of the light inside, which averages their noise, so denser
@@ -90,8 +97,12 @@ class TableGrid:
     direct_phi_step_deg: float = 1.0
     direct_band_deg: float = 12.5
     inside_samples_scale: float | None = None
+    inside_interpolation: str = "moving"
 
     def __post_init__(self) -> None:
+        if self.inside_interpolation not in INSIDE_INTERPOLATIONS:
+            raise InputError("grid.inside_interpolation", f"must be one of {', '.join(INSIDE_INTERPOLATIONS)}, "
+                             f"got {self.inside_interpolation!r}")
         if self.inside_samples_scale is not None and not (0 < self.inside_samples_scale <= 1):
             raise InputError("grid.inside_samples_scale",
                              f"must be in (0, 1] or None, got {self.inside_samples_scale}")
@@ -193,7 +204,8 @@ class TableGrid:
                 "inside_theta_i_step_deg": self.inside_theta_i_step_deg,
                 "direct_theta_step_deg": self.direct_theta_step_deg,
                 "direct_phi_step_deg": self.direct_phi_step_deg, "direct_band_deg": self.direct_band_deg,
-                "inside_samples_fraction": self.inside_samples_fraction}
+                "inside_samples_fraction": self.inside_samples_fraction,
+                "inside_interpolation": self.inside_interpolation}
 
     def request(self, wavelengths: Any, theta_i: Any, incident_from: str, method: str, samples: int, seed: int,
                 options: dict | None = None, index_ratio: float | None = None,

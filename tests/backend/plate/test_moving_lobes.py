@@ -1,0 +1,107 @@
+"""Between two incidences of an inside table the lobes move, they do not blend (issue 18 item 2).
+
+The truth here is an analytic lobe written for every incidence (a Gaussian around the Snell exit
+direction or the specular direction), cell-averaged on the engine grid; the table holds it at
+incidences every 2.5 deg and is read in between.  Nothing here is made by the engine under test."""
+import numpy as np
+import pytest
+
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.methods.request import Request
+from relief_bsdf.plate import TableGrid
+from relief_bsdf.plate.deterministic import _psa_weights, _TableView
+
+N_IN, N_OUT = 1.5, 1.0
+WIDTH_DEG = 1.5
+
+
+def _unit(theta_deg, phi_deg):
+    t, p = np.broadcast_arrays(np.radians(theta_deg), np.radians(phi_deg))
+    return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
+
+
+def _centre_deg(side, theta_in_deg):
+    if side == "R":
+        return theta_in_deg
+    return np.degrees(np.arcsin(np.sin(np.radians(theta_in_deg)) * N_IN / N_OUT))
+
+
+def _cells(side, theta_in_deg, te, pe, k=8):
+    """Cell averages (projected solid angle) of a Gaussian lobe around the lobe's centre at table azimuth
+    180 (the propagation azimuth of light incident from phi_i 0), integrated to 1 (unit albedo)."""
+    if side == "T" and np.sin(np.radians(theta_in_deg)) * N_IN / N_OUT >= 1.0:
+        return np.zeros((te.size - 1, pe.size - 1))          # totally reflected: nothing leaves
+    c = _unit(_centre_deg(side, theta_in_deg), 180.0)
+    u0, u1 = np.sin(np.radians(te[:-1])) ** 2, np.sin(np.radians(te[1:])) ** 2
+    x = (np.arange(k) + 0.5) / k
+    th = np.degrees(np.arcsin(np.sqrt(u0[:, None] + x[None] * (u1 - u0)[:, None])))
+    ph = pe[:-1, None] + x[None] * np.diff(pe)[:, None]
+    d = _unit(th[:, :, None, None], ph[None, None])
+    ang = np.degrees(np.arccos(np.clip(d @ c, -1, 1)))
+    f = np.exp(-0.5 * (ang / WIDTH_DEG) ** 2).mean(axis=(1, 3))
+    psa = (u1 - u0)[:, None] * np.radians(np.diff(pe))[None] / 2
+    return f / np.sum(f * psa)
+
+
+def _table(incidences):
+    g = TableGrid()
+    te, pe = np.asarray(g.theta_edges_deg()), np.asarray(g.phi_edges_deg())
+    r = Request(theta_i_deg=tuple(incidences), theta_s_edges_deg=tuple(te), phi_s_edges_deg=tuple(pe))
+    v = np.zeros((1, len(incidences), 1, 2, te.size - 1, pe.size - 1))
+    for i, t in enumerate(incidences):
+        v[0, i, 0, 0] = 0.1 * _cells("R", t, te, pe)
+        v[0, i, 0, 1] = 0.8 * _cells("T", t, te, pe)
+    return BsdfTable(r.wavelengths_nm, r.theta_i_deg, r.phi_i_deg, r.theta_s_edges_deg, r.phi_s_edges_deg, v,
+                     incident_from="inside"), te, pe
+
+
+def _axes(te, pe):
+    tc = 0.5 * (te[1:] + te[:-1])
+    delta = np.arange(pe.size - 1) * 360.0 / (pe.size - 1)
+    return tc, delta
+
+
+@pytest.mark.parametrize("side,theta_in", [("T", 18.75), ("T", 8.75), ("T", 36.25), ("T", 1.25)])
+def test_a_lobe_between_two_incidences_moves_to_where_it_belongs(side, theta_in):
+    """Halfway between two incidences, the table read with moving lobes holds one lobe at the query's own
+    exit direction and height (the analytic truth there, within 5 % at its peak); the linear blend holds
+    two half lobes around it (its peak, the check that this test can fail, far lower)."""
+    table, te, pe = _table(np.arange(0.0, 87.6, 2.5))
+    tc, delta = _axes(te, pe)
+    truth = (0.1 if side == "R" else 0.8) * _cells(side, theta_in, te, pe)      # (T, A) in table azimuths
+    truth = np.roll(truth, -(truth.shape[1] // 2), axis=1)                      # relative azimuth delta
+    moved = _TableView(table, 550.0, False, "t", moving=(N_IN, N_OUT)).diffuse(side, [theta_in], tc, delta)[0]
+    blend = _TableView(table, 550.0, False, "t").diffuse(side, [theta_in], tc, delta)[0]
+    peak = np.unravel_index(np.argmax(truth), truth.shape)
+    assert np.unravel_index(np.argmax(moved), moved.shape) == peak
+    assert moved[peak] == pytest.approx(truth[peak], rel=0.05)
+    assert blend.max() < 0.8 * truth[peak]
+    # the whole lobe, not just its peak: the L1 distance to the truth a fraction of the blend's
+    psa = _psa_weights(tc)[:, None]
+    err_moved, err_blend = (float(np.sum(np.abs(x - truth) * psa)) for x in (moved, blend))
+    assert err_moved < 0.35 * err_blend
+
+
+def test_moving_lobes_keep_each_incidences_albedo_and_the_tables_own_incidences():
+    """At the table's own incidences the read is the table itself; in between, the albedo (the power the
+    loop passes on, R and T apart) is the linear blend's, so a lossless boundary stays lossless.  The
+    reflected side is the linear blend itself (it does not move: plate.deterministic docstring)."""
+    table, te, pe = _table(np.arange(0.0, 87.6, 2.5))
+    tc, delta = _axes(te, pe)
+    mv = _TableView(table, 550.0, False, "t", moving=(N_IN, N_OUT))
+    lin = _TableView(table, 550.0, False, "t")
+    psa = _psa_weights(tc)
+    for side in ("R", "T"):
+        own = np.array([5.0, 20.0, 40.0])
+        np.testing.assert_allclose(mv.diffuse(side, own, tc, delta), lin.diffuse(side, own, tc, delta), rtol=1e-12)
+        q = np.linspace(0.3, 85.0, 23)
+        a_mv = np.einsum("jta,t->j", mv.diffuse(side, q, tc, delta), psa)
+        a_lin = np.einsum("jta,t->j", lin.diffuse(side, q, tc, delta), psa)
+        np.testing.assert_allclose(a_mv, a_lin, rtol=1e-12)
+        if side == "R":
+            np.testing.assert_array_equal(mv.diffuse(side, q, tc, delta), lin.diffuse(side, q, tc, delta))
+        else:
+            assert not np.allclose(mv.diffuse(side, q, tc, delta), lin.diffuse(side, q, tc, delta))
+        # the loop's modes are the FFT of the same cells
+        np.testing.assert_allclose(mv.diffuse_modes(side, q, tc, delta),
+                                   np.fft.rfft(mv.diffuse(side, q, tc, delta), axis=2), rtol=1e-10, atol=1e-9)
