@@ -105,3 +105,13 @@ def test_moving_lobes_keep_each_incidences_albedo_and_the_tables_own_incidences(
         # the loop's modes are the FFT of the same cells
         np.testing.assert_allclose(mv.diffuse_modes(side, q, tc, delta),
                                    np.fft.rfft(mv.diffuse(side, q, tc, delta), axis=2), rtol=1e-10, atol=1e-9)
+
+
+def test_an_unknown_inside_interpolation_is_refused_by_name():
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.plate.deterministic import PlateModel
+    from relief_bsdf.core.index import ConstantIndex
+    with pytest.raises(InputError, match="inside_interpolation"):
+        TableGrid(inside_interpolation="cubic")
+    with pytest.raises(InputError, match="inside_interpolation"):
+        PlateModel(thickness_m=1e-3, index=ConstantIndex(1.5), inside_interpolation="cubic")

@@ -86,6 +86,7 @@ from relief_bsdf.core.fresnel import mueller_interface
 from relief_bsdf.core.index import ConstantIndex, IndexModel, Material
 from relief_bsdf.plate.description import Bulk, Instrument
 from relief_bsdf.plate.detector import beam_offsets, grid_reading, offset_directions
+from relief_bsdf.plate.grid import INSIDE_INTERPOLATIONS
 
 _DEPOL = np.diag([1.0, 0.0, 0.0, 0.0])
 
@@ -150,6 +151,9 @@ class PlateModel:
         Instrument(self.detector_half_angle_deg, float(self.source_stokes[1]), self.blur_deg, self.tilt_deg,
                    self.background_per_sr, self.cone_points, self.beam_divergence_deg)
         Bulk(self.absorption_per_m, self.scatter_per_m, self.hg_g)
+        if self.inside_interpolation not in INSIDE_INTERPOLATIONS:
+            raise InputError("grid.inside_interpolation", f"must be one of {', '.join(INSIDE_INTERPOLATIONS)}, "
+                             f"got {self.inside_interpolation!r}")
 
     @property
     def source_stokes(self) -> np.ndarray:
@@ -324,16 +328,15 @@ MOVE_EXIT_LIMIT_DEG = 80.0    # a transmitted lobe moves with its Snell exit ang
 def _exit_angle_deg(theta_in_deg: np.ndarray, n_in: float, n_out: float) -> np.ndarray:
     """Where the transmitted lobe of light arriving at theta_in is centred: the Snell exit angle (NaN
     beyond the critical angle or past MOVE_EXIT_LIMIT_DEG, where the lobe blends)."""
-    s = np.sin(np.radians(np.asarray(theta_in_deg, float))) * n_in / n_out
-    out = np.degrees(np.arcsin(np.clip(s, -1.0, 1.0)))
-    return np.where((s < 1.0) & (out <= MOVE_EXIT_LIMIT_DEG), out, np.nan)
+    th = np.asarray(theta_in_deg, float)
+    out = _snell_deg(th, n_in, n_out)
+    return np.where((np.sin(np.radians(th)) * n_in < n_out) & (out <= MOVE_EXIT_LIMIT_DEG), out, np.nan)
 
 
 def _psa_weights(theta_out_deg: np.ndarray) -> np.ndarray:
-    """Projected solid angle (per unit azimuth) of the cells centred on theta_out (edges halfway, 0 and 90)."""
+    """Projected solid angle per degree of azimuth of the cells centred on theta_out (edges halfway, 0, 90)."""
     t = np.asarray(theta_out_deg, float)
-    e = np.radians(np.concatenate([[0.0], 0.5 * (t[1:] + t[:-1]), [90.0]]))
-    return np.sin(e[1:]) ** 2 - np.sin(e[:-1]) ** 2
+    return projected_solid_angle(np.concatenate([[0.0], 0.5 * (t[1:] + t[:-1]), [90.0]]), [0.0, 1.0])[:, 0]
 
 
 class _TableView:
