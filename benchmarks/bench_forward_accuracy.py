@@ -264,13 +264,14 @@ def parse_grid(spec: str):
     incidences); "t,p,i[,s]": TableGrid(theta_step_deg=t, phi_step_deg=p, inside_theta_i_step_deg=i[,
     inside_samples_scale=s]) with the default direct grid; trailing ",nodirect" drops the direct grid,
     ",linear" blends the inside tables between their incidences (the engine before 2026-12-03: lobes
-    that do not move); "default,linear" too."""
+    that do not move); ",sectors=7.5" the inside sector tables' azimuth step; "default,linear" too."""
     from relief_bsdf.plate import TableGrid
     parts = spec.split(",")
     kw = {}
-    while parts[-1] in ("nodirect", "linear"):
-        kw.update({"direct_theta_step_deg": None} if parts[-1] == "nodirect" else {"inside_interpolation": "linear"})
-        parts = parts[:-1]
+    while parts[-1] in ("nodirect", "linear") or parts[-1].startswith("sectors="):
+        last = parts.pop()
+        kw.update({"direct_theta_step_deg": None} if last == "nodirect" else {"inside_interpolation": "linear"}
+                  if last == "linear" else {"sector_step_deg": float(last.split("=")[1])})
     if parts == ["default"]:
         return TableGrid(**kw)
     if parts == ["old"]:

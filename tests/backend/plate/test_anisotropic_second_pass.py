@@ -32,6 +32,9 @@ def test_only_an_anisotropic_relief_traced_by_rays_gets_inside_sector_tables():
     assert t is not None and t.incident_from == "inside"
     assert tuple(t.phi_i_deg) == SECTOR_AZIMUTHS_DEG
     assert np.allclose(t.theta_i_deg, grid.inside_incidences_deg())
+    fine = TableGrid(sector_step_deg=7.5)          # the grid's sector step sets the azimuths
+    t = inside_sectors(ReliefFace(_anisotropic(), "ray", 2000, 1), mat, fine, [550.0], [0.0])
+    assert tuple(t.phi_i_deg) == fine.sector_azimuths_deg() and len(t.phi_i_deg) == 23
 
 
 @pytest.mark.slow

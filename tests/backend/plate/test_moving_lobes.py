@@ -115,3 +115,14 @@ def test_an_unknown_inside_interpolation_is_refused_by_name():
         TableGrid(inside_interpolation="cubic")
     with pytest.raises(InputError, match="inside_interpolation"):
         PlateModel(thickness_m=1e-3, index=ConstantIndex(1.5), inside_interpolation="cubic")
+
+
+def test_the_sector_step_sets_the_sector_tables_azimuths_and_must_divide_a_half_turn():
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.plate.faces import SECTOR_AZIMUTHS_DEG
+    assert TableGrid().sector_azimuths_deg() == SECTOR_AZIMUTHS_DEG == tuple(float(p) for p in range(15, 180, 15))
+    fine = TableGrid(sector_step_deg=7.5).sector_azimuths_deg()
+    assert len(fine) == 23 and fine[0] == 7.5 and fine[-1] == 172.5
+    for bad in (7.0, 0.0, -15.0, 180.0, float("nan")):
+        with pytest.raises(InputError, match="sector_step_deg"):
+            TableGrid(sector_step_deg=bad)

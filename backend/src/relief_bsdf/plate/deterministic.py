@@ -35,9 +35,10 @@ Method (radiative transfer between two faces, discrete ordinates):
 * Isotropy makes K circulant in azimuth: a real FFT over the azimuth axis block-diagonalises
   it (azimuthal reduction), so the solve is A/2+1 small (N x N) systems instead of one
   (N A) x (N A) system.  An anisotropic relief traced by rays gives its inside table at twelve
-  incidence azimuths (every 15 deg, `inside_sectors`): light at propagation azimuth delta then scatters by the
-  table nearest delta, K = K_0 + sum_k (K_k - K_0) P_k is not circulant, and the loop is solved by
-  GMRES preconditioned by the circulant system (`_sector_loop`).
+  incidence azimuths (every 15 deg by default, `inside_sectors`, `TableGrid.sector_step_deg`): light
+  at propagation azimuth delta then scatters by the table nearest delta, K = K_0 + sum_k (K_k - K_0) P_k
+  is not circulant, and the loop is solved by GMRES preconditioned by the circulant system
+  (`_sector_loop`).
 * The delta parts of the tables (specular reflection and transmission of the flat fraction of
   the relief, or a flat face) are kept apart as exact beams: their chain between the faces is
   a 4x4 geometric series (Mueller matrices), and what they scatter diffusely feeds S.
@@ -937,7 +938,7 @@ class PlateSolver:
         incidence azimuth p stands for light arriving at propagation azimuth p + 180 (methods.ray's frame),
         i.e. at delta = p for rows lit at phi_i = 0 (the engine's frame for an anisotropic relief); each
         cell takes the nearest p mod 180 (a half turn leaves a relief's statistics unchanged), turned by
-        the remaining <= 7.5 deg (SECTOR_AZIMUTHS_DEG every 15 deg; measured on the anisotropic relief of
+        the remaining half sector step at most (every 15 deg by default; measured on the anisotropic relief of
         bench_forward_accuracy: rms z 1.45 with 30-deg sectors, 1.12 with 15; blending the two nearest
         tables instead of taking the nearest: 1.37 / 1.15, but the measured map 1.70 -> 1.75 / 1.77)."""
         ps = np.array([0.0] + [s[0] for s in ops["sectors"]])

@@ -182,7 +182,7 @@ def isotropy_warning(face: Any) -> str:
     return (f"relief {getattr(relief, 'source', '') or 'map'} is anisotropic (principal rms slopes differ "
             f"{ratio:.2g}x, steeper axis at {ang:.0f} deg): the deterministic engine assumes isotropic boundary "
             "tables; its direct reflection and first transmitted pass are the relief's own only for rows lit at "
-            "the tables' incidence azimuth (phi_i = 0), the light inside meets the relief by 15-deg azimuth "
+            "the tables' incidence azimuth (phi_i = 0), the light inside meets the relief by azimuth "
             "sector (inside_sectors), and rows at other phi_i are a rotation of phi_i = 0; check with "
             "engine='photon'")
 
@@ -422,14 +422,14 @@ def _derive(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths
     return out, ins
 
 
-SECTOR_AZIMUTHS_DEG = tuple(float(p) for p in range(15, 180, 15))  # inside tables' extra incidence azimuths
+SECTOR_AZIMUTHS_DEG = TableGrid().sector_azimuths_deg()   # the default grid's extra incidence azimuths
 SECTOR_RAY_TABLES = 5     # the sector tables share the rays of this many inside tables
 
 
 def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
                    progress: Any = None) -> BsdfTable | None:
     """The inside table of an anisotropic relief traced by rays at the incidence azimuths
-    SECTOR_AZIMUTHS_DEG besides the inside table's own 0 deg, or None (an isotropic relief, another
+    `grid.sector_azimuths_deg()` besides the inside table's own 0 deg, or None (an isotropic relief, another
     method, a flat or tabulated face).  Anisotropic: in its rms slopes (`anisotropic_face`) or in how it
     scatters the light trapped in the glass (`azimuth_dependent`: light-guide dots).
 
@@ -438,11 +438,11 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     the relief at its own azimuths: the second pass (crossed the relief, reflected by the flat back
     face, most of R at normal incidence after the direct reflection) and every later order (the
     trapped light): the engine then lets each azimuth sector of that light scatter and leave through
-    the table traced at the nearest of these azimuths (0-165 deg every 15: a relief's statistics are
-    unchanged by a half turn; PlateSolver `inside_sectors`).  The eleven sector tables share the rays
-    of SECTOR_RAY_TABLES inside tables (each light sector meets one table; bench_forward_accuracy's
-    anisotropic relief: rms z 1.45 with 30-deg sectors at full rays, 1.12 with 15-deg sectors at 5/11
-    of the rays each)."""
+    the table traced at the nearest of these azimuths (0-165 deg every 15 by default,
+    `grid.sector_step_deg`: a relief's statistics are unchanged by a half turn; PlateSolver
+    `inside_sectors`).  The sector tables share the rays of SECTOR_RAY_TABLES inside tables (each light
+    sector meets one table; bench_forward_accuracy's anisotropic relief: rms z 1.45 with 30-deg sectors at
+    full rays, 1.12 with 15-deg sectors at 5/11 of the rays each)."""
     if not isinstance(face, ReliefFace) or face.is_flat:
         return None
     if face.method == "auto":
@@ -451,11 +451,12 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     if face.method != "ray" or not (anisotropic_face(face) or azimuth_dependent(face, material, grid, wavelengths_nm,
                                                                                 progress)):
         return None
-    face = replace(face, samples=max(int(face.samples * SECTOR_RAY_TABLES / len(SECTOR_AZIMUTHS_DEG)), 1))
+    azimuths = grid.sector_azimuths_deg()
+    face = replace(face, samples=max(int(face.samples * SECTOR_RAY_TABLES / len(azimuths)), 1))
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
-    key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "inside_sectors", SECTOR_AZIMUTHS_DEG)
+    key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "inside_sectors", azimuths)
     return TABLE_CACHE.get(key, lambda: _reconstruct_side(face, material, grid, wl, grid.inside_incidences_deg(),
-                                                          "inside", progress, phi_i_deg=SECTOR_AZIMUTHS_DEG))
+                                                          "inside", progress, phi_i_deg=azimuths))
 
 
 PROBE_THETA_DEG = 85.0        # incidence of the azimuth probe: light trapped in the glass, grazing the relief
