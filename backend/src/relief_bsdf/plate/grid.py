@@ -71,9 +71,11 @@ class TableGrid:
         bench_forward_accuracy (2026-12-03, moving lobes, 400k rays, 1 M photons, 0/30/60 deg), 15 -> 7.5:
         dots 1.29 -> 1.19 (T 1.47 -> 1.18: trapped light extracted near the normal), measured map 1.35 -> 1.27,
         anisotropic 1.03 -> 1.03, exponential 1.06 -> 1.06; on relief seed 12 dots 1.36 -> 1.21, anisotropic
-        0.88 -> 0.95.  Not the default: the loop keeps one kernel difference per sector, (M, 4N, 4N)
-        complex64 per wavelength (75 MB each on the engine grid), so 23 sectors hold 1.7 GB per plate solver
-        against 0.8 GB for 11, which a diagnosis's kept solvers and workers cannot afford on 24 GB.
+        0.88 -> 0.95.  Not the default: the loop keeps one kernel difference per sector (M, 4N, 4N complex64
+        per wavelength), and on the measured map (200k rays, 3 incidences, one quiet core, 2026-12-03)
+        23 sectors take a forward's peak memory 3.8 -> 7.1 GB, the solver's operators 7 -> 16 s and a solve
+        3.2 -> 6.0 s: a diagnosis keeps several solvers in each of its processes (24 GB in all) and every
+        evaluation would cost twice.
     inside_samples_scale: a sampled method's effort per inside incidence, as a fraction of the
         face's `samples` (the outside tables get `samples`): the loop integrates the inside
         tables over the incidences of the light inside, which averages their noise, so denser
