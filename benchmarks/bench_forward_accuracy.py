@@ -102,6 +102,13 @@ Findings:
 - Inside incidences every 2.5 deg (not 5) fixed the second pass (front -> back face -> out through
   the relief from inside): R 15 phi 180 was 7 % low at its peak and 20 % high at ts 1-5 (two
   inside tables blended); same rays in total (0.5x per incidence), same accuracy as 1x.
+- The inside tables' transmitted lobes MOVE between their incidences (2026-12-03, `TableGrid.
+  inside_interpolation`, `--grids default default,linear`): the measured map's second-pass R peak was two
+  half lobes ~4 deg apart (R theta_i 30 ts 29 read 14 % low, now 7 %): measured 1.47 -> 1.35, gauss_low
+  1.08 -> 0.87, anisotropic 1.12 -> 1.03, the rest within 0.01; on relief seed 12 (`--relief-seed 12`, fresh
+  recordings) gauss_low 1.03 -> 0.82, anisotropic 0.93 -> 0.88, the rest within 0.02.  Sectors every 7.5 deg
+  (`default,sectors=7.5`): dots 1.29 -> 1.19, measured 1.35 -> 1.27 (seed 12: dots 1.36 -> 1.21), at twice the
+  loop's time and memory (not the default, plate.grid).
 - Left: at 4 M photons gauss_mid is at 1.42 (the forward's own noise at 400k rays is ~0.7
   recording sigma in the lobe, and the tile's fine structure narrower than 0.5 deg: +-2-3 %
   wiggles, e.g. T ts 57 / 59); anisotropic and measured (slope ratio 2.7 and 2.2: the engine
