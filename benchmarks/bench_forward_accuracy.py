@@ -277,8 +277,12 @@ def parse_grid(spec: str):
     kw = {}
     while parts[-1] in ("nodirect", "linear") or parts[-1].startswith("sectors="):
         last = parts.pop()
-        kw.update({"direct_theta_step_deg": None} if last == "nodirect" else {"inside_interpolation": "linear"}
-                  if last == "linear" else {"sector_step_deg": float(last.split("=")[1])})
+        if last == "nodirect":
+            kw["direct_theta_step_deg"] = None
+        elif last == "linear":
+            kw["inside_interpolation"] = "linear"
+        else:
+            kw["sector_step_deg"] = float(last.split("=")[1])
     if parts == ["default"]:
         return TableGrid(**kw)
     if parts == ["old"]:

@@ -9,15 +9,13 @@ import pytest
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.methods.request import Request
 from relief_bsdf.plate import TableGrid
+from relief_bsdf.core.frames import projected_solid_angle
 from relief_bsdf.plate.deterministic import _psa_weights, _TableView
+from relief_bsdf.plate.detector import unit
+from test_direct_grid import _cell_averages  # tests/backend/plate/test_direct_grid.py: sub-cell quadrature
 
 N_IN, N_OUT = 1.5, 1.0
 WIDTH_DEG = 1.5
-
-
-def _unit(theta_deg, phi_deg):
-    t, p = np.broadcast_arrays(np.radians(theta_deg), np.radians(phi_deg))
-    return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
 
 
 def _centre_deg(side, theta_in_deg):
@@ -31,16 +29,10 @@ def _cells(side, theta_in_deg, te, pe, k=8):
     180 (the propagation azimuth of light incident from phi_i 0), integrated to 1 (unit albedo)."""
     if side == "T" and np.sin(np.radians(theta_in_deg)) * N_IN / N_OUT >= 1.0:
         return np.zeros((te.size - 1, pe.size - 1))          # totally reflected: nothing leaves
-    c = _unit(_centre_deg(side, theta_in_deg), 180.0)
-    u0, u1 = np.sin(np.radians(te[:-1])) ** 2, np.sin(np.radians(te[1:])) ** 2
-    x = (np.arange(k) + 0.5) / k
-    th = np.degrees(np.arcsin(np.sqrt(u0[:, None] + x[None] * (u1 - u0)[:, None])))
-    ph = pe[:-1, None] + x[None] * np.diff(pe)[:, None]
-    d = _unit(th[:, :, None, None], ph[None, None])
-    ang = np.degrees(np.arccos(np.clip(d @ c, -1, 1)))
-    f = np.exp(-0.5 * (ang / WIDTH_DEG) ** 2).mean(axis=(1, 3))
-    psa = (u1 - u0)[:, None] * np.radians(np.diff(pe))[None] / 2
-    return f / np.sum(f * psa)
+    c = unit(_centre_deg(side, theta_in_deg), 180.0)
+    f = _cell_averages(lambda th, ph: np.exp(-0.5 * (np.degrees(np.arccos(np.clip(unit(th, ph) @ c, -1, 1)))
+                                                     / WIDTH_DEG) ** 2), te, pe, k)
+    return f / np.sum(f * projected_solid_angle(te, pe))
 
 
 def _table(incidences):

@@ -234,6 +234,16 @@ def check_rows(model: PlateModel, rows: Any, where: str = "recording") -> None:
 
 # ---------------------------------------------------------------- interpolation helpers
 
+def _lin_weights(grid: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(i0, i1, f): x (any shape, clamped at the ends) lies between grid[i0] and grid[i1 = i0 + 1] at the
+    fraction f, i.e. linear interpolation weights 1 - f and f (a grid of two points at least)."""
+    grid = np.asarray(grid, float)
+    xc = np.clip(np.asarray(x, float), grid[0], grid[-1])
+    i1 = np.clip(np.searchsorted(grid, xc, side="right"), 1, grid.size - 1)
+    i0 = i1 - 1
+    return i0, i1, np.clip((xc - grid[i0]) / (grid[i1] - grid[i0]), 0.0, 1.0)
+
+
 def _lin_matrix(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
     """(len(x), len(grid)) linear interpolation weights, clamped at the ends."""
     grid = np.asarray(grid, float)
@@ -242,10 +252,7 @@ def _lin_matrix(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
     if grid.size == 1:
         W[:, 0] = 1.0
         return W
-    xc = np.clip(x, grid[0], grid[-1])
-    i1 = np.clip(np.searchsorted(grid, xc, side="right"), 1, grid.size - 1)
-    i0 = i1 - 1
-    f = np.clip((xc - grid[i0]) / (grid[i1] - grid[i0]), 0.0, 1.0)
+    i0, i1, f = _lin_weights(grid, x)
     r = np.arange(x.size)
     W[r, i0] += 1.0 - f
     W[r, i1] += f
@@ -415,38 +422,32 @@ class _TableView:
         if not self._moves(side, theta_out, delta_deg):
             return _apply(W, arr, 0)
         t_in = np.asarray(self.table.theta_i_deg, float)
-        x_in = np.clip(np.atleast_1d(np.asarray(theta_in, float)), t_in[0], t_in[-1])
+        x_in = np.atleast_1d(np.asarray(theta_in, float))
         to, d = np.asarray(theta_out, float), np.asarray(delta_deg, float)
         T, A = to.size, d.size
         axis = np.concatenate([-to[::-1], to])                               # signed polar angle, through the pole
         cosd = np.cos(np.radians(d))
-        e_q = _exit_angle_deg(x_in, *self.moving)
+        e_q = _exit_angle_deg(np.clip(x_in, t_in[0], t_in[-1]), *self.moving)
         e_t = _exit_angle_deg(t_in, *self.moving)
-        i1 = np.clip(np.searchsorted(t_in, x_in, side="right"), 1, max(t_in.size - 1, 1))
-        i0 = i1 - 1
-        f = np.clip((x_in - t_in[i0]) / (t_in[i1] - t_in[i0]), 0.0, 1.0)  # _lin_matrix's two weights
+        i0, i1, f = _lin_weights(t_in, x_in)                                 # the two incidences around theta_in
         flat = arr.reshape(t_in.size * T * A, -1)                         # rows: (incidence, polar, azimuth)
         a = np.arange(A)[None, None, :]
         out = np.zeros((x_in.size, T, A, flat.shape[1]), np.result_type(arr, float))
         for ii, w in ((i0, 1.0 - f), (i1, f)):
             s = e_q - e_t[ii]
             s = np.where(np.isfinite(s), s, 0.0)
-            x = np.clip(to[None, :, None] - s[:, None, None] * cosd[None, None, :], axis[0], axis[-1])  # (J, T, A)
-            k1 = np.clip(np.searchsorted(axis, x, side="right"), 1, 2 * T - 1)
-            k0 = k1 - 1
-            g = (x - axis[k0]) / (axis[k1] - axis[k0])
+            k0, k1, g = _lin_weights(axis, to[None, :, None] - s[:, None, None] * cosd[None, None, :])  # (J, T, A)
             for k, wk in ((k0, 1.0 - g), (k1, g)):
                 row = np.where(k >= T, k - T, T - 1 - k)                  # across the pole: the opposite azimuth
                 col = np.where(k >= T, a, (a + A // 2) % A)
                 idx = (ii[:, None, None] * T + row) * A + col
                 out += np.take(flat, idx.ravel(), axis=0).reshape(out.shape) * (wk * w[:, None, None])[..., None]
-        out = out.reshape((x_in.size,) + arr.shape[1:])
-        # albedo of each incidence (unpolarised: Mueller element 00, or the detector row's first)
+        # albedo of each incidence, unpolarised (the first component: Mueller element 00 or the detector row's)
         psa = _psa_weights(to)
-        first = (lambda v: v[..., 0, 0]) if arr.ndim == 5 else (lambda v: v[..., 0]) if arr.ndim == 4 else (lambda v: v)
-        alb_lin = W @ np.einsum("itA,t->i", first(arr), psa)
-        alb_mov = np.einsum("jtA,t->j", first(out), psa)
+        alb_lin = W @ np.einsum("itA,t->i", flat[:, 0].reshape(t_in.size, T, A), psa)
+        alb_mov = np.einsum("jtA,t->j", out[..., 0], psa)
         scale = np.where(alb_mov > 0, alb_lin / np.where(alb_mov > 0, alb_mov, 1.0), 1.0)
+        out = out.reshape((x_in.size,) + arr.shape[1:])
         return out * scale.reshape((-1,) + (1,) * (out.ndim - 1))
 
     def _on_exit_grid(self, side: str, theta_out: np.ndarray, delta_deg: np.ndarray) -> np.ndarray:
@@ -805,7 +806,7 @@ class PlateSolver:
             # the loop kernels' differences in single precision (their part of the rows to ~1e-7): twelve
             # sectors' (M, N c, N c) blocks are 0.4 GB per wavelength in double
             sector_kernels = [(p, _blocks(K - Kh, c).astype(np.complex64), G - GhT)
-                              for p, K, G in self._sector_kernels(wl, c)]
+                              for p, K, G in self._sector_kernels(wl, c, mv)]
         t = dict(n=n, n0=n0, c=c, vin=vin, vB=vB, RF=RF, SR=SR, Kh=Kh, KBh=KBh, GBT=GBT, GhT=GhT,
                  Wflat=Wflat, Wspec=Wspec, sector_kernels=sector_kernels)
         self._tops[wl] = t
@@ -917,16 +918,14 @@ class PlateSolver:
         return (np.moveaxis(Gh, 2, 0) if c == 1 else np.moveaxis(Gh, (2, 3), (0, 2))).reshape(Gh.shape[2], -1,
                                                                                               Gh.shape[1])
 
-    def _sector_kernels(self, wl: float, c: int) -> list:
+    def _sector_kernels(self, wl: float, c: int, moving: tuple[float, float] | None) -> list:
         """[(incidence azimuth deg, loop kernel (T, J, M[, 4, 4]), exit kernel (M, J c, O))] of the inside
-        sector tables (`inside_sectors`), in the engine's modes like the 0-deg table's."""
+        sector tables (`inside_sectors`), in the engine's modes like the 0-deg table's (`moving`: as the
+        0-deg table's view, `_table_ops`)."""
         t = self.inside_sectors
-        m = self.model
-        mv = ((float(np.real(m.index.n(wl))), float(np.real(m.outside_index.n(wl))))
-              if m.inside_interpolation == "moving" else None)
         out = []
         for ip, p in enumerate(np.asarray(t.phi_i_deg, float)):
-            v = _TableView(_phi_slice(t, ip), wl, self.mueller, "inside sector table", mv)
+            v = _TableView(_phi_slice(t, ip), wl, self.mueller, "inside sector table", moving)
             K = np.moveaxis(v.diffuse_modes("R", self.theta_c, self.theta_c, self.delta), 0, 1)
             K *= self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None]
             out.append((float(p), K, self._exit_kernel(v, c)))
