@@ -801,12 +801,9 @@ class PlateSolver:
             GBT = (np.moveaxis(GBh, 2, 0) if c == 1 else np.moveaxis(GBh, (2, 3), (0, 2))).reshape(
                 GBh.shape[2], -1, GBh.shape[1])
         GhT, Wflat, Wspec = self._exit_maps(vin, vB, n, n0, c)
-        sector_kernels = []
+        sector_kernels = None
         if self.inside_sectors is not None and vB is None and m.rough_face == "front":
-            # the loop kernels' differences in single precision (their part of the rows to ~1e-7): twelve
-            # sectors' (M, N c, N c) blocks are 0.4 GB per wavelength in double
-            sector_kernels = [(p, _blocks(K - Kh, c).astype(np.complex64), G - GhT)
-                              for p, K, G in self._sector_kernels(wl, c, mv)]
+            sector_kernels = self._sector_kernels(wl, c, mv, Kh, GhT)
         t = dict(n=n, n0=n0, c=c, vin=vin, vB=vB, RF=RF, SR=SR, Kh=Kh, KBh=KBh, GBT=GBT, GhT=GhT,
                  Wflat=Wflat, Wspec=Wspec, sector_kernels=sector_kernels)
         self._tops[wl] = t
@@ -852,8 +849,8 @@ class PlateSolver:
             R2 = (0.0 if KBm is None else KBm) + _block_diag(RF, c)[None]
             slab_ops = _slab_system(m, self.theta_edges, self.delta.size, Kb, R2, c)
             Rtrip, sysm = slab_ops["Rtrip"], slab_ops["sys"]
-        ops = dict(n=t["n"], n0=t["n0"], vin=t["vin"], vB=t["vB"], absorb=absorb, RF=RF, sys=sysm, Dj=Dj,
-                   GhT=t["GhT"], sectors=t["sector_kernels"] if slab_ops is None else [],
+        ops = dict(wl=wl, n=t["n"], n0=t["n0"], vin=t["vin"], vB=t["vB"], absorb=absorb, RF=RF, sys=sysm, Dj=Dj,
+                   GhT=t["GhT"], sectors=t["sector_kernels"] if slab_ops is None else None,
                    Wflat=t["Wflat"], Wspec=t["Wspec"], c=c, M=Mk, Kb=Kb, Rtrip=Rtrip, GBT=t["GBT"], slab=slab_ops)
         ops.update(self._outside_ops(wl, ops))
         self._ops[wl] = ops
@@ -918,37 +915,59 @@ class PlateSolver:
         return (np.moveaxis(Gh, 2, 0) if c == 1 else np.moveaxis(Gh, (2, 3), (0, 2))).reshape(Gh.shape[2], -1,
                                                                                               Gh.shape[1])
 
-    def _sector_kernels(self, wl: float, c: int, moving: tuple[float, float] | None) -> list:
-        """[(incidence azimuth deg, loop kernel (T, J, M[, 4, 4]), exit kernel (M, J c, O))] of the inside
-        sector tables (`inside_sectors`), in the engine's modes like the 0-deg table's (`moving`: as the
-        0-deg table's view, `_table_ops`)."""
+    def _sector_kernels(self, wl: float, c: int, moving: tuple[float, float] | None, Kh: np.ndarray,
+                        GhT: np.ndarray) -> "_SectorKernels":
+        """The inside sector tables' (`inside_sectors`) loop and exit kernels minus the 0-deg table's (Kh,
+        GhT), in the engine's modes like the 0-deg table's (`moving`: as the 0-deg table's view,
+        `_table_ops`).  Each loop difference is written straight into its slice of the stacked single
+        precision array (`_SectorKernels.loop`): no (M, N c, N c) complex copy per sector is kept."""
         t = self.inside_sectors
-        out = []
-        for ip, p in enumerate(np.asarray(t.phi_i_deg, float)):
+        ps = np.asarray(t.phi_i_deg, float)
+        M, nc = Kh.shape[2], Kh.shape[0] * c
+        loop = np.empty((M, 2 * nc, ps.size * nc), np.float32)
+        exits = []
+        for ip, p in enumerate(ps):
             v = _TableView(_phi_slice(t, ip), wl, self.mueller, "inside sector table", moving)
             K = np.moveaxis(v.diffuse_modes("R", self.theta_c, self.theta_c, self.delta), 0, 1)
             K *= self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None]
-            out.append((float(p), K, self._exit_kernel(v, c)))
-        return out
+            K -= Kh
+            for part, rows in ((K.real, slice(0, nc)), (K.imag, slice(nc, 2 * nc))):
+                dest = loop[:, rows, ip * nc:(ip + 1) * nc]                                # a view
+                if c == 1:
+                    dest[...] = np.moveaxis(part, 2, 0)
+                else:                                                                      # `_blocks` in place
+                    dest.reshape(M, nc // 4, 4, nc // 4, 4)[...] = np.transpose(part, (2, 0, 3, 1, 4))
+            exits.append(self._exit_kernel(v, c) - GhT)
+        return _SectorKernels(ps, loop, tuple(exits))
 
-    def _sector_masks(self, ops: dict) -> list:
-        """[(sector k's loop kernel minus the 0-deg one, its exit kernel minus the 0-deg one, (A,) mask of the
-        propagation azimuths delta that meet the relief through sector k)]: the inside table traced at
-        incidence azimuth p stands for light arriving at propagation azimuth p + 180 (methods.ray's frame),
-        i.e. at delta = p for rows lit at phi_i = 0 (the engine's frame for an anisotropic relief); each
-        cell takes the nearest p mod 180 (a half turn leaves a relief's statistics unchanged), turned by
-        the remaining half sector step at most (every 15 deg by default; measured on the anisotropic relief of
+    def _sector_cells(self, sk: "_SectorKernels") -> np.ndarray:
+        """(K, A) 0/1: the propagation azimuths delta that meet the relief through sector k.  The inside
+        table traced at incidence azimuth p stands for light arriving at propagation azimuth p + 180
+        (methods.ray's frame), i.e. at delta = p for rows lit at phi_i = 0 (the engine's frame for an
+        anisotropic relief); each cell takes the nearest p mod 180 (a half turn leaves a relief's
+        statistics unchanged; the 0-deg table's cells are those of no sector), turned by the remaining
+        half sector step at most (every 15 deg by default; measured on the anisotropic relief of
         bench_forward_accuracy: rms z 1.45 with 30-deg sectors, 1.12 with 15; blending the two nearest
         tables instead of taking the nearest: 1.37 / 1.15, but the measured map 1.70 -> 1.75 / 1.77)."""
-        ps = np.array([0.0] + [s[0] for s in ops["sectors"]])
-        d = np.abs(np.mod(self.delta[:, None] - ps[None, :] + 90.0, 180.0) - 90.0)       # (A, 1 + sectors)
+        ps = np.concatenate([[0.0], sk.azimuths_deg])
+        d = np.abs(np.mod(self.delta[:, None] - ps[None, :] + 90.0, 180.0) - 90.0)       # (A, 1 + K)
         near = np.argmin(d, axis=1)
-        return [(dK, dG, (near == k).astype(float)) for k, (_, dK, dG) in enumerate(ops["sectors"], start=1)]
+        return (near[None, :] == np.arange(1, ps.size)[:, None]).astype(float)
+
+    def _sector_average(self, ops: dict) -> tuple[np.ndarray, np.ndarray]:
+        """((K, A) sector cells, sum_k w_k dK_k): the azimuth-weighted kernel difference of the sector
+        loop's preconditioner (`_sector_loop`); the tables and the grid fix it, so it is computed once
+        per wavelength and shared by the solvers whose bulk differs (`_table_ops`)."""
+        t = self._tops[ops["wl"]]
+        if "sector_average" not in t:
+            P = self._sector_cells(ops["sectors"])
+            t["sector_average"] = (P, ops["sectors"].weighted(P.mean(axis=1)))
+        return t["sector_average"]
 
     def _sector_loop(self, ops: dict, S: np.ndarray, to_modes: Any, to_cells: Any) -> np.ndarray:
         """X (M, N c, q) in modes solving X = S + K D X with the rough face's loop kernel K taken by azimuth
         sector (an anisotropic relief, `inside_sectors`): light arriving at the relief from inside at
-        propagation azimuth delta scatters by the table traced nearest delta (`_sector_masks`), so K is
+        propagation azimuth delta scatters by the table traced nearest delta (`_sector_cells`), so K is
         K_0 + sum_k dK_k P_k (P_k: the cells of sector k) and no longer circulant.  Every order of the
         loop meets the relief by its own azimuth: the second pass (the light transmitted by the relief and
         reflected by the flat face) and the trapped light.
@@ -956,16 +975,20 @@ class PlateSolver:
         Solved by GMRES, preconditioned by the circulant loop of the sectors' azimuth-weighted kernel
         Kw = K_0 + sum_k w_k dK_k (w_k: sector k's share of the azimuth cells; exact when the light is
         uniform in azimuth): (I - (I - Kw D)^-1 sum_k dK_k (P_k - w_k) D) X = (I - Kw D)^-1 S, all
-        incidences in one Krylov space (the operator is the same for each)."""
+        incidences in one Krylov space (the operator is the same for each); the sum over the sectors is
+        one single-precision product (`_SectorKernels.apply`)."""
         from scipy.sparse.linalg import LinearOperator, gmres
-        c, Dj = ops["c"], ops["Dj"]
+        c, Dj, sk = ops["c"], ops["Dj"], ops["sectors"]
         if "sector_loop" not in ops:
-            secs = self._sector_masks(ops)
-            Db = _block_diag(Dj, c) if c == 4 else np.diag(Dj)                          # D as one matrix
-            avg = sum(mask.mean() * dK.astype(complex) for dK, _, mask in secs)
-            ops["sector_loop"] = (_lu_factors(ops.pop("sys") - avg @ Db),     # the factors replace the system
-                                  [(dK, (mask - mask.mean())[None, None, :, None]) for dK, _, mask in secs])
-        pre, secs = ops["sector_loop"]
+            P, avg = self._sector_average(ops)
+            if c == 1:                                                                 # avg D, D diagonal
+                avgD = avg * Dj[None, None, :]
+            else:                                                                      # D block-diagonal
+                M, nc = avg.shape[:2]
+                avgD = (avg.reshape(M, nc, nc // 4, 1, 4) @ Dj[None, None]).reshape(avg.shape)
+            ops["sector_loop"] = (_lu_factors(ops.pop("sys") - avgD),     # the factors replace the system
+                                  P - P.mean(axis=1)[:, None])
+        pre, Pw = ops["sector_loop"]
         shape = to_cells(S).shape                                                          # (q, N, A, c)
 
         def round_trip(X: np.ndarray) -> np.ndarray:       # D X: absorb, flat face's Fresnel R, absorb
@@ -975,10 +998,8 @@ class PlateSolver:
 
         def extra(X: np.ndarray) -> np.ndarray:            # (I - Kw D)^-1 sum_k dK_k (P_k - w_k) D X, cells
             Y = round_trip(X)
-            Z = 0.0
-            for dK, mask in secs:
-                Z = Z + dK @ to_modes(Y * mask).astype(np.complex64)
-            return to_cells(_lu_apply(pre, Z.astype(complex)))
+            Z = sk.apply(np.stack([to_modes(Y * m[None, None, :, None]) for m in Pw]))
+            return to_cells(_lu_apply(pre, Z))
 
         b = to_cells(_lu_apply(pre, S)).ravel()
         op = LinearOperator((b.size, b.size), matvec=lambda x: x - extra(x.reshape(shape)).ravel(), dtype=float)
@@ -991,8 +1012,9 @@ class PlateSolver:
         """(q, O, A): what the exit through the rough face changes when the light arriving there from inside
         (U, cells, every order) leaves by azimuth sector, each through its own inside table instead of the
         0-deg one turned (added to the rough face's diffuse exit; the exit is linear in the kernel)."""
+        sk = ops["sectors"]
         out = 0.0
-        for _, dG, mask in self._sector_masks(ops):
+        for dG, mask in zip(sk.exits, self._sector_cells(sk)):
             if mask.any():
                 out = out + _rough_exit(_exit_modes(U * mask[None, None, :, None]), dG, A)
         return out
@@ -1163,7 +1185,7 @@ class PlateSolver:
             if slab is not None:   # with the slab: U_extra leaves the back face upward; beams shed light
                 Uxh, Dxh = _slab_sources(slab, Uxh, src.beams, self.theta_edges, thetas, ops["n0"], ops["n"], c)
             rhs = rhs + ops["Kb"] @ Uxh
-        if ops["sectors"]:         # an anisotropic relief: the loop meets the relief by azimuth sector
+        if ops["sectors"] is not None:   # an anisotropic relief: the loop meets the relief by azimuth sector
             XhM = self._sector_loop(ops, rhs, to_modes, to_cells)
         else:
             XhM = _loop_solve(ops, rhs)                                      # (M, N c, nI)
@@ -1191,7 +1213,7 @@ class PlateSolver:
         Um = d["Um"]
         # rough-face exit: circular convolution over azimuth with the inside T kernel
         out_rough = _rough_exit(Um, ops["GhT"], A) + src.direct_rough
-        if ops["sectors"]:         # an anisotropic relief: every order leaves by azimuth sector
+        if ops["sectors"] is not None:   # an anisotropic relief: every order leaves by azimuth sector
             out_rough = out_rough + self._sector_exits(ops, d["U"], A)
         if np.any(ops["Wspec"]):   # specular exit of the diffuse light arriving at the rough face from inside
             U = d["U"] if d["U"] is not None else np.fft.irfft(np.moveaxis(Um.reshape(Mk, nI, N, c), 0, 2), n=A, axis=2)
@@ -1206,6 +1228,41 @@ class PlateSolver:
             out_flat = (out_flat + np.fft.irfft(np.moveaxis(np.moveaxis(AX, 2, 1) @ ops["GBT"], 0, 2), n=A, axis=2)
                         + src.direct_flat)
         return out_rough, out_flat
+
+
+@dataclass(frozen=True)
+class _SectorKernels:
+    """The inside sector tables' kernels minus the 0-deg table's (`PlateSolver._sector_kernels`).
+
+    `loop` (M, 2 N c, K N c) float32: per azimuthal mode the K loop-kernel differences dK_k side by side,
+    their real parts over their imaginary parts, so that sum_k dK_k Y_k is ONE real product per mode
+    (`apply`): the loop's GMRES applies it at every iteration, and at a few right-hand sides a complex
+    product per sector is bound by reading the kernels (twelve sectors of (M, N c, N c) are 0.4 GB
+    per wavelength); single precision (the differences' part of the rows to ~1e-7, far below any
+    table's noise).  `exits`: each sector's exit kernel minus the 0-deg one, (M, N c, O)."""
+
+    azimuths_deg: np.ndarray
+    loop: np.ndarray
+    exits: tuple
+
+    def weighted(self, w: np.ndarray) -> np.ndarray:
+        """sum_k w_k dK_k, (M, N c, N c) complex (summed in the kernels' single precision)."""
+        M, two_nc, knc = self.loop.shape
+        nc = two_nc // 2
+        r = (self.loop.reshape(M * two_nc, knc // nc, nc).transpose(0, 2, 1) @ np.asarray(w, np.float32))
+        r = r.reshape(M, two_nc, nc)
+        return r[:, :nc].astype(float) + 1j * r[:, nc:]
+
+    def apply(self, Y: np.ndarray) -> np.ndarray:
+        """sum_k dK_k Y_k for Y (K, M, N c, q) complex: (M, N c, q) complex.  With dK = R + i I and
+        Y = a + i b: [R; I] [a b] = [[R a, R b], [I a, I b]], so Re = R a - I b and Im = R b + I a."""
+        K, M, nc, q = Y.shape
+        ab = np.empty((M, K * nc, 2 * q), np.float32)
+        Yt = np.moveaxis(Y, 0, 1).reshape(M, K * nc, q)
+        ab[..., :q] = Yt.real
+        ab[..., q:] = Yt.imag
+        P = self.loop @ ab                                                                  # (M, 2 N c, 2 q)
+        return (P[:, :nc, :q] - P[:, nc:, q:]).astype(float) + 1j * (P[:, :nc, q:] + P[:, nc:, :q])
 
 
 @dataclass
