@@ -216,6 +216,19 @@ class BsdfTable:
         return replace(self, wavelength_nm=self.wavelength_nm[s], values_per_sr=self.values_per_sr[s],
                        specular_R=self.specular_R[s], specular_T=self.specular_T[s], lost=self.lost[s], **cut)
 
+    def at_wavelengths(self, wavelength_nm: Any, rows: Any) -> "BsdfTable":
+        """This table's wavelength rows `rows` (indices) relabelled as the wavelengths `wavelength_nm`: the
+        tables of a method whose physics sees the wavelength only through the refractive indices
+        (geometric optics, `MethodEntry.wavelength_free`) at wavelengths where the indices are the same
+        are one table (plate.faces: traced once)."""
+        idx = np.asarray(rows, int)
+        cut = {n: (None if getattr(self, n) is None else np.take(getattr(self, n), idx, axis=0))
+               for n in ("sigma_per_sr", "mueller_per_sr", "specular_mueller_R", "specular_mueller_T")}
+        return replace(self, wavelength_nm=np.asarray(wavelength_nm, float),
+                       values_per_sr=np.take(self.values_per_sr, idx, axis=0),
+                       specular_R=self.specular_R[idx], specular_T=self.specular_T[idx], lost=self.lost[idx],
+                       **cut)
+
     def summary(self) -> dict:
         return {"kind": "bsdf", "method": self.method, "from": self.incident_from,
                 "wavelength_nm": self.wavelength_nm.tolist(), "theta_i_deg": self.theta_i_deg.tolist(),

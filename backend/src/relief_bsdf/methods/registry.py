@@ -29,6 +29,7 @@ class MethodEntry:
     physics: str                     # one line
     validity: str                    # regime of validity, one line
     surrogate: bool = False          # a fast model standing in for a method (fit, plate)
+    wavelength_free: bool = False    # geometric optics: the wavelength enters through the indices alone
 
     def load(self):
         """The module implementing this method."""
@@ -43,14 +44,15 @@ _ENTRIES = (
     MethodEntry("microfacet", "microfacet", _o.MicrofacetOptions,
                 "Walter et al. 2007 rough dielectric: microfacet distribution D, Smith shadowing G, facet Fresnel",
                 "geometric optics of one scattering event: lateral scales and heights >> wavelength, "
-                "slope statistics of one (or a mixture of) Beckmann / GGX lobes"),
+                "slope statistics of one (or a mixture of) Beckmann / GGX lobes", wavelength_free=True),
     MethodEntry("normals", "normals", _o.NormalsOptions,
                 "Monte Carlo over the relief's measured facet normals with scalar Fresnel, multiple bounces",
-                "geometric optics, facets >> wavelength; positions ignored (no real shadowing unless heuristic)"),
+                "geometric optics, facets >> wavelength; positions ignored (no real shadowing unless heuristic)",
+                wavelength_free=True),
     MethodEntry("ray", "ray", _o.RayOptions,
                 "geometric-optics ray tracing of the triangulated relief with Fresnel Mueller matrices",
                 "rough on the wavelength scale (sigma >= lambda / n, no coherent specular left), "
-                "facets >= 10 wavelengths"),
+                "facets >= 10 wavelengths", wavelength_free=True),
     MethodEntry("kirchhoff", "kirchhoff", _o.KirchhoffOptions,
                 "scalar Kirchhoff tangent-plane integral of the height map by FFT (q_z node scheme)",
                 "radius of curvature >> wavelength (k R_c >= 5), moderate slopes (< 0.5), single scattering"),
@@ -72,7 +74,8 @@ _ENTRIES = (
                 surrogate=True),
     MethodEntry("flat", "flat", _o.FlatOptions,
                 "a perfectly flat interface: Fresnel delta parts (Mueller matrices), no diffuse cells",
-                "exact for a plane boundary; the relief, if given, is ignored", surrogate=True),
+                "exact for a plane boundary; the relief, if given, is ignored", surrogate=True,
+                wavelength_free=True),
 )
 
 REGISTRY: dict[str, MethodEntry] = {e.name: e for e in _ENTRIES}

@@ -533,6 +533,17 @@ def _rough_exit(Um: np.ndarray, GhT: np.ndarray, A: int) -> np.ndarray:
     return np.fft.irfft(np.moveaxis(Um @ GhT, 0, 2), n=A, axis=2)
 
 
+def _same_wavelength_rows(table: BsdfTable, a: float, b: float) -> bool:
+    """Whether the table holds both wavelengths on its axis with the same numbers (what the plate reads)."""
+    w = np.asarray(table.wavelength_nm, float)
+    ia, ib = np.nonzero(w == a)[0], np.nonzero(w == b)[0]
+    if not ia.size or not ib.size:
+        return False
+    return all(arr is None or np.array_equal(arr[ia[0]], arr[ib[0]])
+               for arr in (table.values_per_sr, table.mueller_per_sr, table.specular_R, table.specular_T,
+                           table.specular_mueller_R, table.specular_mueller_T))
+
+
 def _phi_slice(table: BsdfTable, ip: int) -> BsdfTable:
     """The table at its ip-th incidence azimuth only (every array's phi_i axis, axis 2, cut to one)."""
     kw = {"phi_i_deg": np.asarray(table.phi_i_deg)[ip:ip + 1]}
@@ -756,6 +767,7 @@ class PlateSolver:
         self.psa = projected_solid_angle(self.theta_edges, [0.0, 360.0 / A])[:, 0]        # (N,)
         self._ops: dict = {}
         self._tops: dict = {}          # the tables' part of the operators (`_table_ops`), shared across bulks
+        self._twins: dict = {}         # wavelength -> the one solved in its place (`_twin_wavelength`)
 
     # -- per wavelength operators
     def _table_ops(self, wl: float) -> dict:
@@ -871,7 +883,7 @@ class PlateSolver:
         so only the outside table's part is re-derived (a tilt or a beam traced into the outside
         table changes that table alone).  The numbers are those of a fresh solver."""
         new = copy.copy(self)
-        new.model, new.outside = model, outside
+        new.model, new.outside, new._twins = model, outside, {}
         new._ops = {wl: {**ops, **new._outside_ops(wl, ops)} for wl, ops in self._ops.items()}
         return new
 
@@ -1034,6 +1046,9 @@ class PlateSolver:
         tables' direct grid does not adapt to it) solves nothing.  An unpolarised source's field is
         F(e_0) itself, bit for bit; the sector loop's GMRES (relative tolerance 1e-7) solves each unit
         source to its tolerance.  Results are never changed by their readers (`dataclasses.replace`)."""
+        twin = self._twin_wavelength(float(wavelength_nm))
+        if twin != float(wavelength_nm):
+            return [replace(r, wavelength_nm=float(wavelength_nm)) for r in self.solve(twin, theta_i_deg, phi_i_deg)]
         ops = self._operators(float(wavelength_nm))
         s = np.asarray(self.model.source_stokes, float)
         if not self.mueller or (s[0] == 1.0 and not s[1:].any()):
@@ -1041,6 +1056,23 @@ class PlateSolver:
         parts = [(np.eye(4)[k], float(s[k])) for k in range(4) if s[k] != 0.0]
         fields = [self._field(ops, wavelength_nm, theta_i_deg, phi_i_deg, e) for e, _ in parts]
         return [_stokes_sum([f[q] for f in fields], [w for _, w in parts]) for q in range(len(fields[0]))]
+
+    def _twin_wavelength(self, wl: float) -> float:
+        """The wavelength solved in place of `wl`: the shortest of the tables' wavelengths whose every input
+        is that of `wl` (the indices inside and outside, every table's row: a geometric-optics relief at a
+        recording's wavelengths without dispersion, `plate.faces.same_indices`), else `wl` itself.  Its
+        results are those of `wl` (the plate's bulk and instrument do not depend on the wavelength), so a
+        recording at three wavelengths without dispersion is solved once."""
+        tables = [t for t in (self.inside, self.outside, self.back, self.inside_sectors) if t is not None]
+        m = self.model
+        n = (complex(m.index.n(wl)), complex(m.outside_index.n(wl)))
+        key = (wl, n) + tuple(id(t) for t in tables)          # the tables are the solver's (held while it lives)
+        if key not in self._twins:
+            same = [float(w) for w in np.sort(np.asarray(self.inside.wavelength_nm, float)) if w < wl
+                    and (complex(m.index.n(w)), complex(m.outside_index.n(w))) == n
+                    and all(_same_wavelength_rows(t, float(w), wl) for t in tables)]
+            self._twins[key] = same[0] if same else wl
+        return self._twins[key]
 
     def _field(self, ops: dict, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float,
                stokes: np.ndarray) -> list[PlateResult]:

@@ -519,10 +519,29 @@ def azimuth_probe_l1(table: BsdfTable) -> float:
     return float(np.sum(np.abs(a - b)) - np.sqrt(2.0 / np.pi) * np.sum(np.sqrt(va + vb))) / total
 
 
+def same_indices(material: Material, wavelengths_nm: Any, side: str) -> tuple[tuple, tuple]:
+    """(representative wavelengths, ascending; the row of each wavelength among them): wavelengths whose
+    index pair (light from `side`) is the same share one, the longest of them (a method's wavelength
+    checks, such as the ray tracer's tile of at least so many wavelengths, see the longest)."""
+    ws = [float(w) for w in wavelengths_nm]
+    pair = [tuple(complex(x) for x in material.n_pair(w, side)) for w in ws]
+    rep = {p: max(w for w, q in zip(ws, pair) if q == p) for p in pair}
+    reps = tuple(sorted(set(rep.values())))
+    return reps, tuple(reps.index(rep[p]) for p in pair)
+
+
 def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, wl: Any, theta: Any, side: str,
                       progress: Any, beam_divergence_deg: float = 0.0, phi_i_deg: tuple = (0.0,)) -> BsdfTable:
+    """The face's table of light from `side`.  A geometric-optics method (`MethodEntry.wavelength_free`)
+    traces once per distinct index pair: wavelengths where the indices are the same (no dispersion
+    given) share the table of the first of them (`BsdfTable.at_wavelengths`); the same physics with
+    the same random numbers, a third of the work for a recording at three wavelengths."""
     from dataclasses import replace as _replace
-    from relief_bsdf.methods import reconstruct
+    from relief_bsdf.methods import entry, reconstruct
+    reps, rows = same_indices(material, wl, side)
+    if len(reps) < len(tuple(wl)) and entry(face.method).wavelength_free:
+        table = _reconstruct_side(face, material, grid, reps, theta, side, progress, beam_divergence_deg, phi_i_deg)
+        return table.at_wavelengths(tuple(float(w) for w in wl), rows)
     req = face_request(face, material, grid, wl, theta, side)
     if beam_divergence_deg:
         req = _replace(req, options={**req.options, "beam_divergence_deg": float(beam_divergence_deg)})
