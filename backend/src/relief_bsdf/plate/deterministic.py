@@ -555,12 +555,16 @@ def _phi_slice(table: BsdfTable, ip: int) -> BsdfTable:
     return replace(table, **kw)
 
 
-def _blocks(Xh: np.ndarray, c: int) -> np.ndarray:
-    """(T, J, M[, 4, 4]) kernel in Fourier space -> (M, T c, J c) matrices."""
-    if c == 1:
-        return np.moveaxis(Xh, 2, 0)
-    T, J, M = Xh.shape[:3]
-    return np.transpose(Xh, (2, 0, 3, 1, 4)).reshape(M, T * 4, J * 4)
+def _blocks(Xh: np.ndarray, c: int, out: np.ndarray | None = None) -> np.ndarray:
+    """(T, J, M[, 4, 4]) kernel in Fourier space -> (M, T c, J c) matrices; written into `out` (a view of
+    that shape, e.g. a slice of a bigger array) when given, without an intermediate copy."""
+    view = np.moveaxis(Xh, 2, 0) if c == 1 else np.transpose(Xh, (2, 0, 3, 1, 4))      # (M, T[, 4], J[, 4])
+    if out is None:
+        return view if c == 1 else view.reshape(view.shape[0], view.shape[1] * 4, view.shape[3] * 4)
+    target = out.view()
+    target.shape = view.shape                # raises rather than copy: the numbers must land in `out`
+    target[...] = view
+    return out
 
 
 def _block_diag(D: np.ndarray, c: int) -> np.ndarray:
@@ -943,12 +947,8 @@ class PlateSolver:
             K = np.moveaxis(v.diffuse_modes("R", self.theta_c, self.theta_c, self.delta), 0, 1)
             K *= self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None]
             K -= Kh
-            for part, rows in ((K.real, slice(0, nc)), (K.imag, slice(nc, 2 * nc))):
-                dest = loop[:, rows, ip * nc:(ip + 1) * nc]                                # a view
-                if c == 1:
-                    dest[...] = np.moveaxis(part, 2, 0)
-                else:                                                                      # `_blocks` in place
-                    dest.reshape(M, nc // 4, 4, nc // 4, 4)[...] = np.transpose(part, (2, 0, 3, 1, 4))
+            _blocks(K.real, c, out=loop[:, :nc, ip * nc:(ip + 1) * nc])
+            _blocks(K.imag, c, out=loop[:, nc:, ip * nc:(ip + 1) * nc])
             exits.append(self._exit_kernel(v, c) - GhT)
         return _SectorKernels(ps, loop, tuple(exits))
 
