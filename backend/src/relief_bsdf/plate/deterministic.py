@@ -1068,10 +1068,10 @@ class PlateSolver:
         n = (complex(m.index.n(wl)), complex(m.outside_index.n(wl)))
         key = (wl, n) + tuple(id(t) for t in tables)          # the tables are the solver's (held while it lives)
         if key not in self._twins:
-            same = [float(w) for w in np.sort(np.asarray(self.inside.wavelength_nm, float)) if w < wl
+            same = (float(w) for w in np.sort(np.asarray(self.inside.wavelength_nm, float)) if w < wl
                     and (complex(m.index.n(w)), complex(m.outside_index.n(w))) == n
-                    and all(_same_wavelength_rows(t, float(w), wl) for t in tables)]
-            self._twins[key] = same[0] if same else wl
+                    and all(_same_wavelength_rows(t, float(w), wl) for t in tables))
+            self._twins[key] = next(same, wl)                   # the shortest twin (compared lazily), else wl
         return self._twins[key]
 
     def _field(self, ops: dict, wavelength_nm: float, theta_i_deg: Sequence[float], phi_i_deg: float,
