@@ -210,11 +210,7 @@ class BsdfTable:
         if wavelength_nm is None:
             return self
         k = int(np.argmin(np.abs(self.wavelength_nm - wavelength_nm)))
-        s = slice(k, k + 1)
-        cut = {n: (None if getattr(self, n) is None else getattr(self, n)[s])
-               for n in ("sigma_per_sr", "mueller_per_sr", "specular_mueller_R", "specular_mueller_T")}
-        return replace(self, wavelength_nm=self.wavelength_nm[s], values_per_sr=self.values_per_sr[s],
-                       specular_R=self.specular_R[s], specular_T=self.specular_T[s], lost=self.lost[s], **cut)
+        return self.at_wavelengths(self.wavelength_nm[k:k + 1], [k])
 
     def at_wavelengths(self, wavelength_nm: Any, rows: Any) -> "BsdfTable":
         """This table's wavelength rows `rows` (indices) relabelled as the wavelengths `wavelength_nm`: the

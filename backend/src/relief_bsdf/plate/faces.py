@@ -534,8 +534,9 @@ def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, w
                       progress: Any, beam_divergence_deg: float = 0.0, phi_i_deg: tuple = (0.0,)) -> BsdfTable:
     """The face's table of light from `side`.  A geometric-optics method (`MethodEntry.wavelength_free`)
     traces once per distinct index pair: wavelengths where the indices are the same (no dispersion
-    given) share the table of the first of them (`BsdfTable.at_wavelengths`); the same physics with
-    the same random numbers, a third of the work for a recording at three wavelengths."""
+    given) share the table traced at the longest of them (`same_indices`, `BsdfTable.at_wavelengths`):
+    the same physics with the same random numbers, a third of the work for a recording at three
+    wavelengths."""
     from dataclasses import replace as _replace
     from relief_bsdf.methods import entry, reconstruct
     reps, rows = same_indices(material, wl, side)
