@@ -14,6 +14,7 @@ sigma_model^2.
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -69,8 +70,12 @@ class DiagnosisForward:
     def simulate(self, experiment: Experiment) -> tuple[np.ndarray, np.ndarray]:
         """(values, model sigma): the sigma is the baseline's relative 1-sigma (its tables' Monte-Carlo
         noise and tile realisation through the plate, plate.uncertainty, computed once) times the values."""
+        from relief_bsdf.methods.realisation import tile_warnings_quiet
         self.evaluations += 1
-        sim = simulate(experiment, self.rows, engine="deterministic", grid=self.grid)
+        # the baseline's tables warn about the tile; an effect's tables (the same tile scaled, filtered, at
+        # another index) would repeat it once per probe and worker
+        with contextlib.nullcontext() if experiment is self.experiment else tile_warnings_quiet():
+            sim = simulate(experiment, self.rows, engine="deterministic", grid=self.grid)
         return sim.values_per_sr, self.model_rel_sigma() * np.abs(sim.values_per_sr)
 
     def model_rel_sigma(self) -> np.ndarray:

@@ -31,6 +31,7 @@ cells above TILE_WARN_REL, the ray method's threshold).
 """
 from __future__ import annotations
 
+import contextlib
 import warnings
 
 import numpy as np
@@ -127,6 +128,20 @@ def uncertainty_meta(method: str, side: str, values, sigma, how: str, correlatio
     for w in warn:
         warnings.warn(w, RuntimeWarning, stacklevel=stacklevel)
     return info, warn
+
+
+TILE_WARNING = r"[\w+-]+ table \((inside|outside)\): the tile holds"   # the start of every tile warning
+
+
+@contextlib.contextmanager
+def tile_warnings_quiet():
+    """Within: the tables' finite-tile warnings (`uncertainty_meta`, methods.ray) are not issued; what they
+    say stays in each table's metadata["uncertainty"] and sigma_per_sr.  For the many tables one run
+    derives of a relief already warned about (a diagnosis's probes: the same tile scaled or filtered);
+    every other warning passes."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=TILE_WARNING, category=RuntimeWarning)
+        yield
 
 
 def correlation_areas(relief) -> float | None:
