@@ -40,6 +40,8 @@ from relief_bsdf.core.frames import projected_solid_angle
 from relief_bsdf.errors import InputError
 
 SIDES = ("R", "T")
+ROW_ARRAYS = ("values_per_sr", "specular_R", "specular_T", "lost", "sigma_per_sr", "mueller_per_sr",
+              "specular_mueller_R", "specular_mueller_T")   # every array whose leading axes are (W, I, P)
 
 
 def _edges_from_centres(c: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -218,12 +220,17 @@ class BsdfTable:
         (geometric optics, `MethodEntry.wavelength_free`) at wavelengths where the indices are the same
         are one table (plate.faces: traced once)."""
         idx = np.asarray(rows, int)
-        cut = {n: (None if getattr(self, n) is None else np.take(getattr(self, n), idx, axis=0))
-               for n in ("sigma_per_sr", "mueller_per_sr", "specular_mueller_R", "specular_mueller_T")}
-        return replace(self, wavelength_nm=np.asarray(wavelength_nm, float),
-                       values_per_sr=np.take(self.values_per_sr, idx, axis=0),
-                       specular_R=self.specular_R[idx], specular_T=self.specular_T[idx], lost=self.lost[idx],
-                       **cut)
+        cut = {n: (None if getattr(self, n) is None else np.take(getattr(self, n), idx, axis=0)) for n in ROW_ARRAYS}
+        return replace(self, wavelength_nm=np.asarray(wavelength_nm, float), **cut)
+
+    def same_at(self, a_nm: float, b_nm: float) -> bool:
+        """Whether both wavelengths are on the table's axis with the same numbers in every array."""
+        w = self.wavelength_nm
+        ia, ib = np.nonzero(w == a_nm)[0], np.nonzero(w == b_nm)[0]
+        if not ia.size or not ib.size:
+            return False
+        return all(getattr(self, n) is None or np.array_equal(getattr(self, n)[ia[0]], getattr(self, n)[ib[0]])
+                   for n in ROW_ARRAYS)
 
     def summary(self) -> dict:
         return {"kind": "bsdf", "method": self.method, "from": self.incident_from,

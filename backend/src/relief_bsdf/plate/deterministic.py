@@ -79,7 +79,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.bsdf.table import ROW_ARRAYS, BsdfTable
 from relief_bsdf.core.frames import projected_solid_angle
 from relief_bsdf.errors import InputError
 from relief_bsdf.core.frames import rot_y
@@ -533,22 +533,10 @@ def _rough_exit(Um: np.ndarray, GhT: np.ndarray, A: int) -> np.ndarray:
     return np.fft.irfft(np.moveaxis(Um @ GhT, 0, 2), n=A, axis=2)
 
 
-def _same_wavelength_rows(table: BsdfTable, a: float, b: float) -> bool:
-    """Whether the table holds both wavelengths on its axis with the same numbers (what the plate reads)."""
-    w = np.asarray(table.wavelength_nm, float)
-    ia, ib = np.nonzero(w == a)[0], np.nonzero(w == b)[0]
-    if not ia.size or not ib.size:
-        return False
-    return all(arr is None or np.array_equal(arr[ia[0]], arr[ib[0]])
-               for arr in (table.values_per_sr, table.mueller_per_sr, table.specular_R, table.specular_T,
-                           table.specular_mueller_R, table.specular_mueller_T))
-
-
 def _phi_slice(table: BsdfTable, ip: int) -> BsdfTable:
     """The table at its ip-th incidence azimuth only (every array's phi_i axis, axis 2, cut to one)."""
     kw = {"phi_i_deg": np.asarray(table.phi_i_deg)[ip:ip + 1]}
-    for name in ("values_per_sr", "specular_R", "specular_T", "lost", "sigma_per_sr", "mueller_per_sr",
-                 "specular_mueller_R", "specular_mueller_T"):
+    for name in ROW_ARRAYS:
         a = getattr(table, name)
         if a is not None:
             kw[name] = a[:, :, ip:ip + 1]
@@ -967,9 +955,10 @@ class PlateSolver:
         return (near[None, :] == np.arange(1, ps.size)[:, None]).astype(float)
 
     def _sector_average(self, ops: dict) -> tuple[np.ndarray, np.ndarray]:
-        """((K, A) sector cells, sum_k w_k dK_k): the azimuth-weighted kernel difference of the sector
-        loop's preconditioner (`_sector_loop`); the tables and the grid fix it, so it is computed once
-        per wavelength and shared by the solvers whose bulk differs (`_table_ops`)."""
+        """((K, A) sector cells, sum_k w_k dK_k): the sectors' cells (`_sector_cells`, the loop's and the
+        exits') and the azimuth-weighted kernel difference of the sector loop's preconditioner
+        (`_sector_loop`); the tables and the grid fix them, so they are computed once per wavelength and
+        shared by the solvers whose bulk differs (`_table_ops`)."""
         t = self._tops[ops["wl"]]
         if "sector_average" not in t:
             P = self._sector_cells(ops["sectors"])
@@ -1024,9 +1013,8 @@ class PlateSolver:
         """(q, O, A): what the exit through the rough face changes when the light arriving there from inside
         (U, cells, every order) leaves by azimuth sector, each through its own inside table instead of the
         0-deg one turned (added to the rough face's diffuse exit; the exit is linear in the kernel)."""
-        sk = ops["sectors"]
         out = 0.0
-        for dG, mask in zip(sk.exits, self._sector_cells(sk)):
+        for dG, mask in zip(ops["sectors"].exits, self._sector_average(ops)[0]):
             if mask.any():
                 out = out + _rough_exit(_exit_modes(U * mask[None, None, :, None]), dG, A)
         return out
@@ -1070,7 +1058,7 @@ class PlateSolver:
         if key not in self._twins:
             same = (float(w) for w in np.sort(np.asarray(self.inside.wavelength_nm, float)) if w < wl
                     and (complex(m.index.n(w)), complex(m.outside_index.n(w))) == n
-                    and all(_same_wavelength_rows(t, float(w), wl) for t in tables))
+                    and all(t.same_at(float(w), wl) for t in tables))
             self._twins[key] = next(same, wl)                   # the shortest twin (compared lazily), else wl
         return self._twins[key]
 
