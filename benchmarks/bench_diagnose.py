@@ -189,20 +189,22 @@ def main(argv=None) -> int:
     ctx = (str(root), a.photons, a.method, candidates, workers)
     if a.summarise_only:          # the diagnoses already written (e.g. a run stopped part-way)
         res, cases = _read_results(root, cases)
-    elif a.resume:                # a run stopped part-way: diagnose the rest, then summarise every case
-        _, done = _read_results(root, cases)
-        todo = [c.name for c in cases if c not in done]
-        for name, r in zip(todo, map_tasks(_diag, todo, ctx, label="diagnose")):
+    elif a.serial or a.resume:    # --resume: a run stopped part-way: diagnose the rest, then summarise every case
+        todo = [c.name for c in (cases if not a.resume else
+                                 [c for c in cases if c not in _read_results(root, cases)[1]])]
+
+        def keep(name: str, r: dict) -> None:
             with open(root / "bench_results.jsonl", "a") as fh:
                 fh.write(json.dumps({"case": name, **r}) + "\n")
+        if a.serial:              # one case after the other, each result kept as it comes
+            for name in todo:
+                r = _diag(ctx, name)
+                keep(name, r)
+                print(f"{name} done: {'+'.join(r['effects'])} in {r['seconds']:.0f} s", flush=True)
+        else:
+            for name, r in zip(todo, map_tasks(_diag, todo, ctx, label="diagnose")):
+                keep(name, r)
         res, cases = _read_results(root, cases)
-    elif a.serial:                # one case after the other, each result kept as it comes
-        res = []
-        for c in cases:
-            res.append(_diag(ctx, c.name))
-            with open(root / "bench_results.jsonl", "a") as fh:
-                fh.write(json.dumps({"case": c.name, **res[-1]}) + "\n")
-            print(f"{c.name} done: {'+'.join(res[-1]['effects'])} in {res[-1]['seconds']:.0f} s", flush=True)
     else:
         res = map_tasks(_diag, [c.name for c in cases], ctx, label="diagnose")
     summary = summarise(cases, keys, res)

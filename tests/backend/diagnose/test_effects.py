@@ -53,6 +53,7 @@ def test_cheap_effects_reuse_the_baseline_tables(small):
         assert get_effect(name).cheap
         small.evaluate(get_effect(name), values)
     assert TABLE_CACHE.misses == misses
+    assert not get_effect("sample_tilt").cheap and get_effect("sample_tilt").budgeted
     small.evaluate(get_effect("sample_tilt"), {"tilt_deg": 2.0})
     assert TABLE_CACHE.misses == misses + 1     # tilted incidences: the outside table only
     assert not get_effect("instrument_blur").cheap

@@ -240,7 +240,9 @@ class BlurForward(AnalyticForward):
 
 def test_a_budgeted_candidate_the_rows_do_not_see_is_screened_out_after_two_evaluations():
     """relief_scale (table-changing) and volume_scattering (slow) leave the analytic rows alone: the
-    score test's gain is 0, so they are listed as screened and never fitted; the cheap ones are fitted."""
+    score test's gain is 0, so they are listed as screened and never fitted; the cheap ones are
+    screened too: the absorption is fitted, the background's best linear change gains less than the
+    fitted absorption (by more than BIC_MARGIN), so it is listed as outgained, not fitted."""
     fwd = AnalyticForward({"absorption_per_mm": 0.2}, seed=3)
     names = ["bulk_absorption", "stray_light", "relief_scale", "volume_scattering"]
     steps = stepwise(fwd, names, workers=1)
@@ -248,12 +250,32 @@ def test_a_budgeted_candidate_the_rows_do_not_see_is_screened_out_after_two_eval
     tried = {f["effect"]: f for f in steps[1].tried}
     assert tried["relief_scale"] == {"effect": "relief_scale", "screened": 0.0}
     assert tried["volume_scattering"] == {"effect": "volume_scattering", "screened": 0.0}
-    assert "chi2" in tried["bulk_absorption"] and "chi2" in tried["stray_light"]
+    assert "chi2" in tried["bulk_absorption"]
+    assert tried["stray_light"]["outgained_by"] == "bulk_absorption" and "chi2" not in tried["stray_light"]
     fwd.evaluations = 0
     from relief_bsdf.diagnose.stepwise import _fit_step
     fits, outgained, screened = _fit_step(fwd, steps[0], ["relief_scale"], {}, len(fwd.rows), None, 1, "step 1")
     assert fits == [] and outgained == [] and fwd.evaluations == 2
     assert screened == [{"effect": "relief_scale", "screened": 0.0}]
+
+
+@pytest.mark.parametrize("truth", [{"background_per_sr": 0.03}, {"background_per_sr": 0.002}, {}])
+def test_a_linear_effects_screen_bounds_its_fitted_gain_from_above(truth):
+    """The background adds b to every row: linear in its parameter, so the two probes' span holds the
+    whole family and the screen's gain (an unconstrained least squares in that span) is at least what
+    the bounded fit gains: a screen that fails the bar never hides a background that would pass."""
+    from relief_bsdf.diagnose.stepwise import Step, line_gain, _probes
+    fwd = AnalyticForward(truth, seed=7)
+    v0, s0 = fwd.baseline()
+    base = Step((), {}, fwd.misfit(v0, s0), 0, (v0, s0))
+    e = get_effect("stray_light")
+    screen = line_gain(fwd, base, e, _probes(e, None))
+    fit = fit_effect(fwd, e)
+    gain = base.chi2 - fit["chi2"]
+    assert gain >= 0.0
+    assert screen >= gain - 1e-6 * base.chi2
+    if truth:           # the family's best member is the fit's (a background >= 0 reached)
+        assert screen == pytest.approx(gain, rel=0.02, abs=0.5)
 
 
 @pytest.mark.parametrize("blur_deg", [1.5, 4.0])
@@ -386,8 +408,8 @@ def test_a_step_round_on_worker_processes_gives_the_steps_of_one_process():
 
 def test_a_screen_whose_tables_this_process_holds_runs_here_beside_the_workers():
     """A screen whose probes' tables this process's cache holds from an earlier step runs in this process
-    (its evaluations counted here) while the fits and the other screens run on the workers; the round's
-    results are those of one process."""
+    (its evaluations counted here) while the other screens run on the workers; the round's results are
+    those of one process.  Every candidate with parameters is screened (none is fitted in the round)."""
     import sys
     from relief_bsdf.plate.faces import TABLE_CACHE
     sw = sys.modules["relief_bsdf.diagnose.stepwise"]           # the package exports the function of that name
@@ -406,8 +428,8 @@ def test_a_screen_whose_tables_this_process_holds_runs_here_beside_the_workers()
         if workers == 2:
             assert fwd.evaluations == len(scale[1])     # the held screen's probes alone were evaluated here
     assert _plain(rounds[1]) == _plain(rounds[0])
-    assert [f["effect"] for f in rounds[0][0]] == ["bulk_absorption", "stray_light"]
-    assert [r["effect"] for r in rounds[0][1]] == ["relief_scale", "instrument_blur"]
+    assert rounds[0][0] == []
+    assert [r["effect"] for r in rounds[0][1]] == names
 
 
 def test_independent_points_are_evaluated_on_the_kept_workers_with_the_results_of_this_process(plate_forward):

@@ -8,28 +8,32 @@ fitted parameters of the named effects.
 Step (current set S, chi^2_S, k_S; S = {} is the baseline):
 1. every candidate c not in S that can act together with S (`effects.compatible`) and is not
    held fixed by sample.toml is fitted with S held at its values (`fitting.fit_effect`, the
-   conditional fit; at the first step this is the single-effect fit of each candidate).
-   Budget: at every step, a `budgeted` candidate (one that re-derives boundary tables: the relief
-   operations, instrument blur's beam divergence at its incidences; or whose evaluation is slow:
-   volume scattering) is first screened by TWO
-   evaluations (`_probes`: its value from the first step's fit when it had one, else 10 % into
-   its range; and 10 % to the other side of its neutral value, or 30 % into the range when the
-   neutral value is a bound).  With r the current normalised residual and D the probes' changes
-   of the model in the same units, the chi^2 gain of the best linear combination,
-   r.D (D^T D)^+ D^T.r (a linear least-squares search in the probes' span: Rao's score test,
-   with the second probe catching a change of shape with the amplitude), must pass the same
-   bar as a fit (`passes`, with chi^2_S minus that gain as the larger model's chi^2), else the
-   candidate is listed as screened out and not fitted.  The fits of the cheap candidates and the
-   screens run as one round on the worker processes, except a screen whose probes' tables this
-   process already holds from an earlier step, which runs here beside them (`_step_round`;
-   the rounds of one diagnosis share one pool of worker processes, `parallel.kept_workers`, so
-   the workers keep the tables, solvers and evaluations of the rounds before);
-   then the budgeted ones that passed, in decreasing screen gain, each only while it could
-   still be the step's best: its screened BIC gain (gain - k ln n) must exceed the best BIC gain
-   already fitted at this step, else it is listed as outgained (the step's winner is the
-   largest gain, and the span of two probes estimates a one-parameter fit's gain from above
-   in the linear regime).  A screen cannot name an effect, only save the fit of one that
-   could not pass or win: what is named is always decided on fitted chi^2;
+   conditional fit; at the first step this is the single-effect fit of each candidate) unless
+   its screen shows that it can neither pass nor win.
+   Screen: every candidate with parameters is first screened by TWO evaluations (`_probes`: its
+   value from the first step's fit when it had one, else 10 % into its range; and 10 % to the
+   other side of its neutral value, or 30 % into the range when the neutral value is a bound).
+   With r the current normalised residual and D the probes' changes of the model in the same
+   units, the chi^2 gain of the best linear combination, r.D (D^T D)^+ D^T.r (a linear
+   least-squares search in the probes' span: Rao's score test, with the second probe catching
+   a change of shape with the amplitude), must pass the same bar as a fit (`passes`, with
+   chi^2_S minus that gain as the larger model's chi^2), else the candidate is listed as
+   screened out and not fitted.  For an effect linear in its parameter (a background, the
+   source's Stokes q) the span holds the whole family, so the screen gain bounds the fit's gain
+   from above (a bounded fit gains less); for a smooth one (Beer-Lambert absorption, a tilt, a
+   relief scale) it is the linear regime's estimate.  A fit costs 9-19 evaluations, a screen 2:
+   on a measured map the cheap fits alone were 40-50 s of a step's worker time (2026-12-04).
+   The screens and the fits of candidates without parameters run as one round on the worker
+   processes, except a screen whose probes' tables this process already holds from an earlier
+   step, which runs here beside them (`_step_round`; the rounds of one diagnosis share one pool
+   of worker processes, `parallel.kept_workers`, so the workers keep the tables, solvers and
+   evaluations of the rounds before); then the candidates that passed are fitted in decreasing
+   screen gain, one at a time in this process (a fit's grid points are evaluated together on
+   the worker processes, `DiagnosisForward.prefetch`), each only while it could still be the
+   step's best or within BIC_MARGIN of it (an `alternatives` entry, item 5): its screened BIC
+   gain (gain - k ln n) must exceed the best BIC gain already fitted at this step less
+   BIC_MARGIN, else it is listed as outgained.  A screen cannot name an effect, only save the
+   fit of one that could not pass or win: what is named is always decided on fitted chi^2;
 2. the candidate with the lowest BIC(S + c) is the one that gains most; it passes the bar
    (`passes`) when
    - Delta BIC = BIC(S) - BIC(S + c) > BIC_MARGIN = 10 ("very strong", Kass & Raftery 1995),
@@ -122,7 +126,7 @@ class Step:
 
 
 def _probes(effect, first: dict | None) -> list[dict]:
-    """The screening points of a budgeted candidate (module docstring, step 1)."""
+    """The screening points of a candidate (module docstring, step 1); [] for one without parameters."""
     if not effect.params:
         return []
     out = []
@@ -156,12 +160,12 @@ def line_gain(forward, cur: "Step", effect, probes: list[dict]) -> float:
 
 
 def _plan(forward, names: list[str], first: dict) -> list[tuple]:
-    """[(name, probes)] of a step: a budgeted candidate's screening points (`_probes`), None for a
-    candidate fitted unscreened (or listed as skipped by fit_effect, with its reason)."""
+    """[(name, probes)] of a step: a candidate's screening points (`_probes`), None for one fitted
+    unscreened (no parameters: one evaluation) or listed as skipped by fit_effect, with its reason."""
     plan = []
     for name in names:
         e = get_effect(name)
-        probes = _probes(e, first.get(name)) if e.budgeted else []
+        probes = _probes(e, first.get(name))
         plan.append((name, probes if probes and not why_skipped(forward, e) else None))
     return plan
 
@@ -170,11 +174,10 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
               label: str, held: dict | None = None) -> tuple[list[dict], list[dict], list[dict]]:
     """(fits, outgained entries, screened-out entries) of a step (module docstring, step 1).
 
-    The unscreened candidates' fits and the budgeted candidates' screens do not depend on each
-    other and run as one round (`_step_round`; `held`: which tables each earlier screen used); then
-    the screened candidates that passed are fitted in decreasing screen gain while each could
-    still win."""
-    from relief_bsdf.parallel.tasks import current_settings
+    The screens (and the one-evaluation fits of candidates without parameters) do not depend on
+    each other and run as one round (`_step_round`; `held`: which tables each earlier screen used);
+    then the candidates that passed are fitted in decreasing screen gain while each could still win
+    or be an alternative."""
     ln = math.log(max(n, 2))
     fits, screens = _step_round(forward, cur, _plan(forward, names, first), progress, workers, label,
                                 {} if held is None else held)
@@ -187,7 +190,6 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
         else:
             screened.append({"effect": r["effect"], "screened": round(r["screen"], 3)})
     costly.sort(reverse=True)
-    batch_size = max(1, workers or current_settings().worker_count())
     outgained = []
 
     def best() -> tuple[float, str]:
@@ -198,13 +200,16 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
         return cur.chi2 - f["chi2"] - f["k"] * ln, f["effect"]
     while costly:
         top, leader = best()
-        batch = [m for g, m in costly if g - get_effect(m).k * ln > top][:batch_size]
-        if not batch:
+        can_win = [(g, m) for g, m in costly if g - get_effect(m).k * ln > top - BIC_MARGIN]
+        if not can_win:
             outgained += [{"effect": m, "screened": round(g, 3), "outgained_by": leader} for g, m in costly]
             break
-        fits += map_tasks(_step_task, [_task(m, None, cur) for m in batch], forward, progress=progress, label=label,
-                          workers=workers)
-        costly = [(g, m) for g, m in costly if m not in batch]
+        # one at a time, in this process: its grids' points are evaluated together on the kept
+        # workers (`DiagnosisForward.prefetch`), and the next is fitted only if it can still win
+        g, m = can_win[0]
+        costly.remove((g, m))
+        fits.append(_step_task(forward, _task(m, None, cur)))
+        progress(len(fits), len(fits) + len(costly), label)
     return fits, outgained, screened
 
 

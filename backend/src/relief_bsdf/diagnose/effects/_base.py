@@ -16,9 +16,8 @@ Every module of `relief_bsdf.diagnose.effects` defines one `EFFECT = Effect(...)
 - `cheap`: True when the effect leaves every boundary table as it is (bulk, instrument),
   so an evaluation re-uses the baseline's tables (the fit grid can then be finer);
 - `slow`: True for a cheap effect whose evaluation still takes seconds (the adding-doubling
-  slab of a scattering bulk); `budgeted` (not cheap, or
-  slow) effects get the short fit grid and are screened before they are fitted
-  (`stepwise`);
+  slab of a scattering bulk); `budgeted` (not cheap, or slow) effects get the short fit grid
+  (`fitting`; every candidate is screened before it is fitted, `stepwise`);
 - `bracket(context, forward) -> {param: (lo, hi)}`: optional narrower search interval
   derived from the data (e.g. the weighted-mean background for stray light);
 - `coordinate(context) -> {param: (to_u, from_u)}`: optional monotone search coordinate u of a
@@ -133,8 +132,8 @@ class Effect:
 
     @property
     def budgeted(self) -> bool:
-        """An evaluation costs seconds (new boundary tables, or a slow cheap effect): short fit grids,
-        and screened by the linear score test before a fit (`stepwise`)."""
+        """An evaluation costs seconds (new boundary tables, or a slow cheap effect): short fit grids
+        (`fitting`)."""
         return not self.cheap or self.slow
 
     @property

@@ -4,6 +4,8 @@ Physics: the sample normal is rotated by tilt about the instrument's y axis; inc
 exit directions are seen in the tilted sample frame and a reading converted back with the
 instrument's own cos theta_s (`Instrument.tilt_deg`, one definition in the plate engine).
 Only the outside tables at the tilted incidences are new; the inside tables are re-used.
+Not `cheap` (an evaluation derives those outside tables: a ray table traces rays), so budgeted:
+screened by two probes and fitted on the short grid (`stepwise`, `fitting`).
 Validity: a rigid rotation of a laterally infinite plate; tilts of a few degrees.
 """
 from relief_bsdf.diagnose.effects._base import Effect, Param
@@ -20,5 +22,5 @@ EFFECT = Effect(
     validity="rigid rotation about the y axis of a laterally infinite plate",
     apply=_apply,
     explain=lambda v: f"a tilt of {v['tilt_deg']:+.2f} deg in the plane of incidence",
-    cheap=True,
+    cheap=False,
 )
