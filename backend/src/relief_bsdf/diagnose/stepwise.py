@@ -191,6 +191,7 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
             screened.append({"effect": r["effect"], "screened": round(r["screen"], 3)})
     costly.sort(reverse=True)
     outgained = []
+    fitted = 0
 
     def best() -> tuple[float, str]:
         ok = [f for f in fits if "chi2" in f]
@@ -206,10 +207,12 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
             break
         # one at a time, in this process: its grids' points are evaluated together on the kept
         # workers (`DiagnosisForward.prefetch`), and the next is fitted only if it can still win
+        # or come within BIC_MARGIN of the winner
         g, m = can_win[0]
         costly.remove((g, m))
         fits.append(_step_task(forward, _task(m, None, cur)))
-        progress(len(fits), len(fits) + len(costly), label)
+        fitted += 1
+        progress(fitted, fitted + len(costly), label)
     return fits, outgained, screened
 
 
