@@ -190,8 +190,8 @@ def main(argv=None) -> int:
     if a.summarise_only:          # the diagnoses already written (e.g. a run stopped part-way)
         res, cases = _read_results(root, cases)
     elif a.serial or a.resume:    # --resume: a run stopped part-way: diagnose the rest, then summarise every case
-        todo = [c.name for c in (cases if not a.resume else
-                                 [c for c in cases if c not in _read_results(root, cases)[1]])]
+        done = _read_results(root, cases)[1] if a.resume else []
+        todo = [c.name for c in cases if c not in done]
 
         def keep(name: str, r: dict) -> None:
             with open(root / "bench_results.jsonl", "a") as fh:

@@ -180,8 +180,9 @@ def _candidate_list(fits: list[dict], chi0: float, n: int) -> list[dict]:
     out.sort(key=lambda c: c["score"])
     out += [{"effect": f["effect"], "rms_after": None, "score": None, "parameters": {},
              "screened": (f"not fitted: the best linear change toward it (score test, stepwise) gains chi2 "
-                          f"{f['screened']:.3g}, " + (f"less than {f['outgained_by']} gained when fitted, by more than the BIC margin"
-                                                      if f.get("outgained_by") else "short of the selection's bar"))}
+                          f"{f['screened']:.3g}, "
+                          + (f"less than {f['outgained_by']} gained when fitted, by more than the BIC margin"
+                             if f.get("outgained_by") else "short of the selection's bar"))}
             for f in fits if "screened" in f]
     out += [{"effect": f["effect"], "rms_after": None, "score": None, "parameters": {}, "skipped": f["skipped"]}
             for f in fits if f.get("skipped")]

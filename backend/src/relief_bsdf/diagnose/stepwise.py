@@ -181,15 +181,15 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
     ln = math.log(max(n, 2))
     fits, screens = _step_round(forward, cur, _plan(forward, names, first), progress, workers, label,
                                 {} if held is None else held)
-    costly, screened = [], []
+    passed, screened = [], []
     for r in screens:
         if r["screen"] is None:
             screened.append({"effect": r["effect"], "skipped": r["skipped"]})
         elif passes(cur.chi2, cur.k, cur.chi2 - r["screen"], cur.k + get_effect(r["effect"]).k, n):
-            costly.append((r["screen"], r["effect"]))
+            passed.append((r["screen"], r["effect"]))
         else:
             screened.append({"effect": r["effect"], "screened": round(r["screen"], 3)})
-    costly.sort(reverse=True)
+    passed.sort(reverse=True)
     outgained = []
     fitted = 0
 
@@ -199,20 +199,20 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
             return -math.inf, ""
         f = max(ok, key=lambda f: cur.chi2 - f["chi2"] - f["k"] * ln)
         return cur.chi2 - f["chi2"] - f["k"] * ln, f["effect"]
-    while costly:
+    while passed:
         top, leader = best()
-        can_win = [(g, m) for g, m in costly if g - get_effect(m).k * ln > top - BIC_MARGIN]
+        can_win = [(g, m) for g, m in passed if g - get_effect(m).k * ln > top - BIC_MARGIN]
         if not can_win:
-            outgained += [{"effect": m, "screened": round(g, 3), "outgained_by": leader} for g, m in costly]
+            outgained += [{"effect": m, "screened": round(g, 3), "outgained_by": leader} for g, m in passed]
             break
         # one at a time, in this process: its grids' points are evaluated together on the kept
         # workers (`DiagnosisForward.prefetch`), and the next is fitted only if it can still win
         # or come within BIC_MARGIN of the winner
         g, m = can_win[0]
-        costly.remove((g, m))
+        passed.remove((g, m))
         fits.append(_step_task(forward, _task(m, None, cur)))
         fitted += 1
-        progress(fitted, fitted + len(costly), label)
+        progress(fitted, fitted + len(passed), label)
     return fits, outgained, screened
 
 
@@ -231,7 +231,7 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
                 held: dict) -> tuple[list[dict], list[dict]]:
     """(fits, screens) of a step's first round, in plan order.
 
-    The round is one batch of tasks on the worker processes (the fits first: the longer tasks),
+    The round is one batch of tasks on the worker processes (the fits of candidates without parameters first),
     except the screens whose probes' tables this process's cache (`plate.faces.TABLE_CACHE`)
     already holds: the same candidate screened at the same probe values at an earlier step
     (`held`: the table keys each screen used).  Those run here, beside the batch (plate solves
