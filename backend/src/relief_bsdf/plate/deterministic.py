@@ -760,6 +760,10 @@ class PlateSolver:
         self._ops: dict = {}
         self._tops: dict = {}          # the tables' part of the operators (`_table_ops`), shared across bulks
         self._twins: dict = {}         # wavelength -> the one solved in its place (`_twin_wavelength`)
+        # the solver on the outside table of the relief turned by a half turn, for the rows lit from the
+        # far half of azimuths (`far_side`, `plate.faces.half_turned_outside`; set by `solver_of`), or None:
+        # those rows are then read from this solver's phi_i = 0 table turned by their azimuth
+        self.half_turn: "PlateSolver | None" = None
 
     # -- per wavelength operators
     def _table_ops(self, wl: float) -> dict:
@@ -1424,16 +1428,20 @@ def _readings(solver: PlateSolver, model: PlateModel, wl, ti, pi, side, ts, ps, 
         ti, pi, shift = beam_split(ti, pi, nominal[0], nominal[1])
         ts, ps, ok = _shifted(ts, ps, shift)
     out = np.zeros(wl.size)
+    half = getattr(solver, "half_turn", None)
+    far = far_side(ti, pi) if half is not None else np.zeros(wl.size, bool)
     for w in np.unique(wl):
-        mw = wl == w
-        keys = np.unique(np.stack([ti[mw], pi[mw]], 1), axis=0)
-        thetas = np.unique(keys[:, 0])
-        res = {float(t): r for t, r in zip(thetas, solver.solve(w, thetas))}
-        for t, p in keys:
-            sel = mw & (ti == t) & (pi == p)
-            r = res[float(t)]
-            r = replace(r, phi_i_deg=float(p))
-            out[sel] = grid_reading(r, side[sel], ts[sel], ps[sel], det, parts)
+        for on_far, s in ((False, solver), (True, half)):
+            mw = (wl == w) & (far == on_far)
+            if not mw.any():
+                continue
+            keys = np.unique(np.stack([ti[mw], pi[mw]], 1), axis=0)
+            thetas = np.unique(keys[:, 0])
+            res = {float(t): r for t, r in zip(thetas, s.solve(w, thetas))}
+            for t, p in keys:
+                sel = mw & (ti == t) & (pi == p)
+                r = replace(res[float(t)], phi_i_deg=float(p))
+                out[sel] = grid_reading(r, side[sel], ts[sel], ps[sel], det, parts)
     return np.where(ok, out, 0.0) * factor
 
 
@@ -1539,11 +1547,12 @@ def relief_anisotropic(experiment: Any) -> bool:
     return any(anisotropic_face(f) for f in (experiment.plate.front, experiment.plate.back))
 
 
-def table_incidences(experiment: Any, rows: Any, beam_traced: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """(wavelengths, outside incidences) the faces' tables need for these rows: the rows' own, or
-    under a sample tilt the incidences the tilted sample sees (those the engine will solve); with a
-    beam divergence the quadrature's incidences too, unless the outside table traces the beam itself
-    (`beam_traced`, `front_traces_beam`)."""
+def sample_incidences(experiment: Any, rows: Any, beam_traced: bool = False
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(wavelengths, theta, phi) of every outside incidence the engine solves for these rows, in the
+    sample's frame: the rows' own, or under a sample tilt those the tilted sample sees; with a beam
+    divergence the quadrature's incidences too, unless the outside table traces the beam itself
+    (`beam_traced`, `front_traces_beam`); theta and phi one entry per incidence (not unique)."""
     wl = np.unique(np.asarray(rows.wavelength_nm, float))
     ti = np.abs(np.asarray(rows.theta_i_deg, float))
     pi = np.asarray(rows.phi_i_deg, float) + 0 * ti
@@ -1557,12 +1566,28 @@ def table_incidences(experiment: Any, rows: Any, beam_traced: bool = False) -> t
         if tq is not None:
             tq, pq = to_sample_frame(tq, pq, np.full(tq.shape, "R"), tilt)
         ti, pi = to_sample_frame(ti, pi, np.full(ti.shape, "R"), tilt)
-        ti = np.round(ti, 9)
+        ti, pi = np.round(ti, 9), np.round(pi, 9)
     if tq is not None:
         if relief_anisotropic(experiment):          # solved in the nominal plane (beam_split)
-            tq = beam_split(tq, pq, np.repeat(ti, q), np.repeat(pi, q))[0]
+            tq, pq = beam_split(tq, pq, np.repeat(ti, q), np.repeat(pi, q))[:2]
         ti = np.concatenate([ti, np.round(tq, 9)])
+        pi = np.concatenate([pi, np.round(pq, 9)])
+    return wl, ti, pi
+
+
+def table_incidences(experiment: Any, rows: Any, beam_traced: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(wavelengths, outside incidences) the faces' tables need for these rows (`sample_incidences`,
+    every azimuth: the phi_i = 0 table serves any row where no half-turned table is made)."""
+    wl, ti, _ = sample_incidences(experiment, rows, beam_traced)
     return wl, np.unique(ti)
+
+
+def far_side(theta_deg: Any, phi_deg: Any) -> np.ndarray:
+    """Whether each incidence (sample frame) is lit from the far half of azimuths, 90 < phi < 270 deg,
+    where the engine reads the half-turned relief's outside table (`PlateSolver.half_turn`); normal
+    incidence has no azimuth and is read from the table at 0."""
+    t = np.asarray(theta_deg, float)
+    return (t > 1e-9) & (np.cos(np.radians(np.asarray(phi_deg, float) + 0 * t)) < -1e-9)
 
 
 def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None, keep: bool = True) -> PlateSolver:
@@ -1584,9 +1609,21 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None, keep:
         return _reused_solver(model_of(experiment, grid, "back"), b_in, None, None, keep=keep)
     f_out, f_in = front_tables(experiment, grid, wl, ti, traced, progress)
     b_in = None if back.is_flat else back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)[1]
-    from relief_bsdf.plate.faces import inside_sectors
+    from relief_bsdf.plate.faces import half_turned_outside, inside_sectors
     sectors = inside_sectors(front, mat, grid, wl, ti, progress) if b_in is None else None
-    return _reused_solver(model_of(experiment, grid, "front", traced), f_in, f_out, b_in, sectors, keep)
+    model = model_of(experiment, grid, "front", traced)
+    solver = _reused_solver(model, f_in, f_out, b_in, sectors, keep)
+    solver.half_turn = None
+    _, t_all, p_all = sample_incidences(experiment, rows, traced)
+    far = np.unique(t_all[far_side(t_all, p_all)])
+    if far.size:
+        beam = experiment.instrument.beam_divergence_deg if traced else 0.0
+        t_out = half_turned_outside(front, mat, grid, wl, far, progress, beam)
+        if t_out is not None:       # the same loop tables: only the outside part is new (`with_outside`)
+            half = _reused_solver(model, f_in, t_out, b_in, sectors, keep)
+            half.half_turn = None
+            solver.half_turn = half
+    return solver
 
 
 def front_traces_beam(experiment: Any, rows: Any, grid: Any) -> bool:
@@ -1619,7 +1656,7 @@ def front_tables(experiment: Any, grid: Any, wl: Any, ti: Any, traced: bool, pro
 
 
 _SOLVERS: list = []          # (tables, plate fields, solver): the last few, newest last
-_SOLVERS_KEPT = 4
+_SOLVERS_KEPT = 6            # (a tilt's pair: its solver and the half-turned one, `solver_of`, sharing the loop's operators)
 _SOLVED_KEPT = 8             # unit-source fields kept per wavelength's operators (`PlateSolver.solve`) ...
 _SOLVED_BYTES = 150e6        # ... and their bytes at most (a beam divergence's many incidences: not kept)
 _BULK_FIELDS = ("thickness_m", "absorption_per_m", "scatter_per_m", "hg_g")    # act on `_operators` alone
