@@ -134,3 +134,68 @@ def test_stated_level_error_covered_by_the_nuisance_and_shapes_not_widened():
     assert 0.6 <= inside / DRAWS <= 0.8, inside / DRAWS
     assert float(np.median(widen_shape)) < 1.1
     assert "a level +-2 %" in with_level.note(0)
+
+
+def _shared_basis() -> np.ndarray:
+    """A model's table noise seen by the rows: 12 cells, each a bump of 5 deg at its own offset from the
+    lobe's centre, read alike by every scan (one noisy cell moves the same place of every lobe)."""
+    th = np.linspace(-70.0, 70.0, PER_SCAN)
+    offsets = np.linspace(-30.0, 30.0, 12)
+    cols = []
+    for k in range(N_SCANS):
+        c = 10.0 * k - 25.0
+        cols.append(np.exp(-0.5 * ((th[:, None] - c - offsets[None, :]) / 5.0) ** 2))
+    return 0.8 * np.concatenate(cols)
+
+
+def _shared_coverage(seed: int, K: int = 8) -> tuple[float, float, float]:
+    """(coverage with the shared draws, without them, median widening): y the truth plus recording noise,
+    the model the truth plus ONE draw of the shared table noise B g; the fit knows the per-row sigma
+    s^2 = 1 + diag(B B^T) and K independent draws of B g (as plate.uncertainty makes them)."""
+    from relief_bsdf.fit.covariance import shared_columns
+    X, scans = _design()
+    B = _shared_basis()
+    s = np.sqrt(1.0 + np.sum(B * B, axis=1))
+    truth = np.array([30.0, 4.0])
+    rng = np.random.default_rng(seed)
+    inside = inside_plain = 0
+    widen = []
+    for _ in range(DRAWS):
+        y = X @ truth + rng.standard_normal(len(X))
+        shift = B @ rng.standard_normal(B.shape[1])        # the model's one table realisation
+        Xs = X / s[:, None]
+        beta = np.linalg.lstsq(Xs, (y - shift) / s, rcond=None)[0]
+        r = (y - shift - X @ beta) / s
+        J = -Xs
+        draws = (B @ rng.standard_normal((B.shape[1], K))).T          # K draws, as deviations of the values
+        model = X @ beta + shift
+        rel = draws / model[None, :]
+        c = parameter_covariance(J, r, scans, shared=shared_columns(rel - rel.mean(axis=0), model, s))
+        plain = parameter_covariance(J, r, scans)
+        inside += bool(abs(beta[0] - truth[0]) <= np.sqrt(c.cov[0, 0]))
+        inside_plain += bool(abs(beta[0] - truth[0]) <= np.sqrt(plain.cov[0, 0]))
+        widen.append(c.shared_widening[0])
+    return inside / DRAWS, inside_plain / DRAWS, float(np.median(widen))
+
+
+def test_model_noise_shared_by_the_rows_is_covered_by_its_draws():
+    """The simulation's table noise is one realisation read by many rows: with the per-row sigma alone (and
+    the HAC estimate along the scans) the interval is too narrow; with the K = 8 draws' covariance
+    (shared_columns, the sandwich) it holds the truth about two times in three."""
+    cov, plain, widen = _shared_coverage(seed=21)
+    assert plain < 0.5, plain
+    assert 0.58 <= cov <= 0.85, cov
+    assert widen > 1.5, widen
+
+
+def test_shared_draws_that_do_not_correlate_rows_do_not_widen():
+    """Draws independent from row to row (no cell read by two rows) add nothing beyond the per-row sigma."""
+    from relief_bsdf.fit.covariance import shared_columns
+    X, scans = _design()
+    rng = np.random.default_rng(5)
+    model = X @ np.array([30.0, 4.0]) + 1.0
+    s = np.full(len(X), 1.2)
+    rel = rng.standard_normal((400, len(X))) * 0.3 / model[None, :]
+    c = parameter_covariance(-X / s[:, None], rng.standard_normal(len(X)), scans,
+                             shared=shared_columns(rel - rel.mean(axis=0), model, s))
+    assert c.shared_draws == 400 and np.all(c.shared_widening < 1.1), c.shared_widening

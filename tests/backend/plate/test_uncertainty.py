@@ -138,3 +138,22 @@ def test_the_draws_solvers_are_not_kept_and_the_baselines_stays():
     again = simulate(ex.with_instrument(background_per_sr=0.01), rows, grid=grid)
     assert len(deterministic._SOLVERS) == 1 and deterministic._SOLVERS[0][2]._ops is baseline._ops
     np.testing.assert_allclose(again.values_per_sr, sim.values_per_sr + 0.01, rtol=1e-12)
+
+
+def test_the_relative_deviations_are_the_draws_behind_the_relative_sigma():
+    """relative_deviations (the intervals' shared model noise) are the draws of rows_sigma, centred and
+    divided by the values: their standard deviation is relative_sigma, row by row; without a sigma, none."""
+    from relief_bsdf.plate.uncertainty import relative_deviations, relative_sigma
+    relief = random_relief(48, 1.0e-6, 0.6e-6, 5.0e-6, "gaussian", seed=4)
+    ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", samples=3_000, seed=0), FlatFace()))
+    rows = in_plane_rows(550.0, [0.0, 30.0], np.arange(2.0, 88.0, 8.0))
+    grid = TableGrid(3.0, 15.0, 15.0)
+    dev = relative_deviations(ex, rows, grid, draws=5)
+    assert dev.shape == (5, len(rows)) and np.allclose(dev.mean(axis=0), 0.0, atol=1e-12)
+    v = simulate(ex, rows, grid=grid).values_per_sr
+    sigma = rows_sigma(ex, rows, grid, draws=5)
+    want = np.clip(np.divide(sigma, np.abs(v), out=np.zeros_like(v), where=v != 0), 0.0, 1.0)
+    np.testing.assert_allclose(dev.std(axis=0, ddof=1), want, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(relative_sigma(ex, rows, grid, draws=5), want, rtol=1e-9, atol=1e-12)
+    flat = Experiment(Plate(2e-3, ConstantIndex(1.5), FlatFace(), FlatFace()))
+    assert relative_deviations(flat, rows, grid, draws=5).shape == (0, len(rows))

@@ -52,7 +52,7 @@ from scipy import optimize
 
 from relief_bsdf.diagnose.effects import Effect, Param
 from relief_bsdf.errors import InputError
-from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of
+from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of, shared_columns
 from relief_bsdf.fit.residual import signed_residuals
 
 GRID_CHEAP, REFINE_CHEAP = 9, 10
@@ -310,7 +310,8 @@ def intervals(forward, effects: tuple, values: dict, jacobian: np.ndarray | None
     ranges = np.array([bounds[p.name][1] - bounds[p.name][0] for p in params])
     live = np.sum(J**2, axis=0) * ranges**2 >= 1.0   # moving it across its whole range changes chi^2 by >= 1
     nuisance, text = level_nuisance(rows, v0, s)
-    c = parameter_covariance(J, signed_residuals(rows.bsdf_sr, v0, s), scans_of(rows), live, nuisance, text)
+    shared = shared_columns(forward.model_rel_deviations(), v0, s) if hasattr(forward, "model_rel_deviations") else None
+    c = parameter_covariance(J, signed_residuals(rows.bsdf_sr, v0, s), scans_of(rows), live, nuisance, text, shared)
     cov = c.cov
     out, notes = {}, {}
     for j, p in enumerate(params):

@@ -45,6 +45,7 @@ class DiagnosisForward:
     _baseline: tuple | None = field(default=None, repr=False)
     _memo: dict = field(default_factory=dict, repr=False)
     _rel_sigma: np.ndarray | None = field(default=None, repr=False)
+    _rel_dev: np.ndarray | None = field(default=None, repr=False)
     _baseline_keys: frozenset = field(default=frozenset(), repr=False)
 
     def __getstate__(self) -> dict:
@@ -81,9 +82,17 @@ class DiagnosisForward:
     def model_rel_sigma(self) -> np.ndarray:
         """The baseline's relative 1-sigma per row (plate.uncertainty.relative_sigma), computed once."""
         if self._rel_sigma is None:
-            from relief_bsdf.plate.uncertainty import relative_sigma
-            self._rel_sigma = relative_sigma(self.experiment, self.rows, self.grid, SIGMA_DRAWS)
+            from relief_bsdf.plate.uncertainty import deviations_sigma
+            self._rel_sigma = deviations_sigma(self.model_rel_deviations(), len(self.rows))
         return self._rel_sigma
+
+    def model_rel_deviations(self) -> np.ndarray:
+        """The baseline's table draws as relative deviations per row (SIGMA_DRAWS x rows,
+        plate.uncertainty.relative_deviations), computed once: the intervals' shared model noise."""
+        if self._rel_dev is None:
+            from relief_bsdf.plate.uncertainty import relative_deviations
+            self._rel_dev = relative_deviations(self.experiment, self.rows, self.grid, SIGMA_DRAWS)
+        return self._rel_dev
 
     def baseline(self) -> tuple[np.ndarray, np.ndarray]:
         """(values, model sigma) of the sample as stated (computed once)."""

@@ -44,8 +44,22 @@ and Delta is added to the covariance above: a parameter that moves the rows as a
 one that changes shapes (blur, tilt, a lobe width) hardly any.  `level_nuisance` makes the
 columns of the plate's stated per-side level accuracy (plate.uncertainty.FORWARD_LEVEL_SD).
 
-Regime: residuals whose correlation falls off within a scan, besides the stated levels; a score
-that is roughly linear within the interval.
+*Model noise shared by rows* (`shared`).  The simulation's own noise (its boundary tables' Monte-Carlo
+noise, plate.uncertainty) is in s as an independent per-row sigma, but it is one realisation: a
+noisy cell moves every row that reads it, in every scan, and the fit is pulled by that one draw.
+With the K perturbed-table draws of the simulation, d_k (n) normalised by s (`shared_columns`:
+D = d / (s sqrt(K - 1)), so D D^T estimates the noise's covariance in units of s^2), the estimator
+x = argmin |r|^2 has the sandwich covariance A^-1 J^T (Sigma) J A^-1 (Huber 1967), whose part beyond
+the independent rows already in A^-1 is
+
+    E = A^-1 [ (J^T D)(J^T D)^T - J^T diag(D D^T) J ] A^-1,
+
+the off-diagonal covariance of the shared noise projected on the parameters.  Each parameter's
+variance is then the largest of the HAC one and the curvature one plus E (correlations the
+curvature's).  With K = 8 draws, E is known to about +-50 %.
+
+Regime: residuals whose correlation falls off within a scan, besides the stated levels and the
+shared model noise; a score that is roughly linear within the interval.
 """
 from __future__ import annotations
 
@@ -54,7 +68,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Covariance", "level_nuisance", "parameter_covariance", "scans_of"]
+__all__ = ["Covariance", "level_nuisance", "parameter_covariance", "scans_of", "shared_columns"]
 
 SINGULAR_COND = 1e12
 
@@ -70,6 +84,12 @@ class Covariance:
     lag1: float                  # pooled lag-1 correlation of the residuals along the scans
     nuisance_widening: np.ndarray | None = None   # per parameter: sd with / without the stated levels (>= 1)
     nuisance_text: str = ""      # what the nuisance levels are (for the notes)
+    shared_widening: np.ndarray | None = None     # per parameter: sd with the shared model noise / curvature's
+    shared_draws: int = 0        # the draws the shared model noise was estimated from
+
+    def shared_reason(self) -> str:
+        return (f"the simulation's own table noise, one draw shared by every row that reads it "
+                f"({self.shared_draws} draws)")
 
     def hac_reason(self) -> str:
         """What the HAC rule widened for: correlation along the scans when it found lags, else residuals
@@ -85,8 +105,11 @@ class Covariance:
         parts = []
         if self.birge > 1.0:
             parts.append(f"the reduced chi^2 {self.birge:.2f} (the model misses the noise)")
-        if self.hac_widening[j] > 1.0 + 1e-9:
+        shared = 1.0 if self.shared_widening is None else float(self.shared_widening[j])
+        if self.hac_widening[j] > 1.0 + 1e-9 and self.hac_widening[j] >= shared:
             parts.append(f"x{self.hac_widening[j]:.2f} for {self.hac_reason()}")
+        elif shared > 1.0 + 1e-9:
+            parts.append(f"x{shared:.2f} for {self.shared_reason()}")
         if self.nuisance_widening is not None and self.nuisance_widening[j] > 1.005:
             why = self.nuisance_text or "the stated model accuracy"
             parts.append(f"x{self.nuisance_widening[j]:.2f} for {why}")
@@ -149,6 +172,26 @@ def level_nuisance(rows: Any, model: np.ndarray, s: np.ndarray) -> tuple[np.ndar
     return N, "the forward model's stated level accuracy (" + ", ".join(said) + ")"
 
 
+def shared_columns(rel_deviations: np.ndarray, model: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """D (n x K) of the module doc: the simulation's K table draws as relative deviations per row
+    (`plate.uncertainty.relative_deviations`, K x n) times |model|, over s sqrt(K - 1); (n, 0) with
+    fewer than two draws."""
+    dev = np.asarray(rel_deviations, float)
+    K = dev.shape[0]
+    m = np.abs(np.asarray(model, float))
+    if K < 2:
+        return np.zeros((m.size, 0))
+    s = np.asarray(s, float)
+    return np.divide(dev.T * m[:, None], s[:, None] * np.sqrt(K - 1.0), out=np.zeros((m.size, K)),
+                     where=s[:, None] > 0)
+
+
+def _shared_extra(Js: np.ndarray, ainv: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """E of the module doc (k x k): the shared model noise's covariance beyond the independent rows."""
+    G = Js.T @ D
+    return ainv @ (G @ G.T - Js.T @ (np.sum(D * D, axis=1)[:, None] * Js)) @ ainv
+
+
 def _marginal_extra(Js: np.ndarray, N: np.ndarray) -> np.ndarray | None:
     """Delta = A_marg^-1 - A^-1 of the module doc (k x k), or None when A_marg is singular."""
     A = Js.T @ Js
@@ -161,12 +204,13 @@ def _marginal_extra(Js: np.ndarray, N: np.ndarray) -> np.ndarray | None:
 
 def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] | None = None,
                          live: np.ndarray | None = None, nuisance: np.ndarray | None = None,
-                         nuisance_text: str = "") -> Covariance:
+                         nuisance_text: str = "", shared: np.ndarray | None = None) -> Covariance:
     """Covariance of the parameters (module doc).  `J` (n x k) = d r / d x, `r` (n) the normalised
     residuals at the best point, `scans` from `scans_of` (None: every row its own scan, White's
     estimator), `live` (k bools, default all): the parameters the rows respond to; the others, and
     all when J^T J of the live ones is singular, are NaN.  `nuisance` (n x q): d r / d u of
-    nuisance parameters with unit Gaussian priors (`level_nuisance`), marginalised (module doc)."""
+    nuisance parameters with unit Gaussian priors (`level_nuisance`), marginalised (module doc).
+    `shared` (n x K): the simulation's noise draws (`shared_columns`), its covariance across rows."""
     J = np.asarray(J, float)
     r = np.asarray(r, float)
     n, k = J.shape
@@ -177,6 +221,8 @@ def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] |
     cov = np.full((k, k), np.nan)
     widen = np.ones(k)
     nw = np.ones(k)
+    sw = np.ones(k)
+    D = None if shared is None or np.shape(shared)[-1] < 2 else np.asarray(shared, float).reshape(n, -1)
     N = None if nuisance is None else np.asarray(nuisance, float).reshape(n, -1)
     idx = np.flatnonzero(live)
     if idx.size:
@@ -188,7 +234,10 @@ def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] |
             hac = ainv @ _meat(Js * r[:, None], scans, lag) @ ainv * (n / max(n - idx.size, 1))
             sd_c = np.sqrt(np.diag(curv))
             f = np.maximum(1.0, np.sqrt(np.maximum(np.diag(hac), 0.0)) / np.where(sd_c > 0, sd_c, np.inf))
-            final = curv * np.outer(f, f)
+            if D is not None:
+                var = np.diag(curv) + np.diag(_shared_extra(Js, ainv, D))
+                sw[idx] = np.maximum(1.0, np.sqrt(np.maximum(var, 0.0)) / np.where(sd_c > 0, sd_c, np.inf))
+            final = curv * np.outer(np.maximum(f, sw[idx]), np.maximum(f, sw[idx]))
             if N is not None and N.shape[1]:
                 extra = _marginal_extra(Js, N)
                 if extra is None:
@@ -200,4 +249,5 @@ def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] |
             cov[np.ix_(idx, idx)] = final
             widen[idx] = f
     return Covariance(cov=cov, birge=birge, hac_widening=widen, bandwidth=lag, lag1=rho,
-                      nuisance_widening=None if N is None else np.maximum(nw, 1.0), nuisance_text=nuisance_text)
+                      nuisance_widening=None if N is None else np.maximum(nw, 1.0), nuisance_text=nuisance_text,
+                      shared_widening=None if D is None else sw, shared_draws=0 if D is None else D.shape[1])

@@ -53,7 +53,7 @@ import numpy as np
 
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
-from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of
+from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of, shared_columns
 from relief_bsdf.fit.residual import DEFAULT_METRIC, LogChiMetric, signed_residuals
 from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain, overdispersion
 from relief_bsdf.io.atomic import write_text_atomic
@@ -105,6 +105,7 @@ class Forward:
     where: str = "recording"
     sigma_draws: int = 8
     _rel_sigma: np.ndarray | None = field(default=None, repr=False)
+    _rel_dev: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         self.face_name = _relief_face_name(self.experiment)
@@ -137,10 +138,18 @@ class Forward:
         scaled with the values at other parameters (the relative noise of a table hardly moves
         with scale and filter; common random numbers keep it the same draw)."""
         if self._rel_sigma is None:
-            from relief_bsdf.plate.uncertainty import relative_sigma
-            _, ex = self.experiment_at(1.0, 0.0)
-            self._rel_sigma = relative_sigma(ex, self.rows, self.grid, self.sigma_draws, self.where)
+            from relief_bsdf.plate.uncertainty import deviations_sigma
+            self._rel_sigma = deviations_sigma(self.model_rel_deviations(), len(self.rows))
         return self._rel_sigma
+
+    def model_rel_deviations(self) -> np.ndarray:
+        """The table draws behind `model_rel_sigma` as relative deviations per row (sigma_draws x rows,
+        plate.uncertainty.relative_deviations), computed once: the intervals' shared model noise."""
+        if self._rel_dev is None:
+            from relief_bsdf.plate.uncertainty import relative_deviations
+            _, ex = self.experiment_at(1.0, 0.0)
+            self._rel_dev = relative_deviations(ex, self.rows, self.grid, self.sigma_draws, self.where)
+        return self._rel_dev
 
     def simulated(self, height_scale: float, filter_sigma_um: float, table_sigma_draws: int = 0) -> Simulated:
         _, ex = self.experiment_at(height_scale, filter_sigma_um)
@@ -537,7 +546,9 @@ def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float,
     if rows is not None and len(rows) == r.size:
         scans = scans_of(rows)
         nuisance, text = level_nuisance(rows, sim, S)
-    cv = parameter_covariance(J, r, scans, nuisance=nuisance, nuisance_text=text)
+    dev = getattr(obj.forward, "model_rel_deviations", None)
+    shared = shared_columns(dev(), sim, S) if dev is not None and scans is not None else None
+    cv = parameter_covariance(J, r, scans, nuisance=nuisance, nuisance_text=text, shared=shared)
     cov = cv.cov
     warnings: list[str] = []
     iv: dict = {"height_scale": None, "filter_sigma_um": [0.0, 0.0] if not c.with_filter else None}
@@ -548,6 +559,9 @@ def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float,
         return iv, (1.0 if c.with_filter else None), warnings
     if np.any(cv.hac_widening > 1.0 + 1e-9):
         warnings.append(f"the intervals are widened for {cv.hac_reason()}")
+    if cv.shared_widening is not None and np.any(cv.shared_widening > np.maximum(cv.hac_widening, 1.0 + 1e-9)):
+        warnings.append(f"the intervals are widened x{float(np.max(cv.shared_widening)):.2f} at most for "
+                        f"{cv.shared_reason()}")
     if cv.nuisance_widening is not None and np.any(cv.nuisance_widening > 1.005):
         warnings.append(f"the intervals are widened x{float(np.max(cv.nuisance_widening)):.2f} at most for "
                         f"{cv.nuisance_text}")

@@ -81,12 +81,23 @@ def rows_sigma(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
                seed: int = 0) -> np.ndarray:
     """1-sigma per row of the deterministic simulation from its tables' own uncertainty (module doc);
     NaN (unknown) when no face's table carries a sigma."""
+    runs = rows_draws(experiment, rows, grid, draws, seed)
+    if runs is None:
+        return np.full(int(np.size(rows.theta_i_deg)), np.nan)
+    return runs.std(axis=0, ddof=1)
+
+
+def rows_draws(experiment: Experiment, rows: Any, grid: TableGrid | None = None, draws: int = DEFAULT_DRAWS,
+               seed: int = 0) -> np.ndarray | None:
+    """(draws, rows): the deterministic simulation on `draws` perturbed copies of its tables (module doc),
+    or None when no face's table carries a sigma (or draws < 2).  Each draw is one realisation of the
+    tables' noise seen by every row at once: rows that read the same cells move together."""
     from relief_bsdf.plate import deterministic
     grid = grid or TableGrid()
     faces = _face_tables(experiment, rows, grid)
     n = int(np.size(rows.theta_i_deg))
     if not faces or draws < 2:
-        return np.full(n, np.nan)
+        return None
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5161]))
     runs = np.empty((draws, n))
 
@@ -104,7 +115,7 @@ def rows_sigma(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
             batch = [{name: TableFace(perturbed(t_in, rng), perturbed(t_out, rng))
                       for name, (t_out, t_in) in faces.items()} for _ in range(lo, min(draws, lo + threads))]
             runs[lo:lo + len(batch)] = list(pool.map(solve, batch))
-    return runs.std(axis=0, ddof=1)
+    return runs
 
 
 def relative_sigma(experiment: Experiment, rows: Any, grid: TableGrid | None = None, draws: int = DEFAULT_DRAWS,
@@ -114,8 +125,31 @@ def relative_sigma(experiment: Experiment, rows: Any, grid: TableGrid | None = N
     diagnosis compute it once on their baseline and scale it with the values at other parameters: the
     relative noise of a table hardly moves with the relief's scale and filter or a plate effect, and
     common random numbers keep it the same draw."""
+    return deviations_sigma(relative_deviations(experiment, rows, grid, draws, where), int(np.size(rows.theta_i_deg)))
+
+
+def relative_deviations(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
+                        draws: int = DEFAULT_DRAWS, where: str = "recording") -> np.ndarray:
+    """(draws, rows): each table draw's deviation from the draws' mean (`rows_draws`), relative to the
+    deterministic engine's value (0 where the value is 0), a row whose relative sigma exceeds 1 scaled
+    down to 1 (as `relative_sigma`); (0, rows) when no table carries a sigma.  Their standard deviation
+    is `relative_sigma`; their products are the rows' covariance through the shared tables, which an
+    interval needs (`fit.covariance.shared_columns`): one noisy cell moves every row that reads it."""
+    from relief_bsdf.plate.choice import resolve_auto
     from relief_bsdf.plate.simulate import simulate
-    sim = simulate(experiment, rows, engine="deterministic", grid=grid, where=where, table_sigma_draws=draws)
-    v = np.abs(sim.values_per_sr)
-    rel = np.divide(sim.sigma_per_sr, v, out=np.zeros_like(v), where=v > 0)
-    return np.clip(np.nan_to_num(rel, nan=0.0), 0.0, 1.0)
+    grid = grid or TableGrid()
+    n = int(np.size(rows.theta_i_deg))
+    v = np.abs(simulate(experiment, rows, engine="deterministic", grid=grid, where=where).values_per_sr)
+    runs = rows_draws(resolve_auto(experiment, rows, grid), rows, grid, draws)
+    if runs is None:
+        return np.zeros((0, n))
+    dev = np.divide(runs - runs.mean(axis=0), v, out=np.zeros_like(runs), where=v > 0)
+    rel = dev.std(axis=0, ddof=1)
+    return dev * np.divide(1.0, rel, out=np.ones_like(rel), where=rel > 1.0)
+
+
+def deviations_sigma(dev: np.ndarray, n: int) -> np.ndarray:
+    """The relative 1-sigma per row of `relative_deviations` (0 without draws)."""
+    if dev.shape[0] < 2:
+        return np.zeros(n)
+    return np.clip(np.nan_to_num(dev.std(axis=0, ddof=1), nan=0.0), 0.0, 1.0)
