@@ -151,7 +151,8 @@ def _shared_basis() -> np.ndarray:
 def _shared_coverage(seed: int, K: int = 8) -> tuple[float, float, float]:
     """(coverage with the shared draws, without them, median widening): y the truth plus recording noise,
     the model the truth plus ONE draw of the shared table noise B g; the fit knows the per-row sigma
-    s^2 = 1 + diag(B B^T) and K independent draws of B g (as plate.uncertainty makes them)."""
+    s^2 = 1 + diag(B B^T), the model's part of it, and K independent draws of B g (as plate.uncertainty makes
+    them at the fitted point)."""
     from relief_bsdf.fit.covariance import shared_columns
     X, scans = _design()
     B = _shared_basis()
@@ -168,9 +169,8 @@ def _shared_coverage(seed: int, K: int = 8) -> tuple[float, float, float]:
         r = (y - shift - X @ beta) / s
         J = -Xs
         draws = (B @ rng.standard_normal((B.shape[1], K))).T          # K draws, as deviations of the values
-        model = X @ beta + shift
-        rel = draws / model[None, :]
-        c = parameter_covariance(J, r, scans, shared=shared_columns(rel - rel.mean(axis=0), model, s))
+        c = parameter_covariance(J, r, scans, shared=shared_columns(draws - draws.mean(axis=0), s),
+                                 model_fraction=1.0 - 1.0 / s**2)
         plain = parameter_covariance(J, r, scans)
         inside += bool(abs(beta[0] - truth[0]) <= np.sqrt(c.cov[0, 0]))
         inside_plain += bool(abs(beta[0] - truth[0]) <= np.sqrt(plain.cov[0, 0]))
@@ -193,9 +193,8 @@ def test_shared_draws_that_do_not_correlate_rows_do_not_widen():
     from relief_bsdf.fit.covariance import shared_columns
     X, scans = _design()
     rng = np.random.default_rng(5)
-    model = X @ np.array([30.0, 4.0]) + 1.0
     s = np.full(len(X), 1.2)
-    rel = rng.standard_normal((400, len(X))) * 0.3 / model[None, :]
+    draws = rng.standard_normal((400, len(X))) * 0.3
     c = parameter_covariance(-X / s[:, None], rng.standard_normal(len(X)), scans,
-                             shared=shared_columns(rel - rel.mean(axis=0), model, s))
+                             shared=shared_columns(draws - draws.mean(axis=0), s))
     assert c.shared_draws == 400 and np.all(c.shared_widening < 1.1), c.shared_widening

@@ -140,10 +140,11 @@ def test_the_draws_solvers_are_not_kept_and_the_baselines_stays():
     np.testing.assert_allclose(again.values_per_sr, sim.values_per_sr + 0.01, rtol=1e-12)
 
 
-def test_the_relative_deviations_are_the_draws_behind_the_relative_sigma():
-    """relative_deviations (the intervals' shared model noise) are the draws of rows_sigma, centred and
-    divided by the values: their standard deviation is relative_sigma, row by row; without a sigma, none."""
-    from relief_bsdf.plate.uncertainty import relative_deviations, relative_sigma
+def test_the_deviations_are_the_draws_behind_the_sigma():
+    """deviations (the intervals' shared model noise) are the draws of rows_sigma, centred: their standard
+    deviation is rows_sigma; relative_deviations are those divided by the values, their standard deviation
+    relative_sigma, row by row; without a sigma, none."""
+    from relief_bsdf.plate.uncertainty import deviations, relative_deviations, relative_sigma
     relief = random_relief(48, 1.0e-6, 0.6e-6, 5.0e-6, "gaussian", seed=4)
     ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", samples=3_000, seed=0), FlatFace()))
     rows = in_plane_rows(550.0, [0.0, 30.0], np.arange(2.0, 88.0, 8.0))
@@ -155,5 +156,7 @@ def test_the_relative_deviations_are_the_draws_behind_the_relative_sigma():
     want = np.clip(np.divide(sigma, np.abs(v), out=np.zeros_like(v), where=v != 0), 0.0, 1.0)
     np.testing.assert_allclose(dev.std(axis=0, ddof=1), want, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(relative_sigma(ex, rows, grid, draws=5), want, rtol=1e-9, atol=1e-12)
+    absolute = deviations(ex, rows, grid, draws=5)
+    np.testing.assert_allclose(absolute.std(axis=0, ddof=1), sigma, rtol=1e-9, atol=1e-15)
     flat = Experiment(Plate(2e-3, ConstantIndex(1.5), FlatFace(), FlatFace()))
     assert relative_deviations(flat, rows, grid, draws=5).shape == (0, len(rows))

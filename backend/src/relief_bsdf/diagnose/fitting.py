@@ -310,8 +310,10 @@ def intervals(forward, effects: tuple, values: dict, jacobian: np.ndarray | None
     ranges = np.array([bounds[p.name][1] - bounds[p.name][0] for p in params])
     live = np.sum(J**2, axis=0) * ranges**2 >= 1.0   # moving it across its whole range changes chi^2 by >= 1
     nuisance, text = level_nuisance(rows, v0, s)
-    shared = shared_columns(forward.model_rel_deviations(), v0, s) if hasattr(forward, "model_rel_deviations") else None
-    c = parameter_covariance(J, signed_residuals(rows.bsdf_sr, v0, s), scans_of(rows), live, nuisance, text, shared)
+    at = getattr(forward, "model_deviations_at", None)
+    shared = None if at is None else shared_columns(at(effects, values), s)
+    c = parameter_covariance(J, signed_residuals(rows.bsdf_sr, v0, s), scans_of(rows), live, nuisance, text, shared,
+                             np.divide(s0**2, s**2, out=np.zeros_like(s), where=s > 0))
     cov = c.cov
     out, notes = {}, {}
     for j, p in enumerate(params):

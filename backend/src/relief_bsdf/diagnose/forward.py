@@ -88,11 +88,18 @@ class DiagnosisForward:
 
     def model_rel_deviations(self) -> np.ndarray:
         """The baseline's table draws as relative deviations per row (SIGMA_DRAWS x rows,
-        plate.uncertainty.relative_deviations), computed once: the intervals' shared model noise."""
+        plate.uncertainty.relative_deviations), computed once: their std is the model sigma."""
         if self._rel_dev is None:
             from relief_bsdf.plate.uncertainty import relative_deviations
             self._rel_dev = relative_deviations(self.experiment, self.rows, self.grid, SIGMA_DRAWS)
         return self._rel_dev
+
+    def model_deviations_at(self, effects, values: dict) -> np.ndarray:
+        """The simulation's table draws at `values` of `effects` as deviations per row (INTERVAL_DRAWS x rows,
+        plate.uncertainty.deviations): the intervals' shared model noise, made where they are asked."""
+        from relief_bsdf.plate.uncertainty import INTERVAL_DRAWS, deviations
+        _, vals = _memo_key(effects, values)
+        return deviations(apply_all(self.experiment, self.context, effects, vals), self.rows, self.grid, INTERVAL_DRAWS)
 
     def baseline(self) -> tuple[np.ndarray, np.ndarray]:
         """(values, model sigma) of the sample as stated (computed once)."""

@@ -47,16 +47,16 @@ columns of the plate's stated per-side level accuracy (plate.uncertainty.FORWARD
 *Model noise shared by rows* (`shared`).  The simulation's own noise (its boundary tables' Monte-Carlo
 noise, plate.uncertainty) is in s as an independent per-row sigma, but it is one realisation: a
 noisy cell moves every row that reads it, in every scan, and the fit is pulled by that one draw.
-With the K perturbed-table draws of the simulation, d_k (n) normalised by s (`shared_columns`:
-D = d / (s sqrt(K - 1)), so D D^T estimates the noise's covariance in units of s^2), the estimator
-x = argmin |r|^2 has the sandwich covariance A^-1 J^T (Sigma) J A^-1 (Huber 1967), whose part beyond
-the independent rows already in A^-1 is
+With K perturbed-table draws of the simulation at the fitted point, d_k (n), normalised
+(`shared_columns`: D = d / (s sqrt(K - 1)), so D D^T estimates the noise's covariance in units of
+s^2), the estimator x = argmin |r|^2 has the sandwich covariance A^-1 J^T Sigma J A^-1 (Huber 1967),
+Sigma = I - diag(f) + D D^T with f the model's part of each row's s^2, whose part beyond A^-1 is
 
-    E = A^-1 [ (J^T D)(J^T D)^T - J^T diag(D D^T) J ] A^-1,
+    E = A^-1 [ (J^T D)(J^T D)^T - J^T diag(f) J ] A^-1,
 
-the off-diagonal covariance of the shared noise projected on the parameters.  Each parameter's
-variance is then the largest of the HAC one and the curvature one plus E (correlations the
-curvature's).  With K = 8 draws, E is known to about +-50 %.
+(f: `model_fraction`, default diag(D D^T)).  Each parameter's variance is then the largest of the
+HAC one and the curvature one plus E (correlations the curvature's).  With K = 16 draws
+(plate.uncertainty.INTERVAL_DRAWS), E is known to about +-37 %.
 
 Regime: residuals whose correlation falls off within a scan, besides the stated levels and the
 shared model noise; a score that is roughly linear within the interval.
@@ -172,24 +172,21 @@ def level_nuisance(rows: Any, model: np.ndarray, s: np.ndarray) -> tuple[np.ndar
     return N, "the forward model's stated level accuracy (" + ", ".join(said) + ")"
 
 
-def shared_columns(rel_deviations: np.ndarray, model: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """D (n x K) of the module doc: the simulation's K table draws as relative deviations per row
-    (`plate.uncertainty.relative_deviations`, K x n) times |model|, over s sqrt(K - 1); (n, 0) with
-    fewer than two draws."""
-    dev = np.asarray(rel_deviations, float)
+def shared_columns(deviations: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """D (n x K) of the module doc: the simulation's K table draws as deviations per row (K x n, 1/sr,
+    `plate.uncertainty.deviations`) over s sqrt(K - 1); (n, 0) with fewer than two draws."""
+    dev = np.asarray(deviations, float)
     K = dev.shape[0]
-    m = np.abs(np.asarray(model, float))
-    if K < 2:
-        return np.zeros((m.size, 0))
     s = np.asarray(s, float)
-    return np.divide(dev.T * m[:, None], s[:, None] * np.sqrt(K - 1.0), out=np.zeros((m.size, K)),
-                     where=s[:, None] > 0)
+    if K < 2:
+        return np.zeros((s.size, 0))
+    return np.divide(dev.T, s[:, None] * np.sqrt(K - 1.0), out=np.zeros((s.size, K)), where=s[:, None] > 0)
 
 
-def _shared_extra(Js: np.ndarray, ainv: np.ndarray, D: np.ndarray) -> np.ndarray:
+def _shared_extra(Js: np.ndarray, ainv: np.ndarray, D: np.ndarray, f: np.ndarray) -> np.ndarray:
     """E of the module doc (k x k): the shared model noise's covariance beyond the independent rows."""
     G = Js.T @ D
-    return ainv @ (G @ G.T - Js.T @ (np.sum(D * D, axis=1)[:, None] * Js)) @ ainv
+    return ainv @ (G @ G.T - Js.T @ (f[:, None] * Js)) @ ainv
 
 
 def _marginal_extra(Js: np.ndarray, N: np.ndarray) -> np.ndarray | None:
@@ -204,13 +201,15 @@ def _marginal_extra(Js: np.ndarray, N: np.ndarray) -> np.ndarray | None:
 
 def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] | None = None,
                          live: np.ndarray | None = None, nuisance: np.ndarray | None = None,
-                         nuisance_text: str = "", shared: np.ndarray | None = None) -> Covariance:
+                         nuisance_text: str = "", shared: np.ndarray | None = None,
+                         model_fraction: np.ndarray | None = None) -> Covariance:
     """Covariance of the parameters (module doc).  `J` (n x k) = d r / d x, `r` (n) the normalised
     residuals at the best point, `scans` from `scans_of` (None: every row its own scan, White's
     estimator), `live` (k bools, default all): the parameters the rows respond to; the others, and
     all when J^T J of the live ones is singular, are NaN.  `nuisance` (n x q): d r / d u of
     nuisance parameters with unit Gaussian priors (`level_nuisance`), marginalised (module doc).
-    `shared` (n x K): the simulation's noise draws (`shared_columns`), its covariance across rows."""
+    `shared` (n x K): the simulation's noise draws (`shared_columns`), its covariance across rows;
+    `model_fraction` (n): the part of each row's s^2 that is the model's own sigma (default: the draws')."""
     J = np.asarray(J, float)
     r = np.asarray(r, float)
     n, k = J.shape
@@ -223,6 +222,8 @@ def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] |
     nw = np.ones(k)
     sw = np.ones(k)
     D = None if shared is None or np.shape(shared)[-1] < 2 else np.asarray(shared, float).reshape(n, -1)
+    f_model = (None if D is None else np.sum(D * D, axis=1) if model_fraction is None
+               else np.asarray(model_fraction, float))
     N = None if nuisance is None else np.asarray(nuisance, float).reshape(n, -1)
     idx = np.flatnonzero(live)
     if idx.size:
@@ -235,7 +236,7 @@ def parameter_covariance(J: np.ndarray, r: np.ndarray, scans: list[np.ndarray] |
             sd_c = np.sqrt(np.diag(curv))
             f = np.maximum(1.0, np.sqrt(np.maximum(np.diag(hac), 0.0)) / np.where(sd_c > 0, sd_c, np.inf))
             if D is not None:
-                var = np.diag(curv) + np.diag(_shared_extra(Js, ainv, D))
+                var = np.diag(curv) + np.diag(_shared_extra(Js, ainv, D, f_model))
                 sw[idx] = np.maximum(1.0, np.sqrt(np.maximum(var, 0.0)) / np.where(sd_c > 0, sd_c, np.inf))
             final = curv * np.outer(np.maximum(f, sw[idx]), np.maximum(f, sw[idx]))
             if N is not None and N.shape[1]:

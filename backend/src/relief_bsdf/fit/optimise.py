@@ -142,9 +142,16 @@ class Forward:
             self._rel_sigma = deviations_sigma(self.model_rel_deviations(), len(self.rows))
         return self._rel_sigma
 
+    def model_deviations_at(self, height_scale: float, filter_sigma_um: float) -> np.ndarray:
+        """The simulation's table draws at (scale, filter) as deviations per row (INTERVAL_DRAWS x rows,
+        plate.uncertainty.deviations): the intervals' shared model noise, made where they are asked."""
+        from relief_bsdf.plate.uncertainty import INTERVAL_DRAWS, deviations
+        _, ex = self.experiment_at(height_scale, filter_sigma_um)
+        return deviations(ex, self.rows, self.grid, max(INTERVAL_DRAWS, self.sigma_draws))
+
     def model_rel_deviations(self) -> np.ndarray:
         """The table draws behind `model_rel_sigma` as relative deviations per row (sigma_draws x rows,
-        plate.uncertainty.relative_deviations), computed once: the intervals' shared model noise."""
+        plate.uncertainty.relative_deviations), computed once: their std is the model sigma."""
         if self._rel_dev is None:
             from relief_bsdf.plate.uncertainty import relative_deviations
             _, ex = self.experiment_at(1.0, 0.0)
@@ -546,9 +553,13 @@ def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float,
     if rows is not None and len(rows) == r.size:
         scans = scans_of(rows)
         nuisance, text = level_nuisance(rows, sim, S)
-    dev = getattr(obj.forward, "model_rel_deviations", None)
-    shared = shared_columns(dev(), sim, S) if dev is not None and scans is not None else None
-    cv = parameter_covariance(J, r, scans, nuisance=nuisance, nuisance_text=text, shared=shared)
+    at = getattr(obj.forward, "model_deviations_at", None)
+    shared = frac = None
+    if at is not None and scans is not None:
+        shared = shared_columns(at(*c.sg(x0)), S)
+        ms = obj._model_sigma(sim)
+        frac = None if ms is None else np.divide(ms**2, S**2, out=np.zeros_like(S), where=S > 0)
+    cv = parameter_covariance(J, r, scans, nuisance=nuisance, nuisance_text=text, shared=shared, model_fraction=frac)
     cov = cv.cov
     warnings: list[str] = []
     iv: dict = {"height_scale": None, "filter_sigma_um": [0.0, 0.0] if not c.with_filter else None}

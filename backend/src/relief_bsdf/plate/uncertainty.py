@@ -30,6 +30,10 @@ from relief_bsdf.plate.faces import TableFace
 from relief_bsdf.plate.grid import TableGrid
 
 DEFAULT_DRAWS = 8
+# the draws made at a fitted point for its intervals' shared model noise (fit.covariance): the parameters'
+# variance from them is known to about sqrt(2 / 15) = +-37 % (with 8: +-53 %, which on the seed-10 blur
+# case gave x1.54 and x1.06 for two ray seeds whose spread asked for about x1.5)
+INTERVAL_DRAWS = 16
 
 # The deterministic plate's stated level accuracy per side (1-sigma, relative): what the forward
 # model's in-lobe level misses an independent photon Monte Carlo through the real relief by, not
@@ -134,18 +138,31 @@ def relative_deviations(experiment: Experiment, rows: Any, grid: TableGrid | Non
     deterministic engine's value (0 where the value is 0), a row whose relative sigma exceeds 1 scaled
     down to 1 (as `relative_sigma`); (0, rows) when no table carries a sigma.  Their standard deviation
     is `relative_sigma`; their products are the rows' covariance through the shared tables, which an
-    interval needs (`fit.covariance.shared_columns`): one noisy cell moves every row that reads it."""
-    from relief_bsdf.plate.choice import resolve_auto
+    interval needs where the effects leave the noise where it was (`deviations` at the point otherwise)."""
     from relief_bsdf.plate.simulate import simulate
     grid = grid or TableGrid()
-    n = int(np.size(rows.theta_i_deg))
     v = np.abs(simulate(experiment, rows, engine="deterministic", grid=grid, where=where).values_per_sr)
-    runs = rows_draws(resolve_auto(experiment, rows, grid), rows, grid, draws)
-    if runs is None:
-        return np.zeros((0, n))
-    dev = np.divide(runs - runs.mean(axis=0), v, out=np.zeros_like(runs), where=v > 0)
+    dev = deviations(experiment, rows, grid, draws)
+    if dev.shape[0] == 0:
+        return dev
+    dev = np.divide(dev, v, out=np.zeros_like(dev), where=v > 0)
     rel = dev.std(axis=0, ddof=1)
     return dev * np.divide(1.0, rel, out=np.ones_like(rel), where=rel > 1.0)
+
+
+def deviations(experiment: Experiment, rows: Any, grid: TableGrid | None = None, draws: int = DEFAULT_DRAWS,
+               seed: int = 0) -> np.ndarray:
+    """(draws, rows): each table draw's deviation (1/sr) from the draws' mean (`rows_draws`, "auto" faces
+    resolved as the simulation resolves them); (0, rows) when no table carries a sigma.  Made where an
+    interval is asked (the fitted point): the noise's reach moves with the effects (a beam divergence
+    traced into the outside table spreads it over the lobe; the baseline's draws, scaled, moved a fitted
+    divergence 3x less than the draws at it and the ray seeds do)."""
+    from relief_bsdf.plate.choice import resolve_auto
+    grid = grid or TableGrid()
+    runs = rows_draws(resolve_auto(experiment, rows, grid), rows, grid, draws, seed)
+    if runs is None:
+        return np.zeros((0, int(np.size(rows.theta_i_deg))))
+    return runs - runs.mean(axis=0)
 
 
 def deviations_sigma(dev: np.ndarray, n: int) -> np.ndarray:
