@@ -87,6 +87,27 @@ def test_a_tilt_at_normal_incidence_makes_a_half_turned_table_for_one_sign_only(
     assert made[1] is False and made[0] != made[2]
 
 
+def test_a_table_face_with_its_half_turned_table_reads_what_the_relief_face_reads(monkeypatch):
+    """The model sigma's draws replace a relief face by its tables (plate.uncertainty): a tilted plate's far
+    rows must read the half-turned table there too.  Unperturbed, the table face gives the relief face's
+    rows exactly; without its half-turned table the far rows differ."""
+    import dataclasses
+    from relief_bsdf.plate.faces import TableFace
+    from relief_bsdf.plate.uncertainty import _face_tables
+    import relief_bsdf.plate.faces as faces
+    monkeypatch.setattr(faces, "inside_sectors", lambda *a, **k: None)     # the table face has none either
+    ex = _experiment(_leaning(), tilt_deg=3.0)
+    rows = _rows(0.0, 0.0, theta_i=0.0, sides=("R", "T"))
+    grid = TableGrid()
+    t_out, t_in, half = _face_tables(ex, rows, grid)["front"]
+    assert half is not None and half is not t_out
+    want = simulate(ex, rows, engine="deterministic").values_per_sr
+    as_tables = dataclasses.replace(ex, plate=dataclasses.replace(ex.plate, front=TableFace(t_in, t_out, half)))
+    np.testing.assert_allclose(simulate(as_tables, rows, engine="deterministic").values_per_sr, want, rtol=1e-9)
+    without = dataclasses.replace(ex, plate=dataclasses.replace(ex.plate, front=TableFace(t_in, t_out)))
+    assert not np.allclose(simulate(without, rows, engine="deterministic").values_per_sr, want, rtol=0.02)
+
+
 @pytest.mark.slow
 def test_the_leaning_relief_lit_from_azimuth_180_agrees_with_the_independent_monte_carlo(monkeypatch):
     """The leaning relief, n 1.5, 1 mm, theta_i 20 deg from azimuth 180, R and T rows every degree in the

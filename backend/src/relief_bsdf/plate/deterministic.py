@@ -8,9 +8,12 @@ directly (tests, benchmarks).
 
 Geometry (formats.md frame): the plate fills -t < z < 0, the lit face is z = 0, light comes
 from z > 0.  The first face (the relief, or the front face when the relief is on the back) is
-described by two `BsdfTable`s (light from outside, light from inside), each isotropic (one
-phi_i); the second face is flat (exact cell-averaged Fresnel) or carries its own inside table
-(its delta part replaces Fresnel and its cells add a second diffuse kernel K_B).  With the
+described by two `BsdfTable`s (light from outside, light from inside), each at one phi_i; a row lit
+from incidence azimuth phi_i reads the outside table turned by phi_i, and from the far half of
+azimuths (90 < phi_i < 270 in the sample's frame: a tilt at normal incidence, a scan lit from 180)
+the outside table of the relief turned by a half turn (`PlateSolver.half_turn`, exact for one tile:
+`plate.faces.half_turned_outside`); the second face is flat (exact cell-averaged Fresnel) or carries its
+own inside table (its delta part replaces Fresnel and its cells add a second diffuse kernel K_B).  With the
 relief on the back face the system is solved with the roles swapped (same equations).
 
 Bulk.  Without volume scattering a traversal at internal angle theta keeps exp(-a t / cos theta)
@@ -1609,21 +1612,30 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None, keep:
         return _reused_solver(model_of(experiment, grid, "back"), b_in, None, None, keep=keep)
     f_out, f_in = front_tables(experiment, grid, wl, ti, traced, progress)
     b_in = None if back.is_flat else back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)[1]
-    from relief_bsdf.plate.faces import half_turned_outside, inside_sectors
+    from relief_bsdf.plate.faces import inside_sectors
     sectors = inside_sectors(front, mat, grid, wl, ti, progress) if b_in is None else None
     model = model_of(experiment, grid, "front", traced)
     solver = _reused_solver(model, f_in, f_out, b_in, sectors, keep)
     solver.half_turn = None
-    _, t_all, p_all = sample_incidences(experiment, rows, traced)
-    far = np.unique(t_all[far_side(t_all, p_all)])
-    if far.size:
-        beam = experiment.instrument.beam_divergence_deg if traced else 0.0
-        t_out = half_turned_outside(front, mat, grid, wl, far, progress, beam)
-        if t_out is not None:       # the same loop tables: only the outside part is new (`with_outside`)
-            half = _reused_solver(model, f_in, t_out, b_in, sectors, keep)
-            half.half_turn = None
-            solver.half_turn = half
+    t_out = half_turn_table(experiment, rows, grid, traced, progress)
+    if t_out is not None:           # the same loop tables: only the outside part is new (`with_outside`)
+        half = _reused_solver(model, f_in, t_out, b_in, sectors, keep)
+        half.half_turn = None
+        solver.half_turn = half
     return solver
+
+
+def half_turn_table(experiment: Any, rows: Any, grid: Any, traced: bool, progress: Any = None) -> BsdfTable | None:
+    """The front face's half-turned outside table (`plate.faces.half_turned_outside`) at the incidences of
+    these rows that the sample sees from the far half of azimuths (`far_side`), or None (none there, or a
+    face without a relief to turn)."""
+    from relief_bsdf.plate.faces import half_turned_outside
+    wl, t_all, p_all = sample_incidences(experiment, rows, traced)
+    far = np.unique(t_all[far_side(t_all, p_all)])
+    if not far.size:
+        return None
+    beam = experiment.instrument.beam_divergence_deg if traced else 0.0
+    return half_turned_outside(experiment.plate.front, experiment.plate.material, grid, wl, far, progress, beam)
 
 
 def front_traces_beam(experiment: Any, rows: Any, grid: Any) -> bool:
@@ -1656,7 +1668,7 @@ def front_tables(experiment: Any, grid: Any, wl: Any, ti: Any, traced: bool, pro
 
 
 _SOLVERS: list = []          # (tables, plate fields, solver): the last few, newest last
-_SOLVERS_KEPT = 6            # (a tilt's pair: its solver and the half-turned one, `solver_of`, sharing the loop's operators)
+_SOLVERS_KEPT = 6            # a tilt's pair (its solver, the half-turned one: `solver_of`) shares the loop's operators
 _SOLVED_KEPT = 8             # unit-source fields kept per wavelength's operators (`PlateSolver.solve`) ...
 _SOLVED_BYTES = 150e6        # ... and their bytes at most (a beam divergence's many incidences: not kept)
 _BULK_FIELDS = ("thickness_m", "absorption_per_m", "scatter_per_m", "hg_g")    # act on `_operators` alone

@@ -183,7 +183,8 @@ def isotropy_warning(face: Any) -> str:
             f"{ratio:.2g}x, steeper axis at {ang:.0f} deg): the deterministic engine assumes isotropic boundary "
             "tables; its direct reflection and first transmitted pass are the relief's own only for rows lit at "
             "the tables' incidence azimuth (phi_i = 0), the light inside meets the relief by azimuth "
-            "sector (inside_sectors), and rows at other phi_i are a rotation of phi_i = 0; check with "
+            "sector (inside_sectors), and rows at other phi_i are a rotation of phi_i = 0 (of the half-turned "
+            "relief's table from the far half of azimuths); check with "
             "engine='photon'")
 
 
@@ -429,13 +430,24 @@ def _derive_outside(face: "ReliefFace", material: Material, grid: TableGrid, wav
                            lambda: _reconstruct_side(face, material, grid, wl, th, "outside", progress, beam))
 
 
+def _resolved_relief(face: Any, material: Material, grid: TableGrid, wavelengths_nm: Any,
+                     theta_i_outside_deg: Any) -> "ReliefFace | None":
+    """A relief face with "auto" resolved (`plate.choice.resolve_face`), or None for any other face."""
+    if not isinstance(face, ReliefFace) or face.is_flat:
+        return None
+    if face.method == "auto":
+        from relief_bsdf.plate.choice import resolve_face
+        face = resolve_face(face, material, grid, wavelengths_nm, theta_i_outside_deg)
+    return face
+
+
 def half_turned_outside(face: Any, material: Material, grid: TableGrid, wavelengths_nm: Any,
                         theta_i_outside_deg: Any, progress: Any = None, beam_divergence_deg: float = 0.0
                         ) -> BsdfTable | None:
     """The outside table, at incidence azimuth 0, of a relief face turned by a half turn about its normal:
     the face's own outside table for light arriving from azimuth 180 deg, in the frame of that incidence.
-    None for a face without a relief to turn (flat: turning changes nothing; a face given by its tables or
-    by slope statistics alone: the engine's rotation stands).
+    None for a face without a relief to turn (flat: turning changes nothing; a face given by slope
+    statistics alone, or by its tables without a `half_turned` one: the engine's rotation stands).
 
     Why: the deterministic engine reads a row lit from incidence azimuth phi_i as its phi_i = 0 table
     turned by phi_i (plate.deterministic), which is exact for the ensemble of an isotropic relief but
@@ -446,11 +458,11 @@ def half_turned_outside(face: Any, material: Material, grid: TableGrid, waveleng
     5.2 (T) on 1-deg rows, the half-turned tile by 1.07 and 0.91 (2026-12-04).  Turning the height map,
     heights[::-1, ::-1] (h'(x, y) = h(-x, -y), exact on the sampling grid whatever the pitch), makes it
     exact for every method."""
-    if not isinstance(face, ReliefFace) or face.is_flat:
+    if isinstance(face, TableFace):
+        return face.half_turned
+    face = _resolved_relief(face, material, grid, wavelengths_nm, theta_i_outside_deg)
+    if face is None:
         return None
-    if face.method == "auto":
-        from relief_bsdf.plate.choice import resolve_face
-        face = resolve_face(face, material, grid, wavelengths_nm, theta_i_outside_deg)
     heights = np.ascontiguousarray(np.asarray(face.relief.heights_m)[::-1, ::-1])
     turned = replace(face, relief=face.relief.with_heights(heights, "turned by a half turn about the normal"))
     return _derive_outside(turned, material, grid, wavelengths_nm, theta_i_outside_deg, progress, beam_divergence_deg)
@@ -477,13 +489,10 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     `inside_sectors`).  The sector tables share the rays of SECTOR_RAY_TABLES inside tables (each light
     sector meets one table; bench_forward_accuracy's anisotropic relief: rms z 1.45 with 30-deg sectors at
     full rays, 1.12 with 15-deg sectors at 5/11 of the rays each)."""
-    if not isinstance(face, ReliefFace) or face.is_flat:
+    face = _resolved_relief(face, material, grid, wavelengths_nm, theta_i_outside_deg)
+    if face is None or face.method != "ray":
         return None
-    if face.method == "auto":
-        from relief_bsdf.plate.choice import resolve_face
-        face = resolve_face(face, material, grid, wavelengths_nm, theta_i_outside_deg)
-    if face.method != "ray" or not (anisotropic_face(face) or azimuth_dependent(face, material, grid, wavelengths_nm,
-                                                                                progress)):
+    if not (anisotropic_face(face) or azimuth_dependent(face, material, grid, wavelengths_nm, progress)):
         return None
     azimuths = grid.sector_azimuths_deg()
     face = replace(face, samples=max(int(face.samples * SECTOR_RAY_TABLES / len(azimuths)), 1))
@@ -785,10 +794,13 @@ _SAMPLERS: dict = {}
 
 @dataclass(frozen=True, eq=False)
 class TableFace:
-    """A face given by its tables: `inside` (light from the glass) and optionally `outside`."""
+    """A face given by its tables: `inside` (light from the glass) and optionally `outside`; optionally
+    `half_turned`, the outside table of its relief turned by a half turn (`half_turned_outside`: rows lit
+    from the far half of azimuths read it; without it they read `outside` turned)."""
 
     inside: BsdfTable
     outside: BsdfTable | None = None
+    half_turned: BsdfTable | None = None
     is_flat = False
 
     def describe(self) -> dict:

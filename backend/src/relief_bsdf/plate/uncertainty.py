@@ -64,8 +64,10 @@ def perturbed(table: BsdfTable | None, rng: np.random.Generator) -> BsdfTable | 
 
 
 def _face_tables(experiment: Experiment, rows: Any, grid: TableGrid) -> dict:
-    """{face name: (outside | None, inside)} of the non-flat faces whose tables carry a sigma."""
-    from relief_bsdf.plate.deterministic import front_tables, front_traces_beam, table_incidences
+    """{face name: (outside | None, inside, half-turned outside | None)} of the non-flat faces whose tables
+    carry a sigma (the half-turned outside table: the front's, where rows are lit from the far half of
+    azimuths, `plate.deterministic.half_turn_table`)."""
+    from relief_bsdf.plate.deterministic import front_tables, front_traces_beam, half_turn_table, table_incidences
     p = experiment.plate
     traced = front_traces_beam(experiment, rows, grid)
     wl, ti = table_incidences(experiment, rows, traced)
@@ -76,8 +78,9 @@ def _face_tables(experiment: Experiment, rows: Any, grid: TableGrid) -> dict:
             continue
         t_out, t_in = (front_tables(experiment, grid, wl, ti, traced) if name == "front"
                        else face.tables(p.material, grid, wl, ti, need_outside=False))
-        if any(t is not None and t.sigma_per_sr is not None for t in (t_out, t_in)):
-            out[name] = (t_out, t_in)
+        half = half_turn_table(experiment, rows, grid, traced) if name == "front" else None
+        if any(t is not None and t.sigma_per_sr is not None for t in (t_out, t_in, half)):
+            out[name] = (t_out, t_in, half)
     return out
 
 
@@ -116,8 +119,8 @@ def rows_draws(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
     # restores the process's setting while another still solves)
     with deterministic.blas_single_thread(), ThreadPoolExecutor(max_workers=threads) as pool:
         for lo in range(0, draws, threads):
-            batch = [{name: TableFace(perturbed(t_in, rng), perturbed(t_out, rng))
-                      for name, (t_out, t_in) in faces.items()} for _ in range(lo, min(draws, lo + threads))]
+            batch = [{name: TableFace(perturbed(t_in, rng), perturbed(t_out, rng), perturbed(half, rng))
+                      for name, (t_out, t_in, half) in faces.items()} for _ in range(lo, min(draws, lo + threads))]
             runs[lo:lo + len(batch)] = list(pool.map(solve, batch))
     return runs
 
