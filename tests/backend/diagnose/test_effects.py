@@ -55,10 +55,14 @@ def test_cheap_effects_reuse_the_baseline_tables(small):
     assert TABLE_CACHE.misses == misses
     assert not get_effect("sample_tilt").cheap and get_effect("sample_tilt").budgeted
     small.evaluate(get_effect("sample_tilt"), {"tilt_deg": 2.0})
-    assert TABLE_CACHE.misses == misses + 1     # tilted incidences: the outside table only
+    # tilted incidences: the outside table, and the half-turned relief's at those the tilt turns to the far
+    # side (theta_i 0 seen from 180 deg: plate.faces.half_turned_outside); no inside table
+    assert TABLE_CACHE.misses == misses + 2
     assert not get_effect("instrument_blur").cheap
     small.evaluate(get_effect("instrument_blur"), {"blur_deg": 2.0})
-    assert TABLE_CACHE.misses == misses + 2     # the beam's quadrature of incidences: the outside table only
+    # the beam's quadrature of incidences: the outside table and, for the directions of the beam that lean to
+    # the far half of azimuths, the half-turned relief's outside table; no inside table
+    assert TABLE_CACHE.misses == misses + 4
 
 
 def test_absorption_follows_beer_lambert(small):
