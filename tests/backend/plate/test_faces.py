@@ -134,3 +134,17 @@ def test_the_table_cache_holds_its_byte_budget_least_recently_used_first(lambert
     assert list(small._d) == [1, 2] and small._total == 2 * size
     cache.clear()
     assert cache._total == 0 and not cache.holds(["a"])
+
+
+def test_nested_recordings_each_collect_their_own_keys(lambert_table):
+    """TableCache.recording: a block inside another (a screen's baseline inside the screen's record)
+    adds its keys to both, and each block leaves by itself even when the two sets are equal."""
+    from relief_bsdf.plate.faces import TableCache
+    cache = TableCache(maxsize=10, max_bytes=1e12)
+    t = lambert_table("outside", 0.1, 0.2, [0.0])
+    with cache.recording() as outer:
+        with cache.recording() as inner:
+            cache.get("a", lambda: t)
+        assert inner == outer == {"a"}          # equal sets: list.remove would have taken the outer one
+        cache.get("b", lambda: t)
+    assert outer == {"a", "b"} and inner == {"a"} and cache._recorders == []

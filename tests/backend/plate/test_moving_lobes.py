@@ -115,6 +115,8 @@ def test_the_sector_step_sets_the_sector_tables_azimuths_and_must_divide_a_half_
     assert TableGrid().sector_azimuths_deg() == SECTOR_AZIMUTHS_DEG == tuple(float(p) for p in range(15, 180, 15))
     fine = TableGrid(sector_step_deg=7.5).sector_azimuths_deg()
     assert len(fine) == 23 and fine[0] == 7.5 and fine[-1] == 172.5
-    for bad in (7.0, 0.0, -15.0, 180.0, float("nan")):
+    from relief_bsdf.plate.grid import NO_SECTORS_DEG
+    assert TableGrid(sector_step_deg=NO_SECTORS_DEG).sector_azimuths_deg() == ()    # no sector tables
+    for bad in (7.0, 0.0, -15.0, 360.0, 200.0, float("nan")):
         with pytest.raises(InputError, match="sector_step_deg"):
             TableGrid(sector_step_deg=bad)

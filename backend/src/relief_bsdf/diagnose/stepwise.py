@@ -16,7 +16,8 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    With r the current normalised residual and D the probes' changes of the model in the same
    units, the chi^2 gain of the best linear combination, r.D (D^T D)^+ D^T.r (a linear
    least-squares search in the probes' span: Rao's score test, with the second probe catching
-   a change of shape with the amplitude), must pass the same bar as a fit (`passes`, with
+   a change of shape with the amplitude; the changes evaluated without the inside sector tables,
+   `forward.DiagnosisForward.screening`), must pass the same bar as a fit (`passes`, with
    chi^2_S minus that gain as the larger model's chi^2), else the candidate is listed as
    screened out and not fitted.  For an effect linear in its parameter (a background, the
    source's Stokes q) the span holds the whole family, so the screen gain bounds the fit's gain
@@ -144,13 +145,23 @@ def _probes(effect, first: dict | None) -> list[dict]:
 
 
 def line_gain(forward, cur: "Step", effect, probes: list[dict]) -> float:
-    """chi^2 gain of the best linear combination of the model changes toward `probes` (module docstring)."""
+    """chi^2 gain of the best linear combination of the model changes toward `probes` (module docstring).
+
+    The residual is the current step's (its model, its sigma); the changes are evaluated on the
+    screening forward (`DiagnosisForward.screening`: without inside sector tables where the baseline
+    has them), the probes against the current model on that same forward."""
     import numpy as np
-    named = tuple(get_effect(e) for e in cur.effects) + (effect,)
+    held = tuple(get_effect(e) for e in cur.effects)
     m0, s0 = cur.model
     s = np.sqrt(np.asarray(forward.rows.sigma_sr, float) ** 2 + s0**2)
     r = (np.asarray(forward.rows.bsdf_sr, float) - m0) / s
-    D = np.stack([(forward.evaluate_set(named, {**cur.values, **p})[1] - m0) / s for p in probes], axis=1)
+    screen = forward.screening() if hasattr(forward, "screening") else forward
+    before = screen.evaluations
+    ref = m0 if screen is forward else screen.evaluate_set(held, cur.values)[1]
+    D = np.stack([(screen.evaluate_set(held + (effect,), {**cur.values, **p})[1] - ref) / s for p in probes],
+                 axis=1)
+    if screen is not forward:
+        forward.evaluations += screen.evaluations - before
     ok = np.all(np.isfinite(D), axis=0) & (np.abs(D).sum(axis=0) > 0)
     if not ok.any():
         return 0.0

@@ -102,8 +102,8 @@ class TableCache:
         self._recorders.append(used)
         try:
             yield used
-        finally:
-            self._recorders.remove(used)
+        finally:      # by identity: nested blocks may hold equal sets (list.remove compares by value)
+            self._recorders[:] = [r for r in self._recorders if r is not used]
 
     def tables(self, keys: Any) -> dict:
         """{key: table} of those of `keys` still held whose value is a table (data that can travel to a
@@ -489,12 +489,14 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     `inside_sectors`).  The sector tables share the rays of SECTOR_RAY_TABLES inside tables (each light
     sector meets one table; bench_forward_accuracy's anisotropic relief: rms z 1.45 with 30-deg sectors at
     full rays, 1.12 with 15-deg sectors at 5/11 of the rays each)."""
+    azimuths = grid.sector_azimuths_deg()
+    if not azimuths:                        # a grid without sector tables (TableGrid.sector_step_deg 180)
+        return None
     face = _resolved_relief(face, material, grid, wavelengths_nm, theta_i_outside_deg)
     if face is None or face.method != "ray":
         return None
     if not (anisotropic_face(face) or azimuth_dependent(face, material, grid, wavelengths_nm, progress)):
         return None
-    azimuths = grid.sector_azimuths_deg()
     face = replace(face, samples=max(int(face.samples * SECTOR_RAY_TABLES / len(azimuths)), 1))
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
     key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "inside_sectors", azimuths)

@@ -48,6 +48,7 @@ from relief_bsdf.methods.request import Request
 INSIDE_EFFORT_STEP_DEG = 10.0   # the inside tables' total effort: one full-effort table every 10 deg of incidence
 INSIDE_INTERPOLATIONS = ("moving", "linear")   # how the loop reads the inside tables between their incidences
 DIRECT_METHODS = ("ray",)     # methods whose outside tables go on the direct grid (cost per ray, not per cell)
+NO_SECTORS_DEG = 180.0        # TableGrid.sector_step_deg of a grid without inside sector tables
 
 
 @dataclass(frozen=True)
@@ -75,7 +76,9 @@ class TableGrid:
         per wavelength), and on the measured map (200k rays, 3 incidences, one quiet core, 2026-12-03)
         23 sectors take a forward's peak memory 3.8 -> 7.1 GB, the solver's operators 7 -> 16 s and a solve
         3.2 -> 6.0 s: a diagnosis keeps several solvers in each of its processes (24 GB in all) and every
-        evaluation would cost twice.
+        evaluation would cost twice.  180 (NO_SECTORS_DEG): no sector tables, the inside table's own
+        azimuth only, the loop azimuth-circulant as for an isotropic relief (the diagnosis's screens,
+        `diagnose.forward.DiagnosisForward.screening`).
     inside_samples_scale: a sampled method's effort per inside incidence, as a fraction of the
         face's `samples` (the outside tables get `samples`): the loop integrates the inside
         tables over the incidences of the light inside, which averages their noise, so denser
@@ -112,9 +115,9 @@ class TableGrid:
 
     def __post_init__(self) -> None:
         k = 180.0 / self.sector_step_deg if np.isfinite(self.sector_step_deg) and self.sector_step_deg > 0 else 0.0
-        if not (2 <= round(k) <= 72 and abs(k - round(k)) < 1e-9):
-            raise InputError("grid.sector_step_deg", "must divide 180 deg into 2 to 72 sectors (e.g. 15 or 7.5), "
-                             f"got {self.sector_step_deg}")
+        if not (1 <= round(k) <= 72 and abs(k - round(k)) < 1e-9):
+            raise InputError("grid.sector_step_deg", "must divide 180 deg into 1 to 72 sectors (e.g. 15 or 7.5; "
+                             f"180: no sector tables), got {self.sector_step_deg}")
         if self.inside_interpolation not in INSIDE_INTERPOLATIONS:
             raise InputError("grid.inside_interpolation", f"must be one of {', '.join(INSIDE_INTERPOLATIONS)}, "
                              f"got {self.inside_interpolation!r}")
@@ -191,7 +194,8 @@ class TableGrid:
 
     def sector_azimuths_deg(self) -> tuple:
         """Incidence azimuths of the inside sector tables besides the inside table's own 0 deg (every
-        `sector_step_deg` up to a half turn: a relief's statistics are unchanged by a half turn)."""
+        `sector_step_deg` up to a half turn: a relief's statistics are unchanged by a half turn); none at
+        NO_SECTORS_DEG."""
         n = int(round(180.0 / self.sector_step_deg))
         return tuple(float(k * self.sector_step_deg) for k in range(1, n))
 
