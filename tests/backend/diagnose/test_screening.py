@@ -8,6 +8,7 @@ fitted and named keeps them.  An isotropic relief has nothing to leave out: its 
 itself.
 """
 import pickle
+import re
 
 import numpy as np
 
@@ -59,3 +60,18 @@ def test_a_screen_without_the_sector_tables_finds_the_gain_with_them(plate_forwa
     full = line_gain(fwd, cur, scale, _probes(scale, None))
     print(f"chi2 {cur.chi2:.1f}: screen gain {screened:.1f} without the sectors, {full:.1f} with them")
     assert full > 0.5 * cur.chi2 and abs(screened / full - 1.0) < 0.1, (screened, full, cur.chi2)
+
+
+def test_the_isotropy_warning_comes_with_the_baseline_not_with_every_probe(plate_forward):
+    """An anisotropic relief is said once, with the baseline; a probe's experiment (the same tile
+    scaled: the same warning with other numbers) would repeat it for every probe and worker."""
+    import warnings
+    from relief_bsdf.plate.faces import ISOTROPY_WARNING
+    fwd = plate_forward(_anisotropic(), method="ray", samples=4_000)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        fwd.baseline()
+        said = [w for w in seen if re.match(ISOTROPY_WARNING, str(w.message))]
+        fwd.evaluate(get_effect("relief_scale"), {"height_scale": 1.3})
+        again = [w for w in seen if re.match(ISOTROPY_WARNING, str(w.message))]
+    assert len(said) >= 1 and len(again) == len(said)

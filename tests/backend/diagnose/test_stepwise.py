@@ -8,6 +8,7 @@ the plate model.  The end-to-end tests on recordings made by the independent pho
 (`relief conceal`) are in test_compound.py (slow).
 """
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -219,6 +220,47 @@ def test_an_effect_that_the_others_take_over_after_a_refit_is_dropped():
     assert out.effects == ("bulk_absorption",) and out.dropped == ("stray_light",)
     assert out.values["absorption_per_mm"] == pytest.approx(0.2, rel=0.1)
     assert out.chi2 < chi
+
+
+@pytest.mark.parametrize("truth, needed", [({"absorption_per_mm": 0.2, "background_per_sr": 0.03}, True),
+                                           ({"absorption_per_mm": 0.2}, False)])
+def test_an_effect_is_kept_without_a_refit_only_when_its_removal_costs_far_more_than_the_bar(truth, needed):
+    """`_clearly_needed`: one evaluation (the background removed, the absorption where it is) and the
+    absorption's linearised refit from the step's Jacobian.  With a real background (0.03 /sr against
+    lobes of 0.02-0.8; the step refitted and polished as stepwise names it) its removal costs far more
+    than ten times the bar: kept after that one evaluation.  With none (the compromise of the test
+    above, its Jacobian there) it is not decided there, and the refit drops it."""
+    from relief_bsdf.diagnose.fitting import _bounds, _jacobian, polish, refit_joint
+    from relief_bsdf.diagnose.stepwise import DROP_SHORTCUT, Step, _clearly_needed, _drop_redundant, overwhelming_bar
+    fwd = AnalyticForward(truth, seed=5)
+    n = len(fwd.rows)
+    effs = (get_effect("stray_light"), get_effect("bulk_absorption"))
+    if needed:
+        vals, _ = refit_joint(fwd, effs, {"background_per_sr": 0.02, "absorption_per_mm": 0.3})
+        vals, chi, J = polish(fwd, effs, vals)             # as a step that named both (stepwise._steps)
+    else:
+        chi, b = min((fwd.evaluate_set(effs, {"background_per_sr": b, "absorption_per_mm": 0.35})[0], b)
+                     for b in np.linspace(0.0, 0.2, 201))
+        vals = {"background_per_sr": b, "absorption_per_mm": 0.35}
+        _, v, s = fwd.evaluate_set(effs, vals)
+        J = _jacobian(fwd, effs, vals, np.sqrt(fwd.rows.sigma_sr**2 + s**2), _bounds(fwd, effs))
+    assert J is not None
+    _, v, s = fwd.evaluate_set(effs, vals)
+    step = Step(("stray_light", "bulk_absorption"), vals, chi, 2, (v, s), jacobian=J)
+    rest = effs[1:]
+    held = {"absorption_per_mm": vals["absorption_per_mm"]}
+    fwd.evaluations = 0
+    assert _clearly_needed(fwd, step, "stray_light", rest, held, n) is needed
+    assert fwd.evaluations == 1
+    if needed:
+        assert fwd.evaluate_set(rest, held)[0] - chi > DROP_SHORTCUT * overwhelming_bar(n)
+    fwd.evaluations = 0
+    out = _drop_redundant(fwd, step, n)
+    if needed:
+        assert out.effects == step.effects and fwd.evaluations == 1      # no refit
+    else:
+        assert out.effects == ("bulk_absorption",) and fwd.evaluations > 3
+    assert not _clearly_needed(fwd, replace(step, jacobian=None), "stray_light", rest, held, n)
 
 
 class BlurForward(AnalyticForward):

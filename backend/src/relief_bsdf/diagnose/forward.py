@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -101,10 +102,15 @@ class DiagnosisForward:
         """(values, model sigma): the sigma is the baseline's relative 1-sigma (its tables' Monte-Carlo
         noise and tile realisation through the plate, plate.uncertainty, computed once) times the values."""
         from relief_bsdf.methods.realisation import tile_warnings_quiet
+        from relief_bsdf.plate.faces import ISOTROPY_WARNING
         self.evaluations += 1
-        # the baseline's tables warn about the tile; an effect's tables (the same tile scaled, filtered, at
-        # another index) would repeat it once per probe and worker
-        with contextlib.nullcontext() if experiment is self.experiment else tile_warnings_quiet():
+        # the baseline warns about the tile and an anisotropic relief; an effect's experiment (the same tile
+        # scaled, filtered, at another index) would repeat it, with other numbers, once per probe and worker
+        with contextlib.ExitStack() as quiet:
+            if experiment is not self.experiment:
+                quiet.enter_context(tile_warnings_quiet())
+                quiet.enter_context(warnings.catch_warnings())
+                warnings.filterwarnings("ignore", message=ISOTROPY_WARNING, category=RuntimeWarning)
             sim = simulate(experiment, self.rows, engine="deterministic", grid=self.grid)
         return sim.values_per_sr, self.model_rel_sigma() * np.abs(sim.values_per_sr)
 

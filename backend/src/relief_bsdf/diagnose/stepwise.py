@@ -49,8 +49,11 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
      model error (a clean 48 px case on `normals` tables, rms 1.34, gained 21 with a relief
      scale of 0.95; test_diagnose.test_clean_case_called_none);
 3. if it passes, every parameter of S + c is refitted jointly (`fitting.refit_joint`, starting
-   from S's values and c's conditional fit), and a named effect that the others now make
-   redundant (removing it and refitting the rest jointly does not fail the bar) is dropped;
+   from S's values and c's conditional fit; at the first step the conditional fit is the joint
+   one), and a named effect that the others now make redundant (removing it and refitting the
+   rest jointly does not fail the bar) is dropped (an effect whose removal costs more than ten
+   times the overwhelming bar after the rest's linearised refit is kept without the refit,
+   `_clearly_needed`);
 4. stop when no candidate passes, or at MAX_EFFECTS effects (a dropped effect is not offered
    again, so the search ends).
 5. (reporting only) a candidate whose fitted BIC came within BIC_MARGIN of the winner's at the
@@ -88,6 +91,7 @@ BIC_OVERWHELMING = 40.0
 CONSISTENCY_Z = 3.0
 MAX_EFFECTS = 4
 MODEL_ACCURACY_RMS = 1.2
+DROP_SHORTCUT = 10.0     # `_clearly_needed`: the safety factor on the linearised refit of the rest
 
 
 def consistent_with_noise(chi2: float, n: int) -> bool:
@@ -308,16 +312,48 @@ def _step_task(forward, task: tuple) -> dict:
             "tables": new if TABLE_CACHE.worth_sending(new) else {}}
 
 
+def _clearly_needed(forward, step: Step, name: str, rest: tuple, vals: dict, n: int) -> bool:
+    """Does removing `name` from `step` cost far more than the bar, whatever the rest's refit?  One
+    evaluation instead of a refit (`_drop_redundant`): the rest at their current values without
+    `name`, chi^2_0 (exact, the effect removed in full), less the best the rest can regain by the
+    linearised refit from there, |P_J r|^2 with J the rest's columns of the polish's Jacobian (the
+    Gauss-Newton model of the refit); needed when what remains exceeds DROP_SHORTCUT times the
+    overwhelming bar plus the effect's BIC penalty.  The factor holds the linearisation of the rest's
+    move: a refit that regains ten times more than its linear model is not a refit near an optimum.
+    No Jacobian (the polish ran out of steps): not decided here."""
+    import numpy as np
+    from relief_bsdf.fit.residual import signed_residuals
+    if step.jacobian is None:
+        return False
+    order = [p.name for e in step.effects for p in get_effect(e).params]
+    cols = [order.index(p.name) for e in rest for p in e.params]
+    chi0, v, s0 = forward.evaluate_set(rest, vals)
+    rows = forward.rows
+    s = np.sqrt(np.asarray(rows.sigma_sr, float) ** 2 + s0**2)
+    r = signed_residuals(rows.bsdf_sr, v, s)
+    J = np.asarray(step.jacobian, float)[:, cols]
+    regained = 0.0
+    if J.size:
+        fit = J @ np.linalg.lstsq(J, -r, rcond=1e-10)[0]
+        regained = float(r @ r - (r + fit) @ (r + fit))
+    bar = overwhelming_bar(n) + get_effect(name).k * math.log(max(n, 2))
+    return chi0 - regained - step.chi2 > DROP_SHORTCUT * bar
+
+
 def _drop_redundant(forward, step: Step, n: int) -> Step:
     """Drop a named effect that the others make redundant: removing it and refitting the rest
     jointly (`fitting.refit_joint`, from their current values) loses less than the bar.  The refit
     matters: a greedy first step may name an effect that mimics two true ones together (volume
     scattering both dims the lobes and lifts the floor, like absorption plus stray light); once
-    those are named, they take over its share only if they may move."""
+    those are named, they take over its share only if they may move.  An effect whose removal
+    costs far more than the bar even after the linearised refit (`_clearly_needed`, one evaluation)
+    is kept without the refit (10 evaluations of a relief operation: 20 s on a Gaussian tile)."""
     for name in step.effects[:-1]:
         rest = tuple(get_effect(e) for e in step.effects if e != name)
         eff = get_effect(name)
         vals = {k: v for k, v in step.values.items() if k not in {p.name for p in eff.params}}
+        if _clearly_needed(forward, step, name, rest, vals, n):
+            continue
         vals, _ = refit_joint(forward, rest, vals)
         chi, v, s = forward.evaluate_set(rest, vals)
         if not passes(chi, step.k - eff.k, step.chi2, step.k, n):
@@ -364,7 +400,9 @@ def _steps(forward, names: list[str], steps: list, dropped: set, held: dict, n: 
                               cur.jacobian))
             break
         effs = named + (get_effect(best["effect"]),)
-        vals, chi = refit_joint(forward, effs, {**cur.values, **best["parameters"]})
+        vals = {**cur.values, **best["parameters"]}
+        if named:           # the first effect's conditional fit is its joint fit: nothing else moves
+            vals, chi = refit_joint(forward, effs, vals)
         vals, chi, J = polish(forward, effs, vals)
         chi, v, s = forward.evaluate_set(effs, vals)
         new = Step(cur.effects + (best["effect"],), vals, chi, cur.k + best["k"], (v, s), best["effect"],

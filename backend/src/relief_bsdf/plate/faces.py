@@ -172,6 +172,9 @@ def anisotropic_face(face: Any) -> bool:
     return slope_anisotropy(relief)[0] > ANISOTROPY_WARN
 
 
+ISOTROPY_WARNING = r"relief .* is anisotropic \(principal rms slopes differ"   # the start of isotropy_warning's text
+
+
 def isotropy_warning(face: Any) -> str:
     """A plain warning when a relief face is anisotropic (the deterministic engine assumes isotropic
     tables: one incidence azimuth, azimuth-circulant loop kernels), else ''."""
