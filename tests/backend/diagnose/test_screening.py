@@ -23,7 +23,8 @@ def _anisotropic():
 
 
 def _sector_keys(keys) -> list:
-    return [k for k in keys if "inside_sectors" in k]
+    from relief_bsdf.plate.faces import SECTORS_KEY
+    return [k for k in keys if SECTORS_KEY in k]
 
 
 def test_the_screening_forward_leaves_out_only_the_sector_tables(plate_forward):

@@ -53,7 +53,7 @@ from scipy import optimize
 from relief_bsdf.diagnose.effects import Effect, Param
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of, shared_columns
-from relief_bsdf.fit.residual import signed_residuals
+from relief_bsdf.fit.residual import misfit_sigma, signed_residuals
 
 GRID_CHEAP, REFINE_CHEAP = 9, 10
 GRID_TABLES, REFINE_TABLES = 5, 5
@@ -276,7 +276,7 @@ def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS) -> 
     bounds = _bounds(forward, effects)
     h = np.array([_step(p, values[p.name], *bounds[p.name]) for p in params])
     for _ in range(steps):
-        s = np.sqrt(np.asarray(rows.sigma_sr, float) ** 2 + s0**2)
+        s = misfit_sigma(rows, s0)
         r = signed_residuals(rows.bsdf_sr, v, s)
         J = _jacobian(forward, effects, values, s, bounds)
         d = np.linalg.lstsq(J, -r, rcond=1e-10)[0]
@@ -304,7 +304,7 @@ def intervals(forward, effects: tuple, values: dict, jacobian: np.ndarray | None
         return {}, {}
     rows = forward.rows
     _, v0, s0 = forward.evaluate_set(effects, values)
-    s = np.sqrt(np.asarray(rows.sigma_sr, float) ** 2 + s0**2)
+    s = misfit_sigma(rows, s0)
     bounds = _bounds(forward, effects)
     J = _jacobian(forward, effects, values, s, bounds) if jacobian is None else jacobian
     ranges = np.array([bounds[p.name][1] - bounds[p.name][0] for p in params])

@@ -87,10 +87,11 @@ class DiagnosisForward:
         """The forward model the screens evaluate on (module doc): this one without inside sector tables
         when its baseline uses them, else this one.  Made once per process, with its own memo and the
         model sigma of this one (a screen divides by the current step's sigma anyway)."""
+        from relief_bsdf.plate.faces import SECTORS_KEY
         screen = self.__dict__.get("_screen")
         if screen is None:
             self.baseline()
-            if any("inside_sectors" in key for key in self._baseline_keys):
+            if any(SECTORS_KEY in key for key in self._baseline_keys):
                 grid = replace(self.grid or TableGrid(), sector_step_deg=NO_SECTORS_DEG)
                 # the model sigma's arrays are shared (the baseline made them): nothing is derived again
                 screen = replace(self, grid=grid, evaluations=0, _baseline=None, _memo={}, _baseline_keys=frozenset())

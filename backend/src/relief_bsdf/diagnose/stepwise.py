@@ -156,8 +156,9 @@ def line_gain(forward, cur: "Step", effect, probes: list[dict]) -> float:
     has them), the probes against the current model on that same forward."""
     import numpy as np
     held = tuple(get_effect(e) for e in cur.effects)
+    from relief_bsdf.fit.residual import misfit_sigma
     m0, s0 = cur.model
-    s = np.sqrt(np.asarray(forward.rows.sigma_sr, float) ** 2 + s0**2)
+    s = misfit_sigma(forward.rows, s0)
     r = (np.asarray(forward.rows.bsdf_sr, float) - m0) / s
     screen = forward.screening() if hasattr(forward, "screening") else forward
     before = screen.evaluations
@@ -322,15 +323,13 @@ def _clearly_needed(forward, step: Step, name: str, rest: tuple, vals: dict, n: 
     move: a refit that regains ten times more than its linear model is not a refit near an optimum.
     No Jacobian (the polish ran out of steps): not decided here."""
     import numpy as np
-    from relief_bsdf.fit.residual import signed_residuals
+    from relief_bsdf.fit.residual import misfit_sigma, signed_residuals
     if step.jacobian is None:
         return False
     order = [p.name for e in step.effects for p in get_effect(e).params]
     cols = [order.index(p.name) for e in rest for p in e.params]
     chi0, v, s0 = forward.evaluate_set(rest, vals)
-    rows = forward.rows
-    s = np.sqrt(np.asarray(rows.sigma_sr, float) ** 2 + s0**2)
-    r = signed_residuals(rows.bsdf_sr, v, s)
+    r = signed_residuals(forward.rows.bsdf_sr, v, misfit_sigma(forward.rows, s0))
     J = np.asarray(step.jacobian, float)[:, cols]
     regained = 0.0
     if J.size:

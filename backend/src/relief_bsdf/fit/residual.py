@@ -124,10 +124,15 @@ def chi2(rows: Any, model: np.ndarray, model_sigma: np.ndarray | None = None) ->
     Used by the diagnosis (selection by BIC = chi2 + k ln n).
     """
     model = np.asarray(model, float)
-    ms = np.zeros_like(model) if model_sigma is None else np.asarray(model_sigma, float)
-    s = np.sqrt(np.asarray(rows.sigma_sr, float) ** 2 + ms**2)
-    r = signed_residuals(np.asarray(rows.bsdf_sr, float), model, s)
+    r = signed_residuals(np.asarray(rows.bsdf_sr, float), model, misfit_sigma(rows, model_sigma, model.shape))
     return float(r @ r)
+
+
+def misfit_sigma(rows: Any, model_sigma: np.ndarray | None = None, shape: tuple | None = None) -> np.ndarray:
+    """s of `chi2` per row: sqrt(sigma_recording^2 + sigma_model^2) (no model sigma: the recording's)."""
+    rec = np.asarray(rows.sigma_sr, float)
+    ms = np.zeros(rec.shape if shape is None else shape) if model_sigma is None else np.asarray(model_sigma, float)
+    return np.sqrt(rec**2 + ms**2)
 
 
 def signed_residuals(measured: np.ndarray, model: np.ndarray, s: np.ndarray) -> np.ndarray:

@@ -473,6 +473,7 @@ def half_turned_outside(face: Any, material: Material, grid: TableGrid, waveleng
 
 SECTOR_AZIMUTHS_DEG = TableGrid().sector_azimuths_deg()   # the default grid's extra incidence azimuths
 SECTOR_RAY_TABLES = 5     # the sector tables share the rays of this many inside tables
+SECTORS_KEY = "inside_sectors"   # in the cache key of every sector table (`inside_sectors`)
 
 
 def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
@@ -502,7 +503,7 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
         return None
     face = replace(face, samples=max(int(face.samples * SECTOR_RAY_TABLES / len(azimuths)), 1))
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
-    key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "inside_sectors", azimuths)
+    key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, SECTORS_KEY, azimuths)
     return TABLE_CACHE.get(key, lambda: _reconstruct_side(face, material, grid, wl, grid.inside_incidences_deg(),
                                                           "inside", progress, phi_i_deg=azimuths))
 
