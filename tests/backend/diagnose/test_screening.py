@@ -1,16 +1,20 @@
-"""The screens evaluate without the inside sector tables (`DiagnosisForward.screening`).
+"""The screens evaluate without the inside sector tables and on the intensity-only loop
+(`DiagnosisForward.screening`).
 
 A screen needs the change of the model toward a candidate's probes.  On a relief that scatters the
 light inside the plate by azimuth, the sector tables (`plate.faces.inside_sectors`) make most of an
 evaluation's cost; the screening forward leaves them out for the probes AND the current model, so it
 finds the same gain (here within 10 %, measured 1-3 % on the seed-10 reliefs, notes 2026-12-04); what is
-fitted and named keeps them.  An isotropic relief has nothing to leave out: its screens use the forward
-itself.
+fitted and named keeps them.  The loop carries intensities only on the screening forward (the tables'
+M00, `TableGrid.stokes_loop` False), except for a candidate that acts through the polarisation.
 """
 import pickle
 import re
 
+from dataclasses import replace
+
 import numpy as np
+import pytest
 
 from relief_bsdf.diagnose.effects import get_effect
 from relief_bsdf.diagnose.stepwise import Step, _probes, line_gain
@@ -27,20 +31,55 @@ def _sector_keys(keys) -> list:
     return [k for k in keys if SECTORS_KEY in k]
 
 
-def test_the_screening_forward_leaves_out_only_the_sector_tables(plate_forward):
+def test_the_screening_forward_leaves_out_only_the_sector_tables_and_the_stokes_loop(plate_forward):
     iso = plate_forward(random_relief(48, 1.0e-6, 0.4e-6, 5.0e-6, "gaussian", seed=2), method="ray", samples=4_000)
-    assert iso.screening() is iso                       # no sector tables in its baseline: nothing to leave out
+    assert iso.screening(get_effect("polarization")) is iso     # nothing to leave out for a Stokes effect
+    flat = iso.screening(get_effect("relief_scale"))
+    assert flat is not iso and not flat.grid.stokes_loop
+    assert replace(flat.grid, stokes_loop=True) == iso.grid
     fwd = plate_forward(_anisotropic(), method="ray", samples=4_000)
     fwd.baseline()
     assert _sector_keys(fwd._baseline_keys)
     screen = fwd.screening()
     assert screen is not fwd and fwd.screening() is screen       # made once per process
     assert screen.grid.sector_azimuths_deg() == () and screen.grid.key() == fwd.grid.key()
+    stokes = fwd.screening(get_effect("polarization"))
+    assert stokes.grid.stokes_loop and stokes.grid.sector_azimuths_deg() == () and stokes is not screen
     with TABLE_CACHE.recording() as used:
         screen.evaluate(get_effect("relief_scale"), {"height_scale": 1.2})
     assert used and not _sector_keys(used)
     assert screen.model_rel_sigma() is fwd.model_rel_sigma()     # shared, not derived again
-    assert "_screen" not in pickle.loads(pickle.dumps(fwd)).__dict__     # a worker makes its own
+    assert not [k for k in pickle.loads(pickle.dumps(fwd)).__dict__ if k.startswith("_screen")]   # a worker's own
+
+
+def test_an_intensity_only_screen_finds_the_stokes_loops_gain_and_a_polarised_source_keeps_the_stokes_loop(
+        plate_forward):
+    """The recording: the full forward's rows with the heights 15 % higher and a Beckmann back face of
+    alpha 0.1 (2 % noise, seed 7); each candidate's screen gain on the intensity-only loop against the
+    Stokes loop (within 10 %); the source's polarisation is screened on the Stokes loop (the intensity-only
+    loop cannot carry it: the plate model refuses it)."""
+    from relief_bsdf.errors import InputError
+    from relief_bsdf.plate.deterministic import PlateModel
+    from relief_bsdf.core.index import ConstantIndex
+    fwd = plate_forward(random_relief(48, 1.0e-6, 0.4e-6, 5.0e-6, "gaussian", seed=2), method="ray", samples=4_000)
+    effs = (get_effect("relief_scale"), get_effect("back_face_roughness"))
+    _, truth, _ = fwd.evaluate_set(effs, {"height_scale": 1.15, "back_alpha": 0.1})
+    rng = np.random.default_rng(7)
+    fwd.rows.sigma_sr = 0.02 * np.abs(truth) + 1e-4
+    fwd.rows.bsdf_sr = truth + fwd.rows.sigma_sr * rng.standard_normal(truth.size)
+    fwd._memo.clear()
+    v0, s0 = fwd.baseline()
+    cur = Step((), {}, fwd.misfit(v0, s0), 0, (v0, s0))
+    for e in effs + (get_effect("bulk_absorption"),):
+        flat = line_gain(fwd, cur, e, _probes(e, None))
+        fwd.__dict__["_screen"] = fwd                             # this candidate's screen on the Stokes loop
+        full = line_gain(fwd, cur, e, _probes(e, None))
+        del fwd.__dict__["_screen"]
+        print(f"{e.name}: chi2 {cur.chi2:.1f}, screen gain {flat:.2f} intensity only, {full:.2f} Stokes loop")
+        assert full > 1.0 and abs(flat / full - 1.0) < 0.1, (e.name, flat, full, cur.chi2)
+    assert fwd.screening(get_effect("polarization")) is fwd
+    with pytest.raises(InputError, match="stokes_loop"):
+        PlateModel(thickness_m=1e-3, index=ConstantIndex(1.5), polarization="s", stokes_loop=False)
 
 
 def test_a_screen_without_the_sector_tables_finds_the_gain_with_them(plate_forward):

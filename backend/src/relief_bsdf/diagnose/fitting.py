@@ -263,7 +263,8 @@ def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS) -> 
     step solves the linearised least squares J d = -r (r the censored residuals of the chi^2,
     `fit.residual.signed_residuals`; J central differences, `_jacobian`), clipped to the
     parameters' bounds and kept only when it lowers chi^2 (else halved, twice); a step below a
-    tenth of a finite-difference step in every parameter is taken and ends the polish.  J is the
+    tenth of a finite-difference step in every parameter is taken when it lowers chi^2 (not halved
+    when it does not: below a tenth of a step the table noise decides) and ends the polish.  J is the
     Jacobian of the intervals (at a point within that tenth of a step of the answer), or None
     when the steps ran out first.  Rank-deficient J (a ridge, a parameter the rows do not see):
     the minimum-norm step, so an undetermined parameter does not move."""
@@ -288,6 +289,8 @@ def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS) -> 
             if c < chi:
                 values, chi, v, s0 = trial, c, vt, st
                 break
+            if small:
+                return values, chi, J           # within a tenth of a step and no lower: J is at the answer
             d = 0.5 * d
         else:
             return values, chi, J               # no step lowers chi^2: J is at the answer

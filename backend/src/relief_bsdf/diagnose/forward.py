@@ -22,7 +22,13 @@ the normal, the dots at theta_i 60: the grid's doc), enters the screen only as a
 On the seed-10 measured map an evaluation of a relief operation costs 2.6 s instead of 13.5 s (the
 sector tables' rays and the loop's sector operators; measured 2026-12-04, one process), and the
 screens' gains there and on the dots agree within 1-3 % (the tilt's within 0.64-0.93, both far above
-the bar).  What is named, fitted and reported is always evaluated with the sectors.
+the bar).  The screening forward's loop also carries intensities only (`TableGrid.stokes_loop` False:
+the polarised tables' M00, matrices 4x smaller a side), except for a candidate that acts through the
+source's polarisation (`Effect.stokes`) or when the stated source is polarised: the Mueller loop's
+operators and solves were most of a screen's plate time (seed-10 tilt + blur case, 2026-12-04, py-spy:
+the operators 65 s and the LU factorisations 17 s of 260 s of CPU); the gains agree within 0.1-8 %
+(tests/backend/diagnose/test_screening.py).  What is named, fitted and reported is always evaluated
+with the sectors and the Stokes loop.
 """
 from __future__ import annotations
 
@@ -67,7 +73,7 @@ class DiagnosisForward:
         worker puts them in its own table cache (`__setstate__`) instead of deriving them again
         (seconds per worker and pool; the numbers are the same: the tables are data)."""
         from relief_bsdf.plate.faces import TABLE_CACHE
-        state = {k: v for k, v in self.__dict__.items() if k != "_screen"}     # made again where it is used
+        state = {k: v for k, v in self.__dict__.items() if not k.startswith("_screen")}   # made where used
         return {**state, "_baseline_tables": TABLE_CACHE.tables(self._baseline_keys)}
 
     def __setstate__(self, state: dict) -> None:
@@ -83,21 +89,27 @@ class DiagnosisForward:
         t._memo = dict(self._memo)
         return t
 
-    def screening(self) -> "DiagnosisForward":
+    def screening(self, effect: Effect | None = None) -> "DiagnosisForward":
         """The forward model the screens evaluate on (module doc): this one without inside sector tables
-        when its baseline uses them, else this one.  Made once per process, with its own memo and the
-        model sigma of this one (a screen divides by the current step's sigma anyway)."""
+        when its baseline uses them, and with the intensity-only loop (`TableGrid.stokes_loop` False)
+        unless `effect` acts through the polarisation (`Effect.stokes`) or the stated source is
+        polarised; this one when neither applies.  Made once per process and kind, with its own memo
+        and the model sigma of this one (a screen divides by the current step's sigma anyway)."""
         from relief_bsdf.plate.faces import SECTORS_KEY
-        screen = self.__dict__.get("_screen")
+        stokes = bool(effect is not None and effect.stokes) or float(self.experiment.instrument.polarization_q) != 0.0
+        name = "_screen_stokes" if stokes else "_screen"
+        screen = self.__dict__.get(name)
         if screen is None:
             self.baseline()
+            grid = self.grid or TableGrid()
             if any(SECTORS_KEY in key for key in self._baseline_keys):
-                grid = replace(self.grid or TableGrid(), sector_step_deg=NO_SECTORS_DEG)
-                # the model sigma's arrays are shared (the baseline made them): nothing is derived again
-                screen = replace(self, grid=grid, evaluations=0, _baseline=None, _memo={}, _baseline_keys=frozenset())
-            else:
-                screen = self
-            self.__dict__["_screen"] = screen
+                grid = replace(grid, sector_step_deg=NO_SECTORS_DEG)
+            if not stokes:
+                grid = replace(grid, stokes_loop=False)
+            # the model sigma's arrays are shared (the baseline made them): nothing is derived again
+            screen = self if grid == (self.grid or TableGrid()) else replace(
+                self, grid=grid, evaluations=0, _baseline=None, _memo={}, _baseline_keys=frozenset())
+            self.__dict__[name] = screen
         return screen
 
     def simulate(self, experiment: Experiment) -> tuple[np.ndarray, np.ndarray]:

@@ -79,6 +79,13 @@ class TableGrid:
         evaluation would cost twice.  180 (NO_SECTORS_DEG): no sector tables, the inside table's own
         azimuth only, the loop azimuth-circulant as for an isotropic relief (the diagnosis's screens,
         `diagnose.forward.DiagnosisForward.screening`).
+    stokes_loop: the plate carries Stokes vectors through polarised (Mueller) tables (True, the
+        physics of record); False: intensities only, the tables' M00 (the loop's matrices 4x smaller a
+        side: its operators and solves ~16-64x cheaper), exact for unpolarised light only where no
+        crossing polarises it (a Fresnel reflection or refraction at an oblique angle does: the second
+        pass of the unpolarised rows differs by ~1 %).  The diagnosis's screens evaluate the change of
+        the model toward a candidate on it (`diagnose.forward.DiagnosisForward.screening`).  Does not
+        change the tables (not in `key`).
     inside_samples_scale: a sampled method's effort per inside incidence, as a fraction of the
         face's `samples` (the outside tables get `samples`): the loop integrates the inside
         tables over the incidences of the light inside, which averages their noise, so denser
@@ -112,6 +119,7 @@ class TableGrid:
     inside_samples_scale: float | None = None
     inside_interpolation: str = "moving"
     sector_step_deg: float = 15.0
+    stokes_loop: bool = True
 
     def __post_init__(self) -> None:
         k = 180.0 / self.sector_step_deg if np.isfinite(self.sector_step_deg) and self.sector_step_deg > 0 else 0.0
@@ -230,7 +238,8 @@ class TableGrid:
                 "direct_theta_step_deg": self.direct_theta_step_deg,
                 "direct_phi_step_deg": self.direct_phi_step_deg, "direct_band_deg": self.direct_band_deg,
                 "inside_samples_fraction": self.inside_samples_fraction,
-                "inside_interpolation": self.inside_interpolation, "sector_step_deg": self.sector_step_deg}
+                "inside_interpolation": self.inside_interpolation, "sector_step_deg": self.sector_step_deg,
+                "stokes_loop": self.stokes_loop}
 
     def request(self, wavelengths: Any, theta_i: Any, incident_from: str, method: str, samples: int, seed: int,
                 options: dict | None = None, index_ratio: float | None = None,

@@ -18,6 +18,8 @@ Every module of `relief_bsdf.diagnose.effects` defines one `EFFECT = Effect(...)
 - `slow`: True for a cheap effect whose evaluation still takes seconds (the adding-doubling
   slab of a scattering bulk); `budgeted` (not cheap, or slow) effects get the short fit grid
   (`fitting`; every candidate is screened before it is fitted, `stepwise`);
+- `stokes`: True for an effect that acts through the light's polarisation (the source's Stokes
+  vector): its screen evaluates on the Stokes loop (`forward.DiagnosisForward.screening`);
 - `bracket(context, forward) -> {param: (lo, hi)}`: optional narrower search interval
   derived from the data (e.g. the weighted-mean background for stray light);
 - `coordinate(context) -> {param: (to_u, from_u)}`: optional monotone search coordinate u of a
@@ -121,6 +123,7 @@ class Effect:
     explain: Callable[[dict], str]
     cheap: bool = False
     slow: bool = False
+    stokes: bool = False
     skip_reason: Callable[[ReliefContext], "str | None"] = _no_skip
     bracket: Callable[[ReliefContext, Any], dict] | None = None
     face: str = ""

@@ -26,4 +26,5 @@ EFFECT = Effect(
     apply=_apply,
     explain=_explain,
     cheap=True,
+    stokes=True,
 )
