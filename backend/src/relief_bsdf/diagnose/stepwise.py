@@ -50,8 +50,8 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
      scale of 0.95; test_diagnose.test_clean_case_called_none);
 3. if it passes, every parameter of S + c is refitted jointly, starting from S's values and c's
    conditional fit (at the first step the conditional fit is the joint one): Gauss-Newton steps
-   (`fitting.polish`), and where they do not converge within their budget the coordinate search
-   (`fitting.refit_joint`) and the steps again, and a named effect that the others now make redundant (removing it and refitting the
+   (`fitting.polish`, twice its budget of steps), and where they do not converge the coordinate
+   search (`fitting.refit_joint`) and the steps again, and a named effect that the others now make redundant (removing it and refitting the
    rest jointly does not fail the bar) is dropped (an effect whose removal costs more than ten
    times the overwhelming bar after the rest's linearised refit is kept without the refit,
    `_clearly_needed`);
@@ -84,7 +84,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from relief_bsdf.diagnose.effects import compatible, get_effect
-from relief_bsdf.diagnose.fitting import fit_effect, polish, refit_joint, why_skipped
+from relief_bsdf.diagnose.fitting import POLISH_STEPS, fit_effect, polish, refit_joint, why_skipped
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.selection import BIC_MARGIN, bic, bic_gain
 from relief_bsdf.parallel import kept_workers, map_tasks
@@ -404,8 +404,9 @@ def _steps(forward, names: list[str], steps: list, dropped: set, held: dict, n: 
         effs = named + (get_effect(best["effect"]),)
         vals = {**cur.values, **best["parameters"]}
         # Gauss-Newton from the conditional fit (the first effect's is its joint fit: nothing else
-        # moves); the coordinate refit only where those steps do not reach the optimum (step 3)
-        vals, chi, J = polish(forward, effs, vals)
+        # moves), twice the polish's steps when the held effects move too (a start further from the
+        # optimum); the coordinate refit only where those steps do not reach the optimum (step 3)
+        vals, chi, J = polish(forward, effs, vals, steps=2 * POLISH_STEPS if named else POLISH_STEPS)
         if named and J is None:
             vals, chi = refit_joint(forward, effs, vals)
             vals, chi, J = polish(forward, effs, vals)
