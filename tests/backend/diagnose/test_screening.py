@@ -26,6 +26,16 @@ def _anisotropic():
     return relief_from_spec(RandomFieldSpec(64, 64, 1e-6, 0.5e-6, 4e-6, anisotropy=2.5, angle_deg=0.0), 33)
 
 
+def _recorded(fwd, truth: np.ndarray, seed: int) -> Step:
+    """The forward's rows recorded as `truth` with 2 % noise (seeded); the baseline's step against them."""
+    rng = np.random.default_rng(seed)
+    fwd.rows.sigma_sr = 0.02 * np.abs(truth) + 1e-4
+    fwd.rows.bsdf_sr = truth + fwd.rows.sigma_sr * rng.standard_normal(truth.size)
+    fwd._memo.clear()
+    v0, s0 = fwd.baseline()
+    return Step((), {}, fwd.misfit(v0, s0), 0, (v0, s0))
+
+
 def _sector_keys(keys) -> list:
     from relief_bsdf.plate.faces import SECTORS_KEY
     return [k for k in keys if SECTORS_KEY in k]
@@ -64,12 +74,7 @@ def test_an_intensity_only_screen_finds_the_stokes_loops_gain_and_a_polarised_so
     fwd = plate_forward(random_relief(48, 1.0e-6, 0.4e-6, 5.0e-6, "gaussian", seed=2), method="ray", samples=4_000)
     effs = (get_effect("relief_scale"), get_effect("back_face_roughness"))
     _, truth, _ = fwd.evaluate_set(effs, {"height_scale": 1.15, "back_alpha": 0.1})
-    rng = np.random.default_rng(7)
-    fwd.rows.sigma_sr = 0.02 * np.abs(truth) + 1e-4
-    fwd.rows.bsdf_sr = truth + fwd.rows.sigma_sr * rng.standard_normal(truth.size)
-    fwd._memo.clear()
-    v0, s0 = fwd.baseline()
-    cur = Step((), {}, fwd.misfit(v0, s0), 0, (v0, s0))
+    cur = _recorded(fwd, truth, 7)
     for e in effs + (get_effect("bulk_absorption"),):
         flat = line_gain(fwd, cur, e, _probes(e, None))
         fwd.__dict__["_screen"] = fwd                             # this candidate's screen on the Stokes loop
@@ -84,15 +89,10 @@ def test_an_intensity_only_screen_finds_the_stokes_loops_gain_and_a_polarised_so
 
 def test_a_screen_without_the_sector_tables_finds_the_gain_with_them(plate_forward):
     """The recording: the full forward's rows with the heights 15 % higher (2 % noise, seed 5); the
-    screen's gain toward relief_scale with and without the sectors."""
+    screen's gain toward relief_scale with and without the sectors (and on the intensity-only loop)."""
     fwd = plate_forward(_anisotropic(), method="ray", samples=4_000)
     _, truth, _ = fwd.evaluate(get_effect("relief_scale"), {"height_scale": 1.15})
-    rng = np.random.default_rng(5)
-    fwd.rows.sigma_sr = 0.02 * np.abs(truth) + 1e-4
-    fwd.rows.bsdf_sr = truth + fwd.rows.sigma_sr * rng.standard_normal(truth.size)
-    fwd._memo.clear()
-    v0, s0 = fwd.baseline()
-    cur = Step((), {}, fwd.misfit(v0, s0), 0, (v0, s0))
+    cur = _recorded(fwd, truth, 5)
     scale = get_effect("relief_scale")
     screened = line_gain(fwd, cur, scale, _probes(scale, None))
     assert fwd.screening() is not fwd
