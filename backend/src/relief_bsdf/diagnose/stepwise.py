@@ -17,9 +17,9 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    units, the chi^2 gain of the best linear combination, r.D (D^T D)^+ D^T.r (a linear
    least-squares search in the probes' span: Rao's score test, with the second probe catching
    a change of shape with the amplitude; the changes evaluated without the inside sector tables
-   and on the intensity-only loop, `forward.DiagnosisForward.screening`), must pass the same bar as a fit (`passes`, with
-   chi^2_S minus that gain as the larger model's chi^2), else the candidate is listed as
-   screened out and not fitted.  For an effect linear in its parameter (a background, the
+   and on the intensity-only loop, `forward.DiagnosisForward.screening`), must pass the same bar
+   as a fit (`passes`, with chi^2_S minus that gain as the larger model's chi^2), else the
+   candidate is listed as screened out and not fitted.  For an effect linear in its parameter (a background, the
    source's Stokes q) the span holds the whole family, so the screen gain bounds the fit's gain
    from above (a bounded fit gains less); for a smooth one (Beer-Lambert absorption, a tilt, a
    relief scale) it is the linear regime's estimate.  A fit costs 9-19 evaluations, a screen 2:
@@ -51,10 +51,10 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
 3. if it passes, every parameter of S + c is refitted jointly, starting from S's values and c's
    conditional fit (at the first step the conditional fit is the joint one): Gauss-Newton steps
    (`fitting.polish`, twice its budget of steps), and where they do not converge the coordinate
-   search (`fitting.refit_joint`) and the steps again, and a named effect that the others now make redundant (removing it and refitting the
-   rest jointly does not fail the bar) is dropped (an effect whose removal costs more than ten
-   times the overwhelming bar after the rest's linearised refit is kept without the refit,
-   `_clearly_needed`);
+   search (`fitting.refit_joint`) and the steps again, and a named effect that the others now
+   make redundant (removing it and refitting the rest jointly does not fail the bar) is dropped
+   (an effect whose removal costs more than ten times the overwhelming bar after the rest's
+   linearised refit is kept without the refit, `_clearly_needed`);
 4. stop when no candidate passes, or at MAX_EFFECTS effects (a dropped effect is not offered
    again, so the search ends).
 5. (reporting only) a candidate whose fitted BIC came within BIC_MARGIN of the winner's at the
