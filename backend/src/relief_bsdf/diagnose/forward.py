@@ -102,13 +102,13 @@ class DiagnosisForward:
         screen = self.__dict__.get(name)
         if screen is None:
             self.baseline()
-            grid = self.grid or TableGrid()
+            own = grid = self.grid or TableGrid()
             if any(SECTORS_KEY in key for key in self._baseline_keys):
                 grid = replace(grid, sector_step_deg=NO_SECTORS_DEG)
             if not stokes:
                 grid = replace(grid, stokes_loop=False)
             # the model sigma's arrays are shared (the baseline made them): nothing is derived again
-            screen = self if grid == (self.grid or TableGrid()) else replace(
+            screen = self if grid == own else replace(
                 self, grid=grid, evaluations=0, _baseline=None, _memo={}, _baseline_keys=frozenset())
             self.__dict__[name] = screen
         return screen

@@ -19,9 +19,9 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    a change of shape with the amplitude; the changes evaluated without the inside sector tables
    and on the intensity-only loop, `forward.DiagnosisForward.screening`), must pass the same bar
    as a fit (`passes`, with chi^2_S minus that gain as the larger model's chi^2), else the
-   candidate is listed as screened out and not fitted.  For an effect linear in its parameter (a background, the
-   source's Stokes q) the span holds the whole family, so the screen gain bounds the fit's gain
-   from above (a bounded fit gains less); for a smooth one (Beer-Lambert absorption, a tilt, a
+   candidate is listed as screened out and not fitted.  For an effect linear in its parameter (a
+   background, the source's Stokes q) the span holds the whole family, so the screen gain bounds
+   the fit's gain from above (a bounded fit gains less); for a smooth one (Beer-Lambert absorption, a tilt, a
    relief scale) it is the linear regime's estimate.  A fit costs 9-19 evaluations, a screen 2:
    on a measured map the cheap fits alone were 40-50 s of a step's worker time (2026-12-04).
    The screens and the fits of candidates without parameters run as one round on the worker

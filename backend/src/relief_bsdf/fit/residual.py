@@ -124,15 +124,14 @@ def chi2(rows: Any, model: np.ndarray, model_sigma: np.ndarray | None = None) ->
     Used by the diagnosis (selection by BIC = chi2 + k ln n).
     """
     model = np.asarray(model, float)
-    r = signed_residuals(np.asarray(rows.bsdf_sr, float), model, misfit_sigma(rows, model_sigma, model.shape))
+    r = signed_residuals(np.asarray(rows.bsdf_sr, float), model, misfit_sigma(rows, model_sigma))
     return float(r @ r)
 
 
-def misfit_sigma(rows: Any, model_sigma: np.ndarray | None = None, shape: tuple | None = None) -> np.ndarray:
+def misfit_sigma(rows: Any, model_sigma: np.ndarray | None = None) -> np.ndarray:
     """s of `chi2` per row: sqrt(sigma_recording^2 + sigma_model^2) (no model sigma: the recording's)."""
-    rec = np.asarray(rows.sigma_sr, float)
-    ms = np.zeros(rec.shape if shape is None else shape) if model_sigma is None else np.asarray(model_sigma, float)
-    return np.sqrt(rec**2 + ms**2)
+    var = np.asarray(rows.sigma_sr, float) ** 2
+    return np.sqrt(var if model_sigma is None else var + np.asarray(model_sigma, float) ** 2)
 
 
 def signed_residuals(measured: np.ndarray, model: np.ndarray, s: np.ndarray) -> np.ndarray:
