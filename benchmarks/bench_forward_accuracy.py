@@ -155,17 +155,9 @@ CASES = {
 
 def measured_tile(n: int = 160, height_scale: float = 3.0):
     """ST_x3p-2.x3p (a real instrument map), plane-levelled, its central n x n crop, heights x
-    `height_scale`, mirrored into a 2n x 2n periodic tile (even extension: continuous heights at the
-    wrap, so the tile adds no step; slopes keep their magnitudes, their signs are mirrored)."""
-    from relief_bsdf.io.heightmaps import read_relief
-    from relief_bsdf.surface.relief import Relief
-    r = read_relief(ROOT.parent / "shared" / "data" / "topography" / "ST_x3p-2.x3p").level()
-    ny, nx = r.shape
-    c = r.heights_m[(ny - n) // 2:(ny - n) // 2 + n, (nx - n) // 2:(nx - n) // 2 + n] * height_scale
-    c = c - c.mean()
-    tile = np.block([[c, c[:, ::-1]], [c[::-1, :], c[::-1, ::-1]]])
-    return Relief(tile, r.dx_m, r.dy_m, periodic=True, source=f"ST_x3p-2.x3p levelled, {n}^2 crop x {height_scale:g}, "
-                  "mirrored periodic tile")
+    `height_scale`, mirrored into a 2n x 2n periodic tile (validation.conceal.measured_tile)."""
+    from relief_bsdf.validation.conceal import measured_tile as tile
+    return tile(crop_n=n, height_scale=height_scale)
 
 
 def make_relief(name: str, seed: int = 11):

@@ -225,8 +225,9 @@ def _bilinear_periodic(grid: np.ndarray, theta_out_deg: np.ndarray, delta_deg: n
             + (g[i1, ia - 1] * (1 - fa) + g[i1, ia] * fa) * ft)
 
 
-def centre_values(grid: np.ndarray) -> np.ndarray:
-    """Point values at the cell centres from azimuth-cell AVERAGES (periodic axis 1).
+def centre_values(grid: np.ndarray, clip: bool = True) -> np.ndarray:
+    """Point values at the cell centres from azimuth-cell AVERAGES (periodic axis 1; further axes, such
+    as a Mueller matrix's, ride along).
 
     A cell of width d holding the average of a smooth f holds f(centre) + d^2 f'' / 24 + O(d^4)
     (Taylor expansion of the cell integral), so f(centre) = a_i - (a_{i-1} - 2 a_i + a_{i+1}) / 24
@@ -234,10 +235,16 @@ def centre_values(grid: np.ndarray) -> np.ndarray:
     as point values instead biases a lobe's azimuthal maximum low by d^2 |f''| / 24: at 45 deg a
     5-deg azimuth cell is 3.5 deg of arc, and in-plane rows of oblique transmitted lobes read
     ~5 % low against an independent photon Monte Carlo (benchmarks/bench_forward_accuracy.py).
-    Negative results (a correction larger than a faint cell next to a bright one) are clipped at 0.
+    The correction sums to zero around a ring, so a ring's total is kept; read as the weights of a
+    comb of point sources at the centres, the corrected values carry the field's own azimuthal
+    variance where the averages carry d^2 / 12 more (Sheppard's correction of binned moments): the
+    plate's loop takes its first transmission this way (plate.deterministic, `_incidence`).
+    `clip` (a reading): negative results (a correction larger than a faint cell next to a bright
+    one) are clipped at 0; False (a source, a Mueller matrix): kept, linear and power-conserving.
     """
     lap = np.roll(grid, 1, axis=1) - 2.0 * grid + np.roll(grid, -1, axis=1)
-    return np.maximum(grid - lap / 24.0, 0.0)
+    out = grid - lap / 24.0
+    return np.maximum(out, 0.0) if clip else out
 
 
 SUB_POINTS = 5          # per axis of a direct-grid cell: equal-solid-angle sub-points of the cone integral
