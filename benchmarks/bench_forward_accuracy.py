@@ -109,6 +109,16 @@ Findings:
   recordings) gauss_low 1.03 -> 0.82, anisotropic 0.93 -> 0.88, the rest within 0.02.  Sectors every 7.5 deg
   (`default,sectors=7.5`): dots 1.29 -> 1.19, measured 1.35 -> 1.27 (seed 12: dots 1.36 -> 1.21), at twice the
   loop's time and memory (not the default, plate.grid).
+- The first transmission enters the loop as point sources at the azimuth cells' centres (2026-12-04,
+  plate.detector.centre_values unclipped, plate.deterministic `_incidence`): on an opaque plate (bulk
+  30/mm in both engines) the measured map's R, its direct reflection alone, agreed to 0.2 %; the rest of R
+  (second pass and after) read 7 % low at 30 and 60 deg (tests/backend/plate/
+  test_second_pass_measured.py), 3.7 % now: the 5-deg cells' averaging had widened light that is narrow
+  across the plane of incidence (the map's slopes 2.2x steeper along x) at every later exit.  Measured
+  map 1.35 -> 1.18 (R level 0.964 -> 0.981), anisotropic 1.03 -> 0.99, gauss_low 0.87 -> 0.81, the rest
+  within 0.01; relief seed 12 every case better or equal (gauss_low 0.82 -> 0.77).  2.5-deg engine cells
+  (`--grids 1,2.5,2.5`) had done as much for R (1.48 -> 1.15) at 1.2-1.5x the forward's time; the
+  sector tables do not matter there (`default,sectors=180`: the same second pass at 30 and 60 deg).
 - Left: at 4 M photons gauss_mid is at 1.42 (the forward's own noise at 400k rays is ~0.7
   recording sigma in the lobe, and the tile's fine structure narrower than 0.5 deg: +-2-3 %
   wiggles, e.g. T ts 57 / 59); anisotropic and measured (slope ratio 2.7 and 2.2: the engine
