@@ -52,6 +52,7 @@ from scipy import optimize
 
 from relief_bsdf.diagnose.effects import Effect, Param
 from relief_bsdf.errors import InputError
+from relief_bsdf.fit import gauss_newton
 from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of, shared_columns
 from relief_bsdf.fit.residual import misfit_sigma, signed_residuals
 
@@ -259,44 +260,38 @@ def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS) -> 
 
     The coordinate search (`refit_joint`) ends where its short grids and few Brent steps stop,
     which on a correlated pair is not the optimum: on a concealed tilt + blur case (seed 5,
-    case03) it stopped at tilt -2.68 deg with chi^2 227 while -2.58 gave 217 (2026-12-02).  Each
-    step solves the linearised least squares J d = -r (r the censored residuals of the chi^2,
-    `fit.residual.signed_residuals`; J central differences, `_jacobian`), clipped to the
-    parameters' bounds and kept only when it lowers chi^2 (else halved, twice); a step below a
-    tenth of a finite-difference step in every parameter is taken when it lowers chi^2 (not halved
-    when it does not: below a tenth of a step the table noise decides) and ends the polish.  J is the
-    Jacobian of the intervals (at a point within that tenth of a step of the answer), or None
-    when the steps ran out first.  Rank-deficient J (a ridge, a parameter the rows do not see):
-    the minimum-norm step, so an undetermined parameter does not move."""
+    case03) it stopped at tilt -2.68 deg with chi^2 227 while -2.58 gave 217 (2026-12-02).  The
+    steps are fit.gauss_newton.polish's (the one definition with `relief fit`): the linearised
+    least squares J d = -r (r the censored residuals of the chi^2, `fit.residual.signed_residuals`;
+    J central differences, `_jacobian`), clipped to the parameters' bounds, kept only when they
+    lower chi^2, with chord steps and stretches; converged within a tenth of a finite-difference
+    step or half a standard deviation.  J is the Jacobian of the intervals (at a point within that
+    distance of the answer), or None when the steps ran out first.  Rank-deficient J (a ridge, a
+    parameter the rows do not see): the minimum-norm step, so an undetermined parameter does not
+    move."""
     params = [p for e in effects for p in e.params]
     values = dict(values)
-    chi, v, s0 = forward.evaluate_set(effects, values)
+    chi, _, _ = forward.evaluate_set(effects, values)
     if not params:
         return values, chi, None
     rows = forward.rows
     bounds = _bounds(forward, effects)
+
+    def at(x: np.ndarray) -> dict:
+        return {**values, **{p.name: float(xj) for p, xj in zip(params, x)}}
+
+    def residuals(x: np.ndarray) -> tuple[float, np.ndarray]:
+        c, v, s0 = forward.evaluate_set(effects, at(x))
+        return c, signed_residuals(rows.bsdf_sr, v, misfit_sigma(rows, s0))
+
+    def jacobian(x: np.ndarray, central: bool) -> np.ndarray:
+        vals = at(x)
+        return _jacobian(forward, effects, vals, misfit_sigma(rows, forward.evaluate_set(effects, vals)[2]), bounds)
+    x0 = np.array([values[p.name] for p in params])
     h = np.array([_step(p, values[p.name], *bounds[p.name]) for p in params])
-    for _ in range(steps):
-        s = misfit_sigma(rows, s0)
-        r = signed_residuals(rows.bsdf_sr, v, s)
-        J = _jacobian(forward, effects, values, s, bounds)
-        d = np.linalg.lstsq(J, -r, rcond=1e-10)[0]
-        small = bool(np.all(np.abs(d) < 0.1 * h))
-        for _halving in range(3):
-            trial = {**values, **{p.name: float(np.clip(values[p.name] + dj, p.lower, p.upper))
-                                  for p, dj in zip(params, d)}}
-            c, vt, st = forward.evaluate_set(effects, trial)
-            if c < chi:
-                values, chi, v, s0 = trial, c, vt, st
-                break
-            if small:
-                return values, chi, J           # within a tenth of a step and no lower: J is at the answer
-            d = 0.5 * d
-        else:
-            return values, chi, J               # no step lowers chi^2: J is at the answer
-        if small:
-            return values, chi, J
-    return values, chi, None
+    done = gauss_newton.polish(residuals, jacobian, x0, np.array([p.lower for p in params]),
+                               np.array([p.upper for p in params]), h, steps)
+    return at(done.x), done.f, done.jacobian
 
 
 def intervals(forward, effects: tuple, values: dict, jacobian: np.ndarray | None = None) -> tuple[dict, dict]:

@@ -53,6 +53,7 @@ import numpy as np
 
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
+from relief_bsdf.fit import gauss_newton
 from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of, shared_columns
 from relief_bsdf.fit.residual import DEFAULT_METRIC, LogChiMetric, signed_residuals
 from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain, overdispersion
@@ -68,7 +69,7 @@ from relief_bsdf.surface.stats import rms_height_and_slope
 
 FIT_FORMAT = "relief-fit/1"
 NOISE_METRIC = 1.2          # a fit "reaches the noise" at a log-chi metric <= this (issue 18: rms z <= 1.2)
-POLISH_STEPS = 4            # Gauss-Newton steps on the likelihood from the search's answer (`_polish`)
+POLISH_STEPS = 6            # Gauss-Newton steps on the likelihood from the search's answer (`_polish`; chord steps count)
 
 
 def relief_rms(relief: Relief) -> tuple[float, float]:
@@ -106,6 +107,7 @@ class Forward:
     sigma_draws: int = 8
     _rel_sigma: np.ndarray | None = field(default=None, repr=False)
     _rel_dev: np.ndarray | None = field(default=None, repr=False)
+    _dev_at: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         self.face_name = _relief_face_name(self.experiment)
@@ -146,8 +148,11 @@ class Forward:
         """The simulation's table draws at (scale, filter) as deviations per row (INTERVAL_DRAWS x rows,
         plate.uncertainty.deviations): the intervals' shared model noise, made where they are asked."""
         from relief_bsdf.plate.uncertainty import INTERVAL_DRAWS, deviations
-        _, ex = self.experiment_at(height_scale, filter_sigma_um)
-        return deviations(ex, self.rows, self.grid, max(INTERVAL_DRAWS, self.sigma_draws))
+        key = _key(np.array([height_scale, filter_sigma_um]))
+        if key not in self._dev_at:          # kept: the fitted point's draws also give its simulated sigma
+            _, ex = self.experiment_at(height_scale, filter_sigma_um)
+            self._dev_at[key] = deviations(ex, self.rows, self.grid, max(INTERVAL_DRAWS, self.sigma_draws))
+        return self._dev_at[key]
 
     def model_rel_deviations(self) -> np.ndarray:
         """The table draws behind `model_rel_sigma` as relative deviations per row (sigma_draws x rows,
@@ -161,6 +166,17 @@ class Forward:
     def simulated(self, height_scale: float, filter_sigma_um: float, table_sigma_draws: int = 0) -> Simulated:
         _, ex = self.experiment_at(height_scale, filter_sigma_um)
         return simulate(ex, self.rows, grid=self.grid, where=self.where, table_sigma_draws=table_sigma_draws)
+
+    def simulated_with_sigma(self, height_scale: float, filter_sigma_um: float) -> Simulated:
+        """`simulated` with its 1-sigma per row: the spread of the table draws at this point
+        (`model_deviations_at`, the same draws as the intervals there: made once, not again)."""
+        sim = self.simulated(height_scale, filter_sigma_um)
+        dev = self.model_deviations_at(height_scale, filter_sigma_um)
+        if dev.shape[0] < 2:
+            return sim
+        return Simulated(sim.values_per_sr, dev.std(axis=0, ddof=1),
+                         {**sim.info, "sigma": "boundary tables' 1-sigma carried through the plate "
+                                               f"({dev.shape[0]} draws)"})
 
 
 class _Stop(Exception):
@@ -349,6 +365,19 @@ class _Budget(Exception):
     pass
 
 
+def _ridge_scan(pitch_um: float, gmax: float) -> list[float]:
+    """Filter widths (um) tried along the valley of equal rms slope before the joint search: 1, 2, 4, ...
+    pixel pitches up to the bound.  At g = 0 the filter's derivative (in w = g^2) is that of its
+    finest scales only, often below the table noise: a Gauss-Newton step from there is blind to
+    where the filter acts, so the joint search starts from the best of a log grid instead (the
+    filter's scale unknown over decades; the scale's first-order effect, the rms slope, held)."""
+    out, g = [], float(pitch_um)
+    while g <= gmax * (1 + 1e-9):
+        out.append(g)
+        g *= 2.0
+    return out
+
+
 def _slope_ratio_fn(relief: Relief) -> Callable[[float], float]:
     """g -> m(g) / m(0), the rms slope left after a Gaussian filter of g um (memoised)."""
     m0 = relief_rms(relief)[1] or 1.0
@@ -368,27 +397,44 @@ class _Coords:
 
     The filter enters as w = g^2: a Gaussian filter multiplies the height spectrum by
     exp(-2 pi^2 g^2 f^2), so every plate quantity is smooth in g^2 and has zero derivative in g
-    at g = 0, where a gradient search in g would never leave the unfiltered relief."""
+    at g = 0, where a gradient search in g would never leave the unfiltered relief.
+
+    `ratio` (g -> m(g) / m(0), the rms slope a filter leaves, `_slope_ratio_fn`): the search's
+    coordinates x = (ln(s m(g) / m(0)), w) instead: the first is the log of the processed relief's
+    rms slope over the file's, so moving w alone keeps the slopes (the lobe width, which the scale
+    alone sets in geometric optics) and changes only what the filter does besides: the valley of
+    equal rms slope, along which a search in (ln s, w) must zigzag, lies along an axis.  Only for
+    the search: the intervals and the polish work in (ln s, w)."""
 
     with_filter: bool
     lower: np.ndarray
     upper: np.ndarray
     step: np.ndarray
+    ratio: Callable[[float], float] | None = None
+    ln_s_bounds: tuple = (-np.inf, np.inf)
 
     @classmethod
-    def make(cls, settings: FitSettings, with_filter: bool, gmax: float, pitch_um: float) -> "_Coords":
+    def make(cls, settings: FitSettings, with_filter: bool, gmax: float, pitch_um: float,
+             ratio: Callable[[float], float] | None = None) -> "_Coords":
         lo, hi = (float(np.log(b)) for b in settings.scale_bounds)
         if with_filter:
-            return cls(True, np.array([lo, 0.0]), np.array([hi, gmax**2]),
-                       np.array([0.005, max(0.25 * pitch_um, 0.01) ** 2]))
-        return cls(False, np.array([lo]), np.array([hi]), np.array([0.005]))
+            lo_x = lo + (float(np.log(ratio(gmax))) if ratio is not None else 0.0)
+            return cls(True, np.array([lo_x, 0.0]), np.array([hi, gmax**2]),
+                       np.array([0.005, max(0.25 * pitch_um, 0.01) ** 2]), ratio, (lo, hi))
+        return cls(False, np.array([lo]), np.array([hi]), np.array([0.005]), None, (lo, hi))
 
     def sg(self, x: np.ndarray) -> tuple[float, float]:
         x = np.clip(x, self.lower, self.upper)
-        return float(np.exp(x[0])), (float(np.sqrt(x[1])) if self.with_filter else 0.0)
+        if not self.with_filter:
+            return float(np.exp(x[0])), 0.0
+        g = float(np.sqrt(x[1]))
+        ln_s = float(x[0]) - (float(np.log(self.ratio(g))) if self.ratio is not None else 0.0)
+        return float(np.exp(np.clip(ln_s, *self.ln_s_bounds))), g
 
     def x(self, s: float, g: float) -> np.ndarray:
-        return np.array([np.log(s), g * g] if self.with_filter else [np.log(s)], float)
+        if not self.with_filter:
+            return np.array([np.log(s)], float)
+        return np.array([np.log(s) + (np.log(self.ratio(g)) if self.ratio is not None else 0.0), g * g], float)
 
 
 def _jacobian(obj: _Objective, c: _Coords, x: np.ndarray, stop_at_threshold: bool = True,
@@ -494,45 +540,24 @@ def _line_search(obj: _Objective, c: _Coords, x: np.ndarray, d: np.ndarray, f: f
 
 def _polish(obj: _Objective, c: _Coords, s: float, g: float,
             steps: int = POLISH_STEPS) -> tuple[float, float, np.ndarray | None]:
-    """The likelihood's optimum near (s, g): at most `steps` Gauss-Newton steps of the noise-weighted
-    residuals z (`_Objective.likelihood_residuals`), each kept only when it lowers z @ z (else halved,
-    twice).  The steps take forward-difference Jacobians (one new point per parameter) while far off;
-    once a step is below one finite-difference step in every coordinate, central ones (a forward
-    difference's bias is then as large as the step: on a curved objective it never converges); when
-    the central step is below a tenth of a finite-difference step, it is taken and the search stops.
-    Returns (s, g, J): J the central Jacobian at a point within that tenth of a step of the answer
-    (the intervals' Jacobian: the residuals are linear over so small a move), or None when the steps
-    ran out first.  The search minimises the log metric, whose weights hold the measurement itself
-    (its noise enters them) and which is a search device, not the likelihood: on the demo the log
-    metric's optimum sat 2.7 half-widths off the true filter, the polished one 0.8 (2026-12-02)."""
-    x = c.x(s, g)
-    z = obj.likelihood_residuals(*c.sg(x))
-    f = float(z @ z)
-    J_final = None
-    central = False
-    for _ in range(steps):
-        J = _jacobian(obj, c, x, central=central, likelihood=True)
-        d = np.linalg.lstsq(J, -z, rcond=None)[0]
-        if not central and np.all(np.abs(d) < c.step):
-            # near the optimum a forward difference's bias (half a step times the curvature) is as large
-            # as the step it proposes: central from here on (the forward points are memoised)
-            central = True
-            J = _jacobian(obj, c, x, central=True, likelihood=True)
-            d = np.linalg.lstsq(J, -z, rcond=None)[0]
-        small = central and bool(np.all(np.abs(d) < 0.1 * c.step))
-        J_final = J if small else None
-        for t in (1.0, 0.5, 0.25):
-            xn = np.clip(x + t * d, c.lower, c.upper)
-            zn = obj.likelihood_residuals(*c.sg(xn))
-            if float(zn @ zn) < f:
-                break
-        else:
-            break
-        x, z, f = xn, zn, float(zn @ zn)
-        if small:
-            break
-    s, g = c.sg(x)
-    return s, g, J_final
+    """The likelihood's optimum near (s, g): Gauss-Newton steps of the noise-weighted residuals z
+    (`_Objective.likelihood_residuals`) in (ln s[, g^2]) by fit.gauss_newton.polish (forward
+    differences while far off, then central ones, chord steps and stretches; converged within a
+    tenth of a finite-difference step or half a standard deviation), at most `steps` kept steps.
+    Returns (s, g, J): J the central Jacobian at a point within that distance of the answer (the
+    intervals' Jacobian), or None when the steps ran out first.  The search minimises the log
+    metric, whose weights hold the measurement itself (its noise enters them) and which is a search
+    device, not the likelihood: on the demo the log metric's optimum sat 2.7 half-widths off the true
+    filter, the polished one 0.8 (2026-12-02)."""
+    def residuals(x: np.ndarray) -> tuple[float, np.ndarray]:
+        z = obj.likelihood_residuals(*c.sg(x))
+        return float(z @ z), z
+
+    def jacobian(x: np.ndarray, central: bool) -> np.ndarray:
+        return _jacobian(obj, c, x, central=central, likelihood=True)
+    done = gauss_newton.polish(residuals, jacobian, c.x(s, g), c.lower, c.upper, c.step, steps, central=False)
+    s, g = c.sg(done.x)
+    return s, g, done.jacobian
 
 
 def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float,
@@ -653,11 +678,14 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     what the recording determines (module doc, "Identifiability").
 
     1. baseline (s = 1, g = 0): "rms_before";
-    2. both parameters from there: damped Gauss-Newton with a line search of the normalised
-       residuals in (ln s, g^2) (`_gauss_newton`, forward-difference Jacobians), the budget less a
-       reserve of max(6, max_iter // 5) evaluations;
-    3. scale alone from the slope-equivalent scale of step 2's best point (g = 0, same rms slope),
-       with what is left;
+    2. scale alone from there (g = 0): damped Gauss-Newton with a line search of the normalised
+       residuals (`_gauss_newton`, forward-difference Jacobians) within a reserve of max(6,
+       max_iter // 5) evaluations: the one-parameter model of step 4;
+    3. both parameters: the filter at 1, 2, 4, ... pixel pitches along the valley of equal rms slope
+       through step 2's optimum (`_ridge_scan`), then the same Gauss-Newton from the best point seen, in
+       the search's coordinates (ln of the rms-slope scale, g^2; `_Coords`), the budget less the
+       reserve; then the slope-equivalent scale of its best point (g = 0, the same rms slope: the other
+       end of a ridge), and scale alone from there with what is left when it beats step 2's optimum;
     4. the filter is kept only when the recording asks for it (fit.selection: BIC with
        chi^2 = sum r^2); otherwise the scale-only optimum is the answer (the simplest point of a
        ridge);
@@ -679,16 +707,29 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     gmax = settings.max_filter_um if settings.max_filter_um is not None else 20 * pitch_um
     c2 = _Coords.make(settings, True, gmax, pitch_um)
     c1 = _Coords.make(settings, False, gmax, pitch_um)
+    slope_ratio = _slope_ratio_fn(forward.relief)
+    cs = _Coords.make(settings, True, gmax, pitch_um, ratio=slope_ratio)     # the search's (module doc)
     stopped = "converged"
     try:
         rms_before = obj(1.0, 0.0)
-        # scale alone first (cheap, robust from far away: it sets the slopes, the lobe width), then both
-        # from there, then scale alone again from the slope-equivalent scale of the joint optimum
-        reserve = max(6, settings.max_iter // 5)           # for step 4
-        _gauss_newton(obj, c2, c2.x(1.0, 0.0), settings.max_iter - len(obj.iterations) - reserve)
+        # scale alone first (cheap, robust from far away: it sets the slopes, the lobe width; its optimum
+        # is the criterion's one-parameter model), then both from there; then scale alone again only where
+        # the slope-equivalent scale of the joint optimum (g = 0, the same rms slope: the other end of a
+        # ridge) beats the scale-only optimum found first
+        reserve = max(6, settings.max_iter // 5)           # for the scale-only search after the joint one
+        _gauss_newton(obj, c1, c1.x(1.0, 0.0), reserve)
+        a0 = obj.best(only_unfiltered=True)["parameters"]["height_scale"]
+        for g in _ridge_scan(pitch_um, gmax):
+            obj(*cs.sg(np.array([np.log(a0), g * g])))
         b = obj.best()["parameters"]
-        s_u = b["height_scale"] * _slope_ratio_fn(forward.relief)(b["filter_sigma_um"])
-        _gauss_newton(obj, c1, c1.x(s_u, 0.0), settings.max_iter - len(obj.iterations))
+        _gauss_newton(obj, cs, cs.x(b["height_scale"], b["filter_sigma_um"]),
+                      settings.max_iter - len(obj.iterations) - reserve)
+        b = obj.best()["parameters"]
+        s_u = b["height_scale"] * slope_ratio(b["filter_sigma_um"])
+        if len(obj.iterations) < settings.max_iter:
+            obj(s_u, 0.0)
+            if obj.best(only_unfiltered=True)["parameters"]["height_scale"] == s_u:
+                _gauss_newton(obj, c1, c1.x(s_u, 0.0), settings.max_iter - len(obj.iterations))
         if len(obj.iterations) >= settings.max_iter:
             stopped = "max_iter"
     except _Stop:
@@ -756,7 +797,7 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
     res = fit_relief(fwd, rec.bsdf_sr, rec.sigma_sr, settings, checkpoint=_job_store(out, sample, job),
                      progress=progress)
     best_relief, t_out, t_in = fwd.tables(res.height_scale, res.filter_sigma_um)
-    after = fwd.simulated(res.height_scale, res.filter_sigma_um, table_sigma_draws=fwd.sigma_draws)
+    after = fwd.simulated_with_sigma(res.height_scale, res.filter_sigma_um)
     sim_after = after.values_per_sr
     sim_before = fwd.simulate(1.0, 0.0)
     tables = [t for t in (t_out, t_in) if t is not None]

@@ -248,11 +248,11 @@ def format_block(block: IsBsdfBlock) -> str:
         out.append(f"{key}  {arr.size}")
         out.append("\t".join(_fmt(a) for a in arr))
     out += ["", block.spectral_content, "DataBegin"]
+    row_fmt = "\t".join(["%.6e"] * block.data_per_sr.shape[-1])     # one C-level format per row
     for p in range(block.sample_rotation_deg.size):
         for i in range(block.angle_of_incidence_deg.size):
             out.append(f"TIS  {_fmt(block.tis[p, i])}")
-            for row in block.data_per_sr[p, i]:
-                out.append("\t".join(f"{v:.6e}" for v in row))
+            out.extend(row_fmt % tuple(row) for row in block.data_per_sr[p, i].tolist())
     out += ["DataEnd", ""]
     return "\n".join(out)
 
