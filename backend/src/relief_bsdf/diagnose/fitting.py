@@ -265,7 +265,7 @@ def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS) -> 
     least squares J d = -r (r the censored residuals of the chi^2, `fit.residual.signed_residuals`;
     J central differences, `_jacobian`), clipped to the parameters' bounds, kept only when they
     lower chi^2, with chord steps and stretches; converged within a tenth of a finite-difference
-    step or half a standard deviation.  J is the Jacobian of the intervals (at a point within that
+    step or within the 68 % interval.  J is the Jacobian of the intervals (at a point within that
     distance of the answer), or None when the steps ran out first.  Rank-deficient J (a ridge, a
     parameter the rows do not see): the minimum-norm step, so an undetermined parameter does not
     move."""

@@ -543,7 +543,7 @@ def _polish(obj: _Objective, c: _Coords, s: float, g: float,
     """The likelihood's optimum near (s, g): Gauss-Newton steps of the noise-weighted residuals z
     (`_Objective.likelihood_residuals`) in (ln s[, g^2]) by fit.gauss_newton.polish (forward
     differences while far off, then central ones, chord steps and stretches; converged within a
-    tenth of a finite-difference step or half a standard deviation), at most `steps` kept steps.
+    tenth of a finite-difference step or within the 68 % interval), at most `steps` kept steps.
     Returns (s, g, J): J the central Jacobian at a point within that distance of the answer (the
     intervals' Jacobian), or None when the steps ran out first.  The search minimises the log
     metric, whose weights hold the measurement itself (its noise enters them) and which is a search
