@@ -28,8 +28,8 @@ standard deviation; refused (the table noise between the two points outweighs th
 the answer is within that standard deviation, which the objective does not resolve.  On the seed-10
 relief scale + absorption diagnosis (2026-12-04) the end game at 1/4 spent two more central
 Jacobians to gain 0.5 of chi^2 131.  The Jacobian then returned is at a point within that distance
-of the answer, which is linear enough to serve the intervals (cov = (J^T J)^-1).  Deterministic: the same points for the same
-inputs (a resumed fit retraces its checkpoint).
+of the answer, which is linear enough to serve the intervals (cov = (J^T J)^-1).  Deterministic: the
+same points for the same inputs (a resumed fit retraces its checkpoint).
 """
 from __future__ import annotations
 

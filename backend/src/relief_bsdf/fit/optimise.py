@@ -69,7 +69,7 @@ from relief_bsdf.surface.stats import rms_height_and_slope
 
 FIT_FORMAT = "relief-fit/1"
 NOISE_METRIC = 1.2          # a fit "reaches the noise" at a log-chi metric <= this (issue 18: rms z <= 1.2)
-POLISH_STEPS = 6            # Gauss-Newton steps on the likelihood from the search's answer (`_polish`; chord steps count)
+POLISH_STEPS = 6            # kept Gauss-Newton steps of `_polish` (chord steps count)
 
 
 def relief_rms(relief: Relief) -> tuple[float, float]:
@@ -720,6 +720,8 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
         _gauss_newton(obj, c1, c1.x(1.0, 0.0), reserve)
         a0 = obj.best(only_unfiltered=True)["parameters"]["height_scale"]
         for g in _ridge_scan(pitch_um, gmax):
+            if len(obj.iterations) >= settings.max_iter - reserve:
+                break                                   # within the budget (the reserve kept)
             obj(*cs.sg(np.array([np.log(a0), g * g])))
         b = obj.best()["parameters"]
         _gauss_newton(obj, cs, cs.x(b["height_scale"], b["filter_sigma_um"]),
