@@ -169,14 +169,14 @@ class Forward:
 
     def simulated_with_sigma(self, height_scale: float, filter_sigma_um: float) -> Simulated:
         """`simulated` with its 1-sigma per row: the spread of the table draws at this point
-        (`model_deviations_at`, the same draws as the intervals there: made once, not again)."""
+        (`model_deviations_at`, the same draws as the intervals there: made once, not again; the
+        standard deviation `plate.uncertainty.rows_sigma` takes of its own draws)."""
+        from relief_bsdf.plate.uncertainty import sigma_note
         sim = self.simulated(height_scale, filter_sigma_um)
         dev = self.model_deviations_at(height_scale, filter_sigma_um)
         if dev.shape[0] < 2:
             return sim
-        return Simulated(sim.values_per_sr, dev.std(axis=0, ddof=1),
-                         {**sim.info, "sigma": "boundary tables' 1-sigma carried through the plate "
-                                               f"({dev.shape[0]} draws)"})
+        return Simulated(sim.values_per_sr, dev.std(axis=0, ddof=1), {**sim.info, "sigma": sigma_note(dev.shape[0])})
 
 
 class _Stop(Exception):
@@ -617,12 +617,13 @@ def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float,
     return iv, corr, warnings
 
 
-def _ridge_probe(obj: _Objective, relief: Relief, both: dict, gmax: float, pitch_um: float) -> tuple[bool, dict]:
+def _ridge_probe(obj: _Objective, ratio: Callable[[float], float], both: dict, gmax: float,
+                 pitch_um: float) -> tuple[bool, dict]:
     """Is there a ridge?  One evaluation along the slope-preserving direction: the best point's
     rms slope kept with the filter moved to g1 = max(2 g, 4 pitches, 0.05 um) (within the bound).
     A ridge when that costs less chi^2 (in units of the reduced chi^2 when > 1) than the
-    information criterion needs to tell two models apart (ln n + BIC_MARGIN)."""
-    ratio = _slope_ratio_fn(relief)
+    information criterion needs to tell two models apart (ln n + BIC_MARGIN).  `ratio`: the fit's
+    memoised `_slope_ratio_fn` (the filters it already applied are not applied again)."""
     b = both["parameters"]
     s_u = b["height_scale"] * ratio(b["filter_sigma_um"])
     g1 = float(min(max(2.0 * b["filter_sigma_um"], 4.0 * pitch_um, 0.05), gmax))
@@ -751,7 +752,7 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
         _, corr, _ = _intervals(obj, c2, bp["height_scale"], bp["filter_sigma_um"], gmax)
         warnings.append(f"the recording does not ask for filtering the relief (BIC gain of the filter "
                         f"{gain:.3g} <= {BIC_MARGIN:g}): reported without filter")
-    ridge, probe = _ridge_probe(obj, forward.relief, both, gmax, pitch_um)
+    ridge, probe = _ridge_probe(obj, slope_ratio, both, gmax, pitch_um)
     if ridge:
         warnings.append(f"height scale and filter trade off along a ridge: ({s:.4g}, {g:.4g} um) and "
                         f"({probe['height_scale']:.4g}, {probe['filter_sigma_um']:.4g} um) have the same rms "

@@ -54,9 +54,9 @@ def simulate(experiment: Experiment, rows: Any, engine: str = "deterministic", p
         vals, info = deterministic.run(experiment, rows, grid, progress, where)
         sig = np.zeros_like(vals)
         if table_sigma_draws >= 2:
-            from relief_bsdf.plate.uncertainty import rows_sigma
+            from relief_bsdf.plate.uncertainty import rows_sigma, sigma_note
             sig = rows_sigma(experiment, rows, grid, table_sigma_draws, seed)
-            info = {**info, "sigma": f"boundary tables' 1-sigma carried through the plate ({table_sigma_draws} draws)"}
+            info = {**info, "sigma": sigma_note(table_sigma_draws)}
     elif engine == "photon":
         from relief_bsdf.plate import photon
         vals, sig, info = photon.run(experiment, rows, photons=photons, seed=seed, grid=grid, where=where)

@@ -51,6 +51,11 @@ INTERVAL_DRAWS = 16
 FORWARD_LEVEL_SD = {"R": 0.02, "T": 0.005}
 
 
+def sigma_note(draws: int) -> str:
+    """What a simulation's sigma from `draws` table draws is, for its `info` (one wording everywhere)."""
+    return f"boundary tables' 1-sigma carried through the plate ({int(draws)} draws)"
+
+
 def perturbed(table: BsdfTable | None, rng: np.random.Generator) -> BsdfTable | None:
     """One draw of `table` within its cells' 1-sigma (None, or a table without sigma, unchanged)."""
     if table is None or table.sigma_per_sr is None:
