@@ -306,3 +306,32 @@ def test_fit_lobes_ggx_maximum_likelihood():
     ph = rng.random(u.size) * 2 * np.pi
     lob = fit_lobes((s * np.cos(ph), s * np.sin(ph)), 1, "ggx")
     assert lob.alpha[0] == pytest.approx(alpha, rel=0.01)
+
+
+@pytest.mark.parametrize("phi_edges", [np.linspace(0.0, 360.0, 73), np.linspace(-180.0, 180.0, 30)])
+def test_mirrored_cell_average_equals_the_full_one(phi_edges):
+    """An isotropic lobe lit from the plane phi = 0 / 180 is even in the azimuth: cell_average(mirror=True)
+    copies each cell's mirror image instead of computing it, and must give the same cells (refined
+    lobe cells included) to rounding, for an even and an odd number of azimuth cells."""
+    te = np.linspace(0.0, 90.0, 46)
+    for th_i, phi_i, a in ((30.0, 0.0, 0.05), (60.0, 180.0, 0.3), (0.0, 0.0, 0.15)):
+        wi = direction(th_i, phi_i)[None, :]
+        r = Roughness(a)
+        for side in ("R", "T"):
+            def f(wo):
+                return walter_bsdf(wi, wo, 1.0, N_GLASS, r)
+            full = cell_average(f, te, phi_edges, side, 4, (12, 1e-5))
+            half = cell_average(f, te, phi_edges, side, 4, (12, 1e-5), mirror=True)
+            assert np.max(full) > 0
+            np.testing.assert_allclose(half, full, rtol=1e-12, atol=1e-12 * np.max(full))
+
+
+def test_mirror_is_ignored_on_asymmetric_azimuth_edges():
+    """Edges that are not symmetric about phi = 0 cannot be mirrored: the full computation is kept."""
+    te = np.linspace(0.0, 90.0, 31)
+    pe = np.linspace(10.0, 370.0, 25)
+    wi = direction(40.0, 0.0)[None, :]
+
+    def f(wo):
+        return walter_bsdf(wi, wo, 1.0, N_GLASS, Roughness(0.2))
+    np.testing.assert_array_equal(cell_average(f, te, pe, "R", 4, mirror=True), cell_average(f, te, pe, "R", 4))

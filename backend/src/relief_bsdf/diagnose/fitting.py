@@ -128,6 +128,8 @@ def _search(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | Non
     grid, refine = (GRID_TABLES, REFINE_TABLES) if effect.budgeted else (GRID_CHEAP, REFINE_CHEAP)
     if coarse and effect.budgeted:           # a later stepwise step: the costly search is budgeted
         grid, refine = 4, 3
+    if _polished_fit(effect):                # the grid only: Gauss-Newton refines it (`fit_effect`)
+        refine = 0
     bounds = search_bounds(forward, effect)
     held_all = dict(fixed_values or {})
     effects = tuple(fixed) + (effect,)
@@ -172,13 +174,31 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
     reason = why_skipped(forward, effect)
     if reason:
         return {"effect": effect.name, "skipped": reason}
+    effects = tuple(fixed) + (effect,)
+    jacobian = None
     try:
         values = _search(forward, effect, fixed, fixed_values, coarse) if effect.params else {}
-        c, v, s = forward.evaluate_set(tuple(fixed) + (effect,), {**(fixed_values or {}), **values})
+        if _polished_fit(effect):
+            names = tuple(p.name for p in effect.params)
+            done, _, jacobian = polish(forward, effects, {**(fixed_values or {}), **values}, free=names)
+            values = {k: done[k] for k in names}
+        c, v, s = forward.evaluate_set(effects, {**(fixed_values or {}), **values})
     except InputError as e:
         return {"effect": effect.name, "skipped": str(e)}
-    return {"effect": effect.name, "parameters": {k: float(x) for k, x in values.items()}, "chi2": c,
-            "k": effect.k, "values": v, "model_sigma": s}
+    out = {"effect": effect.name, "parameters": {k: float(x) for k, x in values.items()}, "chi2": c,
+           "k": effect.k, "values": v, "model_sigma": s}
+    if jacobian is not None and not fixed:
+        out["jacobian"] = jacobian          # the whole model's: `stepwise` names it without a second polish
+    return out
+
+
+def _polished_fit(effect: Effect) -> bool:
+    """Is the effect's own fit refined by Gauss-Newton (`polish`) instead of Brent after its grid?  A
+    budgeted effect with one parameter: each evaluation derives tables (seconds), and the 1-D Brent
+    steps on chi^2 alone see one number per evaluation where Gauss-Newton sees every row's residual;
+    on the seed-10 relief scale + absorption case five Brent steps (12 s) gained nothing over the
+    grid's best point, and the polish that followed did the work (2026-12-05)."""
+    return effect.budgeted and len(effect.params) == 1
 
 
 def refit_joint(forward, effects: tuple, values: dict) -> tuple[dict, float]:
@@ -221,12 +241,33 @@ def refit_joint(forward, effects: tuple, values: dict) -> tuple[dict, float]:
     return values, best
 
 
-def _step(p: Param, x: float, lo: float, hi: float) -> float:
-    """Finite-difference step: 1 % of the search range, at most 10 % of the value (never 0)."""
-    h = 0.01 * (hi - lo)
+STEP_FRACTION = 0.01
+STEP_FRACTION_SAMPLED = 0.03
+
+
+def _step(p: Param, x: float, lo: float, hi: float, sampled: bool = False) -> float:
+    """Finite-difference step: 1 % of the search range, 3 % for an effect whose evaluation re-derives
+    sampled boundary tables (`sampled`: not `Effect.cheap`), at most 10 % of the value (never 0).
+
+    Why wider for re-derived tables: the two points of a difference trace two relief geometries (or
+    incidences, indices), so their tables' Monte-Carlo noise cancels only in part (common random
+    numbers) and adds to the column; the column's squared norm is then too long by up to the noise's
+    sum(sigma_model^2 / s^2) / (2 h^2) (two independent draws: an upper bound), which falls as 1 / h^2.
+    Measured on the seed-10 relief scale + absorption case at its optimum (/work/notes/s40/col_h.py,
+    2026-12-05): the scale column's |J|^2 was 8.4e4 / 6.9e4 / 5.2e4 / 4.8e4 / 5.0e4 at steps of
+    0.5 / 1 / 2 / 3 / 4 % of the range, the bound 1.8e5 / 4.5e4 / 1.1e4 / 5.0e3 / 2.8e3: at 3 % the
+    bound is a tenth of the column, and the column stops shrinking (curvature bias, O(h^2), is not yet
+    seen).  A column too long shortens every Gauss-Newton step and narrows the intervals."""
+    h = (STEP_FRACTION_SAMPLED if sampled else STEP_FRACTION) * (hi - lo)
     if x != 0.0:
         h = min(h, max(0.1 * abs(x), 1e-3 * (hi - lo)))
     return h
+
+
+def _moving(effects: tuple, free: tuple | None = None) -> list[tuple]:
+    """[(param, sampled)] of the parameters of `effects` that move (`free` names, default all), in
+    order; sampled: its effect re-derives boundary tables (`_step`)."""
+    return [(p, not e.cheap) for e in effects for p in e.params if free is None or p.name in free]
 
 
 def _bounds(forward, effects: tuple) -> dict:
@@ -236,26 +277,29 @@ def _bounds(forward, effects: tuple) -> dict:
     return out
 
 
-def _jacobian(forward, effects: tuple, values: dict, s: np.ndarray, bounds: dict) -> np.ndarray:
+def _jacobian(forward, effects: tuple, values: dict, s: np.ndarray, bounds: dict,
+              moving: list | None = None) -> np.ndarray:
     """J[:, j] = -(d model / d p_j) / s: the residuals' (y - m) / s derivative at fixed s, central
-    differences with the steps of `_step` (one-sided at a bound)."""
-    params = [p for e in effects for p in e.params]
-    J = np.zeros((len(forward.rows), len(params)))
+    differences with the steps of `_step` (one-sided at a bound), for the parameters `moving`
+    (`_moving`, default every parameter of `effects`)."""
+    moving = _moving(effects) if moving is None else moving
+    J = np.zeros((len(forward.rows), len(moving)))
     ends = []
-    for p in params:
+    for p, sampled in moving:
         x = values[p.name]
-        h = _step(p, x, *bounds[p.name])
+        h = _step(p, x, *bounds[p.name], sampled)
         ends.append((min(x + h, p.upper), max(x - h, p.lower)))
     if hasattr(forward, "prefetch"):       # the 2k points are independent
-        forward.prefetch(effects, [{**values, p.name: x} for p, e in zip(params, ends) for x in e])
-    for j, (p, (xp, xm)) in enumerate(zip(params, ends)):
+        forward.prefetch(effects, [{**values, p.name: x} for (p, _), e in zip(moving, ends) for x in e])
+    for j, ((p, _), (xp, xm)) in enumerate(zip(moving, ends)):
         mp = forward.evaluate_set(effects, {**values, p.name: xp})[1]
         mm = forward.evaluate_set(effects, {**values, p.name: xm})[1]
         J[:, j] = -(mp - mm) / (xp - xm) / s
     return J
 
 
-def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS) -> tuple[dict, float, np.ndarray | None]:
+def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS,
+           free: tuple | None = None) -> tuple[dict, float, np.ndarray | None]:
     """(values, chi^2, J): the named effects' least-chi^2 point near `values` by Gauss-Newton.
 
     The coordinate search (`refit_joint`) ends where its short grids and few Brent steps stop,
@@ -268,12 +312,14 @@ def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS) -> 
     step or within the 68 % interval.  J is the Jacobian of the intervals (at a point within that
     distance of the answer), or None when the steps ran out first.  Rank-deficient J (a ridge, a
     parameter the rows do not see): the minimum-norm step, so an undetermined parameter does not
-    move."""
-    params = [p for e in effects for p in e.params]
+    move.  `free`: the names of the parameters that move (default all; the others are held at
+    `values`, as a conditional fit holds the effects already named, `fit_effect`)."""
+    moving = _moving(effects, free)
     values = dict(values)
     chi, _, _ = forward.evaluate_set(effects, values)
-    if not params:
+    if not moving:
         return values, chi, None
+    params = [p for p, _ in moving]
     rows = forward.rows
     bounds = _bounds(forward, effects)
 
@@ -286,9 +332,10 @@ def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS) -> 
 
     def jacobian(x: np.ndarray, central: bool) -> np.ndarray:
         vals = at(x)
-        return _jacobian(forward, effects, vals, misfit_sigma(rows, forward.evaluate_set(effects, vals)[2]), bounds)
+        return _jacobian(forward, effects, vals, misfit_sigma(rows, forward.evaluate_set(effects, vals)[2]), bounds,
+                         moving)
     x0 = np.array([values[p.name] for p in params])
-    h = np.array([_step(p, values[p.name], *bounds[p.name]) for p in params])
+    h = np.array([_step(p, values[p.name], *bounds[p.name], sampled) for p, sampled in moving])
     done = gauss_newton.polish(residuals, jacobian, x0, np.array([p.lower for p in params]),
                                np.array([p.upper for p in params]), h, steps)
     return at(done.x), done.f, done.jacobian

@@ -406,7 +406,10 @@ def _steps(forward, names: list[str], steps: list, dropped: set, held: dict, n: 
         # Gauss-Newton from the conditional fit (the first effect's is its joint fit: nothing else
         # moves), twice the polish's steps when the held effects move too (a start further from the
         # optimum); the coordinate refit only where those steps do not reach the optimum (step 3)
-        vals, chi, J = polish(forward, effs, vals, steps=2 * POLISH_STEPS if named else POLISH_STEPS)
+        if not named and best.get("jacobian") is not None:
+            chi, J = best["chi2"], best["jacobian"]     # its own fit was this polish (`fitting.fit_effect`)
+        else:
+            vals, chi, J = polish(forward, effs, vals, steps=2 * POLISH_STEPS if named else POLISH_STEPS)
         if named and J is None:
             vals, chi = refit_joint(forward, effs, vals)
             vals, chi, J = polish(forward, effs, vals)

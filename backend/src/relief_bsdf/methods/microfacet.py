@@ -277,7 +277,7 @@ def _subset_directions(theta_edges_deg: Any, phi_edges_deg: Any, side: str, k: i
 
 
 def cell_average(fn: Callable, theta_edges_deg: Any, phi_edges_deg: Any, side: str, subsamples: int = 4,
-                 refine: tuple | None = None, with_phi: bool = False) -> np.ndarray:
+                 refine: tuple | None = None, with_phi: bool = False, mirror: bool = False) -> np.ndarray:
     """Average of fn(wo) over each scatter cell in projected solid angle, shape (S, A) (+ fn's trailing dims).
 
     `fn` takes (M, 3) directions (and their (M,) azimuths in radians when `with_phi`) and
@@ -287,28 +287,48 @@ def cell_average(fn: Callable, theta_edges_deg: Any, phi_edges_deg: Any, side: s
     recomputes with K_fine the cells holding more than `frac` of the side's total energy
     (f * projected solid angle of the first value), where a narrow lobe needs it.  Analytic
     tables averaged this way compare cell for cell with Monte-Carlo tables that bin exit
-    directions.
+    directions.  `mirror`: fn is even in the azimuth (fn(x, -y, z) = fn(x, y, z): an axis-aligned
+    slope distribution lit from the plane phi = 0 or 180 deg, intensity only); when the azimuth edges
+    are symmetric too, each cell's mirror image (the same sub-samples mirrored) is copied instead of
+    computed, which halves the work.
     """
     te = np.asarray(theta_edges_deg, float)
     pe = np.asarray(phi_edges_deg, float)
     S, A = te.size - 1, pe.size - 1
-
-    def run(k, s_idx, a_idx):
-        d, ph, wq = _subset_directions(te, pe, side, k, s_idx, a_idx)
-        n, K = ph.shape
-        v = np.asarray(fn(d.reshape(-1, 3), ph.reshape(-1)) if with_phi else fn(d.reshape(-1, 3)))
-        v = v.reshape((n, K) + v.shape[1:])
-        return np.einsum("nk,nk...->n...", wq, v)
+    if mirror and A > 1 and np.allclose(np.mod(pe + pe[::-1] + 180.0, 360.0) - 180.0, 0.0, atol=1e-9):
+        half = (A + 1) // 2           # cells 0 .. half-1; cell A-1-j is cell j mirrored
+        v = cell_average(fn, te, pe[:half + 1], side, subsamples, None, with_phi)
+        v = np.concatenate([v, v[:, :A - half][:, ::-1]], axis=1)
+        if refine is not None and int(refine[0]) > int(subsamples):
+            e = np.abs(v.reshape(S, A, -1)[..., 0]) * projected_solid_angle(te, pe)
+            sel = e[:, :half] > float(refine[1]) * e.sum()
+            if sel.any():
+                s_idx, a_idx = np.nonzero(sel)
+                fine = _cells(fn, te, pe, side, int(refine[0]), s_idx, a_idx, with_phi)
+                v[s_idx, a_idx] = fine
+                back = A - 1 - a_idx
+                v[s_idx[back != a_idx], back[back != a_idx]] = fine[back != a_idx]
+        return v
 
     s_all, a_all = (g.ravel() for g in np.meshgrid(np.arange(S), np.arange(A), indexing="ij"))
-    v = run(int(subsamples), s_all, a_all)
+    v = _cells(fn, te, pe, side, int(subsamples), s_all, a_all, with_phi)
     if refine is not None and int(refine[0]) > int(subsamples):
         first = v.reshape(v.shape[0], -1)[:, 0]
         e = np.abs(first) * projected_solid_angle(te, pe).ravel()
         sel = np.nonzero(e > float(refine[1]) * e.sum())[0]
         if sel.size:
-            v[sel] = run(int(refine[0]), s_all[sel], a_all[sel])
+            v[sel] = _cells(fn, te, pe, side, int(refine[0]), s_all[sel], a_all[sel], with_phi)
     return v.reshape((S, A) + v.shape[1:])
+
+
+def _cells(fn: Callable, te: np.ndarray, pe: np.ndarray, side: str, k: int, s_idx: np.ndarray, a_idx: np.ndarray,
+           with_phi: bool) -> np.ndarray:
+    """`cell_average`'s midpoint rule on the listed cells (n, + fn's trailing dims)."""
+    d, ph, wq = _subset_directions(te, pe, side, k, s_idx, a_idx)
+    n, K = ph.shape
+    v = np.asarray(fn(d.reshape(-1, 3), ph.reshape(-1)) if with_phi else fn(d.reshape(-1, 3)))
+    v = v.reshape((n, K) + v.shape[1:])
+    return np.einsum("nk,nk...->n...", wq, v)
 
 
 def auto_subsamples(theta_edges_deg: Any, phi_edges_deg: Any, alpha_min: float, n_ratio: float = 1.5) -> tuple:
@@ -574,7 +594,8 @@ def _task(ctx: dict, task: tuple) -> dict:
             out[side] = M[..., 0, 0].copy()
         else:
             out[side] = cell_average(lambda wo: walter_bsdf(wi, wo, np.real(n_a), n_b, rough),
-                                     req.theta_s_edges_deg, req.phi_s_edges_deg, side, k, refine)
+                                     req.theta_s_edges_deg, req.phi_s_edges_deg, side, k, refine,
+                                     mirror=float(req.phi_i_deg[ip]) % 180.0 == 0.0)
     return out
 
 
