@@ -370,6 +370,33 @@ def test_an_effect_the_recording_cannot_tell_from_the_named_one_is_reported_as_a
     assert "barely tells relief scale from relief smoothing" in text
 
 
+@pytest.mark.parametrize("held", [{}, {"absorption_per_mm": 0.25}])
+def test_a_budgeted_one_parameter_fit_reaches_the_least_squares_optimum(held):
+    """A budgeted effect with one parameter (the blur: each evaluation re-derives tables in the real
+    model) is refined after its grid by Gauss-Newton steps on its residuals, not Brent: alone, or
+    conditional on an absorption held at its value, it ends at the optimum that an independent solver
+    (scipy's least_squares on the closed-form model) finds, within a tenth of its standard error; alone
+    it hands over its Jacobian, and the first step of the selection names it there without polishing
+    again."""
+    from scipy.optimize import least_squares
+    fwd = BlurForward({"blur_deg": 2.2, "absorption_per_mm": held.get("absorption_per_mm", 0.0)}, seed=9)
+    y, s = fwd.rows.bsdf_sr, fwd.rows.sigma_sr
+    assert np.all(y > 0)                       # no censored row: plain least squares is the oracle
+    ls = least_squares(lambda x: (y - fwd.model({**held, "blur_deg": x[0]})) / s, [2.0], x_scale=[0.1],
+                       xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    se = float(np.sqrt(np.linalg.inv(ls.jac.T @ ls.jac))[0, 0])
+    fixed = (get_effect("bulk_absorption"),) if held else ()
+    fit = fit_effect(fwd, get_effect("instrument_blur"), fixed, held)
+    assert abs(fit["parameters"]["blur_deg"] - ls.x[0]) < 0.1 * se
+    assert fit["chi2"] == pytest.approx(2 * ls.cost, abs=0.05)
+    assert ("jacobian" in fit) == (not held)
+    if not held:
+        steps = stepwise(fwd, ["stray_light", "instrument_blur"], workers=1)
+        assert steps[1].effects == ("instrument_blur",)
+        assert steps[1].values["blur_deg"] == fit["parameters"]["blur_deg"]
+        assert np.array_equal(steps[1].jacobian, fit["jacobian"])
+
+
 def test_polish_takes_a_correlated_pair_to_the_least_squares_optimum_and_hands_the_intervals_its_jacobian():
     """Absorption and blur both dim the transmitted lobe's peak, so they trade off; from a point the
     coordinate search could end at (both off), the polish reaches the least-squares optimum that an

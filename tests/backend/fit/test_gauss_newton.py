@@ -90,3 +90,20 @@ def test_polish_keeps_to_the_bounds_and_never_ends_worse_than_it_started():
     assert np.all(out.x >= lower) and np.all(out.x <= upper)
     assert out.f <= f0
     assert out.x[1] == pytest.approx(lower[1])
+
+
+def test_ahead_is_told_the_trial_points_that_are_then_asked_for_and_changes_nothing():
+    """`ahead` hears a full step's first trial points (d and 2 d) before they are asked for: the
+    answer and every point asked are the same with and without it, and most points it was told
+    were then asked for (the stretch is tried whenever the full step lowers f)."""
+    lo, hi, h = np.array([-5.0, -5.0]), np.array([5.0, 5.0]), np.array([0.01, 0.01])
+    plain = _Model(noise=0.05)
+    x_opt, sd = _optimum(_Model())
+    x0 = x_opt + 20 * sd * np.array([1.0, -1.0])
+    ref = polish(plain.residuals, plain.jacobian, x0, lo, hi, h, steps=8)
+    told = []
+    m = _Model(noise=0.05)
+    out = polish(m.residuals, m.jacobian, x0, lo, hi, h, steps=8, ahead=lambda xs: told.extend(xs))
+    assert np.array_equal(out.x, ref.x) and out.f == ref.f and m.points == plain.points
+    told = {tuple(np.round(x, 12)) for x in told}
+    assert told and len(told & m.points) >= 0.5 * len(told)

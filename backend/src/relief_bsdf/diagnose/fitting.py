@@ -9,7 +9,9 @@ log-scale parameter (a width ~ 1 / value) is searched on log10 and compared with
 value; a parameter with a search coordinate (`Effect.coordinate`: the relief filter, searched on the
 rms slope it leaves) on that coordinate.  Several parameters: one coordinate pass per parameter, then the first again in a
 narrowed interval.  Cheap effects (tables re-used, evaluations under a second) get a finer
-grid than `budgeted` ones (that re-derive the boundary tables, or are slow: `Effect.slow`).
+grid than `budgeted` ones (that re-derive the boundary tables, or are slow: `Effect.slow`); a
+budgeted effect with one parameter is refined by Gauss-Newton steps on its residuals (`polish`,
+the effects already named held) instead of Brent (`_polished_fit`).
 
 Several effects together (`refit_joint`): coordinate descent over every parameter of the
 set, starting from the values found so far (each effect's own fit), each coordinate searched
@@ -336,8 +338,10 @@ def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS,
                          moving)
     x0 = np.array([values[p.name] for p in params])
     h = np.array([_step(p, values[p.name], *bounds[p.name], sampled) for p, sampled in moving])
+    ahead = None if not hasattr(forward, "prefetch") else (
+        lambda xs: forward.prefetch(effects, [at(x) for x in xs]))     # a step and its stretch, together
     done = gauss_newton.polish(residuals, jacobian, x0, np.array([p.lower for p in params]),
-                               np.array([p.upper for p in params]), h, steps)
+                               np.array([p.upper for p in params]), h, steps, ahead=ahead)
     return at(done.x), done.f, done.jacobian
 
 

@@ -49,7 +49,8 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
      model error (a clean 48 px case on `normals` tables, rms 1.34, gained 21 with a relief
      scale of 0.95; test_diagnose.test_clean_case_called_none);
 3. if it passes, every parameter of S + c is refitted jointly, starting from S's values and c's
-   conditional fit (at the first step the conditional fit is the joint one): Gauss-Newton steps
+   conditional fit (at the first step the conditional fit is the joint one, and a fit that already
+   ended with Gauss-Newton steps, `fitting._polished_fit`, is not polished again): Gauss-Newton steps
    (`fitting.polish`, twice its budget of steps), and where they do not converge the coordinate
    search (`fitting.refit_joint`) and the steps again, and a named effect that the others now
    make redundant (removing it and refitting the rest jointly does not fail the bar) is dropped

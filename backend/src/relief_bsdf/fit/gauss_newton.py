@@ -52,11 +52,14 @@ class Polished:
 def polish(residuals: Callable[[np.ndarray], tuple[float, np.ndarray]],
            jacobian: Callable[[np.ndarray, bool], np.ndarray],
            x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, step: np.ndarray, steps: int,
-           central: bool = True) -> Polished:
+           central: bool = True, ahead: Callable[[list], None] | None = None) -> Polished:
     """At most `steps` kept steps from x0 (module doc).  residuals(x) -> (f, z); jacobian(x, central)
     -> dz/dx (rows x parameters); `step`: the finite-difference steps; `central` False: start with
     forward differences.  Rank-deficient J (a ridge, a parameter the rows do not see): the
-    minimum-norm step, so an undetermined parameter does not move."""
+    minimum-norm step, so an undetermined parameter does not move.  `ahead(points)`, when given, is
+    told a full step's first two trial points (d and its first stretch 2 d) before either is asked
+    for: the stretch is tried whenever the full step lowers f, which it mostly does, so a caller with
+    workers evaluates the two together (the same points, the same answer)."""
     x = np.clip(np.asarray(x0, float), lower, upper)
     f, z = residuals(x)
     h = np.asarray(step, float)
@@ -74,6 +77,8 @@ def polish(residuals: Callable[[np.ndarray], tuple[float, np.ndarray]],
         small = central and (bool(np.all(np.abs(d) < 0.1 * h)) or float(np.sum((J @ d) ** 2)) < c_hat)
         if small and chord:
             continue                    # the chord says converged: confirm with a Jacobian at this point
+        if ahead is not None and not small:
+            ahead([np.clip(x + d, lower, upper), np.clip(x + 2.0 * d, lower, upper)])
         for t in ((1.0,) if small else (1.0, 0.5, 0.25)):
             xn = np.clip(x + t * d, lower, upper)
             fn, zn = residuals(xn)
