@@ -501,6 +501,49 @@ def test_a_screen_whose_tables_this_process_holds_runs_here_beside_the_workers()
     assert [r["effect"] for r in rounds[0][1]] == names
 
 
+class TabledForward(BlurForward):
+    """BlurForward whose blurred rows (and those with a background) need a 'table' per value from this
+    process's TABLE_CACHE (a stand-in for the outside tables a blur re-derives)."""
+
+    def evaluate_set(self, effects, values):
+        from relief_bsdf.plate.faces import TABLE_CACHE
+        for name in ("blur_deg", "background_per_sr"):
+            x = float(values.get(name, 0.0))
+            if x and any(p.name == name for e in effects for p in e.params):
+                TABLE_CACHE.get(("test tabled", name, round(x, 9)), lambda: x)
+        return super().evaluate_set(effects, values)
+
+
+def test_a_held_screen_that_needs_a_table_this_process_lacks_goes_to_the_workers():
+    """Screens marked as held from an earlier step whose probes now need a table this process does
+    not hold stop at that table (`TableCache.held_only`) and run on the workers instead (two of them
+    here: the blur's and the background's; a single one would run here after the others): no such
+    table is derived here, and the round's results are those of one process."""
+    import sys
+    from relief_bsdf.plate.faces import TABLE_CACHE, MissingTable
+    sw = sys.modules["relief_bsdf.diagnose.stepwise"]
+    names = ["bulk_absorption", "stray_light", "instrument_blur"]
+    truth = {"absorption_per_mm": 0.3, "blur_deg": 3.0}
+    with pytest.raises(MissingTable):
+        with TABLE_CACHE.held_only():
+            TABLE_CACHE.get(("test tabled", "never held"), lambda: 0)
+    assert TABLE_CACHE.get(("test tabled", "never held"), lambda: 1) == 1      # outside the block: derived
+    rounds = []
+    for workers in (1, 2):
+        TABLE_CACHE.clear()
+        fwd = TabledForward(truth, seed=6)
+        v0, s0 = fwd.baseline()
+        base = sw.Step((), {}, fwd.misfit(v0, s0), 0, (v0, s0))
+        plan = sw._plan(fwd, names, {})
+        TABLE_CACHE.put(("test", "held table"), "held")
+        held = {sw._screen_id(t): (("test", "held table"),) for t in plan if t[1] is not None}
+        rounds.append(sw._step_round(fwd, base, plan, None, workers, "step 1", held))
+        tabled = [k for k in TABLE_CACHE._d if k[0] == "test tabled"]
+        assert bool(tabled) == (workers == 1)           # with workers, the blur's screen ran there
+    assert _plain(rounds[1]) == _plain(rounds[0])
+    assert [r["effect"] for r in rounds[0][1]] == names
+
+
 def test_independent_points_are_evaluated_on_the_kept_workers_with_the_results_of_this_process(plate_forward):
     """`DiagnosisForward.prefetch` inside the diagnosis's kept pool evaluates the points not yet memoised
     on the workers, into the memo, with the values one process computes; outside a kept pool (or for

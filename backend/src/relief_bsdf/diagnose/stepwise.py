@@ -253,16 +253,26 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
 
     The round is one batch of tasks on the worker processes (the fits of candidates without parameters first),
     except the screens whose probes' tables this process's cache (`plate.faces.TABLE_CACHE`)
-    already holds: the same candidate screened at the same probe values at an earlier step
-    (`held`: the table keys each screen used).  Those run here, beside the batch (plate solves
-    only), so a step derives no probe table that an earlier step derived and this cache still
-    holds; a worker sends the tables of its screens back to this process's cache when they are
-    small enough to be held (`TableCache.worth_sending`).  The workers' context is the forward
-    model (pickled once for the diagnosis's kept pool, `stepwise`), each task carries the current
-    step; a copy of the forward with its own memo screens here.  Without worker processes (one
-    worker, another backend, or inside a worker) everything runs here, one task after the other."""
+    held at an earlier step (`held`: the table keys each screen used).  Those run here, beside the
+    batch (plate solves only), each inside `TableCache.held_only`: a screen that needs a table this
+    process does not hold (the current model changed the tables it builds on: a relief scale or a
+    tilt named since; or the cache let it go) stops at that table (`MissingTable`) and goes to the
+    workers instead, two or more at a time as they come (a batch of one would run in this process),
+    a last single one here after the others.  So a step derives no probe table here, and none that
+    an earlier step derived and this cache still holds (on the seed-10 relief scale + absorption case,
+    2026-12-05, the later rounds derived the re-scaled relief's probe tables here, one after the
+    other, while the workers idled).  A worker sends the tables of its screens back to this
+    process's cache when they are small enough to be held (`TableCache.worth_sending`).  The
+    workers' context is the forward model (pickled once for the diagnosis's kept pool, `stepwise`),
+    each task carries the current step; a copy of the forward with its own memo screens here.
+    Without worker processes (one worker, another backend, or inside a worker) everything runs
+    here, one task after the other.  Where a task runs changes no result (the same tables from
+    the same seeds)."""
+    import threading
+    from collections import deque
+
     from relief_bsdf.parallel.tasks import current_settings, in_worker, resolve_backend
-    from relief_bsdf.plate.faces import TABLE_CACHE
+    from relief_bsdf.plate.faces import TABLE_CACHE, MissingTable
     settings = current_settings().updated(workers=workers)
     workers_here = (not in_worker() and settings.worker_count() > 1
                     and resolve_backend(None, settings) == "processes")
@@ -270,22 +280,46 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
             and TABLE_CACHE.holds(held.get(_screen_id(t)))]
     there = ([_task(*t, cur) for t in plan if t[1] is None]
              + [_task(*t, cur) for t in plan if t[1] is not None and t[0] not in {h[0] for h in here}])
-    if here and there:
+    if here:
         mine = forward.twin() if hasattr(forward, "twin") else copy.copy(forward)
+        missing: deque = deque()        # screens that need a table this process does not hold
+        lock, here_done = threading.Lock(), threading.Event()
+
+        def on_workers() -> list:
+            out = list(zip(there, map_tasks(_step_task, there, forward, progress=progress, label=label,
+                                            workers=workers)))
+            while True:
+                with lock:
+                    batch = [missing.popleft() for _ in range(len(missing))] if len(missing) >= 2 else []
+                if batch:
+                    out += zip(batch, map_tasks(_step_task, batch, forward, label=label, workers=workers))
+                elif here_done.is_set():
+                    return out
+                else:
+                    here_done.wait(0.05)
         with ThreadPoolExecutor(1) as pool:
-            pending = pool.submit(contextvars.copy_context().run, map_tasks, _step_task, there, forward,
-                                  progress=progress, label=label, workers=workers)   # the settings in force travel
+            pending = pool.submit(contextvars.copy_context().run, on_workers)   # the settings in force travel
+            mine_done = []
             try:
-                done = [_step_task(mine, t) for t in here]
+                _current_on_screens(mine, cur, here)
+                for t in here:
+                    try:
+                        with TABLE_CACHE.held_only():
+                            mine_done.append((t, _step_task(mine, t)))
+                    except MissingTable:
+                        with lock:
+                            missing.append(t)
             finally:
-                done = pending.result() + done
+                here_done.set()
+                pairs = pending.result() + mine_done
+        pairs += [(t, _step_task(mine, t)) for t in missing]        # at most one left: here
         if hasattr(forward, "_memo"):
             forward._memo.update(mine._memo)
         forward.evaluations = mine.evaluations
     else:
-        done = (map_tasks(_step_task, there, forward, progress=progress, label=label, workers=workers)
-                + [_step_task(forward, t) for t in here])
-    result = dict(zip([t[0] for t in there + here], done))
+        pairs = list(zip(there, map_tasks(_step_task, there, forward, progress=progress, label=label,
+                                          workers=workers)))
+    result = {t[0]: r for t, r in pairs}
     for t in plan:
         r = result[t[0]]
         for key, table in r.pop("tables", {}).items():
@@ -293,6 +327,26 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
         if "table_keys" in r:
             held[_screen_id(t)] = r.pop("table_keys")
     return ([result[t[0]] for t in plan if t[1] is None], [result[t[0]] for t in plan if t[1] is not None])
+
+
+def _current_on_screens(forward, cur: Step, tasks: list) -> None:
+    """The current model evaluated on each screening forward model of `tasks` (`DiagnosisForward.screening`),
+    tables derived here as needed: every screen starts from it (`line_gain`'s reference), so the held
+    screens then stop at a missing table only when their own probes need one (a named relief scale
+    changes the screening grid's front tables too, which no earlier round derived here)."""
+    if not cur.effects or not hasattr(forward, "screening"):
+        return
+    named = tuple(get_effect(e) for e in cur.effects)
+    done: list = []
+    for t in tasks:
+        screen = forward.screening(get_effect(t[0]))
+        if screen is forward or any(screen is d for d in done):
+            continue
+        done.append(screen)
+        try:
+            screen.evaluate_set(named, cur.values)
+        except InputError:
+            pass                        # the screens report it (`_step_task`)
 
 
 def _step_task(forward, task: tuple) -> dict:

@@ -31,6 +31,7 @@ content digest, method, options, grid, material, wavelengths, incidences, sample
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import hashlib
 import json
 from collections import OrderedDict
@@ -50,6 +51,14 @@ TRACED_METHODS = ("ray",)          # methods whose photons trace the relief itse
 THREADED_METHODS = ("microfacet",)  # analytic tables computed on this process's threads (numpy releases the GIL):
                                     # a plate's table (a back-face probe of a diagnosis: 37 incidences,
                                     # ~2 s) costs less than starting worker processes
+
+
+class MissingTable(BaseException):
+    """A table this process does not hold was asked for inside `TableCache.held_only` (a BaseException:
+    no `except Exception` on the way may take it for a failed derivation and fall back to other physics)."""
+
+
+_HELD_ONLY: contextvars.ContextVar = contextvars.ContextVar("held_only", default=False)
 
 
 class TableCache:
@@ -80,6 +89,8 @@ class TableCache:
             self._d.move_to_end(key)
             self.hits += 1
             return self._d[key]
+        if _HELD_ONLY.get():
+            raise MissingTable(key)
         self.misses += 1
         v = make()
         self.put(key, v)
@@ -94,6 +105,16 @@ class TableCache:
         while len(self._d) > 1 and (len(self._d) > self.maxsize or self._total > self.max_bytes):
             old, _ = self._d.popitem(last=False)
             self._total -= self._bytes.pop(old, 0)
+
+    @contextlib.contextmanager
+    def held_only(self):
+        """Inside the block (this thread's context only) a table that is not held is not derived: `get`
+        raises MissingTable instead, so a caller can hand the work to a process that will derive it."""
+        token = _HELD_ONLY.set(True)
+        try:
+            yield
+        finally:
+            _HELD_ONLY.reset(token)
 
     @contextlib.contextmanager
     def recording(self):
