@@ -308,11 +308,13 @@ def test_fit_lobes_ggx_maximum_likelihood():
     assert lob.alpha[0] == pytest.approx(alpha, rel=0.01)
 
 
-@pytest.mark.parametrize("phi_edges", [np.linspace(0.0, 360.0, 73), np.linspace(-180.0, 180.0, 30)])
+@pytest.mark.parametrize("phi_edges", [np.linspace(0.0, 360.0, 73), np.linspace(-180.0, 180.0, 30),
+                                       np.linspace(-2.5, 357.5, 73)])
 def test_mirrored_cell_average_equals_the_full_one(phi_edges):
     """An isotropic lobe lit from the plane phi = 0 / 180 is even in the azimuth: cell_average(mirror=True)
     copies each cell's mirror image instead of computing it, and must give the same cells (refined
-    lobe cells included) to rounding, for an even and an odd number of azimuth cells."""
+    lobe cells included) to rounding, for an even and an odd number of azimuth cells and for cells
+    centred on phi = 0 (the plate's engine grid: cells 0 and 180 deg are their own mirror images)."""
     te = np.linspace(0.0, 90.0, 46)
     for th_i, phi_i, a in ((30.0, 0.0, 0.05), (60.0, 180.0, 0.3), (0.0, 0.0, 0.15)):
         wi = direction(th_i, phi_i)[None, :]

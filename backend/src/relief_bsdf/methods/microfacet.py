@@ -295,21 +295,22 @@ def cell_average(fn: Callable, theta_edges_deg: Any, phi_edges_deg: Any, side: s
     te = np.asarray(theta_edges_deg, float)
     pe = np.asarray(phi_edges_deg, float)
     S, A = te.size - 1, pe.size - 1
-    if mirror and A > 1 and np.allclose(np.mod(pe + pe[::-1] + 180.0, 360.0) - 180.0, 0.0, atol=1e-9):
-        half = (A + 1) // 2           # cells 0 .. half-1; cell A-1-j is cell j mirrored
-        v = cell_average(fn, te, pe[:half + 1], side, subsamples, None, with_phi)
-        v = np.concatenate([v, v[:, :A - half][:, ::-1]], axis=1)
+    partner = _azimuth_mirror(pe) if mirror else None
+    if partner is not None:
+        keep = np.nonzero(np.arange(A) <= partner)[0]         # one cell of each mirror pair
+        s_idx, a_idx = (g.ravel() for g in np.meshgrid(np.arange(S), keep, indexing="ij"))
+        first = _cells(fn, te, pe, side, int(subsamples), s_idx, a_idx, with_phi)
+        v = np.empty((S, A) + first.shape[1:])
+        v[s_idx, a_idx] = first
+        v[s_idx, partner[a_idx]] = first
         if refine is not None and int(refine[0]) > int(subsamples):
             e = np.abs(v.reshape(S, A, -1)[..., 0]) * projected_solid_angle(te, pe)
-            sel = e[:, :half] > float(refine[1]) * e.sum()
-            if sel.any():
-                s_idx, a_idx = np.nonzero(sel)
-                fine = _cells(fn, te, pe, side, int(refine[0]), s_idx, a_idx, with_phi)
-                v[s_idx, a_idx] = fine
-                back = A - 1 - a_idx
-                v[s_idx[back != a_idx], back[back != a_idx]] = fine[back != a_idx]
+            sel = np.nonzero(e[s_idx, a_idx] > float(refine[1]) * e.sum())[0]
+            if sel.size:
+                fine = _cells(fn, te, pe, side, int(refine[0]), s_idx[sel], a_idx[sel], with_phi)
+                v[s_idx[sel], a_idx[sel]] = fine
+                v[s_idx[sel], partner[a_idx[sel]]] = fine
         return v
-
     s_all, a_all = (g.ravel() for g in np.meshgrid(np.arange(S), np.arange(A), indexing="ij"))
     v = _cells(fn, te, pe, side, int(subsamples), s_all, a_all, with_phi)
     if refine is not None and int(refine[0]) > int(subsamples):
@@ -319,6 +320,22 @@ def cell_average(fn: Callable, theta_edges_deg: Any, phi_edges_deg: Any, side: s
         if sel.size:
             v[sel] = _cells(fn, te, pe, side, int(refine[0]), s_all[sel], a_all[sel], with_phi)
     return v.reshape((S, A) + v.shape[1:])
+
+
+def _azimuth_mirror(phi_edges_deg: np.ndarray) -> np.ndarray | None:
+    """partner[j]: the azimuth cell that is cell j mirrored (phi -> -phi, modulo 360 deg), for every j,
+    or None when the edges have no such symmetry (then `cell_average` computes every cell)."""
+    pe = np.asarray(phi_edges_deg, float)
+    lo, hi = np.mod(pe[:-1], 360.0), np.mod(pe[1:], 360.0)
+    m_lo, m_hi = np.mod(-pe[1:], 360.0), np.mod(-pe[:-1], 360.0)
+
+    def same(a, b):
+        d = np.abs(a[:, None] - b[None, :])
+        return np.minimum(d, 360.0 - d) < 1e-9
+    match = same(m_lo, lo) & same(m_hi, hi)
+    if not np.all(match.sum(axis=1) == 1):
+        return None
+    return np.argmax(match, axis=1)
 
 
 def _cells(fn: Callable, te: np.ndarray, pe: np.ndarray, side: str, k: int, s_idx: np.ndarray, a_idx: np.ndarray,
