@@ -60,6 +60,7 @@ class LineProgress:
         self.t0 = clock()
         self._lock = threading.Lock()
         self._what = ""
+        self._wrote = False        # any line written (`beat`)
         self._reset(None)
 
     def _reset(self, total) -> None:
@@ -76,15 +77,19 @@ class LineProgress:
     def beat(self, force: bool = False) -> None:
         """A time-based line when nothing was written for `interval_s` (long work between task
         boundaries, e.g. one fit evaluation's tables): ``<label>: working, elapsed <t>s[ - <what>]``.
-        `force` writes it now (the first line of a job)."""
+        `force` writes it now (the first line of a job), unless a line was already written: a job
+        that reported progress has shown it is alive, and a "working" line after its 100 % line
+        would read as more work (seen when a job's tables took just over `keep_alive`'s first second)."""
         with self._lock:
             now = self.clock()
+            if force and self._wrote:
+                return
             if not force and now - self._t_line < self.interval_s:
                 return
             what = f" - {self._what}" if self._what else ""
             self.stream.write(f"{self.label}: working, elapsed {now - self.t0:.0f}s{what}\n")
             self.stream.flush()
-            self._t_line = now
+            self._t_line, self._wrote = now, True
 
     def _line(self, done: int, total: int, what: str) -> None:
         self._what = " ".join(str(what).split())[:60]
@@ -106,6 +111,7 @@ class LineProgress:
         self.stream.write(line + (f" - {what}" if what else "") + "\n")
         self.stream.flush()
         self._bucket, self._done, self._t_line, self._finished = bucket, done, now, finished
+        self._wrote = True
 
 
 class TerminalBar:

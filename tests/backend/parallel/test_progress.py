@@ -67,6 +67,21 @@ def test_heartbeat_after_interval_without_a_line():
     assert np.all(np.diff(times) >= 28)
 
 
+def test_the_first_forced_heartbeat_is_written_only_before_any_progress_line():
+    """keep_alive's first heartbeat (forced, after one second) shows a silent job alive; once the job
+    has written a progress line (here its 100 % line) it is not written: a "working" line after the
+    completion line would read as more work (the CLI test saw it under load)."""
+    s = io.StringIO()
+    p = LineProgress("x", s, interval_s=30.0, clock=Clock(0.5))
+    p.beat(force=True)
+    assert len(_lines(s)) == 1 and _lines(s)[0].startswith("x: working, elapsed ")
+    s2 = io.StringIO()
+    q = LineProgress("y", s2, interval_s=30.0, clock=Clock(0.5))
+    q(9, 9)
+    q.beat(force=True)
+    assert len(_lines(s2)) == 1 and LINE.match(_lines(s2)[0])["pct"] == "100"
+
+
 def test_fast_work_gets_no_heartbeat_and_a_new_total_starts_a_new_sequence():
     s = io.StringIO()
     p = LineProgress("x", s, interval_s=30.0, clock=Clock(0.001))

@@ -296,30 +296,22 @@ def cell_average(fn: Callable, theta_edges_deg: Any, phi_edges_deg: Any, side: s
     pe = np.asarray(phi_edges_deg, float)
     S, A = te.size - 1, pe.size - 1
     partner = _azimuth_mirror(pe) if mirror else None
-    if partner is not None:
-        keep = np.nonzero(np.arange(A) <= partner)[0]         # one cell of each mirror pair
-        s_idx, a_idx = (g.ravel() for g in np.meshgrid(np.arange(S), keep, indexing="ij"))
-        first = _cells(fn, te, pe, side, int(subsamples), s_idx, a_idx, with_phi)
-        v = np.empty((S, A) + first.shape[1:])
-        v[s_idx, a_idx] = first
-        v[s_idx, partner[a_idx]] = first
-        if refine is not None and int(refine[0]) > int(subsamples):
-            e = np.abs(v.reshape(S, A, -1)[..., 0]) * projected_solid_angle(te, pe)
-            sel = np.nonzero(e[s_idx, a_idx] > float(refine[1]) * e.sum())[0]
-            if sel.size:
-                fine = _cells(fn, te, pe, side, int(refine[0]), s_idx[sel], a_idx[sel], with_phi)
-                v[s_idx[sel], a_idx[sel]] = fine
-                v[s_idx[sel], partner[a_idx[sel]]] = fine
-        return v
-    s_all, a_all = (g.ravel() for g in np.meshgrid(np.arange(S), np.arange(A), indexing="ij"))
-    v = _cells(fn, te, pe, side, int(subsamples), s_all, a_all, with_phi)
+    if partner is None:
+        partner = np.arange(A)                                # every cell its own: all computed
+    keep = np.nonzero(np.arange(A) <= partner)[0]             # one cell of each mirror pair
+    s_idx, a_idx = (g.ravel() for g in np.meshgrid(np.arange(S), keep, indexing="ij"))
+    first = _cells(fn, te, pe, side, int(subsamples), s_idx, a_idx, with_phi)
+    v = np.empty((S, A) + first.shape[1:])
+    v[s_idx, a_idx] = first
+    v[s_idx, partner[a_idx]] = first
     if refine is not None and int(refine[0]) > int(subsamples):
-        first = v.reshape(v.shape[0], -1)[:, 0]
-        e = np.abs(first) * projected_solid_angle(te, pe).ravel()
-        sel = np.nonzero(e > float(refine[1]) * e.sum())[0]
+        e = np.abs(v.reshape(S, A, -1)[..., 0]) * projected_solid_angle(te, pe)
+        sel = np.nonzero(e[s_idx, a_idx] > float(refine[1]) * e.sum())[0]
         if sel.size:
-            v[sel] = _cells(fn, te, pe, side, int(refine[0]), s_all[sel], a_all[sel], with_phi)
-    return v.reshape((S, A) + v.shape[1:])
+            fine = _cells(fn, te, pe, side, int(refine[0]), s_idx[sel], a_idx[sel], with_phi)
+            v[s_idx[sel], a_idx[sel]] = fine
+            v[s_idx[sel], partner[a_idx[sel]]] = fine
+    return v
 
 
 def _azimuth_mirror(phi_edges_deg: np.ndarray) -> np.ndarray | None:
