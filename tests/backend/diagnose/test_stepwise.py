@@ -584,3 +584,41 @@ def test_independent_points_are_evaluated_on_the_kept_workers_with_the_results_o
     assert pooled[0] == pytest.approx(alone[0], rel=1e-9) and pooled[1] == pytest.approx(alone[1], rel=1e-9)
     assert pooled[0]["absorption_per_mm"] == pytest.approx(0.25, rel=0.1)
     np.testing.assert_allclose(J_pooled, _jacobian(here, effs, alone[0], s, _bounds(here, effs)), rtol=1e-9)
+
+
+def test_points_that_share_their_tables_are_evaluated_here_beside_the_workers(plate_forward):
+    """A prefetch of a Jacobian at a new relief scale (the scale's two differences: new tables each; the
+    absorption's two: the centre's tables) evaluates the absorption's two in this process, deriving the
+    centre's tables once, while the workers take the scale's; every value is the one process's."""
+    from relief_bsdf.diagnose.forward import _tables_of
+    from relief_bsdf.parallel import kept_workers
+    from relief_bsdf.plate.faces import TABLE_CACHE
+    from relief_bsdf.surface.synth import random_relief
+    relief = random_relief(48, 1.0e-6, 0.4e-6, 5.0e-6, "gaussian", seed=2)
+    effs = (get_effect("relief_scale"), get_effect("bulk_absorption"))
+    centre = {"height_scale": 1.2, "absorption_per_mm": 0.2}
+    points = [{**centre, "height_scale": 1.25}, {**centre, "height_scale": 1.15},
+              {**centre, "absorption_per_mm": 0.25}, {**centre, "absorption_per_mm": 0.15}]
+    assert len({_tables_of(effs, p) for p in points}) == 3 == len({_tables_of(effs, p) for p in points[:3]})
+    here = plate_forward(relief)
+    expected = [here.evaluate_set(effs, p) for p in points]
+    ref = plate_forward(relief)
+    ref.baseline()                                             # (its model sigma: the baseline's tables)
+    TABLE_CACHE.clear()
+    with TABLE_CACHE.recording() as alone:
+        ref.evaluate_set(effs, centre)
+    TABLE_CACHE.clear()
+    fwd = plate_forward(relief)
+    fwd.baseline()
+    with kept_workers(fwd):
+        TABLE_CACHE.clear()
+        with TABLE_CACHE.recording() as used:
+            fwd.prefetch(effs, points, workers=2)
+        assert len(fwd._memo) == 4 and fwd.evaluations == 5
+        assert used == alone                                   # here: the centre's tables, nothing else
+        got = [fwd.evaluate_set(effs, p) for p in points]
+        assert fwd.evaluations == 5
+    for (c0, v0, s0), (c1, v1, s1) in zip(expected, got):
+        np.testing.assert_allclose(v1, v0, rtol=1e-12)
+        np.testing.assert_allclose(s1, s0, rtol=1e-12)
+        assert c1 == pytest.approx(c0, rel=1e-12)

@@ -67,6 +67,30 @@ def test_both_engines_read_a_smooth_lambertian_field_through_a_blurred_cone(lamb
     assert np.sqrt(np.mean(z**2)) < 1.6, z
 
 
+def test_the_sub_points_share_each_cell_and_lie_in_it():
+    """The sub-points' quantities, made for the indices asked: their solid angles add up to each cell's,
+    every unit vector lies in its own cell, and the cell and sub-ring of an index agree."""
+    from relief_bsdf.plate.detector import _sub_points
+    theta_edges = np.concatenate([np.arange(0.0, 20.0, 0.5), np.arange(20.0, 90.1, 2.0)])
+    delta_edges = -37.5 + np.concatenate([np.arange(0.0, 30.0, 1.0), np.arange(30.0, 360.1, 5.0)])
+    pts = _sub_points(theta_edges, delta_edges, 3)
+    idx = np.arange(pts.size)
+    ring, az = pts.ring(idx), pts.az(idx)
+    S, P = theta_edges.size - 1, delta_edges.size - 1
+    cell_sr = np.bincount(ring * P + az, weights=pts.weight_sr(idx), minlength=S * P).reshape(S, P)
+    ct = np.cos(np.radians(theta_edges))
+    np.testing.assert_allclose(cell_sr, (ct[:-1] - ct[1:])[:, None] * np.radians(np.diff(delta_edges))[None, :],
+                               rtol=1e-12)
+    v = pts.vec(idx)
+    np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, rtol=1e-12)
+    th = np.degrees(np.arccos(v[:, 2]))
+    assert np.all((th > theta_edges[ring]) & (th < theta_edges[ring + 1]))
+    ph = delta_edges[0] + np.mod(np.degrees(np.arctan2(v[:, 1], v[:, 0])) - delta_edges[0], 360.0)
+    assert np.all((ph > delta_edges[az] - 1e-9) & (ph < delta_edges[az + 1] + 1e-9))
+    assert np.array_equal(pts.cos_theta(idx), pts.cos_sub[pts.sub_ring(idx)])
+    assert np.array_equal(pts.ring_of_sub[pts.sub_ring(idx)], ring)
+
+
 @pytest.mark.parametrize("delta0_deg", [0.0, -180.0, -37.5])
 def test_the_cone_members_ring_by_ring_are_a_ball_query_of_the_sub_points(delta0_deg):
     """`_cone_members` (sub-ring by sub-ring, spherical law of cosines) finds exactly the sub-points a
@@ -77,7 +101,7 @@ def test_the_cone_members_ring_by_ring_are_a_ball_query_of_the_sub_points(delta0
     theta_edges = np.concatenate([np.arange(0.0, 20.0, 0.5), np.arange(20.0, 90.1, 2.0)])
     delta_edges = delta0_deg + np.concatenate([np.arange(0.0, 30.0, 1.0), np.arange(30.0, 360.1, 5.0)])
     pts = _sub_points(theta_edges, delta_edges, 3)
-    tree = cKDTree(pts.vec)
+    tree = cKDTree(pts.vec(np.arange(pts.size)))
     rng = np.random.default_rng(4)
     ts = np.concatenate([[0.0, 0.3, 89.5, 45.0, 10.0], rng.uniform(0, 90, 30)])
     ds = np.concatenate([[0.0, 123.0, delta0_deg + 359.7, delta0_deg + 0.2, delta0_deg - 1.0],

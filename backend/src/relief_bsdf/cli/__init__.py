@@ -126,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     debug = getattr(args, "debug", False)
     from relief_bsdf.io.heightmaps import pixel_limit
     from relief_bsdf.parallel import parallel_from_args
+    from relief_bsdf.parallel.memory import small_pages
+    small_pages()           # a command computes: no huge-page advice for its arrays (parallel.memory)
 
     try:
         # where the command's tasks run: its --dask/--workers/--checkpoint-dir/--retries (parallel's

@@ -192,7 +192,15 @@ class DiagnosisForward:
         into the memo, so that the calls of `evaluate_set` that follow find them.  A search's grid, a
         Jacobian's differences are independent points: two workers evaluate them in about half the
         time.  Without kept workers (or fewer than two missing points) it does nothing: each point is
-        then evaluated when asked, with the same result (the simulation is a function of its inputs)."""
+        then evaluated when asked, with the same result (the simulation is a function of its inputs).
+
+        Points that share their boundary tables (they differ only in parameters of `cheap` effects:
+        `_tables_of`) are one group.  When the points fall in several groups and one holds two or more,
+        this process evaluates that group beside the workers (its tables derived once, then plate
+        solves only) while the workers take the rest (two or more): a Jacobian of a relief scale and an
+        absorption at a new scale is the scale's two differences (new tables each) and the absorption's
+        two (the centre's tables); on two workers the absorption's two waited for the scale's and each
+        derived the centre's tables again."""
         from relief_bsdf.parallel import has_kept_workers, map_tasks
         todo: dict = {}
         for values in points:
@@ -202,10 +210,31 @@ class DiagnosisForward:
         if len(todo) < 2 or not has_kept_workers(self, workers):
             return
         names = tuple(e.name for e in effects)
-        got = map_tasks(_evaluate_task, [(names, vals) for vals in todo.values()], self, label="evaluations",
-                        workers=workers)
-        self.evaluations += len(todo)
-        for key, result in zip(todo, got):
+        groups: dict = {}
+        for key, vals in todo.items():
+            groups.setdefault(_tables_of(effects, vals), []).append(key)
+        mine = max(groups.values(), key=len) if len(groups) > 1 else []
+        if len(mine) < 2 or len(todo) - len(mine) < 2:     # (a single task would run in this process)
+            mine = []
+        there = [k for k in todo if k not in set(mine)]
+        if not mine:
+            got = map_tasks(_evaluate_task, [(names, todo[k]) for k in there], self, label="evaluations",
+                            workers=workers)
+        else:
+            import contextvars
+            from concurrent.futures import ThreadPoolExecutor
+            twin = self.twin()          # evaluates here while the worker call runs in a thread
+            with ThreadPoolExecutor(1) as pool:
+                on_workers = pool.submit(contextvars.copy_context().run, map_tasks, _evaluate_task,
+                                         [(names, todo[k]) for k in there], self, label="evaluations", workers=workers)
+                for k in mine:
+                    twin.evaluate_set(effects, todo[k])
+                got = on_workers.result()
+            for k in mine:
+                self._remember(k, twin._memo[k])
+            self.evaluations += len(mine)
+        self.evaluations += len(there)
+        for key, result in zip(there, got):
             self._remember(key, result)
 
     def misfit(self, values: np.ndarray, model_sigma: np.ndarray) -> float:
@@ -220,6 +249,12 @@ def _memo_key(effects, values: dict) -> tuple[tuple | None, dict]:
         return None, vals
     names = tuple(sorted(e.name for e in effects))
     return (names, tuple(sorted((k, round(x, 12)) for k, x in vals.items()))), vals
+
+
+def _tables_of(effects, vals: dict) -> tuple:
+    """What decides a point's boundary tables: the values of the parameters of the effects that are not
+    `cheap` (a relief scale, a tilt traced into the tables); points equal in them share their tables."""
+    return tuple((p.name, round(float(vals[p.name]), 12)) for e in effects if not e.cheap for p in e.params)
 
 
 def _evaluate_task(forward: DiagnosisForward, task: tuple) -> tuple[np.ndarray, np.ndarray]:

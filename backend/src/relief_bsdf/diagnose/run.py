@@ -270,6 +270,8 @@ def diagnose(sample_path: str | Path, out_dir: str | Path, progress=None, *, met
 
     `photons`: Monte-Carlo samples per incidence of a sampling boundary method (ray, normals).
     """
+    from relief_bsdf.parallel.memory import small_pages
+    small_pages()           # here and in its workers (parallel.memory)
     progress = progress or silent
     names = candidate_names(effects)
     forward, sample = build_forward(sample_path, method, photons, seed)

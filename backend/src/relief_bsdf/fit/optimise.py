@@ -784,6 +784,8 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
                 progress: Progress | None = None) -> dict:
     """`relief fit`: read the sample, fit, write OUT/fit.json + relief + tables + plots + report."""
     method = job.method
+    from relief_bsdf.parallel.memory import small_pages
+    small_pages()           # here and in its workers (parallel.memory)
     from relief_bsdf.report import fit_report as report
     from relief_bsdf.io.hdf5 import save_tables
     from relief_bsdf.io.heightmaps import read_relief, write_relief

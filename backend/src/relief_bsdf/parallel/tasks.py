@@ -69,6 +69,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 from relief_bsdf.errors import InputError
 from relief_bsdf.parallel import cluster
+from relief_bsdf.parallel.memory import small_pages
 from relief_bsdf.parallel.settings import (DEFAULT_SETTINGS, ParallelSettings, check_dask_spec, group_size,
                                            settings_from_args)
 from relief_bsdf.parallel.worker import in_worker, init_worker, run_in_worker
@@ -301,8 +302,11 @@ def _pool_context() -> multiprocessing.context.BaseContext:
     (seen: a worker stuck creating its Embree device).  The fork server is a fresh interpreter
     that imports this module once and forks workers from that clean state, so starting a
     worker stays cheap.  Like "spawn", it needs `if __name__ == "__main__":` in user scripts.
-    `RELIEF_START_METHOD` overrides it (e.g. "spawn").
+    `RELIEF_START_METHOD` overrides it (e.g. "spawn").  The workers compute: no huge-page advice for
+    their arrays (`parallel.memory`; set here, before the fork server or a spawned worker starts and
+    imports numpy, so they inherit it).
     """
+    small_pages()
     method = os.environ.get("RELIEF_START_METHOD", "forkserver")
     ctx = multiprocessing.get_context(method)
     if method == "forkserver":

@@ -281,18 +281,18 @@ class DirectField:
         cell centre; T: each exit direction's Snell pre-image in the internal cells, and its sub-ring
         (the exit factor depends on the polar angle only)."""
         tc, pc = self._centres
-        az = pts.az[idx]
+        az = pts.az(idx)
         sr = th_int = None
         if side == "R":
-            ring, th = pts.ring[idx], pts.sub_theta_deg[pts.sub_ring[idx]]
+            ring, th = pts.ring(idx), pts.sub_theta_deg[pts.sub_ring(idx)]
         else:
             th_int = np.degrees(np.arcsin(np.clip(np.sin(np.radians(pts.sub_theta_deg)) * self.eta, 0.0, 1.0)))
             ring_int = np.clip(np.searchsorted(self.theta_edges_deg, th_int, side="right") - 1, 0,
                                self.R.shape[0] - 1)
-            sr = pts.sub_ring[idx]
+            sr = pts.sub_ring(idx)
             ring, th = ring_int[sr], th_int[sr]
         dt = th - tc[ring]
-        dp = np.mod(pts.delta_deg[idx] - pc[az] + 180.0, 360.0) - 180.0
+        dp = np.mod(pts.delta_deg(idx) - pc[az] + 180.0, 360.0) - 180.0
         return _Gather(ring * pc.size + az, dt, dp, sr, th_int)
 
     def values(self, side: str, g: "_Gather") -> np.ndarray:
@@ -341,23 +341,56 @@ def _limited_slopes(F: np.ndarray, tc: np.ndarray, pc: np.ndarray) -> tuple[np.n
 
 @dataclass(frozen=True)
 class _SubPoints:
-    """Equal-solid-angle sub-points of every cell of a grid (k^2 per cell), their weights (sr), cells
-    and unit vectors (azimuth = delta), laid out sub-ring by sub-ring, each sub-ring with the same
-    increasing azimuths `ring_az_rad` (so a sub-point's index is sub-ring x azimuths + azimuth)."""
+    """Equal-solid-angle sub-points of every cell of a grid (k^2 per cell), laid out sub-ring by sub-ring,
+    each sub-ring with the same increasing azimuths `ring_az_rad` (a sub-point's index is sub-ring x
+    azimuths + azimuth).  Held per sub-ring and per azimuth only; a sub-point's own quantities (cell,
+    weight, unit vector) are made for the indices asked: the default direct grid has ~3 M sub-points
+    (1800 sub-rings x 1800 azimuths, ~200 MB as per-point arrays, 2.9 s to build in every process that
+    reads a plate, 2026-12-05), of which the rows' cones meet a small part."""
 
-    cos_theta: np.ndarray
-    weight_sr: np.ndarray
-    ring: np.ndarray
-    az: np.ndarray
-    sub_ring: np.ndarray          # index into sub_theta_rad (k per ring)
-    delta_deg: np.ndarray
-    vec: np.ndarray               # (points, 3) unit vectors
+    cos_sub: np.ndarray           # cos theta of each sub-ring
     sub_theta_rad: np.ndarray     # polar angle of each sub-ring
+    ring_of_sub: np.ndarray       # the cell ring of each sub-ring
     ring_az_rad: np.ndarray       # the azimuths of every sub-ring, increasing, within one turn
+    az_of_sub: np.ndarray         # the cell azimuth of each of those azimuths
+    per_sr: np.ndarray            # (S, P) the solid angle of one sub-point of each cell (the cell's, shared equally)
+
+    @property
+    def size(self) -> int:
+        return self.cos_sub.size * self.ring_az_rad.size
 
     @property
     def sub_theta_deg(self) -> np.ndarray:
         return np.degrees(self.sub_theta_rad)
+
+    @property
+    def max_weight_sr(self) -> float:
+        return float(self.per_sr.max())
+
+    def sub_ring(self, idx: np.ndarray) -> np.ndarray:
+        return idx // self.ring_az_rad.size
+
+    def ring(self, idx: np.ndarray) -> np.ndarray:
+        return self.ring_of_sub[idx // self.ring_az_rad.size]
+
+    def az(self, idx: np.ndarray) -> np.ndarray:
+        return self.az_of_sub[idx % self.ring_az_rad.size]
+
+    def cos_theta(self, idx: np.ndarray) -> np.ndarray:
+        return self.cos_sub[idx // self.ring_az_rad.size]
+
+    def delta_deg(self, idx: np.ndarray) -> np.ndarray:
+        return np.degrees(self.ring_az_rad[idx % self.ring_az_rad.size])
+
+    def weight_sr(self, idx: np.ndarray) -> np.ndarray:
+        return self.per_sr[self.ring(idx), self.az(idx)]
+
+    def vec(self, idx: np.ndarray) -> np.ndarray:
+        """(n, 3) unit vectors of the sub-points `idx` (azimuth = delta)."""
+        cz = self.cos_theta(idx)
+        ph = self.ring_az_rad[idx % self.ring_az_rad.size]
+        sz = np.sqrt(np.clip(1 - cz**2, 0, 1))
+        return np.stack([sz * np.cos(ph), sz * np.sin(ph), cz], 1)
 
 
 _SUB_CACHE: dict = {}
@@ -380,18 +413,10 @@ def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int
     frac = (np.arange(az_sub.size) - np.repeat(np.cumsum(per) - per, per) + 0.5) / per[az_sub]
     ph_sub = np.radians(delta_edges_deg[:-1][az_sub] + frac * dw[az_sub])
     cell_sr = (ct[:-1] - ct[1:])[:, None] * np.radians(dw)[None, :]
-    ring = np.repeat(ring_sub, az_sub.size)
-    sub_ring = np.repeat(np.arange(ring_sub.size), az_sub.size)
-    az = np.tile(az_sub, ring_sub.size)
-    cz = np.repeat(cos_sub, az_sub.size)
-    ph = np.tile(ph_sub, ring_sub.size)
-    sz = np.sqrt(np.clip(1 - cz**2, 0, 1))
-    vec = np.stack([sz * np.cos(ph), sz * np.sin(ph), cz], 1)
-    w = cell_sr[ring, az] / (k * per[az])
     if np.any(np.diff(ph_sub) <= 0) or ph_sub[-1] - ph_sub[0] >= 2 * np.pi:
         raise ValueError("cone sub-points: the azimuth edges must increase within one turn")
     t_sub = np.arccos(np.clip(cos_sub, -1, 1))
-    pts = _SubPoints(cz, w, ring, az, sub_ring, np.degrees(ph), vec, t_sub, ph_sub)
+    pts = _SubPoints(cos_sub, t_sub, ring_sub, ph_sub, az_sub, cell_sr / (k * per)[None, :])
     if len(_SUB_CACHE) > 4:
         _SUB_CACHE.clear()
     _SUB_CACHE[key] = pts
@@ -418,9 +443,9 @@ def direct_reading(field: DirectField, side: np.ndarray, theta_s: np.ndarray, de
         sel = np.nonzero(side == sd)[0]
         if sel.size == 0:
             continue
-        row, idx, inv, wt, gather = _reading_weights(pts, field, theta_s[sel], delta_s[sel], det, sd)
+        row, idx, inv, wt, gather, w_sr, cos_t = _reading_weights(pts, field, theta_s[sel], delta_s[sel], det, sd)
         if idx.size:
-            val = field.values(sd, gather) * pts.weight_sr[idx] * pts.cos_theta[idx]
+            val = field.values(sd, gather) * w_sr * cos_t
             out[sel] = np.bincount(row, weights=val[inv] * wt, minlength=sel.size)
     return out / (cone_solid_angle(det.detector_half_angle_deg) * np.cos(np.radians(theta_s)))
 
@@ -429,34 +454,38 @@ _WEIGHT_CACHE: dict = {}
 
 
 def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, delta_s: np.ndarray,
-                     det: Any, side: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, "_Gather"]:
-    """(row, idx, inv, response, gather) of the rows' cones on one side: the (row, sub-point idx[inv],
-    response) triplets, idx the sub-points seen (sorted, each once), and where they read the cells
-    (`DirectField.gather`).  The same for every evaluation of a fit (rows, cells, index ratio and
-    instrument fixed), so they are kept (a few entries)."""
+                     det: Any, side: str) -> tuple:
+    """(row, idx, inv, response, gather, weight_sr, cos_theta) of the rows' cones on one side: the (row,
+    sub-point idx[inv], response) triplets, idx the sub-points seen (sorted, each once), where they read
+    the cells (`DirectField.gather`), and their solid angles and cos theta.  The same for every
+    evaluation of a fit (rows, cells, index ratio and instrument fixed), so they are kept (a few entries)."""
     key = (field.theta_edges_deg.tobytes(), field.delta_edges_deg.tobytes(), theta_s.tobytes(), delta_s.tobytes(),
-           float(det.detector_half_angle_deg), float(det.blur_deg), pts.cos_theta.size, side,
+           float(det.detector_half_angle_deg), float(det.blur_deg), pts.size, side,
            float(field.eta) if side == "T" else None)
     if key in _WEIGHT_CACHE:
         return _WEIGHT_CACHE[key]
     h = np.radians(det.detector_half_angle_deg)
-    size = np.sqrt(pts.weight_sr)                    # a sub-point's linear size (rad)
-    reach = min(support_rad(det.detector_half_angle_deg, det.blur_deg) + float(size.max()), np.pi)
+    reach = min(support_rad(det.detector_half_angle_deg, det.blur_deg) + float(np.sqrt(pts.max_weight_sr)), np.pi)
     q = unit(theta_s, delta_s)
     row, col = _cone_members(pts, np.radians(theta_s), np.radians(delta_s), reach)
-    psi = np.arccos(np.clip(np.einsum("ij,ij->i", pts.vec[col], q[row]), -1, 1))
+    seen = np.zeros(pts.size, bool)                 # the sub-points met, each once (their vectors made once)
+    seen[col] = True
+    met = np.flatnonzero(seen)
+    at = np.empty(seen.size, np.intp)
+    at[met] = np.arange(met.size)
+    psi = np.arccos(np.clip(np.einsum("ij,ij->i", pts.vec(met)[at[col]], q[row]), -1, 1))
     if det.blur_deg > 0:
         wt = response(psi, det.detector_half_angle_deg, det.blur_deg)
     else:        # the cone's edge cuts a sub-point's patch: its inside fraction, to first order
-        wt = np.clip((h - psi) / size[col] + 0.5, 0.0, 1.0)
+        wt = np.clip((h - psi) / np.sqrt(pts.weight_sr(met))[at[col]] + 0.5, 0.0, 1.0)
     keep = wt > 0
     col = col[keep]
-    seen = np.zeros(pts.cos_theta.size, bool)       # np.unique(col, return_inverse=True) without its sort
+    seen = np.zeros(pts.size, bool)                 # np.unique(col, return_inverse=True) without its sort
     seen[col] = True
     idx = np.flatnonzero(seen)
     where = np.empty(seen.size, np.intp)            # each seen sub-point's place in idx (only those are read)
     where[idx] = np.arange(idx.size)
-    out = (row[keep], idx, where[col], wt[keep], field.gather(side, pts, idx))
+    out = (row[keep], idx, where[col], wt[keep], field.gather(side, pts, idx), pts.weight_sr(idx), pts.cos_theta(idx))
     if len(_WEIGHT_CACHE) > 16:
         _WEIGHT_CACHE.clear()
     _WEIGHT_CACHE[key] = out
