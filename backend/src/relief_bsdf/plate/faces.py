@@ -128,8 +128,9 @@ class TableCache:
 
     def tables(self, keys: Any) -> dict:
         """{key: table} of those of `keys` still held whose value is a table (data that can travel to a
-        worker process: `put` there spares it the tables' derivation)."""
-        return {k: self._d[k] for k in keys if isinstance(self._d.get(k), BsdfTable)}
+        worker process: `put` there spares it the tables' derivation).  One read per key: another thread
+        of this process may put or evict meanwhile (a prefetch's own group beside a pool that starts)."""
+        return {k: t for k in keys if isinstance(t := self._d.get(k), BsdfTable)}
 
     def worth_sending(self, tables: dict) -> bool:
         """Whether a worker's tables are small enough to be sent to this cache and held: at most a sixth
