@@ -1,9 +1,8 @@
 """parallel.memory: the computing processes take no huge-page advice from numpy, unless the user says."""
 import pytest
+from numpy.core import multiarray          # numpy is pinned (1.26.4, by bpy 5.0.1): the switch is there
 
 from relief_bsdf.parallel import memory
-
-multiarray = pytest.importorskip("numpy.core.multiarray")
 
 
 @pytest.fixture

@@ -257,8 +257,8 @@ def _step(p: Param, x: float, lo: float, hi: float, sampled: bool = False) -> fl
     sum(sigma_model^2 / s^2) / (2 h^2) (two independent draws: an upper bound), which falls as 1 / h^2.
     Measured on the seed-10 relief scale + absorption case at its optimum (central differences of the
     diagnosis forward model at five steps, 2026-12-05): the scale column's |J|^2 was 8.4e4 / 6.9e4 /
-    5.2e4 / 4.8e4 / 5.0e4 at steps of 0.5 / 1 / 2 / 3 / 4 % of the range, the bound 1.8e5 / 4.5e4 / 1.1e4 / 5.0e3 / 2.8e3: at 3 % the
-    bound is a tenth of the column, and the column stops shrinking (curvature bias, O(h^2), is not yet
+    5.2e4 / 4.8e4 / 5.0e4 at steps of 0.5 / 1 / 2 / 3 / 4 % of the range, the bound 1.8e5 / 4.5e4 /
+    1.1e4 / 5.0e3 / 2.8e3: at 3 % the bound is a tenth of the column, and the column stops shrinking (curvature bias, O(h^2), is not yet
     seen).  A column too long shortens every Gauss-Newton step and narrows the intervals."""
     h = (STEP_FRACTION_SAMPLED if sampled else STEP_FRACTION) * (hi - lo)
     if x != 0.0:

@@ -216,7 +216,8 @@ class DiagnosisForward:
         mine = max(groups.values(), key=len) if len(groups) > 1 else []
         if len(mine) < 2 or len(todo) - len(mine) < 2:     # (a single task would run in this process)
             mine = []
-        there = [k for k in todo if k not in set(mine)]
+        here = set(mine)
+        there = [k for k in todo if k not in here]
         if not mine:
             got = map_tasks(_evaluate_task, [(names, todo[k]) for k in there], self, label="evaluations",
                             workers=workers)

@@ -468,11 +468,7 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
     reach = min(support_rad(det.detector_half_angle_deg, det.blur_deg) + float(np.sqrt(pts.max_weight_sr)), np.pi)
     q = unit(theta_s, delta_s)
     row, col = _cone_members(pts, np.radians(theta_s), np.radians(delta_s), reach)
-    seen = np.zeros(pts.size, bool)                 # the sub-points met, each once (their vectors made once)
-    seen[col] = True
-    met = np.flatnonzero(seen)
-    at = np.empty(seen.size, np.intp)
-    at[met] = np.arange(met.size)
+    met, at = _each_once(col, pts.size)             # the sub-points met (their vectors made once each)
     psi = np.arccos(np.clip(np.einsum("ij,ij->i", pts.vec(met)[at[col]], q[row]), -1, 1))
     if det.blur_deg > 0:
         wt = response(psi, det.detector_half_angle_deg, det.blur_deg)
@@ -480,16 +476,23 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
         wt = np.clip((h - psi) / np.sqrt(pts.weight_sr(met))[at[col]] + 0.5, 0.0, 1.0)
     keep = wt > 0
     col = col[keep]
-    seen = np.zeros(pts.size, bool)                 # np.unique(col, return_inverse=True) without its sort
-    seen[col] = True
-    idx = np.flatnonzero(seen)
-    where = np.empty(seen.size, np.intp)            # each seen sub-point's place in idx (only those are read)
-    where[idx] = np.arange(idx.size)
+    idx, where = _each_once(col, pts.size)          # the sub-points read
     out = (row[keep], idx, where[col], wt[keep], field.gather(side, pts, idx), pts.weight_sr(idx), pts.cos_theta(idx))
     if len(_WEIGHT_CACHE) > 16:
         _WEIGHT_CACHE.clear()
     _WEIGHT_CACHE[key] = out
     return out
+
+
+def _each_once(col: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(idx, where): the distinct values of `col` (indices below `size`) in increasing order, and each
+    one's place in idx (read at `col` only): np.unique(col, return_inverse=True) without its sort."""
+    seen = np.zeros(size, bool)
+    seen[col] = True
+    idx = np.flatnonzero(seen)
+    where = np.empty(size, np.intp)
+    where[idx] = np.arange(idx.size)
+    return idx, where
 
 
 def _cone_members(pts: _SubPoints, theta_rad: np.ndarray, delta_rad: np.ndarray,
