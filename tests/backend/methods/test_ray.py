@@ -590,3 +590,59 @@ def test_a_divergent_beam_on_a_flat_relief_spreads_the_mirror_and_the_refraction
             assert rms == pytest.approx(s_deg * np.hypot(along, 1 / N_GLASS), rel=0.08)
     sharp = ray.reconstruct(flat(64), GLASS, Request(**base, options={"polarized": False, "sparse_cells": True}))[0]
     assert sharp.hemispherical()["specular_R"][0, 0, 0] == pytest.approx(R, rel=1e-3)
+
+
+# ----------------------------------------------------------------------------- incidence azimuths spread over a sector
+
+def test_an_azimuth_spread_beam_turned_back_keeps_a_flat_reliefs_fresnel_deltas():
+    """Option phi_i_spread_deg: each ray's incidence turned about the normal by its own offset, its exit turned
+    back by the same offset.  A flat relief is the same from every azimuth, so every exit, reflected or
+    refracted (the first-hit split's second branch is id + n), both sides, TIR included, must land back on the
+    ideal directions of the request's incidence: the exact Fresnel deltas and Mueller matrices, nothing in the
+    cells.  A wrong sign or pairing would put the exits 2 x offset away, into the cells."""
+    ti = (0.0, 35.0, 60.0)
+    req = Request(theta_i_deg=ti, phi_i_deg=(0.0, 70.0), incident_from=("outside", "inside"), samples=1024,
+                  theta_s_edges_deg=TE, phi_s_edges_deg=PE, options={"phi_i_spread_deg": 7.5})
+    for tab in ray.reconstruct(flat(), GLASS, req):
+        n1, n2 = (1.0, N_GLASS) if tab.incident_from == "outside" else (N_GLASS, 1.0)
+        assert np.all(tab.values_per_sr == 0)
+        for ii, t in enumerate(ti):
+            for ip in range(2):
+                c = np.cos(np.radians(t))
+                np.testing.assert_allclose(tab.specular_mueller_R[0, ii, ip], mueller_interface(c, n1, n2, "R"),
+                                           atol=2e-6)
+                np.testing.assert_allclose(tab.specular_mueller_T[0, ii, ip], mueller_interface(c, n1, n2, "T"),
+                                           atol=2e-6)
+
+
+def test_an_azimuth_spread_table_is_the_average_over_the_sectors_incidence_azimuths():
+    """On an anisotropic relief (3:1 rms slopes) light from inside at 85 deg scatters by its azimuth.  The
+    table traced with phi_i_spread_deg = 7.5 at azimuth 0 must be the average over incidence azimuths in
+    [-7.5, 7.5] seen from the frame of 0: the mean of point tables traced at -5, 0 and 5 deg, each turned back
+    onto azimuth 0 (one 5-deg cell), agrees with it to within the tables' Monte-Carlo noise (one tile: its
+    realisation is common to both), and the point table at 0 alone does not, in 10 x 30-deg bins of power (`plate.faces.azimuth_probe_l1`'s statistic)."""
+    from relief_bsdf.plate.faces import projected_solid_angle_cells
+    from relief_bsdf.surface.synth import RandomFieldSpec, relief_from_spec
+    rel = relief_from_spec(RandomFieldSpec(128, 128, 1e-6, 1.2e-6, 8e-6, anisotropy=3.0, angle_deg=30.0), 3)
+    te, pe = tuple(np.linspace(0.0, 90.0, 91)), tuple(np.arange(-2.5, 360.0, 5.0))
+    base = dict(theta_i_deg=(85.0,), incident_from=("inside",), samples=240_000, theta_s_edges_deg=te,
+                phi_s_edges_deg=pe)
+    opts = {"polarized": False, "tile_uncertainty": False}       # sigma: Monte-Carlo only (one tile)
+    spread = ray.reconstruct(rel, GLASS, Request(**base, phi_i_deg=(0.0,),
+                                                 options={**opts, "phi_i_spread_deg": 7.5}))[0]
+    points = ray.reconstruct(rel, GLASS, Request(**base, phi_i_deg=(-5.0, 0.0, 5.0), options=opts))[0]
+    psa = projected_solid_angle_cells(np.asarray(te), np.asarray(pe))
+    tb = np.minimum((0.5 * (np.asarray(te[1:]) + np.asarray(te[:-1])) // 10).astype(int), 8)
+    pb = (np.mod(0.5 * (np.asarray(pe[1:]) + np.asarray(pe[:-1])), 360.0) // 30).astype(int)
+    bins = (tb[:, None] * 12 + pb[None, :]).ravel()
+
+    def binned(values, roll=0):
+        return np.bincount(bins, np.roll(values * psa, -roll, axis=1).ravel(), minlength=108)
+    s = binned(spread.values_per_sr[0, 0, 0, 0])
+    mean3 = np.mean([binned(points.values_per_sr[0, 0, k, 0], r) for k, r in ((0, -1), (1, 0), (2, 1))], axis=0)
+    centre = binned(points.values_per_sr[0, 0, 1, 0])
+    noise = np.sqrt(2 / np.pi) * np.sum(np.sqrt(binned(spread.sigma_per_sr[0, 0, 0, 0] ** 2 * psa)
+                                                + binned(points.sigma_per_sr[0, 0, 1, 0] ** 2 * psa))) / s.sum()
+    l1 = lambda a, b: float(np.sum(np.abs(a - b)) / np.sum(a))                   # noqa: E731
+    assert l1(s, mean3) < 1.5 * noise                       # the sector's average, to its noise
+    assert l1(s, centre) > 2 * max(noise, l1(s, mean3))     # not the centre's table

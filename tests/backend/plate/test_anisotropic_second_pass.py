@@ -30,11 +30,12 @@ def test_only_an_anisotropic_relief_traced_by_rays_gets_inside_sector_tables():
     assert inside_sectors(ReliefFace(_anisotropic(), "kirchhoff", 2000, 1), mat, grid, [550.0], [0.0]) is None
     t = inside_sectors(ReliefFace(_anisotropic(), "ray", 2000, 1), mat, grid, [550.0], [0.0])
     assert t is not None and t.incident_from == "inside"
-    assert tuple(t.phi_i_deg) == SECTOR_AZIMUTHS_DEG
+    assert tuple(t.phi_i_deg) == (0.0,) + SECTOR_AZIMUTHS_DEG           # the 0-deg sector averaged too
+    assert t.metadata["request"]["options"]["phi_i_spread_deg"] == 7.5    # each the average over its sector
     assert np.allclose(t.theta_i_deg, grid.inside_incidences_deg())
     fine = TableGrid(sector_step_deg=7.5)          # the grid's sector step sets the azimuths
     t = inside_sectors(ReliefFace(_anisotropic(), "ray", 2000, 1), mat, fine, [550.0], [0.0])
-    assert tuple(t.phi_i_deg) == fine.sector_azimuths_deg() and len(t.phi_i_deg) == 23
+    assert tuple(t.phi_i_deg) == (0.0,) + fine.sector_azimuths_deg() and len(t.phi_i_deg) == 24
 
 
 @pytest.mark.slow

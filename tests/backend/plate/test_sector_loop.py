@@ -73,6 +73,29 @@ def test_lambertian_sectors_of_different_albedo_follow_the_azimuth_weighted_clos
     assert abs(h0["T"] - want_T) > 20 * 2e-3 * want_T
 
 
+def test_a_sector_at_0_deg_takes_the_inside_tables_place_in_the_loop():
+    """The sector tables of `plate.faces.inside_sectors` include the sector at 0 deg (each table the average
+    over its sector's incidence azimuths): its cells then scatter by it, and the 0-deg inside table serves
+    no light of the loop.  The closed form of the Lambertian sectors with the sector-0 albedo, whatever
+    the inside table's (here 0.95 instead of 0.2)."""
+    aR_o, aT_o = 0.1, 0.9
+    th_in = np.arange(0, 90, 5.0)
+    R_k = np.array([0.2, 0.35, 0.5, 0.8, 0.65, 0.45])      # 0, 30, ..., 150 deg
+    o = _lambert("outside", aR_o, aT_o, [0.0, 30.0])
+    i = _lambert("inside", 0.95, 0.05, th_in)
+    sec = _lambert("inside", R_k, 1 - R_k, th_in, phi_i=(0.0,) + SECTORS)
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
+    mu = np.linspace(0, 1, 200001)[1:]
+    Rs, Rp, _, _ = fresnel_power(mu, N_GLASS, 1.0)
+    r_bar = np.trapz(0.5 * (Rs + Rp) * 2 * mu, mu)
+    w = _sector_weights(m.azimuth_cells)
+    R_eff, T_eff = float(w @ R_k), float(w @ (1 - R_k))
+    for ti in (0.0, 30.0):
+        h = PlateSolver(m, i, o, inside_sectors=sec).solve(550.0, [ti])[0].hemispherical()
+        assert h["R"] == pytest.approx(aR_o + aT_o * r_bar * T_eff / (1 - r_bar * R_eff), rel=2e-3)
+        assert h["T"] == pytest.approx(aT_o * (1 - r_bar) / (1 - r_bar * R_eff), rel=2e-3)
+
+
 def test_sector_tables_equal_to_the_turned_0_deg_table_give_the_circulant_plate():
     """An isotropic relief's table at incidence azimuth p is its 0-deg table turned by p: with such sector
     tables the sector loop must give the circulant loop's plate (the frames of the two agree)."""

@@ -284,6 +284,10 @@ class RayOptions(MethodOptions):
     beam_divergence_deg: float = opt(0.0, "float", "each ray's incidence spread by a 2-D Gaussian of this 1-sigma "
                                      "per axis, deg (a divergent source beam; 0: collimated)", minimum=0.0,
                                      maximum_excl=15.0)
+    phi_i_spread_deg: float = opt(0.0, "float", "each ray's incidence azimuth drawn uniformly within +- this of the "
+                                  "request's, its exit turned back by its own offset: the table averages the incidence "
+                                  "azimuths of a sector, in the frame of its centre, deg (0: one azimuth)", minimum=0.0,
+                                  maximum_excl=90.0)
 
 
 @dataclass(frozen=True)

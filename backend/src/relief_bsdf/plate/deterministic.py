@@ -37,9 +37,10 @@ Method (radiative transfer between two faces, discrete ordinates):
   after further scattering, is summed exactly (no truncated series).
 * Isotropy makes K circulant in azimuth: a real FFT over the azimuth axis block-diagonalises
   it (azimuthal reduction), so the solve is A/2+1 small (N x N) systems instead of one
-  (N A) x (N A) system.  An anisotropic relief traced by rays gives its inside table at twelve
-  incidence azimuths (every 15 deg by default, `inside_sectors`, `TableGrid.sector_step_deg`): light
-  at propagation azimuth delta then scatters by the table nearest delta, K = K_0 + sum_k (K_k - K_0) P_k
+  (N A) x (N A) system.  An anisotropic relief traced by rays gives its inside table over twelve
+  incidence-azimuth sectors (every 15 deg by default, each the average over its sector,
+  `inside_sectors`, `TableGrid.sector_step_deg`): light at propagation azimuth delta then scatters by
+  the table of its sector, K = K_0 + sum_k (K_k - K_0) P_k
   is not circulant, and the loop is solved by GMRES preconditioned by the circulant system
   (`_sector_loop`).
 * The delta parts of the tables (specular reflection and transmission of the flat fraction of
@@ -724,9 +725,10 @@ class PlateSolver:
                  inside_sectors: BsdfTable | None = None):
         """`back`: optional BSDF table (light from inside) of the second, back face; None = flat.
 
-        `inside_sectors`: the relief's inside table at more incidence azimuths (an anisotropic relief,
-        `plate.faces.inside_sectors`); the light inside the plate (every order of the loop: the second
-        pass and the trapped light) then scatters and leaves through the sector nearest its azimuth
+        `inside_sectors`: the relief's inside table by incidence-azimuth sector (an anisotropic relief,
+        `plate.faces.inside_sectors`; with a sector at 0 deg the inside table serves no light of the
+        loop); the light inside the plate (every order of the loop: the second pass and the trapped
+        light) then scatters and leaves through the sector nearest its azimuth
         (`_sector_loop`, `_sector_exits`).
 
         `front`: optional (outside, inside) tables of the FRONT face when the relief is on the back
@@ -966,14 +968,17 @@ class PlateSolver:
         table traced at incidence azimuth p stands for light arriving at propagation azimuth p + 180
         (methods.ray's frame), i.e. at delta = p for rows lit at phi_i = 0 (the engine's frame for an
         anisotropic relief); each cell takes the nearest p mod 180 (a half turn leaves a relief's
-        statistics unchanged; the 0-deg table's cells are those of no sector), turned by the remaining
-        half sector step at most (every 15 deg by default; measured on the anisotropic relief of
-        bench_forward_accuracy: rms z 1.45 with 30-deg sectors, 1.12 with 15; blending the two nearest
-        tables instead of taking the nearest: 1.37 / 1.15, but the measured map 1.70 -> 1.75 / 1.77)."""
-        ps = np.concatenate([[0.0], sk.azimuths_deg])
+        statistics unchanged; without a sector at 0 deg the 0-deg inside table's cells are those of no
+        sector), whose table averages the sector's incidence azimuths (`plate.faces.inside_sectors`;
+        measured on the anisotropic relief of bench_forward_accuracy with tables at the sectors' centres:
+        rms z 1.45 with 30-deg sectors, 1.12 with 15; blending the two nearest tables instead of taking
+        the nearest: 1.37 / 1.15, but the measured map 1.70 -> 1.75 / 1.77)."""
+        own = np.asarray(sk.azimuths_deg, float)
+        first = 0 if own.size and own[0] == 0.0 else 1          # the 0-deg table among the sectors, or the base
+        ps = own if first == 0 else np.concatenate([[0.0], own])
         d = np.abs(np.mod(self.delta[:, None] - ps[None, :] + 90.0, 180.0) - 90.0)       # (A, 1 + K)
         near = np.argmin(d, axis=1)
-        return (near[None, :] == np.arange(1, ps.size)[:, None]).astype(float)
+        return (near[None, :] == np.arange(first, ps.size)[:, None]).astype(float)
 
     def _sector_average(self, ops: dict) -> tuple[np.ndarray, np.ndarray]:
         """((K, A) sector cells, sum_k w_k dK_k): the sectors' cells (`_sector_cells`, the loop's and the

@@ -68,7 +68,9 @@ class TableGrid:
         to the linear blend's albedo) or "linear" (the blend of the two tables: the engine before
         2026-12-03).  Does not change the tables (not in `key`).
     sector_step_deg: azimuth step of the inside sector tables of a relief that scatters by azimuth
-        (plate.faces.inside_sectors; the same total rays whatever the step).  Measured on
+        (plate.faces.inside_sectors; the same total rays whatever the step; since 2026-12-05 each table the
+        average over its sector's incidence azimuths, which took dots 1.29 -> 1.09 at 15 deg).  With tables
+        at the sectors' centres, measured on
         bench_forward_accuracy (2026-12-03, moving lobes, 400k rays, 1 M photons, 0/30/60 deg), 15 -> 7.5:
         dots 1.29 -> 1.19 (T 1.47 -> 1.18: trapped light extracted near the normal), measured map 1.35 -> 1.27,
         anisotropic 1.03 -> 1.03, exponential 1.06 -> 1.06; on relief seed 12 dots 1.36 -> 1.21, anisotropic
@@ -203,9 +205,9 @@ class TableGrid:
         return tuple(e[e <= coarse[-1] + 1e-9])
 
     def sector_azimuths_deg(self) -> tuple:
-        """Incidence azimuths of the inside sector tables besides the inside table's own 0 deg (every
-        `sector_step_deg` up to a half turn: a relief's statistics are unchanged by a half turn); none at
-        NO_SECTORS_DEG."""
+        """Centres of the inside sector tables besides 0 deg (every `sector_step_deg` up to a half turn: a
+        relief's statistics are unchanged by a half turn; plate.faces.inside_sectors adds the sector at
+        0); none at NO_SECTORS_DEG."""
         n = int(round(180.0 / self.sector_step_deg))
         return tuple(float(k * self.sector_step_deg) for k in range(1, n))
 

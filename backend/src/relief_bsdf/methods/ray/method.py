@@ -44,8 +44,8 @@ import numpy as np
 
 from relief_bsdf.bsdf.builder import CellAccumulator, CellIndex, ExitSamples, specular_flags
 from relief_bsdf.bsdf.table import BsdfTable
-from relief_bsdf.core.frames import beam_directions, direction, normalize
-from relief_bsdf.core.stokes import s_axis
+from relief_bsdf.core.frames import beam_directions, cross_rows, direction, dot_rows, normalize
+from relief_bsdf.core.stokes import rotate_stokes_columns_cd, s_axis
 from relief_bsdf.errors import RequestError
 from relief_bsdf.methods.options import RayOptions
 from relief_bsdf.methods.ray.exits import BELOW, STATE_NAMES, Exits
@@ -130,6 +130,7 @@ class _RayContext:
         self.tracer = tracer
         self.tile_uncertainty = bool(opts.tile_uncertainty)
         self.beam_divergence_deg = float(opts.beam_divergence_deg)
+        self.phi_i_spread_deg = float(opts.phi_i_spread_deg)
         mesh_options = (self.max_bounces, repr(self.fill_holes))
         h = tracer.relief_key(relief, mesh_options) if tracer is not None else relief_hash(relief, mesh_options)
         self.tracer_key = ("ray.ReliefTracer", h.hexdigest())
@@ -138,7 +139,8 @@ class _RayContext:
             if self.tile_uncertainty else (None, None, None))
         h.update(repr((self.polarized, self.first_hit_split, float(opts.specular_tol_rad), self.seed,
                        self.samples, self.te.tolist(), self.pe.tolist(), self.subtiles)
-                      + ((self.beam_divergence_deg,) if self.beam_divergence_deg else ())).encode())
+                      + ((self.beam_divergence_deg,) if self.beam_divergence_deg else ())
+                      + (("phi_i_spread", self.phi_i_spread_deg) if self.phi_i_spread_deg else ())).encode())
         self._digest = h.hexdigest()
 
     def digest(self) -> str:
@@ -295,6 +297,53 @@ def _beam(inc: _Incidence, sigma_deg: float, n: int, rng: np.random.Generator) -
     return k.astype(F32), s0
 
 
+def _rotate_z(v: np.ndarray, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
+    """(n, 3) vectors turned about z by the angles of (cos, sin) (n,), float32."""
+    out = np.empty(v.shape, F32)
+    out[:, 0] = cos * v[:, 0] - sin * v[:, 1]
+    out[:, 1] = sin * v[:, 0] + cos * v[:, 1]
+    out[:, 2] = v[:, 2]
+    return out
+
+
+def _azimuth_spread(k: np.ndarray, s_init: Any, half_width_deg: float,
+                    rng: np.random.Generator) -> tuple[np.ndarray, Any, np.ndarray]:
+    """(directions, s-axes, (2, n) cos / sin of each ray's offset) of a beam whose incidence azimuths are
+    spread uniformly over +-`half_width_deg` about z (`RayOptions.phi_i_spread_deg`): each ray and its
+    polarisation basis turned by its own offset, the whole incidence rigidly about the mean plane's
+    normal.  `_turn_exits_back` turns the exits by minus the same offsets, so that every ray is seen
+    from the frame of the request's azimuth: the table is the average over the sector's incidence
+    azimuths of what each scatters relative to its own incidence (a relief's response to a turned
+    beam, sampled continuously in azimuth, not at the sector's centre only)."""
+    a = np.radians(rng.uniform(-half_width_deg, half_width_deg, k.shape[0]))
+    cs = np.stack([np.cos(a), np.sin(a)]).astype(F32)
+    k = _rotate_z(k, cs[0], cs[1])
+    if s_init is not None:
+        s_init = _rotate_z(np.broadcast_to(np.asarray(s_init, F32), k.shape), cs[0], cs[1])
+    return k, s_init, cs
+
+
+def _turn_exits_back(ex: Exits, cs: np.ndarray, phi_exit_rad: float) -> None:
+    """Turn each exit record's direction by minus its input ray's offset (`_azimuth_spread`).  The
+    Stokes columns are in the exit frame s = z x k, which turns with k about z: they stay as they are,
+    except along z, where the frame is the fixed fallback azimuth `phi_exit_rad`
+    (`TraceSettings.phi_exit_rad`), which did not turn with the ray: those columns are re-expressed in
+    the fallback frame turned by the ray's offset, which the turn back brings onto the fixed one."""
+    e = ex.n
+    i = ex.ids[:e] % cs.shape[1]                  # the first-hit split's transmitted branch is id + n
+    k = ex.k[:e]
+    if ex.A is not None:
+        zi = np.flatnonzero(k[:, 0] * k[:, 0] + k[:, 1] * k[:, 1] < F32(1e-14))
+        if zi.size:
+            c, sn = cs[0, i[zi]], cs[1, i[zi]]
+            s_from = np.tile(np.array([-math.sin(phi_exit_rad), math.cos(phi_exit_rad), 0.0], F32), (zi.size, 1))
+            s_to = _rotate_z(s_from, c, sn)
+            cols = ex.A[:, :, zi]
+            rotate_stokes_columns_cd(cols, dot_rows(s_from, s_to), dot_rows(cross_rows(s_from, k[zi]), s_to))
+            ex.A[:, :, zi] = cols
+    ex.k[:e] = _rotate_z(k, cs[0, i], -cs[1, i])
+
+
 def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
     """Trace one (side, wavelength, incidence) with `ctx.samples` rays; its finished table rows.
 
@@ -325,10 +374,15 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
         o[:, 1] = (iy + jit[:, 1]) * (tracer.Ly / nys) - tracer.hy
         o[:, 2] = tracer.z_bot if inc.from_below else tracer.z_top
         k, s_init = _beam(inc, ctx.beam_divergence_deg, hi - lo, rng)
+        turn = None
+        if ctx.phi_i_spread_deg:
+            k, s_init, turn = _azimuth_spread(k, s_init, ctx.phi_i_spread_deg, rng)
         rays = Rays(o, k, np.full(hi - lo, inc.from_below),
                     np.ones(hi - lo, F32), np.zeros(hi - lo, np.int16), np.arange(hi - lo, dtype=np.int64),
                     None)                      # polarised: None = the identity columns (StokesCarrier)
         ex = trace_chunk(tracer, rays, carrier_for(K), inc.media, inc.settings, rng, s_init=s_init)
+        if turn is not None:
+            _turn_exits_back(ex, turn, inc.settings.phi_exit_rad)
         t = _new_tally(cells, K, ctx.subtiles)
         _bin_exits(t, ex, inc, ctx.cos_tol)
         return t
