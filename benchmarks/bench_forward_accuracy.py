@@ -119,6 +119,11 @@ Findings:
   within 0.01; relief seed 12 every case better or equal (gauss_low 0.82 -> 0.77).  2.5-deg engine cells
   (`--grids 1,2.5,2.5`) had done as much for R (1.48 -> 1.15) at 1.2-1.5x the forward's time; the
   sector tables do not matter there (`default,sectors=180`: the same second pass at 30 and 60 deg).
+- Each inside sector table the AVERAGE over its sector's incidence azimuths (2026-12-05, ray option
+  `phi_i_spread_deg`, plate.faces.inside_sectors), not the table at the sector's centre: dots 1.29 -> 1.09
+  (T 1.47 -> 1.10: the centres 0, 15, 30 ... deg are the hexagonal lattice's row directions, where the
+  trapped light meets the dots unlike a few degrees off), relief seed 12 dots 1.35 -> 1.10; exponential,
+  anisotropic and measured within 0.02; same rays and time.  Every case of seed 11 now at or below 1.2.
 - Left: at 4 M photons gauss_mid is at 1.42 (the forward's own noise at 400k rays is ~0.7
   recording sigma in the lobe, and the tile's fine structure narrower than 0.5 deg: +-2-3 %
   wiggles, e.g. T ts 57 / 59); anisotropic and measured (slope ratio 2.7 and 2.2: the engine
