@@ -38,6 +38,20 @@ def test_only_an_anisotropic_relief_traced_by_rays_gets_inside_sector_tables():
     assert tuple(t.phi_i_deg) == (0.0,) + fine.sector_azimuths_deg() and len(t.phi_i_deg) == 24
 
 
+def test_the_simulation_says_when_the_loop_meets_the_relief_by_sector():
+    """`simulate`'s info names the sector tables it used (issue 18: every output says which physics it used)."""
+    rows = Rows(np.full(2, 550.0), np.zeros(2), np.zeros(2), ["R", "T"], np.array([10.0, 10.0]), np.zeros(2))
+
+    def info(relief):
+        ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", 2000, 1), FlatFace()),
+                        Instrument(detector_half_angle_deg=2.0))
+        return simulate(ex, rows, grid=TableGrid()).info
+    with pytest.warns(RuntimeWarning):           # the engine's isotropy warning for the anisotropic relief
+        got = info(_anisotropic())["inside_sectors"]
+    assert got["centres_deg"] == [0.0, *SECTOR_AZIMUTHS_DEG] and "+-7.5 deg" in got["each"]
+    assert "inside_sectors" not in info(random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2))
+
+
 @pytest.mark.slow
 def test_the_second_pass_by_azimuth_sector_agrees_with_the_independent_monte_carlo(monkeypatch):
     """Anisotropic Gaussian relief (correlation 10 x 4 um, rms slopes 2.6x apart), n 1.5, 2 mm, theta_i 0,

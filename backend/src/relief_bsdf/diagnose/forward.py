@@ -44,6 +44,7 @@ import numpy as np
 from relief_bsdf.diagnose.effects import Effect, ReliefContext, apply_all, get_effect
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import chi2
+from relief_bsdf.parallel.blas import blas_single_thread
 from relief_bsdf.plate import DEFAULT_METHOD, Experiment, ReliefFace, TableGrid, experiment_from_sample, simulate
 from relief_bsdf.plate.choice import resolve_auto
 from relief_bsdf.plate.grid import NO_SECTORS_DEG
@@ -228,8 +229,9 @@ class DiagnosisForward:
             with ThreadPoolExecutor(1) as pool:
                 on_workers = pool.submit(contextvars.copy_context().run, map_tasks, _evaluate_task,
                                          [(names, todo[k]) for k in there], self, label="evaluations", workers=workers)
-                for k in mine:
-                    twin.evaluate_set(effects, todo[k])
+                with blas_single_thread():       # beside the workers: one BLAS thread (parallel.blas)
+                    for k in mine:
+                        twin.evaluate_set(effects, todo[k])
                 got = on_workers.result()
             for k in mine:
                 self._remember(k, twin._memo[k])

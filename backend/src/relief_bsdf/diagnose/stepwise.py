@@ -89,6 +89,7 @@ from relief_bsdf.diagnose.fitting import POLISH_STEPS, fit_effect, polish, refit
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.selection import BIC_MARGIN, bic, bic_gain
 from relief_bsdf.parallel import kept_workers, map_tasks
+from relief_bsdf.parallel.blas import blas_single_thread
 from relief_bsdf.progress import silent
 
 BIC_OVERWHELMING = 40.0
@@ -301,14 +302,15 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
             pending = pool.submit(contextvars.copy_context().run, on_workers)   # the settings in force travel
             mine_done = []
             try:
-                _current_on_screens(mine, cur, here)
-                for t in here:
-                    try:
-                        with TABLE_CACHE.held_only():
-                            mine_done.append((t, _step_task(mine, t)))
-                    except MissingTable:
-                        with lock:
-                            missing.append(t)
+                with blas_single_thread():       # beside the workers: one BLAS thread (parallel.blas)
+                    _current_on_screens(mine, cur, here)
+                    for t in here:
+                        try:
+                            with TABLE_CACHE.held_only():
+                                mine_done.append((t, _step_task(mine, t)))
+                        except MissingTable:
+                            with lock:
+                                missing.append(t)
             finally:
                 here_done.set()
                 pairs = pending.result() + mine_done

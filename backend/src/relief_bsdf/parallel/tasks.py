@@ -69,6 +69,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 from relief_bsdf.errors import InputError
 from relief_bsdf.parallel import cluster
+from relief_bsdf.parallel.blas import workers_one_blas_thread
 from relief_bsdf.parallel.memory import small_pages
 from relief_bsdf.parallel.settings import (DEFAULT_SETTINGS, ParallelSettings, check_dask_spec, group_size,
                                            settings_from_args)
@@ -303,10 +304,11 @@ def _pool_context() -> multiprocessing.context.BaseContext:
     that imports this module once and forks workers from that clean state, so starting a
     worker stays cheap.  Like "spawn", it needs `if __name__ == "__main__":` in user scripts.
     `RELIEF_START_METHOD` overrides it (e.g. "spawn").  The workers compute: no huge-page advice for
-    their arrays (`parallel.memory`; set here, before the fork server or a spawned worker starts and
-    imports numpy, so they inherit it).
+    their arrays (`parallel.memory`) and one BLAS thread each (`parallel.blas`); set here, before the
+    fork server or a spawned worker starts and imports numpy, so they inherit it.
     """
     small_pages()
+    workers_one_blas_thread()
     method = os.environ.get("RELIEF_START_METHOD", "forkserver")
     ctx = multiprocessing.get_context(method)
     if method == "forkserver":

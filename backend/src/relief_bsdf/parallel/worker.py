@@ -89,8 +89,20 @@ def init_worker(token: int, context: Any, owner_pid: int | None = None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # numerical libraries inside a worker use one thread each: the pool already fills the cores
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    _one_blas_thread_here()
     if owner_pid is not None:
         watch_owner(owner_pid)
+
+
+def _one_blas_thread_here() -> None:
+    """This worker's BLAS on one thread for the rest of its life: it may have been loaded (by the fork
+    server's imports) before OMP_NUM_THREADS was set, and OpenBLAS's waiting threads spin
+    (parallel.blas, which sets the variables before the fork server starts)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - pinned in requirements/runtime.txt
+        return
+    threadpool_limits(limits=1, user_api="blas")      # not restored: the limit stays with the process
 
 
 def watch_owner(owner_pid: int, interval_s: float = 0.5) -> threading.Thread:

@@ -84,7 +84,6 @@ direct terms, the engine grid's for the loop).
 """
 from __future__ import annotations
 
-import contextlib
 import copy
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
@@ -100,18 +99,11 @@ from relief_bsdf.core.index import ConstantIndex, IndexModel, Material
 from relief_bsdf.plate.description import Bulk, Instrument
 from relief_bsdf.plate.detector import beam_offsets, centre_values, grid_reading, offset_directions
 from relief_bsdf.plate.grid import INSIDE_INTERPOLATIONS
+from relief_bsdf.parallel.blas import blas_single_thread   # the plate's matrices are small (N ~ 90): one thread
 
 _DEPOL = np.diag([1.0, 0.0, 0.0, 0.0])
 
 
-def blas_single_thread():
-    """The plate's matrices are small (N ~ 90): BLAS threads only add wake-up cost, and on a loaded
-    machine OpenBLAS's spinning threads make a 5 ms batched solve take seconds.  One thread."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - pinned in requirements/runtime.txt
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
 SOURCE_STOKES = {"unpolarized": np.array([1.0, 0.0, 0.0, 0.0]),
                  "s": np.array([1.0, 1.0, 0.0, 0.0]),
                  "p": np.array([1.0, -1.0, 0.0, 0.0])}
@@ -1748,6 +1740,10 @@ def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str 
     solver = solver_of(experiment, rows, grid, progress, keep_solver)
     vals = simulate_rows(solver.model, solver.inside, solver.outside, rows, solver=solver, where=where)
     info = {"engine": "deterministic", "grid": grid.describe()}
+    if solver.inside_sectors is not None:    # the loop meets the relief by azimuth sector (plate.faces.inside_sectors)
+        info["inside_sectors"] = {"centres_deg": [float(p) for p in solver.inside_sectors.phi_i_deg],
+                                  "each": "the inside table averaged over its sector's incidence azimuths, "
+                                          f"+-{0.5 * float(grid.sector_step_deg):g} deg"}
     notes = [w for w in (isotropy_warning(f) for f in (experiment.plate.front, experiment.plate.back)) if w]
     for w in notes:
         warnings.warn(w, RuntimeWarning, stacklevel=2)

@@ -25,6 +25,7 @@ import numpy as np
 
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.parallel import default_workers, in_worker
+from relief_bsdf.parallel.blas import blas_single_thread
 from relief_bsdf.plate.description import Experiment
 from relief_bsdf.plate.faces import TableFace
 from relief_bsdf.plate.grid import TableGrid
@@ -125,7 +126,7 @@ def rows_draws(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
     threads = 1 if in_worker() else max(1, min(default_workers(), draws))
     # one BLAS thread for the whole block (each solve asks for it too; set once here, no thread
     # restores the process's setting while another still solves)
-    with deterministic.blas_single_thread(), ThreadPoolExecutor(max_workers=threads) as pool:
+    with blas_single_thread(), ThreadPoolExecutor(max_workers=threads) as pool:
         for lo in range(0, draws, threads):
             batch = [{name: TableFace(perturbed(t_in, rng), perturbed(t_out, rng), perturbed(half, rng))
                       for name, (t_out, t_in, half) in faces.items()} for _ in range(lo, min(draws, lo + threads))]
