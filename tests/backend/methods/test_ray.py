@@ -61,19 +61,23 @@ def test_flat_relief_reproduces_fresnel_both_sides():
     assert R[-1] == pytest.approx(1.0)                 # TIR was exercised
 
 
+def _assert_fresnel_deltas(tab, ti):
+    """The table's specular Mueller matrices are the flat interface's at every incidence and azimuth."""
+    n1, n2 = (1.0, N_GLASS) if tab.incident_from == "outside" else (N_GLASS, 1.0)
+    for ii, t in enumerate(ti):
+        for ip in range(len(tab.phi_i_deg)):
+            c = np.cos(np.radians(t))
+            for side in ("R", "T"):
+                np.testing.assert_allclose(getattr(tab, f"specular_mueller_{side}")[0, ii, ip],
+                                           mueller_interface(c, n1, n2, side), atol=2e-6)
+
+
 def test_flat_relief_mueller_matches_interface_including_tir_phase():
     ti = (0.0, 35.0, 60.0)
     req = Request(theta_i_deg=ti, phi_i_deg=(0.0, 70.0), incident_from=("outside", "inside"), samples=1024,
                   theta_s_edges_deg=TE, phi_s_edges_deg=PE)
     for tab in ray.reconstruct(flat(), GLASS, req):
-        n1, n2 = (1.0, N_GLASS) if tab.incident_from == "outside" else (N_GLASS, 1.0)
-        for ii, t in enumerate(ti):
-            for ip in range(2):
-                c = np.cos(np.radians(t))
-                np.testing.assert_allclose(tab.specular_mueller_R[0, ii, ip], mueller_interface(c, n1, n2, "R"),
-                                           atol=2e-6)
-                np.testing.assert_allclose(tab.specular_mueller_T[0, ii, ip], mueller_interface(c, n1, n2, "T"),
-                                           atol=2e-6)
+        _assert_fresnel_deltas(tab, ti)
     # inside at 60 degrees is TIR: a retarder (M23 != 0) that the flat case must carry
     assert abs(tab.specular_mueller_R[0, 2, 0, 2, 3]) > 0.1
 
@@ -604,15 +608,8 @@ def test_an_azimuth_spread_beam_turned_back_keeps_a_flat_reliefs_fresnel_deltas(
     req = Request(theta_i_deg=ti, phi_i_deg=(0.0, 70.0), incident_from=("outside", "inside"), samples=1024,
                   theta_s_edges_deg=TE, phi_s_edges_deg=PE, options={"phi_i_spread_deg": 7.5})
     for tab in ray.reconstruct(flat(), GLASS, req):
-        n1, n2 = (1.0, N_GLASS) if tab.incident_from == "outside" else (N_GLASS, 1.0)
         assert np.all(tab.values_per_sr == 0)
-        for ii, t in enumerate(ti):
-            for ip in range(2):
-                c = np.cos(np.radians(t))
-                np.testing.assert_allclose(tab.specular_mueller_R[0, ii, ip], mueller_interface(c, n1, n2, "R"),
-                                           atol=2e-6)
-                np.testing.assert_allclose(tab.specular_mueller_T[0, ii, ip], mueller_interface(c, n1, n2, "T"),
-                                           atol=2e-6)
+        _assert_fresnel_deltas(tab, ti)
 
 
 def test_an_azimuth_spread_table_is_the_average_over_the_sectors_incidence_azimuths():

@@ -42,6 +42,17 @@ def _sector_weights(A: int) -> np.ndarray:
     return np.bincount(np.argmin(d, axis=1), minlength=ps.size) / A
 
 
+def _closed_form(m, aR_o: float, aT_o: float, R_k: np.ndarray) -> tuple[float, float, float]:
+    """(R, T, r_bar) of Lambertian sectors (albedos R_k, T_k = 1 - R_k, each meeting its share of the engine's
+    azimuth cells) under a Lambertian outside face (aR_o, aT_o), the flat face's hemispherical Fresnel r_bar."""
+    mu = np.linspace(0, 1, 200001)[1:]
+    Rs, Rp, _, _ = fresnel_power(mu, N_GLASS, 1.0)
+    r_bar = np.trapz(0.5 * (Rs + Rp) * 2 * mu, mu)
+    w = _sector_weights(m.azimuth_cells)
+    R_eff, T_eff = float(w @ R_k), float(w @ (1 - R_k))
+    return (aR_o + aT_o * r_bar * T_eff / (1 - r_bar * R_eff), aT_o * (1 - r_bar) / (1 - r_bar * R_eff), r_bar)
+
+
 def test_lambertian_sectors_of_different_albedo_follow_the_azimuth_weighted_closed_form():
     """Outside table Lambertian (R_o, T_o); inside tables Lambertian with albedos R_k, T_k (R_k + T_k = 1) that
     depend on the incidence azimuth.  Light leaving a Lambertian face into the glass is uniform in azimuth, so
@@ -55,13 +66,7 @@ def test_lambertian_sectors_of_different_albedo_follow_the_azimuth_weighted_clos
     i = _lambert("inside", R_k[0], 1 - R_k[0], th_in)
     sec = _lambert("inside", R_k[1:], 1 - R_k[1:], th_in, phi_i=SECTORS)
     m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
-    mu = np.linspace(0, 1, 200001)[1:]
-    Rs, Rp, _, _ = fresnel_power(mu, N_GLASS, 1.0)
-    r_bar = np.trapz(0.5 * (Rs + Rp) * 2 * mu, mu)
-    w = _sector_weights(m.azimuth_cells)
-    R_eff, T_eff = float(w @ R_k), float(w @ (1 - R_k))
-    want_R = aR_o + aT_o * r_bar * T_eff / (1 - r_bar * R_eff)
-    want_T = aT_o * (1 - r_bar) / (1 - r_bar * R_eff)
+    want_R, want_T, r_bar = _closed_form(m, aR_o, aT_o, R_k)
     for ti in (0.0, 30.0):
         h = PlateSolver(m, i, o, inside_sectors=sec).solve(550.0, [ti])[0].hemispherical()
         assert h["R"] == pytest.approx(want_R, rel=2e-3)
@@ -85,15 +90,11 @@ def test_a_sector_at_0_deg_takes_the_inside_tables_place_in_the_loop():
     i = _lambert("inside", 0.95, 0.05, th_in)
     sec = _lambert("inside", R_k, 1 - R_k, th_in, phi_i=(0.0,) + SECTORS)
     m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
-    mu = np.linspace(0, 1, 200001)[1:]
-    Rs, Rp, _, _ = fresnel_power(mu, N_GLASS, 1.0)
-    r_bar = np.trapz(0.5 * (Rs + Rp) * 2 * mu, mu)
-    w = _sector_weights(m.azimuth_cells)
-    R_eff, T_eff = float(w @ R_k), float(w @ (1 - R_k))
+    want_R, want_T, _ = _closed_form(m, aR_o, aT_o, R_k)
     for ti in (0.0, 30.0):
         h = PlateSolver(m, i, o, inside_sectors=sec).solve(550.0, [ti])[0].hemispherical()
-        assert h["R"] == pytest.approx(aR_o + aT_o * r_bar * T_eff / (1 - r_bar * R_eff), rel=2e-3)
-        assert h["T"] == pytest.approx(aT_o * (1 - r_bar) / (1 - r_bar * R_eff), rel=2e-3)
+        assert h["R"] == pytest.approx(want_R, rel=2e-3)
+        assert h["T"] == pytest.approx(want_T, rel=2e-3)
 
 
 def test_sector_tables_equal_to_the_turned_0_deg_table_give_the_circulant_plate():
