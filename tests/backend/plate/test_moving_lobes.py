@@ -112,9 +112,9 @@ def test_an_unknown_inside_interpolation_is_refused_by_name():
 def test_the_sector_step_sets_the_sector_tables_azimuths_and_must_divide_a_half_turn():
     from relief_bsdf.errors import InputError
     from relief_bsdf.plate.faces import SECTOR_AZIMUTHS_DEG
-    assert TableGrid().sector_azimuths_deg() == SECTOR_AZIMUTHS_DEG == tuple(float(p) for p in range(15, 180, 15))
+    assert TableGrid().sector_azimuths_deg() == SECTOR_AZIMUTHS_DEG == tuple(float(p) for p in range(0, 180, 15))
     fine = TableGrid(sector_step_deg=7.5).sector_azimuths_deg()
-    assert len(fine) == 23 and fine[0] == 7.5 and fine[-1] == 172.5
+    assert len(fine) == 24 and fine[0] == 0.0 and fine[1] == 7.5 and fine[-1] == 172.5
     from relief_bsdf.plate.grid import NO_SECTORS_DEG
     assert TableGrid(sector_step_deg=NO_SECTORS_DEG).sector_azimuths_deg() == ()    # no sector tables
     for bad in (7.0, 0.0, -15.0, 360.0, 200.0, float("nan")):

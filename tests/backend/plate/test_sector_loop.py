@@ -53,28 +53,37 @@ def _closed_form(m, aR_o: float, aT_o: float, R_k: np.ndarray) -> tuple[float, f
     return (aR_o + aT_o * r_bar * T_eff / (1 - r_bar * R_eff), aT_o * (1 - r_bar) / (1 - r_bar * R_eff), r_bar)
 
 
+AR_O, AT_O = 0.1, 0.9                                   # the outside face's Lambertian albedos
+TH_IN = np.arange(0, 90, 5.0)                           # the inside tables' incidences
+R_K = np.array([0.2, 0.35, 0.5, 0.8, 0.65, 0.45])      # the sectors' R albedos at 0, 30, ..., 150 deg
+
+
+def _matches_closed_form(inside: BsdfTable, sectors: BsdfTable) -> tuple:
+    """Solve the plate of the Lambertian outside face, `inside` and `sectors` at theta_i 0 and 30 and check R and
+    T against `_closed_form` of the sectors' albedos R_K; (model, outside table, r_bar, T) for more checks."""
+    o = _lambert("outside", AR_O, AT_O, [0.0, 30.0])
+    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
+    want_R, want_T, r_bar = _closed_form(m, AR_O, AT_O, R_K)
+    for ti in (0.0, 30.0):
+        h = PlateSolver(m, inside, o, inside_sectors=sectors).solve(550.0, [ti])[0].hemispherical()
+        assert h["R"] == pytest.approx(want_R, rel=2e-3)
+        assert h["T"] == pytest.approx(want_T, rel=2e-3)
+    return m, o, r_bar, want_T
+
+
 def test_lambertian_sectors_of_different_albedo_follow_the_azimuth_weighted_closed_form():
     """Outside table Lambertian (R_o, T_o); inside tables Lambertian with albedos R_k, T_k (R_k + T_k = 1) that
     depend on the incidence azimuth.  Light leaving a Lambertian face into the glass is uniform in azimuth, so
     after the flat face (hemispherical Fresnel average r_bar) a fraction w_k of it meets sector k:
     R_eff = sum w_k R_k, T_eff = sum w_k T_k, and the geometric series of round trips gives
     R = R_o + T_o r_bar T_eff / (1 - r_bar R_eff), T = T_o (1 - r_bar) / (1 - r_bar R_eff)."""
-    aR_o, aT_o = 0.1, 0.9
-    th_in = np.arange(0, 90, 5.0)
-    R_k = np.array([0.2, 0.35, 0.5, 0.8, 0.65, 0.45])      # 0, 30, ..., 150 deg
-    o = _lambert("outside", aR_o, aT_o, [0.0, 30.0])
-    i = _lambert("inside", R_k[0], 1 - R_k[0], th_in)
-    sec = _lambert("inside", R_k[1:], 1 - R_k[1:], th_in, phi_i=SECTORS)
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
-    want_R, want_T, r_bar = _closed_form(m, aR_o, aT_o, R_k)
-    for ti in (0.0, 30.0):
-        h = PlateSolver(m, i, o, inside_sectors=sec).solve(550.0, [ti])[0].hemispherical()
-        assert h["R"] == pytest.approx(want_R, rel=2e-3)
-        assert h["T"] == pytest.approx(want_T, rel=2e-3)
+    i = _lambert("inside", R_K[0], 1 - R_K[0], TH_IN)
+    sec = _lambert("inside", R_K[1:], 1 - R_K[1:], TH_IN, phi_i=SECTORS)
+    m, o, r_bar, want_T = _matches_closed_form(i, sec)
     # the 0-deg table alone (the circulant loop) is another plate: the sectors are what make the difference
     h0 = PlateSolver(m, i, o).solve(550.0, [0.0])[0].hemispherical()
-    g0 = r_bar * R_k[0]
-    assert h0["T"] == pytest.approx(aT_o * (1 - r_bar) / (1 - g0), rel=2e-3)
+    g0 = r_bar * R_K[0]
+    assert h0["T"] == pytest.approx(AT_O * (1 - r_bar) / (1 - g0), rel=2e-3)
     assert abs(h0["T"] - want_T) > 20 * 2e-3 * want_T
 
 
@@ -83,18 +92,8 @@ def test_a_sector_at_0_deg_takes_the_inside_tables_place_in_the_loop():
     over its sector's incidence azimuths): its cells then scatter by it, and the 0-deg inside table serves
     no light of the loop.  The closed form of the Lambertian sectors with the sector-0 albedo, whatever
     the inside table's (here 0.95 instead of 0.2)."""
-    aR_o, aT_o = 0.1, 0.9
-    th_in = np.arange(0, 90, 5.0)
-    R_k = np.array([0.2, 0.35, 0.5, 0.8, 0.65, 0.45])      # 0, 30, ..., 150 deg
-    o = _lambert("outside", aR_o, aT_o, [0.0, 30.0])
-    i = _lambert("inside", 0.95, 0.05, th_in)
-    sec = _lambert("inside", R_k, 1 - R_k, th_in, phi_i=(0.0,) + SECTORS)
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
-    want_R, want_T, _ = _closed_form(m, aR_o, aT_o, R_k)
-    for ti in (0.0, 30.0):
-        h = PlateSolver(m, i, o, inside_sectors=sec).solve(550.0, [ti])[0].hemispherical()
-        assert h["R"] == pytest.approx(want_R, rel=2e-3)
-        assert h["T"] == pytest.approx(want_T, rel=2e-3)
+    _matches_closed_form(_lambert("inside", 0.95, 0.05, TH_IN),
+                         _lambert("inside", R_K, 1 - R_K, TH_IN, phi_i=(0.0,) + SECTORS))
 
 
 def test_sector_tables_equal_to_the_turned_0_deg_table_give_the_circulant_plate():

@@ -59,6 +59,15 @@ def dot_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def rotate_z_rows(v: np.ndarray, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
+    """(n, 3) vectors each turned about z by its own angle, given as (cos, sin) (n,); float32."""
+    out = np.empty(v.shape, np.float32)
+    out[:, 0] = cos * v[:, 0] - sin * v[:, 1]
+    out[:, 1] = sin * v[:, 0] + cos * v[:, 1]
+    out[:, 2] = v[:, 2]
+    return out
+
+
 def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Fast kernel of np.cross for (..., 3) batches (np.cross is generic and slower); tested equal."""
     out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))

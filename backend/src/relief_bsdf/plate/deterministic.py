@@ -1740,10 +1740,12 @@ def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str 
     solver = solver_of(experiment, rows, grid, progress, keep_solver)
     vals = simulate_rows(solver.model, solver.inside, solver.outside, rows, solver=solver, where=where)
     info = {"engine": "deterministic", "grid": grid.describe()}
-    if solver.inside_sectors is not None:    # the loop meets the relief by azimuth sector (plate.faces.inside_sectors)
-        info["inside_sectors"] = {"centres_deg": [float(p) for p in solver.inside_sectors.phi_i_deg],
-                                  "each": "the inside table averaged over its sector's incidence azimuths, "
-                                          f"+-{0.5 * float(grid.sector_step_deg):g} deg"}
+    sectors = solver.inside_sectors
+    if sectors is not None:                  # the loop meets the relief by azimuth sector (plate.faces.inside_sectors)
+        spread = sectors.metadata.get("request", {}).get("options", {}).get("phi_i_spread_deg", 0.0)
+        info["inside_sectors"] = {"centres_deg": [float(p) for p in sectors.phi_i_deg],
+                                  "each": (f"the inside table averaged over its sector's incidence azimuths, +-{spread:g} deg"
+                                           if spread else "the inside table at the sector's centre")}
     notes = [w for w in (isotropy_warning(f) for f in (experiment.plate.front, experiment.plate.back)) if w]
     for w in notes:
         warnings.warn(w, RuntimeWarning, stacklevel=2)

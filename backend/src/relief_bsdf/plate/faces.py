@@ -493,14 +493,14 @@ def half_turned_outside(face: Any, material: Material, grid: TableGrid, waveleng
     return _derive_outside(turned, material, grid, wavelengths_nm, theta_i_outside_deg, progress, beam_divergence_deg)
 
 
-SECTOR_AZIMUTHS_DEG = TableGrid().sector_azimuths_deg()   # the default grid's extra incidence azimuths
+SECTOR_AZIMUTHS_DEG = TableGrid().sector_azimuths_deg()   # the default grid's sector centres (0 included)
 SECTOR_RAY_TABLES = 5     # the sector tables share the rays of this many inside tables
 SECTORS_KEY = "inside_sectors"   # in the cache key of every sector table (`inside_sectors`)
 
 
 def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
                    progress: Any = None) -> BsdfTable | None:
-    """The inside table of an anisotropic relief traced by rays over the azimuth sectors centred on 0 and
+    """The inside table of an anisotropic relief traced by rays over the azimuth sectors centred on
     `grid.sector_azimuths_deg()`, or None (an isotropic relief, another method, a flat or tabulated face).
     Anisotropic: in its rms slopes (`anisotropic_face`) or in how it scatters the light trapped in the
     glass (`azimuth_dependent`: light-guide dots).
@@ -535,7 +535,6 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
         return None
     if not (anisotropic_face(face) or azimuth_dependent(face, material, grid, wavelengths_nm, progress)):
         return None
-    azimuths = (0.0,) + tuple(azimuths)            # the 0-deg sector too: its average, not the inside table
     face = replace(face, samples=max(int(face.samples * SECTOR_RAY_TABLES / len(azimuths)), 1),
                    options={**face.options, "phi_i_spread_deg": 0.5 * float(grid.sector_step_deg)})
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))

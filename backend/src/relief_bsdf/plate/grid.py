@@ -205,11 +205,11 @@ class TableGrid:
         return tuple(e[e <= coarse[-1] + 1e-9])
 
     def sector_azimuths_deg(self) -> tuple:
-        """Centres of the inside sector tables besides 0 deg (every `sector_step_deg` up to a half turn: a
-        relief's statistics are unchanged by a half turn; plate.faces.inside_sectors adds the sector at
-        0); none at NO_SECTORS_DEG."""
+        """Centres of the inside sector tables: every `sector_step_deg` from 0 up to a half turn (a relief's
+        statistics are unchanged by a half turn); none at NO_SECTORS_DEG (one sector would be the whole
+        turn: the inside table's own, the loop azimuth-circulant)."""
         n = int(round(180.0 / self.sector_step_deg))
-        return tuple(float(k * self.sector_step_deg) for k in range(1, n))
+        return tuple(float(k * self.sector_step_deg) for k in range(n)) if n > 1 else ()
 
     def inside_incidences_deg(self) -> np.ndarray:
         """Incidences of the inside tables: every step from 0, plus 89 deg (near-grazing light)."""

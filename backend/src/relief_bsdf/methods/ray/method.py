@@ -44,15 +44,15 @@ import numpy as np
 
 from relief_bsdf.bsdf.builder import CellAccumulator, CellIndex, ExitSamples, specular_flags
 from relief_bsdf.bsdf.table import BsdfTable
-from relief_bsdf.core.frames import beam_directions, cross_rows, direction, dot_rows, normalize
-from relief_bsdf.core.stokes import rotate_stokes_columns_cd, s_axis
+from relief_bsdf.core.frames import beam_directions, cross_rows, direction, dot_rows, normalize, rotate_z_rows
+from relief_bsdf.core.stokes import rotate_stokes_columns_cd, s_axis, s_axis_rows
 from relief_bsdf.errors import RequestError
 from relief_bsdf.methods.options import RayOptions
 from relief_bsdf.methods.ray.exits import BELOW, STATE_NAMES, Exits
 from relief_bsdf.methods.realisation import MAX_SUBTILES, SUBTILE_CORR  # noqa: F401  (module doc)
 from relief_bsdf.methods.realisation import subtile_grid as _subtile_grid
 from relief_bsdf.methods.ray.tracer import CHUNK, ReliefTracer, cached_tracer, forget_tracer, relief_hash
-from relief_bsdf.methods.ray.transport import Media, Rays, TraceSettings, carrier_for, trace_chunk
+from relief_bsdf.methods.ray.transport import ALONG_Z_XY2, Media, Rays, TraceSettings, carrier_for, trace_chunk
 from relief_bsdf.parallel import (default_workers, in_task_thread, in_worker, last_run, map_tasks, task_rng,
                                   worker_cached)
 from relief_bsdf.progress import silent
@@ -297,15 +297,6 @@ def _beam(inc: _Incidence, sigma_deg: float, n: int, rng: np.random.Generator) -
     return k.astype(F32), s0
 
 
-def _rotate_z(v: np.ndarray, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
-    """(n, 3) vectors turned about z by the angles of (cos, sin) (n,), float32."""
-    out = np.empty(v.shape, F32)
-    out[:, 0] = cos * v[:, 0] - sin * v[:, 1]
-    out[:, 1] = sin * v[:, 0] + cos * v[:, 1]
-    out[:, 2] = v[:, 2]
-    return out
-
-
 def _azimuth_spread(k: np.ndarray, s_init: Any, half_width_deg: float,
                     rng: np.random.Generator) -> tuple[np.ndarray, Any, np.ndarray]:
     """(directions, s-axes, (2, n) cos / sin of each ray's offset) of a beam whose incidence azimuths are
@@ -317,9 +308,9 @@ def _azimuth_spread(k: np.ndarray, s_init: Any, half_width_deg: float,
     beam, sampled continuously in azimuth, not at the sector's centre only)."""
     a = np.radians(rng.uniform(-half_width_deg, half_width_deg, k.shape[0]))
     cs = np.stack([np.cos(a), np.sin(a)]).astype(F32)
-    k = _rotate_z(k, cs[0], cs[1])
+    k = rotate_z_rows(k, cs[0], cs[1])
     if s_init is not None:
-        s_init = _rotate_z(np.broadcast_to(np.asarray(s_init, F32), k.shape), cs[0], cs[1])
+        s_init = rotate_z_rows(np.broadcast_to(np.asarray(s_init, F32), k.shape), cs[0], cs[1])
     return k, s_init, cs
 
 
@@ -333,15 +324,15 @@ def _turn_exits_back(ex: Exits, cs: np.ndarray, phi_exit_rad: float) -> None:
     i = ex.ids[:e] % cs.shape[1]                  # the first-hit split's transmitted branch is id + n
     k = ex.k[:e]
     if ex.A is not None:
-        zi = np.flatnonzero(k[:, 0] * k[:, 0] + k[:, 1] * k[:, 1] < F32(1e-14))
+        zi = np.flatnonzero(k[:, 0] * k[:, 0] + k[:, 1] * k[:, 1] < ALONG_Z_XY2)
         if zi.size:
             c, sn = cs[0, i[zi]], cs[1, i[zi]]
-            s_from = np.tile(np.array([-math.sin(phi_exit_rad), math.cos(phi_exit_rad), 0.0], F32), (zi.size, 1))
-            s_to = _rotate_z(s_from, c, sn)
+            s_from = s_axis_rows(k[zi], phi_exit_rad)          # the frame the exit was written in
+            s_to = rotate_z_rows(s_from, c, sn)
             cols = ex.A[:, :, zi]
             rotate_stokes_columns_cd(cols, dot_rows(s_from, s_to), dot_rows(cross_rows(s_from, k[zi]), s_to))
             ex.A[:, :, zi] = cols
-    ex.k[:e] = _rotate_z(k, cs[0, i], -cs[1, i])
+    ex.k[:e] = rotate_z_rows(k, cs[0, i], -cs[1, i])
 
 
 def _incidence_task(ctx: _RayContext, task: tuple) -> dict:

@@ -64,6 +64,7 @@ from relief_bsdf.core.stokes import (apply_interface_mueller_columns, double_ang
 from relief_bsdf.methods.ray.exits import ABOVE, BELOW, LOST_ABSORBED, LOST_BOUNCES, LOST_LEAK, Exits
 
 F32 = np.float32
+ALONG_Z_XY2 = F32(1e-14)     # k_x^2 + k_y^2 below which an exit is along z: its frame is the fallback azimuth's
 
 
 _HEAP_KEPT = False
@@ -496,7 +497,7 @@ class StokesCarrier:
         d = s[:, 2].copy()
         h = kx * kx
         h += ky * ky
-        along_z = h < F32(1e-14)
+        along_z = h < ALONG_Z_XY2
         if along_z.any():
             zi = np.flatnonzero(along_z)
             s_to = s_axis_rows(k[zi], phi_exit_rad)
