@@ -107,3 +107,22 @@ def test_ahead_is_told_the_trial_points_that_are_then_asked_for_and_changes_noth
     assert np.array_equal(out.x, ref.x) and out.f == ref.f and m.points == plain.points
     told = {tuple(np.round(x, 12)) for x in told}
     assert told and len(told & m.points) >= 0.5 * len(told)
+
+
+def test_a_rough_polish_believes_a_converged_chord_and_ends_sooner_near_the_same_point():
+    """`trust_chord` (a candidate's conditional fit at a later diagnosis step): the chord step that says
+    converged ends the polish, without the confirming Jacobian and end game: fewer points, no Jacobian
+    handed over, and an objective within what the convergence test leaves (the 68 % interval in units
+    of the reduced chi^2) of the full polish's, most of the full polish's gain on the start."""
+    lo, hi, h = np.array([-5.0, -5.0]), np.array([5.0, 5.0]), np.array([0.01, 0.01])
+    x_opt, sd = _optimum(_Model())
+    for k in (3.0, 6.0):
+        x0 = x_opt + k * sd * np.array([1.0, -1.0])
+        full_m, rough_m = _Model(noise=0.05), _Model(noise=0.05)
+        full = polish(full_m.residuals, full_m.jacobian, x0, lo, hi, h, steps=8)
+        rough = polish(rough_m.residuals, rough_m.jacobian, x0, lo, hi, h, steps=8, trust_chord=True)
+        assert full.jacobian is not None and rough.jacobian is None
+        assert len(rough_m.points) < len(full_m.points)
+        assert rough.f <= full.f + max(1.0, full.f / (B.size - 2))
+        f0 = full_m.residuals(x0)[0]
+        assert f0 - rough.f > 0.5 * (f0 - full.f)

@@ -182,7 +182,8 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
         values = _search(forward, effect, fixed, fixed_values, coarse) if effect.params else {}
         if _polished_fit(effect):
             names = tuple(p.name for p in effect.params)
-            done, _, jacobian = polish(forward, effects, {**(fixed_values or {}), **values}, free=names)
+            done, _, jacobian = polish(forward, effects, {**(fixed_values or {}), **values}, free=names,
+                                       rough=coarse and bool(fixed))
             values = {k: done[k] for k in names}
         c, v, s = forward.evaluate_set(effects, {**(fixed_values or {}), **values})
     except InputError as e:
@@ -301,7 +302,7 @@ def _jacobian(forward, effects: tuple, values: dict, s: np.ndarray, bounds: dict
 
 
 def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS,
-           free: tuple | None = None) -> tuple[dict, float, np.ndarray | None]:
+           free: tuple | None = None, rough: bool = False) -> tuple[dict, float, np.ndarray | None]:
     """(values, chi^2, J): the named effects' least-chi^2 point near `values` by Gauss-Newton.
 
     The coordinate search (`refit_joint`) ends where its short grids and few Brent steps stop,
@@ -315,7 +316,9 @@ def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS,
     distance of the answer), or None when the steps ran out first.  Rank-deficient J (a ridge, a
     parameter the rows do not see): the minimum-norm step, so an undetermined parameter does not
     move.  `free`: the names of the parameters that move (default all; the others are held at
-    `values`, as a conditional fit holds the effects already named, `fit_effect`)."""
+    `values`, as a conditional fit holds the effects already named, `fit_effect`).  `rough`: the
+    optimum is needed roughly (a conditional fit at a later step, `fit_effect`'s `coarse`): a chord step
+    that says converged is believed (fit.gauss_newton, `trust_chord`; no Jacobian then)."""
     moving = _moving(effects, free)
     values = dict(values)
     chi, _, _ = forward.evaluate_set(effects, values)
@@ -341,7 +344,7 @@ def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS,
     ahead = None if not hasattr(forward, "prefetch") else (
         lambda xs: forward.prefetch(effects, [at(x) for x in xs]))     # a step and its stretch, together
     done = gauss_newton.polish(residuals, jacobian, x0, np.array([p.lower for p in params]),
-                               np.array([p.upper for p in params]), h, steps, ahead=ahead)
+                               np.array([p.upper for p in params]), h, steps, ahead=ahead, trust_chord=rough)
     return at(done.x), done.f, done.jacobian
 
 
