@@ -13,7 +13,11 @@ make it cheap on a sampled forward model (a ray-traced table per evaluation):
 - a central Jacobian serves twice: the step after a step made with it re-uses it (the chord, or
   simplified Newton, step: so close to the optimum the residuals are nearly linear, and a chord
   step costs one point where a new central Jacobian costs two per parameter); a chord step that
-  fails to lower f, or that says converged, hands over to a new Jacobian at that point;
+  fails to lower f at its full length, or that says converged, hands over to a new Jacobian at that
+  point (not halved: what failed is a linear model made one step away, which halving tests only more
+  finely; on the seed-11 relief scale + absorption diagnosis, 2026-12-05, the chord's full, half and
+  quarter steps all missed by 2-4 of chi^2 118, the tables' noise between nearby reliefs, three
+  evaluations with new tables before the new Jacobian that ended the polish);
 - a full step that lowers f is stretched (2 d, then 4 d) while f keeps falling: a finite-difference
   Jacobian of a sampled model is too long (the noise between the two points of a difference adds
   to every column: on the demo fit, 2026-12-04, the column norms fell by 6-23 % from steps of 1x to
@@ -92,7 +96,7 @@ def polish(residuals: Callable[[np.ndarray], tuple[float, np.ndarray]],
             continue                    # the chord says converged: confirm with a Jacobian at this point
         if ahead is not None and not small:
             ahead([np.clip(x + d, lower, upper), np.clip(x + 2.0 * d, lower, upper)])
-        for t in ((1.0,) if small else (1.0, 0.5, 0.25)):
+        for t in ((1.0,) if small or chord else (1.0, 0.5, 0.25)):
             xn = np.clip(x + t * d, lower, upper)
             fn, zn = residuals(xn)
             if fn < f:
