@@ -278,7 +278,8 @@ def parse_grid(spec: str):
     incidences); "t,p,i[,s]": TableGrid(theta_step_deg=t, phi_step_deg=p, inside_theta_i_step_deg=i[,
     inside_samples_scale=s]) with the default direct grid; trailing ",nodirect" drops the direct grid,
     ",linear" blends the inside tables between their incidences (the engine before 2026-12-03: lobes
-    that do not move); ",sectors=7.5" the inside sector tables' azimuth step; "default,linear" too."""
+    that do not move); ",sectors=7.5" the inside sector tables' azimuth step, ",sectors=always" the sector
+    tables for every ray-traced relief (TableGrid.sectors); "default,linear" too."""
     from relief_bsdf.plate import TableGrid
     parts = spec.split(",")
     kw = {}
@@ -288,6 +289,8 @@ def parse_grid(spec: str):
             kw["direct_theta_step_deg"] = None
         elif last == "linear":
             kw["inside_interpolation"] = "linear"
+        elif last == "sectors=always":
+            kw["sectors"] = "always"
         else:
             kw["sector_step_deg"] = float(last.split("=")[1])
     if parts == ["default"]:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from relief_bsdf.core.index import ConstantIndex, Material
+from relief_bsdf.errors import InputError
 from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, Rows, TableGrid, simulate
 from relief_bsdf.plate.faces import SECTOR_AZIMUTHS_DEG, inside_sectors
 from relief_bsdf.surface.synth import RandomFieldSpec, random_relief, relief_from_spec
@@ -81,3 +82,17 @@ def test_the_second_pass_by_azimuth_sector_agrees_with_the_independent_monte_car
     print(dev)
     assert dev["R"][0] < 0.08 and dev["R"][1] > 4 * dev["R"][0], dev
     assert abs(dev["T"][0] - dev["T"][1]) < 0.005 and dev["T"][0] < 0.03, dev
+
+
+def test_a_grid_can_ask_for_the_sector_tables_of_every_ray_traced_relief():
+    """TableGrid(sectors="always"): an isotropic Gaussian relief, which the default grid leaves without
+    sector tables, gets them (the info names them); an unknown choice is refused by name."""
+    rows = Rows(np.full(2, 550.0), np.zeros(2), np.zeros(2), ["R", "T"], np.array([10.0, 10.0]), np.zeros(2))
+    ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2), "ray",
+                                                               2000, 1), FlatFace()),
+                    Instrument(detector_half_angle_deg=2.0))
+    assert "inside_sectors" not in simulate(ex, rows, grid=TableGrid()).info
+    got = simulate(ex, rows, grid=TableGrid(sectors="always")).info["inside_sectors"]
+    assert got["centres_deg"] == list(SECTOR_AZIMUTHS_DEG)
+    with pytest.raises(InputError, match="grid.sectors"):
+        TableGrid(sectors="sometimes")

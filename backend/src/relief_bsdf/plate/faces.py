@@ -503,7 +503,8 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     """The inside table of an anisotropic relief traced by rays over the azimuth sectors centred on
     `grid.sector_azimuths_deg()`, or None (an isotropic relief, another method, a flat or tabulated face).
     Anisotropic: in its rms slopes (`anisotropic_face`) or in how it scatters the light trapped in the
-    glass (`azimuth_dependent`: light-guide dots).
+    glass (`azimuth_dependent`: light-guide dots); every ray-traced relief with `grid.sectors` "always"
+    (TableGrid: a finite tile answers by azimuth even where its statistics do not).
 
     The deterministic engine's loop turns the one inside table about the normal (azimuth-circulant
     kernels), exact for an isotropic relief.  On an anisotropic one the light inside the plate meets
@@ -533,7 +534,8 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     face = _resolved_relief(face, material, grid, wavelengths_nm, theta_i_outside_deg)
     if face is None or face.method != "ray":
         return None
-    if not (anisotropic_face(face) or azimuth_dependent(face, material, grid, wavelengths_nm, progress)):
+    if not (grid.sectors == "always" or anisotropic_face(face)
+            or azimuth_dependent(face, material, grid, wavelengths_nm, progress)):
         return None
     face = replace(face, samples=max(int(face.samples * SECTOR_RAY_TABLES / len(azimuths)), 1),
                    options={**face.options, "phi_i_spread_deg": 0.5 * float(grid.sector_step_deg)})
