@@ -39,18 +39,20 @@ def test_only_an_anisotropic_relief_traced_by_rays_gets_inside_sector_tables():
     assert tuple(t.phi_i_deg) == fine.sector_azimuths_deg() and len(t.phi_i_deg) == 24
 
 
+def _info(relief, grid=TableGrid()) -> dict:
+    """`simulate`'s info for a 2-mm plate with `relief` in front, two rows at 10 deg."""
+    rows = Rows(np.full(2, 550.0), np.zeros(2), np.zeros(2), ["R", "T"], np.array([10.0, 10.0]), np.zeros(2))
+    ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", 2000, 1), FlatFace()),
+                    Instrument(detector_half_angle_deg=2.0))
+    return simulate(ex, rows, grid=grid).info
+
+
 def test_the_simulation_says_when_the_loop_meets_the_relief_by_sector():
     """`simulate`'s info names the sector tables it used (issue 18: every output says which physics it used)."""
-    rows = Rows(np.full(2, 550.0), np.zeros(2), np.zeros(2), ["R", "T"], np.array([10.0, 10.0]), np.zeros(2))
-
-    def info(relief):
-        ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", 2000, 1), FlatFace()),
-                        Instrument(detector_half_angle_deg=2.0))
-        return simulate(ex, rows, grid=TableGrid()).info
     with pytest.warns(RuntimeWarning):           # the engine's isotropy warning for the anisotropic relief
-        got = info(_anisotropic())["inside_sectors"]
+        got = _info(_anisotropic())["inside_sectors"]
     assert got["centres_deg"] == list(SECTOR_AZIMUTHS_DEG) and "+-7.5 deg" in got["each"]
-    assert "inside_sectors" not in info(random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2))
+    assert "inside_sectors" not in _info(random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2))
 
 
 @pytest.mark.slow
@@ -86,13 +88,8 @@ def test_the_second_pass_by_azimuth_sector_agrees_with_the_independent_monte_car
 
 def test_a_grid_can_ask_for_the_sector_tables_of_every_ray_traced_relief():
     """TableGrid(sectors="always"): an isotropic Gaussian relief, which the default grid leaves without
-    sector tables, gets them (the info names them); an unknown choice is refused by name."""
-    rows = Rows(np.full(2, 550.0), np.zeros(2), np.zeros(2), ["R", "T"], np.array([10.0, 10.0]), np.zeros(2))
-    ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2), "ray",
-                                                               2000, 1), FlatFace()),
-                    Instrument(detector_half_angle_deg=2.0))
-    assert "inside_sectors" not in simulate(ex, rows, grid=TableGrid()).info
-    got = simulate(ex, rows, grid=TableGrid(sectors="always")).info["inside_sectors"]
+    sector tables (the test above), gets them (the info names them); an unknown choice is refused by name."""
+    got = _info(random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2), TableGrid(sectors="always"))["inside_sectors"]
     assert got["centres_deg"] == list(SECTOR_AZIMUTHS_DEG)
     with pytest.raises(InputError, match="grid.sectors"):
         TableGrid(sectors="sometimes")

@@ -92,8 +92,11 @@ def test_a_sector_at_0_deg_takes_the_inside_tables_place_in_the_loop():
     over its sector's incidence azimuths): its cells then scatter by it, and the 0-deg inside table serves
     no light of the loop.  The closed form of the Lambertian sectors with the sector-0 albedo, whatever
     the inside table's (here 0.95 instead of 0.2)."""
-    _matches_closed_form(_lambert("inside", 0.95, 0.05, TH_IN),
-                         _lambert("inside", R_K, 1 - R_K, TH_IN, phi_i=(0.0,) + SECTORS))
+    inside = _lambert("inside", 0.95, 0.05, TH_IN)
+    m, o, _, want_T = _matches_closed_form(inside, _lambert("inside", R_K, 1 - R_K, TH_IN, phi_i=(0.0,) + SECTORS))
+    # the check can tell: had the 0.95 inside table served the loop, T would be far from the sectors' closed form
+    alone = PlateSolver(m, inside, o).solve(550.0, [0.0])[0].hemispherical()
+    assert abs(alone["T"] - want_T) > 20 * 2e-3 * want_T
 
 
 def test_sector_tables_equal_to_the_turned_0_deg_table_give_the_circulant_plate():

@@ -171,7 +171,9 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
     """{effect, parameters, chi2, k, values, model_sigma} or {effect, skipped: reason}.
 
     `fixed`/`fixed_values`: effects already named, held at their values (chi2 and values are then
-    those of all of them together, k counts this effect's parameters only).
+    those of all of them together, k counts this effect's parameters only).  `coarse`: a later stepwise
+    step's conditional fit (the search budgeted, the polish rough: it ranks candidates, the joint polish
+    follows).
     """
     reason = why_skipped(forward, effect)
     if reason:
@@ -183,7 +185,7 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
         if _polished_fit(effect):
             names = tuple(p.name for p in effect.params)
             done, _, jacobian = polish(forward, effects, {**(fixed_values or {}), **values}, free=names,
-                                       rough=coarse and bool(fixed))
+                                       rough=coarse)
             values = {k: done[k] for k in names}
         c, v, s = forward.evaluate_set(effects, {**(fixed_values or {}), **values})
     except InputError as e:
