@@ -126,3 +126,57 @@ def test_a_rough_polish_believes_a_converged_chord_and_ends_sooner_near_the_same
         assert rough.f <= full.f + max(1.0, full.f / (B.size - 2))
         f0 = full_m.residuals(x0)[0]
         assert f0 - rough.f > 0.5 * (f0 - full.f)
+
+
+def test_the_parabola_through_a_step_and_its_stretch_says_what_is_left_on_the_line():
+    from relief_bsdf.fit.gauss_newton import line_gain_left
+    q = lambda t: 3.0 * (t - 0.6) ** 2 + 2.0          # noqa: E731 - minimum 2.0 at t = 0.6
+    assert line_gain_left(q(0.0), q(1.0), q(2.0)) == pytest.approx(q(1.0) - 2.0, rel=1e-12)
+    assert line_gain_left(5.0, 4.0, 3.0) == float("inf")
+
+
+class _Linear:
+    """z(x) = G (x - x_star) + e: linear residuals with a floor e (a model that misses the noise a
+    little), strong leverage G so that a step of half a difference step predicts many units of chi^2."""
+
+    def __init__(self):
+        rng = np.random.default_rng(7)
+        self.G = rng.standard_normal((150, 2)) * np.array([400.0, 250.0])
+        self.e = rng.standard_normal(150) * 1.1
+        self.x_star = np.array([0.3, -0.2])
+        self.points = []
+
+    def z(self, x):
+        self.points.append(tuple(np.round(x, 12)))
+        return self.G @ (x - self.x_star) + self.e
+
+    def residuals(self, x):
+        z = self.z(x)
+        return float(z @ z), z
+
+    def jacobian(self, x, central, h=np.array([0.01, 0.01])):
+        e = np.eye(2) * h
+        return np.stack([(self.z(x + e[j]) - self.z(x - e[j])) / (2 * h[j]) for j in range(2)], 1)
+
+
+def test_a_step_within_its_stencil_whose_stretch_rises_is_settled_without_a_confirming_jacobian():
+    """A step made with a central Jacobian at the point, within one difference step, that lowers f while
+    its stretch to 2 d does not, where the parabola through the three leaves under one unit of chi^2:
+    the polish ends there (the least-squares optimum of a linear model) with that Jacobian, after the
+    start, the Jacobian's 4 points, the step and its stretch; from farther away (a step longer than
+    the difference step) the same landing is confirmed by a Jacobian at the answer instead."""
+    lo, hi, h = np.array([-5.0, -5.0]), np.array([5.0, 5.0]), np.array([0.01, 0.01])
+    m = _Linear()
+    x_opt = np.linalg.lstsq(m.G, m.G @ m.x_star - m.e, rcond=None)[0]
+    x0 = x_opt + np.array([0.5, -0.4]) * h
+    f0 = m.residuals(x0)[0]
+    m.points.clear()
+    out = polish(m.residuals, m.jacobian, x0, lo, hi, h, steps=8)
+    assert np.allclose(out.x, x_opt, atol=1e-9)
+    assert f0 - out.f > 100.0                               # not a "small" step: many units of chi^2
+    assert out.jacobian is not None and np.allclose(out.jacobian, m.G)
+    assert len(m.points) == 1 + 4 + 2
+    far = _Linear()
+    out_far = polish(far.residuals, far.jacobian, x_opt + np.array([5.0, -4.0]) * h, lo, hi, h, steps=8)
+    assert np.allclose(out_far.x, x_opt, atol=1e-9)
+    assert len(far.points) > 1 + 4 + 2 + 4                 # a second Jacobian, at the answer
