@@ -124,6 +124,27 @@ def test_clean_case_called_none(tmp_path):
     assert r0["effect"] == "none"
     assert r0["rms_after"] == r0["rms_before"]
     assert r0["effects"] == ["none"] and r0["intervals"] == {}
+    assert r0["forward_model"]["grid"]["sectors"] == "auto"        # the grid it used is on record
+
+
+def test_diagnose_sectors_option_reaches_the_forward_models_grid(tmp_path, monkeypatch):
+    """`relief diagnose --sectors always` hands TableGrid.sectors to the diagnosis, whose forward model
+    (and the auto choice it resolves) then uses that grid; the default keeps the plate's default grid."""
+    import relief_bsdf.diagnose.run as run_mod
+    from relief_bsdf.diagnose.forward import build_forward
+    seen = {}
+
+    def fake(sample, out, progress=None, **kw):
+        seen.update(kw)
+        return {"effects": ["none"], "rms_before": 1.0, "rms_after": 1.0, "parameters": {}, "intervals": {},
+                "explanation": "-"}
+    monkeypatch.setattr(run_mod, "diagnose", fake)
+    assert cli_main(["diagnose", str(tmp_path / "s.toml"), "-o", str(tmp_path / "o"), "--sectors", "always"]) == 0
+    assert seen["sectors"] == "always"
+    s = _case(tmp_path, "none", {}, 22)
+    fwd, _ = build_forward(s, "normals", 20000, 0, sectors="always")
+    assert fwd.grid is not None and fwd.grid.sectors == "always"
+    assert build_forward(s, "normals", 20000, 0)[0].grid is None
 
 
 def test_bad_input_exits_2(tmp_path):

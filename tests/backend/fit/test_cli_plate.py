@@ -159,3 +159,25 @@ def _saved_evaluations(path):
     """The evaluations a fit checkpoint holds (io.checkpoint's JSON layout, read without its key)."""
     from relief_bsdf.io.checkpoint import decode
     return decode(json.loads(path.read_text())["data"])["evaluations"]
+
+
+@pytest.mark.slow
+def test_simulate_sectors_always_meets_an_isotropic_ray_traced_relief_by_azimuth_and_says_so(tmp_path, capsys):
+    """`--sectors always` (TableGrid.sectors): the loop gets the inside sector tables of a ray-traced
+    relief whatever its statistics, the physics line names them, and the simulated rows differ from the
+    default's (the loop then meets the tile's own azimuth dependence); an unknown choice exits 2."""
+    s = make_sample(tmp_path)
+    write_relief(tmp_path / "relief.npz", random_relief(128, 0.25e-6, 0.1e-6, 1.0e-6, "gaussian", seed=2))
+    common = ["--method", "ray", "--samples", "20000", "--seed", "3"]
+    assert main(["simulate", str(s), "-o", str(tmp_path / "auto")] + common) == 0
+    auto_out = capsys.readouterr().out
+    assert main(["simulate", str(s), "-o", str(tmp_path / "always"), "--sectors", "always"] + common) == 0
+    always_out = capsys.readouterr().out
+    assert "inside sector tables" not in auto_out
+    assert "loop by azimuth sector (12 inside sector tables)" in always_out
+    a = read_recording(tmp_path / "auto" / "simulated.csv").bsdf_sr
+    b = read_recording(tmp_path / "always" / "simulated.csv").bsdf_sr
+    assert not np.allclose(a, b, rtol=1e-4)
+    with pytest.raises(SystemExit) as e:
+        main(["simulate", str(s), "-o", str(tmp_path / "x"), "--sectors", "sometimes"])
+    assert e.value.code == 2 and "--sectors" in capsys.readouterr().err

@@ -53,6 +53,17 @@ def sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, old)
 
 
+def add_sectors_arg(p: argparse.ArgumentParser) -> None:
+    """--sectors auto|always: when the plate's loop meets a ray-traced relief by azimuth sector
+    (plate.grid.TableGrid.sectors; the one help text of simulate, fit and diagnose)."""
+    from relief_bsdf.plate.grid import SECTOR_CHOICES
+    p.add_argument("--sectors", choices=SECTOR_CHOICES, default="auto",
+                   help="inside sector tables of a ray-traced relief (the light inside the plate meets the relief "
+                        "by its azimuth): auto = for an anisotropic relief or one found scattering trapped light by "
+                        "azimuth; always = for every ray-traced relief (a finite tile answers by azimuth even where "
+                        "its statistics do not; 3-4x the forward's time)")
+
+
 def _positive_int(text: str) -> int:
     try:
         v = int(float(text)) if "e" in text.lower() else int(text)

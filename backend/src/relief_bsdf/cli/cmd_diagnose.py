@@ -28,6 +28,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--effects", default=None, help="comma-separated subset of candidate effects")
     p.add_argument("--workers", type=int, default=None, help="worker processes (default: every core)")
     p.add_argument("--json", action="store_true", help="print diagnosis.json on stdout")
+    from relief_bsdf.cli import add_sectors_arg
+    add_sectors_arg(p)
     from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --checkpoint-dir, --retries (issue 8); --workers is its own
     return p
@@ -44,7 +46,8 @@ def run(args) -> int:
     bar = TerminalBar("diagnose")
     with keep_alive(bar):                 # a log line at once and at least every 30 s
         r = diagnose(args.sample, args.out, bar, method=args.method or DEFAULT_METHOD,
-                     photons=args.photons, seed=args.seed, effects=effects, workers=args.workers)
+                     photons=args.photons, seed=args.seed, effects=effects, workers=args.workers,
+                     sectors=args.sectors)
     if args.json:
         print(json.dumps(r, indent=1))
     else:

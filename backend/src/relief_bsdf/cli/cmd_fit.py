@@ -31,6 +31,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--inside-step-deg", type=float, default=TableGrid.inside_theta_i_step_deg,
                    help=f"step between the incidences of the inside table (default "
                         f"{TableGrid.inside_theta_i_step_deg:g})")
+    from relief_bsdf.cli import add_sectors_arg
+    add_sectors_arg(p)
     p.add_argument("--progress", action="store_true", help="force the progress bar")
     from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
@@ -48,7 +50,7 @@ def run(args) -> int:
         raise InputError("--theta-step-deg/--phi-step-deg", "theta step in (0, 10], phi step in (0, 30] dividing 360")
     if not 0 < args.inside_step_deg <= 15:
         raise InputError("--inside-step-deg", f"must be in (0, 15], got {args.inside_step_deg:g}")
-    grid = TableGrid(args.theta_step_deg, args.phi_step_deg, args.inside_step_deg)
+    grid = TableGrid(args.theta_step_deg, args.phi_step_deg, args.inside_step_deg, sectors=args.sectors)
     job = FitJob(method=args.method, samples=args.samples, seed=args.seed, max_iter=args.max_iter,
                  threshold=args.threshold, grid=grid, scale_bounds=_bounds(args.scale_bounds),
                  max_filter_um=args.max_filter_um)

@@ -16,6 +16,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--height-scale", type=float, default=1.0, help="relief height scale")
     p.add_argument("--filter-sigma-um", type=float, default=0.0, help="Gaussian filter sigma (um)")
+    from relief_bsdf.cli import add_sectors_arg
+    add_sectors_arg(p)
     p.add_argument("--table", help="use this boundary table file (HDF5, outside+inside) instead of deriving one")
     from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
@@ -51,7 +53,7 @@ def _simulate(args, sample, rec):
     relief = read_relief(sample.relief_path) if not args.table else None
     exp = experiment_from_sample(sample, relief, method=args.method, samples=args.samples, seed=args.seed)
     if not args.table:
-        fwd = Forward(relief, exp, rec, where=str(sample.recording_path))
+        fwd = Forward(relief, exp, rec, grid=TableGrid(sectors=args.sectors), where=str(sample.recording_path))
         return fwd.simulated(args.height_scale, args.filter_sigma_um, table_sigma_draws=fwd.sigma_draws)
     from relief_bsdf.io.hdf5 import load_tables, table_for
     tabs = load_tables(args.table)
@@ -75,5 +77,7 @@ def physics_line(info: dict) -> str:
     b = ph.get("bulk", {})
     bulk = "absorption {:g}/m, scattering {:g}/m (g {:g})".format(b.get("absorption_per_m", 0.0),
                                                                  b.get("scatter_per_m", 0.0), b.get("hg_g", 0.0))
+    sectors = info.get("inside_sectors")
+    loop = (f"; loop by azimuth sector ({len(sectors['centres_deg'])} inside sector tables)" if sectors else "")
     return (f"front {face(ph.get('front', {}))}, back {face(ph.get('back', {}))}; bulk {bulk}; "
-            f"engine {info.get('engine', '?')}")
+            f"engine {info.get('engine', '?')}{loop}")

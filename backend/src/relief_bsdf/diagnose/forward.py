@@ -311,8 +311,9 @@ def _scale_and_filter():
 
 
 def build_forward(sample_path: str | Path, method: str = DEFAULT_METHOD, samples: int = 200_000,
-                  seed: int = 0) -> tuple[DiagnosisForward, object]:
-    """The baseline forward model of a sample.toml (and the Sample)."""
+                  seed: int = 0, sectors: str = "auto") -> tuple[DiagnosisForward, object]:
+    """The baseline forward model of a sample.toml (and the Sample); `sectors`: TableGrid.sectors
+    (the default grid otherwise)."""
     from relief_bsdf.io.heightmaps import read_relief
     from relief_bsdf.io.recording import read_recording, read_sample
     sample = read_sample(sample_path)
@@ -327,11 +328,12 @@ def build_forward(sample_path: str | Path, method: str = DEFAULT_METHOD, samples
     rows = rec.with_sigma_fallback()   # unknown sigma: documented fallback (recording.py)
     sample.material.check(np.unique(rows.wavelength_nm), str(sample.path))
     experiment = experiment_from_sample(sample, relief, method, samples, seed, options=face_options(method))
-    experiment = resolve_auto(experiment, rows)          # the baseline's physics, decided once (plate.choice)
+    grid = None if sectors == "auto" else TableGrid(sectors=sectors)
+    experiment = resolve_auto(experiment, rows, grid)    # the baseline's physics, decided once (plate.choice)
     front = experiment.plate.front
     context = ReliefContext(relief=relief, method=front.method, face=_FaceBuilder(samples, seed),
                             scale_and_filter=_scale_and_filter(),
                             wavelengths_nm=tuple(float(w) for w in np.unique(rows.wavelength_nm)),
                             detector_half_angle_deg=float(sample.instrument.detector_half_angle_deg),
                             samples=samples, seed=seed, method_reason=front.chosen_by, known=known_effects(sample))
-    return DiagnosisForward(experiment, rows, context), sample
+    return DiagnosisForward(experiment, rows, context, grid=grid), sample

@@ -48,6 +48,7 @@ from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODE
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.selection import BIC_MARGIN
 from relief_bsdf.io.atomic import write_text_atomic
+from relief_bsdf.plate import TableGrid
 from relief_bsdf.progress import silent
 
 __all__ = ["BIC_MARGIN", "BIC_OVERWHELMING", "CONSISTENCY_Z", "MODEL_ACCURACY_RMS", "candidate_names", "diagnose",
@@ -252,7 +253,8 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
         "selection": _selection_doc(n, steps, closed),
         "forward_model": {"engine": "deterministic", "method": ctx.method, "samples": ctx.samples, "seed": ctx.seed,
                           "rough_face_model": f"boundary tables of the measured relief by method {ctx.method}",
-                          "method_reason": ctx.method_reason, "evaluations": forward.evaluations},
+                          "method_reason": ctx.method_reason, "evaluations": forward.evaluations,
+                          "grid": (forward.grid or TableGrid()).describe()},
     }
     if unexplained is not None:
         result["unexplained"] = {"best_combination": unexplained["tried"],
@@ -265,16 +267,18 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
 
 def diagnose(sample_path: str | Path, out_dir: str | Path, progress=None, *, method: str = DEFAULT_METHOD,
              photons: int = 200_000, seed: int = 0, effects: list[str] | None = None, workers: int | None = None,
-             report: bool = True) -> dict:
+             report: bool = True, sectors: str = "auto") -> dict:
     """Run the whole diagnosis of one sample; write OUT/diagnosis.json (+ report.html); return the dict.
 
     `photons`: Monte-Carlo samples per incidence of a sampling boundary method (ray, normals).
+    `sectors`: the plate grid's `TableGrid.sectors` ("always": the inside sector tables for every
+    ray-traced relief; the screens still go without, `DiagnosisForward.screening`).
     """
     from relief_bsdf.parallel.memory import small_pages
     small_pages()           # here and in its workers (parallel.memory)
     progress = progress or silent
     names = candidate_names(effects)
-    forward, sample = build_forward(sample_path, method, photons, seed)
+    forward, sample = build_forward(sample_path, method, photons, seed, sectors=sectors)
     rows = forward.rows
     v0, s0 = forward.baseline()
     n_mid = float(np.real(sample.plate.index.n(float(np.median(rows.wavelength_nm)))))
