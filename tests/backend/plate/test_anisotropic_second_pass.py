@@ -13,7 +13,8 @@ import pytest
 from relief_bsdf.core.index import ConstantIndex, Material
 from relief_bsdf.errors import InputError
 from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, Rows, TableGrid, simulate
-from relief_bsdf.plate.faces import SECTOR_AZIMUTHS_DEG, inside_sectors
+from relief_bsdf.plate.faces import (SECTOR_AZIMUTHS_DEG, TILE_SECTOR_AZIMUTHS_DEG, TILE_SECTOR_RAY_TABLES,
+                                      inside_sectors)
 from relief_bsdf.surface.synth import RandomFieldSpec, random_relief, relief_from_spec
 
 from lobe_deviation import bright_deviation  # tests/backend/plate/lobe_deviation.py
@@ -88,8 +89,18 @@ def test_the_second_pass_by_azimuth_sector_agrees_with_the_independent_monte_car
 
 def test_a_grid_can_ask_for_the_sector_tables_of_every_ray_traced_relief():
     """TableGrid(sectors="always"): an isotropic Gaussian relief, which the default grid leaves without
-    sector tables (the test above), gets them (the info names them); an unknown choice is refused by name."""
-    got = _info(random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2), TableGrid(sectors="always"))["inside_sectors"]
-    assert got["centres_deg"] == list(SECTOR_AZIMUTHS_DEG)
+    sector tables (the test above), gets the tile's two sectors, each the average over +-45 deg of
+    incidence azimuth at half an inside table's rays (the info names them); an anisotropic relief keeps the
+    grid's sectors; an unknown choice is refused by name."""
+    iso = random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2)
+    got = _info(iso, TableGrid(sectors="always"))["inside_sectors"]
+    assert got["centres_deg"] == list(TILE_SECTOR_AZIMUTHS_DEG) == [0.0, 90.0] and "+-45 deg" in got["each"]
+    mat = Material(ConstantIndex(1.5))
+    t = inside_sectors(ReliefFace(iso, "ray", 2000, 1), mat, TableGrid(sectors="always"), [550.0], [0.0])
+    req = t.metadata["request"]            # two tables sharing one inside table's rays, each over its +-45 deg
+    assert req["samples_requested"] == round(2000 * TILE_SECTOR_RAY_TABLES / 2 * TableGrid().inside_samples_fraction)
+    assert req["options"]["phi_i_spread_deg"] == 45.0
+    t = inside_sectors(ReliefFace(_anisotropic(), "ray", 2000, 1), mat, TableGrid(sectors="always"), [550.0], [0.0])
+    assert tuple(t.phi_i_deg) == SECTOR_AZIMUTHS_DEG
     with pytest.raises(InputError, match="grid.sectors"):
         TableGrid(sectors="sometimes")

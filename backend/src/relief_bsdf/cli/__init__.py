@@ -60,8 +60,8 @@ def add_sectors_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sectors", choices=SECTOR_CHOICES, default="auto",
                    help="inside sector tables of a ray-traced relief (the light inside the plate meets the relief "
                         "by its azimuth): auto = for an anisotropic relief or one found scattering trapped light by "
-                        "azimuth; always = for every ray-traced relief (a finite tile answers by azimuth even where "
-                        "its statistics do not; 3-4x the forward's time)")
+                        "azimuth; always = also for every other ray-traced relief, two sectors (a finite tile "
+                        "answers by azimuth even where its statistics do not; ~1.6x the forward's time)")
 
 
 def _positive_int(text: str) -> int:

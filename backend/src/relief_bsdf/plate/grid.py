@@ -89,9 +89,12 @@ class TableGrid:
         bench_forward_accuracy's Gaussian relief of rms slope 0.35 (relief seed 12, 651 correlation areas,
         2026-12-05) the inside table at 2.5 deg from inside put 0.0214-0.0255 of the light into the 0-2 deg
         exit ring depending on the propagation azimuth, the one table at phi_i 0 the least of it, and the
-        second pass at normal incidence read 5-8 % low near the normal; "always" takes that case's rms z
-        1.23 -> 1.11 (seed 11: 1.16 -> 1.13), at 23-34 s per forward instead of 7 (not the default: a Gaussian
-        case's diagnosis would cost 3-4x).  Grids with NO_SECTORS_DEG have none either way.
+        second pass at normal incidence read 5-8 % low near the normal.  "always" gives a relief the gate
+        leaves two sectors sharing one inside table's rays (`plate.faces.TILE_SECTOR_AZIMUTHS_DEG`: the tile's
+        own azimuth dependence, not its statistics'; a relief the gate picks keeps `sector_step_deg`): that
+        case's rms z 1.23 -> 1.11 (seed 11: 1.16 -> 1.10) at 10 s per forward instead of 6 (the grid's 15-deg
+        sectors at five tables' rays: 1.11 / 1.13 at 23-24 s).  Not the default: the diagnosis's and the
+        demo fit's evaluations would cost ~1.6x.  Grids with NO_SECTORS_DEG have none either way.
     stokes_loop: the plate carries Stokes vectors through polarised (Mueller) tables (True, the
         physics of record); False: intensities only, the tables' M00 (the loop's matrices 4x smaller a
         side: its operators and solves ~16-64x cheaper), exact for unpolarised light only where no
