@@ -63,7 +63,8 @@ import numpy as np
 @dataclass
 class Polished:
     """The polish's answer: x, its objective f, and the central Jacobian at a point within the
-    convergence distance of x (None when the steps ran out before convergence)."""
+    convergence distance of x, or one settled step away inside its own difference stencil (None when the
+    steps ran out before convergence)."""
 
     x: np.ndarray
     f: float
