@@ -38,9 +38,10 @@ through f at x, x + d and x + 2 d (`line_gain_left`) promises less than the same
 f(x + d); its Jacobian, made one step away inside its own difference stencil, serves the intervals.
 On the seed-11 relief scale + absorption diagnosis (2026-12-05) the step from (1.4058, 0.1605) lowered
 chi^2 118.21 to 118.12 and its stretch rose to 124.94 (the parabola: 0.8 left); the chord step, the
-confirming Jacobian and the end game after it then spent 12 s to keep 118.12.  The Jacobian then returned is at a point within that distance
-of the answer, which is linear enough to serve the intervals (cov = (J^T J)^-1).  Deterministic: the
-same points for the same inputs (a resumed fit retraces its checkpoint).
+confirming Jacobian and the end game after it then spent 12 s to keep 118.12.  The Jacobian then
+returned is at a point within that distance of the answer, which is linear enough to serve the
+intervals (cov = (J^T J)^-1).  Deterministic: the same points for the same inputs (a resumed fit
+retraces its checkpoint).
 
 A caller that needs the optimum only roughly (`trust_chord`: the diagnosis's conditional fit of a
 candidate at a later step, which only ranks the candidates and hands its values to the joint polish
@@ -144,4 +145,3 @@ def line_gain_left(f0: float, f1: float, f2: float) -> float:
     a = 0.5 * (f0 - 2.0 * f1 + f2)
     b = 0.5 * (4.0 * f1 - 3.0 * f0 - f2)
     return float(f1 - (f0 - b * b / (4.0 * a))) if a > 0 else math.inf
-
