@@ -59,6 +59,8 @@ def test_fit_cli_writes_fit_json_and_resumes(tmp_path, capsys):
     assert doc["rms_after"] <= doc["rms_before"]
     assert doc["iterations"][0]["parameters"]["height_scale"] == 1.0
     assert "log-chi" in doc["metric"]
+    assert doc["grid"]["theta_step_deg"] == 3 and doc["grid"]["sectors"] == "auto"   # the grid it used, on record
+    assert "inside_sectors" not in doc                   # a surrogate face: no sector tables
     for f in ("checkpoint.json", "boundary.h5", "relief_optimised.npz", "report.html", "in_plane_after.png",
               "residual_before.png", "simulated.csv"):
         assert (out / f).exists(), f

@@ -822,7 +822,9 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
     face = getattr(fwd.experiment.plate, fwd.face_name)
     doc = res.to_json({"method": face.method, "method_requested": method, "method_reason": face.chosen_by,
                        "sample": str(Path(sample_path)), "files": files,
-                       "relief_history": list(best_relief.history), "physics": after.info.get("physics", {})})
+                       "relief_history": list(best_relief.history), "physics": after.info.get("physics", {}),
+                       "grid": fwd.grid.describe(),     # the plate's table grid; the sector tables when it used them
+                       **{k: after.info[k] for k in ("inside_sectors",) if k in after.info}})
     write_text_atomic(out / "fit.json", json.dumps(doc, indent=1))
     report.write_fit_report(out / "report.html", doc, plots)
     return doc
