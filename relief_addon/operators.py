@@ -1,7 +1,6 @@
 """Operators: thin wrappers over backend calls (relief_bsdf), bpy data only on the main thread."""
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -352,8 +351,9 @@ class RELIEF_OT_simulate_plate(JobOperator, bpy.types.Operator):
     @staticmethod
     def work(p, progress):
         cmd = _require("relief_bsdf.cli.cmd_simulate", "simulate")
-        args = argparse.Namespace(sample=p["sample"], out=p["out"], method=p["method"], samples=200_000, seed=0,
-                                  height_scale=1.0, filter_sigma_um=0.0, table=p["table"])
+        from relief_bsdf.cli import build_parser      # the command's own flags and defaults, whatever it adds
+        argv = ["simulate", p["sample"], "-o", p["out"], "--method", p["method"]]
+        args = build_parser().parse_args(argv + (["--table", p["table"]] if p["table"] else []))
         progress(0, 1, "simulating")
         cmd.run(args)
         progress(1, 1, "done")

@@ -132,7 +132,7 @@ def test_the_parabola_through_a_step_and_its_stretch_says_what_is_left_on_the_li
     from relief_bsdf.fit.gauss_newton import line_gain_left
     q = lambda t: 3.0 * (t - 0.6) ** 2 + 2.0          # noqa: E731 - minimum 2.0 at t = 0.6
     assert line_gain_left(q(0.0), q(1.0), q(2.0)) == pytest.approx(q(1.0) - 2.0, rel=1e-12)
-    assert line_gain_left(5.0, 4.0, 3.0) == float("inf")
+    assert line_gain_left(5.0, 4.0, 3.0) == float("inf")              # still falling on the line: no minimum
 
 
 class _Linear:
