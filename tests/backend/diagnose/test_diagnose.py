@@ -142,9 +142,10 @@ def test_diagnose_sectors_option_reaches_the_forward_models_grid(tmp_path, monke
     assert cli_main(["diagnose", str(tmp_path / "s.toml"), "-o", str(tmp_path / "o"), "--sectors", "always"]) == 0
     assert seen["sectors"] == "always"
     s = _case(tmp_path, "none", {}, 22)
+    from relief_bsdf.plate import TableGrid
     fwd, _ = build_forward(s, "normals", 20000, 0, sectors="always")
-    assert fwd.grid is not None and fwd.grid.sectors == "always"
-    assert build_forward(s, "normals", 20000, 0)[0].grid is None
+    assert fwd.grid == TableGrid(sectors="always")
+    assert build_forward(s, "normals", 20000, 0)[0].grid == TableGrid()
 
 
 def test_bad_input_exits_2(tmp_path):

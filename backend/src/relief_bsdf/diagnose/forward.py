@@ -312,8 +312,8 @@ def _scale_and_filter():
 
 def build_forward(sample_path: str | Path, method: str = DEFAULT_METHOD, samples: int = 200_000,
                   seed: int = 0, sectors: str = "auto") -> tuple[DiagnosisForward, object]:
-    """The baseline forward model of a sample.toml (and the Sample); `sectors`: TableGrid.sectors
-    (the default grid otherwise)."""
+    """The baseline forward model of a sample.toml (and the Sample), on the default grid with
+    TableGrid.sectors = `sectors`."""
     from relief_bsdf.io.heightmaps import read_relief
     from relief_bsdf.io.recording import read_recording, read_sample
     sample = read_sample(sample_path)
@@ -328,7 +328,7 @@ def build_forward(sample_path: str | Path, method: str = DEFAULT_METHOD, samples
     rows = rec.with_sigma_fallback()   # unknown sigma: documented fallback (recording.py)
     sample.material.check(np.unique(rows.wavelength_nm), str(sample.path))
     experiment = experiment_from_sample(sample, relief, method, samples, seed, options=face_options(method))
-    grid = None if sectors == "auto" else TableGrid(sectors=sectors)
+    grid = TableGrid(sectors=sectors)                   # the plate's default grid, but for `sectors`
     experiment = resolve_auto(experiment, rows, grid)    # the baseline's physics, decided once (plate.choice)
     front = experiment.plate.front
     context = ReliefContext(relief=relief, method=front.method, face=_FaceBuilder(samples, seed),

@@ -824,7 +824,7 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
                        "sample": str(Path(sample_path)), "files": files,
                        "relief_history": list(best_relief.history), "physics": after.info.get("physics", {}),
                        "grid": fwd.grid.describe(),     # the plate's table grid; the sector tables when it used them
-                       **{k: after.info[k] for k in ("inside_sectors",) if k in after.info}})
+                       **({"inside_sectors": after.info["inside_sectors"]} if "inside_sectors" in after.info else {})})
     write_text_atomic(out / "fit.json", json.dumps(doc, indent=1))
     report.write_fit_report(out / "report.html", doc, plots)
     return doc
