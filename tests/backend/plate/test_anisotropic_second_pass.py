@@ -7,6 +7,8 @@ azimuths and each azimuth sector of the second pass sent through the nearest, R 
 incidence agrees with the validation's independent photon Monte Carlo through the relief; without
 the sectors it misses by tens of percent (slow).  An isotropic relief asks for no sectors.
 """
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -14,7 +16,7 @@ from relief_bsdf.core.index import ConstantIndex, Material
 from relief_bsdf.errors import InputError
 from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, Rows, TableGrid, simulate
 from relief_bsdf.plate.faces import (SECTOR_AZIMUTHS_DEG, TILE_SECTOR_AZIMUTHS_DEG, TILE_SECTOR_RAY_TABLES,
-                                      inside_sectors)
+                                      face_request, inside_face, inside_sectors)
 from relief_bsdf.surface.synth import RandomFieldSpec, random_relief, relief_from_spec
 
 from lobe_deviation import bright_deviation  # tests/backend/plate/lobe_deviation.py
@@ -104,3 +106,28 @@ def test_a_grid_can_ask_for_the_sector_tables_of_every_ray_traced_relief():
     assert tuple(t.phi_i_deg) == SECTOR_AZIMUTHS_DEG
     with pytest.raises(InputError, match="grid.sectors"):
         TableGrid(sectors="sometimes")
+
+
+def test_the_loops_one_inside_table_averages_the_incidence_azimuths_around_its_own():
+    """The inside table a ray-traced relief gives the loop (turned about the normal for light at every
+    azimuth) is traced with each ray's incidence azimuth spread over +-TableGrid.inside_azimuth_spread_deg
+    (45 by default; the same rays): it is that average, bit for bit the ray method's own table with the
+    option; 0 gives the table at its own azimuth; a face that sets the option keeps its own; other methods
+    are untouched; a spread of a right angle or more is refused by name."""
+    from relief_bsdf.methods import reconstruct
+    iso = random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2)
+    mat = Material(ConstantIndex(1.5))
+    face = ReliefFace(iso, "ray", 2000, 1)
+    _, t = face.tables(mat, TableGrid(), [550.0], [0.0], need_outside=False)
+    assert t.metadata["request"]["options"]["phi_i_spread_deg"] == 45.0
+    req = face_request(replace(face, options={"phi_i_spread_deg": 45.0}), mat, TableGrid(), [550.0],
+                       TableGrid().inside_incidences_deg(), "inside")
+    (own,) = reconstruct(iso, mat, req, "ray")
+    np.testing.assert_array_equal(t.values_per_sr, own.values_per_sr)
+    _, t0 = face.tables(mat, TableGrid(inside_azimuth_spread_deg=0.0), [550.0], [0.0], need_outside=False)
+    assert t0.metadata["request"]["options"]["phi_i_spread_deg"] == 0.0
+    assert not np.array_equal(t0.values_per_sr, t.values_per_sr)
+    assert inside_face(replace(face, options={"phi_i_spread_deg": 10.0}), TableGrid()).options["phi_i_spread_deg"] == 10.0
+    assert inside_face(replace(face, method="microfacet"), TableGrid()).options == {}
+    with pytest.raises(InputError, match="inside_azimuth_spread_deg"):
+        TableGrid(inside_azimuth_spread_deg=90.0)

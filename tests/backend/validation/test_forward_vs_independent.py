@@ -139,3 +139,26 @@ def test_forward_reaches_the_independent_recording_on_light_guide_dots():
     ex = Experiment(Plate(2e-3, ConstantIndex(1.49), ReliefFace(relief, method="ray", samples=400_000, seed=0),
                           FlatFace()), Instrument(detector_half_angle_deg=HALF_ANGLE))
     assert _rms_z(simulate(ex, rows, grid=TableGrid()).values_per_sr, val, sig) <= 1.2
+
+
+@pytest.mark.slow
+def test_forward_reaches_the_independent_recording_on_a_steep_gaussian_tile():
+    """The top of the issue's slope range: a Gaussian relief of rms slope 0.35 (10-um correlation, a 256^2
+    tile of 1-um pixels: 651 correlation areas; the case gauss_high of benchmarks/bench_forward_accuracy.py
+    at relief seed 12), n 1.6, 3 mm, 2.5-deg cone, theta_i 0 / 30 / 60, 1 M photons per incidence.  The
+    finite tile answers light by azimuth (its slopes differ 6 % between its principal axes by sampling
+    alone), and the loop turns its one inside table to every azimuth: that table averages the incidence
+    azimuths within +-45 deg (TableGrid.inside_azimuth_spread_deg).  Measured 1.12 (2026-12-05); with the
+    table at its own azimuth alone (spread 0) 1.23, R at theta_i 60 too high behind the plate's normal and too
+    low ahead of it (mean z +0.6 / -0.6)."""
+    from relief_bsdf.core.index import ConstantIndex
+    from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid, simulate
+    from relief_bsdf.surface.synth import random_relief
+    relief = random_relief(256, 1e-6, 0.35 * 10e-6 / 2, 10e-6, "gaussian", seed=12)
+    phys = PlatePhysics(thickness_mm=3.0, n_glass=1.6)
+    rows = _rows((0.0, 30.0, 60.0), np.arange(1.0, 89.0, 2.0))
+    val, sig, _ = trace_recording(relief, rows, phys, 2.5, 1_000_000, seed=1)
+    ex = Experiment(Plate(3e-3, ConstantIndex(1.6), ReliefFace(relief, method="ray", samples=400_000, seed=0),
+                          FlatFace()), Instrument(detector_half_angle_deg=2.5))
+    assert TableGrid().inside_azimuth_spread_deg == 45.0
+    assert _rms_z(simulate(ex, rows, grid=TableGrid()).values_per_sr, val, sig) <= 1.2

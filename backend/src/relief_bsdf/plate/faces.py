@@ -438,10 +438,21 @@ def _derive(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths
     base = (face.cache_key(), _material_key(material), _grid_key(grid), wl)
     out = (_derive_outside(face, material, grid, wl, theta_i_outside_deg, progress, beam_divergence_deg)
            if need_outside else None)
-    ins = TABLE_CACHE.get(base + ("inside",), lambda: _reconstruct_side(face, material, grid, wl,
-                                                                        grid.inside_incidences_deg(), "inside",
-                                                                        progress))
+    f_in = inside_face(face, grid)
+    ins = TABLE_CACHE.get((f_in.cache_key(),) + base[1:] + ("inside",),
+                          lambda: _reconstruct_side(f_in, material, grid, wl, grid.inside_incidences_deg(), "inside",
+                                                    progress))
     return out, ins
+
+
+def inside_face(face: "ReliefFace", grid: TableGrid) -> "ReliefFace":
+    """The face the inside table is made with: a ray-traced relief's rays spread over the incidence azimuths
+    within +- `grid.inside_azimuth_spread_deg` (ray option `phi_i_spread_deg`, unless the face sets it: the
+    TableGrid field says why); any other face as it is."""
+    spread = float(grid.inside_azimuth_spread_deg)
+    if face.method != "ray" or not spread or "phi_i_spread_deg" in face.options:
+        return face
+    return replace(face, options={**face.options, "phi_i_spread_deg": spread})
 
 
 def _derive_outside(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths_nm: Any,
