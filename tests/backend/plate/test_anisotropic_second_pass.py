@@ -113,7 +113,9 @@ def test_the_loops_one_inside_table_averages_the_incidence_azimuths_around_its_o
     azimuth) is traced with each ray's incidence azimuth spread over +-TableGrid.inside_azimuth_spread_deg
     (45 by default; the same rays): it is that average, bit for bit the ray method's own table with the
     option; 0 gives the table at its own azimuth; a face that sets the option keeps its own; other methods
-    are untouched; a spread of a right angle or more is refused by name."""
+    are untouched; where inside sector tables carry the loop (an anisotropic relief, or any with sectors
+    "always") the table serves the light at its own azimuth and is not spread; a spread of a right angle
+    or more is refused by name."""
     from relief_bsdf.methods import reconstruct
     iso = random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2)
     mat = Material(ConstantIndex(1.5))
@@ -127,7 +129,13 @@ def test_the_loops_one_inside_table_averages_the_incidence_azimuths_around_its_o
     _, t0 = face.tables(mat, TableGrid(inside_azimuth_spread_deg=0.0), [550.0], [0.0], need_outside=False)
     assert t0.metadata["request"]["options"]["phi_i_spread_deg"] == 0.0
     assert not np.array_equal(t0.values_per_sr, t.values_per_sr)
-    assert inside_face(replace(face, options={"phi_i_spread_deg": 10.0}), TableGrid()).options["phi_i_spread_deg"] == 10.0
-    assert inside_face(replace(face, method="microfacet"), TableGrid()).options == {}
+    assert inside_face(replace(face, options={"phi_i_spread_deg": 10.0}), mat, TableGrid(),
+                       [550.0]).options["phi_i_spread_deg"] == 10.0
+    assert inside_face(replace(face, method="microfacet"), mat, TableGrid(), [550.0]).options == {}
+    # where sector tables carry the loop, the table serves the light at its own azimuth: not spread
+    assert inside_face(face, mat, TableGrid(sectors="always"), [550.0]).options == {}
+    aniso = ReliefFace(_anisotropic(), "ray", 2000, 1)
+    assert inside_face(aniso, mat, TableGrid(), [550.0]).options == {}
+    assert inside_face(aniso, mat, TableGrid(sector_step_deg=180.0), [550.0]).options["phi_i_spread_deg"] == 45.0
     with pytest.raises(InputError, match="inside_azimuth_spread_deg"):
         TableGrid(inside_azimuth_spread_deg=90.0)

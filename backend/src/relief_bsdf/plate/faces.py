@@ -438,19 +438,26 @@ def _derive(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths
     base = (face.cache_key(), _material_key(material), _grid_key(grid), wl)
     out = (_derive_outside(face, material, grid, wl, theta_i_outside_deg, progress, beam_divergence_deg)
            if need_outside else None)
-    f_in = inside_face(face, grid)
+    f_in = inside_face(face, material, grid, wl, progress)
     ins = TABLE_CACHE.get((f_in.cache_key(),) + base[1:] + ("inside",),
                           lambda: _reconstruct_side(f_in, material, grid, wl, grid.inside_incidences_deg(), "inside",
                                                     progress))
     return out, ins
 
 
-def inside_face(face: "ReliefFace", grid: TableGrid) -> "ReliefFace":
-    """The face the inside table is made with: a ray-traced relief's rays spread over the incidence azimuths
-    within +- `grid.inside_azimuth_spread_deg` (ray option `phi_i_spread_deg`, unless the face sets it: the
-    TableGrid field says why); any other face as it is."""
+def inside_face(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths_nm: Any,
+                progress: Any = None) -> "ReliefFace":
+    """The face the inside table is made with.  Where the plate's loop turns that one table to every
+    azimuth (a ray-traced relief without inside sector tables on `grid`, `sector_plan`), its rays spread
+    over the incidence azimuths within +- `grid.inside_azimuth_spread_deg` (ray option `phi_i_spread_deg`,
+    unless the face sets it; the TableGrid field says why).  Where sector tables carry the loop, the table
+    serves the light at its own azimuth (the in-plane beams between the faces, the reference of the moving
+    lobes) and stays there: spread, it took the light-guide dots of bench_forward_accuracy (relief seed 13,
+    2026-12-05) from rms z 1.16 to 1.29, their lattice rows along that azimuth.  Any other face as it is."""
     spread = float(grid.inside_azimuth_spread_deg)
     if face.method != "ray" or not spread or "phi_i_spread_deg" in face.options:
+        return face
+    if sector_plan(face, material, grid, wavelengths_nm, progress) is not None:
         return face
     return replace(face, options={**face.options, "phi_i_spread_deg": spread})
 
@@ -551,24 +558,31 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     (default 1.23; 15-deg sectors at five tables' rays 1.11; 45 / 90-deg sectors at five 1.09 / 1.09; 90 at
     one 1.11) and reported on seed 11: 1.16 -> 1.10 (15-deg sectors 1.13); slope 0.24 0.94 -> 0.91 (seed 12
     1.02 -> 1.02), slope 0.12 0.81 -> 0.80 (0.77 -> 0.75); a forward 10 s instead of 23-24 (default 6)."""
-    azimuths = grid.sector_azimuths_deg()
-    if not azimuths:                        # a grid without sector tables (TableGrid.sector_step_deg 180)
-        return None
     face = _resolved_relief(face, material, grid, wavelengths_nm, theta_i_outside_deg)
-    if face is None or face.method != "ray":
+    plan = None if face is None else sector_plan(face, material, grid, wavelengths_nm, progress)
+    if plan is None:
         return None
-    step, rays = float(grid.sector_step_deg), SECTOR_RAY_TABLES
-    if not (anisotropic_face(face) or azimuth_dependent(face, material, grid, wavelengths_nm, progress)):
-        if grid.sectors != "always":
-            return None
-        azimuths, rays = TILE_SECTOR_AZIMUTHS_DEG, TILE_SECTOR_RAY_TABLES
-        step = 180.0 / len(azimuths)
+    azimuths, rays, step = plan
     face = replace(face, samples=max(int(face.samples * rays / len(azimuths)), 1),
                    options={**face.options, "phi_i_spread_deg": 0.5 * step})
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
     key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, SECTORS_KEY, azimuths)
     return TABLE_CACHE.get(key, lambda: _reconstruct_side(face, material, grid, wl, grid.inside_incidences_deg(),
                                                           "inside", progress, phi_i_deg=azimuths))
+
+
+def sector_plan(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths_nm: Any,
+                progress: Any = None) -> tuple[tuple, int, float] | None:
+    """(sector centres, inside tables' worth of rays they share, sector width deg) of a resolved relief
+    face's inside sector tables on `grid` (`inside_sectors` says which reliefs get which), or None."""
+    azimuths = grid.sector_azimuths_deg()
+    if not azimuths or face.method != "ray":   # no sector tables on this grid (sector_step_deg 180), or not rays
+        return None
+    if anisotropic_face(face) or azimuth_dependent(face, material, grid, wavelengths_nm, progress):
+        return azimuths, SECTOR_RAY_TABLES, float(grid.sector_step_deg)
+    if grid.sectors != "always":
+        return None
+    return TILE_SECTOR_AZIMUTHS_DEG, TILE_SECTOR_RAY_TABLES, 180.0 / len(TILE_SECTOR_AZIMUTHS_DEG)
 
 
 PROBE_THETA_DEG = 85.0        # incidence of the azimuth probe: light trapped in the glass, grazing the relief
