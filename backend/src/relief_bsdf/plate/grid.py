@@ -94,7 +94,9 @@ class TableGrid:
         own azimuth dependence, not its statistics'; a relief the gate picks keeps `sector_step_deg`): that
         case's rms z 1.23 -> 1.11 (seed 11: 1.16 -> 1.10) at 10 s per forward instead of 6 (the grid's 15-deg
         sectors at five tables' rays: 1.11 / 1.13 at 23-24 s).  Not the default: the diagnosis's and the
-        demo fit's evaluations would cost ~1.6x.  Grids with NO_SECTORS_DEG have none either way.
+        demo fit's evaluations would cost ~1.6x, and the default's inside table averaged over +-45 deg of
+        incidence azimuth (`inside_azimuth_spread_deg`, since 2026-12-05) does nearly as much at no cost
+        (that case 1.12).  Grids with NO_SECTORS_DEG have none either way.
     inside_azimuth_spread_deg: the inside table of a ray-traced relief (the one the loop turns about the
         normal for light at every azimuth) averages the incidence azimuths within +- this of its own (ray
         option `phi_i_spread_deg`: each ray's incidence turned by its own uniform offset, its exit turned
@@ -110,7 +112,11 @@ class TableGrid:
         1.17, the two tile sectors 1.11); reported on seed 11: slope 0.12 / 0.24 / 0.35 0.81 -> 0.79, 0.94 ->
         0.92, 1.16 -> 1.12, two scales 1.00 -> 0.99; on fresh seed 13: 0.92 -> 0.92, 1.04 -> 1.05, 1.05 ->
         1.05, two scales 1.00 -> 1.00 (exponential 1.04 / 0.99 unchanged: the azimuth probe gives it sector
-        tables, and a relief with sectors at 0 deg sends no light through this table).
+        tables, and a relief with sectors at 0 deg sends no light through this table).  Only where the
+        loop turns this one table to every azimuth (no inside sector tables, `plate.faces.sector_plan`):
+        where sector tables carry the loop, the table serves the light at its own azimuth (the in-plane
+        beams, the moving lobes' reference) and is traced there (light-guide dots, relief seed 13: 1.16,
+        1.29 spread).
     stokes_loop: the plate carries Stokes vectors through polarised (Mueller) tables (True, the
         physics of record); False: intensities only, the tables' M00 (the loop's matrices 4x smaller a
         side: its operators and solves ~16-64x cheaper), exact for unpolarised light only where no
