@@ -279,8 +279,8 @@ def parse_grid(spec: str):
     inside_samples_scale=s]) with the default direct grid; trailing ",nodirect" drops the direct grid,
     ",linear" blends the inside tables between their incidences (the engine before 2026-12-03: lobes
     that do not move); ",sectors=7.5" the inside sector tables' azimuth step, ",sectors=always" the sector
-    tables for every ray-traced relief (TableGrid.sectors), ",spread=0" the loop's inside table at its own
-    incidence azimuth only (TableGrid.inside_azimuth_spread_deg; 45 by default); "default,linear" too."""
+    tables for every ray-traced relief (TableGrid.sectors), ",spread=45" the loop's inside table averaged over
+    +-45 deg of incidence azimuth (TableGrid.inside_azimuth_spread_deg; 0 by default); "default,linear" too."""
     from relief_bsdf.plate import TableGrid
     parts = spec.split(",")
     kw = {}

@@ -111,8 +111,8 @@ def test_a_grid_can_ask_for_the_sector_tables_of_every_ray_traced_relief():
 def test_the_loops_one_inside_table_averages_the_incidence_azimuths_around_its_own():
     """The inside table a ray-traced relief gives the loop (turned about the normal for light at every
     azimuth) is traced with each ray's incidence azimuth spread over +-TableGrid.inside_azimuth_spread_deg
-    (45 by default; the same rays): it is that average, bit for bit the ray method's own table with the
-    option; 0 gives the table at its own azimuth; a face that sets the option keeps its own; other methods
+    (here 45; the same rays): it is that average, bit for bit the ray method's own table with the
+    option; 0, the default, gives the table at its own azimuth; a face that sets the option keeps its own; other methods
     are untouched; where inside sector tables carry the loop (an anisotropic relief, or any with sectors
     "always") the table serves the light at its own azimuth and is not spread; a spread of a right angle
     or more is refused by name."""
@@ -120,22 +120,24 @@ def test_the_loops_one_inside_table_averages_the_incidence_azimuths_around_its_o
     iso = random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2)
     mat = Material(ConstantIndex(1.5))
     face = ReliefFace(iso, "ray", 2000, 1)
-    _, t = face.tables(mat, TableGrid(), [550.0], [0.0], need_outside=False)
+    spread = TableGrid(inside_azimuth_spread_deg=45.0)
+    _, t = face.tables(mat, spread, [550.0], [0.0], need_outside=False)
     assert t.metadata["request"]["options"]["phi_i_spread_deg"] == 45.0
-    req = face_request(replace(face, options={"phi_i_spread_deg": 45.0}), mat, TableGrid(), [550.0],
-                       TableGrid().inside_incidences_deg(), "inside")
+    req = face_request(replace(face, options={"phi_i_spread_deg": 45.0}), mat, spread, [550.0],
+                       spread.inside_incidences_deg(), "inside")
     (own,) = reconstruct(iso, mat, req, "ray")
     np.testing.assert_array_equal(t.values_per_sr, own.values_per_sr)
-    _, t0 = face.tables(mat, TableGrid(inside_azimuth_spread_deg=0.0), [550.0], [0.0], need_outside=False)
+    assert TableGrid().inside_azimuth_spread_deg == 0.0
+    _, t0 = face.tables(mat, TableGrid(), [550.0], [0.0], need_outside=False)
     assert t0.metadata["request"]["options"]["phi_i_spread_deg"] == 0.0
     assert not np.array_equal(t0.values_per_sr, t.values_per_sr)
-    assert inside_face(replace(face, options={"phi_i_spread_deg": 10.0}), mat, TableGrid(),
+    assert inside_face(replace(face, options={"phi_i_spread_deg": 10.0}), mat, spread,
                        [550.0]).options["phi_i_spread_deg"] == 10.0
-    assert inside_face(replace(face, method="microfacet"), mat, TableGrid(), [550.0]).options == {}
+    assert inside_face(replace(face, method="microfacet"), mat, spread, [550.0]).options == {}
     # where sector tables carry the loop, the table serves the light at its own azimuth: not spread
-    assert inside_face(face, mat, TableGrid(sectors="always"), [550.0]).options == {}
+    assert inside_face(face, mat, replace(spread, sectors="always"), [550.0]).options == {}
     aniso = ReliefFace(_anisotropic(), "ray", 2000, 1)
-    assert inside_face(aniso, mat, TableGrid(), [550.0]).options == {}
-    assert inside_face(aniso, mat, TableGrid(sector_step_deg=180.0), [550.0]).options["phi_i_spread_deg"] == 45.0
+    assert inside_face(aniso, mat, spread, [550.0]).options == {}
+    assert inside_face(aniso, mat, replace(spread, sector_step_deg=180.0), [550.0]).options["phi_i_spread_deg"] == 45.0
     with pytest.raises(InputError, match="inside_azimuth_spread_deg"):
         TableGrid(inside_azimuth_spread_deg=90.0)
