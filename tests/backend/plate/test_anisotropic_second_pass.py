@@ -112,10 +112,10 @@ def test_the_loops_one_inside_table_averages_the_incidence_azimuths_around_its_o
     """The inside table a ray-traced relief gives the loop (turned about the normal for light at every
     azimuth) is traced with each ray's incidence azimuth spread over +-TableGrid.inside_azimuth_spread_deg
     (here 45; the same rays): it is that average, bit for bit the ray method's own table with the
-    option; 0, the default, gives the table at its own azimuth; a face that sets the option keeps its own; other methods
-    are untouched; where inside sector tables carry the loop (an anisotropic relief, or any with sectors
-    "always") the table serves the light at its own azimuth and is not spread; a spread of a right angle
-    or more is refused by name."""
+    option; 0, the default, gives the table at its own azimuth; a face that sets the option keeps its
+    own; other methods are untouched; where inside sector tables carry the loop (an anisotropic relief,
+    or any with sectors "always") the table serves the light at its own azimuth and is not spread; a
+    spread of a right angle or more is refused by name."""
     from relief_bsdf.methods import reconstruct
     iso = random_relief(96, 1e-6, 0.3e-6, 4e-6, seed=2)
     mat = Material(ConstantIndex(1.5))
@@ -138,6 +138,7 @@ def test_the_loops_one_inside_table_averages_the_incidence_azimuths_around_its_o
     assert inside_face(face, mat, replace(spread, sectors="always"), [550.0]).options == {}
     aniso = ReliefFace(_anisotropic(), "ray", 2000, 1)
     assert inside_face(aniso, mat, spread, [550.0]).options == {}
-    assert inside_face(aniso, mat, replace(spread, sector_step_deg=180.0), [550.0]).options["phi_i_spread_deg"] == 45.0
+    no_sectors = replace(spread, sector_step_deg=180.0)
+    assert inside_face(aniso, mat, no_sectors, [550.0]).options["phi_i_spread_deg"] == 45.0
     with pytest.raises(InputError, match="inside_azimuth_spread_deg"):
         TableGrid(inside_azimuth_spread_deg=90.0)

@@ -144,18 +144,17 @@ def test_forward_reaches_the_independent_recording_on_light_guide_dots():
 @pytest.mark.slow
 def test_forward_reaches_the_independent_recording_on_a_steep_gaussian_tile():
     """The top of the issue's slope range: a Gaussian relief of rms slope 0.35 (10-um correlation, a 256^2
-    tile of 1-um pixels: 651 correlation areas; the case gauss_high of benchmarks/bench_forward_accuracy.py
-    at relief seed 12), n 1.6, 3 mm, 2.5-deg cone, theta_i 0 / 30 / 60, 1 M photons per incidence.  The
-    finite tile answers light by azimuth (its slopes differ 6 % between its principal axes by sampling
-    alone), and the loop turns its one inside table to every azimuth: with that table averaged over the
-    incidence azimuths within +-45 deg (TableGrid.inside_azimuth_spread_deg=45) measured 1.12 (2026-12-05).
-    The default grid (the table at its own azimuth alone, spread 0: not yet the default, the TableGrid
-    field says why) misses this case at 1.23, R at theta_i 60 too high behind the plate's normal and too
-    low ahead of it (mean z +0.6 / -0.6)."""
+    tile of 1-um pixels: ~650 correlation areas; the case gauss_high of benchmarks/bench_forward_accuracy.py
+    at relief seed 11), n 1.6, 3 mm, 2.5-deg cone, theta_i 0 / 30 / 60, 1 M photons per incidence, with the
+    loop's one inside table averaged over the incidence azimuths within +-45 deg
+    (TableGrid.inside_azimuth_spread_deg=45).  The 45 was chosen on relief seed 12 (there 1.23 -> 1.12);
+    this seed chose nothing: measured 1.12 (2026-12-05; the default grid, spread 0, 1.16).  What the test
+    holds is the spread table's accuracy on a tile it was not chosen on, against the independent photon
+    Monte Carlo; the default grid's miss on seed 12 is in the TableGrid field's doc."""
     from relief_bsdf.core.index import ConstantIndex
     from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid, simulate
     from relief_bsdf.surface.synth import random_relief
-    relief = random_relief(256, 1e-6, 0.35 * 10e-6 / 2, 10e-6, "gaussian", seed=12)
+    relief = random_relief(256, 1e-6, 0.35 * 10e-6 / 2, 10e-6, "gaussian", seed=11)
     phys = PlatePhysics(thickness_mm=3.0, n_glass=1.6)
     rows = _rows((0.0, 30.0, 60.0), np.arange(1.0, 89.0, 2.0))
     val, sig, _ = trace_recording(relief, rows, phys, 2.5, 1_000_000, seed=1)

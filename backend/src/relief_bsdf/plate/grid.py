@@ -116,16 +116,18 @@ class TableGrid:
         loop turns this one table to every azimuth (no inside sector tables, `plate.faces.sector_plan`):
         where sector tables carry the loop, the table serves the light at its own azimuth (the in-plane
         beams, the moving lobes' reference) and is traced there (light-guide dots, relief seed 13: 1.16,
-        1.29 spread).  NOT the default yet: with 45 the demo fit (`make demo`, ray seed 0) ended at filter
-        0.9841 [0.9784, 0.9898] um against the true 1.0, 2.8 half-widths off (tests/backend/fit/
-        test_demo_fit.py), in a local minimum of the likelihood 6.6 above the one near the truth (chi^2 749.2
-        at the answer, 742.6 at (1.1989, 0.9998); along the filter at scale 1.2: 0.984 749, 0.99 752.7,
-        0.997 742.8, 1.0 743.9, 1.01 749.2): the tables' noise, which moves with the relief, makes bumps
-        of ~5-8 in chi^2 over a hundredth of a micrometre, as large as the interval's own curvature, and
-        the intervals (fit.covariance's shared draws widened them x1.07) do not hold them.  At ray seed 1
-        the same fit gave 0.9998 [0.9940, 1.0055] (spread 0: 0.9972 at seed 0, 0.9976 at seed 1).  The
-        forward itself is better with 45 there too (rms z at the truth 0.883 -> 0.876).  What it waits for:
-        a fit whose answer and intervals hold the objective's table-noise roughness.
+        1.29 spread).  Not in `key`: the inside table's face carries it (its ray option, in the face's cache
+        key, `plate.faces.inside_face`), and no other table depends on it.  NOT the default yet: with 45
+        the demo fit (`make demo`, ray seed 0) ended at filter 0.9841 [0.9784, 0.9898] um against the true
+        1.0, 2.8 half-widths off (tests/backend/fit/test_demo_fit.py), in a local minimum of the
+        likelihood 6.6 above the one near the truth (chi^2 749.2 at the answer, 742.6 at (1.1989, 0.9998);
+        along the filter at scale 1.2: 0.984 749, 0.99 752.7, 0.997 742.8, 1.0 743.9, 1.01 749.2): the
+        tables' noise, which moves with the relief, makes bumps of ~5-8 in chi^2 over a hundredth of a
+        micrometre, as large as the interval's own curvature, and the intervals (fit.covariance's shared draws
+        widened them x1.07) do not hold them.  At ray seed 1 the same fit gave 0.9998 [0.9940, 1.0055] (spread
+        0: 0.9972 at seed 0, 0.9976 at seed 1).  The forward itself is better with 45 there too (rms z at the
+        truth 0.883 -> 0.876).  What it waits for: a fit whose answer and intervals hold the objective's
+        table-noise roughness.
     stokes_loop: the plate carries Stokes vectors through polarised (Mueller) tables (True, the
         physics of record); False: intensities only, the tables' M00 (the loop's matrices 4x smaller a
         side: its operators and solves ~16-64x cheaper), exact for unpolarised light only where no
@@ -286,8 +288,7 @@ class TableGrid:
     def key(self) -> tuple:
         """Everything that determines the tables (cache keys)."""
         return (self.theta_step_deg, self.phi_step_deg, self.inside_theta_i_step_deg, self.direct_theta_step_deg,
-                self.direct_phi_step_deg, self.direct_band_deg, self.inside_samples_fraction,
-                self.inside_azimuth_spread_deg)
+                self.direct_phi_step_deg, self.direct_band_deg, self.inside_samples_fraction)
 
     def describe(self) -> dict:
         return {"theta_step_deg": self.theta_step_deg, "phi_step_deg": self.phi_step_deg,
