@@ -280,7 +280,8 @@ def parse_grid(spec: str):
     ",linear" blends the inside tables between their incidences (the engine before 2026-12-03: lobes
     that do not move); ",sectors=7.5" the inside sector tables' azimuth step, ",sectors=always" the sector
     tables for every ray-traced relief (TableGrid.sectors), ",spread=45" the loop's inside table averaged over
-    +-45 deg of incidence azimuth (TableGrid.inside_azimuth_spread_deg; 0 by default); "default,linear" too."""
+    +-45 deg of incidence azimuth (TableGrid.inside_azimuth_spread_deg; 45 by default since 2026-12-06,
+    ",spread=0" the table at its own azimuth); "default,linear" too."""
     from relief_bsdf.plate import TableGrid
     parts = spec.split(",")
     kw = {}

@@ -111,8 +111,8 @@ def test_a_grid_can_ask_for_the_sector_tables_of_every_ray_traced_relief():
 def test_the_loops_one_inside_table_averages_the_incidence_azimuths_around_its_own():
     """The inside table a ray-traced relief gives the loop (turned about the normal for light at every
     azimuth) is traced with each ray's incidence azimuth spread over +-TableGrid.inside_azimuth_spread_deg
-    (here 45; the same rays): it is that average, bit for bit the ray method's own table with the
-    option; 0, the default, gives the table at its own azimuth; a face that sets the option keeps its
+    (45, the default; the same rays): it is that average, bit for bit the ray method's own table with the
+    option; 0 gives the table at its own azimuth; a face that sets the option keeps its
     own; other methods are untouched; where inside sector tables carry the loop (an anisotropic relief,
     or any with sectors "always") the table serves the light at its own azimuth and is not spread; a
     spread of a right angle or more is refused by name."""
@@ -127,8 +127,8 @@ def test_the_loops_one_inside_table_averages_the_incidence_azimuths_around_its_o
                        spread.inside_incidences_deg(), "inside")
     (own,) = reconstruct(iso, mat, req, "ray")
     np.testing.assert_array_equal(t.values_per_sr, own.values_per_sr)
-    assert TableGrid().inside_azimuth_spread_deg == 0.0
-    _, t0 = face.tables(mat, TableGrid(), [550.0], [0.0], need_outside=False)
+    assert TableGrid().inside_azimuth_spread_deg == 45.0
+    _, t0 = face.tables(mat, TableGrid(inside_azimuth_spread_deg=0.0), [550.0], [0.0], need_outside=False)
     assert t0.metadata["request"]["options"]["phi_i_spread_deg"] == 0.0
     assert not np.array_equal(t0.values_per_sr, t.values_per_sr)
     assert inside_face(replace(face, options={"phi_i_spread_deg": 10.0}), mat, spread,

@@ -147,10 +147,10 @@ def test_forward_reaches_the_independent_recording_on_a_steep_gaussian_tile():
     tile of 1-um pixels: ~650 correlation areas; the case gauss_high of benchmarks/bench_forward_accuracy.py
     at relief seed 11), n 1.6, 3 mm, 2.5-deg cone, theta_i 0 / 30 / 60, 1 M photons per incidence, with the
     loop's one inside table averaged over the incidence azimuths within +-45 deg
-    (TableGrid.inside_azimuth_spread_deg=45).  The 45 was chosen on relief seed 12 (there 1.23 -> 1.12);
-    this seed chose nothing: measured 1.12 (2026-12-05; the default grid, spread 0, 1.16).  What the test
-    holds is the spread table's accuracy on a tile it was not chosen on, against the independent photon
-    Monte Carlo; the default grid's miss on seed 12 is in the TableGrid field's doc."""
+    (TableGrid.inside_azimuth_spread_deg=45, the default since 2026-12-06).  The 45 was chosen on relief
+    seed 12 (there 1.23 -> 1.12); this seed chose nothing: measured 1.12 (2026-12-05; spread 0: 1.16).
+    What the test holds is the spread table's accuracy on a tile it was not chosen on, against the
+    independent photon Monte Carlo."""
     from relief_bsdf.core.index import ConstantIndex
     from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid, simulate
     from relief_bsdf.surface.synth import random_relief

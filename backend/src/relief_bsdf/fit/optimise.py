@@ -28,11 +28,14 @@ non-Gaussian reliefs.  The fit therefore reports what the recording determines:
   the simplest point of the ridge, g = 0;
 - the estimate is the likelihood's optimum: the log metric steers the search from far away, then
   a few Gauss-Newton steps on the noise-weighted residuals (y - m) / S (S^2 = sigma_recording^2
-  + sigma_model^2, the diagnosis's misfit) finish it (`_polish`); the log metric's weights hold
+  + sigma_model^2, the diagnosis's misfit) bring it near (`_polish`); the log metric's weights hold
   the measured values, so its optimum moves with the noise (on the demo 2.7 half-widths in the filter);
-- 68 % intervals from the curvature of that chi^2 at the optimum (cov = (J^T J)^-1, Delta chi^2 =
-  1; fit.covariance), inflated by the reduced chi^2 when the model misses the noise and raised to
-  the Newey-West variance where the residuals run correlated along the scans; the correlation of
+  a response surface finishes it (`_smoothed`, fit.response_surface): those residuals regressed
+  linearly over a design of +-2 standard deviations, whose optimum does not sit in the bumps the
+  tables' Monte-Carlo noise puts into chi^2 on the scale of the interval;
+- 68 % intervals from the curvature of that chi^2 at the optimum (cov = (J^T J)^-1 with the
+  regression's Jacobian, Delta chi^2 = 1; fit.covariance), inflated by the reduced chi^2 when the
+  model misses the noise and raised to the Newey-West variance where the residuals run correlated along the scans; the correlation of
   (ln s, g); a ridge (moving along equal rms slope costs less than the criterion's bar) and
   non-identifiable parameters are named in plain `warnings`;
 - bounds on the scale (`scale_bounds`) and the filter (`max_filter_um`) are the user's.
@@ -56,6 +59,7 @@ from relief_bsdf.errors import InputError
 from relief_bsdf.fit import gauss_newton
 from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of, shared_columns
 from relief_bsdf.fit.residual import DEFAULT_METRIC, LogChiMetric, signed_residuals
+from relief_bsdf.fit.response_surface import Surface, smoothed_optimum
 from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain, overdispersion
 from relief_bsdf.io.atomic import write_text_atomic
 from relief_bsdf.io.recording import sigma_with_fallback
@@ -215,6 +219,7 @@ class FitResult:
     ridge: bool = False
     warnings: list = field(default_factory=list)
     computed: int = 0                 # forward evaluations computed in this run (not replayed)
+    surface: dict = field(default_factory=dict)   # the response surface's design (`_smoothed`)
 
     def to_json(self, extra: dict | None = None) -> dict:
         d = {"format": FIT_FORMAT, "metric": self.metric, "rms_before": self.rms_before, "rms_after": self.rms_after,
@@ -230,10 +235,14 @@ class FitResult:
                                  "estimate": "the likelihood's optimum: the search on the metric, then up to "
                                              f"{POLISH_STEPS} Gauss-Newton steps on the noise-weighted residuals "
                                              "(measured - simulated) / S, S^2 = sigma^2 + the simulation's own "
-                                             "sigma^2",
+                                             "sigma^2, then the optimum of a linear regression of those "
+                                             "residuals over a design of +-2 standard deviations around it "
+                                             "(fit.response_surface: the tables' noise bends chi^2 on the "
+                                             "scale of the interval)",
+                                 "response_surface": self.surface,
                                  "interval_method": "cov = (J^T J)^-1 from the Jacobian of those residuals "
-                                                    "(central differences) at the optimum (or within a tenth of a "
-                                                    "finite-difference step of it), 68 % = Delta chi2 of 1, "
+                                                    "(the regression's, over the design around the optimum), "
+                                                    "68 % = Delta chi2 of 1, "
                                                     "inflated by the reduced chi2 when it exceeds 1 and raised per "
                                                     "parameter to the Newey-West variance when the residuals run "
                                                     "correlated along the scans, plus the forward model's "
@@ -560,13 +569,42 @@ def _polish(obj: _Objective, c: _Coords, s: float, g: float,
     return s, g, done.jacobian
 
 
+SURFACE_SIGMAS = 2.0         # the response surface's half-width, in standard deviations of the estimate
+
+
+def _smoothed(obj: _Objective, c: _Coords, s: float, g: float,
+              J: np.ndarray | None) -> tuple[float, float, np.ndarray, Surface]:
+    """The likelihood's optimum near the polished (s, g) from a response surface (fit.response_surface):
+    the noise-weighted residuals z regressed linearly over a design of +-SURFACE_SIGMAS standard
+    deviations of the estimate (from `J`, the polish's central Jacobian, or one made here; inflated
+    by the reduced chi^2 when it exceeds 1), at least one finite-difference step per coordinate.
+    The polish's steps follow the local slopes of chi^2, which the tables' Monte-Carlo noise bends
+    on the scale of the interval itself; the regression averages them over the design.  Returns
+    (s, g, J, surface): J the regression's Jacobian, which serves the intervals."""
+    x0 = c.x(s, g)
+    if J is None:
+        J = _jacobian(obj, c, x0, likelihood=True)
+    z = obj.likelihood_residuals(s, g)
+    c_hat = max(1.0, float(z @ z) / max(z.size - x0.size, 1))
+    JtJ = J.T @ J
+    sd = np.full(x0.size, np.inf)
+    if np.all(np.isfinite(JtJ)) and np.linalg.matrix_rank(JtJ) == x0.size:
+        sd = np.sqrt(np.maximum(np.diag(np.linalg.inv(JtJ)), 0.0) * c_hat)
+    width = np.minimum(SURFACE_SIGMAS * sd, 0.25 * (c.upper - c.lower))
+    h = np.maximum(width, 0.1 * c.step)
+    surf = smoothed_optimum(lambda x: obj.likelihood_residuals(*c.sg(x)), x0, c.lower, c.upper, h)
+    s, g = c.sg(surf.x)
+    return s, g, surf.jacobian, surf
+
+
 def _intervals(obj: _Objective, c: _Coords, s: float, g: float, gmax: float,
                J: np.ndarray | None = None) -> tuple[dict, float | None, list]:
     """68 % intervals from the likelihood's Jacobian at (s, g) (fit.covariance): cov(x) = (J^T J)^-1 (Delta chi^2 = 1),
     inflated by the reduced chi^2 when it exceeds 1 (Birge ratio: the model misses the noise) and,
     per parameter, to the Newey-West (HAC) variance when the residuals run correlated along the scans;
     a parameter is 'not determined' (None) when J^T J is singular or its interval reaches past the
-    bounds.  `J`: a central Jacobian already made within a tenth of a step of (s, g) (`_polish`)."""
+    bounds.  `J`: a Jacobian already made at (s, g): the response surface's regression (`_smoothed`), or a
+    central one within a tenth of a step (`_polish`)."""
     x0 = c.x(s, g)
     if J is None:
         J = _jacobian(obj, c, x0, likelihood=True)
@@ -691,8 +729,10 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
        chi^2 = sum r^2); otherwise the scale-only optimum is the answer (the simplest point of a
        ridge);
     5. from the answer, a few Gauss-Newton steps on the likelihood's noise-weighted residuals
-       (`_polish`: the log metric steers the search, the likelihood gives the estimate), then 68 %
-       intervals and the correlation from the likelihood's Jacobian there (`_intervals`), and one
+       (`_polish`: the log metric steers the search, the likelihood gives the estimate), the optimum
+       of a response surface of those residuals over a design of +-2 standard deviations around it
+       (`_smoothed`: 8 evaluations a round, one or two rounds), then 68 % intervals and the
+       correlation from the regression's Jacobian there (`_intervals`), and one
        probe along equal rms slope for a ridge (`_ridge_probe`): a few evaluations more.
     The budget counts distinct parameter points (a Jacobian's base point is not paid twice).
     `checkpoint`: an io.checkpoint.CheckpointStore (or a .json path, keyed by the recording) of
@@ -745,6 +785,10 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     chosen = both if needed else alone
     s, g = chosen["parameters"]["height_scale"], chosen["parameters"]["filter_sigma_um"]
     s, g, J = _polish(obj, c2 if needed else c1, s, g)         # the likelihood's optimum (step 5)
+    s, g, J, surface = _smoothed(obj, c2 if needed else c1, s, g, J)
+    surface_doc = {"design_points": surface.points, "rounds": surface.rounds,
+                   "coordinates": ["ln height_scale", "filter_sigma_um^2"][:surface.x.size],
+                   "scatter_about_linear_model": surface.scatter}
     chosen = {"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": obj(s, g, stop_at_threshold=False)}
     iv, corr, warnings = _intervals(obj, c2 if needed else c1, s, g, gmax, J)
     if not needed:
@@ -763,7 +807,8 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
                         "forward model (e.g. its table grid); physics beyond scale and filter may be missing "
                         "(relief diagnose)")
     return FitResult(s, g, rms_before, chosen["rms"], obj.iterations, settings.metric.describe(), stopped,
-                     time.monotonic() - t0, iv, corr, bool(needed), float(gain), bool(ridge), warnings, obj.new_evals)
+                     time.monotonic() - t0, iv, corr, bool(needed), float(gain), bool(ridge), warnings, obj.new_evals,
+                     surface_doc)
 
 
 # ---------------------------------------------------------------- whole job for the CLI

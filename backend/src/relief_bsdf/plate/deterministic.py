@@ -39,7 +39,7 @@ Method (radiative transfer between two faces, discrete ordinates):
   it (azimuthal reduction), so the solve is A/2+1 small (N x N) systems instead of one
   (N A) x (N A) system.  A finite tile is never quite isotropic: the one table a ray-traced relief
   gives this loop can average the incidence azimuths around its own
-  (`TableGrid.inside_azimuth_spread_deg`, `plate.faces.inside_face`; 0 by default).  An anisotropic
+  (`TableGrid.inside_azimuth_spread_deg`, `plate.faces.inside_face`; +-45 deg by default).  An anisotropic
   relief traced by rays gives its inside table over twelve incidence-azimuth sectors (every 15 deg
   by default, each the average over its sector, `inside_sectors`, `TableGrid.sector_step_deg`): light
   at propagation azimuth delta then scatters by the table of its sector, K = K_0 + sum_k (K_k - K_0) P_k
