@@ -11,10 +11,22 @@ from __future__ import annotations
 import numpy as np
 
 F32 = np.float32
+ROW_PAD = 16          # float32 (one cache line) between the rows of a (rows, m) array: see `padded_rows`
 
 # exit states
 ABOVE, BELOW, LOST_BOUNCES, LOST_LEAK, LOST_ABSORBED = 0, 1, 2, 3, 4
 STATE_NAMES = {LOST_BOUNCES: "max_bounces", LOST_LEAK: "numerical_leak", LOST_ABSORBED: "absorbed"}
+
+
+def padded_rows(shape: tuple, m: int) -> np.ndarray:
+    """An uninitialised float32 array (*shape, m) whose rows start one cache line apart modulo 4 KiB.
+
+    A chunk's arrays have power-of-two lengths (2^16 rays, 2^17 exits): unpadded, the 16 rows of a
+    Mueller record lie a power of two apart and fall into the same cache set, so a kernel writing or
+    reading one record's entries across them (`relief_bsdf.kernels`) evicts its own lines; numpy's
+    row-by-row passes do not care.  A view of a slightly wider array (rows ROW_PAD floats longer).
+    """
+    return np.empty(tuple(shape) + (m + ROW_PAD,), F32)[..., :m]
 
 
 class Exits:
@@ -31,7 +43,7 @@ class Exits:
         self.state = np.empty(m, np.int8)
         self.nb = np.empty(m, np.int16)
         self.ids = np.empty(m, np.int64)
-        self.A = np.empty((4, K, m), F32) if K else None
+        self.A = padded_rows((4, K), m) if K else None
         self.n = 0
         self.m = m
         self.segments = 0

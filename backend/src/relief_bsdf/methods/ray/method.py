@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from relief_bsdf import kernels
 from relief_bsdf.bsdf.builder import CellAccumulator, CellIndex, ExitSamples, specular_flags
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.core.frames import beam_directions, cross_rows, direction, dot_rows, normalize, rotate_z_rows
@@ -571,6 +572,7 @@ def _table(side: str, d: dict, run: _Run) -> BsdfTable:
             "max_bounces": int(opts.max_bounces),
             "timing_s": {**run.timing, "total": time.perf_counter() - run.t0},
             "parallel": last_run(),
+            "ray_kernel": kernels.name(),
             "tasks": diag,
             "uncertainty": uncertainty,
             "warnings": warn,

@@ -57,11 +57,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from relief_bsdf import kernels
 from relief_bsdf.core.frames import cross_rows, dot_rows
 from relief_bsdf.core.fresnel import interface_coefficients_f32, reflectance_unpolarized_f32
 from relief_bsdf.core.stokes import (apply_interface_mueller_columns, double_angle_cd,
                                      rotate_stokes_columns_cd, s_axis_rows)
-from relief_bsdf.methods.ray.exits import ABOVE, BELOW, LOST_ABSORBED, LOST_BOUNCES, LOST_LEAK, Exits
+from relief_bsdf.methods.ray.exits import ABOVE, BELOW, LOST_ABSORBED, LOST_BOUNCES, LOST_LEAK, Exits, padded_rows
 
 F32 = np.float32
 ALONG_Z_XY2 = F32(1e-14)     # k_x^2 + k_y^2 below which an exit is along z: its frame is the fallback azimuth's
@@ -220,7 +221,7 @@ def first_interaction_factors(coef, c2, s2, inv_p) -> np.ndarray:
     16 of the product (`columns_of_factors`): what a ray carries after its first interaction until
     it interacts again (most rays leave first: their exit columns come from the factors,
     `StokesCarrier.exit_columns`)."""
-    F = np.empty((6, np.size(coef[0])), F32)
+    F = padded_rows((6,), np.size(coef[0]))
     for x, o in zip(coef, F[:4]):
         np.multiply(x, inv_p, out=o)
     F[4] = c2
@@ -385,7 +386,11 @@ class StokesCarrier:
         the ray's basis (s . k = 0, |k| = 1): s . u = |u| (s . s') and p . u = s . n, so the
         rotation's (c, d) = (s . s', p . s') are (s . u, s . n) / |u| (`rotate_stokes_columns_cd`
         needs them only up to that factor): two dot products instead of a cross product.
+        With the compiled kernels (real indices): `_compiled.facet_event`, the same numbers.
         """
+        ck = kernels.active()
+        if ck is not None and not media.is_complex:
+            return self._reflectance_compiled(ck, rays, f, media)
         k, s_old = rays.k, rays.s
         kx, ky, kz = f.k3
         # u = n x k in three contiguous arrays (column ops on an (n, 3) array are strided, ~3x slower),
@@ -427,6 +432,21 @@ class StokesCarrier:
         rotate_stokes_columns_cd(rays.A, c, d)
         self._ev = (R, T, s_new, None)
         return np.clip(R[0] + R[1] * rays.A[1, 0], 0, 1).astype(F32, copy=False)
+
+    def _reflectance_compiled(self, ck, rays: Rays, f: Facet, media: Media) -> np.ndarray:
+        """`reflectance` in one C pass over the rays (`_compiled.facet_event`)."""
+        n = rays.size
+        if rays.F is not None:                      # a second interaction: the factors become columns
+            rays.A, rays.F = columns_of_factors(rays.F), None
+        s_new = np.empty((n, 3), F32)
+        rot = padded_rows((2,), n)
+        R = padded_rows((4,), n)
+        T = padded_rows((4,), n)
+        pR = np.empty(n, F32)
+        ck.facet_event(f.nfx, f.nfy, f.nfz, *f.k3, rays.s, f.ci, rays.below.view(np.uint8), F32(media.n_above),
+                       F32(media.n_below), rays.A, s_new, rot[0], rot[1], R, T, pR)
+        self._ev = (tuple(R), tuple(T), s_new, None if rays.A is not None else (rot[0], rot[1]))
+        return pR
 
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
         """(A, s, F) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R
@@ -475,7 +495,20 @@ class StokesCarrier:
         """Write the columns of the rays idx (all when None), re-expressed in the exit frame
         s = z x k, into `out` (4, K, m): the exit record's slot, filled row by row without a
         temporary (`np.take` into each contiguous row); k_exit (m, 3) their directions.  Rays that
-        hold the factors of their first interaction: `exit_columns_of_factors`."""
+        hold the factors of their first interaction: `exit_columns_of_factors`.  With the compiled
+        kernels: `_compiled.exit_columns` (the same numbers; exits along z by the numpy code)."""
+        ck = kernels.active()
+        if ck is None or (rays.F is None and rays.A is None):
+            self._exit_columns_numpy(rays, idx, phi_exit_rad, k_exit, out)
+            return
+        if ck.exit_columns(rays.F, rays.A, rays.s, k_exit, idx, out, ALONG_Z_XY2):
+            zi = np.flatnonzero(k_exit[:, 0] * k_exit[:, 0] + k_exit[:, 1] * k_exit[:, 1] < ALONG_Z_XY2)
+            cols = np.empty((4, self.K, zi.size), F32)
+            self._exit_columns_numpy(rays, zi if idx is None else idx[zi], phi_exit_rad, k_exit[zi], cols)
+            out[:, :, zi] = cols
+
+    def _exit_columns_numpy(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out) -> None:
+        """The numpy code of `exit_columns`."""
         F = None
         if rays.F is not None:
             F = rays.F if idx is None else np.take(rays.F, idx, axis=1, mode="clip")
