@@ -18,7 +18,8 @@ if os.environ.get("RELIEF_PURE_PYTHON", "") not in ("1", "true", "yes"):
         print("relief-bsdf: Cython not available: the ray kernels stay numpy")
     else:
         ext = Extension("relief_bsdf.kernels._compiled", ["src/relief_bsdf/kernels/_compiled.pyx"],
-                        extra_compile_args=["-O3", "-ffp-contract=off"], optional=True)
+                        extra_compile_args=["-O3", "-ffp-contract=off", "-fno-tree-slp-vectorize", "-fno-math-errno",
+                                            "-fno-trapping-math"], optional=True)
         ext_modules = cythonize([ext], language_level=3, quiet=True)
 
 setup(ext_modules=ext_modules)

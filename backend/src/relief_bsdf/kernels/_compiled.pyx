@@ -3,10 +3,12 @@
 
 Every kernel repeats the float32 / float64 operations of the numpy code it replaces, in the same
 order (its docstring names that code), so that the results are bit for bit the same; the module is
-compiled with -ffp-contract=off (no fused multiply-add).
+compiled with -ffp-contract=off (no fused multiply-add) and -fno-tree-slp-vectorize (gcc packs the
+x and y components of a ray into one SSE division whose unused lanes divide garbage, with microcode
+assists for denormals: 4x slower than numpy).
 """
 
-from libc.math cimport INFINITY, isfinite, sqrtf
+from libc.math cimport INFINITY, copysignf, fabsf, isfinite, sqrtf
 from libc.float cimport FLT_MAX
 
 cdef extern from *:
@@ -57,8 +59,7 @@ cdef inline void double_angle(float c, float d, float *c2, float *s2) noexcept n
     """(cos 2psi, sin 2psi) from c, d as `core.stokes.double_angle_cd`: (c^2 - d^2) / r, 2 c d / r, r = 0 -> 1."""
     cdef float cc = c * c, dd = d * d
     cdef float r = cc + dd
-    if r == 0:
-        r = 1
+    r = 1 if r == 0 else r
     cdef float sn = c * d
     sn = sn + sn
     s2[0] = sn / r
@@ -136,134 +137,250 @@ def exit_columns(const float[:, :] F, const float[:, :, :] A, const float[:, :] 
 
 cdef inline float nan_to_num(float x) noexcept nogil:
     """np.nan_to_num for float32: NaN -> 0, +-inf -> +-FLT_MAX."""
-    if x != x:
-        return 0
-    if x == INFINITY:
-        return FLT_MAX
-    if x == -INFINITY:
-        return -FLT_MAX
-    return x
+    x = 0 if x != x else x
+    x = FLT_MAX if x == INFINITY else x
+    return -FLT_MAX if x == -INFINITY else x
 
 
 cdef inline float clip01(float x) noexcept nogil:
     """np.clip(x, 0, 1) (NaN stays NaN)."""
-    if x < 0:
-        return 0
-    if x > 1:
-        return 1
-    return x
+    x = 0 if x < 0 else x
+    return 1 if x > 1 else x
 
 
-cdef void interface_coefficients(float ci, float n1, float n2, float *R, float *T) noexcept nogil:
+cdef inline void interface_coefficients(float ci, float n1, float n2, float *R, float *T) noexcept nogil:
     """Mueller coefficients R = (aR, bR, cR, dR), T = (aT, bT, cT, dT) of a facet between real indices n1 -> n2
     at cos i = ci: `core.fresnel.interface_coefficients_f32` (real branch, total internal reflection
-    included) operation by operation in float32."""
+    included) operation by operation in float32.  Branch-free (both branches computed, one selected), so
+    that the loop calling it vectorises."""
     cdef float q = n1 / n2, x = 1 - ci * ci
-    if x < 0:                                        # np.maximum(0, x)
-        x = 0
+    x = 0 if x < 0 else x                            # np.maximum(0, x) (NaN kept)
     cdef float sin2_t = (q * q) * x
-    cdef bint tir = sin2_t >= 1
     x = 1 - sin2_t
-    if x < 0:
-        x = 0
+    x = 0 if x < 0 else x
     cdef float ct = sqrtf(x)
     cdef float a = n1 * ci, b = n2 * ct, c = n2 * ci, d = n1 * ct
     cdef float rs = (a - b) / (a + b), rp = (c - d) / (c + d)
-    cdef float aR = <float>0.5 * (rs * rs + rp * rp), bR = <float>0.5 * (rs * rs - rp * rp), cR = rs * rp, dR = 0
+    cdef float aR = <float>0.5 * (rs * rs + rp * rp), bR = <float>0.5 * (rs * rs - rp * rp), cR = rs * rp
     cdef float ts = (2 * a) / (a + b), tp = (2 * a) / (c + d)
     cdef float cT = ((b / a) * ts) * tp
-    cdef float aT = 1 - aR, bT = -bR
-    cdef float g, A1, B1, P1, Q1, den, ab, pq
-    if tir:                                          # `fresnel._total_internal_reflection`
-        x = sin2_t - 1
-        if x < 0:
-            x = 0
-        g = sqrtf(x)
-        A1 = n1 * ci
-        B1 = n2 * g
-        P1 = n2 * ci
-        Q1 = n1 * g
-        den = (A1 * A1 + B1 * B1) * (P1 * P1 + Q1 * Q1)
-        ab = A1 * A1 - B1 * B1
-        pq = P1 * P1 - Q1 * Q1
-        aR = 1
-        bR = 0
-        cR = (ab * pq + (((4 * A1) * B1) * P1) * Q1) / den
-        dR = ((((2 * P1) * Q1) * ab) - (((2 * A1) * B1) * pq)) / den
-        aT = 0
-        bT = 0
-        cT = 0
-    if tir or not isfinite(cT):
-        cT = 0
-    R[0] = nan_to_num(aR)
-    R[1] = nan_to_num(bR)
-    R[2] = nan_to_num(cR)
-    R[3] = dR
-    T[0] = aT
-    T[1] = bT
-    T[2] = cT
+    # past the critical angle (`fresnel._total_internal_reflection`)
+    x = sin2_t - 1
+    x = 0 if x < 0 else x
+    cdef float g = sqrtf(x)
+    cdef float A1 = n1 * ci, B1 = n2 * g, P1 = n2 * ci, Q1 = n1 * g
+    cdef float den = (A1 * A1 + B1 * B1) * (P1 * P1 + Q1 * Q1)
+    cdef float ab = A1 * A1 - B1 * B1, pq = P1 * P1 - Q1 * Q1
+    cdef float cR_tir = (ab * pq + (((4 * A1) * B1) * P1) * Q1) / den
+    cdef float dR_tir = ((((2 * P1) * Q1) * ab) - (((2 * A1) * B1) * pq)) / den
+    R[0] = 1 if sin2_t >= 1 else nan_to_num(aR)      # sin2_t >= 1: total internal reflection
+    R[1] = 0 if sin2_t >= 1 else nan_to_num(bR)
+    R[2] = nan_to_num(cR_tir if sin2_t >= 1 else cR)
+    R[3] = dR_tir if sin2_t >= 1 else 0
+    T[0] = 0 if sin2_t >= 1 else 1 - aR
+    T[1] = 0 if sin2_t >= 1 else -bR
+    cT = 0 if fabsf(cT) > FLT_MAX else cT            # ~isfinite: inf or NaN (NaN > x is false: NaN == NaN fails)
+    cT = 0 if cT != cT else cT
+    T[2] = 0 if sin2_t >= 1 else cT
     T[3] = 0
+
+
+cdef extern from *:
+    """
+    typedef float *__restrict__ f32_out;
+    typedef const float *__restrict__ f32_in;
+    typedef const unsigned char *__restrict__ u8_in;
+    """
+    ctypedef float *f32_out             # restrict pointers: no aliasing checks, so gcc vectorises the loops
+    ctypedef const float *f32_in
+    ctypedef const unsigned char *u8_in
 
 
 def facet_event(const float[::1] nfx, const float[::1] nfy, const float[::1] nfz, const float[::1] kx,
                 const float[::1] ky, const float[::1] kz, const float[:, :] s, const float[::1] ci,
-                const unsigned char[::1] below, float n_above, float n_below, float[:, :, :] A,
-                float[:, ::1] s_new, float[::1] c2, float[::1] s2, float[:, :] R, float[:, :] T,
-                float[::1] pR):
+                const float[::1] n1, const float[::1] n2, float[:, :, ::1] A, float[:, ::1] s_new,
+                float[:, :] scratch, float[::1] c2, float[::1] s2, float[:, :] R, float[:, :] T, float[::1] pR):
     """The polarised event at the facets hit (`transport.StokesCarrier.reflectance`, real indices), per ray:
     the facet's basis s_new = n x k / |n x k| (the old s where |n x k| < 1e-6: normal incidence), the
     rotation's (cos 2psi, sin 2psi) onto it (c2, s2), the interface coefficients R (4, n), T (4, n) from
-    n1, n2 = (n_below, n_above) below the surface, (n_above, n_below) above; the columns A (4, K, n)
+    the indices n1 -> n2 of each ray (`facet_geometry`); the columns A (4, K, n)
     rotated in place (None: the identity, a first interaction, not rotated) and the reflectance of
-    column 0's state pR = clip((M_R A)_00, 0, 1).  The float32 operations of the numpy code, in order.
+    column 0's state pR = clip((M_R A)_00, 0, 1).  The float32 operations of the numpy code, in order;
+    written without branches over restrict pointers, so that gcc vectorises the loops (numpy's passes
+    are SIMD; a scalar C loop is bound by its ~12 divisions and square roots per ray).  scratch: (3, n) rows
+    for the new basis before it is interleaved into s_new.
     """
     cdef Py_ssize_t n = ci.shape[0], i, col, K = 0 if A is None else A.shape[1]
-    cdef bint rotate = A is not None
-    cdef float u0, u1, u2, sx, sy, sz, c, d, sn, n1, n2, a1, a2, E, S
+    cdef Py_ssize_t ss = s.strides[0] // sizeof(float), sc = s.strides[1] // sizeof(float)
+    if s_new.shape[0] != n or R.shape[1] != n or T.shape[1] != n or s.shape[0] != n or (A is not None and
+                                                                                         A.shape[2] != n):
+        raise ValueError("facet_event: inconsistent shapes")
+    if n == 0:
+        return
+    if R.strides[1] != sizeof(float) or T.strides[1] != sizeof(float) or scratch.strides[1] != sizeof(float) \
+            or scratch.shape[0] != 3 or scratch.shape[1] != n or n1.shape[0] != n or n2.shape[0] != n:
+        raise ValueError("facet_event: inconsistent shapes (rows of R, T and scratch contiguous)")
+    with nogil:
+        facet_loop(n, &nfx[0], &nfy[0], &nfz[0], &kx[0], &ky[0], &kz[0], &s[0, 0], ss, sc, &ci[0], &n1[0],
+                   &n2[0], &scratch[0, 0], &scratch[1, 0], &scratch[2, 0], &c2[0], &s2[0], &R[0, 0], &R[1, 0],
+                   &R[2, 0], &R[3, 0], &T[0, 0], &T[1, 0], &T[2, 0], &T[3, 0], &pR[0])
+        for i in range(n):
+            s_new[i, 0] = scratch[0, i]
+            s_new[i, 1] = scratch[1, i]
+            s_new[i, 2] = scratch[2, i]
+        for col in range(K):                          # the columns rotated onto the facet's basis
+            rotate_loop(n, &c2[0], &s2[0], &A[1, col, 0], &A[2, col, 0])
+        if K:
+            reflectance_loop(n, &R[0, 0], &R[1, 0], &A[1, 0, 0], &pR[0])
+
+
+cdef void facet_loop(Py_ssize_t n, f32_in nfx, f32_in nfy, f32_in nfz, f32_in kx, f32_in ky, f32_in kz, f32_in s,
+                     Py_ssize_t ss, Py_ssize_t sc, f32_in ci, f32_in n1, f32_in n2, f32_out snx, f32_out sny,
+                     f32_out snz, f32_out c2, f32_out s2, f32_out r0, f32_out r1, f32_out r2, f32_out r3,
+                     f32_out t0, f32_out t1, f32_out t2, f32_out t3, f32_out pR) noexcept nogil:
+    """The loop of `facet_event` over restrict pointer parameters (gcc honours restrict on parameters), float
+    data only and no branches (selects), so that it vectorises with baseline SSE2; the new basis in rows."""
+    cdef Py_ssize_t i
+    cdef float u0, u1, u2, sx, sy, sz, c, d, sn, E, S
     cdef float Rv[4]
     cdef float Tv[4]
-    if s_new.shape[0] != n or R.shape[1] != n or T.shape[1] != n or (rotate and A.shape[2] != n):
-        raise ValueError("facet_event: inconsistent shapes")
+    for i in range(n):
+        u0 = nfy[i] * kz[i] - nfz[i] * ky[i]
+        u1 = nfz[i] * kx[i] - nfx[i] * kz[i]
+        u2 = nfx[i] * ky[i] - nfy[i] * kx[i]
+        sx = s[i * ss]
+        sy = s[i * ss + sc]
+        sz = s[i * ss + 2 * sc]
+        c = (sx * u0 + sy * u1) + sz * u2
+        d = (sx * nfx[i] + sy * nfy[i]) + sz * nfz[i]
+        sn = sqrtf((u0 * u0 + u1 * u1) + u2 * u2)
+        # |u| < 1e-6: normal incidence on the facet, the basis kept
+        u0 = sx if sn < <float>1e-6 else u0
+        u1 = sy if sn < <float>1e-6 else u1
+        u2 = sz if sn < <float>1e-6 else u2
+        c = 1 if sn < <float>1e-6 else c
+        d = 0 if sn < <float>1e-6 else d
+        sn = 1 if sn < <float>1e-6 else sn
+        snx[i] = u0 / sn
+        sny[i] = u1 / sn
+        snz[i] = u2 / sn
+        double_angle(c, d, &E, &S)
+        c2[i] = E
+        s2[i] = S
+        interface_coefficients(ci[i], n1[i], n2[i], Rv, Tv)
+        r0[i] = Rv[0]
+        r1[i] = Rv[1]
+        r2[i] = Rv[2]
+        r3[i] = Rv[3]
+        t0[i] = Tv[0]
+        t1[i] = Tv[1]
+        t2[i] = Tv[2]
+        t3[i] = Tv[3]
+        pR[i] = clip01(Rv[0])
+
+
+cdef void rotate_loop(Py_ssize_t n, f32_in c2, f32_in s2, f32_out a1, f32_out a2) noexcept nogil:
+    """Rows 1, 2 of one Stokes column rotated (`core.stokes.rotate_stokes_columns_cd`'s operations)."""
+    cdef Py_ssize_t i
+    cdef float x1, x2
+    for i in range(n):
+        x1 = a1[i]
+        x2 = a2[i]
+        a1[i] = c2[i] * x1 + s2[i] * x2
+        a2[i] = x2 * c2[i] - x1 * s2[i]
+
+
+cdef void reflectance_loop(Py_ssize_t n, f32_in aR, f32_in bR, f32_in a10, f32_out pR) noexcept nogil:
+    """pR = clip(aR + bR A_10, 0, 1): the reflectance of column 0's state after the rotation."""
+    cdef Py_ssize_t i
+    for i in range(n):
+        pR[i] = clip01(aR[i] + bR[i] * a10[i])
+
+
+
+# ----------------------------------------------------------------------------- geometry of a batch
+
+
+cdef inline float copysign_f(float mag, float sgn) noexcept nogil:
+    return copysignf(mag, sgn)
+
+
+cdef inline float fmin_f(float a, float b) noexcept nogil:
+    """np.fmin: the smaller, a NaN ignored (inline: libm's fminf is a call)."""
+    if b != b or a < b:
+        return a
+    return b
+
+
+def slab_distances(const float[:, :] o, const float[:, :] k, float hx, float hy, float zh, float zc,
+                   float[:, ::1] T, float[::1] t_lat, float[::1] tfar):
+    """Distances along k (n, 3) from o to the tile's sides and the slab's faces (`tracer.ReliefTracer.query`):
+    T[i, j] = (copysign(h_j, k_j) - o_j + c_j) / k_j with h = (hx, hy, zh), c = (0, 0, zc); t_lat = fmin(T_x,
+    T_y), tfar = max(fmin(t_lat, T_z), 0).  The float32 operations of the numpy code, in order."""
+    cdef Py_ssize_t n = k.shape[0], i
+    cdef float tx, ty, tz, tl, tf
+    if o.shape[0] != n or T.shape[0] != n or t_lat.shape[0] != n or tfar.shape[0] != n:
+        raise ValueError("slab_distances: inconsistent shapes")
     with nogil:
         for i in range(n):
-            u0 = nfy[i] * kz[i] - nfz[i] * ky[i]
-            u1 = nfz[i] * kx[i] - nfx[i] * kz[i]
-            u2 = nfx[i] * ky[i] - nfy[i] * kx[i]
-            sx = s[i, 0]
-            sy = s[i, 1]
-            sz = s[i, 2]
-            c = (sx * u0 + sy * u1) + sz * u2
-            d = (sx * nfx[i] + sy * nfy[i]) + sz * nfz[i]
-            sn = sqrtf((u0 * u0 + u1 * u1) + u2 * u2)
-            if sn < <float>1e-6:
-                sn = 1
-                u0 = sx
-                u1 = sy
-                u2 = sz
-                c = 1
-                d = 0
-            s_new[i, 0] = u0 / sn
-            s_new[i, 1] = u1 / sn
-            s_new[i, 2] = u2 / sn
-            double_angle(c, d, &E, &S)
-            c2[i] = E
-            s2[i] = S
-            if below[i]:
-                n1 = n_below
-                n2 = n_above
-            else:
-                n1 = n_above
-                n2 = n_below
-            interface_coefficients(ci[i], n1, n2, Rv, Tv)
-            for col in range(4):
-                R[col, i] = Rv[col]
-                T[col, i] = Tv[col]
-            if rotate:
-                for col in range(K):
-                    a1 = A[1, col, i]
-                    a2 = A[2, col, i]
-                    A[1, col, i] = E * a1 + S * a2
-                    A[2, col, i] = a2 * E - a1 * S
-                pR[i] = clip01(Rv[0] + Rv[1] * A[1, 0, i])
-            else:
-                pR[i] = clip01(Rv[0])
+            tx = ((copysign_f(hx, k[i, 0]) - o[i, 0]) + <float>0) / k[i, 0]
+            ty = ((copysign_f(hy, k[i, 1]) - o[i, 1]) + <float>0) / k[i, 1]
+            tz = ((copysign_f(zh, k[i, 2]) - o[i, 2]) + zc) / k[i, 2]
+            T[i, 0] = tx
+            T[i, 1] = ty
+            T[i, 2] = tz
+            tl = fmin_f(tx, ty)
+            t_lat[i] = tl
+            tf = fmin_f(tl, tz)
+            if tf < 0:
+                tf = 0
+            tfar[i] = tf
+
+
+def facet_geometry(const float[:, :] ng, const float[:, :] k, const unsigned char[::1] below, float eta_up,
+                   float eta_dn, float n_above, float n_below, float[:, :] out, unsigned char[::1] tir,
+                   unsigned char[::1] leak):
+    """The facets hit (`transport._hits`, `_facet`) per ray from Embree's normals ng (n, 3): out (10, n) holds
+    rows kx, ky, kz (the directions, contiguous), nfx, nfy, nfz (the unit normal on the incident side:
+    ng / |ng| with the sign of ng_z, negated below the surface), cos i = |k . n_up|, cos t (Snell, 0 past
+    the critical angle), eta = n1 / n2, k . n_up and the indices n1, n2 (n_below, n_above below the surface,
+    n_above, n_below above: `transport.Media.pair`); tir and leak (k . n_up > 0 is not `below`: a ray on
+    the wrong side) as 0 / 1; out has 12 rows.  The float32 operations of the numpy code, in order."""
+    cdef Py_ssize_t n = k.shape[0], i
+    cdef float gx, gy, gz, kx, ky, kz, inv, dot, s, ci, eta, sin2t, ct
+    cdef bint b
+    if ng.shape[0] != n or out.shape[0] != 12 or out.shape[1] != n or tir.shape[0] != n or leak.shape[0] != n:
+        raise ValueError("facet_geometry: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            gx = ng[i, 0]
+            gy = ng[i, 1]
+            gz = ng[i, 2]
+            kx = k[i, 0]
+            ky = k[i, 1]
+            kz = k[i, 2]
+            inv = copysign_f(<float>1 / sqrtf((gx * gx + gy * gy) + gz * gz), gz)
+            dot = ((kx * gx + ky * gy) + kz * gz) * inv
+            b = below[i] != 0
+            leak[i] = (dot > 0) != b
+            s = -inv if b else inv
+            ci = fabsf(dot)
+            eta = eta_up if b else eta_dn
+            sin2t = (1 - ci * ci) * (eta * eta)
+            tir[i] = sin2t >= 1
+            ct = 1 - sin2t
+            if ct < 0:
+                ct = 0
+            ct = sqrtf(ct)
+            out[0, i] = kx
+            out[1, i] = ky
+            out[2, i] = kz
+            out[3, i] = gx * s
+            out[4, i] = gy * s
+            out[5, i] = gz * s
+            out[6, i] = ci
+            out[7, i] = ct
+            out[8, i] = eta
+            out[9, i] = dot
+            out[10, i] = n_below if b else n_above
+            out[11, i] = n_above if b else n_below

@@ -314,6 +314,7 @@ class Facet:
     eta: np.ndarray
     tir: np.ndarray
     k3: tuple = ()          # the rays' direction components (kx, ky, kz), contiguous (`_hits`)
+    n_pair: tuple | None = None   # per-ray float32 indices (n1, n2) when the compiled kernels made the facets
 
     def normal(self) -> np.ndarray:
         return np.stack([self.nfx, self.nfy, self.nfz], axis=1)
@@ -389,8 +390,8 @@ class StokesCarrier:
         With the compiled kernels (real indices): `_compiled.facet_event`, the same numbers.
         """
         ck = kernels.active()
-        if ck is not None and not media.is_complex:
-            return self._reflectance_compiled(ck, rays, f, media)
+        if ck is not None and f.n_pair is not None:
+            return self._reflectance_compiled(ck, rays, f)
         k, s_old = rays.k, rays.s
         kx, ky, kz = f.k3
         # u = n x k in three contiguous arrays (column ops on an (n, 3) array are strided, ~3x slower),
@@ -433,18 +434,18 @@ class StokesCarrier:
         self._ev = (R, T, s_new, None)
         return np.clip(R[0] + R[1] * rays.A[1, 0], 0, 1).astype(F32, copy=False)
 
-    def _reflectance_compiled(self, ck, rays: Rays, f: Facet, media: Media) -> np.ndarray:
+    def _reflectance_compiled(self, ck, rays: Rays, f: Facet) -> np.ndarray:
         """`reflectance` in one C pass over the rays (`_compiled.facet_event`)."""
         n = rays.size
         if rays.F is not None:                      # a second interaction: the factors become columns
             rays.A, rays.F = columns_of_factors(rays.F), None
+        elif rays.A is not None and not rays.A.flags.c_contiguous:
+            rays.A = np.ascontiguousarray(rays.A)
         s_new = np.empty((n, 3), F32)
-        rot = padded_rows((2,), n)
-        R = padded_rows((4,), n)
-        T = padded_rows((4,), n)
-        pR = np.empty(n, F32)
-        ck.facet_event(f.nfx, f.nfy, f.nfz, *f.k3, rays.s, f.ci, rays.below.view(np.uint8), F32(media.n_above),
-                       F32(media.n_below), rays.A, s_new, rot[0], rot[1], R, T, pR)
+        rows = padded_rows((14,), n)                # c2, s2, R (4), T (4), pR, the new basis's components (3)
+        rot, R, T, pR = rows[0:2], rows[2:6], rows[6:10], rows[10]
+        ck.facet_event(f.nfx, f.nfy, f.nfz, *f.k3, rays.s, f.ci, *f.n_pair, rays.A, s_new, rows[11:14], rot[0],
+                       rot[1], R, T, pR)
         self._ev = (tuple(R), tuple(T), s_new, None if rays.A is not None else (rot[0], rot[1]))
         return pR
 
@@ -662,6 +663,9 @@ def _hits(ch: _Chunk, cur: Rays, q, pending: bool) -> list:
     else:
         hi = np.flatnonzero(q.hit)
         h, ng, th = cur.take(hi), np.take(q.ng, hi, axis=0), q.t_hit[hi]
+    ck = kernels.active()
+    if ck is not None and ng.dtype == h.k.dtype == F32:
+        return _hits_compiled(ck, ch, h, ng, th, pending)
     g3, k3 = _columns(ng), _columns(h.k)
     gx, gy, gz = g3
     # unit facet normal oriented up (+z): g / |g| with the sign of g_z
@@ -685,6 +689,27 @@ def _hits(ch: _Chunk, cur: Rays, q, pending: bool) -> list:
     if h.size == 0:
         return []
     return _interact(ch, h, _facet(h, g3, k3, inv, dot, ch.media), th, pending)
+
+
+def _hits_compiled(ck, ch: _Chunk, h: Rays, ng, th, pending: bool) -> list:
+    """`_hits` with the facets from the compiled kernel `_compiled.facet_geometry` (the same numbers)."""
+    n, media = h.size, ch.media
+    out = padded_rows((12,), n)
+    tir, leak = np.empty(n, bool), np.empty(n, bool)
+    na, nb = (F32(0), F32(0)) if media.is_complex else (F32(media.n_above), F32(media.n_below))
+    ck.facet_geometry(ng, h.k, h.below.view(np.uint8), media.eta_up, media.eta_dn, na, nb, out, tir.view(np.uint8),
+                      leak.view(np.uint8))
+    if leak.any():
+        li = np.flatnonzero(leak)
+        _record(ch, h, li, LOST_LEAK)
+        g = np.flatnonzero(~leak)
+        h, th, out, tir = h.take(g), th[g], np.take(out, g, axis=1), tir[g]
+        if h.size == 0:
+            return []
+    kx, ky, kz, nfx, nfy, nfz, ci, ct, eta, _, n1, n2 = out
+    f = Facet(nfx, nfy, nfz, ci, ct, eta, tir, (kx, ky, kz))
+    f.n_pair = None if media.is_complex else (n1, n2)
+    return _interact(ch, h, f, th, pending)
 
 
 def _facet(h: Rays, g3, k3, inv, dot, media: Media) -> Facet:
