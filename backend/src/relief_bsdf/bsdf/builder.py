@@ -333,24 +333,22 @@ class CellAccumulator:
             self.outside_table += float(wd[~inside & (True if spec is None else ~spec)].sum(dtype=np.float64))
         full = n_in == wd.size
         compiled = self._compiled_for(ex)
-        c_in = w_in = None
-        if compiled is None or self.paths_group is not None:
-            c_in = cell if full else cell[inside]
-            w_in = (wd if full else wd[inside]).astype(np.float64)
         if compiled is not None:
             if not full:
                 cell[~inside] = -1                  # the kernel skips them: no gather of the Mueller columns
             self._bin_kernel(compiled, cell, ex)
         else:
+            c_in = cell if full else cell[inside]
+            w_in = (wd if full else wd[inside]).astype(np.float64)
             M = None
             if self.sum_M is not None:
                 M = ex.mueller if full else np.take(ex.mueller, np.flatnonzero(inside), axis=1)
             self._bin_numpy(c_in, w_in, M)
-        if self.paths_group is not None:
-            g = ex.group if full else ex.group[inside]
-            gc = g.astype(np.int64) * self.sum_w.size
-            gc += c_in
-            self._group_parts.append((gc, w_in))
+            if self.paths_group is not None:
+                g = ex.group if full else ex.group[inside]
+                gc = g.astype(np.int64) * self.sum_w.size
+                gc += c_in
+                self._group_parts.append((gc, w_in))
         self._untouched = False
 
     def _compiled_for(self, ex: ExitSamples):
@@ -379,7 +377,13 @@ class CellAccumulator:
             sums = (self.sum_w, self.sum_w2, self.sum_M)
         else:
             sums = (np.zeros_like(self.sum_w), np.zeros_like(self.sum_w2), np.zeros_like(self.sum_M) if polar else None)
-        compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums)
+        if self.paths_group is None:
+            compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums)
+        else:                                       # the group keys and float64 weights of the binned exits too
+            keys, w64 = np.empty(cell.size, np.int64), np.empty(cell.size)
+            j = compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums,
+                                   ex.group.astype(np.int32, copy=False), keys, w64)
+            self._group_parts.append((keys[:j], w64[:j]))
         if not self._untouched:
             self.sum_w += sums[0]
             self.sum_w2 += sums[1]
@@ -429,6 +433,12 @@ class CellAccumulator:
         G = int(self.n_groups)
         if not self._group_parts:
             return np.zeros((G, nc))
+        ck = kernels.active()
+        if ck is not None:                          # the same sums in the same order, without concatenating
+            out = np.zeros(G * nc)
+            for k_, w_ in self._group_parts:
+                ck.add_at(k_, w_, out)
+            return out.reshape(G, nc)
         keys = np.concatenate([k_ for k_, _ in self._group_parts])
         w = np.concatenate([w_ for _, w_ in self._group_parts])
         self._group_parts = [(keys, w)]

@@ -19,19 +19,24 @@ cdef enum:
 
 
 def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
-              double[::1] sum_w, double[::1] sum_w2, double[:, ::1] sum_M):
+              double[::1] sum_w, double[::1] sum_w2, double[:, ::1] sum_M,
+              const int[::1] group=None, long[::1] keys=None, double[::1] w_keys=None):
     """Add each exit i with cell[i] >= 0 to its cell: sum_w[c] += w, sum_w2[c] += w^2 (float64) and, when M
-    (16, n) is given, sum_M[c, e] += M[e, i] w (the float32 product, summed in float64).
+    (16, n) is given, sum_M[c, e] += M[e, i] w (the float32 product, summed in float64).  With group (the
+    sub-tile of each exit's path), the binned exits' keys group * cells + cell and float64 weights are
+    written in order into keys and w_keys (`CellAccumulator._group_parts`); returns how many.
 
     One pass over the exits in their order: the sums of `np.bincount(cell, weights)` per component, which
     also adds in input order (`bsdf.builder.CellAccumulator.add`), without its 16 passes and temporaries.
     """
-    cdef Py_ssize_t n = cell.shape[0], i, e
+    cdef Py_ssize_t n = cell.shape[0], i, e, j = 0, nc = sum_w.shape[0]
     cdef int c, cn
     cdef float wi
     cdef double wd
-    cdef bint polarized = M is not None
-    if w.shape[0] != n or (polarized and (M.shape[0] != 16 or M.shape[1] != n or sum_M.shape[1] != 16)):
+    cdef bint polarized = M is not None, grouped = group is not None
+    if w.shape[0] != n or (polarized and (M.shape[0] != 16 or M.shape[1] != n or sum_M.shape[1] != 16)) or (
+            grouped and (group.shape[0] != n or keys is None or w_keys is None or keys.shape[0] < n
+                         or w_keys.shape[0] < n)):
         raise ValueError("bin_cells: inconsistent shapes")
     with nogil:
         for i in range(n):
@@ -47,9 +52,25 @@ def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
             wd = <double>wi
             sum_w[c] += wd
             sum_w2[c] += wd * wd
+            if grouped:
+                keys[j] = group[i] * nc + c
+                w_keys[j] = wd
+                j += 1
             if polarized:
                 for e in range(16):
                     sum_M[c, e] += <double>(M[e, i] * wi)
+    return j
+
+
+def add_at(const long[::1] keys, const double[::1] w, double[::1] out):
+    """out[keys[i]] += w[i] in the order of i: `np.bincount(keys, w)` added into out without its temporary
+    (`CellAccumulator.sum_w_group`, batch after batch in merge order: the order of the concatenation)."""
+    cdef Py_ssize_t n = keys.shape[0], i
+    if w.shape[0] != n:
+        raise ValueError("add_at: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            out[keys[i]] += w[i]
 
 
 # ----------------------------------------------------------------------------- Stokes frames
@@ -384,3 +405,24 @@ def facet_geometry(const float[:, :] ng, const float[:, :] k, const unsigned cha
             out[9, i] = dot
             out[10, i] = n_below if b else n_above
             out[11, i] = n_above if b else n_below
+
+
+# ----------------------------------------------------------------------------- exit records
+
+
+def gather_records(const long[::1] idx, const float[:, :] k, const float[::1] w, const short[::1] nb,
+                   const long[::1] ids, float[:, ::1] k_out, float[::1] w_out, short[::1] nb_out, long[::1] ids_out):
+    """Rows idx of the rays' direction k (n, 3), weight, bounce count and output id into an exit record's slot
+    (`exits.Exits.put`: the four `np.take` in one pass)."""
+    cdef Py_ssize_t m = idx.shape[0], j, i
+    if k_out.shape[0] != m or w_out.shape[0] != m or nb_out.shape[0] != m or ids_out.shape[0] != m:
+        raise ValueError("gather_records: inconsistent shapes")
+    with nogil:
+        for j in range(m):
+            i = idx[j]
+            k_out[j, 0] = k[i, 0]
+            k_out[j, 1] = k[i, 1]
+            k_out[j, 2] = k[i, 2]
+            w_out[j] = w[i]
+            nb_out[j] = nb[i]
+            ids_out[j] = ids[i]

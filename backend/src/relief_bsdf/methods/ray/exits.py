@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from relief_bsdf import kernels
+
 F32 = np.float32
 ROW_PAD = 16          # float32 (one cache line) between the rows of a (rows, m) array: see `padded_rows`
 
@@ -52,7 +54,8 @@ class Exits:
 
     def put(self, k, idx, w, nb, ids, state) -> slice:
         """Store rows `idx` of the arrays (idx None: every row); the slice of the new records, whose
-        Stokes columns `A[:, :, slice]` the caller fills (the carrier, in the exit frame)."""
+        Stokes columns `A[:, :, slice]` the caller fills (the carrier, in the exit frame).  The rows are
+        gathered by the compiled kernels when they run (`relief_bsdf.kernels`)."""
         a = self.n
         if idx is None:
             b = a + ids.size
@@ -62,6 +65,12 @@ class Exits:
             self.ids[a:b] = ids
         else:
             b = a + idx.size
+            ck = kernels.active()
+            if ck is not None and k.dtype == w.dtype == F32 and nb.dtype == np.int16 and ids.dtype == np.int64:
+                ck.gather_records(idx, k, w, nb, ids, self.k[a:b], self.w[a:b], self.nb[a:b], self.ids[a:b])
+                self.state[a:b] = state
+                self.n = b
+                return slice(a, b)
             # mode="clip": no bounds-check buffer (idx comes from flatnonzero, always in range)
             np.take(k, idx, axis=0, out=self.k[a:b], mode="clip")
             np.take(w, idx, out=self.w[a:b], mode="clip")
