@@ -198,10 +198,7 @@ def specular_flags(dirs: np.ndarray, side: np.ndarray, ideal_dirs: tuple, cos_to
         # explicit multiply-adds, not `k @ d`: a BLAS matrix-vector product wakes OpenBLAS's
         # thread pool, whose spinning threads cost as much CPU as the whole binning
         d32 = d.astype(F32)
-        c = dirs[:, 0] * d32[0]
-        c += dirs[:, 1] * d32[1]
-        c += dirs[:, 2] * d32[2]
-        cand = np.flatnonzero(c > F32(0.9999))
+        cand = _near_direction(dirs, d32, F32(0.9999))
         if cand.size:
             kc = dirs[cand].astype(np.float64)
             ok = np.einsum("ij,j->i", kc, d) > cos_tol * np.sqrt(np.einsum("ij,ij->i", kc, kc))
@@ -211,6 +208,19 @@ def specular_flags(dirs: np.ndarray, side: np.ndarray, ideal_dirs: tuple, cos_to
                     spec = np.zeros(dirs.shape[0], bool)
                 spec[cand[ok]] = True
     return spec
+
+
+def _near_direction(dirs: np.ndarray, d32: np.ndarray, cos_min: np.float32) -> np.ndarray:
+    """Indices of the directions whose dot product with d32 (float32 multiply-adds) exceeds cos_min (the
+    compiled kernel `_compiled.near_direction` for float32 directions: the same operations)."""
+    ck = kernels.active()
+    if ck is not None and dirs.dtype == F32:
+        out = np.empty(dirs.shape[0], np.int64)
+        return out[:ck.near_direction(dirs, *d32, cos_min, out)]
+    c = dirs[:, 0] * d32[0]
+    c += dirs[:, 1] * d32[1]
+    c += dirs[:, 2] * d32[2]
+    return np.flatnonzero(c > cos_min)
 
 
 # ----------------------------------------------------------------------------- accumulation

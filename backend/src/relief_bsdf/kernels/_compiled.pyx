@@ -426,3 +426,20 @@ def gather_records(const long[::1] idx, const float[:, :] k, const float[::1] w,
             w_out[j] = w[i]
             nb_out[j] = nb[i]
             ids_out[j] = ids[i]
+
+
+def near_direction(const float[:, :] dirs, float d0, float d1, float d2, float cos_min, long[::1] out):
+    """Indices (in order, into out; their number returned) of the directions whose float32 dot product
+    (d . d0 + ...) with (d0, d1, d2) exceeds cos_min: the prefilter of `bsdf.builder.specular_flags`, its
+    operations in its order."""
+    cdef Py_ssize_t n = dirs.shape[0], i, j = 0
+    cdef float c
+    if out.shape[0] < n:
+        raise ValueError("near_direction: out too short")
+    with nogil:
+        for i in range(n):
+            c = (dirs[i, 0] * d0 + dirs[i, 1] * d1) + dirs[i, 2] * d2
+            if c > cos_min:
+                out[j] = i
+                j += 1
+    return j
