@@ -16,12 +16,19 @@ FLAGS = ["-O3", "-ffp-contract=off", "-fno-tree-slp-vectorize", "-fno-math-errno
 
 
 class OptionalBuildExt(build_ext):
-    """build_ext that warns and goes on when an extension does not compile (numpy is then used)."""
+    """build_ext that warns and goes on when an extension does not compile (numpy is then used); an
+    extension not built is dropped from the outputs, which an editable or wheel build would copy."""
+
+    def build_extensions(self):
+        self._failed = set()
+        super().build_extensions()
+        self.extensions = [ext for ext in self.extensions if ext.name not in self._failed]
 
     def build_extension(self, ext):
         try:
             super().build_extension(ext)
         except Exception as exc:                  # no compiler, a failing one, missing headers
+            self._failed.add(ext.name)
             print(f"relief-bsdf: {ext.name} not built ({exc}); the ray kernels stay numpy")
 
 
