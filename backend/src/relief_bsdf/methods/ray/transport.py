@@ -183,7 +183,7 @@ class Rays:
         if withA:                                   # full columns somewhere: materialise the others
             A = cat([p.columns(withA[0].shape[1]) for p in parts], axis=2)
         elif all(p.F is not None for p in parts):   # every ray still after its first interaction: factors
-            F = cat([p.F for p in parts], axis=1)
+            F = cat([p.F for p in parts], axis=1, out=padded_rows((6,), sum(p.size for p in parts)))
         elif any(p.F is not None for p in parts):   # factors and identities (no first-hit split)
             A = cat([p.columns(4) for p in parts], axis=2)
         s = None if parts[0].s is None else cat([p.s for p in parts])
