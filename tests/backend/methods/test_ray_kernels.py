@@ -129,3 +129,25 @@ def test_selecting_an_unbuilt_or_unknown_kernel_is_refused(kernel):
     if not kernels.available():
         with pytest.raises(RuntimeError):
             kernel("cython")
+
+
+@needs_compiled
+@pytest.mark.parametrize("periodic", [True, False])
+def test_subtile_kernel_tags_points_as_numpy_does(kernel, periodic):
+    """Points inside, on the edges of and beyond the tile; a mirror-extended (non-periodic) map folds them."""
+    from relief_bsdf.methods.ray.tracer import ReliefTracer
+    from relief_bsdf.surface.relief import Relief
+
+    rng = np.random.default_rng(0)
+    relief = steep_relief() if periodic else Relief(rng.normal(size=(40, 50)) * 1e-7, 1e-6, 1e-6, periodic=False)
+    tracer = ReliefTracer(relief, threads=1)
+    hx, hy = float(tracer.hx), float(tracer.hy)
+    p = np.stack([rng.uniform(-1.2 * hx, 1.2 * hx, 50000), rng.uniform(-1.2 * hy, 1.2 * hy, 50000),
+                  np.zeros(50000)], axis=1).astype(np.float32)
+    p[:4, :2] = [[hx, hy], [-hx, -hy], [hx, -hy], [0.0, 0.0]]
+    assert tracer.mesh.mirrored is not periodic
+    for grid in ((4, 3), (8, 8), (1, 2)):
+        kernel("cython")
+        a = tracer.subtile_of(p, grid)
+        kernel("numpy")
+        np.testing.assert_array_equal(a, tracer.subtile_of(p, grid))

@@ -443,3 +443,27 @@ def near_direction(const float[:, :] dirs, float d0, float d1, float d2, float c
                 out[j] = i
                 j += 1
     return j
+
+
+def subtile_index(const float[:, :] p, float hx, float hy, float half_x, float half_y, float scale_x,
+                  float scale_y, bint mirrored, int gx, int gy, int[::1] out):
+    """Sub-tile iy * gx + ix of each point p (n, >= 2) (`tracer.ReliefTracer.subtile_of`): u = p + h, folded
+    (half - |u - half|) on a mirror-extended tile, truncated u * scale clipped to the grid; its float32
+    and int32 operations."""
+    cdef Py_ssize_t n = p.shape[0], i
+    cdef float ux, uy
+    cdef int ix, iy
+    if out.shape[0] != n:
+        raise ValueError("subtile_index: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            ux = p[i, 0] + hx
+            uy = p[i, 1] + hy
+            if mirrored:
+                ux = half_x - fabsf(ux - half_x)
+                uy = half_y - fabsf(uy - half_y)
+            ix = <int>(ux * scale_x)
+            iy = <int>(uy * scale_y)
+            ix = 0 if ix < 0 else (gx - 1 if ix > gx - 1 else ix)
+            iy = 0 if iy < 0 else (gy - 1 if iy > gy - 1 else iy)
+            out[i] = ix + iy * gx

@@ -223,6 +223,16 @@ class ReliefTracer:
         grid of the *relief's own* extent: on a mirror-extended tile the coordinates are folded
         back onto the measured map first, so that mirror images share their sub-tile."""
         gx, gy = int(grid[0]), int(grid[1])
+        ck = kernels.active()
+        if ck is not None and p.dtype == F32:          # the compiled kernel: the same operations
+            half_x, half_y = self.Lx / F32(2), self.Ly / F32(2)
+            if self.mesh.mirrored:
+                scale_x, scale_y = F32(gx) / half_x, F32(gy) / half_y
+            else:
+                scale_x, scale_y = F32(gx) / self.Lx, F32(gy) / self.Ly
+            out = np.empty(p.shape[0], np.int32)
+            ck.subtile_index(p, self.hx, self.hy, half_x, half_y, scale_x, scale_y, self.mesh.mirrored, gx, gy, out)
+            return out
         idx = None
         for ax, (g, L, h) in enumerate(((gx, self.Lx, self.hx), (gy, self.Ly, self.hy))):
             u = p[:, ax] + h                            # [0, L)
