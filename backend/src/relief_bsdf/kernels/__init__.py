@@ -1,13 +1,20 @@
 """Optional compiled kernels of the ray method's hottest numpy steps, with the numpy code as fallback.
 
-What is compiled (`_compiled.pyx`, Cython, C loops over the rays with the GIL released so the engine's
+What is compiled (`_compiled.pyx`, Cython: C loops over the rays with the GIL released, so the engine's
 two threads overlap) and why: after the Embree queries, the ray engine's CPU time on polarised tables
-goes to passes that numpy cannot fuse - the builder's 16 weighted bincounts per chunk (one per Mueller
-entry), the exit columns of rays leaving after their first interaction, and the facets' Fresnel
-coefficients (a few dozen float32 temporaries per bounce).  Each kernel does the same float32 /
-float64 operations in the same order as the numpy code it replaces (beside its caller, which stays
-the reference and the fallback), so the tables are bit for bit the same (tests/backend/methods/
-test_kernels.py); the C is built with -ffp-contract=off so that no multiply-add is fused.
+goes to passes that numpy cannot fuse - the table builder's 16 weighted bincounts per chunk (one per
+Mueller entry), the facets' Fresnel coefficients and frame rotations (a few dozen float32 temporaries
+per bounce), the exit records and their Mueller columns, the slab distances of each query.  The
+kernels: `bin_cells` / `add_at` (bsdf.builder), `near_direction` (its specular prefilter),
+`slab_distances`, `subtile_index` (methods.ray.tracer), `facet_geometry`, `facet_event`,
+`exit_columns` (methods.ray.transport), `gather_records` (methods.ray.exits).  Each does the same
+float32 / float64 operations in the same order as the numpy code it replaces (beside its caller,
+which stays the reference and the fallback), so the tables are bit for bit the same
+(tests/backend/methods/test_ray_kernels.py); the C is built without fused multiply-adds
+(-ffp-contract=off) and with flags that change no value (backend/setup.py).  Memory access decides
+their speed as much as arithmetic: arrays they read or write row by row are padded
+(`methods.ray.exits.padded_rows`: power-of-two chunk lengths otherwise put the rows in one cache set)
+and the division-heavy facet loop is written to vectorise.
 
 Selection: `active()` is the compiled module, or None for numpy.  The compiled module is used when it
 was built (`backend/setup.py`: an optional extension, built by `pip install -e backend`; a pure-Python

@@ -3,12 +3,14 @@
 
 Every kernel repeats the float32 / float64 operations of the numpy code it replaces, in the same
 order (its docstring names that code), so that the results are bit for bit the same; the module is
-compiled with -ffp-contract=off (no fused multiply-add) and -fno-tree-slp-vectorize (gcc packs the
-x and y components of a ray into one SSE division whose unused lanes divide garbage, with microcode
-assists for denormals: 4x slower than numpy).
+compiled with -ffp-contract=off (no fused multiply-add), -fno-tree-slp-vectorize (gcc packs the x and
+y components of a ray into one SSE division whose unused lanes divide garbage, with microcode assists
+for denormals: 4x slower than numpy), and -fno-math-errno -fno-trapping-math (no value changes; they
+let gcc if-convert and vectorise `facet_loop`, whose ~12 divisions and square roots per ray bound a
+scalar loop).
 """
 
-from libc.math cimport INFINITY, copysignf, fabsf, isfinite, sqrtf
+from libc.math cimport INFINITY, copysignf, fabsf, sqrtf
 from libc.float cimport FLT_MAX
 
 cdef extern from *:
@@ -200,7 +202,7 @@ cdef inline void interface_coefficients(float ci, float n1, float n2, float *R, 
     R[3] = dR_tir if sin2_t >= 1 else 0
     T[0] = 0 if sin2_t >= 1 else 1 - aR
     T[1] = 0 if sin2_t >= 1 else -bR
-    cT = 0 if fabsf(cT) > FLT_MAX else cT            # ~isfinite: inf or NaN (NaN > x is false: NaN == NaN fails)
+    cT = 0 if fabsf(cT) > FLT_MAX else cT            # not finite (np.isfinite): infinite here, NaN next
     cT = 0 if cT != cT else cT
     T[2] = 0 if sin2_t >= 1 else cT
     T[3] = 0

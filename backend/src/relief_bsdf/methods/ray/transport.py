@@ -48,6 +48,9 @@ tested equal to the reference definitions beside them; the (n, 3) vectors of an 
 (directions, normals, the facet basis) are worked on as contiguous component arrays and written
 into (n, 3) rows once (`_columns`, `_unit_rows`: the operations of `core.frames.dot_rows`,
 `divide_rows`, `scale_rows` in the same order, on unstrided arrays, ~3x faster per operation).
+With the compiled kernels (`relief_bsdf.kernels`) the facets of a batch (`_hits_compiled`), the
+polarised event (`StokesCarrier.reflectance`) and the exit columns are C passes over the rays doing
+the same float32 operations (the numpy code here stays the reference and the fallback).
 """
 from __future__ import annotations
 
