@@ -166,7 +166,7 @@ class Rays:
         return Rays(np.take(self.o, idx, axis=0), np.take(self.k, idx, axis=0), self.below[idx], self.w[idx],
                     self.nb[idx], self.ids[idx], None if self.A is None else np.take(self.A, idx, axis=2),
                     None if self.s is None else take_rows(self.s, idx),
-                    None if self.F is None else np.take(self.F, idx, axis=1))
+                    None if self.F is None else take_factors(self.F, idx))
 
     def columns(self, K: int) -> np.ndarray:
         """The Stokes columns (4, K, n), materialised from the factors or the identity when not held."""
@@ -207,6 +207,15 @@ def take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
     if a.shape[0] and a.strides[0] == 0:
         return np.broadcast_to(a[0], (idx.size,) + a.shape[1:])
     return np.take(a, idx, axis=0)
+
+
+def take_factors(F: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """np.take(F, idx, axis=1) of factors (6, n) held in padded rows (`exits.padded_rows`), row by row into
+    padded rows: numpy's take along an axis first copies a non-contiguous array whole."""
+    out = padded_rows((F.shape[0],), idx.size)
+    for r in range(F.shape[0]):
+        np.take(F[r], idx, out=out[r], mode="clip")
+    return out
 
 
 def identity_columns(K: int, n: int) -> np.ndarray:
@@ -515,7 +524,7 @@ class StokesCarrier:
         """The numpy code of `exit_columns`."""
         F = None
         if rays.F is not None:
-            F = rays.F if idx is None else np.take(rays.F, idx, axis=1, mode="clip")
+            F = rays.F if idx is None else take_factors(rays.F, idx)
         elif rays.A is None:
             out[...] = identity_columns(self.K, k_exit.shape[0])
         elif idx is None:
