@@ -163,10 +163,20 @@ class Rays:
         return self.ids.size
 
     def take(self, idx: np.ndarray) -> "Rays":
+        A = None if self.A is None else np.take(self.A, idx, axis=2)
+        s = None if self.s is None else take_rows(self.s, idx)
+        F = None if self.F is None else take_factors(self.F, idx)
+        ck = kernels.active()
+        if ck is not None and self.o.dtype == self.k.dtype == self.w.dtype == F32 and self.nb.dtype == np.int16 \
+                and self.ids.dtype == np.int64 and idx.dtype == np.int64:
+            m = idx.size                            # the compiled kernel: the six gathers in one pass
+            r = Rays(np.empty((m, 3), F32), np.empty((m, 3), F32), np.empty(m, bool), np.empty(m, F32),
+                     np.empty(m, np.int16), np.empty(m, np.int64), A, s, F)
+            ck.gather_rays(idx, self.o, self.k, self.below.view(np.uint8), self.w, self.nb, self.ids, r.o, r.k,
+                           r.below.view(np.uint8), r.w, r.nb, r.ids)
+            return r
         return Rays(np.take(self.o, idx, axis=0), np.take(self.k, idx, axis=0), self.below[idx], self.w[idx],
-                    self.nb[idx], self.ids[idx], None if self.A is None else np.take(self.A, idx, axis=2),
-                    None if self.s is None else take_rows(self.s, idx),
-                    None if self.F is None else take_factors(self.F, idx))
+                    self.nb[idx], self.ids[idx], A, s, F)
 
     def columns(self, K: int) -> np.ndarray:
         """The Stokes columns (4, K, n), materialised from the factors or the identity when not held."""
