@@ -494,3 +494,43 @@ def gather_rays(const long[::1] idx, const float[:, :] o, const float[:, :] k, c
             w_out[j] = w[i]
             nb_out[j] = nb[i]
             ids_out[j] = ids[i]
+
+
+def split_rays(const float[::1] kx, const float[::1] ky, const float[::1] kz, const float[::1] nfx,
+               const float[::1] nfy, const float[::1] nfz, const float[::1] eta, const float[::1] ci,
+               const float[::1] ct, const float[::1] th, const float[:, :] o, float eps, float[:, ::1] p,
+               float[:, ::1] o_r, float[:, ::1] k_r, float[:, ::1] o_t, float[:, ::1] k_t):
+    """Both branches of the rays' first interaction (`transport._interact`, `_split_copies`): the hit point
+    p = k th + o, the reflected direction k + 2 ci nf and origin p + eps nf, the refracted direction
+    (eta k + (eta ci - ct) nf) / |.| and origin p - eps nf.  The float32 operations of the numpy code."""
+    cdef Py_ssize_t n = th.shape[0], i
+    cdef float px, py, pz, bt, b, vx, vy, vz, nr
+    if o.shape[0] != n or p.shape[0] != n or o_r.shape[0] != n or k_r.shape[0] != n or o_t.shape[0] != n \
+            or k_t.shape[0] != n:
+        raise ValueError("split_rays: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            px = kx[i] * th[i] + o[i, 0]
+            py = ky[i] * th[i] + o[i, 1]
+            pz = kz[i] * th[i] + o[i, 2]
+            p[i, 0] = px
+            p[i, 1] = py
+            p[i, 2] = pz
+            b = 2 * ci[i]
+            k_r[i, 0] = b * nfx[i] + kx[i]
+            k_r[i, 1] = b * nfy[i] + ky[i]
+            k_r[i, 2] = b * nfz[i] + kz[i]
+            o_r[i, 0] = px + eps * nfx[i]
+            o_r[i, 1] = py + eps * nfy[i]
+            o_r[i, 2] = pz + eps * nfz[i]
+            bt = eta[i] * ci[i] - ct[i]
+            vx = eta[i] * kx[i] + bt * nfx[i]
+            vy = eta[i] * ky[i] + bt * nfy[i]
+            vz = eta[i] * kz[i] + bt * nfz[i]
+            nr = sqrtf((vx * vx + vy * vy) + vz * vz)
+            k_t[i, 0] = vx / nr
+            k_t[i, 1] = vy / nr
+            k_t[i, 2] = vz / nr
+            o_t[i, 0] = px - eps * nfx[i]
+            o_t[i, 1] = py - eps * nfy[i]
+            o_t[i, 2] = pz - eps * nfz[i]

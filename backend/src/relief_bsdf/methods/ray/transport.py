@@ -753,6 +753,9 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
     """One interaction for rays that all hit: the continuing rays (and split copies)."""
     carrier, eps = ch.carrier, ch.tracer.eps
     pR = carrier.reflectance(h, f, ch.media)
+    ck = kernels.active()
+    if pending and ck is not None and h.o.dtype == th.dtype == F32:
+        return _first_interaction_compiled(ck, ch, h, f, th, pR)
     p = np.empty(h.k.shape, F32)                     # hit point (`core.frames.scale_rows` of k, th)
     for i in range(3):
         np.multiply(f.k3[i], th, out=p[:, i])
@@ -785,6 +788,29 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
     p[:, 2] += off * f.nfz
     h.o = p
     end = _end_rays(ch, h, absorbed)
+    if end is not None:
+        g = np.flatnonzero(~end)
+        if g.size == 0:
+            return parts
+        h = h.take(g)
+    return [h] + parts
+
+
+def _first_interaction_compiled(ck, ch: _Chunk, h: Rays, f: Facet, th, pR) -> list:
+    """The pending branch of `_interact` with both branches' points and directions from the compiled kernel
+    `_compiled.split_rays` (the same numbers)."""
+    n = h.size
+    p, o_r, k_r, o_t, k_t = (np.empty((n, 3), F32) for _ in range(5))
+    ck.split_rays(*f.k3, f.nfx, f.nfy, f.nfz, f.eta, f.ci, f.ct, th, h.o, ch.tracer.eps, p, o_r, k_r, o_t, k_t)
+    if ch.group is not None:
+        _tag_first_hits(ch, h, p, True)
+    h.nb = h.nb + np.int16(1)
+    tr = _split_copies(ch, h, f, None, None, pR, made=(o_t, k_t))
+    h.w = h.w * pR
+    ch.carrier.reflected(h, pR)
+    h.k, h.o = k_r, o_r
+    end = _end_rays(ch, h, None)
+    parts = [] if tr is None else [tr]
     if end is not None:
         g = np.flatnonzero(~end)
         if g.size == 0:
@@ -826,22 +852,26 @@ def _tag_first_hits(ch: _Chunk, h: Rays, p, pending: bool) -> None:
             ch.group[h.ids[fi]] = ch.tracer.subtile_of(np.take(p, fi, axis=0), ch.settings.subtiles)
 
 
-def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR) -> Rays | None:
+def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR, made: tuple | None = None) -> Rays | None:
     """Transmitted branch of every ray's first interaction (id + n0, weight w (1 - P_R)); none where
-    nothing is transmitted (P_R = 1: TIR)."""
+    nothing is transmitted (P_R = 1: TIR).  made: the (origins, directions) of every ray's refracted
+    branch, already computed (`_first_interaction_compiled`)."""
     j = np.flatnonzero(pR < 1)
     if not j.size:
         return None
     full = j.size == h.size
     sel = (lambda a: a) if full else (lambda a: a[j])
-    etj, btj = sel(f.eta), sel(bt)
-    fx, fy, fz = sel(f.nfx), sel(f.nfy), sel(f.nfz)
-    kt = _unit_rows([etj * sel(ki) + btj * fi for ki, fi in zip(f.k3, (fx, fy, fz))])
-    ot = np.take(p, j, axis=0) if not full else p.copy()
-    eps = ch.tracer.eps
-    ot[:, 0] -= eps * fx
-    ot[:, 1] -= eps * fy
-    ot[:, 2] -= eps * fz
+    if made is not None:
+        ot, kt = made if full else (np.take(made[0], j, axis=0), np.take(made[1], j, axis=0))
+    else:
+        etj, btj = sel(f.eta), sel(bt)
+        fx, fy, fz = sel(f.nfx), sel(f.nfy), sel(f.nfz)
+        kt = _unit_rows([etj * sel(ki) + btj * fi for ki, fi in zip(f.k3, (fx, fy, fz))])
+        ot = np.take(p, j, axis=0) if not full else p.copy()
+        eps = ch.tracer.eps
+        ot[:, 0] -= eps * fx
+        ot[:, 1] -= eps * fy
+        ot[:, 2] -= eps * fz
     A, s, F = ch.carrier.transmitted_copy(h, j, sel(pR))
     tr = Rays(ot, kt, ~sel(h.below), sel(h.w) * (1 - sel(pR)), sel(h.nb), sel(h.ids) + ch.n0, A, s, F)
     if ch.media.absorbing_below:
