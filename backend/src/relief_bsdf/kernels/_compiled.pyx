@@ -212,11 +212,9 @@ cdef extern from *:
     """
     typedef float *__restrict__ f32_out;
     typedef const float *__restrict__ f32_in;
-    typedef const unsigned char *__restrict__ u8_in;
     """
-    ctypedef float *f32_out             # restrict pointers: no aliasing checks, so gcc vectorises the loops
-    ctypedef const float *f32_in
-    ctypedef const unsigned char *u8_in
+    ctypedef float *f32_out             # restrict pointers (as parameters: gcc honours restrict there only):
+    ctypedef const float *f32_in        # no run-time aliasing checks, so gcc vectorises the loops
 
 
 def facet_event(const float[::1] nfx, const float[::1] nfy, const float[::1] nfz, const float[::1] kx,
@@ -324,10 +322,6 @@ cdef void reflectance_loop(Py_ssize_t n, f32_in aR, f32_in bR, f32_in a10, f32_o
 # ----------------------------------------------------------------------------- geometry of a batch
 
 
-cdef inline float copysign_f(float mag, float sgn) noexcept nogil:
-    return copysignf(mag, sgn)
-
-
 cdef inline float fmin_f(float a, float b) noexcept nogil:
     """np.fmin: the smaller, a NaN ignored (inline: libm's fminf is a call)."""
     if b != b or a < b:
@@ -346,9 +340,9 @@ def slab_distances(const float[:, :] o, const float[:, :] k, float hx, float hy,
         raise ValueError("slab_distances: inconsistent shapes")
     with nogil:
         for i in range(n):
-            tx = ((copysign_f(hx, k[i, 0]) - o[i, 0]) + <float>0) / k[i, 0]
-            ty = ((copysign_f(hy, k[i, 1]) - o[i, 1]) + <float>0) / k[i, 1]
-            tz = ((copysign_f(zh, k[i, 2]) - o[i, 2]) + zc) / k[i, 2]
+            tx = ((copysignf(hx, k[i, 0]) - o[i, 0]) + <float>0) / k[i, 0]
+            ty = ((copysignf(hy, k[i, 1]) - o[i, 1]) + <float>0) / k[i, 1]
+            tz = ((copysignf(zh, k[i, 2]) - o[i, 2]) + zc) / k[i, 2]
             T[i, 0] = tx
             T[i, 1] = ty
             T[i, 2] = tz
@@ -382,7 +376,7 @@ def facet_geometry(const float[:, :] ng, const float[:, :] k, const unsigned cha
             kx = k[i, 0]
             ky = k[i, 1]
             kz = k[i, 2]
-            inv = copysign_f(<float>1 / sqrtf((gx * gx + gy * gy) + gz * gz), gz)
+            inv = copysignf(<float>1 / sqrtf((gx * gx + gy * gy) + gz * gz), gz)
             dot = ((kx * gx + ky * gy) + kz * gz) * inv
             b = below[i] != 0
             leak[i] = (dot > 0) != b
@@ -409,7 +403,7 @@ def facet_geometry(const float[:, :] ng, const float[:, :] k, const unsigned cha
             out[11, i] = n_above if b else n_below
 
 
-# ----------------------------------------------------------------------------- exit records
+# ----------------------------------------------------------------------------- gathers, tags, new rays
 
 
 def gather_records(const long[::1] idx, const float[:, :] k, const float[::1] w, const short[::1] nb,
