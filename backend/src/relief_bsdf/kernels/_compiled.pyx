@@ -528,3 +528,27 @@ def split_rays(const float[::1] kx, const float[::1] ky, const float[::1] kz, co
             o_t[i, 0] = px - eps * nfx[i]
             o_t[i, 1] = py - eps * nfy[i]
             o_t[i, 2] = pz - eps * nfz[i]
+
+
+def split_factors(const float[:, :] R, const float[:, :] T, const float[::1] c2, const float[::1] s2,
+                  const float[::1] pR, float[:, :] F_r, float[:, :] F_t):
+    """The factors (6, n) of both branches of the rays' first interaction (`transport.first_interaction_factors`
+    as `StokesCarrier.reflected` and `transmitted_copy` call it): F_r = (R / max(pR, 1e-30), c2, s2) and
+    F_t = (T / max(1 - pR, 1e-30), c2, s2), the division a multiplication by the float32 reciprocal."""
+    cdef Py_ssize_t n = pR.shape[0], i, e
+    cdef float inv_r, inv_t, x
+    if R.shape[1] != n or T.shape[1] != n or F_r.shape[1] != n or F_t.shape[1] != n:
+        raise ValueError("split_factors: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            x = pR[i]
+            inv_r = 1 / (<float>1e-30 if x < <float>1e-30 else x)
+            x = 1 - pR[i]
+            inv_t = 1 / (<float>1e-30 if x < <float>1e-30 else x)
+            for e in range(4):
+                F_r[e, i] = R[e, i] * inv_r
+                F_t[e, i] = T[e, i] * inv_t
+            F_r[4, i] = c2[i]
+            F_r[5, i] = s2[i]
+            F_t[4, i] = c2[i]
+            F_t[5, i] = s2[i]

@@ -364,6 +364,9 @@ class IntensityCarrier:
         pR[f.tir] = 1
         return pR
 
+    def split_factors(self, ck, pR) -> None:
+        """Nothing to prepare."""
+
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
         return None, None, None
 
@@ -392,6 +395,7 @@ class StokesCarrier:
     def __init__(self, K: int):
         self.K = int(K)
         self._ev = None
+        self._split = None              # (F_r, F_t) of a first interaction's both branches (`split_factors`)
 
     def start(self, rays: Rays, s_init=None) -> None:
         """Initial basis s = z x k (or the given s_init for every ray); rays.A None stands for the
@@ -468,13 +472,27 @@ class StokesCarrier:
         rot, R, T, pR = rows[0:2], rows[2:6], rows[6:10], rows[10]
         ck.facet_event(f.nfx, f.nfy, f.nfz, *f.k3, rays.s, f.ci, *f.n_pair, rays.A, s_new, rows[11:14], rot[0],
                        rot[1], R, T, pR)
-        self._ev = (tuple(R), tuple(T), s_new, None if rays.A is not None else (rot[0], rot[1]))
+        self._ev = (R, T, s_new, None if rays.A is not None else (rot[0], rot[1]))
         return pR
+
+    def split_factors(self, ck, pR) -> None:
+        """Before the first-hit split of rays in their incident basis: the factors of both branches at once
+        (`_compiled.split_factors`, the numbers of `reflected` and `transmitted_copy`), which they take."""
+        R, T, _, rot = self._ev
+        if rot is None or not self.factored or not isinstance(R, np.ndarray):   # (R, T rows of the kernel's)
+            return
+        F_r, F_t = padded_rows((6,), pR.size), padded_rows((6,), pR.size)
+        ck.split_factors(R, T, rot[0], rot[1], pR, F_r, F_t)
+        self._split = (F_r, F_t)
 
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
         """(A, s, F) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R
         (F: the factors of a first interaction, A None; else A)."""
         _, T, s_new, rot = self._ev
+        if self._split is not None:
+            full = j.size == s_new.shape[0]
+            return None, s_new if full else np.take(s_new, j, axis=0), \
+                self._split[1] if full else take_factors(self._split[1], j)
         inv = 1 / np.maximum(1 - pR_j, F32(1e-30))
         full = j.size == s_new.shape[0]                 # usually every ray transmits something: no gathers
         sel = (lambda a: a) if full else (lambda a: np.take(a, j, axis=0))
@@ -489,6 +507,9 @@ class StokesCarrier:
     def reflected(self, rays: Rays, pR) -> None:
         """Every ray keeps its reflected branch (first-hit split), renormalised by P_R."""
         R, _, s_new, rot = self._ev
+        if self._split is not None:
+            rays.F, rays.s, self._split = self._split[0], s_new, None
+            return
         inv = 1 / np.maximum(pR, F32(1e-30))
         if rot is not None:
             self._first(rays, first_interaction_factors(R, rot[0], rot[1], inv))
@@ -805,6 +826,7 @@ def _first_interaction_compiled(ck, ch: _Chunk, h: Rays, f: Facet, th, pR) -> li
     if ch.group is not None:
         _tag_first_hits(ch, h, p, True)
     h.nb = h.nb + np.int16(1)
+    ch.carrier.split_factors(ck, pR)
     tr = _split_copies(ch, h, f, None, None, pR, made=(o_t, k_t))
     h.w = h.w * pR
     ch.carrier.reflected(h, pR)
