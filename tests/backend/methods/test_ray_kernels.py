@@ -3,7 +3,9 @@
 Each compiled kernel repeats the float32 / float64 operations of the numpy code it replaces, in the same
 order, so a table traced with either is identical, polarised and scalar, from outside and from inside
 (total internal reflection), for a metal (complex index: the numpy Fresnel branch) and with the
-tile's sub-tile groups; RELIEF_RAY_KERNEL=numpy forces the numpy code in a fresh process.  Without a
+tile's sub-tile groups; RELIEF_RAY_KERNEL=numpy forces the numpy code in a fresh process.  The tables
+are traced in this process (serial backend): `kernels.select` switches this process only, and the
+table's metadata["ray_kernel"] (from its tasks) shows which kernels traced it.  Without a
 built extension (a pure-Python install) the comparisons are skipped and the numpy code is what runs.
 """
 from __future__ import annotations
@@ -44,9 +46,10 @@ def steep_relief(seed: int = 5):
 
 
 def tables(kernel, name: str, material, **options):
+    """Tables traced in this process (serial backend: a worker process would use its own kernels)."""
     kernel(name)
     req = Request(theta_i_deg=(0.0, 50.0, 75.0), incident_from=("outside", "inside"), samples=30000, seed=4,
-                  theta_s_edges_deg=TE, phi_s_edges_deg=PE, options={"threads": 2, **options})
+                  theta_s_edges_deg=TE, phi_s_edges_deg=PE, options={"threads": 2, "backend": "serial", **options})
     return ray.reconstruct(steep_relief(), material, req)
 
 
@@ -62,8 +65,8 @@ def assert_same_tables(a, b):
 
 
 def untimed(tasks: list) -> list:
-    """The tasks' diagnostics (rays, segments, bounces, lost detail, tile scatter) without timings."""
-    return [{k: v for k, v in d.items() if not k.endswith("_s")} for d in tasks]
+    """The tasks' diagnostics (rays, segments, bounces, lost detail, tile scatter) without timings and kernel."""
+    return [{k: v for k, v in d.items() if not k.endswith("_s") and k != "ray_kernel"} for d in tasks]
 
 
 @needs_compiled
@@ -82,12 +85,13 @@ def test_compiled_kernels_leave_a_metal_and_a_table_without_tile_groups_unchange
     metal = Material(ConstantIndex(0.2, 3.0))
     req = dict(polarized=True, tile_uncertainty=False)
     kernel("cython")
-    r = Request(theta_i_deg=(30.0,), samples=20000, seed=2, theta_s_edges_deg=TE, phi_s_edges_deg=PE,
-                options={"threads": 1, **req})
+    r = Request(theta_i_deg=(30.0, 60.0), samples=20000, seed=2, theta_s_edges_deg=TE, phi_s_edges_deg=PE,
+                options={"threads": 1, "backend": "serial", **req})
     a = ray.reconstruct(steep_relief(6), metal, r)
     kernel("numpy")
     b = ray.reconstruct(steep_relief(6), metal, r)
     assert_same_tables(a, b)
+    assert a[0].metadata["ray_kernel"] == "cython" and b[0].metadata["ray_kernel"] == "numpy"
 
 
 @needs_compiled

@@ -2,7 +2,9 @@
 """Compiled kernels of the ray engine (package doc): C loops over rays, the GIL released.
 
 Every kernel repeats the float32 / float64 operations of the numpy code it replaces, in the same
-order (its docstring names that code), so that the results are bit for bit the same; the module is
+order (its docstring names that code), so that the results are bit for bit the same: every literal in
+float arithmetic is cast (<float>2): Cython writes a bare 2 as the double 2.0, which turns a chain of
+float32 operations into double ones with other roundings.  The module is
 compiled with -ffp-contract=off (no fused multiply-add), -fno-tree-slp-vectorize (gcc packs the x and
 y components of a ray into one SSE division whose unused lanes divide garbage, with microcode assists
 for denormals: 4x slower than numpy), and -fno-math-errno -fno-trapping-math (no value changes; they
@@ -176,31 +178,31 @@ cdef inline void interface_coefficients(float ci, float n1, float n2, float *R, 
     at cos i = ci: `core.fresnel.interface_coefficients_f32` (real branch, total internal reflection
     included) operation by operation in float32.  Branch-free (both branches computed, one selected), so
     that the loop calling it vectorises."""
-    cdef float q = n1 / n2, x = 1 - ci * ci
+    cdef float q = n1 / n2, x = <float>1 - ci * ci
     x = 0 if x < 0 else x                            # np.maximum(0, x) (NaN kept)
     cdef float sin2_t = (q * q) * x
-    x = 1 - sin2_t
+    x = <float>1 - sin2_t
     x = 0 if x < 0 else x
     cdef float ct = sqrtf(x)
     cdef float a = n1 * ci, b = n2 * ct, c = n2 * ci, d = n1 * ct
     cdef float rs = (a - b) / (a + b), rp = (c - d) / (c + d)
     cdef float aR = <float>0.5 * (rs * rs + rp * rp), bR = <float>0.5 * (rs * rs - rp * rp), cR = rs * rp
-    cdef float ts = (2 * a) / (a + b), tp = (2 * a) / (c + d)
+    cdef float ts = (<float>2 * a) / (a + b), tp = (<float>2 * a) / (c + d)
     cdef float cT = ((b / a) * ts) * tp
     # past the critical angle (`fresnel._total_internal_reflection`)
-    x = sin2_t - 1
+    x = sin2_t - <float>1
     x = 0 if x < 0 else x
     cdef float g = sqrtf(x)
     cdef float A1 = n1 * ci, B1 = n2 * g, P1 = n2 * ci, Q1 = n1 * g
     cdef float den = (A1 * A1 + B1 * B1) * (P1 * P1 + Q1 * Q1)
     cdef float ab = A1 * A1 - B1 * B1, pq = P1 * P1 - Q1 * Q1
-    cdef float cR_tir = (ab * pq + (((4 * A1) * B1) * P1) * Q1) / den
-    cdef float dR_tir = ((((2 * P1) * Q1) * ab) - (((2 * A1) * B1) * pq)) / den
+    cdef float cR_tir = (ab * pq + (((<float>4 * A1) * B1) * P1) * Q1) / den
+    cdef float dR_tir = ((((<float>2 * P1) * Q1) * ab) - (((<float>2 * A1) * B1) * pq)) / den
     R[0] = 1 if sin2_t >= 1 else nan_to_num(aR)      # sin2_t >= 1: total internal reflection
     R[1] = 0 if sin2_t >= 1 else nan_to_num(bR)
     R[2] = nan_to_num(cR_tir if sin2_t >= 1 else cR)
     R[3] = dR_tir if sin2_t >= 1 else 0
-    T[0] = 0 if sin2_t >= 1 else 1 - aR
+    T[0] = 0 if sin2_t >= 1 else <float>1 - aR
     T[1] = 0 if sin2_t >= 1 else -bR
     cT = 0 if fabsf(cT) > FLT_MAX else cT            # not finite (np.isfinite): infinite here, NaN next
     cT = 0 if cT != cT else cT
@@ -383,9 +385,9 @@ def facet_geometry(const float[:, :] ng, const float[:, :] k, const unsigned cha
             s = -inv if b else inv
             ci = fabsf(dot)
             eta = eta_up if b else eta_dn
-            sin2t = (1 - ci * ci) * (eta * eta)
+            sin2t = (<float>1 - ci * ci) * (eta * eta)
             tir[i] = sin2t >= 1
-            ct = 1 - sin2t
+            ct = <float>1 - sin2t
             if ct < 0:
                 ct = 0
             ct = sqrtf(ct)
@@ -510,7 +512,7 @@ def split_rays(const float[::1] kx, const float[::1] ky, const float[::1] kz, co
             p[i, 0] = px
             p[i, 1] = py
             p[i, 2] = pz
-            b = 2 * ci[i]
+            b = <float>2 * ci[i]
             k_r[i, 0] = b * nfx[i] + kx[i]
             k_r[i, 1] = b * nfy[i] + ky[i]
             k_r[i, 2] = b * nfz[i] + kz[i]
@@ -542,9 +544,9 @@ def split_factors(const float[:, :] R, const float[:, :] T, const float[::1] c2,
     with nogil:
         for i in range(n):
             x = pR[i]
-            inv_r = 1 / (<float>1e-30 if x < <float>1e-30 else x)
-            x = 1 - pR[i]
-            inv_t = 1 / (<float>1e-30 if x < <float>1e-30 else x)
+            inv_r = <float>1 / (<float>1e-30 if x < <float>1e-30 else x)
+            x = <float>1 - pR[i]
+            inv_t = <float>1 / (<float>1e-30 if x < <float>1e-30 else x)
             for e in range(4):
                 F_r[e, i] = R[e, i] * inv_r
                 F_t[e, i] = T[e, i] * inv_t

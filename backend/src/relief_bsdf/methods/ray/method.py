@@ -390,7 +390,8 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
             total.merge(job(ci))
     out = _task_rows(total, side, K)
     out["diag"] = {"wavelength_nm": None, "theta_i_deg": float(ti), "phi_i_deg": float(pi_), **out["diag"],
-                   "trace_s": time.perf_counter() - t0, "build_s": tracer.build_s}
+                   "trace_s": time.perf_counter() - t0, "build_s": tracer.build_s,
+                   "ray_kernel": kernels.name()}       # where the task ran (a worker process: its own)
     m = tracer.mesh
     out["mesh"] = {"rays": int(N), "triangles": m.n_triangles, "tile_samples": list(m.shape),
                    "mirror_extended": m.mirrored, "history": list(m.history)}
@@ -572,7 +573,7 @@ def _table(side: str, d: dict, run: _Run) -> BsdfTable:
             "max_bounces": int(opts.max_bounces),
             "timing_s": {**run.timing, "total": time.perf_counter() - run.t0},
             "parallel": last_run(),
-            "ray_kernel": kernels.name(),
+            "ray_kernel": "+".join(sorted({d["ray_kernel"] for d in diag})) if diag else kernels.name(),
             "tasks": diag,
             "uncertainty": uncertainty,
             "warnings": warn,
