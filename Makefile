@@ -12,7 +12,9 @@ OUT    ?= out
 help:
 	@echo "make demo | make test | make test-fast | make bench | make extension | make clean"
 
-$(VENV)/.runtime-stamp: requirements/runtime.txt backend/pyproject.toml
+# the editable install also builds the optional compiled ray kernels in place (backend/setup.py)
+$(VENV)/.runtime-stamp: requirements/runtime.txt backend/pyproject.toml backend/setup.py \
+                        backend/src/relief_bsdf/kernels/_compiled.pyx
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install --quiet --upgrade pip
 	$(PIP) install --quiet -r requirements/runtime.txt

@@ -28,6 +28,8 @@ the ratios are the meaningful numbers):
   new heights on the same grid (`with_heights`) and the in-place update with BVH refit
   (`update_heights`), seconds.
 - peak_rss_mb: peak resident memory of this process.
+- ray_kernel: which kernels ran the numpy-side hot steps ("cython": the compiled `relief_bsdf.kernels`;
+  "numpy": not built, or RELIEF_RAY_KERNEL=numpy); the same tables either way.
 The last line is one JSON object.
 
     .venv/bin/python benchmarks/bench_ray.py [--size 1024] [--rays 1048576] [--threads N]
@@ -159,6 +161,7 @@ def main(argv=None) -> int:
         d = tab.metadata["tasks"][0]
         h = tab.hemispherical()
         return {"wall_s": wall, "cpu_s": cpu, "paths": d["rays"], "segments": d["segments"],
+                "kernel": tab.metadata["ray_kernel"],
                 "R": float(h["R"][0, 0, 0]), "T": float(h["T"][0, 0, 0]), "lost": float(h["lost"][0, 0, 0]),
                 "mean_bounces": d["mean_bounces"]}, rec
 
@@ -203,7 +206,8 @@ def main(argv=None) -> int:
     print(f"build split {', '.join(f'{k} {v:.2f} s' for k, v in tracer.build_split_s.items())}; fit reuse: "
           f"with_heights {with_heights_s:.2f} s, update_heights (refit) "
           f"{'n/a' if update_s is None else f'{update_s:.2f} s'}")
-    print(f"peak RSS {peak:.0f} MB, threads {a.threads}")
+    print(f"peak RSS {peak:.0f} MB, threads {a.threads}, ray kernels {pol['kernel']} (relief_bsdf.kernels; "
+          "RELIEF_RAY_KERNEL=numpy forces numpy)")
     out = {"paths_per_s": pps_s, "paths_per_s_polarized": pps_p, "segments_per_path": scal["segments"] / scal["paths"],
            "segments_per_s": seg_s, "embree_segments_per_s": emb_seg_s, "ratio_to_embree": seg_s / emb_seg_s,
            "ratio_to_embree_cpu": cpu_emb / scal["cpu_s"], "paths_per_s_no_split": pps_ns,
@@ -214,7 +218,7 @@ def main(argv=None) -> int:
            "R": scal["R"], "T": scal["T"], "lost": scal["lost"], "rays": scal["paths"], "size": a.size,
            "threads": a.threads, "build_s": tracer.build_s, "build_split_s": tracer.build_split_s,
            "direct_buffers": tracer.direct_buffers, "with_heights_s": with_heights_s, "update_heights_s": update_s,
-           "peak_rss_mb": peak}
+           "peak_rss_mb": peak, "ray_kernel": pol["kernel"]}
     print(json.dumps(out))
     return 0
 

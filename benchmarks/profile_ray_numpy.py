@@ -5,7 +5,8 @@ n = 1.5, beam at 30 degrees) recording every Embree result, then replays the sam
 with the recorded results (no Embree) and reports the calling thread's CPU seconds: numpy
 ns per segment and numpy / Embree.  Less sensitive to a shared machine than wall-clock
 figures (thread CPU time, best of 5).  engine/embree ~ embree / (embree + numpy) is the
-ratio `bench_ray.py` reaches when nothing else costs CPU.
+ratio `bench_ray.py` reaches when nothing else costs CPU.  The numpy side runs the compiled
+kernels when built (`relief_bsdf.kernels`; RELIEF_RAY_KERNEL=numpy for numpy alone).
 
     .venv/bin/python benchmarks/profile_ray_numpy.py [--size 1024] [--rays 1048576] [--polarized] [--profile]
 """
@@ -67,7 +68,8 @@ def main(argv=None) -> int:
         best = min(best, time.thread_time() - t)
     assert np.array_equal(ref.values_per_sr, tab.values_per_sr)      # the replay is the same computation
     segs = ref.metadata["tasks"][0]["segments"]
-    print(f"{'polarised' if a.polarized else 'scalar'}: embree CPU {emb:.3f} s, numpy CPU {best:.3f} s "
+    print(f"{'polarised' if a.polarized else 'scalar'} ({tab.metadata['ray_kernel']} kernels): embree CPU {emb:.3f} s, "
+          f"numpy CPU {best:.3f} s "
           f"({best / segs * 1e9:.0f} ns/segment), numpy/embree {best / emb:.2f}, "
           f"engine/embree ~ {emb / (emb + best):.2f}")
     if a.profile:

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -99,8 +100,8 @@ def dependency_closure(top: str = "relief-bsdf") -> dict[str, dict]:
     return {k: v for k, v in out.items() if k not in NOT_BUNDLED}
 
 
-def _pip(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pip", *args], capture_output=True, text=True)
+def _pip(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pip", *args], capture_output=True, text=True, env=env)
 
 
 def _wheel_name_key(path: Path) -> str:
@@ -111,9 +112,12 @@ def build_backend_wheel(cache: Path) -> Path:
     out = cache / "backend"
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
-    r = _pip("wheel", "--no-deps", "--no-build-isolation", "-w", str(out), str(ROOT / "backend"))
+    # pure Python (py3-none-any): without the optional compiled ray kernels (backend/setup.py), which the
+    # add-on's platforms would each need built; relief_bsdf.kernels falls back to numpy (the same tables)
+    env = dict(os.environ, RELIEF_PURE_PYTHON="1")
+    r = _pip("wheel", "--no-deps", "--no-build-isolation", "-w", str(out), str(ROOT / "backend"), env=env)
     if r.returncode != 0:
-        r = _pip("wheel", "--no-deps", "-w", str(out), str(ROOT / "backend"))
+        r = _pip("wheel", "--no-deps", "-w", str(out), str(ROOT / "backend"), env=env)
     if r.returncode != 0:
         raise SystemExit(f"build_extension: building the backend wheel failed:\n{r.stderr[-2000:]}")
     wheels = sorted(out.glob("relief_bsdf-*.whl"))

@@ -37,7 +37,9 @@ direction, `specular_flags`) go to the delta parts specular_R/T (power fractions
 plus exits outside the table's cells, over N: nothing is dropped silently.
 Sides: 0 = the side of incidence (R), 1 = the other side (T).
 Binning is vectorised (np.bincount) on cells from `CellIndex` (float32 arithmetic and lookup
-tables for uniform grids, a search for others).
+tables for uniform grids, a search for others); with the compiled kernels (`relief_bsdf.kernels`)
+the weights, their squares and the 16 Mueller entries go into the cells in one C pass
+(`_compiled.bin_cells`: the same sums in the same order, bit for bit).
 """
 from __future__ import annotations
 
@@ -46,6 +48,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from relief_bsdf import kernels
 from relief_bsdf.core.frames import projected_solid_angle
 
 F32 = np.float32
@@ -195,10 +198,7 @@ def specular_flags(dirs: np.ndarray, side: np.ndarray, ideal_dirs: tuple, cos_to
         # explicit multiply-adds, not `k @ d`: a BLAS matrix-vector product wakes OpenBLAS's
         # thread pool, whose spinning threads cost as much CPU as the whole binning
         d32 = d.astype(F32)
-        c = dirs[:, 0] * d32[0]
-        c += dirs[:, 1] * d32[1]
-        c += dirs[:, 2] * d32[2]
-        cand = np.flatnonzero(c > F32(0.9999))
+        cand = _near_direction(dirs, d32, F32(0.9999))
         if cand.size:
             kc = dirs[cand].astype(np.float64)
             ok = np.einsum("ij,j->i", kc, d) > cos_tol * np.sqrt(np.einsum("ij,ij->i", kc, kc))
@@ -208,6 +208,19 @@ def specular_flags(dirs: np.ndarray, side: np.ndarray, ideal_dirs: tuple, cos_to
                     spec = np.zeros(dirs.shape[0], bool)
                 spec[cand[ok]] = True
     return spec
+
+
+def _near_direction(dirs: np.ndarray, d32: np.ndarray, cos_min: np.float32) -> np.ndarray:
+    """Indices of the directions whose dot product with d32 (float32 multiply-adds) exceeds cos_min (the
+    compiled kernel `_compiled.near_direction` for float32 directions: the same operations)."""
+    ck = kernels.active()
+    if ck is not None and dirs.dtype == F32:
+        out = np.empty(dirs.shape[0], np.int64)
+        return out[:ck.near_direction(dirs, *d32, cos_min, out)]
+    c = dirs[:, 0] * d32[0]
+    c += dirs[:, 1] * d32[1]
+    c += dirs[:, 2] * d32[2]
+    return np.flatnonzero(c > cos_min)
 
 
 # ----------------------------------------------------------------------------- accumulation
@@ -259,7 +272,8 @@ class CellAccumulator:
     `add` one batch of exits at a time, `lose` the power of paths that did not leave, `merge`
     partial accumulators in a fixed order (deterministic sums), then `cells(n_paths)`.  With
     n_groups > 0 the weights are also summed per (sub-tile group, cell) and `count_paths` counts
-    the paths of each group (realisation uncertainty, module doc).
+    the paths of each group (realisation uncertainty, module doc).  sum_M is (cells, 16): a cell's
+    16 Mueller sums side by side (row-major 4 x 4).
     """
 
     cells: CellIndex
@@ -275,6 +289,7 @@ class CellAccumulator:
     outside_table: float = field(init=False, default=0.0)
     paths_group: np.ndarray | None = field(init=False)
     _group_parts: list = field(init=False)          # (key = group * cells + cell, weight) per batch
+    _untouched: bool = field(init=False, default=True)   # every sum still exactly zero (nothing added)
 
     def __post_init__(self):
         nc = 2 * self.cells.S * self.cells.A
@@ -283,7 +298,7 @@ class CellAccumulator:
         G = int(self.n_groups)
         self.paths_group = np.zeros(G) if G else None
         self._group_parts = []
-        self.sum_M = np.zeros((16, nc)) if self.polarized else None
+        self.sum_M = np.zeros((nc, 16)) if self.polarized else None
         self.spec = np.zeros(2)
         self.spec_M = np.zeros((2, 16)) if self.polarized else None
         self.lost = {name: 0.0 for name in self.lost_names}
@@ -297,6 +312,7 @@ class CellAccumulator:
             self.paths_group += np.bincount(group_of_path, minlength=self.paths_group.size)[:self.paths_group.size]
 
     def merge(self, other: "CellAccumulator") -> None:
+        self._untouched = False
         self.sum_w += other.sum_w
         self.sum_w2 += other.sum_w2
         if self.paths_group is not None:
@@ -311,7 +327,7 @@ class CellAccumulator:
         self.outside_table += other.outside_table
 
     def add(self, ex: ExitSamples) -> None:
-        """Bin one batch of exits (vectorised, np.bincount)."""
+        """Bin one batch of exits (np.bincount, or the compiled kernel: module doc)."""
         wd, side, spec = ex.weight, ex.side, ex.specular
         if wd.size == 0:
             return
@@ -326,21 +342,63 @@ class CellAccumulator:
         if wd.size - n_in - (0 if spec is None else int(np.count_nonzero(spec))):
             self.outside_table += float(wd[~inside & (True if spec is None else ~spec)].sum(dtype=np.float64))
         full = n_in == wd.size
-        c_in = cell if full else cell[inside]
-        w_in = (wd if full else wd[inside]).astype(np.float64)
+        compiled = self._compiled_for(ex)
+        if compiled is not None:
+            if not full:
+                cell[~inside] = -1                  # the kernel skips them: no gather of the Mueller columns
+            self._bin_kernel(compiled, cell, ex)
+        else:
+            c_in = cell if full else cell[inside]
+            w_in = (wd if full else wd[inside]).astype(np.float64)
+            M = None
+            if self.sum_M is not None:
+                M = ex.mueller if full else np.take(ex.mueller, np.flatnonzero(inside), axis=1)
+            self._bin_numpy(c_in, w_in, M)
+            if self.paths_group is not None:
+                g = ex.group if full else ex.group[inside]
+                gc = g.astype(np.int64) * self.sum_w.size
+                gc += c_in
+                self._group_parts.append((gc, w_in))
+        self._untouched = False
+
+    def _compiled_for(self, ex: ExitSamples):
+        """The compiled kernels when they run and take this batch (float32 weights and Mueller columns)."""
+        ck = kernels.active()
+        if ck is None or ex.weight.dtype != F32 or (self.sum_M is not None and ex.mueller.dtype != F32):
+            return None
+        return ck
+
+    def _bin_numpy(self, c_in: np.ndarray, w_in: np.ndarray, M: np.ndarray | None) -> None:
+        """The reference binning: np.bincount per sum (M: the Mueller columns (16, n) of the exits c_in)."""
         nc = self.sum_w.size
         self.sum_w += np.bincount(c_in, weights=w_in, minlength=nc)
         self.sum_w2 += np.bincount(c_in, weights=w_in * w_in, minlength=nc)
-        if self.paths_group is not None:
-            g = ex.group if full else ex.group[inside]
-            gc = g.astype(np.int64) * nc
-            gc += c_in
-            self._group_parts.append((gc, w_in))
         if self.sum_M is not None:
-            wf = w_in.astype(F32)
-            M16 = ex.mueller * wf if full else np.take(ex.mueller, np.flatnonzero(inside), axis=1) * wf
+            M16 = M * w_in.astype(F32)
             for e in range(16):
-                self.sum_M[e] += np.bincount(c_in, weights=M16[e], minlength=nc)
+                self.sum_M[:, e] += np.bincount(c_in, weights=M16[e], minlength=nc)
+
+    def _bin_kernel(self, compiled, cell: np.ndarray, ex: ExitSamples) -> None:
+        """`_bin_numpy` in one C pass (cells < 0 skipped).  The kernel adds exit by exit; into sums that
+        already hold something it adds a batch's own sums (as `+= np.bincount`), so that both give the
+        same numbers bit for bit."""
+        polar = self.sum_M is not None
+        if self._untouched:
+            sums = (self.sum_w, self.sum_w2, self.sum_M)
+        else:
+            sums = (np.zeros_like(self.sum_w), np.zeros_like(self.sum_w2), np.zeros_like(self.sum_M) if polar else None)
+        if self.paths_group is None:
+            compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums)
+        else:                                       # the group keys and float64 weights of the binned exits too
+            keys, w64 = np.empty(cell.size, np.int64), np.empty(cell.size)
+            j = compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums,
+                                   ex.group.astype(np.int32, copy=False), keys, w64)
+            self._group_parts.append((keys[:j], w64[:j]))
+        if not self._untouched:
+            self.sum_w += sums[0]
+            self.sum_w2 += sums[1]
+            if polar:
+                self.sum_M += sums[2]
 
     def _add_specular(self, ex: ExitSamples) -> None:
         for sd in (0, 1):
@@ -371,7 +429,7 @@ class CellAccumulator:
                          lost_detail={k_: v / n for k_, v in self.lost.items()},
                          outside_table=self.outside_table / n)
         if self.sum_M is not None:
-            m = (self.sum_M / n).reshape(4, 4, 2, S, A_).transpose(2, 3, 4, 0, 1)
+            m = (self.sum_M / n).reshape(2, S, A_, 4, 4)
             out.mueller_per_sr = (m / psa[None, :, :, None, None]).astype(F32)
             out.specular_mueller_R = (self.spec_M[0] / n).reshape(4, 4)
             out.specular_mueller_T = (self.spec_M[1] / n).reshape(4, 4)
@@ -385,6 +443,12 @@ class CellAccumulator:
         G = int(self.n_groups)
         if not self._group_parts:
             return np.zeros((G, nc))
+        ck = kernels.active()
+        if ck is not None:                          # the same sums in the same order, without concatenating
+            out = np.zeros(G * nc)
+            for k_, w_ in self._group_parts:
+                ck.add_at(k_, w_, out)
+            return out.reshape(G, nc)
         keys = np.concatenate([k_ for k_, _ in self._group_parts])
         w = np.concatenate([w_ for _, w_ in self._group_parts])
         self._group_parts = [(keys, w)]

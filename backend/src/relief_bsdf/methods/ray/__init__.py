@@ -41,7 +41,11 @@ specular_tol_rad (1e-5), fill_holes (None: NaN refused; True or a max gap in px)
 tile_uncertainty (True: sigma includes the tile's realisation uncertainty).
 `request.samples` rays per (wavelength, incidence, side).  Tables store the unpolarised BSDF
 (M00) whatever `request.polarization` says; the Mueller matrices carry the rest.
-Speed: benchmarks/bench_ray.py (paths/s and the ratio to Embree alone on the same segments).
+Speed: benchmarks/bench_ray.py (paths/s and the ratio to Embree alone on the same segments).  The
+hottest numpy-side steps (slab distances, facets, the polarised event, exit records and columns, the
+table builder's binning) run as optional compiled kernels (`relief_bsdf.kernels`, Cython, built by
+`pip install -e backend`) with the numpy code as fallback: the same tables bit for bit; the kernel that
+ran is in each table's metadata["ray_kernel"].
 """
 from relief_bsdf.bsdf.builder import CellIndex as _CellIndex   # noqa: F401  (kept for tests/benchmarks)
 from relief_bsdf.methods.ray.exits import STATE_NAMES, Exits

@@ -10,11 +10,25 @@ from __future__ import annotations
 
 import numpy as np
 
+from relief_bsdf import kernels
+
 F32 = np.float32
+ROW_PAD = 16          # float32 (one cache line) between the rows of a (rows, m) array: see `padded_rows`
 
 # exit states
 ABOVE, BELOW, LOST_BOUNCES, LOST_LEAK, LOST_ABSORBED = 0, 1, 2, 3, 4
 STATE_NAMES = {LOST_BOUNCES: "max_bounces", LOST_LEAK: "numerical_leak", LOST_ABSORBED: "absorbed"}
+
+
+def padded_rows(shape: tuple, m: int) -> np.ndarray:
+    """An uninitialised float32 array (*shape, m) whose rows start one cache line apart modulo 4 KiB.
+
+    A chunk's arrays have power-of-two lengths (2^16 rays, 2^17 exits): unpadded, the 16 rows of a
+    Mueller record lie a power of two apart and fall into the same cache set, so a kernel writing or
+    reading one record's entries across them (`relief_bsdf.kernels`) evicts its own lines; numpy's
+    row-by-row passes do not care.  A view of a slightly wider array (rows ROW_PAD floats longer).
+    """
+    return np.empty(tuple(shape) + (m + ROW_PAD,), F32)[..., :m]
 
 
 class Exits:
@@ -31,7 +45,7 @@ class Exits:
         self.state = np.empty(m, np.int8)
         self.nb = np.empty(m, np.int16)
         self.ids = np.empty(m, np.int64)
-        self.A = np.empty((4, K, m), F32) if K else None
+        self.A = padded_rows((4, K), m) if K else None
         self.n = 0
         self.m = m
         self.segments = 0
@@ -40,7 +54,8 @@ class Exits:
 
     def put(self, k, idx, w, nb, ids, state) -> slice:
         """Store rows `idx` of the arrays (idx None: every row); the slice of the new records, whose
-        Stokes columns `A[:, :, slice]` the caller fills (the carrier, in the exit frame)."""
+        Stokes columns `A[:, :, slice]` the caller fills (the carrier, in the exit frame).  The rows are
+        gathered by the compiled kernels when they run (`relief_bsdf.kernels`)."""
         a = self.n
         if idx is None:
             b = a + ids.size
@@ -50,6 +65,12 @@ class Exits:
             self.ids[a:b] = ids
         else:
             b = a + idx.size
+            ck = kernels.active()
+            if ck is not None and k.dtype == w.dtype == F32 and nb.dtype == np.int16 and ids.dtype == np.int64:
+                ck.gather_records(idx, k, w, nb, ids, self.k[a:b], self.w[a:b], self.nb[a:b], self.ids[a:b])
+                self.state[a:b] = state
+                self.n = b
+                return slice(a, b)
             # mode="clip": no bounds-check buffer (idx comes from flatnonzero, always in range)
             np.take(k, idx, axis=0, out=self.k[a:b], mode="clip")
             np.take(w, idx, out=self.w[a:b], mode="clip")

@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from relief_bsdf import kernels
 from relief_bsdf.bsdf.builder import CellAccumulator, CellIndex, ExitSamples, specular_flags
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.core.frames import beam_directions, cross_rows, direction, dot_rows, normalize, rotate_z_rows
@@ -389,7 +390,8 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
             total.merge(job(ci))
     out = _task_rows(total, side, K)
     out["diag"] = {"wavelength_nm": None, "theta_i_deg": float(ti), "phi_i_deg": float(pi_), **out["diag"],
-                   "trace_s": time.perf_counter() - t0, "build_s": tracer.build_s}
+                   "trace_s": time.perf_counter() - t0, "build_s": tracer.build_s,
+                   "ray_kernel": kernels.name()}       # where the task ran (a worker process: its own)
     m = tracer.mesh
     out["mesh"] = {"rays": int(N), "triangles": m.n_triangles, "tile_samples": list(m.shape),
                    "mirror_extended": m.mirrored, "history": list(m.history)}
@@ -571,6 +573,7 @@ def _table(side: str, d: dict, run: _Run) -> BsdfTable:
             "max_bounces": int(opts.max_bounces),
             "timing_s": {**run.timing, "total": time.perf_counter() - run.t0},
             "parallel": last_run(),
+            "ray_kernel": "+".join(sorted({d["ray_kernel"] for d in diag})) if diag else kernels.name(),
             "tasks": diag,
             "uncertainty": uncertainty,
             "warnings": warn,

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from relief_bsdf import kernels
 from relief_bsdf.errors import RequestError
 from relief_bsdf.methods.ray.embree_buffers import DirectMesh, Unavailable
 from relief_bsdf.methods.ray.exits import ABOVE, Exits
@@ -168,19 +169,26 @@ class ReliefTracer:
 
     # ------------------------------------------------------------------ geometry of the tile
     def query(self, o: np.ndarray, k: np.ndarray) -> Query:
-        """Intersect rays (o, k) with the relief up to the nearest tile side or slab face."""
+        """Intersect rays (o, k) with the relief up to the nearest tile side or slab face (the distances
+        to them by the compiled kernel `_compiled.slab_distances` when it runs: the same numbers)."""
         n = k.shape[0]
-        bnd_hi, bnd_c = self._slab_bounds(n)
-        # ((+-hx, +-hy, +-zh) by the sign of k - (o - (0, 0, zc))) / k on the flat (3 n) views
-        T = copysign_positive(bnd_hi, k.reshape(-1))
-        T -= o.reshape(-1)
-        T += bnd_c
-        T /= k.reshape(-1)
-        T = T.reshape(n, 3)
+        ck = kernels.active()
+        if ck is not None and o.dtype == k.dtype == F32:
+            T, t_lat, tfar = np.empty((n, 3), F32), np.empty(n, F32), np.empty(n, F32)
+            zh, zc = self._slab_faces()
+            ck.slab_distances(o, k, self.hx, self.hy, zh, zc, T, t_lat, tfar)
+        else:
+            bnd_hi, bnd_c = self._slab_bounds(n)
+            # ((+-hx, +-hy, +-zh) by the sign of k - (o - (0, 0, zc))) / k on the flat (3 n) views
+            T = copysign_positive(bnd_hi, k.reshape(-1))
+            T -= o.reshape(-1)
+            T += bnd_c
+            T /= k.reshape(-1)
+            T = T.reshape(n, 3)
+            t_lat = np.fmin(T[:, 0], T[:, 1])
+            tfar = np.fmin(t_lat, T[:, 2])
+            np.maximum(tfar, 0, out=tfar)
         tx, ty, tz = T[:, 0], T[:, 1], T[:, 2]
-        t_lat = np.fmin(tx, ty)
-        tfar = np.fmin(t_lat, tz)
-        np.maximum(tfar, 0, out=tfar)
         if self.record_segments is not None:          # benchmark hook: replay the same batches
             self.record_segments.append((o.copy(), k.copy(), tfar.copy()))
         res = self.scene.run(o, k, dists=tfar, output=1)
@@ -196,12 +204,15 @@ class ReliefTracer:
         ow[by, 1] = -np.copysign(self.hy, k[by, 1])
         return ow
 
+    def _slab_faces(self) -> tuple:
+        """(zh, zc): the slab's half height and centre, float32."""
+        return (self.z_top - self.z_bot) / F32(2), (self.z_top + self.z_bot) / F32(2)
+
     def _slab_bounds(self, n: int):
         """Flat float32 arrays (hx, hy, zh) and (0, 0, zc) repeated n times (views of cached arrays)."""
         hi, c = self._bounds
         if hi.size < 3 * n:
-            zh = (self.z_top - self.z_bot) / F32(2)
-            zc = (self.z_top + self.z_bot) / F32(2)
+            zh, zc = self._slab_faces()
             cap = max(n, 2 * CHUNK)
             hi, c = np.tile(np.array([self.hx, self.hy, zh], F32), cap), np.tile(np.array([0, 0, zc], F32), cap)
             self._bounds = (hi, c)
@@ -212,6 +223,16 @@ class ReliefTracer:
         grid of the *relief's own* extent: on a mirror-extended tile the coordinates are folded
         back onto the measured map first, so that mirror images share their sub-tile."""
         gx, gy = int(grid[0]), int(grid[1])
+        ck = kernels.active()
+        if ck is not None and p.dtype == F32:          # the compiled kernel: the same operations
+            half_x, half_y = self.Lx / F32(2), self.Ly / F32(2)
+            if self.mesh.mirrored:
+                scale_x, scale_y = F32(gx) / half_x, F32(gy) / half_y
+            else:
+                scale_x, scale_y = F32(gx) / self.Lx, F32(gy) / self.Ly
+            out = np.empty(p.shape[0], np.int32)
+            ck.subtile_index(p, self.hx, self.hy, half_x, half_y, scale_x, scale_y, self.mesh.mirrored, gx, gy, out)
+            return out
         idx = None
         for ax, (g, L, h) in enumerate(((gx, self.Lx, self.hx), (gy, self.Ly, self.hy))):
             u = p[:, ax] + h                            # [0, L)

@@ -48,6 +48,9 @@ tested equal to the reference definitions beside them; the (n, 3) vectors of an 
 (directions, normals, the facet basis) are worked on as contiguous component arrays and written
 into (n, 3) rows once (`_columns`, `_unit_rows`: the operations of `core.frames.dot_rows`,
 `divide_rows`, `scale_rows` in the same order, on unstrided arrays, ~3x faster per operation).
+With the compiled kernels (`relief_bsdf.kernels`) the facets of a batch (`_hits_compiled`), the
+polarised event (`StokesCarrier.reflectance`) and the exit columns are C passes over the rays doing
+the same float32 operations (the numpy code here stays the reference and the fallback).
 """
 from __future__ import annotations
 
@@ -57,11 +60,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from relief_bsdf import kernels
 from relief_bsdf.core.frames import cross_rows, dot_rows
 from relief_bsdf.core.fresnel import interface_coefficients_f32, reflectance_unpolarized_f32
 from relief_bsdf.core.stokes import (apply_interface_mueller_columns, double_angle_cd,
                                      rotate_stokes_columns_cd, s_axis_rows)
-from relief_bsdf.methods.ray.exits import ABOVE, BELOW, LOST_ABSORBED, LOST_BOUNCES, LOST_LEAK, Exits
+from relief_bsdf.methods.ray.exits import ABOVE, BELOW, LOST_ABSORBED, LOST_BOUNCES, LOST_LEAK, Exits, padded_rows
 
 F32 = np.float32
 ALONG_Z_XY2 = F32(1e-14)     # k_x^2 + k_y^2 below which an exit is along z: its frame is the fallback azimuth's
@@ -159,10 +163,20 @@ class Rays:
         return self.ids.size
 
     def take(self, idx: np.ndarray) -> "Rays":
+        A = None if self.A is None else np.take(self.A, idx, axis=2)
+        s = None if self.s is None else take_rows(self.s, idx)
+        F = None if self.F is None else take_factors(self.F, idx)
+        ck = kernels.active()
+        if ck is not None and self.o.dtype == self.k.dtype == self.w.dtype == F32 and self.nb.dtype == np.int16 \
+                and self.ids.dtype == np.int64 and idx.dtype == np.int64:
+            m = idx.size                            # the compiled kernel: the six gathers in one pass
+            r = Rays(np.empty((m, 3), F32), np.empty((m, 3), F32), np.empty(m, bool), np.empty(m, F32),
+                     np.empty(m, np.int16), np.empty(m, np.int64), A, s, F)
+            ck.gather_rays(idx, self.o, self.k, self.below.view(np.uint8), self.w, self.nb, self.ids, r.o, r.k,
+                           r.below.view(np.uint8), r.w, r.nb, r.ids)
+            return r
         return Rays(np.take(self.o, idx, axis=0), np.take(self.k, idx, axis=0), self.below[idx], self.w[idx],
-                    self.nb[idx], self.ids[idx], None if self.A is None else np.take(self.A, idx, axis=2),
-                    None if self.s is None else take_rows(self.s, idx),
-                    None if self.F is None else np.take(self.F, idx, axis=1))
+                    self.nb[idx], self.ids[idx], A, s, F)
 
     def columns(self, K: int) -> np.ndarray:
         """The Stokes columns (4, K, n), materialised from the factors or the identity when not held."""
@@ -182,7 +196,7 @@ class Rays:
         if withA:                                   # full columns somewhere: materialise the others
             A = cat([p.columns(withA[0].shape[1]) for p in parts], axis=2)
         elif all(p.F is not None for p in parts):   # every ray still after its first interaction: factors
-            F = cat([p.F for p in parts], axis=1)
+            F = cat([p.F for p in parts], axis=1, out=padded_rows((6,), sum(p.size for p in parts)))
         elif any(p.F is not None for p in parts):   # factors and identities (no first-hit split)
             A = cat([p.columns(4) for p in parts], axis=2)
         s = None if parts[0].s is None else cat([p.s for p in parts])
@@ -205,6 +219,15 @@ def take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return np.take(a, idx, axis=0)
 
 
+def take_factors(F: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """np.take(F, idx, axis=1) of factors (6, n) held in padded rows (`exits.padded_rows`), row by row into
+    padded rows: numpy's take along an axis first copies a non-contiguous array whole."""
+    out = padded_rows((F.shape[0],), idx.size)
+    for r in range(F.shape[0]):
+        np.take(F[r], idx, out=out[r], mode="clip")
+    return out
+
+
 def identity_columns(K: int, n: int) -> np.ndarray:
     """Stokes columns (4, K, n) of the incident basis states: the identity Mueller matrix."""
     A = np.zeros((4, K, n), F32)
@@ -220,7 +243,7 @@ def first_interaction_factors(coef, c2, s2, inv_p) -> np.ndarray:
     16 of the product (`columns_of_factors`): what a ray carries after its first interaction until
     it interacts again (most rays leave first: their exit columns come from the factors,
     `StokesCarrier.exit_columns`)."""
-    F = np.empty((6, np.size(coef[0])), F32)
+    F = padded_rows((6,), np.size(coef[0]))
     for x, o in zip(coef, F[:4]):
         np.multiply(x, inv_p, out=o)
     F[4] = c2
@@ -313,6 +336,7 @@ class Facet:
     eta: np.ndarray
     tir: np.ndarray
     k3: tuple = ()          # the rays' direction components (kx, ky, kz), contiguous (`_hits`)
+    n_pair: tuple | None = None   # per-ray float32 indices (n1, n2) when the compiled kernels made the facets
 
     def normal(self) -> np.ndarray:
         return np.stack([self.nfx, self.nfy, self.nfz], axis=1)
@@ -339,6 +363,9 @@ class IntensityCarrier:
             pR = reflectance_unpolarized_f32(f.ci, f.eta, F32(1), f.ct)
         pR[f.tir] = 1
         return pR
+
+    def split_factors(self, ck, pR) -> None:
+        """Nothing to prepare."""
 
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
         return None, None, None
@@ -368,6 +395,7 @@ class StokesCarrier:
     def __init__(self, K: int):
         self.K = int(K)
         self._ev = None
+        self._split = None              # (F_r, F_t) of a first interaction's both branches (`split_factors`)
 
     def start(self, rays: Rays, s_init=None) -> None:
         """Initial basis s = z x k (or the given s_init for every ray); rays.A None stands for the
@@ -385,7 +413,11 @@ class StokesCarrier:
         the ray's basis (s . k = 0, |k| = 1): s . u = |u| (s . s') and p . u = s . n, so the
         rotation's (c, d) = (s . s', p . s') are (s . u, s . n) / |u| (`rotate_stokes_columns_cd`
         needs them only up to that factor): two dot products instead of a cross product.
+        With the compiled kernels (real indices): `_compiled.facet_event`, the same numbers.
         """
+        ck = kernels.active()
+        if ck is not None and f.n_pair is not None:
+            return self._reflectance_compiled(ck, rays, f)
         k, s_old = rays.k, rays.s
         kx, ky, kz = f.k3
         # u = n x k in three contiguous arrays (column ops on an (n, 3) array are strided, ~3x slower),
@@ -428,10 +460,39 @@ class StokesCarrier:
         self._ev = (R, T, s_new, None)
         return np.clip(R[0] + R[1] * rays.A[1, 0], 0, 1).astype(F32, copy=False)
 
+    def _reflectance_compiled(self, ck, rays: Rays, f: Facet) -> np.ndarray:
+        """`reflectance` in one C pass over the rays (`_compiled.facet_event`)."""
+        n = rays.size
+        if rays.F is not None:                      # a second interaction: the factors become columns
+            rays.A, rays.F = columns_of_factors(rays.F), None
+        elif rays.A is not None and not rays.A.flags.c_contiguous:
+            rays.A = np.ascontiguousarray(rays.A)
+        s_new = np.empty((n, 3), F32)
+        rows = padded_rows((14,), n)                # c2, s2, R (4), T (4), pR, the new basis's components (3)
+        rot, R, T, pR = rows[0:2], rows[2:6], rows[6:10], rows[10]
+        ck.facet_event(f.nfx, f.nfy, f.nfz, *f.k3, rays.s, f.ci, *f.n_pair, rays.A, s_new, rows[11:14], rot[0],
+                       rot[1], R, T, pR)
+        self._ev = (R, T, s_new, None if rays.A is not None else (rot[0], rot[1]))
+        return pR
+
+    def split_factors(self, ck, pR) -> None:
+        """Before the first-hit split of rays in their incident basis: the factors of both branches at once
+        (`_compiled.split_factors`, the numbers of `reflected` and `transmitted_copy`), which they take."""
+        R, T, _, rot = self._ev
+        if rot is None or not self.factored or not isinstance(R, np.ndarray):   # (R, T rows of the kernel's)
+            return
+        F_r, F_t = padded_rows((6,), pR.size), padded_rows((6,), pR.size)
+        ck.split_factors(R, T, rot[0], rot[1], pR, F_r, F_t)
+        self._split = (F_r, F_t)
+
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
         """(A, s, F) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R
         (F: the factors of a first interaction, A None; else A)."""
         _, T, s_new, rot = self._ev
+        if self._split is not None:
+            full = j.size == s_new.shape[0]
+            return None, s_new if full else np.take(s_new, j, axis=0), \
+                self._split[1] if full else take_factors(self._split[1], j)
         inv = 1 / np.maximum(1 - pR_j, F32(1e-30))
         full = j.size == s_new.shape[0]                 # usually every ray transmits something: no gathers
         sel = (lambda a: a) if full else (lambda a: np.take(a, j, axis=0))
@@ -446,6 +507,9 @@ class StokesCarrier:
     def reflected(self, rays: Rays, pR) -> None:
         """Every ray keeps its reflected branch (first-hit split), renormalised by P_R."""
         R, _, s_new, rot = self._ev
+        if self._split is not None:
+            rays.F, rays.s, self._split = self._split[0], s_new, None
+            return
         inv = 1 / np.maximum(pR, F32(1e-30))
         if rot is not None:
             self._first(rays, first_interaction_factors(R, rot[0], rot[1], inv))
@@ -475,10 +539,23 @@ class StokesCarrier:
         """Write the columns of the rays idx (all when None), re-expressed in the exit frame
         s = z x k, into `out` (4, K, m): the exit record's slot, filled row by row without a
         temporary (`np.take` into each contiguous row); k_exit (m, 3) their directions.  Rays that
-        hold the factors of their first interaction: `exit_columns_of_factors`."""
+        hold the factors of their first interaction: `exit_columns_of_factors`.  With the compiled
+        kernels: `_compiled.exit_columns` (the same numbers; exits along z by the numpy code)."""
+        ck = kernels.active()
+        if ck is None or (rays.F is None and rays.A is None):
+            self._exit_columns_numpy(rays, idx, phi_exit_rad, k_exit, out)
+            return
+        if ck.exit_columns(rays.F, rays.A, rays.s, k_exit, idx, out, ALONG_Z_XY2):
+            zi = np.flatnonzero(k_exit[:, 0] * k_exit[:, 0] + k_exit[:, 1] * k_exit[:, 1] < ALONG_Z_XY2)
+            cols = np.empty((4, self.K, zi.size), F32)
+            self._exit_columns_numpy(rays, zi if idx is None else idx[zi], phi_exit_rad, k_exit[zi], cols)
+            out[:, :, zi] = cols
+
+    def _exit_columns_numpy(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out) -> None:
+        """The numpy code of `exit_columns`."""
         F = None
         if rays.F is not None:
-            F = rays.F if idx is None else np.take(rays.F, idx, axis=1, mode="clip")
+            F = rays.F if idx is None else take_factors(rays.F, idx)
         elif rays.A is None:
             out[...] = identity_columns(self.K, k_exit.shape[0])
         elif idx is None:
@@ -629,6 +706,9 @@ def _hits(ch: _Chunk, cur: Rays, q, pending: bool) -> list:
     else:
         hi = np.flatnonzero(q.hit)
         h, ng, th = cur.take(hi), np.take(q.ng, hi, axis=0), q.t_hit[hi]
+    ck = kernels.active()
+    if ck is not None and ng.dtype == h.k.dtype == F32:
+        return _hits_compiled(ck, ch, h, ng, th, pending)
     g3, k3 = _columns(ng), _columns(h.k)
     gx, gy, gz = g3
     # unit facet normal oriented up (+z): g / |g| with the sign of g_z
@@ -654,6 +734,27 @@ def _hits(ch: _Chunk, cur: Rays, q, pending: bool) -> list:
     return _interact(ch, h, _facet(h, g3, k3, inv, dot, ch.media), th, pending)
 
 
+def _hits_compiled(ck, ch: _Chunk, h: Rays, ng, th, pending: bool) -> list:
+    """`_hits` with the facets from the compiled kernel `_compiled.facet_geometry` (the same numbers)."""
+    n, media = h.size, ch.media
+    out = padded_rows((12,), n)
+    tir, leak = np.empty(n, bool), np.empty(n, bool)
+    na, nb = (F32(0), F32(0)) if media.is_complex else (F32(media.n_above), F32(media.n_below))
+    ck.facet_geometry(ng, h.k, h.below.view(np.uint8), media.eta_up, media.eta_dn, na, nb, out, tir.view(np.uint8),
+                      leak.view(np.uint8))
+    if leak.any():
+        li = np.flatnonzero(leak)
+        _record(ch, h, li, LOST_LEAK)
+        g = np.flatnonzero(~leak)
+        h, th, out, tir = h.take(g), th[g], np.take(out, g, axis=1), tir[g]
+        if h.size == 0:
+            return []
+    kx, ky, kz, nfx, nfy, nfz, ci, ct, eta, _, n1, n2 = out
+    f = Facet(nfx, nfy, nfz, ci, ct, eta, tir, (kx, ky, kz))
+    f.n_pair = None if media.is_complex else (n1, n2)
+    return _interact(ch, h, f, th, pending)
+
+
 def _facet(h: Rays, g3, k3, inv, dot, media: Media) -> Facet:
     """Incident-side unit normal, cos i, cos t (Snell), n1 / n2 and TIR of each hit."""
     s = np.where(h.below, -inv, inv)                 # nf = n_up above the surface, -n_up below
@@ -673,6 +774,9 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
     """One interaction for rays that all hit: the continuing rays (and split copies)."""
     carrier, eps = ch.carrier, ch.tracer.eps
     pR = carrier.reflectance(h, f, ch.media)
+    ck = kernels.active()
+    if pending and ck is not None and h.o.dtype == th.dtype == F32:
+        return _first_interaction_compiled(ck, ch, h, f, th, pR)
     p = np.empty(h.k.shape, F32)                     # hit point (`core.frames.scale_rows` of k, th)
     for i in range(3):
         np.multiply(f.k3[i], th, out=p[:, i])
@@ -705,6 +809,30 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
     p[:, 2] += off * f.nfz
     h.o = p
     end = _end_rays(ch, h, absorbed)
+    if end is not None:
+        g = np.flatnonzero(~end)
+        if g.size == 0:
+            return parts
+        h = h.take(g)
+    return [h] + parts
+
+
+def _first_interaction_compiled(ck, ch: _Chunk, h: Rays, f: Facet, th, pR) -> list:
+    """The pending branch of `_interact` with both branches' points and directions from the compiled kernel
+    `_compiled.split_rays` (the same numbers)."""
+    n = h.size
+    p, o_r, k_r, o_t, k_t = (np.empty((n, 3), F32) for _ in range(5))
+    ck.split_rays(*f.k3, f.nfx, f.nfy, f.nfz, f.eta, f.ci, f.ct, th, h.o, ch.tracer.eps, p, o_r, k_r, o_t, k_t)
+    if ch.group is not None:
+        _tag_first_hits(ch, h, p, True)
+    h.nb = h.nb + np.int16(1)
+    ch.carrier.split_factors(ck, pR)
+    tr = _split_copies(ch, h, f, None, None, pR, made=(o_t, k_t))
+    h.w = h.w * pR
+    ch.carrier.reflected(h, pR)
+    h.k, h.o = k_r, o_r
+    end = _end_rays(ch, h, None)
+    parts = [] if tr is None else [tr]
     if end is not None:
         g = np.flatnonzero(~end)
         if g.size == 0:
@@ -746,22 +874,26 @@ def _tag_first_hits(ch: _Chunk, h: Rays, p, pending: bool) -> None:
             ch.group[h.ids[fi]] = ch.tracer.subtile_of(np.take(p, fi, axis=0), ch.settings.subtiles)
 
 
-def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR) -> Rays | None:
+def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR, made: tuple | None = None) -> Rays | None:
     """Transmitted branch of every ray's first interaction (id + n0, weight w (1 - P_R)); none where
-    nothing is transmitted (P_R = 1: TIR)."""
+    nothing is transmitted (P_R = 1: TIR).  made: the (origins, directions) of every ray's refracted
+    branch, already computed (`_first_interaction_compiled`)."""
     j = np.flatnonzero(pR < 1)
     if not j.size:
         return None
     full = j.size == h.size
     sel = (lambda a: a) if full else (lambda a: a[j])
-    etj, btj = sel(f.eta), sel(bt)
-    fx, fy, fz = sel(f.nfx), sel(f.nfy), sel(f.nfz)
-    kt = _unit_rows([etj * sel(ki) + btj * fi for ki, fi in zip(f.k3, (fx, fy, fz))])
-    ot = np.take(p, j, axis=0) if not full else p.copy()
-    eps = ch.tracer.eps
-    ot[:, 0] -= eps * fx
-    ot[:, 1] -= eps * fy
-    ot[:, 2] -= eps * fz
+    if made is not None:
+        ot, kt = made if full else (np.take(made[0], j, axis=0), np.take(made[1], j, axis=0))
+    else:
+        etj, btj = sel(f.eta), sel(bt)
+        fx, fy, fz = sel(f.nfx), sel(f.nfy), sel(f.nfz)
+        kt = _unit_rows([etj * sel(ki) + btj * fi for ki, fi in zip(f.k3, (fx, fy, fz))])
+        ot = np.take(p, j, axis=0) if not full else p.copy()
+        eps = ch.tracer.eps
+        ot[:, 0] -= eps * fx
+        ot[:, 1] -= eps * fy
+        ot[:, 2] -= eps * fz
     A, s, F = ch.carrier.transmitted_copy(h, j, sel(pR))
     tr = Rays(ot, kt, ~sel(h.below), sel(h.w) * (1 - sel(pR)), sel(h.nb), sel(h.ids) + ch.n0, A, s, F)
     if ch.media.absorbing_below:

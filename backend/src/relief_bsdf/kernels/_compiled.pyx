@@ -1,0 +1,556 @@
+# cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
+"""Compiled kernels of the ray engine (package doc): C loops over rays, the GIL released.
+
+Every kernel repeats the float32 / float64 operations of the numpy code it replaces, in the same
+order (its docstring names that code), so that the results are bit for bit the same: every literal in
+float arithmetic is cast (<float>2): Cython writes a bare 2 as the double 2.0, which turns a chain of
+float32 operations into double ones with other roundings.  The module is
+compiled with -ffp-contract=off (no fused multiply-add), -fno-tree-slp-vectorize (gcc packs the x and
+y components of a ray into one SSE division whose unused lanes divide garbage, with microcode assists
+for denormals: 4x slower than numpy), and -fno-math-errno -fno-trapping-math (no value changes; they
+let gcc if-convert and vectorise `facet_loop`, whose ~12 divisions and square roots per ray bound a
+scalar loop).
+"""
+
+from libc.math cimport INFINITY, copysignf, fabsf, sqrtf
+from libc.float cimport FLT_MAX
+
+cdef extern from *:
+    void prefetch_write "__builtin_prefetch"(const void *addr, int rw, int locality) nogil
+
+cdef enum:
+    PREFETCH_AHEAD = 16       # exits ahead: the sums of a cell come from memory (a table's sums exceed L2)
+
+
+def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
+              double[::1] sum_w, double[::1] sum_w2, double[:, ::1] sum_M,
+              const int[::1] group=None, long[::1] keys=None, double[::1] w_keys=None):
+    """Add each exit i with cell[i] >= 0 to its cell: sum_w[c] += w, sum_w2[c] += w^2 (float64) and, when M
+    (16, n) is given, sum_M[c, e] += M[e, i] w (the float32 product, summed in float64).  With group (the
+    sub-tile of each exit's path), the binned exits' keys group * cells + cell and float64 weights are
+    written in order into keys and w_keys (`CellAccumulator._group_parts`); returns how many.
+
+    One pass over the exits in their order: the sums of `np.bincount(cell, weights)` per component, which
+    also adds in input order (`bsdf.builder.CellAccumulator.add`), without its 16 passes and temporaries.
+    """
+    cdef Py_ssize_t n = cell.shape[0], i, e, j = 0, nc = sum_w.shape[0]
+    cdef int c, cn
+    cdef float wi
+    cdef double wd
+    cdef bint polarized = M is not None, grouped = group is not None
+    if w.shape[0] != n or (polarized and (M.shape[0] != 16 or M.shape[1] != n or sum_M.shape[1] != 16)) or (
+            grouped and (group.shape[0] != n or keys is None or w_keys is None or keys.shape[0] < n
+                         or w_keys.shape[0] < n)):
+        raise ValueError("bin_cells: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            if polarized and i + PREFETCH_AHEAD < n:
+                cn = cell[i + PREFETCH_AHEAD]
+                if cn >= 0:
+                    prefetch_write(&sum_M[cn, 0], 1, 3)
+                    prefetch_write(&sum_M[cn, 8], 1, 3)
+            c = cell[i]
+            if c < 0:
+                continue
+            wi = w[i]
+            wd = <double>wi
+            sum_w[c] += wd
+            sum_w2[c] += wd * wd
+            if grouped:
+                keys[j] = group[i] * nc + c
+                w_keys[j] = wd
+                j += 1
+            if polarized:
+                for e in range(16):
+                    sum_M[c, e] += <double>(M[e, i] * wi)
+    return j
+
+
+def add_at(const long[::1] keys, const double[::1] w, double[::1] out):
+    """out[keys[i]] += w[i] in the order of i: `np.bincount(keys, w)` added into out without its temporary
+    (`CellAccumulator.sum_w_group`, batch after batch in merge order: the order of the concatenation)."""
+    cdef Py_ssize_t n = keys.shape[0], i
+    if w.shape[0] != n:
+        raise ValueError("add_at: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            out[keys[i]] += w[i]
+
+
+# ----------------------------------------------------------------------------- Stokes frames
+
+
+cdef inline void double_angle(float c, float d, float *c2, float *s2) noexcept nogil:
+    """(cos 2psi, sin 2psi) from c, d as `core.stokes.double_angle_cd`: (c^2 - d^2) / r, 2 c d / r, r = 0 -> 1."""
+    cdef float cc = c * c, dd = d * d
+    cdef float r = cc + dd
+    r = 1 if r == 0 else r
+    cdef float sn = c * d
+    sn = sn + sn
+    s2[0] = sn / r
+    c2[0] = (cc - dd) / r
+
+
+def exit_columns(const float[:, :] F, const float[:, :, :] A, const float[:, :] s, const float[:, :] k,
+                 const long[::1] idx, float[:, :, :] out, float along_z_xy2):
+    """out (4, K, m) <- the Stokes columns of the rays idx (rows 0..m-1 when idx is None) in the exit frame
+    s' = z x k / |z x k| of their exit directions k (m, 3); s (n, 3) the rays' bases.  From the factors F
+    (6, n) of a first interaction (`transport.exit_columns_of_factors`) or, F None, from the columns A
+    (4, K, n) (gathered and rotated: `core.stokes.rotate_stokes_columns_cd`), with the rotation's
+    c = s_y k_x - s_x k_y, d = s_z of `transport.StokesCarrier.exit_columns`.  Rows whose k is along z
+    (k_x^2 + k_y^2 < along_z_xy2) take the fallback azimuth's frame, which this kernel leaves to the
+    caller: it returns their number (their rows written with the generic frame, to be overwritten).
+    """
+    cdef Py_ssize_t m = k.shape[0], K = out.shape[1], j, i, col
+    cdef bint factored = F is not None, gather = idx is not None
+    cdef float kx, ky, c, d, E, S, a, b, cc, dd, c2, s2, x1, x2, a1, a2
+    cdef Py_ssize_t along = 0
+    if out.shape[0] != 4 or out.shape[2] != m or (gather and idx.shape[0] != m) or (factored and K != 4):
+        raise ValueError("exit_columns: inconsistent shapes")
+    if not factored and A is None:
+        raise ValueError("exit_columns: neither factors nor columns")
+    with nogil:
+        for j in range(m):
+            i = idx[j] if gather else j
+            kx = k[j, 0]
+            ky = k[j, 1]
+            if kx * kx + ky * ky < along_z_xy2:
+                along += 1
+            c = s[i, 1] * kx - s[i, 0] * ky
+            d = s[i, 2]
+            double_angle(c, d, &E, &S)
+            if factored:                      # the entries of `exit_columns_of_factors`, in its operations
+                a = F[0, i]
+                b = F[1, i]
+                cc = F[2, i]
+                dd = F[3, i]
+                c2 = F[4, i]
+                s2 = F[5, i]
+                out[0, 0, j] = a
+                out[0, 1, j] = b * c2
+                out[0, 2, j] = b * s2
+                out[0, 3, j] = 0
+                out[3, 0, j] = 0
+                out[3, 1, j] = dd * s2
+                out[3, 2, j] = -(dd * c2)
+                out[3, 3, j] = cc
+                out[1, 0, j] = E * b
+                out[2, 0, j] = -(b * S)
+                out[1, 3, j] = S * dd
+                out[2, 3, j] = dd * E
+                x1 = a * c2
+                x2 = -(cc * s2)
+                out[1, 1, j] = E * x1 + S * x2
+                out[2, 1, j] = x2 * E - x1 * S
+                x1 = a * s2
+                x2 = cc * c2
+                out[1, 2, j] = E * x1 + S * x2
+                out[2, 2, j] = x2 * E - x1 * S
+            else:                             # gathered columns, rows 1 and 2 rotated
+                for col in range(K):
+                    a1 = A[1, col, i]
+                    a2 = A[2, col, i]
+                    out[0, col, j] = A[0, col, i]
+                    out[1, col, j] = E * a1 + S * a2
+                    out[2, col, j] = a2 * E - a1 * S
+                    out[3, col, j] = A[3, col, i]
+    return along
+
+
+# ----------------------------------------------------------------------------- facet events
+
+
+cdef inline float nan_to_num(float x) noexcept nogil:
+    """np.nan_to_num for float32: NaN -> 0, +-inf -> +-FLT_MAX."""
+    x = 0 if x != x else x
+    x = FLT_MAX if x == INFINITY else x
+    return -FLT_MAX if x == -INFINITY else x
+
+
+cdef inline float clip01(float x) noexcept nogil:
+    """np.clip(x, 0, 1) (NaN stays NaN)."""
+    x = 0 if x < 0 else x
+    return 1 if x > 1 else x
+
+
+cdef inline void interface_coefficients(float ci, float n1, float n2, float *R, float *T) noexcept nogil:
+    """Mueller coefficients R = (aR, bR, cR, dR), T = (aT, bT, cT, dT) of a facet between real indices n1 -> n2
+    at cos i = ci: `core.fresnel.interface_coefficients_f32` (real branch, total internal reflection
+    included) operation by operation in float32.  Branch-free (both branches computed, one selected), so
+    that the loop calling it vectorises."""
+    cdef float q = n1 / n2, x = <float>1 - ci * ci
+    x = 0 if x < 0 else x                            # np.maximum(0, x) (NaN kept)
+    cdef float sin2_t = (q * q) * x
+    x = <float>1 - sin2_t
+    x = 0 if x < 0 else x
+    cdef float ct = sqrtf(x)
+    cdef float a = n1 * ci, b = n2 * ct, c = n2 * ci, d = n1 * ct
+    cdef float rs = (a - b) / (a + b), rp = (c - d) / (c + d)
+    cdef float aR = <float>0.5 * (rs * rs + rp * rp), bR = <float>0.5 * (rs * rs - rp * rp), cR = rs * rp
+    cdef float ts = (<float>2 * a) / (a + b), tp = (<float>2 * a) / (c + d)
+    cdef float cT = ((b / a) * ts) * tp
+    # past the critical angle (`fresnel._total_internal_reflection`)
+    x = sin2_t - <float>1
+    x = 0 if x < 0 else x
+    cdef float g = sqrtf(x)
+    cdef float A1 = n1 * ci, B1 = n2 * g, P1 = n2 * ci, Q1 = n1 * g
+    cdef float den = (A1 * A1 + B1 * B1) * (P1 * P1 + Q1 * Q1)
+    cdef float ab = A1 * A1 - B1 * B1, pq = P1 * P1 - Q1 * Q1
+    cdef float cR_tir = (ab * pq + (((<float>4 * A1) * B1) * P1) * Q1) / den
+    cdef float dR_tir = ((((<float>2 * P1) * Q1) * ab) - (((<float>2 * A1) * B1) * pq)) / den
+    R[0] = 1 if sin2_t >= 1 else nan_to_num(aR)      # sin2_t >= 1: total internal reflection
+    R[1] = 0 if sin2_t >= 1 else nan_to_num(bR)
+    R[2] = nan_to_num(cR_tir if sin2_t >= 1 else cR)
+    R[3] = dR_tir if sin2_t >= 1 else 0
+    T[0] = 0 if sin2_t >= 1 else <float>1 - aR
+    T[1] = 0 if sin2_t >= 1 else -bR
+    cT = 0 if fabsf(cT) > FLT_MAX else cT            # not finite (np.isfinite): infinite here, NaN next
+    cT = 0 if cT != cT else cT
+    T[2] = 0 if sin2_t >= 1 else cT
+    T[3] = 0
+
+
+cdef extern from *:
+    """
+    typedef float *__restrict__ f32_out;
+    typedef const float *__restrict__ f32_in;
+    """
+    ctypedef float *f32_out             # restrict pointers (as parameters: gcc honours restrict there only):
+    ctypedef const float *f32_in        # no run-time aliasing checks, so gcc vectorises the loops
+
+
+def facet_event(const float[::1] nfx, const float[::1] nfy, const float[::1] nfz, const float[::1] kx,
+                const float[::1] ky, const float[::1] kz, const float[:, :] s, const float[::1] ci,
+                const float[::1] n1, const float[::1] n2, float[:, :, ::1] A, float[:, ::1] s_new,
+                float[:, :] scratch, float[::1] c2, float[::1] s2, float[:, :] R, float[:, :] T, float[::1] pR):
+    """The polarised event at the facets hit (`transport.StokesCarrier.reflectance`, real indices), per ray:
+    the facet's basis s_new = n x k / |n x k| (the old s where |n x k| < 1e-6: normal incidence), the
+    rotation's (cos 2psi, sin 2psi) onto it (c2, s2), the interface coefficients R (4, n), T (4, n) from
+    the indices n1 -> n2 of each ray (`facet_geometry`); the columns A (4, K, n)
+    rotated in place (None: the identity, a first interaction, not rotated) and the reflectance of
+    column 0's state pR = clip((M_R A)_00, 0, 1).  The float32 operations of the numpy code, in order;
+    written without branches over restrict pointers, so that gcc vectorises the loops (numpy's passes
+    are SIMD; a scalar C loop is bound by its ~12 divisions and square roots per ray).  scratch: (3, n) rows
+    for the new basis before it is interleaved into s_new.
+    """
+    cdef Py_ssize_t n = ci.shape[0], i, col, K = 0 if A is None else A.shape[1]
+    cdef Py_ssize_t ss = s.strides[0] // sizeof(float), sc = s.strides[1] // sizeof(float)
+    if s_new.shape[0] != n or R.shape[1] != n or T.shape[1] != n or s.shape[0] != n or (A is not None and
+                                                                                         A.shape[2] != n):
+        raise ValueError("facet_event: inconsistent shapes")
+    if n == 0:
+        return
+    if R.strides[1] != sizeof(float) or T.strides[1] != sizeof(float) or scratch.strides[1] != sizeof(float) \
+            or scratch.shape[0] != 3 or scratch.shape[1] != n or n1.shape[0] != n or n2.shape[0] != n:
+        raise ValueError("facet_event: inconsistent shapes (rows of R, T and scratch contiguous)")
+    with nogil:
+        facet_loop(n, &nfx[0], &nfy[0], &nfz[0], &kx[0], &ky[0], &kz[0], &s[0, 0], ss, sc, &ci[0], &n1[0],
+                   &n2[0], &scratch[0, 0], &scratch[1, 0], &scratch[2, 0], &c2[0], &s2[0], &R[0, 0], &R[1, 0],
+                   &R[2, 0], &R[3, 0], &T[0, 0], &T[1, 0], &T[2, 0], &T[3, 0], &pR[0])
+        for i in range(n):
+            s_new[i, 0] = scratch[0, i]
+            s_new[i, 1] = scratch[1, i]
+            s_new[i, 2] = scratch[2, i]
+        for col in range(K):                          # the columns rotated onto the facet's basis
+            rotate_loop(n, &c2[0], &s2[0], &A[1, col, 0], &A[2, col, 0])
+        if K:
+            reflectance_loop(n, &R[0, 0], &R[1, 0], &A[1, 0, 0], &pR[0])
+
+
+cdef void facet_loop(Py_ssize_t n, f32_in nfx, f32_in nfy, f32_in nfz, f32_in kx, f32_in ky, f32_in kz, f32_in s,
+                     Py_ssize_t ss, Py_ssize_t sc, f32_in ci, f32_in n1, f32_in n2, f32_out snx, f32_out sny,
+                     f32_out snz, f32_out c2, f32_out s2, f32_out r0, f32_out r1, f32_out r2, f32_out r3,
+                     f32_out t0, f32_out t1, f32_out t2, f32_out t3, f32_out pR) noexcept nogil:
+    """The loop of `facet_event` over restrict pointer parameters (gcc honours restrict on parameters), float
+    data only and no branches (selects), so that it vectorises with baseline SSE2; the new basis in rows."""
+    cdef Py_ssize_t i
+    cdef float u0, u1, u2, sx, sy, sz, c, d, sn, E, S
+    cdef float Rv[4]
+    cdef float Tv[4]
+    for i in range(n):
+        u0 = nfy[i] * kz[i] - nfz[i] * ky[i]
+        u1 = nfz[i] * kx[i] - nfx[i] * kz[i]
+        u2 = nfx[i] * ky[i] - nfy[i] * kx[i]
+        sx = s[i * ss]
+        sy = s[i * ss + sc]
+        sz = s[i * ss + 2 * sc]
+        c = (sx * u0 + sy * u1) + sz * u2
+        d = (sx * nfx[i] + sy * nfy[i]) + sz * nfz[i]
+        sn = sqrtf((u0 * u0 + u1 * u1) + u2 * u2)
+        # |u| < 1e-6: normal incidence on the facet, the basis kept
+        u0 = sx if sn < <float>1e-6 else u0
+        u1 = sy if sn < <float>1e-6 else u1
+        u2 = sz if sn < <float>1e-6 else u2
+        c = 1 if sn < <float>1e-6 else c
+        d = 0 if sn < <float>1e-6 else d
+        sn = 1 if sn < <float>1e-6 else sn
+        snx[i] = u0 / sn
+        sny[i] = u1 / sn
+        snz[i] = u2 / sn
+        double_angle(c, d, &E, &S)
+        c2[i] = E
+        s2[i] = S
+        interface_coefficients(ci[i], n1[i], n2[i], Rv, Tv)
+        r0[i] = Rv[0]
+        r1[i] = Rv[1]
+        r2[i] = Rv[2]
+        r3[i] = Rv[3]
+        t0[i] = Tv[0]
+        t1[i] = Tv[1]
+        t2[i] = Tv[2]
+        t3[i] = Tv[3]
+        pR[i] = clip01(Rv[0])
+
+
+cdef void rotate_loop(Py_ssize_t n, f32_in c2, f32_in s2, f32_out a1, f32_out a2) noexcept nogil:
+    """Rows 1, 2 of one Stokes column rotated (`core.stokes.rotate_stokes_columns_cd`'s operations)."""
+    cdef Py_ssize_t i
+    cdef float x1, x2
+    for i in range(n):
+        x1 = a1[i]
+        x2 = a2[i]
+        a1[i] = c2[i] * x1 + s2[i] * x2
+        a2[i] = x2 * c2[i] - x1 * s2[i]
+
+
+cdef void reflectance_loop(Py_ssize_t n, f32_in aR, f32_in bR, f32_in a10, f32_out pR) noexcept nogil:
+    """pR = clip(aR + bR A_10, 0, 1): the reflectance of column 0's state after the rotation."""
+    cdef Py_ssize_t i
+    for i in range(n):
+        pR[i] = clip01(aR[i] + bR[i] * a10[i])
+
+
+
+# ----------------------------------------------------------------------------- geometry of a batch
+
+
+cdef inline float fmin_f(float a, float b) noexcept nogil:
+    """np.fmin: the smaller, a NaN ignored (inline: libm's fminf is a call)."""
+    if b != b or a < b:
+        return a
+    return b
+
+
+def slab_distances(const float[:, :] o, const float[:, :] k, float hx, float hy, float zh, float zc,
+                   float[:, ::1] T, float[::1] t_lat, float[::1] tfar):
+    """Distances along k (n, 3) from o to the tile's sides and the slab's faces (`tracer.ReliefTracer.query`):
+    T[i, j] = (copysign(h_j, k_j) - o_j + c_j) / k_j with h = (hx, hy, zh), c = (0, 0, zc); t_lat = fmin(T_x,
+    T_y), tfar = max(fmin(t_lat, T_z), 0).  The float32 operations of the numpy code, in order."""
+    cdef Py_ssize_t n = k.shape[0], i
+    cdef float tx, ty, tz, tl, tf
+    if o.shape[0] != n or T.shape[0] != n or t_lat.shape[0] != n or tfar.shape[0] != n:
+        raise ValueError("slab_distances: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            tx = ((copysignf(hx, k[i, 0]) - o[i, 0]) + <float>0) / k[i, 0]
+            ty = ((copysignf(hy, k[i, 1]) - o[i, 1]) + <float>0) / k[i, 1]
+            tz = ((copysignf(zh, k[i, 2]) - o[i, 2]) + zc) / k[i, 2]
+            T[i, 0] = tx
+            T[i, 1] = ty
+            T[i, 2] = tz
+            tl = fmin_f(tx, ty)
+            t_lat[i] = tl
+            tf = fmin_f(tl, tz)
+            if tf < 0:
+                tf = 0
+            tfar[i] = tf
+
+
+def facet_geometry(const float[:, :] ng, const float[:, :] k, const unsigned char[::1] below, float eta_up,
+                   float eta_dn, float n_above, float n_below, float[:, :] out, unsigned char[::1] tir,
+                   unsigned char[::1] leak):
+    """The facets hit (`transport._hits`, `_facet`) per ray from Embree's normals ng (n, 3): out (10, n) holds
+    rows kx, ky, kz (the directions, contiguous), nfx, nfy, nfz (the unit normal on the incident side:
+    ng / |ng| with the sign of ng_z, negated below the surface), cos i = |k . n_up|, cos t (Snell, 0 past
+    the critical angle), eta = n1 / n2, k . n_up and the indices n1, n2 (n_below, n_above below the surface,
+    n_above, n_below above: `transport.Media.pair`); tir and leak (k . n_up > 0 is not `below`: a ray on
+    the wrong side) as 0 / 1; out has 12 rows.  The float32 operations of the numpy code, in order."""
+    cdef Py_ssize_t n = k.shape[0], i
+    cdef float gx, gy, gz, kx, ky, kz, inv, dot, s, ci, eta, sin2t, ct
+    cdef bint b
+    if ng.shape[0] != n or out.shape[0] != 12 or out.shape[1] != n or tir.shape[0] != n or leak.shape[0] != n:
+        raise ValueError("facet_geometry: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            gx = ng[i, 0]
+            gy = ng[i, 1]
+            gz = ng[i, 2]
+            kx = k[i, 0]
+            ky = k[i, 1]
+            kz = k[i, 2]
+            inv = copysignf(<float>1 / sqrtf((gx * gx + gy * gy) + gz * gz), gz)
+            dot = ((kx * gx + ky * gy) + kz * gz) * inv
+            b = below[i] != 0
+            leak[i] = (dot > 0) != b
+            s = -inv if b else inv
+            ci = fabsf(dot)
+            eta = eta_up if b else eta_dn
+            sin2t = (<float>1 - ci * ci) * (eta * eta)
+            tir[i] = sin2t >= 1
+            ct = <float>1 - sin2t
+            if ct < 0:
+                ct = 0
+            ct = sqrtf(ct)
+            out[0, i] = kx
+            out[1, i] = ky
+            out[2, i] = kz
+            out[3, i] = gx * s
+            out[4, i] = gy * s
+            out[5, i] = gz * s
+            out[6, i] = ci
+            out[7, i] = ct
+            out[8, i] = eta
+            out[9, i] = dot
+            out[10, i] = n_below if b else n_above
+            out[11, i] = n_above if b else n_below
+
+
+# ----------------------------------------------------------------------------- gathers, tags, new rays
+
+
+def gather_records(const long[::1] idx, const float[:, :] k, const float[::1] w, const short[::1] nb,
+                   const long[::1] ids, float[:, ::1] k_out, float[::1] w_out, short[::1] nb_out, long[::1] ids_out):
+    """Rows idx of the rays' direction k (n, 3), weight, bounce count and output id into an exit record's slot
+    (`exits.Exits.put`: the four `np.take` in one pass)."""
+    cdef Py_ssize_t m = idx.shape[0], j, i
+    if k_out.shape[0] != m or w_out.shape[0] != m or nb_out.shape[0] != m or ids_out.shape[0] != m:
+        raise ValueError("gather_records: inconsistent shapes")
+    with nogil:
+        for j in range(m):
+            i = idx[j]
+            k_out[j, 0] = k[i, 0]
+            k_out[j, 1] = k[i, 1]
+            k_out[j, 2] = k[i, 2]
+            w_out[j] = w[i]
+            nb_out[j] = nb[i]
+            ids_out[j] = ids[i]
+
+
+def near_direction(const float[:, :] dirs, float d0, float d1, float d2, float cos_min, long[::1] out):
+    """Indices (in order, into out; their number returned) of the directions whose float32 dot product
+    (d . d0 + ...) with (d0, d1, d2) exceeds cos_min: the prefilter of `bsdf.builder.specular_flags`, its
+    operations in its order."""
+    cdef Py_ssize_t n = dirs.shape[0], i, j = 0
+    cdef float c
+    if out.shape[0] < n:
+        raise ValueError("near_direction: out too short")
+    with nogil:
+        for i in range(n):
+            c = (dirs[i, 0] * d0 + dirs[i, 1] * d1) + dirs[i, 2] * d2
+            if c > cos_min:
+                out[j] = i
+                j += 1
+    return j
+
+
+def subtile_index(const float[:, :] p, float hx, float hy, float half_x, float half_y, float scale_x,
+                  float scale_y, bint mirrored, int gx, int gy, int[::1] out):
+    """Sub-tile iy * gx + ix of each point p (n, >= 2) (`tracer.ReliefTracer.subtile_of`): u = p + h, folded
+    (half - |u - half|) on a mirror-extended tile, truncated u * scale clipped to the grid; its float32
+    and int32 operations."""
+    cdef Py_ssize_t n = p.shape[0], i
+    cdef float ux, uy
+    cdef int ix, iy
+    if out.shape[0] != n:
+        raise ValueError("subtile_index: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            ux = p[i, 0] + hx
+            uy = p[i, 1] + hy
+            if mirrored:
+                ux = half_x - fabsf(ux - half_x)
+                uy = half_y - fabsf(uy - half_y)
+            ix = <int>(ux * scale_x)
+            iy = <int>(uy * scale_y)
+            ix = 0 if ix < 0 else (gx - 1 if ix > gx - 1 else ix)
+            iy = 0 if iy < 0 else (gy - 1 if iy > gy - 1 else iy)
+            out[i] = ix + iy * gx
+
+
+def gather_rays(const long[::1] idx, const float[:, :] o, const float[:, :] k, const unsigned char[::1] below,
+                const float[::1] w, const short[::1] nb, const long[::1] ids, float[:, ::1] o_out,
+                float[:, ::1] k_out, unsigned char[::1] below_out, float[::1] w_out, short[::1] nb_out,
+                long[::1] ids_out):
+    """Rows idx of a batch's origins, directions, side, weight, bounce count and id (`transport.Rays.take`:
+    six `np.take` in one pass)."""
+    cdef Py_ssize_t m = idx.shape[0], j, i
+    if o_out.shape[0] != m or k_out.shape[0] != m or below_out.shape[0] != m or w_out.shape[0] != m \
+            or nb_out.shape[0] != m or ids_out.shape[0] != m:
+        raise ValueError("gather_rays: inconsistent shapes")
+    with nogil:
+        for j in range(m):
+            i = idx[j]
+            o_out[j, 0] = o[i, 0]
+            o_out[j, 1] = o[i, 1]
+            o_out[j, 2] = o[i, 2]
+            k_out[j, 0] = k[i, 0]
+            k_out[j, 1] = k[i, 1]
+            k_out[j, 2] = k[i, 2]
+            below_out[j] = below[i]
+            w_out[j] = w[i]
+            nb_out[j] = nb[i]
+            ids_out[j] = ids[i]
+
+
+def split_rays(const float[::1] kx, const float[::1] ky, const float[::1] kz, const float[::1] nfx,
+               const float[::1] nfy, const float[::1] nfz, const float[::1] eta, const float[::1] ci,
+               const float[::1] ct, const float[::1] th, const float[:, :] o, float eps, float[:, ::1] p,
+               float[:, ::1] o_r, float[:, ::1] k_r, float[:, ::1] o_t, float[:, ::1] k_t):
+    """Both branches of the rays' first interaction (`transport._interact`, `_split_copies`): the hit point
+    p = k th + o, the reflected direction k + 2 ci nf and origin p + eps nf, the refracted direction
+    (eta k + (eta ci - ct) nf) / |.| and origin p - eps nf.  The float32 operations of the numpy code."""
+    cdef Py_ssize_t n = th.shape[0], i
+    cdef float px, py, pz, bt, b, vx, vy, vz, nr
+    if o.shape[0] != n or p.shape[0] != n or o_r.shape[0] != n or k_r.shape[0] != n or o_t.shape[0] != n \
+            or k_t.shape[0] != n:
+        raise ValueError("split_rays: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            px = kx[i] * th[i] + o[i, 0]
+            py = ky[i] * th[i] + o[i, 1]
+            pz = kz[i] * th[i] + o[i, 2]
+            p[i, 0] = px
+            p[i, 1] = py
+            p[i, 2] = pz
+            b = <float>2 * ci[i]
+            k_r[i, 0] = b * nfx[i] + kx[i]
+            k_r[i, 1] = b * nfy[i] + ky[i]
+            k_r[i, 2] = b * nfz[i] + kz[i]
+            o_r[i, 0] = px + eps * nfx[i]
+            o_r[i, 1] = py + eps * nfy[i]
+            o_r[i, 2] = pz + eps * nfz[i]
+            bt = eta[i] * ci[i] - ct[i]
+            vx = eta[i] * kx[i] + bt * nfx[i]
+            vy = eta[i] * ky[i] + bt * nfy[i]
+            vz = eta[i] * kz[i] + bt * nfz[i]
+            nr = sqrtf((vx * vx + vy * vy) + vz * vz)
+            k_t[i, 0] = vx / nr
+            k_t[i, 1] = vy / nr
+            k_t[i, 2] = vz / nr
+            o_t[i, 0] = px - eps * nfx[i]
+            o_t[i, 1] = py - eps * nfy[i]
+            o_t[i, 2] = pz - eps * nfz[i]
+
+
+def split_factors(const float[:, :] R, const float[:, :] T, const float[::1] c2, const float[::1] s2,
+                  const float[::1] pR, float[:, :] F_r, float[:, :] F_t):
+    """The factors (6, n) of both branches of the rays' first interaction (`transport.first_interaction_factors`
+    as `StokesCarrier.reflected` and `transmitted_copy` call it): F_r = (R / max(pR, 1e-30), c2, s2) and
+    F_t = (T / max(1 - pR, 1e-30), c2, s2), the division a multiplication by the float32 reciprocal."""
+    cdef Py_ssize_t n = pR.shape[0], i, e
+    cdef float inv_r, inv_t, x
+    if R.shape[1] != n or T.shape[1] != n or F_r.shape[1] != n or F_t.shape[1] != n:
+        raise ValueError("split_factors: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            x = pR[i]
+            inv_r = <float>1 / (<float>1e-30 if x < <float>1e-30 else x)
+            x = <float>1 - pR[i]
+            inv_t = <float>1 / (<float>1e-30 if x < <float>1e-30 else x)
+            for e in range(4):
+                F_r[e, i] = R[e, i] * inv_r
+                F_t[e, i] = T[e, i] * inv_t
+            F_r[4, i] = c2[i]
+            F_r[5, i] = s2[i]
+            F_t[4, i] = c2[i]
+            F_t[5, i] = s2[i]

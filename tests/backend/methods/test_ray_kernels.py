@@ -1,0 +1,157 @@
+"""Compiled ray kernels (`relief_bsdf.kernels`) against their numpy reference: the same tables bit for bit.
+
+Each compiled kernel repeats the float32 / float64 operations of the numpy code it replaces, in the same
+order, so a table traced with either is identical, polarised and scalar, from outside and from inside
+(total internal reflection), for a metal (complex index: the numpy Fresnel branch) and with the
+tile's sub-tile groups; RELIEF_RAY_KERNEL=numpy forces the numpy code in a fresh process.  The tables
+are traced in this process (serial backend): `kernels.select` switches this process only, and the
+table's metadata["ray_kernel"] (from its tasks) shows which kernels traced it.  Without a
+built extension (a pure-Python install) the comparisons are skipped and the numpy code is what runs.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from relief_bsdf import kernels
+from relief_bsdf.bsdf.builder import CellAccumulator, CellIndex, ExitSamples
+from relief_bsdf.core.index import ConstantIndex, Material
+from relief_bsdf.methods import ray
+from relief_bsdf.methods.request import Request
+from relief_bsdf.surface.synth import random_relief
+
+pytestmark = pytest.mark.filterwarnings("ignore:ray table:RuntimeWarning")   # a small tile, on purpose
+needs_compiled = pytest.mark.skipif(not kernels.available(), reason="compiled ray kernels not built")
+TE = tuple(np.linspace(0.0, 90.0, 31))
+PE = tuple(np.arange(-7.5, 360.0, 15.0))
+ARRAYS = ("values_per_sr", "sigma_per_sr", "mueller_per_sr", "specular_R", "specular_T", "lost",
+          "specular_mueller_R", "specular_mueller_T")
+
+
+@pytest.fixture
+def kernel():
+    """Switch kernels inside a test; the one in use before is restored."""
+    prev = kernels.name()
+    yield kernels.select
+    kernels.select(prev)
+
+
+def steep_relief(seed: int = 5):
+    L = 6e-6
+    return random_relief(64, 1e-6, 0.6 * L / 2, L, seed=seed)     # rms slope 0.6: many inter-reflections
+
+
+def tables(kernel, name: str, material, **options):
+    """Tables traced in this process (serial backend: a worker process would use its own kernels)."""
+    kernel(name)
+    req = Request(theta_i_deg=(0.0, 50.0, 75.0), incident_from=("outside", "inside"), samples=30000, seed=4,
+                  theta_s_edges_deg=TE, phi_s_edges_deg=PE, options={"threads": 2, "backend": "serial", **options})
+    return ray.reconstruct(steep_relief(), material, req)
+
+
+def assert_same_tables(a, b):
+    for ta, tb in zip(a, b, strict=True):
+        for name in ARRAYS:
+            x, y = getattr(ta, name), getattr(tb, name)
+            if x is None:
+                assert y is None
+            else:
+                np.testing.assert_array_equal(x, y, err_msg=f"{ta.incident_from}: {name}")
+        assert untimed(ta.metadata["tasks"]) == untimed(tb.metadata["tasks"])
+
+
+def untimed(tasks: list) -> list:
+    """The tasks' diagnostics (rays, segments, bounces, lost detail, tile scatter) without timings and kernel."""
+    return [{k: v for k, v in d.items() if not k.endswith("_s") and k != "ray_kernel"} for d in tasks]
+
+
+@needs_compiled
+@pytest.mark.parametrize("polarized", [True, False])
+def test_compiled_and_numpy_kernels_give_the_same_tables(kernel, polarized):
+    glass = Material(ConstantIndex(1.5))
+    compiled = tables(kernel, "cython", glass, polarized=polarized)
+    reference = tables(kernel, "numpy", glass, polarized=polarized)
+    assert_same_tables(compiled, reference)
+    assert compiled[0].metadata["ray_kernel"] == "cython" and reference[0].metadata["ray_kernel"] == "numpy"
+    assert np.any(compiled[1].mueller_per_sr != 0) if polarized else True
+
+
+@needs_compiled
+def test_compiled_kernels_leave_a_metal_and_a_table_without_tile_groups_unchanged(kernel):
+    metal = Material(ConstantIndex(0.2, 3.0))
+    req = dict(polarized=True, tile_uncertainty=False)
+    kernel("cython")
+    r = Request(theta_i_deg=(30.0, 60.0), samples=20000, seed=2, theta_s_edges_deg=TE, phi_s_edges_deg=PE,
+                options={"threads": 1, "backend": "serial", **req})
+    a = ray.reconstruct(steep_relief(6), metal, r)
+    kernel("numpy")
+    b = ray.reconstruct(steep_relief(6), metal, r)
+    assert_same_tables(a, b)
+    assert a[0].metadata["ray_kernel"] == "cython" and b[0].metadata["ray_kernel"] == "numpy"
+
+
+@needs_compiled
+def test_binning_kernel_adds_batches_as_bincount_does(kernel):
+    """Several batches into one accumulator (the kernel adds a batch's own sums to non-empty ones)."""
+    accs = {}
+    for name in ("cython", "numpy"):
+        kernel(name)
+        acc = CellAccumulator(CellIndex(TE, PE), polarized=True)
+        r = np.random.default_rng(1)
+        for _ in range(3):
+            n = 5000
+            d = r.normal(size=(n, 3)).astype(np.float32)
+            d /= np.linalg.norm(d, axis=1)[:, None]
+            w = r.random(n).astype(np.float32) * 3
+            M = r.normal(size=(16, n)).astype(np.float32)
+            spec = r.random(n) < 0.01
+            acc.add(ExitSamples(d, w, (d[:, 2] < 0).astype(np.int8), M, spec))
+        accs[name] = acc
+    for f in ("sum_w", "sum_w2", "sum_M", "spec", "spec_M"):
+        np.testing.assert_array_equal(getattr(accs["cython"], f), getattr(accs["numpy"], f), err_msg=f)
+    assert accs["cython"].outside_table == accs["numpy"].outside_table
+
+
+def test_environment_variable_forces_the_numpy_kernels():
+    code = ("from relief_bsdf import kernels; from relief_bsdf.methods import ray; "
+            "print(kernels.name(), kernels.active() is None)")
+    env = dict(os.environ, RELIEF_RAY_KERNEL="numpy")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["numpy", "True"]
+    env["RELIEF_RAY_KERNEL"] = ""
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == (["cython", "False"] if kernels.available() else ["numpy", "True"])
+
+
+def test_selecting_an_unbuilt_or_unknown_kernel_is_refused(kernel):
+    with pytest.raises(ValueError):
+        kernel("fortran")
+    if not kernels.available():
+        with pytest.raises(RuntimeError):
+            kernel("cython")
+
+
+@needs_compiled
+@pytest.mark.parametrize("periodic", [True, False])
+def test_subtile_kernel_tags_points_as_numpy_does(kernel, periodic):
+    """Points inside, on the edges of and beyond the tile; a mirror-extended (non-periodic) map folds them."""
+    from relief_bsdf.methods.ray.tracer import ReliefTracer
+    from relief_bsdf.surface.relief import Relief
+
+    rng = np.random.default_rng(0)
+    relief = steep_relief() if periodic else Relief(rng.normal(size=(40, 50)) * 1e-7, 1e-6, 1e-6, periodic=False)
+    tracer = ReliefTracer(relief, threads=1)
+    hx, hy = float(tracer.hx), float(tracer.hy)
+    p = np.stack([rng.uniform(-1.2 * hx, 1.2 * hx, 50000), rng.uniform(-1.2 * hy, 1.2 * hy, 50000),
+                  np.zeros(50000)], axis=1).astype(np.float32)
+    p[:4, :2] = [[hx, hy], [-hx, -hy], [hx, -hy], [0.0, 0.0]]
+    assert tracer.mesh.mirrored is not periodic
+    for grid in ((4, 3), (8, 8), (1, 2)):
+        kernel("cython")
+        a = tracer.subtile_of(p, grid)
+        kernel("numpy")
+        np.testing.assert_array_equal(a, tracer.subtile_of(p, grid))
