@@ -98,3 +98,34 @@ def test_bumps_of_the_tables_noise_do_not_trap_the_estimate_where_local_steps_st
         miss_polish.append(np.max(np.abs(p.x - smooth) / SD))
     assert max(miss_surface) < 1.0, miss_surface
     assert np.median(miss_polish) > 2.0, miss_polish
+
+
+def test_the_fits_design_spans_two_standard_deviations_and_leaves_an_unseen_filter_alone():
+    """fit.optimise._smoothed on a stub objective whose residuals are linear in ln s with a known
+    standard deviation and do not see the filter: the design's half-width in ln s is two standard
+    deviations, the unseen filter gets one finite-difference step (not a design across its bounds)
+    and does not move, and the answer is the exact optimum in ln s."""
+    from relief_bsdf.fit.optimise import SURFACE_SIGMAS, FitSettings, _Coords, _smoothed
+    a = RNG.standard_normal(400) * 50.0
+    b = a * np.log(1.25) + RNG.standard_normal(400)
+    ln_s_hat = float(a @ b / (a @ a))
+    seen = []
+
+    class Stub:
+        def likelihood_residuals(self, s, g):
+            seen.append((s, g))
+            return a * np.log(s) - b
+    c = _Coords.make(FitSettings(), True, 2.0, 0.1)
+    sd = 1.0 / np.sqrt(a @ a)
+    ln_s0 = ln_s_hat + 0.5 * sd
+    J0 = np.column_stack([a, np.zeros_like(a)])              # the polish's Jacobian: the filter unseen
+    s, g, J, surf = _smoothed(Stub(), c, float(np.exp(ln_s0)), 0.5, J0)
+    lns = np.log([p[0] for p in seen])
+    w = np.array([p[1] for p in seen]) ** 2
+    chi2 = float(np.sum((a * ln_s0 - b) ** 2))
+    c_hat = max(1.0, chi2 / (a.size - 2))
+    assert surf.rounds == 1 and surf.points == 9
+    assert np.max(np.abs(lns - ln_s0)) == pytest.approx(SURFACE_SIGMAS * sd * np.sqrt(c_hat), rel=1e-6)
+    assert np.max(np.abs(w - 0.25)) == pytest.approx(c.step[1], rel=1e-6)
+    assert np.log(s) == pytest.approx(ln_s_hat, abs=1e-9) and g == pytest.approx(0.5, abs=1e-12)
+    assert J[:, 0] == pytest.approx(a, rel=1e-6) and np.allclose(J[:, 1], 0.0, atol=1e-6)

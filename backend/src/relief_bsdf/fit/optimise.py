@@ -35,8 +35,8 @@ non-Gaussian reliefs.  The fit therefore reports what the recording determines:
   tables' Monte-Carlo noise puts into chi^2 on the scale of the interval;
 - 68 % intervals from the curvature of that chi^2 at the optimum (cov = (J^T J)^-1 with the
   regression's Jacobian, Delta chi^2 = 1; fit.covariance), inflated by the reduced chi^2 when the
-  model misses the noise and raised to the Newey-West variance where the residuals run correlated along the scans; the correlation of
-  (ln s, g); a ridge (moving along equal rms slope costs less than the criterion's bar) and
+  model misses the noise and raised to the Newey-West variance where the residuals run correlated
+  along the scans; the correlation of (ln s, g); a ridge (moving along equal rms slope costs less than the criterion's bar) and
   non-identifiable parameters are named in plain `warnings`;
 - bounds on the scale (`scale_bounds`) and the filter (`max_filter_um`) are the user's.
 
@@ -577,7 +577,8 @@ def _smoothed(obj: _Objective, c: _Coords, s: float, g: float,
     """The likelihood's optimum near the polished (s, g) from a response surface (fit.response_surface):
     the noise-weighted residuals z regressed linearly over a design of +-SURFACE_SIGMAS standard
     deviations of the estimate (from `J`, the polish's central Jacobian, or one made here; inflated
-    by the reduced chi^2 when it exceeds 1), at least one finite-difference step per coordinate.
+    by the reduced chi^2 when it exceeds 1), at least a tenth of a finite-difference step (what the
+    polish resolves); one step for a coordinate the rows do not see.
     The polish's steps follow the local slopes of chi^2, which the tables' Monte-Carlo noise bends
     on the scale of the interval itself; the regression averages them over the design.  Returns
     (s, g, J, surface): J the regression's Jacobian, which serves the intervals."""
@@ -588,9 +589,14 @@ def _smoothed(obj: _Objective, c: _Coords, s: float, g: float,
     c_hat = max(1.0, float(z @ z) / max(z.size - x0.size, 1))
     JtJ = J.T @ J
     sd = np.full(x0.size, np.inf)
-    if np.all(np.isfinite(JtJ)) and np.linalg.matrix_rank(JtJ) == x0.size:
+    seen = np.isfinite(np.diag(JtJ)) & (np.diag(JtJ) > 0)
+    if np.all(np.isfinite(JtJ)) and seen.all() and np.linalg.matrix_rank(JtJ) == x0.size:
         sd = np.sqrt(np.maximum(np.diag(np.linalg.inv(JtJ)), 0.0) * c_hat)
-    width = np.minimum(SURFACE_SIGMAS * sd, 0.25 * (c.upper - c.lower))
+    elif np.all(np.isfinite(JtJ)) and seen.any():
+        sd[seen] = np.sqrt(np.maximum(np.diag(np.linalg.pinv(JtJ[np.ix_(seen, seen)])), 0.0) * c_hat)
+    # a coordinate the rows do not see (J^T J singular) gets one finite-difference step, not a design
+    # across its bounds: the regression's minimum-norm step then leaves it where it is
+    width = np.where(np.isfinite(sd), np.minimum(SURFACE_SIGMAS * sd, 0.25 * (c.upper - c.lower)), c.step)
     h = np.maximum(width, 0.1 * c.step)
     surf = smoothed_optimum(lambda x: obj.likelihood_residuals(*c.sg(x)), x0, c.lower, c.upper, h)
     s, g = c.sg(surf.x)
