@@ -36,8 +36,8 @@ non-Gaussian reliefs.  The fit therefore reports what the recording determines:
 - 68 % intervals from the curvature of that chi^2 at the optimum (cov = (J^T J)^-1 with the
   regression's Jacobian, Delta chi^2 = 1; fit.covariance), inflated by the reduced chi^2 when the
   model misses the noise and raised to the Newey-West variance where the residuals run correlated
-  along the scans; the correlation of (ln s, g); a ridge (moving along equal rms slope costs less than the criterion's bar) and
-  non-identifiable parameters are named in plain `warnings`;
+  along the scans; the correlation of (ln s, g); a ridge (moving along equal rms slope costs less
+  than the criterion's bar) and non-identifiable parameters are named in plain `warnings`;
 - bounds on the scale (`scale_bounds`) and the filter (`max_filter_um`) are the user's.
 
 Checkpoints: OUT/checkpoint.json holds every evaluated parameter set and its metric; a
