@@ -808,6 +808,11 @@ def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
     p[:, 1] += off * f.nfy
     p[:, 2] += off * f.nfz
     h.o = p
+    return _still_tracing(ch, h, absorbed, parts)
+
+
+def _still_tracing(ch: _Chunk, h: Rays, absorbed, parts: list) -> list:
+    """[the rays of h still tracing] + parts, the ended ones recorded (`_end_rays`)."""
     end = _end_rays(ch, h, absorbed)
     if end is not None:
         g = np.flatnonzero(~end)
@@ -831,14 +836,7 @@ def _first_interaction_compiled(ck, ch: _Chunk, h: Rays, f: Facet, th, pR) -> li
     h.w = h.w * pR
     ch.carrier.reflected(h, pR)
     h.k, h.o = k_r, o_r
-    end = _end_rays(ch, h, None)
-    parts = [] if tr is None else [tr]
-    if end is not None:
-        g = np.flatnonzero(~end)
-        if g.size == 0:
-            return parts
-        h = h.take(g)
-    return [h] + parts
+    return _still_tracing(ch, h, None, [] if tr is None else [tr])
 
 
 def path_uniforms(key: np.uint32, ids: np.ndarray, nb: np.ndarray) -> np.ndarray:
