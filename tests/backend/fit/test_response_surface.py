@@ -81,7 +81,7 @@ def test_bumps_of_the_tables_noise_do_not_trap_the_estimate_where_local_steps_st
     ten noise realisations; Gauss-Newton steps with central differences of a hundredth of a standard
     deviation (the polish) follow the bumps' local slopes and stay trapped near the start."""
     miss_surface, miss_polish = [], []
-    for seed in range(10):
+    for seed in range(20, 30):          # realisations not looked at while the design was chosen (0-19 were)
         z = _bumpy(seed)
         smooth = X_LSQ                                    # the bumps average to zero: the optimum without them
         start = smooth + np.array([3.0, -2.5]) * SD

@@ -25,7 +25,16 @@ from relief_bsdf.methods.request import Request
 from relief_bsdf.surface.synth import random_relief
 
 pytestmark = pytest.mark.filterwarnings("ignore:ray table:RuntimeWarning")   # a small tile, on purpose
-needs_compiled = pytest.mark.skipif(not kernels.available(), reason="compiled ray kernels not built")
+# `make test` builds the kernels (pip install -e backend): where they are missing the comparison fails, so a
+# compiler that fails silently in CI is seen; only an install asked to be pure Python (RELIEF_PURE_PYTHON=1,
+# the Blender wheel's build) has none to compare, and says so
+PURE = os.environ.get("RELIEF_PURE_PYTHON", "") in ("1", "true", "yes")
+needs_compiled = pytest.mark.skipif(PURE, reason="RELIEF_PURE_PYTHON=1: an install without the compiled kernels")
+
+
+def test_the_compiled_kernels_are_built_unless_pure_python_was_asked_for():
+    assert PURE or kernels.available(), ("the compiled ray kernels are not built: `pip install -e backend` with a "
+                                         "C compiler builds them (see its output), or set RELIEF_PURE_PYTHON=1")
 TE = tuple(np.linspace(0.0, 90.0, 31))
 PE = tuple(np.arange(-7.5, 360.0, 15.0))
 ARRAYS = ("values_per_sr", "sigma_per_sr", "mueller_per_sr", "specular_R", "specular_T", "lost",
