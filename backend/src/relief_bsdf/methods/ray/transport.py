@@ -629,26 +629,29 @@ def trace_chunk(tracer, rays: Rays, carrier, media: Media, settings: TraceSettin
             ch.group = np.empty(n0, np.int32)
             ch.group[rays.ids] = tracer.subtile_of(rays.o, settings.subtiles)
             ex.first_group = ch.group
-        cur, nxt, pending = rays, [], settings.split_first
-        segments = 0
-        while True:
-            if cur.size == 0:
-                if pending and nxt:
-                    pending = False
-                    cur, nxt = Rays.concat(nxt), []
-                    continue
-                break
-            segments += cur.size
-            q = tracer.query(cur.o, cur.k)
-            wrapped = _misses(ch, cur, q) if q.n_hit < cur.size else None
-            parts = _hits(ch, cur, q, pending) if q.n_hit else []
-            if pending:                  # the first interaction's outputs wait; the wrapped stay pending
-                nxt.extend(parts)
-                cur = wrapped if wrapped is not None else Rays.empty(carrier.K)
-            else:
+        # Rounds of batches.  Phase 1: the first interactions (the rays, then those re-entering through a
+        # tile side), whose outputs wait.  Phase 2 starts with the waiting outputs traced batch by batch as
+        # they are (no concatenation of the two big branches); each later round is one batch, the rays that
+        # hit in the round before and then those re-entering, in the order of the batches (the order one
+        # concatenated batch would have given: the same records in the same order).
+        batches, waiting, pending, segments = [rays] if rays.size else [], [], settings.split_first, 0
+        while batches:
+            continuing, wrapped_all = [], []
+            for cur in batches:
+                segments += cur.size
+                q = tracer.query(cur.o, cur.k)
+                wrapped = _misses(ch, cur, q) if q.n_hit < cur.size else None
+                parts = _hits(ch, cur, q, pending) if q.n_hit else []
                 if wrapped is not None:
-                    parts.append(wrapped)
-                cur = Rays.concat(parts) if parts else Rays.empty(carrier.K)
+                    wrapped_all.append(wrapped)
+                (waiting if pending else continuing).extend(parts)
+            if pending:
+                batches = wrapped_all
+                if not batches:
+                    pending, batches, waiting = False, waiting, []
+            else:
+                rest = [b for b in continuing + wrapped_all if b.size]
+                batches = [Rays.concat(rest)] if rest else []
         ex.segments, ex.n_paths = segments, n0
         return ex
 
