@@ -4,11 +4,11 @@ Runs one `ray.reconstruct_with` (the issue-3 scene: Gaussian relief, rms slope m
 n = 1.5, beam at 30 degrees) recording every Embree result, then replays the same computation
 with the recorded results (no Embree) and reports the calling thread's CPU seconds: numpy
 ns per segment and numpy / Embree.  Less sensitive to a shared machine than wall-clock
-figures (thread CPU time, best of 5).  engine/embree ~ embree / (embree + numpy) is the
+figures (thread CPU time, best of --repeat).  engine/embree ~ embree / (embree + numpy) is the
 ratio `bench_ray.py` reaches when nothing else costs CPU.  The numpy side runs the compiled
 kernels when built (`relief_bsdf.kernels`; RELIEF_RAY_KERNEL=numpy for numpy alone).
 
-    .venv/bin/python benchmarks/profile_ray_numpy.py [--size 1024] [--rays 1048576] [--polarized] [--profile]
+    .venv/bin/python benchmarks/profile_ray_numpy.py [--size 1024] [--rays 1048576] [--polarized] [--profile] [--repeat 5]
 """
 from __future__ import annotations
 
@@ -32,6 +32,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rays", type=int, default=1 << 20)
     ap.add_argument("--polarized", action="store_true")
     ap.add_argument("--profile", action="store_true", help="cProfile one replay")
+    ap.add_argument("--repeat", type=int, default=5, help="replays timed (best and median reported)")
     ap.add_argument("--no-tile", dest="no_tile", action="store_true", help="Monte-Carlo sigma only (no sub-tile groups)")
     a = ap.parse_args(argv)
     L = 8e-6
@@ -60,16 +61,17 @@ def main(argv=None) -> int:
     tracer.scene = Record()
     ref = ray.reconstruct_with(tracer, relief, mat, req)[0]
     emb = sum(x[1] for x in log)
-    best = float("inf")
-    for _ in range(5):
+    times = []
+    for _ in range(max(1, a.repeat)):
         tracer.scene = Replay()
         t = time.thread_time()
         tab = ray.reconstruct_with(tracer, relief, mat, req)[0]
-        best = min(best, time.thread_time() - t)
+        times.append(time.thread_time() - t)
+    best = min(times)
     assert np.array_equal(ref.values_per_sr, tab.values_per_sr)      # the replay is the same computation
     segs = ref.metadata["tasks"][0]["segments"]
     print(f"{'polarised' if a.polarized else 'scalar'} ({tab.metadata['ray_kernel']} kernels): embree CPU {emb:.3f} s, "
-          f"numpy CPU {best:.3f} s "
+          f"numpy CPU {best:.3f} s (median of {len(times)} {float(np.median(times)):.3f} s) "
           f"({best / segs * 1e9:.0f} ns/segment), numpy/embree {best / emb:.2f}, "
           f"engine/embree ~ {emb / (emb + best):.2f}")
     if a.profile:

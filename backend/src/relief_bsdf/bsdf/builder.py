@@ -234,7 +234,9 @@ class ExitSamples:
     weight (n,) power weights; side (n,) 0 (incidence side) or 1; mueller (16, n) float32 exit
     Mueller columns (row-major 4 x 4 per exit, w M is the exit matrix) or None; specular (n,)
     bool: coherent / specular exits (delta parts), or None for none; group (n,) int: the sub-tile
-    of the path's first hit (0..G-1), for the realisation uncertainty (module doc), or None.
+    of the path's first hit (0..G-1), for the realisation uncertainty (module doc), or None;
+    compact (n,) uint8 or None: exits whose mueller holds the compact form the compiled ray kernels
+    write (flag 1: `methods.ray.exits.Exits`), which only the compiled binning reads (`whole_mueller`).
     """
 
     dirs: np.ndarray
@@ -243,6 +245,17 @@ class ExitSamples:
     mueller: np.ndarray | None = None
     specular: np.ndarray | None = None
     group: np.ndarray | None = None
+    compact: np.ndarray | None = None
+
+    def whole_mueller(self, idx: np.ndarray | None = None) -> np.ndarray:
+        """The Mueller columns (16, n) of the exits idx (None: all) written whole (a copy where any is compact)."""
+        M = self.mueller if idx is None else np.take(self.mueller, idx, axis=1)
+        c = None if self.compact is None else (self.compact if idx is None else self.compact[idx])
+        if c is None or not c.any():
+            return M
+        M = np.array(M, F32, order="C")
+        kernels.built().expand_compact(M, c.copy())
+        return M
 
 
 @dataclass
@@ -352,7 +365,7 @@ class CellAccumulator:
             w_in = (wd if full else wd[inside]).astype(np.float64)
             M = None
             if self.sum_M is not None:
-                M = ex.mueller if full else np.take(ex.mueller, np.flatnonzero(inside), axis=1)
+                M = ex.whole_mueller(None if full else np.flatnonzero(inside))
             self._bin_numpy(c_in, w_in, M)
             if self.paths_group is not None:
                 g = ex.group if full else ex.group[inside]
@@ -387,12 +400,13 @@ class CellAccumulator:
             sums = (self.sum_w, self.sum_w2, self.sum_M)
         else:
             sums = (np.zeros_like(self.sum_w), np.zeros_like(self.sum_w2), np.zeros_like(self.sum_M) if polar else None)
+        compact = ex.compact if polar else None
         if self.paths_group is None:
-            compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums)
+            compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums, compact=compact)
         else:                                       # the group keys and float64 weights of the binned exits too
             keys, w64 = np.empty(cell.size, np.int64), np.empty(cell.size)
             j = compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums,
-                                   ex.group.astype(np.int32, copy=False), keys, w64)
+                                   ex.group.astype(np.int32, copy=False), keys, w64, compact)
             self._group_parts.append((keys[:j], w64[:j]))
         if not self._untouched:
             self.sum_w += sums[0]
@@ -406,7 +420,7 @@ class CellAccumulator:
             if msk.any():
                 self.spec[sd] += float(ex.weight[msk].sum(dtype=np.float64))
                 if self.sum_M is not None:
-                    Ms = np.take(ex.mueller, np.flatnonzero(msk), axis=1)
+                    Ms = ex.whole_mueller(np.flatnonzero(msk))
                     self.spec_M[sd] += (Ms * ex.weight[msk]).sum(axis=1, dtype=np.float64)
 
     def table_cells(self, n_paths: float) -> TableCells:

@@ -45,6 +45,12 @@ def active():
     return _active
 
 
+def built():
+    """The compiled kernel module whether selected or not (None when not built): for data that only the
+    compiled kernels write and only they can read back (`methods.ray.exits.Exits.compact`)."""
+    return _compiled
+
+
 def name() -> str:
     """"cython" when the compiled kernels run, else "numpy"."""
     return "numpy" if _active is None else "cython"

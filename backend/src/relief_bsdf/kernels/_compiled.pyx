@@ -24,7 +24,8 @@ cdef enum:
 
 def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
               double[::1] sum_w, double[::1] sum_w2, double[:, ::1] sum_M,
-              const int[::1] group=None, long[::1] keys=None, double[::1] w_keys=None):
+              const int[::1] group=None, long[::1] keys=None, double[::1] w_keys=None,
+              const unsigned char[::1] compact=None):
     """Add each exit i with cell[i] >= 0 to its cell: sum_w[c] += w, sum_w2[c] += w^2 (float64) and, when M
     (16, n) is given, sum_M[c, e] += M[e, i] w (the float32 product, summed in float64).  With group (the
     sub-tile of each exit's path), the binned exits' keys group * cells + cell and float64 weights are
@@ -32,15 +33,18 @@ def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
 
     One pass over the exits in their order: the sums of `np.bincount(cell, weights)` per component, which
     also adds in input order (`bsdf.builder.CellAccumulator.add`), without its 16 passes and temporaries.
+    compact (n,): exits whose M holds the compact form of `exit_columns` (flag 1) are expanded on the fly
+    (`factored_columns`: the entries the whole form would hold, so the same sums).
     """
     cdef Py_ssize_t n = cell.shape[0], i, e, j = 0, nc = sum_w.shape[0]
     cdef int c, cn
     cdef float wi
     cdef double wd
-    cdef bint polarized = M is not None, grouped = group is not None
+    cdef float o[16]
+    cdef bint polarized = M is not None, grouped = group is not None, short = compact is not None
     if w.shape[0] != n or (polarized and (M.shape[0] != 16 or M.shape[1] != n or sum_M.shape[1] != 16)) or (
             grouped and (group.shape[0] != n or keys is None or w_keys is None or keys.shape[0] < n
-                         or w_keys.shape[0] < n)):
+                         or w_keys.shape[0] < n)) or (short and (not polarized or compact.shape[0] != n)):
         raise ValueError("bin_cells: inconsistent shapes")
     with nogil:
         for i in range(n):
@@ -61,8 +65,13 @@ def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
                 w_keys[j] = wd
                 j += 1
             if polarized:
-                for e in range(16):
-                    sum_M[c, e] += <double>(M[e, i] * wi)
+                if short and compact[i]:
+                    factored_columns(M[0, i], M[1, i], M[2, i], M[3, i], M[4, i], M[5, i], M[6, i], M[7, i], o)
+                    for e in range(16):
+                        sum_M[c, e] += <double>(o[e] * wi)
+                else:
+                    for e in range(16):
+                        sum_M[c, e] += <double>(M[e, i] * wi)
     return j
 
 
@@ -91,8 +100,36 @@ cdef inline void double_angle(float c, float d, float *c2, float *s2) noexcept n
     c2[0] = (cc - dd) / r
 
 
+cdef inline void factored_columns(float a, float b, float cc, float dd, float c2, float s2, float E, float S,
+                                  float *o) noexcept nogil:
+    """The 16 entries (row-major, o[4 i + j] = column j's Stokes component i) of Rot_exit (M Rot / p) from the
+    factors (a, b, cc, dd, c2, s2) of a first interaction and the exit rotation's (E, S) = (cos 2psi', sin 2psi'):
+    `transport.exit_columns_of_factors`, operation by operation in float32."""
+    cdef float x1, x2
+    o[0] = a
+    o[1] = b * c2
+    o[2] = b * s2
+    o[3] = 0
+    o[12] = 0
+    o[13] = dd * s2
+    o[14] = -(dd * c2)
+    o[15] = cc
+    o[4] = E * b
+    o[8] = -(b * S)
+    o[7] = S * dd
+    o[11] = dd * E
+    x1 = a * c2
+    x2 = -(cc * s2)
+    o[5] = E * x1 + S * x2
+    o[9] = x2 * E - x1 * S
+    x1 = a * s2
+    x2 = cc * c2
+    o[6] = E * x1 + S * x2
+    o[10] = x2 * E - x1 * S
+
+
 def exit_columns(const float[:, :] F, const float[:, :, :] A, const float[:, :] s, const float[:, :] k,
-                 const long[::1] idx, float[:, :, :] out, float along_z_xy2):
+                 const long[::1] idx, float[:, :, :] out, float along_z_xy2, unsigned char[::1] compact=None):
     """out (4, K, m) <- the Stokes columns of the rays idx (rows 0..m-1 when idx is None) in the exit frame
     s' = z x k / |z x k| of their exit directions k (m, 3); s (n, 3) the rays' bases.  From the factors F
     (6, n) of a first interaction (`transport.exit_columns_of_factors`) or, F None, from the columns A
@@ -100,12 +137,19 @@ def exit_columns(const float[:, :] F, const float[:, :, :] A, const float[:, :] 
     c = s_y k_x - s_x k_y, d = s_z of `transport.StokesCarrier.exit_columns`.  Rows whose k is along z
     (k_x^2 + k_y^2 < along_z_xy2) take the fallback azimuth's frame, which this kernel leaves to the
     caller: it returns their number (their rows written with the generic frame, to be overwritten).
+
+    compact (m,) given (an exit record's flags, `exits.Exits.compact`): records from factors are written
+    compactly, the 6 factors and (E, S) = (cos 2psi', sin 2psi') of the exit rotation in out[0] and out[1]
+    (the flat rows 0-7), flag 1, for `bin_cells` / `expand_compact` to expand (`factored_columns`: the same
+    numbers); records from columns are written whole, flag 0.
     """
-    cdef Py_ssize_t m = k.shape[0], K = out.shape[1], j, i, col
-    cdef bint factored = F is not None, gather = idx is not None
-    cdef float kx, ky, c, d, E, S, a, b, cc, dd, c2, s2, x1, x2, a1, a2
+    cdef Py_ssize_t m = k.shape[0], K = out.shape[1], j, i, col, e
+    cdef bint factored = F is not None, gather = idx is not None, short = compact is not None
+    cdef float kx, ky, c, d, E, S, a1, a2
+    cdef float o[16]
     cdef Py_ssize_t along = 0
-    if out.shape[0] != 4 or out.shape[2] != m or (gather and idx.shape[0] != m) or (factored and K != 4):
+    if out.shape[0] != 4 or out.shape[2] != m or (gather and idx.shape[0] != m) or (factored and K != 4) or (
+            short and compact.shape[0] != m):
         raise ValueError("exit_columns: inconsistent shapes")
     if not factored and A is None:
         raise ValueError("exit_columns: neither factors nor columns")
@@ -119,34 +163,23 @@ def exit_columns(const float[:, :] F, const float[:, :, :] A, const float[:, :] 
             c = s[i, 1] * kx - s[i, 0] * ky
             d = s[i, 2]
             double_angle(c, d, &E, &S)
-            if factored:                      # the entries of `exit_columns_of_factors`, in its operations
-                a = F[0, i]
-                b = F[1, i]
-                cc = F[2, i]
-                dd = F[3, i]
-                c2 = F[4, i]
-                s2 = F[5, i]
-                out[0, 0, j] = a
-                out[0, 1, j] = b * c2
-                out[0, 2, j] = b * s2
-                out[0, 3, j] = 0
-                out[3, 0, j] = 0
-                out[3, 1, j] = dd * s2
-                out[3, 2, j] = -(dd * c2)
-                out[3, 3, j] = cc
-                out[1, 0, j] = E * b
-                out[2, 0, j] = -(b * S)
-                out[1, 3, j] = S * dd
-                out[2, 3, j] = dd * E
-                x1 = a * c2
-                x2 = -(cc * s2)
-                out[1, 1, j] = E * x1 + S * x2
-                out[2, 1, j] = x2 * E - x1 * S
-                x1 = a * s2
-                x2 = cc * c2
-                out[1, 2, j] = E * x1 + S * x2
-                out[2, 2, j] = x2 * E - x1 * S
+            if factored and short:             # compact: the factors and the exit rotation
+                out[0, 0, j] = F[0, i]
+                out[0, 1, j] = F[1, i]
+                out[0, 2, j] = F[2, i]
+                out[0, 3, j] = F[3, i]
+                out[1, 0, j] = F[4, i]
+                out[1, 1, j] = F[5, i]
+                out[1, 2, j] = E
+                out[1, 3, j] = S
+                compact[j] = 1
+            elif factored:                     # the entries of `exit_columns_of_factors`
+                factored_columns(F[0, i], F[1, i], F[2, i], F[3, i], F[4, i], F[5, i], E, S, o)
+                for e in range(16):
+                    out[e >> 2, e & 3, j] = o[e]
             else:                             # gathered columns, rows 1 and 2 rotated
+                if short:
+                    compact[j] = 0
                 for col in range(K):
                     a1 = A[1, col, i]
                     a2 = A[2, col, i]
@@ -155,6 +188,24 @@ def exit_columns(const float[:, :] F, const float[:, :, :] A, const float[:, :] 
                     out[2, col, j] = a2 * E - a1 * S
                     out[3, col, j] = A[3, col, i]
     return along
+
+
+def expand_compact(float[:, :] M, unsigned char[::1] compact, const long[::1] idx=None):
+    """In place: the exits held compactly (compact[i] 1, `exit_columns`) of M (16, n) written whole (the 16
+    entries of `factored_columns`), their flags cleared; idx given: those exits only."""
+    cdef Py_ssize_t n = M.shape[1], j, i, e, m = n if idx is None else idx.shape[0]
+    cdef float o[16]
+    if M.shape[0] != 16 or compact.shape[0] != n:
+        raise ValueError("expand_compact: inconsistent shapes")
+    with nogil:
+        for j in range(m):
+            i = j if idx is None else idx[j]
+            if not compact[i]:
+                continue
+            factored_columns(M[0, i], M[1, i], M[2, i], M[3, i], M[4, i], M[5, i], M[6, i], M[7, i], o)
+            for e in range(16):
+                M[e, i] = o[e]
+            compact[i] = 0
 
 
 # ----------------------------------------------------------------------------- facet events
@@ -354,6 +405,34 @@ def slab_distances(const float[:, :] o, const float[:, :] k, float hx, float hy,
             if tf < 0:
                 tf = 0
             tfar[i] = tf
+
+
+def classify_misses(const unsigned char[::1] hit, const float[:] t_lat, const float[:] tz, const float[:, :] k,
+                    const unsigned char[::1] below, signed char above_code, signed char below_code,
+                    signed char leak_code, long[::1] exit_idx, signed char[::1] exit_state, long[::1] wrap_idx):
+    """The rays that hit nothing (hit 0), in order, sorted into those that reached a slab face first
+    (not t_lat < tz: they leave; their indices into exit_idx and their states into exit_state) and those that
+    reached a tile side first (wrap_idx: they re-enter); returns (exits, wraps).  The state of an exit is
+    above_code going up (k_z > 0), below_code going down, leak_code when that is the side the ray was not on
+    (going up from below, or down from above): `transport._misses` and `transport._exit_state` in one pass."""
+    cdef Py_ssize_t n = hit.shape[0], i, ne = 0, nw = 0
+    cdef bint up
+    if t_lat.shape[0] != n or tz.shape[0] != n or k.shape[0] != n or below.shape[0] != n or \
+            exit_idx.shape[0] < n or exit_state.shape[0] < n or wrap_idx.shape[0] < n:
+        raise ValueError("classify_misses: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            if hit[i]:
+                continue
+            if t_lat[i] < tz[i]:
+                wrap_idx[nw] = i
+                nw += 1
+                continue
+            up = k[i, 2] > 0
+            exit_idx[ne] = i
+            exit_state[ne] = leak_code if up == (below[i] != 0) else (above_code if up else below_code)
+            ne += 1
+    return ne, nw
 
 
 def facet_geometry(const float[:, :] ng, const float[:, :] k, const unsigned char[::1] below, float eta_up,

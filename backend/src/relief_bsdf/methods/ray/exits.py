@@ -34,7 +34,11 @@ def padded_rows(shape: tuple, m: int) -> np.ndarray:
 class Exits:
     """Exit records of one chunk: propagation direction k (m, 3) float32, power weight w, state
     (int8, above), bounce count nb (int16), output id, and, for polarised light, the Stokes
-    columns A (4, K, m) in the exit frame s = z x k, p = s x k.  Filled by `put`;
+    columns A (4, K, m) in the exit frame s = z x k, p = s x k.  With the compiled kernels a record
+    whose path interacted once may hold its Mueller columns compactly (`compact` 1: in the flat rows
+    0-7 of A, the 6 factors of the interaction and cos / sin 2psi of the exit rotation, from which
+    the binning computes the 16 entries: `transport.StokesCarrier.exit_columns`); `expand` writes them
+    whole.  Filled by `put`;
     `n` records are valid.  `segments` (Embree queries), `n_paths` (input rays) and `m` (outputs
     per chunk: n_paths, or 2 n_paths with the first-hit split) are set when the chunk is done.
     """
@@ -46,6 +50,7 @@ class Exits:
         self.nb = np.empty(m, np.int16)
         self.ids = np.empty(m, np.int64)
         self.A = padded_rows((4, K), m) if K else None
+        self.compact = np.zeros(m, np.uint8) if K == 4 else None     # 1: A holds the record compactly
         self.n = 0
         self.m = m
         self.segments = 0
@@ -91,13 +96,20 @@ class Exits:
             g = np.concatenate([g, g])
         return np.take(g, ids)
 
+    def expand(self) -> None:
+        """Write every compactly held record's Mueller columns whole (class doc)."""
+        if self.compact is not None and self.compact[:self.n].any():
+            kernels.built().expand_compact(self.A.reshape(16, -1)[:, :self.n], self.compact[:self.n])
+
     def records(self):
-        """(k, w, state, nb, A or None) of the n valid records, in the order they ended."""
+        """(k, w, state, nb, A or None) of the n valid records, in the order they ended (A's records may be
+        compact: `compact[:n]`)."""
         e = self.n
         return self.k[:e], self.w[:e], self.state[:e], self.nb[:e], None if self.A is None else self.A[:, :, :e]
 
     def ordered(self):
         """(k, A, w, state, nb) arrays of length m in id order (never-ended ids: lost as leaks)."""
+        self.expand()
         m, e = self.m, self.n
         k = np.zeros((m, 3), F32)
         w = np.zeros(m, F32)

@@ -257,10 +257,12 @@ def _bin_exits(t: _Tally, ex: Exits, inc: _Incidence, cos_tol: float) -> None:
     if grp is not None and not all_done:
         grp = grp[done]
     side = st if inc.side_of_state[0] == 0 else (1 - st)        # ABOVE = 0, BELOW = 1
-    M = None
+    M = compact = None
     if A is not None:
         M = A.reshape(16, -1) if all_done else np.take(A.reshape(16, -1), done, axis=1)
-    t.acc.add(ExitSamples(kd, wd, side, M, specular_flags(kd, side, inc.ideal_dirs, cos_tol), grp))
+        if ex.compact is not None:
+            compact = ex.compact[:ex.n] if all_done else ex.compact[done]
+    t.acc.add(ExitSamples(kd, wd, side, M, specular_flags(kd, side, inc.ideal_dirs, cos_tol), grp, compact))
 
 
 def _repeat_row(v: np.ndarray, n: int) -> np.ndarray:

@@ -376,7 +376,7 @@ class IntensityCarrier:
     def chosen(self, rays: Rays, refl, pR) -> None:
         """Nothing but the direction changes (weights stay)."""
 
-    def exit_columns(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out) -> None:
+    def exit_columns(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out, compact=None) -> None:
         """Nothing to record."""
 
 
@@ -535,21 +535,28 @@ class StokesCarrier:
         else:
             rays.A = columns_of_factors(F)
 
-    def exit_columns(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out) -> None:
+    def exit_columns(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out, compact=None) -> None:
         """Write the columns of the rays idx (all when None), re-expressed in the exit frame
         s = z x k, into `out` (4, K, m): the exit record's slot, filled row by row without a
         temporary (`np.take` into each contiguous row); k_exit (m, 3) their directions.  Rays that
         hold the factors of their first interaction: `exit_columns_of_factors`.  With the compiled
-        kernels: `_compiled.exit_columns` (the same numbers; exits along z by the numpy code)."""
+        kernels: `_compiled.exit_columns` (the same numbers; exits along z by the numpy code), and
+        where the record has flags (compact, (m,) uint8: `exits.Exits.compact`) the columns from
+        factors are written compactly (6 factors and the exit rotation, flag 1) for the binning to
+        expand; the numpy code writes every record whole (flag 0)."""
         ck = kernels.active()
         if ck is None or (rays.F is None and rays.A is None):
             self._exit_columns_numpy(rays, idx, phi_exit_rad, k_exit, out)
+            if compact is not None:
+                compact[:] = 0
             return
-        if ck.exit_columns(rays.F, rays.A, rays.s, k_exit, idx, out, ALONG_Z_XY2):
+        if ck.exit_columns(rays.F, rays.A, rays.s, k_exit, idx, out, ALONG_Z_XY2, compact):
             zi = np.flatnonzero(k_exit[:, 0] * k_exit[:, 0] + k_exit[:, 1] * k_exit[:, 1] < ALONG_Z_XY2)
             cols = np.empty((4, self.K, zi.size), F32)
             self._exit_columns_numpy(rays, zi if idx is None else idx[zi], phi_exit_rad, k_exit[zi], cols)
             out[:, :, zi] = cols
+            if compact is not None:
+                compact[zi] = 0
 
     def _exit_columns_numpy(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out) -> None:
         """The numpy code of `exit_columns`."""
@@ -662,7 +669,8 @@ def _record(ch: _Chunk, rays: Rays, idx, state) -> None:
     ex = ch.ex
     sl = ex.put(rays.k, idx, rays.w, rays.nb, rays.ids, state)
     if ex.A is not None:
-        ch.carrier.exit_columns(rays, idx, ch.settings.phi_exit_rad, ex.k[sl], ex.A[:, :, sl])
+        ch.carrier.exit_columns(rays, idx, ch.settings.phi_exit_rad, ex.k[sl], ex.A[:, :, sl],
+                                None if ex.compact is None else ex.compact[sl])
 
 
 def _exit_state(up: np.ndarray, below: np.ndarray) -> np.ndarray:
@@ -676,7 +684,11 @@ def _exit_state(up: np.ndarray, below: np.ndarray) -> np.ndarray:
 
 def _misses(ch: _Chunk, cur: Rays, q) -> Rays | None:
     """Rays that hit nothing: those that reached the slab's faces leave; those that reached a
-    tile side re-enter from the opposite side (returned)."""
+    tile side re-enter from the opposite side (returned).  With the compiled kernels the sorting is
+    one pass (`_compiled.classify_misses`: the same records)."""
+    ck = kernels.active()
+    if ck is not None and cur.k.dtype == q.t_lat.dtype == q.tz.dtype == F32:
+        return _misses_compiled(ck, ch, cur, q)
     side_exit = ~(q.t_lat < q.tz)                    # reached the slab face, not a tile side
     if q.n_hit == 0 and side_exit.all():            # every ray left (the usual end of a phase): no gathers
         _record(ch, cur, None, _exit_state(cur.k[:, 2] > 0, cur.below))
@@ -693,6 +705,24 @@ def _misses(ch: _Chunk, cur: Rays, q) -> Rays | None:
         # the states of every ray (cheap int8 passes), then one int8 gather: no gather of a strided column
         st = np.take(_exit_state(cur.k[:, 2] > 0, cur.below), mi)
         _record(ch, cur, mi, st)
+    return wrapped
+
+
+def _misses_compiled(ck, ch: _Chunk, cur: Rays, q) -> Rays | None:
+    """`_misses` with the exits, their states and the re-entering rays sorted in one C pass."""
+    n = cur.size
+    ei, st, wi = np.empty(n, np.int64), np.empty(n, np.int8), np.empty(n, np.int64)
+    ne, nw = ck.classify_misses(q.hit.view(np.uint8), q.t_lat, q.tz, cur.k, cur.below.view(np.uint8), ABOVE, BELOW,
+                                LOST_LEAK, ei, st, wi)
+    wrapped = None
+    if nw:
+        wi = wi[:nw]
+        wrapped = cur.take(wi)
+        wrapped.o = ch.tracer.wrap(wrapped.o, wrapped.k, q.t_lat[wi], q.tx[wi], q.ty[wi])
+    if ne == n:                                     # every ray left (the usual end of a phase): no gathers
+        _record(ch, cur, None, st)
+    elif ne:
+        _record(ch, cur, ei[:ne], st[:ne])
     return wrapped
 
 
