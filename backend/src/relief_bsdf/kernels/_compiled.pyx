@@ -273,7 +273,8 @@ cdef extern from *:
 def facet_event(const float[::1] nfx, const float[::1] nfy, const float[::1] nfz, const float[::1] kx,
                 const float[::1] ky, const float[::1] kz, const float[:, :] s, const float[::1] ci,
                 const float[::1] n1, const float[::1] n2, float[:, :, ::1] A, float[:, ::1] s_new,
-                float[:, :] scratch, float[::1] c2, float[::1] s2, float[:, :] R, float[:, :] T, float[::1] pR):
+                float[:, :] scratch, float[::1] c2, float[::1] s2, float[:, :] R, float[:, :] T, float[::1] pR,
+                float[:, :] F_r=None, float[:, :] F_t=None):
     """The polarised event at the facets hit (`transport.StokesCarrier.reflectance`, real indices), per ray:
     the facet's basis s_new = n x k / |n x k| (the old s where |n x k| < 1e-6: normal incidence), the
     rotation's (cos 2psi, sin 2psi) onto it (c2, s2), the interface coefficients R (4, n), T (4, n) from
@@ -282,7 +283,9 @@ def facet_event(const float[::1] nfx, const float[::1] nfy, const float[::1] nfz
     column 0's state pR = clip((M_R A)_00, 0, 1).  The float32 operations of the numpy code, in order;
     written without branches over restrict pointers, so that gcc vectorises the loops (numpy's passes
     are SIMD; a scalar C loop is bound by its ~12 divisions and square roots per ray).  scratch: (3, n) rows
-    for the new basis before it is interleaved into s_new.
+    for the new basis before it is interleaved into s_new.  F_r, F_t (6, n) given (rays at their first
+    interaction, A None, both branches kept): the factors of both branches written instead of R, T, c2, s2
+    (`split_factors`' numbers; `facet_split_loop`).
     """
     cdef Py_ssize_t n = ci.shape[0], i, col, K = 0 if A is None else A.shape[1]
     cdef Py_ssize_t ss = s.strides[0] // sizeof(float), sc = s.strides[1] // sizeof(float)
@@ -294,10 +297,20 @@ def facet_event(const float[::1] nfx, const float[::1] nfy, const float[::1] nfz
     if R.strides[1] != sizeof(float) or T.strides[1] != sizeof(float) or scratch.strides[1] != sizeof(float) \
             or scratch.shape[0] != 3 or scratch.shape[1] != n or n1.shape[0] != n or n2.shape[0] != n:
         raise ValueError("facet_event: inconsistent shapes (rows of R, T and scratch contiguous)")
+    cdef bint split = F_r is not None
+    if split and (A is not None or F_t is None or F_r.shape[0] != 6 or F_t.shape[0] != 6 or F_r.shape[1] != n
+                  or F_t.shape[1] != n or F_r.strides[1] != sizeof(float) or F_t.strides[1] != sizeof(float)):
+        raise ValueError("facet_event: the split's factors need A None and contiguous (6, n) rows F_r, F_t")
     with nogil:
-        facet_loop(n, &nfx[0], &nfy[0], &nfz[0], &kx[0], &ky[0], &kz[0], &s[0, 0], ss, sc, &ci[0], &n1[0],
-                   &n2[0], &scratch[0, 0], &scratch[1, 0], &scratch[2, 0], &c2[0], &s2[0], &R[0, 0], &R[1, 0],
-                   &R[2, 0], &R[3, 0], &T[0, 0], &T[1, 0], &T[2, 0], &T[3, 0], &pR[0])
+        if split:
+            facet_split_loop(n, &nfx[0], &nfy[0], &nfz[0], &kx[0], &ky[0], &kz[0], &s[0, 0], ss, sc, &ci[0], &n1[0],
+                             &n2[0], &scratch[0, 0], &scratch[1, 0], &scratch[2, 0], &F_r[0, 0], &F_r[1, 0],
+                             &F_r[2, 0], &F_r[3, 0], &F_r[4, 0], &F_r[5, 0], &F_t[0, 0], &F_t[1, 0], &F_t[2, 0],
+                             &F_t[3, 0], &F_t[4, 0], &F_t[5, 0], &pR[0])
+        else:
+            facet_loop(n, &nfx[0], &nfy[0], &nfz[0], &kx[0], &ky[0], &kz[0], &s[0, 0], ss, sc, &ci[0], &n1[0],
+                       &n2[0], &scratch[0, 0], &scratch[1, 0], &scratch[2, 0], &c2[0], &s2[0], &R[0, 0], &R[1, 0],
+                       &R[2, 0], &R[3, 0], &T[0, 0], &T[1, 0], &T[2, 0], &T[3, 0], &pR[0])
         for i in range(n):
             s_new[i, 0] = scratch[0, i]
             s_new[i, 1] = scratch[1, i]
@@ -308,6 +321,30 @@ def facet_event(const float[::1] nfx, const float[::1] nfy, const float[::1] nfz
             reflectance_loop(n, &R[0, 0], &R[1, 0], &A[1, 0, 0], &pR[0])
 
 
+cdef inline void facet_basis(float nx, float ny, float nz, float kx, float ky, float kz, float sx, float sy,
+                             float sz, float *b) noexcept nogil:
+    """The facet's basis s_new = n x k / |n x k| (b[0:3]; the old s where |n x k| < 1e-6: normal incidence)
+    and the rotation's (cos 2psi, sin 2psi) onto it (b[3:5]): the first operations of `facet_event`."""
+    cdef float u0, u1, u2, c, d, sn
+    u0 = ny * kz - nz * ky
+    u1 = nz * kx - nx * kz
+    u2 = nx * ky - ny * kx
+    c = (sx * u0 + sy * u1) + sz * u2
+    d = (sx * nx + sy * ny) + sz * nz
+    sn = sqrtf((u0 * u0 + u1 * u1) + u2 * u2)
+    # |u| < 1e-6: normal incidence on the facet, the basis kept
+    u0 = sx if sn < <float>1e-6 else u0
+    u1 = sy if sn < <float>1e-6 else u1
+    u2 = sz if sn < <float>1e-6 else u2
+    c = 1 if sn < <float>1e-6 else c
+    d = 0 if sn < <float>1e-6 else d
+    sn = 1 if sn < <float>1e-6 else sn
+    b[0] = u0 / sn
+    b[1] = u1 / sn
+    b[2] = u2 / sn
+    double_angle(c, d, &b[3], &b[4])
+
+
 cdef void facet_loop(Py_ssize_t n, f32_in nfx, f32_in nfy, f32_in nfz, f32_in kx, f32_in ky, f32_in kz, f32_in s,
                      Py_ssize_t ss, Py_ssize_t sc, f32_in ci, f32_in n1, f32_in n2, f32_out snx, f32_out sny,
                      f32_out snz, f32_out c2, f32_out s2, f32_out r0, f32_out r1, f32_out r2, f32_out r3,
@@ -315,32 +352,16 @@ cdef void facet_loop(Py_ssize_t n, f32_in nfx, f32_in nfy, f32_in nfz, f32_in kx
     """The loop of `facet_event` over restrict pointer parameters (gcc honours restrict on parameters), float
     data only and no branches (selects), so that it vectorises with baseline SSE2; the new basis in rows."""
     cdef Py_ssize_t i
-    cdef float u0, u1, u2, sx, sy, sz, c, d, sn, E, S
+    cdef float b[5]
     cdef float Rv[4]
     cdef float Tv[4]
     for i in range(n):
-        u0 = nfy[i] * kz[i] - nfz[i] * ky[i]
-        u1 = nfz[i] * kx[i] - nfx[i] * kz[i]
-        u2 = nfx[i] * ky[i] - nfy[i] * kx[i]
-        sx = s[i * ss]
-        sy = s[i * ss + sc]
-        sz = s[i * ss + 2 * sc]
-        c = (sx * u0 + sy * u1) + sz * u2
-        d = (sx * nfx[i] + sy * nfy[i]) + sz * nfz[i]
-        sn = sqrtf((u0 * u0 + u1 * u1) + u2 * u2)
-        # |u| < 1e-6: normal incidence on the facet, the basis kept
-        u0 = sx if sn < <float>1e-6 else u0
-        u1 = sy if sn < <float>1e-6 else u1
-        u2 = sz if sn < <float>1e-6 else u2
-        c = 1 if sn < <float>1e-6 else c
-        d = 0 if sn < <float>1e-6 else d
-        sn = 1 if sn < <float>1e-6 else sn
-        snx[i] = u0 / sn
-        sny[i] = u1 / sn
-        snz[i] = u2 / sn
-        double_angle(c, d, &E, &S)
-        c2[i] = E
-        s2[i] = S
+        facet_basis(nfx[i], nfy[i], nfz[i], kx[i], ky[i], kz[i], s[i * ss], s[i * ss + sc], s[i * ss + 2 * sc], b)
+        snx[i] = b[0]
+        sny[i] = b[1]
+        snz[i] = b[2]
+        c2[i] = b[3]
+        s2[i] = b[4]
         interface_coefficients(ci[i], n1[i], n2[i], Rv, Tv)
         r0[i] = Rv[0]
         r1[i] = Rv[1]
@@ -351,6 +372,43 @@ cdef void facet_loop(Py_ssize_t n, f32_in nfx, f32_in nfy, f32_in nfz, f32_in kx
         t2[i] = Tv[2]
         t3[i] = Tv[3]
         pR[i] = clip01(Rv[0])
+
+
+cdef void facet_split_loop(Py_ssize_t n, f32_in nfx, f32_in nfy, f32_in nfz, f32_in kx, f32_in ky, f32_in kz,
+                           f32_in s, Py_ssize_t ss, Py_ssize_t sc, f32_in ci, f32_in n1, f32_in n2, f32_out snx,
+                           f32_out sny, f32_out snz, f32_out fr0, f32_out fr1, f32_out fr2, f32_out fr3,
+                           f32_out fr4, f32_out fr5, f32_out ft0, f32_out ft1, f32_out ft2, f32_out ft3,
+                           f32_out ft4, f32_out ft5, f32_out pR) noexcept nogil:
+    """`facet_loop` for rays at their first interaction that split (`facet_event` with F_r, F_t): instead of
+    R, T and the rotation, the factors of both branches, as `split_factors` makes them from those."""
+    cdef Py_ssize_t i
+    cdef float b[5]
+    cdef float Rv[4]
+    cdef float Tv[4]
+    cdef float p, x, inv_r, inv_t
+    for i in range(n):
+        facet_basis(nfx[i], nfy[i], nfz[i], kx[i], ky[i], kz[i], s[i * ss], s[i * ss + sc], s[i * ss + 2 * sc], b)
+        snx[i] = b[0]
+        sny[i] = b[1]
+        snz[i] = b[2]
+        interface_coefficients(ci[i], n1[i], n2[i], Rv, Tv)
+        p = clip01(Rv[0])
+        pR[i] = p
+        inv_r = <float>1 / (<float>1e-30 if p < <float>1e-30 else p)
+        x = <float>1 - p
+        inv_t = <float>1 / (<float>1e-30 if x < <float>1e-30 else x)
+        fr0[i] = Rv[0] * inv_r
+        fr1[i] = Rv[1] * inv_r
+        fr2[i] = Rv[2] * inv_r
+        fr3[i] = Rv[3] * inv_r
+        fr4[i] = b[3]
+        fr5[i] = b[4]
+        ft0[i] = Tv[0] * inv_t
+        ft1[i] = Tv[1] * inv_t
+        ft2[i] = Tv[2] * inv_t
+        ft3[i] = Tv[3] * inv_t
+        ft4[i] = b[3]
+        ft5[i] = b[4]
 
 
 cdef void rotate_loop(Py_ssize_t n, f32_in c2, f32_in s2, f32_out a1, f32_out a2) noexcept nogil:

@@ -353,7 +353,7 @@ class IntensityCarrier:
     def start(self, rays: Rays, s_init=None) -> None:
         """Nothing to set up."""
 
-    def reflectance(self, rays: Rays, f: Facet, media: Media) -> np.ndarray:
+    def reflectance(self, rays: Rays, f: Facet, media: Media, split: bool = False) -> np.ndarray:
         """Unpolarised Fresnel reflectance of each event (1 past the critical angle)."""
         if media.is_complex:
             n1, n2 = media.pair(rays.below)
@@ -406,18 +406,20 @@ class StokesCarrier:
             # a read-only broadcast view (no copy): the basis is replaced, never written in place
             rays.s = np.broadcast_to(np.asarray(s_init, F32), rays.k.shape)
 
-    def reflectance(self, rays: Rays, f: Facet, media: Media) -> np.ndarray:
+    def reflectance(self, rays: Rays, f: Facet, media: Media, split: bool = False) -> np.ndarray:
         """Rotate the columns onto the facet's basis; P_R of column 0's state.
 
         The facet's basis is s' = n x k / |n x k|.  With s' = u / |u|, u = n x k, and s, p = s x k
         the ray's basis (s . k = 0, |k| = 1): s . u = |u| (s . s') and p . u = s . n, so the
         rotation's (c, d) = (s . s', p . s') are (s . u, s . n) / |u| (`rotate_stokes_columns_cd`
         needs them only up to that factor): two dot products instead of a cross product.
-        With the compiled kernels (real indices): `_compiled.facet_event`, the same numbers.
+        With the compiled kernels (real indices): `_compiled.facet_event`, the same numbers; split (the
+        first-hit split will keep both branches): rays at their first interaction get both branches'
+        factors from the same pass (`split_factors`' numbers).
         """
         ck = kernels.active()
         if ck is not None and f.n_pair is not None:
-            return self._reflectance_compiled(ck, rays, f)
+            return self._reflectance_compiled(ck, rays, f, split)
         k, s_old = rays.k, rays.s
         kx, ky, kz = f.k3
         # u = n x k in three contiguous arrays (column ops on an (n, 3) array are strided, ~3x slower),
@@ -460,9 +462,16 @@ class StokesCarrier:
         self._ev = (R, T, s_new, None)
         return np.clip(R[0] + R[1] * rays.A[1, 0], 0, 1).astype(F32, copy=False)
 
-    def _reflectance_compiled(self, ck, rays: Rays, f: Facet) -> np.ndarray:
+    def _reflectance_compiled(self, ck, rays: Rays, f: Facet, split: bool = False) -> np.ndarray:
         """`reflectance` in one C pass over the rays (`_compiled.facet_event`)."""
         n = rays.size
+        if split and self.factored and rays.A is None and rays.F is None:
+            s_new, rows = np.empty((n, 3), F32), padded_rows((4,), n)
+            F_r, F_t = padded_rows((6,), n), padded_rows((6,), n)
+            ck.facet_event(f.nfx, f.nfy, f.nfz, *f.k3, rays.s, f.ci, *f.n_pair, None, s_new, rows[0:3], rows[0],
+                           rows[0], rows[0:3], rows[0:3], rows[3], F_r, F_t)
+            self._ev, self._split = (None, None, s_new, None), (F_r, F_t)
+            return rows[3]
         if rays.F is not None:                      # a second interaction: the factors become columns
             rays.A, rays.F = columns_of_factors(rays.F), None
         elif rays.A is not None and not rays.A.flags.c_contiguous:
@@ -806,8 +815,8 @@ def _facet(h: Rays, g3, k3, inv, dot, media: Media) -> Facet:
 def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
     """One interaction for rays that all hit: the continuing rays (and split copies)."""
     carrier, eps = ch.carrier, ch.tracer.eps
-    pR = carrier.reflectance(h, f, ch.media)
     ck = kernels.active()
+    pR = carrier.reflectance(h, f, ch.media, split=pending and ck is not None and h.o.dtype == th.dtype == F32)
     if pending and ck is not None and h.o.dtype == th.dtype == F32:
         return _first_interaction_compiled(ck, ch, h, f, th, pR)
     p = np.empty(h.k.shape, F32)                     # hit point (`core.frames.scale_rows` of k, th)
