@@ -18,6 +18,61 @@ from libc.float cimport FLT_MAX
 cdef extern from *:
     void prefetch_write "__builtin_prefetch"(const void *addr, int rw, int locality) nogil
 
+cdef extern from *:
+    """
+    #if defined(__SSE2__)
+    #include <emmintrin.h>
+    /* sum[4 r + 0..3] += (double)(row * w): four float32 products converted exactly to float64 and added,
+       entry by entry IEEE operations (no fused multiply-add): the numbers of the scalar form */
+    static inline void relief_add4(double *sum, __m128 row, __m128 wv) {
+        __m128 p = _mm_mul_ps(row, wv);
+        _mm_storeu_pd(sum, _mm_add_pd(_mm_loadu_pd(sum), _mm_cvtps_pd(p)));
+        _mm_storeu_pd(sum + 2, _mm_add_pd(_mm_loadu_pd(sum + 2), _mm_cvtps_pd(_mm_movehl_ps(p, p))));
+    }
+    #define RELIEF_ROW(x0, x1, x2, x3) _mm_set_ps((x3), (x2), (x1), (x0))
+    #else
+    typedef struct { float v[4]; } relief_row;
+    static inline void relief_add4_s(double *sum, relief_row r, float w) {
+        for (int e = 0; e < 4; e++) sum[e] += (double)(r.v[e] * w);
+    }
+    #endif
+    /* sum[e] += (double)(m[e] * w), e = 0..15, m[e] the e-th of 16 rows `stride` floats apart */
+    static inline void relief_add_rows16(double *sum, const float *m, Py_ssize_t stride, float w) {
+    #if defined(__SSE2__)
+        __m128 wv = _mm_set1_ps(w);
+        for (int r = 0; r < 4; r++) {
+            const float *q = m + 4 * r * stride;
+            relief_add4(sum + 4 * r, RELIEF_ROW(q[0], q[stride], q[2 * stride], q[3 * stride]), wv);
+        }
+    #else
+        for (int e = 0; e < 16; e++) sum[e] += (double)(m[e * stride] * w);
+    #endif
+    }
+    /* sum[e] += (double)(o[e] * w) for the 16 entries o of Rot_exit (M Rot / p) from the factors (a, b, cc, dd,
+       c2, s2) and the exit rotation (E, S): the operations of `factored_columns`, kept in registers */
+    static inline void relief_add_factored16(double *sum, float a, float b, float cc, float dd, float c2,
+                                             float s2, float E, float S, float w) {
+        float x1 = a * c2, x2 = -(cc * s2), y1 = a * s2, y2 = cc * c2;
+        float o0 = a, o1 = b * c2, o2 = b * s2, o3 = 0.0f;
+        float o4 = E * b, o5 = E * x1 + S * x2, o6 = E * y1 + S * y2, o7 = S * dd;
+        float o8 = -(b * S), o9 = x2 * E - x1 * S, o10 = y2 * E - y1 * S, o11 = dd * E;
+        float o12 = 0.0f, o13 = dd * s2, o14 = -(dd * c2), o15 = cc;
+    #if defined(__SSE2__)
+        __m128 wv = _mm_set1_ps(w);
+        relief_add4(sum, RELIEF_ROW(o0, o1, o2, o3), wv);
+        relief_add4(sum + 4, RELIEF_ROW(o4, o5, o6, o7), wv);
+        relief_add4(sum + 8, RELIEF_ROW(o8, o9, o10, o11), wv);
+        relief_add4(sum + 12, RELIEF_ROW(o12, o13, o14, o15), wv);
+    #else
+        float o[16] = {o0, o1, o2, o3, o4, o5, o6, o7, o8, o9, o10, o11, o12, o13, o14, o15};
+        for (int e = 0; e < 16; e++) sum[e] += (double)(o[e] * w);
+    #endif
+    }
+    """
+    void add_rows16 "relief_add_rows16"(double *sum, const float *m, Py_ssize_t stride, float w) nogil
+    void add_factored16 "relief_add_factored16"(double *sum, float a, float b, float cc, float dd, float c2,
+                                                float s2, float E, float S, float w) nogil
+
 cdef enum:
     PREFETCH_AHEAD = 16       # exits ahead: the sums of a cell come from memory (a table's sums exceed L2)
 
@@ -42,6 +97,9 @@ def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
     cdef double wd
     cdef float o[16]
     cdef bint polarized = M is not None, grouped = group is not None, short = compact is not None
+    cdef Py_ssize_t ms = 0 if M is None else M.strides[0] // sizeof(float)
+    if polarized and M.strides[1] != sizeof(float):
+        raise ValueError("bin_cells: the Mueller rows must be contiguous")
     if w.shape[0] != n or (polarized and (M.shape[0] != 16 or M.shape[1] != n or sum_M.shape[1] != 16)) or (
             grouped and (group.shape[0] != n or keys is None or w_keys is None or keys.shape[0] < n
                          or w_keys.shape[0] < n)) or (short and (not polarized or compact.shape[0] != n)):
@@ -64,14 +122,12 @@ def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
                 keys[j] = group[i] * nc + c
                 w_keys[j] = wd
                 j += 1
-            if polarized:
+            if polarized:                            # sum_M[c, e] += <double>(M_e * wi), e = 0..15
                 if short and compact[i]:
-                    factored_columns(M[0, i], M[1, i], M[2, i], M[3, i], M[4, i], M[5, i], M[6, i], M[7, i], o)
-                    for e in range(16):
-                        sum_M[c, e] += <double>(o[e] * wi)
+                    add_factored16(&sum_M[c, 0], M[0, i], M[1, i], M[2, i], M[3, i], M[4, i], M[5, i], M[6, i],
+                                   M[7, i], wi)
                 else:
-                    for e in range(16):
-                        sum_M[c, e] += <double>(M[e, i] * wi)
+                    add_rows16(&sum_M[c, 0], &M[0, i], ms, wi)
     return j
 
 
