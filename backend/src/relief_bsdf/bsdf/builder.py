@@ -130,6 +130,29 @@ class CellIndex:
         return cell
 
 
+    def with_side(self, k: np.ndarray, side: np.ndarray) -> np.ndarray:
+        """cell + side * S * A (the table's two sides), -1 outside the table: `__call__` and the side's
+        offset, the part after numpy's arccos and arctan2 in one pass with the compiled kernels
+        (`_compiled.cells_of_angles`, the same numbers)."""
+        S, A = self.S, self.A
+        ck = kernels.active()
+        if not (self.fast and ck is not None and k.dtype == F32):
+            cell = self(k)
+            out = cell >= 0
+            cell += side.astype(np.int32) * np.int32(S * A)
+            cell[~out] = -1
+            return cell
+        n = k.shape[0]
+        x, kx, ky = np.empty(n, F32), np.empty(n, F32), np.empty(n, F32)
+        ck.direction_parts(k, x, kx, ky)
+        np.arccos(x, out=x)
+        y = np.arctan2(ky, kx, out=ky)
+        cell = np.empty(n, np.int32)
+        ck.cells_of_angles(x, y, self.t_scale, self.t_off, self.p_scale, self.p_off, self.ring_lut, self.az_lut, A,
+                           side.astype(np.int8, copy=False), S * A, cell)
+        return cell
+
+
 def _theta_bins(kz: np.ndarray, te_sin2: np.ndarray) -> np.ndarray:
     """Ring index of each direction (edges given as sin^2 theta); -1 or S when outside the edges.
 
@@ -344,10 +367,8 @@ class CellAccumulator:
         wd, side, spec = ex.weight, ex.side, ex.specular
         if wd.size == 0:
             return
-        S, A_ = self.cells.S, self.cells.A
-        cell = self.cells(ex.dirs)
+        cell = self.cells.with_side(ex.dirs, side)
         inside = cell >= 0
-        cell += side.astype(np.int32) * np.int32(S * A_)
         if spec is not None:
             inside &= ~spec
             self._add_specular(ex)

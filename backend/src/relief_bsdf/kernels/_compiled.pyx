@@ -131,6 +131,52 @@ def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
     return j
 
 
+def direction_parts(const float[:, :] k, float[::1] az, float[::1] kx, float[::1] ky):
+    """az = min(|k_z|, 1) (NaN kept) and the contiguous components k_x, k_y of directions k (n, 3): the inputs of
+    numpy's arccos and arctan2 in `bsdf.builder.CellIndex.with_side` (numpy's SIMD loops run on contiguous
+    arrays only; on an (n, 3) array's columns arctan2 is ~3x slower)."""
+    cdef Py_ssize_t n = k.shape[0], i
+    cdef float z
+    if az.shape[0] != n or kx.shape[0] != n or ky.shape[0] != n or k.shape[1] != 3:
+        raise ValueError("direction_parts: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            z = fabsf(k[i, 2])
+            az[i] = 1 if z > 1 else z
+            kx[i] = k[i, 0]
+            ky[i] = k[i, 1]
+
+
+def cells_of_angles(const float[::1] x, const float[::1] y, float t_scale, float t_off, float p_scale, float p_off,
+                    const int[::1] ring_lut, const int[::1] az_lut, int n_az, const signed char[::1] side,
+                    int side_cells, int[::1] out):
+    """The cell of each exit from x = arccos min(|k_z|, 1) and y = atan2(k_y, k_x) (numpy's, float32), plus
+    side * side_cells, or -1 outside the table: `bsdf.builder.CellIndex.__call__` (uniform edges: scale,
+    offset, max 0, truncation, look-up tables indexed as np.take(..., mode="clip")) and
+    `CellAccumulator.add`'s side offset in one pass.  The indices are clamped before truncation, the same
+    for every value a direction gives (an index below 2^31); NaN gives index 0, as numpy's cast on x86."""
+    cdef Py_ssize_t n = x.shape[0], i
+    cdef float xv, yv, rmax = ring_lut.shape[0] - 1, amax = az_lut.shape[0] - 1
+    cdef int ib, ia, c
+    if y.shape[0] != n or side.shape[0] != n or out.shape[0] != n or rmax < 0 or amax < 0:
+        raise ValueError("cells_of_angles: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            xv = x[i] * t_scale
+            xv = xv + t_off
+            xv = xv if xv > 0 else 0                  # max 0 (NaN -> 0), clipped
+            xv = rmax if xv > rmax else xv
+            yv = y[i] * p_scale
+            yv = yv + p_off
+            yv = yv if yv > 0 else 0
+            yv = amax if yv > amax else yv
+            ib = ring_lut[<int>xv]
+            ia = az_lut[<int>yv]
+            c = ib * n_az + ia + side[i] * side_cells
+            out[i] = -1 if (ib | ia) < 0 else c
+    return None
+
+
 def add_at(const long[::1] keys, const double[::1] w, double[::1] out):
     """out[keys[i]] += w[i] in the order of i: `np.bincount(keys, w)` added into out without its temporary
     (`CellAccumulator.sum_w_group`, batch after batch in merge order: the order of the concatenation)."""
