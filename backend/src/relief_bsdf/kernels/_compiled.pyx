@@ -98,7 +98,7 @@ def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
     cdef float o[16]
     cdef bint polarized = M is not None, grouped = group is not None, short = compact is not None
     cdef Py_ssize_t ms = 0 if M is None else M.strides[0] // sizeof(float)
-    if polarized and M.strides[1] != sizeof(float):
+    if polarized and M.shape[1] > 1 and M.strides[1] != sizeof(float):      # (a lone exit: any stride)
         raise ValueError("bin_cells: the Mueller rows must be contiguous")
     if w.shape[0] != n or (polarized and (M.shape[0] != 16 or M.shape[1] != n or sum_M.shape[1] != 16)) or (
             grouped and (group.shape[0] != n or keys is None or w_keys is None or keys.shape[0] < n
