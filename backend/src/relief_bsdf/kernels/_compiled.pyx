@@ -20,6 +20,14 @@ cdef extern from *:
 
 cdef extern from *:
     """
+    typedef float *__restrict__ f32_out;
+    typedef const float *__restrict__ f32_in;
+    """
+    ctypedef float *f32_out             # restrict pointers (as parameters: gcc honours restrict there only):
+    ctypedef const float *f32_in        # no run-time aliasing checks, so gcc vectorises the loops
+
+cdef extern from *:
+    """
     #if defined(__SSE2__)
     #include <emmintrin.h>
     /* sum[4 r + 0..3] += (double)(row * w): four float32 products converted exactly to float64 and added,
@@ -255,41 +263,63 @@ def exit_columns(const float[:, :] F, const float[:, :, :] A, const float[:, :] 
         raise ValueError("exit_columns: inconsistent shapes")
     if not factored and A is None:
         raise ValueError("exit_columns: neither factors nor columns")
+    if factored and short and m and (out.strides[2] != sizeof(float)):
+        raise ValueError("exit_columns: the record's rows must be contiguous")
     with nogil:
-        for j in range(m):
-            i = idx[j] if gather else j
-            kx = k[j, 0]
-            ky = k[j, 1]
-            if kx * kx + ky * ky < along_z_xy2:
-                along += 1
-            c = s[i, 1] * kx - s[i, 0] * ky
-            d = s[i, 2]
-            double_angle(c, d, &E, &S)
-            if factored and short:             # compact: the factors and the exit rotation
+        if factored and short:                # compact: the factors, c and d, then (E, S) in a vector pass
+            for j in range(m):
+                i = idx[j] if gather else j
+                kx = k[j, 0]
+                ky = k[j, 1]
+                if kx * kx + ky * ky < along_z_xy2:
+                    along += 1
+                out[1, 2, j] = s[i, 1] * kx - s[i, 0] * ky
+                out[1, 3, j] = s[i, 2]
                 out[0, 0, j] = F[0, i]
                 out[0, 1, j] = F[1, i]
                 out[0, 2, j] = F[2, i]
                 out[0, 3, j] = F[3, i]
                 out[1, 0, j] = F[4, i]
                 out[1, 1, j] = F[5, i]
-                out[1, 2, j] = E
-                out[1, 3, j] = S
                 compact[j] = 1
-            elif factored:                     # the entries of `exit_columns_of_factors`
-                factored_columns(F[0, i], F[1, i], F[2, i], F[3, i], F[4, i], F[5, i], E, S, o)
-                for e in range(16):
-                    out[e >> 2, e & 3, j] = o[e]
-            else:                             # gathered columns, rows 1 and 2 rotated
-                if short:
-                    compact[j] = 0
-                for col in range(K):
-                    a1 = A[1, col, i]
-                    a2 = A[2, col, i]
-                    out[0, col, j] = A[0, col, i]
-                    out[1, col, j] = E * a1 + S * a2
-                    out[2, col, j] = a2 * E - a1 * S
-                    out[3, col, j] = A[3, col, i]
+            if m:
+                double_angle_rows(m, &out[1, 2, 0], &out[1, 3, 0])
+        else:
+            for j in range(m):
+                i = idx[j] if gather else j
+                kx = k[j, 0]
+                ky = k[j, 1]
+                if kx * kx + ky * ky < along_z_xy2:
+                    along += 1
+                c = s[i, 1] * kx - s[i, 0] * ky
+                d = s[i, 2]
+                double_angle(c, d, &E, &S)
+                if factored:                       # the entries of `exit_columns_of_factors`
+                    factored_columns(F[0, i], F[1, i], F[2, i], F[3, i], F[4, i], F[5, i], E, S, o)
+                    for e in range(16):
+                        out[e >> 2, e & 3, j] = o[e]
+                else:                             # gathered columns, rows 1 and 2 rotated
+                    if short:
+                        compact[j] = 0
+                    for col in range(K):
+                        a1 = A[1, col, i]
+                        a2 = A[2, col, i]
+                        out[0, col, j] = A[0, col, i]
+                        out[1, col, j] = E * a1 + S * a2
+                        out[2, col, j] = a2 * E - a1 * S
+                        out[3, col, j] = A[3, col, i]
     return along
+
+
+cdef void double_angle_rows(Py_ssize_t n, f32_out cr, f32_out dr) noexcept nogil:
+    """In place over rows c, d: (c, d) <- (cos 2psi, sin 2psi) = `double_angle(c, d)` (restrict pointers,
+    no branches: the loop vectorises)."""
+    cdef Py_ssize_t i
+    cdef float E, S
+    for i in range(n):
+        double_angle(cr[i], dr[i], &E, &S)
+        cr[i] = E
+        dr[i] = S
 
 
 def expand_compact(float[:, :] M, unsigned char[::1] compact, const long[::1] idx=None):
@@ -363,13 +393,6 @@ cdef inline void interface_coefficients(float ci, float n1, float n2, float *R, 
     T[3] = 0
 
 
-cdef extern from *:
-    """
-    typedef float *__restrict__ f32_out;
-    typedef const float *__restrict__ f32_in;
-    """
-    ctypedef float *f32_out             # restrict pointers (as parameters: gcc honours restrict there only):
-    ctypedef const float *f32_in        # no run-time aliasing checks, so gcc vectorises the loops
 
 
 def facet_event(const float[::1] nfx, const float[::1] nfy, const float[::1] nfz, const float[::1] kx,
