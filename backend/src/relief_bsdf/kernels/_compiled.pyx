@@ -22,9 +22,11 @@ cdef extern from *:
     """
     typedef float *__restrict__ f32_out;
     typedef const float *__restrict__ f32_in;
+    typedef unsigned char *__restrict__ u8_out;
     """
     ctypedef float *f32_out             # restrict pointers (as parameters: gcc honours restrict there only):
     ctypedef const float *f32_in        # no run-time aliasing checks, so gcc vectorises the loops
+    ctypedef unsigned char *u8_out
 
 cdef extern from *:
     """
@@ -566,48 +568,105 @@ cdef inline float fmin_f(float a, float b) noexcept nogil:
 
 
 def slab_distances(const float[:, :] o, const float[:, :] k, float hx, float hy, float zh, float zc,
-                   float[:, ::1] T, float[::1] t_lat, float[::1] tfar):
+                   float[:, :] T, float[::1] t_lat, float[::1] tfar):
     """Distances along k (n, 3) from o to the tile's sides and the slab's faces (`tracer.ReliefTracer.query`):
-    T[i, j] = (copysign(h_j, k_j) - o_j + c_j) / k_j with h = (hx, hy, zh), c = (0, 0, zc); t_lat = fmin(T_x,
-    T_y), tfar = max(fmin(t_lat, T_z), 0).  The float32 operations of the numpy code, in order."""
+    T[j, i] = (copysign(h_j, k_j) - o_j + c_j) / k_j with h = (hx, hy, zh), c = (0, 0, zc) (T (3, n): rows
+    tx, ty, tz); t_lat = fmin(T_x, T_y), tfar = max(fmin(t_lat, T_z), 0).  The float32 operations of the
+    numpy code, in order: one pass per component over the rows of o and k (contiguous rows: the division
+    loops vectorise), then one over the distances."""
     cdef Py_ssize_t n = k.shape[0], i
-    cdef float tx, ty, tz, tl, tf
-    if o.shape[0] != n or T.shape[0] != n or t_lat.shape[0] != n or tfar.shape[0] != n:
+    if o.shape[0] != n or T.shape[0] != 3 or T.shape[1] != n or t_lat.shape[0] != n or tfar.shape[0] != n:
         raise ValueError("slab_distances: inconsistent shapes")
+    if n == 0:
+        return
+    if T.strides[1] != sizeof(float):
+        raise ValueError("slab_distances: the rows of T must be contiguous")
+    cdef Py_ssize_t so = o.strides[0] // sizeof(float), co = o.strides[1] // sizeof(float)
+    cdef Py_ssize_t sk = k.strides[0] // sizeof(float), ck = k.strides[1] // sizeof(float)
     with nogil:
-        for i in range(n):
-            tx = ((copysignf(hx, k[i, 0]) - o[i, 0]) + <float>0) / k[i, 0]
-            ty = ((copysignf(hy, k[i, 1]) - o[i, 1]) + <float>0) / k[i, 1]
-            tz = ((copysignf(zh, k[i, 2]) - o[i, 2]) + zc) / k[i, 2]
-            T[i, 0] = tx
-            T[i, 1] = ty
-            T[i, 2] = tz
-            tl = fmin_f(tx, ty)
-            t_lat[i] = tl
-            tf = fmin_f(tl, tz)
-            if tf < 0:
-                tf = 0
-            tfar[i] = tf
+        slab_component(n, &o[0, 0], so, &k[0, 0], sk, hx, <float>0, &T[0, 0])
+        slab_component(n, &o[0, 0] + co, so, &k[0, 0] + ck, sk, hy, <float>0, &T[1, 0])
+        slab_component(n, &o[0, 0] + 2 * co, so, &k[0, 0] + 2 * ck, sk, zh, zc, &T[2, 0])
+        slab_limits(n, &T[0, 0], &T[1, 0], &T[2, 0], &t_lat[0], &tfar[0])
 
 
-def classify_misses(const unsigned char[::1] hit, const float[:] t_lat, const float[:] tz, const float[:, :] k,
+def slab_far(const float[:, :] o, const float[:, :] k, float hx, float hy, float zh, float zc, float[::1] tfar,
+             unsigned char[::1] lat_first):
+    """`slab_distances` for a query: only tfar (Embree's limit) and whether a tile side comes first (t_lat < tz:
+    a ray that hits nothing re-enters through it), the distances themselves not written (a ray that
+    re-enters gets them again from `slab_distances`).  The same operations."""
+    cdef Py_ssize_t n = k.shape[0]
+    if o.shape[0] != n or tfar.shape[0] != n or lat_first.shape[0] != n:
+        raise ValueError("slab_far: inconsistent shapes")
+    if n == 0:
+        return
+    cdef Py_ssize_t so = o.strides[0] // sizeof(float), co = o.strides[1] // sizeof(float)
+    cdef Py_ssize_t sk = k.strides[0] // sizeof(float), ck = k.strides[1] // sizeof(float)
+    with nogil:
+        slab_far_loop(n, &o[0, 0], so, co, &k[0, 0], sk, ck, hx, hy, zh, zc, &tfar[0], &lat_first[0])
+
+
+cdef void slab_far_loop(Py_ssize_t n, f32_in o, Py_ssize_t so, Py_ssize_t co, f32_in k, Py_ssize_t sk,
+                        Py_ssize_t ck, float hx, float hy, float zh, float zc, f32_out tfar,
+                        u8_out lat) noexcept nogil:
+    """The loop of `slab_far` over restrict pointers (rows of strides so, sk; components co, ck), selects only."""
+    cdef Py_ssize_t i
+    cdef float kx, ky, kz, tx, ty, tz, tl, tf
+    for i in range(n):
+        kx = k[i * sk]
+        ky = k[i * sk + ck]
+        kz = k[i * sk + 2 * ck]
+        tx = ((copysignf(hx, kx) - o[i * so]) + <float>0) / kx
+        ty = ((copysignf(hy, ky) - o[i * so + co]) + <float>0) / ky
+        tz = ((copysignf(zh, kz) - o[i * so + 2 * co]) + zc) / kz
+        tl = tx if (ty != ty or tx < ty) else ty
+        lat[i] = tl < tz
+        tf = tl if (tz != tz or tl < tz) else tz
+        tfar[i] = 0 if tf < 0 else tf
+
+
+cdef void slab_component(Py_ssize_t n, f32_in o, Py_ssize_t so, f32_in k, Py_ssize_t sk, float h, float c,
+                         f32_out t) noexcept nogil:
+    """t[i] = ((copysign(h, k_i) - o_i) + c) / k_i over one component of rows o, k (row strides so, sk)."""
+    cdef Py_ssize_t i
+    cdef float kv
+    for i in range(n):
+        kv = k[i * sk]
+        t[i] = ((copysignf(h, kv) - o[i * so]) + c) / kv
+
+
+cdef void slab_limits(Py_ssize_t n, f32_in tx, f32_in ty, f32_in tz, f32_out t_lat, f32_out tfar) noexcept nogil:
+    """t_lat = fmin(tx, ty), tfar = max(fmin(t_lat, tz), 0) (NaN ignored by fmin, kept by max)."""
+    cdef Py_ssize_t i
+    cdef float tl, tf, a, b
+    for i in range(n):
+        a = tx[i]
+        b = ty[i]
+        tl = a if (b != b or a < b) else b
+        t_lat[i] = tl
+        b = tz[i]
+        tf = tl if (b != b or tl < b) else b
+        tfar[i] = 0 if tf < 0 else tf
+
+
+def classify_misses(const unsigned char[::1] hit, const unsigned char[::1] lat_first, const float[:, :] k,
                     const unsigned char[::1] below, signed char above_code, signed char below_code,
                     signed char leak_code, long[::1] exit_idx, signed char[::1] exit_state, long[::1] wrap_idx):
     """The rays that hit nothing (hit 0), in order, sorted into those that reached a slab face first
-    (not t_lat < tz: they leave; their indices into exit_idx and their states into exit_state) and those that
-    reached a tile side first (wrap_idx: they re-enter); returns (exits, wraps).  The state of an exit is
+    (lat_first 0, i.e. not t_lat < tz: they leave; their indices into exit_idx and their states into
+    exit_state) and those that reached a tile side first (wrap_idx: they re-enter); returns (exits, wraps).  The state of an exit is
     above_code going up (k_z > 0), below_code going down, leak_code when that is the side the ray was not on
     (going up from below, or down from above): `transport._misses` and `transport._exit_state` in one pass."""
     cdef Py_ssize_t n = hit.shape[0], i, ne = 0, nw = 0
     cdef bint up
-    if t_lat.shape[0] != n or tz.shape[0] != n or k.shape[0] != n or below.shape[0] != n or \
+    if lat_first.shape[0] != n or k.shape[0] != n or below.shape[0] != n or \
             exit_idx.shape[0] < n or exit_state.shape[0] < n or wrap_idx.shape[0] < n:
         raise ValueError("classify_misses: inconsistent shapes")
     with nogil:
         for i in range(n):
             if hit[i]:
                 continue
-            if t_lat[i] < tz[i]:
+            if lat_first[i]:
                 wrap_idx[nw] = i
                 nw += 1
                 continue

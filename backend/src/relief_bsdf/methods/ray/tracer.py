@@ -23,7 +23,7 @@ import numpy as np
 from relief_bsdf import kernels
 from relief_bsdf.errors import RequestError
 from relief_bsdf.methods.ray.embree_buffers import DirectMesh, Unavailable
-from relief_bsdf.methods.ray.exits import ABOVE, Exits
+from relief_bsdf.methods.ray.exits import ABOVE, Exits, padded_rows
 from relief_bsdf.methods.ray.transport import Media, Rays, TraceSettings, carrier_for, trace_chunk
 from relief_bsdf.parallel import default_workers, forget_worker_cached, worker_cached
 from relief_bsdf.surface.mesh import TileMesh, build_tile_mesh, remesh_heights
@@ -61,16 +61,19 @@ class ScatterResult:
 @dataclass
 class Query:
     """One Embree query of a batch: hits (facet normal Ng, distance), and the distances along k to
-    the tile's sides (tx, ty, t_lat = min) and the slab's faces (tz)."""
+    the tile's sides (tx, ty, t_lat = min) and the slab's faces (tz); with the compiled kernels only
+    lat_first (uint8: t_lat < tz), the distances None (`ReliefTracer.side_distances` for the rays that
+    re-enter)."""
 
     hit: np.ndarray
     n_hit: int
     ng: np.ndarray
     t_hit: np.ndarray
-    tx: np.ndarray
-    ty: np.ndarray
-    tz: np.ndarray
-    t_lat: np.ndarray
+    tx: np.ndarray | None
+    ty: np.ndarray | None
+    tz: np.ndarray | None
+    t_lat: np.ndarray | None
+    lat_first: np.ndarray | None = None
 
 
 class ReliefTracer:
@@ -173,10 +176,12 @@ class ReliefTracer:
         to them by the compiled kernel `_compiled.slab_distances` when it runs: the same numbers)."""
         n = k.shape[0]
         ck = kernels.active()
+        lat_first = None
         if ck is not None and o.dtype == k.dtype == F32:
-            T, t_lat, tfar = np.empty((n, 3), F32), np.empty(n, F32), np.empty(n, F32)
+            tfar, lat_first = np.empty(n, F32), np.empty(n, np.uint8)
             zh, zc = self._slab_faces()
-            ck.slab_distances(o, k, self.hx, self.hy, zh, zc, T, t_lat, tfar)
+            ck.slab_far(o, k, self.hx, self.hy, zh, zc, tfar, lat_first)
+            tx = ty = tz = t_lat = None
         else:
             bnd_hi, bnd_c = self._slab_bounds(n)
             # ((+-hx, +-hy, +-zh) by the sign of k - (o - (0, 0, zc))) / k on the flat (3 n) views
@@ -188,12 +193,21 @@ class ReliefTracer:
             t_lat = np.fmin(T[:, 0], T[:, 1])
             tfar = np.fmin(t_lat, T[:, 2])
             np.maximum(tfar, 0, out=tfar)
-        tx, ty, tz = T[:, 0], T[:, 1], T[:, 2]
+            tx, ty, tz = T[:, 0], T[:, 1], T[:, 2]
         if self.record_segments is not None:          # benchmark hook: replay the same batches
             self.record_segments.append((o.copy(), k.copy(), tfar.copy()))
         res = self.scene.run(o, k, dists=tfar, output=1)
         hit = res["primID"] >= 0
-        return Query(hit, int(np.count_nonzero(hit)), res["Ng"], res["tfar"], tx, ty, tz, t_lat)
+        return Query(hit, int(np.count_nonzero(hit)), res["Ng"], res["tfar"], tx, ty, tz, t_lat, lat_first)
+
+    def side_distances(self, o: np.ndarray, k: np.ndarray) -> tuple:
+        """(t_lat, tx, ty) of rays (o, k) (float32): the distances to the tile's sides of `query` (compiled:
+        `_compiled.slab_distances`, the same numbers)."""
+        n = k.shape[0]
+        T, t_lat, tfar = padded_rows((3,), n), np.empty(n, F32), np.empty(n, F32)
+        zh, zc = self._slab_faces()
+        kernels.built().slab_distances(o, k, self.hx, self.hy, zh, zc, T, t_lat, tfar)
+        return t_lat, T[0], T[1]
 
     def wrap(self, o: np.ndarray, k: np.ndarray, t: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
         """Origins re-entering the tile: advance to the side reached (t) and move to the opposite side."""

@@ -696,8 +696,8 @@ def _misses(ch: _Chunk, cur: Rays, q) -> Rays | None:
     tile side re-enter from the opposite side (returned).  With the compiled kernels the sorting is
     one pass (`_compiled.classify_misses`: the same records)."""
     ck = kernels.active()
-    if ck is not None and cur.k.dtype == q.t_lat.dtype == q.tz.dtype == F32:
-        return _misses_compiled(ck, ch, cur, q)
+    if q.lat_first is not None:
+        return _misses_compiled(kernels.built(), ch, cur, q)
     side_exit = ~(q.t_lat < q.tz)                    # reached the slab face, not a tile side
     if q.n_hit == 0 and side_exit.all():            # every ray left (the usual end of a phase): no gathers
         _record(ch, cur, None, _exit_state(cur.k[:, 2] > 0, cur.below))
@@ -721,13 +721,13 @@ def _misses_compiled(ck, ch: _Chunk, cur: Rays, q) -> Rays | None:
     """`_misses` with the exits, their states and the re-entering rays sorted in one C pass."""
     n = cur.size
     ei, st, wi = np.empty(n, np.int64), np.empty(n, np.int8), np.empty(n, np.int64)
-    ne, nw = ck.classify_misses(q.hit.view(np.uint8), q.t_lat, q.tz, cur.k, cur.below.view(np.uint8), ABOVE, BELOW,
+    ne, nw = ck.classify_misses(q.hit.view(np.uint8), q.lat_first, cur.k, cur.below.view(np.uint8), ABOVE, BELOW,
                                 LOST_LEAK, ei, st, wi)
     wrapped = None
     if nw:
         wi = wi[:nw]
         wrapped = cur.take(wi)
-        wrapped.o = ch.tracer.wrap(wrapped.o, wrapped.k, q.t_lat[wi], q.tx[wi], q.ty[wi])
+        wrapped.o = ch.tracer.wrap(wrapped.o, wrapped.k, *ch.tracer.side_distances(wrapped.o, wrapped.k))
     if ne == n:                                     # every ray left (the usual end of a phase): no gathers
         _record(ch, cur, None, st)
     elif ne:
