@@ -729,6 +729,20 @@ def facet_geometry(const float[:, :] ng, const float[:, :] k, const unsigned cha
 # ----------------------------------------------------------------------------- gathers, tags, new rays
 
 
+def beam_origins(const long[::1] ix, const long[::1] iy, const double[:, ::1] jit, double sx, double hx, double sy,
+                 double hy, float z, float[:, ::1] o):
+    """Origins of a chunk's rays in their strata (`methods.ray.method._incidence_task`): o = ((ix + jit_0) sx - hx,
+    (iy + jit_1) sy - hy, z), computed in float64 and rounded to float32 as numpy's column assignments do."""
+    cdef Py_ssize_t n = ix.shape[0], i
+    if iy.shape[0] != n or jit.shape[0] != n or jit.shape[1] != 2 or o.shape[0] != n or o.shape[1] != 3:
+        raise ValueError("beam_origins: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            o[i, 0] = <float>((<double>ix[i] + jit[i, 0]) * sx - hx)
+            o[i, 1] = <float>((<double>iy[i] + jit[i, 1]) * sy - hy)
+            o[i, 2] = z
+
+
 def gather_records(const long[::1] idx, const float[:, :] k, const float[::1] w, const short[::1] nb,
                    const long[::1] ids, float[:, ::1] k_out, float[::1] w_out, short[::1] nb_out, long[::1] ids_out):
     """Rows idx of the rays' direction k (n, 3), weight, bounce count and output id into an exit record's slot

@@ -364,9 +364,14 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
         iy, ix = strata_iy[lo:hi], strata_ix[lo:hi]
         jit = rng.random((hi - lo, 2))
         o = np.empty((hi - lo, 3), F32)
-        o[:, 0] = (ix + jit[:, 0]) * (tracer.Lx / nxs) - tracer.hx
-        o[:, 1] = (iy + jit[:, 1]) * (tracer.Ly / nys) - tracer.hy
-        o[:, 2] = tracer.z_bot if inc.from_below else tracer.z_top
+        sx, sy, z = tracer.Lx / nxs, tracer.Ly / nys, tracer.z_bot if inc.from_below else tracer.z_top
+        ck = kernels.active()
+        if ck is not None and ix.dtype == iy.dtype == np.int64:     # the same numbers in one pass
+            ck.beam_origins(ix, iy, jit, float(sx), float(tracer.hx), float(sy), float(tracer.hy), z, o)
+        else:
+            o[:, 0] = (ix + jit[:, 0]) * sx - tracer.hx
+            o[:, 1] = (iy + jit[:, 1]) * sy - tracer.hy
+            o[:, 2] = z
         k, s_init = _beam(inc, ctx.beam_divergence_deg, hi - lo, rng)
         turn = None
         if ctx.phi_i_spread_deg:
