@@ -685,45 +685,65 @@ def facet_geometry(const float[:, :] ng, const float[:, :] k, const unsigned cha
     ng / |ng| with the sign of ng_z, negated below the surface), cos i = |k . n_up|, cos t (Snell, 0 past
     the critical angle), eta = n1 / n2, k . n_up and the indices n1, n2 (n_below, n_above below the surface,
     n_above, n_below above: `transport.Media.pair`); tir and leak (k . n_up > 0 is not `below`: a ray on
-    the wrong side) as 0 / 1; out has 12 rows.  The float32 operations of the numpy code, in order."""
+    the wrong side) as 0 / 1; out has 12 rows.  The float32 operations of the numpy code, in order: a loop
+    over the rays' components (strided loads, selects only: it vectorises), then the flags (tir is
+    sin^2 t >= 1, i.e. cos t = sqrt(max(1 - sin^2 t, 0)) == 0)."""
     cdef Py_ssize_t n = k.shape[0], i
-    cdef float gx, gy, gz, kx, ky, kz, inv, dot, s, ci, eta, sin2t, ct
-    cdef bint b
     if ng.shape[0] != n or out.shape[0] != 12 or out.shape[1] != n or tir.shape[0] != n or leak.shape[0] != n:
         raise ValueError("facet_geometry: inconsistent shapes")
+    if n == 0:
+        return
+    if out.strides[1] != sizeof(float):
+        raise ValueError("facet_geometry: the rows of out must be contiguous")
+    cdef Py_ssize_t sg = ng.strides[0] // sizeof(float), cg = ng.strides[1] // sizeof(float)
+    cdef Py_ssize_t sk = k.strides[0] // sizeof(float), ck = k.strides[1] // sizeof(float)
     with nogil:
+        facet_geometry_loop(n, &ng[0, 0], sg, cg, &k[0, 0], sk, ck, &below[0], eta_up, eta_dn, n_above, n_below,
+                            &out[0, 0], &out[1, 0], &out[2, 0], &out[3, 0], &out[4, 0], &out[5, 0], &out[6, 0],
+                            &out[7, 0], &out[8, 0], &out[9, 0], &out[10, 0], &out[11, 0])
         for i in range(n):
-            gx = ng[i, 0]
-            gy = ng[i, 1]
-            gz = ng[i, 2]
-            kx = k[i, 0]
-            ky = k[i, 1]
-            kz = k[i, 2]
-            inv = copysignf(<float>1 / sqrtf((gx * gx + gy * gy) + gz * gz), gz)
-            dot = ((kx * gx + ky * gy) + kz * gz) * inv
-            b = below[i] != 0
-            leak[i] = (dot > 0) != b
-            s = -inv if b else inv
-            ci = fabsf(dot)
-            eta = eta_up if b else eta_dn
-            sin2t = (<float>1 - ci * ci) * (eta * eta)
-            tir[i] = sin2t >= 1
-            ct = <float>1 - sin2t
-            if ct < 0:
-                ct = 0
-            ct = sqrtf(ct)
-            out[0, i] = kx
-            out[1, i] = ky
-            out[2, i] = kz
-            out[3, i] = gx * s
-            out[4, i] = gy * s
-            out[5, i] = gz * s
-            out[6, i] = ci
-            out[7, i] = ct
-            out[8, i] = eta
-            out[9, i] = dot
-            out[10, i] = n_below if b else n_above
-            out[11, i] = n_above if b else n_below
+            tir[i] = out[7, i] == 0
+            leak[i] = (out[9, i] > 0) != (below[i] != 0)
+
+
+cdef void facet_geometry_loop(Py_ssize_t n, f32_in ng, Py_ssize_t sg, Py_ssize_t cg, f32_in k, Py_ssize_t sk,
+                              Py_ssize_t ck, const unsigned char *below, float eta_up, float eta_dn,
+                              float n_above, float n_below, f32_out kxo, f32_out kyo, f32_out kzo, f32_out nxo,
+                              f32_out nyo, f32_out nzo, f32_out cio, f32_out cto, f32_out etao, f32_out doto,
+                              f32_out n1o, f32_out n2o) noexcept nogil:
+    """The float rows of `facet_geometry` (restrict pointers, selects only)."""
+    cdef Py_ssize_t i
+    cdef float gx, gy, gz, kx, ky, kz, inv, dot, s, ci, eta, sin2t, ct
+    cdef bint b
+    for i in range(n):
+        gx = ng[i * sg]
+        gy = ng[i * sg + cg]
+        gz = ng[i * sg + 2 * cg]
+        kx = k[i * sk]
+        ky = k[i * sk + ck]
+        kz = k[i * sk + 2 * ck]
+        inv = copysignf(<float>1 / sqrtf((gx * gx + gy * gy) + gz * gz), gz)
+        dot = ((kx * gx + ky * gy) + kz * gz) * inv
+        b = below[i] != 0
+        s = -inv if b else inv
+        ci = fabsf(dot)
+        eta = eta_up if b else eta_dn
+        sin2t = (<float>1 - ci * ci) * (eta * eta)
+        ct = <float>1 - sin2t
+        ct = 0 if ct < 0 else ct
+        ct = sqrtf(ct)
+        kxo[i] = kx
+        kyo[i] = ky
+        kzo[i] = kz
+        nxo[i] = gx * s
+        nyo[i] = gy * s
+        nzo[i] = gz * s
+        cio[i] = ci
+        cto[i] = ct
+        etao[i] = eta
+        doto[i] = dot
+        n1o[i] = n_below if b else n_above
+        n2o[i] = n_above if b else n_below
 
 
 # ----------------------------------------------------------------------------- gathers, tags, new rays
