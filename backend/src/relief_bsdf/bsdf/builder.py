@@ -269,6 +269,15 @@ class ExitSamples:
     specular: np.ndarray | None = None
     group: np.ndarray | None = None
     compact: np.ndarray | None = None
+    group_of_path: tuple | None = None      # (group per path (n_paths,), path id per exit (n,), n_paths): group lazily
+
+    def groups(self) -> np.ndarray | None:
+        """The sub-tile group of each exit: `group`, or from `group_of_path` (exit i's path is its id mod
+        n_paths: the first-hit split's second branch has id + n_paths)."""
+        if self.group is not None or self.group_of_path is None:
+            return self.group
+        g, ids, n = self.group_of_path
+        return np.take(np.concatenate([g, g]), ids)
 
     def whole_mueller(self, idx: np.ndarray | None = None) -> np.ndarray:
         """The Mueller columns (16, n) of the exits idx (None: all) written whole (a copy where any is compact)."""
@@ -389,7 +398,7 @@ class CellAccumulator:
                 M = ex.whole_mueller(None if full else np.flatnonzero(inside))
             self._bin_numpy(c_in, w_in, M)
             if self.paths_group is not None:
-                g = ex.group if full else ex.group[inside]
+                g = ex.groups() if full else ex.groups()[inside]
                 gc = g.astype(np.int64) * self.sum_w.size
                 gc += c_in
                 self._group_parts.append((gc, w_in))
@@ -426,8 +435,13 @@ class CellAccumulator:
             compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums, compact=compact)
         else:                                       # the group keys and float64 weights of the binned exits too
             keys, w64 = np.empty(cell.size, np.int64), np.empty(cell.size)
-            j = compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums,
-                                   ex.group.astype(np.int32, copy=False), keys, w64, compact)
+            if ex.group is None and ex.group_of_path is not None:     # the exit's group from its path's
+                g, ids, n = ex.group_of_path
+                j = compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums,
+                                       g.astype(np.int32, copy=False), keys, w64, compact, ids, n)
+            else:
+                j = compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums,
+                                       ex.group.astype(np.int32, copy=False), keys, w64, compact)
             self._group_parts.append((keys[:j], w64[:j]))
         if not self._untouched:
             self.sum_w += sums[0]

@@ -90,7 +90,7 @@ cdef enum:
 def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
               double[::1] sum_w, double[::1] sum_w2, double[:, ::1] sum_M,
               const int[::1] group=None, long[::1] keys=None, double[::1] w_keys=None,
-              const unsigned char[::1] compact=None):
+              const unsigned char[::1] compact=None, const long[::1] path_ids=None, long n_paths=0):
     """Add each exit i with cell[i] >= 0 to its cell: sum_w[c] += w, sum_w2[c] += w^2 (float64) and, when M
     (16, n) is given, sum_M[c, e] += M[e, i] w (the float32 product, summed in float64).  With group (the
     sub-tile of each exit's path), the binned exits' keys group * cells + cell and float64 weights are
@@ -99,7 +99,9 @@ def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
     One pass over the exits in their order: the sums of `np.bincount(cell, weights)` per component, which
     also adds in input order (`bsdf.builder.CellAccumulator.add`), without its 16 passes and temporaries.
     compact (n,): exits whose M holds the compact form of `exit_columns` (flag 1) are expanded on the fly
-    (`factored_columns`: the entries the whole form would hold, so the same sums).
+    (`factored_columns`: the entries the whole form would hold, so the same sums).  path_ids (n,) given: group
+    holds the sub-tile of each path (n_paths) and exit i's is group[path_ids[i] mod n_paths] (the first-hit
+    split's transmitted branch has id + n_paths: `bsdf.builder.ExitSamples.groups`).
     """
     cdef Py_ssize_t n = cell.shape[0], i, e, j = 0, nc = sum_w.shape[0]
     cdef int c, cn
@@ -107,12 +109,15 @@ def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
     cdef double wd
     cdef float o[16]
     cdef bint polarized = M is not None, grouped = group is not None, short = compact is not None
+    cdef bint by_path = path_ids is not None
+    cdef long pid
     cdef Py_ssize_t ms = 0 if M is None else M.strides[0] // sizeof(float)
     if polarized and M.shape[1] > 1 and M.strides[1] != sizeof(float):      # (a lone exit: any stride)
         raise ValueError("bin_cells: the Mueller rows must be contiguous")
     if w.shape[0] != n or (polarized and (M.shape[0] != 16 or M.shape[1] != n or sum_M.shape[1] != 16)) or (
-            grouped and (group.shape[0] != n or keys is None or w_keys is None or keys.shape[0] < n
-                         or w_keys.shape[0] < n)) or (short and (not polarized or compact.shape[0] != n)):
+            grouped and ((group.shape[0] != n and not by_path) or keys is None or w_keys is None or keys.shape[0] < n
+                         or w_keys.shape[0] < n)) or (short and (not polarized or compact.shape[0] != n)) or (
+            by_path and (not grouped or path_ids.shape[0] != n or n_paths <= 0 or group.shape[0] < n_paths)):
         raise ValueError("bin_cells: inconsistent shapes")
     with nogil:
         for i in range(n):
@@ -129,7 +134,12 @@ def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
             sum_w[c] += wd
             sum_w2[c] += wd * wd
             if grouped:
-                keys[j] = group[i] * nc + c
+                if by_path:
+                    pid = path_ids[i]
+                    pid = pid - n_paths if pid >= n_paths else pid
+                    keys[j] = group[pid] * nc + c
+                else:
+                    keys[j] = group[i] * nc + c
                 w_keys[j] = wd
                 j += 1
             if polarized:                            # sum_M[c, e] += <double>(M_e * wi), e = 0..15

@@ -86,16 +86,6 @@ class Exits:
         return slice(a, b)
 
     # ------------------------------------------------------------------ views of the valid records
-    def groups(self) -> np.ndarray | None:
-        """Sub-tile of the first hit of the path of each valid record (None when not tagged)."""
-        if self.first_group is None:
-            return None
-        ids = self.ids[:self.n]
-        g = self.first_group
-        if self.m > self.n_paths:                   # ids < 2 n_paths: the table twice, not i % n_paths per record
-            g = np.concatenate([g, g])
-        return np.take(g, ids)
-
     def expand(self) -> None:
         """Write every compactly held record's Mueller columns whole (class doc)."""
         if self.compact is not None and self.compact[:self.n].any():

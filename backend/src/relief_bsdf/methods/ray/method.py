@@ -237,8 +237,8 @@ def _bin_exits(t: _Tally, ex: Exits, inc: _Incidence, cos_tol: float) -> None:
     t.segments += ex.segments
     t.paths += ex.n_paths
     k, w, state, nb, A = ex.records()
-    grp = ex.groups() if t.acc.n_groups else None
-    if grp is not None:
+    by_path = bool(t.acc.n_groups) and ex.first_group is not None
+    if by_path:
         t.acc.count_paths(ex.first_group)
     done, all_done = None, True
     if state.size and state.max() > BELOW:
@@ -254,15 +254,16 @@ def _bin_exits(t: _Tally, ex: Exits, inc: _Incidence, cos_tol: float) -> None:
     if n_done == 0:
         return
     kd, wd, st = (k, w, state) if all_done else (k[done], w[done], state[done])
-    if grp is not None and not all_done:
-        grp = grp[done]
+    grp = None
+    if by_path:                          # the groups of the exits' paths, looked up in the binning (`ExitSamples`)
+        grp = (ex.first_group, ex.ids[:ex.n] if all_done else ex.ids[:ex.n][done], ex.n_paths)
     side = st if inc.side_of_state[0] == 0 else (1 - st)        # ABOVE = 0, BELOW = 1
     M = compact = None
     if A is not None:
         M = A.reshape(16, -1) if all_done else np.take(A.reshape(16, -1), done, axis=1)
         if ex.compact is not None:
             compact = ex.compact[:ex.n] if all_done else ex.compact[done]
-    t.acc.add(ExitSamples(kd, wd, side, M, specular_flags(kd, side, inc.ideal_dirs, cos_tol), grp, compact))
+    t.acc.add(ExitSamples(kd, wd, side, M, specular_flags(kd, side, inc.ideal_dirs, cos_tol), None, compact, grp))
 
 
 def _repeat_row(v: np.ndarray, n: int) -> np.ndarray:
