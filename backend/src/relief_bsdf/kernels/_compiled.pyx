@@ -814,22 +814,26 @@ def subtile_index(const float[:, :] p, float hx, float hy, float half_x, float h
     (half - |u - half|) on a mirror-extended tile, truncated u * scale clipped to the grid; its float32
     and int32 operations."""
     cdef Py_ssize_t n = p.shape[0], i
-    cdef float ux, uy
-    cdef int ix, iy
     if out.shape[0] != n:
         raise ValueError("subtile_index: inconsistent shapes")
     with nogil:
         for i in range(n):
-            ux = p[i, 0] + hx
-            uy = p[i, 1] + hy
-            if mirrored:
-                ux = half_x - fabsf(ux - half_x)
-                uy = half_y - fabsf(uy - half_y)
-            ix = <int>(ux * scale_x)
-            iy = <int>(uy * scale_y)
-            ix = 0 if ix < 0 else (gx - 1 if ix > gx - 1 else ix)
-            iy = 0 if iy < 0 else (gy - 1 if iy > gy - 1 else iy)
-            out[i] = ix + iy * gx
+            out[i] = subtile(p[i, 0], p[i, 1], hx, hy, half_x, half_y, scale_x, scale_y, mirrored, gx, gy)
+
+
+cdef inline int subtile(float px, float py, float hx, float hy, float half_x, float half_y, float scale_x,
+                        float scale_y, bint mirrored, int gx, int gy) noexcept nogil:
+    """The sub-tile of one point (`subtile_index`)."""
+    cdef float ux = px + hx, uy = py + hy
+    cdef int ix, iy
+    if mirrored:
+        ux = half_x - fabsf(ux - half_x)
+        uy = half_y - fabsf(uy - half_y)
+    ix = <int>(ux * scale_x)
+    iy = <int>(uy * scale_y)
+    ix = 0 if ix < 0 else (gx - 1 if ix > gx - 1 else ix)
+    iy = 0 if iy < 0 else (gy - 1 if iy > gy - 1 else iy)
+    return ix + iy * gx
 
 
 def gather_rays(const long[::1] idx, const float[:, :] o, const float[:, :] k, const unsigned char[::1] below,
@@ -860,23 +864,35 @@ def gather_rays(const long[::1] idx, const float[:, :] o, const float[:, :] k, c
 def split_rays(const float[::1] kx, const float[::1] ky, const float[::1] kz, const float[::1] nfx,
                const float[::1] nfy, const float[::1] nfz, const float[::1] eta, const float[::1] ci,
                const float[::1] ct, const float[::1] th, const float[:, :] o, float eps, float[:, ::1] p,
-               float[:, ::1] o_r, float[:, ::1] k_r, float[:, ::1] o_t, float[:, ::1] k_t):
+               float[:, ::1] o_r, float[:, ::1] k_r, float[:, ::1] o_t, float[:, ::1] k_t, tuple grid=None,
+               const long[::1] ids=None, int[::1] group=None):
     """Both branches of the rays' first interaction (`transport._interact`, `_split_copies`): the hit point
     p = k th + o, the reflected direction k + 2 ci nf and origin p + eps nf, the refracted direction
-    (eta k + (eta ci - ct) nf) / |.| and origin p - eps nf.  The float32 operations of the numpy code."""
+    (eta k + (eta ci - ct) nf) / |.| and origin p - eps nf.  The float32 operations of the numpy code.
+    p None: the hit points are not kept; grid given (`tracer.ReliefTracer.subtile_grid`): the sub-tile of each
+    hit point is written to group[ids[i]] (`transport._tag_first_hits`, `subtile_index`'s numbers)."""
     cdef Py_ssize_t n = th.shape[0], i
     cdef float px, py, pz, bt, b, vx, vy, vz, nr
-    if o.shape[0] != n or p.shape[0] != n or o_r.shape[0] != n or k_r.shape[0] != n or o_t.shape[0] != n \
-            or k_t.shape[0] != n:
+    cdef bint keep = p is not None, tag = grid is not None
+    cdef float hx = 0, hy = 0, half_x = 0, half_y = 0, scale_x = 0, scale_y = 0
+    cdef bint mirrored = False
+    cdef int gx = 1, gy = 1
+    if o.shape[0] != n or (keep and p.shape[0] != n) or o_r.shape[0] != n or k_r.shape[0] != n or \
+            o_t.shape[0] != n or k_t.shape[0] != n or (tag and (ids is None or group is None or ids.shape[0] != n)):
         raise ValueError("split_rays: inconsistent shapes")
+    if tag:
+        hx, hy, half_x, half_y, scale_x, scale_y, mirrored, gx, gy = grid
     with nogil:
         for i in range(n):
             px = kx[i] * th[i] + o[i, 0]
             py = ky[i] * th[i] + o[i, 1]
             pz = kz[i] * th[i] + o[i, 2]
-            p[i, 0] = px
-            p[i, 1] = py
-            p[i, 2] = pz
+            if keep:
+                p[i, 0] = px
+                p[i, 1] = py
+                p[i, 2] = pz
+            if tag:
+                group[ids[i]] = subtile(px, py, hx, hy, half_x, half_y, scale_x, scale_y, mirrored, gx, gy)
             b = <float>2 * ci[i]
             k_r[i, 0] = b * nfx[i] + kx[i]
             k_r[i, 1] = b * nfy[i] + ky[i]

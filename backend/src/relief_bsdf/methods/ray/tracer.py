@@ -239,13 +239,8 @@ class ReliefTracer:
         gx, gy = int(grid[0]), int(grid[1])
         ck = kernels.active()
         if ck is not None and p.dtype == F32:          # the compiled kernel: the same operations
-            half_x, half_y = self.Lx / F32(2), self.Ly / F32(2)
-            if self.mesh.mirrored:
-                scale_x, scale_y = F32(gx) / half_x, F32(gy) / half_y
-            else:
-                scale_x, scale_y = F32(gx) / self.Lx, F32(gy) / self.Ly
             out = np.empty(p.shape[0], np.int32)
-            ck.subtile_index(p, self.hx, self.hy, half_x, half_y, scale_x, scale_y, self.mesh.mirrored, gx, gy, out)
+            ck.subtile_index(p, *self.subtile_grid(grid), out)
             return out
         idx = None
         for ax, (g, L, h) in enumerate(((gx, self.Lx, self.hx), (gy, self.Ly, self.hy))):
@@ -260,6 +255,17 @@ class ReliefTracer:
             np.clip(i, 0, g - 1, out=i)
             idx = i if idx is None else idx + i * np.int32(gx)
         return idx
+
+    def subtile_grid(self, grid: tuple) -> tuple:
+        """The numbers of `subtile_of` for the compiled kernels (`_compiled.subtile_index`): hx, hy, the half
+        extents, the float32 scales, mirrored, gx, gy."""
+        gx, gy = int(grid[0]), int(grid[1])
+        half_x, half_y = self.Lx / F32(2), self.Ly / F32(2)
+        if self.mesh.mirrored:
+            scale_x, scale_y = F32(gx) / half_x, F32(gy) / half_y
+        else:
+            scale_x, scale_y = F32(gx) / self.Lx, F32(gy) / self.Ly
+        return self.hx, self.hy, half_x, half_y, scale_x, scale_y, bool(self.mesh.mirrored), gx, gy
 
     def relief_key(self, relief: Relief, mesh_options: tuple) -> "hashlib._Hash":
         """sha256 of the heights and mesh options (kept when `relief` is this tracer's own relief:

@@ -868,10 +868,11 @@ def _first_interaction_compiled(ck, ch: _Chunk, h: Rays, f: Facet, th, pR) -> li
     """The pending branch of `_interact` with both branches' points and directions from the compiled kernel
     `_compiled.split_rays` (the same numbers)."""
     n = h.size
-    p, o_r, k_r, o_t, k_t = (np.empty((n, 3), F32) for _ in range(5))
-    ck.split_rays(*f.k3, f.nfx, f.nfy, f.nfz, f.eta, f.ci, f.ct, th, h.o, ch.tracer.eps, p, o_r, k_r, o_t, k_t)
-    if ch.group is not None:
-        _tag_first_hits(ch, h, p, True)
+    o_r, k_r, o_t, k_t = (np.empty((n, 3), F32) for _ in range(4))
+    tag = ch.group is not None                      # the first hits' sub-tiles tagged in the same pass
+    ck.split_rays(*f.k3, f.nfx, f.nfy, f.nfz, f.eta, f.ci, f.ct, th, h.o, ch.tracer.eps, None, o_r, k_r, o_t, k_t,
+                  ch.tracer.subtile_grid(ch.settings.subtiles) if tag else None, h.ids if tag else None,
+                  ch.group if tag else None)
     h.nb = h.nb + np.int16(1)
     ch.carrier.split_factors(ck, pR)
     tr = _split_copies(ch, h, f, None, None, pR, made=(o_t, k_t))
