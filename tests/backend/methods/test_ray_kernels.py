@@ -125,6 +125,27 @@ def test_binning_kernel_adds_batches_as_bincount_does(kernel):
     assert accs["cython"].outside_table == accs["numpy"].outside_table
 
 
+@needs_compiled
+def test_specular_prefilter_of_both_ideal_directions_flags_what_numpy_flags(kernel):
+    """Exits scattered about the mirror and the refraction direction at 1e-7 to 1e-3 rad, and random ones:
+    the one-pass prefilter of both (`near_two_directions`) flags the same exits as numpy's two passes."""
+    from relief_bsdf.bsdf.builder import specular_flags
+
+    rng = np.random.default_rng(3)
+    mirror = np.array([0.5, 0.0, np.sqrt(0.75)])
+    refr = np.array([0.33, 0.0, -np.sqrt(1 - 0.33 ** 2)])
+    base = np.concatenate([np.tile(mirror, (3000, 1)), np.tile(refr, (3000, 1)), rng.normal(size=(3000, 3))])
+    d = base + rng.normal(size=base.shape) * rng.choice([1e-7, 1e-5, 1e-3], size=(base.shape[0], 1))
+    d = (d / np.linalg.norm(d, axis=1)[:, None]).astype(np.float32)
+    side = (d[:, 2] < 0).astype(np.int8)
+    flags = {}
+    for name in ("cython", "numpy"):
+        kernel(name)
+        flags[name] = specular_flags(d, side, (mirror, refr), float(np.cos(1e-5)))
+    np.testing.assert_array_equal(flags["cython"], flags["numpy"])
+    assert 1000 < np.count_nonzero(flags["numpy"][:6000]) < 5000 and not flags["numpy"][6000:].any()
+
+
 def test_environment_variable_forces_the_numpy_kernels():
     code = ("from relief_bsdf import kernels; from relief_bsdf.methods import ray; "
             "print(kernels.name(), kernels.active() is None)")

@@ -214,6 +214,13 @@ def specular_flags(dirs: np.ndarray, side: np.ndarray, ideal_dirs: tuple, cos_to
     by ~1e-8 >> 1 - cos(tol)).  Returns a bool mask, or None when no exit is specular.
     """
     spec = None
+    both = None
+    ck = kernels.active()
+    if ck is not None and dirs.dtype == F32 and ideal_dirs[0] is not None and ideal_dirs[1] is not None:
+        a, b = (np.asarray(d, np.float64).astype(F32) for d in ideal_dirs)     # both prefilters in one pass
+        out_a, out_b = np.empty(dirs.shape[0], np.int64), np.empty(dirs.shape[0], np.int64)
+        na, nb = ck.near_two_directions(dirs, *a, *b, F32(0.9999), out_a, out_b)
+        both = (out_a[:na], out_b[:nb])
     for sd in (0, 1):
         if ideal_dirs[sd] is None:
             continue
@@ -221,7 +228,7 @@ def specular_flags(dirs: np.ndarray, side: np.ndarray, ideal_dirs: tuple, cos_to
         # explicit multiply-adds, not `k @ d`: a BLAS matrix-vector product wakes OpenBLAS's
         # thread pool, whose spinning threads cost as much CPU as the whole binning
         d32 = d.astype(F32)
-        cand = _near_direction(dirs, d32, F32(0.9999))
+        cand = both[sd] if both is not None else _near_direction(dirs, d32, F32(0.9999))
         if cand.size:
             kc = dirs[cand].astype(np.float64)
             ok = np.einsum("ij,j->i", kc, d) > cos_tol * np.sqrt(np.einsum("ij,ij->i", kc, kc))

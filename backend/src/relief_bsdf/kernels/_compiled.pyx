@@ -808,6 +808,27 @@ def near_direction(const float[:, :] dirs, float d0, float d1, float d2, float c
     return j
 
 
+def near_two_directions(const float[:, :] dirs, float a0, float a1, float a2, float b0, float b1, float b2,
+                        float cos_min, long[::1] out_a, long[::1] out_b):
+    """`near_direction` for two directions a and b in one pass over the directions: (count a, count b)."""
+    cdef Py_ssize_t n = dirs.shape[0], i, ja = 0, jb = 0
+    cdef float x, y, z
+    if out_a.shape[0] < n or out_b.shape[0] < n:
+        raise ValueError("near_two_directions: out too short")
+    with nogil:
+        for i in range(n):
+            x = dirs[i, 0]
+            y = dirs[i, 1]
+            z = dirs[i, 2]
+            if (x * a0 + y * a1) + z * a2 > cos_min:
+                out_a[ja] = i
+                ja += 1
+            if (x * b0 + y * b1) + z * b2 > cos_min:
+                out_b[jb] = i
+                jb += 1
+    return ja, jb
+
+
 def subtile_index(const float[:, :] p, float hx, float hy, float half_x, float half_y, float scale_x,
                   float scale_y, bint mirrored, int gx, int gy, int[::1] out):
     """Sub-tile iy * gx + ix of each point p (n, >= 2) (`tracer.ReliefTracer.subtile_of`): u = p + h, folded
