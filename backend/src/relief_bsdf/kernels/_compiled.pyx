@@ -934,6 +934,29 @@ def split_rays(const float[::1] kx, const float[::1] ky, const float[::1] kz, co
             o_t[i, 2] = pz - eps * nfz[i]
 
 
+def split_weights(const float[::1] w, const float[::1] pR, const unsigned char[::1] below, const long[::1] ids,
+                  const short[::1] nb, long n0, float[::1] w_r, float[::1] w_t, unsigned char[::1] below_t,
+                  long[::1] ids_t, short[::1] nb_next):
+    """The scalars of both branches of the rays' first interaction (`transport._first_interaction_compiled`,
+    `_split_copies`): w_r = w pR, w_t = w (1 - pR), below_t = not below, ids_t = ids + n0, nb_next = nb + 1;
+    returns how many rays transmit something (pR < 1).  numpy's float32 / integer operations."""
+    cdef Py_ssize_t n = w.shape[0], i, j = 0
+    cdef float p
+    if pR.shape[0] != n or below.shape[0] != n or ids.shape[0] != n or nb.shape[0] != n or w_r.shape[0] != n \
+            or w_t.shape[0] != n or below_t.shape[0] != n or ids_t.shape[0] != n or nb_next.shape[0] != n:
+        raise ValueError("split_weights: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            p = pR[i]
+            w_r[i] = w[i] * p
+            w_t[i] = w[i] * (<float>1 - p)
+            below_t[i] = below[i] == 0
+            ids_t[i] = ids[i] + n0
+            nb_next[i] = <short>(nb[i] + 1)
+            j += p < 1
+    return j
+
+
 def split_factors(const float[:, :] R, const float[:, :] T, const float[::1] c2, const float[::1] s2,
                   const float[::1] pR, float[:, :] F_r, float[:, :] F_t):
     """The factors (6, n) of both branches of the rays' first interaction (`transport.first_interaction_factors`

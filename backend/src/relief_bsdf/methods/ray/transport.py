@@ -495,15 +495,15 @@ class StokesCarrier:
         self._split = (F_r, F_t)
 
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
-        """(A, s, F) of the transmitted copies of rays j (first-hit split), renormalised by 1 - P_R
-        (F: the factors of a first interaction, A None; else A)."""
+        """(A, s, F) of the transmitted copies of rays j (None: all; first-hit split), renormalised by
+        1 - P_R (F: the factors of a first interaction, A None; else A)."""
         _, T, s_new, rot = self._ev
         if self._split is not None:
-            full = j.size == s_new.shape[0]
+            full = j is None
             return None, s_new if full else np.take(s_new, j, axis=0), \
                 self._split[1] if full else take_factors(self._split[1], j)
         inv = 1 / np.maximum(1 - pR_j, F32(1e-30))
-        full = j.size == s_new.shape[0]                 # usually every ray transmits something: no gathers
+        full = j is None
         sel = (lambda a: a) if full else (lambda a: np.take(a, j, axis=0))
         s_t = s_new if full else np.take(s_new, j, axis=0)   # never modified in place (replaced per event)
         if rot is not None:
@@ -873,10 +873,14 @@ def _first_interaction_compiled(ck, ch: _Chunk, h: Rays, f: Facet, th, pR) -> li
     ck.split_rays(*f.k3, f.nfx, f.nfy, f.nfz, f.eta, f.ci, f.ct, th, h.o, ch.tracer.eps, None, o_r, k_r, o_t, k_t,
                   ch.tracer.subtile_grid(ch.settings.subtiles) if tag else None, h.ids if tag else None,
                   ch.group if tag else None)
-    h.nb = h.nb + np.int16(1)
+    w_r, w_t, below_t = np.empty(n, F32), np.empty(n, F32), np.empty(n, bool)
+    ids_t, nb_next = np.empty(n, np.int64), np.empty(n, np.int16)
+    n_t = ck.split_weights(h.w, pR, h.below.view(np.uint8), h.ids, h.nb, ch.n0, w_r, w_t, below_t.view(np.uint8),
+                           ids_t, nb_next)
+    h.nb = nb_next
     ch.carrier.split_factors(ck, pR)
-    tr = _split_copies(ch, h, f, None, None, pR, made=(o_t, k_t))
-    h.w = h.w * pR
+    tr = _split_copies(ch, h, f, None, None, pR, made=(o_t, k_t, below_t, w_t, ids_t), n_t=n_t)
+    h.w = w_r
     ch.carrier.reflected(h, pR)
     h.k, h.o = k_r, o_r
     return _still_tracing(ch, h, None, [] if tr is None else [tr])
@@ -915,17 +919,22 @@ def _tag_first_hits(ch: _Chunk, h: Rays, p, pending: bool) -> None:
             ch.group[h.ids[fi]] = ch.tracer.subtile_of(np.take(p, fi, axis=0), ch.settings.subtiles)
 
 
-def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR, made: tuple | None = None) -> Rays | None:
+def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR, made: tuple | None = None, n_t: int = -1) -> Rays | None:
     """Transmitted branch of every ray's first interaction (id + n0, weight w (1 - P_R)); none where
-    nothing is transmitted (P_R = 1: TIR).  made: the (origins, directions) of every ray's refracted
-    branch, already computed (`_first_interaction_compiled`)."""
-    j = np.flatnonzero(pR < 1)
-    if not j.size:
+    nothing is transmitted (P_R = 1: TIR).  made: the origins, directions, sides, weights and ids of
+    every ray's refracted branch, already computed (`_first_interaction_compiled`, n_t of them with
+    P_R < 1)."""
+    if n_t == 0:
         return None
-    full = j.size == h.size
+    j = None if n_t == h.size else np.flatnonzero(pR < 1)
+    if j is not None and j.size == h.size:
+        j = None                                    # usually every ray transmits something: no gathers
+    if j is not None and not j.size:
+        return None
+    full = j is None
     sel = (lambda a: a) if full else (lambda a: a[j])
     if made is not None:
-        ot, kt = made if full else (np.take(made[0], j, axis=0), np.take(made[1], j, axis=0))
+        ot, kt = made[:2] if full else (np.take(made[0], j, axis=0), np.take(made[1], j, axis=0))
     else:
         etj, btj = sel(f.eta), sel(bt)
         fx, fy, fz = sel(f.nfx), sel(f.nfy), sel(f.nfz)
@@ -936,7 +945,10 @@ def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR, made: tuple | None =
         ot[:, 1] -= eps * fy
         ot[:, 2] -= eps * fz
     A, s, F = ch.carrier.transmitted_copy(h, j, sel(pR))
-    tr = Rays(ot, kt, ~sel(h.below), sel(h.w) * (1 - sel(pR)), sel(h.nb), sel(h.ids) + ch.n0, A, s, F)
+    if made is not None:
+        tr = Rays(ot, kt, sel(made[2]), sel(made[3]), sel(h.nb), sel(made[4]), A, s, F)
+    else:
+        tr = Rays(ot, kt, ~sel(h.below), sel(h.w) * (1 - sel(pR)), sel(h.nb), sel(h.ids) + ch.n0, A, s, F)
     if ch.media.absorbing_below:
         gone = ~sel(h.below)                        # copies from above went into the absorbing medium
         if gone.any():
