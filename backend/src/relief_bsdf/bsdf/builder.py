@@ -520,9 +520,10 @@ class CellAccumulator:
         G = int(np.count_nonzero(used))
         if G < 2:
             return None
-        S_g = self.sum_w_group()[used]
-        lit = np.flatnonzero(np.any(S_g != 0, axis=0))                # a cell no ray reached has V_block = 0
-        dev = S_g[:, lit] - mean[None, lit] * (n_g[used] * 1.0)[:, None]   # mean = f (power fraction per path)
+        # a cell no ray reached has V_block = 0; a cell's group sums are all zero iff its sum of w^2 is (w real)
+        lit = np.flatnonzero(self.sum_w2 != 0)
+        S_g = self.sum_w_group()[np.ix_(np.flatnonzero(used), lit)]
+        dev = S_g - mean[None, lit] * (n_g[used] * 1.0)[:, None]   # mean = f (power fraction per path)
         v_block = np.zeros_like(mean)
         v_block[lit] = G / (G - 1) * np.einsum("gc,gc->c", dev, dev) / (n * n)
         return np.maximum(v_block - var_mc, 0.0)
