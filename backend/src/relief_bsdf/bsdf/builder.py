@@ -441,7 +441,7 @@ class CellAccumulator:
         if self.paths_group is None:
             compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums, compact=compact)
         else:                                       # the group keys and float64 weights of the binned exits too
-            keys, w64 = np.empty(cell.size, np.int64), np.empty(cell.size)
+            keys, w64 = np.empty(cell.size, np.int32), np.empty(cell.size, F32)     # float32 weights: exact
             if ex.group is None and ex.group_of_path is not None:     # the exit's group from its path's
                 g, ids, n = ex.group_of_path
                 j = compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums,

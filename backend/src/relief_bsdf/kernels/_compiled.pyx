@@ -89,12 +89,13 @@ cdef enum:
 
 def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
               double[::1] sum_w, double[::1] sum_w2, double[:, ::1] sum_M,
-              const int[::1] group=None, long[::1] keys=None, double[::1] w_keys=None,
+              const int[::1] group=None, int[::1] keys=None, float[::1] w_keys=None,
               const unsigned char[::1] compact=None, const long[::1] path_ids=None, long n_paths=0):
     """Add each exit i with cell[i] >= 0 to its cell: sum_w[c] += w, sum_w2[c] += w^2 (float64) and, when M
     (16, n) is given, sum_M[c, e] += M[e, i] w (the float32 product, summed in float64).  With group (the
     sub-tile of each exit's path), the binned exits' keys group * cells + cell and float64 weights are
-    written in order into keys and w_keys (`CellAccumulator._group_parts`); returns how many.
+    written in order into keys (int32) and w_keys (the float32 weights, exact in float64) (`CellAccumulator._group_parts`);
+    returns how many.
 
     One pass over the exits in their order: the sums of `np.bincount(cell, weights)` per component, which
     also adds in input order (`bsdf.builder.CellAccumulator.add`), without its 16 passes and temporaries.
@@ -137,10 +138,10 @@ def bin_cells(const int[::1] cell, const float[::1] w, const float[:, :] M,
                 if by_path:
                     pid = path_ids[i]
                     pid = pid - n_paths if pid >= n_paths else pid
-                    keys[j] = group[pid] * nc + c
+                    keys[j] = <int>(group[pid] * nc + c)
                 else:
-                    keys[j] = group[i] * nc + c
-                w_keys[j] = wd
+                    keys[j] = <int>(group[i] * nc + c)
+                w_keys[j] = wi
                 j += 1
             if polarized:                            # sum_M[c, e] += <double>(M_e * wi), e = 0..15
                 if short and compact[i]:
@@ -197,15 +198,25 @@ def cells_of_angles(const float[::1] x, const float[::1] y, float t_scale, float
     return None
 
 
-def add_at(const long[::1] keys, const double[::1] w, double[::1] out):
-    """out[keys[i]] += w[i] in the order of i: `np.bincount(keys, w)` added into out without its temporary
-    (`CellAccumulator.sum_w_group`, batch after batch in merge order: the order of the concatenation)."""
+ctypedef fused key_t:
+    int
+    long
+
+ctypedef fused weight_t:
+    float
+    double
+
+
+def add_at(const key_t[::1] keys, const weight_t[::1] w, double[::1] out):
+    """out[keys[i]] += w[i] (added in float64) in the order of i: `np.bincount(keys, w)` added into out
+    without its temporary (`CellAccumulator.sum_w_group`, batch after batch in merge order: the order of
+    the concatenation).  int32 or int64 keys, float32 (`bin_cells`' parts) or float64 weights."""
     cdef Py_ssize_t n = keys.shape[0], i
     if w.shape[0] != n:
         raise ValueError("add_at: inconsistent shapes")
     with nogil:
         for i in range(n):
-            out[keys[i]] += w[i]
+            out[keys[i]] += <double>w[i]
 
 
 # ----------------------------------------------------------------------------- Stokes frames
