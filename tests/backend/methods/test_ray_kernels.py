@@ -146,6 +146,34 @@ def test_specular_prefilter_of_both_ideal_directions_flags_what_numpy_flags(kern
     assert 1000 < np.count_nonzero(flags["numpy"][:6000]) < 5000 and not flags["numpy"][6000:].any()
 
 
+@needs_compiled
+def test_compact_exit_records_expand_to_the_columns_numpy_writes(kernel):
+    """A chunk traced with the Mueller carrier and the first-hit split: the compiled kernels hold most exits
+    compactly (factors and exit rotation, `Exits.compact`); `Exits.ordered` expands them to the columns the
+    numpy code writes whole, bit for bit."""
+    from relief_bsdf.methods.ray.transport import Media, Rays, StokesCarrier, TraceSettings, trace_chunk
+
+    tracer = ray.ReliefTracer(steep_relief(7), threads=1)
+    n = 4000
+    rng = np.random.default_rng(5)
+    th = np.radians(35.0)
+    k_in = np.array([np.sin(th), 0.0, -np.cos(th)], np.float32)
+    ordered, compact = {}, {}
+    for name in ("cython", "numpy"):
+        kernel(name)
+        o = np.stack([rng.uniform(-tracer.hx, tracer.hx, n), rng.uniform(-tracer.hy, tracer.hy, n),
+                      np.full(n, tracer.z_top)], axis=1).astype(np.float32) if name == "cython" else o
+        rays = Rays(o.copy(), np.tile(k_in, (n, 1)), np.zeros(n, bool), np.ones(n, np.float32),
+                    np.zeros(n, np.int16), np.arange(n, dtype=np.int64))
+        ex = trace_chunk(tracer, rays, StokesCarrier(4), Media(1.0, 1.5), TraceSettings(100, True, 0.0),
+                         np.random.default_rng(9), s_init=np.array([0.0, 1.0, 0.0], np.float32))
+        compact[name] = int(np.count_nonzero(ex.compact[:ex.n]))
+        ordered[name] = ex.ordered()
+    assert compact["cython"] > n and compact["numpy"] == 0          # most of the 2 n exits held compactly
+    for a, b in zip(ordered["cython"], ordered["numpy"], strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_environment_variable_forces_the_numpy_kernels():
     code = ("from relief_bsdf import kernels; from relief_bsdf.methods import ray; "
             "print(kernels.name(), kernels.active() is None)")

@@ -5,9 +5,15 @@ two threads overlap) and why: after the Embree queries, the ray engine's CPU tim
 goes to passes that numpy cannot fuse - the table builder's 16 weighted bincounts per chunk (one per
 Mueller entry), the facets' Fresnel coefficients and frame rotations (a few dozen float32 temporaries
 per bounce), the exit records and their Mueller columns, the slab distances of each query.  The
-kernels: `bin_cells` / `add_at` (bsdf.builder), `near_direction` (its specular prefilter),
-`slab_distances`, `subtile_index` (methods.ray.tracer), `facet_geometry`, `facet_event`,
-`exit_columns` (methods.ray.transport), `gather_records` (methods.ray.exits).  Each does the same
+kernels: `bin_cells` / `add_at` (bsdf.builder; a cell's 16 Mueller sums four at a time in SSE2, exits
+held compactly expanded in registers), `direction_parts` / `cells_of_angles` (the cell index around
+numpy's arccos and arctan2), `near_direction` / `near_two_directions` (the specular prefilter),
+`slab_far` / `slab_distances`, `subtile_index` (methods.ray.tracer), `facet_geometry`, `facet_event`
+(with `facet_split_loop`: a first interaction's two branches' factors in the same pass), `split_rays`
+(the first hits' sub-tiles tagged in the same pass), `split_weights`, `classify_misses`,
+`exit_columns` (methods.ray.transport: a one-interaction path's exit held compactly, its 6 factors and
+exit rotation), `expand_compact`, `gather_records` (methods.ray.exits), `beam_origins`
+(methods.ray.method).  Each does the same
 float32 / float64 operations in the same order as the numpy code it replaces (beside its caller,
 which stays the reference and the fallback), so the tables are bit for bit the same
 (tests/backend/methods/test_ray_kernels.py); the C is built without fused multiply-adds

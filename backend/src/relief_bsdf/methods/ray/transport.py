@@ -49,8 +49,11 @@ tested equal to the reference definitions beside them; the (n, 3) vectors of an 
 into (n, 3) rows once (`_columns`, `_unit_rows`: the operations of `core.frames.dot_rows`,
 `divide_rows`, `scale_rows` in the same order, on unstrided arrays, ~3x faster per operation).
 With the compiled kernels (`relief_bsdf.kernels`) the facets of a batch (`_hits_compiled`), the
-polarised event (`StokesCarrier.reflectance`) and the exit columns are C passes over the rays doing
-the same float32 operations (the numpy code here stays the reference and the fallback).
+polarised event (`StokesCarrier.reflectance`; at a first interaction that splits, both branches'
+factors in the same pass), the branches' rays and scalars, the sorting of the misses and the exit
+columns are C passes over the rays doing the same float32 operations (the numpy code here stays the
+reference and the fallback); an exit whose path interacted once is held compactly (its 6 factors and
+exit rotation, `exits.Exits.compact`) and expanded by the binning.
 """
 from __future__ import annotations
 
