@@ -659,6 +659,9 @@ def trace_chunk(tracer, rays: Rays, carrier, media: Media, settings: TraceSettin
             for cur in batches:
                 segments += cur.size
                 q = tracer.query(cur.o, cur.k)
+                if pending and q.n_hit < cur.size:     # re-entries through the tile's sides traced in place
+                    q, more = _reenter_in_place(ch, cur, q)
+                    segments += more
                 wrapped = _misses(ch, cur, q) if q.n_hit < cur.size else None
                 parts = _hits(ch, cur, q, pending) if q.n_hit else []
                 if wrapped is not None:
@@ -718,6 +721,34 @@ def _misses(ch: _Chunk, cur: Rays, q) -> Rays | None:
         st = np.take(_exit_state(cur.k[:, 2] > 0, cur.below), mi)
         _record(ch, cur, mi, st)
     return wrapped
+
+
+def _reenter_in_place(ch: _Chunk, cur: Rays, q) -> tuple:
+    """Rays of a first-interaction batch that reached a tile side before the relief re-enter from the
+    opposite side and are queried again, in place, until each hits or leaves: (the batch's query with
+    their results merged in, the segments they added).  Their origins in `cur` become the re-entry
+    points (the points a separate batch of re-entering rays would start from); the batch then goes on
+    whole, without gathering the rays that hit (most of a first batch: a few of its rays re-enter)."""
+    more = 0
+    while True:
+        lat = q.lat_first.astype(bool) if q.lat_first is not None else q.t_lat < q.tz
+        wi = np.flatnonzero(~q.hit & lat)
+        if not wi.size:
+            return q, more
+        o, k = np.take(cur.o, wi, axis=0), np.take(cur.k, wi, axis=0)
+        if q.lat_first is not None:
+            t_lat, tx, ty = ch.tracer.side_distances(o, k)
+        else:
+            t_lat, tx, ty = q.t_lat[wi], q.tx[wi], q.ty[wi]
+        o = ch.tracer.wrap(o, k, t_lat, tx, ty)
+        cur.o[wi] = o
+        q2 = ch.tracer.query(o, k)
+        more += wi.size
+        for name in ("hit", "ng", "t_hit", "tx", "ty", "tz", "t_lat", "lat_first"):
+            a = getattr(q, name)
+            if a is not None:
+                a[wi] = getattr(q2, name)
+        q.n_hit = int(np.count_nonzero(q.hit))
 
 
 def _misses_compiled(ck, ch: _Chunk, cur: Rays, q) -> Rays | None:
