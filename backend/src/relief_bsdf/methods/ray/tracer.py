@@ -172,8 +172,9 @@ class ReliefTracer:
 
     # ------------------------------------------------------------------ geometry of the tile
     def query(self, o: np.ndarray, k: np.ndarray) -> Query:
-        """Intersect rays (o, k) with the relief up to the nearest tile side or slab face (the distances
-        to them by the compiled kernel `_compiled.slab_distances` when it runs: the same numbers)."""
+        """Intersect rays (o, k) with the relief up to the nearest tile side or slab face (with the compiled
+        kernels `_compiled.slab_far`: that limit and whether a tile side comes first, the same numbers;
+        `Query` doc)."""
         n = k.shape[0]
         ck = kernels.active()
         lat_first = None

@@ -469,6 +469,8 @@ class StokesCarrier:
         """`reflectance` in one C pass over the rays (`_compiled.facet_event`)."""
         n = rays.size
         if split and self.factored and rays.A is None and rays.F is None:
+            # both branches' factors instead of R, T and the rotation (whose arguments the kernel leaves
+            # unwritten: rows 0-2 stand in for them and serve as the new basis's scratch; row 3 is P_R)
             s_new, rows = np.empty((n, 3), F32), padded_rows((4,), n)
             F_r, F_t = padded_rows((6,), n), padded_rows((6,), n)
             ck.facet_event(f.nfx, f.nfy, f.nfz, *f.k3, rays.s, f.ci, *f.n_pair, None, s_new, rows[0:3], rows[0],
