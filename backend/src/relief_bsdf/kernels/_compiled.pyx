@@ -40,11 +40,6 @@ cdef extern from *:
         _mm_storeu_pd(sum + 2, _mm_add_pd(_mm_loadu_pd(sum + 2), _mm_cvtps_pd(_mm_movehl_ps(p, p))));
     }
     #define RELIEF_ROW(x0, x1, x2, x3) _mm_set_ps((x3), (x2), (x1), (x0))
-    #else
-    typedef struct { float v[4]; } relief_row;
-    static inline void relief_add4_s(double *sum, relief_row r, float w) {
-        for (int e = 0; e < 4; e++) sum[e] += (double)(r.v[e] * w);
-    }
     #endif
     /* sum[e] += (double)(m[e] * w), e = 0..15, m[e] the e-th of 16 rows `stride` floats apart */
     static inline void relief_add_rows16(double *sum, const float *m, Py_ssize_t stride, float w) {
@@ -58,15 +53,26 @@ cdef extern from *:
         for (int e = 0; e < 16; e++) sum[e] += (double)(m[e * stride] * w);
     #endif
     }
-    /* sum[e] += (double)(o[e] * w) for the 16 entries o of Rot_exit (M Rot / p) from the factors (a, b, cc, dd,
-       c2, s2) and the exit rotation (E, S): the operations of `factored_columns`, kept in registers */
+    /* The 16 entries o0..o15 (row-major: o[4 i + j] is column j's Stokes component i) of Rot_exit (M Rot / p)
+       from the factors (a, b, cc, dd, c2, s2) of a first interaction and the exit rotation (E, S) = (cos 2psi',
+       sin 2psi'): `transport.exit_columns_of_factors`, operation by operation in float32 (the one C
+       definition, for the whole and the compact records) */
+    #define RELIEF_FACTORED16(a, b, cc, dd, c2, s2, E, S) \
+        float x1 = (a) * (c2), x2 = -((cc) * (s2)), y1 = (a) * (s2), y2 = (cc) * (c2); \
+        float o0 = (a), o1 = (b) * (c2), o2 = (b) * (s2), o3 = 0.0f; \
+        float o4 = (E) * (b), o5 = (E) * x1 + (S) * x2, o6 = (E) * y1 + (S) * y2, o7 = (S) * (dd); \
+        float o8 = -((b) * (S)), o9 = x2 * (E) - x1 * (S), o10 = y2 * (E) - y1 * (S), o11 = (dd) * (E); \
+        float o12 = 0.0f, o13 = (dd) * (s2), o14 = -((dd) * (c2)), o15 = (cc);
+    static inline void relief_factored_columns(float a, float b, float cc, float dd, float c2, float s2, float E,
+                                               float S, float *o) {
+        RELIEF_FACTORED16(a, b, cc, dd, c2, s2, E, S)
+        o[0] = o0; o[1] = o1; o[2] = o2; o[3] = o3; o[4] = o4; o[5] = o5; o[6] = o6; o[7] = o7;
+        o[8] = o8; o[9] = o9; o[10] = o10; o[11] = o11; o[12] = o12; o[13] = o13; o[14] = o14; o[15] = o15;
+    }
+    /* sum[e] += (double)(o[e] * w) for those 16 entries, kept in registers */
     static inline void relief_add_factored16(double *sum, float a, float b, float cc, float dd, float c2,
                                              float s2, float E, float S, float w) {
-        float x1 = a * c2, x2 = -(cc * s2), y1 = a * s2, y2 = cc * c2;
-        float o0 = a, o1 = b * c2, o2 = b * s2, o3 = 0.0f;
-        float o4 = E * b, o5 = E * x1 + S * x2, o6 = E * y1 + S * y2, o7 = S * dd;
-        float o8 = -(b * S), o9 = x2 * E - x1 * S, o10 = y2 * E - y1 * S, o11 = dd * E;
-        float o12 = 0.0f, o13 = dd * s2, o14 = -(dd * c2), o15 = cc;
+        RELIEF_FACTORED16(a, b, cc, dd, c2, s2, E, S)
     #if defined(__SSE2__)
         __m128 wv = _mm_set1_ps(w);
         relief_add4(sum, RELIEF_ROW(o0, o1, o2, o3), wv);
@@ -82,6 +88,8 @@ cdef extern from *:
     void add_rows16 "relief_add_rows16"(double *sum, const float *m, Py_ssize_t stride, float w) nogil
     void add_factored16 "relief_add_factored16"(double *sum, float a, float b, float cc, float dd, float c2,
                                                 float s2, float E, float S, float w) nogil
+    void factored_columns "relief_factored_columns"(float a, float b, float cc, float dd, float c2, float s2,
+                                                    float E, float S, float *o) nogil
 
 cdef enum:
     PREFETCH_AHEAD = 16       # exits ahead: the sums of a cell come from memory (a table's sums exceed L2)
@@ -231,34 +239,6 @@ cdef inline void double_angle(float c, float d, float *c2, float *s2) noexcept n
     sn = sn + sn
     s2[0] = sn / r
     c2[0] = (cc - dd) / r
-
-
-cdef inline void factored_columns(float a, float b, float cc, float dd, float c2, float s2, float E, float S,
-                                  float *o) noexcept nogil:
-    """The 16 entries (row-major, o[4 i + j] = column j's Stokes component i) of Rot_exit (M Rot / p) from the
-    factors (a, b, cc, dd, c2, s2) of a first interaction and the exit rotation's (E, S) = (cos 2psi', sin 2psi'):
-    `transport.exit_columns_of_factors`, operation by operation in float32."""
-    cdef float x1, x2
-    o[0] = a
-    o[1] = b * c2
-    o[2] = b * s2
-    o[3] = 0
-    o[12] = 0
-    o[13] = dd * s2
-    o[14] = -(dd * c2)
-    o[15] = cc
-    o[4] = E * b
-    o[8] = -(b * S)
-    o[7] = S * dd
-    o[11] = dd * E
-    x1 = a * c2
-    x2 = -(cc * s2)
-    o[5] = E * x1 + S * x2
-    o[9] = x2 * E - x1 * S
-    x1 = a * s2
-    x2 = cc * c2
-    o[6] = E * x1 + S * x2
-    o[10] = x2 * E - x1 * S
 
 
 def exit_columns(const float[:, :] F, const float[:, :, :] A, const float[:, :] s, const float[:, :] k,
