@@ -129,7 +129,6 @@ class CellIndex:
         cell[(ib < 0) | (ia < 0)] = -1
         return cell
 
-
     def with_side(self, k: np.ndarray, side: np.ndarray) -> np.ndarray:
         """cell + side * S * A (the table's two sides), -1 outside the table: `__call__` and the side's
         offset, the part after numpy's arccos and arctan2 in one pass with the compiled kernels
