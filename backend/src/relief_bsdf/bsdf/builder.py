@@ -226,8 +226,7 @@ def specular_flags(dirs: np.ndarray, side: np.ndarray, ideal_dirs: tuple, cos_to
         d = np.asarray(ideal_dirs[sd], np.float64)
         # explicit multiply-adds, not `k @ d`: a BLAS matrix-vector product wakes OpenBLAS's
         # thread pool, whose spinning threads cost as much CPU as the whole binning
-        d32 = d.astype(F32)
-        cand = both[sd] if both is not None else _near_direction(dirs, d32, F32(0.9999))
+        cand = both[sd] if both is not None else _near_direction(dirs, d.astype(F32), F32(0.9999))
         if cand.size:
             kc = dirs[cand].astype(np.float64)
             ok = np.einsum("ij,j->i", kc, d) > cos_tol * np.sqrt(np.einsum("ij,ij->i", kc, kc))

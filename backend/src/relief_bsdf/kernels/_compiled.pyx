@@ -413,7 +413,7 @@ def facet_event(const float[::1] nfx, const float[::1] nfy, const float[::1] nfz
     are SIMD; a scalar C loop is bound by its ~12 divisions and square roots per ray).  scratch: (3, n) rows
     for the new basis before it is interleaved into s_new.  F_r, F_t (6, n) given (rays at their first
     interaction, A None, both branches kept): the factors of both branches written instead of R, T, c2, s2
-    (`split_factors`' numbers; `facet_split_loop`).
+    (`transport.first_interaction_factors`' numbers for `reflected` and `transmitted_copy`; `facet_split_loop`).
     """
     cdef Py_ssize_t n = ci.shape[0], i, col, K = 0 if A is None else A.shape[1]
     cdef Py_ssize_t ss = s.strides[0] // sizeof(float), sc = s.strides[1] // sizeof(float)
@@ -508,7 +508,8 @@ cdef void facet_split_loop(Py_ssize_t n, f32_in nfx, f32_in nfy, f32_in nfz, f32
                            f32_out fr4, f32_out fr5, f32_out ft0, f32_out ft1, f32_out ft2, f32_out ft3,
                            f32_out ft4, f32_out ft5, f32_out pR) noexcept nogil:
     """`facet_loop` for rays at their first interaction that split (`facet_event` with F_r, F_t): instead of
-    R, T and the rotation, the factors of both branches, as `split_factors` makes them from those."""
+    R, T and the rotation, the factors of both branches: R / max(pR, 1e-30) and T / max(1 - pR, 1e-30) (the
+    division a multiplication by the float32 reciprocal, as `transport.first_interaction_factors`), c2, s2."""
     cdef Py_ssize_t i
     cdef float b[5]
     cdef float Rv[4]
@@ -946,27 +947,3 @@ def split_weights(const float[::1] w, const float[::1] pR, const unsigned char[:
             nb_next[i] = <short>(nb[i] + 1)
             j += p < 1
     return j
-
-
-def split_factors(const float[:, :] R, const float[:, :] T, const float[::1] c2, const float[::1] s2,
-                  const float[::1] pR, float[:, :] F_r, float[:, :] F_t):
-    """The factors (6, n) of both branches of the rays' first interaction (`transport.first_interaction_factors`
-    as `StokesCarrier.reflected` and `transmitted_copy` call it): F_r = (R / max(pR, 1e-30), c2, s2) and
-    F_t = (T / max(1 - pR, 1e-30), c2, s2), the division a multiplication by the float32 reciprocal."""
-    cdef Py_ssize_t n = pR.shape[0], i, e
-    cdef float inv_r, inv_t, x
-    if R.shape[1] != n or T.shape[1] != n or F_r.shape[1] != n or F_t.shape[1] != n:
-        raise ValueError("split_factors: inconsistent shapes")
-    with nogil:
-        for i in range(n):
-            x = pR[i]
-            inv_r = <float>1 / (<float>1e-30 if x < <float>1e-30 else x)
-            x = <float>1 - pR[i]
-            inv_t = <float>1 / (<float>1e-30 if x < <float>1e-30 else x)
-            for e in range(4):
-                F_r[e, i] = R[e, i] * inv_r
-                F_t[e, i] = T[e, i] * inv_t
-            F_r[4, i] = c2[i]
-            F_r[5, i] = s2[i]
-            F_t[4, i] = c2[i]
-            F_t[5, i] = s2[i]

@@ -201,6 +201,11 @@ class ReliefTracer:
         hit = res["primID"] >= 0
         return Query(hit, int(np.count_nonzero(hit)), res["Ng"], res["tfar"], tx, ty, tz, t_lat, lat_first)
 
+    def reentry_points(self, o: np.ndarray, k: np.ndarray, sides: tuple | None = None) -> np.ndarray:
+        """Where rays (o, k) that reach a tile side re-enter (`wrap`); sides: their (t_lat, tx, ty) from the
+        query, or None to compute them (`side_distances`: the compiled query keeps no distances)."""
+        return self.wrap(o, k, *(self.side_distances(o, k) if sides is None else sides))
+
     def side_distances(self, o: np.ndarray, k: np.ndarray) -> tuple:
         """(t_lat, tx, ty) of rays (o, k) (float32): the distances to the tile's sides of `query` (compiled:
         `_compiled.slab_distances`, the same numbers)."""

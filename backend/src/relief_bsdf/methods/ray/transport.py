@@ -367,9 +367,6 @@ class IntensityCarrier:
         pR[f.tir] = 1
         return pR
 
-    def split_factors(self, ck, pR) -> None:
-        """Nothing to prepare."""
-
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
         return None, None, None
 
@@ -398,7 +395,7 @@ class StokesCarrier:
     def __init__(self, K: int):
         self.K = int(K)
         self._ev = None
-        self._split = None              # (F_r, F_t) of a first interaction's both branches (`split_factors`)
+        self._split = None              # (F_r, F_t) of a first interaction's both branches (`_reflectance_compiled`)
 
     def start(self, rays: Rays, s_init=None) -> None:
         """Initial basis s = z x k (or the given s_init for every ray); rays.A None stands for the
@@ -418,7 +415,7 @@ class StokesCarrier:
         needs them only up to that factor): two dot products instead of a cross product.
         With the compiled kernels (real indices): `_compiled.facet_event`, the same numbers; split (the
         first-hit split will keep both branches): rays at their first interaction get both branches'
-        factors from the same pass (`split_factors`' numbers).
+        factors from the same pass (`first_interaction_factors`' numbers).
         """
         ck = kernels.active()
         if ck is not None and f.n_pair is not None:
@@ -488,16 +485,6 @@ class StokesCarrier:
                        rot[1], R, T, pR)
         self._ev = (R, T, s_new, None if rays.A is not None else (rot[0], rot[1]))
         return pR
-
-    def split_factors(self, ck, pR) -> None:
-        """Before the first-hit split of rays in their incident basis: the factors of both branches at once
-        (`_compiled.split_factors`, the numbers of `reflected` and `transmitted_copy`), which they take."""
-        R, T, _, rot = self._ev
-        if rot is None or not self.factored or not isinstance(R, np.ndarray):   # (R, T rows of the kernel's)
-            return
-        F_r, F_t = padded_rows((6,), pR.size), padded_rows((6,), pR.size)
-        ck.split_factors(R, T, rot[0], rot[1], pR, F_r, F_t)
-        self._split = (F_r, F_t)
 
     def transmitted_copy(self, rays: Rays, j, pR_j) -> tuple:
         """(A, s, F) of the transmitted copies of rays j (None: all; first-hit split), renormalised by
@@ -717,7 +704,7 @@ def _misses(ch: _Chunk, cur: Rays, q) -> Rays | None:
         wi = mi[lat]
         mi = mi[~lat]
         wrapped = cur.take(wi)
-        wrapped.o = ch.tracer.wrap(wrapped.o, wrapped.k, q.t_lat[wi], q.tx[wi], q.ty[wi])
+        wrapped.o = ch.tracer.reentry_points(wrapped.o, wrapped.k, (q.t_lat[wi], q.tx[wi], q.ty[wi]))
     if mi.size:
         # the states of every ray (cheap int8 passes), then one int8 gather: no gather of a strided column
         st = np.take(_exit_state(cur.k[:, 2] > 0, cur.below), mi)
@@ -738,11 +725,7 @@ def _reenter_in_place(ch: _Chunk, cur: Rays, q) -> tuple:
         if not wi.size:
             return q, more
         o, k = np.take(cur.o, wi, axis=0), np.take(cur.k, wi, axis=0)
-        if q.lat_first is not None:
-            t_lat, tx, ty = ch.tracer.side_distances(o, k)
-        else:
-            t_lat, tx, ty = q.t_lat[wi], q.tx[wi], q.ty[wi]
-        o = ch.tracer.wrap(o, k, t_lat, tx, ty)
+        o = ch.tracer.reentry_points(o, k, None if q.lat_first is not None else (q.t_lat[wi], q.tx[wi], q.ty[wi]))
         cur.o[wi] = o
         q2 = ch.tracer.query(o, k)
         more += wi.size
@@ -763,7 +746,7 @@ def _misses_compiled(ck, ch: _Chunk, cur: Rays, q) -> Rays | None:
     if nw:
         wi = wi[:nw]
         wrapped = cur.take(wi)
-        wrapped.o = ch.tracer.wrap(wrapped.o, wrapped.k, *ch.tracer.side_distances(wrapped.o, wrapped.k))
+        wrapped.o = ch.tracer.reentry_points(wrapped.o, wrapped.k)
     if ne == n:                                     # every ray left (the usual end of a phase): no gathers
         _record(ch, cur, None, st)
     elif ne:
@@ -914,7 +897,6 @@ def _first_interaction_compiled(ck, ch: _Chunk, h: Rays, f: Facet, th, pR) -> li
     n_t = ck.split_weights(h.w, pR, h.below.view(np.uint8), h.ids, h.nb, ch.n0, w_r, w_t, below_t.view(np.uint8),
                            ids_t, nb_next)
     h.nb = nb_next
-    ch.carrier.split_factors(ck, pR)
     tr = _split_copies(ch, h, f, None, None, pR, made=(o_t, k_t, below_t, w_t, ids_t), n_t=n_t)
     h.w = w_r
     ch.carrier.reflected(h, pR)
