@@ -62,8 +62,8 @@ def embree_segments_per_s(relief, n_rays: int = 2_000_000, threads: int = 2, see
 
 def tables_once(fwd, s: float, g: float) -> dict:
     """Time one evaluation's boundary tables alone (cache cleared) and count their segments."""
-    from relief_bsdf.plate import TABLE_CACHE
-    TABLE_CACHE.clear()
+    from relief_bsdf.plate import current_memory
+    current_memory().clear()
     t0 = time.perf_counter()
     _, t_out, t_in = fwd.tables(s, g)
     dt = time.perf_counter() - t0

@@ -31,7 +31,7 @@ def main() -> int:
     a = ap.parse_args()
     from relief_bsdf.core.index import ConstantIndex
     from relief_bsdf.fit.optimise import FitJob, run_fit_job
-    from relief_bsdf.plate import (TABLE_CACHE, Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid,
+    from relief_bsdf.plate import (current_memory, Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid,
                                    in_plane_rows, simulate)
     from relief_bsdf.plate.deterministic import _blas_single_thread, solver_of
     from relief_bsdf.surface.synth import random_relief
@@ -43,7 +43,7 @@ def main() -> int:
     thetas = [0, 15, 30, 45, 60, 75]
     rows = in_plane_rows(550.0, thetas, np.arange(0.5, 90.0, 1.0))
     assert len(rows) == 6 * 2 * 90 * 2
-    TABLE_CACHE.clear()
+    current_memory().clear()
     t0 = time.perf_counter()
     simulate(exp, rows, grid=grid)              # derives (and caches) the faces' tables
     t_tables = time.perf_counter() - t0

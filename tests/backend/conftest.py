@@ -64,3 +64,12 @@ def topography_dir() -> Path:
     if not d.is_dir():
         pytest.fail(f"{d} is missing: the tests expect ../shared beside the checkout")
     return d
+
+
+@pytest.fixture
+def fresh_memory():
+    """A new forward-model memory owner (`plate.memory.ForwardMemory`) in force for the test: nothing
+    kept from other tests is found, and nothing the test derives is left for them."""
+    from relief_bsdf.plate.memory import ForwardMemory
+    with ForwardMemory().active() as memory:
+        yield memory

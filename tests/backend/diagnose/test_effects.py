@@ -45,24 +45,24 @@ def test_each_effect_is_absent_at_its_neutral_values(small):
 
 @pytest.mark.slow
 def test_cheap_effects_reuse_the_baseline_tables(small):
-    from relief_bsdf.plate import TABLE_CACHE
+    from relief_bsdf.plate import current_memory
     small.baseline()
-    misses = TABLE_CACHE.misses
+    misses = current_memory().misses
     for name, values in (("bulk_absorption", {"absorption_per_mm": 0.2}),
                          ("stray_light", {"background_per_sr": 0.1}), ("polarization", {"polarization_q": 0.5})):
         assert get_effect(name).cheap
         small.evaluate(get_effect(name), values)
-    assert TABLE_CACHE.misses == misses
+    assert current_memory().misses == misses
     assert not get_effect("sample_tilt").cheap and get_effect("sample_tilt").budgeted
     small.evaluate(get_effect("sample_tilt"), {"tilt_deg": 2.0})
     # tilted incidences: the outside table, and the half-turned relief's at those the tilt turns to the far
     # side (theta_i 0 seen from 180 deg: plate.faces.half_turned_outside); no inside table
-    assert TABLE_CACHE.misses == misses + 2
+    assert current_memory().misses == misses + 2
     assert not get_effect("instrument_blur").cheap
     small.evaluate(get_effect("instrument_blur"), {"blur_deg": 2.0})
     # the beam's quadrature of incidences: the outside table and, for the directions of the beam that lean to
     # the far half of azimuths, the half-turned relief's outside table; no inside table
-    assert TABLE_CACHE.misses == misses + 4
+    assert current_memory().misses == misses + 4
 
 
 def test_absorption_follows_beer_lambert(small):

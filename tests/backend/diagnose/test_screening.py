@@ -18,7 +18,7 @@ import pytest
 
 from relief_bsdf.diagnose.effects import get_effect
 from relief_bsdf.diagnose.stepwise import Step, _probes, line_gain
-from relief_bsdf.plate import TABLE_CACHE
+from relief_bsdf.plate import current_memory
 from relief_bsdf.surface.synth import RandomFieldSpec, random_relief, relief_from_spec
 
 
@@ -55,7 +55,7 @@ def test_the_screening_forward_leaves_out_only_the_sector_tables_and_the_stokes_
     assert screen.grid.sector_azimuths_deg() == () and screen.grid.key() == fwd.grid.key()
     stokes = fwd.screening(get_effect("polarization"))
     assert stokes.grid.stokes_loop and stokes.grid.sector_azimuths_deg() == () and stokes is not screen
-    with TABLE_CACHE.recording() as used:
+    with current_memory().recording() as used:
         screen.evaluate(get_effect("relief_scale"), {"height_scale": 1.2})
     assert used and not _sector_keys(used)
     assert screen.model_rel_sigma() is fwd.model_rel_sigma()     # shared, not derived again

@@ -435,19 +435,19 @@ def test_the_forward_travels_to_workers_with_its_baseline_tables(plate_forward):
     """A pickled DiagnosisForward (the candidate fits' context) carries the baseline's boundary tables;
     unpickled, they are in the table cache: nothing is derived again and the baseline is the same."""
     import pickle
-    from relief_bsdf.plate import TABLE_CACHE
+    from relief_bsdf.plate import current_memory
     from relief_bsdf.surface.synth import random_relief
     fwd = plate_forward(random_relief(48, 1.0e-6, 0.4e-6, 5.0e-6, "gaussian", seed=2), method="ray", samples=4_000)
     v0, _ = fwd.baseline()
-    assert fwd._baseline_keys and set(TABLE_CACHE.tables(fwd._baseline_keys)) == set(fwd._baseline_keys)
+    assert fwd._baseline_keys and set(current_memory().tables(fwd._baseline_keys)) == set(fwd._baseline_keys)
     blob = pickle.dumps(fwd)
-    TABLE_CACHE.clear()
+    current_memory().drop("table")
     twin = pickle.loads(blob)
-    assert set(TABLE_CACHE.tables(fwd._baseline_keys)) == set(fwd._baseline_keys)
-    misses = TABLE_CACHE.misses
+    assert set(current_memory().tables(fwd._baseline_keys)) == set(fwd._baseline_keys)
+    misses = current_memory().misses
     twin._baseline = None                                       # simulate the baseline again from the tables
     v1, _ = twin.baseline()
-    assert TABLE_CACHE.misses == misses
+    assert current_memory().misses == misses
     np.testing.assert_array_equal(v0, v1)
 
 
@@ -480,7 +480,7 @@ def test_a_screen_whose_tables_this_process_holds_runs_here_beside_the_workers()
     (its evaluations counted here) while the other screens run on the workers; the round's results are
     those of one process.  Every candidate with parameters is screened (none is fitted in the round)."""
     import sys
-    from relief_bsdf.plate.faces import TABLE_CACHE
+    from relief_bsdf.plate.memory import current_memory
     sw = sys.modules["relief_bsdf.diagnose.stepwise"]           # the package exports the function of that name
     names = ["bulk_absorption", "stray_light", "relief_scale", "instrument_blur"]
     truth = {"absorption_per_mm": 0.3, "blur_deg": 3.0}
@@ -491,7 +491,7 @@ def test_a_screen_whose_tables_this_process_holds_runs_here_beside_the_workers()
         base = sw.Step((), {}, fwd.misfit(v0, s0), 0, (v0, s0))
         plan = sw._plan(fwd, names, {})
         scale = next(t for t in plan if t[0] == "relief_scale")
-        TABLE_CACHE.put(("test", "held table"), "held")
+        current_memory().put(("test", "held table"), "held")
         held = {sw._screen_id(scale): (("test", "held table"),)}
         rounds.append(sw._step_round(fwd, base, plan, None, workers, "step 1", held))
         if workers == 2:
@@ -506,11 +506,11 @@ class TabledForward(BlurForward):
     process's TABLE_CACHE (a stand-in for the outside tables a blur re-derives)."""
 
     def evaluate_set(self, effects, values):
-        from relief_bsdf.plate.faces import TABLE_CACHE
+        from relief_bsdf.plate.memory import current_memory
         for name in ("blur_deg", "background_per_sr"):
             x = float(values.get(name, 0.0))
             if x and any(p.name == name for e in effects for p in e.params):
-                TABLE_CACHE.get(("test tabled", name, round(x, 9)), lambda: x)
+                current_memory().get(("test tabled", name, round(x, 9)), lambda: x)
         return super().evaluate_set(effects, values)
 
 
@@ -520,25 +520,25 @@ def test_a_held_screen_that_needs_a_table_this_process_lacks_goes_to_the_workers
     here: the blur's and the background's; a single one would run here after the others): no such
     table is derived here, and the round's results are those of one process."""
     import sys
-    from relief_bsdf.plate.faces import TABLE_CACHE, MissingTable
+    from relief_bsdf.plate.memory import MissingTable, current_memory
     sw = sys.modules["relief_bsdf.diagnose.stepwise"]
     names = ["bulk_absorption", "stray_light", "instrument_blur"]
     truth = {"absorption_per_mm": 0.3, "blur_deg": 3.0}
     with pytest.raises(MissingTable):
-        with TABLE_CACHE.held_only():
-            TABLE_CACHE.get(("test tabled", "never held"), lambda: 0)
-    assert TABLE_CACHE.get(("test tabled", "never held"), lambda: 1) == 1      # outside the block: derived
+        with current_memory().held_only():
+            current_memory().get(("test tabled", "never held"), lambda: 0)
+    assert current_memory().get(("test tabled", "never held"), lambda: 1) == 1      # outside the block: derived
     rounds = []
     for workers in (1, 2):
-        TABLE_CACHE.clear()
+        current_memory().drop("table")
         fwd = TabledForward(truth, seed=6)
         v0, s0 = fwd.baseline()
         base = sw.Step((), {}, fwd.misfit(v0, s0), 0, (v0, s0))
         plan = sw._plan(fwd, names, {})
-        TABLE_CACHE.put(("test", "held table"), "held")
+        current_memory().put(("test", "held table"), "held")
         held = {sw._screen_id(t): (("test", "held table"),) for t in plan if t[1] is not None}
         rounds.append(sw._step_round(fwd, base, plan, None, workers, "step 1", held))
-        tabled = [k for k in TABLE_CACHE._d if k[0] == "test tabled"]
+        tabled = [k for k in current_memory()._d if k[0] == "test tabled"]
         assert bool(tabled) == (workers == 1)           # with workers, the blur's screen ran there
     assert _plain(rounds[1]) == _plain(rounds[0])
     assert [r["effect"] for r in rounds[0][1]] == names
@@ -592,7 +592,7 @@ def test_points_that_share_their_tables_are_evaluated_here_beside_the_workers(pl
     centre's tables once, while the workers take the scale's; every value is the one process's."""
     from relief_bsdf.diagnose.forward import _tables_of
     from relief_bsdf.parallel import kept_workers
-    from relief_bsdf.plate.faces import TABLE_CACHE
+    from relief_bsdf.plate.memory import current_memory
     from relief_bsdf.surface.synth import random_relief
     relief = random_relief(48, 1.0e-6, 0.4e-6, 5.0e-6, "gaussian", seed=2)
     effs = (get_effect("relief_scale"), get_effect("bulk_absorption"))
@@ -604,15 +604,15 @@ def test_points_that_share_their_tables_are_evaluated_here_beside_the_workers(pl
     expected = [here.evaluate_set(effs, p) for p in points]
     ref = plate_forward(relief)
     ref.baseline()                                             # (its model sigma: the baseline's tables)
-    TABLE_CACHE.clear()
-    with TABLE_CACHE.recording() as alone:
+    current_memory().drop("table")
+    with current_memory().recording() as alone:
         ref.evaluate_set(effs, centre)
-    TABLE_CACHE.clear()
+    current_memory().drop("table")
     fwd = plate_forward(relief)
     fwd.baseline()
     with kept_workers(fwd):
-        TABLE_CACHE.clear()
-        with TABLE_CACHE.recording() as used:
+        current_memory().drop("table")
+        with current_memory().recording() as used:
             fwd.prefetch(effs, points, workers=2)
         assert len(fwd._memo) == 4 and fwd.evaluations == 5
         assert used == alone                                   # here: the centre's tables, nothing else

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from relief_bsdf.core.index import ConstantIndex, Material
-from relief_bsdf.plate import (TABLE_CACHE, Experiment, FlatFace, Instrument, MicrofacetFace, PhotonContext, Plate,
+from relief_bsdf.plate import (current_memory, Experiment, FlatFace, Instrument, MicrofacetFace, PhotonContext, Plate,
                                ReliefFace, TableFace, TableGrid, experiment_from_sample, in_plane_rows, simulate)
 from relief_bsdf.plate.faces import TableSampler
 from relief_bsdf.plate.photon import hemispherical, trace
@@ -52,9 +52,9 @@ def test_relief_face_tables_are_cached_by_content():
     mat = Material(ConstantIndex(1.5))
     g = TableGrid(5.0, 15.0, 15.0)
     a = ReliefFace(r, method="flat").tables(mat, g, [550.0], [0.0, 30.0])
-    hits = TABLE_CACHE.hits
+    hits = current_memory().hits
     b = ReliefFace(r.with_heights(r.heights_m.copy(), "copy"), method="flat").tables(mat, g, [550.0], [0.0, 30.0])
-    assert TABLE_CACHE.hits == hits + 2 and b[1] is a[1]          # same content: same tables (both sides)
+    assert current_memory().hits == hits + 2 and b[1] is a[1]          # same content: same tables (both sides)
     c = ReliefFace(r.scaled(1.1), method="flat").tables(mat, g, [550.0], [0.0, 30.0])
     assert c[1] is not a[1]
 
@@ -93,7 +93,7 @@ def test_a_microfacet_faces_tables_on_threads_equal_those_of_one_process():
     from relief_bsdf.surface.relief import Relief
     grid = TableGrid(3.0, 15.0, 15.0)
     mat = Material(ConstantIndex(1.5))
-    TABLE_CACHE.clear()
+    current_memory().drop("table")
     _, inside = MicrofacetFace(0.2).tables(mat, grid, [550.0], [0.0, 30.0], need_outside=False)
     run = last_run()
     assert run["backend"] == "serial" and run["threads"] == min(default_workers(), run["total"])
@@ -107,40 +107,40 @@ def test_a_microfacet_faces_tables_on_threads_equal_those_of_one_process():
     np.testing.assert_array_equal(inside.values_per_sr, ref.values_per_sr)
 
 
-def test_the_table_cache_holds_its_byte_budget_least_recently_used_first(lambert_table):
-    """TableCache: entries past the byte budget (or the entry count) go, least recently used first; a
-    read refreshes an entry; what is not a table (a BVH, a verdict) counts no bytes; `holds` and
-    `worth_sending` answer from the same byte count."""
-    from relief_bsdf.plate.faces import TableCache, _table_bytes
+def test_the_memory_owner_holds_its_byte_budget_least_recently_used_first(lambert_table):
+    """ForwardMemory with tables: entries past the byte budget (or the entry count) go, least recently
+    used first; a read refreshes an entry; what holds no arrays (a verdict) counts no bytes; `holds`
+    and `worth_sending` answer from the same byte count."""
+    from relief_bsdf.plate.memory import ForwardMemory, deep_nbytes
     tables = [lambert_table("outside", 0.1 * (k + 1), 0.2, [0.0, 30.0]) for k in range(4)]
-    size = _table_bytes(tables[0])
-    assert size > 0 and all(_table_bytes(t) == size for t in tables)
-    cache = TableCache(maxsize=10, max_bytes=2.5 * size)           # room for two tables
-    cache.put("a", tables[0])
-    cache.put("b", tables[1])
-    cache.put("bvh", object())                                    # no bytes: never the reason to evict
-    assert cache._total == 2 * size and cache.holds(["a", "b", "bvh"])
-    assert cache.get("a", lambda: None) is tables[0]              # a read: "a" is now the most recent
-    cache.put("c", tables[2])                                     # over budget: "b" (least recent table) goes
-    assert not cache.holds(["b"]) and cache.holds(["a", "c"]) and cache._total == 2 * size
-    cache.put("c", tables[3])                                     # replacing an entry does not count it twice
-    assert cache._total == 2 * size and cache.get("c", lambda: None) is tables[3]
+    size = deep_nbytes(tables[0])
+    assert size > 0 and all(deep_nbytes(t) == size for t in tables)
+    cache = ForwardMemory(budget_bytes=2.5 * size, maxsize=10)     # room for two tables
+    cache.put(("a",), tables[0])
+    cache.put(("b",), tables[1])
+    cache.put(("verdict",), "ray", "other")                       # no bytes: never the reason to evict
+    assert cache.held_bytes == 2 * size and cache.holds([("a",), ("b",), ("verdict",)])
+    assert cache.get(("a",), lambda: None) is tables[0]           # a read: "a" is now the most recent
+    cache.put(("c",), tables[2])                                  # over budget: "b" (least recent) goes
+    assert not cache.holds([("b",)]) and cache.holds([("a",), ("c",)]) and cache.held_bytes == 2 * size
+    cache.put(("c",), tables[3])                                  # replacing an entry does not count it twice
+    assert cache.held_bytes == 2 * size and cache.get(("c",), lambda: None) is tables[3]
     assert cache.worth_sending({"x": tables[0]}) is False          # a sixth of 2.5 tables: less than one
-    assert TableCache(max_bytes=6 * size).worth_sending({"x": tables[0]})
+    assert ForwardMemory(budget_bytes=6 * size).worth_sending({"x": tables[0]})
     assert not cache.holds(None) and not cache.holds([])
-    small = TableCache(maxsize=2, max_bytes=1e12)                 # the entry count bounds it too
+    small = ForwardMemory(budget_bytes=1e12, maxsize=2)            # the entry count bounds it too
     for k, t in enumerate(tables[:3]):
-        small.put(k, t)
-    assert list(small._d) == [1, 2] and small._total == 2 * size
+        small.put((k,), t)
+    assert list(small._d) == [(1,), (2,)] and small.held_bytes == 2 * size
     cache.clear()
-    assert cache._total == 0 and not cache.holds(["a"])
+    assert cache.held_bytes == 0 and not cache.holds([("a",)])
 
 
 def test_nested_recordings_each_collect_their_own_keys(lambert_table):
-    """TableCache.recording: a block inside another (a screen's baseline inside the screen's record)
+    """ForwardMemory.recording: a block inside another (a screen's baseline inside the screen's record)
     adds its keys to both, and each block leaves by itself even when the two sets are equal."""
-    from relief_bsdf.plate.faces import TableCache
-    cache = TableCache(maxsize=10, max_bytes=1e12)
+    from relief_bsdf.plate.memory import ForwardMemory
+    cache = ForwardMemory(budget_bytes=1e12, maxsize=10)
     t = lambert_table("outside", 0.1, 0.2, [0.0])
     with cache.recording() as outer:
         with cache.recording() as inner:

@@ -14,6 +14,7 @@ from relief_bsdf.plate import Bulk, Experiment, FlatFace, Instrument, Plate, Rel
 from relief_bsdf.plate import deterministic
 from relief_bsdf.plate.deterministic import far_side
 from relief_bsdf.surface.relief import Relief
+from relief_bsdf.plate.memory import current_memory
 
 from lobe_deviation import bright_deviation  # tests/backend/plate/lobe_deviation.py
 
@@ -131,7 +132,7 @@ def test_the_leaning_relief_lit_from_azimuth_180_agrees_with_the_independent_mon
     fixed = simulate(ex, rows, engine="deterministic").values_per_sr
     import relief_bsdf.plate.faces as faces
     monkeypatch.setattr(faces, "half_turned_outside", lambda *a, **k: None)
-    deterministic._SOLVERS.clear()
+    current_memory().drop("solver")
     old = simulate(ex, rows, engine="deterministic").values_per_sr
     dev = {sd: bright_deviation((fixed, old), mc, mc_sigma, np.asarray(rows.side), sd, 5) for sd in ("R", "T")}
     print(dev)

@@ -8,6 +8,7 @@ from relief_bsdf.core.index import ConstantIndex
 from relief_bsdf.plate import Experiment, FlatFace, Plate, ReliefFace, TableGrid, in_plane_rows, simulate
 from relief_bsdf.plate import deterministic
 from relief_bsdf.surface.synth import random_relief
+from relief_bsdf.plate.memory import current_memory
 
 GRID = TableGrid(3.0, 15.0, 15.0)
 ROWS = in_plane_rows(550.0, [0.0, 30.0], np.arange(2.0, 88.0, 6.0))
@@ -20,17 +21,17 @@ def _experiment() -> Experiment:
 
 
 def _fresh(ex: Experiment) -> np.ndarray:
-    deterministic._SOLVERS.clear()
+    current_memory().drop("solver")
     return simulate(ex, ROWS, grid=GRID).values_per_sr
 
 
 def test_an_instrument_change_reuses_the_operators_and_gives_a_fresh_solvers_numbers():
     ex = _experiment()
     _fresh(ex)                                             # operators of this plate built and kept
-    ops = deterministic._SOLVERS[-1][2]._ops
+    ops = current_memory().values("solver")[-1]._ops
     changed = ex.with_instrument(polarization_q=1.0, blur_deg=1.5, background_per_sr=0.01)
     reused = simulate(changed, ROWS, grid=GRID).values_per_sr
-    assert len(deterministic._SOLVERS) == 1 and deterministic._SOLVERS[-1][2]._ops is ops
+    assert len(current_memory().values("solver")) == 1 and current_memory().values("solver")[-1]._ops is ops
     np.testing.assert_allclose(reused, _fresh(changed), rtol=1e-12, atol=0)
     assert not np.allclose(reused, _fresh(ex))             # the instrument did change the rows
 
@@ -66,7 +67,7 @@ def test_the_field_of_a_polarised_source_is_the_sum_of_the_unit_sources_fields()
     """Linearity in the source's Stokes vector: solve() by unit sources equals one solve with s itself."""
     ex = _experiment().with_instrument(polarization_q=0.6)
     _fresh(ex)
-    solver = deterministic._SOLVERS[-1][2]
+    solver = current_memory().values("solver")[-1]
     thetas = np.array([0.0, 30.0])
     summed = solver.solve(550.0, thetas)
     direct = solver._solve(550.0, thetas, 0.0, solver.model.source_stokes)
@@ -86,11 +87,11 @@ def test_a_bulk_change_builds_new_loop_operators_on_the_tables_kernels():
     (kernels in azimuthal modes, exit maps: `_table_ops`) shared; a fresh solver's numbers."""
     ex = _experiment()
     _fresh(ex)
-    first = deterministic._SOLVERS[-1][2]
+    first = current_memory().values("solver")[-1]
     absorbing = ex.with_bulk(absorption_per_m=200.0)
     got = simulate(absorbing, ROWS, grid=GRID).values_per_sr
-    assert len(deterministic._SOLVERS) == 2
-    second = deterministic._SOLVERS[-1][2]
+    assert len(current_memory().values("solver")) == 2
+    second = current_memory().values("solver")[-1]
     assert second._ops is not first._ops and second._tops is first._tops
     assert second._ops[550.0]["sys_lu"] is not first._ops[550.0]["sys_lu"]
     np.testing.assert_allclose(got, _fresh(absorbing), rtol=1e-12, atol=0)
@@ -104,11 +105,11 @@ def test_a_tilt_reuses_the_loop_operators_with_its_own_outside_table():
     operators (kernels, round trip, exit maps) are kept, the outside table's part re-derived."""
     ex = _experiment()
     _fresh(ex)
-    loop = deterministic._SOLVERS[-1][2]._ops[550.0]["sys_lu"]
+    loop = current_memory().values("solver")[-1]._ops[550.0]["sys_lu"]
     tilted = ex.with_instrument(tilt_deg=3.0)
     got = simulate(tilted, ROWS, grid=GRID).values_per_sr
-    solver = deterministic._SOLVERS[-1][2]
-    assert solver._ops[550.0]["sys_lu"] is loop and solver.outside is not deterministic._SOLVERS[0][2].outside
+    solver = current_memory().values("solver")[-1]
+    assert solver._ops[550.0]["sys_lu"] is loop and solver.outside is not current_memory().values("solver")[0].outside
     np.testing.assert_allclose(got, _fresh(tilted), rtol=1e-12, atol=0)
     assert not np.allclose(got, _fresh(ex))
 

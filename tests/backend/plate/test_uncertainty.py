@@ -59,22 +59,22 @@ def test_a_relief_face_reuses_its_tracer_across_heights_with_the_tables_of_a_fre
     """The fit's evaluations re-trace one grid with new heights: the plate keeps one tracer per grid
     and rewrites its heights (plate.faces._topology_tracer); the tables equal a fresh reconstruction."""
     from relief_bsdf.methods import reconstruct
-    from relief_bsdf.plate import TABLE_CACHE
-    from relief_bsdf.plate.faces import _TRACERS
+    from relief_bsdf.plate import current_memory
     from relief_bsdf.surface.operations import scale_and_filter
-    _TRACERS.clear()                       # other tests leave their grids' tracers behind
-    TABLE_CACHE.clear()
+    current_memory().drop("tracer")                       # other tests leave their grids' tracers behind
+    current_memory().drop("table")
     ex = _experiment(0, samples=4000)
     mat = ex.plate.material
     relief = ex.plate.front.relief
     ex.plate.front.tables(mat, GRID, [550.0], [30.0])
-    tracer = next(iter(_TRACERS.values()))
+    tracer = current_memory().values("tracer")[0]
     other = scale_and_filter(relief, 1.3, 0.0)
     face = dataclasses.replace(ex.plate.front, relief=other)
-    TABLE_CACHE.clear()
+    current_memory().drop("table")
     out, ins = face.tables(mat, GRID, [550.0], [30.0])
-    again = next(iter(_TRACERS.values()))
-    assert len(_TRACERS) == 1 and (again is tracer or again.mesh.triangles is tracer.mesh.triangles)
+    again = current_memory().values("tracer")[0]
+    assert len(current_memory().values("tracer")) == 1
+    assert again is tracer or again.mesh.triangles is tracer.mesh.triangles
     from relief_bsdf.plate.faces import face_request
     req = face_request(dataclasses.replace(face, options={"backend": "serial"}), mat, GRID, [550.0], [30.0], "outside")
     (fresh,) = reconstruct(other, mat, req, "ray")
@@ -125,18 +125,18 @@ def test_the_draws_on_threads_give_the_numbers_of_one_thread(monkeypatch):
 def test_the_draws_solvers_are_not_kept_and_the_baselines_stays():
     """The model sigma's draws solve perturbed tables once each: their solvers are not kept for reuse, so
     the baseline's solver (kept by the simulation before them) is still there for the next evaluation."""
-    from relief_bsdf.plate import deterministic
+    from relief_bsdf.plate import current_memory
     relief = random_relief(48, 1.0e-6, 0.6e-6, 5.0e-6, "gaussian", seed=4)
     ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", samples=3_000, seed=0), FlatFace()))
     rows = in_plane_rows(550.0, [0.0, 30.0], np.arange(2.0, 88.0, 8.0))
     grid = TableGrid(3.0, 15.0, 15.0)
-    deterministic._SOLVERS.clear()
+    current_memory().drop("solver")
     sim = simulate(ex, rows, grid=grid, table_sigma_draws=6)
     assert np.all(np.isfinite(sim.sigma_per_sr)) and np.any(sim.sigma_per_sr > 0)
-    assert len(deterministic._SOLVERS) == 1
-    baseline = deterministic._SOLVERS[0][2]
+    assert len(current_memory().values("solver")) == 1
+    baseline = current_memory().values("solver")[0]
     again = simulate(ex.with_instrument(background_per_sr=0.01), rows, grid=grid)
-    assert len(deterministic._SOLVERS) == 1 and deterministic._SOLVERS[0][2]._ops is baseline._ops
+    assert len(current_memory().values("solver")) == 1 and current_memory().values("solver")[0]._ops is baseline._ops
     np.testing.assert_allclose(again.values_per_sr, sim.values_per_sr + 0.01, rtol=1e-12)
 
 

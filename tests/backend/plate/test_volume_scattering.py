@@ -95,13 +95,14 @@ def test_the_phase_cells_are_kept_per_cells_and_g_and_the_slab_is_the_same():
     """`phase_cells` depends on the cells and g alone: a second slab with another absorption and scattering
     coefficient re-uses them (read-only), and its operators equal those of a slab made with none kept."""
     from relief_bsdf.plate import slab
+    from relief_bsdf.plate.memory import current_memory
     e = np.arange(0.0, 90.01, 5.0)
-    slab._PHASE_CACHE.clear()
+    current_memory().drop("phase")
     first = slab.phase_cells(e, 12, 0.6)
     assert slab.phase_cells(e, 12, 0.6) is first and not first[0].flags.writeable
     assert slab.phase_cells(e, 12, 0.5) is not first
     kept = slab.slab_operators(e, 12, 1e-3, 200.0, 80.0, 0.6)
-    slab._PHASE_CACHE.clear()
+    current_memory().drop("phase")
     fresh = slab.slab_operators(e, 12, 1e-3, 200.0, 80.0, 0.6)
     assert np.array_equal(kept.R, fresh.R) and np.array_equal(kept.T, fresh.T)
     np.testing.assert_allclose(slab.phase_cells(e, 12, 0.6)[1], first[1], rtol=0, atol=0)

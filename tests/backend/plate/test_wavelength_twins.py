@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from relief_bsdf.core.index import CauchyIndex, ConstantIndex, Material
-from relief_bsdf.plate import TABLE_CACHE, Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid, simulate
+from relief_bsdf.plate import current_memory, Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid, simulate
 from relief_bsdf.plate.deterministic import Rows, _SectorKernels, in_plane_rows
 from relief_bsdf.plate.faces import same_indices
 from relief_bsdf.surface.synth import random_relief
@@ -39,9 +39,9 @@ def test_same_indices_groups_wavelengths_by_index_pair_and_keeps_the_longest():
 def test_a_ray_face_without_dispersion_is_traced_once_at_the_longest_wavelength():
     face = ReliefFace(_rough(), method="ray", samples=4000, seed=1)
     mat = Material(ConstantIndex(1.5))
-    TABLE_CACHE.clear()
+    current_memory().drop("table")
     out3, in3 = face.tables(mat, GRID, WAVELENGTHS, [0.0, 30.0])
-    TABLE_CACHE.clear()
+    current_memory().drop("table")
     out1, in1 = face.tables(mat, GRID, [650.0], [0.0, 30.0])
     assert np.array_equal(in3.wavelength_nm, WAVELENGTHS)
     for three, one in ((out3, out1), (in3, in1)):
@@ -56,7 +56,7 @@ def test_a_dispersive_flat_face_keeps_fresnels_wavelength_dependence():
     """A flat relief traced by rays reflects exactly Fresnel's R at each wavelength's own index."""
     flat = random_relief(32, 1e-6, 1e-12, 4e-6, "gaussian", seed=0).scaled(0.0)
     idx = CauchyIndex(1.5, 4200.0)
-    TABLE_CACHE.clear()
+    current_memory().drop("table")
     out, _ = ReliefFace(flat, method="ray", samples=2000, seed=0).tables(Material(idx), GRID, WAVELENGTHS, [0.0])
     for k, w in enumerate(WAVELENGTHS):
         n = idx.n(w).real
@@ -67,9 +67,9 @@ def test_a_dispersive_flat_face_keeps_fresnels_wavelength_dependence():
 def test_the_plate_at_wavelengths_without_dispersion_is_the_plate_solved_at_one():
     ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(_rough(), method="ray", samples=4000, seed=1),
                           FlatFace()), Instrument(detector_half_angle_deg=2.0))
-    TABLE_CACHE.clear()
+    current_memory().drop("table")
     three = simulate(ex, _rows(WAVELENGTHS), grid=GRID).values_per_sr.reshape(3, -1)
-    TABLE_CACHE.clear()
+    current_memory().drop("table")
     one = simulate(ex, _rows([650.0]), grid=GRID).values_per_sr
     assert one.max() > 0
     for k in range(3):
@@ -82,7 +82,7 @@ def test_a_dispersive_plate_is_solved_at_each_wavelength():
     ex = Experiment(Plate(2e-3, idx, ReliefFace(flat, method="ray", samples=2000, seed=0), FlatFace()),
                     Instrument(detector_half_angle_deg=2.0))
     rows = Rows([450.0, 650.0], [0.0, 0.0], [0.0, 0.0], ["T", "T"], [0.0, 0.0], [0.0, 0.0])
-    TABLE_CACHE.clear()
+    current_memory().drop("table")
     t450, t650 = simulate(ex, rows, grid=GRID).values_per_sr
     # through two flat faces (incoherent sum of the internal reflections): T = (1 - R) / (1 + R) per face pair
     tr = []

@@ -74,14 +74,14 @@ class DiagnosisForward:
         """Pickled for worker processes (the candidate fits) with the baseline's boundary tables: a
         worker puts them in its own table cache (`__setstate__`) instead of deriving them again
         (seconds per worker and pool; the numbers are the same: the tables are data)."""
-        from relief_bsdf.plate.faces import TABLE_CACHE
+        from relief_bsdf.plate.memory import current_memory
         state = {k: v for k, v in self.__dict__.items() if not k.startswith("_screen")}   # made where used
-        return {**state, "_baseline_tables": TABLE_CACHE.tables(self._baseline_keys)}
+        return {**state, "_baseline_tables": current_memory().tables(self._baseline_keys)}
 
     def __setstate__(self, state: dict) -> None:
-        from relief_bsdf.plate.faces import TABLE_CACHE
+        from relief_bsdf.plate.memory import current_memory
         for key, table in state.pop("_baseline_tables", {}).items():
-            TABLE_CACHE.put(key, table)
+            current_memory().put(key, table)
         self.__dict__.update(state)
 
     def twin(self) -> "DiagnosisForward":
@@ -155,8 +155,8 @@ class DiagnosisForward:
     def baseline(self) -> tuple[np.ndarray, np.ndarray]:
         """(values, model sigma) of the sample as stated (computed once)."""
         if self._baseline is None:
-            from relief_bsdf.plate.faces import TABLE_CACHE
-            with TABLE_CACHE.recording() as used:
+            from relief_bsdf.plate.memory import current_memory
+            with current_memory().recording() as used:
                 self._baseline = self.simulate(self.experiment)
             self._baseline_keys = frozenset(used)
         return self._baseline

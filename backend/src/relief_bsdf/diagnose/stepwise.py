@@ -253,7 +253,7 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
     """(fits, screens) of a step's first round, in plan order.
 
     The round is one batch of tasks on the worker processes (the fits of candidates without parameters first),
-    except the screens whose probes' tables this process's cache (`plate.faces.TABLE_CACHE`)
+    except the screens whose probes' tables this process's memory owner (`plate.memory`)
     held at an earlier step (`held`: the table keys each screen used).  Those run here, beside the
     batch (plate solves only), each inside `TableCache.held_only`: a screen that needs a table this
     process does not hold (the current model changed the tables it builds on: a relief scale or a
@@ -273,12 +273,12 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
     from collections import deque
 
     from relief_bsdf.parallel.tasks import current_settings, in_worker, resolve_backend
-    from relief_bsdf.plate.faces import TABLE_CACHE, MissingTable
+    from relief_bsdf.plate.memory import MissingTable, current_memory
     settings = current_settings().updated(workers=workers)
     workers_here = (not in_worker() and settings.worker_count() > 1
                     and resolve_backend(None, settings) == "processes")
     here = [_task(*t, cur) for t in plan if t[1] is not None and workers_here
-            and TABLE_CACHE.holds(held.get(_screen_id(t)))]
+            and current_memory().holds(held.get(_screen_id(t)))]
     there = ([_task(*t, cur) for t in plan if t[1] is None]
              + [_task(*t, cur) for t in plan if t[1] is not None and t[0] not in {h[0] for h in here}])
     if here:
@@ -306,7 +306,7 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
                     _current_on_screens(mine, cur, here)
                     for t in here:
                         try:
-                            with TABLE_CACHE.held_only():
+                            with current_memory().held_only():
                                 mine_done.append((t, _step_task(mine, t)))
                         except MissingTable:
                             with lock:
@@ -325,7 +325,7 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
     for t in plan:
         r = result[t[0]]
         for key, table in r.pop("tables", {}).items():
-            TABLE_CACHE.put(key, table)
+            current_memory().put(key, table)
         if "table_keys" in r:
             held[_screen_id(t)] = r.pop("table_keys")
     return ([result[t[0]] for t in plan if t[1] is None], [result[t[0]] for t in plan if t[1] is not None])
@@ -357,20 +357,20 @@ def _step_task(forward, task: tuple) -> dict:
     process, those tables that are not the baseline's when they are small enough to be held there,
     `TableCache.worth_sending`; an InputError of the plate lists it as skipped)."""
     from relief_bsdf.parallel.tasks import in_worker
-    from relief_bsdf.plate.faces import TABLE_CACHE
+    from relief_bsdf.plate.memory import current_memory
     name, probes, cur, coarse = task
     if probes is None:
         return fit_effect(forward, get_effect(name), tuple(get_effect(e) for e in cur.effects), cur.values, coarse)
     try:
-        with TABLE_CACHE.recording() as used:
+        with current_memory().recording() as used:
             gain = line_gain(forward, cur, get_effect(name), probes)
     except InputError as err:
         return {"effect": name, "screen": None, "skipped": str(err)}
-    tables = TABLE_CACHE.tables(used)
+    tables = current_memory().tables(used)
     base = getattr(forward, "_baseline_keys", frozenset())
     new = {k: v for k, v in tables.items() if k not in base} if in_worker() else {}
     return {"effect": name, "screen": gain, "table_keys": tuple(tables),
-            "tables": new if TABLE_CACHE.worth_sending(new) else {}}
+            "tables": new if current_memory().worth_sending(new) else {}}
 
 
 def _clearly_needed(forward, step: Step, name: str, rest: tuple, vals: dict, n: int) -> bool:

@@ -77,6 +77,11 @@ class ParallelSettings:
     workers: local worker processes (or LocalCluster workers); None = $RELIEF_WORKERS or every core.
     checkpoint_dir: folder for per-task checkpoints; None = no checkpoints.
     retries: how often a failed task (or, locally, a crashed pool) is run again.
+    worker_memory_bytes: the byte budget each local worker's forward-model memory owner holds
+          (`plate.memory`; the job that starts the pool decides it from its total); None = that
+          module's default.
+    memory_gb: the memory a job may use, every process together (`--memory-gb`; None =
+          $RELIEF_MEMORY_GB, else 3.5: `plate.memory.job_memory_bytes`).
     Values are checked on construction (an `InputError` naming the CLI flag).
     """
 
@@ -85,6 +90,8 @@ class ParallelSettings:
     workers: int | None = None
     checkpoint_dir: str | None = None
     retries: int = 2
+    worker_memory_bytes: float | None = None
+    memory_gb: float | None = None
 
     def __post_init__(self) -> None:
         if self.backend is not None and self.backend not in BACKENDS:
@@ -99,6 +106,8 @@ class ParallelSettings:
         if int(self.retries) < 0:
             raise InputError("--retries", f"retries must be >= 0, got {self.retries}")
         object.__setattr__(self, "retries", int(self.retries))
+        if self.memory_gb is not None and not float(self.memory_gb) > 0:
+            raise InputError("--memory-gb", f"the memory budget must be > 0 GB, got {self.memory_gb}")
 
     def updated(self, **changes: Any) -> "ParallelSettings":
         """A copy with the given fields changed; a change of None keeps the field as it is
@@ -151,10 +160,15 @@ def add_parallel_args(parser: argparse.ArgumentParser) -> argparse.ArgumentParse
     if "--retries" not in have:
         g.add_argument("--retries", type=int, default=None, metavar="K",
                        help="run a failed or lost task again up to K times (default 2)")
+    if "--memory-gb" not in have:
+        g.add_argument("--memory-gb", type=float, default=None, metavar="GB",
+                       help="memory the job may use, every process together: what the forward model keeps and "
+                            "how many workers run at once follow from it (default 3.5, or $RELIEF_MEMORY_GB)")
     return parser
 
 
 def settings_from_args(args: argparse.Namespace, base: ParallelSettings = DEFAULT_SETTINGS) -> ParallelSettings:
     """`base` with the flags of `add_parallel_args` that were given (absent flags keep `base`'s)."""
     return base.updated(dask=getattr(args, "dask", None), workers=getattr(args, "workers", None),
-                        checkpoint_dir=getattr(args, "checkpoint_dir", None), retries=getattr(args, "retries", None))
+                        checkpoint_dir=getattr(args, "checkpoint_dir", None), retries=getattr(args, "retries", None),
+                        memory_gb=getattr(args, "memory_gb", None))

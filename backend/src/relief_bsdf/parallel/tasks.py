@@ -399,9 +399,9 @@ def has_kept_workers(context: Any, workers: int | None = None) -> bool:
     return resolve_backend(None, s) == "processes" and s.worker_count() > 1
 
 
-def _new_pool(token: int, context: Any, workers: int) -> ProcessPoolExecutor:
-    return ProcessPoolExecutor(max_workers=workers, initializer=init_worker, initargs=(token, context, os.getpid()),
-                               mp_context=_pool_context())
+def _new_pool(token: int, context: Any, workers: int, memory_bytes: float | None = None) -> ProcessPoolExecutor:
+    return ProcessPoolExecutor(max_workers=workers, initializer=init_worker,
+                               initargs=(token, context, os.getpid(), memory_bytes), mp_context=_pool_context())
 
 
 def _run_processes(fn: Callable, context: Any, items: list[tuple[int, Any]], settings: ParallelSettings,
@@ -419,8 +419,9 @@ def _run_processes(fn: Callable, context: Any, items: list[tuple[int, Any]], set
             _stop_pool(kept.pool, kill=False)
             kept.pool = None
         if kept is not None and kept.pool is None:
-            kept.pool, kept.workers = _new_pool(token, context, workers), workers
-        pool = kept.pool if kept is not None else _new_pool(token, context, max(1, min(workers, len(pending))))
+            kept.pool, kept.workers = _new_pool(token, context, workers, settings.worker_memory_bytes), workers
+        pool = kept.pool if kept is not None else _new_pool(token, context, max(1, min(workers, len(pending))),
+                                                            settings.worker_memory_bytes)
         clean = False
         try:
             broken = yield from _pool_round(pool, fn, token, pending, workers)

@@ -17,7 +17,10 @@ never read to decide *where* tasks run (that is `ParallelSettings`, passed in):
 - `_CONTEXT`: shared context per pool token (set by `init_worker`, worker processes only);
 - `_IN_WORKER`: this whole process is a local pool worker;
 - `_LOCAL.in_task`: this thread runs a task (a Dask worker thread, maybe in-process);
-- `_WORKER_CACHE`: the `worker_cached` objects (at most 9, then cleared).
+- `_WORKER_CACHE`: the `worker_cached` objects (at most 9, then cleared);
+- `_PROCESS_OBJECTS`: one object per name for the life of the process (`process_object`: the
+  forward model's memory owner outside a job, `plate.memory`), never cleared;
+- `_WORKER_MEMORY`: the byte budget the job gave its workers' memory owners (`init_worker`).
 """
 from __future__ import annotations
 
@@ -37,6 +40,8 @@ _IN_WORKER = False
 _LOCAL = threading.local()
 _WORKER_CACHE: dict[Any, Any] = {}
 _CACHE_LIMIT = 8
+_PROCESS_OBJECTS: dict[str, Any] = {}
+_WORKER_MEMORY: list[float | None] = [None]
 
 
 def task_rng(seed: int, *key: int) -> np.random.Generator:
@@ -56,6 +61,18 @@ def worker_cached(key: Any, build: Callable[[], Any]) -> Any:
             _WORKER_CACHE.clear()
         _WORKER_CACHE[key] = build()
     return _WORKER_CACHE[key]
+
+
+def process_object(name: str, build: Callable[[], Any]) -> Any:
+    """The process's one object called `name`, built on first use and kept for the life of the process."""
+    if name not in _PROCESS_OBJECTS:
+        _PROCESS_OBJECTS[name] = build()
+    return _PROCESS_OBJECTS[name]
+
+
+def worker_memory_bytes() -> float | None:
+    """The byte budget the job gave this worker's forward-model memory (None outside a pool worker)."""
+    return _WORKER_MEMORY[0]
 
 
 def forget_worker_cached(key: Any) -> None:
@@ -79,12 +96,14 @@ def running_task() -> Iterator[None]:
         _LOCAL.in_task = old
 
 
-def init_worker(token: int, context: Any, owner_pid: int | None = None) -> None:
+def init_worker(token: int, context: Any, owner_pid: int | None = None, memory_bytes: float | None = None) -> None:
     """Initializer of a local pool worker: keep the context, ignore Ctrl-C, one thread per library,
-    and exit when the run that owns the pool (`owner_pid`) is gone."""
+    hold the forward model's memory to `memory_bytes` (the job's share for each worker), and exit
+    when the run that owns the pool (`owner_pid`) is gone."""
     global _IN_WORKER
-    _CONTEXT[token] = context
     _IN_WORKER = True
+    _WORKER_MEMORY[0] = memory_bytes
+    _CONTEXT[token] = context
     # Ctrl-C goes to the whole process group: the parent handles it and terminates us
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # numerical libraries inside a worker use one thread each: the pool already fills the cores

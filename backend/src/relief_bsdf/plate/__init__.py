@@ -9,6 +9,7 @@
 
 - `plate.description`: the data (Experiment, Plate, Bulk, Instrument);
 - `plate.faces`: FlatFace, ReliefFace, TableFace, MicrofacetFace (tables + photon interaction);
+- `plate.memory`: ForwardMemory, the one owner of everything the engines keep (byte budget);
 - `plate.choice`: DEFAULT_METHOD = "auto" and its resolution (the relief's own physics, once);
 - `plate.grid`: TableGrid, the tables' axes = the deterministic discretisation;
 - `plate.deterministic`: radiative transfer between the faces' tables (adding / azimuthal modes);
@@ -22,14 +23,14 @@ arrays (a Recording, `Rows`, `in_plane_rows(...)`); values follow formats.md's g
 definition f = P / (P_inc Omega cos theta_s).
 """
 from relief_bsdf.plate.description import SOURCE_Q, Bulk, Experiment, Instrument, Plate
-from relief_bsdf.plate.faces import (TABLE_CACHE, FlatFace, MicrofacetFace, PhotonContext, ReliefFace, TableFace,
-                                     relief_digest)
+from relief_bsdf.plate.faces import FlatFace, MicrofacetFace, PhotonContext, ReliefFace, TableFace, relief_digest
+from relief_bsdf.plate.memory import ForwardMemory, current_memory
 from relief_bsdf.plate.grid import TableGrid
 from relief_bsdf.plate.deterministic import Rows, check_rows, flat_tables, in_plane_rows
 from relief_bsdf.plate.simulate import Simulated, experiment_from_sample, simulate
 from relief_bsdf.plate.choice import DEFAULT_METHOD, chosen_lines, resolve_auto
 
 __all__ = ["Experiment", "Plate", "Bulk", "Instrument", "SOURCE_Q", "FlatFace", "ReliefFace", "TableFace",
-           "MicrofacetFace", "PhotonContext", "TABLE_CACHE", "relief_digest", "TableGrid", "Rows", "in_plane_rows",
+           "MicrofacetFace", "PhotonContext", "ForwardMemory", "current_memory", "relief_digest", "TableGrid", "Rows", "in_plane_rows",
            "check_rows", "flat_tables", "Simulated", "simulate", "experiment_from_sample",
            "DEFAULT_METHOD", "resolve_auto", "chosen_lines"]

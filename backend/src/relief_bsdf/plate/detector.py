@@ -393,16 +393,16 @@ class _SubPoints:
         return np.stack([sz * np.cos(ph), sz * np.sin(ph), cz], 1)
 
 
-_SUB_CACHE: dict = {}
-
-
 def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int | None = None) -> _SubPoints:
     """k equal-solid-angle sub-rings per cell, and k x (cell width / narrowest width) azimuth sub-points
     (a wide cell is cut as finely as a narrow one); weights: the cell's solid angle shared equally."""
+    from relief_bsdf.plate.memory import current_memory
     k = int(k or SUB_POINTS)
-    key = (theta_edges_deg.tobytes(), delta_edges_deg.tobytes(), k)
-    if key in _SUB_CACHE:
-        return _SUB_CACHE[key]
+    key = ("detector sub-points", theta_edges_deg.tobytes(), delta_edges_deg.tobytes(), k)
+    return current_memory().get(key, lambda: _make_sub_points(theta_edges_deg, delta_edges_deg, k), "detector")
+
+
+def _make_sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int) -> _SubPoints:
     ct = np.cos(np.radians(theta_edges_deg))
     u = (np.arange(k) + 0.5) / k
     cos_sub = (ct[:-1, None] + u[None] * (ct[1:] - ct[:-1])[:, None]).ravel()          # (S k,) equal solid angle
@@ -416,11 +416,7 @@ def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int
     if np.any(np.diff(ph_sub) <= 0) or ph_sub[-1] - ph_sub[0] >= 2 * np.pi:
         raise ValueError("cone sub-points: the azimuth edges must increase within one turn")
     t_sub = np.arccos(np.clip(cos_sub, -1, 1))
-    pts = _SubPoints(cos_sub, t_sub, ring_sub, ph_sub, az_sub, cell_sr / (k * per)[None, :])
-    if len(_SUB_CACHE) > 4:
-        _SUB_CACHE.clear()
-    _SUB_CACHE[key] = pts
-    return pts
+    return _SubPoints(cos_sub, t_sub, ring_sub, ph_sub, az_sub, cell_sr / (k * per)[None, :])
 
 
 def direct_reading(field: DirectField, side: np.ndarray, theta_s: np.ndarray, delta_s: np.ndarray,
@@ -450,20 +446,21 @@ def direct_reading(field: DirectField, side: np.ndarray, theta_s: np.ndarray, de
     return out / (cone_solid_angle(det.detector_half_angle_deg) * np.cos(np.radians(theta_s)))
 
 
-_WEIGHT_CACHE: dict = {}
-
-
 def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, delta_s: np.ndarray,
                      det: Any, side: str) -> tuple:
     """(row, idx, inv, response, gather, weight_sr, cos_theta) of the rows' cones on one side: the (row,
     sub-point idx[inv], response) triplets, idx the sub-points seen (sorted, each once), where they read
     the cells (`DirectField.gather`), and their solid angles and cos theta.  The same for every
-    evaluation of a fit (rows, cells, index ratio and instrument fixed), so they are kept (a few entries)."""
-    key = (field.theta_edges_deg.tobytes(), field.delta_edges_deg.tobytes(), theta_s.tobytes(), delta_s.tobytes(),
+    evaluation of a fit (rows, cells, index ratio and instrument fixed), so the memory owner keeps them."""
+    from relief_bsdf.plate.memory import current_memory
+    key = ("detector weights", field.theta_edges_deg.tobytes(), field.delta_edges_deg.tobytes(), theta_s.tobytes(), delta_s.tobytes(),
            float(det.detector_half_angle_deg), float(det.blur_deg), pts.size, side,
            float(field.eta) if side == "T" else None)
-    if key in _WEIGHT_CACHE:
-        return _WEIGHT_CACHE[key]
+    return current_memory().get(key, lambda: _make_reading_weights(pts, field, theta_s, delta_s, det, side), "detector")
+
+
+def _make_reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, delta_s: np.ndarray,
+                          det: Any, side: str) -> tuple:
     h = np.radians(det.detector_half_angle_deg)
     reach = min(support_rad(det.detector_half_angle_deg, det.blur_deg) + float(np.sqrt(pts.max_weight_sr)), np.pi)
     q = unit(theta_s, delta_s)
@@ -477,11 +474,7 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
     keep = wt > 0
     col = col[keep]
     idx, where = _each_once(col, pts.size)          # the sub-points read
-    out = (row[keep], idx, where[col], wt[keep], field.gather(side, pts, idx), pts.weight_sr(idx), pts.cos_theta(idx))
-    if len(_WEIGHT_CACHE) > 16:
-        _WEIGHT_CACHE.clear()
-    _WEIGHT_CACHE[key] = out
-    return out
+    return row[keep], idx, where[col], wt[keep], field.gather(side, pts, idx), pts.weight_sr(idx), pts.cos_theta(idx)
 
 
 def _each_once(col: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:

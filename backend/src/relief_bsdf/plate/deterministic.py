@@ -614,9 +614,6 @@ def _snell_deg(theta_deg: Any, n1: float, n2: float) -> np.ndarray:
 
 # ---------------------------------------------------------------- volume scattering (plate.slab)
 
-_SLAB_CACHE: dict = {}
-
-
 def _kron4(X: np.ndarray) -> np.ndarray:
     """(M, N, N) scalar operators -> (M, 4N, 4N) acting on Stokes vectors unchanged (scalar phase function)."""
     M, N, _ = X.shape
@@ -632,12 +629,10 @@ def _slab_system(m: "PlateModel", theta_edges: np.ndarray, A: int, Kb: np.ndarra
     Without scattering Rv = 0, Tv = diag(exp(-a t / mu)) and this is the diagonal loop.
     """
     from relief_bsdf.plate.slab import slab_operators
-    key = (tuple(np.round(theta_edges, 9)), int(A), m.thickness_m, m.absorption_per_m, m.scatter_per_m, m.hg_g)
-    if key not in _SLAB_CACHE:
-        if len(_SLAB_CACHE) > 8:
-            _SLAB_CACHE.clear()
-        _SLAB_CACHE[key] = slab_operators(theta_edges, A, m.thickness_m, m.absorption_per_m, m.scatter_per_m, m.hg_g)
-    sl = _SLAB_CACHE[key]
+    from relief_bsdf.plate.memory import current_memory
+    key = ("slab", tuple(np.round(theta_edges, 9)), int(A), m.thickness_m, m.absorption_per_m, m.scatter_per_m, m.hg_g)
+    sl = current_memory().get(key, lambda: slab_operators(theta_edges, A, m.thickness_m, m.absorption_per_m,
+                                                          m.scatter_per_m, m.hg_g), "slab")
     Rv, Tv, Td = (sl.R, sl.T, sl.T_diffuse) if c == 1 else (_kron4(sl.R), _kron4(sl.T), _kron4(sl.T_diffuse))
     eye = np.eye(Rv.shape[1])[None]
     B = np.linalg.solve(eye - Rv @ R2, Tv)
@@ -802,6 +797,18 @@ class PlateSolver:
         # far half of azimuths (`far_side`, `plate.faces.half_turned_outside`; set by `solver_of`), or None:
         # those rows are then read from this solver's phi_i = 0 table turned by their azimuth
         self.half_turn: "PlateSolver | None" = None
+
+    def memory_bytes(self) -> int:
+        """Bytes this solver holds of its own (its operators, their factors, the fields kept per wavelength;
+        `plate.memory`): its tables count here only where the memory owner does not hold them itself, and
+        the half-turned solver is an entry of its own."""
+        from relief_bsdf.plate.memory import current_memory, deep_nbytes
+        memory = current_memory()
+        seen: set = set()
+        own = deep_nbytes((self._ops, self._tops, self._twins), seen)
+        tables = [t for t in (self.inside, self.outside, self.back, self.inside_sectors)
+                  if t is not None and memory.key_of(t) is None]
+        return own + deep_nbytes(tables, seen)
 
     # -- per wavelength operators
     def _table_ops(self, wl: float) -> dict:
@@ -1711,8 +1718,6 @@ def front_tables(experiment: Any, grid: Any, wl: Any, ti: Any, traced: bool, pro
     return p.front.tables(p.material, grid, wl, ti, need_outside=True, progress=progress, beam_divergence_deg=beam)
 
 
-_SOLVERS: list = []          # (tables, plate fields, solver): the last few, newest last
-_SOLVERS_KEPT = 6            # a tilt's pair (its solver, the half-turned one: `solver_of`) shares the loop's operators
 _SOLVED_KEPT = 8             # unit-source fields kept per wavelength's operators (`PlateSolver.solve`) ...
 _SOLVED_BYTES = 150e6        # ... and their bytes at most (a beam divergence's many incidences: not kept)
 _BULK_FIELDS = ("thickness_m", "absorption_per_m", "scatter_per_m", "hg_g")    # act on `_operators` alone
@@ -1720,44 +1725,64 @@ _INSTRUMENT_FIELDS = ("detector_half_angle_deg", "polarization", "background_per
                       "cone_points", "beam_divergence_deg")
 
 
+def _table_token(memory: Any, table: BsdfTable | None) -> tuple | None:
+    """What names a table in a solver's key: the memory owner's key of it (its content), else the object
+    itself (a table the caller made: the solver holds it, so its id is not reused while the solver is held)."""
+    if table is None:
+        return None
+    return memory.key_of(table) or ("object", id(table))
+
+
 def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | None,
                    back: BsdfTable | None, sectors: BsdfTable | None = None, keep: bool = True) -> PlateSolver:
     """A PlateSolver whose per-wavelength operators (round-trip system, exit maps) are those of an
-    earlier solver on the SAME table objects and the same plate (thickness, indices, bulk, grid):
-    they do not depend on the instrument (source polarisation, cone, blur, tilt, stray light),
-    which acts only on the incident Stokes vector and the detector reading.  A fit or diagnosis
-    that changes only the instrument then reuses them.  Short of that: the same tables with another
-    bulk (absorption, thickness, volume scattering) share the tables' part (`PlateSolver._table_ops`);
-    another outside table on the same loop tables and plate (a tilt) shares the loop's operators
-    (`PlateSolver.with_outside`).  The numbers are always those of a fresh solver.  A new solver is
-    kept among the last `_SOLVERS_KEPT` unless `keep` is False."""
+    earlier solver on the same tables (by content: the memory owner's keys) and the same plate
+    (thickness, indices, bulk, grid): they do not depend on the instrument (source polarisation,
+    cone, blur, tilt, stray light), which acts only on the incident Stokes vector and the detector
+    reading.  A fit or diagnosis that changes only the instrument then reuses them.  Short of that:
+    the same tables with another bulk (absorption, thickness, volume scattering) share the tables'
+    part (`PlateSolver._table_ops`); another outside table on the same loop tables and plate (a tilt)
+    shares the loop's operators (`PlateSolver.with_outside`).  The numbers are always those of a fresh
+    solver.  A new solver is held by the memory owner (`plate.memory`, kind "solver") unless `keep` is
+    False; `run` measures it again once it has solved."""
+    from relief_bsdf.plate.memory import current_memory
+    memory = current_memory()
     plate = tuple((f, getattr(model, f)) for f in PlateModel.__dataclass_fields__ if f not in _INSTRUMENT_FIELDS)
-    tables = (inside, outside, back, sectors)
-    for i, (t, key, solver) in enumerate(_SOLVERS):
-        if all(a is b for a, b in zip(t, tables)) and key == plate:
-            _SOLVERS.append(_SOLVERS.pop(i))
+    tokens = tuple(_table_token(memory, t) for t in (inside, outside, back, sectors))
+    held = [(k[1], k[2], v) for k, v in memory.entries("solver")]          # (tokens, plate, solver), oldest first
+    for t, key, solver in reversed(held):
+        if t == tokens and key == plate:
+            memory.touch(("solver", t, key))
             new = copy.copy(solver)          # shares the operators (solver._ops), carries the new instrument
             new.model = model
             return new
     tabs = tuple((f, getattr(model, f)) for f, _ in plate if f not in _BULK_FIELDS)
-    for t, key, solver in reversed(_SOLVERS):     # the same tables, another bulk (an absorption)
-        if all(a is b for a, b in zip(t, tables)) and tuple(kv for kv in key if kv[0] not in _BULK_FIELDS) == tabs:
+    for t, key, solver in reversed(held):     # the same tables, another bulk (an absorption)
+        if t == tokens and tuple(kv for kv in key if kv[0] not in _BULK_FIELDS) == tabs:
             new = copy.copy(solver)
             new.model, new._ops = model, {}        # the bulk's part anew, the tables' part (solver._tops) shared
-            return _kept(tables, plate, new, keep)
-    for t, key, solver in reversed(_SOLVERS):     # same loop tables, another outside table (a tilt)
-        if (key == plate and t[0] is inside and t[2] is back and t[3] is sectors and outside is not None
-                and t[1] is not None and outside.is_polarized == t[1].is_polarized):
-            return _kept(tables, plate, solver.with_outside(model, outside), keep)
-    return _kept(tables, plate, PlateSolver(model, inside, outside, back=back, inside_sectors=sectors), keep)
+            return _kept(memory, tokens, plate, new, keep)
+    for t, key, solver in reversed(held):     # same loop tables, another outside table (a tilt)
+        if (key == plate and t[0] == tokens[0] and t[2] == tokens[2] and t[3] == tokens[3] and outside is not None
+                and t[1] is not None and outside.is_polarized == solver.outside.is_polarized):
+            return _kept(memory, tokens, plate, solver.with_outside(model, outside), keep)
+    return _kept(memory, tokens, plate, PlateSolver(model, inside, outside, back=back, inside_sectors=sectors), keep)
 
 
-def _kept(tables: tuple, plate: tuple, solver: PlateSolver, keep: bool = True) -> PlateSolver:
-    """Remember `solver` (newest last, the last _SOLVERS_KEPT only; not when `keep` is False) and return it."""
+def _kept(memory: Any, tokens: tuple, plate: tuple, solver: PlateSolver, keep: bool = True) -> PlateSolver:
+    """Hold `solver` in the memory owner under its tables' tokens and plate (not when `keep` is False)."""
     if keep:
-        _SOLVERS.append((tables, plate, solver))
-        del _SOLVERS[:-_SOLVERS_KEPT]
+        memory.put(("solver", tokens, plate), solver, "solver")
+        solver.memory_key = ("solver", tokens, plate)
     return solver
+
+
+def refresh_solver(solver: PlateSolver) -> None:
+    """Measure a held solver again after it solved (its operators are made lazily) and evict to the budget."""
+    from relief_bsdf.plate.memory import current_memory
+    key = getattr(solver, "memory_key", None)
+    if key is not None:
+        current_memory().refresh(key)
 
 
 def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str = "recording",
@@ -1768,6 +1793,9 @@ def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str 
     from relief_bsdf.plate.faces import isotropy_warning
     solver = solver_of(experiment, rows, grid, progress, keep_solver)
     vals = simulate_rows(solver.model, solver.inside, solver.outside, rows, solver=solver, where=where)
+    for s in (solver, solver.half_turn):
+        if s is not None:
+            refresh_solver(s)
     info = {"engine": "deterministic", "grid": grid.describe()}
     sectors = solver.inside_sectors
     if sectors is not None:                  # the loop meets the relief by azimuth sector (plate.faces.inside_sectors)

@@ -25,16 +25,13 @@ Protocol (duck-typed, four implementations):
   microfacet method at that alpha; photons by sampling Beckmann normals (core.microfacet) with
   one Fresnel event on the sampled facet, Smith masking G1 of both directions as the weight.
 
-Tables are cached in memory (`TABLE_CACHE`) by everything that determines them: the relief's
-content digest, method, options, grid, material, wavelengths, incidences, samples, seed.
+Tables are kept by the forward model's one memory owner (`plate.memory.current_memory()`) under
+everything that determines them: the relief's content digest, method, options, grid, material,
+wavelengths, incidences, samples, seed.
 """
 from __future__ import annotations
 
-import contextlib
-import contextvars
-import hashlib
 import json
-from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
@@ -45,6 +42,8 @@ from relief_bsdf.core.fresnel import mueller_interface
 from relief_bsdf.core.index import Material
 from relief_bsdf.errors import InputError
 from relief_bsdf.plate.grid import TableGrid
+from relief_bsdf.plate.memory import MissingTable, current_memory
+from relief_bsdf.surface.digest import relief_digest as _digest
 from relief_bsdf.surface.relief import Relief
 
 TRACED_METHODS = ("ray",)          # methods whose photons trace the relief itself
@@ -53,116 +52,9 @@ THREADED_METHODS = ("microfacet",)  # analytic tables computed on this process's
                                     # ~2 s) costs less than starting worker processes
 
 
-class MissingTable(BaseException):
-    """A table this process does not hold was asked for inside `TableCache.held_only` (a BaseException:
-    no `except Exception` on the way may take it for a failed derivation and fall back to other physics)."""
-
-
-_HELD_ONLY: contextvars.ContextVar = contextvars.ContextVar("held_only", default=False)
-
-
-class TableCache:
-    """In-memory LRU cache of derived tables (key: a tuple of everything that determines them), held
-    to `maxsize` entries and `max_bytes` of table arrays (the least recently used go first).
-
-    A diagnosis screens each budgeted candidate at the same probe values at every step (its tables
-    re-derived at each step cost it ~5 s per probe on a Gaussian relief, 17 s with sector tables),
-    and one probe holds 4-5 entries (outside, inside, azimuth probe, sector tables, the relief's
-    BVH): the budget keeps most of a step's probes for the next (~1.5 GB for 16 probes of a Gaussian relief;
-    a relief with sector tables needs ~0.5 GB per probe, and its plate solvers hold ~1.5 GB each, so a
-    larger budget ran a seed-10 dots diagnosis out of 24 GB with the main process at 10.5 GB)."""
-
-    def __init__(self, maxsize: int = 160, max_bytes: float = 1.5e9):
-        self.maxsize = maxsize
-        self.max_bytes = max_bytes
-        self._d: OrderedDict = OrderedDict()
-        self._bytes: dict = {}           # key -> bytes of its table arrays
-        self._total = 0                  # their sum
-        self._recorders: list[set] = []
-        self.hits = 0
-        self.misses = 0
-
-    def get(self, key: tuple, make: Callable[[], Any]) -> Any:
-        for used in self._recorders:
-            used.add(key)
-        if key in self._d:
-            self._d.move_to_end(key)
-            self.hits += 1
-            return self._d[key]
-        if _HELD_ONLY.get():
-            raise MissingTable(key)
-        self.misses += 1
-        v = make()
-        self.put(key, v)
-        return v
-
-    def put(self, key: tuple, value: Any) -> None:
-        self._d[key] = value
-        self._d.move_to_end(key)
-        self._total -= self._bytes.get(key, 0)
-        self._bytes[key] = _table_bytes(value)
-        self._total += self._bytes[key]
-        while len(self._d) > 1 and (len(self._d) > self.maxsize or self._total > self.max_bytes):
-            old, _ = self._d.popitem(last=False)
-            self._total -= self._bytes.pop(old, 0)
-
-    @contextlib.contextmanager
-    def held_only(self):
-        """Inside the block (this thread's context only) a table that is not held is not derived: `get`
-        raises MissingTable instead, so a caller can hand the work to a process that will derive it."""
-        token = _HELD_ONLY.set(True)
-        try:
-            yield
-        finally:
-            _HELD_ONLY.reset(token)
-
-    @contextlib.contextmanager
-    def recording(self):
-        """Collect the keys of every table asked for inside the block (a set, filled as they come)."""
-        used: set = set()
-        self._recorders.append(used)
-        try:
-            yield used
-        finally:      # by identity: nested blocks may hold equal sets (list.remove compares by value)
-            self._recorders[:] = [r for r in self._recorders if r is not used]
-
-    def tables(self, keys: Any) -> dict:
-        """{key: table} of those of `keys` still held whose value is a table (data that can travel to a
-        worker process: `put` there spares it the tables' derivation).  One read per key: another thread
-        of this process may put or evict meanwhile (a prefetch's own group beside a pool that starts)."""
-        return {k: t for k in keys if isinstance(t := self._d.get(k), BsdfTable)}
-
-    def worth_sending(self, tables: dict) -> bool:
-        """Whether a worker's tables are small enough to be sent to this cache and held: at most a sixth
-        of the byte budget (a step's screens must not evict one another; a probe with sector tables,
-        ~0.5 GB, is re-derived instead: that much per probe through a pipe cost more than it saved)."""
-        return sum(_table_bytes(t) for t in tables.values()) <= self.max_bytes / 6
-
-    def holds(self, keys: Any) -> bool:
-        """Whether every one of `keys` is held (False for None or no keys)."""
-        return bool(keys) and all(k in self._d for k in keys)
-
-    def clear(self) -> None:
-        self._d.clear()
-        self._bytes.clear()
-        self._total = 0
-
-
-def _table_bytes(value: Any) -> int:
-    """Bytes of a cached table's arrays (0 for what is not a table: a BVH, a verdict)."""
-    if not isinstance(value, BsdfTable):
-        return 0
-    return int(sum(a.nbytes for a in vars(value).values() if isinstance(a, np.ndarray)))
-
-
-TABLE_CACHE = TableCache()
-
-
 def relief_digest(relief: Relief) -> str:
-    """Content digest of a relief (heights, pitch, periodicity): the cache key of its tables."""
-    h = hashlib.sha1(np.ascontiguousarray(relief.heights_m, dtype=np.float64).tobytes())
-    h.update(repr((relief.shape, float(relief.dx_m), float(relief.dy_m), bool(relief.periodic))).encode())
-    return h.hexdigest()
+    """Content digest of a relief (`surface.digest`, the project's one): the cache key of its tables."""
+    return _digest(relief)
 
 
 ANISOTROPY_WARN = 1.3      # principal rms-slope ratio above which the isotropic-table assumption is flagged (the
@@ -384,7 +276,7 @@ def projected_solid_angle_cells(theta_edges_deg: Any, phi_edges_deg: Any) -> np.
 
 
 def _sample_from_tables(out_t: BsdfTable | None, in_t: BsdfTable, d: np.ndarray, S: np.ndarray, ctx: PhotonContext,
-                        rng: np.random.Generator, samplers: dict) -> FaceEvent:
+                        rng: np.random.Generator) -> FaceEvent:
     """Face event drawn from the face's (outside, inside) tables (TableSampler) for photons `d`."""
     nd = np.empty_like(d)
     nS = np.empty_like(S)
@@ -396,15 +288,16 @@ def _sample_from_tables(out_t: BsdfTable | None, in_t: BsdfTable, d: np.ndarray,
             continue
         if table is None:
             raise InputError("plate", "this face has no table for light from outside")
-        key = (id(table), ctx.wavelength_nm)
-        if key not in samplers or samplers[key][0] is not table:      # the table is kept: its id is not reused
-            if len(samplers) > 32:
-                samplers.clear()
-            samplers[key] = (table, TableSampler(table, ctx.wavelength_nm))
+        memory = current_memory()
+        key = ("sampler", id(table), ctx.wavelength_nm)
+        held = memory.peek(key)
+        if held is None or held[0] is not table:         # the table is held beside it: its id is not reused
+            held = (table, TableSampler(table, ctx.wavelength_nm))
+            memory.put(key, held, "sampler")
         dm = d[m]
         th_in = np.degrees(np.arccos(np.clip(np.abs(dm[:, 2]), 0, 1)))
         ph_in = np.degrees(np.arctan2(-dm[:, 1], -dm[:, 0]))          # azimuth of the incident direction
-        refl, is_delta, th, ph, S2 = samplers[key][1].sample(th_in, ph_in, S[m], rng)
+        refl, is_delta, th, ph, S2 = held[1].sample(th_in, ph_in, S[m], rng)
         n1, n2 = (ctx.n_glass, ctx.n_outside) if inside else (ctx.n_outside, ctx.n_glass)
         snell = np.degrees(np.arcsin(np.clip(np.sin(np.radians(th_in)) * n1 / n2, 0, 1)))
         th = np.where(is_delta, np.where(refl, th_in, snell), th)
@@ -439,7 +332,7 @@ def _derive(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths
     out = (_derive_outside(face, material, grid, wl, theta_i_outside_deg, progress, beam_divergence_deg)
            if need_outside else None)
     f_in = inside_face(face, material, grid, wl, progress)
-    ins = TABLE_CACHE.get((f_in.cache_key(),) + base[1:] + ("inside",),
+    ins = current_memory().get((f_in.cache_key(),) + base[1:] + ("inside",),
                           lambda: _reconstruct_side(f_in, material, grid, wl, grid.inside_incidences_deg(), "inside",
                                                     progress))
     return out, ins
@@ -469,7 +362,7 @@ def _derive_outside(face: "ReliefFace", material: Material, grid: TableGrid, wav
     th = tuple(float(t) for t in np.unique(np.asarray(theta_i_outside_deg, float)))
     beam = float(beam_divergence_deg) if face.method == "ray" else 0.0
     key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "outside", th)
-    return TABLE_CACHE.get(key + (("beam", beam) if beam else ()),
+    return current_memory().get(key + (("beam", beam) if beam else ()),
                            lambda: _reconstruct_side(face, material, grid, wl, th, "outside", progress, beam))
 
 
@@ -567,7 +460,7 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
                    options={**face.options, "phi_i_spread_deg": 0.5 * step})
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
     key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, SECTORS_KEY, azimuths)
-    return TABLE_CACHE.get(key, lambda: _reconstruct_side(face, material, grid, wl, grid.inside_incidences_deg(),
+    return current_memory().get(key, lambda: _reconstruct_side(face, material, grid, wl, grid.inside_incidences_deg(),
                                                           "inside", progress, phi_i_deg=azimuths))
 
 
@@ -612,7 +505,7 @@ def azimuth_dependent(face: "ReliefFace", material: Material, grid: TableGrid, w
     wl = (float(np.median(np.asarray(wavelengths_nm, float))),)
     key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "azimuth_probe", PROBE_THETA_DEG,
            PROBE_AZIMUTH_DEG)
-    t = TABLE_CACHE.get(key, lambda: _reconstruct_side(face, material, grid, wl, (PROBE_THETA_DEG,), "inside",
+    t = current_memory().get(key, lambda: _reconstruct_side(face, material, grid, wl, (PROBE_THETA_DEG,), "inside",
                                                        progress, phi_i_deg=(0.0, PROBE_AZIMUTH_DEG)))
     return azimuth_probe_l1(t) > PROBE_L1
 
@@ -728,18 +621,16 @@ def _trace_here(face: "ReliefFace") -> bool:
     return current_settings().backend not in ("dask",) and not current_settings().dask
 
 
-_TRACERS: OrderedDict = OrderedDict()
-
-
 def _topology_tracer(relief: Relief, request: Any) -> Any:
     """This process's ReliefTracer for the relief's grid (shape, pitch, periodicity, mesh options),
     its heights set to `relief` (`ReliefTracer.update_heights`: z rewritten, BVH refitted in place;
-    `with_heights` where the Embree buffers are embreex's own).  Two tracers at most are kept."""
+    `with_heights` where the Embree buffers are embreex's own), kept by the memory owner."""
     from relief_bsdf.methods.ray import ReliefTracer
     opts = request.options_for("ray")
-    key = (relief.shape, float(relief.dx_m), float(relief.dy_m), bool(relief.periodic), opts.max_bounces,
-           json.dumps(opts.fill_holes))
-    tr = _TRACERS.get(key)
+    key = ("topology tracer", relief.shape, float(relief.dx_m), float(relief.dy_m), bool(relief.periodic),
+           opts.max_bounces, json.dumps(opts.fill_holes))
+    memory = current_memory()
+    tr = memory.peek(key)
     if tr is None:
         tr = ReliefTracer(relief, opts.max_bounces, opts.fill_holes)
     elif tr.relief is not relief and relief_digest(tr.relief) != relief_digest(relief):
@@ -747,10 +638,7 @@ def _topology_tracer(relief: Relief, request: Any) -> Any:
             tr.update_heights(relief)
         except RuntimeError:                 # buffers owned by embreex: a new scene on the same topology
             tr = tr.with_heights(relief)
-    _TRACERS[key] = tr
-    _TRACERS.move_to_end(key)
-    while len(_TRACERS) > 2:
-        _TRACERS.popitem(last=False)
+    memory.put(key, tr, "tracer")
     return tr
 
 
@@ -788,7 +676,7 @@ class FlatFace:
                                grid.phi_edges_deg())
             return (o if need_outside else None), i
         key = ("flat",) + _table_args_key(material, grid, wavelengths_nm, theta_i_outside_deg, need_outside)
-        return TABLE_CACHE.get(key, make)
+        return current_memory().get(key, make)
 
     def interact(self, d: np.ndarray, S: np.ndarray, from_inside: Any, ctx: PhotonContext,
                  rng: np.random.Generator) -> FaceEvent:
@@ -859,20 +747,17 @@ class ReliefFace:
     def tracer(self) -> Any:
         """The relief's ReliefTracer (BVH built once per relief content)."""
         from relief_bsdf.methods.ray import ReliefTracer
-        return TABLE_CACHE.get(("tracer", relief_digest(self.relief)), lambda: ReliefTracer(self.relief))
+        return current_memory().get(("tracer", relief_digest(self.relief)), lambda: ReliefTracer(self.relief), "tracer")
 
     def interact(self, d: np.ndarray, S: np.ndarray, from_inside: Any, ctx: PhotonContext,
                  rng: np.random.Generator) -> FaceEvent:
         if self.method not in TRACED_METHODS:
             out_t, in_t = self.tables(ctx.material, ctx.grid, [ctx.wavelength_nm], ctx.theta_i_outside_deg, True)
-            return _sample_from_tables(out_t, in_t, d, S, ctx, rng, _SAMPLERS)
+            return _sample_from_tables(out_t, in_t, d, S, ctx, rng)
         r = self.tracer().scatter(d, ctx.n_outside, ctx.n_glass, rng, stokes=S)
         lost = np.asarray(r.lost, bool)
         return FaceEvent(np.asarray(r.dirs, float), np.asarray(r.stokes, float), np.asarray(r.above, bool) & ~lost,
                          lost)
-
-
-_SAMPLERS: dict = {}
 
 
 @dataclass(frozen=True, eq=False)
@@ -903,7 +788,7 @@ class TableFace:
 
     def interact(self, d: np.ndarray, S: np.ndarray, from_inside: Any, ctx: PhotonContext,
                  rng: np.random.Generator) -> FaceEvent:
-        return _sample_from_tables(self.outside, self.inside, d, S, ctx, rng, _SAMPLERS)
+        return _sample_from_tables(self.outside, self.inside, d, S, ctx, rng)
 
 
 @dataclass(frozen=True)

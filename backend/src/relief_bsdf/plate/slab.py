@@ -64,28 +64,23 @@ class SlabOperators:
         return self.T - np.eye(self.direct.size)[None] * self.direct[None, None, :]
 
 
-_PHASE_CACHE: dict = {}
-PHASE_CACHE_SIZE = 6     # entries of `phase_cells` kept (2 x N x N x A doubles each: 9 MB on the default grid)
-
-
 def phase_cells(theta_edges_deg: np.ndarray, azimuth_cells: int, g: float) -> tuple[np.ndarray, np.ndarray]:
     """(P_forward, P_backward), each (N_i, N_j, A): single-scattering cell probabilities (sum 1 per j).
 
     They depend on the cells and g alone, not on the absorption, the scattering coefficient or the
-    thickness, so the last PHASE_CACHE_SIZE are kept (read-only arrays): a diagnosis screens the same
-    probes of volume scattering at every step while the absorption named at the first step moves, and
-    the phase function's quadrature was two thirds of `slab_operators` (0.44 of 0.68 s on the default
-    engine grid, 2026-12-05)."""
-    key = (np.asarray(theta_edges_deg, float).tobytes(), int(azimuth_cells), float(g))
-    hit = _PHASE_CACHE.get(key)
-    if hit is None:
-        hit = _phase_cells(theta_edges_deg, azimuth_cells, g)
-        for a in hit:
-            a.flags.writeable = False
-        if len(_PHASE_CACHE) >= PHASE_CACHE_SIZE:
-            _PHASE_CACHE.pop(next(iter(_PHASE_CACHE)))
-        _PHASE_CACHE[key] = hit
-    return hit
+    thickness, so the memory owner keeps them (read-only arrays, 2 x N x N x A doubles: 9 MB on the
+    default grid): a diagnosis screens the same probes of volume scattering at every step while the
+    absorption named at the first step moves, and the phase function's quadrature is most of
+    `slab_operators`."""
+    from relief_bsdf.plate.memory import current_memory
+    key = ("phase cells", np.asarray(theta_edges_deg, float).tobytes(), int(azimuth_cells), float(g))
+    return current_memory().get(key, lambda: _read_only(_phase_cells(theta_edges_deg, azimuth_cells, g)), "phase")
+
+
+def _read_only(arrays: tuple) -> tuple:
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
 
 
 def _phase_cells(theta_edges_deg: np.ndarray, azimuth_cells: int, g: float) -> tuple[np.ndarray, np.ndarray]:

@@ -26,6 +26,7 @@ from relief_bsdf.methods.ray.embree_buffers import DirectMesh, Unavailable
 from relief_bsdf.methods.ray.exits import ABOVE, Exits, padded_rows
 from relief_bsdf.methods.ray.transport import Media, Rays, TraceSettings, carrier_for, trace_chunk
 from relief_bsdf.parallel import default_workers, forget_worker_cached, worker_cached
+from relief_bsdf.surface.digest import relief_hash as _relief_hash
 from relief_bsdf.surface.mesh import TileMesh, build_tile_mesh, remesh_heights
 from relief_bsdf.surface.relief import Relief
 
@@ -440,13 +441,9 @@ def _block_order(xy: np.ndarray, hx: float, hy: float, block: float = 32.0) -> n
 
 
 def relief_hash(relief: Relief, mesh_options: tuple) -> "hashlib._Hash":
-    """sha256 of the heights, pitch, periodicity and mesh options (what changes a BVH)."""
-    h = hashlib.sha256()
-    hm = np.ascontiguousarray(relief.heights_m, dtype=np.float64)
-    h.update(hm)
-    h.update(repr((hm.shape, float(relief.dx_m), float(relief.dy_m), bool(relief.periodic),
-                   *mesh_options)).encode())
-    return h
+    """sha256 of the heights, pitch, periodicity and mesh options (what changes a BVH): the relief's one
+    content digest (`surface.digest`) with the mesh options."""
+    return _relief_hash(relief, tuple(mesh_options))
 
 
 def cached_tracer(key: tuple, relief: Relief, max_bounces: int, fill_holes, threads: int | None) -> ReliefTracer:

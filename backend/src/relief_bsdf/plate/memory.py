@@ -1,0 +1,280 @@
+"""The one owner of what the forward model keeps between evaluations: `ForwardMemory`.
+
+Everything the plate engine would otherwise derive again (boundary tables, plate solvers with their
+factorised operators, relief tracers, photon samplers, slab operators, detector weights, phase
+functions) lives in ONE object, keyed by content, held to ONE byte budget:
+
+- `get(key, make, kind)`: the held value, else `make()` put under `key` (least recently used first
+  out while the held bytes exceed the budget; the newest entry always stays, so a single object
+  larger than the budget is still computed, used and dropped at the next put: the job degrades
+  to recomputing instead of growing);
+- bytes are the arrays an entry reaches (numpy arrays in its attributes, dicts, lists, tuples;
+  each array's buffer counted once per entry; `memory_bytes()` where an object knows better, e.g.
+  a tracer's BVH); a solver that grows while it solves is measured again (`refresh`);
+- `report()`: budget, held and peak bytes per kind, hits, misses, evictions (the benchmarks and
+  the diagnosis's JSON print it).
+
+Which owner is in force: the job makes one and activates it for its block (`with memory.active():`,
+a context variable: scoped to the block and its thread); code below asks `current_memory()`.
+Outside any job, the process's own owner (`parallel.worker.process_object`, the one place that
+keeps per-process state: a pool worker's owner must outlive a task), with the budget the job gave
+its workers (`parallel.worker.worker_memory_bytes`) or `DEFAULT_BUDGET_BYTES`.
+
+The values are pure functions of their keys: evicting one changes no number, only the time.
+"""
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import os
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+KINDS = ("table", "solver", "tracer", "sampler", "slab", "detector", "phase", "other")
+DEFAULT_BUDGET_BYTES = 1.5e9     # one process's held bytes when no job says otherwise (RELIEF_MEMORY_GB: the job's)
+MEMORY_ENV = "RELIEF_MEMORY_GB"  # a job's total memory (every process together), GB
+
+
+class MissingTable(BaseException):
+    """A value this process does not hold was asked for inside `ForwardMemory.held_only` (a BaseException:
+    no `except Exception` on the way may take it for a failed derivation and fall back to other physics)."""
+
+
+_HELD_ONLY: contextvars.ContextVar = contextvars.ContextVar("relief_held_only", default=False)
+_ACTIVE: contextvars.ContextVar = contextvars.ContextVar("relief_forward_memory", default=None)
+
+
+def deep_nbytes(value: Any, seen: set | None = None, depth: int = 0) -> int:
+    """Bytes of the numpy buffers `value` reaches (attributes, dict values, list / tuple items, to depth 8),
+    each buffer once; an object's own `memory_bytes()` where it has one."""
+    seen = set() if seen is None else seen
+    if depth > 8 or value is None or isinstance(value, (str, bytes, int, float, bool, complex)):
+        return 0
+    if isinstance(value, np.ndarray):
+        base = value
+        while isinstance(base.base, np.ndarray):
+            base = base.base
+        if id(base) in seen:
+            return 0
+        seen.add(id(base))
+        return int(base.nbytes)
+    if id(value) in seen:
+        return 0
+    seen.add(id(value))
+    own = getattr(value, "memory_bytes", None)
+    if callable(own) and not isinstance(value, type):
+        return int(own())
+    if isinstance(value, dict):
+        return sum(deep_nbytes(v, seen, depth + 1) for v in value.values())
+    if isinstance(value, (list, tuple, set, frozenset)):
+        return sum(deep_nbytes(v, seen, depth + 1) for v in value)
+    d = getattr(value, "__dict__", None)
+    if isinstance(d, dict):
+        return sum(deep_nbytes(v, seen, depth + 1) for v in d.values())
+    slots = getattr(type(value), "__slots__", ())
+    return sum(deep_nbytes(getattr(value, s, None), seen, depth + 1) for s in slots if isinstance(s, str))
+
+
+@dataclass
+class _Entry:
+    kind: str
+    value: Any
+    nbytes: int
+
+
+class ForwardMemory:
+    """A byte-budgeted LRU store of the forward model's derived objects (module doc)."""
+
+    def __init__(self, budget_bytes: float = DEFAULT_BUDGET_BYTES, maxsize: int = 400):
+        self.budget_bytes = float(budget_bytes)
+        self.maxsize = int(maxsize)
+        self._d: "OrderedDict[tuple, _Entry]" = OrderedDict()
+        self._total = 0
+        self._recorders: list[set] = []
+        self.hits = self.misses = self.evictions = 0
+        self.peak_bytes = 0
+
+    # -- the store
+    def get(self, key: tuple, make: Callable[[], Any], kind: str = "table") -> Any:
+        """The value held under `key`, else `make()` (put under `key`)."""
+        if kind == "table":
+            for used in self._recorders:
+                used.add(key)
+        e = self._d.get(key)
+        if e is not None:
+            self._d.move_to_end(key)
+            self.hits += 1
+            return e.value
+        if _HELD_ONLY.get():
+            raise MissingTable(key)
+        self.misses += 1
+        v = make()
+        self.put(key, v, kind)
+        return v
+
+    def peek(self, key: tuple) -> Any:
+        """The value held under `key` or None (no derivation, no recency change)."""
+        e = self._d.get(key)
+        return None if e is None else e.value
+
+    def put(self, key: tuple, value: Any, kind: str = "table") -> None:
+        """Hold `value` under `key` (newest), then evict to the budget."""
+        old = self._d.pop(key, None)
+        if old is not None:
+            self._total -= old.nbytes
+        e = _Entry(kind if kind in KINDS else "other", value, deep_nbytes(value))
+        self._d[key] = e
+        self._total += e.nbytes
+        self._evict()
+
+    def refresh(self, key: tuple) -> None:
+        """Measure an entry again (a solver's operators are made while it solves) and evict to the budget."""
+        e = self._d.get(key)
+        if e is None:
+            return
+        self._total -= e.nbytes
+        e.nbytes = deep_nbytes(e.value)
+        self._total += e.nbytes
+        self._evict()
+
+    def discard(self, key: tuple) -> None:
+        e = self._d.pop(key, None)
+        if e is not None:
+            self._total -= e.nbytes
+
+    def _evict(self) -> None:
+        self.peak_bytes = max(self.peak_bytes, self._total)
+        while len(self._d) > 1 and (len(self._d) > self.maxsize or self._total > self.budget_bytes):
+            _, e = self._d.popitem(last=False)
+            self._total -= e.nbytes
+            self.evictions += 1
+
+    def entries(self, kind: str) -> list[tuple[tuple, Any]]:
+        """(key, value) of the entries of `kind`, least recently used first."""
+        return [(k, e.value) for k, e in self._d.items() if e.kind == kind]
+
+    def values(self, kind: str) -> list:
+        """The values of the entries of `kind`, least recently used first."""
+        return [e.value for e in self._d.values() if e.kind == kind]
+
+    def drop(self, kind: str) -> None:
+        """Discard every entry of `kind`."""
+        for k in [k for k, e in self._d.items() if e.kind == kind]:
+            self.discard(k)
+
+    def key_of(self, value: Any) -> tuple | None:
+        """The key `value` (the object itself) is held under, or None."""
+        for k, e in self._d.items():
+            if e.value is value:
+                return k
+        return None
+
+    def touch(self, key: tuple) -> None:
+        if key in self._d:
+            self._d.move_to_end(key)
+
+    def clear(self) -> None:
+        self._d.clear()
+        self._total = 0
+
+    def __contains__(self, key: tuple) -> bool:
+        return key in self._d
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+    @property
+    def held_bytes(self) -> int:
+        return self._total
+
+    # -- what a diagnosis asks of it
+    @contextlib.contextmanager
+    def held_only(self) -> Iterator[None]:
+        """Inside the block (this thread's context only) a value that is not held is not derived: `get`
+        raises MissingTable instead, so a caller can hand the work to a process that will derive it."""
+        token = _HELD_ONLY.set(True)
+        try:
+            yield
+        finally:
+            _HELD_ONLY.reset(token)
+
+    @contextlib.contextmanager
+    def recording(self) -> Iterator[set]:
+        """Collect the keys of every table asked for inside the block (a set, filled as they come)."""
+        used: set = set()
+        self._recorders.append(used)
+        try:
+            yield used
+        finally:      # by identity: nested blocks may hold equal sets (list.remove compares by value)
+            self._recorders[:] = [r for r in self._recorders if r is not used]
+
+    def tables(self, keys: Any) -> dict:
+        """{key: table} of those of `keys` still held whose value is a BsdfTable (data that can travel to a
+        worker process).  One read per key: another thread may put or evict meanwhile."""
+        from relief_bsdf.bsdf.table import BsdfTable
+        out = {}
+        for k in keys:
+            e = self._d.get(k)
+            if e is not None and isinstance(e.value, BsdfTable):
+                out[k] = e.value
+        return out
+
+    def worth_sending(self, tables: dict) -> bool:
+        """Whether tables are small enough to be sent to this process and held: at most a sixth of the
+        budget (a step's screens must not evict one another; larger ones are derived where needed)."""
+        return sum(deep_nbytes(t) for t in tables.values()) <= self.budget_bytes / 6
+
+    def holds(self, keys: Any) -> bool:
+        """Whether every one of `keys` is held (False for None or no keys)."""
+        return bool(keys) and all(k in self._d for k in keys)
+
+    # -- reporting
+    def report(self) -> dict:
+        """{"budget_bytes", "held_bytes", "peak_held_bytes", "hits", "misses", "evictions",
+        "by_kind": {kind: {"entries", "bytes"}}}."""
+        by: dict = {}
+        for e in self._d.values():
+            k = by.setdefault(e.kind, {"entries": 0, "bytes": 0})
+            k["entries"] += 1
+            k["bytes"] += e.nbytes
+        return {"budget_bytes": int(self.budget_bytes), "held_bytes": int(self._total),
+                "peak_held_bytes": int(self.peak_bytes), "hits": self.hits, "misses": self.misses,
+                "evictions": self.evictions, "by_kind": by}
+
+    # -- scope
+    @contextlib.contextmanager
+    def active(self) -> Iterator["ForwardMemory"]:
+        """Make this the owner `current_memory()` returns inside the block (this thread's context)."""
+        token = _ACTIVE.set(self)
+        try:
+            yield self
+        finally:
+            _ACTIVE.reset(token)
+
+
+def job_memory_bytes(memory_gb: float | None = None) -> float:
+    """A job's total memory (every process together): `memory_gb`, else the settings in force
+    (`--memory-gb`, `parallel.ParallelSettings.memory_gb`), else $RELIEF_MEMORY_GB, else 3.5 GB."""
+    if memory_gb is None:
+        from relief_bsdf.parallel import current_settings
+        memory_gb = current_settings().memory_gb
+    if memory_gb is None:
+        env = os.environ.get(MEMORY_ENV)
+        memory_gb = float(env) if env else 3.5
+    if not memory_gb > 0:
+        raise ValueError(f"memory budget must be > 0 GB, got {memory_gb}")
+    return float(memory_gb) * 1e9
+
+
+def _process_memory() -> ForwardMemory:
+    from relief_bsdf.parallel.worker import process_object, worker_memory_bytes
+    return process_object("forward-memory", lambda: ForwardMemory(worker_memory_bytes() or DEFAULT_BUDGET_BYTES))
+
+
+def current_memory() -> ForwardMemory:
+    """The owner in force: the job's (`ForwardMemory.active`), else this process's own (module doc)."""
+    m = _ACTIVE.get()
+    return m if m is not None else _process_memory()

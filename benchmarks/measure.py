@@ -1,0 +1,168 @@
+"""Time and peak memory of a command, summed over every process it starts, and benchmark result files.
+
+Memory is the proportional set size (PSS, /proc/PID/smaps_rollup): a page shared by k processes
+counts 1/k in each, so the sum over a process tree is the memory the tree really holds (RSS would
+count a page a forked worker shares with its parent twice).  The tree (the command and all its
+descendants, re-listed at every sample, so workers started later are seen) is sampled every
+`interval_s`; the peak is the largest sum seen.  A spike shorter than the interval can be missed:
+0.1 s is short against the seconds a table or a solve lives.
+
+    python benchmarks/measure.py [--interval 0.1] [--json OUT.json] -- relief diagnose S.toml -o OUT
+
+prints one line `wall_s=... peak_pss_gb=... peak_processes=...` and, with --json, writes it as JSON.
+
+`write_result(name, figures, command)` writes `benchmarks/results/NAME.json` (the command, the
+machine, the figures, the time of the run): every benchmark keeps its last figures there, so the
+next change is compared with numbers.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+def _children(pid: int) -> list[int]:
+    out: list[int] = []
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for t in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{t}/children") as f:
+                out.extend(int(c) for c in f.read().split())
+        except OSError:
+            pass
+    return out
+
+
+def process_tree(pid: int) -> list[int]:
+    """`pid` and every live descendant."""
+    seen, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        seen.append(p)
+        todo.extend(_children(p))
+    return seen
+
+
+def pss_bytes(pid: int) -> int:
+    """Proportional set size of one process (0 when it is gone or unreadable)."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            for line in f:
+                if line.startswith("Pss:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def tree_pss_bytes(pid: int) -> tuple[int, int]:
+    """(PSS summed over `pid` and its descendants, how many processes)."""
+    pids = process_tree(pid)
+    return sum(pss_bytes(p) for p in pids), len(pids)
+
+
+@dataclass
+class Measure:
+    """What a measured run cost."""
+
+    wall_s: float
+    peak_pss_gb: float
+    peak_processes: int
+    returncode: int
+
+    def line(self) -> str:
+        return (f"wall_s={self.wall_s:.1f} peak_pss_gb={self.peak_pss_gb:.2f} "
+                f"peak_processes={self.peak_processes} rc={self.returncode}")
+
+
+class PeakSampler:
+    """Samples the PSS of a process tree on a thread until stopped; `peak_bytes`, `peak_processes`."""
+
+    def __init__(self, pid: int, interval_s: float = 0.1):
+        self.pid, self.interval_s = pid, interval_s
+        self.peak_bytes = 0
+        self.peak_processes = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            b, n = tree_pss_bytes(self.pid)
+            if b > self.peak_bytes:
+                self.peak_bytes = b
+            self.peak_processes = max(self.peak_processes, n)
+            self._stop.wait(self.interval_s)
+
+    def __enter__(self) -> "PeakSampler":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def measure_command(cmd: list[str], interval_s: float = 0.1, **popen) -> Measure:
+    """Run `cmd`, sampling its process tree's PSS; the wall time and the peak."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, **popen)
+    with PeakSampler(proc.pid, interval_s) as s:
+        rc = proc.wait()
+    return Measure(time.perf_counter() - t0, s.peak_bytes / 1e9, s.peak_processes, rc)
+
+
+def machine() -> dict:
+    """The machine a figure was measured on."""
+    mem_gb = None
+    try:
+        with open("/proc/meminfo") as f:
+            mem_gb = round(int(f.readline().split()[1]) / 1e6, 1)
+    except OSError:
+        pass
+    return {"cpus": os.cpu_count(), "memory_gb": mem_gb, "processor": platform.processor() or platform.machine(),
+            "python": platform.python_version(), "system": platform.platform(terse=True)}
+
+
+def write_result(name: str, figures: dict, command: str, results_dir: Path = RESULTS_DIR) -> Path:
+    """Write `results_dir/NAME.json`: {"benchmark", "command", "machine", "when", "figures"} (atomic)."""
+    results_dir.mkdir(parents=True, exist_ok=True)
+    path = results_dir / f"{name}.json"
+    doc = {"benchmark": name, "command": command, "machine": machine(),
+           "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "figures": figures}
+    tmp = path.with_suffix(".json.part")
+    tmp.write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--interval", type=float, default=0.1, help="sampling interval, s (default 0.1)")
+    ap.add_argument("--json", help="write the figures as JSON here")
+    ap.add_argument("cmd", nargs=argparse.REMAINDER, help="the command, after --")
+    a = ap.parse_args(argv)
+    cmd = a.cmd[1:] if a.cmd[:1] == ["--"] else a.cmd
+    if not cmd:
+        ap.error("no command given")
+    m = measure_command(cmd, a.interval)
+    print(m.line(), flush=True)
+    if a.json:
+        Path(a.json).write_text(json.dumps({"command": cmd, **asdict(m)}, indent=1) + "\n")
+    return m.returncode
+
+
+if __name__ == "__main__":
+    sys.exit(main())

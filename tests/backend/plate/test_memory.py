@@ -1,0 +1,71 @@
+"""The forward model's one memory owner (plate.memory): byte budget, eviction, scope, same numbers."""
+from __future__ import annotations
+
+import numpy as np
+
+from relief_bsdf.core.index import ConstantIndex
+from relief_bsdf.plate import Experiment, FlatFace, Plate, ReliefFace, TableGrid, in_plane_rows, simulate
+from relief_bsdf.plate.faces import relief_digest
+from relief_bsdf.plate.memory import ForwardMemory, current_memory, deep_nbytes
+from relief_bsdf.surface.digest import relief_hash
+from relief_bsdf.surface.synth import random_relief
+
+GRID = TableGrid(3.0, 15.0, 15.0)
+ROWS = in_plane_rows(550.0, [0.0, 30.0], np.arange(2.0, 88.0, 8.0))
+
+
+def _experiment() -> Experiment:
+    relief = random_relief(48, 1.0e-6, 0.6e-6, 5.0e-6, "gaussian", seed=5)
+    return Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", samples=3_000, seed=0), FlatFace()))
+
+
+def test_the_budget_evicts_the_least_recently_used_and_keeps_the_newest():
+    m = ForwardMemory(budget_bytes=2500)
+    m.put(("a",), np.zeros(100))           # 800 bytes each
+    m.put(("b",), np.zeros(100))
+    m.get(("a",), lambda: None)            # a is now the most recent
+    m.put(("c",), np.zeros(100))
+    assert m.held_bytes == 2400 and set(m._d) == {("a",), ("b",), ("c",)}
+    m.put(("d",), np.zeros(100))           # over the budget: b (least recent) goes
+    assert ("b",) not in m and ("a",) in m and m.held_bytes <= 2500 and m.evictions == 1
+    m.put(("big",), np.zeros(1000))        # larger than the whole budget: held alone until the next put
+    assert list(m._d) == [("big",)] and m.report()["peak_held_bytes"] >= 8000
+    r = m.report()
+    assert r["by_kind"]["table"] == {"entries": 1, "bytes": 8000} and r["budget_bytes"] == 2500
+
+
+def test_deep_nbytes_counts_each_buffer_once():
+    a = np.zeros(1000)
+    assert deep_nbytes({"x": a, "y": a[10:], "z": [a.reshape(10, 100)]}) == 8000
+    assert deep_nbytes((np.zeros(3, np.float32), "text", 4)) == 12
+
+
+def test_active_scopes_the_owner_and_the_process_one_is_found_outside():
+    outside = current_memory()
+    mine = ForwardMemory(1e6)
+    with mine.active():
+        assert current_memory() is mine
+    assert current_memory() is outside and outside is not mine
+
+
+def test_one_relief_digest_for_tables_and_tracers():
+    relief = random_relief(16, 1e-6, 0.1e-6, 3e-6, "gaussian", seed=1)
+    assert relief_digest(relief) == relief_hash(relief).hexdigest() and len(relief_digest(relief)) == 64
+    assert relief_digest(relief.scaled(2.0)) != relief_digest(relief)
+
+
+def test_a_solver_is_held_measured_and_a_starved_budget_gives_the_same_numbers():
+    ex = _experiment()
+    with ForwardMemory(4e9).active() as roomy:
+        first = simulate(ex, ROWS, grid=GRID).values_per_sr
+        report = roomy.report()
+        assert report["by_kind"]["solver"]["entries"] >= 1
+        assert report["by_kind"]["solver"]["bytes"] > 1e5           # measured after it solved (`refresh`)
+        assert report["by_kind"]["table"]["entries"] >= 2
+        again = simulate(ex.with_instrument(background_per_sr=0.01), ROWS, grid=GRID).values_per_sr
+        assert roomy.report()["misses"] == report["misses"]           # everything reused
+    with ForwardMemory(1.0).active() as starved:                      # nothing can stay: recomputed each time
+        got = simulate(ex, ROWS, grid=GRID).values_per_sr
+        assert len(starved) <= 1 and starved.evictions > 0
+    np.testing.assert_array_equal(got, first)
+    np.testing.assert_allclose(again, first + 0.01, rtol=1e-12)
