@@ -74,8 +74,8 @@ def phase_cells(theta_edges_deg: np.ndarray, azimuth_cells: int, g: float) -> tu
     They depend on the cells and g alone, not on the absorption, the scattering coefficient or the
     thickness, so the last PHASE_CACHE_SIZE are kept (read-only arrays): a diagnosis screens the same
     probes of volume scattering at every step while the absorption named at the first step moves, and
-    the phase function's quadrature was two thirds of `slab_operators` (0.44 of 0.68 s on the default
-    engine grid, 2026-12-05)."""
+    the phase function's quadrature is two thirds of `slab_operators` (0.44 of 0.68 s on the default
+    engine grid)."""
     key = (np.asarray(theta_edges_deg, float).tobytes(), int(azimuth_cells), float(g))
     hit = _PHASE_CACHE.get(key)
     if hit is None:

@@ -86,7 +86,7 @@ STEEP_RELIEF = {"rms_um": (1.6, 2.2), "corr_um": 2.5}   # interreflection cases:
 WAVE_RELIEF = {"rms_um": (0.12, 0.16), "corr_um": 2.5, "pitch_um": 0.5, "relief_n": 256}
 WAVE_EFFECTS = ("diffraction", "partial_coherence")
 RELIEF_KINDS = ("gaussian", "exponential", "anisotropic", "dots", "measured")
-# compound cases (issue 14): two effects concealed together
+# compound cases: two effects concealed together
 COMPOUND_CASES = (("bulk_absorption", "stray_light"), ("sample_tilt", "instrument_blur"),
                   ("relief_scale", "bulk_absorption"), ("polarization", "stray_light"),
                   ("relief_smoothing", "sample_tilt"))
