@@ -1,16 +1,16 @@
 # relief-bsdf: two commands do everything on a fresh clone.
 #   make demo   create .venv (Python 3.11), install the pinned dependencies, run the default job
-#   make test   same venv plus the test-only oracles, run the whole test suite
+#   make test   same venv plus the test-only oracles and the docs tools: build the docs, run the whole test suite
 PYTHON ?= python3.11
 VENV   := .venv
 PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 OUT    ?= out
 
-.PHONY: demo test test-fast venv venv-test bench extension clean help
+.PHONY: demo test test-fast docs venv venv-test venv-docs bench extension clean help
 
 help:
-	@echo "make demo | make test | make test-fast | make bench | make extension | make clean"
+	@echo "make demo | make test | make test-fast | make docs | make bench | make extension | make clean"
 
 # the editable install also builds the optional compiled ray kernels in place (backend/setup.py)
 $(VENV)/.runtime-stamp: requirements/runtime.txt backend/pyproject.toml backend/setup.py \
@@ -21,12 +21,19 @@ $(VENV)/.runtime-stamp: requirements/runtime.txt backend/pyproject.toml backend/
 	$(PIP) install --quiet --no-deps -e backend
 	@touch $@
 
-$(VENV)/.test-stamp: $(VENV)/.runtime-stamp requirements/test.txt
+$(VENV)/.test-stamp: $(VENV)/.runtime-stamp requirements/test.txt requirements/docs.txt
 	$(PIP) install --quiet -r requirements/test.txt
+	@touch $@
+
+# the docs need only mkdocs (requirements/docs.txt), not the runtime
+$(VENV)/.docs-stamp: requirements/docs.txt
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PIP) install --quiet -r requirements/docs.txt
 	@touch $@
 
 venv: $(VENV)/.runtime-stamp
 venv-test: $(VENV)/.test-stamp
+venv-docs: $(VENV)/.docs-stamp
 
 demo: venv
 	$(VENV)/bin/relief info scenes/demo/relief.x3p
@@ -35,7 +42,11 @@ demo: venv
 	$(VENV)/bin/relief render $(OUT)/demo/fit -o $(OUT)/demo/plate.png
 	@echo "demo done: $(OUT)/demo/fit/report.html (fit), $(OUT)/demo/plate.png (before | after)"
 
-test: venv-test
+# the manual (docs/, mkdocs.yml) into site/; --strict: any warning (a broken link or anchor, a page left out of the nav) fails
+docs: venv-docs
+	$(PY) -m mkdocs build --strict --quiet --site-dir site
+
+test: venv-test docs
 	$(PY) -m pytest
 
 # day-to-day tier: everything not marked slow, on both cores (under 2 minutes on 2 cores)
@@ -49,4 +60,4 @@ extension: venv
 	$(PY) relief_addon/build_extension.py --out dist
 
 clean:
-	rm -rf $(OUT) dist .pytest_cache
+	rm -rf $(OUT) dist site .pytest_cache

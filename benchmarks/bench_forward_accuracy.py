@@ -22,7 +22,7 @@ Cases (geometric regime: rough on the wavelength scale, features >> 550 nm): Gau
 of rms slope 0.12 / 0.24 / 0.35 with n 1.45 / 1.53 / 1.6, 1 / 2 / 3 mm, cones 1.5 / 2 / 2.5 deg;
 light-guide dots (spherical caps with micro-roughness), exponential autocorrelation, two
 scales, anisotropic (3:1 at 30 deg, scanned in-plane), and a measured map
-(../shared/data/topography/ST_x3p-2.x3p, levelled, cropped, its heights x 3 to bring its rms
+(tests/data/topography/ST_x3p-2.x3p, levelled, cropped, its heights x 3 to bring its rms
 slope from 0.06 into the range, mirrored into a periodic tile: see `measured_tile`).
 
     PYTHONPATH=backend/src RELIEF_BACKEND=serial python benchmarks/bench_forward_accuracy.py \

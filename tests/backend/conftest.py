@@ -2,7 +2,7 @@
 
 Reliefs are built by the project's ONE random-field generator (`surface.synth.random_relief`,
 autocovariance s^2 exp(-r^2/L^2), formats.md) so every test sees the same convention; real
-instrument files come from ../shared/data/topography/.  Test folders mirror the packages
+instrument files come from tests/data/topography/ (SOURCE.md).  Test folders mirror the packages
 (tests/backend/<package>/); helper modules that several folders import (`_wave_reliefs`) live
 here, on sys.path.
 """
@@ -16,7 +16,6 @@ import pytest
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
-SHARED = REPO.parent / "shared"
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))          # `import _wave_reliefs` from any test folder
 
@@ -55,15 +54,6 @@ def glass():
 def demo_dir() -> Path:
     """The default scene (scenes/demo: relief.x3p, sample.toml, recording.csv)."""
     return REPO / "scenes" / "demo"
-
-
-@pytest.fixture(scope="session")
-def topography_dir() -> Path:
-    """Real instrument files (../shared/data/topography)."""
-    d = SHARED / "data" / "topography"
-    if not d.is_dir():
-        pytest.fail(f"{d} is missing: the tests expect ../shared beside the checkout")
-    return d
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ import pytest
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-SHARED = REPO.parent / "shared"
+TOPO = REPO / "tests" / "data" / "topography"   # instrument files (SOURCE.md)
 
 import bpy
 
@@ -55,7 +55,7 @@ def test_file_handler_covers_backend_formats(addon):
 @pytest.mark.parametrize("name", ["ST_x3p-2.x3p", "ST_frt-1.frt"])
 def test_import_real_file_true_heights(addon, name):
     from relief_bsdf.io.heightmaps import read_relief
-    path = SHARED / "data" / "topography" / name
+    path = TOPO / name
     relief = read_relief(path)
     assert bpy.ops.relief.import_heightmap(filepath=str(path), z_scale=10.0) == {"FINISHED"}
     obj = bpy.context.active_object

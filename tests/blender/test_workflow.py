@@ -109,7 +109,7 @@ def test_default_reconstruct_keeps_the_shared_x3p_anisotropic(addon, tmp_path):
     size of the effect: the relief's own slope statistics, not the table."""
     from relief_bsdf.bsdf.bake import reflection_slope_ratio
     from relief_bsdf.io.hdf5 import load_tables
-    x3p = REPO.parent / "shared" / "data" / "topography" / "ST_x3p-2.x3p"
+    x3p = REPO / "tests" / "data" / "topography" / "ST_x3p-2.x3p"
     assert bpy.ops.relief.import_heightmap(filepath=str(x3p)) == {"FINISHED"}
     stats = bpy.context.active_object["relief_stats"]
     assert stats["rms_slope_x"] / stats["rms_slope_y"] > 1.8                   # the relief: steeper along x

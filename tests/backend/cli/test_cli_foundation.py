@@ -16,7 +16,7 @@ from relief_bsdf.cli import main
 from relief_bsdf.io.heightmaps import read_relief
 from relief_bsdf.io.recording import read_recording, write_sample
 
-TOPO = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "topography"
+TOPO = Path(__file__).resolve().parents[2] / "data" / "topography"
 
 
 def run_cli(capsys, *argv):

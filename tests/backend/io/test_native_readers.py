@@ -15,8 +15,8 @@ import pytest
 from relief_bsdf.errors import InputError
 from relief_bsdf.io.heightmaps import read_relief
 
-SHARED = Path(__file__).resolve().parents[3].parent / "shared"
-X3P = SHARED / "data" / "topography" / "ST_x3p-2.x3p"
+TOPO = Path(__file__).resolve().parents[2] / "data" / "topography"   # tests/data/topography (SOURCE.md)
+X3P = TOPO / "ST_x3p-2.x3p"
 
 
 @pytest.fixture
@@ -32,7 +32,7 @@ def no_surface_topography(monkeypatch):
 
 @pytest.mark.parametrize("name, shape", [("ST_x3p-2.x3p", (650, 650)), ("ST_plu-1.plu", (576, 768))])
 def test_own_reader_without_surface_topography_matches_its_reader(name, shape):
-    path = SHARED / "data" / "topography" / name
+    path = TOPO / name
     with_st = read_relief(path)
     assert with_st.metadata["reader"].startswith("SurfaceTopography")
     mp = pytest.MonkeyPatch()
@@ -120,7 +120,7 @@ def test_surface_topography_still_preferred_when_installed():
 
 # ------------------------------------------------------------- instrument formats (io/native_instruments.py)
 # Oracles: SurfaceTopography's reader of the same real file (heights, pitch, invalid points), and the rms
-# height after mean-plane levelling that shared/data/topography/README.md gives from SurfaceTopography and
+# height after mean-plane levelling that tests/data/topography/README.md gives from SurfaceTopography and
 # Gwyddion (3 significant figures).  Agreement measured: MetroPro, OPD, NanoScope, Nanosurf, PicoView, FRT and Igor
 # bit-identical (NanoScope once 2.2e-16 relative); the tests hold 1e-12 relative.
 
@@ -154,7 +154,7 @@ def _levelled_rms_m(h):
 
 @pytest.mark.parametrize("name, shape, rms_m", INSTRUMENT_FILES)
 def test_instrument_reader_matches_surface_topography(name, shape, rms_m):
-    path = SHARED / "data" / "topography" / name
+    path = TOPO / name
     with_st = read_relief(path)
     assert with_st.metadata["reader"].startswith("SurfaceTopography")
     own = _read_blocked(path)
@@ -177,7 +177,7 @@ TRUNCATIONS = [(name, keep) for name in [f[0] for f in INSTRUMENT_FILES] for kee
 
 @pytest.mark.parametrize("name, keep", TRUNCATIONS)
 def test_truncated_instrument_file_is_an_input_error(no_surface_topography, tmp_path, name, keep):
-    data = (SHARED / "data" / "topography" / name).read_bytes()
+    data = (TOPO / name).read_bytes()
     n = DECLARED_END.get(name, len(data)) - 1 if keep == -1 else int(len(data) * keep)
     cut = tmp_path / ("cut" + Path(name).suffix)
     cut.write_bytes(data[:n])
@@ -188,13 +188,13 @@ def test_truncated_instrument_file_is_an_input_error(no_surface_topography, tmp_
 @pytest.mark.parametrize("name", [f[0] for f in INSTRUMENT_FILES] + ["ST_dektak-1.csv"])
 def test_header_only_fragment_is_an_input_error(no_surface_topography, tmp_path, name):
     frag = tmp_path / ("frag" + Path(name).suffix)
-    frag.write_bytes((SHARED / "data" / "topography" / name).read_bytes()[:200])
+    frag.write_bytes((TOPO / name).read_bytes()[:200])
     with pytest.raises(InputError, match=f"frag{Path(name).suffix}"):
         read_relief(frag)
 
 
 def test_nanoscope_channels(no_surface_topography):
-    path = SHARED / "data" / "topography" / "ST_di-1.di"
+    path = TOPO / "ST_di-1.di"
     retrace = read_relief(path, channel=1)
     assert retrace.metadata["channel"] == "Height" and retrace.metadata["channel_index"] == 1
     assert retrace.shape == (512, 512) and np.isfinite(retrace.heights_m).all()
@@ -206,7 +206,7 @@ def test_nanoscope_channels(no_surface_topography):
 
 def test_metropro_declared_size_checked_before_allocation(no_surface_topography, tmp_path):
     from relief_bsdf.io.heightmaps import pixel_limit
-    data = bytearray((SHARED / "data" / "topography" / "ST_metropro-1.dat").read_bytes())
+    data = bytearray((TOPO / "ST_metropro-1.dat").read_bytes())
     path = tmp_path / "big.dat"
     path.write_bytes(bytes(data))
     with pixel_limit(1000), pytest.raises(InputError, match="big.dat.*limit"):
@@ -215,23 +215,23 @@ def test_metropro_declared_size_checked_before_allocation(no_surface_topography,
 
 def test_frt_points_not_measured_are_nan_not_zero(no_surface_topography):
     # README: 31 % of the FRT map is not measured; filling it in inflates the rms to ~19 um
-    r = read_relief(SHARED / "data" / "topography" / "ST_frt-1.frt")
+    r = read_relief(TOPO / "ST_frt-1.frt")
     assert 0.30 < np.isnan(r.heights_m).mean() < 0.32
 
 
 def test_nanosurf_and_picoview_channels(no_surface_topography):
-    nid = SHARED / "data" / "topography" / "ST_nid-1.nid"
+    nid = TOPO / "ST_nid-1.nid"
     back = read_relief(nid, channel="Scan backward (Z-Axis)")
     assert back.metadata["channel_index"] == 2 and back.shape == (256, 256)
     fwd = read_relief(nid)
     # forward and backward traces of one scan: the same surface, to within the AFM's noise and hysteresis
     assert np.corrcoef(fwd.heights_m.ravel(), back.heights_m.ravel())[0, 1] > 0.9
     with pytest.raises(InputError, match="ST_mi-1.mi.*'Deflection'.*not hold heights"):
-        read_relief(SHARED / "data" / "topography" / "ST_mi-1.mi", channel="Deflection")
+        read_relief(TOPO / "ST_mi-1.mi", channel="Deflection")
 
 
 def test_igor_wave_channels_and_checksum(no_surface_topography, tmp_path):
-    path = SHARED / "data" / "topography" / "ST_spot_1-1000nm.ibw"
+    path = TOPO / "ST_spot_1-1000nm.ibw"
     r = read_relief(path, channel="HeightRetrace")
     assert r.metadata["channel_index"] == 1 and r.metadata["channels"][0] == "HeightTrace"
     data = bytearray(path.read_bytes())
@@ -244,7 +244,7 @@ def test_igor_wave_channels_and_checksum(no_surface_topography, tmp_path):
 
 def test_dektak_profile_matches_surface_topography_and_is_refused_as_a_map(no_surface_topography):
     from relief_bsdf.io.native_instruments import read_dektak
-    path = SHARED / "data" / "topography" / "ST_dektak-1.csv"
+    path = TOPO / "ST_dektak-1.csv"
     h, dx, dy, meta = read_dektak(path)
     assert h.shape == (1, 9600) and dx == dy and meta["file_unit"] == "Micrometer"
     with pytest.raises(InputError, match="ST_dektak-1.csv.*1-D line profile \\(9600 points\\)"):
@@ -257,7 +257,7 @@ def test_dektak_profile_matches_surface_topography_and_is_refused_as_a_map(no_su
 def test_dektak_profile_agrees_with_surface_topography():
     import SurfaceTopography as ST
     from relief_bsdf.io.native_instruments import read_dektak
-    path = SHARED / "data" / "topography" / "ST_dektak-1.csv"
+    path = TOPO / "ST_dektak-1.csv"
     h, dx, _, _ = read_dektak(path)
     st = ST.open_topography(str(path)).topography()
     assert st.unit == "µm"

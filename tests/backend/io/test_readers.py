@@ -17,8 +17,7 @@ from relief_bsdf.errors import InputError
 from relief_bsdf.io.heightmaps import read_relief, write_relief
 from relief_bsdf.surface.relief import Relief
 
-SHARED = Path(__file__).resolve().parents[3].parent / "shared"
-TOPO = SHARED / "data" / "topography"
+TOPO = Path(__file__).resolve().parents[2] / "data" / "topography"   # tests/data/topography (SOURCE.md)
 UNIT = {"nm": 1e-9, "um": 1e-6, "µm": 1e-6, "mm": 1e-3}
 
 

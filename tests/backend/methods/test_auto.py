@@ -79,7 +79,7 @@ def test_cli_auto_prints_reason_and_kirchhoff_coherence(tmp_path: Path):
     assert r.returncode == 2 and "kirchhoff" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
-TOPO = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "topography"
+TOPO = Path(__file__).resolve().parents[2] / "data" / "topography"
 
 
 def _area_maps():
@@ -96,7 +96,7 @@ def _area_maps():
 
 @pytest.mark.slow
 def test_real_maps_never_ray_while_a_coherent_part_remains():
-    """Every area map of ../shared/data/topography: geometric optics only where the coherent specular
+    """Every area map of tests/data/topography: geometric optics only where the coherent specular
     share at normal incidence is below 1 % (or no wave method is within a decade of valid); the
     summary is one line.  ST_plu-1.plu (Sensofar, 18 nm rms, 1.66 um pitch) gets band-limited kirchhoff."""
     maps = _area_maps()

@@ -23,7 +23,7 @@ from relief_bsdf.methods import auto, reconstruct
 from relief_bsdf.methods.request import Request
 
 MAT = Material(inside=ConstantIndex(1.5))
-TOPO = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "topography"
+TOPO = Path(__file__).resolve().parents[2] / "data" / "topography"
 WAVE_METHODS = ("rayleigh-rice", "kirchhoff")
 # coarse cells: the coherent fraction is a delta part, independent of the cells but for the filter
 COARSE = dict(wavelengths_nm=(550.0,), theta_i_deg=(0.0,), theta_s_edges_deg=tuple(np.arange(0.0, 91.0, 5.0)),
@@ -32,7 +32,7 @@ REL_TOL, ABS_FLOOR = 0.10, 0.01
 
 
 def _area_maps() -> dict:
-    """Every file of ../shared/data/topography the project reads as an area map (the 1-D profile,
+    """Every file of tests/data/topography the project reads as an area map (the 1-D profile,
     ST_dektak-1.csv, is a line and is refused by read_relief)."""
     from relief_bsdf.io.heightmaps import read_relief
     out = {}
@@ -74,7 +74,7 @@ def _reference(rel, base, method):
 
 @pytest.mark.slow
 def test_autos_coherent_fraction_within_ten_percent_of_each_valid_wave_methods_table(capsys):
-    """Every area map of ../shared/data/topography, whole (no crop: the largest, 576 x 768, costs
+    """Every area map of tests/data/topography, whole (no crop: the largest, 576 x 768, costs
     seconds at these cells), normal incidence from outside and from inside, 550 nm, n 1.5, cells of
     5 deg x 30 deg: auto's table (its choice, with the options it forwards) and the table of every wave
     method auto's conditions call valid on that map and request (kirchhoff run band-limited,

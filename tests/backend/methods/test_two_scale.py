@@ -204,7 +204,7 @@ def test_agrees_with_full_kirchhoff_where_both_apply(side_from):
 
 @pytest.mark.slow
 def test_real_maps_coherent_specular_of_autos_choice_within_ten_percent_of_the_wave_methods():
-    """Every area map of ../shared/data/topography (outside and inside, 0-60 deg): the coherent specular
+    """Every area map of tests/data/topography (outside and inside, 0-60 deg): the coherent specular
     fraction auto's choice carries is within 0.1 of the wave methods' |<exp(-i nu h)>|^2 at normal incidence
     (the tangent-plane mean field of the map's own heights, the least coherent incidence): ray carries
     none, two_scale only its large scale's (times the fine scale's Debye-Waller factor <= 1), the wave
@@ -212,7 +212,7 @@ def test_real_maps_coherent_specular_of_autos_choice_within_ten_percent_of_the_w
     from pathlib import Path
 
     from relief_bsdf.io.heightmaps import read_relief
-    topo = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "topography"
+    topo = Path(__file__).resolve().parents[2] / "data" / "topography"
     req = Request(theta_i_deg=(0.0, 30.0, 60.0), incident_from=("outside", "inside"))
     seen = 0
     for p in sorted(topo.glob("ST_*")):

@@ -31,7 +31,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     from relief_bsdf.cli import add_sectors_arg
     add_sectors_arg(p)
     from relief_bsdf.parallel import add_parallel_args
-    add_parallel_args(p)            # --dask, --checkpoint-dir, --retries (issue 8); --workers is its own
+    add_parallel_args(p)            # --dask, --checkpoint-dir, --retries; --workers is its own
     return p
 
 

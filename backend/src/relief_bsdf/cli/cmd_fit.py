@@ -35,7 +35,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     add_sectors_arg(p)
     p.add_argument("--progress", action="store_true", help="force the progress bar")
     from relief_bsdf.parallel import add_parallel_args
-    add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
+    add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries
     return p
 
 
@@ -55,7 +55,7 @@ def run(args) -> int:
                  threshold=args.threshold, grid=grid, scale_bounds=_bounds(args.scale_bounds),
                  max_filter_um=args.max_filter_um)
     bar = TerminalBar("fit", force=args.progress)
-    with keep_alive(bar):                 # a log line at once and at least every 30 s (issue 18)
+    with keep_alive(bar):                 # a log line at once and at least every 30 s (batch logs)
         doc = run_fit_job(args.sample, args.out, job, progress=bar)
     for w in doc.get("warnings", []):
         print(f"relief fit: note: {w}", file=sys.stderr)

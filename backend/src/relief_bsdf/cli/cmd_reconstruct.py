@@ -38,7 +38,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         "grazing_heuristic=smith; repeatable; an option the method does not know is an error")
     p.add_argument("-o", "--out", required=True, help="output table (.h5)")
     from relief_bsdf.parallel import add_parallel_args
-    add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
+    add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries
     return p
 
 

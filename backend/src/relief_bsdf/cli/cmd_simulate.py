@@ -20,7 +20,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     add_sectors_arg(p)
     p.add_argument("--table", help="use this boundary table file (HDF5, outside+inside) instead of deriving one")
     from relief_bsdf.parallel import add_parallel_args
-    add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
+    add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries
     return p
 
 

@@ -201,8 +201,8 @@ def _polished_fit(effect: Effect) -> bool:
     """Is the effect's own fit refined by Gauss-Newton (`polish`) instead of Brent after its grid?  A
     budgeted effect with one parameter: each evaluation derives tables (seconds), and the 1-D Brent
     steps on chi^2 alone see one number per evaluation where Gauss-Newton sees every row's residual;
-    on the seed-10 relief scale + absorption case five Brent steps (12 s) gained nothing over the
-    grid's best point, and the polish that followed did the work (2026-12-05)."""
+    on a concealed relief scale + absorption case five Brent steps (12 s) gained nothing over the
+    grid's best point, and the polish that followed did the work."""
     return effect.budgeted and len(effect.params) == 1
 
 
@@ -258,8 +258,8 @@ def _step(p: Param, x: float, lo: float, hi: float, sampled: bool = False) -> fl
     incidences, indices), so their tables' Monte-Carlo noise cancels only in part (common random
     numbers) and adds to the column; the column's squared norm is then too long by up to the noise's
     sum(sigma_model^2 / s^2) / (2 h^2) (two independent draws: an upper bound), which falls as 1 / h^2.
-    Measured on the seed-10 relief scale + absorption case at its optimum (central differences of the
-    diagnosis forward model at five steps, 2026-12-05): the scale column's |J|^2 was 8.4e4 / 6.9e4 /
+    Measured on a concealed relief scale + absorption case at its optimum (central differences of the
+    diagnosis forward model at five steps): the scale column's |J|^2 was 8.4e4 / 6.9e4 /
     5.2e4 / 4.8e4 / 5.0e4 at steps of 0.5 / 1 / 2 / 3 / 4 % of the range, the bound 1.8e5 / 4.5e4 /
     1.1e4 / 5.0e3 / 2.8e3: at 3 % the bound is a tenth of the column, and the column stops shrinking (curvature bias, O(h^2), is not yet
     seen).  A column too long shortens every Gauss-Newton step and narrows the intervals."""
@@ -308,8 +308,8 @@ def polish(forward, effects: tuple, values: dict, steps: int = POLISH_STEPS,
     """(values, chi^2, J): the named effects' least-chi^2 point near `values` by Gauss-Newton.
 
     The coordinate search (`refit_joint`) ends where its short grids and few Brent steps stop,
-    which on a correlated pair is not the optimum: on a concealed tilt + blur case (seed 5,
-    case03) it stopped at tilt -2.68 deg with chi^2 227 while -2.58 gave 217 (2026-12-02).  The
+    which on a correlated pair is not the optimum: on a concealed tilt + blur case it stopped at
+    tilt -2.68 deg with chi^2 227 while -2.58 gave 217.  The
     steps are fit.gauss_newton.polish's (the one definition with `relief fit`): the linearised
     least squares J d = -r (r the censored residuals of the chi^2, `fit.residual.signed_residuals`;
     J central differences, `_jacobian`), clipped to the parameters' bounds, kept only when they

@@ -19,14 +19,14 @@ azimuth-circulant.  A screen needs the CHANGE of the model toward a candidate's 
 model: both the probes and the current model are evaluated on that grid, so the sectors' correction,
 a few per cent of the rows' values (up to a factor 2-3 in the few rows where trapped light leaves near
 the normal, the dots at theta_i 60: the grid's doc), enters the screen only as a change of a change.
-On the seed-10 measured map an evaluation of a relief operation costs 2.6 s instead of 13.5 s (the
-sector tables' rays and the loop's sector operators; measured 2026-12-04, one process), and the
+On a concealed case's measured map an evaluation of a relief operation costs 2.6 s instead of 13.5 s
+(the sector tables' rays and the loop's sector operators; one process), and the
 screens' gains there and on the dots agree within 1-3 % (the tilt's within 0.64-0.93, both far above
 the bar).  The screening forward's loop also carries intensities only (`TableGrid.stokes_loop` False:
 the polarised tables' M00, matrices 4x smaller a side; the model itself then misses the polarisation
 of the second pass, R 4.7 % on a Gaussian plate, which cancels in the change), except for a candidate
 that acts through the source's polarisation (`Effect.stokes`) or when the stated source is polarised: the Mueller loop's
-operators and solves were most of a screen's plate time (seed-10 tilt + blur case, 2026-12-04, py-spy:
+operators and solves were most of a screen's plate time (a concealed tilt + blur case, py-spy:
 the operators 65 s and the LU factorisations 17 s of 260 s of CPU); the gains agree within 0.1-8 %
 (tests/backend/diagnose/test_screening.py).  What is named, fitted and reported is always evaluated
 with the sectors and the Stokes loop.

@@ -23,7 +23,7 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    background, the source's Stokes q) the span holds the whole family, so the screen gain bounds
    the fit's gain from above (a bounded fit gains less); for a smooth one (Beer-Lambert absorption, a tilt, a
    relief scale) it is the linear regime's estimate.  A fit costs 9-19 evaluations, a screen 2:
-   on a measured map the cheap fits alone were 40-50 s of a step's worker time (2026-12-04).
+   on a measured map the cheap fits alone were 40-50 s of a step's worker time.
    The screens and the fits of candidates without parameters run as one round on the worker
    processes, except a screen whose probes' tables this process already holds from an earlier
    step, which runs here beside them (`_step_round`; the rounds of one diagnosis share one pool
@@ -40,7 +40,7 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    - Delta BIC = BIC(S) - BIC(S + c) > BIC_MARGIN = 10 ("very strong", Kass & Raftery 1995),
    - AND S does not reach the noise within the forward model's stated accuracy (`adequate`:
      chi^2_S > A^2 n + 3 sqrt(2 n), A = MODEL_ACCURACY_RMS = 1.2, the rms z the one plate model is
-     required to reach on clean independent recordings (issue 18); 3 sqrt(2 n) is the 99.9 %
+     required to reach on clean independent recordings; 3 sqrt(2 n) is the 99.9 %
      one-sided spread of a chi^2 with n degrees of freedom, normal approximation), or the gain is
      overwhelming, Delta BIC > max(40, 3 sqrt(2 n)) (a global chi^2 test has little power against
      an effect confined to a few rows; under pure noise a 1-parameter gain of 45 has probability
@@ -72,8 +72,8 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
 
 The effects come out in the order they were added: each was the largest gain of its step,
 so the most important is first.  The same thresholds as the single-effect selection of the
-first benchmark (issue 6; the n-scaled overwhelming bar was set on seed 1 and re-checked on
-fresh seeds there); nothing here was tuned on the compound benchmark.
+blind-diagnosis benchmark (the n-scaled overwhelming bar was set on its seed 1 and checked on
+fresh seeds); nothing here was tuned on the compound cases.
 """
 from __future__ import annotations
 
@@ -260,9 +260,9 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
     tilt named since; or the cache let it go) stops at that table (`MissingTable`) and goes to the
     workers instead, two or more at a time as they come (a batch of one would run in this process),
     a last single one here after the others.  So a step derives no probe table here, and none that
-    an earlier step derived and this cache still holds (on the seed-10 relief scale + absorption case,
-    2026-12-05, the later rounds derived the re-scaled relief's probe tables here, one after the
-    other, while the workers idled).  A worker sends the tables of its screens back to this
+    an earlier step derived and this cache still holds (otherwise, on a relief scale + absorption
+    case, the later rounds derive the re-scaled relief's probe tables here, one after the other,
+    while the workers idle).  A worker sends the tables of its screens back to this
     process's cache when they are small enough to be held (`TableCache.worth_sending`).  The
     workers' context is the forward model (pickled once for the diagnosis's kept pool, `stepwise`),
     each task carries the current step; a copy of the forward with its own memo screens here.

@@ -15,12 +15,12 @@ make it cheap on a sampled forward model (a ray-traced table per evaluation):
   step costs one point where a new central Jacobian costs two per parameter); a chord step that
   fails to lower f at its full length, or that says converged, hands over to a new Jacobian at that
   point (not halved: what failed is a linear model made one step away, which halving tests only more
-  finely; on the seed-11 relief scale + absorption diagnosis, 2026-12-05, the chord's full, half and
+  finely; on a concealed relief scale + absorption case the chord's full, half and
   quarter steps all missed by 2-4 of chi^2 118, the tables' noise between nearby reliefs, three
   evaluations with new tables before the new Jacobian that ended the polish);
 - a full step that lowers f is stretched (2 d, then 4 d) while f keeps falling: a finite-difference
   Jacobian of a sampled model is too long (the noise between the two points of a difference adds
-  to every column: on the demo fit, 2026-12-04, the column norms fell by 6-23 % from steps of 1x to
+  to every column: on the demo fit the column norms fell by 6-23 % from steps of 1x to
   4x, and each Gauss-Newton step went a third to a half of the way), so the steps fall short by a
   similar factor every time; a stretch costs one point, a new Jacobian two or four.
 Converged when a step made with a central Jacobian at the point itself is below a tenth of a
@@ -29,14 +29,14 @@ predicted decrease |J d|^2 under one unit of chi^2, in units of the reduced chi^
 1): that last step is still tried, once (a halving would be below what the objective resolves), and
 the polish ends.  Taken, it lands on the optimum up to the residuals' curvature over less than a
 standard deviation; refused (the table noise between the two points outweighs the predicted gain),
-the answer is within that standard deviation, which the objective does not resolve.  On the seed-10
-relief scale + absorption diagnosis (2026-12-04) the end game at 1/4 spent two more central
-Jacobians to gain 0.5 of chi^2 131.  A step is also *settled* when it was made with a central
+the answer is within that standard deviation, which the objective does not resolve (on a concealed
+relief scale + absorption case an end game at 1/4 of the interval spent two more central
+Jacobians to gain 0.5 of chi^2 131).  A step is also *settled* when it was made with a central
 Jacobian at the point itself, stays within one finite-difference step in every coordinate, lowers f,
 and its stretch to 2 d does not: the linearised model's optimum lies on that line, and the parabola
 through f at x, x + d and x + 2 d (`line_gain_left`) promises less than the same unit of chi^2 below
 f(x + d); its Jacobian, made one step away inside its own difference stencil, serves the intervals.
-On the seed-11 relief scale + absorption diagnosis (2026-12-05) the step from (1.4058, 0.1605) lowered
+On a concealed relief scale + absorption case the step from (1.4058, 0.1605) lowered
 chi^2 118.21 to 118.12 and its stretch rose to 124.94 (the parabola: 0.8 left); the chord step, the
 confirming Jacobian and the end game after it then spent 12 s to keep 118.12.  The Jacobian then
 returned is at a point within that distance of the answer, which is linear enough to serve the
@@ -48,7 +48,7 @@ candidate at a later step, which only ranks the candidates and hands its values 
 that follows) believes a chord step that says converged: the polish ends there, without the
 confirming Jacobian at that point and the end game after it (and with no Jacobian to hand over).  The
 chord's linear model, made one step away, then puts what is left to gain within the 68 % interval;
-on the seed-10 smoothing + tilt diagnosis (2026-12-05) the confirmation and its end game spent six
+on a concealed smoothing + tilt case the confirmation and its end game spent six
 more plate evaluations with new tables (20 s) to lower chi^2 500.3 by 0.5, far below the selection's
 BIC margin of 10.
 """

@@ -72,7 +72,7 @@ from relief_bsdf.surface.relief import Relief
 from relief_bsdf.surface.stats import rms_height_and_slope
 
 FIT_FORMAT = "relief-fit/1"
-NOISE_METRIC = 1.2          # a fit "reaches the noise" at a log-chi metric <= this (issue 18: rms z <= 1.2)
+NOISE_METRIC = 1.2          # a fit "reaches the noise" at a log-chi metric <= this (the forward model's accuracy: rms z <= 1.2)
 POLISH_STEPS = 6            # kept Gauss-Newton steps of `_polish` (chord steps count)
 
 
@@ -557,7 +557,7 @@ def _polish(obj: _Objective, c: _Coords, s: float, g: float,
     intervals' Jacobian), or None when the steps ran out first.  The search minimises the log
     metric, whose weights hold the measurement itself (its noise enters them) and which is a search
     device, not the likelihood: on the demo the log metric's optimum sat 2.7 half-widths off the true
-    filter, the polished one 0.8 (2026-12-02)."""
+    filter, the polished one 0.8."""
     def residuals(x: np.ndarray) -> tuple[float, np.ndarray]:
         z = obj.likelihood_residuals(*c.sg(x))
         return float(z @ z), z

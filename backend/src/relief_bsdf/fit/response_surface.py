@@ -6,7 +6,7 @@ Why.  The relief fit's forward model traces its boundary tables with a fixed set
 numbers (common random numbers), so its objective f(x) = z(x) @ z(x) is deterministic but not
 smooth: the tables' Monte-Carlo noise moves with the relief, and f carries bumps on the scale of
 the parameters' own 68 % interval.  On the demo fit (ray tables, inside tables averaged over
-+-45 deg of azimuth, ray seed 0; 2026-12-05) chi^2 along the filter at scale 1.2 read 0.984 um:
++-45 deg of azimuth, ray seed 0) chi^2 along the filter at scale 1.2 read 0.984 um:
 749.0, 0.990: 752.7, 0.997: 742.8, 1.000: 743.9, 1.010: 749.2 (curvature of the interval: a rise
 of 1 over 0.006 um), and Gauss-Newton steps with central differences (steps of a few thousandths
 of the interval) settled in the local minimum at 0.984, 2.8 half-widths off the truth.  A

@@ -221,7 +221,7 @@ def read_relief(path: str | Path, pitch_m: Any = None, channel: int | str | None
         return _read_sdf(path, pitch)
     if suffix == ".x3p":
         check_x3p(path)                 # size, increments, checksums: before any reader allocates anything
-    # --- hook (issue 16): the project's own readers where SurfaceTopography is missing (io/native_readers.py)
+    # --- hook: the project's own readers where SurfaceTopography is missing (io/native_readers.py)
     from relief_bsdf.io import native_readers
     if native_readers.wanted(suffix):
         return _finish(path, *native_readers.read(path, pitch, channel))

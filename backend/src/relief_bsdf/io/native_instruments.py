@@ -1,4 +1,4 @@
-"""The project's own readers of proprietary instrument formats (issue 16), used where
+"""The project's own readers of proprietary instrument formats, used where
 SurfaceTopography is missing; registered in `io.native_readers.READERS`.
 
 Each reader follows the vendor's or a public description of the layout (named in its doc),

@@ -4,8 +4,8 @@ numpy and scipy (pinned wheels) each carry an OpenBLAS that starts one thread pe
 OpenBLAS thread waiting for its share of a call spins on its core instead of sleeping.  A pool
 worker is one of as many processes as there are cores, so a BLAS call made with every core's
 thread there competes with the other workers' work and with the process that started them, and
-the waiting threads burn the time the others need.  Measured on a diagnosis (seed-10 case04 on the
-2-core machine, 2026-12-05): the slab operators of a volume-scattering screen, 24 `numpy.linalg.solve`
+the waiting threads burn the time the others need.  Measured on a diagnosis case on the 2-core
+machine (docs/decisions/007): the slab operators of a volume-scattering screen, 24 `numpy.linalg.solve`
 calls of 0.004 s each alone, took 10.3 s in the main process while the two workers computed
 (0.43 s a call: 100x); the workers' own BLAS ran on two threads each as well (the `OMP_NUM_THREADS`
 a worker set for itself came after numpy had started its OpenBLAS).  Alone on the machine a second

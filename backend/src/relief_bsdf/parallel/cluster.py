@@ -80,7 +80,7 @@ def get_client(spec: Any, workers: int | None = None):
             # lines are silenced below CRITICAL: what goes wrong in a task reaches this process as the
             # task's exception (retried, then raised: `run_on_client`); what a worker logs at ERROR is
             # the comm noise of a shutdown, e.g. a heartbeat that met the closed scheduler after Ctrl-C
-            # (a traceback on the user's terminal: test_scale's Ctrl-C test, once in a full suite, 2026-12-05)
+            # (a traceback on the user's terminal, as test_scale's Ctrl-C test can show)
             cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                                host="127.0.0.1", dashboard_address="127.0.0.1:0",
                                                silence_logs=logging.CRITICAL)

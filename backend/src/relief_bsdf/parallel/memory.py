@@ -6,8 +6,8 @@ Linux distributions, and of the 2-core machines this project is measured on), th
 such an array compacts memory synchronously to find 2-MB pages and clears them.  The plate engine
 allocates and frees large temporaries by the hundred per evaluation (tables interpolated to the
 engine's incidences, Mueller kernels, the cone reading's gathers), so every evaluation pays it
-again.  Measured on a diagnosis baseline (seed-10 case04: the relief's tables, one plate solve,
-the eight table draws of the model sigma; `perf record`, 2026-12-05): 32 % of the CPU time was the
+again.  Measured on a diagnosis baseline (the relief's tables, one plate solve, the eight table
+draws of the model sigma; `perf record`, docs/decisions/008): 32 % of the CPU time was the
 kernel clearing huge pages (clear_page_erms under folio_zero_user), 11.0 s of system time in 25.2 s
 of CPU, 17.4 s wall; without the advice 3.5 s of system time, 11.3 s wall.  The values are the same
 bit for bit: the size of a page changes no number.  Where huge pages are cheap (defrag "defer" or

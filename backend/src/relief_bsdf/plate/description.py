@@ -12,9 +12,9 @@ definition of the instrument's angular response (detector cone convolved with a 
 aperture blur).  The source's beam divergence is a spread of the INCIDENCE direction, not of
 the reading: the plate is lit from a Gaussian spread of incidences (`Instrument.
 beam_divergence_deg`).  The two differ off normal incidence: a lobe does not move rigidly with
-the incidence (seen through the independent photon Monte Carlo on a seed-5 concealed relief,
+the incidence (seen through the independent photon Monte Carlo on a concealed relief of
 rms slope 0.11, n 1.5, theta_i 55 deg, 2.5 deg both ways: up to 9 % in the grazing reflected
-flank and 8-20 % across the transmitted lobe, 2026-12-02).
+flank and 8-20 % across the transmitted lobe).
 
 Frame (formats.md): plate fills -t < z < 0, the lit face is z = 0, light comes from z > 0.
 

@@ -115,7 +115,7 @@ def beam_offsets(sigma_deg: float) -> tuple[np.ndarray, np.ndarray]:
     is moved to every node, so the outer nodes must be faint: the Laguerre weights are (3 rings:
     0.71, 0.28, 0.010 at 0.91, 2.14, 3.55 sigma); equal-probability rings with one point each (the
     aperture blur's construction, `gaussian_offsets`) put 1/Q of the beam at 2.8-3.1 sigma and missed the
-    independent Monte Carlo's transmitted tail at 3.4 sigma by 2-3x either way (2026-12-02)."""
+    independent Monte Carlo's transmitted tail at 3.4 sigma by 2-3x either way."""
     x, w = np.polynomial.laguerre.laggauss(BEAM_RINGS)
     r = np.radians(sigma_deg) * np.sqrt(2.0 * x)
     k = np.arange(BEAM_AZIMUTHS)
@@ -346,7 +346,7 @@ class _SubPoints:
     azimuths + azimuth).  Held per sub-ring and per azimuth only; a sub-point's own quantities (cell,
     weight, unit vector) are made for the indices asked: the default direct grid has ~3 M sub-points
     (1800 sub-rings x 1800 azimuths, ~200 MB as per-point arrays, 2.9 s to build in every process that
-    reads a plate, 2026-12-05), of which the rows' cones meet a small part."""
+    reads a plate), of which the rows' cones meet a small part."""
 
     cos_sub: np.ndarray           # cos theta of each sub-ring
     sub_theta_rad: np.ndarray     # polar angle of each sub-ring

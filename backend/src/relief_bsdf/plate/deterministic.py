@@ -59,7 +59,7 @@ Method (radiative transfer between two faces, discrete ordinates):
 * Output: the plate BSDF on an outgoing grid (theta cells x azimuth grid) per side, plus
   delta beams; rows are read by `plate.detector.grid_reading` (cone (x) Gaussian blur
   quadrature for the diffuse part, response(psi) P / (Omega cos theta_s) for a delta beam).
-* Two grids (plate.grid, issue 18 item 2).  When the outside table is on a finer grid than the
+* Two grids (plate.grid).  When the outside table is on a finer grid than the
   engine's (`TableGrid` direct grid: 0.5-deg rings with the flat face's Snell pre-images, 1-deg
   azimuth cells around the plane of incidence), the loop is solved on the engine grid with the
   outside table's cell averages there (`_TableView.cells`: projected-solid-angle overlaps, power
@@ -74,8 +74,8 @@ Method (radiative transfer between two faces, discrete ordinates):
   unclipped: each ring's power kept): a 5-deg cell's averaging would otherwise widen a lobe that is
   narrow across the plane of incidence by the cell's variance d^2 / 12 once more at every later exit
   (Sheppard's correction).  Measured against the independent photon Monte Carlo
-  (bench_forward_accuracy, 2026-12-04): the real measured map's second pass (R minus the R of an opaque
-  plate) read 7 % low at 30 and 60 deg, 3.9 / 3.7 % with it (in-lobe R level 0.96 -> 0.98, rms z 1.35 ->
+  (bench_forward_accuracy): the real measured map's second pass (R minus the R of an opaque
+  plate) reads 7 % low at 30 and 60 deg without it, 3.9 / 3.7 % with it (in-lobe R level 0.96 -> 0.98, rms z 1.35 ->
   1.18), nearly what 2.5-deg engine cells give (3.6 / 2.8 %) without their 1.2-1.5x cost.
 
 Regime of validity: geometric optics between the faces (plate thick compared with the
@@ -432,7 +432,7 @@ class _TableView:
         """The table's cells `arr` (I, T, A, ...) on the exit axes, at the incidences theta_in (J, T, A, ...).
 
         Linear in theta_i, except for the transmitted side of a table of light from inside (`moving`):
-        there a lobe MOVES with its incidence rather than blends (issue 18 item 2: a narrow transmitted
+        there a lobe MOVES with its incidence rather than blends (a narrow transmitted
         lobe blended between two incidences 2.5 deg apart is two half lobes ~4 deg apart outside, the
         second pass of a smooth relief's reflection).  Each of the two incidences theta_a around theta_in
         lends its cells shifted by s = e(theta_in) - e(theta_a), e the Snell exit angle where the lobe
@@ -1429,9 +1429,9 @@ def beam_split(theta_deg: Any, phi_deg: Any, nominal_theta_deg: Any, nominal_phi
     Why not rotate: an isotropic table turned about the normal by phi' - phi would be exact for an
     isotropic relief, but it turns the lobe's shape with it; at normal incidence the divergent rays
     come from every azimuth, and an anisotropic relief's lobe (wide along its steep axis) was smeared
-    round the normal: seed-6 case14 (measured map, slopes 2.3x apart, 3.25-deg divergence) missed the
-    independent photon Monte Carlo through the relief by chi^2 3590 on the 70 rows at theta_i = 0
-    (2026-12-03).  The shift keeps the lobe oriented with the relief.
+    round the normal: on a concealed case (measured map, slopes 2.3x apart, 3.25-deg divergence) the
+    rotation missed the independent photon Monte Carlo through the relief by chi^2 3590 on the 70 rows
+    at theta_i = 0.  The shift keeps the lobe oriented with the relief.
     """
     t = np.radians(np.asarray(theta_deg, float))
     p = np.radians(np.asarray(phi_deg, float))

@@ -345,8 +345,8 @@ def inside_face(face: "ReliefFace", material: Material, grid: TableGrid, wavelen
     over the incidence azimuths within +- `grid.inside_azimuth_spread_deg` (ray option `phi_i_spread_deg`,
     unless the face sets it; the TableGrid field says why).  Where sector tables carry the loop, the table
     serves the light at its own azimuth (the in-plane beams between the faces, the reference of the moving
-    lobes) and stays there: spread, it took the light-guide dots of bench_forward_accuracy (relief seed 13,
-    2026-12-05) from rms z 1.16 to 1.29, their lattice rows along that azimuth.  Any other face as it is."""
+    lobes) and stays there: spread, it takes the light-guide dots of bench_forward_accuracy (relief seed 13)
+    from rms z 1.16 to 1.29, their lattice rows along that azimuth (docs/decisions/003).  Any other face as it is."""
     spread = float(grid.inside_azimuth_spread_deg)
     if face.method != "ray" or not spread or "phi_i_spread_deg" in face.options:
         return face
@@ -391,7 +391,7 @@ def half_turned_outside(face: Any, material: Material, grid: TableGrid, waveleng
     those of the tile met from the other side.  A sample tilt at normal incidence is the common case
     (the sample then sees the beam from azimuth 180 in its own frame): on a 256^2 Gaussian tile the
     rotated table missed the independent photon Monte Carlo through the same tile by rms z 4.2 (R) and
-    5.2 (T) on 1-deg rows, the half-turned tile by 1.07 and 0.91 (2026-12-04).  Turning the height map,
+    5.2 (T) on 1-deg rows, the half-turned tile by 1.07 and 0.91 (docs/decisions/002).  Turning the height map,
     heights[::-1, ::-1] (h'(x, y) = h(-x, -y), exact on the sampling grid whatever the pitch), makes it
     exact for every method."""
     if isinstance(face, TableFace):
@@ -433,7 +433,7 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     and a lattice of dots scatters the trapped light very differently along a row of dots than a few
     degrees off it, so the table at the centre alone stands for the sector wrongly when the centre is a
     lattice direction (0, 30, 60 ... deg on a hexagonal lattice aligned with the tile).  Measured on
-    bench_forward_accuracy (2026-12-05, 400k rays, 1 M photons, 0/30/60 deg): dots 1.29 -> 1.09 (relief
+    bench_forward_accuracy (400k rays, 1 M photons, 0/30/60 deg; docs/decisions/004): dots 1.29 -> 1.09 (relief
     seed 11; T 1.47 -> 1.10) and 1.35 -> 1.10 (seed 12), exponential 1.05 -> 1.04 / 1.04 -> 1.04,
     anisotropic 0.99 -> 1.01 / 0.86 -> 0.87, measured map 1.18 -> 1.19, at the same rays and cost (the
     centre-sampled tables needed 7.5-deg sectors, twice the loop's memory, to take dots to 1.19).  No
@@ -447,7 +447,7 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     direction of its statistics, and two sectors (TILE_SECTOR_AZIMUTHS_DEG, each the average over +-45
     deg of incidence azimuth) sharing the rays of one inside table (TILE_SECTOR_RAY_TABLES) hold it as
     well as the grid's fifteen-degree sectors at five tables' rays: bench_forward_accuracy's Gaussian
-    relief of rms slope 0.35 (2026-12-05, 400k rays, 1 M photons, 0/30/60 deg), chosen on relief seed 12
+    relief of rms slope 0.35 (400k rays, 1 M photons, 0/30/60 deg), chosen on relief seed 12
     (default 1.23; 15-deg sectors at five tables' rays 1.11; 45 / 90-deg sectors at five 1.09 / 1.09; 90 at
     one 1.11) and reported on seed 11: 1.16 -> 1.10 (15-deg sectors 1.13); slope 0.24 0.94 -> 0.91 (seed 12
     1.02 -> 1.02), slope 0.12 0.81 -> 0.80 (0.77 -> 0.75); a forward 10 s instead of 23-24 (default 6)."""

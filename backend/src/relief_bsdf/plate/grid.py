@@ -1,6 +1,6 @@
 """The angular grids of the boundary tables, which are also the deterministic plate's discretisation.
 
-Two grids (issue 18 item 2: cells narrower than the detector cone where the lobe is narrow):
+Two grids (cells narrower than the detector cone where the lobe is narrow):
 
 - the ENGINE grid (`theta_step_deg` x `phi_step_deg`, inside incidences every
   `inside_theta_i_step_deg`): the inside tables and the plate's internal direction cells on
@@ -66,17 +66,17 @@ class TableGrid:
         its edges fall on the engine grid's azimuth edges).
     inside_interpolation: how the loop reads the inside tables between their incidences: "moving"
         (each neighbour's transmitted lobe shifted to the incidence's own Snell exit direction, scaled
-        to the linear blend's albedo) or "linear" (the blend of the two tables: the engine before
-        2026-12-03).  Does not change the tables (not in `key`).
+        to the linear blend's albedo) or "linear" (the blend of the two tables, which widens a lobe
+        that moves with the incidence).  Does not change the tables (not in `key`).
     sector_step_deg: azimuth step of the inside sector tables of a relief that scatters by azimuth
-        (plate.faces.inside_sectors; the same total rays whatever the step; since 2026-12-05 each table the
-        average over its sector's incidence azimuths, which took dots 1.29 -> 1.09 at 15 deg).  With tables
-        at the sectors' centres, measured on
-        bench_forward_accuracy (2026-12-03, moving lobes, 400k rays, 1 M photons, 0/30/60 deg), 15 -> 7.5:
+        (plate.faces.inside_sectors; the same total rays whatever the step; each table the average over
+        its sector's incidence azimuths, which takes dots 1.29 -> 1.09 at 15 deg: docs/decisions/004).  With
+        tables at the sectors' centres, measured on
+        bench_forward_accuracy (moving lobes, 400k rays, 1 M photons, 0/30/60 deg), 15 -> 7.5:
         dots 1.29 -> 1.19 (T 1.47 -> 1.18: trapped light extracted near the normal), measured map 1.35 -> 1.27,
         anisotropic 1.03 -> 1.03, exponential 1.06 -> 1.06; on relief seed 12 dots 1.36 -> 1.21, anisotropic
         0.88 -> 0.95.  Not the default: the loop keeps one kernel difference per sector (M, 4N, 4N complex64
-        per wavelength), and on the measured map (200k rays, 3 incidences, one quiet core, 2026-12-03)
+        per wavelength), and on the measured map (200k rays, 3 incidences, one quiet core)
         23 sectors take a forward's peak memory 3.8 -> 7.1 GB, the solver's operators 7 -> 16 s and a solve
         3.2 -> 6.0 s: a diagnosis keeps several solvers in each of its processes (24 GB in all) and every
         evaluation would cost twice.  180 (NO_SECTORS_DEG): no sector tables, the inside table's own
@@ -86,8 +86,8 @@ class TableGrid:
         one the azimuth probe finds scattering trapped light by azimuth: `plate.faces.inside_sectors`) or
         "always" (every ray-traced relief: the loop meets it by azimuth sector however isotropic its
         statistics).  A finite tile answers light by azimuth even where its statistics do not: on
-        bench_forward_accuracy's Gaussian relief of rms slope 0.35 (relief seed 12, 651 correlation areas,
-        2026-12-05) the inside table at 2.5 deg from inside put 0.0214-0.0255 of the light into the 0-2 deg
+        bench_forward_accuracy's Gaussian relief of rms slope 0.35 (relief seed 12, 651 correlation areas)
+        the inside table at 2.5 deg from inside put 0.0214-0.0255 of the light into the 0-2 deg
         exit ring depending on the propagation azimuth, the one table at phi_i 0 the least of it, and the
         second pass at normal incidence read 5-8 % low near the normal.  "always" gives a relief the gate
         leaves two sectors sharing one inside table's rays (`plate.faces.TILE_SECTOR_AZIMUTHS_DEG`: the tile's
@@ -107,7 +107,7 @@ class TableGrid:
         arrives at (the second pass, most of R after the direct reflection, within a few tens of degrees
         of the plane of incidence at oblique incidence).  45 deg is the half-width of the two tile sectors
         of `sectors` "always" (chosen there on relief seed 12); measured on bench_forward_accuracy
-        (2026-12-05, 400k rays, 1 M photons, 0/30/60 deg, rms z 0 -> 45 deg, the same cost): Gaussian
+        (400k rays, 1 M photons, 0/30/60 deg, rms z 0 -> 45 deg, the same cost; docs/decisions/003): Gaussian
         slope 0.35, relief seed 12, 1.23 -> 1.12 (ray seed 1: 1.28 -> 1.18; +-15: 1.20, +-90: 1.18, +-180:
         1.17, the two tile sectors 1.11); reported on seed 11: slope 0.12 / 0.24 / 0.35 0.81 -> 0.79, 0.94 ->
         0.92, 1.16 -> 1.12, two scales 1.00 -> 0.99; on fresh seed 13: 0.92 -> 0.92, 1.04 -> 1.05, 1.05 ->
@@ -117,22 +117,17 @@ class TableGrid:
         where sector tables carry the loop, the table serves the light at its own azimuth (the in-plane
         beams, the moving lobes' reference) and is traced there (light-guide dots, relief seed 13: 1.16,
         1.29 spread).  Not in `key`: the inside table's face carries it (its ray option, in the face's cache
-        key, `plate.faces.inside_face`), and no other table depends on it.  45 is the default since
-        2026-12-06; for one hour on 2026-12-05 it was already, and `make demo`'s fit (ray seed 0) then ended
-        in a local minimum of its likelihood, filter 0.9841 [0.9784, 0.9898] um against the true 1.0 (2.8
-        half-widths off): the tables' noise, which moves with the relief, bends chi^2 by ~5-8 over a
-        hundredth of a micrometre, as much as the interval's own curvature.  The fit's response surface
-        (fit.response_surface, `fit.optimise._smoothed`) averages those bumps: with it the demo gives back
-        1.1977 [1.1956, 1.1998] / 0.9998 [0.9924, 1.0071] at ray seed 0, 1.1998 / 1.0054 [0.9973, 1.0133]
-        at seed 1 (spread 0: 1.1975 / 1.0004, 1.1983 / 0.9994); the truth within 1.2 half-widths in every
-        case.  The forward is better with 45 there too (rms z at the truth 0.883 -> 0.876).  0: the table
-        at its own azimuth alone (the default until then).
+        key, `plate.faces.inside_face`), and no other table depends on it.  The tables' noise, which moves
+        with the relief, bends the demo fit's chi^2 by ~5-8 over a hundredth of a micrometre of filter, as
+        much as the interval's own curvature; the fit's response surface (fit.response_surface,
+        `fit.optimise._smoothed`) averages those bumps (docs/decisions/005).  The forward at the demo's
+        truth is better with 45 too (rms z 0.883 -> 0.876).  0: the table at its own azimuth alone.
     stokes_loop: the plate carries Stokes vectors through polarised (Mueller) tables (True, the
         physics of record); False: intensities only, the tables' M00 (the loop's matrices 4x smaller a
         side: its operators and solves ~16-64x cheaper), exact for unpolarised light only where no
         crossing polarises it.  The relief's transmission does, partly, and the flat back face then
-        reflects s and p differently: on the seed-10 tilt + blur case's baseline (Gaussian, n 1.5,
-        2026-12-04) the R rows differ by 4.7 % (median; up to 6.7 % in the lobes), the T rows by 1.8 %
+        reflects s and p differently: on a concealed tilt + blur case's baseline (Gaussian, n 1.5)
+        the R rows differ by 4.7 % (median; up to 6.7 % in the lobes), the T rows by 1.8 %
         (0.6 % in the lobes).  Hence not a model of record: the diagnosis's screens evaluate the CHANGE
         of the model toward a candidate on it, the probes and the current model alike
         (`diagnose.forward.DiagnosisForward.screening`).  Does not change the tables (not in `key`).
@@ -141,15 +136,15 @@ class TableGrid:
         tables over the incidences of the light inside, which averages their noise, so denser
         inside incidences can share the same total effort.  None: min(1, inside step / 10 deg),
         one full-effort table every 10 deg whatever the step (0.25 at the default 2.5 deg).
-        Chosen by measuring (benchmarks/bench_forward_accuracy.py, 2026-12-02, 8 reliefs, 1 M
+        Chosen by measuring (benchmarks/bench_forward_accuracy.py, 8 reliefs, 1 M
         photons, 0/30/60 deg): 0.25 instead of 0.5 moved rms z by at most 0.04 (400k rays: every
         case within 0.01 but dots 1.62 -> 1.66; 200k rays, the fit's default: gauss_mid 1.01 ->
         1.02, dots 1.72 -> 1.68, measured 2.12, exponential 1.20 unchanged) and cut the forward's
         seconds by a third (the inside tables held 3/4 of the rays).
 
     Defaults measured against the independent photon Monte Carlo (bench_forward_accuracy.py,
-    2026-12-03, 8 reliefs, 400k rays, 1 M photons, 0/30/60 deg; nothing else chosen on them):
-    direct rings 0.25 deg (was 0.5) with 5 x 5 sub-points per cell in the cone integral (was 3 x 3;
+    8 reliefs, 400k rays, 1 M photons, 0/30/60 deg; nothing else chosen on them):
+    direct rings 0.25 deg (against 0.5) with 5 x 5 sub-points per cell in the cone integral (against 3 x 3;
     plate.detector.SUB_POINTS: on 0.25 x 1-deg cells 3 x 3 misreads a uniform field by 0.4 % at 45 deg and
     moved the demo fit's scale by 0.3 %, 3 half-widths): the measured map's transmitted lobe has a cusp
     narrower than a 0.5-deg ring (its peak read 2.3 % low: T 1.69 -> 1.21), no case worse; with the anisotropic

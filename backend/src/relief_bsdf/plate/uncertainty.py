@@ -38,17 +38,15 @@ INTERVAL_DRAWS = 16
 
 # The deterministic plate's stated level accuracy per side (1-sigma, relative): what the forward
 # model's in-lobe level misses an independent photon Monte Carlo through the real relief by, not
-# its noise.  Measured with benchmarks/bench_forward_accuracy.py (2026-12-02; 8 reliefs: Gaussian
-# slope 0.12 / 0.24 / 0.34, dots, exponential, two scales, anisotropic, a measured map; 1 M photons,
-# 0/30/60 deg, 400k rays, in-lobe sum forward / recording): R 0.961-1.000, rms deviation 2.0 %;
+# its noise.  Measured with benchmarks/bench_forward_accuracy.py (8 reliefs: Gaussian slope
+# 0.12 / 0.24 / 0.34, dots, exponential, two scales, anisotropic, a measured map; 1 M photons,
+# 0/30/60 deg, 400k rays, in-lobe sum forward / recording): R 0.979-1.001, rms deviation 1.2 %, the
+# largest miss 2.1 % (gauss_low), stated as 2 % (eight reliefs only, and the largest miss exceeds even that);
 # T 0.992-1.002, rms deviation 0.3 % (rounded up to 0.5 %: eight cases).  Used as nuisance levels
 # in the fit's and the diagnosis's intervals (fit.covariance), never in the estimate.  Measured for
 # the ray method's tables on the default grid (auto's choice for reliefs rough on the wavelength
 # scale); a surrogate (microfacet+dw) misses by far more and says so in its own output, a wave
 # method's accuracy is checked against the direct-integration Kirchhoff instead (not a level).
-# Re-measured 2026-12-04 with the loop's first transmission as point sources (plate.deterministic): R
-# 0.979-1.001, rms deviation 1.2 % (was 1.9 %; the largest miss 2.1 %, gauss_low, was 3.6 %, the measured
-# map), T unchanged; R kept at 2 %: eight reliefs, and the largest miss still exceeds it.
 FORWARD_LEVEL_SD = {"R": 0.02, "T": 0.005}
 
 

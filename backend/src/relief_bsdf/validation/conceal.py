@@ -11,7 +11,7 @@ holds both).  Reliefs (`CaseSpec.relief`): "gaussian" (default), "exponential"
 (autocovariance s^2 exp(-r/L), `random_relief(kind="exponential")`), "anisotropic"
 (`RandomFieldSpec`, correlation length 2.5 L along 30 deg), "dots" (light-guide-plate caps,
 `surface.synth.lgp_dots`) and "measured" (`measured_tile`: the real instrument map
-../shared/data/topography/ST_x3p-2.x3p, levelled, central crop, heights x 3, mirrored into a
+tests/data/topography/ST_x3p-2.x3p, levelled, central crop, heights x 3, mirrored into a
 periodic tile).  The physics is an *independent* Monte-Carlo photon simulation:
 
 - the rough face is the real relief, triangulated and ray traced with Embree
@@ -86,7 +86,7 @@ STEEP_RELIEF = {"rms_um": (1.6, 2.2), "corr_um": 2.5}   # interreflection cases:
 WAVE_RELIEF = {"rms_um": (0.12, 0.16), "corr_um": 2.5, "pitch_um": 0.5, "relief_n": 256}
 WAVE_EFFECTS = ("diffraction", "partial_coherence")
 RELIEF_KINDS = ("gaussian", "exponential", "anisotropic", "dots", "measured")
-# compound cases (issue 14): two effects concealed together
+# compound cases: two effects concealed together
 COMPOUND_CASES = (("bulk_absorption", "stray_light"), ("sample_tilt", "instrument_blur"),
                   ("relief_scale", "bulk_absorption"), ("polarization", "stray_light"),
                   ("relief_smoothing", "sample_tilt"))
@@ -312,8 +312,9 @@ def default_cases(n_per_effect: int = 2, n_none: int = 4, seed: int = 1, n_compo
 
 
 def _topography_dir() -> Path:
-    """../shared/data/topography beside the repository (the project's real measured maps)."""
-    return Path(__file__).resolve().parents[4].parent / "shared" / "data" / "topography"
+    """tests/data/topography of the repository: the real instrument maps, kept with their source and
+    licence (SOURCE.md there); absent from an installed package, where the measured case is left out."""
+    return Path(__file__).resolve().parents[4] / "tests" / "data" / "topography"
 
 
 def measured_tile(crop_n: int = 96, height_scale: float = 3.0, name: str = MEASURED_MAP) -> Relief:

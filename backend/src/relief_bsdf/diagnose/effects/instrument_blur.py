@@ -6,8 +6,8 @@ deterministic engine traces it into a ray-traced relief's outside table or solve
 quadrature of incidences, the photon engine draws each photon's); Gaussians compose by adding variances, so the fitted divergence adds in quadrature to
 a stated one.  Not the same as blurring the reading: off normal incidence a lobe does not move
 rigidly with the incidence (the grazing flank of a reflected lobe and the transmitted lobe's
-shape at 55 deg differ by up to 8-20 % between the two, independent photon Monte Carlo,
-2026-12-02); a too-wide detector aperture is the other blur (`Instrument.blur_deg`).
+shape at 55 deg differ by up to 8-20 % between the two against the independent photon
+Monte Carlo); a too-wide detector aperture is the other blur (`Instrument.blur_deg`).
 Tables: the outside tables are new (traced with the beam, or at the quadrature's incidences;
 budgeted: slow).
 Validity: small angles (b of a few degrees, tangent-plane offsets); the search stops at b = 5 deg,
