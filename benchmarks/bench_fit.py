@@ -18,6 +18,8 @@ The last line is one JSON object.
 """
 from __future__ import annotations
 
+import sys
+
 import argparse
 import json
 import resource
@@ -110,4 +112,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from measure import bench
+    sys.exit(bench("bench_fit", main))

@@ -133,6 +133,8 @@ Findings:
 """
 from __future__ import annotations
 
+import sys
+
 import argparse
 import json
 import time
@@ -393,4 +395,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from measure import bench
+    sys.exit(bench("bench_forward_accuracy", main))

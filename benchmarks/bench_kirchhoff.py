@@ -120,4 +120,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from measure import bench
+    sys.exit(bench("bench_kirchhoff", main))

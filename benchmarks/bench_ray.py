@@ -237,4 +237,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from measure import bench
+    sys.exit(bench("bench_ray", main))

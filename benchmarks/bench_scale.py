@@ -27,6 +27,8 @@ Run: `.venv/bin/python benchmarks/bench_scale.py [--tasks 48] [--method NAME]`.
 """
 from __future__ import annotations
 
+import sys
+
 import argparse
 import contextlib
 import logging
@@ -234,4 +236,5 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from measure import bench
+    sys.exit(bench("bench_scale", lambda argv: (main(argv), 0)[1]))

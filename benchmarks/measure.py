@@ -148,6 +148,50 @@ def write_result(name: str, figures: dict, command: str, results_dir: Path = RES
     return path
 
 
+class _LastJsonLine:
+    """A stdout that passes everything through and remembers the last line that is a JSON object."""
+
+    def __init__(self, stream):
+        self.stream, self.last, self._buf = stream, None, ""
+
+    def write(self, text: str) -> int:
+        self._buf += text
+        *lines, self._buf = self._buf.split("\n")
+        for line in lines:
+            if line.startswith("{"):
+                try:
+                    self.last = json.loads(line)
+                except ValueError:
+                    pass
+        return self.stream.write(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+    def __getattr__(self, name):
+        return getattr(self.stream, name)
+
+
+def bench(name: str, main, argv: list[str] | None = None) -> int:
+    """Run a benchmark's `main(argv)` sampling this process tree's PSS, then write
+    `results/NAME.json` with the figures of its last JSON line, its wall time and peak memory."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    out = _LastJsonLine(sys.stdout)
+    t0 = time.perf_counter()
+    old = sys.stdout
+    sys.stdout = out
+    try:
+        with PeakSampler(os.getpid(), 0.1) as s:
+            rc = main(argv)
+    finally:
+        sys.stdout = old
+    figures = {"wall_s": round(time.perf_counter() - t0, 2), "peak_pss_gb": round(s.peak_bytes / 1e9, 3),
+               "peak_processes": s.peak_processes, "results": out.last}
+    path = write_result(name, figures, " ".join(["benchmarks/" + name + ".py", *argv]))
+    print(f"{name}: wall {figures['wall_s']} s, peak {figures['peak_pss_gb']} GB (PSS, every process); {path}")
+    return rc if isinstance(rc, int) else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--interval", type=float, default=0.1, help="sampling interval, s (default 0.1)")

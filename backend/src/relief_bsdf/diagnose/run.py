@@ -48,7 +48,9 @@ from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODE
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.selection import BIC_MARGIN
 from relief_bsdf.io.atomic import write_text_atomic
+from relief_bsdf.parallel import current_settings, parallel_settings
 from relief_bsdf.plate import TableGrid
+from relief_bsdf.plate.memory import ForwardMemory, MemoryPlan, job_memory_bytes, plan_processes
 from relief_bsdf.progress import silent
 
 __all__ = ["BIC_MARGIN", "BIC_OVERWHELMING", "CONSISTENCY_Z", "MODEL_ACCURACY_RMS", "candidate_names", "diagnose",
@@ -265,6 +267,22 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
     return result, (v1, s1)
 
 
+def _memory_plan(memory: ForwardMemory, workers: int | None) -> MemoryPlan:
+    """How many workers the search may run with the job's memory (`plate.memory.plan_processes`: one
+    evaluation holds what the baseline left held), this process's owner held to its share; `workers`
+    (the caller's) is the most.  A plan that does not fit even alone is said in a warning."""
+    most = workers if workers is not None else current_settings().worker_count()
+    plan = plan_processes(memory.budget_bytes, memory.held_bytes, most)
+    memory.budget_bytes = plan.main_budget_bytes
+    memory.refresh(None)
+    if not plan.fits:
+        import warnings
+        warnings.warn(f"one evaluation of the forward model holds {plan.evaluation_bytes / 1e9:.1f} GB, more than the "
+                      f"job's memory ({plan.total_bytes / 1e9:.1f} GB, --memory-gb) allows beside it: going on in one "
+                      "process, keeping no more than one evaluation", RuntimeWarning, stacklevel=3)
+    return plan
+
+
 def diagnose(sample_path: str | Path, out_dir: str | Path, progress=None, *, method: str = DEFAULT_METHOD,
              photons: int = 200_000, seed: int = 0, effects: list[str] | None = None, workers: int | None = None,
              report: bool = True, sectors: str = "auto") -> dict:
@@ -278,13 +296,18 @@ def diagnose(sample_path: str | Path, out_dir: str | Path, progress=None, *, met
     small_pages()           # here and in its workers (parallel.memory)
     progress = progress or silent
     names = candidate_names(effects)
-    forward, sample = build_forward(sample_path, method, photons, seed, sectors=sectors)
-    rows = forward.rows
-    v0, s0 = forward.baseline()
-    n_mid = float(np.real(sample.plate.index.n(float(np.median(rows.wavelength_nm)))))
-    located = (regions(rows, v0, s0, n_glass=n_mid), classify(rows, v0, s0, n_glass=n_mid))
-    steps = stepwise(forward, names, progress, workers)
-    result, (v1, s1) = _result(forward, steps, located, n_mid)
+    memory = ForwardMemory(job_memory_bytes())         # the job's one memory owner: everything the forward keeps
+    with memory.active():
+        forward, sample = build_forward(sample_path, method, photons, seed, sectors=sectors)
+        rows = forward.rows
+        v0, s0 = forward.baseline()
+        plan = _memory_plan(memory, workers)
+        n_mid = float(np.real(sample.plate.index.n(float(np.median(rows.wavelength_nm)))))
+        located = (regions(rows, v0, s0, n_glass=n_mid), classify(rows, v0, s0, n_glass=n_mid))
+        with parallel_settings(worker_memory_bytes=plan.worker_budget_bytes):
+            steps = stepwise(forward, names, progress, plan.workers)
+        result, (v1, s1) = _result(forward, steps, located, n_mid)
+    result["memory"] = {**plan.describe(), "main_process": memory.report()}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "diagnosis.json", json.dumps(result, indent=1))

@@ -833,7 +833,16 @@ def _job_store(out: Path, sample: Any, job: FitJob) -> Any:
 
 def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJob(),
                 progress: Progress | None = None) -> dict:
-    """`relief fit`: read the sample, fit, write OUT/fit.json + relief + tables + plots + report."""
+    """`relief fit`: read the sample, fit, write OUT/fit.json + relief + tables + plots + report; the
+    forward model keeps what it derives in one memory owner held to the job's memory (`--memory-gb`,
+    `plate.memory`: the fit evaluates in this process, its tables traced on its threads)."""
+    from relief_bsdf.plate.memory import ForwardMemory, job_memory_bytes
+    from relief_bsdf.plate.memory import PROCESS_BASE_BYTES
+    with ForwardMemory(max(job_memory_bytes() - PROCESS_BASE_BYTES, 0.2e9)).active():
+        return _run_fit_job(sample_path, out_dir, job, progress)
+
+
+def _run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob, progress: Progress | None) -> dict:
     method = job.method
     from relief_bsdf.parallel.memory import small_pages
     small_pages()           # here and in its workers (parallel.memory)

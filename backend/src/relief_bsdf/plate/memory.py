@@ -130,10 +130,12 @@ class ForwardMemory:
         self._total += e.nbytes
         self._evict()
 
-    def refresh(self, key: tuple) -> None:
-        """Measure an entry again (a solver's operators are made while it solves) and evict to the budget."""
-        e = self._d.get(key)
+    def refresh(self, key: tuple | None) -> None:
+        """Measure an entry again (a solver's operators are made while it solves) and evict to the budget
+        (None: evict only, e.g. after the budget changed)."""
+        e = self._d.get(key) if key is not None else None
         if e is None:
+            self._evict()
             return
         self._total -= e.nbytes
         e.nbytes = deep_nbytes(e.value)
@@ -278,3 +280,43 @@ def current_memory() -> ForwardMemory:
     """The owner in force: the job's (`ForwardMemory.active`), else this process's own (module doc)."""
     m = _ACTIVE.get()
     return m if m is not None else _process_memory()
+
+
+PROCESS_BASE_BYTES = 0.3e9   # an interpreter with numpy, scipy and Embree loaded, before any table (PSS)
+TRANSIENT_SHARE = 0.5        # what one evaluation allocates while it builds, beyond what it keeps, per kept byte
+
+
+@dataclass(frozen=True)
+class MemoryPlan:
+    """How a job spreads its memory: `workers` processes of the local pool (1: this process alone) and
+    the byte budget of this process's owner and of each worker's (`plan_processes`)."""
+
+    total_bytes: float
+    evaluation_bytes: float
+    workers: int
+    main_budget_bytes: float
+    worker_budget_bytes: float
+    fits: bool
+
+    def describe(self) -> dict:
+        gb = 1e-9
+        return {"total_gb": round(self.total_bytes * gb, 3), "evaluation_gb": round(self.evaluation_bytes * gb, 3),
+                "workers": self.workers, "main_budget_gb": round(self.main_budget_bytes * gb, 3),
+                "worker_budget_gb": round(self.worker_budget_bytes * gb, 3), "fits": self.fits}
+
+
+def plan_processes(total_bytes: float, evaluation_bytes: float, max_workers: int) -> MemoryPlan:
+    """The most pool workers (`max_workers` at most, else 1 = this process alone) whose processes fit
+    `total_bytes` together.  Model of one process: PROCESS_BASE_BYTES + its budget + TRANSIENT_SHARE x
+    `evaluation_bytes` (what one evaluation of the forward model holds once made: its tables and solver,
+    the owner's held bytes after the baseline), with a budget of at least one evaluation.  A pool of
+    w >= 2 workers runs w + 1 processes (this one evaluates beside them, `diagnose.stepwise`).  Where not
+    even one process fits, this process alone with one evaluation's budget (`fits` False: the job
+    will exceed the total; the caller says so)."""
+    per = float(evaluation_bytes)
+    for w in range(int(max_workers), 1, -1):
+        budget = total_bytes / (w + 1) - PROCESS_BASE_BYTES - TRANSIENT_SHARE * per
+        if budget >= per:
+            return MemoryPlan(total_bytes, per, w, budget, budget, True)
+    budget = total_bytes - PROCESS_BASE_BYTES - TRANSIENT_SHARE * per
+    return MemoryPlan(total_bytes, per, 1, max(budget, per), 0.0, budget >= per)
