@@ -7,15 +7,16 @@ import sys
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
+    from relief_bsdf import defaults
     p = sub.add_parser("fit", help="fit relief height scale and Gaussian filter to the sample's recording")
     p.add_argument("sample", help="sample.toml")
     p.add_argument("-o", "--out", required=True, help="output directory (fit.json, relief, tables, plots, report)")
-    p.add_argument("--method", default="auto",
+    p.add_argument("--method", default=defaults.METHOD,
                    help="boundary BSDF method of the relief face: auto (default: the relief's own physics, ray "
                         "tracing or wave optics, chosen once from its statistics), any `relief reconstruct` "
                         "method, or the fast surrogate microfacet+dw")
-    p.add_argument("--samples", type=int, default=200_000, help="Monte-Carlo samples per incidence (ray methods)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--samples", type=int, default=defaults.SAMPLES, help="Monte-Carlo samples per incidence (ray methods)")
+    p.add_argument("--seed", type=int, default=defaults.SEED, help="random seed")
     p.add_argument("--max-iter", type=int, default=60, help="most forward evaluations")
     p.add_argument("--threshold", type=float, default=0.0, help="stop once the metric is at or below this")
     p.add_argument("--scale-bounds", default="0.1,10", metavar="MIN,MAX",

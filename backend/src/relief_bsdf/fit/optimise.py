@@ -839,13 +839,13 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
     small_pages()           # here and in its workers (parallel.memory)
     from relief_bsdf.report import fit_report as report
     from relief_bsdf.io.hdf5 import save_tables
-    from relief_bsdf.io.heightmaps import read_relief, write_relief
+    from relief_bsdf.io.heightmaps import read_sample_relief, write_relief
     from relief_bsdf.io.recording import read_recording, read_sample, write_recording
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sample = read_sample(sample_path)
     rec = read_recording(sample.recording_path)
-    relief = read_relief(sample.relief_path)
+    relief = read_sample_relief(sample)            # [relief] periodic / fill_holes applied (history)
     exp = experiment_from_sample(sample, relief, method=method, samples=job.samples, seed=job.seed)
     fwd = Forward(relief, exp, rec, grid=job.grid, where=str(sample.recording_path))
     settings = FitSettings(threshold=job.threshold, max_iter=job.max_iter, scale_bounds=job.scale_bounds,

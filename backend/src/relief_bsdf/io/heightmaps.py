@@ -213,6 +213,8 @@ def read_relief(path: str | Path, pitch_m: Any = None, channel: int | str | None
         raise InputError(path, "empty file (0 bytes)")
     pitch = _check_pitch_arg(pitch_m, path) if pitch_m is not None else None
     suffix = path.suffix.lower()
+    if suffix in (".h5", ".hdf5"):
+        _refuse_bsdf_table(path)
     if suffix == ".npz":
         return _read_npz(path, pitch)
     if suffix in IMAGE_SUFFIXES:
@@ -231,6 +233,19 @@ def read_relief(path: str | Path, pitch_m: Any = None, channel: int | str | None
         return _finish(path, *native_readers.read(path, pitch, channel))
     # --- end of hook
     return _read_surface_topography(path, pitch, channel)
+
+
+def _refuse_bsdf_table(path: Path) -> None:
+    """InputError when `path` is one of the project's BSDF tables (io.hdf5) rather than a height map."""
+    try:
+        import h5py
+        from relief_bsdf.io.hdf5 import FORMAT
+        with h5py.File(path, "r") as f:
+            is_table = f.attrs.get("format") == FORMAT or "outside" in f or "inside" in f
+    except OSError:
+        return
+    if is_table:
+        raise InputError(path, "is a BSDF table, not a height map (give the height map the table was made from)")
 
 
 def read_prepared_relief(path: str | Path, options=None, pitch_m: Any = None,
