@@ -211,6 +211,12 @@ class Relief:
         return self.with_heights(h, f"cropped to rows {rows.start}:{rows.stop}, cols {cols.start}:{cols.stop}",
                                  periodic=False)
 
+    def describe(self) -> dict:
+        """Metadata for tables and reports (no arrays)."""
+        return {"source": self.source, "shape": list(self.shape), "pitch_m": [self.dx_m, self.dy_m],
+                "periodic": self.periodic, "valid_fraction": self.valid_fraction,
+                "history": list(self.history)}
+
 
 def harmonic_fill_values(heights_m: np.ndarray, fill: np.ndarray, periodic: bool) -> np.ndarray:
     """Heights at the points `fill` (row-major order) that solve the discrete Laplace equation.
@@ -248,9 +254,3 @@ def harmonic_fill_values(heights_m: np.ndarray, fill: np.ndarray, periodic: bool
                            (np.concatenate(rows + [np.arange(rr.size)]), np.concatenate(cols + [np.arange(rr.size)]))),
                           shape=(rr.size, rr.size))
     return np.atleast_1d(spsolve(a.tocsc(), rhs))
-
-    def describe(self) -> dict:
-        """Metadata for tables and reports (no arrays)."""
-        return {"source": self.source, "shape": list(self.shape), "pitch_m": [self.dx_m, self.dy_m],
-                "periodic": self.periodic, "valid_fraction": self.valid_fraction,
-                "history": list(self.history)}
