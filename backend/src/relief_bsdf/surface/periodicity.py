@@ -44,7 +44,8 @@ MIN_WRAP_PAIRS = 8
 
 @dataclass(frozen=True)
 class Periodicity:
-    """periodic: the decision; source: "user", "file" or "test"; reason: plain words for logs."""
+    """periodic: the decision; source: "user", "file", "crop" (a window of the map) or "test";
+    reason: plain words for logs."""
 
     periodic: bool
     source: str

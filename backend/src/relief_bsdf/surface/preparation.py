@@ -6,9 +6,10 @@
 
 1. crop (`Relief.cropped`): a window X0,Y0,W,H in points (x = column, y = row);
 2. downsample (`Relief.downsampled`): k x k block means;
-3. periodicity (`surface.periodicity.decide_periodicity`): the user's statement, else the
-   file's (unless the map was cropped or trimmed: a piece of a tile is no tile), else the
-   wrap-around test;
+3. periodicity (`surface.periodicity.decide_periodicity`): the user's statement, else not
+   periodic for a cropped or trimmed map (a window of a map is not a period of it; the
+   wrap-around test cannot tell a window from a tile when the correlation length is a pixel
+   or two), else the file's statement, else the wrap-around test;
 4. fill holes (`Relief.fill_holes`): harmonic interpolation of every missing point (a
    periodic tile's holes see their neighbours across the wrap).
 
@@ -19,7 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from relief_bsdf.errors import InputError
-from relief_bsdf.surface.periodicity import decide_periodicity, tested_periodicity, with_periodicity
+from relief_bsdf.surface.periodicity import Periodicity, decide_periodicity, with_periodicity
 
 
 @dataclass(frozen=True)
@@ -74,7 +75,8 @@ def prepare_relief(relief, options: ReliefOptions):
     if options.periodic is not None:
         p = decide_periodicity(relief, options.periodic, options.stated_by)
     elif trimmed:
-        p = tested_periodicity(relief.heights_m)      # a piece of a tile is no longer the file's tile
+        p = Periodicity(False, "crop", "a window cut out of the map (or trimmed to whole blocks) is not a period "
+                                       "of it; --periodic / [relief] periodic = true says otherwise")
     else:
         p = decide_periodicity(relief)
     relief = with_periodicity(relief, p)
