@@ -40,7 +40,8 @@ class ReliefSceneSettings(bpy.types.PropertyGroup):
     theta_i_deg: StringProperty(name="Incidences (deg)", default=_defaults.as_text(_defaults.THETA_I_DEG),
                                 description="Comma-separated incidence angles theta_i in [0, 90)")
     sides: EnumProperty(name="Sides", items=SIDE_ITEMS, default="both")
-    samples: IntProperty(name="Samples", default=_defaults.SAMPLES, min=1, description="Monte-Carlo samples per incidence")
+    samples: IntProperty(name="Samples", default=_defaults.SAMPLES, min=1,
+                         description="Monte-Carlo samples per incidence")
     seed: IntProperty(name="Seed", default=_defaults.SEED, min=0)
     ior: FloatProperty(name="Refractive index", default=1.5, min=1.0001, max=4.0)
     table_path: StringProperty(options=_REL, name="Table", subtype="FILE_PATH", default="//relief_table.h5",

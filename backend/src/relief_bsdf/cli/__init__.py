@@ -172,7 +172,8 @@ def main(argv: list[str] | None = None) -> int:
         # where the command's tasks run: its --dask/--workers/--checkpoint-dir/--retries (parallel's
         # `add_parallel_args`) over the settings in force, for the command only; a LocalCluster it
         # starts is closed when it returns, so main() leaves no state behind
-        with sigterm_as_interrupt(), input_warnings_as_lines(debug), pixel_limit(getattr(args, "max_pixels", None)), parallel_from_args(args):
+        with sigterm_as_interrupt(), input_warnings_as_lines(debug), \
+                pixel_limit(getattr(args, "max_pixels", None)), parallel_from_args(args):
             check_output(args)
             return int(args._run(args) or 0)
     except InputError as e:

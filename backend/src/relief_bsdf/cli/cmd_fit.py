@@ -15,7 +15,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="boundary BSDF method of the relief face: auto (default: the relief's own physics, ray "
                         "tracing or wave optics, chosen once from its statistics), any `relief reconstruct` "
                         "method, or the fast surrogate microfacet+dw")
-    p.add_argument("--samples", type=int, default=defaults.SAMPLES, help="Monte-Carlo samples per incidence (ray methods)")
+    p.add_argument("--samples", type=int, default=defaults.SAMPLES,
+                   help="Monte-Carlo samples per incidence (ray methods)")
     p.add_argument("--seed", type=int, default=defaults.SEED, help="random seed")
     p.add_argument("--max-iter", type=int, default=60, help="most forward evaluations")
     p.add_argument("--threshold", type=float, default=0.0, help="stop once the metric is at or below this")

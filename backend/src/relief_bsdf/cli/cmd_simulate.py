@@ -13,7 +13,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--method", default=defaults.METHOD,
                    help="boundary BSDF method of the relief face: auto (default: the relief's own physics), any "
                         "`relief reconstruct` method, or the fast surrogate microfacet+dw")
-    p.add_argument("--samples", type=int, default=defaults.SAMPLES, help="Monte-Carlo samples per incidence (ray methods)")
+    p.add_argument("--samples", type=int, default=defaults.SAMPLES,
+                   help="Monte-Carlo samples per incidence (ray methods)")
     p.add_argument("--seed", type=int, default=defaults.SEED, help="random seed")
     p.add_argument("--height-scale", type=float, default=1.0, help="relief height scale")
     p.add_argument("--filter-sigma-um", type=float, default=0.0, help="Gaussian filter sigma (um)")
