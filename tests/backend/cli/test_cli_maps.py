@@ -189,6 +189,10 @@ def test_sample_key_periodic_reaches_simulate(tmp_path, capsys):
     rc, o, e = run_cli(capsys, "simulate", s, "--method", "microfacet+dw", "-o", tmp_path / "out")
     assert rc == 0, e
     assert "measured patch" in o and "stated by [relief] periodic of sample.toml" in o
+    rc, o, e = run_cli(capsys, "simulate", s, "--method", "microfacet+dw", "--periodic", "-o", tmp_path / "out2")
+    assert rc == 0 and "periodic tile (traced as one period): stated by --periodic" in o     # the flag wins
+    rc, o, e = run_cli(capsys, "info", s)
+    assert rc == 0 and "not periodic (stated); holes filled before use" in o
     s = write_small_sample(tmp_path, 'periodic = "yes"')
     rc, o, e = run_cli(capsys, "info", s)
     assert rc == 2 and "relief.periodic: expected true or false" in e
@@ -312,3 +316,13 @@ def test_reconstruct_method_defaults_to_auto(tmp_path, capsys):
                        "--theta-step-deg", "10", "--phi-step-deg", "30", "-o", tmp_path / "t.h5")
     assert rc == 0, e
     assert "method auto (" in o
+
+
+def test_sample_relief_keys_round_trip(tmp_path):
+    from relief_bsdf.io.recording import read_sample, write_sample
+    s = read_sample(write_small_sample(tmp_path, "periodic = true\nfill_holes = true"))
+    assert (s.relief_options.periodic, s.relief_options.fill_holes) == (True, True)
+    again = read_sample(write_sample(tmp_path / "again.toml", s))
+    assert (again.relief_options.periodic, again.relief_options.fill_holes) == (True, True)
+    plain = read_sample(write_sample(tmp_path / "plain.toml", read_sample(write_small_sample(tmp_path, ""))))
+    assert (plain.relief_options.periodic, plain.relief_options.fill_holes) == (None, False)

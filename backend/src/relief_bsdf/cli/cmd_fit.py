@@ -38,11 +38,14 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--progress", action="store_true", help="force the progress bar")
     from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
+    from relief_bsdf.cli.maps import add_relief_args
+    add_relief_args(p)              # over the sample's [relief] periodic / fill_holes
     return p
 
 
 def run(args) -> int:
     from relief_bsdf.errors import InputError
+    from relief_bsdf.cli.maps import stated_options
     from relief_bsdf.fit.optimise import FitJob, run_fit_job
     from relief_bsdf.plate import TableGrid
     from relief_bsdf.progress import TerminalBar, keep_alive
@@ -55,7 +58,7 @@ def run(args) -> int:
     grid = TableGrid(args.theta_step_deg, args.phi_step_deg, args.inside_step_deg, sectors=args.sectors)
     job = FitJob(method=args.method, samples=args.samples, seed=args.seed, max_iter=args.max_iter,
                  threshold=args.threshold, grid=grid, scale_bounds=_bounds(args.scale_bounds),
-                 max_filter_um=args.max_filter_um)
+                 max_filter_um=args.max_filter_um, relief_options=stated_options(args))
     bar = TerminalBar("fit", force=args.progress)
     with keep_alive(bar):                 # a log line at once and at least every 30 s (issue 18)
         doc = run_fit_job(args.sample, args.out, job, progress=bar)

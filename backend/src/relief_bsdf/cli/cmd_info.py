@@ -322,7 +322,10 @@ def _info_sample(path: Path, args) -> int:
     ins = d["instrument"]
     print(f"  instrument detector half-angle {ins['detector_half_angle_deg']} deg "
           f"({ins['detector_solid_angle_sr']:.3g} sr), {ins['polarization']} light")
-    print(f"  relief     {d['relief']}")
+    ro = d.get("relief_options", {})
+    per = {True: "periodic (stated)", False: "not periodic (stated)"}.get(ro.get("periodic"),
+                                                                        "periodicity from the file or its test")
+    print(f"  relief     {d['relief']}; {per}" + ("; holes filled before use" if ro.get("fill_holes") else ""))
     print(f"  recording  {d['recording']}")
     return 0
 

@@ -23,6 +23,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--table", help="use this boundary table file (HDF5, outside+inside) instead of deriving one")
     from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries (issue 8)
+    from relief_bsdf.cli.maps import add_relief_args
+    add_relief_args(p)              # over the sample's [relief] periodic / fill_holes
     return p
 
 
@@ -50,10 +52,10 @@ def _simulate(args, sample, rec):
     """The sample's Experiment (relief face by --method, or the --table file's tables) through plate.simulate."""
     from dataclasses import replace
     from relief_bsdf.fit.optimise import Forward
-    from relief_bsdf.cli.maps import show_prepared
+    from relief_bsdf.cli.maps import show_prepared, stated_options
     from relief_bsdf.io.heightmaps import read_sample_relief
     from relief_bsdf.plate import TableFace, TableGrid, experiment_from_sample, simulate
-    relief = read_sample_relief(sample) if not args.table else None
+    relief = read_sample_relief(sample, stated_options(args)) if not args.table else None
     if relief is not None:
         show_prepared(relief, args)
     exp = experiment_from_sample(sample, relief, method=args.method, samples=args.samples, seed=args.seed)

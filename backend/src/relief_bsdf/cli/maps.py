@@ -44,6 +44,12 @@ def relief_options(args: argparse.Namespace):
                          stated_by="--periodic" if getattr(args, "periodic", None) else "--no-periodic")
 
 
+def stated_options(args: argparse.Namespace):
+    """The flags' ReliefOptions when any map flag was given (to override a sample's [relief] keys), else None."""
+    opts = relief_options(args)
+    return None if (opts.crop, opts.downsample, opts.fill_holes, opts.periodic) == (None, 1, False, None) else opts
+
+
 def read_map(path, args: argparse.Namespace, pitch_m=None, channel=None):
     """The height map `path` read and prepared as the flags say ."""
     from relief_bsdf.io.heightmaps import read_prepared_relief
