@@ -68,10 +68,11 @@ def periodicity_line(relief) -> str:
 def show_prepared(relief, args: argparse.Namespace) -> None:
     """Print how the map is traced and why; after a crop or downsample also its recomputed statistics
     and regime (`relief info`'s summary)."""
-    print(periodicity_line(relief))
-    filled = [h for h in relief.history if h.startswith("filled ")]
-    for h in filled:
-        print(f"relief {relief.source}: {h}")
     if getattr(args, "crop", None) or getattr(args, "downsample", 1) != 1:
         from relief_bsdf.cli.cmd_info import print_relief_summary
-        print_relief_summary(relief)
+        print_relief_summary(relief)                 # periodicity and hole filling included
+        return
+    print(periodicity_line(relief))
+    for h in relief.history:
+        if h.startswith("filled "):
+            print(f"relief {relief.source}: {h}")

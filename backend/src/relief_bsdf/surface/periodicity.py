@@ -53,7 +53,7 @@ class Periodicity:
 
     def line(self) -> str:
         kind = "periodic tile (traced as one period)" if self.periodic else \
-            "measured patch, not periodic (mirror-extended or windowed where a method needs a period)"
+            "measured patch, not periodic (mirror-extended where a method needs a period)"
         return f"{kind}: {self.reason}"
 
     def as_dict(self) -> dict:
