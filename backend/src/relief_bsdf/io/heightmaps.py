@@ -50,8 +50,19 @@ Bounds and plausibility (checked *before* the pixels are allocated):
 - a map without two adjacent valid points along x and along y is refused (no slope can be
   formed: e.g. a 2 x 2 map with 3 NaN).
 
+Other shapes of valid input: an X3P zipped with its folder (a ``.zip`` or ``.x3p`` whose
+main.xml sits in one subfolder) is repacked and read as the X3P it holds; one of the project's
+BSDF tables (``.h5``) given as a height map is refused in one line saying so.
+
+Periodicity: a file that states it (an npz ``periodic``, a sidecar's ``periodic``, the EXR
+attribute ``relief:periodic``, the comment of an X3P this project wrote, a reader reporting a
+periodic topography) sets ``Relief.periodic`` and names itself in
+``metadata["periodic_source"]``; otherwise ``periodic`` is False here and
+`read_prepared_relief` (what the CLI reads maps with) decides by the user's statement or the
+wrap-around test (surface.periodicity).
+
 Invalid points stay NaN (masked arrays from SurfaceTopography, NaN in images/npz);
-nothing is filled or levelled here.  A 1-D profile is refused with a message
+nothing is filled or levelled here (`read_prepared_relief` fills when asked).  A 1-D profile is refused with a message
 saying 2-D work needs an area scan; an all-NaN map is refused.
 """
 from __future__ import annotations
