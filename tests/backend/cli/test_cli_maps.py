@@ -326,3 +326,15 @@ def test_sample_relief_keys_round_trip(tmp_path):
     assert (again.relief_options.periodic, again.relief_options.fill_holes) == (True, True)
     plain = read_sample(write_sample(tmp_path / "plain.toml", read_sample(write_small_sample(tmp_path, ""))))
     assert (plain.relief_options.periodic, plain.relief_options.fill_holes) == (None, False)
+
+
+def test_large_fills_iterate_to_the_direct_answer(monkeypatch):
+    """Above DIRECT_FILL_MAX unknowns the fill runs conjugate gradients: the same harmonic heights."""
+    import relief_bsdf.surface.relief as relief_module
+    holey = tile().heights_m.copy()
+    holey[10:30, 5:40] = np.nan
+    holey[50:, 50:] = np.nan
+    r = Relief(holey, 0.25e-6, 0.25e-6)
+    direct = r.fill_holes().heights_m
+    monkeypatch.setattr(relief_module, "DIRECT_FILL_MAX", 0)
+    np.testing.assert_allclose(r.fill_holes().heights_m, direct, rtol=0, atol=1e-8 * np.nanstd(holey))

@@ -124,8 +124,9 @@ class Relief:
         edge), a periodic tile wraps around.  The assumption: inside a hole the surface is
         the smoothest one that meets its rim, so a hole adds no roughness of its own (its
         slopes are at most those of the rim; it under-states the roughness of large holes).
-        The linear system is solved exactly (sparse direct solve), so the result does not
-        depend on a starting guess or an iteration count.
+        The linear system is solved exactly (sparse direct solve; above `DIRECT_FILL_MAX`
+        unknowns by conjugate gradients to a relative residual of 1e-10), so the result does
+        not depend on a starting guess or an iteration count.
 
         Only holes no wider than `max_gap_px` pixels (largest distance to the nearest valid
         point) are filled when given; wider holes stay NaN.  Filling large gaps invents relief
@@ -218,6 +219,11 @@ class Relief:
                 "history": list(self.history)}
 
 
+#: above this many unknowns the harmonic fill iterates (conjugate gradients) instead of a direct solve,
+#: whose fill-in grows faster than the map
+DIRECT_FILL_MAX = 200_000
+
+
 def harmonic_fill_values(heights_m: np.ndarray, fill: np.ndarray, periodic: bool) -> np.ndarray:
     """Heights at the points `fill` (row-major order) that solve the discrete Laplace equation.
 
@@ -253,4 +259,14 @@ def harmonic_fill_values(heights_m: np.ndarray, fill: np.ndarray, periodic: bool
     a = sparse.csr_matrix((np.concatenate(vals + [diag]),
                            (np.concatenate(rows + [np.arange(rr.size)]), np.concatenate(cols + [np.arange(rr.size)]))),
                           shape=(rr.size, rr.size))
-    return np.atleast_1d(spsolve(a.tocsc(), rhs))
+    if rr.size <= DIRECT_FILL_MAX:
+        return np.atleast_1d(spsolve(a.tocsc(), rhs))
+    from scipy.sparse.linalg import cg
+    x0 = np.full(rr.size, float(np.nanmean(heights_m)))
+    scale = float(np.abs(rhs).max()) or 1.0
+    x, info = cg(a, rhs / scale, x0=x0 / scale, rtol=1e-10, atol=0.0, maxiter=50_000,
+                 M=sparse.diags(1.0 / diag))
+    if info != 0:
+        raise InputError("fill holes", f"the harmonic fill of {rr.size} points did not converge; crop the largest "
+                         "holes away (relief crop) or fill only small ones (--max-gap-px)")
+    return x * scale
