@@ -142,6 +142,10 @@ def test_reconstruct_takes_crop_and_downsample(tmp_path, capsys):
                        "--crop", "0,0,32,32", "--downsample", 2, "-o", tmp_path / "t.h5")
     assert rc == 0, e
     assert "grid       16 x 16 px" in o and "Rayleigh parameter" in o
+    from relief_bsdf.io.hdf5 import load_tables
+    hist = load_tables(tmp_path / "t.h5")[0].relief["history"]      # the table says what was traced
+    assert hist[0] == "cropped to rows 0:32, cols 0:32" and hist[1].startswith("downsampled by 2")
+    assert hist[2].startswith("periodicity: measured patch")
 
 
 # ---------------------------------------------------------------------------------------------- periodicity
