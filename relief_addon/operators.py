@@ -210,8 +210,8 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
     def work(p, progress):
         from relief_bsdf.io.hdf5 import save_tables
         from relief_bsdf.methods import reconstruct
-        from relief_bsdf.io.heightmaps import read_relief
-        relief = read_relief(p["relief"], pitch_m=p["pitch"])
+        from relief_bsdf.io.heightmaps import read_prepared_relief
+        relief = read_prepared_relief(p["relief"], pitch_m=p["pitch"])   # periodicity decided as in the CLI
         tables = reconstruct(relief, p["material"], p["request"], p["method"], progress=progress)
         out = p["out"]
         if p.get("content_named"):

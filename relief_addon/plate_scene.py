@@ -53,7 +53,7 @@ def prepare_plates(source, albedo=None, closure: str = "metallic", progress=None
     from relief_bsdf.errors import InputError
     from relief_bsdf.fit.optimise import process_relief
     from relief_bsdf.plate import flat_tables
-    from relief_bsdf.io.heightmaps import read_relief
+    from relief_bsdf.io.heightmaps import read_sample_relief
     from relief_bsdf.io.recording import read_sample
     src = Path(source)
     if src.is_dir():
@@ -64,14 +64,14 @@ def prepare_plates(source, albedo=None, closure: str = "metallic", progress=None
         sample = read_sample(_sample_path_from_fit(src, doc))
         par = doc.get("parameters", {})
         method = doc.get("method", "auto")
-        relief = read_relief(sample.relief_path)
+        relief = read_sample_relief(sample)
         variants = [("before fit", process_relief(relief, 1.0, 0.0)),
                     ("after fit", process_relief(relief, float(par.get("height_scale", 1.0)),
                                                  float(par.get("filter_sigma_um", 0.0))))]
     elif src.is_file() and src.suffix.lower() == ".toml":
         sample = read_sample(src)
         method = "auto"                 # the relief's own physics (plate.choice)
-        variants = [("smooth", None), ("measured relief", read_relief(sample.relief_path))]
+        variants = [("smooth", None), ("measured relief", read_sample_relief(sample))]
     else:
         raise InputError(src, "expected a sample.toml or a fit folder")
     mat = sample.material

@@ -19,7 +19,8 @@ METHOD_ITEMS = [
 #: (`relief_bsdf.plate.choice.DEFAULT_METHOD`).  `microfacet` fits one isotropic lobe to the slopes,
 #: so an anisotropic relief (the shared x3p: correlation 2.2 um along x, 40 um along y) would bake
 #: isotropic; `auto` picks the method the panel names (kirchhoff, ray, ...), which keeps it.
-DEFAULT_METHOD = "auto"
+from relief_bsdf import defaults as _defaults
+DEFAULT_METHOD = _defaults.METHOD
 SIDE_ITEMS = [
     ("outside", "Outside", "Light arriving from outside (air)"),
     ("inside", "Inside", "Light arriving from inside the dielectric"),
@@ -34,13 +35,14 @@ def _z_scale_changed(obj, context):
 
 class ReliefSceneSettings(bpy.types.PropertyGroup):
     method: EnumProperty(name="Method", items=METHOD_ITEMS, default=DEFAULT_METHOD)
-    wavelengths_nm: StringProperty(name="Wavelengths (nm)", default="550",
+    wavelengths_nm: StringProperty(name="Wavelengths (nm)", default=_defaults.as_text(_defaults.WAVELENGTHS_NM),
                                    description="Comma-separated vacuum wavelengths; three or more bake as RGB")
-    theta_i_deg: StringProperty(name="Incidences (deg)", default="0,10,20,30,40,50,60,70,80,89",
+    theta_i_deg: StringProperty(name="Incidences (deg)", default=_defaults.as_text(_defaults.THETA_I_DEG),
                                 description="Comma-separated incidence angles theta_i in [0, 90)")
     sides: EnumProperty(name="Sides", items=SIDE_ITEMS, default="both")
-    samples: IntProperty(name="Samples", default=200_000, min=1, description="Monte-Carlo samples per incidence")
-    seed: IntProperty(name="Seed", default=0, min=0)
+    samples: IntProperty(name="Samples", default=_defaults.SAMPLES, min=1,
+                         description="Monte-Carlo samples per incidence")
+    seed: IntProperty(name="Seed", default=_defaults.SEED, min=0)
     ior: FloatProperty(name="Refractive index", default=1.5, min=1.0001, max=4.0)
     table_path: StringProperty(options=_REL, name="Table", subtype="FILE_PATH", default="//relief_table.h5",
                                description="BSDF table (HDF5) written by Reconstruct, read by Bake")

@@ -25,11 +25,12 @@ from typing import Iterator
 
 from relief_bsdf.errors import InputError
 
-COMMANDS = ["info", "synth", "reconstruct", "export", "plot", "simulate", "fit",
+COMMANDS = ["info", "synth", "reconstruct", "fill", "crop", "export", "plot", "simulate", "fit",
             "diagnose", "conceal", "render"]
 
 #: what each command's -o/--out names: an output "file" or an output "dir" (folder)
-OUTPUT_KIND = {"synth": "file", "reconstruct": "file", "export": "file", "plot": "file", "render": "file",
+OUTPUT_KIND = {"synth": "file", "reconstruct": "file", "fill": "file", "crop": "file", "export": "file",
+               "plot": "file", "render": "file",
                "simulate": "dir", "fit": "dir", "diagnose": "dir", "conceal": "dir"}
 
 
@@ -74,20 +75,44 @@ def _positive_int(text: str) -> int:
     return v
 
 
-@contextlib.contextmanager
-def input_warnings_as_lines() -> Iterator[None]:
-    """Within the block, an `InputWarning` prints as one line ``relief: warning: ...`` on stderr."""
-    import warnings
+class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """--help shows each option's default, "(default: X)", where it has one (not None / off / empty)
+    and the help text does not already say it."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        d = action.default
+        if d is None or d is False or d is argparse.SUPPRESS or d == [] or "default" in text:
+            return text
+        return super()._get_help_string(action)
+
+
+def warning_line(message, category) -> str:
+    """The one line a warning prints as: ``relief: warning: MESSAGE`` (first line of the message only)."""
     from relief_bsdf.errors import InputWarning
+    text = str(message).strip().splitlines()[0] if str(message).strip() else category.__name__
+    return f"relief: warning: {text}" if issubclass(category, (InputWarning, RuntimeWarning, UserWarning)) \
+        else f"relief: warning: {category.__name__}: {text}"
+
+
+@contextlib.contextmanager
+def input_warnings_as_lines(debug: bool = False) -> Iterator[None]:
+    """Within the block, every warning prints as one line ``relief: warning: ...`` on stderr, once per
+    message (no source line, no file name of ours); with `debug` Python's own format (file and line)."""
+    import warnings
 
     with warnings.catch_warnings():
         default = warnings.showwarning
+        said: set[str] = set()
 
         def show(message, category, filename, lineno, file=None, line=None):
-            if issubclass(category, InputWarning):
-                print(f"relief: warning: {message}", file=sys.stderr)
-            else:
+            if debug:
                 default(message, category, filename, lineno, file, line)
+                return
+            text = warning_line(message, category)
+            if text not in said:                     # once per cause, whatever the place
+                said.add(text)
+                print(text, file=sys.stderr)
         warnings.showwarning = show
         yield
 
@@ -107,7 +132,9 @@ def check_output(args: argparse.Namespace) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from relief_bsdf import __version__
     p = argparse.ArgumentParser(prog="relief", description="BSDF of a rough boundary from its measured micro-relief.")
+    p.add_argument("--version", action="version", version=f"relief {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     p.add_argument("--max-pixels", type=_positive_int, default=None, metavar="N",
                    help="refuse height maps with more than N pixels (default 2**25, or $RELIEF_MAX_PIXELS)")
@@ -120,6 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
                 continue
             raise
         sp = mod.add_parser(sub)
+        sp.formatter_class = DefaultsHelpFormatter
         sp.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help="show tracebacks on errors")
         sp.add_argument("--max-pixels", type=_positive_int, default=argparse.SUPPRESS, metavar="N",
                         help="refuse height maps with more than N pixels (default 2**25, or $RELIEF_MAX_PIXELS)")
@@ -144,7 +172,8 @@ def main(argv: list[str] | None = None) -> int:
         # where the command's tasks run: its --dask/--workers/--checkpoint-dir/--retries (parallel's
         # `add_parallel_args`) over the settings in force, for the command only; a LocalCluster it
         # starts is closed when it returns, so main() leaves no state behind
-        with sigterm_as_interrupt(), input_warnings_as_lines(), pixel_limit(getattr(args, "max_pixels", None)), parallel_from_args(args):
+        with sigterm_as_interrupt(), input_warnings_as_lines(debug), \
+                pixel_limit(getattr(args, "max_pixels", None)), parallel_from_args(args):
             check_output(args)
             return int(args._run(args) or 0)
     except InputError as e:

@@ -6,6 +6,7 @@ import json
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
+    from relief_bsdf import defaults
     p = sub.add_parser("diagnose", help="locate the simulation/recording mismatch and name the missing physics",
                        description="Simulates the plate as sample.toml describes it, locates where it misses the "
                                    "recording, fits every candidate effect (one module each in "
@@ -21,10 +22,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--method", default=None,
                    help="boundary BSDF method of the baseline's relief face (default: that of `relief fit`, "
                         "auto: the relief's own physics; or any `relief reconstruct` method or surrogate)")
-    p.add_argument("--photons", type=int, default=200_000,
-                   help="Monte-Carlo samples per incidence of a sampling boundary method (ray, normals; "
-                        "default 200000)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--photons", type=int, default=defaults.SAMPLES,
+                   help="Monte-Carlo samples per incidence of a sampling boundary method (ray, normals)")
+    p.add_argument("--seed", type=int, default=defaults.SEED, help="random seed")
     p.add_argument("--effects", default=None, help="comma-separated subset of candidate effects")
     p.add_argument("--workers", type=int, default=None, help="worker processes (default: every core)")
     p.add_argument("--json", action="store_true", help="print diagnosis.json on stdout")

@@ -7,15 +7,17 @@ import sys
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
+    from relief_bsdf import defaults
     p = sub.add_parser("fit", help="fit relief height scale and Gaussian filter to the sample's recording")
     p.add_argument("sample", help="sample.toml")
     p.add_argument("-o", "--out", required=True, help="output directory (fit.json, relief, tables, plots, report)")
-    p.add_argument("--method", default="auto",
+    p.add_argument("--method", default=defaults.METHOD,
                    help="boundary BSDF method of the relief face: auto (default: the relief's own physics, ray "
                         "tracing or wave optics, chosen once from its statistics), any `relief reconstruct` "
                         "method, or the fast surrogate microfacet+dw")
-    p.add_argument("--samples", type=int, default=200_000, help="Monte-Carlo samples per incidence (ray methods)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--samples", type=int, default=defaults.SAMPLES,
+                   help="Monte-Carlo samples per incidence (ray methods)")
+    p.add_argument("--seed", type=int, default=defaults.SEED, help="random seed")
     p.add_argument("--max-iter", type=int, default=60, help="most forward evaluations")
     p.add_argument("--threshold", type=float, default=0.0, help="stop once the metric is at or below this")
     p.add_argument("--scale-bounds", default="0.1,10", metavar="MIN,MAX",
@@ -36,11 +38,14 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--progress", action="store_true", help="force the progress bar")
     from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries
+    from relief_bsdf.cli.maps import add_relief_args
+    add_relief_args(p)              # over the sample's [relief] periodic / fill_holes
     return p
 
 
 def run(args) -> int:
     from relief_bsdf.errors import InputError
+    from relief_bsdf.cli.maps import stated_options
     from relief_bsdf.fit.optimise import FitJob, run_fit_job
     from relief_bsdf.plate import TableGrid
     from relief_bsdf.progress import TerminalBar, keep_alive
@@ -53,7 +58,7 @@ def run(args) -> int:
     grid = TableGrid(args.theta_step_deg, args.phi_step_deg, args.inside_step_deg, sectors=args.sectors)
     job = FitJob(method=args.method, samples=args.samples, seed=args.seed, max_iter=args.max_iter,
                  threshold=args.threshold, grid=grid, scale_bounds=_bounds(args.scale_bounds),
-                 max_filter_um=args.max_filter_um)
+                 max_filter_um=args.max_filter_um, relief_options=stated_options(args))
     bar = TerminalBar("fit", force=args.progress)
     with keep_alive(bar):                 # a log line at once and at least every 30 s (batch logs)
         doc = run_fit_job(args.sample, args.out, job, progress=bar)

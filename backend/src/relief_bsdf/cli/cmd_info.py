@@ -15,10 +15,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
                                    "(after least-squares plane levelling), rms slope (forward differences), "
                                    "correlation length (1/e of the radially averaged autocorrelation).")
     p.add_argument("file", help="height map (x3p, gwy, sur, sdf, datx, plu, opd, di, nid, ibw, mi, frt, tif, exr, "
-                                "npz, ...), BSDF table .h5, recording .csv, sample .toml or IS-BSDF .bsdf")
+                                "npz, ...), BSDF table .h5 or WINDOW/Radiance .xml, recording .csv, sample .toml "
+                                "or IS-BSDF .bsdf")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--channel", help="height-map channel (index or name) for multi-channel files")
     p.add_argument("--pitch-um", help="lateral pitch DX[,DY] in micrometres (images without sidecar)")
+    from relief_bsdf.cli.maps import add_relief_args
+    add_relief_args(p)
     return p
 
 
@@ -28,6 +31,8 @@ def _kind(path: Path) -> str:
         return "sample"
     if suffix == ".bsdf":
         return "is-bsdf"
+    if suffix == ".xml":
+        return "bsdf"
     if suffix in (".h5", ".hdf5"):
         try:
             import h5py
@@ -77,6 +82,9 @@ def relief_info(relief) -> dict:
         out[k] = s[k]
     out["size_m"] = list(relief.size_m)
     out["periodic"] = relief.periodic
+    if isinstance(relief.metadata, dict) and relief.metadata.get("periodicity"):
+        out["periodicity"] = relief.metadata["periodicity"]
+    out["history"] = list(relief.history)
     out["source"] = relief.source
     out["metadata"] = relief.metadata
     out.update(measured_map_info(relief))
@@ -140,7 +148,16 @@ def _print_relief(d: dict) -> None:
         print(f"  instrument {inst.get('name', inst) if isinstance(inst, dict) else inst}")
     print(f"  grid       {nx} x {ny} px, pitch {_fmt_len(dx)} x {_fmt_len(dy)}, size {_fmt_len(sx)} x {_fmt_len(sy)}"
           + (" (periodic tile)" if d.get("periodic") else ""))
-    print(f"  valid      {d['valid_fraction']:.1%} of the points (invalid points are kept as holes, not filled)")
+    filled = [h for h in d.get("history", []) if h.startswith("filled ")]
+    print(f"  valid      {d['valid_fraction']:.1%} of the points" + (
+        f" ({filled[-1]})" if filled else " (invalid points are kept as holes, not filled; --fill-holes fills them)"
+        if d["valid_fraction"] < 1 else ""))
+    if d.get("periodicity"):
+        from relief_bsdf.surface.periodicity import Periodicity
+        print(f"  periodic   {Periodicity(**d['periodicity']).line()}")
+    for h in d.get("history", []):
+        if not h.startswith(("filled ", "periodicity: ")):
+            print(f"  done       {h}")
     print(f"  rms height {_fmt_len(d['rms_height_m'])} (Sq after plane levelling), peak-to-valley "
           f"{_fmt_len(d['peak_to_valley_m'])}")
 
@@ -179,9 +196,14 @@ def run(args) -> int:
     return show(path, args)
 
 
+def print_relief_summary(relief) -> None:
+    """`relief info`'s text summary of a relief (statistics, regime, flags, what was done to it)."""
+    _print_relief(relief_info(relief))
+
+
 def _info_relief(path: Path, args) -> int:
-    from relief_bsdf.io.heightmaps import read_relief
-    relief = read_relief(path, pitch_m=_pitch(args.pitch_um), channel=args.channel)
+    from relief_bsdf.cli.maps import read_map
+    relief = read_map(path, args, pitch_m=_pitch(args.pitch_um), channel=args.channel)
     d = relief_info(relief)
     if args.json:
         print(json.dumps(d, default=str))
@@ -191,8 +213,8 @@ def _info_relief(path: Path, args) -> int:
 
 
 def _info_bsdf(path: Path, args) -> int:
-    from relief_bsdf.io.hdf5 import load_tables
-    tables = load_tables(path)
+    from relief_bsdf.io.tables import read_table_file
+    tables = read_table_file(path)
     rows = [r for t in tables for r in t.albedo_rows()]
     from relief_bsdf.bsdf.appearance import appearance
     d = {"kind": "bsdf", "method": tables[0].method if tables else None, "albedo": rows,
@@ -300,7 +322,10 @@ def _info_sample(path: Path, args) -> int:
     ins = d["instrument"]
     print(f"  instrument detector half-angle {ins['detector_half_angle_deg']} deg "
           f"({ins['detector_solid_angle_sr']:.3g} sr), {ins['polarization']} light")
-    print(f"  relief     {d['relief']}")
+    ro = d.get("relief_options", {})
+    per = {True: "periodic (stated)", False: "not periodic (stated)"}.get(ro.get("periodic"),
+                                                                        "periodicity from the file or its test")
+    print(f"  relief     {d['relief']}; {per}" + ("; holes filled before use" if ro.get("fill_holes") else ""))
     print(f"  recording  {d['recording']}")
     return 0
 

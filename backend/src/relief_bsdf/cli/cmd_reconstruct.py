@@ -14,19 +14,24 @@ def add_parser(sub) -> argparse.ArgumentParser:
                                    "of the material below the relief is required (--n or --cauchy); the lit "
                                    "medium is air (n = 1).")
     p.add_argument("relief", metavar="RELIEF", help="height map (.x3p, .gwy, .sur, .sdf, .tif, .exr, .npz)")
+    from relief_bsdf import defaults
     from relief_bsdf.methods.registry import method_names
-    p.add_argument("--method", required=True, help=" | ".join(method_names()) + " (methods.registry: each method's "
-                   "physics, regime of validity and options)")
-    p.add_argument("--wavelengths-nm", default="550", help="comma-separated vacuum wavelengths (default 550)")
-    p.add_argument("--theta-i-deg", default="0,15,30,45,60,75", help="incidence angles, degrees in [0, 90)")
+    p.add_argument("--method", default=defaults.METHOD,
+                   help=" | ".join(method_names()) + " (methods.registry: each method's physics, regime of "
+                   "validity and options; auto: chosen from the relief's statistics)")
+    p.add_argument("--wavelengths-nm", default=defaults.as_text(defaults.WAVELENGTHS_NM),
+                   help="comma-separated vacuum wavelengths")
+    p.add_argument("--theta-i-deg", default=defaults.as_text(defaults.THETA_I_DEG),
+                   help="incidence angles, degrees in [0, 90)")
     p.add_argument("--phi-i-deg", default="0", help="incidence azimuths (one value: isotropic table)")
     p.add_argument("--from", dest="incident_from", default="outside", choices=("outside", "inside", "both"),
                    help="side the light arrives from")
     idx = p.add_mutually_exclusive_group()
     idx.add_argument("--n", help="refractive index of the material: n or n,k (k >= 0 absorbing)")
     idx.add_argument("--cauchy", help="Cauchy coefficients A,B[,C] (B in nm^2, C in nm^4)")
-    p.add_argument("--samples", type=int, default=None, help="rays (paths) per incidence for Monte-Carlo methods")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--samples", type=int, default=defaults.SAMPLES,
+                   help="rays (paths) per incidence for Monte-Carlo methods")
+    p.add_argument("--seed", type=int, default=defaults.SEED, help="random seed")
     p.add_argument("--coherence-length-um", type=float, default=None, help="source coherence length (wave methods)")
     p.add_argument("--theta-step-deg", type=float, default=1.0, help="scatter cell size in theta_s (divides 90)")
     p.add_argument("--phi-step-deg", type=float, default=5.0, help="scatter cell size in phi_s (divides 360); "
@@ -37,6 +42,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="method option (value parsed as JSON when possible), e.g. distribution=\"ggx\", alpha=0.2, "
                         "grazing_heuristic=smith; repeatable; an option the method does not know is an error")
     p.add_argument("-o", "--out", required=True, help="output table (.h5)")
+    from relief_bsdf.cli.maps import add_relief_args
+    add_relief_args(p)
     from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries
     return p
@@ -86,6 +93,10 @@ def edges_from_steps(theta_step: float, phi_step: float) -> tuple[tuple, tuple]:
     return te, pe
 
 
+#: Python's spellings of JSON's true, false and null, accepted in --option values
+PYTHON_WORDS = {"True": True, "False": False, "None": None}
+
+
 def parse_options(items: list[str]) -> dict:
     from relief_bsdf.errors import InputError
     out = {}
@@ -93,6 +104,9 @@ def parse_options(items: list[str]) -> dict:
         if "=" not in it:
             raise InputError("--option", f"expected KEY=VALUE, got {it!r}")
         k, v = it.split("=", 1)
+        if v.strip() in PYTHON_WORDS:              # fill_holes=True as well as fill_holes=true
+            out[k.strip()] = PYTHON_WORDS[v.strip()]
+            continue
         try:
             out[k.strip()] = json.loads(v)
         except json.JSONDecodeError:
@@ -128,7 +142,7 @@ def run(args) -> int:
     from relief_bsdf.errors import InputError
     from relief_bsdf.methods import get_method, reconstruct
     from relief_bsdf.progress import TerminalBar, keep_alive
-    from relief_bsdf.io.heightmaps import read_relief
+    from relief_bsdf.cli.maps import read_map, show_prepared
     out = Path(args.out)
     if out.suffix.lower() not in (".h5", ".hdf5"):
         raise InputError(out, "the output table must be an HDF5 file (.h5)")
@@ -139,12 +153,14 @@ def run(args) -> int:
     if args.pitch_um is not None:
         v = parse_floats(args.pitch_um, "--pitch-um")
         pitch = (v[0] * 1e-6, (v[1] if len(v) > 1 else v[0]) * 1e-6)
-    relief = read_relief(args.relief, pitch_m=pitch)
+    relief = read_map(args.relief, args, pitch_m=pitch)
+    show_prepared(relief, args)
     bar = TerminalBar(f"reconstruct {args.method}")
     with keep_alive(bar):
         tables = reconstruct(relief, material, request, args.method, progress=bar)
     save_tables(out, tables)
-    print(f"wrote {out}: method {args.method}, {len(tables)} table(s)")
+    chosen = tables[0].method if tables and tables[0].method != args.method else None
+    print(f"wrote {out}: method {args.method}" + (f" ({chosen})" if chosen else "") + f", {len(tables)} table(s)")
     print(f"{'from':8s} {'lambda_nm':>9s} {'theta_i':>7s} {'phi_i':>6s} {'R':>8s} {'T':>8s} {'spec_R':>8s} "
           f"{'spec_T':>8s} {'lost':>8s}")
     for t in tables:

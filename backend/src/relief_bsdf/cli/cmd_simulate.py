@@ -6,14 +6,16 @@ from pathlib import Path
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
+    from relief_bsdf import defaults
     p = sub.add_parser("simulate", help="simulate the plate of a sample on its recording's rows")
     p.add_argument("sample", help="sample.toml")
     p.add_argument("-o", "--out", required=True, help="output directory (writes simulated.csv)")
-    p.add_argument("--method", default="auto",
+    p.add_argument("--method", default=defaults.METHOD,
                    help="boundary BSDF method of the relief face: auto (default: the relief's own physics), any "
                         "`relief reconstruct` method, or the fast surrogate microfacet+dw")
-    p.add_argument("--samples", type=int, default=200_000, help="Monte-Carlo samples per incidence (ray methods)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--samples", type=int, default=defaults.SAMPLES,
+                   help="Monte-Carlo samples per incidence (ray methods)")
+    p.add_argument("--seed", type=int, default=defaults.SEED, help="random seed")
     p.add_argument("--height-scale", type=float, default=1.0, help="relief height scale")
     p.add_argument("--filter-sigma-um", type=float, default=0.0, help="Gaussian filter sigma (um)")
     from relief_bsdf.cli import add_sectors_arg
@@ -21,6 +23,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--table", help="use this boundary table file (HDF5, outside+inside) instead of deriving one")
     from relief_bsdf.parallel import add_parallel_args
     add_parallel_args(p)            # --dask, --workers, --checkpoint-dir, --retries
+    from relief_bsdf.cli.maps import add_relief_args
+    add_relief_args(p)              # over the sample's [relief] periodic / fill_holes
     return p
 
 
@@ -48,9 +52,12 @@ def _simulate(args, sample, rec):
     """The sample's Experiment (relief face by --method, or the --table file's tables) through plate.simulate."""
     from dataclasses import replace
     from relief_bsdf.fit.optimise import Forward
-    from relief_bsdf.io.heightmaps import read_relief
+    from relief_bsdf.cli.maps import show_prepared, stated_options
+    from relief_bsdf.io.heightmaps import read_sample_relief
     from relief_bsdf.plate import TableFace, TableGrid, experiment_from_sample, simulate
-    relief = read_relief(sample.relief_path) if not args.table else None
+    relief = read_sample_relief(sample, stated_options(args)) if not args.table else None
+    if relief is not None:
+        show_prepared(relief, args)
     exp = experiment_from_sample(sample, relief, method=args.method, samples=args.samples, seed=args.seed)
     if not args.table:
         fwd = Forward(relief, exp, rec, grid=TableGrid(sectors=args.sectors), where=str(sample.recording_path))

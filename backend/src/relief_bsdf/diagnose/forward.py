@@ -314,12 +314,12 @@ def build_forward(sample_path: str | Path, method: str = DEFAULT_METHOD, samples
                   seed: int = 0, sectors: str = "auto") -> tuple[DiagnosisForward, object]:
     """The baseline forward model of a sample.toml (and the Sample), on the default grid with
     TableGrid.sectors = `sectors`."""
-    from relief_bsdf.io.heightmaps import read_relief
+    from relief_bsdf.io.heightmaps import read_sample_relief
     from relief_bsdf.io.recording import read_recording, read_sample
     sample = read_sample(sample_path)
     if sample.plate.rough_face != "front":
         raise InputError(sample.path, "key plate.rough_face: diagnose models a relief on the lit (front) face only")
-    relief = read_relief(sample.relief_path)
+    relief = read_sample_relief(sample)            # [relief] periodic / fill_holes applied (history)
     relief.require_valid(0.5)
     relief = relief.level(0 if relief.periodic else 1)
     rec = read_recording(sample.recording_path)

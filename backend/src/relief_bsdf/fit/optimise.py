@@ -288,6 +288,8 @@ class FitJob:
     grid: TableGrid = TableGrid()
     scale_bounds: tuple = (0.1, 10.0)
     max_filter_um: float | None = None
+    #: the command line's map choices (surface.preparation.ReliefOptions) over the sample's [relief] keys
+    relief_options: Any = None
 
 
 class _Objective:
@@ -828,6 +830,8 @@ def _job_store(out: Path, sample: Any, job: FitJob) -> Any:
     key = {"kind": "relief-fit", "inputs": input_digests(sample=sample.path, relief=sample.relief_path,
                                                          recording=sample.recording_path),
            "method": job.method, "samples": job.samples, "seed": job.seed, "grid": dataclasses.asdict(job.grid)}
+    if job.relief_options is not None:
+        key["relief_options"] = dataclasses.asdict(job.relief_options)
     return CheckpointStore(out / "checkpoint.json", key)
 
 
@@ -848,13 +852,13 @@ def _run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob, prog
     small_pages()           # here and in its workers (parallel.memory)
     from relief_bsdf.report import fit_report as report
     from relief_bsdf.io.hdf5 import save_tables
-    from relief_bsdf.io.heightmaps import read_relief, write_relief
+    from relief_bsdf.io.heightmaps import read_sample_relief, write_relief
     from relief_bsdf.io.recording import read_recording, read_sample, write_recording
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sample = read_sample(sample_path)
     rec = read_recording(sample.recording_path)
-    relief = read_relief(sample.relief_path)
+    relief = read_sample_relief(sample, job.relief_options)   # [relief] keys, the CLI's flags over them
     exp = experiment_from_sample(sample, relief, method=method, samples=job.samples, seed=job.seed)
     fwd = Forward(relief, exp, rec, grid=job.grid, where=str(sample.recording_path))
     settings = FitSettings(threshold=job.threshold, max_iter=job.max_iter, scale_bounds=job.scale_bounds,

@@ -152,13 +152,16 @@ def _check_can_create_in(folder: Path, shown: Path) -> None:
 
 
 def check_output_file(path: str | Path) -> Path:
-    """An output *file* path we will be able to write: not a folder, its folder writable."""
+    """An output *file* path we will be able to write: not a folder, its folder existing and writable
+    (a command that fails creates no folder)."""
     path = Path(path)
     if path.is_dir():
         raise InputError(path, "is a folder; expected an output file name")
     if path.exists() and not path.is_file():
         raise InputError(path, "exists and is not a regular file (a FIFO, socket or device?)")
     _check_can_create_in(path.parent, path)
+    if not path.parent.exists():
+        raise InputError(path, f"the folder {path.parent} does not exist; create it first (nothing was written)")
     remove_stale_parts(path.parent)
     return path
 

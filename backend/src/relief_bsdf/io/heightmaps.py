@@ -50,8 +50,19 @@ Bounds and plausibility (checked *before* the pixels are allocated):
 - a map without two adjacent valid points along x and along y is refused (no slope can be
   formed: e.g. a 2 x 2 map with 3 NaN).
 
+Other shapes of valid input: an X3P zipped with its folder (a ``.zip`` or ``.x3p`` whose
+main.xml sits in one subfolder) is repacked and read as the X3P it holds; one of the project's
+BSDF tables (``.h5``) given as a height map is refused in one line saying so.
+
+Periodicity: a file that states it (an npz ``periodic``, a sidecar's ``periodic``, the EXR
+attribute ``relief:periodic``, the comment of an X3P this project wrote, a reader reporting a
+periodic topography) sets ``Relief.periodic`` and names itself in
+``metadata["periodic_source"]``; otherwise ``periodic`` is False here and
+`read_prepared_relief` (what the CLI reads maps with) decides by the user's statement or the
+wrap-around test (surface.periodicity).
+
 Invalid points stay NaN (masked arrays from SurfaceTopography, NaN in images/npz);
-nothing is filled or levelled here.  A 1-D profile is refused with a message
+nothing is filled or levelled here (`read_prepared_relief` fills when asked).  A 1-D profile is refused with a message
 saying 2-D work needs an area scan; an all-NaN map is refused.
 """
 from __future__ import annotations
@@ -213,12 +224,18 @@ def read_relief(path: str | Path, pitch_m: Any = None, channel: int | str | None
         raise InputError(path, "empty file (0 bytes)")
     pitch = _check_pitch_arg(pitch_m, path) if pitch_m is not None else None
     suffix = path.suffix.lower()
+    if suffix in (".h5", ".hdf5"):
+        _refuse_bsdf_table(path)
     if suffix == ".npz":
         return _read_npz(path, pitch)
     if suffix in IMAGE_SUFFIXES:
         return _read_image(path, pitch, channel, z_unit)
     if suffix == ".sdf":
         return _read_sdf(path, pitch)
+    if suffix in (".x3p", ".zip"):
+        inner = _x3p_folder_prefix(path)
+        if inner:
+            return _read_zipped_x3p_folder(path, inner, pitch, channel)
     if suffix == ".x3p":
         check_x3p(path)                 # size, increments, checksums: before any reader allocates anything
     # --- hook: the project's own readers where SurfaceTopography is missing (io/native_readers.py)
@@ -227,6 +244,34 @@ def read_relief(path: str | Path, pitch_m: Any = None, channel: int | str | None
         return _finish(path, *native_readers.read(path, pitch, channel))
     # --- end of hook
     return _read_surface_topography(path, pitch, channel)
+
+
+def _refuse_bsdf_table(path: Path) -> None:
+    """InputError when `path` is one of the project's BSDF tables (io.hdf5) rather than a height map."""
+    try:
+        import h5py
+        from relief_bsdf.io.hdf5 import FORMAT
+        with h5py.File(path, "r") as f:
+            is_table = f.attrs.get("format") == FORMAT or "outside" in f or "inside" in f
+    except OSError:
+        return
+    if is_table:
+        raise InputError(path, "is a BSDF table, not a height map (give the height map the table was made from)")
+
+
+def read_prepared_relief(path: str | Path, options=None, pitch_m: Any = None,
+                         channel: int | str | None = None) -> Relief:
+    """`read_relief`, then the user's choices (`surface.preparation.ReliefOptions`: crop, downsample,
+    periodicity, hole filling) applied by `surface.preparation.prepare_relief`, each in the history."""
+    from relief_bsdf.surface.preparation import ReliefOptions, prepare_relief
+    return prepare_relief(read_relief(path, pitch_m=pitch_m, channel=channel), options or ReliefOptions())
+
+
+def read_sample_relief(sample, overrides=None) -> Relief:
+    """The relief of a sample (io.recording.Sample) with its [relief] keys applied, and `overrides`
+    (a ReliefOptions, e.g. from the command line) taking precedence over them."""
+    options = sample.relief_options if overrides is None else sample.relief_options.overridden(overrides)
+    return read_prepared_relief(sample.relief_path, options)
 
 
 def _npz_declared_shapes(path: Path) -> dict[str, tuple]:
@@ -278,6 +323,8 @@ def _read_npz(path: Path, pitch: tuple | None) -> Relief:
     if h.ndim != 1:
         _check_pitch(dx, dy, path, "the npz dx/dy (metres expected)")
     periodic = bool(data["periodic"].reshape(())) if "periodic" in data else False
+    if "periodic" in data:
+        meta["periodic_source"] = "the npz key periodic"
     if "info_json" in data:
         try:
             meta["written_by"] = json.loads(str(data["info_json"]))
@@ -382,8 +429,11 @@ def _read_image(path: Path, pitch: tuple | None, channel: int | str | None, z_un
                                f"or write a sidecar {path.name}.json with dx_m, dy_m (metres)")
     if side is not None:
         periodic = bool(side.get("periodic", False))
+        if "periodic" in side:
+            meta["periodic_source"] = f"the sidecar {Path(side['_path']).name}"
     elif attrs["relief:periodic"] is not None:
         periodic = str(attrs["relief:periodic"]).lower() in ("1", "true")
+        meta["periodic_source"] = "the image attribute relief:periodic"
     unit = z_unit or (side or {}).get("z_unit") or attrs["relief:z_unit"] or "m"
     if unit not in LENGTH_UNITS:
         raise InputError(path, f"unknown height unit {unit!r}")
@@ -502,8 +552,13 @@ def _read_surface_topography(path: Path, pitch: tuple | None, channel: int | str
         dx, dy = sx * lf / nx, sy * lf / ny
         meta["pitch_source"] = "file"
         _check_pitch(dx, dy, path, f"the file ({sx:g} x {sy:g} {lat_unit})")
-    periodic = bool(getattr(topo, "is_periodic", False)) or _x3p_written_periodic(path)
-    return _finish(path, h.T * zf, dx, dy, periodic, meta)
+    periodic = _x3p_stated_periodic(path)
+    if periodic is not None:
+        meta["periodic_source"] = "the X3P's relief_bsdf comment (periodic=...)"
+    elif getattr(topo, "is_periodic", False):
+        periodic = True
+        meta["periodic_source"] = "the file (its reader reports a periodic topography)"
+    return _finish(path, h.T * zf, dx, dy, bool(periodic), meta)
 
 
 _X3P_ITEMSIZE = {"I": 2, "L": 4, "F": 4, "D": 8}
@@ -572,16 +627,51 @@ def check_x3p(path: Path) -> None:
             warn_input(path, f"X3P main.xml MD5 does not match md5checksum.hex ({want}); the file was altered")
 
 
-def _x3p_written_periodic(path: Path) -> bool:
-    """True for an X3P that `write_relief` wrote from a periodic tile (flag in Record2/Comment)."""
+def _x3p_folder_prefix(path: Path) -> str:
+    """For a zip whose X3P members (main.xml, bindata/...) sit in one subfolder (an X3P folder
+    zipped with its folder), that folder's name with a trailing slash; "" otherwise."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = z.namelist()
+    except (OSError, zipfile.BadZipFile):
+        return ""
+    if "main.xml" in names:
+        return ""
+    mains = [n for n in names if n.endswith("/main.xml") and not n.startswith("__MACOSX/")]
+    return mains[0][:-len("main.xml")] if len(mains) == 1 else ""
+
+
+def _read_zipped_x3p_folder(path: Path, prefix: str, pitch: tuple | None, channel) -> Relief:
+    """Read the X3P inside folder `prefix` of the zip `path`: its members are repacked at the root of
+    a temporary .x3p (the layout ISO 25178-72 requires) and read as usual; the relief names `path`."""
+    import dataclasses
+    import tempfile
+    with tempfile.TemporaryDirectory(prefix="relief-x3p-") as tmp:
+        flat = Path(tmp) / (Path(prefix.rstrip("/")).name + ".x3p")
+        with zipfile.ZipFile(path) as z, zipfile.ZipFile(flat, "w", zipfile.ZIP_DEFLATED) as out:
+            for info in z.infolist():
+                if info.filename.startswith(prefix) and not info.is_dir():
+                    check_declared_size(path, (info.file_size // 8 + 1,), f"member {info.filename!r}")
+                    out.writestr(info.filename[len(prefix):], z.read(info))
+        relief = read_relief(flat, pitch_m=pitch, channel=channel)
+    meta = {**relief.metadata, "container": f"X3P folder {prefix!r} inside the zip"}
+    return dataclasses.replace(relief, source=str(path), metadata=meta)
+
+
+def _x3p_stated_periodic(path: Path) -> bool | None:
+    """An X3P that `write_relief` wrote states its periodic flag in Record2/Comment: True or False;
+    None for any other file (it states nothing)."""
     if path.suffix.lower() != ".x3p":
-        return False
+        return None
     try:
         with zipfile.ZipFile(path) as z:
             xml = z.read("main.xml").decode("utf-8", errors="replace")
     except (OSError, KeyError, zipfile.BadZipFile):
-        return False
-    return "written by relief_bsdf; periodic=true;" in xml
+        return None
+    for flag in (True, False):
+        if f"written by relief_bsdf; periodic={'true' if flag else 'false'};" in xml:
+            return flag
+    return None
 
 
 # ---------------------------------------------------------------- ISO 25178-71 SDF

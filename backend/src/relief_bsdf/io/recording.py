@@ -45,6 +45,7 @@ import numpy as np
 from relief_bsdf.io.atomic import write_text_atomic
 from relief_bsdf.errors import InputError
 from relief_bsdf.core.index import CauchyIndex, ConstantIndex, IndexModel, Material
+from relief_bsdf.surface.preparation import ReliefOptions
 
 RECORDING_MAGIC = "# relief-recording/1"
 RECORDING_COLUMNS = ("wavelength_nm", "theta_i_deg", "phi_i_deg", "side",
@@ -342,6 +343,8 @@ class Sample:
     relief_path: Path
     instrument: InstrumentSpec
     recording_path: Path
+    #: [relief] periodic / fill_holes (surface.preparation): what to do to the map before use
+    relief_options: ReliefOptions = field(default_factory=ReliefOptions)
 
     @property
     def material(self) -> Material:
@@ -353,6 +356,8 @@ class Sample:
                 "plate": {"thickness_mm": self.plate.thickness_mm, "index": self.plate.index.describe(),
                           "rough_face": self.plate.rough_face, "absorption_per_mm": self.plate.absorption_per_mm},
                 "relief": str(self.relief_path),
+                "relief_options": {"periodic": self.relief_options.periodic,
+                                   "fill_holes": self.relief_options.fill_holes},
                 "instrument": {"detector_half_angle_deg": self.instrument.detector_half_angle_deg,
                                "detector_solid_angle_sr": self.instrument.detector_solid_angle_sr,
                                "polarization": self.instrument.polarization},
@@ -361,7 +366,7 @@ class Sample:
 
 _SAMPLE_KEYS = {
     "plate": {"thickness_mm", "refractive_index", "cauchy", "rough_face", "absorption_per_mm"},
-    "relief": {"file"},
+    "relief": {"file", "periodic", "fill_holes"},
     "instrument": {"detector_half_angle_deg", "polarization"},
     "recording": {"file"},
 }
@@ -470,7 +475,18 @@ def _sample_from_doc(doc: dict, path: Path, check_files: bool) -> Sample:
             raise InputError(path, f"key {t}.file: {f!r} {what} (looked for {p})")
         files[t] = p
     return Sample(path=path, plate=PlateSpec(thickness, index, rough, absorption), relief_path=files["relief"],
-                  instrument=InstrumentSpec(half, pol), recording_path=files["recording"])
+                  instrument=InstrumentSpec(half, pol), recording_path=files["recording"],
+                  relief_options=_relief_options(tables["relief"], path))
+
+
+def _relief_options(relief: dict, path: Path) -> ReliefOptions:
+    """[relief] periodic (optional: true / false; omitted = the file's statement, else the wrap-around
+    test) and fill_holes (optional, default false): booleans, anything else is an error."""
+    for key in ("periodic", "fill_holes"):
+        if key in relief and not isinstance(relief[key], bool):
+            raise InputError(path, f"key relief.{key}: expected true or false, got {relief[key]!r}")
+    return ReliefOptions(fill_holes=relief.get("fill_holes", False), periodic=relief.get("periodic"),
+                         stated_by=f"[relief] periodic of {path.name}")
 
 
 def _check_index(n: float, path: Path, key: str) -> None:
@@ -530,7 +546,12 @@ def _sample_to_doc(sample: Sample, toml_path: Path) -> dict:
         except ValueError:
             return str(p.resolve())
 
-    return {"format": SAMPLE_FORMAT, "plate": plate, "relief": {"file": rel(sample.relief_path)},
+    relief: dict[str, Any] = {"file": rel(sample.relief_path)}
+    if sample.relief_options.periodic is not None:
+        relief["periodic"] = sample.relief_options.periodic
+    if sample.relief_options.fill_holes:
+        relief["fill_holes"] = True
+    return {"format": SAMPLE_FORMAT, "plate": plate, "relief": relief,
             "instrument": {"detector_half_angle_deg": sample.instrument.detector_half_angle_deg,
                            "polarization": sample.instrument.polarization},
             "recording": {"file": rel(sample.recording_path)}}

@@ -24,7 +24,7 @@ from relief_bsdf.plate.description import Experiment
 from relief_bsdf.plate.faces import ReliefFace
 from relief_bsdf.plate.grid import TableGrid
 
-DEFAULT_METHOD = "auto"     # the one default boundary method of simulate, fit and diagnose
+from relief_bsdf.defaults import METHOD as DEFAULT_METHOD   # the one default method (CLI, panel)
 
 
 def _choose(face: ReliefFace, material: Any, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any):

@@ -80,8 +80,9 @@ def periodic_heights(relief: Relief, fill_holes: bool | int | None = None) -> tu
     if not relief.valid.all():
         if fill_holes is None or fill_holes is False:
             raise InputError(where, f"{(~relief.valid).sum()} height samples are invalid (NaN); the ray tracer "
-                             "needs a closed surface: fill the holes explicitly (Relief.fill_holes, or the "
-                             "request option fill_holes=True / max gap in px)")
+                             "needs a closed surface: fill them (--fill-holes on the command line, `relief fill MAP "
+                             "-o FILLED.x3p`, fill_holes = true under [relief] in a sample.toml, or the method "
+                             "option fill_holes=true / a largest gap in px)")
         filled = relief.fill_holes(None if fill_holes is True else int(fill_holes))
         if not filled.valid.all():
             raise InputError(where, f"{(~filled.valid).sum()} invalid points remain after filling holes no wider "

@@ -118,13 +118,22 @@ class Relief:
     def fill_holes(self, max_gap_px: int | None = None) -> "Relief":
         """Fill invalid points by harmonic (Laplace) interpolation from their valid neighbours.
 
-        Only gaps no wider than `max_gap_px` pixels (distance to the nearest valid point)
-        are filled when given; wider gaps stay NaN.  Filling large gaps invents relief
+        The filled heights solve the discrete Laplace equation (each filled point is the mean
+        of its four neighbours) with the valid points around each hole as fixed boundary
+        values; at the map's edge the missing neighbour is left out (zero slope across the
+        edge), a periodic tile wraps around.  The assumption: inside a hole the surface is
+        the smoothest one that meets its rim, so a hole adds no roughness of its own (its
+        slopes are at most those of the rim; it under-states the roughness of large holes).
+        The linear system is solved exactly (sparse direct solve; above `DIRECT_FILL_MAX`
+        unknowns by conjugate gradients to a relative residual of 1e-10), so the result does
+        not depend on a starting guess or an iteration count.
+
+        Only holes no wider than `max_gap_px` pixels (largest distance to the nearest valid
+        point) are filled when given; wider holes stay NaN.  Filling large gaps invents relief
         (the FRT sample's rms grows 4x if its 31% of holes are interpolated), so this is
         never done implicitly.
         """
         self.require_valid()
-        h = self.heights_m
         invalid = ~self.valid
         if not invalid.any():
             return self
@@ -135,17 +144,42 @@ class Relief:
             labels, n = ndimage.label(invalid)
             too_far = ndimage.maximum(dist, labels, index=np.arange(1, n + 1)) > max_gap_px
             fill = invalid & ~np.isin(labels, np.nonzero(too_far)[0] + 1)
-        out = np.where(self.valid, h, np.nanmean(h))
-        # Jacobi iterations of the Laplace equation on the hole pixels (vectorised)
-        mode = "wrap" if self.periodic else "nearest"
-        kernel = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]])
         n_fill = int(fill.sum())
-        iters = int(min(4000, 50 + 4 * np.sqrt(n_fill)))
-        for _ in range(iters):
-            out[fill] = ndimage.convolve(out, kernel, mode=mode)[fill]
-        out[invalid & ~fill] = np.nan
-        return self.with_heights(out, f"filled {n_fill} invalid points by Laplace interpolation"
-                                 + (f" (gaps <= {max_gap_px} px)" if max_gap_px is not None else ""))
+        if n_fill == 0:
+            return self
+        out = self.heights_m.copy()
+        out[fill] = harmonic_fill_values(self.heights_m, fill, self.periodic)
+        how = "harmonic (Laplace) interpolation from the valid neighbours"
+        return self.with_heights(out, f"filled {n_fill} invalid points ({n_fill / out.size:.2%}) by {how}"
+                                 + (f" (holes <= {max_gap_px} px)" if max_gap_px is not None else ""))
+
+    def downsampled(self, k: int) -> "Relief":
+        """Block means of k x k points (NaN-aware: a block's valid points; none valid: NaN), pitch x k.
+
+        A box average before decimation, so finer components are attenuated rather than
+        aliased.  Rows and columns beyond the last whole block are dropped (then the tile
+        is no longer periodic).
+        """
+        if isinstance(k, bool) or int(k) != k or k < 1:
+            raise InputError("downsample", f"expected a whole factor >= 1, got {k!r}")
+        k = int(k)
+        if k == 1:
+            return self
+        ny, nx = self.shape
+        by, bx = ny // k, nx // k
+        if by < 2 or bx < 2:
+            raise InputError(self.source or "relief", f"downsampling {ny} x {nx} points by {k} leaves fewer "
+                             "than 2 x 2")
+        h = self.heights_m[:by * k, :bx * k].reshape(by, k, bx, k)
+        v = np.isfinite(h)
+        n = v.sum(axis=(1, 3))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = np.where(n > 0, np.where(v, h, 0.0).sum(axis=(1, 3)) / np.maximum(n, 1), np.nan)
+        whole = by * k == ny and bx * k == nx
+        step = f"downsampled by {k} (block means of {k} x {k} points)" + (
+            "" if whole else f", dropping {ny - by * k} row(s) and {nx - bx * k} column(s) beyond the last block")
+        return self.with_heights(out, step, dx_m=self.dx_m * k, dy_m=self.dy_m * k,
+                                 periodic=self.periodic and whole)
 
     def scaled(self, factor: float) -> "Relief":
         """Heights multiplied by `factor` (paper sec. 3 step 6: scaling raises diffuse scattering)."""
@@ -183,3 +217,56 @@ class Relief:
         return {"source": self.source, "shape": list(self.shape), "pitch_m": [self.dx_m, self.dy_m],
                 "periodic": self.periodic, "valid_fraction": self.valid_fraction,
                 "history": list(self.history)}
+
+
+#: above this many unknowns the harmonic fill iterates (conjugate gradients) instead of a direct solve,
+#: whose fill-in grows faster than the map
+DIRECT_FILL_MAX = 200_000
+
+
+def harmonic_fill_values(heights_m: np.ndarray, fill: np.ndarray, periodic: bool) -> np.ndarray:
+    """Heights at the points `fill` (row-major order) that solve the discrete Laplace equation.
+
+    Each unknown is the mean of its available neighbours (4-neighbourhood; an invalid point
+    outside `fill` and a point beyond a non-periodic edge are not available); valid
+    neighbours enter as fixed values.  Every hole region touches a valid point (the caller
+    fills whole connected regions of a map with valid points), so the system is regular.
+    """
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+    ny, nx = heights_m.shape
+    idx = -np.ones((ny, nx), dtype=np.int64)
+    rr, cc = np.nonzero(fill)
+    idx[rr, cc] = np.arange(rr.size)
+    known = np.isfinite(heights_m)
+    rows, cols, vals = [], [], []
+    diag = np.zeros(rr.size)
+    rhs = np.zeros(rr.size)
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        r2, c2 = rr + dr, cc + dc
+        if periodic:
+            r2, c2, inside = r2 % ny, c2 % nx, np.ones(rr.size, bool)
+        else:
+            inside = (r2 >= 0) & (r2 < ny) & (c2 >= 0) & (c2 < nx)
+        r2, c2 = np.clip(r2, 0, ny - 1), np.clip(c2, 0, nx - 1)
+        nb_known = inside & known[r2, c2]
+        nb_unknown = inside & (idx[r2, c2] >= 0)
+        diag += nb_known | nb_unknown
+        rhs[nb_known] += heights_m[r2[nb_known], c2[nb_known]]
+        rows.append(np.nonzero(nb_unknown)[0])
+        cols.append(idx[r2[nb_unknown], c2[nb_unknown]])
+        vals.append(-np.ones(int(nb_unknown.sum())))
+    a = sparse.csr_matrix((np.concatenate(vals + [diag]),
+                           (np.concatenate(rows + [np.arange(rr.size)]), np.concatenate(cols + [np.arange(rr.size)]))),
+                          shape=(rr.size, rr.size))
+    if rr.size <= DIRECT_FILL_MAX:
+        return np.atleast_1d(spsolve(a.tocsc(), rhs))
+    from scipy.sparse.linalg import cg
+    x0 = np.full(rr.size, float(np.nanmean(heights_m)))
+    scale = float(np.abs(rhs).max()) or 1.0
+    x, info = cg(a, rhs / scale, x0=x0 / scale, rtol=1e-10, atol=0.0, maxiter=50_000,
+                 M=sparse.diags(1.0 / diag))
+    if info != 0:
+        raise InputError("fill holes", f"the harmonic fill of {rr.size} points did not converge; crop the largest "
+                         "holes away (relief crop) or fill only small ones (--max-gap-px)")
+    return x * scale

@@ -83,8 +83,9 @@ def check_request(relief: Relief, material, request) -> RayOptions:
     relief.require_valid()
     if not relief.valid.all() and opts.fill_holes in (None, False):
         raise RequestError(f"{(~relief.valid).sum()} height samples of {where} are invalid (NaN): the ray tracer "
-                           "needs a closed surface; fill them explicitly (relief fill / Relief.fill_holes) or set "
-                           "the request option fill_holes=True (or a max gap in px)", where)
+                           "needs a closed surface; fill them: --fill-holes on the command line, `relief fill MAP "
+                           "-o FILLED.x3p`, fill_holes = true under [relief] in a sample.toml, or the method option "
+                           "fill_holes=true (or a largest gap in px)", where)
     ny, nx = relief.shape
     if min(nx, ny) < MIN_SAMPLES_PER_SIDE:
         raise RequestError(f"relief {where} of {ny} x {nx} samples is too small for ray tracing "
