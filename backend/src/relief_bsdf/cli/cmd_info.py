@@ -310,8 +310,12 @@ def _info_sample(path: Path, args) -> int:
         print(f"             relative_sigma {d['relative_sigma']}, wavelength of measured files "
               f"{d['recording_wavelength_nm']} nm")
     if any(f["kind"] != "recording.csv" for f in d["recording_files"]):
-        rec = s.load_recording()
-        r = rec.summary()
+        from relief_bsdf.errors import InputError
+        try:
+            r = s.load_recording().summary()
+        except InputError as e:          # the description is shown; what its recording still needs, said
+            print(f"  rows       not readable yet: {e.one_line()}")
+            return 0
         print(f"  rows       {r['rows']} at {', '.join(f'{w:g}' for w in r['wavelengths_nm'])} nm, incidences "
               f"{', '.join(f'({t:g}, {p:g})' for t, p in r['incidences_deg'])} deg (theta_i, phi_i)")
     return 0

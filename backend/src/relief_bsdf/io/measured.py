@@ -428,9 +428,15 @@ def read_measured_file(path: str | Path, n_transmitted: float | None = None) -> 
 # ====================================================================== rows
 
 
-def file_wavelength(mf: MeasuredFile, wavelength_nm: float | None, where: str | Path | None = None) -> float:
+#: how a sample.toml gives the wavelength of measured files (the command line's is WAVELENGTH_OPTION)
+SAMPLE_WAVELENGTH_KEY = "[recording] wavelength_nm = ... in the sample.toml"
+
+
+def file_wavelength(mf: MeasuredFile, wavelength_nm: float | None, where: str | Path | None = None,
+                    ask: str = WAVELENGTH_OPTION) -> float:
     """The wavelength of the file's rows: its own, else `wavelength_nm`; InputError naming the file and
-    ``--wavelength-nm`` when neither is known, or when both are and differ."""
+    how to give it (`ask`: the command line's ``--wavelength-nm`` by default, or the sample.toml key)
+    when neither is known, or when both are and differ."""
     if mf.wavelength_nm is not None:
         if wavelength_nm is not None and abs(float(wavelength_nm) - mf.wavelength_nm) > 1e-6 * mf.wavelength_nm:
             raise InputError(where or mf.path, f"the file states {mf.wavelength_nm:g} nm but {wavelength_nm:g} nm "
@@ -438,8 +444,7 @@ def file_wavelength(mf: MeasuredFile, wavelength_nm: float | None, where: str | 
         return float(mf.wavelength_nm)
     if wavelength_nm is None:
         what = "an RPC Photonics file" if mf.kind == "rpc" else "the IS-BSDF file"
-        raise InputError(where or mf.path, f"{what} does not state its wavelength; give it with {WAVELENGTH_OPTION} "
-                                           "(or [recording] wavelength_nm in sample.toml)")
+        raise InputError(where or mf.path, f"{what} does not state its wavelength; give it with {ask}")
     if not (math.isfinite(wavelength_nm) and wavelength_nm > 0):
         raise InputError(WAVELENGTH_OPTION, f"wavelength must be > 0 nm, got {wavelength_nm:g}")
     return float(wavelength_nm)
@@ -451,10 +456,12 @@ def measured_sigma(mf: MeasuredFile, bsdf_sr: np.ndarray, relative_sigma: float 
     return np.sqrt((rel * np.asarray(bsdf_sr, float)) ** 2 + mf.noise_floor_sr ** 2)
 
 
-def to_recording(mf: MeasuredFile, wavelength_nm: float | None = None, relative_sigma: float | None = None):
-    """The file's rows as a `Recording` (io.recording), sigma by `measured_sigma`."""
+def to_recording(mf: MeasuredFile, wavelength_nm: float | None = None, relative_sigma: float | None = None,
+                 ask: str = WAVELENGTH_OPTION):
+    """The file's rows as a `Recording` (io.recording), sigma by `measured_sigma`; `ask`: how the
+    wavelength is given, named when the file states none and none was given."""
     from relief_bsdf.io.recording import Recording
-    wl = file_wavelength(mf, wavelength_nm)
+    wl = file_wavelength(mf, wavelength_nm, ask=ask)
     cols = {k: [] for k in ("theta_i_deg", "phi_i_deg", "side", "theta_s_deg", "phi_s_deg", "bsdf_sr")}
     for inc in mf.incidences:
         n = inc.bsdf_sr.size
@@ -476,13 +483,13 @@ def to_recording(mf: MeasuredFile, wavelength_nm: float | None = None, relative_
 
 
 def read_measured(path: str | Path, wavelength_nm: float | None = None, relative_sigma: float | None = None,
-                  n_transmitted: float | None = None):
+                  n_transmitted: float | None = None, ask: str = WAVELENGTH_OPTION):
     """A measured plate file (RPC text or IS-BSDF, by content) as a `Recording` (module doc)."""
-    return to_recording(read_measured_file(path, n_transmitted), wavelength_nm, relative_sigma)
+    return to_recording(read_measured_file(path, n_transmitted), wavelength_nm, relative_sigma, ask)
 
 
 def read_recording_files(paths: Sequence[str | Path], wavelength_nm: float | None = None,
-                         relative_sigma: float | None = None):
+                         relative_sigma: float | None = None, ask: str = SAMPLE_WAVELENGTH_KEY):
     """One `Recording` from recording.csv files and / or measured plate files (each by content).
 
     Measured files get `measured_sigma`; recording.csv rows keep their sigma, and the unknown
@@ -495,7 +502,7 @@ def read_recording_files(paths: Sequence[str | Path], wavelength_nm: float | Non
         p = Path(p)
         kind = sniff(p)
         if kind in ("rpc", "is-bsdf"):
-            rec = read_measured(p, wavelength_nm, relative_sigma)
+            rec = read_measured(p, wavelength_nm, relative_sigma, ask=ask)
         else:
             rec = read_recording(p)
             if relative_sigma is not None and np.any(~np.isfinite(rec.sigma_sr)):
@@ -571,7 +578,7 @@ def measured_info(path: str | Path) -> dict:
             "path": str(mf.path), "title": mf.title,
             "wavelength_nm": mf.wavelength_nm,
             "wavelength": ("stated by the file" if mf.wavelength_nm is not None
-                           else f"not stated: give it with {WAVELENGTH_OPTION} (or [recording] wavelength_nm)"),
+                           else f"not stated: give it with {WAVELENGTH_OPTION} (or {SAMPLE_WAVELENGTH_KEY})"),
             "sides": sorted({inc.side for inc in mf.incidences}),
             "incidences_deg": [[inc.theta_i_deg, inc.phi_i_deg] for inc in mf.incidences],
             "rows": mf.rows, "peak_sr": mf.peak_sr, "noise_floor_sr": mf.noise_floor_sr,
@@ -610,8 +617,8 @@ def print_measured_info(d: dict) -> None:
 
 def measured_table(mf: MeasuredFile, wavelength_nm: float | None = None):
     """An RPC file as a `BsdfTable` (bsdf.table) on 1-degree cells, theta_s 0..90 by phi_s 0..360:
-    the readings interpolated linearly (periodic in azimuth) at the cell centres in the project's
-    frame (side T; side R zero), zero beyond the measured range.  A plate's BSDF, light from
+    cell averages of the readings' linear interpolant (periodic in azimuth) in the project's frame
+    (side T; side R zero), zero beyond the measured range.  A plate's BSDF, light from
     outside, so it can be plotted beside a reconstruction, exported and baked like any table."""
     from relief_bsdf.bsdf.table import BsdfTable
     if mf.kind != "rpc":
@@ -628,9 +635,17 @@ def measured_table(mf: MeasuredFile, wavelength_nm: float | None = None):
     php = np.concatenate([ph[-1:] - 360.0, ph, ph[:1] + 360.0])
     gp = np.concatenate([grid[:, -1:], grid, grid[:, :1]], axis=1)
     rings = np.stack([np.interp(pc, php, gp[k]) for k in range(th.size)])           # (theta, pc)
+    # cell averages over theta_s (8 sub-points weighted by the projected solid angle sin cos), so the
+    # table holds the integral of the readings' linear interpolant; in azimuth the average of the linear
+    # interpolant over a cell between two readings is its value at the centre
     inside = tc <= inc.range_deg[1]
+    sub = te[:-1, None] + (np.arange(8) + 0.5)[None, :] / 8.0 * np.diff(te)[:, None]     # (cells, 8)
+    wsub = np.sin(np.radians(2.0 * sub))
     cells = np.zeros((tc.size, pc.size))
-    cells[inside] = np.stack([np.interp(tc[inside], th, rings[:, j]) for j in range(pc.size)], axis=1)
+    for j in range(pc.size):
+        v = np.interp(sub, th, rings[:, j])
+        cells[:, j] = np.sum(v * wsub, axis=1) / np.sum(wsub, axis=1)
+    cells[~inside] = 0.0
     values = np.zeros((1, 1, 1, 2, tc.size, pc.size))
     values[0, 0, 0, 1] = cells
     return BsdfTable(wavelength_nm=[wl], theta_i_deg=[inc.theta_i_deg], phi_i_deg=[inc.phi_i_deg],
