@@ -145,3 +145,19 @@ def test_plot_rpc_alone_and_beside_a_table(tmp_path, capsys, table_file):
                        "-o", tmp_path / "cmp.png")
     assert rc == 0, e
     assert (tmp_path / "cmp.png").stat().st_size > 20000
+
+
+@pytest.mark.filterwarnings("ignore:microfacet table")   # a small tile's sampling note: rows, not values, tested
+def test_simulate_a_sample_whose_recording_is_rpc_files(tmp_path, capsys, gaussian_relief):
+    """`relief simulate` on a sample with a list of RPC files: one simulated row per measured row."""
+    from relief_bsdf.io.heightmaps import write_relief
+    _small_rpc(tmp_path, "a 0-0.txt", 0.0)
+    _small_rpc(tmp_path, "a 5-0.txt", 5.0)
+    p = _sample_toml(tmp_path, '["a 0-0.txt", "a 5-0.txt"]', "wavelength_nm = 633.0\n")
+    write_relief(tmp_path / "relief.npz", gaussian_relief(64, 0.5e-6, 0.5e-6, 5e-6))
+    rc, o, e = run_cli(capsys, "simulate", p, "--method", "microfacet", "-o", tmp_path / "out")
+    assert rc == 0, e
+    sim = read_recording(tmp_path / "out" / "simulated.csv")
+    rec = read_measured(tmp_path / "a 0-0.txt", wavelength_nm=633.0)
+    assert len(sim) == 24 and np.array_equal(sim.theta_s_deg[:12], rec.theta_s_deg)
+    assert np.all(sim.bsdf_sr > 0) and set(sim.side) == {"T"}
