@@ -18,8 +18,9 @@ RPC Photonics text (`sniff` -> "rpc")
     unchanged.  The data prove it (tests/backend/io/test_measured.py): the lobe's power
     centroid of ``EDS10 5-0.txt`` and ``EDS10 5-45.txt`` lands 0.06 deg from (T, 5, phi_i + 180)
     in both (the test's bar: 0.2 deg); RPC's azimuths taken literally put it 10 deg away, and no
-    fixed mirror of the azimuth (phi -> c - phi) puts both files' lobes there.  RPC's files state no wavelength: it is given by the caller
-    (``--wavelength-nm``, or ``[recording] wavelength_nm`` of sample.toml).
+    fixed mirror of the azimuth (phi -> c - phi) puts both files' lobes there.  RPC's files state
+    no wavelength: the caller gives it (``--wavelength-nm``, or ``[recording] wavelength_nm`` of
+    sample.toml).
     The 360 readings at theta_s = 0 are repeated readings of one direction (one per azimuth
     of the scan); they are kept as rows, each with its share of the pole's solid angle.
 
