@@ -350,3 +350,8 @@ def test_recording_files_mix_csv_and_measured(tmp_path):
     assert np.all(np.isnan(both.sigma_sr[:4])) and np.all(both.sigma_sr[4:] > 0)   # csv: unknown stays unknown
     both = read_recording_files([csv, tmp_path / "b.txt"], wavelength_nm=633.0, relative_sigma=0.1)
     assert np.all(both.sigma_sr[:4] > 0.1 * 0.99)
+    # an IS-BSDF file this project wrote is a boundary table, not a plate's measurement
+    tagged = tmp_path / "t.bsdf"
+    tagged.write_text("# relief: written by relief_bsdf.io.isbsdf\nSource  Measured\nScatterType BRDF\n")
+    with pytest.raises(InputError, match="boundary table"):
+        read_recording_files([tagged])

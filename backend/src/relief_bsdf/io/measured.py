@@ -495,13 +495,17 @@ def read_recording_files(paths: Sequence[str | Path], wavelength_nm: float | Non
 
     Measured files get `measured_sigma`; recording.csv rows keep their sigma, and the unknown
     ones get the recording fallback with `relative_sigma` when it is given (NaN otherwise, for the
-    caller's fallback).  Two files holding the same row (first six columns) are an error.
+    caller's fallback).  Two files holding the same row (first six columns) are an error, and so is
+    an IS-BSDF file this project wrote (a boundary table, not a plate's measurement).
     """
     from relief_bsdf.io.recording import Recording, read_recording, sigma_with_fallback
     parts = []
     for p in paths:
         p = Path(p)
         kind = sniff(p)
+        if kind == "is-bsdf" and not is_measured(p):
+            raise InputError(p, "an IS-BSDF file written by relief from a boundary table (its '# relief:' "
+                                "comments say so), not a measured plate; a recording is a plate's measurement")
         if kind in ("rpc", "is-bsdf"):
             rec = read_measured(p, wavelength_nm, relative_sigma, ask=ask)
         else:
