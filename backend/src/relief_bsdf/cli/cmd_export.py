@@ -1,7 +1,9 @@
 """`relief export TABLE --format recording-csv|is-bsdf|radiance-xml|hdf5 [--from outside|inside] -o OUT`.
 
 TABLE may be a project table (.h5) or a measured / exchanged file (IS-BSDF .bsdf, WINDOW/Radiance
-.xml): io.tables reads them all as BsdfTables.
+.xml, RPC Photonics text): io.tables reads them all as BsdfTables.  A measured plate file (RPC text, an
+IS-BSDF file without this project's tags) exported as recording-csv gives its own readings as rows
+(io.measured: the file's points in the project's frame, sigma by its documented model).
 """
 from __future__ import annotations
 
@@ -80,6 +82,10 @@ def run(args) -> int:
     out = Path(args.out)
     if args.depth is not None and not 1 <= args.depth <= 8:
         raise InputError("--depth", f"tensor-tree depth must be 1..8, got {args.depth}")
+    from relief_bsdf.io.measured import export_rows, is_measured
+    if args.format == "recording-csv" and Path(args.table).is_file() and is_measured(args.table):
+        export_rows(args.table, out, args.wavelength_nm, args.n)     # the file's own readings (io.measured)
+        return 0
     tables = read_table_file(args.table, wavelength_nm=args.wavelength_nm if args.format != "radiance-xml" else None,
                              n=args.n)
     if args.format == "radiance-xml":

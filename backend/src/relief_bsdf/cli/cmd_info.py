@@ -33,6 +33,9 @@ def _kind(path: Path) -> str:
         return "is-bsdf"
     if suffix == ".xml":
         return "bsdf"
+    from relief_bsdf.io.measured import sniff
+    if sniff(path) == "rpc":
+        return "measured"
     if suffix in (".h5", ".hdf5"):
         try:
             import h5py
@@ -192,7 +195,7 @@ def run(args) -> int:
     if not path.is_file():
         raise InputError(path, "not a regular file (a FIFO, socket or device would block or never end)")
     show = {"relief": _info_relief, "bsdf": _info_bsdf, "recording": _info_recording, "sample": _info_sample,
-            "is-bsdf": _info_isbsdf}[_kind(path)]
+            "is-bsdf": _info_isbsdf, "measured": _info_measured}[_kind(path)]
     return show(path, args)
 
 
@@ -326,12 +329,39 @@ def _info_sample(path: Path, args) -> int:
     per = {True: "periodic (stated)", False: "not periodic (stated)"}.get(ro.get("periodic"),
                                                                         "periodicity from the file or its test")
     print(f"  relief     {d['relief']}; {per}" + ("; holes filled before use" if ro.get("fill_holes") else ""))
-    print(f"  recording  {d['recording']}")
+    for f in d["recording_files"]:
+        print(f"  recording  {f['path']} ({f['kind']})")
+    if d["relative_sigma"] is not None or d["recording_wavelength_nm"] is not None:
+        print(f"             relative_sigma {d['relative_sigma']}, wavelength of measured files "
+              f"{d['recording_wavelength_nm']} nm")
+    if any(f["kind"] != "recording.csv" for f in d["recording_files"]):
+        from relief_bsdf.errors import InputError
+        try:
+            r = s.load_recording().summary()
+        except InputError as e:          # the description is shown; what its recording still needs, said
+            print(f"  rows       not readable yet: {e.one_line()}")
+            return 0
+        print(f"  rows       {r['rows']} at {', '.join(f'{w:g}' for w in r['wavelengths_nm'])} nm, incidences "
+              f"{', '.join(f'({t:g}, {p:g})' for t, p in r['incidences_deg'])} deg (theta_i, phi_i)")
+    return 0
+
+
+def _info_measured(path: Path, args) -> int:
+    """A measured plate file (RPC text, untagged IS-BSDF): io.measured.measured_info."""
+    from relief_bsdf.io.measured import measured_info, print_measured_info
+    d = measured_info(path)
+    if args.json:
+        print(json.dumps(d))
+    else:
+        print_measured_info(d)
     return 0
 
 
 def _info_isbsdf(path: Path, args) -> int:
     from relief_bsdf.io.isbsdf import read_isbsdf
+    from relief_bsdf.io.measured import is_measured
+    if is_measured(path):
+        return _info_measured(path, args)
     b = read_isbsdf(path)
     d = {"kind": "is-bsdf", "scatter_type": b.scatter_type, "symmetry": b.symmetry,
          "sample_rotation_deg": b.sample_rotation_deg.tolist(), "angle_of_incidence_deg": b.angle_of_incidence_deg.tolist(),

@@ -1,7 +1,9 @@
 """`relief plot A [B ...]`: in-plane BSDF curves and polar maps of a table, or several tables overlaid.
 
-Any table file works (.h5, measured IS-BSDF .bsdf, WINDOW/Radiance .xml; io.tables), so a measured
-file can be drawn beside a reconstruction: `relief plot boundary.h5 measured_BTDF.bsdf`.
+Any table file works (.h5, measured IS-BSDF .bsdf, WINDOW/Radiance .xml, RPC Photonics text; io.tables),
+so a measured file can be drawn beside a reconstruction: `relief plot boundary.h5 measured_BTDF.bsdf`.
+An RPC file alone is drawn as the file holds it (io.measured.measured_figure: cuts in and across the
+plane of incidence, polar map).
 """
 from __future__ import annotations
 
@@ -14,7 +16,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
                                    "scatter angle, like the paper's figures 4 and 9, delta parts marked) and "
                                    "polar maps of the scatter hemisphere. Several tables: their in-plane curves "
                                    "overlaid, evaluated at the first table's incidence angles.")
-    p.add_argument("tables", metavar="TABLE", nargs="+", help="BSDF table files (.h5, .bsdf, .xml)")
+    p.add_argument("tables", metavar="TABLE", nargs="+",
+                   help="BSDF table files (.h5, .bsdf, .xml) or RPC Photonics text files")
     p.add_argument("-o", "--out", default=None, help="output PNG (default: the first TABLE's name with .png)")
     p.add_argument("--side", choices=("R", "T"), default=None, help="only reflection or transmission (default both)")
     p.add_argument("--from", dest="incident_from", choices=("outside", "inside"), default=None,
@@ -52,14 +55,17 @@ def run(args) -> int:
     from pathlib import Path
 
     from relief_bsdf.errors import InputError
-    from relief_bsdf.io.tables import pick_table, read_table_file
     from relief_bsdf.report.plots import compare_figure, save_figure, table_figure
     paths = [Path(p) for p in list(args.tables) + list(args.compare)]
     out = Path(args.out) if args.out else paths[0].with_suffix(".png")
     if out.suffix.lower() != ".png":
         raise InputError(out, "the plot is written as PNG; give a .png file name")
-    full = [pick_table(read_table_file(p, wavelength_nm=args.wavelength_nm, n=args.n), args.incident_from, p)
-            for p in paths]
+    from relief_bsdf.io.measured import measured_figure, plot_tables, read_rpc, sniff
+    if len(paths) == 1 and sniff(paths[0]) == "rpc":       # a measured lobe as the file holds it
+        save_figure(measured_figure(read_rpc(paths[0])), out)
+        print(f"wrote {out}")
+        return 0
+    full = plot_tables(paths, args.wavelength_nm, args.n, args.incident_from)
     tables = [t.select(args.wavelength_nm) for t in full]
     sides = (args.side,) if args.side else ("R", "T")
     if len(tables) > 1:

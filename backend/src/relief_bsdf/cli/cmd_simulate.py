@@ -30,9 +30,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def run(args) -> int:
     from relief_bsdf.fit.residual import DEFAULT_METRIC
-    from relief_bsdf.io.recording import read_recording, read_sample, write_recording
+    from relief_bsdf.io.recording import read_sample, write_recording
     sample = read_sample(args.sample)
-    rec = read_recording(sample.recording_path)
+    rec = sample.load_recording()
     from relief_bsdf.progress import TerminalBar, keep_alive
     with keep_alive(TerminalBar("simulate")):
         sim = _simulate(args, sample, rec)

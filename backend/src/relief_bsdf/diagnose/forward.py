@@ -315,14 +315,14 @@ def build_forward(sample_path: str | Path, method: str = DEFAULT_METHOD, samples
     """The baseline forward model of a sample.toml (and the Sample), on the default grid with
     TableGrid.sectors = `sectors`."""
     from relief_bsdf.io.heightmaps import read_sample_relief
-    from relief_bsdf.io.recording import read_recording, read_sample
+    from relief_bsdf.io.recording import read_sample
     sample = read_sample(sample_path)
     if sample.plate.rough_face != "front":
         raise InputError(sample.path, "key plate.rough_face: diagnose models a relief on the lit (front) face only")
     relief = read_sample_relief(sample)            # [relief] periodic / fill_holes applied (history)
     relief.require_valid(0.5)
     relief = relief.level(0 if relief.periodic else 1)
-    rec = read_recording(sample.recording_path)
+    rec = sample.load_recording()
     if len(rec) < 4:
         raise InputError(sample.recording_path, f"only {len(rec)} rows; a diagnosis needs a scan")
     rows = rec.with_sigma_fallback()   # unknown sigma: documented fallback (recording.py)

@@ -828,7 +828,9 @@ def _job_store(out: Path, sample: Any, job: FitJob) -> Any:
     import dataclasses
     from relief_bsdf.io.checkpoint import CheckpointStore, input_digests
     key = {"kind": "relief-fit", "inputs": input_digests(sample=sample.path, relief=sample.relief_path,
-                                                         recording=sample.recording_path),
+                                                         recording=sample.recording_path,
+                                                         **{f"recording_{k}": q for k, q in
+                                                            enumerate(sample.recording_paths[1:], 1)}),
            "method": job.method, "samples": job.samples, "seed": job.seed, "grid": dataclasses.asdict(job.grid)}
     if job.relief_options is not None:
         key["relief_options"] = dataclasses.asdict(job.relief_options)
@@ -853,11 +855,11 @@ def _run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob, prog
     from relief_bsdf.report import fit_report as report
     from relief_bsdf.io.hdf5 import save_tables
     from relief_bsdf.io.heightmaps import read_sample_relief, write_relief
-    from relief_bsdf.io.recording import read_recording, read_sample, write_recording
+    from relief_bsdf.io.recording import read_sample, write_recording
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sample = read_sample(sample_path)
-    rec = read_recording(sample.recording_path)
+    rec = sample.load_recording()
     relief = read_sample_relief(sample, job.relief_options)   # [relief] keys, the CLI's flags over them
     exp = experiment_from_sample(sample, relief, method=method, samples=job.samples, seed=job.seed)
     fwd = Forward(relief, exp, rec, grid=job.grid, where=str(sample.recording_path))

@@ -6,7 +6,9 @@
     hdf5        save_tables / load_tables / table_for: BSDF tables (relief-bsdf-table/1)
     isbsdf      export_isbsdf / read_isbsdf / import_isbsdf: the IS-BSDF text format (OpticStudio)
     radiance_xml write_radiance_xml / read_radiance_xml: the LBNL/WINDOW XML BSDF (Radiance, WINDOW)
-    tables      read_table_file: any BSDF table file (.h5, IS-BSDF, XML) as BsdfTables
+    tables      read_table_file: any BSDF table file (.h5, IS-BSDF, XML, RPC text) as BsdfTables
+    measured    read_measured / read_recording_files: measured plate BSDF files (RPC Photonics text,
+                measured IS-BSDF) as recording rows in the project's frame
     atomic      atomic_path / write_text_atomic / write_bytes_atomic: the only way outputs are written
                 (temporary file beside the target, then rename: a reader never sees half a file)
     oiio        the optional OpenImageIO binding (EXR / TIFF)
@@ -23,6 +25,7 @@ _EXPORTS = {
     "Recording": "recording", "read_recording": "recording", "write_recording": "recording",
     "Sample": "recording", "PlateSpec": "recording", "InstrumentSpec": "recording",
     "read_sample": "recording", "write_sample": "recording",
+    "read_measured": "measured", "read_recording_files": "measured",
 }
 __all__ = list(_EXPORTS)
 

@@ -22,6 +22,15 @@ sample.toml
     ``instrument.polarization`` ("unpolarized").  File paths are relative to the
     toml file.  UTF-8 with or without a byte-order mark.
 
+    ``recording.file`` is one path or a non-empty list of paths: recording.csv files and / or
+    measured plate BSDF files (RPC Photonics text, measured IS-BSDF), each recognised by its
+    content and read by io.measured (`Sample.load_recording`).  ``recording.relative_sigma``
+    (optional, in (0, 1]): the 1-sigma relative uncertainty of rows whose file states none
+    (default: io.measured.DEFAULT_RELATIVE_SIGMA for measured files; recording.csv rows keep
+    the fallback of `Recording.with_sigma_fallback`).  ``recording.wavelength_nm`` (optional,
+    in [100, 20000] nm): the vacuum wavelength of measured files that do not state theirs
+    (RPC Photonics files never do); a file that states another one is an error.
+
     Plausible ranges (outside them the description is refused as a typo, exit 2, rather
     than simulated into NaN): ``plate.thickness_mm`` in [0.01, 1000] (below 10 um the
     plate is a thin film whose interference the incoherent plate model ignores);
@@ -345,6 +354,25 @@ class Sample:
     recording_path: Path
     #: [relief] periodic / fill_holes (surface.preparation): what to do to the map before use
     relief_options: ReliefOptions = field(default_factory=ReliefOptions)
+    #: every recording file ([recording] file: one path or a list); the first is `recording_path`
+    recording_paths: tuple[Path, ...] = ()
+    #: [recording] relative_sigma (None: each reader's documented default)
+    relative_sigma: float | None = None
+    #: [recording] wavelength_nm: wavelength of measured files that state none (None: not given)
+    recording_wavelength_nm: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.recording_paths:
+            self.recording_paths = (Path(self.recording_path),)
+        self.recording_paths = tuple(Path(p) for p in self.recording_paths)
+        self.recording_path = self.recording_paths[0]
+
+    def load_recording(self) -> Recording:
+        """The rows of every recording file (recording.csv and / or measured plate files, by content;
+        io.measured.read_recording_files), with the sample's relative_sigma and wavelength."""
+        from relief_bsdf.io.measured import read_recording_files
+        return read_recording_files(self.recording_paths, wavelength_nm=self.recording_wavelength_nm,
+                                    relative_sigma=self.relative_sigma)
 
     @property
     def material(self) -> Material:
@@ -361,15 +389,28 @@ class Sample:
                 "instrument": {"detector_half_angle_deg": self.instrument.detector_half_angle_deg,
                                "detector_solid_angle_sr": self.instrument.detector_solid_angle_sr,
                                "polarization": self.instrument.polarization},
-                "recording": str(self.recording_path)}
+                "recording": str(self.recording_path) if len(self.recording_paths) == 1
+                else [str(p) for p in self.recording_paths],
+                "recording_files": [_recording_file_summary(p) for p in self.recording_paths],
+                "relative_sigma": self.relative_sigma, "recording_wavelength_nm": self.recording_wavelength_nm}
+
+
+def _recording_file_summary(path: Path) -> dict:
+    """{"path", "kind"}: what a recording file holds, by content (io.measured.sniff)."""
+    from relief_bsdf.io.measured import sniff
+    kind = sniff(path) if Path(path).is_file() else None
+    return {"path": str(path), "kind": {"recording": "recording.csv", "rpc": "RPC Photonics text",
+                                        "is-bsdf": "measured IS-BSDF"}.get(kind, "unknown")}
 
 
 _SAMPLE_KEYS = {
     "plate": {"thickness_mm", "refractive_index", "cauchy", "rough_face", "absorption_per_mm"},
     "relief": {"file", "periodic", "fill_holes"},
     "instrument": {"detector_half_angle_deg", "polarization"},
-    "recording": {"file"},
+    "recording": {"file", "relative_sigma", "wavelength_nm"},
 }
+#: plausible range of [recording] wavelength_nm (UV to thermal infrared)
+RECORDING_WAVELENGTH_RANGE_NM = (100.0, 20000.0)
 
 
 def _number(d: dict, table: str, key: str, where: Path, required: bool = True) -> float | None:
@@ -464,18 +505,38 @@ def _sample_from_doc(doc: dict, path: Path, check_files: bool) -> Sample:
     base = path.parent
     files = {}
     for t in ("relief", "recording"):
-        f = _string(tables[t], t, "file", path)
-        if not f.strip():
-            raise InputError(path, f"key {t}.file: empty path")
-        p = Path(f)
-        p = p if p.is_absolute() else base / p
-        if check_files and not p.is_file():
-            what = ("is a folder, not a file" if p.is_dir() else "is not a regular file" if p.exists()
-                    else "not found")
-            raise InputError(path, f"key {t}.file: {f!r} {what} (looked for {p})")
-        files[t] = p
-    return Sample(path=path, plate=PlateSpec(thickness, index, rough, absorption), relief_path=files["relief"],
-                  instrument=InstrumentSpec(half, pol), recording_path=files["recording"],
+        given = tables[t].get("file")
+        if t == "recording" and isinstance(given, list):
+            if not given or not all(isinstance(x, str) for x in given):
+                raise InputError(path, f"key recording.file: expected a path or a non-empty list of paths, got {given!r}")
+            names = given
+        else:
+            names = [_string(tables[t], t, "file", path)]
+        paths = []
+        for f in names:
+            if not f.strip():
+                raise InputError(path, f"key {t}.file: empty path")
+            p = Path(f)
+            p = p if p.is_absolute() else base / p
+            if check_files and not p.is_file():
+                what = ("is a folder, not a file" if p.is_dir() else "is not a regular file" if p.exists()
+                        else "not found")
+                raise InputError(path, f"key {t}.file: {f!r} {what} (looked for {p})")
+            paths.append(p)
+        files[t] = paths
+    rec = tables["recording"]
+    rel = _number(rec, "recording", "relative_sigma", path, required=False)
+    if rel is not None and not 0 < rel <= 1:
+        raise InputError(path, f"key recording.relative_sigma: {rel:g} must be in (0, 1] (a 1-sigma relative "
+                               "uncertainty, 0.03 = 3 %)")
+    wl = _number(rec, "recording", "wavelength_nm", path, required=False)
+    lo, hi = RECORDING_WAVELENGTH_RANGE_NM
+    if wl is not None and not lo <= wl <= hi:
+        raise InputError(path, f"key recording.wavelength_nm: {wl:g} is outside [{lo:g}, {hi:g}] nm (a vacuum "
+                               "wavelength in nm)")
+    return Sample(path=path, plate=PlateSpec(thickness, index, rough, absorption), relief_path=files["relief"][0],
+                  instrument=InstrumentSpec(half, pol), recording_path=files["recording"][0],
+                  recording_paths=tuple(files["recording"]), relative_sigma=rel, recording_wavelength_nm=wl,
                   relief_options=_relief_options(tables["relief"], path))
 
 
@@ -554,7 +615,18 @@ def _sample_to_doc(sample: Sample, toml_path: Path) -> dict:
     return {"format": SAMPLE_FORMAT, "plate": plate, "relief": relief,
             "instrument": {"detector_half_angle_deg": sample.instrument.detector_half_angle_deg,
                            "polarization": sample.instrument.polarization},
-            "recording": {"file": rel(sample.recording_path)}}
+            "recording": _recording_doc(sample, rel)}
+
+
+def _recording_doc(sample: Sample, rel: Any) -> dict:
+    """The [recording] table of a Sample (a list of files only when there are several)."""
+    paths = [rel(p) for p in sample.recording_paths]
+    doc: dict[str, Any] = {"file": paths[0] if len(paths) == 1 else paths}
+    if sample.relative_sigma is not None:
+        doc["relative_sigma"] = sample.relative_sigma
+    if sample.recording_wavelength_nm is not None:
+        doc["wavelength_nm"] = sample.recording_wavelength_nm
+    return doc
 
 
 def write_sample(path: str | Path, sample: "Sample | dict") -> Path:
@@ -573,6 +645,8 @@ def write_sample(path: str | Path, sample: "Sample | dict") -> Path:
         for t in ("relief", "recording"):
             if isinstance(doc.get(t), dict) and isinstance(doc[t].get("file"), Path):
                 doc[t]["file"] = doc[t]["file"].as_posix()
+            if isinstance(doc.get(t), dict) and isinstance(doc[t].get("file"), (list, tuple)):
+                doc[t]["file"] = [f.as_posix() if isinstance(f, Path) else f for f in doc[t]["file"]]
     lines = [f"format = {_toml_value(doc['format'])}"]
     for t in ("plate", "relief", "instrument", "recording"):
         if t not in doc:

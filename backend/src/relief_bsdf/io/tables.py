@@ -6,6 +6,11 @@ reconstruction, written as recording rows, converted to HDF5 and baked like any 
     .bsdf / .isbsdf   io.isbsdf.import_isbsdf (one table: the BRDF and/or BTDF blocks of the file
                       and, for a file named *_BRDF.bsdf or *_BTDF.bsdf, its partner beside it)
     .xml              io.radiance_xml.read_radiance_xml (the outside and inside tables)
+    RPC Photonics     io.measured.measured_table (recognised by content: line 1 starts with '!!'; a
+    text (any name)   plate's measured BTDF, one incidence; its wavelength must be given)
+
+The wavelength of an IS-BSDF file is its own where it states one (a `# relief:` tag, or a header
+comment `#Wavelength (nm) = 550.0`), else `wavelength_nm` (the command line's --wavelength-nm).
 """
 from __future__ import annotations
 
@@ -45,6 +50,10 @@ def read_table_file(path: str | Path, wavelength_nm: float | None = None, n: flo
 
 def _read(path: Path, wavelength_nm: float | None, n: float | None) -> list[BsdfTable]:
     suffix = path.suffix.lower()
+    from relief_bsdf.io.measured import sniff
+    if path.is_file() and sniff(path) == "rpc":
+        from relief_bsdf.io.measured import measured_table, read_rpc
+        return [measured_table(read_rpc(path), wavelength_nm)]
     if suffix not in SUFFIXES:
         raise InputError(path, f"not a BSDF table file (expected one of {', '.join(SUFFIXES)})")
     if not path.exists():
@@ -57,7 +66,16 @@ def _read(path: Path, wavelength_nm: float | None, n: float | None) -> list[Bsdf
         return read_radiance_xml(path, wavelength_nm=wavelength_nm)
     from relief_bsdf.io.isbsdf import import_isbsdf, read_isbsdf
     files = _isbsdf_partners(path)
-    frm = read_isbsdf(files[0]).relief_tag("incident_from") or "outside"
+    first = read_isbsdf(files[0])
+    frm = first.relief_tag("incident_from") or "outside"
+    if first.relief_tag("wavelength_nm") is None:
+        from relief_bsdf.io.measured import WAVELENGTH_OPTION, header_wavelength_nm
+        stated = header_wavelength_nm(first.comments)
+        if stated is not None:
+            wavelength_nm = stated
+        elif wavelength_nm is None:
+            raise InputError(path, "the IS-BSDF file does not state its wavelength (no '#Wavelength (nm) = ...' "
+                                   f"line); give it with {WAVELENGTH_OPTION}")
     pair = (None, None) if n is None else ((1.0, float(n)) if frm == "outside" else (float(n), 1.0))
     return [import_isbsdf(files, wavelength_nm=wavelength_nm, n_incident=pair[0], n_transmitted=pair[1])]
 

@@ -163,7 +163,8 @@ def table_figure(table: BsdfTable, sides=("R", "T"), iw: int = 0, ip: int = 0, m
 
 def compare_figure(tables: list, labels: list, sides=("R", "T"), iw: int = 0, ip: int = 0):
     """In-plane curves of several tables overlaid (one line style per table, one colour per
-    incidence), every table evaluated at the first table's incidence angles and wavelength.
+    incidence), every table evaluated at the first table's incidence angles and wavelength, each
+    only at those within its own incidence range (+- 0.5 deg).
 
     E.g. `ray`, `normals` and `microfacet` tables of one relief, or a reconstruction against a
     measured IS-BSDF / XML file read by io.tables."""
@@ -172,12 +173,21 @@ def compare_figure(tables: list, labels: list, sides=("R", "T"), iw: int = 0, ip
     ref = tables[0]
     fig, axs = plt.subplots(1, len(sides), figsize=(7.0 * len(sides), 5.6 + 0.12 * len(ref.theta_i_deg)),
                             squeeze=False)
+    cmap = plt.get_cmap("viridis")
+    n_ref = len(ref.theta_i_deg)
+    colors = [cmap(j / max(n_ref - 1, 1)) for j in range(n_ref)]
     for s, side in enumerate(sides):
         ax = axs[0, s]
         for k, (t, lab) in enumerate(zip(tables, labels)):
-            style = CurveStyle(linestyle=styles[k % len(styles)], label_prefix=f"{lab} ", show_specular=(k == 0))
+            # a table is drawn only at the incidences it covers (within 0.5 deg): no curve held from
+            # another incidence (e.g. a measured file of one incidence beside a table of several)
+            cover = (ref.theta_i_deg >= t.theta_i_deg.min() - 0.5) & (ref.theta_i_deg <= t.theta_i_deg.max() + 0.5)
+            if not cover.any():
+                continue
+            style = CurveStyle(linestyle=styles[k % len(styles)], label_prefix=f"{lab} ", show_specular=(k == 0),
+                               colors=tuple(c for c, keep in zip(colors, cover) if keep))
             plot_in_plane(ax, t.select(ref.wavelength_nm[iw]), side, 0, min(ip, t.phi_i_deg.size - 1), style,
-                          theta_i_deg=ref.theta_i_deg)
+                          theta_i_deg=ref.theta_i_deg[cover])
         ax.legend(fontsize=6, ncol=len(tables), loc="upper center", bbox_to_anchor=(0.5, -0.2))
     fig.suptitle(" vs ".join(f"{lab} ({st})" for lab, st in zip(labels, styles * 4))
                  + f"  at theta_i of {labels[0]}", fontsize=9)
