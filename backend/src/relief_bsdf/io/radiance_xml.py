@@ -117,17 +117,6 @@ class AngleBasis:
 KLEMS = AngleBasis(KLEMS_FULL_NAME, KLEMS_FULL)
 
 
-def _patch_samples(basis: AngleBasis, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """(theta, phi) of m x m sample points per patch, uniform in sin^2 theta and phi: (N, m*m)."""
-    p = basis.patches()
-    u = (np.arange(m) + 0.5) / m
-    s2 = (np.sin(np.radians(p["theta_lo"]))[:, None] ** 2
-          + u[None, :] * (np.sin(np.radians(p["theta_hi"])) ** 2 - np.sin(np.radians(p["theta_lo"])) ** 2)[:, None])
-    th = np.degrees(np.arcsin(np.sqrt(s2)))
-    ph = p["phi_lo"][:, None] + u[None, :] * (p["phi_hi"] - p["phi_lo"])[:, None]
-    return np.repeat(th, m, axis=1), np.tile(ph, (1, m))
-
-
 def specular_directions(table: BsdfTable, iw: int, theta_i_deg: np.ndarray) -> np.ndarray | None:
     """Polar angle (deg) of the refracted direction for each incidence, NaN beyond the critical
     angle; None when the table does not state its material (indices)."""
@@ -137,31 +126,6 @@ def specular_directions(table: BsdfTable, iw: int, theta_i_deg: np.ndarray) -> n
     except (InputError, KeyError, TypeError, ValueError):
         return None
     return refracted_theta_deg(theta_i_deg, n1, n2, past_critical=np.nan)
-
-
-def klems_matrix(table: BsdfTable, side: str, iw: int = 0, basis: AngleBasis = KLEMS, m: int = 8) -> np.ndarray:
-    """(n_out, n_in) Klems matrix (1/sr) of one side of `table` at wavelength index iw (module doc).
-
-    Patch azimuths are Radiance's; the table's azimuth of the same direction is its negative
-    (`to_table_phi`)."""
-    p = basis.patches()
-    th_o, ph_o = _patch_samples(basis, m)                        # (N_out, m*m)
-    th_i = p["theta_c"]
-    src_phi = to_table_phi(p["phi_c"] + 180.0)                   # toward the source, table frame
-    wl = table.wavelength_nm[iw]
-    M = np.empty((th_o.shape[0], th_i.size))
-    for o in range(th_o.shape[0]):                               # one scattered patch at a time (memory)
-        M[o] = table.eval(wl, th_i[:, None], src_phi[:, None], side, np.minimum(th_o[o], 90.0)[None, :],
-                          to_table_phi(ph_o[o])[None, :]).mean(axis=-1)
-    lam = basis.projected_solid_angle_sr()
-    spec = _specular_at(table, side, iw, th_i, src_phi)
-    if np.any(spec > 0):
-        tgt_theta = th_i if side == "R" else _refracted_or_fail(table, iw, th_i, spec)
-        ok = np.isfinite(tgt_theta) & (spec > 0)
-        o = basis.index(np.where(ok, tgt_theta, 0.0), p["phi_c"])   # same azimuth as the incident patch
-        cols = np.nonzero(ok)[0]
-        M[o[cols], cols] += spec[cols] / lam[o[cols]]
-    return M
 
 
 def to_table_phi(radiance_phi_deg: Any) -> np.ndarray:
@@ -185,13 +149,188 @@ def _refracted_or_fail(table: BsdfTable, iw: int, theta_i_deg: np.ndarray, spec:
     return tgt
 
 
-def _specular_at(table: BsdfTable, side: str, iw: int, theta_deg: np.ndarray, phi_deg: np.ndarray) -> np.ndarray:
-    """The delta part (power fraction) of one side, linear in theta_i, nearest in phi_i."""
-    s = (table.specular_R if side == "R" else table.specular_T)[iw]        # (I, P)
-    ip = np.argmin(np.abs(((phi_deg[:, None] - table.phi_i_deg[None, :]) + 180.0) % 360.0 - 180.0), axis=1)
-    if table.theta_i_deg.size == 1:
-        return s[0, ip]
-    return np.array([np.interp(t, table.theta_i_deg, s[:, k]) for t, k in zip(theta_deg, ip)])
+# ====================================================================== projection (energy kept)
+
+
+@dataclass(frozen=True)
+class IncidenceCells:
+    """What the table says for one incidence direction: a weighted sum of tabulated distributions.
+
+    parts: (weight, cells (2, S, A) in 1/sr on the table's scatter grid, azimuth shift_deg):
+    direction (theta_s, phi_s) of the table at its tabulated azimuth is (theta_s, phi_s + shift) for
+    this incidence (an isotropic table is turned, an anisotropic one is blended, shift 0).
+    spec: (specular_R, specular_T) power fractions; held_from: the tabulated polar angle whose
+    distribution stands in for an incidence beyond the table (None inside the table)."""
+
+    parts: tuple
+    spec: tuple
+    held_from: float | None = None
+
+
+def _fresnel_r(table: BsdfTable, iw: int, theta_deg: float) -> float | None:
+    """Smooth-boundary unpolarised Fresnel reflectance for the table's index pair (None: no material)."""
+    from relief_bsdf.core.fresnel import fresnel_unpolarized
+    from relief_bsdf.io.isbsdf import table_indices
+    try:
+        n1, n2 = table_indices(table, iw)
+    except (InputError, KeyError, TypeError, ValueError):
+        return None
+    return float(np.real(fresnel_unpolarized(np.cos(np.radians(theta_deg)), n1, n2)))
+
+
+def incidence_cells(table: BsdfTable, iw: int, theta_i_deg: float, src_phi_deg: float) -> IncidenceCells:
+    """The table at an arbitrary incidence (theta_i, phi_i = src_phi, table frame).
+
+    Inside the tabulated range: linear in theta_i (so R and T are the table's, linearly
+    interpolated), azimuth turned (isotropic table) or linearly blended between the two nearest
+    tabulated phi_i (anisotropic).  Beyond the last tabulated theta_i (or before the first): the
+    nearest tabulated distribution, with power moved between R and T as much as a smooth
+    boundary's Fresnel reflectance changes between the two angles (R + T kept, so a lossless table
+    stays lossless); without a material the distribution is held unchanged.  Callers say which
+    incidences were extrapolated (`held_from`)."""
+    ti = table.theta_i_deg
+    v = table.values_per_sr[iw]                                           # (I, P, 2, S, A)
+    t = float(theta_i_deg)
+    held = None
+    if ti.size == 1 or t <= ti[0] or t >= ti[-1]:
+        k = 0 if (ti.size == 1 or t <= ti[0]) else ti.size - 1
+        th = [(k, 1.0)]
+        if abs(t - ti[k]) > 1e-6:
+            held = float(ti[k])
+    else:
+        j = int(np.searchsorted(ti, t, side="right"))
+        f = (t - ti[j - 1]) / (ti[j] - ti[j - 1])
+        th = [(j - 1, 1.0 - f), (j, f)]
+    if table.is_isotropic:
+        ph = [(0, 1.0, float(src_phi_deg) - float(table.phi_i_deg[0]))]
+    else:
+        pi = table.phi_i_deg
+        order = np.argsort(pi % 360.0)
+        grid = (pi % 360.0)[order]
+        x = float(src_phi_deg) % 360.0
+        ext = np.concatenate([grid, [grid[0] + 360.0]])
+        xr = x if x >= grid[0] else x + 360.0
+        j = min(int(np.searchsorted(ext, xr, side="right")), grid.size)
+        f = (xr - ext[j - 1]) / (ext[j] - ext[j - 1])
+        ph = [(int(order[(j - 1) % grid.size]), 1.0 - f, 0.0), (int(order[j % grid.size]), f, 0.0)]
+    parts, sR, sT = [], 0.0, 0.0
+    for i, wt in th:
+        for p, wp, shift in ph:
+            w = wt * wp
+            if w <= 0:
+                continue
+            parts.append([w, v[i, p].astype(float), shift])
+            sR += w * float(table.specular_R[iw, i, p])
+            sT += w * float(table.specular_T[iw, i, p])
+    if held is not None:
+        F0, F1 = _fresnel_r(table, iw, held), _fresnel_r(table, iw, t)
+        if F0 is not None:
+            psa = table.projected_solid_angle_sr
+            R = sum(w * float(np.sum(c[0] * psa)) for w, c, _ in parts) + sR
+            T = sum(w * float(np.sum(c[1] * psa)) for w, c, _ in parts) + sT
+            d = float(np.clip(F1 - F0, -R, T))                            # power moved from T to R
+            a = 1.0 + d / R if R > 0 else 1.0
+            b = 1.0 - d / T if T > 0 else 1.0
+            for part in parts:
+                part[1] = part[1] * np.array([a, b])[:, None, None]
+            sR, sT = sR * a, sT * b
+    return IncidenceCells(tuple(tuple(p) for p in parts), (sR, sT), held)
+
+
+def representative_theta(lo_deg: np.ndarray, hi_deg: np.ndarray, centre_deg: np.ndarray,
+                         tabulated_deg: np.ndarray) -> np.ndarray:
+    """The incidence each incident cell [lo, hi] stands for: the tabulated incidence it holds (the one
+    nearest its centre), else its centre; so a consumer reading a tabulated incidence gets exactly
+    the table's distribution there (no interpolation across the cell)."""
+    out = np.array(centre_deg, float, copy=True)
+    tab = np.asarray(tabulated_deg, float)
+    for k in range(out.size):
+        inside = tab[(tab >= lo_deg[k] - 1e-9) & (tab < hi_deg[k] - 1e-9)]
+        if lo_deg[k] <= 1e-9 and tab.size and tab.min() <= 1e-9:
+            inside = tab[tab <= 1e-9]
+        if inside.size:
+            out[k] = inside[np.argmin(np.abs(inside - centre_deg[k]))]
+    return out
+
+
+def _periodic_overlap_deg(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray) -> np.ndarray:
+    """Length (deg) of the overlap of azimuth intervals [a0, a1] and [b0, b1] on the circle (each <= 360)."""
+    s = np.mod(a0, 360.0)
+    a1 = s + (a1 - a0)
+    a0 = s
+    s = np.mod(b0, 360.0)
+    b1 = s + (b1 - b0)
+    b0 = s
+    out = 0.0
+    for k in (-360.0, 0.0, 360.0):
+        out = out + np.maximum(0.0, np.minimum(a1, b1 + k) - np.maximum(a0, b0 + k))
+    return out
+
+
+def _sin2_overlap(lo_a, hi_a, lo_b, hi_b) -> np.ndarray:
+    """Projected-solid-angle factor (sin^2 hi - sin^2 lo) / 2 of the overlap of two theta ranges (deg)."""
+    lo = np.radians(np.maximum(lo_a, lo_b))
+    hi = np.radians(np.minimum(hi_a, hi_b))
+    return np.where(hi > lo, 0.5 * (np.sin(hi) ** 2 - np.sin(lo) ** 2), 0.0)
+
+
+def klems_patch_power(table: BsdfTable, cells: np.ndarray, shift_deg: float, basis: AngleBasis = KLEMS) -> np.ndarray:
+    """Power (fraction of the incident) that one side's cells (S, A) send into each scattered patch
+    of the basis: the exact integral of f cos over each patch, the table being constant over each
+    cell (a cell average in projected solid angle), its azimuths turned by shift_deg.  Patch
+    azimuths are Radiance's (table azimuth = -Radiance azimuth)."""
+    p = basis.patches()
+    te, pe = table.theta_s_edges_deg, table.phi_s_edges_deg
+    oth = _sin2_overlap(te[:-1, None], te[1:, None], p["theta_lo"][None, :], p["theta_hi"][None, :])  # (S, N)
+    # patch in the table frame: [-phi_hi, -phi_lo]; table cell turned: [pe_a + shift, pe_a+1 + shift]
+    oph = np.radians(_periodic_overlap_deg(pe[:-1, None] + shift_deg, pe[1:, None] + shift_deg,
+                                           -p["phi_hi"][None, :], -p["phi_lo"][None, :]))               # (A, N)
+    return np.einsum("sa,an,sn->n", cells, oph, oth)
+
+
+def klems_matrix(table: BsdfTable, side: str, iw: int = 0, basis: AngleBasis = KLEMS, m: int = 8,
+                 notes: list | None = None) -> np.ndarray:
+    """(n_out, n_in) Klems matrix (1/sr) of one side of `table` at wavelength index iw (module doc).
+
+    Entry = (integral of f cos over the scattered patch) / (the patch's projected solid angle) for
+    the incidence at the incident patch centre (`incidence_cells`); the delta part adds its power /
+    projected solid angle to the patch holding the mirror / refracted direction.  Each column
+    therefore integrates to the table's R or T at that incidence exactly.  `m` is kept for callers
+    (the projection is exact; it needs no samples).  Extrapolated incidences are noted in `notes`."""
+    p = basis.patches()
+    th_i = representative_theta(p["theta_lo"], p["theta_hi"], p["theta_c"], table.theta_i_deg)
+    src_phi = to_table_phi(p["phi_c"] + 180.0)                   # toward the source, table frame
+    lam = basis.projected_solid_angle_sr()
+    k = 0 if side == "R" else 1
+    M = np.zeros((basis.size, th_i.size))
+    spec = np.zeros(th_i.size)
+    held = {}
+    for i in range(th_i.size):
+        ic = incidence_cells(table, iw, th_i[i], src_phi[i])
+        for w, cells, shift in ic.parts:
+            M[:, i] += w * klems_patch_power(table, cells[k], shift, basis)
+        spec[i] = ic.spec[k]
+        if ic.held_from is not None:
+            held[float(th_i[i])] = ic.held_from
+    M /= lam[:, None]
+    if np.any(spec > 0):
+        tgt_theta = th_i if side == "R" else _refracted_or_fail(table, iw, th_i, spec)
+        ok = np.isfinite(tgt_theta) & (spec > 0)
+        o = basis.index(np.where(ok, tgt_theta, 0.0), p["phi_c"])   # same azimuth as the incident patch
+        cols = np.nonzero(ok)[0]
+        M[o[cols], cols] += spec[cols] / lam[o[cols]]
+    if held and notes is not None:
+        notes.append(_held_note(table, sorted(held), held))
+    return M
+
+
+def _held_note(table: BsdfTable, angles: list, held: dict) -> str:
+    src = sorted(set(held.values()))
+    how = ("power moved between R and T as a smooth boundary's Fresnel reflectance changes"
+           if _fresnel_r(table, 0, 0.0) is not None else "held unchanged (the table states no refractive index)")
+    return (f"warning: the {table.incident_from} table holds theta_i {table.theta_i_deg[0]:g}-"
+            f"{table.theta_i_deg[-1]:g} deg; incidences {', '.join(f'{a:g}' for a in angles)} deg are "
+            f"extrapolated from {', '.join(f'{a:g}' for a in src)} deg ({how}; lobe directions not moved)")
 
 
 # ====================================================================== writing
@@ -277,38 +416,64 @@ def _comments(by: dict[str, BsdfTable], iw: int, extra: str) -> list[str]:
 
 
 def write_radiance_xml(path: str | Path, tables: list[BsdfTable], wavelength_nm: float | None = None,
-                       structure: str = "klems", depth: int = 5, samples_per_patch: int = 8) -> Path:
+                       structure: str = "klems", depth: int | None = None, samples_per_patch: int = 4,
+                       notes: list | None = None) -> Path:
     """Write both sides of a boundary as one LBNL/WINDOW XML BSDF (module doc); returns the path.
 
-    structure "klems" (LBNL/Klems Full matrices) or "tensor-tree" (uniform tree of `depth`).
+    structure "klems" (LBNL/Klems Full matrices) or "tensor-tree" (uniform tree; `depth` None:
+    chosen from the narrowest lobe, `tree_depth_for`).  Lines for the user (what the basis cannot
+    hold, extrapolated incidences) are appended to `notes` when given, each starting with
+    "note:" or "warning:".  samples_per_patch: sub-points per table cell side when splatting onto
+    a tensor tree.
     """
     by = _table_pair(tables)
     iw = _nearest_wl(by["outside"], wavelength_nm)
     wl = float(by["outside"].wavelength_nm[iw])
     iw_in = _nearest_wl(by["inside"], wl)
+    notes = [] if notes is None else notes
     thick = 0.0                                      # one boundary: no thickness of its own
     name = f"relief-bsdf boundary ({by['outside'].method})"
+    width = min(lobe_width_deg(by["outside"], iw), lobe_width_deg(by["inside"], iw_in))
+    spec = any(np.any(t.specular_R > 0) or np.any(t.specular_T > 0) for t in by.values())
+    lines: list[str] = []
     if structure == "klems":
         head = _header(name, thick, _comments(by, iw, "Klems full basis"),
                        "<IncidentDataStructure>Columns</IncidentDataStructure>\n" + _basis_xml(KLEMS))
         body = []
         for direction, frm, side in BLOCKS:
             t = by[frm]
-            M = klems_matrix(t, side, iw if frm == "outside" else iw_in, KLEMS, samples_per_patch)
+            M = klems_matrix(t, side, iw if frm == "outside" else iw_in, KLEMS, notes=lines)
             text = "\n".join(", ".join(f"{v:.6g}" for v in row) for row in M)
             body.append(_block(direction, "BTDF" if side == "T" else "BRDF", text, KLEMS_FULL_NAME))
+        if width < 5.0 or spec:
+            what = (f"the narrowest lobe (rms radius {width:.2g} deg)" if width < 5.0 else "") + \
+                (" and " if width < 5.0 and spec else "") + ("the specular (delta) parts" if spec else "")
+            lines.append(f"note: Klems patches are 5-15 deg wide: {what} are spread over one patch each; "
+                         "power kept, shape below the patch size lost (--structure tensor-tree resolves finer)")
     elif structure == "tensor-tree":
         iso = by["outside"].is_isotropic and by["inside"].is_isotropic
         kind = "TensorTree3" if iso else "TensorTree4"
+        if depth is None:
+            depth, _ = tree_depth_for([by["outside"], by["inside"]], iw, iso)
+        cell_deg = float(np.degrees(np.arcsin(2.0 / 2 ** depth)))
         head = _header(name, thick, _comments(by, iw, f"{kind}, uniform depth {depth}"),
                        f"<IncidentDataStructure>{kind}</IncidentDataStructure>")
         body = []
         for direction, frm, side in BLOCKS:
             t = by[frm]
-            grid = tensor_tree_grid(t, side, iw if frm == "outside" else iw_in, depth, iso)
+            grid = tensor_tree_grid(t, side, iw if frm == "outside" else iw_in, depth, iso, samples_per_patch,
+                                    notes=lines)
             body.append(_block(direction, "BTDF" if side == "T" else "BRDF", format_tree(grid), None))
+        lines.append(f"note: {kind} depth {depth}: cells ~{cell_deg:.2g} deg near the normal, incidence steps "
+                     f"{1.0 / 2 ** (depth - 1):.3g} in sin(theta_i); "
+                     + (f"the narrowest lobe (rms radius {width:.2g} deg) is below the cell size: shape averaged, "
+                        "power kept" if width < 2 * cell_deg else f"narrowest lobe rms radius {width:.2g} deg")
+                     + ("; delta parts fill one cell" if spec else ""))
     else:
         raise InputError("radiance-xml", f"structure must be 'klems' or 'tensor-tree', got {structure!r}")
+    for line in lines:
+        if line not in notes:
+            notes.append(line)
     return write_text_atomic(Path(path), head + "".join(body) + "</Layer>\n</Optical>\n</WindowElement>\n")
 
 
@@ -351,53 +516,104 @@ def _disc_angles(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.degrees(np.arcsin(s)), np.degrees(np.arctan2(y, x)) % 360.0
 
 
-def tensor_tree_grid(table: BsdfTable, side: str, iw: int, depth: int, isotropic: bool, m: int = 2) -> np.ndarray:
+def _cell_samples(table: BsdfTable, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """sin(theta) and table azimuth (deg) of k x k points per scatter cell, uniform in projected
+    solid angle (sin^2 theta and phi): arrays (S, A, k*k)."""
+    te, pe = np.radians(table.theta_s_edges_deg), table.phi_s_edges_deg
+    u = (np.arange(k) + 0.5) / k
+    s2 = np.sin(te[:-1])[:, None] ** 2 + u[None, :] * (np.sin(te[1:]) ** 2 - np.sin(te[:-1]) ** 2)[:, None]
+    ph = pe[:-1, None] + u[None, :] * np.diff(pe)[:, None]
+    S, A = s2.shape[0], ph.shape[0]
+    s = np.broadcast_to(np.sqrt(s2)[:, None, :, None], (S, A, k, k)).reshape(S, A, k * k)
+    p = np.broadcast_to(ph[None, :, None, :], (S, A, k, k)).reshape(S, A, k * k)
+    return s, p
+
+
+def tree_cell_index(table: BsdfTable, n: int, table_phi_offset_deg: float, k: int = 4) -> np.ndarray:
+    """Flat index (S, A, k*k) into the n x n concentric square of k x k sub-points of every table
+    cell, its azimuths turned by `table_phi_offset_deg` and then taken to Radiance's frame; used to
+    splat each cell's power over the tree cells it overlaps (energy kept exactly)."""
+    s, p = _cell_samples(table, k)
+    rad = np.radians(to_table_phi(p + table_phi_offset_deg))
+    a, b = disc_to_square(s * np.cos(rad), s * np.sin(rad))
+    ia = np.minimum((a * n).astype(int), n - 1)
+    ib = np.minimum((b * n).astype(int), n - 1)
+    return ia * n + ib
+
+
+def _splat(table: BsdfTable, cells: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
+    """Tree-cell values (n, n) in 1/sr: each table cell's power f * Omega_proj spread evenly over
+    its sub-points' tree cells, divided by a tree cell's projected solid angle pi / n^2."""
+    kk = index.shape[-1]
+    w = np.repeat((cells * table.projected_solid_angle_sr).ravel() / kk, kk)
+    return np.bincount(index.ravel(), weights=w, minlength=n * n).reshape(n, n) / (np.pi / n ** 2)
+
+
+def tensor_tree_grid(table: BsdfTable, side: str, iw: int, depth: int, isotropic: bool, m: int = 4,
+                     notes: list | None = None) -> np.ndarray:
     """Uniform tensor-tree grid (1/sr) of one side: (N, N, N) for TensorTree3 or (N, N, N, N) for
     TensorTree4, N = 2^depth, in Radiance's index order (module doc).
 
     TensorTree3 (Radiance bsdf_t.c): axis 0 is 0.5 - sin(theta_in) / 2 (only its first half is
     used; the second mirrors it), axes 1-2 the scattered direction on the concentric square,
     rotated so the incident light travels toward azimuth 0.  TensorTree4: axes 0-1 the travel
-    direction of the incident light, axes 2-3 the scattered direction.  Each entry is the
-    average over the scattered cell (m x m samples) at the incident cell's centre."""
+    direction of the incident light, axes 2-3 the scattered direction.  For the incidence at each
+    incident cell's centre (`incidence_cells`) every table cell's power is spread over the tree
+    cells its m x m sub-points fall in, so each incidence's R and T are the table's exactly; the
+    delta part goes into the cell holding its direction as power / (pi / N^2)."""
     n = 2 ** depth
     c = (np.arange(n) + 0.5) / n
-    sub = (np.arange(m) + 0.5) / (m * n)
-    oa = (np.arange(n)[:, None] / n + sub[None, :]).ravel()                    # (n*m,) sample coordinates
-    OA, OB = np.meshgrid(oa, oa, indexing="ij")
-    ox, oy = square_to_disc(OA, OB)
-    th_o, ph_o = _disc_angles(ox, oy)
-    wl = table.wavelength_nm[iw]
+    k = 0 if side == "R" else 1
+    cache: dict = {}
 
-    def cell_means(v: np.ndarray) -> np.ndarray:                 # (..., n*m, n*m) -> (..., n, n)
-        return v.reshape(v.shape[:-2] + (n, m, n, m)).mean(axis=(-3, -1))
+    def index_for(offset: float) -> np.ndarray:
+        key = round(offset % 360.0, 9)
+        if key not in cache:
+            cache[key] = tree_cell_index(table, n, offset, m)
+        return cache[key]
+
+    held = {}
+
+    def grid_at(theta: float, src_phi: float) -> tuple[np.ndarray, float]:
+        ic = incidence_cells(table, iw, theta, src_phi)
+        g = np.zeros((n, n))
+        for w, cells, shift in ic.parts:
+            g += w * _splat(table, cells[k], index_for(shift), n)
+        if ic.held_from is not None:
+            held[round(float(theta), 2)] = ic.held_from
+        return g, ic.spec[k]
 
     if isotropic:
         sin_i = np.clip(1.0 - 2.0 * c[: n // 2], 0.0, 1.0)
-        th_i = np.degrees(np.arcsin(sin_i))
-        half = np.stack([cell_means(table.eval(wl, t, to_table_phi(180.0), side, th_o, to_table_phi(ph_o)))
-                         for t in th_i])
-        _add_tree_specular(half, table, side, iw, th_i, np.zeros_like(th_i))
-        return np.concatenate([half, half[::-1]], axis=0)
-    ix, iy = square_to_disc(*np.meshgrid(c, c, indexing="ij"))
-    th_i, ph_travel = _disc_angles(ix, iy)
-    src = to_table_phi(ph_travel + 180.0)
-    out = np.empty((n, n, n, n))
-    for a in range(n):
-        for b in range(n):
-            out[a, b] = cell_means(table.eval(wl, th_i[a, b], src[a, b], side, th_o, to_table_phi(ph_o)))
-    _add_tree_specular(out.reshape((n * n, n, n)), table, side, iw, th_i.ravel(), ph_travel.ravel(), src.ravel())
+        edge = np.degrees(np.arcsin(np.clip(1.0 - 2.0 * np.arange(n // 2 + 1) / n, 0.0, 1.0)))
+        th_i = representative_theta(edge[1:], edge[:-1], np.degrees(np.arcsin(sin_i)), table.theta_i_deg)
+        src = float(to_table_phi(180.0))
+        res = [grid_at(t, src) for t in th_i]
+        half = np.stack([r[0] for r in res])
+        _add_tree_specular(half, table, side, iw, th_i, np.zeros_like(th_i), spec=np.array([r[1] for r in res]))
+        out = np.concatenate([half, half[::-1]], axis=0)
+    else:
+        ix, iy = square_to_disc(*np.meshgrid(c, c, indexing="ij"))
+        th_i, ph_travel = _disc_angles(ix, iy)
+        src = to_table_phi(ph_travel + 180.0)
+        out = np.empty((n, n, n, n))
+        spec = np.empty((n, n))
+        for a in range(n):
+            for b in range(n):
+                out[a, b], spec[a, b] = grid_at(th_i[a, b], src[a, b])
+        _add_tree_specular(out.reshape((n * n, n, n)), table, side, iw, th_i.ravel(), ph_travel.ravel(),
+                           spec=spec.ravel())
+    if held and notes is not None:
+        notes.append(_held_note(table, sorted(held), held))
     return out
 
 
 def _add_tree_specular(grid: np.ndarray, table: BsdfTable, side: str, iw: int, theta_i_deg: np.ndarray,
-                       travel_phi_deg: np.ndarray, src_phi_deg: np.ndarray | None = None) -> None:
-    """Fold the delta part into the scattered cell holding the mirror / refracted direction, in place.
-
-    grid (K, N, N): per incident cell k the scattered square; the delta leaves along the
-    incident light's travel azimuth (Radiance frame).  Cell value += power / (pi / N^2)."""
-    src = to_table_phi(travel_phi_deg + 180.0) if src_phi_deg is None else src_phi_deg
-    spec = _specular_at(table, side, iw, theta_i_deg, src)
+                       travel_phi_deg: np.ndarray, spec: np.ndarray) -> None:
+    """Fold the delta part (power fractions `spec` per incident cell) into the scattered cell holding
+    the mirror / refracted direction, in place.  grid (K, N, N): per incident cell k the scattered
+    square; the delta leaves along the incident light's travel azimuth (Radiance frame).  Cell
+    value += power / (pi / N^2)."""
     if not np.any(spec > 0):
         return
     tgt = theta_i_deg if side == "R" else _refracted_or_fail(table, iw, theta_i_deg, spec)
@@ -406,8 +622,64 @@ def _add_tree_specular(grid: np.ndarray, table: BsdfTable, side: str, iw: int, t
     s = np.sin(np.radians(np.where(ok, tgt, 0.0)))
     a, b = disc_to_square(s * np.cos(np.radians(travel_phi_deg)), s * np.sin(np.radians(travel_phi_deg)))
     ia, ib = np.minimum((a * n).astype(int), n - 1), np.minimum((b * n).astype(int), n - 1)
-    k = np.nonzero(ok)[0]
-    grid[k, ia[k], ib[k]] += spec[k] / (np.pi / n**2)
+    kk = np.nonzero(ok)[0]
+    grid[kk, ia[kk], ib[kk]] += spec[kk] / (np.pi / n**2)
+
+
+def lobe_width_deg(table: BsdfTable, iw: int = 0) -> float:
+    """The narrowest diffuse lobe of the table: over incidences and sides, the rms angular radius
+    (deg, on the projected disc: sin theta) of the cells' power about its centroid; inf if none."""
+    s, p = _cell_samples(table, 1)
+    x = (s * np.cos(np.radians(p)))[..., 0]
+    y = (s * np.sin(np.radians(p)))[..., 0]
+    psa = table.projected_solid_angle_sr
+    best = np.inf
+    v = table.values_per_sr[iw]
+    for idx in np.ndindex(v.shape[:3]):
+        P = v[idx] * psa
+        tot = P.sum()
+        if tot <= 1e-9:
+            continue
+        mx, my = (P * x).sum() / tot, (P * y).sum() / tot
+        r2 = (P * ((x - mx) ** 2 + (y - my) ** 2)).sum() / tot
+        best = min(best, float(np.degrees(np.arcsin(min(1.0, np.sqrt(r2))))))
+    return best
+
+
+def lobe_anisotropy(table: BsdfTable, iw: int = 0) -> float | None:
+    """Ratio of the principal rms widths (on the projected disc) of the diffuse lobe at the incidence
+    nearest the normal (within 1 deg), the side holding more diffuse power; 1 for a round lobe.  An
+    isotropic boundary has a round lobe at normal incidence, so > 1.2 says a table with one
+    incidence azimuth misdescribes the boundary.  None: no normal incidence or no diffuse power."""
+    it = int(np.argmin(np.abs(table.theta_i_deg)))
+    if abs(table.theta_i_deg[it]) > 1.0:
+        return None
+    s, p = _cell_samples(table, 1)
+    x = (s * np.cos(np.radians(p)))[..., 0]
+    y = (s * np.sin(np.radians(p)))[..., 0]
+    psa = table.projected_solid_angle_sr
+    P = [table.values_per_sr[iw, it, 0, k] * psa for k in (0, 1)]
+    P = P[int(np.argmax([q.sum() for q in P]))]
+    tot = P.sum()
+    if tot <= 1e-9:
+        return None
+    mx, my = (P * x).sum() / tot, (P * y).sum() / tot
+    dx, dy = x - mx, y - my
+    cov = np.array([[(P * dx * dx).sum(), (P * dx * dy).sum()], [(P * dx * dy).sum(), (P * dy * dy).sum()]]) / tot
+    ev = np.linalg.eigvalsh(cov)
+    return float(np.sqrt(ev[1] / ev[0])) if ev[0] > 0 else None
+
+
+def tree_depth_for(tables: list, iw: int, isotropic: bool, max_depth: int | None = None) -> tuple[int, float]:
+    """Tensor-tree depth for the narrowest lobe: cells (2 / 2^depth on the disc) no wider than half
+    the lobe's rms radius, between 4 and max_depth (default 6 for TensorTree3, 5 for TensorTree4:
+    the file grows as 2^(3 or 4 * depth)).  Returns (depth, lobe width in deg)."""
+    width = min(lobe_width_deg(t, iw if t.incident_from == "outside" else _nearest_wl(t, None)) for t in tables)
+    top = max_depth or (6 if isotropic else 5)
+    if not np.isfinite(width) or width <= 0:
+        return 4, width
+    need = int(np.ceil(np.log2(4.0 / np.sin(np.radians(width)))))
+    return int(np.clip(need, 4, top)), width
 
 
 def format_tree(grid: np.ndarray) -> str:
