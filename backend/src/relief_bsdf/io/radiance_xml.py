@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.core.frames import projected_solid_angle
 from relief_bsdf.errors import InputError
 from relief_bsdf.io.atomic import write_text_atomic
 
@@ -410,6 +411,8 @@ def _comments(by: dict[str, BsdfTable], iw: int, extra: str) -> list[str]:
     return [f"written by relief_bsdf.io.radiance_xml ({extra})",
             f"relief: wavelength_nm = {float(t.wavelength_nm[iw])!r} (one channel, written as Visible)",
             f"relief: method = {t.method}",
+            "relief: theta_i_deg = " + ", ".join(f"{x:g}" for x in t.theta_i_deg),
+            "relief: phi_i_deg = " + ", ".join(f"{x:g}" for x in t.phi_i_deg),
             "relief: front = light from outside (table 'outside'), back = light from inside (table 'inside')",
             "relief: values = BSDF in 1/sr; transmission tabulated over directions in the medium entered "
             "(power conserving); delta parts folded into the patch of the mirror / refracted direction"]
@@ -768,17 +771,19 @@ def _tree_depth(node: Any, nd: int) -> int:
     return 1 + max(_tree_depth(k, nd) for k in node)
 
 
-def read_radiance_xml(path: str | Path, wavelength_nm: float | None = None, phi_i_deg: Any = (0.0,),
+def read_radiance_xml(path: str | Path, wavelength_nm: float | None = None, phi_i_deg: Any = None,
                       theta_s_edges_deg: Any = None, phi_s_edges_deg: Any = None) -> list[BsdfTable]:
     """A WINDOW/Radiance XML BSDF (Klems matrices or tensor trees) as BsdfTables: the front
     blocks become the `outside` table, the back blocks the `inside` table (module doc).
 
-    Incidence: the Klems ring centres (0, 10, ..., 70, 82.5 deg) or 16 tensor-tree angles, at the
-    azimuths `phi_i_deg` (one azimuth = the file is taken as isotropic).  Scatter cells default
-    to 2.5 x 0.75 degrees, which nest inside Klems patches, so hemispherical totals are kept
-    (1 x 2 degrees for tensor trees, sampled at cell centres).
-    Delta parts cannot be told apart from the cells: specular_R/T are 0.  The wavelength comes
-    from a relief comment, else `wavelength_nm`, else 555 nm ("Visible").
+    Incidence: the polar angles and azimuths a `relief:` comment lists (the table the file was
+    written from), else the Klems ring centres (0, 10, ..., 70, 82.5 deg) or 16 tensor-tree angles;
+    azimuths `phi_i_deg` when given, else the comment's, else 0 (the file taken as isotropic) or,
+    for a TensorTree4, every 45 deg.  Scatter cells default to 2.5 x 0.75 degrees, which nest
+    inside Klems patches (1 x 2 degrees for tensor trees, each tree cell's power spread over them),
+    so hemispherical totals are the file's.  Delta parts cannot be told apart from the cells:
+    specular_R/T are 0.  `lost` is 1 - R - T of what the file holds.  The wavelength comes from a
+    relief comment, else `wavelength_nm`, else 555 nm ("Visible").
     """
     path = Path(path)
     if not path.exists():
@@ -810,6 +815,12 @@ def read_radiance_xml(path: str | Path, wavelength_nm: float | None = None, phi_
     else:
         raise InputError(path, f"IncidentDataStructure {structure!r} not supported (Columns, Rows, TensorTree3/4)")
     klems = structure in ("Columns", "Rows")
+    tagged_t, tagged_p = _comment_list(path, "theta_i_deg"), _comment_list(path, "phi_i_deg")
+    if tagged_t is not None:
+        th_i = tagged_t
+    if phi_i_deg is None:
+        phi_i_deg = tagged_p if tagged_p is not None else (
+            np.arange(0.0, 360.0, 45.0) if structure == "TensorTree4" else (0.0,))
     te = (np.linspace(0.0, 90.0, 37 if klems else 91) if theta_s_edges_deg is None
           else np.asarray(theta_s_edges_deg, float))
     pe = (np.linspace(0.0, 360.0, 481 if klems else 181) if phi_s_edges_deg is None
@@ -824,13 +835,27 @@ def read_radiance_xml(path: str | Path, wavelength_nm: float | None = None, phi_
             direction = [d for d, f, s in BLOCKS if f == frm and s == side][0]
             for i, t in enumerate(th_i):
                 for p, ph in enumerate(pi):
-                    v[0, i, p, k] = lookup(direction, t, ph, TS, PS)
-        tables.append(BsdfTable(wavelength_nm=[wl], theta_i_deg=th_i, phi_i_deg=pi, theta_s_edges_deg=te,
-                                phi_s_edges_deg=pe, values_per_sr=v, incident_from=frm,
-                                method="radiance-xml import",
-                                metadata={"imported_from": str(path), "structure": structure,
-                                          "note": "delta parts are inside the cells (not separable)"}))
+                    v[0, i, p, k] = (lookup(direction, t, ph, te, pe) if not klems
+                                     else lookup(direction, t, ph, TS, PS))
+        t = BsdfTable(wavelength_nm=[wl], theta_i_deg=th_i, phi_i_deg=pi, theta_s_edges_deg=te,
+                      phi_s_edges_deg=pe, values_per_sr=v, incident_from=frm, method="radiance-xml import",
+                      metadata={"imported_from": str(path), "structure": structure,
+                                "note": "delta parts are inside the cells (not separable); lost = 1 - R - T"})
+        h = t.hemispherical()
+        t.lost = 1.0 - h["R"] - h["T"]
+        tables.append(t)
     return tables
+
+
+def _comment_list(path: Path, key: str) -> np.ndarray | None:
+    """Numbers of a '<!-- relief: key = a, b, ... -->' comment, or None."""
+    m = re.search(rf"relief: {key} = ([^<>\n]*?)\s*-->", path.read_text(encoding="utf-8", errors="replace")[:6000])
+    if not m:
+        return None
+    try:
+        return np.array([float(x) for x in m.group(1).split(",") if x.strip()])
+    except ValueError:
+        return None
 
 
 SIDES_RT = ("R", "T")
@@ -866,26 +891,45 @@ def _klems_lookup(blocks: dict, structure: str, path: Path):
 
 
 def _tree_lookup(blocks: dict, nd: int, path: Path):
+    """A function (direction, theta_i, phi_i, te, pe) -> (S, A) cell values (1/sr) of one block:
+    every tree cell's power (value * pi / res^2) spread over the table cells its sub-points fall in,
+    divided by each table cell's projected solid angle, so the hemispherical totals are the file's."""
     grids = {}
     for d, b in blocks.items():
         tree = _parse_tree(_text(_child(b, "ScatteringData")), nd, path)
         res = 2 ** min(_tree_depth(tree, nd), 7 if nd == 3 else 5)
         grids[d] = _tree_to_grid(tree, nd, res)
+    sub: dict = {}
 
-    def lookup(direction, theta_i, phi_i, TS, PS):
+    def points(res: int):                       # (x, y) on the disc of 4 x 4 sub-points per tree cell
+        if res not in sub:
+            u = (np.arange(4 * res) + 0.5) / (4 * res)
+            A, B = np.meshgrid(u, u, indexing="ij")
+            sub[res] = square_to_disc(A, B)
+        return sub[res]
+
+    def lookup(direction, theta_i, phi_i, te, pe):
         g = grids[direction]
         res = g.shape[-1]
-        s_o = np.sin(np.radians(TS))
         if nd == 3:
-            travel = to_table_phi(phi_i) + 180.0
-            rel = np.radians(to_table_phi(PS) - travel)
-            a, b = disc_to_square(s_o * np.cos(rel), s_o * np.sin(rel))
-            k0 = int(min(res - 1, max(0, (0.5 - 0.5 * math.sin(math.radians(theta_i))) * res)))
-            return g[k0, np.minimum((a * res).astype(int), res - 1), np.minimum((b * res).astype(int), res - 1)]
-        travel = math.radians(to_table_phi(phi_i) + 180.0)
-        s_i = math.sin(math.radians(theta_i))
-        ia, ib = disc_to_square(s_i * math.cos(travel), s_i * math.sin(travel))
-        a, b = disc_to_square(s_o * np.cos(np.radians(to_table_phi(PS))), s_o * np.sin(np.radians(to_table_phi(PS))))
-        c = lambda x: np.minimum((np.asarray(x) * res).astype(int), res - 1)  # noqa: E731
-        return g[c(ia), c(ib), c(a), c(b)]
+            # the cell whose polar range [lo, hi) holds theta_i (as the writer's representative_theta)
+            k0 = int(min(res - 1, max(0, math.ceil((0.5 - 0.5 * math.sin(math.radians(theta_i))) * res - 1e-9) - 1)))
+            leaf = g[k0]
+            turn = float(to_table_phi(phi_i)) + 180.0                 # travel azimuth, Radiance frame
+        else:
+            travel = math.radians(float(to_table_phi(phi_i)) + 180.0)
+            s_i = math.sin(math.radians(theta_i))
+            ia, ib = disc_to_square(s_i * math.cos(travel), s_i * math.sin(travel))
+            c = lambda x: int(min(res - 1, max(0, float(x) * res)))  # noqa: E731
+            leaf = g[c(ia), c(ib)]
+            turn = 0.0
+        x, y = points(res)
+        th = np.degrees(np.arcsin(np.clip(np.hypot(x, y), 0.0, 1.0)))
+        ph = to_table_phi(np.degrees(np.arctan2(y, x)) + turn)
+        it = np.clip(np.searchsorted(te, th, side="right") - 1, 0, te.size - 2)
+        ip = np.clip(np.searchsorted(pe, np.mod(ph - pe[0], 360.0) + pe[0], side="right") - 1, 0, pe.size - 2)
+        power = np.repeat(np.repeat(leaf, 4, axis=0), 4, axis=1) * (np.pi / (16 * res * res))
+        cells = np.bincount((it * (pe.size - 1) + ip).ravel(), weights=power.ravel(),
+                            minlength=(te.size - 1) * (pe.size - 1)).reshape(te.size - 1, pe.size - 1)
+        return cells / projected_solid_angle(te, pe)
     return lookup
