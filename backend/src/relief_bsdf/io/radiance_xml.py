@@ -27,20 +27,43 @@ sides: four blocks ``Reflection Front``, ``Transmission Front``, ``Reflection Ba
   ``IncidentDataStructure Columns``: the ScatteringData text has one line per scattered patch
   with one column per incident patch.  Checked against Radiance itself (pyradiance's
   SDevalBSDF / checkBSDF) in tests/backend/io/test_radiance_xml.py.
-- A matrix entry is the patch average of f over the scattered patch, weighted by projected
-  solid angle (sampled on an m x m grid uniform in sin^2 theta and phi), for the incidence at
-  the incident patch centre (the table interpolated in theta_i; held at the nearest tabulated
-  incidence beyond its range).  The table's delta parts (specular_R, specular_T) go into the
-  patch holding the mirror / refracted direction (index from `material`), value = power /
-  projected solid angle of that patch, so the hemispherical totals R and T are kept.
-- Tensor tree option (``TensorTree3`` for an isotropic table, ``TensorTree4`` otherwise,
-  Radiance's variable-resolution format): a uniform tree of depth `depth` (2^depth cells per
-  dimension) on Shirley-Chiu square-to-disc coordinates of both hemispheres.
+- Energy is projected, not sampled.  A Klems entry is (integral of f cos over the scattered
+  patch) / (the patch's projected solid angle), computed exactly: the table is constant over each
+  of its cells (cell averages) and both cells and patches are rectangles in (sin^2 theta, phi),
+  so the integral is a sum of cell values times overlap areas (`klems_patch_power`).  The delta
+  parts (specular_R, specular_T) add power / projected solid angle to the patch holding the
+  mirror / refracted direction.  Each column thus integrates to the table's R or T exactly, for
+  a lobe of any width: what a 5-15 deg patch cannot hold is the shape below its size, never the
+  power (the writer says so in one line).
+- Incidence: each incident patch (cell of a tree's incidence axis) carries one incidence's
+  distribution: the tabulated incidence it holds, else its centre, linearly interpolated in
+  theta_i (`incidence_cells`), so a consumer gets the table's R and T exactly at every
+  tabulated incidence and the linear interpolation between them at patch centres.  Beyond the
+  tabulated range the nearest distribution is used with R and T moved as a smooth boundary's
+  Fresnel reflectance changes, and a warning line says which incidences (never silently held).
+  A delta transmission interpolated past the critical angle is totally reflected (moved to R).
+- Tensor trees (``TensorTree3`` for an isotropic table, ``TensorTree4`` otherwise, Radiance's
+  variable-resolution format) are written as uniform trees on Shirley-Chiu square-to-disc
+  coordinates of both hemispheres; depth from the narrowest lobe (`tree_depth_for`: cells no
+  wider than half its rms radius, 4 to 6 for TensorTree3, 4 to 5 for TensorTree4); each cell
+  holds the table's mean over its sub-points, scaled to the table's exact R / T per incidence.
+- Reciprocity (Radiance's checkBSDF, mean relative difference of f(i->o) and f(o->i) over its
+  samples): transmission blocks differ by n^2 by design (radiance BTDFs of a boundary between
+  two media, formats.md; a Radiance layer has one medium on both sides), so their figure
+  measures n^2, not an error.  Reflection: one incidence per incident patch or cell while the
+  scattered side is integrated over patches is not symmetric for lobes comparable to the patch
+  size; on an exactly reciprocal Beckmann-like lobe (rms radius 11 deg, incidences every 5 deg)
+  checkBSDF reports about 6 % (Klems) and 9 % (tree depth 6) with tabulated incidences kept
+  exact, 4.7 % for the tree when every cell carries its centre's incidence
+  (``keep_tabulated=False``, which costs exactness at tabulated incidences: up to several per
+  cent of R at 60 deg).  Monte-Carlo tables add their own noise to the figure.
 - One spectral channel: the table's wavelength nearest `wavelength_nm` (default 555 nm) is
   written as ``Visible`` (photopic) data; the wavelength is recorded in a comment.
 
 Regime of validity: Klems patches are 5-15 degrees wide, so lobes narrower than a patch are
-smeared over it (their power is kept); the tensor tree of depth d resolves ~ 90 / 2^d degrees.
+smeared over it (their power is kept); the tensor tree of depth d resolves cells of
+2 / 2^d in sin(theta) (1.8 deg near the normal at depth 6) and incidence steps of 2 / 2^d in
+sin(theta_i).
 """
 from __future__ import annotations
 
@@ -188,7 +211,9 @@ def incidence_cells(table: BsdfTable, iw: int, theta_i_deg: float, src_phi_deg: 
     nearest tabulated distribution, with power moved between R and T as much as a smooth
     boundary's Fresnel reflectance changes between the two angles (R + T kept, so a lossless table
     stays lossless); without a material the distribution is held unchanged.  Callers say which
-    incidences were extrapolated (`held_from`)."""
+    incidences were extrapolated (`held_from`).  A delta transmission interpolated to an incidence
+    past the critical angle (light from inside) is moved to the delta reflection: total internal
+    reflection, R + T kept."""
     ti = table.theta_i_deg
     v = table.values_per_sr[iw]                                           # (I, P, 2, S, A)
     t = float(theta_i_deg)
@@ -223,6 +248,10 @@ def incidence_cells(table: BsdfTable, iw: int, theta_i_deg: float, src_phi_deg: 
             parts.append([w, v[i, p].astype(float), shift])
             sR += w * float(table.specular_R[iw, i, p])
             sT += w * float(table.specular_T[iw, i, p])
+    if sT > 0:                                  # an interpolated delta past the critical angle: none is
+        tgt = specular_directions(table, iw, np.array([t]))   # transmitted there; it is totally reflected
+        if tgt is not None and not np.isfinite(tgt[0]):
+            sR, sT = sR + sT, 0.0
     if held is not None:
         F0, F1 = _fresnel_r(table, iw, held), _fresnel_r(table, iw, t)
         if F0 is not None:
@@ -290,36 +319,39 @@ def klems_patch_power(table: BsdfTable, cells: np.ndarray, shift_deg: float, bas
 
 
 def klems_matrix(table: BsdfTable, side: str, iw: int = 0, basis: AngleBasis = KLEMS, m: int = 8,
-                 notes: list | None = None) -> np.ndarray:
+                 notes: list | None = None, keep_tabulated: bool = True) -> np.ndarray:
     """(n_out, n_in) Klems matrix (1/sr) of one side of `table` at wavelength index iw (module doc).
 
     Entry = (integral of f cos over the scattered patch) / (the patch's projected solid angle) for
-    the incidence at the incident patch centre (`incidence_cells`); the delta part adds its power /
-    projected solid angle to the patch holding the mirror / refracted direction.  Each column
-    therefore integrates to the table's R or T at that incidence exactly.  `m` is kept for callers
-    (the projection is exact; it needs no samples).  Extrapolated incidences are noted in `notes`."""
+    the incidence each incident patch stands for (`representative_theta`: the tabulated one it
+    holds, else its centre; `incidence_cells`); the delta part adds its power / projected solid
+    angle to the patch holding the mirror / refracted direction.  Each column therefore
+    integrates to the table's R or T at that incidence exactly.  (Averaging the incidence over the
+    incident patch too would make the matrix symmetric for a reciprocal table, but it averages R
+    and T over the patch's 10-15 deg of incidence, several per cent off the tabulated values for a
+    coarse incidence grid: not done.)  `m` is kept for callers (the projection is exact; it needs
+    no samples).  keep_tabulated False: every incident patch at its centre (module doc: the
+    reciprocity / exactness trade).  Extrapolated incidences are noted in `notes`."""
     p = basis.patches()
-    th_i = representative_theta(p["theta_lo"], p["theta_hi"], p["theta_c"], table.theta_i_deg)
-    src_phi = to_table_phi(p["phi_c"] + 180.0)                   # toward the source, table frame
+    th_i = (representative_theta(p["theta_lo"], p["theta_hi"], p["theta_c"], table.theta_i_deg)
+            if keep_tabulated else p["theta_c"])
     lam = basis.projected_solid_angle_sr()
     k = 0 if side == "R" else 1
-    M = np.zeros((basis.size, th_i.size))
-    spec = np.zeros(th_i.size)
+    M = np.zeros((basis.size, basis.size))
     held = {}
-    for i in range(th_i.size):
-        ic = incidence_cells(table, iw, th_i[i], src_phi[i])
+    for i in range(basis.size):
+        t, ph_travel = float(th_i[i]), float(p["phi_c"][i])
+        ic = incidence_cells(table, iw, t, float(to_table_phi(ph_travel + 180.0)))
         for w, cells, shift in ic.parts:
-            M[:, i] += w * klems_patch_power(table, cells[k], shift, basis)
-        spec[i] = ic.spec[k]
+            M[:, i] += w * klems_patch_power(table, cells[k], shift, basis) / lam
+        sp = ic.spec[k]
+        if sp > 0:
+            tgt = t if side == "R" else float(_refracted_or_fail(table, iw, np.array([t]), np.array([sp]))[0])
+            if np.isfinite(tgt):
+                o = int(basis.index(tgt, ph_travel))                # leaves along the travel azimuth
+                M[o, i] += sp / lam[o]
         if ic.held_from is not None:
-            held[float(th_i[i])] = ic.held_from
-    M /= lam[:, None]
-    if np.any(spec > 0):
-        tgt_theta = th_i if side == "R" else _refracted_or_fail(table, iw, th_i, spec)
-        ok = np.isfinite(tgt_theta) & (spec > 0)
-        o = basis.index(np.where(ok, tgt_theta, 0.0), p["phi_c"])   # same azimuth as the incident patch
-        cols = np.nonzero(ok)[0]
-        M[o[cols], cols] += spec[cols] / lam[o[cols]]
+            held[round(t, 2)] = ic.held_from
     if held and notes is not None:
         notes.append(_held_note(table, sorted(held), held))
     return M
@@ -420,14 +452,16 @@ def _comments(by: dict[str, BsdfTable], iw: int, extra: str) -> list[str]:
 
 def write_radiance_xml(path: str | Path, tables: list[BsdfTable], wavelength_nm: float | None = None,
                        structure: str = "klems", depth: int | None = None, samples_per_patch: int = 4,
-                       notes: list | None = None) -> Path:
+                       notes: list | None = None, keep_tabulated: bool = True) -> Path:
     """Write both sides of a boundary as one LBNL/WINDOW XML BSDF (module doc); returns the path.
 
     structure "klems" (LBNL/Klems Full matrices) or "tensor-tree" (uniform tree; `depth` None:
     chosen from the narrowest lobe, `tree_depth_for`).  Lines for the user (what the basis cannot
     hold, extrapolated incidences) are appended to `notes` when given, each starting with
     "note:" or "warning:".  samples_per_patch: sub-points per table cell side when splatting onto
-    a tensor tree.
+    a tensor tree.  keep_tabulated (default): an incident patch / cell holding a tabulated
+    incidence carries exactly that incidence's distribution (R and T exact there); False: every
+    one carries its centre's (more reciprocal, module doc).
     """
     by = _table_pair(tables)
     iw = _nearest_wl(by["outside"], wavelength_nm)
@@ -445,7 +479,8 @@ def write_radiance_xml(path: str | Path, tables: list[BsdfTable], wavelength_nm:
         body = []
         for direction, frm, side in BLOCKS:
             t = by[frm]
-            M = klems_matrix(t, side, iw if frm == "outside" else iw_in, KLEMS, notes=lines)
+            M = klems_matrix(t, side, iw if frm == "outside" else iw_in, KLEMS, notes=lines,
+                             keep_tabulated=keep_tabulated)
             text = "\n".join(", ".join(f"{v:.6g}" for v in row) for row in M)
             body.append(_block(direction, "BTDF" if side == "T" else "BRDF", text, KLEMS_FULL_NAME))
         if width < 5.0 or spec:
@@ -465,7 +500,7 @@ def write_radiance_xml(path: str | Path, tables: list[BsdfTable], wavelength_nm:
         for direction, frm, side in BLOCKS:
             t = by[frm]
             grid = tensor_tree_grid(t, side, iw if frm == "outside" else iw_in, depth, iso, samples_per_patch,
-                                    notes=lines)
+                                    notes=lines, keep_tabulated=keep_tabulated)
             body.append(_block(direction, "BTDF" if side == "T" else "BRDF", format_tree(grid), None))
         lines.append(f"note: {kind} depth {depth}: cells ~{cell_deg:.2g} deg near the normal, incidence steps "
                      f"{1.0 / 2 ** (depth - 1):.3g} in sin(theta_i); "
@@ -532,38 +567,42 @@ def _cell_samples(table: BsdfTable, k: int) -> tuple[np.ndarray, np.ndarray]:
     return s, p
 
 
-def tree_cell_index(table: BsdfTable, n: int, table_phi_offset_deg: float, k: int = 4) -> np.ndarray:
-    """Flat index (S, A, k*k) into the n x n concentric square of k x k sub-points of every table
-    cell, its azimuths turned by `table_phi_offset_deg` and then taken to Radiance's frame; used to
-    splat each cell's power over the tree cells it overlaps (energy kept exactly)."""
-    s, p = _cell_samples(table, k)
-    rad = np.radians(to_table_phi(p + table_phi_offset_deg))
-    a, b = disc_to_square(s * np.cos(rad), s * np.sin(rad))
-    ia = np.minimum((a * n).astype(int), n - 1)
-    ib = np.minimum((b * n).astype(int), n - 1)
-    return ia * n + ib
+def tree_gather_index(table: BsdfTable, n: int, table_phi_offset_deg: float, g: int = 4) -> np.ndarray:
+    """Flat table-cell index (n, n, g*g) of g x g sub-points of every cell of the n x n concentric
+    square (uniform in projected solid angle: the map is area preserving), the table turned by
+    `table_phi_offset_deg`; -1 where a point lies beyond the table's theta range."""
+    u = (np.arange(n * g) + 0.5) / (n * g)
+    x, y = square_to_disc(*np.meshgrid(u, u, indexing="ij"))
+    th, ph_rad = _disc_angles(x, y)
+    ph = np.mod(to_table_phi(ph_rad) - table_phi_offset_deg, 360.0)
+    te, pe = table.theta_s_edges_deg, table.phi_s_edges_deg
+    it = np.searchsorted(te, th, side="right") - 1
+    it = np.where(th == te[-1], te.size - 2, it)
+    ip = np.clip(np.searchsorted(pe, np.mod(ph - pe[0], 360.0) + pe[0], side="right") - 1, 0, pe.size - 2)
+    idx = np.where((it >= 0) & (it <= te.size - 2), it * (pe.size - 1) + ip, -1)
+    return idx.reshape(n, g, n, g).transpose(0, 2, 1, 3).reshape(n, n, g * g)
 
 
-def _splat(table: BsdfTable, cells: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
-    """Tree-cell values (n, n) in 1/sr: each table cell's power f * Omega_proj spread evenly over
-    its sub-points' tree cells, divided by a tree cell's projected solid angle pi / n^2."""
-    kk = index.shape[-1]
-    w = np.repeat((cells * table.projected_solid_angle_sr).ravel() / kk, kk)
-    return np.bincount(index.ravel(), weights=w, minlength=n * n).reshape(n, n) / (np.pi / n ** 2)
+def _gather(cells: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Tree-cell values (n, n): the mean of the table's cell values at each tree cell's sub-points."""
+    flat = np.concatenate([cells.ravel(), [0.0]])
+    return flat[index].mean(axis=-1)
 
 
 def tensor_tree_grid(table: BsdfTable, side: str, iw: int, depth: int, isotropic: bool, m: int = 4,
-                     notes: list | None = None) -> np.ndarray:
+                     notes: list | None = None, keep_tabulated: bool = True) -> np.ndarray:
     """Uniform tensor-tree grid (1/sr) of one side: (N, N, N) for TensorTree3 or (N, N, N, N) for
     TensorTree4, N = 2^depth, in Radiance's index order (module doc).
 
     TensorTree3 (Radiance bsdf_t.c): axis 0 is 0.5 - sin(theta_in) / 2 (only its first half is
     used; the second mirrors it), axes 1-2 the scattered direction on the concentric square,
     rotated so the incident light travels toward azimuth 0.  TensorTree4: axes 0-1 the travel
-    direction of the incident light, axes 2-3 the scattered direction.  For the incidence at each
-    incident cell's centre (`incidence_cells`) every table cell's power is spread over the tree
-    cells its m x m sub-points fall in, so each incidence's R and T are the table's exactly; the
-    delta part goes into the cell holding its direction as power / (pi / N^2)."""
+    direction of the incident light, axes 2-3 the scattered direction.  For the incidence each
+    incident cell stands for (`representative_theta`, `incidence_cells`) each tree cell holds the
+    mean of the table's cell values at its m x m sub-points (uniform in projected solid angle),
+    the whole grid then scaled by the ratio of the table's exact R or T to this quadrature (a
+    fraction of a per cent), so each incidence's R and T are the table's exactly; the delta part
+    goes into the cell holding its direction as power / (pi / N^2)."""
     n = 2 ** depth
     c = (np.arange(n) + 0.5) / n
     k = 0 if side == "R" else 1
@@ -572,16 +611,23 @@ def tensor_tree_grid(table: BsdfTable, side: str, iw: int, depth: int, isotropic
     def index_for(offset: float) -> np.ndarray:
         key = round(offset % 360.0, 9)
         if key not in cache:
-            cache[key] = tree_cell_index(table, n, offset, m)
+            cache[key] = tree_gather_index(table, n, offset, m)
         return cache[key]
+
+    psa = table.projected_solid_angle_sr
 
     held = {}
 
     def grid_at(theta: float, src_phi: float) -> tuple[np.ndarray, float]:
         ic = incidence_cells(table, iw, theta, src_phi)
         g = np.zeros((n, n))
+        exact = 0.0
         for w, cells, shift in ic.parts:
-            g += w * _splat(table, cells[k], index_for(shift), n)
+            g += w * _gather(cells[k], index_for(shift))
+            exact += w * float(np.sum(cells[k] * psa))
+        got = float(g.sum()) * np.pi / n ** 2
+        if got > 0:
+            g *= exact / got                      # the quadrature's small error: power kept exactly
         if ic.held_from is not None:
             held[round(float(theta), 2)] = ic.held_from
         return g, ic.spec[k]
@@ -589,7 +635,9 @@ def tensor_tree_grid(table: BsdfTable, side: str, iw: int, depth: int, isotropic
     if isotropic:
         sin_i = np.clip(1.0 - 2.0 * c[: n // 2], 0.0, 1.0)
         edge = np.degrees(np.arcsin(np.clip(1.0 - 2.0 * np.arange(n // 2 + 1) / n, 0.0, 1.0)))
-        th_i = representative_theta(edge[1:], edge[:-1], np.degrees(np.arcsin(sin_i)), table.theta_i_deg)
+        th_i = np.degrees(np.arcsin(sin_i))
+        if keep_tabulated:
+            th_i = representative_theta(edge[1:], edge[:-1], th_i, table.theta_i_deg)
         src = float(to_table_phi(180.0))
         res = [grid_at(t, src) for t in th_i]
         half = np.stack([r[0] for r in res])
