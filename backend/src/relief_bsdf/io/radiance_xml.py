@@ -488,6 +488,7 @@ def write_radiance_xml(path: str | Path, tables: list[BsdfTable], wavelength_nm:
                 (" and " if width < 5.0 and spec else "") + ("the specular (delta) parts" if spec else "")
             lines.append(f"note: Klems patches are 5-15 deg wide: {what} are spread over one patch each; "
                          "power kept, shape below the patch size lost (--structure tensor-tree resolves finer)")
+            lines[-1] = lines[-1].replace("deg) are spread", "deg) is spread")
     elif structure == "tensor-tree":
         iso = by["outside"].is_isotropic and by["inside"].is_isotropic
         kind = "TensorTree3" if iso else "TensorTree4"
@@ -646,6 +647,20 @@ def tensor_tree_grid(table: BsdfTable, side: str, iw: int, depth: int, isotropic
     else:
         ix, iy = square_to_disc(*np.meshgrid(c, c, indexing="ij"))
         th_i, ph_travel = _disc_angles(ix, iy)
+        if keep_tabulated:                       # a cell holding a tabulated (theta_i, phi_i) carries it
+            best = np.full((n, n), np.inf)
+            for t in table.theta_i_deg:
+                for pz in table.phi_i_deg:
+                    trav = float(to_table_phi(pz)) + 180.0
+                    st = math.sin(math.radians(t))
+                    a, b = disc_to_square(st * math.cos(math.radians(trav)), st * math.sin(math.radians(trav)))
+                    cand = {(min(max(int(float(a) * n + ea), 0), n - 1), min(max(int(float(b) * n + eb), 0), n - 1))
+                            for ea in (-1e-7, 1e-7) for eb in (-1e-7, 1e-7)}   # on a cell edge: both cells
+                    for ia, ib in cand:
+                        d = math.hypot(float(a) * n - ia - 0.5, float(b) * n - ib - 0.5)
+                        if d < best[ia, ib]:
+                            best[ia, ib] = d
+                            th_i[ia, ib], ph_travel[ia, ib] = t, trav % 360.0
         src = to_table_phi(ph_travel + 180.0)
         out = np.empty((n, n, n, n))
         spec = np.empty((n, n))
@@ -698,10 +713,16 @@ def lobe_width_deg(table: BsdfTable, iw: int = 0) -> float:
 
 
 def lobe_anisotropy(table: BsdfTable, iw: int = 0) -> float | None:
-    """Ratio of the principal rms widths (on the projected disc) of the diffuse lobe at the incidence
-    nearest the normal (within 1 deg), the side holding more diffuse power; 1 for a round lobe.  An
-    isotropic boundary has a round lobe at normal incidence, so > 1.2 says a table with one
-    incidence azimuth misdescribes the boundary.  None: no normal incidence or no diffuse power."""
+    """How far the boundary is from rotation invariance: the ratio of the relief's rms slopes along x
+    and y when the table records them (relief "rms_slope_x", "rms_slope_y"), else the ratio of the
+    principal rms widths (on the projected disc) of the diffuse lobe at the incidence nearest the
+    normal (within 1 deg), the side holding more diffuse power; 1 for a round lobe.  An isotropic
+    boundary has a round lobe at normal incidence, so > 1.2 says a table with one incidence
+    azimuth misdescribes the boundary.  None: nothing to judge by."""
+    rel = table.relief or {}
+    sx, sy = rel.get("rms_slope_x"), rel.get("rms_slope_y")
+    if isinstance(sx, (int, float)) and isinstance(sy, (int, float)) and min(sx, sy) > 0:
+        return float(max(sx, sy) / min(sx, sy))     # the relief's own statement, when the table records it
     it = int(np.argmin(np.abs(table.theta_i_deg)))
     if abs(table.theta_i_deg[it]) > 1.0:
         return None
