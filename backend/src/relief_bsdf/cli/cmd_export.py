@@ -104,6 +104,14 @@ def run(args) -> int:
         write_radiance_xml(out, tables, wavelength_nm=args.wavelength_nm, structure=args.structure,
                            depth=args.depth, notes=notes)
         _azimuth_notes(tables, args.format)
+        from relief_bsdf.io.radiance_xml import checkbsdf_reciprocity
+        rec = checkbsdf_reciprocity(out)
+        if rec:
+            notes.append("note: checkBSDF reciprocity, mean (max) %: " + ", ".join(
+                f"{k} {v[1]:.1f} ({v[2]:.0f})" for k, v in rec.items())
+                + f" (transmission differs by n^2 by design between the two media; a table of "
+                f"{len(tables[0].theta_i_deg)} incidences, interpolated between them, is only as reciprocal as "
+                "that interpolation: tabulate every 5-10 deg to bring it down; io/radiance_xml doc)")
         for line in notes:
             print(f"relief: {line}", file=sys.stderr)
         print(f"wrote {out} ({args.structure}, front = light from outside, back = light from inside)")

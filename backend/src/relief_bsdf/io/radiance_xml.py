@@ -516,6 +516,32 @@ def write_radiance_xml(path: str | Path, tables: list[BsdfTable], wavelength_nm:
     return write_text_atomic(Path(path), head + "".join(body) + "</Layer>\n</Optical>\n</WindowElement>\n")
 
 
+def checkbsdf_reciprocity(path: str | Path) -> dict | None:
+    """Radiance's checkBSDF reciprocity figures of a written file, {component: (min, mean, max) in %},
+    or None when Radiance's checkBSDF is not installed (pyradiance bundles it; optional here)."""
+    import shutil
+    import subprocess
+    exe = None
+    try:
+        import pyradiance  # noqa: F401  (optional: bundles Radiance's tools)
+        cand = Path(pyradiance.__file__).parent / "bin" / "checkBSDF"
+        exe = str(cand) if cand.exists() else None
+    except ImportError:
+        pass
+    exe = exe or shutil.which("checkBSDF")
+    if exe is None:
+        return None
+    try:
+        r = subprocess.run([exe, str(path)], capture_output=True, text=True, timeout=300)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if r.returncode != 0 or "Reciprocity Error" not in r.stdout:
+        return None
+    rows = re.findall(r"^(\w[\w >-]*?)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s*$",
+                      r.stdout.split("Reciprocity Error")[1], flags=re.M)
+    return {name.strip(): tuple(float(x) for x in v) for name, *v in rows}
+
+
 # ====================================================================== tensor trees
 
 
