@@ -205,6 +205,10 @@ def test_anisotropic_table_keeps_its_azimuths(tmp_path, capsys):
             assert got[1] == pytest.approx(h["T"][0, 1, p], rel=tol), (structure, ph, got)
     blocks = parse_isbsdf(export_isbsdf(tabs[0], tmp_path / "aniso.bsdf")[1])
     assert blocks["SampleRotation"] == list(phi)
+    # read back without the writer's comments (a foreign Klems file): the azimuth dependence is seen
+    text = re.sub(r"<!-- relief: (theta|phi)_i_deg[^>]*-->", "", (tmp_path / "aniso_klems.xml").read_text())
+    (tmp_path / "foreign.xml").write_text(text)
+    assert read_radiance_xml(tmp_path / "foreign.xml")[0].phi_i_deg.size == 8
     # one azimuth, elliptical lobe (relief slopes recorded 3x apart): the CLI says it drops the azimuths
     from relief_bsdf.cli import main
     one = [lossless(f, "broad") for f in ("outside", "inside")]

@@ -873,8 +873,9 @@ def read_radiance_xml(path: str | Path, wavelength_nm: float | None = None, phi_
 
     Incidence: the polar angles and azimuths a `relief:` comment lists (the table the file was
     written from), else the Klems ring centres (0, 10, ..., 70, 82.5 deg) or 16 tensor-tree angles;
-    azimuths `phi_i_deg` when given, else the comment's, else 0 (the file taken as isotropic) or,
-    for a TensorTree4, every 45 deg.  Scatter cells default to 2.5 x 0.75 degrees, which nest
+    azimuths `phi_i_deg` when given, else the comment's, else 0 (the file taken as isotropic) or
+    every 45 deg for a TensorTree4 or a Klems file whose totals change with the incident azimuth
+    by more than 1 % (`klems_azimuth_spread`).  Scatter cells default to 2.5 x 0.75 degrees, which nest
     inside Klems patches (1 x 2 degrees for tensor trees, each tree cell's power spread over them),
     so hemispherical totals are the file's.  Delta parts cannot be told apart from the cells:
     specular_R/T are 0.  `lost` is 1 - R - T of what the file holds.  The wavelength comes from a
@@ -913,9 +914,10 @@ def read_radiance_xml(path: str | Path, wavelength_nm: float | None = None, phi_
     tagged_t, tagged_p = _comment_list(path, "theta_i_deg"), _comment_list(path, "phi_i_deg")
     if tagged_t is not None:
         th_i = tagged_t
+    aniso_klems = klems and getattr(lookup, "azimuth_spread", 0.0) > 0.01
     if phi_i_deg is None:
         phi_i_deg = tagged_p if tagged_p is not None else (
-            np.arange(0.0, 360.0, 45.0) if structure == "TensorTree4" else (0.0,))
+            np.arange(0.0, 360.0, 45.0) if structure == "TensorTree4" or aniso_klems else (0.0,))
     te = (np.linspace(0.0, 90.0, 37 if klems else 91) if theta_s_edges_deg is None
           else np.asarray(theta_s_edges_deg, float))
     pe = (np.linspace(0.0, 360.0, 481 if klems else 181) if phi_s_edges_deg is None
@@ -982,7 +984,24 @@ def _klems_lookup(blocks: dict, structure: str, path: Path):
         i = KLEMS.index(theta_i, to_table_phi(phi_i) + 180.0)     # travel azimuth, Radiance frame
         o = KLEMS.index(TS, to_table_phi(PS))
         return mats[direction][o, i]
+    lookup.azimuth_spread = klems_azimuth_spread(mats)
     return lookup
+
+
+def klems_azimuth_spread(mats: dict) -> float:
+    """Largest relative spread (max / min - 1) of the directional-hemispherical totals over the incident
+    patches of one Klems ring, over rings and blocks: 0 for a rotation-invariant (isotropic) layer."""
+    lam = KLEMS.projected_solid_angle_sr()
+    worst = 0.0
+    for M in mats.values():
+        tot = lam @ M                                             # (n_in,) hemispherical total per column
+        start = 0
+        for _, _, n in KLEMS.rings:
+            ring = tot[start:start + n]
+            start += n
+            if n > 1 and ring.max() > 1e-6:
+                worst = max(worst, float(ring.max() / max(ring.min(), 1e-12) - 1.0))
+    return worst
 
 
 def _tree_lookup(blocks: dict, nd: int, path: Path):
