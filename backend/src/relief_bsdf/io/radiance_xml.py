@@ -493,7 +493,7 @@ def write_radiance_xml(path: str | Path, tables: list[BsdfTable], wavelength_nm:
         iso = by["outside"].is_isotropic and by["inside"].is_isotropic
         kind = "TensorTree3" if iso else "TensorTree4"
         if depth is None:
-            depth, _ = tree_depth_for([by["outside"], by["inside"]], iw, iso)
+            depth = tree_depth_for(width, iso)
         cell_deg = float(np.degrees(np.arcsin(2.0 / 2 ** depth)))
         head = _header(name, thick, _comments(by, iw, f"{kind}, uniform depth {depth}"),
                        f"<IncidentDataStructure>{kind}</IncidentDataStructure>")
@@ -768,16 +768,15 @@ def lobe_anisotropy(table: BsdfTable, iw: int = 0) -> float | None:
     return float(np.sqrt(ev[1] / ev[0])) if ev[0] > 0 else None
 
 
-def tree_depth_for(tables: list, iw: int, isotropic: bool, max_depth: int | None = None) -> tuple[int, float]:
-    """Tensor-tree depth for the narrowest lobe: cells (2 / 2^depth on the disc) no wider than half
-    the lobe's rms radius, between 4 and max_depth (default 6 for TensorTree3, 5 for TensorTree4:
-    the file grows as 2^(3 or 4 * depth)).  Returns (depth, lobe width in deg)."""
-    width = min(lobe_width_deg(t, iw if t.incident_from == "outside" else _nearest_wl(t, None)) for t in tables)
+def tree_depth_for(width_deg: float, isotropic: bool, max_depth: int | None = None) -> int:
+    """Tensor-tree depth for a lobe of rms radius `width_deg` (`lobe_width_deg`): cells (2 / 2^depth
+    on the disc) no wider than half of it, between 4 and max_depth (default 6 for TensorTree3, 5
+    for TensorTree4: the file grows as 2^(3 or 4 * depth))."""
     top = max_depth or (6 if isotropic else 5)
-    if not np.isfinite(width) or width <= 0:
-        return 4, width
-    need = int(np.ceil(np.log2(4.0 / np.sin(np.radians(width)))))
-    return int(np.clip(need, 4, top)), width
+    if not np.isfinite(width_deg) or width_deg <= 0:
+        return 4
+    need = int(np.ceil(np.log2(4.0 / np.sin(np.radians(width_deg)))))
+    return int(np.clip(need, 4, top))
 
 
 def format_tree(grid: np.ndarray) -> str:
