@@ -281,8 +281,7 @@ def test_isbsdf_file_read_independently(tmp_path, kind):
 def test_every_written_file_reads_back_within_half_a_percent(tmp_path, kind):
     """HDF5, IS-BSDF, Radiance XML (Klems and tensor tree) and recording CSV read back with R and T
     within 0.5 % at every tabulated incidence and an honest lost = 1 - R - T."""
-    from relief_bsdf.cli.cmd_export import table_rows
-    from relief_bsdf.io.recording import read_recording, write_recording
+    from relief_bsdf.io.recording import read_recording
     tabs = [lossless("outside", kind), lossless("inside", kind)]
     back = {"hdf5": load_tables(save_tables(tmp_path / "t.h5", tabs)),
             "is-bsdf": [import_isbsdf(export_isbsdf(t, tmp_path / f"{t.incident_from}.bsdf")) for t in tabs],
@@ -298,15 +297,21 @@ def test_every_written_file_reads_back_within_half_a_percent(tmp_path, kind):
                     assert hb[k][0, j, 0] == pytest.approx(ha[k][0, i, 0], rel=0.005, abs=1e-5), (name, a.incident_from, ti, k)
                 honest = a.lost[0, i, 0] if name == "hdf5" else 1 - hb["R"][0, j, 0] - hb["T"][0, j, 0]
                 assert hb["lost"][0, j, 0] == pytest.approx(honest, abs=1e-9)    # HDF5: the table's own
-    # recording CSV: the rows are the cells (the deltas are comment lines), summed back over the grid
+    # recording CSV (`relief export --format recording-csv`): the rows are the cells, the deltas are
+    # '# specular wl, theta_i, phi_i, R, T' comment lines; summed back over the grid
+    from relief_bsdf.cli import main
     t = tabs[0]
-    rec = read_recording(write_recording(tmp_path / "r.csv", table_rows(t)))
+    save_tables(tmp_path / "one.h5", [t])
+    assert main(["export", str(tmp_path / "one.h5"), "--format", "recording-csv", "-o", str(tmp_path / "r.csv")]) == 0
+    rec = read_recording(tmp_path / "r.csv")
+    spec = {float(c.split(",")[1]): [float(x) for x in c.split(",")[3:5]]
+            for c in rec.comments if re.match(r"specular \d", c.strip())}
     psa = t.projected_solid_angle_sr
     for i, ti in enumerate(t.theta_i_deg):
         for k in ("R", "T"):
             sel = (rec.theta_i_deg == ti) & (rec.side == k)
-            vals = rec.bsdf_sr[sel].reshape(psa.shape)
-            assert np.sum(vals * psa) == pytest.approx(t.hemispherical()["diffuse_" + k][0, i, 0], rel=0.005, abs=1e-6)
+            total = np.sum(rec.bsdf_sr[sel].reshape(psa.shape) * psa) + spec[ti][0 if k == "R" else 1]
+            assert total == pytest.approx(t.hemispherical()[k][0, i, 0], rel=0.005, abs=1e-6), ("csv", ti, k)
 
 
 def test_info_prints_the_honest_loss_of_an_exchanged_file(tmp_path, capsys):
