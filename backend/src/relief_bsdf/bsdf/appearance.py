@@ -2,10 +2,9 @@
 
 From a BsdfTable (cell averages over projected solid angle, plus the specular deltas):
 
-- **haze** (ASTM D1003-21, sec. 3.2.3 / 8): the share of the *transmitted* light that is
-  deviated by more than 2.5 deg from the incident beam's direction, i.e. from the undeviated
-  (regular) transmitted direction, over all transmitted light (T including its specular part).
-  For light from inside past the critical angle there is no regular direction: NaN.
+- **haze** (ASTM D1003 on the plate, `bsdf.haze.haze_astm_d1003`, the one definition shown
+  everywhere): given on the row of the incidence nearest the normal (within 1 deg), NaN on the
+  other rows (D1003 measures at normal incidence only).
 - **clarity** (narrow-angle scatter, as the BYK haze-gard defines it, not part of D1003):
   C = (I_C - I_R) / (I_C + I_R), with I_C the transmitted light within 0.1 deg of the regular
   direction and I_R that between 0.1 and 2.5 deg.  With table cells coarser than 0.1 deg, I_C is
@@ -79,6 +78,9 @@ def appearance(table: BsdfTable, sub: int = 8) -> list[Appearance]:
     psa = table.projected_solid_angle_sr
     a, b = _subpoints(table, sub)
     h = table.hemispherical()
+    from relief_bsdf.bsdf.haze import haze_astm_d1003
+    it0 = int(np.argmin(np.abs(table.theta_i_deg)))
+    d1003 = [haze_astm_d1003(table, wavelength_nm=float(w)) for w in table.wavelength_nm]
     out = []
     for iw, wl in enumerate(table.wavelength_nm):
         n1, n2 = (mat.n_pair(wl, table.incident_from) if mat is not None else (1.0, 1.0))
@@ -96,7 +98,7 @@ def appearance(table: BsdfTable, sub: int = 8) -> list[Appearance]:
                     power = table.values_per_sr[iw, it, ip, 1] * psa                      # (S, A)
                     wide = np.mean(ang > HAZE_ANGLE_DEG, axis=-1)
                     core = np.mean(ang <= CLARITY_ANGLE_DEG, axis=-1)
-                    haze = float(np.sum(power * wide) / T)
+                    haze = d1003[iw] if ti == table.theta_i_deg[it0] and abs(ti) <= 1.0 else float("nan")
                     i_c = sT + float(np.sum(power * core))
                     i_r = float(np.sum(power * (1 - wide - core)))
                     clarity = (i_c - i_r) / (i_c + i_r) if i_c + i_r > 0 else float("nan")

@@ -206,7 +206,7 @@ class BakedLut:
 
     @property
     def haze(self) -> float:
-        """Transmission haze of the baked table (ASTM D1003 sense, `transmission_haze`); NaN if unknown."""
+        """Haze of the baked table (ASTM D1003 on the plate, `bsdf.haze.haze_astm_d1003`); NaN if unknown."""
         return float(self.info.get("haze_T", float("nan")))
 
     def texture_v(self, row_index: int) -> float:
@@ -454,29 +454,11 @@ def _smooth_inside_rows(material: Material, cols: np.ndarray, rgb_nm, green_nm: 
     return rows
 
 
-def transmission_haze(table: BsdfTable, wl_nm: float = 550.0, wide_deg: float = 2.5) -> float:
-    """Transmission haze at normal incidence, in the sense of ASTM D1003: the share of the
-    transmitted light that leaves more than `wide_deg` (2.5 deg) from the regular (undeviated)
-    beam.  Regular part: the table's specular transmission plus the T cells whose centre lies
-    within `wide_deg` of the beam; the cell grid limits how sharply the 2.5 deg edge is drawn
-    (one cell width).  Uses the incidence nearest 0 deg (NaN if none within 1 deg), the
-    wavelength nearest `wl_nm`, azimuths averaged; NaN when nothing is transmitted.
-    """
-    ti = np.asarray(table.theta_i_deg, float)
-    i = int(np.argmin(np.abs(ti)))
-    if abs(ti[i]) > 1.0:
-        return float("nan")
-    w = int(np.argmin(np.abs(np.asarray(table.wavelength_nm, float) - wl_nm)))
-    psa = table.projected_solid_angle_sr                          # (S, A)
-    cells = np.asarray(table.values_per_sr[w, i, :, 1], float) * psa[None]   # (P, S, A) power per T cell
-    edges = np.asarray(table.theta_s_edges_deg, float)
-    centre = 0.5 * (edges[:-1] + edges[1:])
-    near = centre <= wide_deg
-    spec = 0.0 if table.specular_T is None else np.asarray(table.specular_T, float)[w, i, :]
-    regular = np.mean(spec + cells[:, near, :].sum(axis=(1, 2)))
-    wide = np.mean(cells[:, ~near, :].sum(axis=(1, 2)))
-    tot = regular + wide
-    return float(wide / tot) if tot > 0 else float("nan")
+def transmission_haze(table: BsdfTable, wl_nm: float = 550.0) -> float:
+    """The table's haze as ASTM D1003 defines it on the plate (`bsdf.haze.haze_astm_d1003`, the one
+    definition shown everywhere), at the wavelength nearest `wl_nm`."""
+    from relief_bsdf.bsdf.haze import haze_astm_d1003
+    return haze_astm_d1003(table, wavelength_nm=wl_nm)
 
 
 def bake_lut(tables: Sequence[BsdfTable], name: str, albedo: Albedo | None = None, n_columns: int = 91,

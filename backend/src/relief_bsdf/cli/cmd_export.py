@@ -8,6 +8,7 @@ IS-BSDF file without this project's tags) exported as recording-csv gives its ow
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--structure", choices=("klems", "tensor-tree"), default="klems",
                    help="radiance-xml: Klems full basis (default) or a uniform tensor tree")
     p.add_argument("--depth", type=int, default=None,
-                   help="radiance-xml tensor tree: 2^depth cells per axis (default 6 isotropic, 4 otherwise)")
+                   help="radiance-xml tensor tree: 2^depth cells per axis (default: from the narrowest lobe, "
+                        "4-6 isotropic, 4-5 otherwise)")
     p.add_argument("--wavelength-nm", type=float, default=None,
                    help="radiance-xml: the wavelength written (nearest tabulated; default 555). "
                         "Reading an IS-BSDF file that does not state its wavelength: its wavelength")
@@ -76,6 +78,20 @@ def _write_recording_csv(args, table, out: Path) -> None:
           f"{table.theta_i_deg.size * table.phi_i_deg.size} incidence(s), light from {table.incident_from})")
 
 
+def _azimuth_notes(tables, fmt: str) -> None:
+    """One warning line when the file will describe an isotropic boundary although the table is not:
+    a table with one incidence azimuth is turned to every orientation by its consumers, which is
+    only right when its normal-incidence lobe is round (`lobe_anisotropy` > 1.2: it is not)."""
+    from relief_bsdf.io.radiance_xml import lobe_anisotropy
+    for t in tables:
+        ratio = lobe_anisotropy(t)
+        if t.is_isotropic and ratio is not None and ratio > 1.2:
+            print(f"relief: warning: {fmt} from one incidence azimuth describes an isotropic boundary, but the "
+                  f"table's normal-incidence lobe is {ratio:.2g}x wider along one axis; the azimuthal dependence "
+                  "is dropped (reconstruct with --phi-i-deg 0,45,90,135,... to keep it)", file=sys.stderr)
+            return
+
+
 def run(args) -> int:
     from relief_bsdf.errors import InputError
     from relief_bsdf.io.tables import pick_table, read_table_file
@@ -90,9 +106,20 @@ def run(args) -> int:
                              n=args.n)
     if args.format == "radiance-xml":
         from relief_bsdf.io.radiance_xml import write_radiance_xml
-        iso = all(t.is_isotropic for t in tables)
-        depth = args.depth or (6 if iso else 4)
-        write_radiance_xml(out, tables, wavelength_nm=args.wavelength_nm, structure=args.structure, depth=depth)
+        notes: list = []
+        write_radiance_xml(out, tables, wavelength_nm=args.wavelength_nm, structure=args.structure,
+                           depth=args.depth, notes=notes)
+        _azimuth_notes(tables, args.format)
+        from relief_bsdf.io.radiance_xml import checkbsdf_reciprocity
+        rec = checkbsdf_reciprocity(out)
+        if rec:
+            notes.append("note: checkBSDF reciprocity, mean (max) %: " + ", ".join(
+                f"{k} {v[1]:.1f} ({v[2]:.0f})" for k, v in rec.items())
+                + f" (transmission differs by n^2 by design between the two media; a table of "
+                f"{len(tables[0].theta_i_deg)} incidences, interpolated between them, is only as reciprocal as "
+                "that interpolation: tabulate every 5-10 deg to bring it down; io/radiance_xml doc)")
+        for line in notes:
+            print(f"relief: {line}", file=sys.stderr)
         print(f"wrote {out} ({args.structure}, front = light from outside, back = light from inside)")
         return 0
     if args.format == "hdf5":
@@ -102,8 +129,10 @@ def run(args) -> int:
         return 0
     table = pick_table(tables, args.incident_from, args.table)
     if args.format == "recording-csv":
+        _azimuth_notes([table], args.format)
         _write_recording_csv(args, table, out)
         return 0
+    _azimuth_notes([table], args.format)
     from relief_bsdf.io.isbsdf import export_isbsdf
     for p in export_isbsdf(table, out, btdf_centre=args.btdf_centre):
         print(f"wrote {p}")

@@ -43,9 +43,9 @@ def specular_note(table, ip: int = 0) -> str:
     for iw, wl in enumerate(table.wavelength_nm):
         sr = " ".join(f"{v:.4f}" for v in table.specular_R[iw, :, ip])
         st = " ".join(f"{v:.4f}" for v in table.specular_T[iw, :, ip])
-        hz = " ".join(f"{rows[(iw * len(table.theta_i_deg) + it) * P + ip].haze:.4f}"
-                      for it in range(len(table.theta_i_deg)))
-        lines.append(f"{wl:g} nm: specular R {sr} | specular T {st} | haze (>2.5 deg) {hz}")
+        it0 = min(range(len(table.theta_i_deg)), key=lambda k: abs(table.theta_i_deg[k]))
+        hz = rows[(iw * len(table.theta_i_deg) + it0) * P + ip].haze
+        lines.append(f"{wl:g} nm: specular R {sr} | specular T {st} | haze (ASTM D1003, plate) {hz:.4f}")
     head = ("specular deltas (not drawn in the cells) per theta_i "
             + ", ".join(f"{t:g}" for t in table.theta_i_deg) + " deg")
     return "\n".join([head] + lines)

@@ -54,7 +54,7 @@ import numpy as np
 
 from relief_bsdf.io.atomic import write_text_atomic
 from relief_bsdf.bsdf.table import BsdfTable
-from relief_bsdf.core.frames import direction
+from relief_bsdf.core.frames import direction, projected_solid_angle
 from relief_bsdf.errors import InputError
 
 SIDE_TYPE = {"R": "BRDF", "T": "BTDF"}
@@ -229,6 +229,10 @@ def block_from_table(table: BsdfTable, side: str, iw: int = 0, btdf_centre: str 
                 f"relief: method = {table.method}",
                 f"relief: btdf_centre = {btdf_centre}" if side == "T" else "relief: brdf_centre = mirror",
                 "relief: values = Nicodemus BSDF in 1/sr (not cosine-corrected); specular part excluded"]
+    spec = (table.specular_R if side == "R" else table.specular_T)[iw]          # (I, P)
+    comments += [f"relief: specular = {theta_i:g} {phi_i:g} {spec[i, p]!r}"
+                 for p, phi_i in enumerate(table.phi_i_deg) for i, theta_i in enumerate(table.theta_i_deg)
+                 if spec[i, p] > 0]
     if side == "T" and btdf_centre == "refracted":
         n1, n2 = table_indices(table, iw)
         comments += [f"relief: n_incident = {n1!r}", f"relief: n_transmitted = {n2!r}"]
@@ -443,7 +447,10 @@ def import_isbsdf(paths: str | Path | Sequence[str | Path], theta_s_edges_deg: A
     indices n_incident / n_transmitted (tags first, then the arguments, then 1 and 1).
 
     The scatter grid defaults to 1-degree theta cells (0..90) and 5-degree phi cells;
-    values are interpolated in specular coordinates at the cell centres.  Wavelength,
+    values are interpolated in specular coordinates at the cell centres.  A block written by `export_isbsdf` is then scaled to its TIS line, which that writer sets to the
+    table's exact hemispherical integral (the sampled grid only carries the shape; the factors
+    are kept in metadata "tis_scale"); a measured block is taken as its data say.  Specular parts
+    come back from the writer's '# relief: specular' lines (else zero); `lost` is 1 - R - T.  Wavelength,
     incidence side and method come from the '# relief:' comments when the file was
     written by `export_isbsdf`, else from the arguments (wavelength is then required).
     A side without a file is zero.  The specular parts are unknown (zero).
@@ -512,19 +519,42 @@ def import_isbsdf_blocks(blocks: list[IsBsdfBlock], theta_s_edges_deg: Any = Non
     tc = 0.5 * (te[1:] + te[:-1])
     pc = 0.5 * (pe[1:] + pe[:-1])
     TH, PH = np.meshgrid(tc, pc, indexing="ij")
+    psa = projected_solid_angle(te, pe)
     rot, aoi = first.sample_rotation_deg, first.angle_of_incidence_deg
     values = np.zeros((1, aoi.size, rot.size, 2, tc.size, pc.size))
+    tis_scale = {}
     for side, b in by_side.items():
         k = 0 if side == "R" else 1
+        own = any(c.strip() == "relief: written by relief_bsdf.io.isbsdf" for c in b.comments)
         for p, phi_i in enumerate(rot):
             centre = _block_centres(b, side, aoi, indices)
             for i, theta_i in enumerate(aoi):
                 radial, az = to_specular_coords(centre[i], phi_i, TH, PH)
-                values[0, i, p, k] = _interp_block(b, p, i, radial, az)
-    return BsdfTable(wavelength_nm=[wl], theta_i_deg=aoi, phi_i_deg=rot, theta_s_edges_deg=te,
-                     phi_s_edges_deg=pe, values_per_sr=values, incident_from=inc, method=meth,
-                     metadata={"imported_from": [str(b.path) for b in blocks],
-                               "tis": {b.scatter_type: b.tis.tolist() for b in blocks}})
+                v = _interp_block(b, p, i, radial, az)
+                got = float(np.sum(v * psa))
+                if own and got > 0 and b.tis[p, i] > 0:       # our TIS is the table's exact integral
+                    tis_scale[(side, float(theta_i), float(phi_i))] = float(b.tis[p, i]) / got
+                    v = v * (float(b.tis[p, i]) / got)
+                values[0, i, p, k] = v
+    specular = {k: np.zeros((1, aoi.size, rot.size)) for k in ("R", "T")}
+    for side, b in by_side.items():
+        for c in b.comments:
+            parts = c.split("=", 1)[1].split() if c.startswith("relief: specular =") else []
+            if len(parts) == 3:
+                i = np.nonzero(np.isclose(aoi, float(parts[0])))[0]
+                p = np.nonzero(np.isclose(rot % 360.0, float(parts[1]) % 360.0))[0]
+                if i.size and p.size:
+                    specular[side][0, i[0], p[0]] = float(parts[2])
+    t = BsdfTable(wavelength_nm=[wl], theta_i_deg=aoi, phi_i_deg=rot, theta_s_edges_deg=te,
+                  phi_s_edges_deg=pe, values_per_sr=values, incident_from=inc, method=meth,
+                  specular_R=specular["R"], specular_T=specular["T"],
+                  metadata={"imported_from": [str(b.path) for b in blocks],
+                            "tis": {b.scatter_type: b.tis.tolist() for b in blocks},
+                            "tis_scale": [[*k, v] for k, v in tis_scale.items()],
+                            "lost": "1 - R - T of what the file(s) hold (a side without a file counts as 0)"})
+    h = t.hemispherical()
+    t.lost = 1.0 - h["R"] - h["T"]
+    return t
 
 
 def _block_centres(block: IsBsdfBlock, side: str, aoi: np.ndarray, indices: tuple) -> np.ndarray:

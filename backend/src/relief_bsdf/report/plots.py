@@ -205,16 +205,10 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
 
 
 def boundary_haze(table: BsdfTable, iw: int = 0) -> float:
-    """Haze of a boundary table at its incidence closest to the normal (bsdf.appearance: the share
-    of the transmitted power deviated more than 2.5 deg from the refracted ray, inside the
-    medium the table transmits into); NaN when the table transmits nothing there."""
-    from relief_bsdf.bsdf.appearance import appearance
-    ii = int(np.argmin(np.abs(table.theta_i_deg)))
-    sub = table.select(table.wavelength_nm[iw])
-    for a in appearance(sub):
-        if a.theta_i_deg == float(table.theta_i_deg[ii]) and a.phi_i_deg == float(table.phi_i_deg[0]):
-            return float(a.haze)
-    return float("nan")
+    """The table's haze as ASTM D1003 defines it on the plate (`bsdf.haze.haze_astm_d1003`, the one
+    definition shown everywhere) at wavelength index iw; NaN without a normal incidence."""
+    from relief_bsdf.bsdf.haze import haze_astm_d1003
+    return haze_astm_d1003(table, wavelength_nm=float(table.wavelength_nm[iw]))
 
 
 def before_after_figure(tables: list, labels: list, theta_i_deg=(0.0, 30.0), width_px: int = 640,
