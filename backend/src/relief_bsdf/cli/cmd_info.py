@@ -25,6 +25,23 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
+
+def _finite(x):
+    """`x` with every non-finite float as None (JSON has no NaN: `--json` output is strict JSON, null)."""
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    if hasattr(x, "tolist") and not isinstance(x, (str, bytes)):
+        return _finite(x.tolist())
+    return x
+
+
+def _json(d: dict) -> str:
+    return json.dumps(_finite(d), default=str, allow_nan=False)
+
 def _kind(path: Path) -> str:
     suffix = path.suffix.lower()
     if suffix == ".toml":
@@ -209,7 +226,7 @@ def _info_relief(path: Path, args) -> int:
     relief = read_map(path, args, pitch_m=_pitch(args.pitch_um), channel=args.channel)
     d = relief_info(relief)
     if args.json:
-        print(json.dumps(d, default=str))
+        print(_json(d))
     else:
         _print_relief(d)
     return 0
@@ -228,7 +245,7 @@ def _info_bsdf(path: Path, args) -> int:
          "height_band_limit": {t.incident_from: t.metadata.get("height_band_limit") for t in tables
                                if isinstance(t.metadata, dict) and t.metadata.get("height_band_limit")}}
     if args.json:
-        print(json.dumps(d, default=str))
+        print(_json(d))
         return 0
     print(f"BSDF table   {path}  (method {d['method']})")
     for t in tables:
@@ -295,7 +312,7 @@ def _info_recording(path: Path, args) -> int:
     rec = read_recording(path)
     d = rec.summary()
     if args.json:
-        print(json.dumps(d))
+        print(_json(d))
         return 0
     print(f"recording    {path}")
     print(f"  rows       {d['rows']} ({d['rows_per_side']['R']} reflected, {d['rows_per_side']['T']} transmitted)")
@@ -313,7 +330,7 @@ def _info_sample(path: Path, args) -> int:
     s = read_sample(path)
     d = s.summary()
     if args.json:
-        print(json.dumps(d, default=str))
+        print(_json(d))
         return 0
     pl = d["plate"]
     idx = pl["index"]
@@ -351,7 +368,7 @@ def _info_measured(path: Path, args) -> int:
     from relief_bsdf.io.measured import measured_info, print_measured_info
     d = measured_info(path)
     if args.json:
-        print(json.dumps(d))
+        print(_json(d))
     else:
         print_measured_info(d)
     return 0
@@ -367,7 +384,7 @@ def _info_isbsdf(path: Path, args) -> int:
          "sample_rotation_deg": b.sample_rotation_deg.tolist(), "angle_of_incidence_deg": b.angle_of_incidence_deg.tolist(),
          "azimuths": int(b.azimuth_deg.size), "radials": int(b.radial_deg.size), "tis": b.tis.tolist()}
     if args.json:
-        print(json.dumps(d))
+        print(_json(d))
     else:
         print(f"IS-BSDF      {path}: {b.scatter_type}, {b.symmetry}, incidences {d['angle_of_incidence_deg']} deg, "
               f"{d['azimuths']} azimuths x {d['radials']} radial angles; TIS {[round(v, 4) for v in b.tis[0]]}")

@@ -304,9 +304,10 @@ def diagnose(sample_path: str | Path, out_dir: str | Path, progress=None, *, met
         plan = _memory_plan(memory, workers)
         n_mid = float(np.real(sample.plate.index.n(float(np.median(rows.wavelength_nm)))))
         located = (regions(rows, v0, s0, n_glass=n_mid), classify(rows, v0, s0, n_glass=n_mid))
-        with parallel_settings(worker_memory_bytes=plan.worker_budget_bytes):
+        # the plan in force for every task the search starts (a pool anywhere below takes its worker count)
+        with parallel_settings(workers=plan.workers, worker_memory_bytes=plan.worker_budget_bytes):
             steps = stepwise(forward, names, progress, plan.workers)
-        result, (v1, s1) = _result(forward, steps, located, n_mid)
+            result, (v1, s1) = _result(forward, steps, located, n_mid)
     result["memory"] = {**plan.describe(), "main_process": memory.report()}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
