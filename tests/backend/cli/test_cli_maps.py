@@ -18,9 +18,8 @@ from relief_bsdf.surface.periodicity import WRAP_RATIO_MAX, wrap_ratios
 from relief_bsdf.surface.relief import Relief
 from relief_bsdf.surface.synth import random_relief
 
-SHARED = Path(__file__).resolve().parents[3].parent / "shared" / "data"
-TOPO = SHARED / "topography"
-CASES = SHARED / "validation" / "cases"
+TOPO = Path(__file__).resolve().parents[2] / "data" / "topography"         # instrument files kept in the repository
+CASES = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "validation" / "cases"
 INSTRUMENT_FILES = ["ST_di-1.di", "ST_frt-1.frt", "ST_metropro-1.dat", "ST_mi-1.mi", "ST_nid-1.nid", "ST_opd-1.opd",
                     "ST_plu-1.plu", "ST_spot_1-1000nm.ibw", "ST_x3p-2.x3p"]
 
@@ -202,7 +201,6 @@ def test_sample_key_periodic_reaches_simulate(tmp_path, capsys):
     assert rc == 2 and "relief.periodic: expected true or false" in e
 
 
-@pytest.mark.skipif(not TOPO.is_dir(), reason="needs ../shared/data/topography")
 def test_instrument_maps_are_not_periodic(capsys):
     for name in INSTRUMENT_FILES:
         with warnings.catch_warnings():
@@ -213,7 +211,7 @@ def test_instrument_maps_are_not_periodic(capsys):
         assert p["periodic"] is False and p["source"] == "test", (name, p)
 
 
-@pytest.mark.skipif(not CASES.is_dir(), reason="needs ../shared/data/validation")
+@pytest.mark.shared_data
 def test_validation_x3p_tiles_are_found_periodic(capsys):
     files = sorted(CASES.glob("*/relief.x3p"))
     assert len(files) >= 17
@@ -342,3 +340,22 @@ def test_large_fills_iterate_to_the_direct_answer(monkeypatch):
     direct = r.fill_holes().heights_m
     monkeypatch.setattr(relief_module, "DIRECT_FILL_MAX", 0)
     np.testing.assert_allclose(r.fill_holes().heights_m, direct, rtol=0, atol=1e-8 * np.nanstd(holey))
+
+
+def test_reconstruct_warns_that_one_azimuth_misdescribes_an_anisotropic_relief(tmp_path, capsys):
+    """A corrugated relief (slopes along x only) reconstructed at one incidence azimuth: one warning line
+    naming --phi-i-deg; the table records the rms slopes along x and y (what an export judges by); with
+    several azimuths, no warning."""
+    x = np.arange(64) * 0.25e-6
+    h = 0.2e-6 * np.sin(2 * np.pi * x / 4e-6)[None, :] * np.ones((64, 1)) + 0.01e-6 * tile().heights_m / 0.1e-6
+    m = save_npz(tmp_path / "ridges.npz", Relief(h, 0.25e-6, 0.25e-6, periodic=True), state_periodic=True)
+    rc, o, e = run_cli(capsys, "reconstruct", m, "--method", "microfacet", "--theta-i-deg", "0", "--n", "1.5",
+                       "-o", tmp_path / "t.h5")
+    assert rc == 0, e
+    assert e.count("one incidence azimuth does not describe it") == 1 and "--phi-i-deg" in e
+    from relief_bsdf.io.hdf5 import load_tables
+    rel = load_tables(tmp_path / "t.h5")[0].relief
+    assert rel["rms_slope_x"] > 5 * rel["rms_slope_y"] > 0
+    rc, o, e = run_cli(capsys, "reconstruct", m, "--method", "microfacet", "--theta-i-deg", "0", "--n", "1.5",
+                       "--phi-i-deg", "0,90", "-o", tmp_path / "t2.h5")
+    assert rc == 0 and "does not describe it" not in e

@@ -155,6 +155,7 @@ def run(args) -> int:
         pitch = (v[0] * 1e-6, (v[1] if len(v) > 1 else v[0]) * 1e-6)
     relief = read_map(args.relief, args, pitch_m=pitch)
     show_prepared(relief, args)
+    _warn_one_azimuth(relief, request)
     bar = TerminalBar(f"reconstruct {args.method}")
     with keep_alive(bar):
         tables = reconstruct(relief, material, request, args.method, progress=bar)
@@ -171,3 +172,21 @@ def run(args) -> int:
     for line in band_limit_lines(tables):          # what the wave method removed from the heights
         print(line.strip())
     return 0
+
+
+AZIMUTH_WARN_RATIO = 1.2     # principal rms slopes more than 20 % apart: one incidence azimuth misdescribes the relief
+
+
+def _warn_one_azimuth(relief, request) -> None:
+    """One warning line when the relief's principal rms slopes differ by more than 20 % and the request
+    has a single incidence azimuth: its table then holds the relief seen from that azimuth only (an
+    export of it stands for every orientation), so say which option gives the azimuths."""
+    import warnings
+    from relief_bsdf.plate.faces import slope_anisotropy
+    if len(set(float(p) % 360.0 for p in request.phi_i_deg)) > 1:
+        return
+    ratio, axis = slope_anisotropy(relief)
+    if ratio > AZIMUTH_WARN_RATIO:
+        warnings.warn(f"{relief.source or 'the map'} is anisotropic (principal rms slopes {ratio:.2g}x apart, steeper "
+                      f"axis at {axis:.0f} deg): one incidence azimuth does not describe it; give the azimuths with "
+                      "--phi-i-deg (e.g. 0,45,90,135)", RuntimeWarning, stacklevel=2)

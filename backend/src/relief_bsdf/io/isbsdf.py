@@ -190,7 +190,8 @@ def table_indices(table: BsdfTable, iw: int = 0) -> tuple[float, float]:
     from relief_bsdf.core.index import Material
     if not table.material:
         raise InputError("is-bsdf", "the table does not state its material (refractive indices), needed to centre "
-                         "the BTDF on the refracted direction; use btdf_centre='undeviated'")
+                         "the BTDF on the refracted direction: give the index (--n or --cauchy), or "
+                         "--btdf-centre undeviated")
     n1, n2 = Material.from_dict(table.material).n_pair(float(table.wavelength_nm[iw]), table.incident_from)
     return float(np.real(n1)), float(np.real(n2))
 
