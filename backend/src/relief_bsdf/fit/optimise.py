@@ -839,12 +839,15 @@ def _job_store(out: Path, sample: Any, job: FitJob) -> Any:
 
 def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJob(),
                 progress: Progress | None = None) -> dict:
-    """`relief fit`: read the sample, fit, write OUT/fit.json + relief + tables + plots + report; the
-    forward model keeps what it derives in one memory owner held to the job's memory (`--memory-gb`,
-    `plate.memory`: the fit evaluates in this process, its tables traced on its threads)."""
+    """`relief fit`: read the sample, fit, write OUT/fit.json + relief + tables + plots + report.
+
+    The forward model keeps what it derives in one memory owner (`plate.memory`) held to a third of
+    the job's memory (`--memory-gb`): the fit evaluates in this process (its tables traced on its
+    threads), every evaluation at a new relief, so what it keeps is the tracer, the detector's
+    weights and the last evaluations' tables and solver; the rest of the memory is for the evaluation
+    being built."""
     from relief_bsdf.plate.memory import ForwardMemory, job_memory_bytes
-    from relief_bsdf.plate.memory import PROCESS_BASE_BYTES
-    with ForwardMemory(max(job_memory_bytes() - PROCESS_BASE_BYTES, 0.2e9)).active():
+    with ForwardMemory(job_memory_bytes() / 3).active():
         return _run_fit_job(sample_path, out_dir, job, progress)
 
 
