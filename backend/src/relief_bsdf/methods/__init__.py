@@ -48,8 +48,8 @@ def _with_axis_slopes(tables: list, relief) -> list:
     """The tables with the relief's rms slopes along x and y in their `relief` record (what an export needs
     to tell an anisotropic relief's one-azimuth table: io.radiance_xml), where the method did not write them."""
     from relief_bsdf.surface.stats import rms_slope_xy
-    if not any("rms_slope_x" not in (t.relief or {}) for t in tables):
-        return tables
+    if relief is None or not any("rms_slope_x" not in (t.relief or {}) for t in tables):
+        return tables                            # (the flat face and analytic faces come without a relief)
     sx, sy = rms_slope_xy(relief)               # NaN where an axis has no two valid neighbours
     for t in tables:
         t.relief = {**(t.relief or {}), "rms_slope_x": sx, "rms_slope_y": sy}
