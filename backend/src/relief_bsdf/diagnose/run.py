@@ -44,7 +44,8 @@ from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build
 from relief_bsdf.diagnose.mismatch import SHAPE_PHYSICS, attribute, classify, locate, regions
 from relief_bsdf.diagnose.report import write_report
 from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODEL_ACCURACY_RMS, adequate, alternatives,
-                                           consistent_with_noise, first_fits, overwhelming_bar, passes, stepwise)
+                                           consistent_with_noise, first_fits, overwhelming_bar, passes, stepwise,
+                                           steps_record)
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.selection import BIC_MARGIN
 from relief_bsdf.io.atomic import write_text_atomic
@@ -237,6 +238,7 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
                            "mismatch": locate(rows, v, s, n_glass=n_glass),
                            "shapes": classify(rows, v, s, n_glass=n_glass)}
     fits = first_fits(steps)
+    record, stop = steps_record(steps, n)
     alike = alternatives(steps, n) if effects != ["none"] else []
     ctx = forward.context
     facts = {"rms0": rms0, "rms1": rms1, "n": n, "chi0": base.chi2, "consistent": consistent_with_noise(base.chi2, n)}
@@ -251,6 +253,7 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
         "effects": effects, "alternatives": alike, "intervals": ivals, "interval_notes": notes,
         "shape": located[1][:3],
         "selection": _selection_doc(n, steps, closed),
+        "steps": record, "stop": stop,
         "forward_model": {"engine": "deterministic", "method": ctx.method, "samples": ctx.samples, "seed": ctx.seed,
                           "rough_face_model": f"boundary tables of the measured relief by method {ctx.method}",
                           "method_reason": ctx.method_reason, "evaluations": forward.evaluations,
