@@ -144,15 +144,15 @@ def shape_against_search(shapes: list, steps: list, named: list) -> str:
     considered it did and its numbers (`steps`: diagnosis.json's record).  '' when there is none."""
     out = []
     for sh in [x for x in shapes if x.get("explained", 0.0) > 0.3][:2]:
+        word = sh["shape"].replace("_", " ")
+        parts = []
         for effect in SHAPE_EFFECTS.get(sh["shape"], ()):
             if effect in named:
                 continue
             found = next(((k, c) for k, st in reversed(list(enumerate(steps, 1)))
                           for c in st.get("candidates", []) if c["effect"] == effect), None)
-            word = sh["shape"].replace("_", " ")
             if found is None:
-                out.append(f" The remainder is {100 * sh['explained']:.0f} % {word}, the signature of "
-                           f"{effect.replace('_', ' ')}, which was not among the candidates searched.")
+                parts.append(f"{effect.replace('_', ' ')} was not among the candidates searched")
                 continue
             k, c = found
             nums = []
@@ -161,10 +161,12 @@ def shape_against_search(shapes: list, steps: list, named: list) -> str:
                                                                                            "outgained") else ""))
             if c.get("bic_gain") is not None:
                 nums.append(f"BIC gain {c['bic_gain']:.1f}")
-            out.append(f" The remainder is {100 * sh['explained']:.0f} % {word}, the signature of "
-                       f"{effect.replace('_', ' ')}, yet it is not named: at step {k} it was "
-                       f"{STATUS_WORDS.get(c['status'], c['status'])}" + (f" ({', '.join(nums)})" if nums else "")
-                       + f": {c['reason']}.")
+            parts.append(f"{effect.replace('_', ' ')} was {STATUS_WORDS.get(c['status'], c['status'])} at step {k}"
+                         + (f" ({', '.join(nums)})" if nums else "") + f": {c['reason']}")
+        if parts:
+            out.append(f" The remainder is {100 * sh['explained']:.0f} % {word}, a signature of "
+                       f"{' or '.join(e.replace('_', ' ') for e in SHAPE_EFFECTS[sh['shape']])}, yet none of them "
+                       f"is named: " + "; ".join(parts) + ".")
     return "".join(out)
 
 

@@ -288,6 +288,8 @@ def diagnose(sample_path: str | Path, out_dir: str | Path, progress=None, *, met
     located = (regions(rows, v0, s0, n_glass=n_mid), classify(rows, v0, s0, n_glass=n_mid))
     steps = stepwise(forward, names, progress, workers)
     result, (v1, s1) = _result(forward, steps, located, n_mid)
+    from relief_bsdf.report.html import user_paths
+    result = user_paths(result, sample_path, out_dir)   # no absolute path of this machine beyond the user's own
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "diagnosis.json", json.dumps(result, indent=1))

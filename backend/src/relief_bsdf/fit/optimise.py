@@ -896,6 +896,8 @@ def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJ
                        "relief_history": list(best_relief.history), "physics": after.info.get("physics", {}),
                        "grid": fwd.grid.describe(),     # the plate's table grid; the sector tables when it used them
                        **({"inside_sectors": after.info["inside_sectors"]} if "inside_sectors" in after.info else {})})
+    from relief_bsdf.report.html import user_paths
+    doc = user_paths(doc, sample_path, out_dir)     # no absolute path of this machine beyond the user's own
     write_text_atomic(out / "fit.json", json.dumps(doc, indent=1))
     report.write_fit_report(out / "report.html", doc, plots)
     return doc

@@ -170,3 +170,33 @@ def page(title: str, subtitle: str, sections: Iterable[str]) -> str:
 
 def section(heading: str, body: str) -> str:
     return f"<h2>{esc(heading)}</h2>\n{body}"
+
+
+def user_paths(obj: Any, sample_path: str | Path, out_dir: str | Path | None = None) -> Any:
+    """`obj` (a JSON-like document) with every absolute path of this machine that a job derived from the
+    user's own paths written back in the user's terms: the sample file's folder as the user named it
+    (a relief "relief.npz" beside "runs/sample.toml" is "runs/relief.npz", not the resolved absolute
+    path), likewise the output folder.  A path the user gave absolute stays absolute."""
+    import os
+    pairs = []
+    for given in (Path(sample_path).parent, None if out_dir is None else Path(out_dir)):
+        if given is None:
+            continue
+        resolved = str(Path(os.path.abspath(given)))
+        shown = str(given) if str(given) not in ("", ".") else "."
+        if resolved != shown:
+            pairs.append((resolved + os.sep, (shown + os.sep) if shown != "." else ""))
+            pairs.append((resolved, shown))
+    pairs.sort(key=lambda p: -len(p[0]))
+
+    def fix(x: Any) -> Any:
+        if isinstance(x, str):
+            for a, b in pairs:
+                x = x.replace(a, b)
+            return x
+        if isinstance(x, dict):
+            return {k: fix(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [fix(v) for v in x]
+        return x
+    return fix(obj)
