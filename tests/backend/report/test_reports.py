@@ -292,3 +292,31 @@ def test_user_paths_writes_derived_paths_in_the_users_terms(tmp_path):
                      "notes": [f"read {os.path.join('out', 'x.csv')}"]}
     absolute = str(tmp_path / "sample.toml")
     assert user_paths({"a": str(tmp_path / "r.npz")}, absolute) == {"a": str(tmp_path / "r.npz")}
+
+
+def test_relief_plot_of_a_transmission_only_table_has_no_reflection_panel_and_keeps_its_legend(tmp_path):
+    """A BTDF-only table (a measured IS-BSDF file read as a table): one side, no empty R panel; the saved
+    file holds the legend beside the axes."""
+    import matplotlib.image as mpimg
+    from relief_bsdf.core.index import ConstantIndex, Material
+    from relief_bsdf.methods import reconstruct
+    from relief_bsdf.methods.request import Request
+    from relief_bsdf.report.plots import save_figure, sides_with_data, table_figure
+    req = Request(theta_i_deg=(0.0, 30.0), incident_from=("outside",), theta_s_edges_deg=tuple(np.linspace(0, 90, 19)),
+                  phi_s_edges_deg=tuple(np.arange(-15.0, 360, 30)), options={"alpha": 0.3, "distribution": "ggx"})
+    (t,) = [x for x in reconstruct(None, Material(ConstantIndex(1.5)), req, "microfacet") if x.incident_from == "outside"]
+    assert sides_with_data([t], ("R", "T")) == ["R", "T"]
+    from dataclasses import replace
+    v = np.array(t.values_per_sr, copy=True)
+    v[..., 0] = 0.0
+    btdf = replace(t, values_per_sr=v, specular_R=np.zeros_like(t.specular_R))
+    assert sides_with_data([btdf], ("R", "T")) == ["T"]
+    fig = table_figure(btdf)
+    curves = [a for a in fig.axes if a.get_legend() is not None]      # the in-plane panels
+    assert len(curves) == 1 and "transmission" in curves[0].get_title()
+    assert all(a.get_title().startswith("T,") for a in fig.axes if a.name == "polar")
+    fig.canvas.draw()
+    legend = curves[0].get_legend().get_window_extent()
+    path = save_figure(fig, tmp_path / "btdf.png")
+    w_px = mpimg.imread(path).shape[1]
+    assert w_px >= legend.x1 * 110 / fig.dpi - 2      # the legend beside the axes is inside the saved file
