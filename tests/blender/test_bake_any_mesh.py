@@ -151,3 +151,20 @@ def test_bake_operator_on_any_mesh_and_on_a_plate(addon, tmp_path):
     other = bpy.context.active_object
     assert bpy.ops.relief.bake_bsdf(filepath=str(tmp_path / "flat.h5"), name="flat", faces="BACK") == {"FINISHED"}
     assert [p.material_index for p in other.data.polygons if p.normal.z < -0.5] == [1]
+
+
+def test_bake_panel_says_where_the_relief_goes_and_in_which_frame(addon):
+    from types import SimpleNamespace
+    from relief_addon import panels
+    log = []
+
+    class Layout:
+        def __getattr__(self, name):
+            def call(*a, **k):
+                if name == "label":
+                    log.append(k.get("text", a[0] if a else ""))
+                return self if name in ("box", "row", "column") else type("Props", (), {})()
+            return call
+    panels.RELIEF_PT_bake_render.draw(SimpleNamespace(layout=Layout()), bpy.context)
+    text = " ".join(log)
+    assert "every face of the active mesh" in text and "rough face" in text and "normal" in text, text
