@@ -408,7 +408,7 @@ class RELIEF_OT_fit(JobOperator, bpy.types.Operator):
         from .paths import stored
         context.scene.relief.fit_dir = stored(r["out"])
         d = r["doc"]
-        self.report({"INFO"}, f"Fit: rms {d['rms_before']:.4g} -> {d['rms_after']:.4g}, "
+        self.report({"INFO"}, f"Fit: metric (rms z) {d['rms_before']:.4g} -> {d['rms_after']:.4g}, "
                               f"parameters {json.dumps(d.get('parameters', {}))}")
 
 
@@ -433,7 +433,7 @@ class RELIEF_OT_diagnose(JobOperator, bpy.types.Operator):
 
     def finish(self, context, res):
         named = " + ".join(res.get("effects") or [res["effect"]])     # every effect named, most important first
-        self.report({"INFO"}, f"Diagnosis: {named} (rms {res['rms_before']:.4g} -> {res['rms_after']:.4g}): "
+        self.report({"INFO"}, f"Diagnosis: {named} (metric, rms z {res['rms_before']:.4g} -> {res['rms_after']:.4g}): "
                               f"{res['explanation']}")
 
 
