@@ -222,7 +222,7 @@ def write_report(path: Path, rows, v0, s0, v1, s1, result: dict) -> Path:
     else:
         head = f"Left out: <b>{H.esc(', '.join(effects))}</b>."
     verdict = (f"<div class='verdict {'ok' if result['rms_after'] < result['rms_before'] else 'warn'}'>"
-               f"{head} Metric {H.fmt(result['rms_before'], 3)} (baseline) "
+               f"{head} Metric (rms z) {H.fmt(result['rms_before'], 3)} (baseline) "
                f"&rarr; {H.fmt(result['rms_after'], 3)} with it modelled.</div>"
                f"<p>{H.esc(result['explanation'])}</p><p class='small'><b>Metric.</b> {H.esc(result['metric'])}</p>")
     params = (H.table_html(["parameter", "unit", "value", "68 % interval"],

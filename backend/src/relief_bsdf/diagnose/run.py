@@ -138,7 +138,7 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
         best = (f"The best combination of candidates, {', '.join(tried)}, brings it only to "
                 f"{unexplained['rms_tried']:.2f}, still short of the noise, so it is not named as the cause."
                 if tried else "No candidate effect improves it by more than the bar.")
-        return (f"The simulation of the plate as described misses the recording (normalised rms {fit['rms0']:.2f})."
+        return (f"The simulation of the plate as described misses the recording (metric, rms z {fit['rms0']:.2f})."
                 f"{where} {best}{_where(unexplained['mismatch'], [], 'largest unexplained residual')}"
                 f"{_resembles(unexplained['shapes'])} The cause may be outside the candidates tried "
                 f"or in the relief's own model.")
@@ -147,7 +147,7 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
                   f"within its noise and the forward model's stated accuracy (rms {MODEL_ACCURACY_RMS:g}), and no "
                   f"candidate passes the bar")
         return (f"The simulation of the plate as described agrees with the recording to {within} "
-                f"(rms of the normalised residual {fit['rms0']:.2f}, chi2 = {fit['chi0']:.0f} for {fit['n']} "
+                f"(metric, rms z {fit['rms0']:.2f}, chi2 = {fit['chi0']:.0f} for {fit['n']} "
                 f"rows), so no missing physics is named.")
     lead = ("The best explanation is" if len(effects) == 1
             else f"{len(effects)} effects are present, most important first:")
@@ -160,9 +160,9 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
                    f" fits almost as well, BIC {a['bic_difference']:.1f} worse; a difference under {BIC_MARGIN:g} "
                    f"is not strong evidence): treat the choice between them as open."
                    for a in (alike or []))
-    return (f"The baseline simulation misses the recording (normalised rms {fit['rms0']:.2f}).{where} {lead} "
+    return (f"The baseline simulation misses the recording (metric, rms z {fit['rms0']:.2f}).{where} {lead} "
             f"{_effects_words(effects, params)}. Modelling {'it' if len(effects) == 1 else 'them together'} "
-            f"brings the rms down to {fit['rms1']:.2f}.{rest}{weak}")
+            f"brings the metric down to {fit['rms1']:.2f}.{rest}{weak}")
 
 
 def _rounded(d: dict) -> dict:

@@ -70,6 +70,11 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    then traded for a relief scale of 0.47 plus an absorption), and the bar of the next step is
    judged against that chi^2.  The last polish's Jacobian is the intervals' one.
 
+7. (record keeping only) every step is recorded for diagnosis.json's `steps` and `stop`
+   (`steps_record`, formats.md): the model after the step, its chi^2, the effect added, and what
+   each candidate did (fitted, screened out, outgained, skipped, dropped) with its chi^2, BIC gain
+   and the reason in words; the last step carries why the search stopped (`Step.stop`).
+
 The effects come out in the order they were added: each was the largest gain of its step,
 so the most important is first.  The same thresholds as the single-effect selection of the
 first benchmark (issue 6; the n-scaled overwhelming bar was set on seed 1 and re-checked on

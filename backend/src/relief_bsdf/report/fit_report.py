@@ -288,8 +288,8 @@ def write_fit_report(path: str | Path, doc: dict, plots: dict, renders: dict | N
     params = H.table_html(["parameter", "unit", "value", "68 % interval"],
                           H.parameter_rows(doc["parameters"], doc.get("intervals")))
     summary = (f"<div class='verdict {verdict_cls}'>{verdict}</div>"
-               + H.table_html(["quantity", "value"], [["metric before the fit", doc["rms_before"]],
-                                                      ["metric after the fit", doc["rms_after"]],
+               + H.table_html(["quantity", "value"], [["metric (rms z) before the fit", doc["rms_before"]],
+                                                      ["metric (rms z) after the fit", doc["rms_after"]],
                                                       ["evaluations", len(doc.get("iterations", []))],
                                                       ["wall time (s)", doc.get("seconds", float("nan"))]])
                + f"<p class='small'><b>Metric.</b> {H.esc(doc['metric'])}</p>")
