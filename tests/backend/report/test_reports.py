@@ -292,6 +292,10 @@ def test_user_paths_writes_derived_paths_in_the_users_terms(tmp_path):
                      "notes": [f"read {os.path.join('out', 'x.csv')}"]}
     absolute = str(tmp_path / "sample.toml")
     assert user_paths({"a": str(tmp_path / "r.npz")}, absolute) == {"a": str(tmp_path / "r.npz")}
+    here = os.path.abspath("runs")
+    assert user_paths({"a": here + "x/r.npz", "b": "1/sr"}, "runs/sample.toml") == {"a": here + "x/r.npz", "b": "1/sr"}
+    assert user_paths({"a": f"in {here}, then"}, "runs/sample.toml") == {"a": "in runs, then"}
+    assert user_paths({"b": "1/sr, /a/b"}, "/sample.toml") == {"b": "1/sr, /a/b"}       # the root: nothing
 
 
 def test_relief_plot_of_a_transmission_only_table_has_no_reflection_panel_and_keeps_its_legend(tmp_path):
