@@ -9,7 +9,6 @@ relief on the upward faces only (the former assignment: 160 of 512 faces) breaks
 """
 from __future__ import annotations
 
-import math
 import tempfile
 from pathlib import Path
 

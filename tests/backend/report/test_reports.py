@@ -308,7 +308,8 @@ def test_relief_plot_of_a_transmission_only_table_has_no_reflection_panel_and_ke
     from relief_bsdf.report.plots import save_figure, sides_with_data, table_figure
     req = Request(theta_i_deg=(0.0, 30.0), incident_from=("outside",), theta_s_edges_deg=tuple(np.linspace(0, 90, 19)),
                   phi_s_edges_deg=tuple(np.arange(-15.0, 360, 30)), options={"alpha": 0.3, "distribution": "ggx"})
-    (t,) = [x for x in reconstruct(None, Material(ConstantIndex(1.5)), req, "microfacet") if x.incident_from == "outside"]
+    (t,) = [x for x in reconstruct(None, Material(ConstantIndex(1.5)), req, "microfacet")
+            if x.incident_from == "outside"]
     assert sides_with_data([t], ("R", "T")) == ["R", "T"]
     from dataclasses import replace
     v = np.array(t.values_per_sr, copy=True)

@@ -173,7 +173,8 @@ def _candidate_list(fits: list[dict], chi0: float, n: int) -> list[dict]:
     """Every effect tried alone against the baseline (the first step), best first; screened-out and
     skipped ones last."""
     ln = math.log(max(n, 2))
-    out = [{"effect": "none", "rms_after": round(metric_of_chi2(chi0, n), 6), "score": round(chi0, 3), "parameters": {}}]
+    out = [{"effect": "none", "rms_after": round(metric_of_chi2(chi0, n), 6), "score": round(chi0, 3),
+            "parameters": {}}]
     out += [{"effect": f["effect"], "rms_after": round(metric_of_chi2(f["chi2"], n), 6),
              "score": round(f["chi2"] + f["k"] * ln, 3), "parameters": _rounded(f["parameters"])}
             for f in fits if "chi2" in f]

@@ -23,8 +23,8 @@ visible in the wave regime (the coherent specular part), and slope-distribution 
 non-Gaussian reliefs.  The fit therefore reports what the recording determines:
 - the filter is kept only when the recording asks for it: the scale-only fit (g = 0) and the
   two-parameter fit are compared by the project's one information criterion (fit.selection:
-  BIC = chi^2 + k ln n with chi^2 = n search^2 of the log-chi search objective, margin 10; the chi^2 divided by the
-  two-parameter fit's reduced chi^2 when it exceeds 1, QBIC: a filter that only bends the model
+  BIC = chi^2 + k ln n with chi^2 = n search^2 of the log-chi search objective, margin 10; the chi^2
+  divided by the two-parameter fit's reduced chi^2 when it exceeds 1, QBIC: a filter that only bends the model
   towards its own systematic error is not evidence), and without that evidence the answer is
   the simplest point of the ridge, g = 0;
 - the estimate is the likelihood's optimum: the log metric steers the search from far away, then
@@ -236,10 +236,13 @@ class FitResult:
              {"names": ["ln height_scale", "filter_sigma_um^2"], "matrix": [[1.0, self.correlation],
                                                                              [self.correlation, 1.0]]},
              "identifiability": {"filter_needed": self.filter_needed, "bic_gain_of_filter": self.bic_gain,
-                                 "ridge": self.ridge, "criterion": f"BIC = chi2 / c + k ln n, chi2 = n search^2 (the log-chi search objective), c = "
+                                 "ridge": self.ridge,
+                                 "criterion": "BIC = chi2 / c + k ln n, chi2 = n search^2 (the log-chi search "
+                                 "objective), c = "
                                  "max(1, reduced chi2 of the two-parameter fit) (QBIC); the filter is kept when "
                                  f"it lowers the BIC by more than {BIC_MARGIN:g}",
-                                 "estimate": "the likelihood's optimum: the search on the log-chi objective, then up to "
+                                 "estimate": "the likelihood's optimum: the search on the log-chi objective, then "
+                                             "up to "
                                              f"{POLISH_STEPS} Gauss-Newton steps on the noise-weighted residuals "
                                              "(measured - simulated) / S, S^2 = sigma^2 + the simulation's own "
                                              "sigma^2, then the optimum of a linear regression of those "

@@ -167,8 +167,8 @@ def residual_map_figure(path: str | Path, rec: Any, sim: Any, model_sigma: Any =
     lim = lim or max(3.0, float(np.nanpercentile(np.abs(r), 98)))
     fig, ax = plt.subplots(figsize=(10.0, 1.6 + 0.42 * n_rows))
     im = residual_image(ax, rec.side, rec.theta_i_deg, signed_angle(rec), r, lim)
-    ax.set_title(f"{title}: residual per point (metric, rms z {rms_z(rec.bsdf_sr, rec.sigma_sr, sim, model_sigma):.3g})",
-                 fontsize=9)
+    m = rms_z(rec.bsdf_sr, rec.sigma_sr, sim, model_sigma)
+    ax.set_title(f"{title}: residual per point (metric, rms z {m:.3g})", fontsize=9)
     fig.colorbar(im, ax=ax, pad=0.01).set_label(RESIDUAL_LABEL, fontsize=7)
     return _save(fig, path)
 
@@ -226,7 +226,6 @@ FILE_PURPOSES = {
 
 def files_html(doc: dict) -> str:
     """Every file the fit wrote, with a line on what it is for (names relative to the output folder)."""
-    from relief_bsdf.report import html as H
     rows = [[name, FILE_PURPOSES[name]] for name in ("fit.json", "report.html", "checkpoint.json")]
     for key, names in (doc.get("files") or {}).items():
         for name in ([names] if isinstance(names, str) else list(names)):
