@@ -14,7 +14,8 @@ only builds Blender data:
   a random facet slope tilts per shading point: `_tilted_normal`, relief_bsdf.bsdf.bake);
 - node group "Relief BSDF: <name>": what a user drops into a material, with inputs Tint,
   Haze, Fitted (fitted / measured-as-is table) and Rotation (`build_node_group`).
-Re-baking updates images and groups in place; baking onto an object adds a material slot.
+Re-baking updates images and groups in place; baking onto an object adds a material slot, given
+to every face of a mesh, or to the rough face of a plate the add-on made (`assign_to_rough_face`).
 """
 from __future__ import annotations
 
@@ -478,17 +479,39 @@ def glass_material(ior: float, name: str = "Relief smooth glass") -> bpy.types.M
     return mat
 
 
-def assign_to_rough_face(obj: bpy.types.Object, group: bpy.types.ShaderNodeTree, rough_face: str = "front") -> int:
-    """Put the baked BSDF on the rough face of `obj`; returns its material slot index.
+FACES_WORDS = {
+    "all": "every face: the relief's frame on each face is that face's shading normal (z, toward the "
+           "side it faces: outside rows) and the object's x axis projected onto the face (x, for an "
+           "anisotropic lobe); a sphere, a lens, any closed mesh with outward normals",
+    "front": "the plate's rough face, the faces looking along +z (object space); the others smooth glass",
+    "back": "the plate's rough face, the faces looking along -z (object space); the others smooth glass",
+}
 
-    Existing material slots are kept: the material of the group ("Relief BSDF: <name>") is
-    added as a new slot (or its slot reused on a re-bake) and given to the faces whose normal
-    is most along +z ("front", the lit face) or -z ("back"), in object space.  An object with
-    no material gets smooth glass of the table's index on its other faces first (a plate).
+
+def relief_faces(obj: bpy.types.Object) -> str:
+    """Which faces of `obj` carry the baked relief: its rough face ("front" / "back") for a plate the
+    add-on made (the object's `relief_rough_face`), else "all" (any other mesh: the relief covers it)."""
+    face = obj.get("relief_rough_face")
+    return face if face in ("front", "back") else "all"
+
+
+def assign_to_rough_face(obj: bpy.types.Object, group: bpy.types.ShaderNodeTree, rough_face: str = "front") -> int:
+    """Put the baked BSDF on the faces `rough_face` of `obj` (FACES_WORDS); returns its material slot index.
+
+    The node group looks its rows up in each shading point's own frame (the view angle from the
+    shading normal, the inside rows where the ray meets the back of a face: `coordinate_group`),
+    so one material serves every face of any mesh whose normals point out of the medium:
+    "all" gives it to every face.  "front" / "back" (a plate: the relief on one face) give it to the
+    faces whose normal is most along +z / -z in object space, the others smooth glass of the
+    table's index.  Existing material slots are kept: the material of the group is added as a new
+    slot (or its slot reused on a re-bake); an object with no material gets the smooth glass on
+    the faces the relief does not cover first.
     """
+    if rough_face not in FACES_WORDS:
+        raise ValueError(f"rough_face must be one of {sorted(FACES_WORDS)}, got {rough_face!r}")
     me = obj.data
     baked = material_for_group(group)
-    if len(me.materials) == 0:
+    if len(me.materials) == 0 and rough_face != "all":
         me.materials.append(glass_material(group.get("relief_ior", 1.5)))
     names = [m.name if m is not None else None for m in me.materials]
     if baked.name in names:
@@ -500,10 +523,11 @@ def assign_to_rough_face(obj: bpy.types.Object, group: bpy.types.ShaderNodeTree,
     normals = np.empty(3 * n, np.float32)
     me.polygons.foreach_get("normal", normals)
     nz = normals.reshape(n, 3)[:, 2]
-    target = nz > 0.5 if rough_face == "front" else nz < -0.5
+    target = np.ones(n, bool) if rough_face == "all" else (nz > 0.5 if rough_face == "front" else nz < -0.5)
     idx = np.empty(n, np.int32)
     me.polygons.foreach_get("material_index", idx)
     idx[target] = slot
     me.polygons.foreach_set("material_index", idx)
     me.update()
+    obj["relief_baked_faces"] = rough_face
     return slot

@@ -235,20 +235,33 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
         msg = ", ".join(f"{x['theta_i_deg']:.0f} deg: R {x['R']:.3f} T {x['T']:.3f}" for x in rows[:4])
         self.report({"INFO"}, f"Wrote {r['out']} ({msg}{', ...' if len(rows) > 4 else ''})")
         if r["lut"] is not None:
-            group = _install_lut(context, r["lut"], assign=False, table=stored(r["out"]))
+            group, _ = _install_lut(context, r["lut"], assign=False, table=stored(r["out"]))
             context.scene.relief.last_group = group.name
 
 
 # ====================================================================== bake
 
 
-def _install_lut(context, lut, assign: bool, fitted=None, table: str = "", name: str | None = None):
-    from .bake_nodes import assign_to_rough_face, build_node_group, lut_image
+FACES_ITEMS = [("AUTO", "Auto", "A plate made by the add-on: its rough face; any other mesh: every face"),
+               ("ALL", "Every face", "Every face, the relief's frame from each face's normal (sphere, lens, ...)"),
+               ("FRONT", "Front (+z)", "The faces looking along +z (object space): a plate's lit face"),
+               ("BACK", "Back (-z)", "The faces looking along -z (object space): a plate's back face")]
+
+
+def _install_lut(context, lut, assign: bool, fitted=None, table: str = "", name: str | None = None,
+                 faces: str = "AUTO"):
+    """The node group of `lut`; with `assign`, its material on the active mesh's `faces` (FACES_ITEMS).
+    Returns (group, words on where it went or None)."""
+    from .bake_nodes import FACES_WORDS, assign_to_rough_face, build_node_group, lut_image, relief_faces
     group = build_node_group(lut, lut_image(lut), fitted=fitted, name=name, table=table)
     obj = context.active_object
+    where = None
     if assign and obj is not None and obj.type == "MESH":
-        assign_to_rough_face(obj, group, obj.get("relief_rough_face", "front"))
-    return group
+        face = relief_faces(obj) if faces == "AUTO" else faces.lower()
+        slot = assign_to_rough_face(obj, group, face)
+        n = sum(1 for p in obj.data.polygons if p.material_index == slot)
+        where = f"on {n} of {len(obj.data.polygons)} faces of {obj.name} ({FACES_WORDS[face]})"
+    return group, where
 
 
 def _fitted_table(op, context) -> Path | None:
@@ -276,8 +289,10 @@ class RELIEF_OT_bake_bsdf(JobOperator, bpy.types.Operator):
                          description="Node group name suffix (default: the group baked from this table before, "
                                      "else the file stem)")
     assign: BoolProperty(name="Assign to active", default=True,
-                         description="Add the group's material to the rough face of the active mesh "
-                                     "(existing materials are kept)")
+                         description="Add the group's material to the active mesh (existing materials are kept)")
+    faces: EnumProperty(name="Faces", items=FACES_ITEMS, default="AUTO",
+                        description="Which faces of the active mesh get the relief: the lookup works in each "
+                                    "face's own frame (its normal), so any mesh can carry it")
 
     def prepare(self, context):
         from relief_bsdf.errors import InputError
@@ -309,10 +324,12 @@ class RELIEF_OT_bake_bsdf(JobOperator, bpy.types.Operator):
         return {"lut": lut, "fitted": fitted, "table": p["table"], "name": p["name"]}
 
     def finish(self, context, r):
-        group = _install_lut(context, r["lut"], self.assign, fitted=r["fitted"], table=r["table"], name=r["name"])
+        group, where = _install_lut(context, r["lut"], self.assign, fitted=r["fitted"], table=r["table"],
+                                    name=r["name"], faces=self.faces)
         context.scene.relief.last_group = group.name
         haze = r["lut"].haze
-        self.report({"INFO"}, f"Baked {group.name}" + (f" (haze {100 * haze:.1f} %)" if haze == haze else ""))
+        self.report({"INFO"}, f"Baked {group.name}" + (f" (haze {100 * haze:.1f} %)" if haze == haze else "")
+                    + (f"; {where}" if where else ""))
 
 
 # ====================================================================== plate, fit, diagnose
@@ -391,7 +408,7 @@ class RELIEF_OT_fit(JobOperator, bpy.types.Operator):
         from .paths import stored
         context.scene.relief.fit_dir = stored(r["out"])
         d = r["doc"]
-        self.report({"INFO"}, f"Fit: rms {d['rms_before']:.4g} -> {d['rms_after']:.4g}, "
+        self.report({"INFO"}, f"Fit: metric (rms z) {d['rms_before']:.4g} -> {d['rms_after']:.4g}, "
                               f"parameters {json.dumps(d.get('parameters', {}))}")
 
 
@@ -416,7 +433,7 @@ class RELIEF_OT_diagnose(JobOperator, bpy.types.Operator):
 
     def finish(self, context, res):
         named = " + ".join(res.get("effects") or [res["effect"]])     # every effect named, most important first
-        self.report({"INFO"}, f"Diagnosis: {named} (rms {res['rms_before']:.4g} -> {res['rms_after']:.4g}): "
+        self.report({"INFO"}, f"Diagnosis: {named} (metric, rms z {res['rms_before']:.4g} -> {res['rms_after']:.4g}): "
                               f"{res['explanation']}")
 
 

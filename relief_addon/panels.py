@@ -150,6 +150,9 @@ class RELIEF_PT_bake_render(_ReliefPanel, bpy.types.Panel):
         col = self.layout.column()
         col.prop(s, "table_path")
         col.operator("relief.bake_bsdf", icon="NODETREE")
+        _wrapped(col, "Bake puts the relief on every face of the active mesh (a plate made here: on its rough "
+                 "face). The lookup works in each face's own frame: z its normal (outward: the outside rows), "
+                 "x the object's x axis on the face (anisotropic lobes only).")
         _baked_box(col, context)
         col.separator()
         col.prop(s, "render_path")

@@ -242,4 +242,4 @@ def test_diagnose_reports_every_named_effect(addon):
     fake = SimpleNamespace(report=lambda kind, msg: said.append((kind, msg)))
     RELIEF_OT_diagnose.finish(fake, bpy.context, {"effect": "stray_light", "effects": ["stray_light", "bulk_absorption"],
                                                   "rms_before": 17.97, "rms_after": 0.697, "explanation": "both"})
-    assert said == [({"INFO"}, "Diagnosis: stray_light + bulk_absorption (rms 17.97 -> 0.697): both")]
+    assert said == [({"INFO"}, "Diagnosis: stray_light + bulk_absorption (metric, rms z 17.97 -> 0.697): both")]

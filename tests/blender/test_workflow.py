@@ -16,6 +16,8 @@ SAMPLE = REPO / "scenes" / "demo" / "sample.toml"
 
 
 def test_bake_operator_assigns_group_to_rough_face(addon, tmp_path):
+    """A plate the add-on made (`relief_rough_face`): the group on its rough face, the others glass
+    (any other mesh: every face, tests/blender/test_bake_any_mesh.py)."""
     from relief_bsdf.io.hdf5 import save_tables
     from relief_bsdf.core.index import ConstantIndex, Material
     from relief_bsdf.plate import flat_tables
@@ -24,6 +26,7 @@ def test_bake_operator_assigns_group_to_rough_face(addon, tmp_path):
                                                        np.linspace(0, 90, 10), np.arange(-15.0, 360, 30))))
     bpy.ops.mesh.primitive_cube_add(size=0.05)
     cube = bpy.context.active_object
+    cube["relief_rough_face"] = "front"
     assert bpy.ops.relief.bake_bsdf(filepath=str(tmp_path / "flat.h5"), name="flat") == {"FINISHED"}
     assert "Relief BSDF: flat" in bpy.data.node_groups and "Relief LUT: flat" in bpy.data.images
     top = [p.material_index for p in cube.data.polygons if p.normal.z > 0.5]

@@ -622,3 +622,74 @@ def test_points_that_share_their_tables_are_evaluated_here_beside_the_workers(pl
         np.testing.assert_allclose(v1, v0, rtol=1e-12)
         np.testing.assert_allclose(s1, s0, rtol=1e-12)
         assert c1 == pytest.approx(c0, rel=1e-12)
+
+
+STATUSES = {"fitted", "screened", "outgained", "skipped", "dropped"}
+
+
+def _check_record(steps, record, stop):
+    """The contract's shape (formats.md, diagnosis.json `steps`), and the record equals the search."""
+    assert isinstance(stop, str) and stop
+    assert len(record) == len(steps) - 1
+    for step, entry in zip(steps[1:], record):
+        assert set(entry) == {"model", "chi2", "added", "candidates"}
+        assert entry["model"] == list(step.effects)
+        assert entry["chi2"] == pytest.approx(step.chi2, abs=1e-3)
+        assert entry["added"] == (None if step.added == "stop" else step.added)
+        for c in entry["candidates"]:
+            assert set(c) == {"effect", "status", "chi2", "bic_gain", "reason"}
+            assert c["status"] in STATUSES and c["reason"]
+
+
+def test_every_step_of_the_search_is_recorded_with_what_each_candidate_did():
+    """Absorption + background: step 1 names the absorption (the background's screen is outgained,
+    relief_scale's screen sees nothing), step 2 the background, step 3 names nothing and says why.
+    Every number in the record is the search's own (fitted chi2, BIC gains from it)."""
+    from relief_bsdf.diagnose.stepwise import steps_record
+    from relief_bsdf.fit.selection import bic
+    fwd = AnalyticForward({"absorption_per_mm": 0.2, "background_per_sr": 0.03}, seed=3)
+    names = ["bulk_absorption", "stray_light", "relief_scale"]
+    steps = stepwise(fwd, names, workers=1)
+    n = len(fwd.rows)
+    record, stop = steps_record(steps, n)
+    _check_record(steps, record, stop)
+    assert [e["added"] for e in record] == ["bulk_absorption", "stray_light", None]
+    first = {c["effect"]: c for c in record[0]["candidates"]}
+    assert first["bulk_absorption"]["status"] == "fitted" and "named" in first["bulk_absorption"]["reason"]
+    fit = next(f for f in steps[1].tried if f["effect"] == "bulk_absorption")
+    assert first["bulk_absorption"]["chi2"] == pytest.approx(fit["chi2"], abs=1e-3)
+    assert first["bulk_absorption"]["bic_gain"] == pytest.approx(
+        bic(steps[0].chi2, 0, n) - bic(fit["chi2"], fit["k"], n), abs=1e-3)
+    assert first["stray_light"]["status"] == "outgained" and "bulk_absorption" in first["stray_light"]["reason"]
+    assert first["relief_scale"]["status"] == "screened"
+    assert first["relief_scale"]["chi2"] == pytest.approx(steps[0].chi2, abs=1e-3)     # the screen gains 0
+    assert first["relief_scale"]["bic_gain"] == pytest.approx(-get_effect("relief_scale").k * math.log(n), abs=1e-3)
+    second = {c["effect"]: c for c in record[1]["candidates"]}
+    assert second["stray_light"]["status"] == "fitted" and "bulk_absorption" not in second
+    last = {c["effect"]: c for c in record[2]["candidates"]}
+    assert set(last) == {"relief_scale"} and last["relief_scale"]["status"] == "screened"
+    assert "step 3" in stop and ("bar" in stop)
+    json_ok = __import__("json").dumps({"steps": record, "stop": stop})       # plain JSON, no numpy types
+    assert "NaN" not in json_ok
+
+
+def test_a_clean_recording_records_one_step_that_names_nothing_and_why_the_search_stopped():
+    from relief_bsdf.diagnose.stepwise import steps_record
+    fwd = AnalyticForward({}, seed=3)
+    steps = stepwise(fwd, CANDIDATES, workers=1)
+    record, stop = steps_record(steps, len(fwd.rows))
+    _check_record(steps, record, stop)
+    assert len(record) == 1 and record[0]["added"] is None and record[0]["model"] == []
+    assert "short of the bar" in stop or "no candidate was fitted" in stop
+    assert {c["effect"] for c in record[0]["candidates"]} == set(CANDIDATES)
+
+
+def test_held_fixed_and_incompatible_candidates_are_recorded_as_skipped():
+    from relief_bsdf.diagnose.stepwise import steps_record
+    fwd = AnalyticForward({"absorption_per_mm": 0.2}, seed=3,
+                          known=(("bulk_absorption", "stated in sample.toml (plate.absorption_per_mm)"),))
+    steps = stepwise(fwd, ["bulk_absorption", "stray_light"], workers=1)
+    record, _ = steps_record(steps, len(fwd.rows))
+    first = {c["effect"]: c for c in record[0]["candidates"]}
+    assert first["bulk_absorption"]["status"] == "skipped" and "sample.toml" in first["bulk_absorption"]["reason"]
+    assert first["bulk_absorption"]["chi2"] is None and first["bulk_absorption"]["bic_gain"] is None

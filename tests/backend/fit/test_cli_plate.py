@@ -58,7 +58,7 @@ def test_fit_cli_writes_fit_json_and_resumes(tmp_path, capsys):
     assert set(doc["parameters"]) >= {"height_scale", "filter_sigma_um"}
     assert doc["rms_after"] <= doc["rms_before"]
     assert doc["iterations"][0]["parameters"]["height_scale"] == 1.0
-    assert "log-chi" in doc["metric"]
+    assert doc["metric"].startswith("rms z") and "log-chi" in doc["search_objective"]
     assert doc["grid"]["theta_step_deg"] == 3 and doc["grid"]["sectors"] == "auto"   # the grid it used, on record
     assert "inside_sectors" not in doc                   # a surrogate face: no sector tables
     for f in ("checkpoint.json", "boundary.h5", "relief_optimised.npz", "report.html", "in_plane_after.png",
@@ -183,3 +183,31 @@ def test_simulate_sectors_always_meets_an_isotropic_ray_traced_relief_by_azimuth
     with pytest.raises(SystemExit) as e:
         main(["simulate", str(s), "-o", str(tmp_path / "x"), "--sectors", "sometimes"])
     assert e.value.code == 2 and "--sectors" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_simulate_fit_and_diagnose_report_one_metric_with_one_number(tmp_path, capsys, monkeypatch):
+    """`relief simulate` prints the metric that fit.json calls rms_before and diagnosis.json rms_before for
+    the same starting relief (fit.residual.rms_z: rms z with the simulation's own sigma); on a sampling
+    method, so that sigma is not zero.  Run from the sample's folder with relative paths: the outputs name
+    no absolute path of this machine."""
+    import re
+    s = make_sample(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    common = ["--method", "normals", "--samples", "20000"]
+    assert main(["simulate", "sample.toml", "-o", "sim", *common]) == 0
+    printed = float(re.search(r"metric \(rms z\) vs recording ([0-9.eE+-]+)", capsys.readouterr().out).group(1))
+    comment = (tmp_path / "sim" / "simulated.csv").read_text()
+    in_csv = float(re.search(r"metric \(rms z\) vs recording: ([0-9.eE+-]+)", comment).group(1))
+    assert main(["fit", "sample.toml", "-o", "fit", "--max-iter", "2", *common]) == 0
+    fit = json.loads((tmp_path / "fit" / "fit.json").read_text())
+    assert fit["rms_before"] == pytest.approx(in_csv, rel=1e-5) and f"{fit['rms_before']:.4g}" == f"{printed:.4g}"
+    assert fit["iterations"][0]["rms"] == fit["rms_before"] and fit["metric"].startswith("rms z")
+    assert fit["rms_before"] > 2.0                  # a sample the starting relief misses: not a trivial 0 = 0
+    assert main(["diagnose", "sample.toml", "-o", "diag", "--method", "normals", "--photons", "20000",
+                 "--effects", "stray_light", "--workers", "1"]) == 0
+    diag = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
+    assert diag["rms_before"] == pytest.approx(fit["rms_before"], rel=1e-5) and diag["metric"] == fit["metric"]
+    for f in ("fit/fit.json", "fit/report.html", "diag/diagnosis.json", "diag/report.html"):
+        assert str(tmp_path) not in (tmp_path / f).read_text(), f
+    assert s.exists()

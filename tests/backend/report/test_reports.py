@@ -13,11 +13,11 @@ from relief_bsdf.report import html as H
 from relief_bsdf.report.fit_report import fit_plots, stop_verdict, write_fit_report
 
 
-def recording(seed=0) -> Recording:
+def recording(seed=0, sides=("R", "T")) -> Recording:
     """An in-plane scan: R and T, three incidences, phi_s in {0, 180}, a lobe at the specular side."""
     rng = np.random.default_rng(seed)
     rows = []
-    for side in ("R", "T"):
+    for side in sides:
         for ti in (0.0, 30.0, 60.0):
             for ps in (0.0, 180.0):
                 for ts in np.arange(1.0, 89.0, 4.0):
@@ -163,3 +163,165 @@ def test_fit_report_says_how_the_estimate_and_its_intervals_were_made(tmp_path):
     del doc["identifiability"]["estimate"]                       # a fit.json of an earlier round
     body = strip_images(write_fit_report(tmp_path / "r.html", doc, plots).read_text())
     assert "BIC rule; Newey-West." in body
+
+
+def _steps_result():
+    """A diagnosis whose remainder looks like stray light that the search screened out at step 2."""
+    return {"format": "relief-diagnosis/1", "metric": "rms z", "rms_before": 11.4, "rms_after": 7.81,
+            "effect": "polarization", "effects": ["polarization"], "parameters": {"stokes_q": -0.9},
+            "intervals": {"stokes_q": [-0.95, -0.85]}, "mismatch": [], "candidates": [],
+            "explanation": "polarised", "selection": {"chi2_baseline": 138000.0, "n_rows": 1068},
+            "steps": [{"model": ["polarization"], "chi2": 64329.2, "added": "polarization", "candidates": [
+                          {"effect": "polarization", "status": "fitted", "chi2": 64400.0, "bic_gain": 73000.0,
+                           "reason": "named: the largest BIC gain of the step"},
+                          {"effect": "stray_light", "status": "screened", "chi2": 130000.0, "bic_gain": 7993.0,
+                           "reason": "not fitted: its linear screen gains at most about chi2 8000"}]},
+                      {"model": ["polarization"], "chi2": 64329.2, "added": None, "candidates": [
+                          {"effect": "stray_light", "status": "screened", "chi2": 64300.0, "bic_gain": 22.1,
+                           "reason": "not fitted: short of the bar (BIC gain above 40)"},
+                          {"effect": "bulk_absorption", "status": "skipped", "chi2": None, "bic_gain": None,
+                           "reason": "stated in sample.toml"}]}],
+            "stop": "step 2: no candidate was fitted"}
+
+
+def test_diagnosis_report_shows_every_step_and_why_the_search_stopped(tmp_path):
+    from relief_bsdf.diagnose.report import write_report
+    rec = recording()
+    s = 0.05 * rec.bsdf_sr
+    body = strip_images(write_report(tmp_path / "r.html", rec, rec.bsdf_sr * 1.5, s, rec.bsdf_sr, s,
+                                     _steps_result()).read_text())
+    i = body.index("The search, step by step")
+    steps = body[i:]
+    assert "Step 1" in steps and "Step 2" in steps and "named <b>polarization</b>" in steps
+    assert steps.count("screened out") == 2 and "not tried" in steps and "stated in sample.toml" in steps
+    assert "short of the bar (BIC gain above 40)" in steps and "22.1" in steps
+    assert "Why the search stopped:</b> step 2: no candidate was fitted" in steps
+
+
+def test_a_remainder_shaped_like_a_screened_candidate_says_so_with_its_numbers():
+    from relief_bsdf.diagnose.mismatch import SHAPE_PHYSICS
+    from relief_bsdf.diagnose.report import SHAPE_EFFECTS, shape_against_search
+    assert set(SHAPE_EFFECTS) == set(SHAPE_PHYSICS)
+    r = _steps_result()
+    text = shape_against_search([{"shape": "offset", "explained": 0.95}], r["steps"], r["effects"])
+    assert "95 % offset" in text and "stray light was screened out at step 2" in text
+    assert "chi2 6.43e+04 (screen estimate), BIC gain 22.1" in text and "short of the bar" in text
+    # a shape whose effect is named, or a weak shape, adds nothing
+    assert shape_against_search([{"shape": "asymmetry", "explained": 0.9}], r["steps"], ["polarization",
+                                                                                         "sample_tilt"]) == ""
+    assert shape_against_search([{"shape": "offset", "explained": 0.2}], r["steps"], r["effects"]) == ""
+
+
+def _figures(monkeypatch, module, attr):
+    """Capture the matplotlib figures a report function saves (drawn, not closed)."""
+    figs = []
+    real = getattr(module, attr)
+
+    def keep(fig, *a, **k):
+        fig.canvas.draw()
+        figs.append(fig)
+        return real(fig, *a, **k)
+    monkeypatch.setattr(module, attr, keep)
+    return figs
+
+
+@pytest.mark.parametrize("sides", ["RT", "T"])
+def test_bsdf_plots_end_at_the_noise_level_with_legends_inside_and_no_empty_panel(tmp_path, monkeypatch, sides):
+    """Log axes from the recording's noise level up (no spike to 1e-12 where a row is 0, no tick <= 0), rows
+    below it as censored triangles at that level, the legend inside the saved figure, one panel per side
+    the recording has (a transmission-only file: no reflection panel); the diagnosis curves likewise."""
+    from relief_bsdf.diagnose import report as D
+    from relief_bsdf.report import fit_report as F
+    from relief_bsdf.report import html as HH
+    rec = recording(sides=tuple(sides))
+    sim = rec.bsdf_sr.copy()
+    sim[::5] = 0.0                                   # simulated rows at exactly zero
+    floor = F.noise_level(rec)
+    assert floor > 1e-4
+    figs = _figures(monkeypatch, F, "_save")
+    F.fit_plots(tmp_path, rec, sim, rec.bsdf_sr)
+    dfigs = _figures(monkeypatch, HH, "figure_png")
+    D.write_report(tmp_path / "d.html", rec, sim, 0 * sim, rec.bsdf_sr, 0 * sim, {
+        "format": "relief-diagnosis/1", "metric": "rms z", "rms_before": 2.0, "rms_after": 1.0, "effect": "none",
+        "effects": ["none"], "parameters": {}, "mismatch": [], "candidates": [], "explanation": "x"})
+    curves = [figs[0], figs[1], dfigs[1]]            # in-plane before / after; the diagnosis's curves
+    for fig in curves:
+        axes = [a for a in fig.axes if a.get_yscale() == "log"]
+        assert axes and len(axes) == len(fig.axes)   # no empty panel, every panel a BSDF panel
+        for ax in axes:
+            lo, hi = ax.get_ylim()
+            assert lo >= floor / 1.6 * (1 - 1e-9) and hi > lo
+            assert all(t > 0 for t in ax.get_yticks() if lo <= t <= hi)
+            for line in ax.get_lines():
+                if line.get_transform() != ax.transData:
+                    continue                         # a vertical / horizontal marker line (axes coordinates)
+                y = np.asarray(line.get_ydata(), float)
+                assert np.all(y[np.isfinite(y)] >= floor * (1 - 1e-9))
+        assert fig.legends, "one figure legend"
+        fb, lb = fig.bbox, fig.legends[0].get_window_extent()
+        assert fb.x0 - 1 <= lb.x0 and lb.x1 <= fb.x1 + 1 and fb.y0 - 1 <= lb.y0 and lb.y1 <= fb.y1 + 1
+    assert len(figs[0].axes) == len(sides)
+    assert sum(ax.get_title().startswith("R,") for ax in dfigs[1].axes) == (0 if sides == "T" else 3)
+
+
+def test_fit_report_names_the_algorithm_that_ran_and_every_file_written(tmp_path):
+    rec = recording()
+    plots = fit_plots(tmp_path, rec, rec.bsdf_sr * 2, rec.bsdf_sr)
+    from relief_bsdf.fit.optimise import ALGORITHM
+    files = {"boundary_table": "boundary.h5", "isbsdf_outside": ["boundary_outside_brdf.bsdf",
+                                                                  "boundary_outside_btdf.bsdf"],
+             "relief": "relief_optimised.npz", "simulated": "simulated.csv", **plots}
+    doc = fit_doc(stopped="converged", algorithm=ALGORITHM, files=files)
+    body = strip_images(write_fit_report(tmp_path / "r.html", doc, plots).read_text())
+    assert "Nelder" not in body and "Gauss-Newton" in body and "response surface" in body
+    files_sec = body[body.index("Files written"):]
+    for name in ("fit.json", "report.html", "checkpoint.json", "boundary.h5", "boundary_outside_brdf.bsdf",
+                 "boundary_outside_btdf.bsdf", "relief_optimised.npz", "simulated.csv", "in_plane_before.png",
+                 "residual_after.png"):
+        assert f"<td>{name}</td>" in files_sec, name
+    assert "OpticStudio" in files_sec and "optimised relief" in files_sec
+
+
+def test_user_paths_writes_derived_paths_in_the_users_terms(tmp_path):
+    from relief_bsdf.report.html import user_paths
+    import os
+    doc = {"sample": "runs/sample.toml", "physics": {"relief": os.path.abspath("runs/relief.npz")},
+           "notes": [f"read {os.path.abspath('out/x.csv')}"]}
+    fixed = user_paths(doc, "runs/sample.toml", "out")
+    assert fixed == {"sample": "runs/sample.toml", "physics": {"relief": os.path.join("runs", "relief.npz")},
+                     "notes": [f"read {os.path.join('out', 'x.csv')}"]}
+    absolute = str(tmp_path / "sample.toml")
+    assert user_paths({"a": str(tmp_path / "r.npz")}, absolute) == {"a": str(tmp_path / "r.npz")}
+    here = os.path.abspath("runs")
+    assert user_paths({"a": here + "x/r.npz", "b": "1/sr"}, "runs/sample.toml") == {"a": here + "x/r.npz", "b": "1/sr"}
+    assert user_paths({"a": f"in {here}, then"}, "runs/sample.toml") == {"a": "in runs, then"}
+    assert user_paths({"b": "1/sr, /a/b"}, "/sample.toml") == {"b": "1/sr, /a/b"}       # the root: nothing
+
+
+def test_relief_plot_of_a_transmission_only_table_has_no_reflection_panel_and_keeps_its_legend(tmp_path):
+    """A BTDF-only table (a measured IS-BSDF file read as a table): one side, no empty R panel; the saved
+    file holds the legend beside the axes."""
+    import matplotlib.image as mpimg
+    from relief_bsdf.core.index import ConstantIndex, Material
+    from relief_bsdf.methods import reconstruct
+    from relief_bsdf.methods.request import Request
+    from relief_bsdf.report.plots import save_figure, sides_with_data, table_figure
+    req = Request(theta_i_deg=(0.0, 30.0), incident_from=("outside",), theta_s_edges_deg=tuple(np.linspace(0, 90, 19)),
+                  phi_s_edges_deg=tuple(np.arange(-15.0, 360, 30)), options={"alpha": 0.3, "distribution": "ggx"})
+    (t,) = [x for x in reconstruct(None, Material(ConstantIndex(1.5)), req, "microfacet")
+            if x.incident_from == "outside"]
+    assert sides_with_data([t], ("R", "T")) == ["R", "T"]
+    from dataclasses import replace
+    v = np.array(t.values_per_sr, copy=True)
+    v[..., 0] = 0.0
+    btdf = replace(t, values_per_sr=v, specular_R=np.zeros_like(t.specular_R))
+    assert sides_with_data([btdf], ("R", "T")) == ["T"]
+    fig = table_figure(btdf)
+    curves = [a for a in fig.axes if a.get_legend() is not None]      # the in-plane panels
+    assert len(curves) == 1 and "transmission" in curves[0].get_title()
+    assert all(a.get_title().startswith("T,") for a in fig.axes if a.name == "polar")
+    fig.canvas.draw()
+    legend = curves[0].get_legend().get_window_extent()
+    path = save_figure(fig, tmp_path / "btdf.png")
+    w_px = mpimg.imread(path).shape[1]
+    assert w_px >= legend.x1 * 110 / fig.dpi - 2      # the legend beside the axes is inside the saved file

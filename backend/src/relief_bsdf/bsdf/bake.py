@@ -27,6 +27,14 @@ closure passes radiance unchanged), i.e. it renders "basic radiance" L / n^2: a 
 the medium sees f_phys * n_i^2 / n_s^2.  The per-side tables ("outside", "inside") fill the
 front-facing and back-facing rows.
 
+Frame.  Every row is read in the shading point's own frame: theta_v from the shading normal, the
+"outside" rows where the ray meets the face's front (the side its normal points to), the "inside"
+rows where it meets its back.  So one baked material serves every face of any mesh whose normals
+point out of the medium (a plate's rough face, a sphere, a lens), each face's normal standing for
+the relief's z; the relief's x (an anisotropic lobe's tangent) is the object's x axis projected on
+the face, undefined only where a face looks along x.  The add-on gives the material to every face of
+a mesh, or to the rough face of a plate it made (relief_addon.bake_nodes.assign_to_rough_face).
+
 Weights: w = table integral / A(closure, roughness, theta_v), where A is the closure's own
 directional albedo *in the renderer* (Cycles compensates multiple scattering with internal
 tables, so A is measured, see relief_addon/cycles_calibration.py; `ClosureAlbedo`).  Hence

@@ -51,7 +51,7 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(r, indent=1))
     else:
-        print(f"{' + '.join(r['effects'])}: rms {r['rms_before']:.3f} -> {r['rms_after']:.3f} "
+        print(f"{' + '.join(r['effects'])}: metric (rms z) {r['rms_before']:.3f} -> {r['rms_after']:.3f} "
               f"{json.dumps(r['parameters'])} 68 % intervals {json.dumps(r['intervals'])}")
         print(r["explanation"])
     return 0

@@ -19,7 +19,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="Monte-Carlo samples per incidence (ray methods)")
     p.add_argument("--seed", type=int, default=defaults.SEED, help="random seed")
     p.add_argument("--max-iter", type=int, default=60, help="most forward evaluations")
-    p.add_argument("--threshold", type=float, default=0.0, help="stop once the metric is at or below this")
+    p.add_argument("--threshold", type=float, default=0.0, help="stop once the metric (rms z) is at or below this")
     p.add_argument("--scale-bounds", default="0.1,10", metavar="MIN,MAX",
                    help="bounds of the height scale (default 0.1,10)")
     p.add_argument("--max-filter-um", type=float, default=None,

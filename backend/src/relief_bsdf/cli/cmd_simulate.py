@@ -29,7 +29,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from relief_bsdf.fit.residual import DEFAULT_METRIC
+    from relief_bsdf.fit.residual import rms_z
     from relief_bsdf.io.recording import read_sample, write_recording
     sample = read_sample(args.sample)
     rec = sample.load_recording()
@@ -38,19 +38,21 @@ def run(args) -> int:
         sim = _simulate(args, sample, rec)
     o = Path(args.out)
     o.mkdir(parents=True, exist_ok=True)
-    m = DEFAULT_METRIC.value(sim.values_per_sr, rec.bsdf_sr, rec.sigma_sr)
+    m = rms_z(rec.bsdf_sr, rec.sigma_sr, sim.values_per_sr, sim.sigma_per_sr)     # the metric of fit and diagnose
     physics = physics_line(sim.info)
     write_recording(o / "simulated.csv", rec.with_values(sim.values_per_sr, sim.sigma_per_sr),
                     comments=[f"relief simulate {Path(args.sample).name}", f"physics: {physics}",
-                              f"metric vs recording: {m:.6g}"])
+                              f"metric (rms z) vs recording: {m:.6g}"])
     print(f"physics: {physics}")
-    print(f"wrote {o / 'simulated.csv'} ({len(rec)} rows); metric vs recording {m:.4g}")
+    print(f"wrote {o / 'simulated.csv'} ({len(rec)} rows); metric (rms z) vs recording {m:.4g}")
     return 0
 
 
 def _simulate(args, sample, rec):
     """The sample's Experiment (relief face by --method, or the --table file's tables) through plate.simulate."""
     from dataclasses import replace
+
+    import numpy as np
     from relief_bsdf.fit.optimise import Forward
     from relief_bsdf.cli.maps import show_prepared, stated_options
     from relief_bsdf.io.heightmaps import read_sample_relief
@@ -60,8 +62,11 @@ def _simulate(args, sample, rec):
         show_prepared(relief, args)
     exp = experiment_from_sample(sample, relief, method=args.method, samples=args.samples, seed=args.seed)
     if not args.table:
+        # the simulation's own sigma as the fit and the diagnosis take it (the relief as read: its tables'
+        # relative 1-sigma, scaled with the values), so the metric is theirs at the same parameters
         fwd = Forward(relief, exp, rec, grid=TableGrid(sectors=args.sectors), where=str(sample.recording_path))
-        return fwd.simulated(args.height_scale, args.filter_sigma_um, table_sigma_draws=fwd.sigma_draws)
+        sim = fwd.simulated(args.height_scale, args.filter_sigma_um)
+        return replace(sim, sigma_per_sr=fwd.model_rel_sigma() * np.abs(sim.values_per_sr))
     from relief_bsdf.io.hdf5 import load_tables, table_for
     tabs = load_tables(args.table)
     front = sample.plate.rough_face == "front"

@@ -13,7 +13,7 @@ import numpy as np
 from relief_bsdf.diagnose.mismatch import residual_z
 from relief_bsdf.io.atomic import write_text_atomic
 
-__all__ = ["write_report"]
+__all__ = ["SHAPE_EFFECTS", "shape_against_search", "write_report"]
 
 Z_LABEL = "z = (measured - simulated) / sigma"
 
@@ -45,35 +45,129 @@ def _maps_png(rows, v0, s0, v1, s1, result: dict) -> bytes:
 
 
 def _curves_png(rows, v0, v1, result: dict) -> bytes:
+    """One panel per (wavelength, side, incidence) the recording has (no empty panel), log BSDF axes
+    ending at the recording's noise level (values below it: triangles at that level), one legend
+    under the panels, inside the figure."""
+    from matplotlib.lines import Line2D
     from relief_bsdf.report import html as H
-    from relief_bsdf.report.fit_report import _plt
+    from relief_bsdf.report.fit_report import _plt, censored, finish_log_axis, legend_below, noise_level
     plt = _plt()
     groups = sorted({(float(rows.wavelength_nm[k]), str(rows.side[k]), float(rows.theta_i_deg[k]))
                      for k in range(len(rows))})
-    ncol = 3
+    ncol = min(3, len(groups))
     nrow = int(math.ceil(len(groups) / ncol))
-    fig, axs = plt.subplots(nrow, ncol, figsize=(13, 3.3 * nrow), squeeze=False)
+    fig, axs = plt.subplots(nrow, ncol, figsize=(4.4 * ncol, 3.3 * nrow + 0.8), squeeze=False)
     x_all = _signed(rows)
+    floor = noise_level(rows)
+    named = " + ".join(result.get("effects") or [result["effect"]])
+    y_all, s_all = np.asarray(rows.bsdf_sr, float), np.asarray(rows.sigma_sr, float)
     for ax, g in zip(axs.ravel(), groups):
         sel = np.nonzero((rows.wavelength_nm == g[0]) & (rows.side == g[1]) & (rows.theta_i_deg == g[2]))[0]
         o = np.argsort(x_all[sel])
         sel, x = sel[o], x_all[sel][o]
-        ax.errorbar(x, rows.bsdf_sr[sel], rows.sigma_sr[sel], fmt=".", ms=3, color="k", label="recording")
-        ax.plot(x, v0[sel], "-", color="tab:red", label="baseline")
-        named = " + ".join(result.get("effects") or [result["effect"]])
-        ax.plot(x, v1[sel], "-", color="tab:blue", label=f"with {named}")
-        ax.axvline(-g[2], color="0.5", ls=":", lw=0.9, label="specular / undeviated")
-        ax.set_yscale("symlog", linthresh=1e-2)
+        y, sg = y_all[sel], s_all[sel]
+        up = y >= floor
+        ax.errorbar(x[up], y[up], np.where(np.isfinite(sg[up]), np.minimum(sg[up], y[up] - floor / 1.6), 0.0),
+                    fmt=".", ms=3, color="k", lw=0.8)
+        ax.plot(x[~up], np.full(int((~up).sum()), floor), "v", color="k", ms=3.5, mfc="none", ls="none")
+        censored(ax, x, np.asarray(v0)[sel], floor, "-", "tab:red")
+        censored(ax, x, np.asarray(v1)[sel], floor, "-", "tab:blue")
+        ax.axvline(-g[2], color="0.5", ls=":", lw=0.9)
+        finish_log_axis(ax, floor, [y, np.asarray(v0)[sel], np.asarray(v1)[sel]])
+        ax.axhline(floor, color="0.6", lw=0.6)
         ax.set_title(f"{g[1]}, theta_i = {g[2]:g} deg" + (f", {g[0]:g} nm" if len({q[0] for q in groups}) > 1 else ""),
                      fontsize=9)
         ax.set_xlabel("signed scatter angle theta_s (deg)", fontsize=8)
         ax.set_ylabel("plate BSDF (1/sr)", fontsize=8)
-        ax.grid(alpha=0.3)
+        ax.grid(alpha=0.3, which="both")
     for ax in axs.ravel()[len(groups):]:
-        ax.axis("off")
-    axs.ravel()[0].legend(fontsize=7)
-    fig.tight_layout()
+        fig.delaxes(ax)
+    handles = [Line2D([], [], color="k", marker=".", ls="none"), Line2D([], [], color="tab:red"),
+               Line2D([], [], color="tab:blue"), Line2D([], [], color="0.5", ls=":"),
+               Line2D([], [], color="k", marker="v", mfc="none", ls="none")]
+    labels = ["recording (1 sigma)", "baseline", f"with {named}", "specular / undeviated direction",
+              f"below the recording's noise level {floor:.2g} 1/sr (censored)"]
+    h = legend_below(fig, handles, labels, ncol=3 if ncol > 1 else 1)
+    fig.tight_layout(rect=(0, h, 1, 1))
     return H.figure_png(fig)
+
+
+STATUS_WORDS = {"fitted": "fitted", "screened": "screened out", "outgained": "outgained",
+                "skipped": "not tried", "dropped": "dropped"}
+
+
+def _steps_html(result: dict) -> str:
+    """Every step of the search (diagnosis.json `steps` and `stop`): what each candidate did, why."""
+    from relief_bsdf.report import html as H
+    steps = result.get("steps")
+    if not steps:
+        return "<p>This diagnosis.json holds no record of the search's steps.</p>"
+    sel = result.get("selection") or {}
+    out = []
+    if sel.get("chi2_baseline") is not None:
+        out.append(f"<p>Baseline (the plate as described): chi2 = {H.fmt(sel['chi2_baseline'])} for "
+                   f"{H.fmt(sel.get('n_rows'))} rows. Each step fits every remaining candidate with the named "
+                   f"effects held, names the one with the largest gain in BIC = chi2 + k ln n if it passes the "
+                   f"bar, then refits all named effects jointly (the step's chi2 is after that refit).</p>")
+    prev = []
+    for k, st in enumerate(steps, 1):
+        before = ", ".join(prev) or "the baseline"
+        what = (f"named <b>{H.esc(st['added'])}</b>" if st.get("added") else "named nothing")
+        out.append(f"<h3>Step {k}: from {H.esc(before)}, {what}; model {H.esc(', '.join(st['model']) or 'none')}, "
+                   f"chi2 {H.fmt(st['chi2'])}</h3>")
+        rows = [[c["effect"], STATUS_WORDS.get(c["status"], c["status"]),
+                 c["chi2"] if c.get("chi2") is not None else "", c["bic_gain"] if c.get("bic_gain") is not None else "",
+                 c.get("reason", "")] for c in st.get("candidates", [])]
+        out.append(H.table_html(["candidate", "status", "chi2 (screened: estimate)", "BIC gain", "why"], rows))
+        prev = list(st["model"])
+    out.append(f"<p><b>Why the search stopped:</b> {H.esc(result.get('stop') or 'not recorded')}.</p>")
+    return "".join(out)
+
+
+# the candidate effects that make each residual shape of `mismatch.SHAPE_PHYSICS` (the same physics
+# its words name: an offset is stray light, a broadening a blur, a relief scale or smoothing, ...)
+SHAPE_EFFECTS = {
+    "offset": ("stray_light",),
+    "gain": (),
+    "shift": ("sample_tilt", "refractive_index"),
+    "broadening": ("instrument_blur", "relief_scale", "relief_smoothing", "back_face_roughness"),
+    "path_deficit": ("bulk_absorption", "volume_scattering"),
+    "asymmetry": ("sample_tilt", "polarization"),
+    "colour_trend": ("dispersion",),
+}
+
+
+def shape_against_search(shapes: list, steps: list, named: list) -> str:
+    """Sentences that keep the shape analysis of a remainder consistent with the search: for each shape
+    the remainder resembles (more than 30 % of it, at most two, as the explanation's own words), every
+    candidate that makes that shape and was not named, with what the search's last step that
+    considered it did and its numbers (`steps`: diagnosis.json's record).  '' when there is none."""
+    out = []
+    for sh in [x for x in shapes if x.get("explained", 0.0) > 0.3][:2]:
+        word = sh["shape"].replace("_", " ")
+        parts = []
+        for effect in SHAPE_EFFECTS.get(sh["shape"], ()):
+            if effect in named:
+                continue
+            found = next(((k, c) for k, st in reversed(list(enumerate(steps, 1)))
+                          for c in st.get("candidates", []) if c["effect"] == effect), None)
+            if found is None:
+                parts.append(f"{effect.replace('_', ' ')} was not among the candidates searched")
+                continue
+            k, c = found
+            nums = []
+            if c.get("chi2") is not None:
+                nums.append(f"chi2 {c['chi2']:.4g}" + (" (screen estimate)" if c["status"] in ("screened",
+                                                                                           "outgained") else ""))
+            if c.get("bic_gain") is not None:
+                nums.append(f"BIC gain {c['bic_gain']:.1f}")
+            parts.append(f"{effect.replace('_', ' ')} was {STATUS_WORDS.get(c['status'], c['status'])} at step {k}"
+                         + (f" ({', '.join(nums)})" if nums else "") + f": {c['reason']}")
+        if parts:
+            out.append(f" The remainder is {100 * sh['explained']:.0f} % {word}, a signature of "
+                       f"{' or '.join(e.replace('_', ' ') for e in SHAPE_EFFECTS[sh['shape']])}, yet none of them "
+                       f"is named: " + "; ".join(parts) + ".")
+    return "".join(out)
 
 
 def _candidates_html(result: dict) -> str:
@@ -128,7 +222,7 @@ def write_report(path: Path, rows, v0, s0, v1, s1, result: dict) -> Path:
     else:
         head = f"Left out: <b>{H.esc(', '.join(effects))}</b>."
     verdict = (f"<div class='verdict {'ok' if result['rms_after'] < result['rms_before'] else 'warn'}'>"
-               f"{head} Metric {H.fmt(result['rms_before'], 3)} (baseline) "
+               f"{head} Metric (rms z) {H.fmt(result['rms_before'], 3)} (baseline) "
                f"&rarr; {H.fmt(result['rms_after'], 3)} with it modelled.</div>"
                f"<p>{H.esc(result['explanation'])}</p><p class='small'><b>Metric.</b> {H.esc(result['metric'])}</p>")
     params = (H.table_html(["parameter", "unit", "value", "68 % interval"],
@@ -147,7 +241,8 @@ def write_report(path: Path, rows, v0, s0, v1, s1, result: dict) -> Path:
     if result.get("unexplained"):
         sections.append(H.section("What no candidate explains", _unexplained_html(result["unexplained"])))
     sections += [
-                H.section("Candidates (best first)", _candidates_html(result)),
+                H.section("The search, step by step", _steps_html(result)),
+                H.section("Candidates at the first step (best first)", _candidates_html(result)),
                 H.section("Residual maps", H.figure_html(_maps_png(rows, v0, s0, v1, s1, result),
                                                          "Residual per point, baseline (left) and with the effect "
                                                          "(right): one row per side and incidence, same colour "

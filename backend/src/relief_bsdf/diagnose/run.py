@@ -28,7 +28,7 @@ Pipeline
    effects[0], `parameters` of every named effect, `intervals`; `mismatch` entries say which
    named effect explains each region, `mismatch.attribute`) + report.html, written atomically.
 
-Metric: rms of the noise-normalised residual, sqrt(chi^2 / n) (1 = fits to the noise).
+Metric: the project's one metric, rms z = sqrt(chi^2 / n) (`fit.residual.rms_z`; 1 = fits to the noise).
 """
 from __future__ import annotations
 
@@ -42,10 +42,12 @@ from relief_bsdf.diagnose.effects import all_effects, get_effect
 from relief_bsdf.diagnose.fitting import intervals as fit_intervals
 from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build_forward
 from relief_bsdf.diagnose.mismatch import SHAPE_PHYSICS, attribute, classify, locate, regions
-from relief_bsdf.diagnose.report import write_report
+from relief_bsdf.diagnose.report import shape_against_search, write_report
 from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODEL_ACCURACY_RMS, adequate, alternatives,
-                                           consistent_with_noise, first_fits, overwhelming_bar, passes, stepwise)
+                                           consistent_with_noise, first_fits, overwhelming_bar, passes, stepwise,
+                                           steps_record)
 from relief_bsdf.errors import InputError
+from relief_bsdf.fit.residual import METRIC, metric_of_chi2
 from relief_bsdf.fit.selection import BIC_MARGIN
 from relief_bsdf.io.atomic import write_text_atomic
 from relief_bsdf.parallel import current_settings, parallel_settings
@@ -56,9 +58,6 @@ from relief_bsdf.progress import silent
 __all__ = ["BIC_MARGIN", "BIC_OVERWHELMING", "CONSISTENCY_Z", "MODEL_ACCURACY_RMS", "candidate_names", "diagnose",
            "explain", "select"]
 
-METRIC = ("rms of the noise-normalised residual sqrt(mean(((measured - simulated) / sigma)^2)) over all "
-          "recording rows, sigma^2 = recording sigma^2 + the simulation's own variance "
-          "(1 = agreement to the noise)")
 EXPLAINED_SHARE = 0.5
 
 
@@ -141,7 +140,7 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
         best = (f"The best combination of candidates, {', '.join(tried)}, brings it only to "
                 f"{unexplained['rms_tried']:.2f}, still short of the noise, so it is not named as the cause."
                 if tried else "No candidate effect improves it by more than the bar.")
-        return (f"The simulation of the plate as described misses the recording (normalised rms {fit['rms0']:.2f})."
+        return (f"The simulation of the plate as described misses the recording (metric, rms z {fit['rms0']:.2f})."
                 f"{where} {best}{_where(unexplained['mismatch'], [], 'largest unexplained residual')}"
                 f"{_resembles(unexplained['shapes'])} The cause may be outside the candidates tried "
                 f"or in the relief's own model.")
@@ -150,7 +149,7 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
                   f"within its noise and the forward model's stated accuracy (rms {MODEL_ACCURACY_RMS:g}), and no "
                   f"candidate passes the bar")
         return (f"The simulation of the plate as described agrees with the recording to {within} "
-                f"(rms of the normalised residual {fit['rms0']:.2f}, chi2 = {fit['chi0']:.0f} for {fit['n']} "
+                f"(metric, rms z {fit['rms0']:.2f}, chi2 = {fit['chi0']:.0f} for {fit['n']} "
                 f"rows), so no missing physics is named.")
     lead = ("The best explanation is" if len(effects) == 1
             else f"{len(effects)} effects are present, most important first:")
@@ -163,9 +162,9 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
                    f" fits almost as well, BIC {a['bic_difference']:.1f} worse; a difference under {BIC_MARGIN:g} "
                    f"is not strong evidence): treat the choice between them as open."
                    for a in (alike or []))
-    return (f"The baseline simulation misses the recording (normalised rms {fit['rms0']:.2f}).{where} {lead} "
+    return (f"The baseline simulation misses the recording (metric, rms z {fit['rms0']:.2f}).{where} {lead} "
             f"{_effects_words(effects, params)}. Modelling {'it' if len(effects) == 1 else 'them together'} "
-            f"brings the rms down to {fit['rms1']:.2f}.{rest}{weak}")
+            f"brings the metric down to {fit['rms1']:.2f}.{rest}{weak}")
 
 
 def _rounded(d: dict) -> dict:
@@ -176,8 +175,9 @@ def _candidate_list(fits: list[dict], chi0: float, n: int) -> list[dict]:
     """Every effect tried alone against the baseline (the first step), best first; screened-out and
     skipped ones last."""
     ln = math.log(max(n, 2))
-    out = [{"effect": "none", "rms_after": round(math.sqrt(chi0 / n), 6), "score": round(chi0, 3), "parameters": {}}]
-    out += [{"effect": f["effect"], "rms_after": round(math.sqrt(f["chi2"] / n), 6),
+    out = [{"effect": "none", "rms_after": round(metric_of_chi2(chi0, n), 6), "score": round(chi0, 3),
+            "parameters": {}}]
+    out += [{"effect": f["effect"], "rms_after": round(metric_of_chi2(f["chi2"], n), 6),
              "score": round(f["chi2"] + f["k"] * ln, 3), "parameters": _rounded(f["parameters"])}
             for f in fits if "chi2" in f]
     out.sort(key=lambda c: c["score"])
@@ -219,13 +219,13 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
     n = len(forward.rows)
     rows = forward.rows
     final, base = steps[-1], steps[0]
-    rms0 = math.sqrt(base.chi2 / n)
+    rms0 = metric_of_chi2(base.chi2, n)
     closed = closes(base.chi2, final.chi2, n)
     chain = [("none",) + base.model] + [(s.added,) + s.model for s in steps[1:] if s.added != "stop"]
     mismatch = attribute(rows, located[0], chain)
     unexplained = remainder = None
     if final.effects and closed:
-        effects, params, (v1, s1), rms1 = list(final.effects), final.values, final.model, math.sqrt(final.chi2 / n)
+        effects, params, (v1, s1), rms1 = list(final.effects), final.values, final.model, metric_of_chi2(final.chi2, n)
         ivals, notes = fit_intervals(forward, tuple(get_effect(e) for e in final.effects), final.values,
                                      final.jacobian)
         if not adequate(final.chi2, n):
@@ -235,10 +235,11 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
         effects, params, (v1, s1), rms1, ivals, notes = ["none"], {}, base.model, rms0, {}, {}
         if not adequate(base.chi2, n):
             v, s = final.model
-            unexplained = {"tried": list(final.effects), "rms_tried": math.sqrt(final.chi2 / n),
+            unexplained = {"tried": list(final.effects), "rms_tried": metric_of_chi2(final.chi2, n),
                            "mismatch": locate(rows, v, s, n_glass=n_glass),
                            "shapes": classify(rows, v, s, n_glass=n_glass)}
     fits = first_fits(steps)
+    record, stop = steps_record(steps, n)
     alike = alternatives(steps, n) if effects != ["none"] else []
     ctx = forward.context
     facts = {"rms0": rms0, "rms1": rms1, "n": n, "chi0": base.chi2, "consistent": consistent_with_noise(base.chi2, n)}
@@ -253,11 +254,14 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
         "effects": effects, "alternatives": alike, "intervals": ivals, "interval_notes": notes,
         "shape": located[1][:3],
         "selection": _selection_doc(n, steps, closed),
+        "steps": record, "stop": stop,
         "forward_model": {"engine": "deterministic", "method": ctx.method, "samples": ctx.samples, "seed": ctx.seed,
                           "rough_face_model": f"boundary tables of the measured relief by method {ctx.method}",
                           "method_reason": ctx.method_reason, "evaluations": forward.evaluations,
                           "grid": (forward.grid or TableGrid()).describe()},
     }
+    left = (remainder or unexplained or {}).get("shapes") or []
+    result["explanation"] += shape_against_search(left, record, effects)      # the shapes never contradict the steps
     if unexplained is not None:
         result["unexplained"] = {"best_combination": unexplained["tried"],
                                  "rms_best_combination": round(unexplained["rms_tried"], 6),
@@ -309,6 +313,8 @@ def diagnose(sample_path: str | Path, out_dir: str | Path, progress=None, *, met
             steps = stepwise(forward, names, progress, plan.workers)
             result, (v1, s1) = _result(forward, steps, located, n_mid)
     result["memory"] = {**plan.describe(), "main_process": memory.report()}
+    from relief_bsdf.report.html import user_paths
+    result = user_paths(result, sample_path, out_dir)   # no absolute path of this machine beyond the user's own
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "diagnosis.json", json.dumps(result, indent=1))

@@ -70,6 +70,11 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    then traded for a relief scale of 0.47 plus an absorption), and the bar of the next step is
    judged against that chi^2.  The last polish's Jacobian is the intervals' one.
 
+7. (record keeping only) every step is recorded for diagnosis.json's `steps` and `stop`
+   (`steps_record`, formats.md): the model after the step, its chi^2, the effect added, and what
+   each candidate did (fitted, screened out, outgained, skipped, dropped) with its chi^2, BIC gain
+   and the reason in words; the last step carries why the search stopped (`Step.stop`).
+
 The effects come out in the order they were added: each was the largest gain of its step,
 so the most important is first.  The same thresholds as the single-effect selection of the
 blind-diagnosis benchmark (the n-scaled overwhelming bar was set on its seed 1 and checked on
@@ -133,6 +138,8 @@ class Step:
     dropped: tuple = ()
     tried: list = field(default_factory=list)     # the conditional fits of the step that led here
     jacobian: Any = None            # `fitting.polish`'s at `values` (for the intervals), or None
+    excluded: tuple = ()            # (effect, reason) of candidates not offered at this step
+    stop: str = ""                  # on the last step: why the search ended (plain words)
 
 
 def _probes(effect, first: dict | None) -> list[dict]:
@@ -417,7 +424,7 @@ def _drop_redundant(forward, step: Step, n: int) -> Step:
         chi, v, s = forward.evaluate_set(rest, vals)
         if not passes(chi, step.k - eff.k, step.chi2, step.k, n):
             return Step(tuple(e.name for e in rest), vals, chi, step.k - eff.k, (v, s), step.added, step.gain,
-                        step.dropped + (name,), step.tried)
+                        step.dropped + (name,), step.tried, excluded=step.excluded)
     return step
 
 
@@ -442,7 +449,11 @@ def _steps(forward, names: list[str], steps: list, dropped: set, held: dict, n: 
         named = tuple(get_effect(e) for e in cur.effects)
         remaining = [m for m in names if m not in cur.effects and m not in dropped
                      and compatible(named + (get_effect(m),))]
+        excluded = tuple((m, f"cannot act together with {', '.join(cur.effects)} in the plate model")
+                         for m in names if m not in cur.effects and m not in dropped and m not in remaining)
         if not remaining:
+            cur.stop = ("no candidate left to try: every effect is named, dropped as redundant, or cannot act "
+                        "together with the named ones")
             break
         first = {f["effect"]: f for f in first_fits(steps)} if cur.effects else {}
         fits, outgained, screened = _fit_step(forward, cur, remaining, first, n, progress, workers,
@@ -451,12 +462,17 @@ def _steps(forward, names: list[str], steps: list, dropped: set, held: dict, n: 
         step_tried = fits + outgained + screened
         if not ok:
             steps.append(Step(cur.effects, cur.values, cur.chi2, cur.k, cur.model, "stop", 0.0, (), step_tried,
-                              cur.jacobian))
+                              cur.jacobian, excluded,
+                              f"step {len(steps)}: no candidate was fitted (every one was screened out or "
+                              f"skipped), so none can pass the bar ({bar_words(cur.chi2, n)})"))
             break
         best = min(ok, key=lambda f: bic(f["chi2"], cur.k + f["k"], n))
         if not passes(cur.chi2, cur.k, best["chi2"], cur.k + best["k"], n):
+            gain = bic_gain(cur.chi2, cur.k, best["chi2"], cur.k + best["k"], n)
             steps.append(Step(cur.effects, cur.values, cur.chi2, cur.k, cur.model, "stop", 0.0, (), step_tried,
-                              cur.jacobian))
+                              cur.jacobian, excluded,
+                              f"step {len(steps)}: the best fitted candidate, {best['effect']}, gains BIC "
+                              f"{gain:.1f}, short of the bar ({bar_words(cur.chi2, n)})"))
             break
         effs = named + (get_effect(best["effect"]),)
         vals = {**cur.values, **best["parameters"]}
@@ -472,9 +488,86 @@ def _steps(forward, names: list[str], steps: list, dropped: set, held: dict, n: 
             vals, chi, J = polish(forward, effs, vals)
         chi, v, s = forward.evaluate_set(effs, vals)
         new = Step(cur.effects + (best["effect"],), vals, chi, cur.k + best["k"], (v, s), best["effect"],
-                   bic(cur.chi2, cur.k, n) - bic(chi, cur.k + best["k"], n), (), step_tried, J)
+                   bic(cur.chi2, cur.k, n) - bic(chi, cur.k + best["k"], n), (), step_tried, J, excluded)
         steps.append(_polished(forward, _drop_redundant(forward, new, n)) if len(new.effects) > 1 else new)
         dropped |= set(steps[-1].dropped)           # a dropped effect is not offered again
+    if not steps[-1].stop:
+        steps[-1].stop = (f"{MAX_EFFECTS} effects named, the most the search names"
+                          if len(steps[-1].effects) >= MAX_EFFECTS else
+                          f"the search ends after {len(steps) - 1} steps, the most it takes")
+
+
+def bar_words(chi_cur: float, n: int) -> str:
+    """The bar a candidate must pass against a current model of misfit `chi_cur` (`passes`), in words."""
+    if adequate(chi_cur, n):
+        return (f"BIC gain above {overwhelming_bar(n):.1f}: the current model already reaches the noise within "
+                f"the forward model's stated accuracy, chi2 {chi_cur:.1f} <= {MODEL_ACCURACY_RMS:g}^2 n + "
+                f"{CONSISTENCY_Z:g} sqrt(2 n), so only an overwhelming gain counts")
+    return f"BIC gain above {BIC_MARGIN:g}"
+
+
+def steps_record(steps: list[Step], n: int) -> tuple[list[dict], str]:
+    """diagnosis.json's `steps` and `stop` (formats.md): what every step of the search did.
+
+    One entry per step after the baseline: `model` (the named effects after the step), `chi2` (its
+    misfit), `added` (the effect named at the step, None when none passed) and every candidate with
+    its `status`: "fitted" (its conditional fit with the named effects held, `chi2` and `bic_gain`
+    = BIC(model before the step) - BIC(with it) from that fit), "screened" and "outgained" (not
+    fitted: `chi2` and `bic_gain` are the linear screen's estimates, the model before the step less
+    the screen's gain), "skipped" (not tried: held fixed by sample.toml, not applicable, or unable
+    to act with the named effects), "dropped" (named at an earlier step, redundant now).  Records
+    the search; it decides nothing."""
+    ln = math.log(max(n, 2))
+    out = []
+    for prev, step in zip(steps, steps[1:]):
+        added = None if step.added in ("stop", "none") else step.added
+        fitted = [f for f in step.tried if "chi2" in f and not f.get("skipped")]
+        gains = {f["effect"]: prev.chi2 - f["chi2"] - f["k"] * ln for f in fitted}
+        lead = max(gains, key=gains.get) if gains else None
+        cands = []
+        for f in step.tried:
+            name = f["effect"]
+            if f.get("skipped"):
+                cands.append(_entry(name, "skipped", None, None, str(f["skipped"])))
+            elif name in gains:
+                g = gains[name]
+                if name == added:
+                    why = f"named: the largest BIC gain of the step, past the bar ({bar_words(prev.chi2, n)})"
+                elif added is None and name == lead:
+                    why = f"the best of the step, short of the bar ({bar_words(prev.chi2, n)})"
+                else:
+                    ref = added or lead
+                    why = f"fitted; gains less than {ref} (BIC gain {gains[ref]:.1f})"
+                cands.append(_entry(name, "fitted", f["chi2"], g, why))
+            else:
+                screen = float(f.get("screened", 0.0))
+                k = get_effect(name).k
+                if f.get("outgained_by"):
+                    by = f["outgained_by"]
+                    why = (f"not fitted: its linear screen (two probes) gains at most about chi2 {screen:.4g} (BIC "
+                           f"gain {screen - k * ln:.1f}), more than {BIC_MARGIN:g} below {by}'s fitted BIC gain "
+                           f"{gains.get(by, float('nan')):.1f}, so it could neither win nor come close")
+                    status = "outgained"
+                else:
+                    why = (f"not fitted: its linear screen (two probes) gains at most about chi2 {screen:.4g} (BIC "
+                           f"gain {screen - k * ln:.1f}), short of the bar ({bar_words(prev.chi2, n)})")
+                    status = "screened"
+                cands.append(_entry(name, status, prev.chi2 - screen, screen - k * ln, why))
+        cands += [_entry(name, "skipped", None, None, why) for name, why in step.excluded]
+        cands += [_entry(name, "dropped", None, None,
+                         f"named at an earlier step; with {added or 'the others'} named, removing it and refitting "
+                         f"the rest jointly loses less than the bar, so it is redundant and not offered again")
+                  for name in step.dropped]
+        order = {"fitted": 0, "outgained": 1, "screened": 2, "dropped": 3, "skipped": 4}
+        cands.sort(key=lambda c: (order[c["status"]], -(c["bic_gain"] if c["bic_gain"] is not None else -math.inf)))
+        out.append({"model": list(step.effects), "chi2": round(float(step.chi2), 3), "added": added,
+                    "candidates": cands})
+    return out, steps[-1].stop or "the search ended"
+
+
+def _entry(effect: str, status: str, chi2: float | None, gain: float | None, reason: str) -> dict:
+    r = (lambda x: None if x is None or not math.isfinite(x) else round(float(x), 3))
+    return {"effect": effect, "status": status, "chi2": r(chi2), "bic_gain": r(gain), "reason": reason}
 
 
 def _polished(forward, step: Step) -> Step:

@@ -3,10 +3,11 @@
 Loop: parameters p = (height_scale s, filter_sigma_um g) -> surface.operations.scale_and_filter
 (step 6) -> the Experiment's relief face gets the processed relief; its boundary tables of the
 chosen method for light from outside and inside (step 2, plate.faces.ReliefFace, cached)
--> plate simulation on the recording's rows (step 3, `plate.simulate`, deterministic) -> metric
-(step 4, `residual.LogChiMetric`) -> damped Gauss-Newton of the normalised residuals with a
-line search (`_gauss_newton`, step 5) until the metric falls below `threshold`, the step or
-the gain become negligible, or `max_iter` distinct evaluations are spent.
+-> plate simulation on the recording's rows (step 3, `plate.simulate`, deterministic) -> the search's
+log-chi residuals (step 4, `residual.LogChiMetric`) -> damped Gauss-Newton of those residuals with a
+line search (`_gauss_newton`, step 5) until the metric (`residual.rms_z`, the project's one metric,
+reported for every evaluation beside the search's value) falls below `threshold`, the step or the
+gain become negligible, or `max_iter` distinct evaluations are spent.
 
 Physics of the relief face: by default `auto` (plate.choice), the relief's own physics, chosen
 once on the relief as read (ray tracing with inter-reflections for reliefs rough on the
@@ -22,8 +23,8 @@ visible in the wave regime (the coherent specular part), and slope-distribution 
 non-Gaussian reliefs.  The fit therefore reports what the recording determines:
 - the filter is kept only when the recording asks for it: the scale-only fit (g = 0) and the
   two-parameter fit are compared by the project's one information criterion (fit.selection:
-  BIC = chi^2 + k ln n with chi^2 = n metric^2, margin 10; the chi^2 divided by the
-  two-parameter fit's reduced chi^2 when it exceeds 1, QBIC: a filter that only bends the model
+  BIC = chi^2 + k ln n with chi^2 = n search^2 of the log-chi search objective, margin 10; the chi^2
+  divided by the two-parameter fit's reduced chi^2 when it exceeds 1, QBIC: a filter that only bends the model
   towards its own systematic error is not evidence), and without that evidence the answer is
   the simplest point of the ridge, g = 0;
 - the estimate is the likelihood's optimum: the log metric steers the search from far away, then
@@ -58,7 +59,7 @@ from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit import gauss_newton
 from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of, shared_columns
-from relief_bsdf.fit.residual import DEFAULT_METRIC, LogChiMetric, signed_residuals
+from relief_bsdf.fit.residual import DEFAULT_METRIC, METRIC, LogChiMetric, rms_z, signed_residuals
 from relief_bsdf.fit.response_surface import Surface, smoothed_optimum
 from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain, overdispersion
 from relief_bsdf.io.atomic import write_text_atomic
@@ -72,7 +73,11 @@ from relief_bsdf.surface.relief import Relief
 from relief_bsdf.surface.stats import rms_height_and_slope
 
 FIT_FORMAT = "relief-fit/1"
-NOISE_METRIC = 1.2          # a fit "reaches the noise" at a log-chi metric <= this (the forward model's accuracy: rms z <= 1.2)
+ALGORITHM = ("damped Gauss-Newton (Levenberg-Marquardt) with a line search on the log-chi search residuals "
+             "(scale alone, then scale and filter along the ridge of equal rms slope), then Gauss-Newton steps "
+             "on the likelihood's noise-weighted residuals and the optimum of a response surface (a linear "
+             "regression of those residuals over a design of +-2 standard deviations)")
+NOISE_METRIC = 1.2          # a fit "reaches the noise" at a metric (rms z, residual.rms_z) <= this
 POLISH_STEPS = 6            # kept Gauss-Newton steps of `_polish` (chord steps count)
 
 
@@ -220,19 +225,24 @@ class FitResult:
     warnings: list = field(default_factory=list)
     computed: int = 0                 # forward evaluations computed in this run (not replayed)
     surface: dict = field(default_factory=dict)   # the response surface's design (`_smoothed`)
+    search: str = ""                  # the search objective's definition (each evaluation's `search`)
 
     def to_json(self, extra: dict | None = None) -> dict:
-        d = {"format": FIT_FORMAT, "metric": self.metric, "rms_before": self.rms_before, "rms_after": self.rms_after,
+        d = {"format": FIT_FORMAT, "algorithm": ALGORITHM, "metric": self.metric, "rms_before": self.rms_before,
+             "rms_after": self.rms_after,
              "parameters": {"height_scale": self.height_scale, "filter_sigma_um": self.filter_sigma_um},
              "intervals": self.intervals,
              "correlation": None if self.correlation is None else
              {"names": ["ln height_scale", "filter_sigma_um^2"], "matrix": [[1.0, self.correlation],
                                                                              [self.correlation, 1.0]]},
              "identifiability": {"filter_needed": self.filter_needed, "bic_gain_of_filter": self.bic_gain,
-                                 "ridge": self.ridge, "criterion": f"BIC = chi2 / c + k ln n, chi2 = n metric^2, c = "
+                                 "ridge": self.ridge,
+                                 "criterion": "BIC = chi2 / c + k ln n, chi2 = n search^2 (the log-chi search "
+                                 "objective), c = "
                                  "max(1, reduced chi2 of the two-parameter fit) (QBIC); the filter is kept when "
                                  f"it lowers the BIC by more than {BIC_MARGIN:g}",
-                                 "estimate": "the likelihood's optimum: the search on the metric, then up to "
+                                 "estimate": "the likelihood's optimum: the search on the log-chi objective, then "
+                                             "up to "
                                              f"{POLISH_STEPS} Gauss-Newton steps on the noise-weighted residuals "
                                              "(measured - simulated) / S, S^2 = sigma^2 + the simulation's own "
                                              "sigma^2, then the optimum of a linear regression of those "
@@ -248,6 +258,7 @@ class FitResult:
                                                     "correlated along the scans, plus the forward model's "
                                                     "stated per-side level accuracy marginalised as a nuisance "
                                                     "(fit.covariance)"},
+             "search_objective": self.search,
              "warnings": self.warnings, "iterations": self.iterations, "evaluations_computed": self.computed,
              "stopped": self.stopped,
              "seconds": self.seconds}
@@ -308,6 +319,7 @@ class _Objective:
         self.cache, self.save, self.progress, self.on_eval = cache, save, progress, on_eval
         self.iterations: list[dict] = []
         self._seen: dict[str, np.ndarray] = {}
+        self._metric: dict[str, float] = {}
         self.new_evals = 0
         self.n = int(np.size(measured))
         self.limit: int | None = None
@@ -336,13 +348,16 @@ class _Objective:
             if self.on_eval:
                 self.on_eval(self.new_evals)
         sim = np.asarray(self.cache[key])
-        r = self.settings.metric.residuals(sim, self.measured, self.sigma, self._model_sigma(sim))
+        ms = self._model_sigma(sim)
+        r = self.settings.metric.residuals(sim, self.measured, self.sigma, ms)
         self._seen[key] = r
         m = float(np.sqrt(np.mean(r**2))) if r.size else 0.0
-        self.iterations.append({"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": m})
+        z = rms_z(self.measured, self._likelihood_sigma, sim, ms)        # the metric (fit.residual)
+        self._metric[key] = z
+        self.iterations.append({"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": z, "search": m})
         total = self.settings.max_iter
-        self.progress(min(len(self.iterations), total), total, f"rms {m:.4g} at scale {s:.4g}, filter {g:.4g} um")
-        if stop_at_threshold and m <= self.settings.threshold:
+        self.progress(min(len(self.iterations), total), total, f"metric {z:.4g} at scale {s:.4g}, filter {g:.4g} um")
+        if stop_at_threshold and z <= self.settings.threshold:
             raise _Stop
         return r
 
@@ -363,13 +378,19 @@ class _Objective:
         return sim, S
 
     def __call__(self, s: float, g: float, stop_at_threshold: bool = True) -> float:
-        """The metric (rms of the residuals) at (s, g)."""
+        """The search objective (rms of the log-chi residuals) at (s, g)."""
         r = self.residuals(s, g, stop_at_threshold)
         return float(np.sqrt(np.mean(r**2))) if r.size else 0.0
 
+    def metric(self, s: float, g: float) -> float:
+        """The metric (fit.residual.rms_z) at (s, g)."""
+        self.residuals(s, g, stop_at_threshold=False)
+        return self._metric[_key(np.array([s, g]))]
+
     def best(self, only_unfiltered: bool = False) -> dict:
+        """The evaluation with the lowest search objective (`search`)."""
         its = [d for d in self.iterations if not only_unfiltered or d["parameters"]["filter_sigma_um"] == 0.0]
-        return min(its, key=lambda d: d["rms"])
+        return min(its, key=lambda d: d["search"])
 
 
 class _Budget(Exception):
@@ -676,7 +697,7 @@ def _ridge_probe(obj: _Objective, ratio: Callable[[float], float], both: dict, g
     lo, hi = obj.settings.scale_bounds
     s1 = float(np.clip(s_u / ratio(g1), lo, hi))
     m1 = obj(s1, g1, stop_at_threshold=False)
-    cost = (obj.chi2(m1) - obj.chi2(both["rms"])) / max(1.0, both["rms"] ** 2)
+    cost = (obj.chi2(m1) - obj.chi2(both["search"])) / max(1.0, both["search"] ** 2)
     return bool(cost <= np.log(obj.n) + BIC_MARGIN), {"height_scale": s1, "filter_sigma_um": g1}
 
 
@@ -760,7 +781,8 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     cs = _Coords.make(settings, True, gmax, pitch_um, ratio=slope_ratio)     # the search's (module doc)
     stopped = "converged"
     try:
-        rms_before = obj(1.0, 0.0)
+        obj(1.0, 0.0)
+        rms_before = obj.metric(1.0, 0.0)
         # scale alone first (cheap, robust from far away: it sets the slopes, the lobe width; its optimum
         # is the criterion's one-parameter model), then both from there; then scale alone again only where
         # the slope-equivalent scale of the joint optimum (g = 0, the same rms slope: the other end of a
@@ -787,8 +809,8 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
         stopped = "threshold"
         rms_before = obj.iterations[0]["rms"]
     both, alone = obj.best(), obj.best(only_unfiltered=True)
-    c_hat = overdispersion(obj.chi2(both["rms"]), 2, obj.n)          # QBIC when the model misses the noise
-    gain = bic_gain(obj.chi2(alone["rms"]), 1, obj.chi2(both["rms"]), 2, obj.n, c_hat)
+    c_hat = overdispersion(obj.chi2(both["search"]), 2, obj.n)       # QBIC when the model misses the noise
+    gain = bic_gain(obj.chi2(alone["search"]), 1, obj.chi2(both["search"]), 2, obj.n, c_hat)
     needed = both["parameters"]["filter_sigma_um"] > 0 and gain > BIC_MARGIN
     chosen = both if needed else alone
     s, g = chosen["parameters"]["height_scale"], chosen["parameters"]["filter_sigma_um"]
@@ -797,7 +819,7 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     surface_doc = {"design_points": surface.points, "rounds": surface.rounds,
                    "coordinates": ["ln height_scale", "filter_sigma_um^2"][:surface.x.size],
                    "scatter_about_linear_model": surface.scatter}
-    chosen = {"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": obj(s, g, stop_at_threshold=False)}
+    chosen = {"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": obj.metric(s, g)}
     iv, corr, warnings = _intervals(obj, c2 if needed else c1, s, g, gmax, J)
     if not needed:
         bp = both["parameters"]
@@ -814,9 +836,9 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
                         "the intervals are inflated by it but cover the noise only, not a systematic error of the "
                         "forward model (e.g. its table grid); physics beyond scale and filter may be missing "
                         "(relief diagnose)")
-    return FitResult(s, g, rms_before, chosen["rms"], obj.iterations, settings.metric.describe(), stopped,
+    return FitResult(s, g, rms_before, chosen["rms"], obj.iterations, METRIC, stopped,
                      time.monotonic() - t0, iv, corr, bool(needed), float(gain), bool(ridge), warnings, obj.new_evals,
-                     surface_doc)
+                     surface_doc, "log-chi search objective: " + settings.metric.describe())
 
 
 # ---------------------------------------------------------------- whole job for the CLI
@@ -886,7 +908,8 @@ def _run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob, prog
                     comments=["simulated plate after the fit; sigma_sr: the simulation's own 1-sigma (its tables' "
                               "uncertainty through the plate)"])
     files["simulated"] = "simulated.csv"
-    plots = report.fit_plots(out, rec, sim_before, sim_after)
+    rel = fwd.model_rel_sigma()         # the metric's model sigma (`_Objective._model_sigma`)
+    plots = report.fit_plots(out, rec, sim_before, sim_after, rel * np.abs(sim_before), rel * np.abs(sim_after))
     files.update(plots)
     face = getattr(fwd.experiment.plate, fwd.face_name)
     doc = res.to_json({"method": face.method, "method_requested": method, "method_reason": face.chosen_by,
@@ -894,6 +917,8 @@ def _run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob, prog
                        "relief_history": list(best_relief.history), "physics": after.info.get("physics", {}),
                        "grid": fwd.grid.describe(),     # the plate's table grid; the sector tables when it used them
                        **({"inside_sectors": after.info["inside_sectors"]} if "inside_sectors" in after.info else {})})
+    from relief_bsdf.report.html import user_paths
+    doc = user_paths(doc, sample_path, out_dir)     # no absolute path of this machine beyond the user's own
     write_text_atomic(out / "fit.json", json.dumps(doc, indent=1))
     report.write_fit_report(out / "report.html", doc, plots)
     return doc

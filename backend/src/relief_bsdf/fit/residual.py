@@ -1,6 +1,18 @@
 """Comparison of a simulated plate BSDF with a goniophotometer recording.
 
-Metric ("log-chi"): a BSDF spans many decades (a specular peak 1e3-1e5 times the wings), so
+THE metric (`rms_z`, the one number `relief simulate`, `relief fit`, `relief diagnose` and their
+reports call "metric", in fit.json and diagnosis.json as rms_before / rms_after):
+
+    rms z = sqrt(chi^2 / n),  chi^2 = sum_k z_k^2 over all n recording rows,
+    z_k = (measured_k - simulated_k) / s_k,  s_k^2 = sigma_k^2 + sigma_model_k^2
+
+the noise-normalised residual of the likelihood (`chi2`: a reading clipped at zero is censored,
+Tobit; an unknown sigma_k takes io.recording's documented fallback; sigma_model_k is the
+simulation's own 1-sigma, its tables' Monte-Carlo noise through the plate).  1 = agreement to the
+noise; the forward model is required to reach 1.2 on clean independent recordings.
+
+The fit's search device ("log-chi", `LogChiMetric`, not the metric: the fit reports it as each
+evaluation's `search` value): a BSDF spans many decades (a specular peak 1e3-1e5 times the wings), so
 differences are taken on logarithms, each normalised by its uncertainty:
 
     r_k = [ln(sim_k + b) - ln(meas_k + b)] / s_k
@@ -80,7 +92,34 @@ class LogChiMetric:
                 "1 = agreement within the recording's noise")
 
 
-DEFAULT_METRIC = LogChiMetric()
+DEFAULT_METRIC = LogChiMetric()      # the fit's search objective (module doc), not the reported metric
+
+METRIC = ("rms z = sqrt(chi2 / n) over all n recording rows, z = (measured - simulated) / s, s^2 = recording "
+          "sigma^2 + the simulation's own sigma^2 (unknown recording sigma: the documented fallback), a reading "
+          "clipped at zero censored (Tobit); 1 = agreement to the noise")
+
+
+def rms_z(measured: Any, sigma: Any, simulated: Any, model_sigma: Any = None) -> float:
+    """The metric (module doc): sqrt(chi^2 / n) of `simulated` against the recording's `measured`
+    values and 1-sigma `sigma` (None or NaN: io.recording's fallback), `model_sigma` the simulation's
+    own 1-sigma per row (None: 0)."""
+    r = z_residuals(measured, sigma, simulated, model_sigma)
+    return metric_of_chi2(float(r @ r), r.size)
+
+
+def metric_of_chi2(chi2_value: float, n: int) -> float:
+    """The metric from a chi^2 of `chi2` over n rows: sqrt(chi^2 / n) (0 without rows)."""
+    return float(np.sqrt(chi2_value / n)) if n else 0.0
+
+
+def z_residuals(measured: Any, sigma: Any, simulated: Any, model_sigma: Any = None) -> np.ndarray:
+    """The z_k whose rms is `rms_z` (for residual maps): + where the recording is above the simulation."""
+    from relief_bsdf.io.recording import sigma_with_fallback
+    y = np.asarray(measured, float)
+    s = sigma_with_fallback(y, sigma)
+    if model_sigma is not None:
+        s = np.sqrt(s**2 + np.nan_to_num(np.asarray(model_sigma, float)) ** 2)
+    return signed_residuals(y, np.asarray(simulated, float), s)
 
 
 def residual_map(rec: Any, sim: Any, metric: LogChiMetric = DEFAULT_METRIC) -> dict:

@@ -170,3 +170,39 @@ def page(title: str, subtitle: str, sections: Iterable[str]) -> str:
 
 def section(heading: str, body: str) -> str:
     return f"<h2>{esc(heading)}</h2>\n{body}"
+
+
+def user_paths(obj: Any, sample_path: str | Path, out_dir: str | Path | None = None) -> Any:
+    """`obj` (a JSON-like document) with every absolute path of this machine that a job derived from the
+    user's own paths written back in the user's terms: the sample file's folder as the user named it
+    (a relief "relief.npz" beside "runs/sample.toml" is "runs/relief.npz", not the resolved absolute
+    path), likewise the output folder.  A path the user gave absolute stays absolute."""
+    import os
+    import re
+    pairs = []
+    for given in (Path(sample_path).parent, None if out_dir is None else Path(out_dir)):
+        if given is None:
+            continue
+        resolved = os.path.abspath(given)
+        shown = str(given) if str(given) not in ("", ".") else "."
+        if resolved != shown and len(Path(resolved).parts) > 1:        # never the file-system root
+            # the folder itself, or followed by a separator; not a longer name that starts with it
+            pat = re.compile(re.escape(resolved) + r"(?:(" + re.escape(os.sep) + r")|(?![\w.\-]))")
+            pairs.append((len(resolved), pat, shown))
+    pairs.sort(key=lambda p: -p[0])
+
+    def one(x: str) -> str:
+        for _, pat, shown in pairs:
+            x = pat.sub(lambda m, shown=shown: (("" if shown == "." else shown + m.group(1)) if m.group(1)
+                                                else shown), x)
+        return x
+
+    def fix(x: Any) -> Any:
+        if isinstance(x, str):
+            return one(x)
+        if isinstance(x, dict):
+            return {k: fix(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [fix(v) for v in x]
+        return x
+    return fix(obj)

@@ -38,6 +38,17 @@ def _floor(values: np.ndarray) -> float:
     return float(pos.max() * 1e-6) if pos.size else 1e-6
 
 
+def sides_with_data(tables: list, sides) -> list:
+    """The sides (R, T) on which some table has a value or a delta part above zero: a BTDF-only file
+    gets no empty reflection panel (all of `sides` when none has data, so a figure is never empty)."""
+    def has(t: BsdfTable, side: str) -> bool:
+        k = 0 if side == "R" else 1
+        spec = t.specular_R if side == "R" else t.specular_T
+        return bool(np.any(np.asarray(t.values_per_sr[..., k]) > 0) or np.any(np.asarray(spec) > 0))
+    keep = [sd for sd in sides if any(has(t, sd) for t in tables)]
+    return keep or list(sides)
+
+
 @dataclass(frozen=True)
 class CurveStyle:
     """How one table's in-plane curves are drawn: line style, a label prefix (e.g. the method),
@@ -129,8 +140,8 @@ def plot_polar_map(ax, table: BsdfTable, side: str, ii: int, iw: int = 0, ip: in
 
 def table_figure(table: BsdfTable, sides=("R", "T"), iw: int = 0, ip: int = 0, max_maps: int = 5):
     """A figure with the in-plane curves per side (top) and polar maps per incidence (below),
-    one shared, labelled log colour bar per side."""
-    sides = list(sides)
+    one shared, labelled log colour bar per side; a side the table has no data on is left out."""
+    sides = sides_with_data([table], sides)
     I = len(table.theta_i_deg)
     pick = np.unique(np.linspace(0, I - 1, min(I, max_maps)).round().astype(int))
     ncol = max(len(pick), 2)
@@ -167,9 +178,9 @@ def compare_figure(tables: list, labels: list, sides=("R", "T"), iw: int = 0, ip
     only at those within its own incidence range (+- 0.5 deg).
 
     E.g. `ray`, `normals` and `microfacet` tables of one relief, or a reconstruction against a
-    measured IS-BSDF / XML file read by io.tables."""
+    measured IS-BSDF / XML file read by io.tables.  A side no table has data on is left out."""
     styles = ["-", "--", ":", "-."]
-    sides = list(sides)
+    sides = sides_with_data(tables, sides)
     ref = tables[0]
     fig, axs = plt.subplots(1, len(sides), figsize=(7.0 * len(sides), 5.6 + 0.12 * len(ref.theta_i_deg)),
                             squeeze=False)
@@ -196,10 +207,11 @@ def compare_figure(tables: list, labels: list, sides=("R", "T"), iw: int = 0, ip
 
 
 def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
-    """Write `fig` to `path` (PNG) atomically and close it."""
+    """Write `fig` to `path` (PNG) atomically and close it; the saved area holds every artist (a
+    legend beside or below the axes is inside the file, not clipped)."""
     path = Path(path)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png")
+        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png", bbox_inches="tight")
     plt.close(fig)
     return path
 
