@@ -10,15 +10,20 @@ An operator using `JobOperator` splits its work into three steps:
 timers never fire).  `invoke()` runs `work` on a worker thread and polls it from a modal
 timer, showing `wm.progress_*` and the task label in the status bar; Esc sets a flag that
 the progress callback turns into `relief_bsdf.progress.Cancelled` at the next task boundary.
-Every error becomes a Blender report (one line); the traceback goes to the console too.
+Every error becomes a Blender report (one line); a traceback goes to the console only for an internal
+error (not bad input) or when Blender runs with --debug.  Every warning the work raises becomes one
+report line `relief: warning: ...`, once per message (`relief_bsdf.errors.warning_line`, as the CLI
+prints them), and the last one shows in the panel's status.
 The work runs inside `workers.running_backend`: the preferences' worker count in force and
 worker processes that start from the add-on's code, never from the user's script.
 """
 from __future__ import annotations
 
+import contextlib
 import contextvars
 import threading
 import traceback
+import warnings
 
 import bpy
 
@@ -31,6 +36,35 @@ def _error_text(exc: BaseException) -> str:
     if InputError and isinstance(exc, InputError):
         return exc.one_line()
     return f"{type(exc).__name__}: {exc}"
+
+
+def _print_trace(exc: BaseException, trace: str | None = None) -> None:
+    """The traceback on the console: for an internal error, or any error under Blender's --debug."""
+    try:
+        from relief_bsdf.errors import InputError
+    except ImportError:            # pragma: no cover
+        InputError = ()            # noqa: N806
+    if bpy.app.debug or not (InputError and isinstance(exc, InputError)):
+        if trace is not None:
+            print(trace)
+        else:
+            traceback.print_exception(exc)
+
+
+@contextlib.contextmanager
+def collected_warnings(into: list):
+    """Within the block, warnings are not printed but collected into `into` as their one-line text, each
+    message once (the operator reports them when the work is done)."""
+    from relief_bsdf.errors import warning_line
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+
+        def keep(message, category, filename, lineno, file=None, line=None):
+            text = warning_line(message, category)
+            if text not in into:
+                into.append(text)
+        warnings.showwarning = keep
+        yield into
 
 
 class JobOperator:
@@ -51,20 +85,29 @@ class JobOperator:
 
     # ----------------------------------------------------------- synchronous
     def execute(self, context):
+        said: list = []
         try:
             payload = self.prepare(context)
             # synchronous runs (blender --background, scripts): progress as log lines on stderr
             from relief_bsdf.progress import TerminalBar
             from .prefs import get_prefs
             from .workers import running_backend
-            with running_backend(get_prefs(context).workers):
+            with running_backend(get_prefs(context).workers), collected_warnings(said):
                 result = type(self).work(payload, TerminalBar(self.job_label))
+            self._report_warnings(context, said)
             self.finish(context, result)
         except Exception as exc:  # noqa: BLE001 - every failure becomes a report
-            traceback.print_exc()
+            self._report_warnings(context, said)
+            _print_trace(exc)
             self.report({"ERROR"}, f"{self.job_label}: {_error_text(exc)}")
             return {"CANCELLED"}
         return {"FINISHED"}
+
+    def _report_warnings(self, context, lines: list) -> None:
+        for text in lines:
+            self.report({"WARNING"}, text)
+        if lines:
+            _set_status(context, lines[-1])
 
     # ----------------------------------------------------------- threaded
     def invoke(self, context, event):
@@ -77,10 +120,11 @@ class JobOperator:
         try:
             payload = self.prepare(context)
         except Exception as exc:  # noqa: BLE001
-            traceback.print_exc()
+            _print_trace(exc)
             self.report({"ERROR"}, f"{self.job_label}: {_error_text(exc)}")
             return {"CANCELLED"}
-        self._state = {"done": 0, "total": 1, "what": "", "result": None, "error": None, "finished": False}
+        self._state = {"done": 0, "total": 1, "what": "", "result": None, "error": None, "finished": False,
+                       "warnings": []}
         self._cancel = threading.Event()
         state, cancel, work = self._state, self._cancel, type(self).work
         from .prefs import get_prefs
@@ -95,7 +139,7 @@ class JobOperator:
 
         def run():
             try:
-                with running_backend(n_workers):
+                with running_backend(n_workers), collected_warnings(state["warnings"]):
                     state["result"] = work(payload, progress)
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread
                 state["error"] = exc
@@ -131,6 +175,7 @@ class JobOperator:
         wm.event_timer_remove(self._timer)
         wm.progress_end()
         self._thread.join()
+        self._report_warnings(context, st["warnings"])
         err = st["error"]
         if err is not None:
             from relief_bsdf.progress import Cancelled
@@ -138,14 +183,14 @@ class JobOperator:
                 self.report({"WARNING"}, f"{self.job_label}: cancelled")
                 _set_status(context, f"{self.job_label}: cancelled")
                 return {"CANCELLED"}
-            print(st.get("trace", ""))
+            _print_trace(err, st.get("trace", ""))
             self.report({"ERROR"}, f"{self.job_label}: {_error_text(err)}")
             _set_status(context, f"{self.job_label}: failed")
             return {"CANCELLED"}
         try:
             self.finish(context, st["result"])
         except Exception as exc:  # noqa: BLE001
-            traceback.print_exc()
+            _print_trace(exc)
             self.report({"ERROR"}, f"{self.job_label}: {_error_text(exc)}")
             _set_status(context, f"{self.job_label}: failed")
             return {"CANCELLED"}

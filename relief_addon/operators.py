@@ -200,7 +200,8 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
         from .bake_nodes import GROUP_PREFIX, group_for_table, has_metallic_bsdf
         from .paths import in_cache, stored
         before = group_for_table(stored(out))          # a re-run updates the group baked from this table
-        return {"relief": src, "pitch": pitch, "material": Material(ConstantIndex(float(self.ior or s.ior))),
+        return {"relief": src, "pitch": pitch, "options": map_options(s),
+                "material": Material(ConstantIndex(float(self.ior or s.ior))),
                 "request": req, "method": self.method, "out": out, "bake": self.bake, "albedo": albedo,
                 "content_named": in_cache(out),        # the shared cache of unsaved sessions (paths.py)
                 "closure": "metallic" if has_metallic_bsdf() else "glossy",
@@ -211,7 +212,7 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
         from relief_bsdf.io.hdf5 import save_tables
         from relief_bsdf.methods import reconstruct
         from relief_bsdf.io.heightmaps import read_prepared_relief
-        relief = read_prepared_relief(p["relief"], pitch_m=p["pitch"])   # periodicity decided as in the CLI
+        relief = read_prepared_relief(p["relief"], p.get("options"), pitch_m=p["pitch"])   # as the CLI reads it
         tables = reconstruct(relief, p["material"], p["request"], p["method"], progress=progress)
         out = p["out"]
         if p.get("content_named"):
@@ -528,3 +529,13 @@ def unregister():
     for c in reversed(CLASSES):
         if c.is_registered:
             bpy.utils.unregister_class(c)
+
+
+def map_options(settings):
+    """The panel's map choices (fill holes, crop, downsample, periodicity) as the backend's ReliefOptions,
+    checked as the command line checks them (an InputError names the setting)."""
+    from relief_bsdf.surface.preparation import ReliefOptions, parse_crop
+    crop = parse_crop(settings.crop) if settings.crop.strip() else None
+    periodic = {"yes": True, "no": False}.get(settings.periodic)
+    return ReliefOptions(crop=crop, downsample=int(settings.downsample), fill_holes=bool(settings.fill_holes),
+                         periodic=periodic, stated_by="the panel's Periodicity")

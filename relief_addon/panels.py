@@ -116,6 +116,10 @@ class RELIEF_PT_reconstruct(_ReliefPanel, bpy.types.Panel):
         col = self.layout.column()
         for p in ("method", "wavelengths_nm", "theta_i_deg", "sides", "samples", "seed", "ior", "table_path"):
             col.prop(s, p)
+        box = col.box()
+        box.label(text="The map as read")
+        for p in ("fill_holes", "crop", "downsample", "periodic"):
+            box.prop(s, p)
         from .prefs import get_prefs
         prefs = get_prefs(context)
         if hasattr(prefs, "bl_rna"):           # registered as an add-on: its preferences

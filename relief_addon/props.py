@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import bpy
-from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 # "//" paths (beside the .blend) are this add-on's convention (paths.py); Blender 4.5+ asks to say so
 _REL = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (4, 5, 0) else set()
@@ -21,6 +21,11 @@ METHOD_ITEMS = [
 #: isotropic; `auto` picks the method the panel names (kirchhoff, ray, ...), which keeps it.
 from relief_bsdf import defaults as _defaults
 DEFAULT_METHOD = _defaults.METHOD
+PERIODIC_ITEMS = [
+    ("auto", "From the file", "The file's own statement, else the wrap-around test (as the command line)"),
+    ("yes", "Seamless tile", "The map repeats seamlessly: traced as one period"),
+    ("no", "Measured patch", "A measured patch: mirror-extended for ray tracing, windowed for wave optics"),
+]
 SIDE_ITEMS = [
     ("outside", "Outside", "Light arriving from outside (air)"),
     ("inside", "Inside", "Light arriving from inside the dielectric"),
@@ -44,6 +49,12 @@ class ReliefSceneSettings(bpy.types.PropertyGroup):
                          description="Monte-Carlo samples per incidence")
     seed: IntProperty(name="Seed", default=_defaults.SEED, min=0)
     ior: FloatProperty(name="Refractive index", default=1.5, min=1.0001, max=4.0)
+    # the map as Reconstruct reads it (the command line's --fill-holes, --crop, --downsample, --periodic)
+    fill_holes: BoolProperty(name="Fill holes", default=False,
+                             description="Fill missing points first (harmonic interpolation, as relief fill)")
+    crop: StringProperty(name="Crop", default="", description="X0,Y0,W,H in points (empty: the whole map)")
+    downsample: IntProperty(name="Downsample", default=1, min=1, max=64, description="K x K block means (1: none)")
+    periodic: EnumProperty(name="Periodicity", items=PERIODIC_ITEMS, default="auto")
     table_path: StringProperty(options=_REL, name="Table", subtype="FILE_PATH", default="//relief_table.h5",
                                description="BSDF table (HDF5) written by Reconstruct, read by Bake")
     sample_path: StringProperty(options=_REL, name="Sample", subtype="FILE_PATH", default="",

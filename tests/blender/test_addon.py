@@ -243,3 +243,49 @@ def test_diagnose_reports_every_named_effect(addon):
     RELIEF_OT_diagnose.finish(fake, bpy.context, {"effect": "stray_light", "effects": ["stray_light", "bulk_absorption"],
                                                   "rms_before": 17.97, "rms_after": 0.697, "explanation": "both"})
     assert said == [({"INFO"}, "Diagnosis: stray_light + bulk_absorption (metric, rms z 17.97 -> 0.697): both")]
+
+
+def test_the_panel_fills_holes_crops_and_downsamples_the_map_before_reconstructing(addon, tmp_path):
+    """The Reconstruct panel's map settings (Fill holes, Crop, Downsample, Periodicity) reach the backend as
+    the command line's flags do: a map with missing points dead-ends the ray method without Fill holes and
+    is traced with it; the table's relief history records the fill, the crop and the downsampling."""
+    from relief_bsdf.io.hdf5 import load_tables
+    from relief_bsdf.io.heightmaps import write_relief
+    from relief_bsdf.surface.relief import Relief
+    h = 0.2e-6 * np.random.default_rng(2).standard_normal((200, 200))
+    h[10:13, 20:22] = np.nan
+    path = write_relief(tmp_path / "holes.npz", Relief(h, 1e-6, 1e-6, periodic=True))
+    s = bpy.context.scene.relief
+    args = dict(method="ray", wavelengths_nm="550", theta_i_deg="0", sides="outside", samples=2000,
+                relief_path=str(path), bake=False)
+    with pytest.raises(RuntimeError, match="fill"):
+        bpy.ops.relief.reconstruct(filepath=str(tmp_path / "no.h5"), **args)
+    s.fill_holes, s.crop, s.downsample, s.periodic = True, "0,0,180,180", 2, "no"
+    try:
+        assert bpy.ops.relief.reconstruct(filepath=str(tmp_path / "t.h5"), **args) == {"FINISHED"}
+    finally:
+        s.fill_holes, s.crop, s.downsample, s.periodic = False, "", 1, "auto"
+    history = " ".join(str(x) for x in load_tables(tmp_path / "t.h5")[0].relief.get("history", []))
+    assert "fill" in history and "crop" in history and "downsampl" in history, history
+
+
+def test_a_warning_of_the_work_is_one_report_line_and_the_status(addon, tmp_path, capfd):
+    """A warning the backend raises during an operator's work (a table of a small tile) is reported
+    once as `relief: warning: ...` (no Python file name or source line) and shown in the panel's status;
+    bad input reports one line and prints no traceback."""
+    from relief_bsdf.io.heightmaps import write_relief
+    from relief_bsdf.surface.synth import random_relief
+    path = write_relief(tmp_path / "small.npz", random_relief(64, 1e-6, 0.5e-6, 4e-6, "gaussian", 3))
+    res = bpy.ops.relief.reconstruct(method="microfacet", wavelengths_nm="550", theta_i_deg="0,30",
+                                     sides="outside", samples=3000, relief_path=str(path),
+                                     filepath=str(tmp_path / "t.h5"), bake=False)
+    assert res == {"FINISHED"}
+    out, err = capfd.readouterr()
+    both = out + err
+    assert "relief: warning:" in both and ".py:" not in both and "RuntimeWarning" not in both, both[-2000:]
+    assert bpy.context.scene.relief.job_status.startswith("relief: warning:")
+    with pytest.raises(RuntimeError):
+        bpy.ops.relief.reconstruct(method="ray", wavelengths_nm="550", theta_i_deg="0", sides="outside",
+                                   relief_path=str(tmp_path / "missing.npz"), filepath=str(tmp_path / "u.h5"))
+    out, err = capfd.readouterr()
+    assert "Traceback" not in out + err

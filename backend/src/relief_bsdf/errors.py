@@ -43,3 +43,11 @@ def warn_input(where: str | Path | None, message: str) -> None:
     """Issue an `InputWarning` "<where>: <message>" (shown once per distinct message)."""
     text = f"{where}: {message}" if where else message
     warnings.warn(InputWarning(text), stacklevel=3)
+
+
+def warning_line(message, category) -> str:
+    """The one line a warning shows as, wherever it is shown (the CLI's stderr, a Blender report):
+    ``relief: warning: MESSAGE`` (first line of the message only)."""
+    text = str(message).strip().splitlines()[0] if str(message).strip() else category.__name__
+    return f"relief: warning: {text}" if issubclass(category, (InputWarning, RuntimeWarning, UserWarning)) \
+        else f"relief: warning: {category.__name__}: {text}"

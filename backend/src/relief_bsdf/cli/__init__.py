@@ -23,7 +23,7 @@ import threading
 import traceback
 from typing import Iterator
 
-from relief_bsdf.errors import InputError
+from relief_bsdf.errors import InputError, warning_line
 
 COMMANDS = ["info", "synth", "reconstruct", "fill", "crop", "export", "plot", "simulate", "fit",
             "diagnose", "conceal", "render"]
@@ -85,14 +85,6 @@ class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         if d is None or d is False or d is argparse.SUPPRESS or d == [] or "default" in text:
             return text
         return super()._get_help_string(action)
-
-
-def warning_line(message, category) -> str:
-    """The one line a warning prints as: ``relief: warning: MESSAGE`` (first line of the message only)."""
-    from relief_bsdf.errors import InputWarning
-    text = str(message).strip().splitlines()[0] if str(message).strip() else category.__name__
-    return f"relief: warning: {text}" if issubclass(category, (InputWarning, RuntimeWarning, UserWarning)) \
-        else f"relief: warning: {category.__name__}: {text}"
 
 
 @contextlib.contextmanager
