@@ -326,16 +326,6 @@ def header_wavelength_nm(comments: Sequence[str]) -> float | None:
     return None
 
 
-def _tag(comments: Sequence[str], key: str) -> str | None:
-    for c in comments:
-        s = c.strip()
-        if s.startswith("relief:") and "=" in s:
-            k, v = s[len("relief:"):].split("=", 1)
-            if k.strip() == key:
-                return v.strip()
-    return None
-
-
 def read_measured_isbsdf(path: str | Path, n_transmitted: float | None = None) -> MeasuredFile:
     """Read a measured IS-BSDF file (module doc) with io.isbsdf's parser."""
     from relief_bsdf.io.isbsdf import TYPE_SIDE, from_specular_coords, read_isbsdf_all, refracted_theta_deg
@@ -347,7 +337,7 @@ def read_measured_isbsdf(path: str | Path, n_transmitted: float | None = None) -
     notes = []
     for b in blocks:
         side = TYPE_SIDE[b.scatter_type]
-        if _tag(b.comments, "incident_from") == "inside":
+        if b.relief_tag("incident_from") == "inside":
             raise InputError(path, "a table of light arriving from inside the dielectric (# relief: incident_from "
                                    "= inside): not a plate measured from outside")
         az, rad = b.azimuth_deg.astype(float), b.radial_deg.astype(float)
@@ -367,11 +357,11 @@ def read_measured_isbsdf(path: str | Path, n_transmitted: float | None = None) -
             data = data.copy()
             data[:, :, 0] = 0.5 * (data[:, :, 0] + data[:, :, -1])     # the same azimuth twice: one column
             az, data = az[:-1], data[:, :, :-1]
-        centring = _tag(b.comments, "btdf_centre")
+        centring = b.relief_tag("btdf_centre")
         n_pair = (1.0, 1.0)
         if side == "T" and centring != "undeviated":
-            if _tag(b.comments, "n_incident") is not None:
-                n_pair = (float(_tag(b.comments, "n_incident")), float(_tag(b.comments, "n_transmitted")))
+            if b.relief_tag("n_incident") is not None:
+                n_pair = (float(b.relief_tag("n_incident")), float(b.relief_tag("n_transmitted")))
             elif n_transmitted is not None:
                 n_pair = (1.0, float(n_transmitted))
         lo, hi = _polar_cells(rad)
