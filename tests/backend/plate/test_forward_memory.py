@@ -34,6 +34,22 @@ def test_the_budget_evicts_the_least_recently_used_and_keeps_the_newest():
     assert r["by_kind"]["table"] == {"entries": 1, "bytes": 8000} and r["budget_bytes"] == 2500
 
 
+def test_what_is_dear_to_make_for_its_size_outlives_what_is_cheap():
+    """GreedyDual-Size: an entry that took long to make per byte stays over more recent cheap ones while
+    the clock (raised by each eviction to the evicted priority) is below its cost per GB."""
+    m = ForwardMemory(budget_bytes=2500)
+    m.put(("sector table",), np.zeros(100), cost_s=1.0)      # 800 bytes, dear
+    m.put(("weights a",), np.zeros(100), cost_s=0.0)
+    m.put(("weights b",), np.zeros(100), cost_s=0.0)
+    m.put(("weights c",), np.zeros(100), cost_s=0.0)         # over: a cheap one goes, not the dear one
+    assert ("sector table",) in m and ("weights a",) not in m
+    for k in range(3):
+        m.get(("weights c",), lambda: None)
+        m.put((f"more {k}",), np.zeros(100), cost_s=0.0)
+    assert ("sector table",) in m                              # the clock is still below its cost per GB
+    assert m.report()["evictions"] == 4
+
+
 def test_deep_nbytes_counts_each_buffer_once():
     a = np.zeros(1000)
     assert deep_nbytes({"x": a, "y": a[10:], "z": [a.reshape(10, 100)]}) == 8000

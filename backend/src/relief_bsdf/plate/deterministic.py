@@ -87,6 +87,7 @@ direct terms, the engine grid's for the loop).
 from __future__ import annotations
 
 import copy
+import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
@@ -1777,12 +1778,13 @@ def _kept(memory: Any, tokens: tuple, plate: tuple, solver: PlateSolver, keep: b
     return solver
 
 
-def refresh_solver(solver: PlateSolver) -> None:
-    """Measure a held solver again after it solved (its operators are made lazily) and evict to the budget."""
+def refresh_solver(solver: PlateSolver, cost_s: float = 0.0) -> None:
+    """Measure a held solver again after it solved (its operators are made lazily), add what the solve
+    cost, and evict to the budget."""
     from relief_bsdf.plate.memory import current_memory
     key = getattr(solver, "memory_key", None)
     if key is not None:
-        current_memory().refresh(key)
+        current_memory().refresh(key, cost_s)
 
 
 def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str = "recording",
@@ -1792,10 +1794,11 @@ def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str 
     import warnings
     from relief_bsdf.plate.faces import isotropy_warning
     solver = solver_of(experiment, rows, grid, progress, keep_solver)
+    t0 = time.perf_counter()
     vals = simulate_rows(solver.model, solver.inside, solver.outside, rows, solver=solver, where=where)
     for s in (solver, solver.half_turn):
         if s is not None:
-            refresh_solver(s)
+            refresh_solver(s, time.perf_counter() - t0)
     info = {"engine": "deterministic", "grid": grid.describe()}
     sectors = solver.inside_sectors
     if sectors is not None:                  # the loop meets the relief by azimuth sector (plate.faces.inside_sectors)

@@ -4,10 +4,13 @@ Everything the plate engine would otherwise derive again (boundary tables, plate
 factorised operators, relief tracers, photon samplers, slab operators, detector weights, phase
 functions) lives in ONE object, keyed by content, held to ONE byte budget:
 
-- `get(key, make, kind)`: the held value, else `make()` put under `key` (least recently used first
-  out while the held bytes exceed the budget; the newest entry always stays, so a single object
-  larger than the budget is still computed, used and dropped at the next put: the job degrades
-  to recomputing instead of growing);
+- `get(key, make, kind)`: the held value, else `make()` put under `key`; while the held bytes exceed
+  the budget, entries go by GreedyDual-Size (Cao & Irani 1997): each entry's priority is the
+  clock at its last use plus the seconds it took to make per GB it holds, the lowest goes first and
+  the clock moves up to it, so what was used long ago goes first unless it is dear to make for its
+  size (a ray-traced sector table stays over a detector's weights made in a blink); the newest entry
+  always stays, so a single object larger than the budget is still computed, used and dropped at the
+  next put: the job degrades to recomputing instead of growing;
 - bytes are the arrays an entry reaches (numpy arrays in its attributes, dicts, lists, tuples;
   each array's buffer counted once per entry; `memory_bytes()` where an object knows better, e.g.
   a tracer's BVH); a solver that grows while it solves is measured again (`refresh`);
@@ -27,6 +30,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import os
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
@@ -83,10 +87,21 @@ class _Entry:
     kind: str
     value: Any
     nbytes: int
+    cost_s: float = 0.0          # seconds it took to make (what evicting it costs the job)
+    priority: float = 0.0        # GreedyDual-Size: clock at last use + cost per GB held
+
+
+def _cost_of(value: Any) -> float:
+    """What a value handed in from elsewhere cost to make, where it says (a table's metadata `timing_s`)."""
+    meta = getattr(value, "metadata", None)
+    t = meta.get("timing_s") if isinstance(meta, dict) else None
+    if isinstance(t, dict):                   # a ray table's phases and their "total"
+        t = t.get("total", sum(v for v in t.values() if isinstance(v, (int, float))))
+    return float(t) if isinstance(t, (int, float)) and t > 0 else 0.0
 
 
 class ForwardMemory:
-    """A byte-budgeted LRU store of the forward model's derived objects (module doc)."""
+    """A byte-budgeted store of the forward model's derived objects, GreedyDual-Size eviction (module doc)."""
 
     def __init__(self, budget_bytes: float = DEFAULT_BUDGET_BYTES, maxsize: int = 400):
         self.budget_bytes = float(budget_bytes)
@@ -96,6 +111,7 @@ class ForwardMemory:
         self._recorders: list[set] = []
         self.hits = self.misses = self.evictions = 0
         self.peak_bytes = 0
+        self._clock = 0.0                # GreedyDual-Size's inflation value
 
     # -- the store
     def get(self, key: tuple, make: Callable[[], Any], kind: str = "table") -> Any:
@@ -105,41 +121,51 @@ class ForwardMemory:
                 used.add(key)
         e = self._d.get(key)
         if e is not None:
-            self._d.move_to_end(key)
+            self._use(key, e)
             self.hits += 1
             return e.value
         if _HELD_ONLY.get():
             raise MissingTable(key)
         self.misses += 1
+        t0 = time.perf_counter()
         v = make()
-        self.put(key, v, kind)
+        self.put(key, v, kind, cost_s=time.perf_counter() - t0)
         return v
+
+    def _use(self, key: tuple, e: _Entry) -> None:
+        self._d.move_to_end(key)
+        e.priority = self._clock + e.cost_s / max(e.nbytes / 1e9, 1e-3)
 
     def peek(self, key: tuple) -> Any:
         """The value held under `key` or None (no derivation, no recency change)."""
         e = self._d.get(key)
         return None if e is None else e.value
 
-    def put(self, key: tuple, value: Any, kind: str = "table") -> None:
-        """Hold `value` under `key` (newest), then evict to the budget."""
+    def put(self, key: tuple, value: Any, kind: str = "table", cost_s: float | None = None) -> None:
+        """Hold `value` under `key` (newest), then evict to the budget.  `cost_s`: the seconds it took to
+        make (None: what the value says, e.g. a table's `timing_s`, else 0)."""
         old = self._d.pop(key, None)
         if old is not None:
             self._total -= old.nbytes
-        e = _Entry(kind if kind in KINDS else "other", value, deep_nbytes(value))
+        e = _Entry(kind if kind in KINDS else "other", value, deep_nbytes(value),
+                   _cost_of(value) if cost_s is None else float(cost_s))
         self._d[key] = e
         self._total += e.nbytes
+        self._use(key, e)
         self._evict()
 
-    def refresh(self, key: tuple | None) -> None:
-        """Measure an entry again (a solver's operators are made while it solves) and evict to the budget
-        (None: evict only, e.g. after the budget changed)."""
+    def refresh(self, key: tuple | None, cost_s: float = 0.0) -> None:
+        """Measure an entry again (a solver's operators are made while it solves), add `cost_s` to what it
+        cost, and evict to the budget (None: evict only, e.g. after the budget changed)."""
         e = self._d.get(key) if key is not None else None
         if e is None:
             self._evict()
             return
         self._total -= e.nbytes
         e.nbytes = deep_nbytes(e.value)
+        e.cost_s += float(cost_s)
         self._total += e.nbytes
+        self._use(key, e)
         self._evict()
 
     def discard(self, key: tuple) -> None:
@@ -148,9 +174,13 @@ class ForwardMemory:
             self._total -= e.nbytes
 
     def _evict(self) -> None:
+        """GreedyDual-Size down to the budget and the entry count (module doc); never the newest entry."""
         self.peak_bytes = max(self.peak_bytes, self._total)
         while len(self._d) > 1 and (len(self._d) > self.maxsize or self._total > self.budget_bytes):
-            _, e = self._d.popitem(last=False)
+            newest = next(reversed(self._d))
+            key = min((k for k in self._d if k != newest), key=lambda k: self._d[k].priority)   # ties: least recent
+            e = self._d.pop(key)
+            self._clock = max(self._clock, e.priority)
             self._total -= e.nbytes
             self.evictions += 1
 
@@ -175,8 +205,9 @@ class ForwardMemory:
         return None
 
     def touch(self, key: tuple) -> None:
-        if key in self._d:
-            self._d.move_to_end(key)
+        e = self._d.get(key)
+        if e is not None:
+            self._use(key, e)
 
     def clear(self) -> None:
         self._d.clear()
