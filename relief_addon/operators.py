@@ -213,6 +213,7 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
         from relief_bsdf.methods import reconstruct
         from relief_bsdf.io.heightmaps import read_prepared_relief
         relief = read_prepared_relief(p["relief"], p.get("options"), pitch_m=p["pitch"])   # as the CLI reads it
+        as_read = _as_read(relief, p) if relief.history else None
         tables = reconstruct(relief, p["material"], p["request"], p["method"], progress=progress)
         out = p["out"]
         if p.get("content_named"):
@@ -227,11 +228,19 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
         if p["bake"]:
             from relief_bsdf.bsdf.bake import bake_lut
             lut = bake_lut(tables, p["name"], albedo=p["albedo"], reflection_closure=p["closure"])
-        return {"tables": tables, "out": out, "lut": lut}
+        return {"tables": tables, "out": out, "lut": lut, "as_read": as_read}
 
     def finish(self, context, r):
         from .paths import stored
         context.scene.relief.table_path = stored(r["out"])
+        if r.get("as_read") is not None:           # the map as read (crop, downsample, fill): its own statistics
+            obj = context.active_object
+            if obj is not None and "relief_source" in obj:
+                obj["relief_as_read"] = r["as_read"]
+            st, reg = r["as_read"]["stats"], r["as_read"]["regime"]
+            self.report({"INFO"}, f"As read ({'; '.join(r['as_read']['steps'])}): "
+                                  f"{int(st['shape'][1])} x {int(st['shape'][0])} points, rms height {st['rms_height_m'] * 1e6:.4g} um, rms slope {st['rms_slope']:.4g}, "
+                                  f"{reg.get('regime', 'regime not assessed')}")
         rows = r["tables"][0].albedo_rows()
         msg = ", ".join(f"{x['theta_i_deg']:.0f} deg: R {x['R']:.3f} T {x['T']:.3f}" for x in rows[:4])
         self.report({"INFO"}, f"Wrote {r['out']} ({msg}{', ...' if len(rows) > 4 else ''})")
@@ -539,3 +548,14 @@ def map_options(settings):
     periodic = {"yes": True, "no": False}.get(settings.periodic)
     return ReliefOptions(crop=crop, downsample=int(settings.downsample), fill_holes=bool(settings.fill_holes),
                          periodic=periodic, stated_by="the panel's Periodicity")
+
+
+def _as_read(relief, p) -> dict:
+    """Statistics and optical regime of the map as Reconstruct read it (after the panel's crop, downsample
+    and fill), recomputed, with the steps from its history (`relief_bsdf.surface.preparation`)."""
+    from .mesh_import import _id_safe, optical_regime, relief_stats
+    req = p["request"]
+    regime = optical_regime(relief, float(p["material"].inside.n(req.wavelengths_nm[0]).real), req.wavelengths_nm,
+                            req.theta_i_deg)
+    return {"stats": {k: _id_safe(v) for k, v in relief_stats(relief).items()}, "regime": regime,
+            "steps": [str(h) for h in relief.history][-4:]}

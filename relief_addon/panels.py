@@ -102,6 +102,15 @@ class RELIEF_PT_relief(_ReliefPanel, bpy.types.Panel):
             row.label(text=(k[:-2] if k.endswith("_m") else k).replace("_", " "))
             row.label(text=_fmt(k, stats[k]))
         _regime_box(lay, obj)
+        read = obj.get("relief_as_read")
+        if read is not None:                     # Reconstruct's crop / downsample / fill: the map it traced
+            box = lay.box()
+            box.label(text="As Reconstruct read it")
+            for k in ("shape", "rms_height_m", "rms_slope"):
+                if k in read["stats"]:
+                    box.label(text=f"{k}: {_fmt(k, read['stats'][k])}")
+            reg = read.get("regime", {})
+            box.label(text=f"Optical regime: {reg.get('regime', 'not assessed')}")
         s = context.scene.relief
         if s.job_status:
             lay.label(text=s.job_status, icon="INFO")

@@ -245,7 +245,7 @@ def test_diagnose_reports_every_named_effect(addon):
     assert said == [({"INFO"}, "Diagnosis: stray_light + bulk_absorption (metric, rms z 17.97 -> 0.697): both")]
 
 
-def test_the_panel_fills_holes_crops_and_downsamples_the_map_before_reconstructing(addon, tmp_path):
+def test_the_panel_fills_holes_crops_and_downsamples_the_map_before_reconstructing(addon, tmp_path, capfd):
     """The Reconstruct panel's map settings (Fill holes, Crop, Downsample, Periodicity) reach the backend as
     the command line's flags do: a map with missing points dead-ends the ray method without Fill holes and
     is traced with it; the table's relief history records the fill, the crop and the downsampling."""
@@ -267,6 +267,8 @@ def test_the_panel_fills_holes_crops_and_downsamples_the_map_before_reconstructi
         s.fill_holes, s.crop, s.downsample, s.periodic = False, "", 1, "auto"
     history = " ".join(str(x) for x in load_tables(tmp_path / "t.h5")[0].relief.get("history", []))
     assert "fill" in history and "crop" in history and "downsampl" in history, history
+    out, err = capfd.readouterr()                # the statistics of the map as read, recomputed and shown
+    assert "As read (" in out + err and "90 x 90 points" in out + err, (out + err)[-1500:]
 
 
 def test_a_warning_of_the_work_is_one_report_line_and_the_status(addon, tmp_path, capfd):
