@@ -239,7 +239,8 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
                 obj["relief_as_read"] = r["as_read"]
             st, reg = r["as_read"]["stats"], r["as_read"]["regime"]
             self.report({"INFO"}, f"As read ({'; '.join(r['as_read']['steps'])}): "
-                                  f"{int(st['shape'][1])} x {int(st['shape'][0])} points, rms height {st['rms_height_m'] * 1e6:.4g} um, rms slope {st['rms_slope']:.4g}, "
+                                  f"{int(st['shape'][1])} x {int(st['shape'][0])} points, rms height "
+                                  f"{st['rms_height_m'] * 1e6:.4g} um, rms slope {st['rms_slope']:.4g}, "
                                   f"{reg.get('regime', 'regime not assessed')}")
         rows = r["tables"][0].albedo_rows()
         msg = ", ".join(f"{x['theta_i_deg']:.0f} deg: R {x['R']:.3f} T {x['T']:.3f}" for x in rows[:4])
