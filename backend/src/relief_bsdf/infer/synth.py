@@ -64,12 +64,18 @@ def plan_for(wavelength_nm: float, n: int = 512, cell_px: int = CELL_PX, seed: i
 
 
 def quantile_function(edges: np.ndarray, density: np.ndarray):
-    """Q(t), t in [0, 1]: the inverse of the piecewise-linear CDF of a binned 1-D density."""
+    """Q(t), t in [0, 1]: the inverse of the CDF of a binned 1-D density, uniform within each bin
+    (bins without mass hold no quantile: Q jumps across them)."""
     mass = np.clip(density, 0, None) * np.diff(edges)
-    cdf = np.concatenate([[0.0], np.cumsum(mass)])
-    cdf /= cdf[-1]
-    keep = np.concatenate([[True], np.diff(cdf) > 0])       # empty bins add no quantile
-    return lambda t: np.interp(t, cdf[keep], edges[keep])
+    cdf = np.concatenate([[0.0], np.cumsum(mass)]) / mass.sum()
+    nz = mass > 0
+    starts, lefts = cdf[:-1][nz], edges[:-1][nz]
+    widths, share = np.diff(edges)[nz], (mass / mass.sum())[nz]
+
+    def Q(t: np.ndarray) -> np.ndarray:
+        k = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, starts.size - 1)
+        return lefts[k] + np.clip((t - starts[k]) / share[k], 0.0, 1.0) * widths[k]
+    return Q
 
 
 def cell_profile(Q, m: int, centre: float) -> np.ndarray:
@@ -77,7 +83,8 @@ def cell_profile(Q, m: int, centre: float) -> np.ndarray:
     t = np.linspace(0.0, 1.0, _Q_SAMPLES)
     q = Q(t) - centre
     H = np.concatenate([[0.0], np.cumsum(0.5 * (q[1:] + q[:-1]) * np.diff(t))])   # int_0^t (Q - centre)
-    return m * np.interp(np.arange(m + 1) / m, t, H)
+    prof = m * np.interp(np.arange(m + 1) / m, t, H)
+    return prof - np.linspace(0.0, prof[-1], m + 1)     # closes the cell exactly (its quadrature error)
 
 
 def cell_widths(n: int, cell_px: int, rng: np.random.Generator) -> list[int]:
