@@ -39,9 +39,11 @@ def _compare(meas: dict, pred: dict) -> dict:
 def test_infer_from_0_deg_predicts_the_5_deg_files(tmp_path, capsys):
     from relief_bsdf.cli import main
     from relief_bsdf.fit.optimise import Forward
+    from relief_bsdf.infer.job import distinct_directions
     from relief_bsdf.io.heightmaps import read_sample_relief
     from relief_bsdf.io.recording import read_sample
     from relief_bsdf.plate import TableGrid, experiment_from_sample
+    from relief_bsdf.plate.memory import ForwardMemory, job_memory_bytes
 
     (tmp_path / "sample.toml").write_text(f'''format = "relief-sample/1"
 [plate]
@@ -66,8 +68,14 @@ wavelength_nm = 633.0
     five = replace(inferred, recording_paths=(SHARED / "EDS10 5-0.txt", SHARED / "EDS10 5-45.txt"))
     rec = five.load_recording()
     relief = read_sample_relief(five)
-    fwd = Forward(relief, experiment_from_sample(five, relief, samples=100_000, seed=0), rec, grid=TableGrid())
-    sim = fwd.simulate(1.0, 0.0)
+    sim = np.zeros(len(rec))
+    for ti, pi in rec.incidences():                       # one incidence at a time (the forward's memory)
+        sel = np.flatnonzero((rec.theta_i_deg == ti) & (rec.phi_i_deg == pi))
+        rows, inverse = distinct_directions(rec.subset(sel))   # the pole's repeated readings simulated once
+        with ForwardMemory(job_memory_bytes() / 3).active():   # as the job: its own memory owner
+            fwd = Forward(relief, experiment_from_sample(five, relief, samples=100_000, seed=0), rows,
+                          grid=TableGrid())
+            sim[sel] = fwd.simulate(1.0, 0.0)[inverse]
     meas, pred = _figures(rec, rec.bsdf_sr), _figures(rec, sim)
     diffs = {k: _compare(meas[k], pred[k]) for k in meas}
     msg = json.dumps({f"{k[0]:g}/{k[1]:g}": {"measured": meas[k], "predicted": pred[k], "differences": diffs[k]}

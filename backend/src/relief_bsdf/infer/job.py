@@ -70,6 +70,17 @@ def inversion_rows(rec: Any):
     return rec.subset(sel), ti, pi, wl
 
 
+def distinct_directions(rec: Any) -> tuple[Any, np.ndarray]:
+    """(rows, inverse): the recording's distinct readings (a reading at theta_s = 0 is one direction
+    whatever its azimuth: RPC files repeat the pole once per azimuth of the scan) and the index of
+    each row's distinct reading, so values of `rows` expand to the recording as values[inverse]."""
+    phi = np.where(rec.theta_s_deg == 0.0, 0.0, rec.phi_s_deg)
+    key = np.stack([rec.wavelength_nm, rec.theta_i_deg, rec.phi_i_deg, (rec.side == "T").astype(float),
+                    rec.theta_s_deg, phi], axis=1)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return rec.subset(first), inverse.reshape(-1)
+
+
 def _lobe_facts(rec: Any, values: np.ndarray) -> dict:
     """Transmittance (sum f cos dOmega over the rows, per incidence) for the report."""
     out = {}
@@ -93,7 +104,15 @@ def direction_cosine_cell(rows: Any) -> np.ndarray:
 def infer(sample_path: str | Path, out_dir: str | Path, seed: int = 0, progress: Any = None,
           samples: int = 100_000, tile_px: int = TILE_PX) -> dict:
     """Infer a relief for the sample (module doc); writes OUT/relief.npz, sample.toml, simulated.csv,
-    infer.json; returns the infer.json object."""
+    infer.json; returns the infer.json object.  What the forward model keeps lives in the job's own
+    memory owner (plate.memory, a third of the job's memory as in `relief fit`), dropped on return."""
+    from relief_bsdf.plate.memory import ForwardMemory, job_memory_bytes
+    with ForwardMemory(job_memory_bytes() / 3).active():
+        return _infer(sample_path, out_dir, seed, progress, samples, tile_px)
+
+
+def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: Any, samples: int,
+           tile_px: int) -> dict:
     from relief_bsdf.core.index import ConstantIndex
     from relief_bsdf.fit.optimise import Forward
     from relief_bsdf.fit.residual import METRIC, rms_z
@@ -131,12 +150,14 @@ def infer(sample_path: str | Path, out_dir: str | Path, seed: int = 0, progress:
     write_sample(out / "sample.toml", new)
     step(3, "simulating the plate")
     exp = experiment_from_sample(new, relief, samples=samples, seed=seed)
-    fwd = Forward(relief, exp, rec, grid=TableGrid(), where=str(sample.recording_path))
-    sim = fwd.simulated(1.0, 0.0)
-    after = rms_z(rec.bsdf_sr, rec.sigma_sr, sim.values_per_sr)
+    distinct, inverse = distinct_directions(rec)       # the pole's repeated readings simulated once
+    fwd = Forward(relief, exp, distinct, grid=TableGrid(), where=str(sample.recording_path))
+    values = fwd.simulated(1.0, 0.0).values_per_sr[inverse]
+    after = rms_z(rec.bsdf_sr, rec.sigma_sr, values)
     flat = exp.with_plate(**{sample.plate.rough_face: FlatFace()})
-    before = rms_z(rec.bsdf_sr, rec.sigma_sr, simulate(flat, rec, where=str(sample.recording_path)).values_per_sr)
-    write_recording(out / "simulated.csv", rec.with_values(sim.values_per_sr),
+    before = rms_z(rec.bsdf_sr, rec.sigma_sr,
+                   simulate(flat, distinct, where=str(sample.recording_path)).values_per_sr[inverse])
+    write_recording(out / "simulated.csv", rec.with_values(values),
                     comments=[f"relief infer {Path(sample_path).name}: the inferred relief's plate",
                               f"metric (rms z) vs recording: {after:.6g}"])
     step(4, "writing")
@@ -169,7 +190,7 @@ def infer(sample_path: str | Path, out_dir: str | Path, seed: int = 0, progress:
         "seed": int(seed),
         "physics": {"relief_face": sample.plate.rough_face, "method": face.method,
                     "chosen_by": getattr(face, "chosen_by", None), "samples": int(samples)},
-        "transmittance": {"measured": _lobe_facts(rec, rec.bsdf_sr), "simulated": _lobe_facts(rec, sim.values_per_sr)},
+        "transmittance": {"measured": _lobe_facts(rec, rec.bsdf_sr), "simulated": _lobe_facts(rec, values)},
         "limitations": limitations,
         "files": ["relief.npz", "sample.toml", "simulated.csv", "infer.json"],
     }
