@@ -15,7 +15,6 @@ Steps (each a pure function of the step before, seeded):
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -81,24 +80,18 @@ def distinct_directions(rec: Any) -> tuple[Any, np.ndarray]:
     return rec.subset(first), inverse.reshape(-1)
 
 
-def _lobe_facts(rec: Any, values: np.ndarray) -> dict:
-    """Transmittance (sum f cos dOmega over the rows, per incidence) for the report."""
+def lobe_comparison(rec: Any, values: np.ndarray) -> dict:
+    """Per incidence "theta_i/phi_i": the lobe figures (infer.lobe) measured and simulated, for the T
+    rows of incidences that form a full (theta_s, phi_s) grid (other recordings: none)."""
+    from relief_bsdf.infer.lobe import full_grid, lobe_figures
     out = {}
     for ti, pi in rec.incidences():
         sel = (rec.theta_i_deg == ti) & (rec.phi_i_deg == pi) & (rec.side == "T")
-        out[f"{ti:g}/{pi:g}"] = float(np.sum(values[sel] * direction_cosine_cell(rec.subset(sel))))
+        rows = rec.subset(sel)
+        if sel.any() and full_grid(rows):
+            out[f"{ti:g}/{pi:g}"] = {"measured": lobe_figures(rows, rec.bsdf_sr[sel]),
+                                     "simulated": lobe_figures(rows, values[sel])}
     return out
-
-
-def direction_cosine_cell(rows: Any) -> np.ndarray:
-    """Projected solid angle cos(theta_s) dOmega of each row's cell on a full (theta, phi) grid (theta cells
-    between mid-points, clipped to the grid's range; azimuth cells 360 / n_phi); NaN-free."""
-    th = np.unique(rows.theta_s_deg)
-    ph = np.unique(rows.phi_s_deg)
-    mids = np.concatenate([[th[0]], 0.5 * (th[1:] + th[:-1]), [th[-1]]])
-    lo = np.radians(mids[np.searchsorted(th, rows.theta_s_deg)])
-    hi = np.radians(mids[np.searchsorted(th, rows.theta_s_deg) + 1])
-    return 0.5 * (np.sin(hi) ** 2 - np.sin(lo) ** 2) * (2 * math.pi / ph.size)
 
 
 def infer(sample_path: str | Path, out_dir: str | Path, seed: int = 0, progress: Any = None,
@@ -190,7 +183,7 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
         "seed": int(seed),
         "physics": {"relief_face": sample.plate.rough_face, "method": face.method,
                     "chosen_by": getattr(face, "chosen_by", None), "samples": int(samples)},
-        "transmittance": {"measured": _lobe_facts(rec, rec.bsdf_sr), "simulated": _lobe_facts(rec, values)},
+        "lobe": lobe_comparison(rec, values),
         "limitations": limitations,
         "files": ["relief.npz", "sample.toml", "simulated.csv", "infer.json"],
     }

@@ -2,7 +2,8 @@
 
 For the T rows of one incidence on a full (theta_s, phi_s) grid, with values f (1/sr):
 - transmittance: sum f cos(theta_s) dOmega over the rows (cells between mid-points of the polar grid,
-  360 / n_phi in azimuth: infer.job.direction_cosine_cell);
+  360 / n_phi in azimuth: `direction_cosine_cell`; the rows must form a full grid,
+  `full_grid`);
 - centroid offset (deg): the power-weighted mean direction of the readings at or above half the lobe's
   peak (99.5th percentile, as io.measured.lobe_summary), its angle to the undeviated ray
   (T, theta_i, phi_i + 180);
@@ -15,6 +16,7 @@ For the T rows of one incidence on a full (theta_s, phi_s) grid, with values f (
 """
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -23,9 +25,25 @@ PLATEAU_RADIUS = 0.05
 _STEP = 0.0005
 
 
+def full_grid(rows: Any) -> bool:
+    """The rows form a full (theta_s, phi_s) grid (as measured plate files do), with at least 2 x 4 points."""
+    th, ph = np.unique(rows.theta_s_deg), np.unique(rows.phi_s_deg)
+    return th.size >= 2 and ph.size >= 4 and th.size * ph.size == len(rows)
+
+
+def direction_cosine_cell(rows: Any) -> np.ndarray:
+    """Projected solid angle cos(theta_s) dOmega of each row's cell on a full (theta, phi) grid (theta cells
+    between mid-points, clipped to the grid's range; azimuth cells 360 / n_phi); NaN-free."""
+    th = np.unique(rows.theta_s_deg)
+    ph = np.unique(rows.phi_s_deg)
+    mids = np.concatenate([[th[0]], 0.5 * (th[1:] + th[:-1]), [th[-1]]])
+    lo = np.radians(mids[np.searchsorted(th, rows.theta_s_deg)])
+    hi = np.radians(mids[np.searchsorted(th, rows.theta_s_deg) + 1])
+    return 0.5 * (np.sin(hi) ** 2 - np.sin(lo) ** 2) * (2 * math.pi / ph.size)
+
+
 def lobe_figures(rows: Any, values: np.ndarray) -> dict:
     """The figures of the module doc for the T rows of ONE incidence (`rows` a Recording subset)."""
-    from relief_bsdf.infer.job import direction_cosine_cell
     from relief_bsdf.infer.slopes import _lobe_interpolator
     f = np.asarray(values, float)
     ti, pi = float(rows.theta_i_deg[0]), float(rows.phi_i_deg[0])
