@@ -63,6 +63,9 @@ wavelength_nm = 633.0
     assert doc["rms_after"] < doc["rms_before"]
     # the inverted density's rms slope is the relief's (the synthesis keeps it)
     assert doc["rms_slope"] == pytest.approx(doc["density"]["rms_slope"], rel=0.03)
+    check = doc["synthesis"]["check"]
+    assert check["ks_x"] < 1.0 / 64 and check["ks_y"] < 1.0 / 64, check
+    assert doc["lobe"]["0/0"]["measured"]["transmittance"] == pytest.approx(0.898, abs=0.005)
 
     inferred = read_sample(out / "sample.toml")
     five = replace(inferred, recording_paths=(SHARED / "EDS10 5-0.txt", SHARED / "EDS10 5-45.txt"))

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from relief_bsdf.infer.slopes import SlopeDensity
-from relief_bsdf.infer.synth import cell_widths, lenslet_relief, plan_for
+from relief_bsdf.infer.synth import cell_widths, density_check, lenslet_relief, plan_for
 from relief_bsdf.surface.stats import facet_slopes, rms_slope_xy, slope_histogram
 
 
@@ -34,6 +34,9 @@ def test_relief_reproduces_the_density():
         cdf_p = np.interp(v, d.edges_sx, np.concatenate([[0.0], np.cumsum(marginal) * ds]))
         ks = np.max(np.abs(cdf_p - (np.arange(v.size) + 0.5) / v.size))
         assert ks < 1.0 / 64, ks      # the m-point discretisation of a cell: at most 1 / (2 m), m >= 32 px
+    check = density_check(relief, d)           # the job's own check agrees
+    assert check["ks_x"] < 1.0 / 64 and check["ks_y"] < 1.0 / 64
+    assert check["rms_slope_relief"] == pytest.approx(check["rms_slope_density"], rel=0.01)
     rx, ry = rms_slope_xy(relief)
     m = d.moments()          # the binned top-hat reaches the outer edges of its bins: rms ~0.2066 / sqrt 3
     assert rx == pytest.approx(m["rms_slope_x"], rel=0.005) and ry == pytest.approx(m["rms_slope_y"], rel=0.01)

@@ -110,7 +110,7 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
     from relief_bsdf.fit.optimise import Forward
     from relief_bsdf.fit.residual import METRIC, rms_z
     from relief_bsdf.infer.slopes import slope_density
-    from relief_bsdf.infer.synth import lenslet_relief, plan_for
+    from relief_bsdf.infer.synth import density_check, lenslet_relief, plan_for
     from relief_bsdf.io.atomic import write_text_atomic
     from relief_bsdf.io.heightmaps import write_relief
     from relief_bsdf.io.recording import write_recording, write_sample
@@ -179,7 +179,8 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
         "index_stated": index_stated,
         "inverted_from": {"theta_i_deg": ti, "phi_i_deg": pi, "wavelength_nm": wl, "rows": len(rows0)},
         "density": {**density.moments(), "separability_tv": facts["separability_tv"], "notes": list(density.notes)},
-        "synthesis": {k: v for k, v in facts.items() if k != "separability_tv"},
+        "synthesis": {**{k: v for k, v in facts.items() if k != "separability_tv"},
+                      "check": density_check(relief, density)},
         "seed": int(seed),
         "physics": {"relief_face": sample.plate.rough_face, "method": face.method,
                     "chosen_by": getattr(face, "chosen_by", None), "samples": int(samples)},

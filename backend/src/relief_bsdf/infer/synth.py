@@ -137,3 +137,20 @@ def lenslet_relief(density: SlopeDensity, plan: LensletPlan) -> tuple[Relief, di
              "mean_cell_um": plan.mean_cell_m * 1e6, "cell_px": plan.cell_px, "pitch_um": plan.pitch_m * 1e6,
              "tile_px": plan.n, "diffraction_du": DIFFRACTION_DU}
     return relief, facts
+
+
+def density_check(relief: Relief, density: SlopeDensity) -> dict:
+    """How well the relief's facet slopes (surface.stats.facet_slopes, the triangles the ray tracer
+    meets) follow the density: the Kolmogorov distance of each axis from the density's marginal (a cell
+    of m pixels discretises its quantiles to within 1 / (2 m)), and the rms slopes of both."""
+    from relief_bsdf.surface.stats import facet_slopes, rms_slope
+    sx, sy = facet_slopes(relief)
+    px, py = density.marginals()
+    out = {}
+    for name, got, edges, marginal in (("x", sx, density.edges_sx, px), ("y", sy, density.edges_sy, py)):
+        v = np.sort(got[np.isfinite(got)].ravel())
+        cdf = np.concatenate([[0.0], np.cumsum(marginal * np.diff(edges))])
+        out[f"ks_{name}"] = float(np.max(np.abs(np.interp(v, edges, cdf / cdf[-1]) - (np.arange(v.size) + 0.5) / v.size)))
+    out["rms_slope_relief"] = rms_slope(relief)
+    out["rms_slope_density"] = density.moments()["rms_slope"]
+    return out
