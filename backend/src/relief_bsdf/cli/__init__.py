@@ -26,12 +26,12 @@ from typing import Iterator
 from relief_bsdf.errors import InputError, warning_line
 
 COMMANDS = ["info", "synth", "reconstruct", "fill", "crop", "export", "plot", "simulate", "fit",
-            "diagnose", "conceal", "render"]
+            "diagnose", "conceal", "render", "infer"]
 
 #: what each command's -o/--out names: an output "file" or an output "dir" (folder)
 OUTPUT_KIND = {"synth": "file", "reconstruct": "file", "fill": "file", "crop": "file", "export": "file",
                "plot": "file", "render": "file",
-               "simulate": "dir", "fit": "dir", "diagnose": "dir", "conceal": "dir"}
+               "simulate": "dir", "fit": "dir", "diagnose": "dir", "conceal": "dir", "infer": "dir"}
 
 
 class Terminated(KeyboardInterrupt):

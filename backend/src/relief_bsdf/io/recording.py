@@ -557,17 +557,28 @@ def _check_index(n: float, path: Path, key: str) -> None:
                                "of a transparent plate" + (" (n = 1 is no boundary at all)" if n <= 1 else ""))
 
 
-def read_sample(path: str | Path, check_files: bool = True) -> Sample:
-    """Read and validate a sample.toml; with `check_files` the relief and recording must exist."""
+def read_sample_doc(path: str | Path) -> dict:
+    """The TOML document of a sample.toml as read (not yet validated); InputError naming the file if it
+    cannot be read or is not UTF-8 TOML."""
     path = Path(path)
     raw = _read_bytes(path, "sample")
     try:
-        doc = tomllib.loads(raw.decode("utf-8-sig"))
+        return tomllib.loads(raw.decode("utf-8-sig"))
     except UnicodeDecodeError:
         raise InputError(path, "not UTF-8 text; a sample.toml is UTF-8 TOML") from None
     except tomllib.TOMLDecodeError as e:
         raise InputError(path, f"not valid TOML: {e}") from None
-    return _sample_from_doc(doc, path, check_files)
+
+
+def sample_from_doc(doc: dict, path: str | Path, check_files: bool = True) -> Sample:
+    """Validate a sample.toml document (`read_sample_doc`) read from `path` into a `Sample`."""
+    return _sample_from_doc(doc, Path(path), check_files)
+
+
+def read_sample(path: str | Path, check_files: bool = True) -> Sample:
+    """Read and validate a sample.toml; with `check_files` the relief and recording must exist."""
+    path = Path(path)
+    return _sample_from_doc(read_sample_doc(path), path, check_files)
 
 
 def _toml_value(v: Any) -> str:
