@@ -85,3 +85,20 @@ def test_a_solver_is_held_measured_and_a_starved_budget_gives_the_same_numbers()
         assert len(starved) <= 1 and starved.evictions > 0
     np.testing.assert_array_equal(got, first)
     np.testing.assert_allclose(again, first + 0.01, rtol=1e-12)
+
+
+def test_threads_of_one_job_share_the_owner_safely():
+    """The plate's threads (the model sigma's draws, a screen beside the workers) put and evict in one
+    owner at once: no error, the budget held, every value found or made again."""
+    from concurrent.futures import ThreadPoolExecutor
+    m = ForwardMemory(budget_bytes=20_000)
+
+    def work(t: int) -> int:
+        n = 0
+        for k in range(300):
+            v = m.get(("w", t, k % 37), lambda: np.full(100, float(k % 37)))
+            n += int(v[0] == k % 37)
+        return n
+    with ThreadPoolExecutor(4) as pool:
+        assert list(pool.map(work, range(4))) == [300] * 4
+    assert m.held_bytes <= 20_000 and m.evictions > 0

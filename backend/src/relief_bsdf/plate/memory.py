@@ -30,6 +30,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import os
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -112,21 +113,23 @@ class ForwardMemory:
         self.hits = self.misses = self.evictions = 0
         self.peak_bytes = 0
         self._clock = 0.0                # GreedyDual-Size's inflation value
+        self._lock = threading.RLock()   # threads of one job share the owner (a value is made outside it)
 
     # -- the store
     def get(self, key: tuple, make: Callable[[], Any], kind: str = "table") -> Any:
         """The value held under `key`, else `make()` (put under `key`)."""
-        if kind == "table":
-            for used in self._recorders:
-                used.add(key)
-        e = self._d.get(key)
-        if e is not None:
-            self._use(key, e)
-            self.hits += 1
-            return e.value
-        if _HELD_ONLY.get():
-            raise MissingTable(key)
-        self.misses += 1
+        with self._lock:
+            if kind == "table":
+                for used in self._recorders:
+                    used.add(key)
+            e = self._d.get(key)
+            if e is not None:
+                self._use(key, e)
+                self.hits += 1
+                return e.value
+            if _HELD_ONLY.get():
+                raise MissingTable(key)
+            self.misses += 1
         t0 = time.perf_counter()
         v = make()
         self.put(key, v, kind, cost_s=time.perf_counter() - t0)
@@ -138,40 +141,44 @@ class ForwardMemory:
 
     def peek(self, key: tuple) -> Any:
         """The value held under `key` or None (no derivation, no recency change)."""
-        e = self._d.get(key)
-        return None if e is None else e.value
+        with self._lock:
+            e = self._d.get(key)
+            return None if e is None else e.value
 
     def put(self, key: tuple, value: Any, kind: str = "table", cost_s: float | None = None) -> None:
         """Hold `value` under `key` (newest), then evict to the budget.  `cost_s`: the seconds it took to
         make (None: what the value says, e.g. a table's `timing_s`, else 0)."""
-        old = self._d.pop(key, None)
-        if old is not None:
-            self._total -= old.nbytes
-        e = _Entry(kind if kind in KINDS else "other", value, deep_nbytes(value),
-                   _cost_of(value) if cost_s is None else float(cost_s))
-        self._d[key] = e
-        self._total += e.nbytes
-        self._use(key, e)
-        self._evict()
+        with self._lock:
+            old = self._d.pop(key, None)
+            if old is not None:
+                self._total -= old.nbytes
+            e = _Entry(kind if kind in KINDS else "other", value, deep_nbytes(value),
+                       _cost_of(value) if cost_s is None else float(cost_s))
+            self._d[key] = e
+            self._total += e.nbytes
+            self._use(key, e)
+            self._evict()
 
     def refresh(self, key: tuple | None, cost_s: float = 0.0) -> None:
         """Measure an entry again (a solver's operators are made while it solves), add `cost_s` to what it
         cost, and evict to the budget (None: evict only, e.g. after the budget changed)."""
-        e = self._d.get(key) if key is not None else None
-        if e is None:
+        with self._lock:
+            e = self._d.get(key) if key is not None else None
+            if e is None:
+                self._evict()
+                return
+            self._total -= e.nbytes
+            e.nbytes = deep_nbytes(e.value)
+            e.cost_s += float(cost_s)
+            self._total += e.nbytes
+            self._use(key, e)
             self._evict()
-            return
-        self._total -= e.nbytes
-        e.nbytes = deep_nbytes(e.value)
-        e.cost_s += float(cost_s)
-        self._total += e.nbytes
-        self._use(key, e)
-        self._evict()
 
     def discard(self, key: tuple) -> None:
-        e = self._d.pop(key, None)
-        if e is not None:
-            self._total -= e.nbytes
+        with self._lock:
+            e = self._d.pop(key, None)
+            if e is not None:
+                self._total -= e.nbytes
 
     def _evict(self) -> None:
         """GreedyDual-Size down to the budget and the entry count (module doc); never the newest entry."""
@@ -186,32 +193,38 @@ class ForwardMemory:
 
     def entries(self, kind: str) -> list[tuple[tuple, Any]]:
         """(key, value) of the entries of `kind`, least recently used first."""
-        return [(k, e.value) for k, e in self._d.items() if e.kind == kind]
+        with self._lock:
+            return [(k, e.value) for k, e in self._d.items() if e.kind == kind]
 
     def values(self, kind: str) -> list:
         """The values of the entries of `kind`, least recently used first."""
-        return [e.value for e in self._d.values() if e.kind == kind]
+        with self._lock:
+            return [e.value for e in self._d.values() if e.kind == kind]
 
     def drop(self, kind: str) -> None:
         """Discard every entry of `kind`."""
-        for k in [k for k, e in self._d.items() if e.kind == kind]:
-            self.discard(k)
+        with self._lock:
+            for k in [k for k, e in self._d.items() if e.kind == kind]:
+                self.discard(k)
 
     def key_of(self, value: Any) -> tuple | None:
         """The key `value` (the object itself) is held under, or None."""
-        for k, e in self._d.items():
-            if e.value is value:
-                return k
-        return None
+        with self._lock:
+            for k, e in self._d.items():
+                if e.value is value:
+                    return k
+            return None
 
     def touch(self, key: tuple) -> None:
-        e = self._d.get(key)
-        if e is not None:
-            self._use(key, e)
+        with self._lock:
+            e = self._d.get(key)
+            if e is not None:
+                self._use(key, e)
 
     def clear(self) -> None:
-        self._d.clear()
-        self._total = 0
+        with self._lock:
+            self._d.clear()
+            self._total = 0
 
     def __contains__(self, key: tuple) -> bool:
         return key in self._d
@@ -247,13 +260,14 @@ class ForwardMemory:
     def tables(self, keys: Any) -> dict:
         """{key: table} of those of `keys` still held whose value is a BsdfTable (data that can travel to a
         worker process).  One read per key: another thread may put or evict meanwhile."""
-        from relief_bsdf.bsdf.table import BsdfTable
-        out = {}
-        for k in keys:
-            e = self._d.get(k)
-            if e is not None and isinstance(e.value, BsdfTable):
-                out[k] = e.value
-        return out
+        with self._lock:
+            from relief_bsdf.bsdf.table import BsdfTable
+            out = {}
+            for k in keys:
+                e = self._d.get(k)
+                if e is not None and isinstance(e.value, BsdfTable):
+                    out[k] = e.value
+            return out
 
     def worth_sending(self, tables: dict) -> bool:
         """Whether tables are small enough to be sent to this process and held: at most a sixth of the
@@ -262,20 +276,22 @@ class ForwardMemory:
 
     def holds(self, keys: Any) -> bool:
         """Whether every one of `keys` is held (False for None or no keys)."""
-        return bool(keys) and all(k in self._d for k in keys)
+        with self._lock:
+            return bool(keys) and all(k in self._d for k in keys)
 
     # -- reporting
     def report(self) -> dict:
         """{"budget_bytes", "held_bytes", "peak_held_bytes", "hits", "misses", "evictions",
         "by_kind": {kind: {"entries", "bytes"}}}."""
-        by: dict = {}
-        for e in self._d.values():
-            k = by.setdefault(e.kind, {"entries": 0, "bytes": 0})
-            k["entries"] += 1
-            k["bytes"] += e.nbytes
-        return {"budget_bytes": int(self.budget_bytes), "held_bytes": int(self._total),
-                "peak_held_bytes": int(self.peak_bytes), "hits": self.hits, "misses": self.misses,
-                "evictions": self.evictions, "by_kind": by}
+        with self._lock:
+            by: dict = {}
+            for e in self._d.values():
+                k = by.setdefault(e.kind, {"entries": 0, "bytes": 0})
+                k["entries"] += 1
+                k["bytes"] += e.nbytes
+            return {"budget_bytes": int(self.budget_bytes), "held_bytes": int(self._total),
+                    "peak_held_bytes": int(self.peak_bytes), "hits": self.hits, "misses": self.misses,
+                    "evictions": self.evictions, "by_kind": by}
 
     # -- scope
     @contextlib.contextmanager

@@ -18,6 +18,7 @@ Tables without a sigma (wave methods, Fresnel faces) contribute nothing.
 from __future__ import annotations
 
 import dataclasses
+import contextvars
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -128,7 +129,9 @@ def rows_draws(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
         for lo in range(0, draws, threads):
             batch = [{name: TableFace(perturbed(t_in, rng), perturbed(t_out, rng), perturbed(half, rng))
                       for name, (t_out, t_in, half) in faces.items()} for _ in range(lo, min(draws, lo + threads))]
-            runs[lo:lo + len(batch)] = list(pool.map(solve, batch))
+            # each solve in a copy of this thread's context: the job's memory owner (plate.memory) and the
+            # parallel settings in force reach the pool's threads
+            runs[lo:lo + len(batch)] = list(pool.map(lambda b: contextvars.copy_context().run(solve, b), batch))
     return runs
 
 
