@@ -43,7 +43,8 @@ from typing import Any
 
 import numpy as np
 
-from relief_bsdf.core.fresnel import fresnel_reflectance
+from relief_bsdf.core.frames import direction
+from relief_bsdf.core.fresnel import fresnel_reflectance, refract
 from relief_bsdf.errors import InputError
 
 #: readings at or above this fraction of the lobe's peak are the lobe (see module doc)
@@ -58,8 +59,7 @@ _JAC_STEP = 1e-6
 
 
 def _incident(theta_i_deg: float, phi_i_deg: float) -> np.ndarray:
-    t, p = np.radians(theta_i_deg), np.radians(phi_i_deg)
-    return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
+    return direction(theta_i_deg, phi_i_deg)         # toward the source (the contract's frame)
 
 
 def _normals(s: np.ndarray) -> np.ndarray:
@@ -75,11 +75,9 @@ def exit_cosines(s: Any, n: float, theta_i_deg: float = 0.0, phi_i_deg: float = 
     m = _normals(s)
     wi = _incident(theta_i_deg, phi_i_deg)
     c = m @ wi
-    eta = 1.0 / n
-    k = 1.0 - eta**2 * (1.0 - c**2)
-    t = -eta * wi + (eta * c - np.sqrt(np.maximum(k, 0.0)))[..., None] * m
+    t, refracted = refract(np.broadcast_to(wi, m.shape), m, 1.0 / n)   # the project's one Snell (core.fresnel)
     u = n * t[..., :2]
-    ok = (c > 0) & (k > 0) & (np.sum(u * u, axis=-1) < 1.0)
+    ok = (c > 0) & refracted & (np.sum(u * u, axis=-1) < 1.0)
     return u, ok
 
 
