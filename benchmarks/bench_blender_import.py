@@ -1,4 +1,4 @@
-"""Import speed of a 1024 x 1024 height map into Blender (issue 7: under 2 s).
+"""Import speed of a 1024 x 1024 height map into Blender (target: under 2 s).
 
 Times, in one run of this process (bpy module, CPU):
 - `import`: the whole operator `bpy.ops.relief.import_heightmap` on an .npz file

@@ -1,4 +1,4 @@
-"""Forward model vs an independent photon Monte Carlo through the real relief (issue 18, item 2).
+"""Forward model vs an independent photon Monte Carlo through the real relief.
 
 For each relief case: a clean recording made by the validation's photon engine
 (`validation.record.trace_recording`: the relief triangulated and ray traced with Embree by
@@ -28,108 +28,14 @@ slope from 0.06 into the range, mirrored into a periodic tile: see `measured_til
     PYTHONPATH=backend/src RELIEF_BACKEND=serial python benchmarks/bench_forward_accuracy.py \
         --cases gauss_mid --grids 1,5,5 0.5,5,2.5 --photons 4000000 [--samples 200000] [--json out.json]
 
-Grid specs: "default" = TableGrid(); "old" = the single-grid engine before issue 18 item 2
+Grid specs: "default" = TableGrid(); "old" = the single-grid engine
 (TableGrid(1, 5, 5, direct_theta_step_deg=None, inside_samples_scale=1)); "t,p,i[,s][,nodirect]".
 `--cache DIR` keeps the independent recordings (rec_<case>_<photons>_<theta_i>.npz) for re-runs.
 Runtime: the photon run is ~7 s per million photons per incidence on one core (256^2 relief),
 so 4 M photons x 6 incidences is ~3 minutes per case; run cases one at a time on a shared machine.
 
-The default grid (2026-12-02, plate.grid): the loop on the engine grid (1-deg rings x 5-deg
-azimuth cells, inside incidences every 2.5 deg at a quarter of the rays each); the outside tables on a
-DIRECT grid (0.5-deg rings, below the critical angle the flat face's Snell pre-images of 0.5-deg
-exit rings; 1-deg azimuth cells within 12.5 deg of the plane of incidence, 5 deg elsewhere; a
-tile fills at most one cell per facet, so a 128^2 tile gets 1-deg rings); the direct reflection
-and the first transmitted pass are read from those cells by a cone integral with a limited
-linear reconstruction inside each cell (plate.detector.direct_reading).
+The default grid (plate.grid) and the evidence that chose it: docs/decisions/018-forward-grid.md.
 
-How the parameters were chosen: the structure (direct grid, 0.5 / 1 deg, band 12.5 deg, inside
-2.5 deg at 0.5x rays) was developed on gauss_mid (relief seed 11, its 1 M and 4 M recordings) and
-checked on a second realisation (relief seed 12, 1 M: old 2.96 -> 1.08 before the in-cell
-reconstruction); the in-cell reconstruction was chosen on an analytic lobe (tests/backend/plate/
-test_direct_grid.py: a 2-deg Gaussian lobe read 1.6 % low at 70 deg without it, 0.1 % with it).
-Every other case below, and the test relief, chose nothing.  The inside effort was halved on
-2026-12-02 (0.5x -> 0.25x rays per inside incidence, a speed choice) after measuring it on every
-case: rms z moved by at most 0.04 (`--grids default 1,5,2.5,0.25`, 400k and 200k rays), and the
-forward's seconds fell by a third; the table below is at 0.5x, the in-lobe levels
-(forward / recording, per side) at 0.25x, 400k rays, 1 M photons, 0/30/60 deg:
-
-    case         R level  T level        case         R level  T level
-    gauss_low    0.968    0.998          exponential  0.989    0.997
-    gauss_mid    0.997    1.001          two_scales   0.994    1.000
-    gauss_high   0.991    1.002          anisotropic  0.981    1.001
-    dots         1.000    1.000          measured     0.961    0.992
-
-1 M photons per incidence (gauss_mid: also 4 M), theta_i 0 / 30 / 60 (gauss_mid: 0-75 every 15),
-400k rays, sigma = the recording's; seconds = the forward with its tables traced, on 2 shared
-cores under load 4-5 (old and default of a case run back to back):
-
-    case        slope  n     t    cone  old rms z (R / T)    default rms z (R / T; lobe)   s old / default
-    gauss_mid   0.232  1.53  2    2.0   4.40 (3.57 / 5.09)   1.42 (1.32 / 1.52; 1.85)      15 / 21   4 M photons
-    gauss_mid                           2.35 (1.94 / 2.70)   0.99 (0.96 / 1.01; 1.24)      21 / 22   1 M photons
-    gauss_low   0.116  1.45  1    1.5   7.32 (2.96 / 9.92)   1.11 (1.28 / 0.91; 2.44)      17 / 25
-    gauss_high  0.338  1.60  3    2.5   1.72 (1.54 / 1.88)   1.17 (1.06 / 1.26; 1.21)      23 / 29
-    dots        0.244  1.49  2    2.0   2.51 (1.71 / 3.12)   1.62 (1.18 / 1.97; 0.64)      24 / 26
-    exponential 0.318  1.50  2    2.0   1.66 (1.23 / 2.00)   1.09 (1.00 / 1.17; 1.35)      24 / 27
-    two_scales  0.200  1.50  1.5  2.0   2.78 (1.63 / 3.58)   1.05 (1.01 / 1.10; 1.41)      24 / 24
-    anisotropic 0.210  1.50  2    2.0   5.90 (4.46 / 7.05)   3.09 (4.09 / 1.54; 7.30)      22 / 24
-    measured    0.169  1.52  1.1  2.0   11.97 (5.01 / 16.18) 2.07 (2.37 / 1.70; 4.13)      26 / 21
-
-In-lobe WIDTH forward / recording (2026-12-03, same runs: the rms spread of the in-plane angle
-weighted by the values over each incidence's lobe rows; dots: n/a, fewer than 3 lobe rows):
-T 0.997-1.005 on every case (rms deviation 0.25 %), R 0.99-1.02 except gauss_low (1.02-1.05: the
-narrowest R lobe, 1.5-deg cone) and anisotropic at normal incidence (1.26: the azimuth-averaged
-second pass).  A slope parameter (height scale, filter) is thus held by the forward's shape to
-~0.3 % through T; the seed-6 diagnosis benchmark's 0.9 % height-scale error (case04) is not a
-width systematic of the forward but the tables' Monte-Carlo noise: chi^2 there wiggles by +-2
-over 0.3 % steps of the scale (102.3, 101.6, 101.5, 99.4, 106.4 at 1.3007-1.3155).
-
-Findings:
-- The direct grid removes what the single-grid engine's cells did to the lobes: the in-plane cut
-  of oblique transmitted lobes (T 45 in-plane integral 0.961 -> 1.000 of the recording), grazing
-  exits (T 60 ts 85-87: 0.84-0.90 -> 0.95-0.97; R 75: 0.86 -> 0.97), the pole rows (T 0 ts 1:
-  read as the cone integral of the cells, no point value of a vanishing cell), narrow lobes
-  (measured map, peak 67 /sr: 11.97 -> 2.07; gauss_low 7.32 -> 1.11).
-- The "16x" outlier (T theta_i 15, ts 35, phi 180, gauss_mid) is a lobe's HARD EDGE, not a bug:
-  the finite tile has a largest slope, so the transmitted lobe ends within a degree (the
-  recording falls 45x from ts 33 to 35; on the test's 128^2 tile 1000x from ts 13 to 15).  The
-  single-grid engine spread the edge over a 1-deg internal cell (1.7 deg outside) and linear
-  interpolation between cell centres (6x at z 17); on the direct grid T 15 ts 33 / 35 read
-  1.26x / 1.5x at z 5.7 / 1.8 (gauss_mid), the test tile's 150x became 1.6x (z 0.7).
-- The second pass by azimuth sector (2026-12-03, plate.faces.inside_sectors: an anisotropic relief's
-  inside table traced at incidence azimuths 0-150 every 30, each sector of the flat-reflected first
-  transmission leaving through the nearest): anisotropic 3.09 -> 1.72 (R 4.09 -> 1.88; R width at
-  normal incidence 1.26 -> 1.03), measured 2.07 -> 1.70 (R 2.38 -> 1.70), same runs otherwise.
-- Inside incidences every 2.5 deg (not 5) fixed the second pass (front -> back face -> out through
-  the relief from inside): R 15 phi 180 was 7 % low at its peak and 20 % high at ts 1-5 (two
-  inside tables blended); same rays in total (0.5x per incidence), same accuracy as 1x.
-- The inside tables' transmitted lobes MOVE between their incidences (2026-12-03, `TableGrid.
-  inside_interpolation`, `--grids default default,linear`): the measured map's second-pass R peak was two
-  half lobes ~4 deg apart (R theta_i 30 ts 29 read 14 % low, now 7 %): measured 1.47 -> 1.35, gauss_low
-  1.08 -> 0.87, anisotropic 1.12 -> 1.03, the rest within 0.01; on relief seed 12 (`--relief-seed 12`, fresh
-  recordings) gauss_low 1.03 -> 0.82, anisotropic 0.93 -> 0.88, the rest within 0.02.  Sectors every 7.5 deg
-  (`default,sectors=7.5`): dots 1.29 -> 1.19, measured 1.35 -> 1.27 (seed 12: dots 1.36 -> 1.21), at twice the
-  loop's time and memory (not the default, plate.grid).
-- The first transmission enters the loop as point sources at the azimuth cells' centres (2026-12-04,
-  plate.detector.centre_values unclipped, plate.deterministic `_incidence`): on an opaque plate (bulk
-  30/mm in both engines) the measured map's R, its direct reflection alone, agreed to 0.2 %; the rest of R
-  (second pass and after) read 7 % low at 30 and 60 deg (tests/backend/plate/
-  test_second_pass_measured.py), 3.7 % now: the 5-deg cells' averaging had widened light that is narrow
-  across the plane of incidence (the map's slopes 2.2x steeper along x) at every later exit.  Measured
-  map 1.35 -> 1.18 (R level 0.964 -> 0.981), anisotropic 1.03 -> 0.99, gauss_low 0.87 -> 0.81, the rest
-  within 0.01; relief seed 12 every case better or equal (gauss_low 0.82 -> 0.77).  2.5-deg engine cells
-  (`--grids 1,2.5,2.5`) had done as much for R (1.48 -> 1.15) at 1.2-1.5x the forward's time; the
-  sector tables do not matter there (`default,sectors=180`: the same second pass at 30 and 60 deg).
-- Each inside sector table the AVERAGE over its sector's incidence azimuths (2026-12-05, ray option
-  `phi_i_spread_deg`, plate.faces.inside_sectors), not the table at the sector's centre: dots 1.29 -> 1.09
-  (T 1.47 -> 1.10: the centres 0, 15, 30 ... deg are the hexagonal lattice's row directions, where the
-  trapped light meets the dots unlike a few degrees off), relief seed 12 dots 1.35 -> 1.10; exponential,
-  anisotropic and measured within 0.02; same rays and time.  Every case of seed 11 now at or below 1.2.
-- Left: at 4 M photons gauss_mid is at 1.42 (the forward's own noise at 400k rays is ~0.7
-  recording sigma in the lobe, and the tile's fine structure narrower than 0.5 deg: +-2-3 %
-  wiggles, e.g. T ts 57 / 59); anisotropic and measured (slope ratio 2.7 and 2.2: the engine
-  warns) miss in R, where the second pass goes through the inside tables that the engine
-  rotates as if the relief were isotropic (R 0 ts 1-9: 0.6-2x); dots: T at theta_i 60 near the
-  normal exit (ts 1-5, far tail, loop part) 3-4x the recording (open).
 """
 from __future__ import annotations
 
@@ -279,10 +185,10 @@ def parse_grid(spec: str):
     """"default": TableGrid(); "old": the single-grid engine (1,5,5, no direct grid, linear in the inside
     incidences); "t,p,i[,s]": TableGrid(theta_step_deg=t, phi_step_deg=p, inside_theta_i_step_deg=i[,
     inside_samples_scale=s]) with the default direct grid; trailing ",nodirect" drops the direct grid,
-    ",linear" blends the inside tables between their incidences (the engine before 2026-12-03: lobes
+    ",linear" blends the inside tables between their incidences (lobes
     that do not move); ",sectors=7.5" the inside sector tables' azimuth step, ",sectors=always" the sector
     tables for every ray-traced relief (TableGrid.sectors), ",spread=45" the loop's inside table averaged over
-    +-45 deg of incidence azimuth (TableGrid.inside_azimuth_spread_deg; 45 by default since 2026-12-06,
+    +-45 deg of incidence azimuth (TableGrid.inside_azimuth_spread_deg; 45 by default,
     ",spread=0" the table at its own azimuth); "default,linear" too."""
     from relief_bsdf.plate import TableGrid
     parts = spec.split(",")

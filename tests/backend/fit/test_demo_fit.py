@@ -1,4 +1,4 @@
-"""`make demo`'s fit on the demo recording, which the project's forward model did not make (issue 18 item 3).
+"""`make demo`'s fit on the demo recording, which the project's forward model did not make.
 
 scenes/demo/recording.csv is the independent photon Monte Carlo through the TRUE relief
 (scenes/make_demo.py: the file's relief scaled by TRUE_SCALE and filtered by TRUE_FILTER_UM, ray traced
@@ -37,10 +37,7 @@ def test_demo_fit_reaches_the_noise_and_gives_back_scale_and_filter(tmp_path):
     assert doc["parameters"]["filter_sigma_um"] == pytest.approx(g_true, rel=0.05)
     assert doc["identifiability"]["filter_needed"] is True
     # the intervals hold the truth: within 2.5 half-widths of the 68 % interval (one recording, seeded;
-    # the log metric's own optimum sat 2.7 half-widths off the true filter before the likelihood's polish,
-    # and the polish alone 2.8 with the inside table spread over +-45 deg of azimuth, in a bump of the
-    # tables' noise, before the response surface; with it, the filter 0.0, 0.3, 1.2, 1.5 and the scale
-    # 0.8, 0.3, 1.5, 2.3 half-widths off at ray seeds 0-3, 2026-12-06)
+    # the spread over ray seeds is in docs/decisions/005-response-surface.md)
     for name, truth in (("height_scale", s_true), ("filter_sigma_um", g_true)):
         lo, hi = doc["intervals"][name]
         mid, half = doc["parameters"][name], (hi - lo) / 2

@@ -1,4 +1,4 @@
-"""What the fit says the recording determines (fit.optimise, issue 18 item 5).
+"""What the fit says the recording determines (fit.optimise).
 
 Two stand-in forward models make the logic testable in seconds: a *geometric-optics-like* plate
 whose lobe depends only on the processed relief's rms slope (scale and filter slide along a

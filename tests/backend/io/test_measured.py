@@ -30,7 +30,7 @@ ISBSDF_FILES = {  # name: (ScatterType side, wavelength stated in the header)
     "test_13_planesymmetric_brdf_zemax.bsdf": ("R", None),
     "test_13_planesymmetric_btdf_zemax.bsdf": ("T", None),
 }
-HALF_WIDTH = 0.095          # the top-hat's half-maximum half-width in direction cosine (issue 51)
+HALF_WIDTH = 0.095          # the top-hat's half-maximum half-width in direction cosine
 
 
 def _rows(name: str):
@@ -189,7 +189,7 @@ def test_eds10_lobe_centroid_on_the_undeviated_direction(name):
 @pytest.mark.shared_data
 @pytest.mark.parametrize("name", list(RPC_FILES))
 def test_eds10_top_hat_edges_plateau_and_transmittance(name):
-    """Facts of the measurement (issue 51), from the rows: half-maximum edges at sin(theta_i) +- 0.095
+    """Facts of the measurement, from the rows: half-maximum edges at sin(theta_i) +- 0.095
     in direction cosine along both sample axes through the undeviated direction, plateau 22-23 /sr,
     transmittance into 0-85 deg 0.88-0.90."""
     from scipy.interpolate import LinearNDInterpolator

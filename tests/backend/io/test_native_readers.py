@@ -1,4 +1,4 @@
-"""The project's own X3P / GWY / PLU readers, run with SurfaceTopography made unavailable (issue 16, item 1).
+"""The project's own X3P / GWY / PLU readers, run with SurfaceTopography made unavailable.
 
 Oracles are independent: SurfaceTopography's readers of the same real X3P and PLU files, and files written
 by `gwyfile` (an independent pure-Python implementation of Gwyddion's format).

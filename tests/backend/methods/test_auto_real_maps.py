@@ -1,5 +1,5 @@
 """`auto` on the real instrument files: its table's coherent specular fraction against the tables of
-the wave methods that are valid on the same map (issue 13, item 4).
+the wave methods that are valid on the same map.
 
 The coherent specular fraction of one side is the table's delta part over that side's hemispherical
 total, specular_R / R and specular_T / T (bsdf.appearance: coherent_fraction_R / _T).  Each method

@@ -1,4 +1,4 @@
-"""Method `ray`: Embree ray tracing of the real relief (issue 3, method 1).
+"""Method `ray`: Embree ray tracing of the real relief.
 
 Physical truths checked: Fresnel / Snell / TIR on a flat relief (scalar and Mueller),
 energy conservation with inter-reflections at any incidence from both sides (periodic
@@ -447,7 +447,7 @@ def test_scalar_split_and_roulette_paths_agree_both_sides():
     assert res[True]["inside"]["R"][0, 1, 0] > 0.5                   # 55 deg from inside: mostly TIR
 
 
-# ----------------------------------------------------------------------------- honest uncertainty (issue 13 item 2)
+# ----------------------------------------------------------------------------- honest uncertainty
 
 def _realisation_z(tile_uncertainty: bool, seeds=(11, 12), n=256):
     """z-scores of the lobe cells between two independent tiles of the same statistics."""
@@ -523,7 +523,7 @@ def _in_cell(d, t0, t1, p0, p1):
 
 @pytest.mark.slow
 def test_cell_to_cell_reciprocity_like_with_like():
-    """Helmholtz reciprocity of cell averages, compared like with like (issue 13: cell averages of a
+    """Helmholtz reciprocity of cell averages, compared like with like (cell averages of a
     reciprocal BSDF are not reciprocal cell by cell).  A cell is a set of directions; a beam whose
     source directions fill cell A uniformly in projected solid angle Omega_A sends the fraction
     P(A -> B) of its power out along the propagation directions of cell B.  Reversing every path,

@@ -79,7 +79,7 @@ def test_ray_reads_typed_options_and_refuses_a_misspelled_one():
     assert t.metadata["request"]["options"]["max_bounces"] == 3 and t.mueller_per_sr is None
 
 
-# ----------------------------------------------------------------------------- reuse across fit evaluations (issue 18 item 4)
+# ----------------------------------------------------------------------------- reuse across fit evaluations
 
 def test_with_heights_reuses_the_topology_and_equals_a_fresh_tracer():
     from relief_bsdf.surface.mesh import build_tile_mesh

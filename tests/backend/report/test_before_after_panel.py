@@ -1,4 +1,4 @@
-"""The demo picture's boundary-BSDF panel (issue 15 item 5): curves before / after a fit, haze in the legend."""
+"""The demo picture's boundary-BSDF panel: curves before / after a fit, haze in the legend."""
 import numpy as np
 import pytest
 

@@ -160,7 +160,7 @@ def test_fit_report_says_how_the_estimate_and_its_intervals_were_made(tmp_path):
                                    "estimate": "likelihood optimum", "interval_method": "Newey-West"})
     body = strip_images(write_fit_report(tmp_path / "r.html", doc, plots).read_text())
     assert "BIC rule; likelihood optimum; Newey-West." in body
-    del doc["identifiability"]["estimate"]                       # a fit.json of an earlier round
+    del doc["identifiability"]["estimate"]                       # a fit.json without the estimate
     body = strip_images(write_fit_report(tmp_path / "r.html", doc, plots).read_text())
     assert "BIC rule; Newey-West." in body
 

@@ -128,7 +128,7 @@ def test_as_dict_has_contract_keys():
     json.dumps(d, allow_nan=False)
 
 
-# ---------------------------------------------------------------- anisotropy flag (issue 13, item 3)
+# ---------------------------------------------------------------- anisotropy flag
 
 @pytest.mark.parametrize("angle_deg", [0.0, 45.0, 120.0])
 def test_anisotropy_flag_finds_a_lay_at_any_angle(angle_deg):

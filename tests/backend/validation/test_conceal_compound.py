@@ -1,4 +1,4 @@
-"""Compound and non-Gaussian-relief concealed cases (issue 14): what the generator hides and on what relief."""
+"""Compound and non-Gaussian-relief concealed cases: what the generator hides and on what relief."""
 import json
 
 import numpy as np

@@ -1,5 +1,5 @@
 """The forward model (plate.simulate over ray-traced boundary tables) against an INDEPENDENT photon
-Monte Carlo through the same real relief (issue 18, item 2).
+Monte Carlo through the same real relief.
 
 The recording is made by `validation.record.trace_recording`: the validation's own photon engine
 with the relief triangulated and ray traced by `conceal.HeightFieldFace` (Embree), its own
@@ -125,8 +125,7 @@ def test_forward_reaches_the_independent_recording_on_light_guide_dots():
     micro-roughness; the case of benchmarks/bench_forward_accuracy.py, relief seed 11), n 1.49, 2 mm,
     2-deg cone, theta_i 0 / 30 / 60, 1 M photons per incidence: the lattice scatters the light trapped
     in the glass by its azimuth, which the plate's loop meets through inside tables by azimuth sector,
-    each the average over its sector (plate.faces.inside_sectors).  Measured 1.09 (2026-12-05); with
-    the tables at the sectors' centres 1.29 (T at theta_i 60 near the normal exit 3x the recording)."""
+    each the average over its sector (plate.faces.inside_sectors; docs/decisions/004)."""
     from relief_bsdf.core.index import ConstantIndex
     from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid, simulate
     from relief_bsdf.surface.synth import DotPattern, lgp_dots
@@ -147,8 +146,8 @@ def test_forward_reaches_the_independent_recording_on_a_steep_gaussian_tile():
     tile of 1-um pixels: ~650 correlation areas; the case gauss_high of benchmarks/bench_forward_accuracy.py
     at relief seed 11), n 1.6, 3 mm, 2.5-deg cone, theta_i 0 / 30 / 60, 1 M photons per incidence, with the
     loop's one inside table averaged over the incidence azimuths within +-45 deg
-    (TableGrid.inside_azimuth_spread_deg=45, the default since 2026-12-06).  The 45 was chosen on relief
-    seed 12 (there 1.23 -> 1.12); this seed chose nothing: measured 1.12 (2026-12-05; spread 0: 1.16).
+    (TableGrid.inside_azimuth_spread_deg=45, the default).  The 45 was chosen on relief seed 12
+    (docs/decisions/003); this seed chose nothing.
     What the test holds is the spread table's accuracy on a tile it was not chosen on, against the
     independent photon Monte Carlo."""
     from relief_bsdf.core.index import ConstantIndex

@@ -1,7 +1,7 @@
 """Physics of the validation's own photon engine (validation/photon.py, the physics of `relief conceal`).
 
 Moved unchanged from the diagnosis's test_effects.py when the diagnosis stopped using this
-engine (issue 12): the tests check the engine itself (Fresnel series of a flat plate,
+engine: the tests check the engine itself (Fresnel series of a flat plate,
 Brewster angle, tilt, Henyey-Greenstein sampling, volume scattering, rough back face, blur).
 The Henyey-Greenstein sampler now lives in core.bulk (`sample_hg_cos`).
 """
