@@ -46,8 +46,9 @@ demo: venv
 docs: venv-docs
 	$(PY) -m mkdocs build --strict --quiet --site-dir site
 
+# the whole suite on both cores (pytest-xdist; worksteal: the long physics checks do not queue behind one worker)
 test: venv-test docs
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2 --dist worksteal
 
 # day-to-day tier: everything not marked slow, on both cores (under 2 minutes on 2 cores)
 test-fast: venv-test
