@@ -11,6 +11,8 @@ directions, origins, weights and Mueller rows, int64 indices, uint8 flags.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from relief_bsdf.core.fresnel import interface_coefficients_f32
@@ -19,15 +21,27 @@ from relief_bsdf.core.stokes import double_angle_cd
 F32 = np.float32
 
 
+def _quiet(fn):
+    """Run a twin without numpy's floating-point warnings: the compiled kernel gives the same infinities and
+    NaNs (a ray along a tile side, a zero normal) silently, and its callers handle them."""
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        with np.errstate(all="ignore"):
+            return fn(*args, **kwargs)
+    return run
+
+
 # ----------------------------------------------------------------------------- binning
 
 
+@_quiet
 def bin_cells(cell, w, M, sum_w, sum_w2, sum_M, group=None, keys=None, w_keys=None, compact=None, path_ids=None,
               n_paths=0):
     """Add each exit i with cell[i] >= 0 to its cell in the order of i: sum_w += w, sum_w2 += w^2 (float64),
     sum_M[c, e] += float64(M[e, i] * w) (the float32 product); exits flagged compact are expanded first
     (`expand_compact`).  With group: the binned exits' keys group * cells + cell (group of the path
-    path_ids[i] mod n_paths when path_ids is given) and float32 weights into keys, w_keys; returns how many.
+    path_ids[i] mod n_paths when path_ids is given) and float32 weights into keys, w_keys; returns how many
+    (0 without group).
     Sums that start at zero take numpy's bincount (which adds in input order from zero, the same sums);
     others `np.add.at` (unbuffered, in order)."""
     n, nc = cell.shape[0], sum_w.shape[0]
@@ -54,7 +68,7 @@ def bin_cells(cell, w, M, sum_w, sum_w2, sum_M, group=None, keys=None, w_keys=No
         if P is not None:
             np.add.at(sum_M, c, P.T)
     if group is None:
-        return sel.size
+        return 0
     if path_ids is not None:
         pid = path_ids[sel]
         pid = np.where(pid >= n_paths, pid - n_paths, pid)
@@ -67,11 +81,13 @@ def bin_cells(cell, w, M, sum_w, sum_w2, sum_M, group=None, keys=None, w_keys=No
     return j
 
 
+@_quiet
 def add_at(keys, w, out):
     """out[keys[i]] += float64(w[i]) in the order of i."""
     np.add.at(out, np.asarray(keys, np.int64), np.asarray(w).astype(np.float64))
 
 
+@_quiet
 def direction_parts(k, az, kx, ky):
     """az = min(|k_z|, 1) (NaN kept), and the components k_x, k_y of directions k (n, 3), contiguous."""
     np.minimum(np.abs(k[:, 2]), F32(1), out=az)
@@ -79,6 +95,7 @@ def direction_parts(k, az, kx, ky):
     ky[:] = k[:, 1]
 
 
+@_quiet
 def cells_of_angles(x, y, t_scale, t_off, p_scale, p_off, ring_lut, az_lut, n_az, side, side_cells, out):
     """The cell of each exit from its polar angle x and azimuth y (radians, float32): scale, offset,
     max 0 (NaN -> 0), clipped to the look-up tables, truncated, looked up; plus side * side_cells, or -1
@@ -98,6 +115,7 @@ def cells_of_angles(x, y, t_scale, t_off, p_scale, p_off, ring_lut, az_lut, n_az
     out[:] = np.where((ib | ia) < 0, np.int32(-1), c)
 
 
+@_quiet
 def near_direction(dirs, d0, d1, d2, cos_min, out):
     """Indices (into out, in order; their number returned) of the directions whose float32 dot product
     (x d0 + y d1) + z d2 with (d0, d1, d2) exceeds cos_min."""
@@ -109,6 +127,7 @@ def near_direction(dirs, d0, d1, d2, cos_min, out):
     return idx.size
 
 
+@_quiet
 def near_two_directions(dirs, a0, a1, a2, b0, b1, b2, cos_min, out_a, out_b):
     """`near_direction` for the two directions a and b: (count a, count b)."""
     return near_direction(dirs, a0, a1, a2, cos_min, out_a), near_direction(dirs, b0, b1, b2, cos_min, out_b)
@@ -134,6 +153,7 @@ def _factored(a, b, cc, dd, c2, s2, E, S) -> list:
             z, dd * s2, -(dd * c2), cc]
 
 
+@_quiet
 def expand_compact(M, compact, idx=None):
     """In place: the exits held compactly (compact 1: the 6 factors and (E, S) in rows 0-7) of M (16, n)
     written whole (`_factored`), their flags cleared; idx given: those exits only."""
@@ -146,6 +166,7 @@ def expand_compact(M, compact, idx=None):
     compact[sel] = 0
 
 
+@_quiet
 def exit_columns(F, A, s, k, idx, out, along_z_xy2, compact=None):
     """out (4, K, m) <- the Stokes columns of the rays idx (rows 0..m-1 when None) in the exit frame s' = z x k
     of their directions k (m, 3): rotated by c = s_y k_x - s_x k_y, d = s_z; from the factors F (6, n) of a
@@ -187,6 +208,7 @@ def exit_columns(F, A, s, k, idx, out, along_z_xy2, compact=None):
 # ----------------------------------------------------------------------------- facet events
 
 
+@_quiet
 def facet_event(nfx, nfy, nfz, kx, ky, kz, s, ci, n1, n2, A, s_new, scratch, c2, s2, R, T, pR, F_r=None, F_t=None):
     """The polarised event at the facets hit, per ray (real indices n1 -> n2): the facet's basis
     s_new = n x k / |n x k| (the old s where |n x k| < 1e-6: normal incidence), the rotation onto it
@@ -250,6 +272,7 @@ def facet_event(nfx, nfy, nfz, kx, ky, kz, s, ci, n1, n2, A, s_new, scratch, c2,
     pR[:] = np.clip(R[0] + R[1] * A[1, 0], 0, 1)
 
 
+@_quiet
 def facet_geometry(ng, k, below, eta_up, eta_dn, n_above, n_below, out, tir, leak):
     """The facets hit, per ray, from Embree's normals ng (n, 3): out (12, n) rows kx, ky, kz, the unit normal
     on the incident side (ng / |ng| with the sign of ng_z, negated below the surface), cos i = |k . n_up|,
@@ -296,6 +319,7 @@ def _slab(o, k, hx, hy, zh, zc):
                  for j, (h, c) in enumerate(((hx, 0), (hy, 0), (zh, zc))))
 
 
+@_quiet
 def slab_distances(o, k, hx, hy, zh, zc, T, t_lat, tfar):
     """Distances along k from o to the tile's sides and the slab's faces: T (3, n) rows tx, ty, tz,
     t_lat = fmin(tx, ty), tfar = max(fmin(t_lat, tz), 0)."""
@@ -309,6 +333,7 @@ def slab_distances(o, k, hx, hy, zh, zc, T, t_lat, tfar):
     tfar[:] = np.where(tf < 0, F32(0), tf)
 
 
+@_quiet
 def slab_far(o, k, hx, hy, zh, zc, tfar, lat_first):
     """`slab_distances`' tfar and whether a tile side comes first (t_lat < tz), the distances not kept."""
     if k.shape[0] == 0:
@@ -320,6 +345,7 @@ def slab_far(o, k, hx, hy, zh, zc, tfar, lat_first):
     tfar[:] = np.where(tf < 0, F32(0), tf)
 
 
+@_quiet
 def classify_misses(hit, lat_first, k, below, above_code, below_code, leak_code, exit_idx, exit_state, wrap_idx):
     """The rays that hit nothing, in order, sorted into those that leave through a slab face (indices, and
     states: above_code going up, below_code going down, leak_code going away from the side the ray was on)
@@ -334,6 +360,7 @@ def classify_misses(hit, lat_first, k, below, above_code, below_code, leak_code,
     return ei.size, wi.size
 
 
+@_quiet
 def beam_origins(ix, iy, jit, sx, hx, sy, hy, z, o):
     """Origins of a chunk's rays in their strata: ((ix + jit_0) sx - hx, (iy + jit_1) sy - hy, z), computed in
     float64 and rounded to float32."""
@@ -354,6 +381,7 @@ def _subtile(px, py, hx, hy, half_x, half_y, scale_x, scale_y, mirrored, gx, gy)
     return (ix + iy * np.int32(gx)).astype(np.int32)
 
 
+@_quiet
 def subtile_index(p, hx, hy, half_x, half_y, scale_x, scale_y, mirrored, gx, gy, out):
     """Sub-tile iy * gx + ix of each point p (n, >= 2) (`_subtile`)."""
     out[:] = _subtile(p[:, 0], p[:, 1], hx, hy, half_x, half_y, scale_x, scale_y, mirrored, gx, gy)
@@ -362,6 +390,7 @@ def subtile_index(p, hx, hy, half_x, half_y, scale_x, scale_y, mirrored, gx, gy,
 # ----------------------------------------------------------------------------- gathers, new rays
 
 
+@_quiet
 def gather_records(idx, k, w, nb, ids, k_out, w_out, nb_out, ids_out):
     """Rows idx of the rays' direction, weight, bounce count and id into an exit record's slot."""
     np.take(k, idx, axis=0, out=k_out, mode="clip")     # "clip": no bounds-check buffer (indices in range)
@@ -370,6 +399,7 @@ def gather_records(idx, k, w, nb, ids, k_out, w_out, nb_out, ids_out):
     np.take(ids, idx, out=ids_out, mode="clip")
 
 
+@_quiet
 def gather_rays(idx, o, k, below, w, nb, ids, o_out, k_out, below_out, w_out, nb_out, ids_out):
     """Rows idx of a batch's origins, directions, side, weight, bounce count and id."""
     for a, out in ((o, o_out), (k, k_out)):
@@ -378,6 +408,7 @@ def gather_rays(idx, o, k, below, w, nb, ids, o_out, k_out, below_out, w_out, nb
         np.take(a, idx, out=out, mode="clip")
 
 
+@_quiet
 def split_rays(kx, ky, kz, nfx, nfy, nfz, eta, ci, ct, th, o, eps, p, o_r, k_r, o_t, k_t, grid=None, ids=None,
                group=None):
     """Both branches of the rays' first interaction: the hit point p = k th + o (kept when p is given), the
@@ -402,6 +433,7 @@ def split_rays(kx, ky, kz, nfx, nfy, nfz, eta, ci, ct, th, o, eps, p, o_r, k_r, 
         o_t[:, j] = pts[j] - eps * nc
 
 
+@_quiet
 def split_weights(w, pR, below, ids, nb, n0, w_r, w_t, below_t, ids_t, nb_next):
     """The scalars of both branches of the rays' first interaction: w pR, w (1 - pR), not below, ids + n0,
     nb + 1; returns how many rays transmit something (pR < 1)."""
