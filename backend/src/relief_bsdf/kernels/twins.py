@@ -46,27 +46,29 @@ def bin_cells(cell, w, M, sum_w, sum_w2, sum_M, group=None, keys=None, w_keys=No
     others `np.add.at` (unbuffered, in order)."""
     n, nc = cell.shape[0], sum_w.shape[0]
     sel = np.flatnonzero(cell >= 0)
-    c = cell[sel].astype(np.int64)
-    wf = w[sel]
+    full = sel.size == n
+    c = (cell if full else cell[sel]).astype(np.intp, copy=False)
+    wf = w if full else w[sel]
     wd = wf.astype(np.float64)
     zero = not (sum_w.any() or sum_w2.any() or (sum_M is not None and sum_M.any()))
-    P = None
+    rows = None
     if M is not None:
-        Mw = np.array(M[:, sel], F32, order="C")
-        if compact is not None:
-            expand_compact(Mw, np.array(compact[sel], np.uint8))
-        P = (Mw * wf).astype(np.float64)
-    if zero:
+        Mw = M if full else M[:, sel]
+        rows = [Mw[e] for e in range(16)]
+        flag = None if compact is None else (compact if full else compact[sel]) != 0
+        if flag is not None and flag.any():          # compact records: their 16 entries from rows 0-7
+            rows = [np.where(flag, x, r) for x, r in zip(_factored(*rows[:8]), rows)]
+    if zero:                                         # bincount adds in input order from zero
         sum_w += np.bincount(c, weights=wd, minlength=nc)
         sum_w2 += np.bincount(c, weights=wd * wd, minlength=nc)
-        if P is not None:
+        if rows is not None:
             for e in range(16):
-                sum_M[:, e] += np.bincount(c, weights=P[e], minlength=nc)
+                sum_M[:, e] += np.bincount(c, weights=rows[e] * wf, minlength=nc)
     else:
         np.add.at(sum_w, c, wd)
         np.add.at(sum_w2, c, wd * wd)
-        if P is not None:
-            np.add.at(sum_M, c, P.T)
+        if rows is not None:
+            np.add.at(sum_M, c, np.stack([(r * wf).astype(np.float64) for r in rows], axis=1))
     if group is None:
         return 0
     if path_ids is not None:
@@ -160,9 +162,8 @@ def expand_compact(M, compact, idx=None):
     sel = np.flatnonzero(compact) if idx is None else np.asarray(idx)[compact[idx] != 0]
     if not sel.size:
         return
-    r = [np.array(M[e, sel], F32) for e in range(8)]
-    for e, v in enumerate(_factored(*r)):
-        M[e, sel] = v
+    r = M[:8, sel]
+    M[:, sel] = np.stack(_factored(*r))
     compact[sel] = 0
 
 
@@ -173,20 +174,19 @@ def exit_columns(F, A, s, k, idx, out, along_z_xy2, compact=None):
     first interaction or, F None, from the columns A (4, K, n).  compact given: records from factors are
     written compactly (factors and (E, S), flag 1), from columns whole (flag 0).  Returns the number of
     rows along z (k_x^2 + k_y^2 < along_z_xy2), left to the caller."""
-    m = k.shape[0]
     if F is None and A is None:
         raise ValueError("exit_columns: neither factors nor columns")
-    i = np.arange(m) if idx is None else np.asarray(idx)
+    pick = (lambda a: a) if idx is None else (lambda a: np.take(a, idx, axis=-1))
     kx, ky = k[:, 0], k[:, 1]
     h = kx * kx
     h += ky * ky
     along = int(np.count_nonzero(h < F32(along_z_xy2)))
-    si = s[i]
+    si = s if idx is None else np.take(s, idx, axis=0)
     c = si[:, 1] * kx - si[:, 0] * ky
     d = np.array(si[:, 2], F32)
     E, S = _double_angle(c, d)
     if F is not None:
-        f = [F[r, i] for r in range(6)]
+        f = [pick(F[r]) for r in range(6)]
         if compact is not None:
             out[0, 0], out[0, 1], out[0, 2], out[0, 3] = f[0], f[1], f[2], f[3]
             out[1, 0], out[1, 1], out[1, 2], out[1, 3] = f[4], f[5], E, S
@@ -197,7 +197,7 @@ def exit_columns(F, A, s, k, idx, out, along_z_xy2, compact=None):
         return along
     if compact is not None:
         compact[:] = 0
-    a = A[:, :, i]
+    a = pick(A)
     out[0] = a[0]
     out[1] = E * a[1] + S * a[2]
     out[2] = a[2] * E - a[1] * S
