@@ -403,6 +403,78 @@ def test_cells_of_any_direction(k):
         both("cells_of_angles", cell_index_args(k, (k[:, 2] < 0).astype(np.int8)))
 
 
+
+def edge_directions(cells, n_per_edge: int = 9) -> np.ndarray:
+    """Unit float32 directions whose polar angle or azimuth sits on a cell edge of `cells` (CellIndex) and
+    on its float32 neighbours (the angle the float32 look-up sees: edge +- a few ulps), both hemispheres."""
+    te, pe = np.radians(cells.te), np.radians(cells.pe)
+    out = []
+    rng = np.random.default_rng(15)
+    for th in te:
+        for d in np.linspace(-3e-6, 3e-6, n_per_edge):
+            ph = rng.uniform(-np.pi, np.pi, 4)
+            t = th + d
+            out.append(np.stack([np.sin(t) * np.cos(ph), np.sin(t) * np.sin(ph), np.cos(t) * np.ones(4)], 1))
+    for ph in pe:
+        for d in np.linspace(-3e-6, 3e-6, n_per_edge):
+            t = rng.uniform(0, np.pi / 2, 4)
+            p = ph + d
+            out.append(np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], 1))
+    k = np.concatenate(out)
+    k = np.concatenate([k, k * [1, 1, -1], [[0, 0, 1], [0, 0, -1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0],
+                                            [-1, -0.0, 0], [np.nan, 0, 1], [0.3, 0.2, 1.0000001]]])
+    return k.astype(F32)
+
+
+def directions_args(k: np.ndarray, cells):
+    from relief_bsdf.bsdf.builder import ANGLE_MARGIN_RAD
+    n = k.shape[0]
+    side = (k[:, 2] < 0).astype(np.int8)
+    return lambda: (k.copy(), cells.t_scale, cells.t_off, cells.p_scale, cells.p_off, cells.ring_lut, cells.az_lut,
+                    cells.A, side.copy(), cells.S * cells.A, ANGLE_MARGIN_RAD, np.zeros(n, np.int32),
+                    np.zeros(n, np.int64))
+
+
+GRIDS = ((np.linspace(0.0, 90.0, 31), np.arange(-7.5, 360.0, 15.0)),
+         (np.linspace(0.0, 90.0, 91), np.arange(0.0, 360.1, 5.0)),
+         (np.linspace(10.0, 80.0, 15), np.arange(-30.0, 30.1, 2.5)))            # part of the sphere only
+
+
+@pytest.mark.parametrize("grid", range(len(GRIDS)))
+def test_cells_of_directions_at_the_edges_equals_the_float32_angles(grid):
+    """The cells without numpy's arccos and arctan2 (`kernels.cells_of_directions` and `CellIndex.with_side`)
+    are those of numpy's float32 angles (`_cells_of_numpy_angles`), for directions on every edge to the last
+    ulps: the kernel leaves these to numpy (it cannot tell), so they take the same path; and for directions
+    away from the edges, which it settles alone."""
+    from relief_bsdf.bsdf.builder import CellIndex
+    cells = CellIndex(tuple(GRIDS[grid][0]), tuple(GRIDS[grid][1]))
+    assert cells.fast
+    rng = np.random.default_rng(16)
+    r = rng.normal(size=(20000, 3))
+    edges = edge_directions(cells)
+    k = np.concatenate([edges, (r / np.linalg.norm(r, axis=1)[:, None])]).astype(F32)
+    a = both("cells_of_directions", directions_args(k, cells))
+    left = a[-2] == -2                               # left to numpy's angles
+    m = edges.shape[0]
+    # nearly all edge directions (within 3e-6 rad of an edge < the margin), few random ones (those within the
+    # margin of an edge: a fraction ~ 2 margin x edges / range, < 1 %)
+    assert np.count_nonzero(left[:m]) > 0.9 * m and np.count_nonzero(left[m:]) < 0.01 * (k.shape[0] - m)
+    side = (k[:, 2] < 0).astype(np.int8)
+    with np.errstate(invalid="ignore"):
+        same_bits(cells.with_side(k, side), cells._cells_of_numpy_angles(k, side), "cells")
+
+
+@PROPERTY
+@given(k=arrays(F32, st.tuples(st.integers(1, 60), st.just(3)), elements=st.floats(-1.5, 1.5, width=32)),
+       grid=st.sampled_from(range(len(GRIDS))))
+def test_cells_of_directions_of_any_direction(k, grid):
+    from relief_bsdf.bsdf.builder import CellIndex
+    cells = CellIndex(tuple(GRIDS[grid][0]), tuple(GRIDS[grid][1]))
+    both("cells_of_directions", directions_args(k, cells))
+    side = (k[:, 2] < 0).astype(np.int8)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        same_bits(cells.with_side(k, side), cells._cells_of_numpy_angles(k, side), "cells")
+
 @PROPERTY
 @given(dirs=arrays(F32, st.tuples(st.integers(0, 60), st.just(3)), elements=st.floats(-1, 1, width=32)),
        a=st.tuples(*[st.floats(-1, 1, width=32)] * 3), b=st.tuples(*[st.floats(-1, 1, width=32)] * 3),

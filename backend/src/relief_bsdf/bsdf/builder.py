@@ -53,6 +53,11 @@ from relief_bsdf import kernels
 from relief_bsdf.core.frames import projected_solid_angle
 
 F32 = np.float32
+# how far numpy's float32 arccos and arctan2 may be from the double-precision angles of
+# `kernels.cells_of_directions` (radians): their few-ulp error (<= 4 ulp: 1e-6 rad at pi) plus the float32
+# rounding of angle +- margin (1.2e-7) and the polynomial's 2e-10, with a factor > 10 to spare; a direction
+# this close to a cell edge takes numpy's angles
+ANGLE_MARGIN_RAD = 2e-5
 
 
 # ----------------------------------------------------------------------------- cells
@@ -132,9 +137,10 @@ class CellIndex:
 
     def with_side(self, k: np.ndarray, side: np.ndarray) -> np.ndarray:
         """cell + side * S * A (the table's two sides), -1 outside the table: `__call__` and the side's
-        offset; for float32 directions on uniform edges the parts before and after numpy's arccos and
-        arctan2 in one pass each (`kernels.direction_parts`, `kernels.cells_of_angles`: the numbers of
-        `__call__`)."""
+        offset.  For float32 directions on uniform edges, `kernels.cells_of_directions` settles every
+        direction whose angles lie farther than ANGLE_MARGIN_RAD from a cell edge without numpy's arccos
+        and arctan2 (the index is non-decreasing in the angle); the few others take numpy's angles
+        (`_cells_of_numpy_angles`): the numbers of `__call__` in both cases."""
         S, A = self.S, self.A
         if not (self.fast and k.dtype == F32):
             cell = self(k)
@@ -143,13 +149,26 @@ class CellIndex:
             cell[~out] = -1
             return cell
         n = k.shape[0]
+        side8 = side.astype(np.int8, copy=False)
+        cell, exact = np.empty(n, np.int32), np.empty(n, np.int64)
+        ne = kernels.cells_of_directions(k, self.t_scale, self.t_off, self.p_scale, self.p_off, self.ring_lut,
+                                         self.az_lut, A, side8, S * A, ANGLE_MARGIN_RAD, cell, exact)
+        if ne:
+            idx = exact[:ne]
+            cell[idx] = self._cells_of_numpy_angles(np.take(k, idx, axis=0), np.take(side8, idx))
+        return cell
+
+    def _cells_of_numpy_angles(self, k: np.ndarray, side8: np.ndarray) -> np.ndarray:
+        """`with_side` from numpy's float32 arccos min(|k_z|, 1) and arctan2(k_y, k_x) (`kernels.direction_parts`
+        and `kernels.cells_of_angles` around them)."""
+        n = k.shape[0]
         x, kx, ky = np.empty(n, F32), np.empty(n, F32), np.empty(n, F32)
         kernels.direction_parts(k, x, kx, ky)
         np.arccos(x, out=x)
         y = np.arctan2(ky, kx, out=ky)
         cell = np.empty(n, np.int32)
         kernels.cells_of_angles(x, y, self.t_scale, self.t_off, self.p_scale, self.p_off, self.ring_lut, self.az_lut,
-                                A, side.astype(np.int8, copy=False), S * A, cell)
+                                self.A, side8, self.S * self.A, cell)
         return cell
 
 
