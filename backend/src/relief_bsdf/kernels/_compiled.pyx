@@ -208,7 +208,7 @@ def cells_of_angles(const float[::1] x, const float[::1] y, float t_scale, float
 
 
 # atan on [-tan(pi/8), tan(pi/8)] as u P(u^2): a least-squares fit of degree 11 whose largest error over
-# 4e6 points of that interval is 1.2e-10 rad (kernels.twins, ATAN_COEFFS: the same constants)
+# 4e6 points of that interval is 1.2e-10 rad (decision record 014)
 cdef double ATAN_C0 = 0.9999999961633618, ATAN_C1 = -0.3333326985635032, ATAN_C2 = 0.19996982348496437
 cdef double ATAN_C3 = -0.1422361730442797, ATAN_C4 = 0.10477428280503895, ATAN_C5 = -0.05831076666384826
 cdef double TAN_PI8 = 0.41421356237309503, PI_4 = 0.7853981633974483, PI_2 = 1.5707963267948966
@@ -218,7 +218,7 @@ cdef double PI_1 = 3.141592653589793
 cdef inline double atan_quadrant(double ay, double ax) noexcept nogil:
     """atan(ay / ax) in [0, pi/2] for ay, ax >= 0 (NaN for 0 / 0): the ratio of the smaller to the larger,
     reduced past tan(pi/8) by atan t = pi/4 + atan((t - 1) / (t + 1)), the polynomial, then pi/2 - a when
-    swapped; double precision (`kernels.twins._atan_quadrant`, the same operations)."""
+    swapped; double precision."""
     cdef bint swap = ay > ax
     cdef double num = ax if swap else ay
     cdef double den = ay if swap else ax
@@ -276,7 +276,9 @@ def cells_of_directions(const float[:, :] k, float t_scale, float t_off, float p
     index is non-decreasing in the angle, so where the indices of angle - margin and angle + margin agree
     they are the index of numpy's angle: out holds the cell (side * side_cells added, -1 outside the table).
     The others (an angle within margin of a cell edge, NaN, k_y = 0 where atan2 follows the sign of zero)
-    are listed in exact (out -2) for the caller to finish with numpy's functions; returns their number."""
+    are listed in exact (out -2) for the caller to finish with numpy's functions; returns their number.
+    Its twin computes every cell from numpy's angles and lists none: the cells agree where this kernel
+    settles them (tests/backend/kernels), and after the caller's finish everywhere."""
     cdef Py_ssize_t n = k.shape[0], i, ne = 0
     cdef double th, ph
     cdef float rmax = ring_lut.shape[0] - 1, amax = az_lut.shape[0] - 1

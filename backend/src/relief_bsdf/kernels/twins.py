@@ -117,65 +117,22 @@ def cells_of_angles(x, y, t_scale, t_off, p_scale, p_off, ring_lut, az_lut, n_az
     out[:] = np.where((ib | ia) < 0, np.int32(-1), c)
 
 
-# atan on [-tan(pi/8), tan(pi/8)] as u P(u^2), P's coefficients (the compiled kernels' ATAN_C0..C5): a
-# least-squares fit of degree 11, largest error 1.2e-10 rad over 4e6 points of the interval
-ATAN_COEFFS = (0.9999999961633618, -0.3333326985635032, 0.19996982348496437, -0.1422361730442797,
-               0.10477428280503895, -0.05831076666384826)
-TAN_PI8 = 0.41421356237309503
-
-
-def _atan_quadrant(ay, ax):
-    """atan(ay / ax) in [0, pi/2] for ay, ax >= 0, double precision (NaN for 0 / 0): the smaller over the
-    larger, reduced past tan(pi/8) by atan t = pi/4 + atan((t - 1) / (t + 1)), the polynomial, pi/2 - a when
-    swapped."""
-    swap = ay > ax
-    t = np.where(swap, ax, ay) / np.where(swap, ay, ax)
-    big = t > TAN_PI8
-    u = np.where(big, (t - 1.0) / (t + 1.0), t)
-    u2 = u * u
-    c0, c1, c2, c3, c4, c5 = ATAN_COEFFS
-    a = u * (((((c5 * u2 + c4) * u2 + c3) * u2 + c2) * u2 + c1) * u2 + c0)
-    a = np.where(big, a + np.pi / 4, a)
-    return np.where(swap, np.pi / 2 - a, a)
-
-
-def _angle_index(a, scale, off, amax):
-    """The look-up index of float32 angles a (`cells_of_angles`' operations), non-decreasing in a."""
-    v = a * F32(scale)
-    v += F32(off)
-    v = np.where(v > 0, v, F32(0))
-    return np.where(v > amax, amax, v).astype(np.int32)
-
-
 @_quiet
 def cells_of_directions(k, t_scale, t_off, p_scale, p_off, ring_lut, az_lut, n_az, side, side_cells, margin, out,
                         exact):
-    """The cells of `cells_of_angles` from directions k (n, 3) without float32 arccos and arctan2 where they
-    cannot matter: the polar angle atan2(sqrt((1 - z)(1 + z)), z), z = min(|k_z|, 1), and the azimuth
-    atan2(k_y, k_x) in double precision (`_atan_quadrant`, < 2e-10 rad); where the look-up indices of
-    angle -+ margin agree (the index is non-decreasing in the angle, and numpy's float32 angles lie within
-    margin), out holds the cell; the others (within margin of an edge, NaN, k_y = 0) are listed in exact,
-    out -2.  Returns their number."""
-    kx, ky = k[:, 0].astype(np.float64), k[:, 1].astype(np.float64)
-    z = np.abs(k[:, 2].astype(np.float64))
-    z = np.where(z > 1.0, 1.0, z)
-    th = _atan_quadrant(np.sqrt((1.0 - z) * (1.0 + z)), z)
-    ph = _atan_quadrant(np.abs(ky), np.abs(kx))
-    ph = np.where(kx < 0, np.pi - ph, ph)
-    ph = np.where(ky < 0, -ph, ph)
-    rmax, amax = F32(ring_lut.shape[0] - 1), F32(az_lut.shape[0] - 1)
-    margin = float(margin)
-    ib0 = _angle_index((th - margin).astype(F32), t_scale, t_off, rmax)
-    ib1 = _angle_index((th + margin).astype(F32), t_scale, t_off, rmax)
-    ia0 = _angle_index((ph - margin).astype(F32), p_scale, p_off, amax)
-    ia1 = _angle_index((ph + margin).astype(F32), p_scale, p_off, amax)
-    bad = np.isnan(th) | np.isnan(ph) | (ky == 0) | (ib0 != ib1) | (ia0 != ia1)
-    ib, ia = ring_lut[ib0], az_lut[ia0]
-    c = ib * np.int32(n_az) + ia + side.astype(np.int32) * np.int32(side_cells)
-    out[:] = np.where(bad, np.int32(-2), np.where((ib | ia) < 0, np.int32(-1), c))
-    ex = np.flatnonzero(bad)
-    exact[:ex.size] = ex
-    return ex.size
+    """The cells of directions k (n, 3) from numpy's float32 arccos min(|k_z|, 1) and arctan2(k_y, k_x)
+    (`direction_parts`, `cells_of_angles`): the reference.  The compiled kernel gives these cells without
+    the two functions wherever they cannot change the cell and lists the other directions in exact (out -2)
+    for the caller to finish with numpy's angles; here every cell is numpy's and none is listed (returns 0):
+    after the caller's finish both give the same cells (tests/backend/kernels)."""
+    n = k.shape[0]
+    x, kx, ky = np.empty(n, F32), np.empty(n, F32), np.empty(n, F32)
+    direction_parts(k, x, kx, ky)
+    np.arccos(x, out=x)
+    np.arctan2(ky, kx, out=ky)
+    cells_of_angles(x, ky, t_scale, t_off, p_scale, p_off, ring_lut, az_lut, n_az, side, side_cells, out)
+    return 0
+
 
 @_quiet
 def near_direction(dirs, d0, d1, d2, cos_min, out):
