@@ -53,10 +53,10 @@ from relief_bsdf import kernels
 from relief_bsdf.core.frames import projected_solid_angle
 
 F32 = np.float32
-# how far numpy's float32 arccos and arctan2 may be from the double-precision angles of
-# `kernels.cells_of_directions` (radians): their few-ulp error (<= 4 ulp: 1e-6 rad at pi) plus the float32
-# rounding of angle +- margin (1.2e-7) and the polynomial's 2e-10, with a factor > 10 to spare; a direction
-# this close to a cell edge takes numpy's angles
+# how far numpy's float32 arccos and arctan2 may be from the angles of `kernels.cells_of_directions`
+# (radians): their few-ulp error (<= 4 ulp: 1e-6 rad at pi) plus the kernel's (float32 arithmetic: < 1.5e-6,
+# decision record 014) and the float32 rounding of angle +- margin (1.2e-7), with a factor 8 to spare; a
+# direction this close to a cell edge takes numpy's angles
 ANGLE_MARGIN_RAD = 2e-5
 
 

@@ -208,26 +208,26 @@ def cells_of_angles(const float[::1] x, const float[::1] y, float t_scale, float
 
 
 # atan on [-tan(pi/8), tan(pi/8)] as u P(u^2): a least-squares fit of degree 11 whose largest error over
-# 4e6 points of that interval is 1.2e-10 rad (decision record 014)
-cdef double ATAN_C0 = 0.9999999961633618, ATAN_C1 = -0.3333326985635032, ATAN_C2 = 0.19996982348496437
-cdef double ATAN_C3 = -0.1422361730442797, ATAN_C4 = 0.10477428280503895, ATAN_C5 = -0.05831076666384826
-cdef double TAN_PI8 = 0.41421356237309503, PI_4 = 0.7853981633974483, PI_2 = 1.5707963267948966
-cdef double PI_1 = 3.141592653589793
+# 4e6 points of that interval is 1.2e-10 rad, evaluated in float32 (decision record 014: < 1.5e-6 rad in all)
+cdef float ATAN_C0 = 0.9999999961633618, ATAN_C1 = -0.3333326985635032, ATAN_C2 = 0.19996982348496437
+cdef float ATAN_C3 = -0.1422361730442797, ATAN_C4 = 0.10477428280503895, ATAN_C5 = -0.05831076666384826
+cdef float TAN_PI8 = 0.41421356237309503, PI_4 = 0.7853981633974483, PI_2 = 1.5707963267948966
+cdef float PI_1 = 3.141592653589793
 
 
-cdef inline double atan_quadrant(double ay, double ax) noexcept nogil:
+cdef inline float atan_quadrant(float ay, float ax) noexcept nogil:
     """atan(ay / ax) in [0, pi/2] for ay, ax >= 0 (NaN for 0 / 0): the ratio of the smaller to the larger,
     reduced past tan(pi/8) by atan t = pi/4 + atan((t - 1) / (t + 1)), the polynomial, then pi/2 - a when
-    swapped; double precision."""
+    swapped; float32, about 12 roundings of numbers below pi: within 1.5e-6 rad of atan."""
     cdef bint swap = ay > ax
-    cdef double num = ax if swap else ay
-    cdef double den = ay if swap else ax
-    cdef double t = num / den
+    cdef float num = ax if swap else ay
+    cdef float den = ay if swap else ax
+    cdef float t = num / den
     cdef bint big = t > TAN_PI8
-    cdef double u = (t - 1.0) / (t + 1.0) if big else t
-    cdef double u2 = u * u
-    cdef double q = ((((ATAN_C5 * u2 + ATAN_C4) * u2 + ATAN_C3) * u2 + ATAN_C2) * u2 + ATAN_C1) * u2 + ATAN_C0
-    cdef double a = u * q
+    cdef float u = (t - <float>1) / (t + <float>1) if big else t
+    cdef float u2 = u * u
+    cdef float q = ((((ATAN_C5 * u2 + ATAN_C4) * u2 + ATAN_C3) * u2 + ATAN_C2) * u2 + ATAN_C1) * u2 + ATAN_C0
+    cdef float a = u * q
     a = a + PI_4 if big else a
     return PI_2 - a if swap else a
 
@@ -244,35 +244,45 @@ cdef inline int angle_index(float a, float scale, float off, float amax) noexcep
 
 cdef extern from *:
     """
-    typedef double *__restrict__ f64_out;
+    typedef int *__restrict__ i32_out;
     """
-    ctypedef double *f64_out
+    ctypedef int *i32_out
 
 
-cdef void direction_angles(Py_ssize_t n, f32_in k, Py_ssize_t sk, Py_ssize_t ck, f64_out th,
-                           f64_out ph) noexcept nogil:
-    """The double-precision polar angle and azimuth of `cells_of_directions` (restrict pointers, selects only:
-    the loop vectorises, its divisions and square roots two at a time)."""
+cdef void direction_indices(Py_ssize_t n, f32_in k, Py_ssize_t sk, Py_ssize_t ck, float margin, float t_scale,
+                            float t_off, float rmax, float p_scale, float p_off, float amax, i32_out ring,
+                            i32_out az) noexcept nogil:
+    """The look-up indices of `cells_of_directions` (ring, az), -1 in ring where the direction is left to numpy's
+    angles (restrict pointers, selects only: the loop vectorises, four directions at a time)."""
     cdef Py_ssize_t i
-    cdef double kx, ky, z, a
+    cdef float kx, ky, z, th, ph
+    cdef int ib0, ib1, ia0, ia1
+    cdef bint ok
     for i in range(n):
         kx = k[i * sk]
         ky = k[i * sk + ck]
-        z = fabs(<double>k[i * sk + 2 * ck])
-        z = 1.0 if z > 1.0 else z
-        th[i] = atan_quadrant(sqrt((1.0 - z) * (1.0 + z)), z)
-        a = atan_quadrant(fabs(ky), fabs(kx))
-        a = PI_1 - a if kx < 0 else a
-        ph[i] = -a if ky < 0 else a
+        z = fabsf(k[i * sk + 2 * ck])
+        z = 1 if z > 1 else z
+        th = atan_quadrant(sqrtf((<float>1 - z) * (<float>1 + z)), z)
+        ph = atan_quadrant(fabsf(ky), fabsf(kx))
+        ph = PI_1 - ph if kx < 0 else ph
+        ph = -ph if ky < 0 else ph
+        ib0 = angle_index(th - margin, t_scale, t_off, rmax)
+        ib1 = angle_index(th + margin, t_scale, t_off, rmax)
+        ia0 = angle_index(ph - margin, p_scale, p_off, amax)
+        ia1 = angle_index(ph + margin, p_scale, p_off, amax)
+        ok = (th == th) & (ph == ph) & (ky != 0) & (ib0 == ib1) & (ia0 == ia1)
+        ring[i] = ib0 if ok else -1
+        az[i] = ia0
 
 
 def cells_of_directions(const float[:, :] k, float t_scale, float t_off, float p_scale, float p_off,
                         const int[::1] ring_lut, const int[::1] az_lut, int n_az, const signed char[::1] side,
-                        int side_cells, double margin, int[::1] out, long[::1] exact):
+                        int side_cells, float margin, int[::1] out, long[::1] exact):
     """The cells of `cells_of_angles` straight from directions k (n, 3), without numpy's arccos and arctan2
     where they cannot matter.  Per direction the polar angle arccos min(|k_z|, 1) = atan2(sqrt((1 - z)(1 + z)),
-    z) and the azimuth atan2(k_y, k_x) in double precision (`atan_quadrant`, error < 2e-10 rad); numpy's
-    float32 arccos and arctan2 lie within margin (radians, >> their few-ulp error) of them, and the look-up
+    z) and the azimuth atan2(k_y, k_x) (`atan_quadrant`, float32: within 2e-6 rad of the true angles); numpy's
+    float32 arccos and arctan2 (a few ulps) lie within margin (radians, >> both errors) of them, and the look-up
     index is non-decreasing in the angle, so where the indices of angle - margin and angle + margin agree
     they are the index of numpy's angle: out holds the cell (side * side_cells added, -1 outside the table).
     The others (an angle within margin of a cell edge, NaN, k_y = 0 where atan2 follows the sign of zero)
@@ -280,31 +290,25 @@ def cells_of_directions(const float[:, :] k, float t_scale, float t_off, float p
     Its twin computes every cell from numpy's angles and lists none: the cells agree where this kernel
     settles them (tests/backend/kernels), and after the caller's finish everywhere."""
     cdef Py_ssize_t n = k.shape[0], i, ne = 0
-    cdef double th, ph
     cdef float rmax = ring_lut.shape[0] - 1, amax = az_lut.shape[0] - 1
-    cdef int ib0, ib1, ia0, ia1, ib, ia
+    cdef int ib, ia, r
     if side.shape[0] != n or out.shape[0] != n or exact.shape[0] < n or k.shape[1] != 3 or rmax < 0 or amax < 0:
         raise ValueError("cells_of_directions: inconsistent shapes")
     if n == 0:
         return 0
-    cdef double[::1] angles = cvarray(shape=(2 * n,), itemsize=sizeof(double), format="d")
+    cdef int[::1] ring = cvarray(shape=(n,), itemsize=sizeof(int), format="i")
     cdef Py_ssize_t sk = k.strides[0] // sizeof(float), ck = k.strides[1] // sizeof(float)
     with nogil:
-        direction_angles(n, &k[0, 0], sk, ck, &angles[0], &angles[n])
+        direction_indices(n, &k[0, 0], sk, ck, margin, t_scale, t_off, rmax, p_scale, p_off, amax, &ring[0], &out[0])
         for i in range(n):
-            th = angles[i]
-            ph = angles[n + i]
-            ib0 = angle_index(<float>(th - margin), t_scale, t_off, rmax)
-            ib1 = angle_index(<float>(th + margin), t_scale, t_off, rmax)
-            ia0 = angle_index(<float>(ph - margin), p_scale, p_off, amax)
-            ia1 = angle_index(<float>(ph + margin), p_scale, p_off, amax)
-            if th != th or ph != ph or k[i, 1] == 0 or ib0 != ib1 or ia0 != ia1:
+            r = ring[i]
+            if r < 0:
                 exact[ne] = i
                 ne += 1
                 out[i] = -2
                 continue
-            ib = ring_lut[ib0]
-            ia = az_lut[ia0]
+            ib = ring_lut[r]
+            ia = az_lut[out[i]]
             out[i] = -1 if (ib | ia) < 0 else ib * n_az + ia + side[i] * side_cells
     return ne
 
