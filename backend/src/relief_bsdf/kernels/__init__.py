@@ -1,4 +1,4 @@
-"""Optional compiled kernels of the ray method's hottest numpy steps, with the numpy code as fallback.
+"""Optional compiled kernels of the ray method's hottest numpy steps, with their numpy twins as fallback.
 
 What is compiled (`_compiled.pyx`, Cython: C loops over the rays with the GIL released, so the engine's
 two threads overlap) and why: after the Embree queries, the ray engine's CPU time on polarised tables
@@ -17,9 +17,9 @@ exit rotation), `expand_compact`, `gather_records` (methods.ray.exits), `beam_or
 float32 / float64 operations in the same order as its numpy twin (`twins`, the same name and arguments:
 the reference, and what runs without the compiled module), so the tables are bit for bit the same
 (tests/backend/kernels: each kernel against its twin, and whole tables traced with either);
-`cells_of_directions` alone settles most table cells without numpy's float32 arccos and arctan2 (angles in
-double precision, numpy's taken within 2e-5 rad of a cell edge) and its twin uses numpy's angles throughout:
-the same cells; the C is built without fused multiply-adds
+`cells_of_directions` (the cell index) alone computes otherwise: it settles the cells of the directions
+farther than 2e-5 rad from every cell edge from its own float32 angles, and its twin uses numpy's arccos
+and arctan2 throughout: the same cells (decision record 014); the C is built without fused multiply-adds
 (-ffp-contract=off) and with flags that change no value (backend/setup.py).  Memory access decides
 their speed as much as arithmetic: arrays they read or write row by row are padded
 (`methods.ray.exits.padded_rows`: power-of-two chunk lengths otherwise put the rows in one cache set)
