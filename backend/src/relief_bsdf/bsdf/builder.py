@@ -37,9 +37,10 @@ direction, `specular_flags`) go to the delta parts specular_R/T (power fractions
 plus exits outside the table's cells, over N: nothing is dropped silently.
 Sides: 0 = the side of incidence (R), 1 = the other side (T).
 Binning is vectorised (np.bincount) on cells from `CellIndex` (float32 arithmetic and lookup
-tables for uniform grids, a search for others); with the compiled kernels (`relief_bsdf.kernels`)
-the weights, their squares and the 16 Mueller entries go into the cells in one C pass
-(`_compiled.bin_cells`: the same sums in the same order, bit for bit).
+tables for uniform grids, a search for others); float32 batches go through the kernels
+(`relief_bsdf.kernels`: the cell index after numpy's arccos and arctan2, and the weights, their squares
+and the 16 Mueller entries into the cells in one pass, `kernels.bin_cells`, the sums of np.bincount in
+the same order).
 """
 from __future__ import annotations
 
@@ -52,6 +53,11 @@ from relief_bsdf import kernels
 from relief_bsdf.core.frames import projected_solid_angle
 
 F32 = np.float32
+# how far numpy's float32 arccos and arctan2 may be from the angles of `kernels.cells_of_directions`
+# (radians): their few-ulp error (<= 4 ulp: 1e-6 rad at pi) plus the kernel's (float32 arithmetic: < 1.5e-6,
+# decision record 014) and the float32 rounding of angle +- margin (1.2e-7), with a factor 8 to spare; a
+# direction this close to a cell edge takes numpy's angles
+ANGLE_MARGIN_RAD = 2e-5
 
 
 # ----------------------------------------------------------------------------- cells
@@ -131,24 +137,38 @@ class CellIndex:
 
     def with_side(self, k: np.ndarray, side: np.ndarray) -> np.ndarray:
         """cell + side * S * A (the table's two sides), -1 outside the table: `__call__` and the side's
-        offset, the part after numpy's arccos and arctan2 in one pass with the compiled kernels
-        (`_compiled.cells_of_angles`, the same numbers)."""
+        offset.  For float32 directions on uniform edges, `kernels.cells_of_directions` settles every
+        direction whose angles lie farther than ANGLE_MARGIN_RAD from a cell edge without numpy's arccos
+        and arctan2 (the index is non-decreasing in the angle); the few others take numpy's angles
+        (`_cells_of_numpy_angles`): the numbers of `__call__` in both cases."""
         S, A = self.S, self.A
-        ck = kernels.active()
-        if not (self.fast and ck is not None and k.dtype == F32):
+        if not (self.fast and k.dtype == F32):
             cell = self(k)
             out = cell >= 0
             cell += side.astype(np.int32) * np.int32(S * A)
             cell[~out] = -1
             return cell
         n = k.shape[0]
+        side8 = side.astype(np.int8, copy=False)
+        cell, exact = np.empty(n, np.int32), np.empty(n, np.int64)
+        ne = kernels.cells_of_directions(k, self.t_scale, self.t_off, self.p_scale, self.p_off, self.ring_lut,
+                                         self.az_lut, A, side8, S * A, ANGLE_MARGIN_RAD, cell, exact)
+        if ne:
+            idx = exact[:ne]
+            cell[idx] = self._cells_of_numpy_angles(np.take(k, idx, axis=0), np.take(side8, idx))
+        return cell
+
+    def _cells_of_numpy_angles(self, k: np.ndarray, side8: np.ndarray) -> np.ndarray:
+        """`with_side` from numpy's float32 arccos min(|k_z|, 1) and arctan2(k_y, k_x) (`kernels.direction_parts`
+        and `kernels.cells_of_angles` around them)."""
+        n = k.shape[0]
         x, kx, ky = np.empty(n, F32), np.empty(n, F32), np.empty(n, F32)
-        ck.direction_parts(k, x, kx, ky)
+        kernels.direction_parts(k, x, kx, ky)
         np.arccos(x, out=x)
         y = np.arctan2(ky, kx, out=ky)
         cell = np.empty(n, np.int32)
-        ck.cells_of_angles(x, y, self.t_scale, self.t_off, self.p_scale, self.p_off, self.ring_lut, self.az_lut, A,
-                           side.astype(np.int8, copy=False), S * A, cell)
+        kernels.cells_of_angles(x, y, self.t_scale, self.t_off, self.p_scale, self.p_off, self.ring_lut, self.az_lut,
+                                self.A, side8, self.S * self.A, cell)
         return cell
 
 
@@ -214,11 +234,10 @@ def specular_flags(dirs: np.ndarray, side: np.ndarray, ideal_dirs: tuple, cos_to
     """
     spec = None
     both = None
-    ck = kernels.active()
-    if ck is not None and dirs.dtype == F32 and ideal_dirs[0] is not None and ideal_dirs[1] is not None:
+    if dirs.dtype == F32 and ideal_dirs[0] is not None and ideal_dirs[1] is not None:
         a, b = (np.asarray(d, np.float64).astype(F32) for d in ideal_dirs)     # both prefilters in one pass
         out_a, out_b = np.empty(dirs.shape[0], np.int64), np.empty(dirs.shape[0], np.int64)
-        na, nb = ck.near_two_directions(dirs, *a, *b, F32(0.9999), out_a, out_b)
+        na, nb = kernels.near_two_directions(dirs, *a, *b, F32(0.9999), out_a, out_b)
         both = (out_a[:na], out_b[:nb])
     for sd in (0, 1):
         if ideal_dirs[sd] is None:
@@ -239,12 +258,11 @@ def specular_flags(dirs: np.ndarray, side: np.ndarray, ideal_dirs: tuple, cos_to
 
 
 def _near_direction(dirs: np.ndarray, d32: np.ndarray, cos_min: np.float32) -> np.ndarray:
-    """Indices of the directions whose dot product with d32 (float32 multiply-adds) exceeds cos_min (the
-    compiled kernel `_compiled.near_direction` for float32 directions: the same operations)."""
-    ck = kernels.active()
-    if ck is not None and dirs.dtype == F32:
+    """Indices of the directions whose dot product with d32 (multiply-adds in the directions' precision)
+    exceeds cos_min (float32 directions: `kernels.near_direction`, the same operations)."""
+    if dirs.dtype == F32:
         out = np.empty(dirs.shape[0], np.int64)
-        return out[:ck.near_direction(dirs, *d32, cos_min, out)]
+        return out[:kernels.near_direction(dirs, *d32, cos_min, out)]
     c = dirs[:, 0] * d32[0]
     c += dirs[:, 1] * d32[1]
     c += dirs[:, 2] * d32[2]
@@ -263,8 +281,8 @@ class ExitSamples:
     Mueller columns (row-major 4 x 4 per exit, w M is the exit matrix) or None; specular (n,)
     bool: coherent / specular exits (delta parts), or None for none; group (n,) int: the sub-tile
     of the path's first hit (0..G-1), for the realisation uncertainty (module doc), or None;
-    compact (n,) uint8 or None: exits whose mueller holds the compact form the compiled ray kernels
-    write (flag 1: `methods.ray.exits.Exits`), which only the compiled binning reads (`whole_mueller`).
+    compact (n,) uint8 or None: exits whose mueller holds the compact form the ray kernels write (flag 1:
+    `methods.ray.exits.Exits`), which the kernels' binning expands (`whole_mueller` for the others).
     """
 
     dirs: np.ndarray
@@ -291,7 +309,7 @@ class ExitSamples:
         if c is None or not c.any():
             return M
         M = np.array(M, F32, order="C")
-        kernels.built().expand_compact(M, c.copy())
+        kernels.expand_compact(M, c.copy())
         return M
 
 
@@ -377,7 +395,7 @@ class CellAccumulator:
         self.outside_table += other.outside_table
 
     def add(self, ex: ExitSamples) -> None:
-        """Bin one batch of exits (np.bincount, or the compiled kernel: module doc)."""
+        """Bin one batch of exits (float32: `kernels.bin_cells`; others np.bincount: module doc)."""
         wd, side, spec = ex.weight, ex.side, ex.specular
         if wd.size == 0:
             return
@@ -390,11 +408,10 @@ class CellAccumulator:
         if wd.size - n_in - (0 if spec is None else int(np.count_nonzero(spec))):
             self.outside_table += float(wd[~inside & (True if spec is None else ~spec)].sum(dtype=np.float64))
         full = n_in == wd.size
-        compiled = self._compiled_for(ex)
-        if compiled is not None:
+        if self._kernel_takes(ex):
             if not full:
                 cell[~inside] = -1                  # the kernel skips them: no gather of the Mueller columns
-            self._bin_kernel(compiled, cell, ex)
+            self._bin_kernel(cell, ex)
         else:
             c_in = cell if full else cell[inside]
             w_in = (wd if full else wd[inside]).astype(np.float64)
@@ -409,15 +426,13 @@ class CellAccumulator:
                 self._group_parts.append((gc, w_in))
         self._untouched = False
 
-    def _compiled_for(self, ex: ExitSamples):
-        """The compiled kernels when they run and take this batch (float32 weights and Mueller columns)."""
-        ck = kernels.active()
-        if ck is None or ex.weight.dtype != F32 or (self.sum_M is not None and ex.mueller.dtype != F32):
-            return None
-        return ck
+    def _kernel_takes(self, ex: ExitSamples) -> bool:
+        """Whether `kernels.bin_cells` takes this batch (float32 weights and Mueller columns)."""
+        return ex.weight.dtype == F32 and (self.sum_M is None or ex.mueller.dtype == F32)
 
     def _bin_numpy(self, c_in: np.ndarray, w_in: np.ndarray, M: np.ndarray | None) -> None:
-        """The reference binning: np.bincount per sum (M: the Mueller columns (16, n) of the exits c_in)."""
+        """The binning of batches in other precisions: np.bincount per sum (M: the Mueller columns (16, n) of
+        the exits c_in)."""
         nc = self.sum_w.size
         self.sum_w += np.bincount(c_in, weights=w_in, minlength=nc)
         self.sum_w2 += np.bincount(c_in, weights=w_in * w_in, minlength=nc)
@@ -426,9 +441,9 @@ class CellAccumulator:
             for e in range(16):
                 self.sum_M[:, e] += np.bincount(c_in, weights=M16[e], minlength=nc)
 
-    def _bin_kernel(self, compiled, cell: np.ndarray, ex: ExitSamples) -> None:
-        """`_bin_numpy` in one C pass (cells < 0 skipped).  The kernel adds exit by exit; into sums that
-        already hold something it adds a batch's own sums (as `+= np.bincount`), so that both give the
+    def _bin_kernel(self, cell: np.ndarray, ex: ExitSamples) -> None:
+        """`_bin_numpy` in one pass, `kernels.bin_cells` (cells < 0 skipped).  The kernel adds exit by exit;
+        into sums that already hold something it adds a batch's own sums (as `+= np.bincount`), so that both give the
         same numbers bit for bit."""
         polar = self.sum_M is not None
         if self._untouched:
@@ -437,15 +452,15 @@ class CellAccumulator:
             sums = (np.zeros_like(self.sum_w), np.zeros_like(self.sum_w2), np.zeros_like(self.sum_M) if polar else None)
         compact = ex.compact if polar else None
         if self.paths_group is None:
-            compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums, compact=compact)
+            kernels.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums, compact=compact)
         else:                                       # the group keys and float64 weights of the binned exits too
             keys, w64 = np.empty(cell.size, np.int32), np.empty(cell.size, F32)     # float32 weights: exact
             if ex.group is None and ex.group_of_path is not None:     # the exit's group from its path's
                 g, ids, n = ex.group_of_path
-                j = compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums,
+                j = kernels.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums,
                                        g.astype(np.int32, copy=False), keys, w64, compact, ids, n)
             else:
-                j = compiled.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums,
+                j = kernels.bin_cells(cell, ex.weight, ex.mueller if polar else None, *sums,
                                        ex.group.astype(np.int32, copy=False), keys, w64, compact)
             self._group_parts.append((keys[:j], w64[:j]))
         if not self._untouched:
@@ -497,16 +512,10 @@ class CellAccumulator:
         G = int(self.n_groups)
         if not self._group_parts:
             return np.zeros((G, nc))
-        ck = kernels.active()
-        if ck is not None:                          # the same sums in the same order, without concatenating
-            out = np.zeros(G * nc)
-            for k_, w_ in self._group_parts:
-                ck.add_at(k_, w_, out)
-            return out.reshape(G, nc)
-        keys = np.concatenate([k_ for k_, _ in self._group_parts])
-        w = np.concatenate([w_ for _, w_ in self._group_parts])
-        self._group_parts = [(keys, w)]
-        return np.bincount(keys, weights=w, minlength=G * nc).reshape(G, nc)
+        out = np.zeros(G * nc)                      # np.bincount's sums in its order, without concatenating
+        for k_, w_ in self._group_parts:
+            kernels.add_at(k_, w_, out)
+        return out.reshape(G, nc)
 
     def _tile_variance(self, mean: np.ndarray, var_mc: np.ndarray, n: float) -> np.ndarray | None:
         """V_tile = max(V_block - V_mc, 0) per cell (module doc; power fractions squared), or None

@@ -34,8 +34,7 @@ def padded_rows(shape: tuple, m: int) -> np.ndarray:
 class Exits:
     """Exit records of one chunk: propagation direction k (m, 3) float32, power weight w, state
     (int8, above), bounce count nb (int16), output id, and, for polarised light, the Stokes
-    columns A (4, K, m) in the exit frame s = z x k, p = s x k.  With the compiled kernels a record
-    whose path interacted once may hold its Mueller columns compactly (`compact` 1: in the flat rows
+    columns A (4, K, m) in the exit frame s = z x k, p = s x k.  A record whose path interacted once may hold its Mueller columns compactly (`compact` 1: in the flat rows
     0-7 of A, the 6 factors of the interaction and cos / sin 2psi of the exit rotation, from which
     the binning computes the 16 entries: `transport.StokesCarrier.exit_columns`); `expand` writes them
     whole.  Filled by `put`;
@@ -59,8 +58,8 @@ class Exits:
 
     def put(self, k, idx, w, nb, ids, state) -> slice:
         """Store rows `idx` of the arrays (idx None: every row); the slice of the new records, whose
-        Stokes columns `A[:, :, slice]` the caller fills (the carrier, in the exit frame).  The rows are
-        gathered by the compiled kernels when they run (`relief_bsdf.kernels`)."""
+        Stokes columns `A[:, :, slice]` the caller fills (the carrier, in the exit frame); rows idx are
+        gathered in one pass (`kernels.gather_records`)."""
         a = self.n
         if idx is None:
             b = a + ids.size
@@ -70,17 +69,7 @@ class Exits:
             self.ids[a:b] = ids
         else:
             b = a + idx.size
-            ck = kernels.active()
-            if ck is not None and k.dtype == w.dtype == F32 and nb.dtype == np.int16 and ids.dtype == np.int64:
-                ck.gather_records(idx, k, w, nb, ids, self.k[a:b], self.w[a:b], self.nb[a:b], self.ids[a:b])
-                self.state[a:b] = state
-                self.n = b
-                return slice(a, b)
-            # mode="clip": no bounds-check buffer (idx comes from flatnonzero, always in range)
-            np.take(k, idx, axis=0, out=self.k[a:b], mode="clip")
-            np.take(w, idx, out=self.w[a:b], mode="clip")
-            np.take(nb, idx, out=self.nb[a:b], mode="clip")
-            np.take(ids, idx, out=self.ids[a:b], mode="clip")
+            kernels.gather_records(idx, k, w, nb, ids, self.k[a:b], self.w[a:b], self.nb[a:b], self.ids[a:b])
         self.state[a:b] = state
         self.n = b
         return slice(a, b)
@@ -89,7 +78,7 @@ class Exits:
     def expand(self) -> None:
         """Write every compactly held record's Mueller columns whole (class doc)."""
         if self.compact is not None and self.compact[:self.n].any():
-            kernels.built().expand_compact(self.A.reshape(16, -1)[:, :self.n], self.compact[:self.n])
+            kernels.expand_compact(self.A.reshape(16, -1)[:, :self.n], self.compact[:self.n])
 
     def records(self):
         """(k, w, state, nb, A or None) of the n valid records, in the order they ended (A's records may be

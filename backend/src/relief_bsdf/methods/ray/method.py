@@ -367,13 +367,8 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
         jit = rng.random((hi - lo, 2))
         o = np.empty((hi - lo, 3), F32)
         sx, sy, z = tracer.Lx / nxs, tracer.Ly / nys, tracer.z_bot if inc.from_below else tracer.z_top
-        ck = kernels.active()
-        if ck is not None and ix.dtype == iy.dtype == np.int64:     # the same numbers in one pass
-            ck.beam_origins(ix, iy, jit, float(sx), float(tracer.hx), float(sy), float(tracer.hy), z, o)
-        else:
-            o[:, 0] = (ix + jit[:, 0]) * sx - tracer.hx
-            o[:, 1] = (iy + jit[:, 1]) * sy - tracer.hy
-            o[:, 2] = z
+        kernels.beam_origins(ix.astype(np.int64, copy=False), iy.astype(np.int64, copy=False), jit, float(sx),
+                             float(tracer.hx), float(sy), float(tracer.hy), z, o)
         k, s_init = _beam(inc, ctx.beam_divergence_deg, hi - lo, rng)
         turn = None
         if ctx.phi_i_spread_deg:

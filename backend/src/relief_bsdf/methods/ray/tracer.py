@@ -61,20 +61,15 @@ class ScatterResult:
 
 @dataclass
 class Query:
-    """One Embree query of a batch: hits (facet normal Ng, distance), and the distances along k to
-    the tile's sides (tx, ty, t_lat = min) and the slab's faces (tz); with the compiled kernels only
-    lat_first (uint8: t_lat < tz), the distances None (`ReliefTracer.side_distances` for the rays that
-    re-enter)."""
+    """One Embree query of a batch: hits (facet normal Ng, distance) and, per ray, whether a tile side
+    comes before the slab's faces along k (lat_first, uint8: t_lat < tz; a ray that hits nothing then
+    re-enters, its distances from `ReliefTracer.side_distances`)."""
 
     hit: np.ndarray
     n_hit: int
     ng: np.ndarray
     t_hit: np.ndarray
-    tx: np.ndarray | None
-    ty: np.ndarray | None
-    tz: np.ndarray | None
-    t_lat: np.ndarray | None
-    lat_first: np.ndarray | None = None
+    lat_first: np.ndarray
 
 
 class ReliefTracer:
@@ -114,7 +109,6 @@ class ReliefTracer:
         # under the GIL; numpy-filled with the direct path), BVH build (Embree, all cores)
         self.build_split_s = {"mesh": t1 - t0, "embree_buffers": t2 - t1, "bvh_commit": self.build_s - (t2 - t0)}
         self.record_segments: list | None = None
-        self._bounds = (np.zeros(0, F32), np.zeros(0, F32))
         self._relief_hash_cache: dict = {}
 
     @property
@@ -133,7 +127,6 @@ class ReliefTracer:
         self.eps = F32(64 * big * 2.0**-24)
         self.z_top = F32(m.z_max + 8 * self.eps)
         self.z_bot = F32(m.z_min - 8 * self.eps)
-        self._bounds = (np.zeros(0, F32), np.zeros(0, F32))
         self.scene.run(np.array([[0, 0, self.z_top + 1]], F32), np.array([[0, 0, -1]], F32))
 
     def with_heights(self, heights_m: np.ndarray | Relief, step: str = "heights replaced") -> "ReliefTracer":
@@ -173,47 +166,28 @@ class ReliefTracer:
 
     # ------------------------------------------------------------------ geometry of the tile
     def query(self, o: np.ndarray, k: np.ndarray) -> Query:
-        """Intersect rays (o, k) with the relief up to the nearest tile side or slab face (with the compiled
-        kernels `_compiled.slab_far`: that limit and whether a tile side comes first, the same numbers;
-        `Query` doc)."""
+        """Intersect rays (o, k) (float32) with the relief up to the nearest tile side or slab face
+        (`kernels.slab_far`: that limit and whether a tile side comes first; `Query` doc)."""
         n = k.shape[0]
-        ck = kernels.active()
-        lat_first = None
-        if ck is not None and o.dtype == k.dtype == F32:
-            tfar, lat_first = np.empty(n, F32), np.empty(n, np.uint8)
-            zh, zc = self._slab_faces()
-            ck.slab_far(o, k, self.hx, self.hy, zh, zc, tfar, lat_first)
-            tx = ty = tz = t_lat = None
-        else:
-            bnd_hi, bnd_c = self._slab_bounds(n)
-            # ((+-hx, +-hy, +-zh) by the sign of k - (o - (0, 0, zc))) / k on the flat (3 n) views
-            T = copysign_positive(bnd_hi, k.reshape(-1))
-            T -= o.reshape(-1)
-            T += bnd_c
-            T /= k.reshape(-1)
-            T = T.reshape(n, 3)
-            t_lat = np.fmin(T[:, 0], T[:, 1])
-            tfar = np.fmin(t_lat, T[:, 2])
-            np.maximum(tfar, 0, out=tfar)
-            tx, ty, tz = T[:, 0], T[:, 1], T[:, 2]
+        tfar, lat_first = np.empty(n, F32), np.empty(n, np.uint8)
+        zh, zc = self._slab_faces()
+        kernels.slab_far(o, k, self.hx, self.hy, zh, zc, tfar, lat_first)
         if self.record_segments is not None:          # benchmark hook: replay the same batches
             self.record_segments.append((o.copy(), k.copy(), tfar.copy()))
         res = self.scene.run(o, k, dists=tfar, output=1)
         hit = res["primID"] >= 0
-        return Query(hit, int(np.count_nonzero(hit)), res["Ng"], res["tfar"], tx, ty, tz, t_lat, lat_first)
+        return Query(hit, int(np.count_nonzero(hit)), res["Ng"], res["tfar"], lat_first)
 
-    def reentry_points(self, o: np.ndarray, k: np.ndarray, sides: tuple | None = None) -> np.ndarray:
-        """Where rays (o, k) that reach a tile side re-enter (`wrap`); sides: their (t_lat, tx, ty) from the
-        query, or None to compute them (`side_distances`: the compiled query keeps no distances)."""
-        return self.wrap(o, k, *(self.side_distances(o, k) if sides is None else sides))
+    def reentry_points(self, o: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """Where rays (o, k) that reach a tile side re-enter (`wrap` at their `side_distances`)."""
+        return self.wrap(o, k, *self.side_distances(o, k))
 
     def side_distances(self, o: np.ndarray, k: np.ndarray) -> tuple:
-        """(t_lat, tx, ty) of rays (o, k) (float32): the distances to the tile's sides of `query` (compiled:
-        `_compiled.slab_distances`, the same numbers)."""
+        """(t_lat, tx, ty) of rays (o, k) (float32): the distances to the tile's sides (`kernels.slab_distances`)."""
         n = k.shape[0]
         T, t_lat, tfar = padded_rows((3,), n), np.empty(n, F32), np.empty(n, F32)
         zh, zc = self._slab_faces()
-        kernels.built().slab_distances(o, k, self.hx, self.hy, zh, zc, T, t_lat, tfar)
+        kernels.slab_distances(o, k, self.hx, self.hy, zh, zc, T, t_lat, tfar)
         return t_lat, T[0], T[1]
 
     def wrap(self, o: np.ndarray, k: np.ndarray, t: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
@@ -229,43 +203,18 @@ class ReliefTracer:
         """(zh, zc): the slab's half height and centre, float32."""
         return (self.z_top - self.z_bot) / F32(2), (self.z_top + self.z_bot) / F32(2)
 
-    def _slab_bounds(self, n: int):
-        """Flat float32 arrays (hx, hy, zh) and (0, 0, zc) repeated n times (views of cached arrays)."""
-        hi, c = self._bounds
-        if hi.size < 3 * n:
-            zh, zc = self._slab_faces()
-            cap = max(n, 2 * CHUNK)
-            hi, c = np.tile(np.array([self.hx, self.hy, zh], F32), cap), np.tile(np.array([0, 0, zc], F32), cap)
-            self._bounds = (hi, c)
-        return hi[:3 * n], c[:3 * n]
-
     def subtile_of(self, p: np.ndarray, grid: tuple) -> np.ndarray:
         """Sub-tile index iy * gx + ix (int32) of points p (n, >= 2, tile coordinates) on a gx x gy
         grid of the *relief's own* extent: on a mirror-extended tile the coordinates are folded
         back onto the measured map first, so that mirror images share their sub-tile."""
-        gx, gy = int(grid[0]), int(grid[1])
-        ck = kernels.active()
-        if ck is not None and p.dtype == F32:          # the compiled kernel: the same operations
-            out = np.empty(p.shape[0], np.int32)
-            ck.subtile_index(p, *self.subtile_grid(grid), out)
-            return out
-        idx = None
-        for ax, (g, L, h) in enumerate(((gx, self.Lx, self.hx), (gy, self.Ly, self.hy))):
-            u = p[:, ax] + h                            # [0, L)
-            if self.mesh.mirrored:                      # period 2 (n - 1) px: fold [L/2, L) onto [0, L/2]
-                half = L / F32(2)
-                u = half - np.abs(u - half)
-                scale = F32(g) / half
-            else:
-                scale = F32(g) / L
-            i = (u * scale).astype(np.int32)
-            np.clip(i, 0, g - 1, out=i)
-            idx = i if idx is None else idx + i * np.int32(gx)
-        return idx
+        out = np.empty(p.shape[0], np.int32)
+        kernels.subtile_index(np.asarray(p, F32), *self.subtile_grid(grid), out)
+        return out
 
     def subtile_grid(self, grid: tuple) -> tuple:
-        """The numbers of `subtile_of` for the compiled kernels (`_compiled.subtile_index`): hx, hy, the half
-        extents, the float32 scales, mirrored, gx, gy."""
+        """The numbers of `subtile_of` (`kernels.subtile_index`, `kernels.split_rays`): hx, hy, the half extents,
+        the float32 scales (the sub-tile count over the relief's own extent: half the tile when mirror-extended,
+        where the coordinates are folded back), mirrored, gx, gy."""
         gx, gy = int(grid[0]), int(grid[1])
         half_x, half_y = self.Lx / F32(2), self.Ly / F32(2)
         if self.mesh.mirrored:

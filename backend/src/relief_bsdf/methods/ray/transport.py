@@ -46,14 +46,14 @@ kernels on the (4, K, n) Stokes columns are the core's (`core.stokes.rotate_stok
 `apply_interface_mueller_columns`, `s_axis_rows`; `core.frames.dot_rows`, `cross_rows`),
 tested equal to the reference definitions beside them; the (n, 3) vectors of an interaction
 (directions, normals, the facet basis) are worked on as contiguous component arrays and written
-into (n, 3) rows once (`_columns`, `_unit_rows`: the operations of `core.frames.dot_rows`,
-`divide_rows`, `scale_rows` in the same order, on unstrided arrays, ~3x faster per operation).
-With the compiled kernels (`relief_bsdf.kernels`) the facets of a batch (`_hits_compiled`), the
-polarised event (`StokesCarrier.reflectance`; at a first interaction that splits, both branches'
-factors in the same pass), the branches' rays and scalars, the sorting of the misses and the exit
-columns are C passes over the rays doing the same float32 operations (the numpy code here stays the
-reference and the fallback); an exit whose path interacted once is held compactly (its 6 factors and
-exit rotation, `exits.Exits.compact`) and expanded by the binning.
+into (n, 3) rows once (`_unit_rows`: the operations of `core.frames.dot_rows`, `divide_rows`,
+`scale_rows` in the same order, on unstrided arrays, ~3x faster per operation).
+The passes over a batch's rays are kernels (`relief_bsdf.kernels`: compiled, or their numpy twins, the
+same numbers): the facets of a batch (`_hits`), the polarised event for real indices
+(`StokesCarrier.reflectance`; at a first interaction that splits, both branches' factors in the same
+pass), the branches' rays and scalars, the sorting of the misses, the gathers and the exit columns; an
+exit whose path interacted once is held compactly (its 6 factors and exit rotation,
+`exits.Exits.compact`) and expanded by the binning.
 """
 from __future__ import annotations
 
@@ -169,17 +169,12 @@ class Rays:
         A = None if self.A is None else np.take(self.A, idx, axis=2)
         s = None if self.s is None else take_rows(self.s, idx)
         F = None if self.F is None else take_factors(self.F, idx)
-        ck = kernels.active()
-        if ck is not None and self.o.dtype == self.k.dtype == self.w.dtype == F32 and self.nb.dtype == np.int16 \
-                and self.ids.dtype == np.int64 and idx.dtype == np.int64:
-            m = idx.size                            # the compiled kernel: the six gathers in one pass
-            r = Rays(np.empty((m, 3), F32), np.empty((m, 3), F32), np.empty(m, bool), np.empty(m, F32),
-                     np.empty(m, np.int16), np.empty(m, np.int64), A, s, F)
-            ck.gather_rays(idx, self.o, self.k, self.below.view(np.uint8), self.w, self.nb, self.ids, r.o, r.k,
-                           r.below.view(np.uint8), r.w, r.nb, r.ids)
-            return r
-        return Rays(np.take(self.o, idx, axis=0), np.take(self.k, idx, axis=0), self.below[idx], self.w[idx],
-                    self.nb[idx], self.ids[idx], A, s, F)
+        m = idx.size                                # the six gathers in one pass
+        r = Rays(np.empty((m, 3), F32), np.empty((m, 3), F32), np.empty(m, bool), np.empty(m, F32),
+                 np.empty(m, np.int16), np.empty(m, np.int64), A, s, F)
+        kernels.gather_rays(idx.astype(np.int64, copy=False), self.o, self.k, self.below.view(np.uint8), self.w,
+                            self.nb, self.ids, r.o, r.k, r.below.view(np.uint8), r.w, r.nb, r.ids)
+        return r
 
     def columns(self, K: int) -> np.ndarray:
         """The Stokes columns (4, K, n), materialised from the factors or the identity when not held."""
@@ -395,7 +390,7 @@ class StokesCarrier:
     def __init__(self, K: int):
         self.K = int(K)
         self._ev = None
-        self._split = None              # (F_r, F_t) of a first interaction's both branches (`_reflectance_compiled`)
+        self._split = None              # (F_r, F_t) of a first interaction's both branches (`_reflectance_real`)
 
     def start(self, rays: Rays, s_init=None) -> None:
         """Initial basis s = z x k (or the given s_init for every ray); rays.A None stands for the
@@ -413,13 +408,12 @@ class StokesCarrier:
         the ray's basis (s . k = 0, |k| = 1): s . u = |u| (s . s') and p . u = s . n, so the
         rotation's (c, d) = (s . s', p . s') are (s . u, s . n) / |u| (`rotate_stokes_columns_cd`
         needs them only up to that factor): two dot products instead of a cross product.
-        With the compiled kernels (real indices): `_compiled.facet_event`, the same numbers; split (the
-        first-hit split will keep both branches): rays at their first interaction get both branches'
-        factors from the same pass (`first_interaction_factors`' numbers).
+        Real indices (f.n_pair): one pass over the rays, `kernels.facet_event`; split (the first-hit split
+        will keep both branches): rays at their first interaction get both branches' factors from the same
+        pass (`first_interaction_factors`' numbers).  Complex indices (a metal): the numpy code below.
         """
-        ck = kernels.active()
-        if ck is not None and f.n_pair is not None:
-            return self._reflectance_compiled(ck, rays, f, split)
+        if f.n_pair is not None:
+            return self._reflectance_real(rays, f, split)
         k, s_old = rays.k, rays.s
         kx, ky, kz = f.k3
         # u = n x k in three contiguous arrays (column ops on an (n, 3) array are strided, ~3x slower),
@@ -462,15 +456,15 @@ class StokesCarrier:
         self._ev = (R, T, s_new, None)
         return np.clip(R[0] + R[1] * rays.A[1, 0], 0, 1).astype(F32, copy=False)
 
-    def _reflectance_compiled(self, ck, rays: Rays, f: Facet, split: bool = False) -> np.ndarray:
-        """`reflectance` in one C pass over the rays (`_compiled.facet_event`)."""
+    def _reflectance_real(self, rays: Rays, f: Facet, split: bool = False) -> np.ndarray:
+        """`reflectance` for real indices in one pass over the rays (`kernels.facet_event`)."""
         n = rays.size
         if split and self.factored and rays.A is None and rays.F is None:
             # both branches' factors instead of R, T and the rotation (whose arguments the kernel leaves
             # unwritten: rows 0-2 stand in for them and serve as the new basis's scratch; row 3 is P_R)
             s_new, rows = np.empty((n, 3), F32), padded_rows((4,), n)
             F_r, F_t = padded_rows((6,), n), padded_rows((6,), n)
-            ck.facet_event(f.nfx, f.nfy, f.nfz, *f.k3, rays.s, f.ci, *f.n_pair, None, s_new, rows[0:3], rows[0],
+            kernels.facet_event(f.nfx, f.nfy, f.nfz, *f.k3, rays.s, f.ci, *f.n_pair, None, s_new, rows[0:3], rows[0],
                            rows[0], rows[0:3], rows[0:3], rows[3], F_r, F_t)
             self._ev, self._split = (None, None, s_new, None), (F_r, F_t)
             return rows[3]
@@ -481,7 +475,7 @@ class StokesCarrier:
         s_new = np.empty((n, 3), F32)
         rows = padded_rows((14,), n)                # c2, s2, R (4), T (4), pR, the new basis's components (3)
         rot, R, T, pR = rows[0:2], rows[2:6], rows[6:10], rows[10]
-        ck.facet_event(f.nfx, f.nfy, f.nfz, *f.k3, rays.s, f.ci, *f.n_pair, rays.A, s_new, rows[11:14], rot[0],
+        kernels.facet_event(f.nfx, f.nfy, f.nfz, *f.k3, rays.s, f.ci, *f.n_pair, rays.A, s_new, rows[11:14], rot[0],
                        rot[1], R, T, pR)
         self._ev = (R, T, s_new, None if rays.A is not None else (rot[0], rot[1]))
         return pR
@@ -540,18 +534,16 @@ class StokesCarrier:
         """Write the columns of the rays idx (all when None), re-expressed in the exit frame
         s = z x k, into `out` (4, K, m): the exit record's slot, filled row by row without a
         temporary (`np.take` into each contiguous row); k_exit (m, 3) their directions.  Rays that
-        hold the factors of their first interaction: `exit_columns_of_factors`.  With the compiled
-        kernels: `_compiled.exit_columns` (the same numbers; exits along z by the numpy code), and
-        where the record has flags (compact, (m,) uint8: `exits.Exits.compact`) the columns from
-        factors are written compactly (6 factors and the exit rotation, flag 1) for the binning to
-        expand; the numpy code writes every record whole (flag 0)."""
-        ck = kernels.active()
-        if ck is None or (rays.F is None and rays.A is None):
+        hold the factors of their first interaction: `exit_columns_of_factors`; in one pass,
+        `kernels.exit_columns` (exits along z by `_exit_columns_numpy`), and where the record has flags
+        (compact, (m,) uint8: `exits.Exits.compact`) the columns from factors are written compactly (6
+        factors and the exit rotation, flag 1) for the binning to expand."""
+        if rays.F is None and rays.A is None:       # the identity columns (no interaction yet)
             self._exit_columns_numpy(rays, idx, phi_exit_rad, k_exit, out)
             if compact is not None:
                 compact[:] = 0
             return
-        if ck.exit_columns(rays.F, rays.A, rays.s, k_exit, idx, out, ALONG_Z_XY2, compact):
+        if kernels.exit_columns(rays.F, rays.A, rays.s, k_exit, idx, out, ALONG_Z_XY2, compact):
             zi = np.flatnonzero(k_exit[:, 0] * k_exit[:, 0] + k_exit[:, 1] * k_exit[:, 1] < ALONG_Z_XY2)
             cols = np.empty((4, self.K, zi.size), F32)
             self._exit_columns_numpy(rays, zi if idx is None else idx[zi], phi_exit_rad, k_exit[zi], cols)
@@ -560,7 +552,8 @@ class StokesCarrier:
                 compact[zi] = 0
 
     def _exit_columns_numpy(self, rays: Rays, idx, phi_exit_rad: float, k_exit, out) -> None:
-        """The numpy code of `exit_columns`."""
+        """`exit_columns` written whole in numpy, the fallback azimuth's frame along z included (the rows
+        `kernels.exit_columns` leaves, and rays without an interaction)."""
         F = None
         if rays.F is not None:
             F = rays.F if idx is None else take_factors(rays.F, idx)
@@ -687,61 +680,13 @@ def _exit_state(up: np.ndarray, below: np.ndarray) -> np.ndarray:
 
 
 def _misses(ch: _Chunk, cur: Rays, q) -> Rays | None:
-    """Rays that hit nothing: those that reached the slab's faces leave; those that reached a
-    tile side re-enter from the opposite side (returned).  With the compiled kernels the sorting is
-    one pass (`_compiled.classify_misses`: the same records)."""
-    ck = kernels.active()
-    if q.lat_first is not None:
-        return _misses_compiled(kernels.built(), ch, cur, q)
-    side_exit = ~(q.t_lat < q.tz)                    # reached the slab face, not a tile side
-    if q.n_hit == 0 and side_exit.all():            # every ray left (the usual end of a phase): no gathers
-        _record(ch, cur, None, _exit_state(cur.k[:, 2] > 0, cur.below))
-        return None
-    mi = np.flatnonzero(~q.hit)
-    lat = ~side_exit[mi]
-    wrapped = None
-    if lat.any():
-        wi = mi[lat]
-        mi = mi[~lat]
-        wrapped = cur.take(wi)
-        wrapped.o = ch.tracer.reentry_points(wrapped.o, wrapped.k, (q.t_lat[wi], q.tx[wi], q.ty[wi]))
-    if mi.size:
-        # the states of every ray (cheap int8 passes), then one int8 gather: no gather of a strided column
-        st = np.take(_exit_state(cur.k[:, 2] > 0, cur.below), mi)
-        _record(ch, cur, mi, st)
-    return wrapped
-
-
-def _reenter_in_place(ch: _Chunk, cur: Rays, q) -> tuple:
-    """Rays of a first-interaction batch that reached a tile side before the relief re-enter from the
-    opposite side and are queried again, in place, until each hits or leaves: (the batch's query with
-    their results merged in, the segments they added).  Their origins in `cur` become the re-entry
-    points (the points a separate batch of re-entering rays would start from); the batch then goes on
-    whole, without gathering the rays that hit (most of a first batch: a few of its rays re-enter)."""
-    more = 0
-    while True:
-        lat = q.lat_first.astype(bool) if q.lat_first is not None else q.t_lat < q.tz
-        wi = np.flatnonzero(~q.hit & lat)
-        if not wi.size:
-            return q, more
-        o, k = np.take(cur.o, wi, axis=0), np.take(cur.k, wi, axis=0)
-        o = ch.tracer.reentry_points(o, k, None if q.lat_first is not None else (q.t_lat[wi], q.tx[wi], q.ty[wi]))
-        cur.o[wi] = o
-        q2 = ch.tracer.query(o, k)
-        more += wi.size
-        for name in ("hit", "ng", "t_hit", "tx", "ty", "tz", "t_lat", "lat_first"):
-            a = getattr(q, name)
-            if a is not None:
-                a[wi] = getattr(q2, name)
-        q.n_hit = int(np.count_nonzero(q.hit))
-
-
-def _misses_compiled(ck, ch: _Chunk, cur: Rays, q) -> Rays | None:
-    """`_misses` with the exits, their states and the re-entering rays sorted in one C pass."""
+    """Rays that hit nothing: those that reached the slab's faces leave; those that reached a tile side
+    re-enter from the opposite side (returned).  The exits, their states and the re-entering rays sorted in
+    one pass (`kernels.classify_misses`)."""
     n = cur.size
     ei, st, wi = np.empty(n, np.int64), np.empty(n, np.int8), np.empty(n, np.int64)
-    ne, nw = ck.classify_misses(q.hit.view(np.uint8), q.lat_first, cur.k, cur.below.view(np.uint8), ABOVE, BELOW,
-                                LOST_LEAK, ei, st, wi)
+    ne, nw = kernels.classify_misses(q.hit.view(np.uint8), q.lat_first, cur.k, cur.below.view(np.uint8), ABOVE,
+                                     BELOW, LOST_LEAK, ei, st, wi)
     wrapped = None
     if nw:
         wi = wi[:nw]
@@ -754,55 +699,42 @@ def _misses_compiled(ck, ch: _Chunk, cur: Rays, q) -> Rays | None:
     return wrapped
 
 
-def _columns(v: np.ndarray) -> tuple:
-    """The three components of (n, 3) vectors as contiguous arrays: the column ops of the interaction
-    read them several times each, and numpy's ops on an (n, 3) array's strided columns are ~3x slower."""
-    return tuple(np.ascontiguousarray(v[:, i]) for i in range(3))
+def _reenter_in_place(ch: _Chunk, cur: Rays, q) -> tuple:
+    """Rays of a first-interaction batch that reached a tile side before the relief re-enter from the
+    opposite side and are queried again, in place, until each hits or leaves: (the batch's query with
+    their results merged in, the segments they added).  Their origins in `cur` become the re-entry
+    points (the points a separate batch of re-entering rays would start from); the batch then goes on
+    whole, without gathering the rays that hit (most of a first batch: a few of its rays re-enter)."""
+    more = 0
+    while True:
+        lat = q.lat_first.astype(bool)
+        wi = np.flatnonzero(~q.hit & lat)
+        if not wi.size:
+            return q, more
+        o, k = np.take(cur.o, wi, axis=0), np.take(cur.k, wi, axis=0)
+        o = ch.tracer.reentry_points(o, k)
+        cur.o[wi] = o
+        q2 = ch.tracer.query(o, k)
+        more += wi.size
+        for name in ("hit", "ng", "t_hit", "lat_first"):
+            getattr(q, name)[wi] = getattr(q2, name)
+        q.n_hit = int(np.count_nonzero(q.hit))
 
 
 def _hits(ch: _Chunk, cur: Rays, q, pending: bool) -> list:
-    """Gather the rays that hit, drop numerical leaks, and let them interact."""
+    """Gather the rays that hit, drop numerical leaks (a ray on the wrong side of its facet), and let them
+    interact; the facets from Embree's normals in one pass (`kernels.facet_geometry`)."""
     if q.n_hit == cur.size:
         h, ng, th = cur, q.ng, q.t_hit
     else:
         hi = np.flatnonzero(q.hit)
         h, ng, th = cur.take(hi), np.take(q.ng, hi, axis=0), q.t_hit[hi]
-    ck = kernels.active()
-    if ck is not None and ng.dtype == h.k.dtype == F32:
-        return _hits_compiled(ck, ch, h, ng, th, pending)
-    g3, k3 = _columns(ng), _columns(h.k)
-    gx, gy, gz = g3
-    # unit facet normal oriented up (+z): g / |g| with the sign of g_z
-    inv = gx * gx
-    inv += gy * gy
-    inv += gz * gz
-    np.sqrt(inv, out=inv)
-    np.divide(F32(1), inv, out=inv)
-    np.copysign(inv, gz, out=inv)
-    dot = k3[0] * gx
-    dot += k3[1] * gy
-    dot += k3[2] * gz
-    dot *= inv                                        # k . n_up
-    leak = (dot > 0) != h.below                       # above must hit from above, below from below
-    if leak.any():
-        li = np.flatnonzero(leak)
-        _record(ch, h, li, LOST_LEAK)
-        g = np.flatnonzero(~leak)
-        h, th, inv, dot = h.take(g), th[g], inv[g], dot[g]
-        g3, k3 = tuple(x[g] for x in g3), tuple(x[g] for x in k3)
-    if h.size == 0:
-        return []
-    return _interact(ch, h, _facet(h, g3, k3, inv, dot, ch.media), th, pending)
-
-
-def _hits_compiled(ck, ch: _Chunk, h: Rays, ng, th, pending: bool) -> list:
-    """`_hits` with the facets from the compiled kernel `_compiled.facet_geometry` (the same numbers)."""
     n, media = h.size, ch.media
     out = padded_rows((12,), n)
     tir, leak = np.empty(n, bool), np.empty(n, bool)
     na, nb = (F32(0), F32(0)) if media.is_complex else (F32(media.n_above), F32(media.n_below))
-    ck.facet_geometry(ng, h.k, h.below.view(np.uint8), media.eta_up, media.eta_dn, na, nb, out, tir.view(np.uint8),
-                      leak.view(np.uint8))
+    kernels.facet_geometry(ng, h.k, h.below.view(np.uint8), media.eta_up, media.eta_dn, na, nb, out,
+                           tir.view(np.uint8), leak.view(np.uint8))
     if leak.any():
         li = np.flatnonzero(leak)
         _record(ch, h, li, LOST_LEAK)
@@ -816,60 +748,37 @@ def _hits_compiled(ck, ch: _Chunk, h: Rays, ng, th, pending: bool) -> list:
     return _interact(ch, h, f, th, pending)
 
 
-def _facet(h: Rays, g3, k3, inv, dot, media: Media) -> Facet:
-    """Incident-side unit normal, cos i, cos t (Snell), n1 / n2 and TIR of each hit."""
-    s = np.where(h.below, -inv, inv)                 # nf = n_up above the surface, -n_up below
-    ci = np.abs(dot)
-    eta = np.where(h.below, media.eta_up, media.eta_dn)
-    sin2t = ci * ci                                   # Snell: sin^2 t = eta^2 (1 - cos^2 i); TIR when >= 1
-    np.subtract(F32(1), sin2t, out=sin2t)
-    sin2t *= eta * eta
-    tir = sin2t >= 1
-    ct = np.subtract(F32(1), sin2t, out=sin2t)
-    np.maximum(ct, 0, out=ct)
-    np.sqrt(ct, out=ct)
-    return Facet(g3[0] * s, g3[1] * s, g3[2] * s, ci, ct, eta, tir, k3)
-
-
 def _interact(ch: _Chunk, h: Rays, f: Facet, th, pending: bool) -> list:
-    """One interaction for rays that all hit: the continuing rays (and split copies)."""
+    """One interaction for rays that all hit: the continuing rays (and, pending, the split copies:
+    `_first_interaction`); otherwise Russian roulette on P_R (module doc)."""
     carrier, eps = ch.carrier, ch.tracer.eps
-    ck = kernels.active()
-    pR = carrier.reflectance(h, f, ch.media, split=pending and ck is not None and h.o.dtype == th.dtype == F32)
-    if pending and ck is not None and h.o.dtype == th.dtype == F32:
-        return _first_interaction_compiled(ck, ch, h, f, th, pR)
+    pR = carrier.reflectance(h, f, ch.media, split=pending)
+    if pending:
+        return _first_interaction(ch, h, f, th, pR)
     p = np.empty(h.k.shape, F32)                     # hit point (`core.frames.scale_rows` of k, th)
     for i in range(3):
         np.multiply(f.k3[i], th, out=p[:, i])
     p += h.o
     if ch.group is not None:
-        _tag_first_hits(ch, h, p, pending)
+        _tag_first_hits(ch, h, p)
     h.nb = h.nb + np.int16(1)
     bt = f.eta * f.ci
     bt -= f.ct                                        # k_t = eta k + (eta ci - ct) nf; k_r = k + 2 ci nf
-    parts, absorbed = [], None
-    if pending:
-        tr = _split_copies(ch, h, f, p, bt, pR)
-        if tr is not None:
-            parts.append(tr)
-        h.w = h.w * pR
-        carrier.reflected(h, pR)
-        a, b, off = None, 2 * f.ci, eps
-    else:
-        refl = path_uniforms(ch.key, h.ids, h.nb) < pR
-        carrier.chosen(h, refl, pR)
-        a = np.where(refl, F32(1), f.eta)
-        b = np.where(refl, 2 * f.ci, bt)
-        off = np.where(refl, eps, -eps)
-        if ch.media.absorbing_below:
-            absorbed = ~refl & ~h.below               # refracted into the absorbing medium
-        h.below = h.below ^ ~refl
+    absorbed = None
+    refl = path_uniforms(ch.key, h.ids, h.nb) < pR
+    carrier.chosen(h, refl, pR)
+    a = np.where(refl, F32(1), f.eta)
+    b = np.where(refl, 2 * f.ci, bt)
+    off = np.where(refl, eps, -eps)
+    if ch.media.absorbing_below:
+        absorbed = ~refl & ~h.below                   # refracted into the absorbing medium
+    h.below = h.below ^ ~refl
     h.k = _new_directions(f, a, b)
     p[:, 0] += off * f.nfx
     p[:, 1] += off * f.nfy
     p[:, 2] += off * f.nfz
     h.o = p
-    return _still_tracing(ch, h, absorbed, parts)
+    return _still_tracing(ch, h, absorbed, [])
 
 
 def _still_tracing(ch: _Chunk, h: Rays, absorbed, parts: list) -> list:
@@ -883,21 +792,24 @@ def _still_tracing(ch: _Chunk, h: Rays, absorbed, parts: list) -> list:
     return [h] + parts
 
 
-def _first_interaction_compiled(ck, ch: _Chunk, h: Rays, f: Facet, th, pR) -> list:
-    """The pending branch of `_interact` with both branches' points and directions from the compiled kernel
-    `_compiled.split_rays` (the same numbers)."""
+def _first_interaction(ch: _Chunk, h: Rays, f: Facet, th, pR) -> list:
+    """Every ray's first interaction, both branches (the first-hit split): the reflected one (weight w P_R,
+    direction k + 2 ci nf) goes on in h, the transmitted copy (id + n0, weight w (1 - P_R), direction
+    eta k + (eta ci - ct) nf renormalised) is returned beside it; points and directions in one pass
+    (`kernels.split_rays`, which also tags the first hits' sub-tiles), the scalars in another
+    (`kernels.split_weights`)."""
     n = h.size
     o_r, k_r, o_t, k_t = (np.empty((n, 3), F32) for _ in range(4))
     tag = ch.group is not None                      # the first hits' sub-tiles tagged in the same pass
-    ck.split_rays(*f.k3, f.nfx, f.nfy, f.nfz, f.eta, f.ci, f.ct, th, h.o, ch.tracer.eps, None, o_r, k_r, o_t, k_t,
-                  ch.tracer.subtile_grid(ch.settings.subtiles) if tag else None, h.ids if tag else None,
-                  ch.group if tag else None)
+    kernels.split_rays(*f.k3, f.nfx, f.nfy, f.nfz, f.eta, f.ci, f.ct, th, h.o, ch.tracer.eps, None, o_r, k_r, o_t,
+                       k_t, ch.tracer.subtile_grid(ch.settings.subtiles) if tag else None, h.ids if tag else None,
+                       ch.group if tag else None)
     w_r, w_t, below_t = np.empty(n, F32), np.empty(n, F32), np.empty(n, bool)
     ids_t, nb_next = np.empty(n, np.int64), np.empty(n, np.int16)
-    n_t = ck.split_weights(h.w, pR, h.below.view(np.uint8), h.ids, h.nb, ch.n0, w_r, w_t, below_t.view(np.uint8),
-                           ids_t, nb_next)
+    n_t = kernels.split_weights(h.w, pR, h.below.view(np.uint8), h.ids, h.nb, ch.n0, w_r, w_t,
+                                below_t.view(np.uint8), ids_t, nb_next)
     h.nb = nb_next
-    tr = _split_copies(ch, h, f, None, None, pR, made=(o_t, k_t, below_t, w_t, ids_t), n_t=n_t)
+    tr = _split_copies(ch, h, pR, (o_t, k_t, below_t, w_t, ids_t), n_t)
     h.w = w_r
     ch.carrier.reflected(h, pR)
     h.k, h.o = k_r, o_r
@@ -927,21 +839,19 @@ def path_uniforms(key: np.uint32, ids: np.ndarray, nb: np.ndarray) -> np.ndarray
     return u
 
 
-def _tag_first_hits(ch: _Chunk, h: Rays, p, pending: bool) -> None:
-    """Record the sub-tile of the first hit of rays hitting for the first time (nb == 0)."""
-    if pending:                                     # the first-interaction phase: every ray is a first hit
-        ch.group[h.ids] = ch.tracer.subtile_of(p, ch.settings.subtiles)
-    elif not ch.settings.split_first:
+def _tag_first_hits(ch: _Chunk, h: Rays, p) -> None:
+    """Record the sub-tile of the first hit of rays hitting for the first time (nb == 0) without the
+    first-hit split (with it, `kernels.split_rays` tags them)."""
+    if not ch.settings.split_first:
         fi = np.flatnonzero(h.nb == 0)
         if fi.size:
             ch.group[h.ids[fi]] = ch.tracer.subtile_of(np.take(p, fi, axis=0), ch.settings.subtiles)
 
 
-def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR, made: tuple | None = None, n_t: int = -1) -> Rays | None:
+def _split_copies(ch: _Chunk, h: Rays, pR, made: tuple, n_t: int) -> Rays | None:
     """Transmitted branch of every ray's first interaction (id + n0, weight w (1 - P_R)); none where
     nothing is transmitted (P_R = 1: TIR).  made: the origins, directions, sides, weights and ids of
-    every ray's refracted branch, already computed (`_first_interaction_compiled`, n_t of them with
-    P_R < 1)."""
+    every ray's refracted branch (`_first_interaction`, n_t of them with P_R < 1)."""
     if n_t == 0:
         return None
     j = None if n_t == h.size else np.flatnonzero(pR < 1)
@@ -951,22 +861,9 @@ def _split_copies(ch: _Chunk, h: Rays, f: Facet, p, bt, pR, made: tuple | None =
         return None
     full = j is None
     sel = (lambda a: a) if full else (lambda a: a[j])
-    if made is not None:
-        ot, kt = made[:2] if full else (np.take(made[0], j, axis=0), np.take(made[1], j, axis=0))
-    else:
-        etj, btj = sel(f.eta), sel(bt)
-        fx, fy, fz = sel(f.nfx), sel(f.nfy), sel(f.nfz)
-        kt = _unit_rows([etj * sel(ki) + btj * fi for ki, fi in zip(f.k3, (fx, fy, fz))])
-        ot = np.take(p, j, axis=0) if not full else p.copy()
-        eps = ch.tracer.eps
-        ot[:, 0] -= eps * fx
-        ot[:, 1] -= eps * fy
-        ot[:, 2] -= eps * fz
+    ot, kt = made[:2] if full else (np.take(made[0], j, axis=0), np.take(made[1], j, axis=0))
     A, s, F = ch.carrier.transmitted_copy(h, j, sel(pR))
-    if made is not None:
-        tr = Rays(ot, kt, sel(made[2]), sel(made[3]), sel(h.nb), sel(made[4]), A, s, F)
-    else:
-        tr = Rays(ot, kt, ~sel(h.below), sel(h.w) * (1 - sel(pR)), sel(h.nb), sel(h.ids) + ch.n0, A, s, F)
+    tr = Rays(ot, kt, sel(made[2]), sel(made[3]), sel(h.nb), sel(made[4]), A, s, F)
     if ch.media.absorbing_below:
         gone = ~sel(h.below)                        # copies from above went into the absorbing medium
         if gone.any():
@@ -991,15 +888,8 @@ def _unit_rows(v3) -> np.ndarray:
 
 
 def _new_directions(f: Facet, a, b) -> np.ndarray:
-    """a k + b nf per ray (a None: 1, a reflection, norm preserved; else renormalised); k the rays'
-    directions (f.k3)."""
+    """(a k + b nf) / |a k + b nf| per ray; k the rays' directions (f.k3)."""
     nf = (f.nfx, f.nfy, f.nfz)
-    if a is None:
-        knew = np.empty((f.nfx.size, 3), F32)
-        for i in range(3):
-            np.multiply(b, nf[i], out=knew[:, i])
-            knew[:, i] += f.k3[i]
-        return knew
     return _unit_rows([a * ki + b * ni for ki, ni in zip(f.k3, nf)])
 
 
