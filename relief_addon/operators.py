@@ -226,7 +226,7 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
             save_tables(out, tables)
         lut = None
         if p["bake"]:
-            from relief_bsdf.bsdf.bake import bake_lut
+            from relief_bsdf.bake import bake_lut
             lut = bake_lut(tables, p["name"], albedo=p["albedo"], reflection_closure=p["closure"])
         return {"tables": tables, "out": out, "lut": lut, "as_read": as_read}
 
@@ -322,7 +322,7 @@ class RELIEF_OT_bake_bsdf(JobOperator, bpy.types.Operator):
 
     @staticmethod
     def work(p, progress):
-        from relief_bsdf.bsdf.bake import bake_lut
+        from relief_bsdf.bake import bake_lut
         from relief_bsdf.io.hdf5 import load_tables
         progress(0, 2, "fitting lobes")
         lut = bake_lut(load_tables(p["path"]), p["name"], albedo=p["albedo"], reflection_closure=p["closure"])

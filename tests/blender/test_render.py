@@ -122,7 +122,7 @@ def test_render_scene_code_ships_in_the_installed_distribution(tmp_path):
 def test_plate_scene_has_label_and_denoiser(clean_bpy):
     import bpy
     from relief_addon.plate_scene import _remove_scene, build_scene
-    from relief_bsdf.bsdf.bake import bake_lut
+    from relief_bsdf.bake import bake_lut
     from relief_bsdf.core.index import ConstantIndex, Material
     from relief_bsdf.plate import flat_tables
     th = np.arange(0.0, 90.0, 10.0)
