@@ -208,22 +208,22 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
                 "name": before.name[len(GROUP_PREFIX):] if before is not None else Path(src).stem}
 
     @staticmethod
-    def work(p, progress):
-        from relief_bsdf.io.hdf5 import save_tables
-        from relief_bsdf.methods import reconstruct
-        from relief_bsdf.io.heightmaps import read_prepared_relief
-        relief = read_prepared_relief(p["relief"], p.get("options"), pitch_m=p["pitch"])   # as the CLI reads it
-        as_read = _as_read(relief, p) if relief.history else None
-        tables = reconstruct(relief, p["material"], p["request"], p["method"], progress=progress)
+    def work(p, progress, cancel=None):
+        from relief_bsdf.jobs import ReconstructJob, run_reconstruct
         out = p["out"]
         if p.get("content_named"):
             # unsaved sessions share the cache: write under a private name, then name the file by its content
-            from .paths import content_named, scratch_name
-            part = scratch_name(out)
-            save_tables(part, tables)
-            out = content_named(part)
-        else:
-            save_tables(out, tables)
+            from .paths import scratch_name
+            out = scratch_name(out)
+        pitch = tuple(p["pitch"]) if p["pitch"] is not None else None
+        job = ReconstructJob(Path(p["relief"]), Path(out), p["material"], p["request"], method=p["method"],
+                             options=p.get("options"), pitch_m=pitch)          # the job `relief reconstruct` runs
+        r = run_reconstruct(job, progress, cancel)
+        tables, relief = r.tables, r.relief
+        as_read = _as_read(relief, p) if relief.history else None
+        if p.get("content_named"):
+            from .paths import content_named
+            out = content_named(r.out)
         lut = None
         if p["bake"]:
             from relief_bsdf.bake import bake_lut
@@ -377,18 +377,14 @@ class RELIEF_OT_simulate_plate(JobOperator, bpy.types.Operator):
                 "table": str(abspath(self.table)) if self.table else None}
 
     @staticmethod
-    def work(p, progress):
-        cmd = _require("relief_bsdf.cli.cmd_simulate", "simulate")
-        from relief_bsdf.cli import build_parser      # the command's own flags and defaults, whatever it adds
-        argv = ["simulate", p["sample"], "-o", p["out"], "--method", p["method"]]
-        args = build_parser().parse_args(argv + (["--table", p["table"]] if p["table"] else []))
-        progress(0, 1, "simulating")
-        cmd.run(args)
-        progress(1, 1, "done")
-        return Path(p["out"]) / "simulated.csv"
+    def work(p, progress, cancel=None):
+        jobs = _require("relief_bsdf.jobs", "simulate")          # the job `relief simulate` runs, its defaults
+        job = jobs.SimulateJob(Path(p["sample"]), Path(p["out"]), method=p["method"],
+                               table=Path(p["table"]) if p["table"] else None)
+        return jobs.run_simulate(job, progress, cancel)
 
-    def finish(self, context, path):
-        self.report({"INFO"}, f"Wrote {path}")
+    def finish(self, context, r):
+        self.report({"INFO"}, f"Wrote {r.path} ({r.rows} rows; metric, rms z {r.metric:.4g}); {r.physics}")
 
 
 class RELIEF_OT_fit(JobOperator, bpy.types.Operator):
@@ -409,11 +405,11 @@ class RELIEF_OT_fit(JobOperator, bpy.types.Operator):
         return {"sample": str(sample), "out": str(out), "method": self.method, "max_iter": self.max_iter}
 
     @staticmethod
-    def work(p, progress):
-        fit = _require("relief_bsdf.fit.optimise", "fit")
-        doc = fit.run_fit_job(p["sample"], p["out"], fit.FitJob(method=p["method"], max_iter=p["max_iter"]),
-                              progress=progress)
-        return {"doc": doc, "out": p["out"]}
+    def work(p, progress, cancel=None):
+        jobs = _require("relief_bsdf.jobs", "fit")
+        r = jobs.run_fit(jobs.FitJob(Path(p["sample"]), Path(p["out"]), method=p["method"], max_iter=p["max_iter"]),
+                         progress, cancel)
+        return {"doc": r.doc, "out": p["out"]}
 
     def finish(self, context, r):
         from .paths import stored
@@ -438,9 +434,9 @@ class RELIEF_OT_diagnose(JobOperator, bpy.types.Operator):
         return {"sample": str(sample), "out": str(out)}
 
     @staticmethod
-    def work(p, progress):
-        diag = _require("relief_bsdf.diagnose.run", "diagnose")
-        return diag.diagnose(p["sample"], p["out"], progress=progress)      # the diagnosis.json document
+    def work(p, progress, cancel=None):
+        jobs = _require("relief_bsdf.jobs", "diagnose")
+        return jobs.run_diagnose(jobs.DiagnoseJob(Path(p["sample"]), Path(p["out"])), progress, cancel).doc
 
     def finish(self, context, res):
         named = " + ".join(res.get("effects") or [res["effect"]])     # every effect named, most important first
