@@ -7,8 +7,18 @@ import pytest
 
 from relief_bsdf.cli import main as cli_main
 from relief_bsdf.validation.conceal import CaseSpec, make_case
-from relief_bsdf.diagnose.run import BIC_MARGIN, diagnose, select
+from relief_bsdf.diagnose.run import BIC_MARGIN, select
 from relief_bsdf.diagnose.stepwise import consistent_with_noise
+from relief_bsdf.jobs import DiagnoseJob, run_diagnose
+
+
+def diagnose(sample, out, **kw):
+    """The diagnosis job (relief_bsdf.jobs.run_diagnose): writes OUT/diagnosis.json and report.html,
+    returns diagnosis.json's document."""
+    from pathlib import Path
+    effects = kw.pop("effects", None)
+    job = DiagnoseJob(Path(sample), Path(out), effects=tuple(effects) if effects is not None else None, **kw)
+    return run_diagnose(job).doc
 
 
 def _fit(name, chi2, k=1):

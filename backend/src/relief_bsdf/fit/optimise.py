@@ -681,7 +681,7 @@ def _ridge_probe(obj: _Objective, ratio: Callable[[float], float], both: dict, g
 
 def _store(checkpoint: Any, measured: np.ndarray, sigma: np.ndarray | None) -> Any:
     """The fit's checkpoint store (io.checkpoint: JSON data bound to a key): a given CheckpointStore,
-    or one for a bare path keyed by the recording's values and sigma (what `run_fit_job` keys by
+    or one for a bare path keyed by the recording's values and sigma (what the fit job, `jobs.run_fit`, keys by
     the inputs' content, method, effort and grid)."""
     from relief_bsdf.io.checkpoint import CheckpointStore
     if checkpoint is None or isinstance(checkpoint, CheckpointStore):
