@@ -1,4 +1,9 @@
-"""Operators: thin wrappers over backend calls (relief_bsdf), bpy data only on the main thread."""
+"""Operators: thin wrappers over the backend's jobs (relief_bsdf.jobs), bpy data only on the main thread.
+
+Each long operator builds a job's description from its properties and the scene's settings
+(`prepare`, main thread), runs the job (`work`, any thread, cancellable: relief_addon.jobs), and
+turns what the job returns into meshes, node groups and reports (`finish`, main thread).
+"""
 from __future__ import annotations
 
 import json
@@ -444,6 +449,75 @@ class RELIEF_OT_diagnose(JobOperator, bpy.types.Operator):
                               f"{res['explanation']}")
 
 
+class RELIEF_OT_infer(JobOperator, bpy.types.Operator):
+    """Infer a relief for the sample from its measured plate alone; import it as a mesh and bake its material"""
+
+    bl_idname = "relief.infer"
+    bl_label = "Infer Relief"
+    bl_options = {"REGISTER", "UNDO"}
+    job_label = "Infer"
+
+    sample: StringProperty(name="Sample", default="", subtype="FILE_PATH",
+                           description="sample.toml whose [recording] holds the measured plate (default: the scene's)")
+    output_dir: StringProperty(name="Output", default="", subtype="DIR_PATH")
+    bake: BoolProperty(name="Bake", default=True,
+                       description="Reconstruct the inferred relief's table (both sides) and bake it onto the mesh")
+
+    def prepare(self, context):
+        from relief_bsdf.methods.request import Request
+        sample, out = _sample_and_out(self, context, "infer")
+        s = context.scene.relief
+        p = {"sample": str(sample), "out": str(out), "seed": int(s.seed), "bake": self.bake}
+        if self.bake:
+            from .bake_nodes import closure_albedo, has_metallic_bsdf
+            p.update(request=Request(wavelengths_nm=_floats(s.wavelengths_nm, "wavelengths"),
+                                     theta_i_deg=_floats(s.theta_i_deg, "incidences"),
+                                     incident_from=("outside", "inside"),
+                                     samples=int(s.samples), seed=int(s.seed)).validate(),
+                     albedo=closure_albedo(), closure="metallic" if has_metallic_bsdf() else "glossy",
+                     method=s.method)
+        return p
+
+    @staticmethod
+    def work(p, progress, cancel=None):
+        """The infer job, then (bake) the reconstruct job on the inferred relief at the index infer used."""
+        from relief_bsdf.core.index import ConstantIndex, Material
+        from relief_bsdf.io.heightmaps import read_relief
+        from relief_bsdf.jobs import InferJob, ReconstructJob, run_infer, run_reconstruct
+        r = run_infer(InferJob(Path(p["sample"]), Path(p["out"]), seed=p["seed"]), progress, cancel)
+        res = {"doc": r.doc, "relief": read_relief(r.relief), "out": r.out, "lut": None, "table": None}
+        if p["bake"]:
+            from relief_bsdf.bake import bake_lut
+            n = float(r.doc["parameters"]["refractive_index"])
+            job = ReconstructJob(r.relief, r.out / "boundary.h5", Material(ConstantIndex(n)), p["request"],
+                                 method=p["method"])
+            t = run_reconstruct(job, progress, cancel)
+            res["table"] = t.out
+            res["lut"] = bake_lut(t.tables, f"{Path(p['sample']).stem} inferred", albedo=p["albedo"],
+                                  reflection_closure=p["closure"])
+        return res
+
+    def finish(self, context, r):
+        from .mesh_import import frame_in_views, import_relief
+        from .paths import stored
+        obj = import_relief(r["relief"], collection=context.collection)
+        frame_in_views(obj, context.scene)
+        for o in context.view_layer.objects:
+            o.select_set(False)
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
+        d = r["doc"]
+        msg = (f"Inferred {d['family']} (rms slope {d['rms_slope']:.4g}, n {d['parameters']['refractive_index']:g}"
+               f"{'' if d['index_stated'] else ', assumed'}): metric (rms z) flat plate {d['rms_before']:.4g} -> "
+               f"{d['rms_after']:.4g}")
+        if r["lut"] is not None:
+            context.scene.relief.table_path = stored(r["table"])
+            group, where = _install_lut(context, r["lut"], assign=True, table=stored(r["table"]))
+            context.scene.relief.last_group = group.name
+            msg += f"; baked {group.name}" + (f" {where}" if where else "")
+        self.report({"INFO"}, msg)
+
+
 # ====================================================================== render
 
 
@@ -519,7 +593,8 @@ class RELIEF_OT_add_preset(JobOperator, bpy.types.Operator):
 
 
 CLASSES = (RELIEF_OT_import_heightmap, RELIEF_FH_heightmap, RELIEF_OT_reconstruct, RELIEF_OT_bake_bsdf,
-           RELIEF_OT_simulate_plate, RELIEF_OT_fit, RELIEF_OT_diagnose, RELIEF_OT_render_plate, RELIEF_OT_add_preset)
+           RELIEF_OT_simulate_plate, RELIEF_OT_fit, RELIEF_OT_diagnose, RELIEF_OT_infer, RELIEF_OT_render_plate,
+           RELIEF_OT_add_preset)
 
 
 def register():

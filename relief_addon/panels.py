@@ -151,6 +151,7 @@ class RELIEF_PT_plate(_ReliefPanel, bpy.types.Panel):
         row.operator("relief.simulate_plate", text="Simulate")
         row.operator("relief.fit", text="Fit")
         row.operator("relief.diagnose", text="Diagnose")
+        col.operator("relief.infer", text="Infer relief from the recording", icon="MOD_DISPLACE")
         col.prop(s, "fit_dir")
 
 

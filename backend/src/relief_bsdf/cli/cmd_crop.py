@@ -28,7 +28,8 @@ def run(args) -> int:
     from relief_bsdf.cli.cmd_info import _pitch, print_relief_summary
     from relief_bsdf.cli.maps import relief_options
     from relief_bsdf.jobs import CropJob, run_crop
-    r = run_crop(CropJob(Path(args.relief), Path(args.out), pitch_m=_pitch(args.pitch_um), options=relief_options(args)))
+    r = run_crop(CropJob(Path(args.relief), Path(args.out), pitch_m=_pitch(args.pitch_um),
+                         options=relief_options(args)))
     print_relief_summary(r.relief)
     print(f"wrote {args.out}")
     return 0

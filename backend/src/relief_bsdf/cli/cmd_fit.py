@@ -58,7 +58,8 @@ def run(args) -> int:
     if not 0 < args.inside_step_deg <= 15:
         raise InputError("--inside-step-deg", f"must be in (0, 15], got {args.inside_step_deg:g}")
     grid = TableGrid(args.theta_step_deg, args.phi_step_deg, args.inside_step_deg, sectors=args.sectors)
-    job = FitJob(Path(args.sample), Path(args.out), method=args.method, samples=args.samples, seed=args.seed, max_iter=args.max_iter,
+    job = FitJob(Path(args.sample), Path(args.out), method=args.method, samples=args.samples, seed=args.seed,
+                 max_iter=args.max_iter,
                  threshold=args.threshold, grid=grid, scale_bounds=_bounds(args.scale_bounds),
                  max_filter_um=args.max_filter_um, relief_options=stated_options(args))
     bar = TerminalBar("fit", force=args.progress)

@@ -16,6 +16,7 @@ from relief_bsdf.diagnose.mismatch import attribute, classify, locate, residual_
 from relief_bsdf.diagnose.run import Diagnosis, diagnosis, select
 from relief_bsdf.diagnose.stepwise import passes, stepwise
 
-__all__ = ["Diagnosis", "diagnosis", "select", "stepwise", "passes", "fit_effect", "refit_joint", "intervals", "build_forward",
+__all__ = ["Diagnosis", "diagnosis", "select", "stepwise", "passes", "fit_effect", "refit_joint", "intervals",
+           "build_forward",
            "DiagnosisForward", "DEFAULT_METHOD", "Effect", "Param", "ReliefContext", "all_effects", "apply_all",
            "get_effect", "locate", "classify", "attribute", "residual_z"]

@@ -24,9 +24,10 @@ Pipeline
    found.
 5. Intervals: 68 % intervals of every named parameter from the chi^2 curvature
    (`fitting.intervals`); a parameter the data cannot pin down is null with a note.
-6. Report (written by the job, `jobs.run_diagnose`): diagnosis.json (formats.md schema: `effects` most important first, `effect` =
+6. Report: diagnosis.json's document (formats.md schema: `effects` most important first, `effect` =
    effects[0], `parameters` of every named effect, `intervals`; `mismatch` entries say which
-   named effect explains each region, `mismatch.attribute`) + report.html, written atomically.
+   named effect explains each region, `mismatch.attribute`); the job `jobs.run_diagnose` writes it
+   and report.html, atomically.
 
 Metric: the project's one metric, rms z = sqrt(chi^2 / n) (`fit.residual.rms_z`; 1 = fits to the noise).
 """

@@ -117,7 +117,8 @@ def run_export(job: ExportJob, progress: Progress | None = None, cancel: CancelT
     if job.format == "hdf5":
         from relief_bsdf.io.hdf5 import save_tables
         save_tables(out, tables)
-        return ExportOutput([out], [f"wrote {out}: {len(tables)} table(s) ({', '.join(t.incident_from for t in tables)})"])
+        sides = ", ".join(t.incident_from for t in tables)
+        return ExportOutput([out], [f"wrote {out}: {len(tables)} table(s) ({sides})"])
     table = pick_table(tables, job.incident_from, job.table)
     notes = azimuth_notes([table], job.format)
     if job.format == "recording-csv":

@@ -120,7 +120,8 @@ def _write(job: FitJob, out: Path, fwd: Any, rec: Any, res: Any) -> dict:
     save_tables(out / "boundary.h5", tables)
     files: dict = {"boundary_table": "boundary.h5"}
     for t in tables:      # OpticStudio: one scatter type per .bsdf file, BTDF centred on the refracted ray
-        files[f"isbsdf_{t.incident_from}"] = [q.name for q in export_isbsdf(t, out / f"boundary_{t.incident_from}.bsdf")]
+        written = export_isbsdf(t, out / f"boundary_{t.incident_from}.bsdf")
+        files[f"isbsdf_{t.incident_from}"] = [q.name for q in written]
     write_relief(out / "relief_optimised.npz", best_relief)
     files["relief"] = "relief_optimised.npz"
     write_recording(out / "simulated.csv", rec.with_values(sim_after, after.sigma_per_sr),

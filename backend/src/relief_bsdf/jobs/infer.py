@@ -17,12 +17,13 @@ from relief_bsdf.progress import Progress
 class InferJob:
     """Infer a relief for `sample` (sample.toml: its [recording], measured plate files or recording.csv)
     into `out`, seeded by `seed` (relief and rays), `samples` Monte-Carlo samples per incidence of the
-    ray-traced relief."""
+    ray-traced relief; `tile_px` the relief's side in points (None: infer's own, `infer.job.TILE_PX`)."""
 
     sample: Path
     out: Path
     seed: int = 0
     samples: int = 100_000
+    tile_px: int | None = None
 
 
 @dataclass(frozen=True)
@@ -43,5 +44,6 @@ def run_infer(job: InferJob, progress: Progress | None = None, cancel: CancelTok
     if job.samples < 1000:
         raise InputError("--samples", f"need at least 1000 samples, got {job.samples}")
     check(cancel, "inferring")
-    doc = infer(job.sample, job.out, seed=job.seed, progress=watched(progress, cancel), samples=job.samples)
+    size = {} if job.tile_px is None else {"tile_px": int(job.tile_px)}
+    doc = infer(job.sample, job.out, seed=job.seed, progress=watched(progress, cancel), samples=job.samples, **size)
     return InferOutput(doc, Path(job.out))
