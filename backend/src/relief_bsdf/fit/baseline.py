@@ -5,8 +5,8 @@ the one place where a sample.toml becomes that plate's forward model, so the thr
 
 - the relief: the height map as the sample's [relief] keys (and the command line's map flags
   over them) prepare it, refused when under `MIN_VALID_FRACTION` of its points are valid, and
-  levelled (`Relief.level`: the mean removed from a periodic tile, the least-squares plane from
-  a measured patch).  An instrument's tilt of the stage is no slope of the surface: a plane left
+  levelled as every statistic of it is (`surface.stats.levelled`: the mean removed from a periodic
+  tile, the least-squares plane from a measured patch).  An instrument's tilt of the stage is no slope of the surface: a plane left
   in the heights would tilt every facet by it and steer the whole lobe;
 - the rows: the recording's rows checked against the plate's grid (`plate.check_rows`: a row
   the engine cannot answer fails before any table), the material's index at their wavelengths;
@@ -37,9 +37,10 @@ def sample_relief(sample: Any, relief_options: Any = None) -> Relief:
     """The sample's relief as the forward models take it (module doc): prepared by its [relief] keys
     with `relief_options` (surface.preparation.ReliefOptions) over them, checked, levelled."""
     from relief_bsdf.io.heightmaps import read_sample_relief
+    from relief_bsdf.surface.stats import levelled
     relief = read_sample_relief(sample, relief_options)
     relief.require_valid(MIN_VALID_FRACTION)
-    return relief.level(0 if relief.periodic else 1)
+    return levelled(relief)
 
 
 def resolved(experiment: Experiment, rows: Any, grid: TableGrid, where: str = "recording") -> Experiment:
