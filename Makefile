@@ -7,10 +7,10 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 OUT    ?= out
 
-.PHONY: demo test test-fast docs venv venv-test venv-docs bench extension clean help
+.PHONY: demo test test-fast docs lint-imports venv venv-test venv-docs bench extension clean help
 
 help:
-	@echo "make demo | make test | make test-fast | make docs | make bench | make extension | make clean"
+	@echo "make demo | make test | make test-fast | make docs | make lint-imports | make bench | make extension | make clean"
 
 # the editable install also builds the optional compiled ray kernels in place (backend/setup.py)
 $(VENV)/.runtime-stamp: requirements/runtime.txt backend/pyproject.toml backend/setup.py \
@@ -46,8 +46,13 @@ demo: venv
 docs: venv-docs
 	$(PY) -m mkdocs build --strict --quiet --site-dir site
 
+# the layering contract (pyproject.toml [tool.importlinter], docs/architecture.md): every import, those inside
+# functions too; --no-cache: no cache folder in the checkout
+lint-imports: venv-test
+	$(VENV)/bin/lint-imports --config pyproject.toml --no-cache
+
 # the whole suite on both cores (pytest-xdist; worksteal: the long physics checks do not queue behind one worker)
-test: venv-test docs
+test: venv-test docs lint-imports
 	$(PY) -m pytest -n 2 --dist worksteal
 
 # day-to-day tier: everything not marked slow, on both cores (under 2 minutes on 2 cores)

@@ -36,9 +36,18 @@ from pathlib import Path
 import numpy as np
 
 from relief_bsdf.diagnose.forward import DEFAULT_METHOD
-from relief_bsdf.diagnose.run import diagnose
+from relief_bsdf.jobs import DiagnoseJob, run_diagnose
 from relief_bsdf.parallel import map_tasks
 from relief_bsdf.validation.conceal import default_cases, generate
+
+
+def diagnose(sample, out, **kw):
+    """The diagnosis job (relief_bsdf.jobs.run_diagnose): writes OUT/diagnosis.json and report.html,
+    returns diagnosis.json's document."""
+    effects = kw.pop("effects", None)
+    job = DiagnoseJob(Path(sample), Path(out), effects=tuple(effects) if effects is not None else None, **kw)
+    return run_diagnose(job).doc
+
 
 KEY_PARAM = {"bulk_absorption": "absorption_per_mm", "volume_scattering": "scatter_per_mm",
              "back_face_roughness": "back_alpha", "sample_tilt": "tilt_deg", "instrument_blur": "blur_deg",

@@ -79,14 +79,14 @@ def main(argv=None) -> int:
     ap.add_argument("--sample", default=str(REPO / "scenes/demo/sample.toml"))
     ap.add_argument("--max-iter", type=int, default=40)
     a = ap.parse_args(argv)
-    from relief_bsdf.fit.optimise import FitJob, run_fit_job
+    from relief_bsdf.jobs import FitJob, run_fit
     from relief_bsdf.io.heightmaps import read_relief
     from relief_bsdf.io.recording import read_sample
     sample = read_sample(a.sample)
     relief = read_relief(sample.relief_path)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        doc = run_fit_job(a.sample, Path(tmp) / "fit", FitJob(max_iter=a.max_iter))
+        doc = run_fit(FitJob(Path(a.sample), Path(tmp) / "fit", max_iter=a.max_iter)).doc
         wall = time.perf_counter() - t0
         evals = int(doc["evaluations_computed"])
     print(f"demo fit ({doc['method']}): {wall:.1f} s, {evals} evaluations ({wall / max(evals, 1):.2f} s each); "

@@ -32,7 +32,7 @@ def main() -> int:
     ap.add_argument("--max-iter", type=int, default=40)
     a = ap.parse_args()
     from relief_bsdf.core.index import ConstantIndex
-    from relief_bsdf.fit.optimise import FitJob, run_fit_job
+    from relief_bsdf.jobs import FitJob, run_fit
     from relief_bsdf.plate import (current_memory, Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid,
                                    in_plane_rows, simulate)
     from relief_bsdf.parallel.blas import blas_single_thread
@@ -77,7 +77,7 @@ def main() -> int:
     if not a.skip_fit:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
-            doc = run_fit_job(ROOT / "scenes" / "demo" / "sample.toml", d, FitJob(max_iter=a.max_iter))
+            doc = run_fit(FitJob(ROOT / "scenes" / "demo" / "sample.toml", Path(d), max_iter=a.max_iter)).doc
             fit_s = time.perf_counter() - t0
             fit_info = {"fit_rms_before": doc["rms_before"], "fit_rms_after": doc["rms_after"],
                         "fit_parameters": doc["parameters"], "fit_evaluations": len(doc["iterations"])}

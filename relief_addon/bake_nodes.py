@@ -1,7 +1,7 @@
 """Baked BSDF -> packed float32 lookup image + reusable shader node group (bpy only here).
 
 The physics (what the rows mean, why they are indexed by the view angle, how weights
-account for the closures' own albedo) is in the backend: `relief_bsdf.bsdf.bake`.  This module
+account for the closures' own albedo) is in the backend: `relief_bsdf.bake`.  This module
 only builds Blender data:
 
 - image "Relief LUT: <name>": C x (2 * 5) float32 RGBA, non-colour data, packed, fake user;
@@ -11,7 +11,7 @@ only builds Blender data:
   read from the image (Linear interpolation, EXTEND), summed into one BSDF output
   (anisotropic reflection lobe when the table is; as Cycles has no anisotropic rough
   transmission, an anisotropic transmitted lobe is an isotropic Refraction closure whose normal
-  a random facet slope tilts per shading point: `_tilted_normal`, relief_bsdf.bsdf.bake);
+  a random facet slope tilts per shading point: `_tilted_normal`, relief_bsdf.bake);
 - node group "Relief BSDF: <name>": what a user drops into a material, with inputs Tint,
   Haze, Fitted (fitted / measured-as-is table) and Rotation (`build_node_group`).
 Re-baking updates images and groups in place; baking onto an object adds a material slot, given
@@ -34,7 +34,7 @@ CALIBRATION = Path(__file__).resolve().parent / "data" / "cycles_albedo.npz"
 
 def closure_albedo():
     """The measured Cycles closure albedo shipped with the add-on (None if missing)."""
-    from relief_bsdf.bsdf.bake import ClosureAlbedo
+    from relief_bsdf.bake import ClosureAlbedo
     return ClosureAlbedo.load(CALIBRATION) if CALIBRATION.exists() else None
 
 
@@ -213,7 +213,7 @@ def _vmath(g, op, a, b=None, location=(0, 0)):
 
 def _tilted_normal(g, tilt_tex, geo, tangent, rotation_socket, loc):
     """Normal of one random facet per shading point for the stretched transmitted lobe
-    (relief_bsdf.bsdf.bake.transmission_tilt): m = normalize(N - s t), t the relief's x axis turned
+    (relief_bsdf.bake.transmission_tilt): m = normalize(N - s t), t the relief's x axis turned
     about N by Rotation (a quarter more where c_T < 0) and made perpendicular to N,
     s = |c_T| (2u - 1) / (2 sqrt(u (1 - u))) (`tilt_slope`), u from a White Noise texture of the
     position, so every path sample sees another facet."""
@@ -277,7 +277,7 @@ def build_lut_group(lut, img: bpy.types.Image | None = None) -> bpy.types.Shader
     an anisotropic table the rough one gets the narrow width and a randomly tilted normal
     (`_tilted_normal`, the same tangent and Rotation), which stretches the rendered lobe along
     the wide axis.  Tint multiplies the transmitted closures (a coloured plate)."""
-    from relief_bsdf.bsdf.bake import ROW_NAMES, ROWS_PER_SIDE
+    from relief_bsdf.bake import ROW_NAMES, ROWS_PER_SIDE
     img = img or lut_image(lut)
     n_cols, n_rows = lut.rows.shape[1], lut.rows.shape[0]
     coord = coordinate_group(n_cols, n_rows, ROWS_PER_SIDE)
@@ -294,7 +294,7 @@ def build_lut_group(lut, img: bpy.types.Image | None = None) -> bpy.types.Shader
     g.links.new(tex["roughness"].outputs["Color"], sep.inputs["Color"])
     geo = g.nodes.new("ShaderNodeNewGeometry")
     geo.location = (-20, -1250)
-    # signed anisotropy (relief_bsdf.bsdf.bake.closure_anisotropy): |value|, and a quarter turn where negative
+    # signed anisotropy (relief_bsdf.bake.closure_anisotropy): |value|, and a quarter turn where negative
     a_abs = _math(g, "ABSOLUTE", sep.outputs["Blue"], location=(150, -1400), label="anisotropy")
     neg = _math(g, "LESS_THAN", sep.outputs["Blue"], 0.0, location=(150, -1550))
     quarter = _math(g, "MULTIPLY", neg.outputs[0], 0.25, location=(300, -1550))
@@ -437,7 +437,7 @@ def has_metallic_bsdf() -> bool:
 
 def bake_tables(tables, name: str, albedo="calibrated"):
     """BsdfTables -> (BakedLut, image, node group)."""
-    from relief_bsdf.bsdf.bake import bake_lut
+    from relief_bsdf.bake import bake_lut
     alb = closure_albedo() if albedo == "calibrated" else albedo
     closure = "metallic" if has_metallic_bsdf() and (alb is None or getattr(alb, "metallic", 1) is not None) \
         else "glossy"

@@ -1,6 +1,6 @@
 """Measured directional albedo of the Cycles closures the bake uses (Glossy and Refraction BSDF).
 
-The bake (`relief_bsdf.bsdf.bake`) turns a table's hemispherical reflectance R(theta) and
+The bake (`relief_bsdf.bake`) turns a table's hemispherical reflectance R(theta) and
 transmittance T(theta) into closure weights: weight = R / A(closure, roughness, theta), where
 A is the closure's own directional albedo in Cycles.  Cycles 4.x/5.x compensate multiple
 scattering with internal lookup tables (its Multiscatter GGX glossy is ~1 everywhere; its

@@ -16,7 +16,7 @@ back as float32 (Standard view transform, no denoising, no adaptive sampling):
   theta above the patch.  The pixel is L = integral f(l -> v) cos(theta_l) d omega_l, which
   for a reciprocal reflection lobe is the directional-hemispherical reflectance R(theta),
   and for the transmission closure the directional transmittance seen from v (the quantity
-  the bake targets, see relief_bsdf.bsdf.bake).
+  the bake targets, see relief_bsdf.bake).
 
 Each render is a few pixels at a few hundred samples: about 0.3-1 s on 2 cores.
 """

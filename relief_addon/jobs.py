@@ -3,13 +3,16 @@
 An operator using `JobOperator` splits its work into three steps:
 
     prepare(context) -> payload      main thread: read bpy properties into plain Python values
-    work(payload, progress) -> res   any thread: backend calls only, no bpy (static method)
+    work(payload, progress[, cancel]) -> res   any thread: backend calls only, no bpy (static method);
+                                     the backend's jobs (`relief_bsdf.jobs`), given `cancel`, a CancelToken
     finish(context, res)             main thread: create or change bpy data, report
 
 `execute()` runs the three in a row (background mode, scripts, tests: no event loop there,
 timers never fire).  `invoke()` runs `work` on a worker thread and polls it from a modal
 timer, showing `wm.progress_*` and the task label in the status bar; Esc sets a flag that
-the progress callback turns into `relief_bsdf.progress.Cancelled` at the next task boundary.
+the progress callback turns into `relief_bsdf.progress.Cancelled` at the next task boundary, and
+a `work` that takes `cancel` gets it as the job's `relief_bsdf.jobs.CancelToken` (checked between
+the job's stages too).
 Every error becomes a Blender report (one line); a traceback goes to the console only for an internal
 error (not bad input) or when Blender runs with --debug.  Every warning the work raises becomes one
 report line `relief: warning: ...`, once per message (`relief_bsdf.errors.warning_line`, as the CLI
@@ -80,6 +83,14 @@ class JobOperator:
     def work(payload, progress):
         raise NotImplementedError
 
+    @classmethod
+    def _run_work(cls, payload, progress, cancel=None):
+        """`work(payload, progress)`, with `cancel=` (a relief_bsdf.jobs.CancelToken) where it takes one."""
+        import inspect
+        if cancel is not None and "cancel" in inspect.signature(cls.work).parameters:
+            return cls.work(payload, progress, cancel=cancel)
+        return cls.work(payload, progress)
+
     def finish(self, context, result) -> None:
         pass
 
@@ -93,7 +104,7 @@ class JobOperator:
             from .prefs import get_prefs
             from .workers import running_backend
             with running_backend(get_prefs(context).workers), collected_warnings(said):
-                result = type(self).work(payload, TerminalBar(self.job_label))
+                result = type(self)._run_work(payload, TerminalBar(self.job_label))
             self._report_warnings(context, said)
             self.finish(context, result)
         except Exception as exc:  # noqa: BLE001 - every failure becomes a report
@@ -126,7 +137,7 @@ class JobOperator:
         self._state = {"done": 0, "total": 1, "what": "", "result": None, "error": None, "finished": False,
                        "warnings": []}
         self._cancel = threading.Event()
-        state, cancel, work = self._state, self._cancel, type(self).work
+        state, cancel, run_work = self._state, self._cancel, type(self)._run_work
         from .prefs import get_prefs
         from .workers import running_backend
         n_workers = get_prefs(context).workers
@@ -140,7 +151,8 @@ class JobOperator:
         def run():
             try:
                 with running_backend(n_workers), collected_warnings(state["warnings"]):
-                    state["result"] = work(payload, progress)
+                    from relief_bsdf.jobs import CancelToken
+                    state["result"] = run_work(payload, progress, CancelToken(cancel))
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread
                 state["error"] = exc
                 state["trace"] = traceback.format_exc()

@@ -1,4 +1,9 @@
-"""Operators: thin wrappers over backend calls (relief_bsdf), bpy data only on the main thread."""
+"""Operators: thin wrappers over the backend's jobs (relief_bsdf.jobs), bpy data only on the main thread.
+
+Each long operator builds a job's description from its properties and the scene's settings
+(`prepare`, main thread), runs the job (`work`, any thread, cancellable: relief_addon.jobs), and
+turns what the job returns into meshes, node groups and reports (`finish`, main thread).
+"""
 from __future__ import annotations
 
 import json
@@ -208,25 +213,25 @@ class RELIEF_OT_reconstruct(JobOperator, bpy.types.Operator):
                 "name": before.name[len(GROUP_PREFIX):] if before is not None else Path(src).stem}
 
     @staticmethod
-    def work(p, progress):
-        from relief_bsdf.io.hdf5 import save_tables
-        from relief_bsdf.methods import reconstruct
-        from relief_bsdf.io.heightmaps import read_prepared_relief
-        relief = read_prepared_relief(p["relief"], p.get("options"), pitch_m=p["pitch"])   # as the CLI reads it
-        as_read = _as_read(relief, p) if relief.history else None
-        tables = reconstruct(relief, p["material"], p["request"], p["method"], progress=progress)
+    def work(p, progress, cancel=None):
+        from relief_bsdf.jobs import ReconstructJob, run_reconstruct
         out = p["out"]
         if p.get("content_named"):
             # unsaved sessions share the cache: write under a private name, then name the file by its content
-            from .paths import content_named, scratch_name
-            part = scratch_name(out)
-            save_tables(part, tables)
-            out = content_named(part)
-        else:
-            save_tables(out, tables)
+            from .paths import scratch_name
+            out = scratch_name(out)
+        pitch = tuple(p["pitch"]) if p["pitch"] is not None else None
+        job = ReconstructJob(Path(p["relief"]), Path(out), p["material"], p["request"], method=p["method"],
+                             options=p.get("options"), pitch_m=pitch)          # the job `relief reconstruct` runs
+        r = run_reconstruct(job, progress, cancel)
+        tables, relief = r.tables, r.relief
+        as_read = _as_read(relief, p) if relief.history else None
+        if p.get("content_named"):
+            from .paths import content_named
+            out = content_named(r.out)
         lut = None
         if p["bake"]:
-            from relief_bsdf.bsdf.bake import bake_lut
+            from relief_bsdf.bake import bake_lut
             lut = bake_lut(tables, p["name"], albedo=p["albedo"], reflection_closure=p["closure"])
         return {"tables": tables, "out": out, "lut": lut, "as_read": as_read}
 
@@ -322,7 +327,7 @@ class RELIEF_OT_bake_bsdf(JobOperator, bpy.types.Operator):
 
     @staticmethod
     def work(p, progress):
-        from relief_bsdf.bsdf.bake import bake_lut
+        from relief_bsdf.bake import bake_lut
         from relief_bsdf.io.hdf5 import load_tables
         progress(0, 2, "fitting lobes")
         lut = bake_lut(load_tables(p["path"]), p["name"], albedo=p["albedo"], reflection_closure=p["closure"])
@@ -377,18 +382,14 @@ class RELIEF_OT_simulate_plate(JobOperator, bpy.types.Operator):
                 "table": str(abspath(self.table)) if self.table else None}
 
     @staticmethod
-    def work(p, progress):
-        cmd = _require("relief_bsdf.cli.cmd_simulate", "simulate")
-        from relief_bsdf.cli import build_parser      # the command's own flags and defaults, whatever it adds
-        argv = ["simulate", p["sample"], "-o", p["out"], "--method", p["method"]]
-        args = build_parser().parse_args(argv + (["--table", p["table"]] if p["table"] else []))
-        progress(0, 1, "simulating")
-        cmd.run(args)
-        progress(1, 1, "done")
-        return Path(p["out"]) / "simulated.csv"
+    def work(p, progress, cancel=None):
+        jobs = _require("relief_bsdf.jobs", "simulate")          # the job `relief simulate` runs, its defaults
+        job = jobs.SimulateJob(Path(p["sample"]), Path(p["out"]), method=p["method"],
+                               table=Path(p["table"]) if p["table"] else None)
+        return jobs.run_simulate(job, progress, cancel)
 
-    def finish(self, context, path):
-        self.report({"INFO"}, f"Wrote {path}")
+    def finish(self, context, r):
+        self.report({"INFO"}, f"Wrote {r.path} ({r.rows} rows; metric, rms z {r.metric:.4g}); {r.physics}")
 
 
 class RELIEF_OT_fit(JobOperator, bpy.types.Operator):
@@ -409,11 +410,11 @@ class RELIEF_OT_fit(JobOperator, bpy.types.Operator):
         return {"sample": str(sample), "out": str(out), "method": self.method, "max_iter": self.max_iter}
 
     @staticmethod
-    def work(p, progress):
-        fit = _require("relief_bsdf.fit.optimise", "fit")
-        doc = fit.run_fit_job(p["sample"], p["out"], fit.FitJob(method=p["method"], max_iter=p["max_iter"]),
-                              progress=progress)
-        return {"doc": doc, "out": p["out"]}
+    def work(p, progress, cancel=None):
+        jobs = _require("relief_bsdf.jobs", "fit")
+        r = jobs.run_fit(jobs.FitJob(Path(p["sample"]), Path(p["out"]), method=p["method"], max_iter=p["max_iter"]),
+                         progress, cancel)
+        return {"doc": r.doc, "out": p["out"]}
 
     def finish(self, context, r):
         from .paths import stored
@@ -438,14 +439,83 @@ class RELIEF_OT_diagnose(JobOperator, bpy.types.Operator):
         return {"sample": str(sample), "out": str(out)}
 
     @staticmethod
-    def work(p, progress):
-        diag = _require("relief_bsdf.diagnose.run", "diagnose")
-        return diag.diagnose(p["sample"], p["out"], progress=progress)      # the diagnosis.json document
+    def work(p, progress, cancel=None):
+        jobs = _require("relief_bsdf.jobs", "diagnose")
+        return jobs.run_diagnose(jobs.DiagnoseJob(Path(p["sample"]), Path(p["out"])), progress, cancel).doc
 
     def finish(self, context, res):
         named = " + ".join(res.get("effects") or [res["effect"]])     # every effect named, most important first
         self.report({"INFO"}, f"Diagnosis: {named} (metric, rms z {res['rms_before']:.4g} -> {res['rms_after']:.4g}): "
                               f"{res['explanation']}")
+
+
+class RELIEF_OT_infer(JobOperator, bpy.types.Operator):
+    """Infer a relief for the sample from its measured plate alone; import it as a mesh and bake its material"""
+
+    bl_idname = "relief.infer"
+    bl_label = "Infer Relief"
+    bl_options = {"REGISTER", "UNDO"}
+    job_label = "Infer"
+
+    sample: StringProperty(name="Sample", default="", subtype="FILE_PATH",
+                           description="sample.toml whose [recording] holds the measured plate (default: the scene's)")
+    output_dir: StringProperty(name="Output", default="", subtype="DIR_PATH")
+    bake: BoolProperty(name="Bake", default=True,
+                       description="Reconstruct the inferred relief's table (both sides) and bake it onto the mesh")
+
+    def prepare(self, context):
+        from relief_bsdf.methods.request import Request
+        sample, out = _sample_and_out(self, context, "infer")
+        s = context.scene.relief
+        p = {"sample": str(sample), "out": str(out), "seed": int(s.seed), "bake": self.bake}
+        if self.bake:
+            from .bake_nodes import closure_albedo, has_metallic_bsdf
+            p.update(request=Request(wavelengths_nm=_floats(s.wavelengths_nm, "wavelengths"),
+                                     theta_i_deg=_floats(s.theta_i_deg, "incidences"),
+                                     incident_from=("outside", "inside"),
+                                     samples=int(s.samples), seed=int(s.seed)).validate(),
+                     albedo=closure_albedo(), closure="metallic" if has_metallic_bsdf() else "glossy",
+                     method=s.method)
+        return p
+
+    @staticmethod
+    def work(p, progress, cancel=None):
+        """The infer job, then (bake) the reconstruct job on the inferred relief at the index infer used."""
+        from relief_bsdf.core.index import ConstantIndex, Material
+        from relief_bsdf.io.heightmaps import read_relief
+        from relief_bsdf.jobs import InferJob, ReconstructJob, run_infer, run_reconstruct
+        r = run_infer(InferJob(Path(p["sample"]), Path(p["out"]), seed=p["seed"]), progress, cancel)
+        res = {"doc": r.doc, "relief": read_relief(r.relief), "out": r.out, "lut": None, "table": None}
+        if p["bake"]:
+            from relief_bsdf.bake import bake_lut
+            n = float(r.doc["parameters"]["refractive_index"])
+            job = ReconstructJob(r.relief, r.out / "boundary.h5", Material(ConstantIndex(n)), p["request"],
+                                 method=p["method"])
+            t = run_reconstruct(job, progress, cancel)
+            res["table"] = t.out
+            res["lut"] = bake_lut(t.tables, f"{Path(p['sample']).stem} inferred", albedo=p["albedo"],
+                                  reflection_closure=p["closure"])
+        return res
+
+    def finish(self, context, r):
+        from .mesh_import import frame_in_views, import_relief
+        from .paths import stored
+        obj = import_relief(r["relief"], collection=context.collection)
+        frame_in_views(obj, context.scene)
+        for o in context.view_layer.objects:
+            o.select_set(False)
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
+        d = r["doc"]
+        msg = (f"Inferred {d['family']} (rms slope {d['rms_slope']:.4g}, n {d['parameters']['refractive_index']:g}"
+               f"{'' if d['index_stated'] else ', assumed'}): metric (rms z) flat plate {d['rms_before']:.4g} -> "
+               f"{d['rms_after']:.4g}")
+        if r["lut"] is not None:
+            context.scene.relief.table_path = stored(r["table"])
+            group, where = _install_lut(context, r["lut"], assign=True, table=stored(r["table"]))
+            context.scene.relief.last_group = group.name
+            msg += f"; baked {group.name}" + (f" {where}" if where else "")
+        self.report({"INFO"}, msg)
 
 
 # ====================================================================== render
@@ -523,7 +593,8 @@ class RELIEF_OT_add_preset(JobOperator, bpy.types.Operator):
 
 
 CLASSES = (RELIEF_OT_import_heightmap, RELIEF_FH_heightmap, RELIEF_OT_reconstruct, RELIEF_OT_bake_bsdf,
-           RELIEF_OT_simulate_plate, RELIEF_OT_fit, RELIEF_OT_diagnose, RELIEF_OT_render_plate, RELIEF_OT_add_preset)
+           RELIEF_OT_simulate_plate, RELIEF_OT_fit, RELIEF_OT_diagnose, RELIEF_OT_infer, RELIEF_OT_render_plate,
+           RELIEF_OT_add_preset)
 
 
 def register():

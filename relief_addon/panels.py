@@ -75,7 +75,7 @@ def _baked_box(layout, context) -> None:
     box.label(text=f"anisotropy of the reflection lobe: {an:.2f}" if an else "isotropic lobes")
     tilt = g.get("relief_transmission_tilt", 0.0)
     if tilt:
-        # Cycles has no anisotropic rough transmission (relief_bsdf.bsdf.bake, module doc)
+        # Cycles has no anisotropic rough transmission (relief_bsdf.bake, module doc)
         box.label(text=f"transmitted lobe stretched: facet tilt {tilt:.2f}")
         _wrapped(box, "Cycles has no anisotropic refraction closure: a random facet tilt per "
                  "path sample stretches it")
@@ -151,6 +151,7 @@ class RELIEF_PT_plate(_ReliefPanel, bpy.types.Panel):
         row.operator("relief.simulate_plate", text="Simulate")
         row.operator("relief.fit", text="Fit")
         row.operator("relief.diagnose", text="Diagnose")
+        col.operator("relief.infer", text="Infer relief from the recording", icon="MOD_DISPLACE")
         col.prop(s, "fit_dir")
 
 

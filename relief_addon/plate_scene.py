@@ -49,7 +49,7 @@ def _tables(relief, material, method: str, progress=None):
 
 def prepare_plates(source, albedo=None, closure: str = "metallic", progress=None) -> list[dict]:
     """[before, after] plates: {"label", "lut", "thickness_m", "rough_face", "ior"} (no bpy)."""
-    from relief_bsdf.bsdf.bake import bake_lut
+    from relief_bsdf.bake import bake_lut
     from relief_bsdf.errors import InputError
     from relief_bsdf.fit.optimise import process_relief
     from relief_bsdf.plate import flat_tables

@@ -5,7 +5,7 @@ a material and a plate; `preset_plate` derives the boundary tables and bakes the
 measured relief is (`plate_scene._tables` with the relief's own physics, method `auto`,
 `relief_bsdf.plate.choice.DEFAULT_METHOD`: ray tracing for these reliefs; the Gaussian-statistics
 surrogate `microfacet+dw` would spread the flat 69 % between light-guide dots into one wide lobe,
-haze 0.80 instead of the dots' 0.34; `relief_bsdf.bsdf.bake.bake_lut`), and the scene is
+haze 0.80 instead of the dots' 0.34; `relief_bsdf.bake.bake_lut`), and the scene is
 `plate_scene.build_scene`: the plate over a checkerboard under diffuse light, camera set, so
 F12 (or `bpy.ops.render.render`) renders it.  The numbers are typical of each kind of surface,
 chosen for a recognisable look, not measurements of a product:
@@ -57,7 +57,7 @@ def _relief(p: Preset):
 
 def preset_plate(key: str, albedo=None, closure: str = "metallic", progress=None) -> dict:
     """The plate of preset `key` as `plate_scene.build_scene` takes it (no bpy)."""
-    from relief_bsdf.bsdf.bake import bake_lut
+    from relief_bsdf.bake import bake_lut
     from relief_bsdf.core.index import ConstantIndex, Material
     from relief_bsdf.errors import InputError
     from .plate_scene import _tables

@@ -28,7 +28,7 @@ def test_register_unregister_leave_nothing_behind(clean_bpy):
     relief_addon.register()
     during = _snapshot()
     # what the add-on promises while registered
-    assert {"import_heightmap", "reconstruct", "simulate_plate", "fit", "diagnose", "bake_bsdf",
+    assert {"import_heightmap", "reconstruct", "simulate_plate", "fit", "diagnose", "infer", "bake_bsdf",
             "render_plate"} <= during["ops"]
     assert "relief" in during["scene"] and "relief_z_scale" in during["object"]
     assert {"RELIEF_PT_relief", "RELIEF_PT_reconstruct", "RELIEF_PT_plate", "RELIEF_PT_bake_render",
@@ -95,7 +95,7 @@ def test_import_bad_file_is_a_report_not_a_crash(addon, tmp_path):
 
 def test_operators_without_input_report_errors(addon):
     # no sample chosen: the operators report a one-line error (RuntimeError in background mode)
-    for op in (bpy.ops.relief.fit, bpy.ops.relief.diagnose, bpy.ops.relief.simulate_plate):
+    for op in (bpy.ops.relief.fit, bpy.ops.relief.diagnose, bpy.ops.relief.simulate_plate, bpy.ops.relief.infer):
         with pytest.raises(RuntimeError, match="sample"):
             op()
     with pytest.raises(RuntimeError, match="not found"):

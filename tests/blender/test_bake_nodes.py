@@ -28,7 +28,7 @@ def tables():
 
 def test_node_group_structure(clean_bpy, tables):
     from relief_addon import bake_nodes
-    from relief_bsdf.bsdf.bake import ROW_NAMES
+    from relief_bsdf.bake import ROW_NAMES
     lut, img, group = bake_nodes.bake_tables(tables, "probe")
     assert group.name == "Relief BSDF: probe" and group.use_fake_user
     outs = [s for s in group.interface.items_tree if getattr(s, "in_out", "") == "OUTPUT"]
@@ -71,7 +71,7 @@ def test_node_group_structure(clean_bpy, tables):
 def test_lookup_through_cycles_matches_interpolation(clean_bpy):
     """The texel-centred coordinate math read back through a Cycles render, front and back faces."""
     from relief_addon import bake_nodes, goniophotometer as G
-    from relief_bsdf.bsdf.bake import ROWS_PER_SIDE, BakedLut
+    from relief_bsdf.bake import ROWS_PER_SIDE, BakedLut
     cols = np.linspace(0.0, 90.0, 91)
     rows = np.zeros((2 * ROWS_PER_SIDE, cols.size, 4), np.float32)
     for k in range(rows.shape[0]):
@@ -87,7 +87,7 @@ def test_lookup_through_cycles_matches_interpolation(clean_bpy):
         nt.nodes.clear()
         cg = nt.nodes.new("ShaderNodeGroup")
         cg.node_tree = coord
-        from relief_bsdf.bsdf.bake import ROW_NAMES
+        from relief_bsdf.bake import ROW_NAMES
         cg.inputs["Row"].default_value = float(ROW_NAMES.index(row))
         tex = nt.nodes.new("ShaderNodeTexImage")
         tex.image, tex.interpolation, tex.extension = img, "Linear", "EXTEND"
@@ -179,7 +179,7 @@ def test_anisotropic_relief_bakes_anisotropic_lobe_checked_at_two_azimuths(clean
     0, relief x) spreads wide, light along them (azimuth 90: the group's Rotation turns the relief by
     a quarter) stays narrow.  In-plane reflection at theta_i = 40 deg."""
     from relief_addon import bake_nodes, goniophotometer as G
-    from relief_bsdf.bsdf.bake import reflection_slope_ratio
+    from relief_bsdf.bake import reflection_slope_ratio
     tables = _anisotropic_tables()
     out = tables[0]
     assert reflection_slope_ratio(out, 550.0) == pytest.approx(0.277 / 0.068, rel=0.15)   # the relief's slopes
@@ -256,7 +256,7 @@ def test_group_inputs_haze_tint_and_fitted_switch(clean_bpy, tables):
     per channel; Fitted picks the second table."""
     from relief_addon import bake_nodes, goniophotometer as G
     from relief_bsdf.core.fresnel import fresnel_unpolarized
-    from relief_bsdf.bsdf.bake import bake_lut
+    from relief_bsdf.bake import bake_lut
     lut, img, _ = bake_nodes.bake_tables(tables, "rough")
     smooth_tables = _microfacet_tables(alpha=0.05)
     smoother = bake_lut(smooth_tables, "smoother", albedo=bake_nodes.closure_albedo(),
@@ -293,7 +293,7 @@ def test_cycles_transmission_closures_are_isotropic():
     (half glass closure, half specular layer over diffuse), Anisotropic 0.9 and the tangent along x, the
     goniophotometer sees the reflected lobe stretched (azimuth 0 vs 90, far apart) and the transmitted lobe
     the same at both azimuths, equal to the Anisotropic 0 render.  (Cycles' bsdf_microfacet_ggx_refraction_setup / _glass_setup set alpha_y = alpha_x, for SVM and
-    OSL closures alike.)  Hence the bake's random facet tilt (relief_bsdf.bsdf.bake.transmission_tilt); should
+    OSL closures alike.)  Hence the bake's random facet tilt (relief_bsdf.bake.transmission_tilt); should
     a later Blender pass this anisotropy to transmission, this test fails and the bake can use the closure."""
     from relief_addon import goniophotometer as G
     bpy.ops.wm.read_factory_settings(use_empty=True)

@@ -103,6 +103,26 @@ def test_escape_cancels_at_the_next_task_boundary():
     assert not op._thread.is_alive() and ctx.window_manager.ended == 1
 
 
+class StagedJob(Job):
+    """A job like the backend's: it checks its CancelToken between stages and reports no progress."""
+
+    @staticmethod
+    def work(mode, progress, cancel=None):
+        for k in range(200):
+            cancel.check(f"stage {k}")
+            time.sleep(0.01)
+        return 42
+
+
+def test_escape_reaches_the_jobs_cancel_token_between_stages():
+    ctx = _context()
+    op = StagedJob("slow")
+    op.invoke_threaded(ctx)
+    assert _drive(op, ctx, esc_after=3) == {"CANCELLED"}
+    assert op.finished_with is None
+    assert any("WARNING" in k and "cancelled" in t for k, t in op.reports)
+
+
 def test_backend_error_becomes_one_line_report():
     ctx = _context()
     op = Job("error")

@@ -107,8 +107,8 @@ def test_render_scene_code_ships_in_the_installed_distribution(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert (site / "relief_addon" / "render_plate.py").is_file()
     assert (site / "relief_addon" / "data" / "cycles_albedo.npz").is_file()
-    probe = ("import relief_bsdf, relief_bsdf.cli.cmd_render as c; m = c._scene_module(); "
-             "print(relief_bsdf.__file__); print(m.__file__)")
+    probe = ("import sys, relief_bsdf, relief_bsdf.jobs.render as c; f = c.plate_renderer(); "
+             "print(relief_bsdf.__file__); print(sys.modules[f.__module__].__file__)")
     env = {**os.environ, "PYTHONPATH": str(site)}
     r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path, env=env,
                        timeout=300)
@@ -122,7 +122,7 @@ def test_render_scene_code_ships_in_the_installed_distribution(tmp_path):
 def test_plate_scene_has_label_and_denoiser(clean_bpy):
     import bpy
     from relief_addon.plate_scene import _remove_scene, build_scene
-    from relief_bsdf.bsdf.bake import bake_lut
+    from relief_bsdf.bake import bake_lut
     from relief_bsdf.core.index import ConstantIndex, Material
     from relief_bsdf.plate import flat_tables
     th = np.arange(0.0, 90.0, 10.0)

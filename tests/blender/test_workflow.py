@@ -110,7 +110,7 @@ def test_default_reconstruct_keeps_the_shared_x3p_anisotropic(addon, tmp_path):
     at normal incidence is wider along x than along y (`reflection_slope_ratio` > 1.5; any isotropic
     lobe gives 1) and the node group gets an anisotropic closure.  Oracle for the direction and the
     size of the effect: the relief's own slope statistics, not the table."""
-    from relief_bsdf.bsdf.bake import reflection_slope_ratio
+    from relief_bsdf.bake import reflection_slope_ratio
     from relief_bsdf.io.hdf5 import load_tables
     x3p = REPO / "tests" / "data" / "topography" / "ST_x3p-2.x3p"
     assert bpy.ops.relief.import_heightmap(filepath=str(x3p)) == {"FINISHED"}

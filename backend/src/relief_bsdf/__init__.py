@@ -8,7 +8,8 @@ Data flows one way, one sub-package per step (README "Architecture"):
 
 `core` holds the only copies of the optics (index models, Fresnel, Stokes frames, microfacet
 distributions, bulk), `validation` the independent generator of test cases (`relief conceal`),
-`parallel` where tasks run, `cli` the `relief` command.  This package never imports bpy.
+`parallel` where tasks run, `jobs` the application layer (one function per job), `cli` the `relief`
+command over it.  This package never imports bpy.
 
 The public face below is loaded lazily (PEP 562), so `import relief_bsdf` stays cheap (Blender).
 """
@@ -22,7 +23,7 @@ _EXPORTS = {
     "SellmeierIndex": "core", "Request": "methods", "reconstruct": "methods",
     "Experiment": "plate", "Plate": "plate", "Bulk": "plate", "Instrument": "plate", "FlatFace": "plate",
     "ReliefFace": "plate", "TableFace": "plate", "MicrofacetFace": "plate", "simulate": "plate",
-    "experiment_from_sample": "plate", "run_fit_job": "fit",
+    "experiment_from_sample": "plate", "run_fit": "jobs",
 }
 __all__ = ["__version__", *_EXPORTS]
 

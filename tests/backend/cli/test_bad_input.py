@@ -289,11 +289,11 @@ def test_output_under_a_file_and_unwritable(tmp_path, capsys):
 
 def test_fit_output_checked_before_the_work(tmp_path, capsys, monkeypatch):
     """The output check comes first: the (long) fit is never started."""
-    import relief_bsdf.fit.optimise as optimise
+    import relief_bsdf.jobs.fit as fit_job
 
     def boom(*a, **k):
         raise AssertionError("the fit ran before its output path was checked")
-    monkeypatch.setattr(optimise, "run_fit_job", boom)
+    monkeypatch.setattr(fit_job, "run_fit", boom)
     s = _sample(tmp_path)
     (tmp_path / "f").write_text("x")
     assert_refused(capsys, str(tmp_path / "f"), "fit", s, "-o", tmp_path / "f", why="expected an output folder")

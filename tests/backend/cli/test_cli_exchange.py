@@ -69,7 +69,7 @@ def test_measured_isbsdf_plotted_compared_and_baked(tmp_path, capsys, table_file
     rc, o, e = run_cli(capsys, "export", tmp_path / "m_BRDF.bsdf", "--format", "hdf5", "--wavelength-nm", 550,
                        "--n", 1.5, "-o", tmp_path / "m.h5")
     assert rc == 0, e
-    from relief_bsdf.bsdf.bake import bake_lut
+    from relief_bsdf.bake import bake_lut
     (m,) = load_tables(tmp_path / "m.h5")
     assert m.material["inside"]["n"] == 1.5
     lut = bake_lut([m], "measured")

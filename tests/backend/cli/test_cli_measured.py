@@ -110,7 +110,7 @@ def test_export_rpc_as_table_keeps_the_transmittance(tmp_path, capsys):
     assert t.wavelength_nm.tolist() == [633.0] and t.material["inside"]["n"] == 1.5
     h = t.hemispherical()
     assert h["T"][0, 0, 0] == pytest.approx(0.8979, abs=0.005) and h["R"][0, 0, 0] == 0.0
-    from relief_bsdf.bsdf.bake import bake_lut           # and it bakes like any table
+    from relief_bsdf.bake import bake_lut           # and it bakes like any table
     assert np.all(np.isfinite(bake_lut([t], "measured").image_pixels()))
 
 

@@ -12,9 +12,18 @@ import tomllib
 
 import pytest
 
-from relief_bsdf.diagnose.run import diagnose
+from relief_bsdf.jobs import DiagnoseJob, run_diagnose
 from relief_bsdf.io.recording import write_sample
 from relief_bsdf.validation.conceal import CaseSpec, make_case
+
+
+def diagnose(sample, out, **kw):
+    """The diagnosis job (relief_bsdf.jobs.run_diagnose): writes OUT/diagnosis.json and report.html,
+    returns diagnosis.json's document."""
+    from pathlib import Path
+    effects = kw.pop("effects", None)
+    job = DiagnoseJob(Path(sample), Path(out), effects=tuple(effects) if effects is not None else None, **kw)
+    return run_diagnose(job).doc
 
 CHEAP = ["bulk_absorption", "stray_light", "sample_tilt", "instrument_blur", "polarization"]
 TRUTH = {"absorption_per_mm": 0.25, "background_per_sr": 0.03}

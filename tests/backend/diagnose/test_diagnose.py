@@ -7,8 +7,18 @@ import pytest
 
 from relief_bsdf.cli import main as cli_main
 from relief_bsdf.validation.conceal import CaseSpec, make_case
-from relief_bsdf.diagnose.run import BIC_MARGIN, diagnose, select
+from relief_bsdf.diagnose.run import BIC_MARGIN, select
 from relief_bsdf.diagnose.stepwise import consistent_with_noise
+from relief_bsdf.jobs import DiagnoseJob, run_diagnose
+
+
+def diagnose(sample, out, **kw):
+    """The diagnosis job (relief_bsdf.jobs.run_diagnose): writes OUT/diagnosis.json and report.html,
+    returns diagnosis.json's document."""
+    from pathlib import Path
+    effects = kw.pop("effects", None)
+    job = DiagnoseJob(Path(sample), Path(out), effects=tuple(effects) if effects is not None else None, **kw)
+    return run_diagnose(job).doc
 
 
 def _fit(name, chi2, k=1):
@@ -130,15 +140,15 @@ def test_clean_case_called_none(tmp_path):
 def test_diagnose_sectors_option_reaches_the_forward_models_grid(tmp_path, monkeypatch):
     """`relief diagnose --sectors always` hands TableGrid.sectors to the diagnosis, whose forward model
     (and the auto choice it resolves) then uses that grid; the default keeps the plate's default grid."""
-    import relief_bsdf.diagnose.run as run_mod
+    import relief_bsdf.jobs.diagnose as job_mod
     from relief_bsdf.diagnose.forward import build_forward
     seen = {}
 
-    def fake(sample, out, progress=None, **kw):
-        seen.update(kw)
-        return {"effects": ["none"], "rms_before": 1.0, "rms_after": 1.0, "parameters": {}, "intervals": {},
-                "explanation": "-"}
-    monkeypatch.setattr(run_mod, "diagnose", fake)
+    def fake(job, progress=None, cancel=None):
+        seen.update(sectors=job.sectors)
+        return job_mod.DiagnoseOutput({"effects": ["none"], "rms_before": 1.0, "rms_after": 1.0, "parameters": {},
+                                       "intervals": {}, "explanation": "-"}, job.out)
+    monkeypatch.setattr(job_mod, "run_diagnose", fake)
     assert cli_main(["diagnose", str(tmp_path / "s.toml"), "-o", str(tmp_path / "o"), "--sectors", "always"]) == 0
     assert seen["sectors"] == "always"
     s = _case(tmp_path, "none", {}, 22)

@@ -133,11 +133,11 @@ def test_diagnosis_report_same_style(tmp_path):
 
 def test_relief_render_of_a_fit_folder_embeds_the_plate_render_in_its_report(tmp_path):
     """`relief render FITDIR` (what `make demo` runs after the fit) rewrites FITDIR/report.html with
-    the before | after plate render embedded beside the fit's own figures (cmd_render._embed_in_report;
+    the before | after plate render embedded beside the fit's own figures (jobs.render.embed_in_report;
     the Cycles render itself is tested in tests/blender/test_render.py)."""
     import json
     import matplotlib.image as mpimg
-    from relief_bsdf.cli.cmd_render import _embed_in_report
+    from relief_bsdf.jobs.render import embed_in_report
     rec = recording()
     plots = fit_plots(tmp_path, rec, rec.bsdf_sr * 2, rec.bsdf_sr)
     (tmp_path / "fit.json").write_text(json.dumps(fit_doc(files={"boundary_table": "boundary.h5", **plots})))
@@ -145,7 +145,7 @@ def test_relief_render_of_a_fit_folder_embeds_the_plate_render_in_its_report(tmp
     assert "Plate renders" not in strip_images((tmp_path / "report.html").read_text())
     png = tmp_path / "plate.png"
     mpimg.imsave(png, np.linspace(0.0, 1.0, 48 * 100).reshape(48, 100), cmap="gray")
-    path = _embed_in_report(tmp_path, png)
+    path = embed_in_report(tmp_path, png)
     text = path.read_text()
     assert path == tmp_path / "report.html" and text.count("data:image/png;base64,") == 5   # 4 figures + render
     assert not re.search(r'src="(?!data:)', text)

@@ -21,25 +21,15 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from relief_bsdf.validation.conceal import EFFECTS_CONCEALABLE, default_cases, generate
-    from relief_bsdf.errors import InputError
+    from pathlib import Path
+
+    from relief_bsdf.jobs import ConcealJob, run_conceal
     from relief_bsdf.progress import TerminalBar, keep_alive
-    if args.per_effect < 0 or args.none < 0:
-        raise InputError("--per-effect/--none", "case counts must be >= 0")
-    cases = default_cases(args.per_effect, args.none, args.seed)
-    if args.effects:
-        want = [e.strip() for e in args.effects.split(",") if e.strip()]
-        bad = [e for e in want if e not in EFFECTS_CONCEALABLE]
-        if bad:
-            raise InputError("--effects", f"unknown effect(s) {bad}; choose from {', '.join(EFFECTS_CONCEALABLE)}")
-        cases = [c for c in cases if set(c.effects) <= set(want)]    # compound cases: every effect asked for
-    if args.photons is not None:
-        if args.photons < 1000:
-            raise InputError("--photons", f"need at least 1000 photons, got {args.photons}")
-        for c in cases:
-            c.photons = args.photons
+    effects = tuple(e.strip() for e in args.effects.split(",") if e.strip()) if args.effects else None
+    job = ConcealJob(Path(args.out), per_effect=args.per_effect, none=args.none, seed=args.seed,
+                     photons=args.photons, effects=effects)
     bar = TerminalBar("conceal")
     with keep_alive(bar):
-        key = generate(args.out, cases, bar)
-    print(f"{len(cases)} cases in {args.out}; key (keep apart) in {key}")
+        r = run_conceal(job, bar)
+    print(f"{r.cases} cases in {args.out}; key (keep apart) in {r.key}")
     return 0

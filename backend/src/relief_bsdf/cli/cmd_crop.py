@@ -23,13 +23,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from relief_bsdf.cli.cmd_fill import check_out_suffix
+    from pathlib import Path
+
     from relief_bsdf.cli.cmd_info import _pitch, print_relief_summary
-    from relief_bsdf.cli.maps import read_map
-    from relief_bsdf.io.heightmaps import write_relief
-    check_out_suffix(args.out)
-    relief = read_map(args.relief, args, pitch_m=_pitch(args.pitch_um))
-    write_relief(args.out, relief)
-    print_relief_summary(relief)
+    from relief_bsdf.cli.maps import relief_options
+    from relief_bsdf.jobs import CropJob, run_crop
+    r = run_crop(CropJob(Path(args.relief), Path(args.out), pitch_m=_pitch(args.pitch_um),
+                         options=relief_options(args)))
+    print_relief_summary(r.relief)
     print(f"wrote {args.out}")
     return 0

@@ -36,18 +36,21 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from relief_bsdf.diagnose.forward import DEFAULT_METHOD
-    from relief_bsdf.diagnose.run import diagnose
+    from pathlib import Path
+
     from relief_bsdf.errors import InputError
+    from relief_bsdf.jobs import DiagnoseJob, run_diagnose
+    from relief_bsdf.plate import DEFAULT_METHOD
     from relief_bsdf.progress import TerminalBar, keep_alive
     if args.photons < 1000:
         raise InputError("--photons", f"need at least 1000 photons per incidence, got {args.photons}")
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
     bar = TerminalBar("diagnose")
     with keep_alive(bar):                 # a log line at once and at least every 30 s
-        r = diagnose(args.sample, args.out, bar, method=args.method or DEFAULT_METHOD,
-                     photons=args.photons, seed=args.seed, effects=effects, workers=args.workers,
-                     sectors=args.sectors)
+        r = run_diagnose(DiagnoseJob(Path(args.sample), Path(args.out), method=args.method or DEFAULT_METHOD,
+                                     photons=args.photons, seed=args.seed,
+                                     effects=tuple(effects) if effects is not None else None, workers=args.workers,
+                                     sectors=args.sectors), bar).doc
     if args.json:
         print(json.dumps(r, indent=1))
     else:

@@ -11,9 +11,6 @@ from __future__ import annotations
 
 import argparse
 
-OUT_SUFFIXES = (".x3p", ".npz")
-
-
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("fill", help="fill the missing points of a height map (harmonic interpolation)",
                        description=__doc__.split("\n", 2)[2].strip())
@@ -28,28 +25,17 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-def check_out_suffix(out) -> None:
-    from pathlib import Path
-    from relief_bsdf.errors import InputError
-    if Path(out).suffix.lower() not in OUT_SUFFIXES:
-        raise InputError(out, "the output height map must be .x3p or .npz")
-
-
 def run(args) -> int:
+    from pathlib import Path
+
     from relief_bsdf.cli.cmd_info import _pitch
-    from relief_bsdf.cli.maps import read_map, show_prepared
-    from relief_bsdf.errors import InputError
-    from relief_bsdf.io.heightmaps import write_relief
-    check_out_suffix(args.out)
-    if args.max_gap_px is not None and args.max_gap_px < 1:
-        raise InputError("--max-gap-px", f"expected a whole number >= 1, got {args.max_gap_px}")
-    relief = read_map(args.relief, args, pitch_m=_pitch(args.pitch_um))
-    missing = int((~relief.valid).sum())
-    filled = relief.fill_holes(args.max_gap_px) if missing else relief
-    left = int((~filled.valid).sum())
-    write_relief(args.out, filled)
-    show_prepared(filled, args)
-    total = filled.heights_m.size
+    from relief_bsdf.cli.maps import relief_options, show_prepared
+    from relief_bsdf.jobs import FillJob, run_fill
+    r = run_fill(FillJob(Path(args.relief), Path(args.out), max_gap_px=args.max_gap_px, pitch_m=_pitch(args.pitch_um),
+                         options=relief_options(args)))
+    show_prepared(r.relief, args)
+    total = r.relief.heights_m.size
+    missing, left = r.missing, r.left
     if missing == 0:
         print(f"nothing to fill: every one of the {total} points is valid; wrote {args.out} unchanged")
         return 0

@@ -46,7 +46,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def run(args) -> int:
     from relief_bsdf.errors import InputError
     from relief_bsdf.cli.maps import stated_options
-    from relief_bsdf.fit.optimise import FitJob, run_fit_job
+    from pathlib import Path
+
+    from relief_bsdf.jobs import FitJob, run_fit
     from relief_bsdf.plate import TableGrid
     from relief_bsdf.progress import TerminalBar, keep_alive
     if args.max_iter < 1:
@@ -56,12 +58,13 @@ def run(args) -> int:
     if not 0 < args.inside_step_deg <= 15:
         raise InputError("--inside-step-deg", f"must be in (0, 15], got {args.inside_step_deg:g}")
     grid = TableGrid(args.theta_step_deg, args.phi_step_deg, args.inside_step_deg, sectors=args.sectors)
-    job = FitJob(method=args.method, samples=args.samples, seed=args.seed, max_iter=args.max_iter,
+    job = FitJob(Path(args.sample), Path(args.out), method=args.method, samples=args.samples, seed=args.seed,
+                 max_iter=args.max_iter,
                  threshold=args.threshold, grid=grid, scale_bounds=_bounds(args.scale_bounds),
                  max_filter_um=args.max_filter_um, relief_options=stated_options(args))
     bar = TerminalBar("fit", force=args.progress)
     with keep_alive(bar):                 # a log line at once and at least every 30 s (batch logs)
-        doc = run_fit_job(args.sample, args.out, job, progress=bar)
+        doc = run_fit(job, bar).doc
     for w in doc.get("warnings", []):
         print(f"relief fit: note: {w}", file=sys.stderr)
     print(json.dumps({k: doc[k] for k in ("rms_before", "rms_after", "parameters", "intervals", "stopped")}))

@@ -24,15 +24,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def run(args) -> int:
     from pathlib import Path
 
-    from relief_bsdf.errors import InputError
-    from relief_bsdf.infer.job import infer
+    from relief_bsdf.jobs import InferJob, run_infer
     from relief_bsdf.progress import TerminalBar, keep_alive
-    if args.samples < 1000:
-        raise InputError("--samples", f"need at least 1000 samples, got {args.samples}")
     bar = TerminalBar("infer")
     with keep_alive(bar):
-        doc = infer(args.sample, args.out, seed=args.seed, progress=bar, samples=args.samples)
-    o = Path(args.out)
+        r = run_infer(InferJob(Path(args.sample), Path(args.out), seed=args.seed, samples=args.samples), bar)
+    doc, o = r.doc, r.out
     print(f"family {doc['family']}, rms slope {doc['rms_slope']:.4g}, n = {doc['parameters']['refractive_index']:g}"
           f"{'' if doc['index_stated'] else ' (assumed)'}")
     print(f"metric (rms z) flat plate {doc['rms_before']:.4g} -> inferred relief {doc['rms_after']:.4g}")

@@ -138,30 +138,27 @@ def build_request(args):
 def run(args) -> int:
     from pathlib import Path
 
-    from relief_bsdf.io.hdf5 import save_tables
-    from relief_bsdf.errors import InputError
-    from relief_bsdf.methods import get_method, reconstruct
+    from relief_bsdf.cli.maps import relief_options, show_prepared
+    from relief_bsdf.jobs import ReconstructJob, run_reconstruct
+    from relief_bsdf.jobs.reconstruct import check_method, check_table_out
     from relief_bsdf.progress import TerminalBar, keep_alive
-    from relief_bsdf.cli.maps import read_map, show_prepared
     out = Path(args.out)
-    if out.suffix.lower() not in (".h5", ".hdf5"):
-        raise InputError(out, "the output table must be an HDF5 file (.h5)")
-    get_method(args.method)                          # unknown method: fail before reading anything
+    check_table_out(out)
+    check_method(args.method)                        # unknown method: fail before reading anything
     material = material_from_args(args)
     request = build_request(args)
     pitch = None
     if args.pitch_um is not None:
         v = parse_floats(args.pitch_um, "--pitch-um")
         pitch = (v[0] * 1e-6, (v[1] if len(v) > 1 else v[0]) * 1e-6)
-    relief = read_map(args.relief, args, pitch_m=pitch)
-    show_prepared(relief, args)
-    _warn_one_azimuth(relief, request)
+    job = ReconstructJob(Path(args.relief), out, material, request, method=args.method, options=relief_options(args),
+                         pitch_m=pitch)
     bar = TerminalBar(f"reconstruct {args.method}")
     with keep_alive(bar):
-        tables = reconstruct(relief, material, request, args.method, progress=bar)
-    save_tables(out, tables)
-    chosen = tables[0].method if tables and tables[0].method != args.method else None
-    print(f"wrote {out}: method {args.method}" + (f" ({chosen})" if chosen else "") + f", {len(tables)} table(s)")
+        r = run_reconstruct(job, bar)
+    show_prepared(r.relief, args)
+    tables = r.tables
+    print(f"wrote {out}: method {args.method}" + (f" ({r.chosen})" if r.chosen else "") + f", {len(tables)} table(s)")
     print(f"{'from':8s} {'lambda_nm':>9s} {'theta_i':>7s} {'phi_i':>6s} {'R':>8s} {'T':>8s} {'spec_R':>8s} "
           f"{'spec_T':>8s} {'lost':>8s}")
     for t in tables:
@@ -172,21 +169,3 @@ def run(args) -> int:
     for line in band_limit_lines(tables):          # what the wave method removed from the heights
         print(line.strip())
     return 0
-
-
-AZIMUTH_WARN_RATIO = 1.2     # principal rms slopes more than 20 % apart: one incidence azimuth misdescribes the relief
-
-
-def _warn_one_azimuth(relief, request) -> None:
-    """One warning line when the relief's principal rms slopes differ by more than 20 % and the request
-    has a single incidence azimuth: its table then holds the relief seen from that azimuth only (an
-    export of it stands for every orientation), so say which option gives the azimuths."""
-    import warnings
-    from relief_bsdf.plate.faces import slope_anisotropy
-    if len(set(float(p) % 360.0 for p in request.phi_i_deg)) > 1:
-        return
-    ratio, axis = slope_anisotropy(relief)
-    if ratio > AZIMUTH_WARN_RATIO:
-        warnings.warn(f"{relief.source or 'the map'} is anisotropic (principal rms slopes {ratio:.2g}x apart, steeper "
-                      f"axis at {axis:.0f} deg): one incidence azimuth does not describe it; give the azimuths with "
-                      "--phi-i-deg (e.g. 0,45,90,135)", RuntimeWarning, stacklevel=2)

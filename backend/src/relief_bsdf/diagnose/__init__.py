@@ -7,15 +7,16 @@ the plate description; several act together through `effects.apply_all`) fitted 
 censored chi^2 (`fitting`) -> stepwise selection by BIC with a noise gate, joint refit of the
 named effects (`stepwise`) -> closure test, 68 % intervals from the chi^2 curvature, which
 effect explains which region, or the account of what no candidate explains (`run`) ->
-diagnosis.json and report.html (`run`, `report`).
+the diagnosis's document (`run`) and its page (`report`), written by the job `jobs.run_diagnose`.
 """
 from relief_bsdf.diagnose.effects import Effect, Param, ReliefContext, all_effects, apply_all, get_effect
 from relief_bsdf.diagnose.fitting import fit_effect, intervals, refit_joint
 from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build_forward
 from relief_bsdf.diagnose.mismatch import attribute, classify, locate, residual_z
-from relief_bsdf.diagnose.run import diagnose, select
+from relief_bsdf.diagnose.run import Diagnosis, diagnosis, select
 from relief_bsdf.diagnose.stepwise import passes, stepwise
 
-__all__ = ["diagnose", "select", "stepwise", "passes", "fit_effect", "refit_joint", "intervals", "build_forward",
+__all__ = ["Diagnosis", "diagnosis", "select", "stepwise", "passes", "fit_effect", "refit_joint", "intervals",
+           "build_forward",
            "DiagnosisForward", "DEFAULT_METHOD", "Effect", "Param", "ReliefContext", "all_effects", "apply_all",
            "get_effect", "locate", "classify", "attribute", "residual_z"]

@@ -45,8 +45,7 @@ from relief_bsdf.diagnose.effects import Effect, ReliefContext, apply_all, get_e
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import chi2
 from relief_bsdf.parallel.blas import blas_single_thread
-from relief_bsdf.plate import DEFAULT_METHOD, Experiment, ReliefFace, TableGrid, experiment_from_sample, simulate
-from relief_bsdf.plate.choice import resolve_auto
+from relief_bsdf.plate import DEFAULT_METHOD, Experiment, ReliefFace, TableGrid, simulate
 from relief_bsdf.plate.grid import NO_SECTORS_DEG
 
 __all__ = ["DEFAULT_METHOD", "DiagnosisForward", "build_forward", "face_options", "known_effects"]
@@ -313,27 +312,23 @@ def _scale_and_filter():
 def build_forward(sample_path: str | Path, method: str = DEFAULT_METHOD, samples: int = 200_000,
                   seed: int = 0, sectors: str = "auto") -> tuple[DiagnosisForward, object]:
     """The baseline forward model of a sample.toml (and the Sample), on the default grid with
-    TableGrid.sectors = `sectors`."""
-    from relief_bsdf.io.heightmaps import read_sample_relief
+    TableGrid.sectors = `sectors`: the sample's plate as `fit.baseline` prepares it for every forward
+    model (relief levelled and checked, rows checked, "auto" decided once), with Mueller tables
+    wherever the method fills them (`face_options`)."""
+    from relief_bsdf.fit.baseline import baseline
     from relief_bsdf.io.recording import read_sample
     sample = read_sample(sample_path)
     if sample.plate.rough_face != "front":
         raise InputError(sample.path, "key plate.rough_face: diagnose models a relief on the lit (front) face only")
-    relief = read_sample_relief(sample)            # [relief] periodic / fill_holes applied (history)
-    relief.require_valid(0.5)
-    relief = relief.level(0 if relief.periodic else 1)
-    rec = sample.load_recording()
-    if len(rec) < 4:
-        raise InputError(sample.recording_path, f"only {len(rec)} rows; a diagnosis needs a scan")
-    rows = rec.with_sigma_fallback()   # unknown sigma: documented fallback (recording.py)
-    sample.material.check(np.unique(rows.wavelength_nm), str(sample.path))
-    experiment = experiment_from_sample(sample, relief, method, samples, seed, options=face_options(method))
     grid = TableGrid(sectors=sectors)                   # the plate's default grid, but for `sectors`
-    experiment = resolve_auto(experiment, rows, grid)    # the baseline's physics, decided once (plate.choice)
-    front = experiment.plate.front
-    context = ReliefContext(relief=relief, method=front.method, face=_FaceBuilder(samples, seed),
+    b = baseline(sample, method=method, samples=samples, seed=seed, grid=grid, face_options=face_options(method))
+    if len(b.recording) < 4:
+        raise InputError(sample.recording_path, f"only {len(b.recording)} rows; a diagnosis needs a scan")
+    rows = b.recording.with_sigma_fallback()   # unknown sigma: documented fallback (recording.py)
+    front = b.experiment.plate.front
+    context = ReliefContext(relief=b.relief, method=front.method, face=_FaceBuilder(samples, seed),
                             scale_and_filter=_scale_and_filter(),
                             wavelengths_nm=tuple(float(w) for w in np.unique(rows.wavelength_nm)),
                             detector_half_angle_deg=float(sample.instrument.detector_half_angle_deg),
                             samples=samples, seed=seed, method_reason=front.chosen_by, known=known_effects(sample))
-    return DiagnosisForward(experiment, rows, context, grid=grid), sample
+    return DiagnosisForward(b.experiment, rows, context, grid=grid), sample

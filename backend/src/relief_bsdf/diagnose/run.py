@@ -24,17 +24,19 @@ Pipeline
    found.
 5. Intervals: 68 % intervals of every named parameter from the chi^2 curvature
    (`fitting.intervals`); a parameter the data cannot pin down is null with a note.
-6. Report: diagnosis.json (formats.md schema: `effects` most important first, `effect` =
+6. Report: diagnosis.json's document (formats.md schema: `effects` most important first, `effect` =
    effects[0], `parameters` of every named effect, `intervals`; `mismatch` entries say which
-   named effect explains each region, `mismatch.attribute`) + report.html, written atomically.
+   named effect explains each region, `mismatch.attribute`); the job `jobs.run_diagnose` writes it
+   and report.html, atomically.
 
 Metric: the project's one metric, rms z = sqrt(chi^2 / n) (`fit.residual.rms_z`; 1 = fits to the noise).
 """
 from __future__ import annotations
 
-import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -42,20 +44,20 @@ from relief_bsdf.diagnose.effects import all_effects, get_effect
 from relief_bsdf.diagnose.fitting import intervals as fit_intervals
 from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build_forward
 from relief_bsdf.diagnose.mismatch import SHAPE_PHYSICS, attribute, classify, locate, regions
-from relief_bsdf.diagnose.report import shape_against_search, write_report
+from relief_bsdf.diagnose.report import shape_against_search
 from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODEL_ACCURACY_RMS, adequate, alternatives,
                                            consistent_with_noise, first_fits, overwhelming_bar, passes, stepwise,
                                            steps_record)
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import METRIC, metric_of_chi2
 from relief_bsdf.fit.selection import BIC_MARGIN
-from relief_bsdf.io.atomic import write_text_atomic
 from relief_bsdf.parallel import current_settings, parallel_settings
 from relief_bsdf.plate import TableGrid
 from relief_bsdf.plate.memory import ForwardMemory, MemoryPlan, job_memory_bytes, plan_processes
 from relief_bsdf.progress import silent
 
-__all__ = ["BIC_MARGIN", "BIC_OVERWHELMING", "CONSISTENCY_Z", "MODEL_ACCURACY_RMS", "candidate_names", "diagnose",
+__all__ = ["BIC_MARGIN", "BIC_OVERWHELMING", "CONSISTENCY_Z", "MODEL_ACCURACY_RMS", "Diagnosis", "candidate_names",
+           "diagnosis",
            "explain", "select"]
 
 EXPLAINED_SHARE = 0.5
@@ -287,10 +289,22 @@ def _memory_plan(memory: ForwardMemory, workers: int | None) -> MemoryPlan:
     return plan
 
 
-def diagnose(sample_path: str | Path, out_dir: str | Path, progress=None, *, method: str = DEFAULT_METHOD,
-             photons: int = 200_000, seed: int = 0, effects: list[str] | None = None, workers: int | None = None,
-             report: bool = True, sectors: str = "auto") -> dict:
-    """Run the whole diagnosis of one sample; write OUT/diagnosis.json (+ report.html); return the dict.
+@dataclass
+class Diagnosis:
+    """What a diagnosis found: `doc`, diagnosis.json's document (formats.md schema), and the arrays its
+    report draws: the recording's `rows`, the baseline's (values, model sigma) and the chosen model's."""
+
+    doc: dict
+    rows: Any
+    baseline: tuple
+    chosen: tuple
+
+
+def diagnosis(sample_path: str | Path, progress=None, *, method: str = DEFAULT_METHOD, photons: int = 200_000,
+              seed: int = 0, effects: list[str] | None = None, workers: int | None = None,
+              sectors: str = "auto") -> Diagnosis:
+    """The whole diagnosis of one sample (module doc, 1-5); writes nothing (the job, `jobs.run_diagnose`,
+    writes diagnosis.json and report.html).
 
     `photons`: Monte-Carlo samples per incidence of a sampling boundary method (ray, normals).
     `sectors`: the plate grid's `TableGrid.sectors` ("always": the inside sector tables for every
@@ -313,11 +327,4 @@ def diagnose(sample_path: str | Path, out_dir: str | Path, progress=None, *, met
             steps = stepwise(forward, names, progress, plan.workers)
             result, (v1, s1) = _result(forward, steps, located, n_mid)
     result["memory"] = {**plan.describe(), "main_process": memory.report()}
-    from relief_bsdf.report.html import user_paths
-    result = user_paths(result, sample_path, out_dir)   # no absolute path of this machine beyond the user's own
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / "diagnosis.json", json.dumps(result, indent=1))
-    if report:
-        write_report(out / "report.html", rows, v0, s0, v1, s1, result)
-    return result
+    return Diagnosis(result, rows, (v0, s0), (v1, s1))

@@ -1,15 +1,17 @@
 """Fit: optimise the relief's height scale and smoothing so the plate matches a recording.
 
-    fwd = Forward(relief, experiment, recording_rows, grid)     # the one forward model (plate.simulate)
+    b = baseline(sample, method=..., grid=...)                   # the sample's plate (fit.baseline)
+    fwd = Forward(b.relief, b.experiment, b.recording, b.grid)   # the one forward model (plate.simulate)
     result = fit_relief(fwd, measured, sigma)                    # least squares on (scale, filter^2)
-    run_fit_job(sample.toml, out_dir)                           # `relief fit`
 
-`fit.residual` holds the comparison (log-chi metric, residual maps, the diagnosis's chi2).
-The relief operation is surface.operations.scale_and_filter (the one definition).
+The whole `relief fit` job (reading the sample, writing fit.json, tables, plots and the report) is
+`relief_bsdf.jobs.run_fit`.  `fit.residual` holds the comparison (log-chi metric, residual maps, the
+diagnosis's chi2).  The relief operation is surface.operations.scale_and_filter (the one definition).
 """
-from relief_bsdf.fit.optimise import (FIT_FORMAT, FitJob, FitResult, FitSettings, Forward, fit_relief, process_relief,
-                                      relief_rms, run_fit_job)
+from relief_bsdf.fit.baseline import Baseline, baseline, resolved, sample_relief
+from relief_bsdf.fit.optimise import FIT_FORMAT, FitResult, FitSettings, Forward, fit_relief, process_relief, relief_rms
 from relief_bsdf.fit.residual import DEFAULT_METRIC, LogChiMetric, mismatch_share, residual_map
 
-__all__ = ["FIT_FORMAT", "FitJob", "FitResult", "FitSettings", "Forward", "fit_relief", "process_relief", "relief_rms",
-           "run_fit_job", "DEFAULT_METRIC", "LogChiMetric", "mismatch_share", "residual_map"]
+__all__ = ["FIT_FORMAT", "Baseline", "FitResult", "FitSettings", "Forward", "baseline", "fit_relief", "process_relief",
+           "relief_rms", "resolved", "sample_relief", "DEFAULT_METRIC", "LogChiMetric", "mismatch_share",
+           "residual_map"]

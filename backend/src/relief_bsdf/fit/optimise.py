@@ -47,26 +47,21 @@ the same path and ends with the same result as an uninterrupted run.
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit import gauss_newton
 from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of, shared_columns
 from relief_bsdf.fit.residual import DEFAULT_METRIC, METRIC, LogChiMetric, rms_z, signed_residuals
 from relief_bsdf.fit.response_surface import Surface, smoothed_optimum
 from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain, overdispersion
-from relief_bsdf.io.atomic import write_text_atomic
 from relief_bsdf.io.recording import sigma_with_fallback
-from relief_bsdf.plate import (DEFAULT_METHOD, Experiment, ReliefFace, Simulated, TableGrid, check_rows,
-                               experiment_from_sample, resolve_auto, simulate)
-from relief_bsdf.plate.deterministic import model_of
+from relief_bsdf.fit.baseline import resolved
+from relief_bsdf.plate import Experiment, ReliefFace, Simulated, TableGrid, simulate
 from relief_bsdf.progress import Progress, silent
 from relief_bsdf.surface.operations import scale_and_filter
 from relief_bsdf.surface.relief import Relief
@@ -120,9 +115,9 @@ class Forward:
 
     def __post_init__(self) -> None:
         self.face_name = _relief_face_name(self.experiment)
-        check_rows(model_of(self.experiment, self.grid), self.rows, self.where)   # bad rows fail before any table
-        # "auto" is decided once, on the relief as read, and kept for every (scale, filter)
-        self.experiment = resolve_auto(self.experiment, self.rows, self.grid)
+        # rows checked and "auto" decided once, on the relief as read, for every (scale, filter): the one
+        # decision of simulate, fit and diagnose (fit.baseline)
+        self.experiment = resolved(self.experiment, self.rows, self.grid, self.where)
 
     @property
     def method(self) -> str:
@@ -284,23 +279,6 @@ class FitSettings:
             raise InputError("--scale-bounds", f"need 0 < min < 1 < max, got {lo:g}, {hi:g}")
         if self.max_filter_um is not None and not (self.max_filter_um > 0):
             raise InputError("--max-filter-um", f"must be > 0, got {self.max_filter_um:g}")
-
-
-@dataclass(frozen=True)
-class FitJob:
-    """What `relief fit` runs: the boundary `method` of the relief face (its Monte-Carlo `samples` and
-    `seed` where it samples), the tables' `grid`, and the optimiser's settings."""
-
-    method: str = DEFAULT_METHOD
-    samples: int = 200_000
-    seed: int = 0
-    max_iter: int = 60
-    threshold: float = 0.0
-    grid: TableGrid = TableGrid()
-    scale_bounds: tuple = (0.1, 10.0)
-    max_filter_um: float | None = None
-    #: the command line's map choices (surface.preparation.ReliefOptions) over the sample's [relief] keys
-    relief_options: Any = None
 
 
 class _Objective:
@@ -703,7 +681,7 @@ def _ridge_probe(obj: _Objective, ratio: Callable[[float], float], both: dict, g
 
 def _store(checkpoint: Any, measured: np.ndarray, sigma: np.ndarray | None) -> Any:
     """The fit's checkpoint store (io.checkpoint: JSON data bound to a key): a given CheckpointStore,
-    or one for a bare path keyed by the recording's values and sigma (what `run_fit_job` keys by
+    or one for a bare path keyed by the recording's values and sigma (what the fit job, `jobs.run_fit`, keys by
     the inputs' content, method, effort and grid)."""
     from relief_bsdf.io.checkpoint import CheckpointStore
     if checkpoint is None or isinstance(checkpoint, CheckpointStore):
@@ -839,86 +817,3 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     return FitResult(s, g, rms_before, chosen["rms"], obj.iterations, METRIC, stopped,
                      time.monotonic() - t0, iv, corr, bool(needed), float(gain), bool(ridge), warnings, obj.new_evals,
                      surface_doc, "log-chi search objective: " + settings.metric.describe())
-
-
-# ---------------------------------------------------------------- whole job for the CLI
-
-def _job_store(out: Path, sample: Any, job: FitJob) -> Any:
-    """OUT/checkpoint.json keyed by everything that determines an evaluation: the inputs' content
-    (sample, relief, recording), method, effort, seed and grid (io.checkpoint adds the code
-    version); the optimiser's budget is not in it, so a longer rerun resumes."""
-    import dataclasses
-    from relief_bsdf.io.checkpoint import CheckpointStore, input_digests
-    key = {"kind": "relief-fit", "inputs": input_digests(sample=sample.path, relief=sample.relief_path,
-                                                         recording=sample.recording_path,
-                                                         **{f"recording_{k}": q for k, q in
-                                                            enumerate(sample.recording_paths[1:], 1)}),
-           "method": job.method, "samples": job.samples, "seed": job.seed, "grid": dataclasses.asdict(job.grid)}
-    if job.relief_options is not None:
-        key["relief_options"] = dataclasses.asdict(job.relief_options)
-    return CheckpointStore(out / "checkpoint.json", key)
-
-
-def run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob = FitJob(),
-                progress: Progress | None = None) -> dict:
-    """`relief fit`: read the sample, fit, write OUT/fit.json + relief + tables + plots + report.
-
-    The forward model keeps what it derives in one memory owner (`plate.memory`) held to a third of
-    the job's memory (`--memory-gb`): the fit evaluates in this process (its tables traced on its
-    threads), every evaluation at a new relief, so what it keeps is the tracer, the detector's
-    weights and the last evaluations' tables and solver; the rest of the memory is for the evaluation
-    being built."""
-    from relief_bsdf.plate.memory import ForwardMemory, job_memory_bytes
-    with ForwardMemory(job_memory_bytes() / 3).active():
-        return _run_fit_job(sample_path, out_dir, job, progress)
-
-
-def _run_fit_job(sample_path: str | Path, out_dir: str | Path, job: FitJob, progress: Progress | None) -> dict:
-    method = job.method
-    from relief_bsdf.parallel.memory import small_pages
-    small_pages()           # here and in its workers (parallel.memory)
-    from relief_bsdf.report import fit_report as report
-    from relief_bsdf.io.hdf5 import save_tables
-    from relief_bsdf.io.heightmaps import read_sample_relief, write_relief
-    from relief_bsdf.io.recording import read_sample, write_recording
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    sample = read_sample(sample_path)
-    rec = sample.load_recording()
-    relief = read_sample_relief(sample, job.relief_options)   # [relief] keys, the CLI's flags over them
-    exp = experiment_from_sample(sample, relief, method=method, samples=job.samples, seed=job.seed)
-    fwd = Forward(relief, exp, rec, grid=job.grid, where=str(sample.recording_path))
-    settings = FitSettings(threshold=job.threshold, max_iter=job.max_iter, scale_bounds=job.scale_bounds,
-                           max_filter_um=job.max_filter_um)
-    res = fit_relief(fwd, rec.bsdf_sr, rec.sigma_sr, settings, checkpoint=_job_store(out, sample, job),
-                     progress=progress)
-    best_relief, t_out, t_in = fwd.tables(res.height_scale, res.filter_sigma_um)
-    after = fwd.simulated_with_sigma(res.height_scale, res.filter_sigma_um)
-    sim_after = after.values_per_sr
-    sim_before = fwd.simulate(1.0, 0.0)
-    tables = [t for t in (t_out, t_in) if t is not None]
-    save_tables(out / "boundary.h5", tables)
-    files = {"boundary_table": "boundary.h5"}
-    from relief_bsdf.io.isbsdf import export_isbsdf
-    for t in tables:      # OpticStudio: one scatter type per .bsdf file, BTDF centred on the refracted ray
-        files[f"isbsdf_{t.incident_from}"] = [q.name for q in export_isbsdf(t, out / f"boundary_{t.incident_from}.bsdf")]
-    write_relief(out / "relief_optimised.npz", best_relief)
-    files["relief"] = "relief_optimised.npz"
-    write_recording(out / "simulated.csv", rec.with_values(sim_after, after.sigma_per_sr),
-                    comments=["simulated plate after the fit; sigma_sr: the simulation's own 1-sigma (its tables' "
-                              "uncertainty through the plate)"])
-    files["simulated"] = "simulated.csv"
-    rel = fwd.model_rel_sigma()         # the metric's model sigma (`_Objective._model_sigma`)
-    plots = report.fit_plots(out, rec, sim_before, sim_after, rel * np.abs(sim_before), rel * np.abs(sim_after))
-    files.update(plots)
-    face = getattr(fwd.experiment.plate, fwd.face_name)
-    doc = res.to_json({"method": face.method, "method_requested": method, "method_reason": face.chosen_by,
-                       "sample": str(Path(sample_path)), "files": files,
-                       "relief_history": list(best_relief.history), "physics": after.info.get("physics", {}),
-                       "grid": fwd.grid.describe(),     # the plate's table grid; the sector tables when it used them
-                       **({"inside_sectors": after.info["inside_sectors"]} if "inside_sectors" in after.info else {})})
-    from relief_bsdf.report.html import user_paths
-    doc = user_paths(doc, sample_path, out_dir)     # no absolute path of this machine beyond the user's own
-    write_text_atomic(out / "fit.json", json.dumps(doc, indent=1))
-    report.write_fit_report(out / "report.html", doc, plots)
-    return doc

@@ -13,8 +13,8 @@
   state, kept there and documented why).
 
 Imports point one way: (settings, worker) <- cluster <- tasks <- this face; at import time the
-package needs only `errors` and `progress`, so `surface` (which seeds with `task_rng`) and `io`
-can sit above it.
+package needs only `errors`, `progress`, `seeds` and `io.atomic`; `task_rng` is `relief_bsdf.seeds`'
+(the one scheme, which `surface` draws from without importing this package).
 """
 from relief_bsdf.parallel.settings import (DEFAULT_SETTINGS, ParallelSettings, add_parallel_args, default_workers,
                                            group_size, settings_from_args)

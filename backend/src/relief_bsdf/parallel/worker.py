@@ -2,7 +2,7 @@
 
 A task is a module-level function `fn(context, task)`.  It may call
 
-- `task_rng(seed, *key)`: its own random stream (same numbers on any backend);
+- `task_rng(seed, *key)`: its own random stream (same numbers on any backend; `relief_bsdf.seeds`);
 - `worker_cached(key, build)`: an expensive object (a BVH, an FFT plan) built once per
   worker process and reused by every later task there;
 - `in_worker()`: whether it runs as a task (a nested `map_tasks` then runs serially).
@@ -31,9 +31,9 @@ import threading
 import time
 from typing import Any, Callable, Iterator
 
-import numpy as np
 
 from relief_bsdf.io.atomic import process_alive
+from relief_bsdf.seeds import task_rng  # noqa: F401  (a task's random stream: the project's one scheme)
 
 _CONTEXT: dict[int, Any] = {}
 _IN_WORKER = False
@@ -42,12 +42,6 @@ _WORKER_CACHE: dict[Any, Any] = {}
 _CACHE_LIMIT = 8
 _PROCESS_OBJECTS: dict[str, Any] = {}
 _WORKER_MEMORY: list[float | None] = [None]
-
-
-def task_rng(seed: int, *key: int) -> np.random.Generator:
-    """Random generator for one task, derived from the run's seed and the task's integer key."""
-    ints = [int(seed) & 0xFFFFFFFF] + [int(k) & 0xFFFFFFFF for k in key]
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(ints)))
 
 
 def worker_cached(key: Any, build: Callable[[], Any]) -> Any:

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relief_bsdf.errors import InputError
-from relief_bsdf.parallel import task_rng
+from relief_bsdf.seeds import task_rng
 from relief_bsdf.surface.relief import Relief
 
 
@@ -124,7 +124,7 @@ def gaussian_field(spec: RandomFieldSpec, rng: np.random.Generator) -> np.ndarra
 
 
 def random_heights(spec: RandomFieldSpec, seed: int = 0, stream: int = 0) -> np.ndarray:
-    """Validated heights (ny, nx) of `spec`, seeded through `parallel.task_rng(seed, stream)`."""
+    """Validated heights (ny, nx) of `spec`, seeded through `seeds.task_rng(seed, stream)`."""
     spec.check()
     return gaussian_field(spec, task_rng(int(seed), int(stream)))
 
@@ -147,7 +147,7 @@ def random_relief(n: int, pitch_m: float, rms_height_m: float, corr_length_m: fl
 
     The autocovariance is s^2 exp(-r^2/L^2) ("gaussian") or s^2 exp(-r/L) ("exponential")
     with s = rms_height_m (exactly, per realisation), L = corr_length_m.  Seeded through
-    `parallel.task_rng(seed, 0)`: the same arguments give the same relief.  The short form of
+    `seeds.task_rng(seed, 0)`: the same arguments give the same relief.  The short form of
     `relief_from_spec(RandomFieldSpec(...), seed)`, which also takes anisotropy and exact_rms.
     """
     nx = int(n)

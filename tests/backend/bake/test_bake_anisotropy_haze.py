@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from relief_bsdf.bsdf.bake import closure_anisotropy, reflection_slope_ratio, transmission_haze
+from relief_bsdf.bake import closure_anisotropy, reflection_slope_ratio, transmission_haze
 
 
 def _cycles_ratio(a_signed: float, closure: str) -> float:
@@ -76,7 +76,7 @@ def test_tilt_slope_follows_the_ggx_one_axis_marginal():
     density P(s) = 1 / (pi c^2 (1 + |s|^2 / c^2)^2) (Walter et al. 2007 eq. 33 in slope space), here
     integrated over the other axis by quadrature (independent of the closed form the bake inverts)."""
     from scipy.integrate import quad
-    from relief_bsdf.bsdf.bake import tilt_slope
+    from relief_bsdf.bake import tilt_slope
     c = 0.3
     s = tilt_slope((np.arange(400_000) + 0.5) / 400_000, c)          # stratified uniform u
     edges = np.array([-1.0, -0.5, -0.2, -0.05, 0.0, 0.1, 0.3, 0.6, 1.5])
@@ -92,7 +92,7 @@ def test_tilt_scale_adds_widths_between_cauchy_and_gauss():
     """c / alpha_narrow for a lobe alpha_wide / alpha_narrow = q: widths of independent slopes add linearly
     for Cauchy-tailed and in quadrature for Gaussian ones; GGX marginals (t with 2 degrees of freedom) lie in
     between, so q - 1 < c / alpha_narrow < sqrt(q^2 - 1); it grows with q and vanishes for a round lobe."""
-    from relief_bsdf.bsdf.bake import MIN_TILT_ASPECT, tilt_scale_ratio
+    from relief_bsdf.bake import MIN_TILT_ASPECT, tilt_scale_ratio
     ratios = [tilt_scale_ratio(q) for q in (1.5, 2.0, 4.0, 8.0)]
     for q, r in zip((1.5, 2.0, 4.0, 8.0), ratios):
         assert q - 1.0 < r < np.sqrt(q * q - 1.0), (q, r)
@@ -105,7 +105,7 @@ def test_transmission_tilt_keeps_the_mean_width_and_points_along_the_wide_axis()
     """alpha_wide alpha_narrow = alpha_mean^2 (the fitted roughness is the lobes' geometric mean), the
     closure keeps the narrow width, the tilt's sign names the wide axis (x: +, y: -); round lobes: no tilt,
     the fitted roughness unchanged."""
-    from relief_bsdf.bsdf.bake import tilt_scale_ratio, transmission_tilt
+    from relief_bsdf.bake import tilt_scale_ratio, transmission_tilt
     r = np.array([0.3, 0.5, 0.7])
     for rho, sign in ((4.0, 1.0), (0.25, -1.0)):
         r_closure, c = transmission_tilt(r, rho)

@@ -1,10 +1,10 @@
-"""relief_bsdf.bsdf.bake: lookup rows for renderer closures (no bpy)."""
+"""relief_bsdf.bake: lookup rows for renderer closures (no bpy)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from relief_bsdf.bsdf.bake import ClosureAlbedo, bake_lut, unit_albedo
+from relief_bsdf.bake import ClosureAlbedo, bake_lut, unit_albedo
 from relief_bsdf.errors import InputError
 from relief_bsdf.core.fresnel import critical_angle_deg, fresnel_unpolarized
 from relief_bsdf.core.index import CauchyIndex, ConstantIndex, Material
