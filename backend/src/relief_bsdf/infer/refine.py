@@ -1,0 +1,180 @@
+"""Refinement of an inferred relief through the one forward model, with the fit's machinery.
+
+What is fitted.  The relief of a candidate (infer.families: a slope density realised by infer.synth's
+random crossed lenslets, seeded) carries its height scale s (heights h -> s h, every facet slope times
+s: fit.optimise.process_relief, the fit's own parameter), and the plate its refractive index n when the
+sample does not state it.  Both act on the transmitted lobe differently: its width is set by
+(n - 1) s at small slopes (infer.slopes), its level by the two faces' Fresnel transmittances, which
+depend on n alone; so a lobe at one incidence determines both.
+
+The objective.  chi^2 of the recording's transmitted rows at the inversion incidence that read the
+lobe, at or above `LOBE_FRACTION` of its peak (the 99.5th percentile of the readings, as infer.slopes),
+with the residuals of fit.residual.chi2 (recording sigma, censored readings), each evaluation
+`plate.simulate` through fit.optimise.Forward.  Why not every row: the families describe the lobe's
+facets, and the dim halo around an engineered lobe (EDS10: 0.4 1/sr at 0.15-0.2 in direction cosine from
+the undeviated ray against a 24 1/sr plateau, a few per cent of the light) has sigma down to the file's
+noise floor, so on every row the halo's chi^2 outweighs the lobe's a hundredfold (measured: top-hat
+family at n 1.5, 1.9e5 of chi^2 inside u 0.12 against 3.2e6 beyond) and a fit of (s, n) on it moves the
+index to wherever the halo is least wrong (n 1.74, transmittance 0.86 against 0.90 measured).  The lobe
+rows hold the level (the index) and the width (height scale x (n - 1)); the halo is reported in the
+metric over every row, not fitted.  The evaluations run on the screening grid of the
+diagnosis (`plate.grid.NO_SECTORS_DEG`: no inside sector tables, the loop azimuth-circulant), which
+changes the light that returns from inside the glass, not the first pass that makes the lobe; the
+final simulation and the tables are on the full default grid.
+
+The search (fit.gauss_newton.polish, the fit's one Gauss-Newton): finite-difference Jacobians
+(steps `STEP`), at most `POLISH_STEPS` kept steps; the 68 % intervals from fit.covariance.parameter_covariance
+(curvature widened by the reduced chi^2 and the residuals' correlation along the scans, HAC) on the
+polish's Jacobian (a central one made at the answer when the polish returned none).
+
+The choice between candidates (fit.selection, the project's one information criterion): each candidate's
+chi^2 at its slope-plane fit (s = 1, the start index), k its family's parameters plus the plate's (s, and n
+when fitted); candidates in order of k, a more complex one replaces the current choice only when it wins by
+more than fit.selection.BIC_MARGIN (QBIC: chi^2 divided by the complex model's overdispersion).  Only the
+chosen candidate is polished: the screening ranks by the unpolished chi^2, which is stated.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable
+
+import time
+
+import numpy as np
+
+#: rows reading at least this fraction of the lobe's peak form the objective (module doc)
+LOBE_FRACTION = 0.05
+#: finite-difference steps of (height scale, index)
+STEP = (0.01, 0.005)
+LOWER = (0.3, 1.3)
+UPPER = (3.0, 2.2)
+POLISH_STEPS = 3
+
+
+@dataclass
+class Objective:
+    """chi^2 of one candidate's plate over the refinement rows as a function of x = (s[, n]) (module doc).
+
+    forward_at(n) -> fit.optimise.Forward of the candidate's relief in the plate of index n (cached);
+    rows: the distinct refinement rows, inverse: their expansion to `measured` (the recording's rows,
+    RPC files repeat the pole), sigma: those rows' recording sigma."""
+
+    forward_at: Callable[[float], Any]
+    rows: Any
+    inverse: np.ndarray
+    measured: Any
+    n0: float
+    fit_index: bool
+    progress: Callable[[str], None] | None = None
+    evaluations: list = field(default_factory=list)
+    _cache: dict = field(default_factory=dict, repr=False)
+    _seconds: dict = field(default_factory=dict, repr=False)
+
+    def point(self, x: np.ndarray) -> tuple[float, float]:
+        x = np.asarray(x, float)
+        return float(x[0]), (float(x[1]) if self.fit_index else self.n0)
+
+    def values(self, x: np.ndarray) -> np.ndarray:
+        s, n = self.point(x)
+        key = (round(s, 10), round(n, 10))
+        if key not in self._cache:
+            if self.progress is not None:
+                self.progress(f"plate at height scale {s:.4g}, n {n:.4g}")
+            t0 = time.perf_counter()
+            self._cache[key] = self.forward_at(n).simulate(s, 0.0)[self.inverse]
+            self._seconds[key] = time.perf_counter() - t0
+        return self._cache[key]
+
+    def residuals(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        from relief_bsdf.fit.residual import misfit_sigma, signed_residuals
+        v = self.values(x)
+        z = signed_residuals(np.asarray(self.measured.bsdf_sr, float), v, misfit_sigma(self.measured))
+        f = float(z @ z)
+        s, n = self.point(x)
+        self.evaluations.append({"height_scale": s, "refractive_index": n, "chi2": f,
+                                 "seconds": self._seconds.pop((round(s, 10), round(n, 10)), 0.0)})
+        return f, z
+
+    def jacobian(self, x: np.ndarray, central: bool) -> np.ndarray:
+        x = np.asarray(x, float)
+        h = np.asarray(STEP[:x.size])
+        lo, hi = np.asarray(LOWER[:x.size]), np.asarray(UPPER[:x.size])
+        z0 = None if central else self.residuals(x)[1]
+        cols = []
+        for j in range(x.size):
+            e = np.zeros_like(x)
+            e[j] = h[j]
+            up = np.minimum(x + e, hi)
+            if central:
+                dn = np.maximum(x - e, lo)
+                cols.append((self.residuals(up)[1] - self.residuals(dn)[1]) / (up[j] - dn[j]))
+            else:
+                cols.append((self.residuals(up)[1] - z0) / (up[j] - x[j]))
+        return np.stack(cols, axis=1)
+
+
+def refinement_rows(rec: Any, theta_i_deg: float, phi_i_deg: float, wavelength_nm: float) -> Any:
+    """The recording's T rows of the inversion incidence that read the lobe (module doc)."""
+    sel = ((rec.side == "T") & (rec.theta_i_deg == theta_i_deg) & (rec.phi_i_deg == phi_i_deg)
+           & (rec.wavelength_nm == wavelength_nm))
+    peak = float(np.percentile(rec.bsdf_sr[sel], 99.5))
+    return rec.subset(sel & (rec.bsdf_sr >= LOBE_FRACTION * peak))
+
+
+def x_start(n0: float, fit_index: bool) -> np.ndarray:
+    return np.array([1.0, n0]) if fit_index else np.array([1.0])
+
+
+def choose(screened: list[dict], n_rows: int) -> tuple[int, list[dict]]:
+    """Index of the chosen candidate and the decisions (module doc): screened[i] has "k" (all fitted
+    parameters) and "chi2"; in order of k, a more complex candidate replaces the choice only when
+    fit.selection.bic_gain (with its own overdispersion) exceeds BIC_MARGIN."""
+    from relief_bsdf.fit.selection import BIC_MARGIN, bic, bic_gain, overdispersion
+    order = sorted(range(len(screened)), key=lambda i: (screened[i]["k"], screened[i]["chi2"]))
+    best = order[0]
+    steps = []
+    for i in order[1:]:
+        a, b = screened[best], screened[i]
+        if b["k"] == a["k"]:
+            gain = a["chi2"] - b["chi2"]         # same k: the lower chi^2 (the BIC difference itself)
+        else:
+            gain = bic_gain(a["chi2"], a["k"], b["chi2"], b["k"], n_rows,
+                            overdispersion(b["chi2"], b["k"], n_rows))
+        won = gain > (0.0 if b["k"] == a["k"] else BIC_MARGIN)
+        steps.append({"current": a["name"], "candidate": b["name"], "bic_gain": float(gain), "taken": bool(won)})
+        if won:
+            best = i
+    for s in screened:
+        s["bic"] = bic(s["chi2"], s["k"], n_rows)
+    return best, steps
+
+
+@dataclass
+class Refined:
+    """The polished point, chi^2, the 68 % intervals (+- one standard deviation) and how they were made."""
+
+    x: np.ndarray
+    chi2: float
+    sd: np.ndarray
+    correlation: np.ndarray
+    notes: list
+
+
+def polish_and_intervals(obj: Objective, x0: np.ndarray) -> Refined:
+    """fit.gauss_newton.polish from x0, then fit.covariance.parameter_covariance (module doc)."""
+    from relief_bsdf.fit.covariance import parameter_covariance, scans_of
+    from relief_bsdf.fit.gauss_newton import polish
+    k = x0.size
+    res = polish(obj.residuals, obj.jacobian, x0, np.asarray(LOWER[:k]), np.asarray(UPPER[:k]),
+                 np.asarray(STEP[:k]), POLISH_STEPS, central=False)
+    J = res.jacobian if res.jacobian is not None else obj.jacobian(res.x, True)
+    _, z = obj.residuals(res.x)
+    cov = parameter_covariance(J, z, scans_of(obj.measured))
+    sd = np.sqrt(np.clip(np.diag(cov.cov), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov.cov / np.outer(sd, sd)
+    notes = [n for n in (cov.note(j) for j in range(k)) if n]
+    if res.jacobian is None:
+        notes.append(f"the polish stopped after {POLISH_STEPS} steps before it converged; the intervals are "
+                     "made at its last point")
+    return Refined(res.x, float(res.f), sd, corr, notes)
