@@ -96,8 +96,8 @@ def test_polish_recovers_scale_and_index_of_a_known_lobe_with_intervals():
                                phi_s_deg=np.zeros(u.size), theta_s_deg=np.degrees(np.arcsin(u)))
         obj = Objective(forward_at, None, np.arange(u.size), meas, 1.5, True)
         ref = polish_and_intervals(obj, np.array([1.0, 1.5]))
-        assert np.all(np.abs(ref.x - truth) < 3 * ref.sd), (ref.x, ref.sd)
-        got.append(ref.x)
+        assert np.all(np.abs(ref.s_n - truth) < 3 * ref.sd), (ref.s_n, ref.sd)
+        got.append(ref.s_n)
         sds.append(ref.sd)
     scatter = np.std(got, axis=0, ddof=1)
     ratio = np.mean(sds, axis=0) / scatter

@@ -117,7 +117,6 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
     from relief_bsdf.io.heightmaps import write_relief
     from relief_bsdf.io.recording import write_recording, write_sample
     from relief_bsdf.plate import FlatFace, TableGrid, experiment_from_sample, simulate
-    from relief_bsdf.plate.grid import NO_SECTORS_DEG
     from relief_bsdf.surface.preparation import ReliefOptions
     from relief_bsdf.surface.stats import rms_height, rms_slope, rms_slope_xy
 
@@ -149,7 +148,7 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
     kp = 2 if fit_index else 1                      # the plate's parameters: height scale (and index)
     meas = rf.refinement_rows(rec, ti, pi, wl)
     rows_r, inv_r = distinct_directions(meas)
-    refine_grid = TableGrid(sector_step_deg=NO_SECTORS_DEG)
+    refine_grid = rf.refine_grid()
 
     def objective(relief) -> rf.Objective:
         forwards: dict = {}
@@ -186,6 +185,8 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
     write_sample(out / "sample.toml", new)
 
     step("simulating the plate on every row")
+    from relief_bsdf.plate.memory import current_memory
+    current_memory().clear()        # the refinement's tables (other reliefs, the screening grid): not read again
     exp = experiment_from_sample(new, relief, samples=samples, seed=seed)
     distinct, inverse = distinct_directions(rec)       # the pole's repeated readings simulated once
     fwd = Forward(relief, exp, distinct, grid=TableGrid(), where=str(sample.recording_path))
@@ -203,7 +204,7 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
     rx, ry = rms_slope_xy(relief)
     face = getattr(fwd.experiment.plate, fwd.face_name)
     names = ["height_scale"] + (["refractive_index"] if fit_index else [])
-    intervals = {nm: [float(ref.x[j] - ref.sd[j]), float(ref.x[j] + ref.sd[j])] if np.isfinite(ref.sd[j]) else None
+    intervals = {nm: [float(ref.s_n[j] - ref.sd[j]), float(ref.s_n[j] + ref.sd[j])] if np.isfinite(ref.sd[j]) else None
                  for j, nm in enumerate(names)}
     if not fit_index:
         intervals["refractive_index"] = None
@@ -217,8 +218,8 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
                    "halo around it enters the metric over every row but is not fitted",
                    "the candidates are ranked by their chi^2 at their slope-plane fit (height scale 1, the start "
                    "index); only the chosen one is polished through the plate",
-                   "the refinement's evaluations run on the screening grid (no inside sector tables); the final "
-                   "simulation and the tables on the default grid"]
+                   "the refinement's evaluations run on the screening grid (no inside sector tables, a tenth of "
+                   "the inside rays); the final simulation and the tables on the default grid"]
     lobe = lobe_comparison(rec, values)
     doc = {
         "format": INFER_FORMAT,
@@ -244,7 +245,9 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
         "inverted_from": {"theta_i_deg": ti, "phi_i_deg": pi, "wavelength_nm": wl, "rows": len(rows0),
                           "start_index": n0},
         "refinement": {"rows": len(meas), "lobe_fraction": rf.LOBE_FRACTION, "chi2": ref.chi2,
-                       "evaluations": obj.evaluations, "grid": "screening grid (no inside sector tables)"},
+                       "evaluations": obj.evaluations, "grid": "screening grid (no inside sector tables), inside rays x "
+                                               f"{rf.REFINE_INSIDE_SAMPLES_SCALE:g}",
+                       "coordinates": "width scale w = s (n - 1) / (n0 - 1) and n (infer.refine)"},
         "selection": {"criterion": "BIC = chi^2 + k ln n (fit.selection), QBIC margin "
                                    "fit.selection.BIC_MARGIN", "n_rows": len(meas),
                       "candidates": screened, "decisions": decisions, "chosen": cand.name},

@@ -3,9 +3,15 @@
 What is fitted.  The relief of a candidate (infer.families: a slope density realised by infer.synth's
 random crossed lenslets, seeded) carries its height scale s (heights h -> s h, every facet slope times
 s: fit.optimise.process_relief, the fit's own parameter), and the plate its refractive index n when the
-sample does not state it.  Both act on the transmitted lobe differently: its width is set by
-(n - 1) s at small slopes (infer.slopes), its level by the two faces' Fresnel transmittances, which
-depend on n alone; so a lobe at one incidence determines both.
+sample does not state it.  Both act on the transmitted lobe, differently: its width is set by
+(n - 1) s (infer.slopes: u = (n - 1) s + O(s^3) at normal incidence; at the EDS10 lobe's edge, u = 0.099,
+n 1.5 and n 1.6 give the same u within 1e-4 at the slopes of equal (n - 1) s), its level by the two faces'
+Fresnel transmittances, which depend on n alone.  So the search runs in the coordinates
+x = (w, n): the width scale w = s (n - 1) / (n0 - 1) and the index at fixed width (s = w (n0 - 1) / (n - 1)),
+in which a step in n changes the level alone.  In (s, n) the two columns are nearly parallel (a step of
+0.005 in n and one of 0.01 in s both widen the lobe by 1 %, and the table noise between the two
+points, a few thousand of chi^2 on EDS10, decides the step), which left n at its start.  The
+intervals are those of (w, n) carried to (s, n) by the map's Jacobian.
 
 The objective.  chi^2 of the recording's transmitted rows at the inversion incidence that read the
 lobe, at or above `LOBE_FRACTION` of its peak (the 99.5th percentile of the readings, as infer.slopes),
@@ -16,16 +22,17 @@ the undeviated ray against a 24 1/sr plateau, a few per cent of the light) has s
 noise floor, so on every row the halo's chi^2 outweighs the lobe's a hundredfold (measured: top-hat
 family at n 1.5, 1.9e5 of chi^2 inside u 0.12 against 3.2e6 beyond) and a fit of (s, n) on it moves the
 index to wherever the halo is least wrong (n 1.74, transmittance 0.86 against 0.90 measured).  The lobe
-rows hold the level (the index) and the width (height scale x (n - 1)); the halo is reported in the
-metric over every row, not fitted.  The evaluations run on the screening grid of the
-diagnosis (`plate.grid.NO_SECTORS_DEG`: no inside sector tables, the loop azimuth-circulant), which
-changes the light that returns from inside the glass, not the first pass that makes the lobe; the
-final simulation and the tables are on the full default grid.
+rows hold the level (the index) and the width; the halo is reported in the metric over every row, not
+fitted.  The evaluations run on `REFINE_GRID`: the diagnosis's screening grid (no inside sector
+tables, the loop azimuth-circulant) with a tenth of the face's rays per inside incidence; both change
+the light that returns from inside the glass, not the first pass that makes the lobe; the final
+simulation and the tables are on the full default grid.
 
 The search (fit.gauss_newton.polish, the fit's one Gauss-Newton): finite-difference Jacobians
-(steps `STEP`), at most `POLISH_STEPS` kept steps; the 68 % intervals from fit.covariance.parameter_covariance
-(curvature widened by the reduced chi^2 and the residuals' correlation along the scans, HAC) on the
-polish's Jacobian (a central one made at the answer when the polish returned none).
+(steps `STEP` in (w, n): 1 % of width, 0.05 of index, a level change of ~1 %, above the table noise),
+at most `POLISH_STEPS` kept steps; the 68 % intervals from fit.covariance.parameter_covariance
+(curvature widened by the reduced chi^2 and by residuals larger than the noise, HAC) on the polish's
+Jacobian (a central one made at the answer when the polish returned none).
 
 The choice between candidates (fit.selection, the project's one information criterion): each candidate's
 chi^2 at its slope-plane fit (s = 1, the start index), k its family's parameters plus the plate's (s, and n
@@ -45,10 +52,12 @@ import numpy as np
 #: rows reading at least this fraction of the lobe's peak form the objective (module doc)
 LOBE_FRACTION = 0.05
 #: finite-difference steps of (height scale, index)
-STEP = (0.01, 0.005)
+STEP = (0.01, 0.05)
 LOWER = (0.3, 1.3)
 UPPER = (3.0, 2.2)
-POLISH_STEPS = 3
+POLISH_STEPS = 2
+#: the refinement's grid (module doc): no inside sector tables, a tenth of the rays per inside incidence
+REFINE_INSIDE_SAMPLES_SCALE = 0.1
 
 
 @dataclass
@@ -71,8 +80,19 @@ class Objective:
     _seconds: dict = field(default_factory=dict, repr=False)
 
     def point(self, x: np.ndarray) -> tuple[float, float]:
+        """(height scale s, index n) of x = (w[, n]) (module doc)."""
         x = np.asarray(x, float)
-        return float(x[0]), (float(x[1]) if self.fit_index else self.n0)
+        n = float(x[1]) if self.fit_index else self.n0
+        return float(x[0]) * (self.n0 - 1.0) / (n - 1.0), n
+
+    def to_s_n(self, x: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(s[, n]) and its covariance from x = (w[, n]) and cov(x): the map's Jacobian."""
+        s, n = self.point(x)
+        if not self.fit_index:
+            return np.array([s]), cov
+        w = float(x[0])
+        A = np.array([[(self.n0 - 1.0) / (n - 1.0), -w * (self.n0 - 1.0) / (n - 1.0) ** 2], [0.0, 1.0]])
+        return np.array([s, n]), A @ cov @ A.T
 
     def values(self, x: np.ndarray) -> np.ndarray:
         s, n = self.point(x)
@@ -121,6 +141,13 @@ def refinement_rows(rec: Any, theta_i_deg: float, phi_i_deg: float, wavelength_n
     return rec.subset(sel & (rec.bsdf_sr >= LOBE_FRACTION * peak))
 
 
+def refine_grid():
+    """The refinement's plate grid (module doc)."""
+    from relief_bsdf.plate import TableGrid
+    from relief_bsdf.plate.grid import NO_SECTORS_DEG
+    return TableGrid(sector_step_deg=NO_SECTORS_DEG, inside_samples_scale=REFINE_INSIDE_SAMPLES_SCALE)
+
+
 def x_start(n0: float, fit_index: bool) -> np.ndarray:
     return np.array([1.0, n0]) if fit_index else np.array([1.0])
 
@@ -151,9 +178,11 @@ def choose(screened: list[dict], n_rows: int) -> tuple[int, list[dict]]:
 
 @dataclass
 class Refined:
-    """The polished point, chi^2, the 68 % intervals (+- one standard deviation) and how they were made."""
+    """The polished point x = (w[, n]), its (s[, n]), chi^2, the 68 % intervals (+- one standard deviation
+    of s[, n]) and how they were made."""
 
     x: np.ndarray
+    s_n: np.ndarray
     chi2: float
     sd: np.ndarray
     correlation: np.ndarray
@@ -170,11 +199,12 @@ def polish_and_intervals(obj: Objective, x0: np.ndarray) -> Refined:
     J = res.jacobian if res.jacobian is not None else obj.jacobian(res.x, True)
     _, z = obj.residuals(res.x)
     cov = parameter_covariance(J, z, scans_of(obj.measured))
-    sd = np.sqrt(np.clip(np.diag(cov.cov), 0, None))
+    s_n, cov_sn = obj.to_s_n(res.x, cov.cov)
+    sd = np.sqrt(np.clip(np.diag(cov_sn), 0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov.cov / np.outer(sd, sd)
+        corr = cov_sn / np.outer(sd, sd)
     notes = [n for n in (cov.note(j) for j in range(k)) if n]
     if res.jacobian is None:
         notes.append(f"the polish stopped after {POLISH_STEPS} steps before it converged; the intervals are "
                      "made at its last point")
-    return Refined(res.x, float(res.f), sd, corr, notes)
+    return Refined(res.x, s_n, float(res.f), sd, corr, notes)
