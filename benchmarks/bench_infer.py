@@ -6,7 +6,8 @@ thickness: 2 mm assumed, a 0.5-deg detector cone); the inferred sample then PRED
 (azimuths 0 and 45) through the one forward model, and the lobe figures (infer.lobe) are compared with the
 measured ones against the issue's targets: centroid 0.3 deg, half-maximum edges 0.005 in direction
 cosine, plateau 8 %, transmittance 0.02.  Targets for the job: <= 5 minutes on 2 cores, <= 4 GB
-(the job alone: "infer_s"; the wall time and peak include the prediction of the 5-deg files after it).
+(the job alone, a process of its own: "infer_s", "infer_peak_pss_gb"; the bench's wall time and peak
+include the prediction of the 5-deg files after it).
 
     .venv/bin/python benchmarks/bench_infer.py [--out DIR] [--plot docs/img/infer_eds10.png]
 
@@ -22,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from measure import bench
+from measure import bench, measure_command
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -45,17 +46,15 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--out", help="output folder of the job (default: a temporary one)")
     ap.add_argument("--plot", help="write the measured vs predicted lobe plot here (PNG)")
     a = ap.parse_args(argv)
-    from relief_bsdf.cli import main as relief
     from relief_bsdf.infer.predict import TARGETS, lobe_differences, lobe_figures_by_incidence, predict_files
     from relief_bsdf.infer.report import lobe_figure
     work = Path(a.out) if a.out else Path(tempfile.mkdtemp(prefix="bench_infer_"))
     work.mkdir(parents=True, exist_ok=True)
     (work / "sample.toml").write_text(SAMPLE.format(file=(EDS10 / "EDS10 0-0.txt").as_posix()))
-    t0 = time.perf_counter()
-    rc = relief(["infer", str(work / "sample.toml"), "-o", str(work / "out")])
-    job_s = time.perf_counter() - t0
-    if rc != 0:
-        return rc
+    job = measure_command([sys.executable, "-m", "relief_bsdf.cli", "infer", str(work / "sample.toml"),
+                           "-o", str(work / "out")])        # the job alone: its own process tree
+    if job.returncode != 0:
+        return job.returncode
     doc = json.loads((work / "out" / "infer.json").read_text())
     t1 = time.perf_counter()
     rec, sim = predict_files(work / "out" / "sample.toml", [EDS10 / "EDS10 5-0.txt", EDS10 / "EDS10 5-45.txt"])
@@ -65,7 +64,8 @@ def main(argv: list[str]) -> int:
     met = {k: {f: bool(d[f] <= TARGETS[f]) for f in TARGETS} for k, d in diffs.items()}
     if a.plot:
         lobe_figure(a.plot, rec, sim, "EDS10: measured (vendor files) vs predicted from the 0-deg file alone")
-    print(json.dumps({"infer_s": round(job_s, 1), "predict_s": round(predict_s, 1), "family": doc["family"], "parameters": doc["parameters"],
+    print(json.dumps({"infer_s": round(job.wall_s, 1), "infer_peak_pss_gb": round(job.peak_pss_gb, 3),
+                      "predict_s": round(predict_s, 1), "family": doc["family"], "parameters": doc["parameters"],
                       "intervals": doc["intervals"], "rms_before": doc["rms_before"], "rms_after": doc["rms_after"],
                       "fit_0deg": doc["lobe"], "measured": meas, "predicted": pred, "differences": diffs,
                       "targets": TARGETS, "met": met}))

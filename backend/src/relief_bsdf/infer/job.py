@@ -164,12 +164,15 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
                             progress=lambda what: step(what, advance=False))
 
     screened = []
-    for c, (relief, facts) in zip(cands, reliefs):
+    for i, (c, (relief, facts)) in enumerate(zip(cands, reliefs)):
         step(f"screening the candidate {c.name}")
-        obj = objective(relief)
-        chi2, _ = obj.residuals(rf.x_start(n0, fit_index))
+        same = [j for j in range(i) if rf.density_distance(c.density, cands[j].density) < rf.SAME_DENSITY_TV]
+        if same:
+            chi2, as_ = screened[same[0]]["chi2"], cands[same[0]].name
+        else:
+            chi2, as_ = rf.Objective.residuals(objective(relief), rf.x_start(n0, fit_index))[0], None
         screened.append({"name": c.name, "family": FAMILY_NAMES[c.name], "k": c.k + kp, "chi2": chi2,
-                         "parameters": c.parameters})
+                         "parameters": c.parameters, **({"same_density_as": as_} if as_ else {})})
     best, decisions = rf.choose(screened, len(meas))
     cand, (relief0, facts) = cands[best], reliefs[best]
     step(f"refining {cand.name} through the plate")
