@@ -223,6 +223,13 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
                    "index); only the chosen one is polished through the plate",
                    "the refinement's evaluations run on the screening grid (no inside sector tables, a tenth of "
                    "the inside rays); the final simulation and the tables on the default grid"]
+    for j, nm in enumerate(names):
+        lo, hi = (rf.LOWER[j], rf.UPPER[j]) if nm == "refractive_index" else (None, None)
+        if lo is not None and (abs(n_fit - lo) < 1e-9 or abs(n_fit - hi) < 1e-9):
+            limitations.insert(0, f"the fitted index ended at its bound {n_fit:g} (search range {lo:g}-{hi:g}): "
+                                  "the lobe's level asks for an index outside it; the index is read from that level "
+                                  "(the faces' Fresnel losses), so light the model sends outside the lobe, or a "
+                                  "recording whose level no plate of this relief reaches, moves it")
     lobe = lobe_comparison(rec, values)
     doc = {
         "format": INFER_FORMAT,
