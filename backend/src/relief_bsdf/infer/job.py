@@ -66,6 +66,13 @@ def inversion_rows(rec: Any):
     sel &= rec.phi_i_deg == pi
     wl = float(np.min(rec.wavelength_nm[sel]))
     sel &= rec.wavelength_nm == wl
+    off_pole = sel & (rec.theta_s_deg > 0)
+    planes = np.unique(np.round(np.mod(rec.phi_s_deg[off_pole], 180.0), 6))
+    if planes.size < 3:
+        raise InputError(rec.path or "recording",
+                         f"the transmitted rows at incidence {ti:g}/{pi:g} deg lie in {planes.size} plane(s) of "
+                         "scatter (an in-plane scan): the slope inversion reads the lobe over the whole direction "
+                         "plane (a measured plate file's full grid, or rows at three or more scatter azimuths)")
     return rec.subset(sel), ti, pi, wl
 
 
