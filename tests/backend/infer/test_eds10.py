@@ -1,15 +1,17 @@
 """`relief infer` on a real measurement: RPC Photonics' EDS10 engineered diffuser (../shared, SOURCE.md).
 
-Inferred from `EDS10 0-0.txt` only; the inferred plate then PREDICTS the 5-deg files (azimuths 0 and
-45) through the one forward model, and the lobe figures (infer.lobe) are compared with the measured
-ones.  Issue targets: centroid 0.3 deg, half-maximum edges 0.005 in direction cosine, plateau 8 %,
-transmittance 0.02.  What this version reaches (the index is assumed 1.5, not fitted; the relief is not
-refined) is asserted; the message prints every figure.
+Inferred from `EDS10 0-0.txt` only, the index fitted (the vendor states neither material nor thickness);
+the inferred plate then PREDICTS the 5-deg files (azimuths 0 and 45) through the one forward model, and
+the lobe figures (infer.lobe) are compared with the measured ones against the issue's targets
+(infer.predict.TARGETS: centroid 0.3 deg, half-maximum edges 0.005 in direction cosine, plateau 8 %,
+transmittance 0.02).  The edges at azimuth 45 are an expected failure of the plate, not of the inference:
+the deterministic engine reads a row lit from azimuth phi_i as its phi_i = 0 outside table turned by
+phi_i, which turns the square top-hat with the beam (docs/infer.md, "What the proof shows").  The
+message of every assertion prints every figure.
 """
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,35 +19,17 @@ import pytest
 
 SHARED = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "measured" / "eds10"
 
-
-def _figures(rec, values):
-    from relief_bsdf.infer.lobe import lobe_figures
-    out = {}
-    for ti, pi in rec.incidences():
-        sel = (rec.theta_i_deg == ti) & (rec.phi_i_deg == pi) & (rec.side == "T")
-        out[(ti, pi)] = lobe_figures(rec.subset(sel), values[sel])
-    return out
+pytestmark = [pytest.mark.slow, pytest.mark.shared_data]
 
 
-def _compare(meas: dict, pred: dict) -> dict:
-    return {"centroid_deg": abs(pred["centroid_offset_deg"] - meas["centroid_offset_deg"]),
-            "edges_u": float(np.max(np.abs(np.subtract(pred["edges_u"], meas["edges_u"])))),
-            "plateau_rel": abs(pred["plateau_sr"] / meas["plateau_sr"] - 1.0),
-            "transmittance": abs(pred["transmittance"] - meas["transmittance"])}
-
-
-@pytest.mark.slow
-@pytest.mark.shared_data
-def test_infer_from_0_deg_predicts_the_5_deg_files(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def proof(tmp_path_factory):
     from relief_bsdf.cli import main
-    from relief_bsdf.fit.optimise import Forward
-    from relief_bsdf.infer.job import distinct_directions
-    from relief_bsdf.io.heightmaps import read_sample_relief
-    from relief_bsdf.io.recording import read_sample
-    from relief_bsdf.plate import TableGrid, experiment_from_sample
-    from relief_bsdf.plate.memory import ForwardMemory, job_memory_bytes
-
-    (tmp_path / "sample.toml").write_text(f'''format = "relief-sample/1"
+    from relief_bsdf.infer.predict import lobe_differences, lobe_figures_by_incidence, predict_files
+    if not (SHARED / "EDS10 0-0.txt").is_file():
+        pytest.skip(f"shared data not present: {SHARED}")
+    tmp = tmp_path_factory.mktemp("eds10")
+    (tmp / "sample.toml").write_text(f'''format = "relief-sample/1"
 [plate]
 thickness_mm = 2.0
 rough_face = "front"
@@ -56,41 +40,75 @@ detector_half_angle_deg = 0.5
 file = "{(SHARED / 'EDS10 0-0.txt').as_posix()}"
 wavelength_nm = 633.0
 ''')
-    out = tmp_path / "out"
-    assert main(["infer", str(tmp_path / "sample.toml"), "-o", str(out)]) == 0
+    out = tmp / "out"
+    assert main(["infer", str(tmp / "sample.toml"), "-o", str(out)]) == 0
     doc = json.loads((out / "infer.json").read_text())
-    assert doc["format"] == "relief-infer/1" and not doc["index_stated"]
-    assert doc["rms_after"] < doc["rms_before"]
-    # the inverted density's rms slope is the relief's (the synthesis keeps it)
-    assert doc["rms_slope"] == pytest.approx(doc["density"]["rms_slope"], rel=0.03)
-    check = doc["synthesis"]["check"]
-    assert check["ks_x"] < 1.0 / 64 and check["ks_y"] < 1.0 / 64, check
-    assert doc["lobe"]["0/0"]["measured"]["transmittance"] == pytest.approx(0.898, abs=0.005)
-
-    inferred = read_sample(out / "sample.toml")
-    five = replace(inferred, recording_paths=(SHARED / "EDS10 5-0.txt", SHARED / "EDS10 5-45.txt"))
-    rec = five.load_recording()
-    relief = read_sample_relief(five)
-    sim = np.zeros(len(rec))
-    for ti, pi in rec.incidences():                       # one incidence at a time (the forward's memory)
-        sel = np.flatnonzero((rec.theta_i_deg == ti) & (rec.phi_i_deg == pi))
-        rows, inverse = distinct_directions(rec.subset(sel))   # the pole's repeated readings simulated once
-        with ForwardMemory(job_memory_bytes() / 3).active():   # as the job: its own memory owner
-            fwd = Forward(relief, experiment_from_sample(five, relief, samples=100_000, seed=0), rows,
-                          grid=TableGrid())
-            sim[sel] = fwd.simulate(1.0, 0.0)[inverse]
-    meas, pred = _figures(rec, rec.bsdf_sr), _figures(rec, sim)
-    diffs = {k: _compare(meas[k], pred[k]) for k in meas}
-    msg = json.dumps({f"{k[0]:g}/{k[1]:g}": {"measured": meas[k], "predicted": pred[k], "differences": diffs[k]}
-                      for k in meas}, indent=1)
+    rec, sim = predict_files(out / "sample.toml", [SHARED / "EDS10 5-0.txt", SHARED / "EDS10 5-45.txt"])
+    meas, pred = lobe_figures_by_incidence(rec, rec.bsdf_sr), lobe_figures_by_incidence(rec, sim)
+    diffs = {k: lobe_differences(meas[k], pred[k]) for k in meas}
+    msg = json.dumps({"parameters": doc["parameters"], "intervals": doc["intervals"],
+                      **{k: {"measured": meas[k], "predicted": pred[k], "differences": diffs[k]} for k in meas}},
+                     indent=1)
     print(msg)
-    for k, d in diffs.items():
-        assert d["centroid_deg"] <= 0.3, msg                      # target met
-        assert d["plateau_rel"] <= 0.08, msg                      # target met
-        # target 0.02 NOT met (0.026 at 5/0, 0.031 at 5/45): n = 1.5 assumed, not fitted; the plate's Fresnel
-        # losses set the level
-        assert d["transmittance"] <= 0.035, msg
-    assert diffs[(5.0, 0.0)]["edges_u"] <= 0.005, msg             # target met at azimuth 0
-    # azimuth 45: NOT met; the plate's boundary tables are computed per polar incidence and turned with the
-    # incidence azimuth (an isotropic relief's symmetry), so the square top-hat turns with the beam
-    assert diffs[(5.0, 45.0)]["edges_u"] <= 0.03, msg
+    return {"out": out, "doc": doc, "diffs": diffs, "msg": msg}
+
+
+def test_index_is_fitted_with_an_interval_and_the_0_deg_lobe_is_reproduced(proof):
+    from relief_bsdf.infer.predict import TARGETS, lobe_differences
+    doc, msg = proof["doc"], proof["msg"]
+    assert doc["format"] == "relief-infer/1" and not doc["index_stated"] and doc["index_fitted"]
+    lo, hi = doc["intervals"]["refractive_index"]
+    n = doc["parameters"]["refractive_index"]
+    assert lo < n < hi and hi - lo < 0.1, msg
+    assert doc["parameters"]["refractive_index"] != pytest.approx(1.5, abs=1e-6)    # it moved from its start
+    assert doc["rms_after"] < doc["rms_before"], msg
+    assert doc["lobe"]["0/0"]["measured"]["transmittance"] == pytest.approx(0.898, abs=0.005)
+    d = lobe_differences(doc["lobe"]["0/0"]["measured"], doc["lobe"]["0/0"]["simulated"])
+    for key, limit in TARGETS.items():
+        assert d[key] <= limit, (key, d, msg)
+    # on this lobe the information criterion is not close: the chosen candidate has the lowest BIC
+    sel = doc["selection"]
+    assert sel["chosen"] == min(sel["candidates"], key=lambda c: c["bic"])["name"], msg
+    for f in ("relief.npz", "sample.toml", "infer.json", "boundary.h5", "report.html", "lobes.png"):
+        assert (proof["out"] / f).is_file(), f
+    html = (proof["out"] / "report.html").read_text()
+    assert "Inside the glass" in html and "inferred relief" in doc["inside_table"]
+
+
+@pytest.mark.parametrize("incidence", ["5/0", "5/45"])
+def test_the_5_deg_files_are_predicted(proof, incidence):
+    from relief_bsdf.infer.predict import TARGETS
+    d = proof["diffs"][incidence]
+    for key in ("centroid_deg", "plateau_rel", "transmittance"):
+        assert d[key] <= TARGETS[key], (incidence, key, proof["msg"])
+
+
+def test_the_half_maximum_edges_at_azimuth_0(proof):
+    from relief_bsdf.infer.predict import TARGETS
+    assert proof["diffs"]["5/0"]["edges_u"] <= TARGETS["edges_u"], proof["msg"]
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="plate: a row lit from azimuth 45 reads the phi_i = 0 outside table turned "
+                                       "by 45 deg, which turns the square lobe (docs/infer.md)")
+def test_the_half_maximum_edges_at_azimuth_45(proof):
+    from relief_bsdf.infer.predict import TARGETS
+    assert proof["diffs"]["5/45"]["edges_u"] <= TARGETS["edges_u"], proof["msg"]
+
+
+@pytest.mark.parametrize("fmt,side", [("radiance-xml", None), ("is-bsdf", "inside"), ("recording-csv", "inside")])
+def test_the_inferred_boundary_exports_as_any_table(proof, tmp_path, fmt, side):
+    """Item 6: the inferred boundary's tables (both sides: the inside one is the relief's, not measured)
+    export as any table does."""
+    from relief_bsdf.cli import main
+    suffix = {"radiance-xml": ".xml", "is-bsdf": ".bsdf", "recording-csv": ".csv"}[fmt]
+    target = tmp_path / f"inferred{suffix}"
+    args = ["export", str(proof["out"] / "boundary.h5"), "--format", fmt, "-o", str(target)]
+    if side:
+        args += ["--from", side]
+    assert main(args) == 0
+    written = sorted(tmp_path.glob("inferred*"))
+    assert written and all(p.stat().st_size > 1000 for p in written), written
+    if fmt == "recording-csv":
+        from relief_bsdf.io.recording import read_recording
+        rec = read_recording(target)
+        assert np.all(np.isfinite(rec.bsdf_sr)) and rec.bsdf_sr.max() > 0

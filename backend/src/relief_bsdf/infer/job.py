@@ -66,6 +66,13 @@ def inversion_rows(rec: Any):
     sel &= rec.phi_i_deg == pi
     wl = float(np.min(rec.wavelength_nm[sel]))
     sel &= rec.wavelength_nm == wl
+    off_pole = sel & (rec.theta_s_deg > 0)
+    planes = np.unique(np.round(np.mod(rec.phi_s_deg[off_pole], 180.0), 6))
+    if planes.size < 3:
+        raise InputError(rec.path or "recording",
+                         f"the transmitted rows at incidence {ti:g}/{pi:g} deg lie in {planes.size} plane(s) of "
+                         "scatter (an in-plane scan): the slope inversion reads the lobe over the whole direction "
+                         "plane (a measured plate file's full grid, or rows at three or more scatter azimuths)")
     return rec.subset(sel), ti, pi, wl
 
 
@@ -107,41 +114,89 @@ def infer(sample_path: str | Path, out_dir: str | Path, seed: int = 0, progress:
 def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: Any, samples: int,
            tile_px: int) -> dict:
     from relief_bsdf.core.index import ConstantIndex
-    from relief_bsdf.fit.optimise import Forward
+    from relief_bsdf.fit.optimise import Forward, process_relief
     from relief_bsdf.fit.residual import METRIC, rms_z
+    from relief_bsdf.infer import refine as rf
+    from relief_bsdf.infer.families import FAMILY_NAMES, candidates
     from relief_bsdf.infer.slopes import slope_density
     from relief_bsdf.infer.synth import density_check, lenslet_relief, plan_for
     from relief_bsdf.io.atomic import write_text_atomic
     from relief_bsdf.io.heightmaps import write_relief
     from relief_bsdf.io.recording import write_recording, write_sample
     from relief_bsdf.plate import FlatFace, TableGrid, experiment_from_sample, simulate
-    from relief_bsdf.surface.stats import rms_height, rms_slope, rms_slope_xy
     from relief_bsdf.surface.preparation import ReliefOptions
+    from relief_bsdf.surface.stats import rms_height, rms_slope, rms_slope_xy
 
-    def step(k: int, what: str) -> None:
+    total = [STEPS]
+    done = [0]
+
+    def step(what: str, advance: bool = True) -> None:
+        if advance:
+            done[0] = min(done[0] + 1, total[0])
         if progress is not None:
-            progress(k, 5, what)
+            progress(done[0], total[0], what)
 
     out = Path(out_dir)
-    step(0, "reading")
+    step("reading", advance=False)
     sample, index_stated, relief_stated = read_infer_sample(sample_path)
     if sample.plate.rough_face != "front":
         raise InputError(sample.path, "plate.rough_face = \"back\": the slope inversion of this version takes "
                                       "the relief on the lit (front) face")
     rec = sample.load_recording()
     rows0, ti, pi, wl = inversion_rows(rec)
-    n = float(np.real(sample.plate.index.n(wl)))
-    step(1, "inverting the lobe")
-    density = slope_density(rows0, n)
-    step(2, "synthesising the relief")
-    relief, facts = lenslet_relief(density, plan_for(wl, tile_px, seed=seed))
+    n0 = float(np.real(sample.plate.index.n(wl)))
+    step("inverting the lobe")
+    density = slope_density(rows0, n0)
+    step("synthesising the candidates")
+    plan = plan_for(wl, tile_px, seed=seed)
+    cands = candidates(density)
+    reliefs = [lenslet_relief(c.density, plan) for c in cands]
+    fit_index = not index_stated
+    kp = 2 if fit_index else 1                      # the plate's parameters: height scale (and index)
+    meas = rf.refinement_rows(rec, ti, pi, wl)
+    rows_r, inv_r = distinct_directions(meas)
+    refine_grid = rf.refine_grid()
+
+    def objective(relief) -> rf.Objective:
+        forwards: dict = {}
+
+        def forward_at(n: float):
+            if n not in forwards:
+                smp = replace(sample, plate=replace(sample.plate, index=ConstantIndex(n)))
+                forwards.clear()                   # one index's tables at a time (the job's memory)
+                forwards[n] = Forward(relief, experiment_from_sample(smp, relief, samples=samples, seed=seed),
+                                      rows_r, grid=refine_grid, where=str(sample.recording_path))
+            return forwards[n]
+        return rf.Objective(forward_at, rows_r, inv_r, meas, n0, fit_index,
+                            progress=lambda what: step(what, advance=False))
+
+    screened = []
+    for i, (c, (relief, facts)) in enumerate(zip(cands, reliefs)):
+        step(f"screening the candidate {c.name}")
+        same = [j for j in range(i) if rf.density_distance(c.density, cands[j].density) < rf.SAME_DENSITY_TV]
+        if same:
+            chi2, as_ = screened[same[0]]["chi2"], cands[same[0]].name
+        else:
+            chi2, as_ = rf.Objective.residuals(objective(relief), rf.x_start(n0, fit_index))[0], None
+        screened.append({"name": c.name, "family": FAMILY_NAMES[c.name], "k": c.k + kp, "chi2": chi2,
+                         "parameters": c.parameters, **({"same_density_as": as_} if as_ else {})})
+    best, decisions = rf.choose(screened, len(meas))
+    cand, (relief0, facts) = cands[best], reliefs[best]
+    step(f"refining {cand.name} through the plate")
+    obj = objective(relief0)
+    ref = rf.polish_and_intervals(obj, rf.x_start(n0, fit_index))
+    s_fit, n_fit = obj.point(ref.x)
+    relief = process_relief(relief0, s_fit, 0.0)
     out.mkdir(parents=True, exist_ok=True)
     write_relief(out / "relief.npz", relief)
-    plate = sample.plate if index_stated else replace(sample.plate, index=ConstantIndex(n))
+    plate = replace(sample.plate, index=ConstantIndex(n_fit)) if fit_index else sample.plate
     new = replace(sample, path=out / "sample.toml", plate=plate, relief_path=out / "relief.npz",
                   relief_options=ReliefOptions(periodic=True, stated_by="relief infer"))
     write_sample(out / "sample.toml", new)
-    step(3, "simulating the plate")
+
+    step("simulating the plate on every row")
+    from relief_bsdf.plate.memory import current_memory
+    current_memory().clear()        # the refinement's tables (other reliefs, the screening grid): not read again
     exp = experiment_from_sample(new, relief, samples=samples, seed=seed)
     distinct, inverse = distinct_directions(rec)       # the pole's repeated readings simulated once
     fwd = Forward(relief, exp, distinct, grid=TableGrid(), where=str(sample.recording_path))
@@ -153,41 +208,108 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
     write_recording(out / "simulated.csv", rec.with_values(values),
                     comments=[f"relief infer {Path(sample_path).name}: the inferred relief's plate",
                               f"metric (rms z) vs recording: {after:.6g}"])
-    step(4, "writing")
+    step("writing the boundary tables")
+    files = {"relief": "relief.npz", "sample": "sample.toml", "simulated": "simulated.csv"}
+    files.update(write_boundary_tables(out, fwd))
     rx, ry = rms_slope_xy(relief)
     face = getattr(fwd.experiment.plate, fwd.face_name)
-    limitations = ["the relief is not yet refined through the forward model (no fit of family parameters, "
-                   "height scale or index): intervals are not computed",
-                   "the facet-slope density is inverted from one incidence in single-pass geometric optics "
-                   "(no shadowing, detector blur not deconvolved)",
+    names = ["height_scale"] + (["refractive_index"] if fit_index else [])
+    intervals = {nm: [float(ref.s_n[j] - ref.sd[j]), float(ref.s_n[j] + ref.sd[j])] if np.isfinite(ref.sd[j]) else None
+                 for j, nm in enumerate(names)}
+    if not fit_index:
+        intervals["refractive_index"] = None
+    family_params = {f"{k}": v for k, v in cand.parameters.items()}
+    limitations = ["the facet-slope density is inverted from one incidence in single-pass geometric optics "
+                   "(no shadowing, detector blur not deconvolved); the refinement fits the height scale"
+                   + (" and the index" if fit_index else "") + " through the plate",
                    f"the relief reproduces the product of the density's marginals (separable lenslets); the "
-                   f"density's distance from that product is {facts['separability_tv']:.3g} (total variation)"]
-    if not index_stated:
-        limitations.insert(0, f"[plate] refractive_index not given: n = {DEFAULT_INDEX:g} assumed (not fitted)")
+                   f"density's distance from that product is {facts['separability_tv']:.3g} (total variation)",
+                   f"the refinement reads the lobe (rows at or above {rf.LOBE_FRACTION:g} of its peak); the "
+                   "halo around it enters the metric over every row but is not fitted",
+                   "the candidates are ranked by their chi^2 at their slope-plane fit (height scale 1, the start "
+                   "index); only the chosen one is polished through the plate",
+                   "the refinement's evaluations run on the screening grid (no inside sector tables, a tenth of "
+                   "the inside rays); the final simulation and the tables on the default grid"]
+    for j, nm in enumerate(names):
+        lo, hi = (rf.LOWER[j], rf.UPPER[j]) if nm == "refractive_index" else (None, None)
+        if lo is not None and (abs(n_fit - lo) < 1e-9 or abs(n_fit - hi) < 1e-9):
+            limitations.insert(0, f"the fitted index ended at its bound {n_fit:g} (search range {lo:g}-{hi:g}): "
+                                  "the lobe's level asks for an index outside it; the index is read from that level "
+                                  "(the faces' Fresnel losses), so light the model sends outside the lobe, or a "
+                                  "recording whose level no plate of this relief reaches, moves it")
+    lobe = lobe_comparison(rec, values)
     doc = {
         "format": INFER_FORMAT,
-        "family": FAMILY,
-        "parameters": {"rms_slope_x": rx, "rms_slope_y": ry, "mean_cell_um": facts["mean_cell_um"],
-                       "pitch_um": facts["pitch_um"], "tile_px": facts["tile_px"], "refractive_index": n,
+        "family": FAMILY_NAMES[cand.name],
+        "candidate": cand.name,
+        "parameters": {**family_params, "height_scale": s_fit, "refractive_index": n_fit,
+                       "rms_slope_x": rx, "rms_slope_y": ry, "mean_cell_um": facts["mean_cell_um"],
+                       "pitch_um": facts["pitch_um"], "tile_px": facts["tile_px"],
                        "rms_height_m": rms_height(relief)},
-        "intervals": {k: None for k in ("rms_slope_x", "rms_slope_y", "refractive_index")},
+        "intervals": intervals,
+        "interval_level": "68 % (one standard deviation, fit.covariance)",
+        "interval_notes": ref.notes,
+        "correlation": np.where(np.isfinite(ref.correlation), ref.correlation, 0.0).tolist(),
         "rms_slope": rms_slope(relief),
+        "rms_slope_interval": (None if not np.isfinite(ref.sd[0]) else
+                               [rms_slope(relief) * (1 - ref.sd[0] / s_fit), rms_slope(relief) * (1 + ref.sd[0] / s_fit)]),
         "metric": METRIC,
         "rms_before": before,
         "rms_after": after,
         "before": "a flat plate (both faces flat) of the same index",
         "index_stated": index_stated,
-        "inverted_from": {"theta_i_deg": ti, "phi_i_deg": pi, "wavelength_nm": wl, "rows": len(rows0)},
+        "index_fitted": fit_index,
+        "inverted_from": {"theta_i_deg": ti, "phi_i_deg": pi, "wavelength_nm": wl, "rows": len(rows0),
+                          "start_index": n0},
+        "refinement": {"rows": len(meas), "lobe_fraction": rf.LOBE_FRACTION, "chi2": ref.chi2,
+                       "evaluations": obj.evaluations, "grid": "screening grid (no inside sector tables), inside rays x "
+                                               f"{rf.REFINE_INSIDE_SAMPLES_SCALE:g}",
+                       "coordinates": "width scale w = s (n - 1) / (n0 - 1) and n (infer.refine)"},
+        "selection": {"criterion": "BIC = chi^2 + k ln n (fit.selection), QBIC margin "
+                                   "fit.selection.BIC_MARGIN", "n_rows": len(meas),
+                      "candidates": screened, "decisions": decisions, "chosen": cand.name},
         "density": {**density.moments(), "separability_tv": facts["separability_tv"], "notes": list(density.notes)},
         "synthesis": {**{k: v for k, v in facts.items() if k != "separability_tv"},
-                      "check": density_check(relief, density)},
+                      "check": density_check(relief0, cand.density)},
         "seed": int(seed),
         "physics": {"relief_face": sample.plate.rough_face, "method": face.method,
                     "chosen_by": getattr(face, "chosen_by", None), "samples": int(samples)},
-        "lobe": lobe_comparison(rec, values),
+        "lobe": lobe,
+        "inside_table": inside_statement(fit_index, s_fit, n_fit, ref.sd),
         "limitations": limitations,
-        "files": ["relief.npz", "sample.toml", "simulated.csv", "infer.json"],
     }
-    write_text_atomic(out / "infer.json", json.dumps(doc, indent=2) + "\n")
-    step(5, "done")
+    step("writing the report")
+    from relief_bsdf.infer.report import write_infer_report
+    files.update(write_infer_report(out, doc, rec, values))
+    files["infer"] = "infer.json"
+    doc["files"] = files
+    write_text_atomic(out / "infer.json", json.dumps(doc, indent=2, default=float) + "\n")
+    step("done")
     return doc
+
+
+STEPS = 12   # reading, inverting, synthesising, 5 candidates, refining, simulating, tables, report (+ done)
+
+
+def write_boundary_tables(out: Path, fwd: Any) -> dict:
+    """The inferred boundary's tables, both sides (light from outside and from inside the glass), as the fit
+    writes them: OUT/boundary.h5 and one IS-BSDF file per side and scatter type."""
+    from relief_bsdf.io.hdf5 import save_tables
+    from relief_bsdf.io.isbsdf import export_isbsdf
+    _, t_out, t_in = fwd.tables(1.0, 0.0)
+    tables = [t for t in (t_out, t_in) if t is not None]
+    save_tables(out / "boundary.h5", tables)
+    files = {"boundary_table": "boundary.h5"}
+    for t in tables:
+        files[f"isbsdf_{t.incident_from}"] = [q.name for q in export_isbsdf(t, out / f"boundary_{t.incident_from}.bsdf")]
+    return files
+
+
+def inside_statement(fit_index: bool, s: float, n: float, sd: np.ndarray) -> str:
+    """What the report says of the inside table (light from the glass, which no instrument measures)."""
+    parts = [f"height scale {s:.4g} +- {sd[0]:.2g}"]
+    if fit_index:
+        parts.append(f"index {n:.4g} +- {sd[1]:.2g}")
+    return ("The boundary's inside table (light arriving from the glass) is not measured: it is computed by the "
+            "same ray tracer from the inferred relief, and carries the relief's uncertainty ("
+            + ", ".join(parts) + ", 68 %) and the family's assumptions (limitations).")
