@@ -126,7 +126,7 @@ def search_bounds(forward, effect: Effect) -> dict:
 
 
 def _search(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | None = None,
-            coarse: bool = False) -> dict:
+            coarse: bool = False, start: dict | None = None) -> dict:
     grid, refine = (GRID_TABLES, REFINE_TABLES) if effect.budgeted else (GRID_CHEAP, REFINE_CHEAP)
     if coarse and effect.budgeted:           # a later stepwise step: the costly search is budgeted
         grid, refine = 4, 3
@@ -136,6 +136,7 @@ def _search(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | Non
     held_all = dict(fixed_values or {})
     effects = tuple(fixed) + (effect,)
     values = effect.neutral
+    starts = {k: float(v) for k, v in (start or {}).items() if k in values}
     if len(effect.params) > 1:        # coupled parameters: coarser passes, one more for the first
         grid, refine = max(3, grid - 1), max(2, refine - 2)
     order = list(effect.params) + ([effect.params[0]] if len(effect.params) > 1 else [])
@@ -148,7 +149,10 @@ def _search(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | Non
 
         def cost(x, name=p.name, held=held):
             return forward.evaluate_set(effects, {**held, name: float(x)})[0]
-        values[p.name] = float(_fit_param(cost, p, min(lo, hi), max(lo, hi), grid, refine,
+        x0 = starts.pop(p.name, None)
+        if x0 is not None:
+            x0 = min(max(x0, min(lo, hi)), max(lo, hi))
+        values[p.name] = float(_fit_param(cost, p, min(lo, hi), max(lo, hi), grid, refine, start=x0,
                                           coord=coords.get(p.name), prefetch=_prefetch(forward, effects, held, p)))
     return values
 
@@ -167,34 +171,107 @@ def why_skipped(forward, effect: Effect) -> str | None:
 
 
 def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | None = None,
-               coarse: bool = False) -> dict:
+               coarse: bool = False, start: dict | None = None) -> dict:
     """{effect, parameters, chi2, k, values, model_sigma} or {effect, skipped: reason}.
 
     `fixed`/`fixed_values`: effects already named, held at their values (chi2 and values are then
     those of all of them together, k counts this effect's parameters only).  `coarse`: a later stepwise
     step's conditional fit (the search budgeted, the polish rough: it ranks candidates, the joint polish
-    follows).
+    follows).  `start`: values the search starts from besides the neutral ones (a residual's signature,
+    `stepwise`).  A fit that ends at its null value (`at_null`) is refitted from starts spread over the
+    range (`_restart`) before it is judged; the entry then carries `restart` (the points tried, the best
+    chi^2 among them and the null's chi^2).
     """
     reason = why_skipped(forward, effect)
     if reason:
         return {"effect": effect.name, "skipped": reason}
     effects = tuple(fixed) + (effect,)
     jacobian = None
+    restart = None
     try:
-        values = _search(forward, effect, fixed, fixed_values, coarse) if effect.params else {}
+        values = _search(forward, effect, fixed, fixed_values, coarse, start) if effect.params else {}
         if _polished_fit(effect):
-            names = tuple(p.name for p in effect.params)
-            done, _, jacobian = polish(forward, effects, {**(fixed_values or {}), **values}, free=names,
-                                       rough=coarse)
-            values = {k: done[k] for k in names}
+            values, jacobian = _polish_own(forward, effect, effects, fixed_values, values, coarse)
+        if effect.params and at_null(effect, values):
+            values, jac, restart = _restart(forward, effect, effects, fixed_values, values, coarse)
+            jacobian = jac if jac is not None else jacobian
         c, v, s = forward.evaluate_set(effects, {**(fixed_values or {}), **values})
     except InputError as e:
         return {"effect": effect.name, "skipped": str(e)}
     out = {"effect": effect.name, "parameters": {k: float(x) for k, x in values.items()}, "chi2": c,
            "k": effect.k, "values": v, "model_sigma": s}
+    if restart is not None:
+        out["restart"] = restart
+    if start:
+        out["start"] = {k: float(x) for k, x in start.items()}
     if jacobian is not None and not fixed:
         out["jacobian"] = jacobian          # the whole model's: `stepwise` names it without a second polish
     return out
+
+
+def _polish_own(forward, effect: Effect, effects: tuple, fixed_values: dict | None, values: dict,
+                coarse: bool) -> tuple[dict, np.ndarray | None]:
+    names = tuple(p.name for p in effect.params)
+    done, _, jacobian = polish(forward, effects, {**(fixed_values or {}), **values}, free=names, rough=coarse)
+    return {k: done[k] for k in names}, jacobian
+
+
+RESTART_FRACTIONS = (0.01, 0.03, 0.1, 0.3)
+
+
+def _amounts(effect: Effect) -> list[Param]:
+    """The parameters that measure how much of the effect there is: neutral at a bound (0 /mm, alpha 0)."""
+    return [p for p in effect.params if p.neutral in (p.lower, p.upper)]
+
+
+def at_null(effect: Effect, values: dict) -> bool:
+    """Did a fit end where it started, at its null value: every amount parameter (`_amounts`) at its
+    neutral value (an effect without such a parameter, a tilt or a scale, has no null bound)?"""
+    amounts = _amounts(effect)
+    return bool(amounts) and all(abs(values[p.name] - p.neutral) <= 1e-12 * max(1.0, p.upper - p.lower)
+                                 for p in amounts)
+
+
+def _restart(forward, effect: Effect, effects: tuple, fixed_values: dict | None, values: dict,
+             coarse: bool) -> tuple[dict, np.ndarray | None, dict]:
+    """Refit an effect that ended at its null value from starts spread over its range.
+
+    A strongly non-linear effect may gain nothing at the grid's first points and much between them
+    (back-face roughness: the lobe of a Beckmann alpha 0.03 lies between the grid's 0 and 0.125, and
+    the Gauss-Newton steps from the bound alpha = 0 see a zero one-sided slope there).  Starts: every
+    amount parameter at RESTART_FRACTIONS of its range from the neutral bound together (the others at
+    the values found), evaluated together; from the best of them, if it beats the null, the search
+    again (`_search` with that start) and the effect's own polish.  ({values}, jacobian or None,
+    record {points, fractions, chi2 of each, chi2 at the null})."""
+    held = dict(fixed_values or {})
+    amounts = _amounts(effect)
+    bounds = search_bounds(forward, effect)
+    pts = []
+    for t in RESTART_FRACTIONS:
+        pt = dict(values)
+        for p in amounts:
+            lo, hi = bounds[p.name]
+            end = hi if p.neutral <= lo else lo
+            pt[p.name] = p.neutral + t * (end - p.neutral)
+        pts.append(pt)
+    if hasattr(forward, "prefetch"):
+        forward.prefetch(effects, [{**held, **values}] + [{**held, **pt} for pt in pts])
+    c0 = forward.evaluate_set(effects, {**held, **values})[0]
+    cs = [forward.evaluate_set(effects, {**held, **pt})[0] for pt in pts]
+    rec = {"fractions": list(RESTART_FRACTIONS), "chi2": [round(float(c), 3) for c in cs],
+           "chi2_null": round(float(c0), 3)}
+    j = int(np.argmin(cs))
+    if not cs[j] < c0 - 1e-9 * max(1.0, abs(c0)):
+        rec["moved"] = False
+        return values, None, rec
+    best = _search(forward, effect, tuple(effects[:-1]), held, True, pts[j])
+    if forward.evaluate_set(effects, {**held, **best})[0] > cs[j]:
+        best = dict(pts[j])
+    jac = None
+    if _polished_fit(effect):
+        best, jac = _polish_own(forward, effect, effects, held, best, coarse)
+    rec["moved"] = True
+    return best, jac, rec
 
 
 def _polished_fit(effect: Effect) -> bool:

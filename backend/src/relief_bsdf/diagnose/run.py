@@ -44,8 +44,8 @@ from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build
 from relief_bsdf.diagnose.mismatch import SHAPE_PHYSICS, attribute, classify, locate, regions
 from relief_bsdf.diagnose.report import shape_against_search, write_report
 from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODEL_ACCURACY_RMS, adequate, alternatives,
-                                           consistent_with_noise, first_fits, overwhelming_bar, passes, stepwise,
-                                           steps_record)
+                                           consistent_with_noise, first_fits, method_check, overwhelming_bar, passes,
+                                           stepwise, steps_record)
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import METRIC, metric_of_chi2
 from relief_bsdf.fit.selection import BIC_MARGIN
@@ -254,7 +254,7 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
         "effects": effects, "alternatives": alike, "intervals": ivals, "interval_notes": notes,
         "shape": located[1][:3],
         "selection": _selection_doc(n, steps, closed),
-        "steps": record, "stop": stop,
+        "steps": record, "stop": stop, "method_check": method_check(steps, n, ctx.method),
         "forward_model": {"engine": "deterministic", "method": ctx.method, "samples": ctx.samples, "seed": ctx.seed,
                           "rough_face_model": f"boundary tables of the measured relief by method {ctx.method}",
                           "method_reason": ctx.method_reason, "evaluations": forward.evaluations,
