@@ -216,7 +216,7 @@ def _polish_own(forward, effect: Effect, effects: tuple, fixed_values: dict | No
     return {k: done[k] for k in names}, jacobian
 
 
-RESTART_FRACTIONS = (0.01, 0.03, 0.1, 0.3)
+RESTART_FRACTIONS = tuple(float(t) for t in np.geomspace(0.01, 0.5, 8))   # 1 % to half the range, x 1.75
 
 
 def _amounts(effect: Effect) -> list[Param]:
@@ -241,7 +241,7 @@ def _restart(forward, effect: Effect, effects: tuple, fixed_values: dict | None,
     the Gauss-Newton steps from the bound alpha = 0 see a zero one-sided slope there).  Starts: every
     amount parameter at RESTART_FRACTIONS of its range from the neutral bound together (the others at
     the values found), evaluated together; from the best of them, if it beats the null, the search
-    again (`_search` with that start) and the effect's own polish.  ({values}, jacobian or None,
+    again (`_search` with that start) and Gauss-Newton steps on the effect's parameters (`polish`).  ({values}, jacobian or None,
     record {points, fractions, chi2 of each, chi2 at the null})."""
     held = dict(fixed_values or {})
     amounts = _amounts(effect)
@@ -260,16 +260,14 @@ def _restart(forward, effect: Effect, effects: tuple, fixed_values: dict | None,
     cs = [forward.evaluate_set(effects, {**held, **pt})[0] for pt in pts]
     rec = {"fractions": list(RESTART_FRACTIONS), "chi2": [round(float(c), 3) for c in cs],
            "chi2_null": round(float(c0), 3)}
-    j = int(np.argmin(cs))
-    if not cs[j] < c0 - 1e-9 * max(1.0, abs(c0)):
+    j = int(np.argmin(cs)) if cs else 0
+    if not cs or not cs[j] < c0 - 1e-9 * max(1.0, abs(c0)):
         rec["moved"] = False
         return values, None, rec
     best = _search(forward, effect, tuple(effects[:-1]), held, True, pts[j])
     if forward.evaluate_set(effects, {**held, **best})[0] > cs[j]:
         best = dict(pts[j])
-    jac = None
-    if _polished_fit(effect):
-        best, jac = _polish_own(forward, effect, effects, held, best, coarse)
+    best, jac = _polish_own(forward, effect, effects, held, best, coarse)     # the search's short grids end near it
     rec["moved"] = True
     return best, jac, rec
 
