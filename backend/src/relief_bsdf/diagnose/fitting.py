@@ -185,6 +185,9 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
     reason = why_skipped(forward, effect)
     if reason:
         return {"effect": effect.name, "skipped": reason}
+    held = dict(fixed_values or {})
+    if effect.forms and not any(k in held for form in effect.forms for k in form):
+        return _best_form(forward, effect, fixed, held, coarse, start)
     effects = tuple(fixed) + (effect,)
     jacobian = None
     restart = None
@@ -192,7 +195,7 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
         values = _search(forward, effect, fixed, fixed_values, coarse, start) if effect.params else {}
         if _polished_fit(effect):
             values, jacobian = _polish_own(forward, effect, effects, fixed_values, values, coarse)
-        if effect.params and at_null(effect, values):
+        if effect.params and at_null(effect, values) and not _form_acts(effect, fixed_values):
             values, jac, restart = _restart(forward, effect, effects, fixed_values, values, coarse)
             jacobian = jac if jac is not None else jacobian
         c, v, s = forward.evaluate_set(effects, {**(fixed_values or {}), **values})
@@ -207,6 +210,32 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
     if jacobian is not None and not fixed:
         out["jacobian"] = jacobian          # the whole model's: `stepwise` names it without a second polish
     return out
+
+
+def _form_acts(effect: Effect, held: dict | None) -> bool:
+    """Does the effect's form (`Effect.forms`) act by itself at the neutral parameter values (a form other
+    than the first: the noise removal of relief_smoothing)?  Its null value is then not 'no effect'."""
+    return bool(effect.forms) and any(held and k in held and held[k] != v for k, v in effect.forms[0].items())
+
+
+def _best_form(forward, effect: Effect, fixed: tuple, held: dict, coarse: bool, start: dict | None) -> dict:
+    """The effect fitted in each of its forms (`Effect.forms`, held fixed like a named effect's values): the
+    forms have the same parameters, so the information criterion (chi^2 + k ln n) compares their chi^2;
+    the first form (the default: the paper's Gaussian for relief_smoothing) is kept unless another is
+    lower by more than BIC_MARGIN (where the rows do not tell the forms apart, the default stands).  The
+    form's values join `parameters` (held, not fitted: k is the effect's); `forms` records each form's chi^2."""
+    from relief_bsdf.fit.selection import BIC_MARGIN
+    fits = [fit_effect(forward, effect, fixed, {**held, **form}, coarse, start) for form in effect.forms]
+    ok = [(f, form) for f, form in zip(fits, effect.forms) if "chi2" in f]
+    if not ok:
+        return fits[0]
+    best, form = ok[0]
+    for f, fm in ok[1:]:
+        if f["chi2"] < best["chi2"] - BIC_MARGIN:
+            best, form = f, fm
+    best["parameters"] = {**best["parameters"], **{k: float(v) for k, v in form.items()}}
+    best["forms"] = [{**{k: float(v) for k, v in fm.items()}, "chi2": round(float(f["chi2"]), 3)} for f, fm in ok]
+    return best
 
 
 def _polish_own(forward, effect: Effect, effects: tuple, fixed_values: dict | None, values: dict,
