@@ -70,6 +70,35 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    then traded for a relief scale of 0.47 plus an absorption), and the bar of the next step is
    judged against that chi^2.  The last polish's Jacobian is the intervals' one.
 
+Rules that keep the search from contradicting its own report (issue 49):
+- the gain a candidate is judged on (`passes`) is the project's one criterion on the
+  quasi-likelihood scale (`gain_of`: `fit.selection.bic_gain` with the larger model's
+  overdispersion c = max(1, chi^2 / (n - k)), the fit's QBIC): while the model misses the noise by
+  a wide margin a chi^2 difference counts 1 / c as much, so a parameter that only bends the model
+  toward its own systematic error is not named (the plain BIC gain is still what ranks
+  candidates and what `steps` records as `bic_gain`; the reason words give both);
+- a signature (`_signatures`): where one shape template of `mismatch.classify` explains at least
+  SIGNATURE_SHARE = 1/2 of the current model's residual chi^2 and names a candidate (an offset is
+  stray light, a loss growing with the path in the glass absorption, a displaced lobe a tilt),
+  that candidate is fitted at the step whatever its screen, from the start the signature gives
+  (the offset's own level for stray light);
+- the reach rule: a strongly non-linear candidate (NONLINEAR: back-face roughness, volume
+  scattering, blur) that its two-probe screen would leave unfitted is fitted while its screen gain
+  is at least REACH = 1/4 of the step's leader's (the best fitted chi^2 gain, or the largest screen
+  gain): the linear screen of such an effect can fall several times short of its fit;
+- a fit that ends at its null value (0 /mm, alpha 0, 0 um) is refitted from starts spread over its
+  range before it is judged (`fitting._restart`);
+- trading pairs (TRADING_PAIRS: blur and relief scale, smoothing and relief scale, index and
+  scale act alike on a lobe): when the second of a pair is named, the joint refit runs from the
+  other start too (`_pair_starts`), and the step records the correlation of the two
+  (`_correlations`, diagnosis.json `steps[].correlations`); `_drop_redundant` on the QBIC scale
+  removes one that the other makes redundant, so one is named only where the data separate them;
+- boundary methods (METHOD_OF: interreflection is the relief ray traced, diffraction its Kirchhoff
+  integral) are fitted at the first step only and never named: `method_check` reports whether one
+  fits the baseline better (diagnosis.json `method_check`), a verdict on the method choice.
+These thresholds were set on the stand-in forward models of tests/backend/diagnose and the
+project's own concealed cases (test_diagnose, seed 1), never on the independent validation set.
+
 7. (record keeping only) every step is recorded for diagnosis.json's `steps` and `stop`
    (`steps_record`, formats.md): the model after the step, its chi^2, the effect added, and what
    each candidate did (fitted, screened out, outgained, skipped, dropped) with its chi^2, BIC gain
