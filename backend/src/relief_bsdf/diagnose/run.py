@@ -197,7 +197,8 @@ def _selection_doc(n: int, steps: list, closed: bool) -> dict:
              "bic_gain": round(s.gain, 3), "dropped": list(s.dropped)} for s in steps if s.added != "stop"]
     return {"criterion": (f"stepwise: add the candidate with the lowest BIC = chi2 + k ln n given the effects named "
                           f"so far, refit all jointly; it is named if it beats the current model by more than "
-                          f"{BIC_MARGIN:g} and the current model has chi2 > {MODEL_ACCURACY_RMS:g}^2 n + "
+                          f"{BIC_MARGIN:g} (chi2 divided by the larger model's reduced chi2 where that exceeds 1: "
+                          f"QBIC) and the current model has chi2 > {MODEL_ACCURACY_RMS:g}^2 n + "
                           f"{CONSISTENCY_Z:g} sqrt(2n) (noise plus the forward model's stated accuracy), or by more "
                           f"than max({BIC_OVERWHELMING:g}, {CONSISTENCY_Z:g} sqrt(2n)) = {overwhelming_bar(n):.1f} "
                           f"whatever its chi2; stop when none passes. The named set must then reach that bound or "
