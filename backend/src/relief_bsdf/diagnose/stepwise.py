@@ -837,7 +837,8 @@ def alternatives(steps: list[Step], n: int) -> list[dict]:
         b0 = bic(won["chi2"], prev.k + won["k"], n)
         for f in fitted:
             d = bic(f["chi2"], prev.k + f["k"], n) - b0
-            if f["effect"] != step.added and f["effect"] not in final and d < BIC_MARGIN:
+            if (f["effect"] != step.added and f["effect"] not in final and f["effect"] not in METHOD_OF
+                    and d < BIC_MARGIN):
                 out.append({"named": step.added, "alternative": f["effect"], "bic_difference": round(d, 3),
                             "alternative_parameters": {k: round(float(v), 6) for k, v in f["parameters"].items()}})
     return out
