@@ -229,12 +229,21 @@ def line_gain(forward, cur: "Step", effect, probes: list[dict]) -> float:
     s = misfit_sigma(forward.rows, s0)
     r = (np.asarray(forward.rows.bsdf_sr, float) - m0) / s
     screen = forward.screening(effect) if hasattr(forward, "screening") else forward
-    before = screen.evaluations
-    ref = m0 if screen is forward else screen.evaluate_set(held, cur.values)[1]
-    D = np.stack([(screen.evaluate_set(held + (effect,), {**cur.values, **p})[1] - ref) / s for p in probes],
-                 axis=1)
-    if screen is not forward:
-        forward.evaluations += screen.evaluations - before
+
+    def changes(screen):
+        before = screen.evaluations
+        ref = m0 if screen is forward else screen.evaluate_set(held, cur.values)[1]
+        D = np.stack([(screen.evaluate_set(held + (effect,), {**cur.values, **p})[1] - ref) / s for p in probes],
+                     axis=1)
+        if screen is not forward:
+            forward.evaluations += screen.evaluations - before
+        return D
+    try:
+        D = changes(screen)
+    except InputError:
+        if screen is forward:
+            raise
+        D = changes(forward)        # the cheaper loop cannot carry the current model (a polarised source named)
     ok = np.all(np.isfinite(D), axis=0) & (np.abs(D).sum(axis=0) > 0)
     if not ok.any():
         return 0.0
@@ -768,8 +777,9 @@ def steps_record(steps: list[Step], n: int) -> tuple[list[dict], str]:
                            f"{gains.get(by, float('nan')):.1f}, so it could neither win nor come close")
                     status = "outgained"
                 else:
-                    why = (f"not fitted: its linear screen (two probes) gains at most about chi2 {screen:.4g} (BIC "
-                           f"gain {screen - k * ln:.1f}), short of the bar ({bar_words(prev.chi2, n)})")
+                    why = (f"not fitted: its linear screen (two probes) gains at most about chi2 {screen:.4g} ("
+                           f"{gain_words(prev.chi2, prev.k, prev.chi2 - screen, prev.k + k, n)}), short of the bar "
+                           f"({bar_words(prev.chi2, n)})")
                     status = "screened"
                 cands.append(_entry(name, status, prev.chi2 - screen, screen - k * ln, why))
         cands += [_entry(name, "skipped", None, None, why) for name, why in step.excluded]
