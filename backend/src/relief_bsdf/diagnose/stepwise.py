@@ -85,7 +85,8 @@ Rules that keep the search from contradicting its own report (issue 49):
 - the reach rule: a strongly non-linear candidate (NONLINEAR: back-face roughness, volume
   scattering, blur) that its two-probe screen would leave unfitted is fitted while its screen gain
   is at least REACH = 1/4 of the step's leader's (the best fitted chi^2 gain, or the largest screen
-  gain): the linear screen of such an effect can fall several times short of its fit;
+  gain) and that leader passes the bar: the linear screen of such an effect can fall several times
+  short of its fit;
 - a fit that ends at its null value (0 /mm, alpha 0, 0 um) is refitted from starts spread over its
   range before it is judged (`fitting._restart`);
 - trading pairs (TRADING_PAIRS: blur and relief scale, smoothing and relief scale, index and
@@ -324,6 +325,8 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
     fitted_gain = max([cur.chi2 - f["chi2"] for f in fits if "chi2" in f and f["effect"] not in METHOD_OF],
                       default=0.0)
     lead = max([fitted_gain] + list(screen_of.values()))
+    if not passes(cur.chi2, cur.k, cur.chi2 - lead, cur.k + 1, n):
+        return fits, outgained, screened        # no leader past the bar: nothing is within reach of one
     for lst in (outgained, screened):
         for e in list(lst):
             m = e["effect"]
@@ -720,10 +723,10 @@ def method_check(steps: list["Step"], n: int, method: str) -> dict:
 def bar_words(chi_cur: float, n: int) -> str:
     """The bar a candidate must pass against a current model of misfit `chi_cur` (`passes`), in words."""
     if adequate(chi_cur, n):
-        return (f"BIC gain above {overwhelming_bar(n):.1f}: the current model already reaches the noise within "
+        return (f"gain above {overwhelming_bar(n):.1f}: the current model already reaches the noise within "
                 f"the forward model's stated accuracy, chi2 {chi_cur:.1f} <= {MODEL_ACCURACY_RMS:g}^2 n + "
                 f"{CONSISTENCY_Z:g} sqrt(2 n), so only an overwhelming gain counts")
-    return f"BIC gain above {BIC_MARGIN:g}"
+    return f"gain above {BIC_MARGIN:g} on the QBIC scale (BIC with chi2 divided by the larger model's reduced chi2)"
 
 
 def steps_record(steps: list[Step], n: int) -> tuple[list[dict], str]:
