@@ -37,3 +37,22 @@ def test_two_gaussian_scales_are_two_and_one_is_one():
     assert not one.two_scales and one.qbic_gain < t.qbic_gain / 10, one.statement()
     expo = scale_test(random_relief(192, 2.7e-6, 1.0e-6, 30e-6, kind="exponential", seed=2))
     assert not expo.two_scales, expo.statement()
+
+
+def test_auto_does_not_choose_two_scale_for_an_anisotropic_relief_and_says_why():
+    import warnings
+
+    from relief_bsdf.core.index import ConstantIndex, Material
+    from relief_bsdf.methods import auto
+    from relief_bsdf.methods.request import Request
+    # pitch 0.8 um: the band split separates two lengths (l_L / l_F > 5, l_F resolved), so only the
+    # spectrum test stands between this one-scale relief and two_scale
+    rel = relief_from_spec(RandomFieldSpec(192, 192, 0.8e-6, 1.6e-6, 7.5e-6, anisotropy=0.30 / 0.11), seed=3)
+    req = Request(theta_i_deg=(0.0, 30.0, 60.0), incident_from=("outside", "inside"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        c = auto.choose(rel, Material(inside=ConstantIndex(1.5)), req)
+    assert auto._split_separates({**c.figures, "pitch_m": 0.8e-6})
+    assert c.figures["ts_spectrum_qbic_gain"] < 10 and c.figures["ts_spectrum_two_scales"] == 0.0
+    assert c.method != "two_scale", c.summary
+    assert "second scale in the spectrum" in c.valid["two_scale"][1]
