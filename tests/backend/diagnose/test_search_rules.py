@@ -14,7 +14,7 @@ from relief_bsdf.diagnose.effects import get_effect
 from relief_bsdf.diagnose.fitting import at_null, fit_effect
 from relief_bsdf.diagnose.stepwise import method_check, stepwise, steps_record
 
-from test_stepwise import T_MM, AnalyticForward  # noqa: E402  (tests/backend/diagnose)
+from test_stepwise import AnalyticForward  # noqa: E402  (tests/backend/diagnose)
 
 sw = importlib.import_module("relief_bsdf.diagnose.stepwise")
 fitting = importlib.import_module("relief_bsdf.diagnose.fitting")
