@@ -126,7 +126,7 @@ def search_bounds(forward, effect: Effect) -> dict:
 
 
 def _search(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | None = None,
-            coarse: bool = False) -> dict:
+            coarse: bool = False, start: dict | None = None) -> dict:
     grid, refine = (GRID_TABLES, REFINE_TABLES) if effect.budgeted else (GRID_CHEAP, REFINE_CHEAP)
     if coarse and effect.budgeted:           # a later stepwise step: the costly search is budgeted
         grid, refine = 4, 3
@@ -136,6 +136,7 @@ def _search(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | Non
     held_all = dict(fixed_values or {})
     effects = tuple(fixed) + (effect,)
     values = effect.neutral
+    starts = {k: float(v) for k, v in (start or {}).items() if k in values}
     if len(effect.params) > 1:        # coupled parameters: coarser passes, one more for the first
         grid, refine = max(3, grid - 1), max(2, refine - 2)
     order = list(effect.params) + ([effect.params[0]] if len(effect.params) > 1 else [])
@@ -148,7 +149,10 @@ def _search(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | Non
 
         def cost(x, name=p.name, held=held):
             return forward.evaluate_set(effects, {**held, name: float(x)})[0]
-        values[p.name] = float(_fit_param(cost, p, min(lo, hi), max(lo, hi), grid, refine,
+        x0 = starts.pop(p.name, None)
+        if x0 is not None:
+            x0 = min(max(x0, min(lo, hi)), max(lo, hi))
+        values[p.name] = float(_fit_param(cost, p, min(lo, hi), max(lo, hi), grid, refine, start=x0,
                                           coord=coords.get(p.name), prefetch=_prefetch(forward, effects, held, p)))
     return values
 
@@ -167,34 +171,134 @@ def why_skipped(forward, effect: Effect) -> str | None:
 
 
 def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | None = None,
-               coarse: bool = False) -> dict:
+               coarse: bool = False, start: dict | None = None) -> dict:
     """{effect, parameters, chi2, k, values, model_sigma} or {effect, skipped: reason}.
 
     `fixed`/`fixed_values`: effects already named, held at their values (chi2 and values are then
     those of all of them together, k counts this effect's parameters only).  `coarse`: a later stepwise
     step's conditional fit (the search budgeted, the polish rough: it ranks candidates, the joint polish
-    follows).
+    follows).  `start`: values the search starts from besides the neutral ones (a residual's signature,
+    `stepwise`).  A fit that ends at its null value (`at_null`) is refitted from starts spread over the
+    range (`_restart`) before it is judged; the entry then carries `restart` (the points tried, the best
+    chi^2 among them and the null's chi^2).
     """
     reason = why_skipped(forward, effect)
     if reason:
         return {"effect": effect.name, "skipped": reason}
+    held = dict(fixed_values or {})
+    if effect.forms and not any(k in held for form in effect.forms for k in form):
+        return _best_form(forward, effect, fixed, held, coarse, start)
     effects = tuple(fixed) + (effect,)
     jacobian = None
+    restart = None
     try:
-        values = _search(forward, effect, fixed, fixed_values, coarse) if effect.params else {}
+        values = _search(forward, effect, fixed, fixed_values, coarse, start) if effect.params else {}
         if _polished_fit(effect):
-            names = tuple(p.name for p in effect.params)
-            done, _, jacobian = polish(forward, effects, {**(fixed_values or {}), **values}, free=names,
-                                       rough=coarse)
-            values = {k: done[k] for k in names}
+            values, jacobian = _polish_own(forward, effect, effects, fixed_values, values, coarse)
+        if effect.params and at_null(effect, values) and not _form_acts(effect, fixed_values):
+            values, jac, restart = _restart(forward, effect, effects, fixed_values, values, coarse)
+            jacobian = jac if jac is not None else jacobian
         c, v, s = forward.evaluate_set(effects, {**(fixed_values or {}), **values})
     except InputError as e:
         return {"effect": effect.name, "skipped": str(e)}
     out = {"effect": effect.name, "parameters": {k: float(x) for k, x in values.items()}, "chi2": c,
            "k": effect.k, "values": v, "model_sigma": s}
+    if restart is not None:
+        out["restart"] = restart
+    if start:
+        out["start"] = {k: float(x) for k, x in start.items()}
     if jacobian is not None and not fixed:
         out["jacobian"] = jacobian          # the whole model's: `stepwise` names it without a second polish
     return out
+
+
+def _form_acts(effect: Effect, held: dict | None) -> bool:
+    """Does the effect's form (`Effect.forms`) act by itself at the neutral parameter values (a form other
+    than the first: the noise removal of relief_smoothing)?  Its null value is then not 'no effect'."""
+    return bool(effect.forms) and any(held and k in held and held[k] != v for k, v in effect.forms[0].items())
+
+
+def _best_form(forward, effect: Effect, fixed: tuple, held: dict, coarse: bool, start: dict | None) -> dict:
+    """The effect fitted in each of its forms (`Effect.forms`, held fixed like a named effect's values): the
+    forms have the same parameters, so the information criterion (chi^2 + k ln n) compares their chi^2;
+    the first form (the default: the paper's Gaussian for relief_smoothing) is kept unless another is
+    lower by more than BIC_MARGIN (where the rows do not tell the forms apart, the default stands).  The
+    form's values join `parameters` (held, not fitted: k is the effect's); `forms` records each form's chi^2."""
+    from relief_bsdf.fit.selection import BIC_MARGIN
+    fits = [fit_effect(forward, effect, fixed, {**held, **form}, coarse, start) for form in effect.forms]
+    ok = [(f, form) for f, form in zip(fits, effect.forms) if "chi2" in f]
+    if not ok:
+        return fits[0]
+    best, form = ok[0]
+    for f, fm in ok[1:]:
+        if f["chi2"] < best["chi2"] - BIC_MARGIN:
+            best, form = f, fm
+    best["parameters"] = {**best["parameters"], **{k: float(v) for k, v in form.items()}}
+    best["forms"] = [{**{k: float(v) for k, v in fm.items()}, "chi2": round(float(f["chi2"]), 3)} for f, fm in ok]
+    return best
+
+
+def _polish_own(forward, effect: Effect, effects: tuple, fixed_values: dict | None, values: dict,
+                coarse: bool) -> tuple[dict, np.ndarray | None]:
+    names = tuple(p.name for p in effect.params)
+    done, _, jacobian = polish(forward, effects, {**(fixed_values or {}), **values}, free=names, rough=coarse)
+    return {k: done[k] for k in names}, jacobian
+
+
+RESTART_FRACTIONS = tuple(float(t) for t in np.geomspace(0.01, 0.5, 8))   # 1 % to half the range, x 1.75
+
+
+def _amounts(effect: Effect) -> list[Param]:
+    """The parameters that measure how much of the effect there is: neutral at a bound (0 /mm, alpha 0)."""
+    return [p for p in effect.params if p.neutral in (p.lower, p.upper)]
+
+
+def at_null(effect: Effect, values: dict) -> bool:
+    """Did a fit end where it started, at its null value: every amount parameter (`_amounts`) at its
+    neutral value (an effect without such a parameter, a tilt or a scale, has no null bound)?"""
+    amounts = _amounts(effect)
+    return bool(amounts) and all(abs(values[p.name] - p.neutral) <= 1e-12 * max(1.0, p.upper - p.lower)
+                                 for p in amounts)
+
+
+def _restart(forward, effect: Effect, effects: tuple, fixed_values: dict | None, values: dict,
+             coarse: bool) -> tuple[dict, np.ndarray | None, dict]:
+    """Refit an effect that ended at its null value from starts spread over its range.
+
+    A strongly non-linear effect may gain nothing at the grid's first points and much between them
+    (back-face roughness: the lobe of a Beckmann alpha 0.03 lies between the grid's 0 and 0.125, and
+    the Gauss-Newton steps from the bound alpha = 0 see a zero one-sided slope there).  Starts: every
+    amount parameter at RESTART_FRACTIONS of its range from the neutral bound together (the others at
+    the values found), evaluated together; from the best of them, if it beats the null, the search
+    again (`_search` with that start) and Gauss-Newton steps on the effect's parameters (`polish`).  ({values}, jacobian or None,
+    record {points, fractions, chi2 of each, chi2 at the null})."""
+    held = dict(fixed_values or {})
+    amounts = _amounts(effect)
+    bounds = search_bounds(forward, effect)
+    pts = []
+    for t in RESTART_FRACTIONS:
+        pt = dict(values)
+        for p in amounts:
+            lo, hi = bounds[p.name]
+            end = hi if p.neutral <= lo else lo
+            pt[p.name] = p.neutral + t * (end - p.neutral)
+        pts.append(pt)
+    if hasattr(forward, "prefetch"):
+        forward.prefetch(effects, [{**held, **values}] + [{**held, **pt} for pt in pts])
+    c0 = forward.evaluate_set(effects, {**held, **values})[0]
+    cs = [forward.evaluate_set(effects, {**held, **pt})[0] for pt in pts]
+    rec = {"fractions": list(RESTART_FRACTIONS), "chi2": [round(float(c), 3) for c in cs],
+           "chi2_null": round(float(c0), 3)}
+    j = int(np.argmin(cs)) if cs else 0
+    if not cs or not cs[j] < c0 - 1e-9 * max(1.0, abs(c0)):
+        rec["moved"] = False
+        return values, None, rec
+    best = _search(forward, effect, tuple(effects[:-1]), held, True, pts[j])
+    if forward.evaluate_set(effects, {**held, **best})[0] > cs[j]:
+        best = dict(pts[j])
+    best, jac = _polish_own(forward, effect, effects, held, best, coarse)     # the search's short grids end near it
+    rec["moved"] = True
+    return best, jac, rec
 
 
 def _polished_fit(effect: Effect) -> bool:

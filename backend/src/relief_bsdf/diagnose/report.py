@@ -108,7 +108,8 @@ def _steps_html(result: dict) -> str:
         out.append(f"<p>Baseline (the plate as described): chi2 = {H.fmt(sel['chi2_baseline'])} for "
                    f"{H.fmt(sel.get('n_rows'))} rows. Each step fits every remaining candidate with the named "
                    f"effects held, names the one with the largest gain in BIC = chi2 + k ln n if it passes the "
-                   f"bar, then refits all named effects jointly (the step's chi2 is after that refit).</p>")
+                   f"bar (judged on chi2 divided by the larger model's reduced chi2 while it misses the noise: "
+                   f"QBIC), then refits all named effects jointly (the step's chi2 is after that refit).</p>")
     prev = []
     for k, st in enumerate(steps, 1):
         before = ", ".join(prev) or "the baseline"
@@ -119,8 +120,18 @@ def _steps_html(result: dict) -> str:
                  c["chi2"] if c.get("chi2") is not None else "", c["bic_gain"] if c.get("bic_gain") is not None else "",
                  c.get("reason", "")] for c in st.get("candidates", [])]
         out.append(H.table_html(["candidate", "status", "chi2 (screened: estimate)", "BIC gain", "why"], rows))
+        for c in st.get("correlations") or []:
+            r = c.get("correlation")
+            out.append(f"<p>{H.esc(' and '.join(c['pair']))} trade against each other on these rows (both widen, "
+                       f"narrow or move a lobe): fitted jointly from both starts, correlation of "
+                       f"{H.esc(' and '.join(c['parameters']))} {H.fmt(r) if r is not None else 'not determined'}"
+                       f"{' (the rows hardly tell them apart)' if r is not None and abs(r) > 0.9 else ''}.</p>")
         prev = list(st["model"])
     out.append(f"<p><b>Why the search stopped:</b> {H.esc(result.get('stop') or 'not recorded')}.</p>")
+    check = result.get("method_check")
+    if check:
+        out.append(f"<p><b>The boundary method</b> ({H.esc(check.get('method') or '')}): "
+                   f"{H.esc(check.get('verdict') or '')}.</p>")
     return "".join(out)
 
 

@@ -46,8 +46,8 @@ from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build
 from relief_bsdf.diagnose.mismatch import SHAPE_PHYSICS, attribute, classify, locate, regions
 from relief_bsdf.diagnose.report import shape_against_search
 from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODEL_ACCURACY_RMS, adequate, alternatives,
-                                           consistent_with_noise, first_fits, overwhelming_bar, passes, stepwise,
-                                           steps_record)
+                                           consistent_with_noise, first_fits, method_check, overwhelming_bar, passes,
+                                           stepwise, steps_record)
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import METRIC, metric_of_chi2
 from relief_bsdf.fit.selection import BIC_MARGIN
@@ -199,7 +199,8 @@ def _selection_doc(n: int, steps: list, closed: bool) -> dict:
              "bic_gain": round(s.gain, 3), "dropped": list(s.dropped)} for s in steps if s.added != "stop"]
     return {"criterion": (f"stepwise: add the candidate with the lowest BIC = chi2 + k ln n given the effects named "
                           f"so far, refit all jointly; it is named if it beats the current model by more than "
-                          f"{BIC_MARGIN:g} and the current model has chi2 > {MODEL_ACCURACY_RMS:g}^2 n + "
+                          f"{BIC_MARGIN:g} (chi2 divided by the larger model's reduced chi2 where that exceeds 1: "
+                          f"QBIC) and the current model has chi2 > {MODEL_ACCURACY_RMS:g}^2 n + "
                           f"{CONSISTENCY_Z:g} sqrt(2n) (noise plus the forward model's stated accuracy), or by more "
                           f"than max({BIC_OVERWHELMING:g}, {CONSISTENCY_Z:g} sqrt(2n)) = {overwhelming_bar(n):.1f} "
                           f"whatever its chi2; stop when none passes. The named set must then reach that bound or "
@@ -256,7 +257,7 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
         "effects": effects, "alternatives": alike, "intervals": ivals, "interval_notes": notes,
         "shape": located[1][:3],
         "selection": _selection_doc(n, steps, closed),
-        "steps": record, "stop": stop,
+        "steps": record, "stop": stop, "method_check": method_check(steps, n, ctx.method),
         "forward_model": {"engine": "deterministic", "method": ctx.method, "samples": ctx.samples, "seed": ctx.seed,
                           "rough_face_model": f"boundary tables of the measured relief by method {ctx.method}",
                           "method_reason": ctx.method_reason, "evaluations": forward.evaluations,

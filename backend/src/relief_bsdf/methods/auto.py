@@ -26,8 +26,10 @@ Conditions (each "value < limit" or "value >= limit"):
   scale's g_F <= 0.05): the fine scale as rayleigh-rice, g_F < 0.1 and rms slope < 0.15 (inside
   the propagating band); the large scale as ray: coherent share < 1 %, sigma_L >= lambda / n,
   l_L >= 10 lambda / n, l_L >= 4 pixels, k R_c(L) >= 10; and two scales: l_L >= 5 l_F
-  (SCALE_SEPARATION) with the fine scale resolved, l_F >= 2 pixels (FINE_RESOLVED_PX): a relief
-  with one scale is not a candidate at all, whatever it misses.
+  (SCALE_SEPARATION) with the fine scale resolved, l_F >= 2 pixels (FINE_RESOLVED_PX), and a second
+  scale in the spectrum: the relief's binned periodogram fitted by two anisotropic von Karman scales
+  beats one by QBIC gain > 10 (`methods.scale_count`, the project's one information criterion): a
+  relief with one scale is not a candidate at all, whatever it misses.
 - ray (geometric optics): coherent share < 1 %, sigma >= lambda / n, l >= 10 lambda / n,
   l >= 4 pixels, and k R_c >= 10 on the raw map (facets large on the wavelength scale: an
   exponential-autocorrelation relief has wavelength-sized facets whatever its l).
@@ -62,6 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relief_bsdf.errors import RequestError
+from relief_bsdf.fit.selection import BIC_MARGIN
 from relief_bsdf.methods.options import AutoOptions, KirchhoffOptions, TwoScaleOptions
 from relief_bsdf.surface.stats import relief_stats
 
@@ -140,6 +143,10 @@ def _figures(relief, material, request, ts_opts: TwoScaleOptions | None = None) 
             coh[f"coherent_T_{fr}"] = _coherent_fraction(relief, abs(np.real(n1) - np.real(n2)) * k0)
     from relief_bsdf.methods import two_scale
     ts = {f"ts_{k}": v for k, v in two_scale.figures(relief, material, request, ts_opts or TwoScaleOptions()).items()}
+    ts["pitch_m"] = max(relief.dx_m, relief.dy_m)
+    ts.update(_spectrum_test(relief, ts) if _split_separates(ts) else {"ts_spectrum_qbic_gain": float("nan"),
+                                                                         "ts_spectrum_two_scales": 0.0})
+    ts.pop("pitch_m")
     return {**ts, "rms_height_m": st.rms_height_m, "rms_slope": st.rms_slope, "correlation_length_m": st.correlation_length_m,
             "radius_of_curvature_m": rc, "rayleigh_parameter": (4 * np.pi * st.rms_height_m / lam_n) ** 2,
             "wavelength_nm": lam * 1e9, "n_incident_max": n, "k_rc": 2 * np.pi * rc / lam_n,
@@ -170,6 +177,8 @@ def _conditions(fig) -> dict:
                       ("fine-scale rms slope", fig["ts_fine_rms_slope"], 0.15, "<"),
                       ("scale separation l_L / l_F", fig["ts_large_correlation_length_m"]
                        / max(fig["ts_fine_correlation_length_m"], 1e-300), SCALE_SEPARATION, ">="),
+                      ("second scale in the spectrum: QBIC gain over one scale (scale_count)",
+                       fig.get("ts_spectrum_qbic_gain", float("nan")), BIC_MARGIN, ">="),
                       ("large-scale coherent specular share", fig["ts_large_coherent"], 0.01, "<"),
                       ("large-scale sigma / (lambda/n)", fig["ts_large_rms_m"] / lam_n, 1.0, ">="),
                       ("large-scale l / (lambda/n)", fig["ts_large_correlation_length_m"] / lam_n, 10.0, ">="),
@@ -229,15 +238,33 @@ SCALE_SEPARATION = 5.0        # l_L / l_F at least this: the relief has two scal
 FINE_RESOLVED_PX = 2.0        # l_F at least this many pixels: the fine scale is resolved by the map
 
 
-def _two_scales(fig) -> bool:
-    """Whether the relief is rough at one scale and smooth at another: the large scale's correlation
-    length is at least SCALE_SEPARATION times the fine scale's at the two-scale cut, and the fine
-    scale is resolved by the map (l_F >= FINE_RESOLVED_PX pixels).  A 'fine scale' correlated over
-    less than two samples is the sampling's own floor (the kinks between facets of the triangulated
-    map, the instrument's noise band), not a surface scale whose haze the map describes; the relief
-    is then one scale for the ray tracer, which traces those facets as they are."""
+def _split_separates(fig) -> bool:
+    """The band split's two lengths: l_L >= SCALE_SEPARATION l_F and the fine one resolved (l_F >=
+    FINE_RESOLVED_PX pixels).  A 'fine scale' correlated over less than two samples is the sampling's
+    own floor (the kinks between facets of the triangulated map, the instrument's noise band), not a
+    surface scale whose haze the map describes."""
     resolved = fig["ts_fine_correlation_length_m"] >= FINE_RESOLVED_PX * fig["pitch_m"]
     return resolved and fig["ts_large_correlation_length_m"] >= SCALE_SEPARATION * fig["ts_fine_correlation_length_m"]
+
+
+def _spectrum_test(relief, fig) -> dict:
+    """The one-scale / two-scale test of the relief's own spectrum (`methods.scale_count`), started from the
+    band split's lengths: {ts_spectrum_qbic_gain, ts_spectrum_two_scales (1.0 / 0.0)}."""
+    from relief_bsdf.methods.scale_count import scale_test
+    t = scale_test(relief, (fig["ts_large_correlation_length_m"], fig["ts_fine_correlation_length_m"]))
+    log.debug("auto: %s", t.statement())
+    return {"ts_spectrum_qbic_gain": t.qbic_gain, "ts_spectrum_two_scales": float(t.two_scales)}
+
+
+def _two_scales(fig) -> bool:
+    """Whether the relief is rough at one scale and smooth at another: the band split separates two
+    lengths (`_split_separates`) AND the relief's spectrum holds a second scale: a two-scale spectrum
+    beats the one-scale spectrum of the same relief by the project's information criterion
+    (`methods.scale_count`: QBIC gain > 10 on the binned periodogram, each scale anisotropic, a white
+    noise floor in both).  The split finds a cut in any spectrum, so the tail of ONE scale (an
+    anisotropic Gaussian's, say) is a 'fine scale' to it; the spectrum test says whether the surface
+    has one."""
+    return _split_separates(fig) and fig.get("ts_spectrum_two_scales", 0.0) > 0.5
 
 
 def _rank(fig, feasible_k: bool) -> list:

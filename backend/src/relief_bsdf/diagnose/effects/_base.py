@@ -97,13 +97,21 @@ class ReliefContext:
     def spectral(self) -> bool:
         return len(set(self.wavelengths_nm)) > 1
 
-    def processed_relief(self, height_scale: float, filter_sigma_m: float) -> Relief:
-        """scale_and_filter(relief, s, sigma), memoised so that the plate's table cache sees one object."""
-        key = (round(float(height_scale), 12), round(max(float(filter_sigma_m), 0.0), 15))
-        if key == (1.0, 0.0):
+    def processed_relief(self, height_scale: float, filter_sigma_m: float, noise_removed: bool = False) -> Relief:
+        """scale_and_filter(relief, s, sigma), memoised so that the plate's table cache sees one object;
+        `noise_removed`: of the relief with its measurement noise removed first (`diagnose.noise_removal`:
+        a Wiener filter at the map's own PSD floor)."""
+        key = (round(float(height_scale), 12), round(max(float(filter_sigma_m), 0.0), 15), bool(noise_removed))
+        if key == (1.0, 0.0, False):
             return self.relief
         if key not in self._reliefs:
-            self._reliefs[key] = self.scale_and_filter(self.relief, key[0], key[1])
+            base = self.relief
+            if noise_removed:
+                if "denoised" not in self._reliefs:
+                    from relief_bsdf.diagnose.noise_removal import remove_noise
+                    self._reliefs["denoised"] = remove_noise(self.relief)
+                base = self._reliefs["denoised"]
+            self._reliefs[key] = (base if key[:2] == (1.0, 0.0) else self.scale_and_filter(base, key[0], key[1]))
         return self._reliefs[key]
 
 
@@ -128,6 +136,8 @@ class Effect:
     bracket: Callable[[ReliefContext, Any], dict] | None = None
     face: str = ""
     coordinate: Callable[[ReliefContext], dict] | None = None
+    forms: tuple = ()                 # alternative forms of the one effect: ({key: value}, ...) held fixed
+                                      # in its fit, the one with the lower chi^2 kept (`fitting.fit_effect`)
 
     @property
     def neutral(self) -> dict:
@@ -145,6 +155,11 @@ class Effect:
         return len(self.params)
 
 
+# relief_smoothing's form (`Effect.forms`): 1 = the map's measurement noise removed (Wiener filter at its PSD
+# floor, `diagnose.noise_removal`) before the Gaussian of filter_sigma_um; 0 = the Gaussian alone
+NOISE_FORM = "noise_removed"
+
+
 def compatible(effects) -> bool:
     """Can these effects act together on one plate?  At most one face swap, and a face swap never
     with a relief operation (module docstring, `face`)."""
@@ -159,7 +174,8 @@ def apply_all(experiment: Any, context: ReliefContext, effects, values: dict) ->
     Non-face effects are applied one after the other (each changes its own part of the
     description); the relief operations are merged: heights scaled by `height_scale` and
     low-passed by `filter_sigma_um` in ONE `processed_relief(s, sigma)` (their neutral values
-    when the effect is absent), then the face is rebuilt once with the baseline's method.
+    when the effect is absent; of the map with its noise removed first when relief_smoothing's
+    form says so, NOISE_FORM), then the face is rebuilt once with the baseline's method.
     """
     ops = [e for e in effects if e.face == "relief"]
     for e in effects:
@@ -167,8 +183,11 @@ def apply_all(experiment: Any, context: ReliefContext, effects, values: dict) ->
             experiment = e.apply(experiment, context, values)
     if ops:
         s = float(values.get("height_scale", 1.0)) if any(e.name == "relief_scale" for e in ops) else 1.0
-        g_um = float(values.get("filter_sigma_um", 0.0)) if any(e.name == "relief_smoothing" for e in ops) else 0.0
-        if (s, max(g_um, 0.0)) != (1.0, 0.0):
-            experiment = context.with_relief_face(experiment, context.processed_relief(s, max(g_um, 0.0) * 1e-6),
+        smooth = any(e.name == "relief_smoothing" for e in ops)
+        g_um = float(values.get("filter_sigma_um", 0.0)) if smooth else 0.0
+        noise = smooth and float(values.get(NOISE_FORM, 0.0)) > 0.5
+        if (s, max(g_um, 0.0), noise) != (1.0, 0.0, False):
+            experiment = context.with_relief_face(experiment,
+                                                  context.processed_relief(s, max(g_um, 0.0) * 1e-6, noise),
                                                   context.method)
     return experiment

@@ -1,9 +1,17 @@
 """relief_smoothing: the real surface is smoother than measured (noise, tip artefacts).
 
-Physics: h -> G_sigma * h, a Gaussian low-pass of 1-sigma sigma, by the surface's one
-scale-and-filter operation (the same the fit optimises); the front face's tables are
-re-derived with the baseline's method.
-Validity: that of the baseline boundary method; sigma well below the tile size.
+Physics: two forms of the one effect (`Effect.forms`, the one with the lower chi^2 kept: both have
+the one parameter filter_sigma_um, so the information criterion compares their chi^2):
+- the paper's: h -> G_sigma * h, a Gaussian low-pass of 1-sigma sigma, by the surface's one
+  scale-and-filter operation (the same the fit optimises): the map's excess is a smooth blur;
+- noise removal (`noise_removed` = 1): the map is the true relief plus white measurement noise;
+  the noise is removed by the Wiener filter at the map's own PSD floor (`diagnose.noise_removal`,
+  the floor `relief info` estimates), then the Gaussian of sigma (0 when the floor is all there
+  is).  It keeps the features whose spectrum stands above the floor (a dot's edge) where the
+  Gaussian blunts them.
+The front face's tables are re-derived with the baseline's method.
+Validity: that of the baseline boundary method; sigma well below the tile size; the noise form
+where the map's PSD flattens to a white floor near its Nyquist frequency.
 
 Search coordinate: the rms slope the filter leaves, as a fraction of the relief's own (`_coordinate`):
 in geometric optics the lobes follow the slopes, which fall steeply over a narrow range of sigma
@@ -13,7 +21,7 @@ fraction it is as wide as relief_scale's (which scales the slopes linearly).
 """
 import numpy as np
 
-from relief_bsdf.diagnose.effects._base import Effect, Param
+from relief_bsdf.diagnose.effects._base import NOISE_FORM, Effect, Param
 
 COORDINATE_POINTS = 65
 
@@ -33,10 +41,19 @@ def _coordinate(context):
 
 
 def _apply(experiment, context, values):
-    g_m = float(values["filter_sigma_um"]) * 1e-6
-    if g_m <= 0.0:
+    g_m = max(float(values["filter_sigma_um"]), 0.0) * 1e-6
+    noise = float(values.get(NOISE_FORM, 0.0)) > 0.5
+    if g_m <= 0.0 and not noise:
         return experiment
-    return context.with_relief_face(experiment, context.processed_relief(1.0, g_m), context.method)
+    return context.with_relief_face(experiment, context.processed_relief(1.0, g_m, noise), context.method)
+
+
+def _explain(v):
+    g = float(v["filter_sigma_um"])
+    if float(v.get(NOISE_FORM, 0.0)) > 0.5:
+        return ("the map's measurement noise removed (Wiener filter at its PSD floor)"
+                + (f", then smoothed by a Gaussian of {g:.2f} um" if g > 0 else ""))
+    return f"the relief smoothed by a Gaussian of {g:.2f} um"
 
 
 PARAM = Param("filter_sigma_um", 0.0, 8.0, 0.0, "um")
@@ -47,7 +64,8 @@ EFFECT = Effect(
     physics="the real surface is smoother than measured (measurement noise / tip artefacts)",
     validity="that of the baseline boundary method; filter much smaller than the tile",
     apply=_apply,
-    explain=lambda v: f"the relief smoothed by a Gaussian of {v['filter_sigma_um']:.2f} um",
+    explain=_explain,
     face="relief",
     coordinate=_coordinate,
+    forms=({NOISE_FORM: 0.0}, {NOISE_FORM: 1.0}),
 )
