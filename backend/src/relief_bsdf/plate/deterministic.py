@@ -102,6 +102,7 @@ from relief_bsdf.core.index import ConstantIndex, IndexModel, Material
 from relief_bsdf.plate.description import Bulk, Instrument
 from relief_bsdf.plate.detector import beam_offsets, centre_values, grid_reading, offset_directions
 from relief_bsdf.plate.grid import INSIDE_INTERPOLATIONS
+from relief_bsdf.plate.memory import current_memory, deep_nbytes
 from relief_bsdf.parallel.blas import blas_single_thread   # the plate's matrices are small (N ~ 90): one thread
 
 _DEPOL = np.diag([1.0, 0.0, 0.0, 0.0])
@@ -630,7 +631,6 @@ def _slab_system(m: "PlateModel", theta_edges: np.ndarray, A: int, Kb: np.ndarra
     Without scattering Rv = 0, Tv = diag(exp(-a t / mu)) and this is the diagonal loop.
     """
     from relief_bsdf.plate.slab import slab_operators
-    from relief_bsdf.plate.memory import current_memory
     key = ("slab", tuple(np.round(theta_edges, 9)), int(A), m.thickness_m, m.absorption_per_m, m.scatter_per_m, m.hg_g)
     sl = current_memory().get(key, lambda: slab_operators(theta_edges, A, m.thickness_m, m.absorption_per_m,
                                                           m.scatter_per_m, m.hg_g), "slab")
@@ -803,13 +803,14 @@ class PlateSolver:
         """Bytes this solver holds of its own (its operators, their factors, the fields kept per wavelength;
         `plate.memory`): its tables count here only where the memory owner does not hold them itself, and
         the half-turned solver is an entry of its own."""
-        from relief_bsdf.plate.memory import current_memory, deep_nbytes
         memory = current_memory()
         seen: set = set()
+        tables = [t for t in (self.inside, self.outside, self.back, self.inside_sectors) if t is not None]
+        for t in tables:                 # the owner's tables (and the views of them the operators keep) count there
+            if memory.key_of(t) is not None:
+                deep_nbytes(t, seen)
         own = deep_nbytes((self._ops, self._tops, self._twins), seen)
-        tables = [t for t in (self.inside, self.outside, self.back, self.inside_sectors)
-                  if t is not None and memory.key_of(t) is None]
-        return own + deep_nbytes(tables, seen)
+        return own + deep_nbytes([t for t in tables if memory.key_of(t) is None], seen)
 
     # -- per wavelength operators
     def _table_ops(self, wl: float) -> dict:
@@ -978,9 +979,11 @@ class PlateSolver:
         `_table_ops`).  Each loop difference is written straight into its slice of the stacked single
         precision array (`_SectorKernels.loop`): no (M, N c, N c) complex copy per sector is kept."""
         t = self.inside_sectors
+        if isinstance(t, SectorsHeader):
+            raise RuntimeError(f"the inside sector table was dropped before the kernels at {wl:g} nm were made")
         ps = np.asarray(t.phi_i_deg, float)
         M, nc = Kh.shape[2], Kh.shape[0] * c
-        loop = np.empty((M, 2 * nc, ps.size * nc), np.float32)
+        loop = np.empty((M, 2 * nc, ps.size * nc), SECTOR_LOOP_DTYPE)
         exits = []
         for ip, p in enumerate(ps):
             v = _TableView(_phi_slice(t, ip), wl, self.mueller, "inside sector table", moving)
@@ -989,7 +992,7 @@ class PlateSolver:
             K -= Kh
             _blocks(K.real, c, out=loop[:, :nc, ip * nc:(ip + 1) * nc])
             _blocks(K.imag, c, out=loop[:, nc:, ip * nc:(ip + 1) * nc])
-            exits.append(self._exit_kernel(v, c) - GhT)
+            exits.append((self._exit_kernel(v, c) - GhT).astype(SECTOR_EXIT_DTYPE))
         return _SectorKernels(ps, loop, tuple(exits))
 
     def _sector_cells(self, sk: "_SectorKernels") -> np.ndarray:
@@ -1309,39 +1312,77 @@ class PlateSolver:
         return out_rough, out_flat
 
 
+SECTOR_LOOP_DTYPE = np.float32      # the sector loop's kernel differences (`_SectorKernels`: precision argument)
+SECTOR_EXIT_DTYPE = np.complex64    # the sector exits' kernel differences
+
+
 @dataclass(frozen=True)
 class _SectorKernels:
     """The inside sector tables' kernels minus the 0-deg table's (`PlateSolver._sector_kernels`).
 
-    `loop` (M, 2 N c, K N c) float32: per azimuthal mode the K loop-kernel differences dK_k side by side,
-    their real parts over their imaginary parts, so that sum_k dK_k Y_k is ONE real product per mode
+    `loop` (M, 2 N c, K N c) SECTOR_LOOP_DTYPE: per azimuthal mode the K loop-kernel differences dK_k side by
+    side, their real parts over their imaginary parts, so that sum_k dK_k Y_k is ONE real product per mode
     (`apply`): the loop's GMRES applies it at every iteration, and at a few right-hand sides a complex
     product per sector is bound by reading the kernels (twelve sectors of (M, N c, N c) are 0.4 GB
-    per wavelength); single precision (the differences' part of the rows to ~1e-7, far below any
-    table's noise).  `exits`: each sector's exit kernel minus the 0-deg one, (M, N c, O)."""
+    per wavelength).  `exits` (M, N c, O) SECTOR_EXIT_DTYPE: each sector's exit kernel minus the 0-deg one.
+
+    Precision (why single precision is enough).  The differences are made in double precision and then
+    rounded once to single (relative rounding 2^-24 = 6e-8 of each element); every product with them is
+    taken in double precision (`apply`'s sums in single, then promoted; `_rough_exit` promotes the exits).
+    They carry only the part of the field that differs from sector to sector, a fraction of the light
+    inside the plate, so the rows change by at most ~1e-7 of their value (GMRES solves to 1e-7 relative
+    anyway), while the tables they come from carry the Monte-Carlo noise of their rays, 1e-3 to 1e-1 per
+    cell, and a recording's noise is ~1e-2: the rounding is five orders of magnitude below what the rows
+    can tell.  Measured on an anisotropic relief traced by rays (tests/backend/plate/test_sector_precision.py):
+    the simulated rows move by under 1e-6 of their largest value against double-precision kernels, asserted
+    < 1e-4.  The sums that are not differences (the circulant loop's system and its LU factors, the 0-deg
+    kernels) stay double: they carry the whole field."""
 
     azimuths_deg: np.ndarray
     loop: np.ndarray
     exits: tuple
 
     def weighted(self, w: np.ndarray) -> np.ndarray:
-        """sum_k w_k dK_k, (M, N c, N c) complex (summed in the kernels' single precision)."""
+        """sum_k w_k dK_k, (M, N c, N c) complex in the kernels' precision (summed in it; promoted where used)."""
         M, two_nc, knc = self.loop.shape
         nc = two_nc // 2
-        r = (self.loop.reshape(M * two_nc, knc // nc, nc).transpose(0, 2, 1) @ np.asarray(w, np.float32))
+        r = (self.loop.reshape(M * two_nc, knc // nc, nc).transpose(0, 2, 1) @ np.asarray(w, self.loop.dtype))
         r = r.reshape(M, two_nc, nc)
-        return r[:, :nc].astype(float) + 1j * r[:, nc:]
+        out = np.empty((M, nc, nc), np.result_type(self.loop.dtype, np.complex64))
+        out.real, out.imag = r[:, :nc], r[:, nc:]
+        return out
 
     def apply(self, Y: np.ndarray) -> np.ndarray:
         """sum_k dK_k Y_k for Y (K, M, N c, q) complex: (M, N c, q) complex.  With dK = R + i I and
         Y = a + i b: [R; I] [a b] = [[R a, R b], [I a, I b]], so Re = R a - I b and Im = R b + I a."""
         K, M, nc, q = Y.shape
-        ab = np.empty((M, K * nc, 2 * q), np.float32)
+        ab = np.empty((M, K * nc, 2 * q), self.loop.dtype)
         Yt = np.moveaxis(Y, 0, 1).reshape(M, K * nc, q)
         ab[..., :q] = Yt.real
         ab[..., q:] = Yt.imag
         P = self.loop @ ab                                                                  # (M, 2 N c, 2 q)
         return (P[:, :nc, :q] - P[:, nc:, q:]).astype(float) + 1j * (P[:, :nc, q:] + P[:, nc:, :q])
+
+
+@dataclass(frozen=True)
+class SectorsHeader:
+    """What a solver keeps of its inside sector table once the table's kernels exist for every wavelength it
+    solves (`drop_sector_table`): the sector centres, the table's metadata and which of its wavelengths
+    carry the same numbers (`same_at`, for `PlateSolver._twin_wavelength`); no cells."""
+
+    phi_i_deg: np.ndarray
+    wavelength_nm: np.ndarray
+    metadata: dict
+    same: frozenset            # (a_nm, b_nm) pairs whose rows are equal
+
+    @staticmethod
+    def of(table: BsdfTable) -> "SectorsHeader":
+        w = [float(x) for x in np.asarray(table.wavelength_nm, float)]
+        return SectorsHeader(np.asarray(table.phi_i_deg, float).copy(), np.asarray(w), dict(table.metadata),
+                             frozenset((a, b) for a in w for b in w if table.same_at(a, b)))
+
+    def same_at(self, a_nm: float, b_nm: float) -> bool:
+        return (float(a_nm), float(b_nm)) in self.same
 
 
 @dataclass
@@ -1653,20 +1694,33 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None, keep:
     the flat face's Fresnel tables on the front.  A flat back face uses the engine's exact
     cell-averaged Fresnel (no table).  `keep` False: a new solver is not kept for reuse
     (`_reused_solver`; one-off tables such as the model sigma's perturbed draws).
-    """
+
+    Before any table is derived, a held solver made for the same tables is looked up by what determines
+    those tables (`request_key`: the faces' content, material, grid, wavelengths, incidences): a hit
+    derives, resamples and even holds no table (`held_for_request`; its sector table may be gone,
+    `drop_sector_table`)."""
     p = experiment.plate
     mat = p.material
     traced = front_traces_beam(experiment, rows, grid)
-    wl, ti = table_incidences(experiment, rows, traced)
+    memory = current_memory()
+    request = request_key(experiment, rows, grid, traced) if keep else None
     front, back = p.front, p.back
-    if front.is_flat and not back.is_flat:
+    relief_on_back = front.is_flat and not back.is_flat
+    model = model_of(experiment, grid, "back" if relief_on_back else "front", traced)
+    if request is not None:
+        held = held_for_request(memory, request, model)
+        if held is not None:
+            return held
+    wl, ti = table_incidences(experiment, rows, traced)
+    if relief_on_back:
         _, b_in = back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)
-        return _reused_solver(model_of(experiment, grid, "back"), b_in, None, None, keep=keep)
+        solver = _reused_solver(model, b_in, None, None, keep=keep)
+        _note_request(memory, request, solver, None)
+        return solver
     f_out, f_in = front_tables(experiment, grid, wl, ti, traced, progress)
     b_in = None if back.is_flat else back.tables(mat, grid, wl, ti, need_outside=False, progress=progress)[1]
     from relief_bsdf.plate.faces import inside_sectors
     sectors = inside_sectors(front, mat, grid, wl, ti, progress) if b_in is None else None
-    model = model_of(experiment, grid, "front", traced)
     solver = _reused_solver(model, f_in, f_out, b_in, sectors, keep)
     solver.half_turn = None
     t_out = half_turn_table(experiment, rows, grid, traced, progress)
@@ -1674,7 +1728,133 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None, keep:
         half = _reused_solver(model, f_in, t_out, b_in, sectors, keep)
         half.half_turn = None
         solver.half_turn = half
+    _note_request(memory, request, solver, solver.half_turn)
     return solver
+
+
+def _face_token(face: Any) -> tuple | None:
+    """What determines a face's tables, without deriving them (None: a face this does not know)."""
+    from relief_bsdf.plate.faces import FlatFace, MicrofacetFace, ReliefFace, TableFace
+    if isinstance(face, FlatFace):
+        return ("flat",)
+    if isinstance(face, ReliefFace):
+        return face.cache_key()
+    if isinstance(face, MicrofacetFace):
+        return ("microfacet", float(face.alpha), face.distribution, int(face.samples))
+    if isinstance(face, TableFace):     # the tables themselves: a held solver holds them, so their ids stay theirs
+        return ("table faces", id(face.inside), id(face.outside), id(face.half_turned))
+    return None
+
+
+def request_key(experiment: Any, rows: Any, grid: Any, traced: bool) -> tuple | None:
+    """Everything that determines the tables `solver_of` places for these rows (faces' content, material,
+    grid, wavelengths, the outside incidences of both half-turns, the beam traced into the outside table),
+    computed without deriving a table; None where a face is of a kind this does not know."""
+    from relief_bsdf.plate.faces import material_key
+    p = experiment.plate
+    faces = (_face_token(p.front), _face_token(p.back))
+    if None in faces:
+        return None
+    wl, t_all, p_all = sample_incidences(experiment, rows, traced)
+    far = tuple(float(t) for t in np.unique(t_all[far_side(t_all, p_all)]))
+    beam = float(experiment.instrument.beam_divergence_deg) if traced else 0.0
+    return ("request",) + faces + (material_key(p.material), repr(grid), tuple(float(w) for w in wl),
+                                   tuple(float(t) for t in np.unique(t_all)), far, beam)
+
+
+def _note_request(memory: Any, request: tuple | None, solver: PlateSolver, half: PlateSolver | None) -> None:
+    """Mark the held solver (and its half-turned one) as the answer to `request` (`held_for_request`)."""
+    key = getattr(solver, "memory_key", None)
+    held = memory.peek(key) if request is not None and key is not None else None
+    if held is None:
+        return
+    half_key = getattr(half, "memory_key", None) if half is not None else None
+    if half is not None and half_key is None:
+        return
+    held.requests = {**getattr(held, "requests", {}), request: half_key}
+
+
+def held_for_request(memory: Any, request: tuple, model: PlateModel) -> PlateSolver | None:
+    """A solver for `model` on the tables of `request`, from a held solver made for that request (the same
+    plate: a copy carrying the new instrument; another bulk: the tables' part shared, `_reused_solver`),
+    or None.  The tables' keys count as used (`ForwardMemory.note_used`), as if they had been asked for."""
+    plate = _plate_key(model)
+    found = [(key, held, getattr(held, "requests", {})[request]) for key, held in memory.entries("solver")
+             if request in getattr(held, "requests", {})]
+    for exact in (True, False):              # the same plate first, then another bulk (as `_reused_solver`)
+        for key, held, half_key in reversed(found):
+            main = _answer(memory, key, held, half_key, model, plate, exact)
+            if main is not None:
+                _note_request(memory, request, main, main.half_turn)
+                return main
+    return None
+
+
+def _answer(memory: Any, key: tuple, held: PlateSolver, half_key: tuple | None, model: PlateModel, plate: tuple,
+            exact: bool) -> PlateSolver | None:
+    """`held_for_request`'s solver from one held solver and its half-turned one, or None."""
+    if (key[2] == plate) != exact:
+        return None
+    half = None
+    if half_key is not None:
+        half = memory.peek(half_key)
+        if half is None or (half_key[2] == plate) != exact:
+            return None
+    main = _variant(memory, key, held, model, plate)
+    if main is None:
+        return None
+    main.half_turn = None
+    if half is not None:
+        half = _variant(memory, half_key, half, model, plate)
+        if half is None:
+            return None
+        half.half_turn = None
+        main.half_turn = half
+        memory.note_used([t for t in half_key[1] if t is not None and t[0] != "object"])
+    memory.note_used([t for t in key[1] if t is not None and t[0] != "object"])
+    return main
+
+
+def _variant(memory: Any, key: tuple, held: PlateSolver, model: PlateModel, plate: tuple) -> PlateSolver | None:
+    """The held solver `held` (under `key` = ("solver", tokens, plate)) for `model`: a copy when the plate is
+    the same, a kept copy sharing the tables' part when only the bulk differs, else None."""
+    if key[2] == plate:
+        memory.touch(key)
+        new = copy.copy(held)
+        new.model = model
+        return new
+    if tuple(kv for kv in key[2] if kv[0] not in _BULK_FIELDS) == tuple(kv for kv in plate if kv[0] not in _BULK_FIELDS):
+        new = copy.copy(held)
+        new.model, new._ops = model, {}
+        return _kept(memory, key[1], plate, new)
+    return None
+
+
+def drop_sector_table(solver: PlateSolver) -> None:
+    """Once a solver's sector kernels exist for the wavelengths it solved, its inside sector table (the
+    largest table of an evaluation, as large as the kernels) is let go: the solver and the held solver it
+    was copied from keep a `SectorsHeader`, the memory owner discards the table and adds what it cost
+    to the held solver's cost (evicting that solver now costs the table too).  Later solvers on the same
+    tables come from `held_for_request` without it; one that needs it again derives it again."""
+    t = solver.inside_sectors
+    if t is None or isinstance(t, SectorsHeader):
+        return
+    memory = current_memory()
+    header = SectorsHeader.of(t)
+    table_key = memory.key_of(t)
+    cost = memory.cost_of(table_key) if table_key is not None else 0.0
+    for s in (solver, solver.half_turn):
+        if s is None:
+            continue
+        key = getattr(s, "memory_key", None)
+        for obj in (s, memory.peek(key) if key is not None else None):
+            if obj is not None and obj.inside_sectors is t:
+                obj.inside_sectors = header
+        if key is not None and cost:
+            memory.refresh(key, cost)
+            cost = 0.0
+    if table_key is not None:
+        memory.discard(table_key)
 
 
 def half_turn_table(experiment: Any, rows: Any, grid: Any, traced: bool, progress: Any = None) -> BsdfTable | None:
@@ -1746,9 +1926,8 @@ def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | No
     shares the loop's operators (`PlateSolver.with_outside`).  The numbers are always those of a fresh
     solver.  A new solver is held by the memory owner (`plate.memory`, kind "solver") unless `keep` is
     False; `run` measures it again once it has solved."""
-    from relief_bsdf.plate.memory import current_memory
     memory = current_memory()
-    plate = tuple((f, getattr(model, f)) for f in PlateModel.__dataclass_fields__ if f not in _INSTRUMENT_FIELDS)
+    plate = _plate_key(model)
     tokens = tuple(_table_token(memory, t) for t in (inside, outside, back, sectors))
     held = [(k[1], k[2], v) for k, v in memory.entries("solver")]          # (tokens, plate, solver), oldest first
     for t, key, solver in reversed(held):
@@ -1756,18 +1935,30 @@ def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | No
             memory.touch(("solver", t, key))
             new = copy.copy(solver)          # shares the operators (solver._ops), carries the new instrument
             new.model = model
-            return new
+            return _with_sectors(new, sectors)
     tabs = tuple((f, getattr(model, f)) for f, _ in plate if f not in _BULK_FIELDS)
     for t, key, solver in reversed(held):     # the same tables, another bulk (an absorption)
         if t == tokens and tuple(kv for kv in key if kv[0] not in _BULK_FIELDS) == tabs:
             new = copy.copy(solver)
             new.model, new._ops = model, {}        # the bulk's part anew, the tables' part (solver._tops) shared
-            return _kept(memory, tokens, plate, new, keep)
+            return _kept(memory, tokens, plate, _with_sectors(new, sectors), keep)
     for t, key, solver in reversed(held):     # same loop tables, another outside table (a tilt)
         if (key == plate and t[0] == tokens[0] and t[2] == tokens[2] and t[3] == tokens[3] and outside is not None
                 and t[1] is not None and outside.is_polarized == solver.outside.is_polarized):
-            return _kept(memory, tokens, plate, solver.with_outside(model, outside), keep)
+            return _kept(memory, tokens, plate, _with_sectors(solver.with_outside(model, outside), sectors), keep)
     return _kept(memory, tokens, plate, PlateSolver(model, inside, outside, back=back, inside_sectors=sectors), keep)
+
+
+def _plate_key(model: PlateModel) -> tuple:
+    """The fields of a model that a solver's operators depend on (all but the instrument's)."""
+    return tuple((f, getattr(model, f)) for f in PlateModel.__dataclass_fields__ if f not in _INSTRUMENT_FIELDS)
+
+
+def _with_sectors(solver: PlateSolver, sectors: BsdfTable | None) -> PlateSolver:
+    """`solver` with the sector table it was asked for (a held solver may keep only its `SectorsHeader`)."""
+    if sectors is not None and isinstance(solver.inside_sectors, SectorsHeader):
+        solver.inside_sectors = sectors
+    return solver
 
 
 def _kept(memory: Any, tokens: tuple, plate: tuple, solver: PlateSolver, keep: bool = True) -> PlateSolver:
@@ -1781,7 +1972,6 @@ def _kept(memory: Any, tokens: tuple, plate: tuple, solver: PlateSolver, keep: b
 def refresh_solver(solver: PlateSolver, cost_s: float = 0.0) -> None:
     """Measure a held solver again after it solved (its operators are made lazily), add what the solve
     cost, and evict to the budget."""
-    from relief_bsdf.plate.memory import current_memory
     key = getattr(solver, "memory_key", None)
     if key is not None:
         current_memory().refresh(key, cost_s)
@@ -1796,6 +1986,8 @@ def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str 
     solver = solver_of(experiment, rows, grid, progress, keep_solver)
     t0 = time.perf_counter()
     vals = simulate_rows(solver.model, solver.inside, solver.outside, rows, solver=solver, where=where)
+    if keep_solver:                          # the kernels exist: the sector table goes before the solver is measured
+        drop_sector_table(solver)
     for s in (solver, solver.half_turn):
         if s is not None:
             refresh_solver(s, time.perf_counter() - t0)

@@ -112,7 +112,8 @@ def beam_in_table(table: BsdfTable | None) -> float:
     return float(table.metadata.get("request", {}).get("options", {}).get("beam_divergence_deg", 0.0) or 0.0)
 
 
-def _material_key(material: Material) -> str:
+def material_key(material: Material) -> str:
+    """The material's part of a table's key (its indices as described)."""
     return json.dumps(material.describe(), sort_keys=True, default=str)
 
 
@@ -312,7 +313,7 @@ def _sample_from_tables(out_t: BsdfTable | None, in_t: BsdfTable, d: np.ndarray,
 
 def _table_args_key(material: Material, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any,
                     need_outside: bool) -> tuple:
-    return (_material_key(material), _grid_key(grid), tuple(float(w) for w in np.unique(wavelengths_nm)),
+    return (material_key(material), _grid_key(grid), tuple(float(w) for w in np.unique(wavelengths_nm)),
             tuple(float(t) for t in np.unique(theta_i_outside_deg)), bool(need_outside))
 
 
@@ -328,7 +329,7 @@ def _derive(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths
     incidence itself, plate.deterministic).
     """
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
-    base = (face.cache_key(), _material_key(material), _grid_key(grid), wl)
+    base = (face.cache_key(), material_key(material), _grid_key(grid), wl)
     out = (_derive_outside(face, material, grid, wl, theta_i_outside_deg, progress, beam_divergence_deg)
            if need_outside else None)
     f_in = inside_face(face, material, grid, wl, progress)
@@ -361,7 +362,7 @@ def _derive_outside(face: "ReliefFace", material: Material, grid: TableGrid, wav
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
     th = tuple(float(t) for t in np.unique(np.asarray(theta_i_outside_deg, float)))
     beam = float(beam_divergence_deg) if face.method == "ray" else 0.0
-    key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "outside", th)
+    key = (face.cache_key(), material_key(material), _grid_key(grid), wl, "outside", th)
     return current_memory().get(key + (("beam", beam) if beam else ()),
                            lambda: _reconstruct_side(face, material, grid, wl, th, "outside", progress, beam))
 
@@ -459,7 +460,7 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
     face = replace(face, samples=max(int(face.samples * rays / len(azimuths)), 1),
                    options={**face.options, "phi_i_spread_deg": 0.5 * step})
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
-    key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, SECTORS_KEY, azimuths)
+    key = (face.cache_key(), material_key(material), _grid_key(grid), wl, SECTORS_KEY, azimuths)
     return current_memory().get(key, lambda: _reconstruct_side(face, material, grid, wl, grid.inside_incidences_deg(),
                                                           "inside", progress, phi_i_deg=azimuths))
 
@@ -503,7 +504,7 @@ def azimuth_dependent(face: "ReliefFace", material: Material, grid: TableGrid, w
     the sectors are the better physics everywhere, the gate decides only where they are worth their
     cost).  Same verdicts at 20k and 200k rays.  Cost: two inside incidences at the inside tables' rays."""
     wl = (float(np.median(np.asarray(wavelengths_nm, float))),)
-    key = (face.cache_key(), _material_key(material), _grid_key(grid), wl, "azimuth_probe", PROBE_THETA_DEG,
+    key = (face.cache_key(), material_key(material), _grid_key(grid), wl, "azimuth_probe", PROBE_THETA_DEG,
            PROBE_AZIMUTH_DEG)
     t = current_memory().get(key, lambda: _reconstruct_side(face, material, grid, wl, (PROBE_THETA_DEG,), "inside",
                                                        progress, phi_i_deg=(0.0, PROBE_AZIMUTH_DEG)))

@@ -215,6 +215,22 @@ class ForwardMemory:
                     return k
             return None
 
+    def cost_of(self, key: tuple) -> float:
+        """The seconds the entry under `key` took to make (0 when not held)."""
+        with self._lock:
+            e = self._d.get(key)
+            return 0.0 if e is None else e.cost_s
+
+    def note_used(self, keys: Any) -> None:
+        """Count `keys` as asked for (`recording` blocks see them; held ones are touched) without a `get`:
+        a value made from them was found held (`plate.deterministic.held_for_request`)."""
+        with self._lock:
+            for k in keys:
+                for used in self._recorders:
+                    used.add(k)
+                if k in self._d:
+                    self._use(k, self._d[k])
+
     def touch(self, key: tuple) -> None:
         with self._lock:
             e = self._d.get(key)
