@@ -93,7 +93,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from relief_bsdf.bsdf.table import ROW_ARRAYS, BsdfTable
+from relief_bsdf.bsdf.table import ROW_ARRAYS, BsdfTable, interpolation_matrix, linear_weights
 from relief_bsdf.core.frames import projected_solid_angle
 from relief_bsdf.errors import InputError
 from relief_bsdf.core.frames import rot_y
@@ -247,49 +247,19 @@ def check_rows(model: PlateModel, rows: Any, where: str = "recording") -> None:
 # ---------------------------------------------------------------- interpolation helpers
 
 def _lin_weights(grid: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(i0, i1, f): x (any shape, clamped at the ends) lies between grid[i0] and grid[i1 = i0 + 1] at the
-    fraction f, i.e. linear interpolation weights 1 - f and f (a grid of two points at least)."""
-    grid = np.asarray(grid, float)
-    xc = np.clip(np.asarray(x, float), grid[0], grid[-1])
-    i1 = np.clip(np.searchsorted(grid, xc, side="right"), 1, grid.size - 1)
-    i0 = i1 - 1
-    return i0, i1, np.clip((xc - grid[i0]) / (grid[i1] - grid[i0]), 0.0, 1.0)
+    """(i0, i1, f): x (any shape, clamped at the ends) between grid[i0] and grid[i1] at the fraction f
+    (`bsdf.table.linear_weights`, the one table interpolation)."""
+    return linear_weights(np.asarray(grid, float), np.asarray(x, float))
 
 
 def _lin_matrix(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
     """(len(x), len(grid)) linear interpolation weights, clamped at the ends."""
-    grid = np.asarray(grid, float)
-    x = np.atleast_1d(np.asarray(x, float))
-    W = np.zeros((x.size, grid.size))
-    if grid.size == 1:
-        W[:, 0] = 1.0
-        return W
-    i0, i1, f = _lin_weights(grid, x)
-    r = np.arange(x.size)
-    W[r, i0] += 1.0 - f
-    W[r, i1] += f
-    return W
+    return interpolation_matrix(grid, x)
 
 
 def _periodic_matrix(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Like `_lin_matrix` on a 360-degree periodic axis."""
-    grid = np.asarray(grid, float)
-    x = np.atleast_1d(np.asarray(x, float))
-    n = grid.size
-    W = np.zeros((x.size, n))
-    if n == 1:
-        W[:, 0] = 1.0
-        return W
-    g0 = grid[0]
-    xr = np.mod(x - g0, 360.0) + g0
-    ext = np.concatenate([grid, [g0 + 360.0]])
-    i1 = np.clip(np.searchsorted(ext, xr, side="right"), 1, n)
-    i0 = i1 - 1
-    f = np.clip((xr - ext[i0]) / (ext[i1] - ext[i0]), 0.0, 1.0)
-    r = np.arange(x.size)
-    np.add.at(W, (r, i0 % n), 1.0 - f)
-    np.add.at(W, (r, i1 % n), f)
-    return W
+    return interpolation_matrix(grid, x, periodic=True)
 
 
 def _apply(W: np.ndarray, arr: np.ndarray, axis: int) -> np.ndarray:
@@ -1599,25 +1569,6 @@ def to_sample_frame(theta_deg: Any, phi_deg: Any, side: Any, tilt_deg: float) ->
     th = np.degrees(np.arccos(np.clip(np.abs(w2[..., 2]), 0.0, 1.0)))
     ph = np.mod(np.degrees(np.arctan2(w2[..., 1], w2[..., 0])), 360.0)
     return th, ph
-
-
-# ---------------------------------------------------------------- analytic boundary tables for tests / checks
-
-def flat_tables(material: Material, wavelengths_nm: Sequence[float], theta_i_outside_deg: Sequence[float],
-                theta_i_inside_deg: Sequence[float], theta_s_edges_deg: Sequence[float] | None = None,
-                phi_s_edges_deg: Sequence[float] | None = None) -> tuple[BsdfTable, BsdfTable]:
-    """(outside, inside) tables of a perfectly flat boundary: all power in the delta parts, with Mueller.
-
-    The one definition is `methods.flat.flat_table` (Fresnel, Born & Wolf 1.5.20-21); the diffuse
-    cells are zero.  Default axes: the methods' default scatter grid.
-    """
-    from relief_bsdf.methods.flat import flat_table
-    from relief_bsdf.methods.request import DEFAULT_PHI_S_EDGES_DEG, DEFAULT_THETA_S_EDGES_DEG
-    te = np.asarray(theta_s_edges_deg if theta_s_edges_deg is not None else DEFAULT_THETA_S_EDGES_DEG, float)
-    pe = np.asarray(phi_s_edges_deg if phi_s_edges_deg is not None else DEFAULT_PHI_S_EDGES_DEG, float)
-    wl = [float(w) for w in wavelengths_nm]
-    return tuple(flat_table(material, wl, th, [0.0], te, pe, side)
-                 for side, th in (("outside", theta_i_outside_deg), ("inside", theta_i_inside_deg)))
 
 
 # ---------------------------------------------------------------- the Experiment on this engine

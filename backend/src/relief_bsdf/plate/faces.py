@@ -671,7 +671,7 @@ class FlatFace:
                ) -> tuple[BsdfTable | None, BsdfTable]:
         """Fresnel tables (a plane face maps the beam one to one: the engine reads its deltas through it)."""
         def make():
-            from relief_bsdf.plate.deterministic import flat_tables
+            from relief_bsdf.methods.flat import flat_tables
             o, i = flat_tables(material, list(np.unique(wavelengths_nm)), np.unique(theta_i_outside_deg),
                                _flat_inside_incidences(material, grid, wavelengths_nm), grid.theta_edges_deg(),
                                grid.phi_edges_deg())
