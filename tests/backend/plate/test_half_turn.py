@@ -12,7 +12,7 @@ import pytest
 from relief_bsdf.core.index import ConstantIndex
 from relief_bsdf.plate import Bulk, Experiment, FlatFace, Instrument, Plate, ReliefFace, Rows, TableGrid, simulate
 from relief_bsdf.plate import deterministic
-from relief_bsdf.plate.deterministic import far_side
+from relief_bsdf.plate.rows import far_side
 from relief_bsdf.surface.relief import Relief
 from relief_bsdf.plate.memory import current_memory
 

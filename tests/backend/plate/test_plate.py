@@ -6,7 +6,11 @@ from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
 from relief_bsdf.core.fresnel import fresnel_power
 from relief_bsdf.core.index import CauchyIndex, ConstantIndex, Material
-from relief_bsdf.plate.deterministic import PlateModel, PlateSolver, Rows, flat_tables, in_plane_rows, simulate_rows
+from relief_bsdf.methods.flat import flat_tables
+from relief_bsdf.plate.readout import simulate_rows
+from relief_bsdf.plate.rows import Rows, in_plane_rows
+from relief_bsdf.plate.setup import PlateModel
+from relief_bsdf.plate.solver import PlateSolver
 from relief_bsdf.methods.request import Request
 
 N_GLASS = 1.5

@@ -9,7 +9,9 @@ from relief_bsdf.plate.grid import TableGrid
 from relief_bsdf.methods import reconstruct
 from relief_bsdf.core.fresnel import fresnel_power
 from relief_bsdf.core.index import ConstantIndex
-from relief_bsdf.plate.deterministic import PlateModel, Rows, in_plane_rows, simulate_rows
+from relief_bsdf.plate.readout import simulate_rows
+from relief_bsdf.plate.rows import Rows, in_plane_rows
+from relief_bsdf.plate.setup import PlateModel
 from relief_bsdf.plate.photon import experiment_of_model, hemispherical, simulate_rows_mc, trace
 from relief_bsdf.surface.relief import Relief
 from relief_bsdf.surface.synth import random_relief
@@ -132,7 +134,8 @@ def test_mc_plate_agrees_with_deterministic_plate_in_lobe():
 
 
 def test_tilted_flat_plate_mc_puts_the_specular_peak_where_the_deterministic_plate_does():
-    from relief_bsdf.plate.deterministic import Rows, flat_tables
+    from relief_bsdf.methods.flat import flat_tables
+    from relief_bsdf.plate.rows import Rows
     from relief_bsdf.core.index import Material
     tilt = 3.0
     m = PlateModel(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=1.0, tilt_deg=tilt)

@@ -16,7 +16,8 @@ from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.core.fresnel import fresnel_power
 from relief_bsdf.core.index import ConstantIndex
 from relief_bsdf.methods.request import Request
-from relief_bsdf.plate.deterministic import PlateModel, PlateSolver
+from relief_bsdf.plate.setup import PlateModel
+from relief_bsdf.plate.solver import PlateSolver
 
 N_GLASS = 1.5
 SECTORS = (30.0, 60.0, 90.0, 120.0, 150.0)

@@ -8,7 +8,7 @@ import pytest
 
 from relief_bsdf.core.index import ConstantIndex
 from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid, in_plane_rows, simulate
-from relief_bsdf.plate import deterministic, faces
+from relief_bsdf.plate import faces, sector_loop
 from relief_bsdf.plate.memory import ForwardMemory
 from relief_bsdf.surface.synth import RandomFieldSpec, relief_from_spec
 
@@ -34,8 +34,8 @@ def test_single_precision_sector_kernels_move_the_rows_far_below_a_recordings_no
     against the same kernels in double: the rows move by less than 1e-4 of the largest row (a recording's
     noise is ~1e-2), and they do move (the check would see a precision that changed nothing)."""
     single = _simulate(experiment, ForwardMemory(4e9))
-    monkeypatch.setattr(deterministic, "SECTOR_LOOP_DTYPE", np.float64)
-    monkeypatch.setattr(deterministic, "SECTOR_EXIT_DTYPE", np.complex128)
+    monkeypatch.setattr(sector_loop, "SECTOR_LOOP_DTYPE", np.float64)
+    monkeypatch.setattr(sector_loop, "SECTOR_EXIT_DTYPE", np.complex128)
     double = _simulate(experiment, ForwardMemory(4e9))
     change = np.max(np.abs(single - double)) / np.max(np.abs(double))
     assert 0 < change < 1e-4
@@ -45,7 +45,7 @@ def test_the_sector_table_goes_once_its_kernels_exist_and_a_held_solver_needs_no
     memory = ForwardMemory(4e9)
     first = _simulate(experiment, memory)
     solver = memory.values("solver")[-1]
-    assert isinstance(solver.inside_sectors, deterministic.SectorsHeader)       # the loop ran by sector ...
+    assert isinstance(solver.inside_sectors, sector_loop.SectorsHeader)       # the loop ran by sector ...
     assert not any(faces.SECTORS_KEY in k[0] + k[1:] for k, _ in memory.entries("table"))   # ... without its table
     assert solver._tops and all(t["sector_kernels"] is not None for t in solver._tops.values())
 

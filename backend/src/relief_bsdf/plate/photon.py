@@ -171,7 +171,8 @@ def run(experiment: Any, rows: Any, photons: int = 200_000, seed: int = 0, grid:
         where: str = "recording") -> tuple[np.ndarray, np.ndarray, dict]:
     """Monte-Carlo plate BSDF on every row: (values, sigma, info with lost fractions per incidence)."""
     from relief_bsdf.parallel import task_rng
-    from relief_bsdf.plate.deterministic import check_rows, model_of, row_arrays
+    from relief_bsdf.plate.deterministic import model_of
+    from relief_bsdf.plate.rows import check_rows, row_arrays
     check_rows(model_of(experiment, grid or TableGrid()), rows, where)
     if photons < 1:
         raise InputError("photons", f"need at least one photon, got {photons}")
