@@ -28,7 +28,7 @@ from relief_bsdf.plate import (Experiment, FlatFace, Instrument, Plate, ReliefFa
 # neither of which the public `plate.faces.inside_sectors` gives (session 29: the engine's sector loop for every
 # order, which the dots now get through `plate.faces.azimuth_dependent`, replaced this average: dots 1.30)
 from relief_bsdf.plate.sector_loop import _phi_slice  # noqa: E402
-from relief_bsdf.plate.faces import _reconstruct_side  # noqa: E402
+from relief_bsdf.plate.faces.derive import _reconstruct_side  # noqa: E402
 
 if __name__ == "__main__":
     warnings.simplefilter("ignore")

@@ -131,7 +131,7 @@ def test_the_sector_loop_keeps_a_lossless_plate_lossless_on_a_ray_traced_anisotr
     from relief_bsdf.plate.deterministic import solver_of
     from relief_bsdf.plate.memory import ForwardMemory
     from relief_bsdf.surface.synth import RandomFieldSpec, relief_from_spec
-    import relief_bsdf.plate.faces as faces
+    import relief_bsdf.plate.deterministic as faces   # where the front door calls it
     relief = relief_from_spec(RandomFieldSpec(128, 128, 1e-6, 0.5e-6, 4e-6, anisotropy=2.5, angle_deg=0.0), 33)
     ex = Experiment(Plate(2e-3, ConstantIndex(1.5), ReliefFace(relief, "ray", 4000, 34), FlatFace()),
                     Instrument(detector_half_angle_deg=2.5))

@@ -9,6 +9,7 @@ import pytest
 from relief_bsdf.core.index import ConstantIndex
 from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid, in_plane_rows, simulate
 from relief_bsdf.plate import faces, sector_loop
+from relief_bsdf.plate.faces import derive, relief, sectors
 from relief_bsdf.plate.memory import ForwardMemory
 from relief_bsdf.surface.synth import RandomFieldSpec, relief_from_spec
 
@@ -53,7 +54,8 @@ def test_the_sector_table_goes_once_its_kernels_exist_and_a_held_solver_needs_no
         raise AssertionError("a table was derived for a held solver")
     changed = [experiment.with_instrument(blur_deg=1.0, polarization_q=1.0), experiment.with_bulk(absorption_per_m=40.0)]
     with monkeypatch.context() as m:
-        m.setattr(faces, "_reconstruct_side", no_table)
+        for module in (derive, relief, sectors):         # every caller of the one table derivation
+            m.setattr(module, "_reconstruct_side", no_table)
         reused = [_simulate(ex, memory) for ex in changed]
     fresh = [_simulate(ex, ForwardMemory(4e9)) for ex in changed]     # every table derived anew
     for r, f in zip(reused, fresh):
