@@ -16,7 +16,7 @@ from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.core.fresnel import fresnel_power
 from relief_bsdf.core.index import ConstantIndex
 from relief_bsdf.methods.request import Request
-from relief_bsdf.plate.setup import PlateModel
+from plate_setups import plate_setup  # tests/backend/plate/plate_setups.py
 from relief_bsdf.plate.solver import PlateSolver
 
 N_GLASS = 1.5
@@ -63,7 +63,7 @@ def _matches_closed_form(inside: BsdfTable, sectors: BsdfTable) -> tuple:
     """Solve the plate of the Lambertian outside face, `inside` and `sectors` at theta_i 0 and 30 and check R and
     T against `_closed_form` of the sectors' albedos R_K; (model, outside table, r_bar, T) for more checks."""
     o = _lambert("outside", AR_O, AT_O, [0.0, 30.0])
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
     want_R, want_T, r_bar = _closed_form(m, AR_O, AT_O, R_K)
     for ti in (0.0, 30.0):
         h = PlateSolver(m, inside, o, inside_sectors=sectors).solve(550.0, [ti])[0].hemispherical()
@@ -115,7 +115,7 @@ def test_sector_tables_equal_to_the_turned_0_deg_table_give_the_circulant_plate(
     i = BsdfTable(*args, [0.0], *edges, base, incident_from="inside")
     sec = BsdfTable(*args, np.asarray(SECTORS), *edges, turned, incident_from="inside")
     o = _lambert("outside", 0.1, 0.9, [0.0, 40.0])
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
     a = PlateSolver(m, i, o, inside_sectors=sec).solve(550.0, [0.0, 40.0])
     b = PlateSolver(m, i, o).solve(550.0, [0.0, 40.0])
     for x, y in zip(a, b):

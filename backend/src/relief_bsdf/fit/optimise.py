@@ -66,7 +66,6 @@ from relief_bsdf.io.atomic import write_text_atomic
 from relief_bsdf.io.recording import sigma_with_fallback
 from relief_bsdf.plate import (DEFAULT_METHOD, Experiment, ReliefFace, Simulated, TableGrid, check_rows,
                                experiment_from_sample, resolve_auto, simulate)
-from relief_bsdf.plate.deterministic import model_of
 from relief_bsdf.progress import Progress, silent
 from relief_bsdf.surface.operations import scale_and_filter
 from relief_bsdf.surface.relief import Relief
@@ -120,7 +119,7 @@ class Forward:
 
     def __post_init__(self) -> None:
         self.face_name = _relief_face_name(self.experiment)
-        check_rows(model_of(self.experiment, self.grid), self.rows, self.where)   # bad rows fail before any table
+        check_rows(self.experiment, self.rows, self.where)   # bad rows fail before any table
         # "auto" is decided once, on the relief as read, and kept for every (scale, filter)
         self.experiment = resolve_auto(self.experiment, self.rows, self.grid)
 

@@ -2,9 +2,9 @@
 
 Entry point: `run(experiment, rows, grid)` (used by `plate.simulate`): the Experiment's faces give
 their tables (`plate.faces`), `solver_of` places them on the engine's two-face system, the rows
-are read by the one detector (`plate.detector`).  `PlateModel` is this engine's internal flat
-configuration of an Experiment (`model_of`); `PlateSolver` / `simulate_rows` work on tables
-directly (tests, benchmarks).
+are read by the one detector (`plate.detector`).  The Experiment is the engine's only input: `setup_of`
+adds the engine's own choices for it (`plate.setup.EngineSetup`); `PlateSolver` / `simulate_rows` work
+on tables directly (tests, benchmarks).
 
 Geometry (formats.md frame): the plate fills -t < z < 0, the lit face is z = 0, light comes
 from z > 0.  The first face (the relief, or the front face when the relief is on the back) is
@@ -22,8 +22,7 @@ slab's reflection and transmission operators per azimuthal mode (`plate.slab`, a
 combined with the faces by the adding equations (`_slab_system`); delta beams are attenuated by
 a + mu_s,j and shed what the slab scatters out of them as diffuse sources (`_slab_sources`).
 Approximation: scalar phase function on S0, Stokes vector carried unchanged by a volume event.
-Source polarisation: Stokes (1, q, 0, 0), q in [-1, 1] (PlateModel.polarization: "s", "p",
-"unpolarized" or q).
+Source polarisation: Stokes (1, q, 0, 0), q in [-1, 1] (`Instrument.polarization_q`).
 
 Method (radiative transfer between two faces, discrete ordinates):
 
@@ -98,23 +97,17 @@ from relief_bsdf.plate.faces import (FlatFace, MicrofacetFace, ReliefFace, Table
 from relief_bsdf.plate.memory import current_memory
 from relief_bsdf.plate.readout import beam_incidences, beam_split, simulate_rows
 from relief_bsdf.plate.reuse import _note_request, _reused_solver, drop_sector_table, held_for_request, refresh_solver
-from relief_bsdf.plate.rows import Rows, check_rows, far_side, in_plane_rows, to_sample_frame   # noqa: F401 (the engine's rows)
-from relief_bsdf.plate.setup import PlateModel
-from relief_bsdf.plate.solver import PlateResult, PlateSolver   # noqa: F401 (the engine's solver, for tests and benchmarks)
+from relief_bsdf.plate.rows import far_side, to_sample_frame
+from relief_bsdf.plate.setup import EngineSetup
+from relief_bsdf.plate.solver import PlateSolver
 
 
-def model_of(experiment: Any, grid: Any, rough_face: str = "front", beam_in_tables: bool = False) -> PlateModel:
-    """The engine's flat configuration of an Experiment (plate, bulk, instrument) on `grid`;
+def setup_of(experiment: Any, grid: Any, rough_face: str = "front", beam_in_tables: bool = False) -> EngineSetup:
+    """How this engine solves an Experiment on `grid` (`EngineSetup`: the experiment and the engine's choices);
     `beam_in_tables`: the front's outside table holds the beam divergence (`front_traces_beam`)."""
-    p, ins, b = experiment.plate, experiment.instrument, experiment.plate.bulk
-    return PlateModel(thickness_m=p.thickness_m, index=p.index, rough_face=rough_face,
-                      absorption_per_m=b.absorption_per_m, detector_half_angle_deg=ins.detector_half_angle_deg,
-                      polarization=float(ins.polarization_q), outside_index=p.outside_index,
-                      background_per_sr=ins.background_per_sr, blur_deg=ins.blur_deg, tilt_deg=ins.tilt_deg,
-                      azimuth_cells=grid.azimuth_cells, cone_points=ins.cone_points,
-                      scatter_per_m=b.scatter_per_m, hg_g=b.hg_g, beam_divergence_deg=ins.beam_divergence_deg,
-                      relief_anisotropic=relief_anisotropic(experiment), beam_in_tables=bool(beam_in_tables),
-                      inside_interpolation=grid.inside_interpolation, stokes_loop=grid.stokes_loop)
+    return EngineSetup(experiment, rough_face=rough_face, azimuth_cells=grid.azimuth_cells,
+                       relief_anisotropic=relief_anisotropic(experiment), beam_in_tables=bool(beam_in_tables),
+                       inside_interpolation=grid.inside_interpolation, stokes_loop=grid.stokes_loop)
 
 
 def relief_anisotropic(experiment: Any) -> bool:
@@ -178,7 +171,7 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None, keep:
     request = request_key(experiment, rows, grid, traced) if keep else None
     front, back = p.front, p.back
     relief_on_back = front.is_flat and not back.is_flat
-    model = model_of(experiment, grid, "back" if relief_on_back else "front", traced)
+    model = setup_of(experiment, grid, "back" if relief_on_back else "front", traced)
     if request is not None:
         held = held_for_request(memory, request, model)
         if held is not None:

@@ -11,11 +11,11 @@ import numpy as np
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.plate.detector import beam_offsets, grid_reading, offset_directions
 from relief_bsdf.plate.rows import check_rows, far_side, row_arrays, to_sample_frame
-from relief_bsdf.plate.setup import PlateModel
+from relief_bsdf.plate.setup import EngineSetup
 from relief_bsdf.plate.solver import PlateSolver
 
 
-def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | None, rows: Any,
+def simulate_rows(model: EngineSetup, inside: BsdfTable, outside: BsdfTable | None, rows: Any,
                   solver: PlateSolver | None = None, where: str = "recording",
                   back: BsdfTable | None = None, front: tuple[BsdfTable, BsdfTable] | None = None) -> np.ndarray:
     """Plate BSDF (1/sr) on every row of a recording (same order), detector cone included.
@@ -23,14 +23,14 @@ def simulate_rows(model: PlateModel, inside: BsdfTable, outside: BsdfTable | Non
     `back`: optional table (light from inside) of the second face when the relief is on the front;
     `front`: optional (outside, inside) tables of the front face when the relief is on the back.
     """
-    check_rows(model, rows, where)
+    check_rows(model.experiment, rows, where)
     solver = solver or PlateSolver(model, inside, outside, back, front)
     wl, ti, pi, side, ts, ps = row_arrays(rows)
     beam = model.beam_divergence_deg
     if beam <= 0:
         out = _readings(solver, model, wl, ti, pi, side, ts, ps, model, ("diffuse", "deltas"))
         return out + model.background_per_sr
-    wide = replace(model, blur_deg=float(np.hypot(model.blur_deg, beam)))
+    wide = model.with_instrument(blur_deg=float(np.hypot(model.blur_deg, beam)))
     if model.beam_in_tables:          # the outside table holds the beam: read at the nominal incidence
         diffuse = _readings(solver, model, wl, ti, pi, side, ts, ps, model, ("diffuse",))
         return diffuse + _readings(solver, model, wl, ti, pi, side, ts, ps, wide, ("deltas",)) + model.background_per_sr
@@ -101,7 +101,7 @@ def _shifted(theta_deg: np.ndarray, phi_deg: np.ndarray, shift: np.ndarray
     return np.round(th, 9), np.round(ph, 9), ok
 
 
-def _readings(solver: PlateSolver, model: PlateModel, wl, ti, pi, side, ts, ps, det: Any,
+def _readings(solver: PlateSolver, model: EngineSetup, wl, ti, pi, side, ts, ps, det: Any,
               parts: tuple, nominal: tuple | None = None) -> np.ndarray:
     """Detector readings (1/sr, stray light not added) of rows given in the instrument frame: the
     sample tilt applied (rows seen in the tilted sample's frame, f = f' cos theta_s' / cos theta_s),

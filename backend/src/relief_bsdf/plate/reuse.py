@@ -10,7 +10,7 @@ from typing import Any
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.plate.memory import current_memory
 from relief_bsdf.plate.sector_loop import SectorsHeader
-from relief_bsdf.plate.setup import PlateModel
+from relief_bsdf.plate.setup import BULK_FIELDS, EngineSetup, plate_key
 from relief_bsdf.plate.solver import PlateSolver
 
 
@@ -26,11 +26,11 @@ def _note_request(memory: Any, request: tuple | None, solver: PlateSolver, half:
     held.requests = {**getattr(held, "requests", {}), request: half_key}
 
 
-def held_for_request(memory: Any, request: tuple, model: PlateModel) -> PlateSolver | None:
+def held_for_request(memory: Any, request: tuple, model: EngineSetup) -> PlateSolver | None:
     """A solver for `model` on the tables of `request`, from a held solver made for that request (the same
     plate: a copy carrying the new instrument; another bulk: the tables' part shared, `_reused_solver`),
     or None.  The tables' keys count as used (`ForwardMemory.note_used`), as if they had been asked for."""
-    plate = _plate_key(model)
+    plate = plate_key(model)
     found = [(key, held, getattr(held, "requests", {})[request]) for key, held in memory.entries("solver")
              if request in getattr(held, "requests", {})]
     for exact in (True, False):              # the same plate first, then another bulk (as `_reused_solver`)
@@ -42,7 +42,7 @@ def held_for_request(memory: Any, request: tuple, model: PlateModel) -> PlateSol
     return None
 
 
-def _answer(memory: Any, key: tuple, held: PlateSolver, half_key: tuple | None, model: PlateModel, plate: tuple,
+def _answer(memory: Any, key: tuple, held: PlateSolver, half_key: tuple | None, model: EngineSetup, plate: tuple,
             exact: bool) -> PlateSolver | None:
     """`held_for_request`'s solver from one held solver and its half-turned one, or None."""
     if (key[2] == plate) != exact:
@@ -67,7 +67,7 @@ def _answer(memory: Any, key: tuple, held: PlateSolver, half_key: tuple | None, 
     return main
 
 
-def _variant(memory: Any, key: tuple, held: PlateSolver, model: PlateModel, plate: tuple) -> PlateSolver | None:
+def _variant(memory: Any, key: tuple, held: PlateSolver, model: EngineSetup, plate: tuple) -> PlateSolver | None:
     """The held solver `held` (under `key` = ("solver", tokens, plate)) for `model`: a copy when the plate is
     the same, a kept copy sharing the tables' part when only the bulk differs, else None."""
     if key[2] == plate:
@@ -75,7 +75,7 @@ def _variant(memory: Any, key: tuple, held: PlateSolver, model: PlateModel, plat
         new = copy.copy(held)
         new.model = model
         return new
-    if tuple(kv for kv in key[2] if kv[0] not in _BULK_FIELDS) == tuple(kv for kv in plate if kv[0] not in _BULK_FIELDS):
+    if tuple(kv for kv in key[2] if kv[0] not in BULK_FIELDS) == tuple(kv for kv in plate if kv[0] not in BULK_FIELDS):
         new = copy.copy(held)
         new.model, new._ops = model, {}
         return _kept(memory, key[1], plate, new)
@@ -109,12 +109,6 @@ def drop_sector_table(solver: PlateSolver) -> None:
         memory.discard(table_key)
 
 
-_BULK_FIELDS = ("thickness_m", "absorption_per_m", "scatter_per_m", "hg_g")    # act on `_operators` alone
-
-
-_INSTRUMENT_FIELDS = ("detector_half_angle_deg", "polarization", "background_per_sr", "blur_deg", "tilt_deg",
-                      "cone_points", "beam_divergence_deg")
-
 
 def _table_token(memory: Any, table: BsdfTable | None) -> tuple | None:
     """What names a table in a solver's key: the memory owner's key of it (its content), else the object
@@ -124,7 +118,7 @@ def _table_token(memory: Any, table: BsdfTable | None) -> tuple | None:
     return memory.key_of(table) or ("object", id(table))
 
 
-def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | None,
+def _reused_solver(model: EngineSetup, inside: BsdfTable, outside: BsdfTable | None,
                    back: BsdfTable | None, sectors: BsdfTable | None = None, keep: bool = True) -> PlateSolver:
     """A PlateSolver whose per-wavelength operators (round-trip system, exit maps) are those of an
     earlier solver on the same tables (by content: the memory owner's keys) and the same plate
@@ -137,7 +131,7 @@ def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | No
     solver.  A new solver is held by the memory owner (`plate.memory`, kind "solver") unless `keep` is
     False; `run` measures it again once it has solved."""
     memory = current_memory()
-    plate = _plate_key(model)
+    plate = plate_key(model)
     tokens = tuple(_table_token(memory, t) for t in (inside, outside, back, sectors))
     held = [(k[1], k[2], v) for k, v in memory.entries("solver")]          # (tokens, plate, solver), oldest first
     for t, key, solver in reversed(held):
@@ -146,9 +140,9 @@ def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | No
             new = copy.copy(solver)          # shares the operators (solver._ops), carries the new instrument
             new.model = model
             return _with_sectors(new, sectors)
-    tabs = tuple((f, getattr(model, f)) for f, _ in plate if f not in _BULK_FIELDS)
+    tabs = tuple(kv for kv in plate if kv[0] not in BULK_FIELDS)
     for t, key, solver in reversed(held):     # the same tables, another bulk (an absorption)
-        if t == tokens and tuple(kv for kv in key if kv[0] not in _BULK_FIELDS) == tabs:
+        if t == tokens and tuple(kv for kv in key if kv[0] not in BULK_FIELDS) == tabs:
             new = copy.copy(solver)
             new.model, new._ops = model, {}        # the bulk's part anew, the tables' part (solver._tops) shared
             return _kept(memory, tokens, plate, _with_sectors(new, sectors), keep)
@@ -157,11 +151,6 @@ def _reused_solver(model: PlateModel, inside: BsdfTable, outside: BsdfTable | No
                 and t[1] is not None and outside.is_polarized == solver.outside.is_polarized):
             return _kept(memory, tokens, plate, _with_sectors(solver.with_outside(model, outside), sectors), keep)
     return _kept(memory, tokens, plate, PlateSolver(model, inside, outside, back=back, inside_sectors=sectors), keep)
-
-
-def _plate_key(model: PlateModel) -> tuple:
-    """The fields of a model that a solver's operators depend on (all but the instrument's)."""
-    return tuple((f, getattr(model, f)) for f in PlateModel.__dataclass_fields__ if f not in _INSTRUMENT_FIELDS)
 
 
 def _with_sectors(solver: PlateSolver, sectors: BsdfTable | None) -> PlateSolver:

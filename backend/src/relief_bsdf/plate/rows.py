@@ -40,10 +40,10 @@ def in_plane_rows(wavelength_nm: float, theta_i_deg: Sequence[float], theta_s_de
                 g[:, 4].astype(float), g[:, 5].astype(float))
 
 
-def check_rows(model: Any, rows: Any, where: str = "recording") -> None:
-    """InputError (naming `where` and the column) for rows the plate cannot produce."""
-    model.index.check_range(rows.wavelength_nm, f"{where}: wavelength_nm")
-    model.outside_index.check_range(rows.wavelength_nm, f"{where}: wavelength_nm")
+def check_rows(experiment: Any, rows: Any, where: str = "recording") -> None:
+    """InputError (naming `where` and the column) for rows the Experiment's plate cannot produce."""
+    experiment.plate.index.check_range(rows.wavelength_nm, f"{where}: wavelength_nm")
+    experiment.plate.outside_index.check_range(rows.wavelength_nm, f"{where}: wavelength_nm")
     for key in ("theta_i_deg", "theta_s_deg"):
         v = np.asarray(getattr(rows, key), float)
         bad = ~np.isfinite(v) | (v < 0) | (v >= 90)

@@ -1,4 +1,12 @@
-"""The deterministic engine's configuration of an Experiment."""
+"""How the deterministic engine is set up for one Experiment (`EngineSetup`, made by `deterministic.setup_of`).
+
+The Experiment (`plate.description`) is the engine's only physical input: the setup adds nothing to it but
+the engine's own choices for it (which face carries the relief the loop turns, the azimuth cells of the
+grid, how the inside tables are read between their incidences, whether the loop carries Stokes
+vectors, whether the relief is anisotropic enough for the beam's in-plane split, whether the outside
+table already holds the beam divergence).  The numbers the engine reads (thickness, indices, bulk,
+instrument) are read from the Experiment, never copied.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -6,99 +14,116 @@ from typing import Any
 
 import numpy as np
 
-from relief_bsdf.core.index import ConstantIndex, IndexModel, Material
+from relief_bsdf.core.index import IndexModel, Material
 from relief_bsdf.errors import InputError
-from relief_bsdf.plate.description import Bulk, Instrument
+from relief_bsdf.plate.description import Experiment
 from relief_bsdf.plate.grid import INSIDE_INTERPOLATIONS
 
 
-SOURCE_STOKES = {"unpolarized": np.array([1.0, 0.0, 0.0, 0.0]),
-                 "s": np.array([1.0, 1.0, 0.0, 0.0]),
-                 "p": np.array([1.0, -1.0, 0.0, 0.0])}
-
-
 @dataclass(frozen=True)
-class PlateModel:
-    """The engine's internal configuration: everything besides the boundary tables (see `model_of`).
+class EngineSetup:
+    """An Experiment as the deterministic engine solves it (module doc).
 
-    The "effects" a diagnosis may switch on are plain fields with neutral defaults:
-    absorption_per_m (bulk absorption), polarization (source state "unpolarized", "s",
-    "p"), background_per_sr (stray light added to every row), blur_deg (Gaussian
-    instrument blur, 1-sigma, added to the detector cone), tilt_deg (sample tilt about the
-    y axis: incidence seen by the sample is theta_i + tilt in the plane of incidence),
-    The second face is flat unless a table is given to PlateSolver / simulate_rows (`back`,
-    relief on the front only).  Tilt: the sample
-    normal is rotated by tilt_deg about the y axis of the instrument; rows are transformed into
-    the sample frame and the reading converted back with f = f' cos theta_s' / cos theta_s (the
-    instrument divides by its own cos theta_s).
-    """
+    rough_face: "front" (the first face of the loop is the front face) or "back" (the relief on the back
+        face: the system is solved with the roles swapped, `PlateSolver`);
+    azimuth_cells: the loop's uniform azimuth cells (the grid's);
+    relief_anisotropic: a beam divergence's incidences are solved in the nominal plane and shifted
+        (`readout.beam_split`);
+    beam_in_tables: the outside table was traced with the divergent beam (read at the nominal incidence);
+    inside_interpolation: between the inside tables' incidences, "moving" lobes or "linear";
+    stokes_loop: False: intensities only through polarised tables (`TableGrid.stokes_loop`).
+    Tilt: the sample normal is rotated by the instrument's tilt_deg about its y axis; rows are
+    transformed into the sample frame and the reading converted back with f = f' cos theta_s' / cos theta_s
+    (the instrument divides by its own cos theta_s)."""
 
-    thickness_m: float
-    index: IndexModel
+    experiment: Experiment
     rough_face: str = "front"
-    absorption_per_m: float = 0.0
-    detector_half_angle_deg: float = 1.0
-    polarization: str | float = "unpolarized"
-    outside_index: IndexModel = ConstantIndex(1.0)
-    background_per_sr: float = 0.0
-    blur_deg: float = 0.0
-    tilt_deg: float = 0.0
     azimuth_cells: int = 72
-    cone_points: int = 19
-    scatter_per_m: float = 0.0
-    hg_g: float = 0.0
-    beam_divergence_deg: float = 0.0
-    relief_anisotropic: bool = False     # the beam divergence's incidences solved in-plane and shifted (beam_split)
-    beam_in_tables: bool = False         # the outside table was traced with the divergent beam (read once)
-    inside_interpolation: str = "moving"  # between the inside tables' incidences: "moving" lobes or "linear"
-    stokes_loop: bool = True              # False: intensities only through polarised tables (TableGrid.stokes_loop)
+    relief_anisotropic: bool = False
+    beam_in_tables: bool = False
+    inside_interpolation: str = "moving"
+    stokes_loop: bool = True
 
     def __post_init__(self) -> None:
-        """The checks are the description's (plate.description: Instrument, Bulk): one owner each."""
+        """The physics is checked by the description (Plate, Bulk, Instrument); here the engine's choices."""
         if self.rough_face not in ("front", "back"):
             raise InputError("plate.rough_face", f"must be 'front' or 'back', got {self.rough_face!r}")
-        if not (self.thickness_m > 0 and np.isfinite(self.thickness_m)):
-            raise InputError("plate.thickness_mm", f"thickness must be > 0, got {self.thickness_m}")
-        if isinstance(self.polarization, str) and self.polarization not in SOURCE_STOKES:
-            raise InputError("instrument.polarization",
-                             f"must be unpolarized, s or p, got {self.polarization!r}")
-        Instrument(self.detector_half_angle_deg, float(self.source_stokes[1]), self.blur_deg, self.tilt_deg,
-                   self.background_per_sr, self.cone_points, self.beam_divergence_deg)
-        Bulk(self.absorption_per_m, self.scatter_per_m, self.hg_g)
         if self.inside_interpolation not in INSIDE_INTERPOLATIONS:
             raise InputError("grid.inside_interpolation", f"must be one of {', '.join(INSIDE_INTERPOLATIONS)}, "
                              f"got {self.inside_interpolation!r}")
-        if not self.stokes_loop and float(self.source_stokes[1]) != 0.0:
+        q = float(self.experiment.instrument.polarization_q)
+        if not self.stokes_loop and q != 0.0:
             raise InputError("grid.stokes_loop", "an intensity-only loop cannot carry a polarised source "
-                             f"(Stokes q = {float(self.source_stokes[1]):g}): use the Stokes loop")
+                             f"(Stokes q = {q:g}): use the Stokes loop")
 
+    def with_instrument(self, **kw: Any) -> "EngineSetup":
+        return replace(self, experiment=self.experiment.with_instrument(**kw))
+
+    # -- the Experiment's numbers, as the engine reads them
     @property
     def source_stokes(self) -> np.ndarray:
         """Source Stokes vector (1, q, 0, 0) in the s/p basis of the plane of incidence."""
-        if isinstance(self.polarization, str):
-            return SOURCE_STOKES[self.polarization]
-        return np.array([1.0, float(self.polarization), 0.0, 0.0])
+        return np.array([1.0, float(self.experiment.instrument.polarization_q), 0.0, 0.0])
 
     @property
     def material(self) -> Material:
-        return Material(inside=self.index, outside=self.outside_index)
+        return self.experiment.plate.material
 
-    def with_effects(self, **kw: Any) -> "PlateModel":
-        return replace(self, **kw)
+    @property
+    def thickness_m(self) -> float:
+        return self.experiment.plate.thickness_m
 
-    @staticmethod
-    def from_sample(sample: Any) -> "PlateModel":
-        """Build from a `relief_bsdf.io.recording.Sample` (sample.toml)."""
-        p, ins = sample.plate, sample.instrument
-        a = getattr(p, "absorption_per_mm", None)
-        try:
-            return PlateModel._from_specs(p, ins, a)
-        except InputError as e:
-            raise InputError(f"{sample.path}: {e.where}", e.message) from None
+    @property
+    def index(self) -> IndexModel:
+        return self.experiment.plate.index
 
-    @staticmethod
-    def _from_specs(p: Any, ins: Any, a: Any) -> "PlateModel":
-        return PlateModel(thickness_m=float(p.thickness_mm) * 1e-3, index=p.index, rough_face=p.rough_face,
-                          absorption_per_m=0.0 if a is None else float(a) * 1e3,
-                          detector_half_angle_deg=float(ins.detector_half_angle_deg),
-                          polarization=str(ins.polarization))
+    @property
+    def outside_index(self) -> IndexModel:
+        return self.experiment.plate.outside_index
+
+    @property
+    def absorption_per_m(self) -> float:
+        return self.experiment.plate.bulk.absorption_per_m
+
+    @property
+    def scatter_per_m(self) -> float:
+        return self.experiment.plate.bulk.scatter_per_m
+
+    @property
+    def hg_g(self) -> float:
+        return self.experiment.plate.bulk.hg_g
+
+    @property
+    def detector_half_angle_deg(self) -> float:
+        return self.experiment.instrument.detector_half_angle_deg
+
+    @property
+    def blur_deg(self) -> float:
+        return self.experiment.instrument.blur_deg
+
+    @property
+    def tilt_deg(self) -> float:
+        return self.experiment.instrument.tilt_deg
+
+    @property
+    def background_per_sr(self) -> float:
+        return self.experiment.instrument.background_per_sr
+
+    @property
+    def cone_points(self) -> int:
+        return self.experiment.instrument.cone_points
+
+    @property
+    def beam_divergence_deg(self) -> float:
+        return self.experiment.instrument.beam_divergence_deg
+
+
+BULK_FIELDS = ("thickness_m", "absorption_per_m", "scatter_per_m", "hg_g")   # act on a solver's bulk part alone
+ENGINE_FIELDS = ("rough_face", "azimuth_cells", "relief_anisotropic", "beam_in_tables", "inside_interpolation",
+                 "stokes_loop")
+
+
+def plate_key(setup: EngineSetup) -> tuple:
+    """What a solver's operators depend on: the plate's thickness, indices and bulk, and the engine's choices
+    (not the instrument, nor the faces: their tables are the solver's own)."""
+    return tuple((f, getattr(setup, f)) for f in ("index", "outside_index") + BULK_FIELDS + ENGINE_FIELDS)

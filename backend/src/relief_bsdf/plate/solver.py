@@ -20,7 +20,7 @@ from relief_bsdf.plate.detector import DirectField, centre_values
 from relief_bsdf.plate.memory import current_memory, deep_nbytes
 from relief_bsdf.plate.modes import _block_diag, _blocks, _exit_modes, _loop_solve, _reflect_up, _rough_exit
 from relief_bsdf.plate.sector_loop import SectorLoop
-from relief_bsdf.plate.setup import PlateModel
+from relief_bsdf.plate.setup import EngineSetup
 from relief_bsdf.plate.tableview import _fresnel, _lin_matrix, _snell_deg, _TableView
 
 
@@ -69,7 +69,7 @@ class PlateSolver(SectorLoop):
     Per wavelength the round-trip system is factorised once and reused for every incidence.
     """
 
-    def __init__(self, model: PlateModel, inside: BsdfTable, outside: BsdfTable | None = None,
+    def __init__(self, model: EngineSetup, inside: BsdfTable, outside: BsdfTable | None = None,
                  back: BsdfTable | None = None, front: tuple[BsdfTable, BsdfTable] | None = None,
                  inside_sectors: BsdfTable | None = None):
         """`back`: optional BSDF table (light from inside) of the second, back face; None = flat.
@@ -254,7 +254,7 @@ class PlateSolver(SectorLoop):
         direct = (not out_on_grid and self.model.rough_face == "front" and ops["vB"] is None and ops["slab"] is None)
         return dict(vout=vout, out_on_grid=out_on_grid, direct=direct, solved={})   # `solve`'s results: anew
 
-    def with_outside(self, model: PlateModel, outside: BsdfTable) -> "PlateSolver":
+    def with_outside(self, model: EngineSetup, outside: BsdfTable) -> "PlateSolver":
         """This solver for another outside table (and instrument) on the same inside, back and sector
         tables and plate: the loop's operators (kernels, round trip, exit maps) depend on those alone,
         so only the outside table's part is re-derived (a tilt or a beam traced into the outside
