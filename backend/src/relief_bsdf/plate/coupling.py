@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from relief_bsdf.plate.memory import current_memory
+from relief_bsdf.plate.slab import slab_operators
 
 
 def _kron4(X: np.ndarray) -> np.ndarray:
@@ -24,7 +25,6 @@ def _slab_system(m: Any, theta_edges: np.ndarray, A: int, Kb: np.ndarray, R2: np
     (R2: the second face's reflection; Rv, Tv: the slab's).  Round trip: X = S + Kb Rc X.
     Without scattering Rv = 0, Tv = diag(exp(-a t / mu)) and this is the diagonal loop.
     """
-    from relief_bsdf.plate.slab import slab_operators
     key = ("slab", tuple(np.round(theta_edges, 9)), int(A), m.thickness_m, m.absorption_per_m, m.scatter_per_m, m.hg_g)
     sl = current_memory().get(key, lambda: slab_operators(theta_edges, A, m.thickness_m, m.absorption_per_m,
                                                           m.scatter_per_m, m.hg_g), "slab")

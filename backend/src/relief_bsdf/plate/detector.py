@@ -44,6 +44,8 @@ from typing import Any
 
 import numpy as np
 
+from relief_bsdf.plate.memory import current_memory
+
 GAUSS_POINTS = 16        # equal-probability points of the blur Gaussian in the deterministic quadrature
 _GOLDEN = np.pi * (3.0 - np.sqrt(5.0))
 
@@ -396,7 +398,6 @@ class _SubPoints:
 def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int | None = None) -> _SubPoints:
     """k equal-solid-angle sub-rings per cell, and k x (cell width / narrowest width) azimuth sub-points
     (a wide cell is cut as finely as a narrow one); weights: the cell's solid angle shared equally."""
-    from relief_bsdf.plate.memory import current_memory
     k = int(k or SUB_POINTS)
     key = ("detector sub-points", theta_edges_deg.tobytes(), delta_edges_deg.tobytes(), k)
     return current_memory().get(key, lambda: _make_sub_points(theta_edges_deg, delta_edges_deg, k), "detector")
@@ -452,7 +453,6 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
     sub-point idx[inv], response) triplets, idx the sub-points seen (sorted, each once), where they read
     the cells (`DirectField.gather`), and their solid angles and cos theta.  The same for every
     evaluation of a fit (rows, cells, index ratio and instrument fixed), so the memory owner keeps them."""
-    from relief_bsdf.plate.memory import current_memory
     key = ("detector weights", field.theta_edges_deg.tobytes(), field.delta_edges_deg.tobytes(), theta_s.tobytes(), delta_s.tobytes(),
            float(det.detector_half_angle_deg), float(det.blur_deg), pts.size, side,
            float(field.eta) if side == "T" else None)

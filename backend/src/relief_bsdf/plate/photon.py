@@ -35,6 +35,7 @@ import numpy as np
 from relief_bsdf.core.bulk import scatter_directions
 from relief_bsdf.core.frames import beam_directions, rot_y
 from relief_bsdf.errors import InputError
+from relief_bsdf.parallel import task_rng
 from relief_bsdf.plate.detector import photon_reading
 from relief_bsdf.plate.faces import PhotonContext
 from relief_bsdf.plate.grid import TableGrid
@@ -171,7 +172,6 @@ def detect(exits: Exits, side: np.ndarray, theta_s_deg: np.ndarray, phi_s_deg: n
 def run(experiment: Any, rows: Any, photons: int = 200_000, seed: int = 0, grid: TableGrid | None = None,
         where: str = "recording") -> tuple[np.ndarray, np.ndarray, dict]:
     """Monte-Carlo plate BSDF on every row: (values, sigma, info with lost fractions per incidence)."""
-    from relief_bsdf.parallel import task_rng
     check_rows(experiment, rows, where)
     if photons < 1:
         raise InputError("photons", f"need at least one photon, got {photons}")

@@ -12,6 +12,8 @@ import numpy as np
 
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.core.index import Material
+from relief_bsdf.methods import entry, reconstruct
+from relief_bsdf.parallel import current_settings, in_worker, parallel_settings
 from relief_bsdf.plate.energy import closed
 from relief_bsdf.plate.faces.base import _grid_key, material_key, relief_digest
 from relief_bsdf.plate.grid import TableGrid
@@ -54,7 +56,6 @@ def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, w
     given) share the table traced at the longest of them (`same_indices`, `BsdfTable.at_wavelengths`):
     the same physics with the same random numbers, a third of the work for a recording at three
     wavelengths."""
-    from relief_bsdf.methods import entry, reconstruct
     reps, rows = same_indices(material, wl, side)
     if len(reps) < len(tuple(wl)) and entry(face.method).wavelength_free:
         table = _reconstruct_side(face, material, grid, reps, theta, side, progress, beam_divergence_deg, phi_i_deg)
@@ -72,7 +73,6 @@ def _reconstruct_side(face: "ReliefFace", material: Material, grid: TableGrid, w
         (table,) = reconstruct_with(_topology_tracer(face.relief, req), face.relief, material, req, progress=progress)
         return table
     if face.method in THREADED_METHODS and _trace_here(face):
-        from relief_bsdf.parallel import parallel_settings
         with parallel_settings(backend="serial"):          # threads here, no worker pool to start
             (table,) = reconstruct(face.relief, material, req, face.method, progress=progress)
     else:
@@ -111,7 +111,6 @@ def _trace_here(face: "ReliefFace") -> bool:
     threads too) unless the run is spread over Dask or the face names its own backend: a fit re-traces
     the same grid with new heights every evaluation, and one tracer whose heights are rewritten in place (BVH refitted)
     costs ~0.03 s where worker processes rebuild a BVH each (~0.5-1 s per worker per side)."""
-    from relief_bsdf.parallel import current_settings, in_worker
     if in_worker() or face.options.get("backend") is not None:
         return False
     return current_settings().backend not in ("dask",) and not current_settings().dask
