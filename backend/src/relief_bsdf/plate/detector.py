@@ -108,7 +108,7 @@ def beam_offsets(sigma_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """((Q, 2) tangent-plane offsets in rad, (Q,) weights summing to 1): the quadrature of incidence
     directions for a source beam of Gaussian divergence `sigma_deg` per axis.  The deterministic engine
     solves the plate at each and sums what the detector reads with these weights
-    (plate.deterministic.simulate_rows).
+    (plate.readout.simulate_rows).
 
     Polar product rule: x = r^2 / 2 sigma^2 is Exp(1) for the 2-D Gaussian, so the radii are
     sigma sqrt(2 x_k) at the Gauss-Laguerre nodes x_k with their weights w_k (exact for polynomials in
@@ -530,7 +530,7 @@ def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndar
     anything with detector_half_angle_deg, cone_points, blur_deg, background_per_sr.  `parts`:
     what is read, the diffuse field (direct and loop parts), the delta beams, the stray light
     (the beam divergence reads the diffuse field at each incidence of its quadrature and the
-    delta beams once, plate.deterministic.simulate_rows).
+    delta beams once, plate.readout.simulate_rows).
     """
     off = quadrature_offsets(det.detector_half_angle_deg, det.cone_points, det.blur_deg)
     th, ph = offset_directions(theta_s, phi_s, off)
