@@ -69,6 +69,7 @@ def test_an_intensity_only_screen_finds_the_stokes_loops_gain_and_a_polarised_so
     Stokes loop (within 10 %); the source's polarisation is screened on the Stokes loop (the intensity-only
     loop cannot carry it: the plate model refuses it)."""
     from relief_bsdf.errors import InputError
+    from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate
     from relief_bsdf.plate.setup import EngineSetup
     from relief_bsdf.core.index import ConstantIndex
     fwd = plate_forward(random_relief(48, 1.0e-6, 0.4e-6, 5.0e-6, "gaussian", seed=2), method="ray", samples=4_000)
