@@ -15,7 +15,7 @@ lies inside the reported interval; intervals reported as not determined are coun
         [--only bulk_absorption,...] [--candidates ...] [--case-photons N] [--photons N]
         [--serial [--workers N]]   (one case at a time, each with every core: the latency a user sees)
 
-Seeds: the selection rule's thresholds (BIC_MARGIN 10 of fit.selection, the noise-consistency
+Seeds: the selection rule's thresholds (BIC_MARGIN 10 of criteria, the noise-consistency
 gate 3 sqrt(2n), the overwhelming bar max(40, 3 sqrt(2n))) were set on seed 1 in the first
 (single-effect) benchmark; the stepwise search adds no threshold of its own, and its closure bar
 (rms 1.2) is the forward model's stated accuracy, not tuned here.  Report on a fresh seed

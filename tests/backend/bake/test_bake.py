@@ -8,7 +8,7 @@ from relief_bsdf.bake import ClosureAlbedo, bake_lut, unit_albedo
 from relief_bsdf.errors import InputError
 from relief_bsdf.core.fresnel import critical_angle_deg, fresnel_unpolarized
 from relief_bsdf.core.index import CauchyIndex, ConstantIndex, Material
-from relief_bsdf.plate.deterministic import flat_tables
+from relief_bsdf.methods.flat import flat_tables
 
 TH = np.arange(0.0, 90.0, 5.0)
 

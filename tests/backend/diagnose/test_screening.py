@@ -69,7 +69,8 @@ def test_an_intensity_only_screen_finds_the_stokes_loops_gain_and_a_polarised_so
     Stokes loop (within 10 %); the source's polarisation is screened on the Stokes loop (the intensity-only
     loop cannot carry it: the plate model refuses it)."""
     from relief_bsdf.errors import InputError
-    from relief_bsdf.plate.deterministic import PlateModel
+    from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate
+    from relief_bsdf.plate.setup import EngineSetup
     from relief_bsdf.core.index import ConstantIndex
     fwd = plate_forward(random_relief(48, 1.0e-6, 0.4e-6, 5.0e-6, "gaussian", seed=2), method="ray", samples=4_000)
     effs = (get_effect("relief_scale"), get_effect("back_face_roughness"))
@@ -84,7 +85,8 @@ def test_an_intensity_only_screen_finds_the_stokes_loops_gain_and_a_polarised_so
         assert full > 1.0 and abs(flat / full - 1.0) < 0.1, (e.name, flat, full, cur.chi2)
     assert fwd.screening(get_effect("polarization")) is fwd
     with pytest.raises(InputError, match="stokes_loop"):
-        PlateModel(thickness_m=1e-3, index=ConstantIndex(1.5), polarization="s", stokes_loop=False)
+        EngineSetup(Experiment(Plate(1e-3, ConstantIndex(1.5), FlatFace(), FlatFace()), Instrument(polarization_q=1.0)),
+                    stokes_loop=False)
 
 
 def test_a_screen_without_the_sector_tables_finds_the_gain_with_them(plate_forward):

@@ -20,7 +20,7 @@ from relief_bsdf.diagnose.fitting import fit_effect, intervals
 from relief_bsdf.diagnose.mismatch import attribute
 from relief_bsdf.diagnose.stepwise import passes, stepwise
 from relief_bsdf.fit.residual import chi2
-from relief_bsdf.fit.selection import BIC_MARGIN
+from relief_bsdf.criteria import BIC_MARGIN
 
 from diagnosis_rows import in_plane_rows  # noqa: E402  (tests/backend/diagnose/diagnosis_rows.py)
 
@@ -673,7 +673,7 @@ def test_every_step_of_the_search_is_recorded_with_what_each_candidate_did():
     relief_scale's screen sees nothing), step 2 the background, step 3 names nothing and says why.
     Every number in the record is the search's own (fitted chi2, BIC gains from it)."""
     from relief_bsdf.diagnose.stepwise import steps_record
-    from relief_bsdf.fit.selection import bic
+    from relief_bsdf.criteria import bic
     fwd = AnalyticForward({"absorption_per_mm": 0.2, "background_per_sr": 0.03}, seed=3)
     names = ["bulk_absorption", "stray_light", "relief_scale"]
     steps = stepwise(fwd, names, workers=1)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from relief_bsdf.fit.optimise import FitSettings, fit_relief, process_relief, relief_rms
-from relief_bsdf.fit.selection import BIC_MARGIN, asks_for, bic, bic_gain, overdispersion
+from relief_bsdf.criteria import BIC_MARGIN, asks_for, bic, bic_gain, overdispersion
 from relief_bsdf.surface.synth import random_relief
 
 X_DEG = np.linspace(-40, 40, 81)

@@ -57,7 +57,7 @@ def test_candidates_cover_every_family():
 
 
 def test_choose_takes_the_complex_candidate_only_past_the_margin():
-    from relief_bsdf.fit.selection import BIC_MARGIN
+    from relief_bsdf.criteria import BIC_MARGIN
     from relief_bsdf.infer.refine import choose
     n = 1000
     ln = np.log(n)

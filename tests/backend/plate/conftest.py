@@ -1,6 +1,8 @@
-"""Fixtures of the plate tests: analytic boundary tables."""
+"""Fixtures of the plate tests: the forward model's memory owner, analytic boundary tables."""
 import numpy as np
 import pytest
+
+from relief_bsdf.plate.memory import ForwardMemory
 
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.methods.request import Request
@@ -23,3 +25,19 @@ def lambert_table():
     lambert_table(incident_from, aR, aT, theta_i_list, spec_R=0, spec_T=0, mueller=False) -> BsdfTable
     """
     return _lambert
+
+
+@pytest.fixture(scope="module", autouse=True)
+def module_memory():
+    """One memory owner per test module (`plate.memory.ForwardMemory`, active for the module's tests): the
+    tests of a module share its tables and solvers (their values are pure functions of their keys), no
+    module sees another's; a test that needs an owner of its own asks for `fresh_memory`."""
+    with ForwardMemory(4e9).active() as memory:
+        yield memory
+
+
+@pytest.fixture
+def fresh_memory():
+    """An empty memory owner of this test alone, active for it."""
+    with ForwardMemory(4e9).active() as memory:
+        yield memory

@@ -149,7 +149,7 @@ def test_an_incidence_of_the_beam_is_solved_in_the_nominal_plane_and_its_specula
     the in-plane incidence theta'' (azimuth 0, or 180 when it crosses the normal) and its field shifted;
     the shift takes the ray's own specular direction (theta', phi' + 180) onto the solved incidence's
     specular direction (theta'', phi'' + 180), for the reflected and the straight-through transmitted ray."""
-    from relief_bsdf.plate.deterministic import _shifted, beam_split
+    from relief_bsdf.plate.readout import _shifted, beam_split
     th = np.array([33.0, 31.0, 2.0, 4.0])
     ph = np.array([10.0, -7.0, 120.0, 250.0])
     nom_t = np.array([30.0, 30.0, 0.0, 0.0])

@@ -7,7 +7,7 @@ import pytest
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.core.index import ConstantIndex
 from relief_bsdf.plate import Experiment, FlatFace, Instrument, Plate, TableFace, TableGrid, in_plane_rows, simulate
-from relief_bsdf.plate.deterministic import _overlap_phi, _overlap_theta
+from relief_bsdf.plate.tableview import _overlap_phi, _overlap_theta
 from relief_bsdf.plate.detector import DirectField, cone_solid_angle, direct_reading, unit
 
 

@@ -3,7 +3,7 @@ it is computed (in-place blocks along the leading axis, gathers along an inner o
 import numpy as np
 import pytest
 
-from relief_bsdf.plate.deterministic import _apply, _lin_matrix, _periodic_matrix
+from relief_bsdf.plate.tableview import _apply, _lin_matrix, _periodic_matrix
 
 
 def _dense(W, arr, axis):

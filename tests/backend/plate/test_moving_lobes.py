@@ -10,7 +10,7 @@ from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.methods.request import Request
 from relief_bsdf.plate import TableGrid
 from relief_bsdf.core.frames import projected_solid_angle
-from relief_bsdf.plate.deterministic import _psa_weights, _TableView
+from relief_bsdf.plate.tableview import _psa_weights, _TableView
 from relief_bsdf.plate.detector import unit
 from test_direct_grid import _cell_averages  # tests/backend/plate/test_direct_grid.py: sub-cell quadrature
 
@@ -101,12 +101,12 @@ def test_moving_lobes_keep_each_incidences_albedo_and_the_tables_own_incidences(
 
 def test_an_unknown_inside_interpolation_is_refused_by_name():
     from relief_bsdf.errors import InputError
-    from relief_bsdf.plate.deterministic import PlateModel
+    from plate_setups import plate_setup  # tests/backend/plate/plate_setups.py
     from relief_bsdf.core.index import ConstantIndex
     with pytest.raises(InputError, match="inside_interpolation"):
         TableGrid(inside_interpolation="cubic")
     with pytest.raises(InputError, match="inside_interpolation"):
-        PlateModel(thickness_m=1e-3, index=ConstantIndex(1.5), inside_interpolation="cubic")
+        plate_setup(thickness_m=1e-3, index=ConstantIndex(1.5), inside_interpolation="cubic")
 
 
 def test_the_sector_step_sets_the_sector_tables_azimuths_and_must_divide_a_half_turn():

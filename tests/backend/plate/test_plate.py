@@ -6,7 +6,11 @@ from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
 from relief_bsdf.core.fresnel import fresnel_power
 from relief_bsdf.core.index import CauchyIndex, ConstantIndex, Material
-from relief_bsdf.plate.deterministic import PlateModel, PlateSolver, Rows, flat_tables, in_plane_rows, simulate_rows
+from relief_bsdf.methods.flat import flat_tables
+from relief_bsdf.plate.readout import simulate_rows
+from relief_bsdf.plate.rows import Rows, in_plane_rows
+from plate_setups import plate_setup  # tests/backend/plate/plate_setups.py
+from relief_bsdf.plate.solver import PlateSolver
 from relief_bsdf.methods.request import Request
 
 N_GLASS = 1.5
@@ -25,7 +29,7 @@ def lambert(frm, aR, aT, th, spec_R=0.0, spec_T=0.0):
 def flat_plate(theta_i, pol, face="front", n=N_GLASS, absorption=0.0):
     tt = float(np.degrees(np.arcsin(np.sin(np.radians(theta_i)) / n)))
     o, i = flat_tables(Material(ConstantIndex(n)), [550.0], sorted({0.0, theta_i}), sorted({0.0, tt, 60.0}))
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(n), polarization=pol, rough_face=face,
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(n), polarization=pol, rough_face=face,
                    absorption_per_m=absorption)
     return PlateSolver(m, i, o).solve(550.0, [theta_i])[0].hemispherical()
 
@@ -73,13 +77,13 @@ def test_absorbing_flat_plate_follows_beer_lambert_series():
 def test_lossless_diffuse_plate_conserves_energy_and_absorption_removes_some(face):
     o = lambert("outside", 0.1, 0.9, [0, 30, 60])
     i = lambert("inside", 0.6, 0.4, np.arange(0, 90, 5.0))
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), rough_face=face)
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS), rough_face=face)
     for r in PlateSolver(m, i, o).solve(550.0, [0.0, 30.0, 60.0]):
         h = r.hemispherical()
         assert h["R"] + h["T"] == pytest.approx(1.0, abs=2e-3)
         # trapped light escapes: much more than the single-pass transmission leaves through the rough face
         assert h["diffuse_R"] > (0.1 if face == "front" else 0.0) + 0.05
-    ma = m.with_effects(absorption_per_m=300.0)
+    ma = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS), rough_face=face, absorption_per_m=300.0)
     h = PlateSolver(ma, i, o).solve(550.0, [30.0])[0].hemispherical()
     assert 0.3 < h["R"] + h["T"] < 0.99
 
@@ -92,7 +96,7 @@ def test_trapped_light_series_matches_closed_form_for_lambertian_front():
     aR_o, aT_o, aR_i, aT_i = 0.1, 0.9, 0.6, 0.4
     o = lambert("outside", aR_o, aT_o, [0, 30])
     i = lambert("inside", aR_i, aT_i, np.arange(0, 90, 5.0))
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
     h = PlateSolver(m, i, o).solve(550.0, [30.0])[0].hemispherical()
     mu = np.linspace(0, 1, 200001)[1:]
     Rs, Rp, _, _ = fresnel_power(mu, N_GLASS, 1.0)
@@ -105,7 +109,7 @@ def test_trapped_light_series_matches_closed_form_for_lambertian_front():
 def test_rows_use_detector_cone_for_the_delta_part():
     o, i = flat_tables(Material(ConstantIndex(N_GLASS)), [550.0], [30.0], np.arange(0, 90, 1.0))
     h = 1.5
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), detector_half_angle_deg=h)
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS), detector_half_angle_deg=h)
     rows = Rows([550.0] * 4, [30.0] * 4, [0.0] * 4, ["R", "R", "R", "T"], [30.0, 30.0 + 0.8 * h, 30.0 + 1.2 * h, 30.0],
                 [180.0, 180.0, 180.0, 180.0])
     v = simulate_rows(m, i, o, rows)
@@ -120,7 +124,7 @@ def test_rows_use_detector_cone_for_the_delta_part():
 def test_diffuse_rows_of_lambertian_plate_are_flat_in_angle_and_reciprocal_in_sum():
     o = lambert("outside", 0.1, 0.9, [0, 30, 60])
     i = lambert("inside", 0.6, 0.4, np.arange(0, 90, 5.0))
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
     rows = in_plane_rows(550.0, [0, 30], np.arange(2.5, 80, 5.0), sides=("R",))
     v = simulate_rows(m, i, o, rows)
     # R side: outside table constant + rough-face exit of a (nearly) isotropic internal field -> constant
@@ -130,7 +134,7 @@ def test_diffuse_rows_of_lambertian_plate_are_flat_in_angle_and_reciprocal_in_su
 def test_bad_rows_and_models_are_input_errors():
     o = lambert("outside", 0.1, 0.9, [0, 30])
     i = lambert("inside", 0.6, 0.4, [0, 45, 89])
-    m = PlateModel(thickness_m=2e-3, index=CauchyIndex(1.49, 4000.0))
+    m = plate_setup(thickness_m=2e-3, index=CauchyIndex(1.49, 4000.0))
     with pytest.raises(InputError, match="wavelength"):
         simulate_rows(m, i, o, Rows([1200.0], [0.0], [0.0], ["R"], [10.0], [0.0]), where="rec.csv")
     with pytest.raises(InputError, match="theta_s_deg"):
@@ -138,12 +142,12 @@ def test_bad_rows_and_models_are_input_errors():
     with pytest.raises(InputError, match="theta_i_deg"):
         simulate_rows(m, i, o, Rows([550.0], [95.0], [0.0], ["R"], [10.0], [0.0]), where="rec.csv")
     with pytest.raises(InputError, match="detector_half_angle_deg"):
-        PlateModel(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=0.0)
+        plate_setup(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=0.0)
 
 
 def test_dispersive_index_changes_the_plate():
     o, i = flat_tables(Material(CauchyIndex(1.49, 20000.0)), [450.0, 650.0], [45.0], np.arange(0, 90, 0.5))
-    m = PlateModel(thickness_m=2e-3, index=CauchyIndex(1.49, 20000.0), polarization="s")
+    m = plate_setup(thickness_m=2e-3, index=CauchyIndex(1.49, 20000.0), polarization="s")
     s = PlateSolver(m, i, o)
     r_blue = s.solve(450.0, [45.0])[0].hemispherical()["R"]
     r_red = s.solve(650.0, [45.0])[0].hemispherical()["R"]
@@ -153,7 +157,7 @@ def test_dispersive_index_changes_the_plate():
 def test_tilted_flat_plate_moves_the_specular_peak_by_twice_the_tilt():
     o, i = flat_tables(Material(ConstantIndex(N_GLASS)), [550.0], np.arange(0, 90, 1.0), np.arange(0, 90, 0.5))
     tilt = 3.0
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), detector_half_angle_deg=1.0, tilt_deg=tilt)
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS), detector_half_angle_deg=1.0, tilt_deg=tilt)
     ts = np.arange(20.0, 50.0, 0.5)
     rows = Rows(np.full(ts.size, 550.0), np.full(ts.size, 30.0), np.zeros(ts.size), ["R"] * ts.size, ts,
                 np.full(ts.size, 180.0))
@@ -172,7 +176,7 @@ def test_stokes_loop_with_depolarising_mueller_tables_equals_the_scalar_loop():
     op = replace(o, mueller_per_sr=o.values_per_sr[..., None, None] * dep)
     ip = replace(i, mueller_per_sr=i.values_per_sr[..., None, None] * dep)
     for pol in ("unpolarized", "s"):
-        m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), polarization=pol, absorption_per_m=50.0)
+        m = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS), polarization=pol, absorption_per_m=50.0)
         rows = in_plane_rows(550.0, [0, 30, 60], np.arange(0.5, 90, 3.0))
         scalar = simulate_rows(m, i, o, rows)
         stokes_solver = PlateSolver(m, ip, op)
@@ -187,7 +191,7 @@ def test_back_face_table_lambertian_closed_form_and_flat_table_limit():
     o = lambert("outside", aR_o, aT_o, [0, 30])
     i = lambert("inside", aR_i, aT_i, np.arange(0, 90, 5.0))
     b = lambert("inside", bR, bT, np.arange(0, 90, 5.0))
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS))
     h = PlateSolver(m, i, o, back=b).solve(550.0, [30.0])[0].hemispherical()
     g = aR_i * bR
     assert h["R"] == pytest.approx(aR_o + aT_o * bR * aT_i / (1 - g), rel=1e-6)
@@ -227,7 +231,7 @@ def test_lossless_plate_with_specular_parts_conserves_energy(mueller):
         i = replace(i, mueller_per_sr=i.values_per_sr[..., None, None] * dep)
     b = _lossless_inside(np.arange(0, 90, 1.0), 0.2, 0.3, 0.4)       # a second face with its own table
     for face, back in (("front", None), ("back", None), ("front", b)):
-        m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), rough_face=face)
+        m = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS), rough_face=face)
         solver = PlateSolver(m, i, o if face == "front" else None, back=back)
         for h in solver.solve(550.0, [0.0, 30.0, 60.0]):
             h = h.hemispherical()
@@ -236,7 +240,7 @@ def test_lossless_plate_with_specular_parts_conserves_energy(mueller):
 
 def test_back_relief_with_a_flat_front_face_table_equals_the_fresnel_front_face():
     i = lambert("inside", 0.3, 0.5, np.arange(0, 90, 5.0))
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS), rough_face="back", absorption_per_m=30.0)
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS), rough_face="back", absorption_per_m=30.0)
     f_out, f_in = flat_tables(Material(ConstantIndex(N_GLASS)), [550.0], [0.0, 30.0], np.arange(0, 90.01, 0.25))
     rows = in_plane_rows(550.0, [0, 30], np.arange(0.5, 90, 3.0))
     ref = simulate_rows(m, i, None, rows)
@@ -246,4 +250,4 @@ def test_back_relief_with_a_flat_front_face_table_equals_the_fresnel_front_face(
     ok = rows.theta_s_deg < 80
     np.testing.assert_allclose(got[ok], ref[ok], rtol=5e-3)
     with pytest.raises(InputError, match="front face"):
-        PlateSolver(PlateModel(thickness_m=2e-3, index=ConstantIndex(N_GLASS)), i, None, front=(f_out, f_in))
+        PlateSolver(plate_setup(thickness_m=2e-3, index=ConstantIndex(N_GLASS)), i, None, front=(f_out, f_in))

@@ -9,8 +9,11 @@ from relief_bsdf.plate.grid import TableGrid
 from relief_bsdf.methods import reconstruct
 from relief_bsdf.core.fresnel import fresnel_power
 from relief_bsdf.core.index import ConstantIndex
-from relief_bsdf.plate.deterministic import PlateModel, Rows, in_plane_rows, simulate_rows
-from relief_bsdf.plate.photon import experiment_of_model, hemispherical, simulate_rows_mc, trace
+from relief_bsdf.plate.readout import simulate_rows
+from relief_bsdf.plate.rows import Rows, in_plane_rows
+from plate_setups import plate_setup, relief_experiment  # tests/backend/plate/plate_setups.py
+from relief_bsdf.plate import photon
+from relief_bsdf.plate.photon import hemispherical, trace
 from relief_bsdf.surface.relief import Relief
 from relief_bsdf.surface.synth import random_relief
 
@@ -21,8 +24,8 @@ FLAT = Relief(np.zeros((16, 16)), 1e-6, 1e-6, periodic=True, source="flat")
 @pytest.mark.parametrize("pol", ["s", "p"])
 def test_flat_plate_mc_matches_incoherent_series(face, pol):
     n, ti, N = 1.5, 60.0, 100_000
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(n), polarization=pol, rough_face=face)
-    h = hemispherical(trace(experiment_of_model(m, FLAT), 550.0, ti, 0.0, N, np.random.default_rng(1)))
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(n), polarization=pol, rough_face=face)
+    h = hemispherical(trace(relief_experiment(m, FLAT), 550.0, ti, 0.0, N, np.random.default_rng(1)))
     Rs, Rp, _, _ = fresnel_power(np.cos(np.radians(ti)), 1.0, n)
     R1 = Rs if pol == "s" else Rp
     R = R1 + (1 - R1) ** 2 * R1 / (1 - R1**2)
@@ -32,8 +35,8 @@ def test_flat_plate_mc_matches_incoherent_series(face, pol):
 
 def test_absorption_follows_beer_lambert_on_flat_plate():
     n, ti, a, N = 1.5, 0.0, 200.0, 100_000
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(n), absorption_per_m=a)
-    h = hemispherical(trace(experiment_of_model(m, FLAT), 550.0, ti, 0.0, N, np.random.default_rng(2)))
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(n), absorption_per_m=a)
+    h = hemispherical(trace(relief_experiment(m, FLAT), 550.0, ti, 0.0, N, np.random.default_rng(2)))
     R1 = ((n - 1) / (n + 1)) ** 2
     k = np.exp(-a * 2e-3)
     T = (1 - R1) ** 2 * k / (1 - R1**2 * k**2)
@@ -62,7 +65,8 @@ def test_mc_and_deterministic_plates_agree_within_3_percent_in_lobe_on_the_demo_
     default (0.5 deg x 2 deg cells, inside incidences every 1 deg) because the transmitted lobe is
     only ~4 deg wide; "within 3 %" is judged on the systematic part (the Monte-Carlo's own
     per-row variance removed) and on the lobe total."""
-    from dataclasses import replace
+    from relief_bsdf.plate import experiment_from_sample
+    from relief_bsdf.plate.setup import EngineSetup
 
     from relief_bsdf.io.heightmaps import read_relief, write_relief
     from relief_bsdf.io.recording import Recording, read_sample, write_recording, write_sample
@@ -80,7 +84,7 @@ def test_mc_and_deterministic_plates_agree_within_3_percent_in_lobe_on_the_demo_
         "recording": {"file": "recording.csv"}})
     sample = read_sample(tmp_path / "sample.toml")
     relief = read_relief(tmp_path / "relief.x3p")
-    m = replace(PlateModel.from_sample(sample), azimuth_cells=180)
+    m = EngineSetup(experiment_from_sample(sample, relief, method="ray"), azimuth_cells=180)
     assert m.detector_half_angle_deg == 1.0 and m.rough_face == "front"
     g = TableGrid(0.5, 2.0, 1.0, inside_samples_scale=1.0)
     (out,) = reconstruct(relief, m.material, g.request([550.0], [0.0, 30.0, 60.0], "outside", "ray", 4_000_000, 1,
@@ -88,7 +92,7 @@ def test_mc_and_deterministic_plates_agree_within_3_percent_in_lobe_on_the_demo_
     (ins,) = reconstruct(relief, m.material, g.request([550.0], np.arange(0, 90, 1.0), "inside", "ray", 800_000, 2),
                          "ray")
     det = simulate_rows(m, ins, out, rows)
-    mc, err, info = simulate_rows_mc(relief, m, rows, photons=4_000_000, seed=2)
+    mc, err, info = photon.run(relief_experiment(m, relief), rows, photons=4_000_000, seed=2)
     assert max(info["lost_fraction"].values()) < 1e-3
     report, bad = [], []
     for ti in (0.0, 30.0, 60.0):
@@ -114,14 +118,14 @@ def test_mc_plate_agrees_with_deterministic_plate_in_lobe():
     # a diffuser-like relief (rms slope ~0.5): the lobes span many table cells, and 256^2 pixels give
     # enough facets that the finite relief's own angular fine structure averages out in a 4-degree cone
     relief = random_relief(256, 1e-6, 1.0e-6, 4e-6, "gaussian", seed=3)
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=4.0)
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=4.0)
     rows = in_plane_rows(550.0, [30.0], np.arange(1.0, 89.0, 2.0))
     g = TableGrid(1.0, 5.0, 5.0)
     (out,) = reconstruct(relief, m.material, g.request([550.0], [30.0], "outside", "ray", 2_000_000, 1), "ray")
     (ins,) = reconstruct(relief, m.material, g.request([550.0], np.arange(0, 90, 5.0), "inside", "ray", 100_000, 2),
                          "ray")
     det = simulate_rows(m, ins, out, rows)
-    mc, err, info = simulate_rows_mc(relief, m, rows, photons=1_000_000, seed=2)
+    mc, err, info = photon.run(relief_experiment(m, relief), rows, photons=1_000_000, seed=2)
     lobe = det > 0.3 * det.max()
     assert lobe.sum() >= 10
     rel = (det - mc)[lobe] / mc[lobe]
@@ -132,14 +136,15 @@ def test_mc_plate_agrees_with_deterministic_plate_in_lobe():
 
 
 def test_tilted_flat_plate_mc_puts_the_specular_peak_where_the_deterministic_plate_does():
-    from relief_bsdf.plate.deterministic import Rows, flat_tables
+    from relief_bsdf.methods.flat import flat_tables
+    from relief_bsdf.plate.rows import Rows
     from relief_bsdf.core.index import Material
     tilt = 3.0
-    m = PlateModel(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=1.0, tilt_deg=tilt)
+    m = plate_setup(thickness_m=2e-3, index=ConstantIndex(1.5), detector_half_angle_deg=1.0, tilt_deg=tilt)
     ts = np.arange(20.25, 40.0, 0.5)      # no row exactly one cone radius from the beam
     rows = Rows(np.full(ts.size, 550.0), np.full(ts.size, 30.0), np.zeros(ts.size), ["R"] * ts.size, ts,
                 np.full(ts.size, 180.0))
-    mc, err, _ = simulate_rows_mc(FLAT, m, rows, photons=20_000, seed=1)
+    mc, err, _ = photon.run(relief_experiment(m, FLAT), rows, photons=20_000, seed=1)
     o, i = flat_tables(Material(ConstantIndex(1.5)), [550.0], np.arange(0, 90, 1.0), np.arange(0, 90, 0.5))
     det = simulate_rows(m, i, o, rows)
     np.testing.assert_array_equal(mc > 0, det > 0)

@@ -6,7 +6,7 @@ import numpy as np
 
 from relief_bsdf.core.index import ConstantIndex
 from relief_bsdf.plate import Experiment, FlatFace, Plate, ReliefFace, TableGrid, in_plane_rows, simulate
-from relief_bsdf.plate import deterministic
+from relief_bsdf.plate import deterministic, tableview
 from relief_bsdf.surface.synth import random_relief
 from relief_bsdf.plate.memory import current_memory
 
@@ -117,18 +117,18 @@ def test_a_tilt_reuses_the_loop_operators_with_its_own_outside_table():
 def test_interpolation_by_gathers_equals_the_dense_contraction():
     rng = np.random.default_rng(1)
     arr = rng.random((7, 9, 12, 4, 4)).astype(np.float32)
-    cases = [(deterministic._lin_matrix(np.arange(7) * 2.5, rng.uniform(-3, 20, 11)), 0),
-             (deterministic._lin_matrix(np.arange(9) + 0.5, rng.uniform(0, 9, 5)), 1),
-             (deterministic._periodic_matrix(np.arange(12) * 30.0, rng.uniform(-400, 400, 8)), 2),
-             (deterministic._periodic_matrix(np.arange(12) * 30.0, np.arange(12) * 30.0 + 60.0), 2),   # a rotation
-             (deterministic._lin_matrix([5.0], [1.0, 7.0]), 0)]
+    cases = [(tableview._lin_matrix(np.arange(7) * 2.5, rng.uniform(-3, 20, 11)), 0),
+             (tableview._lin_matrix(np.arange(9) + 0.5, rng.uniform(0, 9, 5)), 1),
+             (tableview._periodic_matrix(np.arange(12) * 30.0, rng.uniform(-400, 400, 8)), 2),
+             (tableview._periodic_matrix(np.arange(12) * 30.0, np.arange(12) * 30.0 + 60.0), 2),   # a rotation
+             (tableview._lin_matrix([5.0], [1.0, 7.0]), 0)]
     for W, axis in cases:
         a = arr[:W.shape[1]] if axis == 0 else arr
         dense = np.moveaxis(np.tensordot(W, a, axes=([1], [axis])), 0, axis)
-        got = deterministic._apply(W, a, axis)
+        got = tableview._apply(W, a, axis)
         assert got.dtype == dense.dtype and got.shape == dense.shape
         np.testing.assert_allclose(got, dense, rtol=1e-13, atol=1e-15)
     modes = np.fft.rfft(arr, axis=2)
     W = cases[0][0]
-    np.testing.assert_allclose(deterministic._apply(W, np.ascontiguousarray(modes), 0),
+    np.testing.assert_allclose(tableview._apply(W, np.ascontiguousarray(modes), 0),
                                np.moveaxis(np.tensordot(W, modes, axes=([1], [0])), 0, 0), rtol=1e-12, atol=1e-14)

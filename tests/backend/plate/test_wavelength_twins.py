@@ -10,7 +10,8 @@ import pytest
 
 from relief_bsdf.core.index import CauchyIndex, ConstantIndex, Material
 from relief_bsdf.plate import current_memory, Experiment, FlatFace, Instrument, Plate, ReliefFace, TableGrid, simulate
-from relief_bsdf.plate.deterministic import Rows, _SectorKernels, in_plane_rows
+from relief_bsdf.plate.rows import Rows, in_plane_rows
+from relief_bsdf.plate.sector_loop import _SectorKernels
 from relief_bsdf.plate.faces import same_indices
 from relief_bsdf.surface.synth import random_relief
 

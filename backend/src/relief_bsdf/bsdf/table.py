@@ -172,11 +172,11 @@ class BsdfTable:
             ps = ps - pi + self.phi_i_deg[0]
             pi = np.full_like(pi, self.phi_i_deg[0])
         axes = [
-            _linear_weights(self.wavelength_nm, wl),
-            _linear_weights(self.theta_i_deg, ti),
-            _periodic_weights(self.phi_i_deg, pi),
-            _linear_weights(self.theta_s_deg, ts),
-            _periodic_weights(self.phi_s_deg, ps),
+            linear_weights(self.wavelength_nm, wl),
+            linear_weights(self.theta_i_deg, ti),
+            periodic_weights(self.phi_i_deg, pi),
+            linear_weights(self.theta_s_deg, ts),
+            periodic_weights(self.phi_s_deg, ps),
         ]
         out = np.zeros(wl.shape)
         v = self.values_per_sr
@@ -247,8 +247,10 @@ def _side_index(side: Any) -> np.ndarray:
     return np.where(s == "T", 1, 0) if s.dtype.kind in "US" else s.astype(int)
 
 
-def _linear_weights(grid: np.ndarray, x: np.ndarray):
-    """Indices (i0, i1) and weight f of x between grid[i0] and grid[i1]; clamped at the ends."""
+def linear_weights(grid: np.ndarray, x: np.ndarray):
+    """Indices (i0, i1) and weight f of x between grid[i0] and grid[i1]; clamped at the ends: linear
+    interpolation weights 1 - f and f (the project's one table interpolation: `BsdfTable.eval`, the plate's
+    resampling of its tables, `interpolation_matrix`)."""
     n = grid.size
     if n == 1:
         z = np.zeros(x.shape, int)
@@ -260,8 +262,8 @@ def _linear_weights(grid: np.ndarray, x: np.ndarray):
     return i0, i1, np.clip(f, 0.0, 1.0)
 
 
-def _periodic_weights(grid: np.ndarray, x: np.ndarray):
-    """Like _linear_weights for a periodic (360 degree) axis."""
+def periodic_weights(grid: np.ndarray, x: np.ndarray):
+    """Like linear_weights for a periodic (360 degree) axis."""
     n = grid.size
     if n == 1:
         z = np.zeros(x.shape, int)
@@ -273,6 +275,26 @@ def _periodic_weights(grid: np.ndarray, x: np.ndarray):
     i0 = i1 - 1
     f = (xr - ext[i0]) / (ext[i1] - ext[i0])
     return i0 % n, i1 % n, np.clip(f, 0.0, 1.0)
+
+
+def interpolation_matrix(grid: Any, x: Any, periodic: bool = False) -> np.ndarray:
+    """(len(x), len(grid)) weights of `linear_weights` (`periodic_weights` on a 360-degree axis) as a
+    matrix: row k interpolates the values on `grid` at x[k]."""
+    grid = np.asarray(grid, float)
+    x = np.atleast_1d(np.asarray(x, float))
+    W = np.zeros((x.size, grid.size))
+    if grid.size == 1:
+        W[:, 0] = 1.0
+        return W
+    i0, i1, f = (periodic_weights if periodic else linear_weights)(grid, x)
+    r = np.arange(x.size)
+    if periodic:
+        np.add.at(W, (r, i0), 1.0 - f)
+        np.add.at(W, (r, i1), f)
+    else:
+        W[r, i0] += 1.0 - f
+        W[r, i1] += f
+    return W
 
 
 def reciprocity_error(table: BsdfTable, other: BsdfTable | None = None, n_a: float = 1.0, n_b: float = 1.0,

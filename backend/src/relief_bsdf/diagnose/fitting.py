@@ -224,7 +224,7 @@ def _best_form(forward, effect: Effect, fixed: tuple, held: dict, coarse: bool, 
     the first form (the default: the paper's Gaussian for relief_smoothing) is kept unless another is
     lower by more than BIC_MARGIN (where the rows do not tell the forms apart, the default stands).  The
     form's values join `parameters` (held, not fitted: k is the effect's); `forms` records each form's chi^2."""
-    from relief_bsdf.fit.selection import BIC_MARGIN
+    from relief_bsdf.criteria import BIC_MARGIN
     fits = [fit_effect(forward, effect, fixed, {**held, **form}, coarse, start) for form in effect.forms]
     ok = [(f, form) for f, form in zip(fits, effect.forms) if "chi2" in f]
     if not ok:

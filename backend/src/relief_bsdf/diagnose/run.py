@@ -50,7 +50,7 @@ from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODE
                                            stepwise, steps_record)
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import METRIC, metric_of_chi2
-from relief_bsdf.fit.selection import BIC_MARGIN
+from relief_bsdf.criteria import BIC_MARGIN
 from relief_bsdf.parallel import current_settings, parallel_settings
 from relief_bsdf.plate import TableGrid
 from relief_bsdf.plate.memory import ForwardMemory, MemoryPlan, job_memory_bytes, plan_processes

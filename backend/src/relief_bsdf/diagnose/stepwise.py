@@ -1,6 +1,6 @@
 """Stepwise selection of every effect present: add the one that gains most, refit all jointly, repeat.
 
-The one information criterion of the project (`fit.selection`): BIC = chi^2 + k ln n
+The one information criterion of the project (`criteria`): BIC = chi^2 + k ln n
 (Schwarz 1978) over the n recording rows, chi^2 the censored misfit with
 s^2 = sigma_recording^2 + sigma_model^2 (`forward.DiagnosisForward.misfit`), k the number of
 fitted parameters of the named effects.
@@ -72,7 +72,7 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
 
 Rules that keep the search from contradicting its own report (issue 49):
 - the gain a candidate is judged on (`passes`) is the project's one criterion on the
-  quasi-likelihood scale (`gain_of`: `fit.selection.bic_gain` with the larger model's
+  quasi-likelihood scale (`gain_of`: `criteria.bic_gain` with the larger model's
   overdispersion c = max(1, chi^2 / (n - k)), the fit's QBIC): while the model misses the noise by
   a wide margin a chi^2 difference counts 1 / c as much, so a parameter that only bends the model
   toward its own systematic error is not named (the plain BIC gain is still what ranks
@@ -122,7 +122,7 @@ from typing import Any
 from relief_bsdf.diagnose.effects import compatible, get_effect
 from relief_bsdf.diagnose.fitting import POLISH_STEPS, fit_effect, polish, refit_joint, why_skipped
 from relief_bsdf.errors import InputError
-from relief_bsdf.fit.selection import BIC_MARGIN, bic, bic_gain, overdispersion
+from relief_bsdf.criteria import BIC_MARGIN, bic, bic_gain, overdispersion
 from relief_bsdf.parallel import kept_workers, map_tasks
 from relief_bsdf.parallel.blas import blas_single_thread
 from relief_bsdf.progress import silent
@@ -166,7 +166,7 @@ def overwhelming_bar(n: int) -> float:
 
 def gain_of(chi_cur: float, k_cur: int, chi_new: float, k_new: int, n: int) -> float:
     """The gain a larger model is judged on: the project's one criterion on the quasi-likelihood scale
-    (`fit.selection.bic_gain` with the larger model's overdispersion c = max(1, chi^2 / (n - k)), QBIC):
+    (`criteria.bic_gain` with the larger model's overdispersion c = max(1, chi^2 / (n - k)), QBIC):
     while the model misses the noise by a wide margin its chi^2 differences are inflated by c, and a
     parameter that only bends the model toward its own systematic error (an index offset, a small
     polarisation, a 0.01 deg blur) would pass a plain BIC bar.  c = 1 at the noise: plain BIC."""

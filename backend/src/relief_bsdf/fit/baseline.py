@@ -25,7 +25,6 @@ from typing import Any
 import numpy as np
 
 from relief_bsdf.plate import DEFAULT_METHOD, Experiment, TableGrid, check_rows, experiment_from_sample, resolve_auto
-from relief_bsdf.plate.deterministic import model_of
 from relief_bsdf.surface.relief import Relief
 
 #: the least share of valid points of a height map a forward model accepts (the rest: holes a method
@@ -46,7 +45,7 @@ def sample_relief(sample: Any, relief_options: Any = None) -> Relief:
 def resolved(experiment: Experiment, rows: Any, grid: TableGrid, where: str = "recording") -> Experiment:
     """`experiment` for these rows: the rows checked against the plate's grid, every `auto` relief face
     resolved once (module doc).  Idempotent: a resolved experiment comes back unchanged."""
-    check_rows(model_of(experiment, grid), rows, where)        # bad rows fail before any table
+    check_rows(experiment, rows, where)        # bad rows fail before any table
     return resolve_auto(experiment, rows, grid)
 
 

@@ -22,7 +22,7 @@ filtering: the two parameters then slide along a ridge of equal rms slope.  Heig
 visible in the wave regime (the coherent specular part), and slope-distribution SHAPE on
 non-Gaussian reliefs.  The fit therefore reports what the recording determines:
 - the filter is kept only when the recording asks for it: the scale-only fit (g = 0) and the
-  two-parameter fit are compared by the project's one information criterion (fit.selection:
+  two-parameter fit are compared by the project's one information criterion (criteria:
   BIC = chi^2 + k ln n with chi^2 = n search^2 of the log-chi search objective, margin 10; the chi^2
   divided by the two-parameter fit's reduced chi^2 when it exceeds 1, QBIC: a filter that only bends the model
   towards its own systematic error is not evidence), and without that evidence the answer is
@@ -58,7 +58,7 @@ from relief_bsdf.fit import gauss_newton
 from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of, shared_columns
 from relief_bsdf.fit.residual import DEFAULT_METRIC, METRIC, LogChiMetric, rms_z, signed_residuals
 from relief_bsdf.fit.response_surface import Surface, smoothed_optimum
-from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain, overdispersion
+from relief_bsdf.criteria import BIC_MARGIN, bic_gain, overdispersion
 from relief_bsdf.io.recording import sigma_with_fallback
 from relief_bsdf.fit.baseline import resolved
 from relief_bsdf.plate import Experiment, ReliefFace, Simulated, TableGrid, simulate
@@ -199,7 +199,7 @@ class FitResult:
     correlation: of (ln height_scale, filter_sigma_um^2) at the 2-parameter optimum (None when
         J^T J there is singular);
     filter_needed / bic_gain: whether the recording asks for the filter besides the scale
-        (fit.selection: BIC gain of the 2-parameter fit over the scale-only fit > BIC_MARGIN);
+        (criteria: BIC gain of the 2-parameter fit over the scale-only fit > BIC_MARGIN);
     ridge: the two parameters slide along a valley of equal rms slope (`_ridge_probe`);
     warnings: plain sentences for the user (non-identifiable parameters, a ridge, the noise).
     """
@@ -732,7 +732,7 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
        the search's coordinates (ln of the rms-slope scale, g^2; `_Coords`), the budget less the
        reserve; then the slope-equivalent scale of its best point (g = 0, the same rms slope: the other
        end of a ridge), and scale alone from there with what is left when it beats step 2's optimum;
-    4. the filter is kept only when the recording asks for it (fit.selection: BIC with
+    4. the filter is kept only when the recording asks for it (criteria: BIC with
        chi^2 = sum r^2); otherwise the scale-only optimum is the answer (the simplest point of a
        ridge);
     5. from the answer, a few Gauss-Newton steps on the likelihood's noise-weighted residuals

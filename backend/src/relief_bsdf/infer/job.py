@@ -265,8 +265,8 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
                        "evaluations": obj.evaluations, "grid": "screening grid (no inside sector tables), inside rays x "
                                                f"{rf.REFINE_INSIDE_SAMPLES_SCALE:g}",
                        "coordinates": "width scale w = s (n - 1) / (n0 - 1) and n (infer.refine)"},
-        "selection": {"criterion": "BIC = chi^2 + k ln n (fit.selection), QBIC margin "
-                                   "fit.selection.BIC_MARGIN", "n_rows": len(meas),
+        "selection": {"criterion": "BIC = chi^2 + k ln n (criteria), QBIC margin "
+                                   "criteria.BIC_MARGIN", "n_rows": len(meas),
                       "candidates": screened, "decisions": decisions, "chosen": cand.name},
         "density": {**density.moments(), "separability_tv": facts["separability_tv"], "notes": list(density.notes)},
         "synthesis": {**{k: v for k, v in facts.items() if k != "separability_tv"},

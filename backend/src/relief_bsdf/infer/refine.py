@@ -36,10 +36,10 @@ Jacobian (a forward-difference one made at the answer when the polish returned n
 evaluations instead of four; its bias, half a step times the curvature, is below the widening by the
 reduced chi^2 wherever the model misses the noise).
 
-The choice between candidates (fit.selection, the project's one information criterion): each candidate's
+The choice between candidates (criteria, the project's one information criterion): each candidate's
 chi^2 at its slope-plane fit (s = 1, the start index), k its family's parameters plus the plate's (s, and n
 when fitted); candidates in order of k, a more complex one replaces the current choice only when it wins by
-more than fit.selection.BIC_MARGIN (QBIC: chi^2 divided by the complex model's overdispersion).  A
+more than criteria.BIC_MARGIN (QBIC: chi^2 divided by the complex model's overdispersion).  A
 candidate whose fitted density coincides with one screened before it (total variation below
 `SAME_DENSITY_TV`: a two-scale fit whose scales meet, dots without a flat share) takes that one's chi^2
 instead of a plate evaluation of its own.  Only the
@@ -162,8 +162,8 @@ def x_start(n0: float, fit_index: bool) -> np.ndarray:
 def choose(screened: list[dict], n_rows: int) -> tuple[int, list[dict]]:
     """Index of the chosen candidate and the decisions (module doc): screened[i] has "k" (all fitted
     parameters) and "chi2"; in order of k, a more complex candidate replaces the choice only when
-    fit.selection.bic_gain (with its own overdispersion) exceeds BIC_MARGIN."""
-    from relief_bsdf.fit.selection import BIC_MARGIN, bic, bic_gain, overdispersion
+    criteria.bic_gain (with its own overdispersion) exceeds BIC_MARGIN."""
+    from relief_bsdf.criteria import BIC_MARGIN, bic, bic_gain, overdispersion
     order = sorted(range(len(screened)), key=lambda i: (screened[i]["k"], screened[i]["chi2"]))
     best = order[0]
     steps = []

@@ -64,7 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relief_bsdf.errors import RequestError
-from relief_bsdf.fit.selection import BIC_MARGIN
+from relief_bsdf.criteria import BIC_MARGIN
 from relief_bsdf.methods.options import AutoOptions, KirchhoffOptions, TwoScaleOptions
 from relief_bsdf.surface.stats import relief_stats
 

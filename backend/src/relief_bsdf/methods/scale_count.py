@@ -3,7 +3,7 @@
 `auto` may choose the two-scale composite only where the height spectrum holds two scales; the
 split of `surface.bands` finds *a* cut in any spectrum (the tail of one scale above the cut is
 a "fine scale" by construction), so the split alone cannot tell.  Here the relief's own 2-D
-periodogram decides, by the project's one information criterion (`fit.selection`).
+periodogram decides, by the project's one information criterion (`criteria`).
 
 Models (2-D PSD, f = (f_x, f_y) rotated by the lay angle phi into (u, v)):
 
@@ -26,7 +26,7 @@ approximation), so ln P_bin has mean ln S_bin + psi(m) - ln m and variance psi'(
 trigamma): the misfit is chi^2 = sum over bins of (ln P_bin - ln S_bin - psi(m) + ln m)^2 / psi'(m),
 S_bin the model averaged over the bin's own samples.
 
-Decision: the QBIC gain (`fit.selection.bic_gain` with the two-scale model's overdispersion
+Decision: the QBIC gain (`criteria.bic_gain` with the two-scale model's overdispersion
 c = chi^2_2 / (n - k_2), Burnham & Anderson 2002): a spectrum neither model follows (dots, a
 measured scan) has c >> 1 and its chi^2 differences are discounted by c, so only a second scale
 that the spectrum shows well beyond the one-scale family's shape errors passes.  Two scales exist
@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import optimize, special
 
-from relief_bsdf.fit.selection import BIC_MARGIN, bic_gain, overdispersion
+from relief_bsdf.criteria import BIC_MARGIN, bic_gain, overdispersion
 
 BINS_RADIAL = 24
 BINS_ANGULAR = 12

@@ -26,7 +26,8 @@ from relief_bsdf.plate.description import SOURCE_Q, Bulk, Experiment, Instrument
 from relief_bsdf.plate.faces import FlatFace, MicrofacetFace, PhotonContext, ReliefFace, TableFace, relief_digest
 from relief_bsdf.plate.memory import ForwardMemory, current_memory
 from relief_bsdf.plate.grid import TableGrid
-from relief_bsdf.plate.deterministic import Rows, check_rows, flat_tables, in_plane_rows
+from relief_bsdf.methods.flat import flat_tables   # the flat face's tables (public here too: add-on, tests)
+from relief_bsdf.plate.rows import Rows, check_rows, in_plane_rows
 from relief_bsdf.plate.simulate import Simulated, experiment_from_sample, simulate
 from relief_bsdf.plate.choice import DEFAULT_METHOD, chosen_lines, resolve_auto
 

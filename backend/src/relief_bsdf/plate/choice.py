@@ -15,7 +15,6 @@ output says which physics was used and why.
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import numpy as np
@@ -27,28 +26,12 @@ from relief_bsdf.plate.grid import TableGrid
 from relief_bsdf.defaults import METHOD as DEFAULT_METHOD   # the one default method (CLI, panel)
 
 
-def _choose(face: ReliefFace, material: Any, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any):
-    from relief_bsdf.methods.auto import choose
-    req = grid.request(np.unique(np.asarray(wavelengths_nm, float)),
-                       np.unique(np.asarray(theta_i_outside_deg, float)), "outside", "auto", face.samples,
-                       face.seed, face.options)
-    req = dataclasses.replace(req, incident_from=("outside", "inside"))
-    return choose(face.relief, material, req)
-
-
 def resolve_face(face: Any, material: Any, grid: TableGrid, wavelengths_nm: Any, theta_i_outside_deg: Any) -> Any:
     """`face` with method "auto" replaced by auto's choice for this relief, material, wavelengths and
-    incidences (other faces and resolved relief faces are returned unchanged)."""
-    if not isinstance(face, ReliefFace) or face.method != "auto":
+    incidences (`ReliefFace.resolved`; other faces and resolved relief faces are returned unchanged)."""
+    if not isinstance(face, ReliefFace):
         return face
-    c = _choose(face, material, grid, wavelengths_nm, theta_i_outside_deg)
-    from relief_bsdf.methods.registry import entry
-    known = entry(c.method).options
-    # the face's options that the chosen method knows (auto's own, e.g. quiet, are dropped), plus auto's extras
-    opts = {k: v for k, v in face.options.items() if k in {f.name for f in dataclasses.fields(known)}}
-    opts.update(c.options)
-    summary = f"auto: {c.method}: {c.summary}"
-    return dataclasses.replace(face, method=c.method, options=opts, chosen_by=summary)
+    return face.resolved(material, grid, wavelengths_nm, theta_i_outside_deg)
 
 
 def resolve_auto(experiment: Experiment, rows: Any, grid: TableGrid | None = None) -> Experiment:

@@ -50,7 +50,7 @@ class Instrument:
         the beam arrives from the nominal incidence offset by a 2-D Gaussian tangent-plane angle
         (the photon engine draws it per photon; the deterministic engine traces it into a ray-traced
         relief's outside table, each ray drawn, and otherwise solves the plate at a quadrature of
-        incidences, plate.deterministic.front_traces_beam / simulate_rows).
+        incidences, plate.deterministic.front_traces_beam / plate.readout.simulate_rows).
     """
 
     detector_half_angle_deg: float = 1.0

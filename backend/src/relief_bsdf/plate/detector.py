@@ -44,6 +44,8 @@ from typing import Any
 
 import numpy as np
 
+from relief_bsdf.plate.memory import current_memory
+
 GAUSS_POINTS = 16        # equal-probability points of the blur Gaussian in the deterministic quadrature
 _GOLDEN = np.pi * (3.0 - np.sqrt(5.0))
 
@@ -106,7 +108,7 @@ def beam_offsets(sigma_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """((Q, 2) tangent-plane offsets in rad, (Q,) weights summing to 1): the quadrature of incidence
     directions for a source beam of Gaussian divergence `sigma_deg` per axis.  The deterministic engine
     solves the plate at each and sums what the detector reads with these weights
-    (plate.deterministic.simulate_rows).
+    (plate.readout.simulate_rows).
 
     Polar product rule: x = r^2 / 2 sigma^2 is Exp(1) for the 2-D Gaussian, so the radii are
     sigma sqrt(2 x_k) at the Gauss-Laguerre nodes x_k with their weights w_k (exact for polynomials in
@@ -396,7 +398,6 @@ class _SubPoints:
 def _sub_points(theta_edges_deg: np.ndarray, delta_edges_deg: np.ndarray, k: int | None = None) -> _SubPoints:
     """k equal-solid-angle sub-rings per cell, and k x (cell width / narrowest width) azimuth sub-points
     (a wide cell is cut as finely as a narrow one); weights: the cell's solid angle shared equally."""
-    from relief_bsdf.plate.memory import current_memory
     k = int(k or SUB_POINTS)
     key = ("detector sub-points", theta_edges_deg.tobytes(), delta_edges_deg.tobytes(), k)
     return current_memory().get(key, lambda: _make_sub_points(theta_edges_deg, delta_edges_deg, k), "detector")
@@ -452,7 +453,6 @@ def _reading_weights(pts: _SubPoints, field: DirectField, theta_s: np.ndarray, d
     sub-point idx[inv], response) triplets, idx the sub-points seen (sorted, each once), where they read
     the cells (`DirectField.gather`), and their solid angles and cos theta.  The same for every
     evaluation of a fit (rows, cells, index ratio and instrument fixed), so the memory owner keeps them."""
-    from relief_bsdf.plate.memory import current_memory
     key = ("detector weights", field.theta_edges_deg.tobytes(), field.delta_edges_deg.tobytes(), theta_s.tobytes(), delta_s.tobytes(),
            float(det.detector_half_angle_deg), float(det.blur_deg), pts.size, side,
            float(field.eta) if side == "T" else None)
@@ -530,7 +530,7 @@ def grid_reading(res: Any, side: np.ndarray, theta_s: np.ndarray, phi_s: np.ndar
     anything with detector_half_angle_deg, cone_points, blur_deg, background_per_sr.  `parts`:
     what is read, the diffuse field (direct and loop parts), the delta beams, the stray light
     (the beam divergence reads the diffuse field at each incidence of its quadrature and the
-    delta beams once, plate.deterministic.simulate_rows).
+    delta beams once, plate.readout.simulate_rows).
     """
     off = quadrature_offsets(det.detector_half_angle_deg, det.cone_points, det.blur_deg)
     th, ph = offset_directions(theta_s, phi_s, off)

@@ -12,7 +12,7 @@ Two grids (cells narrower than the detector cone where the lobe is narrow):
   incidence): every 2.5 deg, with a quarter of the rays per incidence (`inside_samples_scale`:
   the loop averages their noise over the incidences of the light inside), and read in between
   with the lobes moved to the incidence's own specular or Snell exit direction
-  (`inside_interpolation`, plate.deterministic._TableView._between_incidences).
+  (`inside_interpolation`, plate.tableview._TableView._between_incidences).
 - the DIRECT grid of the outside tables (light from outside, at the recording's own
   incidences): `direct_theta_step_deg` rings and azimuth cells of `direct_phi_step_deg` in a
   band of half-width `direct_band_deg` around the plane of incidence (both the specular side

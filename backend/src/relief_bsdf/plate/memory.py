@@ -38,6 +38,10 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from relief_bsdf.bsdf.table import BsdfTable
+from relief_bsdf.parallel import current_settings
+from relief_bsdf.parallel.worker import process_object, worker_memory_bytes
+
 KINDS = ("table", "solver", "tracer", "sampler", "slab", "detector", "phase", "other")
 DEFAULT_BUDGET_BYTES = 1.5e9     # one process's held bytes when no job says otherwise (RELIEF_MEMORY_GB: the job's)
 MEMORY_ENV = "RELIEF_MEMORY_GB"  # a job's total memory (every process together), GB
@@ -215,6 +219,22 @@ class ForwardMemory:
                     return k
             return None
 
+    def cost_of(self, key: tuple) -> float:
+        """The seconds the entry under `key` took to make (0 when not held)."""
+        with self._lock:
+            e = self._d.get(key)
+            return 0.0 if e is None else e.cost_s
+
+    def note_used(self, keys: Any) -> None:
+        """Count `keys` as asked for (`recording` blocks see them; held ones are touched) without a `get`:
+        a value made from them was found held (`plate.deterministic.held_for_request`)."""
+        with self._lock:
+            for k in keys:
+                for used in self._recorders:
+                    used.add(k)
+                if k in self._d:
+                    self._use(k, self._d[k])
+
     def touch(self, key: tuple) -> None:
         with self._lock:
             e = self._d.get(key)
@@ -261,7 +281,6 @@ class ForwardMemory:
         """{key: table} of those of `keys` still held whose value is a BsdfTable (data that can travel to a
         worker process).  One read per key: another thread may put or evict meanwhile."""
         with self._lock:
-            from relief_bsdf.bsdf.table import BsdfTable
             out = {}
             for k in keys:
                 e = self._d.get(k)
@@ -308,7 +327,6 @@ def job_memory_bytes(memory_gb: float | None = None) -> float:
     """A job's total memory (every process together): `memory_gb`, else the settings in force
     (`--memory-gb`, `parallel.ParallelSettings.memory_gb`), else $RELIEF_MEMORY_GB, else 3.5 GB."""
     if memory_gb is None:
-        from relief_bsdf.parallel import current_settings
         memory_gb = current_settings().memory_gb
     if memory_gb is None:
         env = os.environ.get(MEMORY_ENV)
@@ -319,7 +337,6 @@ def job_memory_bytes(memory_gb: float | None = None) -> float:
 
 
 def _process_memory() -> ForwardMemory:
-    from relief_bsdf.parallel.worker import process_object, worker_memory_bytes
     return process_object("forward-memory", lambda: ForwardMemory(worker_memory_bytes() or DEFAULT_BUDGET_BYTES))
 
 

@@ -35,9 +35,11 @@ import numpy as np
 from relief_bsdf.core.bulk import scatter_directions
 from relief_bsdf.core.frames import beam_directions, rot_y
 from relief_bsdf.errors import InputError
+from relief_bsdf.parallel import task_rng
 from relief_bsdf.plate.detector import photon_reading
 from relief_bsdf.plate.faces import PhotonContext
 from relief_bsdf.plate.grid import TableGrid
+from relief_bsdf.plate.rows import check_rows, row_arrays
 
 _MIRROR_S = np.array([1.0, 1.0, -1.0, -1.0])
 
@@ -170,9 +172,7 @@ def detect(exits: Exits, side: np.ndarray, theta_s_deg: np.ndarray, phi_s_deg: n
 def run(experiment: Any, rows: Any, photons: int = 200_000, seed: int = 0, grid: TableGrid | None = None,
         where: str = "recording") -> tuple[np.ndarray, np.ndarray, dict]:
     """Monte-Carlo plate BSDF on every row: (values, sigma, info with lost fractions per incidence)."""
-    from relief_bsdf.parallel import task_rng
-    from relief_bsdf.plate.deterministic import check_rows, model_of, row_arrays
-    check_rows(model_of(experiment, grid or TableGrid()), rows, where)
+    check_rows(experiment, rows, where)
     if photons < 1:
         raise InputError("photons", f"need at least one photon, got {photons}")
     wl, ti, pi, side, ts, ps = row_arrays(rows)
@@ -193,26 +193,3 @@ def hemispherical(exits: Exits) -> dict:
     n = exits.n_photons
     return {"R": float(exits.weight[exits.side == 0].sum() / n), "T": float(exits.weight[exits.side == 1].sum() / n),
             "lost": exits.lost_weight / n}
-
-
-def simulate_rows_mc(relief: Any, model: Any, rows: Any, photons: int = 200_000, seed: int = 0, tracer: Any = None,
-                     where: str = "recording") -> tuple[np.ndarray, np.ndarray, dict]:
-    """Transition wrapper (callers outside plate/: tests of validation): a PlateModel + relief traced by "ray".
-
-    Builds the Experiment (relief on model.rough_face, ray-traced; the other face flat) and runs `run`.
-    """
-    exp = experiment_of_model(model, relief)
-    return run(exp, rows, photons=photons, seed=seed, where=where)
-
-
-def experiment_of_model(model: Any, relief: Any, method: str = "ray") -> Any:
-    """Experiment of an old-style PlateModel with `relief` on its rough face (transition helper)."""
-    from relief_bsdf.plate.description import Bulk, Experiment, Instrument, Plate
-    from relief_bsdf.plate.faces import FlatFace, ReliefFace
-    face = ReliefFace(relief, method=method)
-    front, back = (face, FlatFace()) if model.rough_face == "front" else (FlatFace(), face)
-    plate = Plate(model.thickness_m, model.index, front, back,
-                  Bulk(model.absorption_per_m, model.scatter_per_m, model.hg_g), model.outside_index)
-    ins = Instrument(model.detector_half_angle_deg, float(model.source_stokes[1]), model.blur_deg, model.tilt_deg,
-                     model.background_per_sr, model.cone_points, model.beam_divergence_deg)
-    return Experiment(plate, ins)

@@ -9,7 +9,9 @@ import numpy as np
 from relief_bsdf.errors import InputError
 from relief_bsdf.plate.description import SOURCE_Q, Bulk, Experiment, Instrument, Plate
 from relief_bsdf.plate.faces import FlatFace, ReliefFace
+from relief_bsdf.plate import deterministic, photon
 from relief_bsdf.plate.choice import DEFAULT_METHOD, resolve_auto
+from relief_bsdf.plate.uncertainty import rows_sigma, sigma_note
 from relief_bsdf.plate.grid import TableGrid
 
 ENGINES = ("deterministic", "photon")
@@ -50,15 +52,12 @@ def simulate(experiment: Experiment, rows: Any, engine: str = "deterministic", p
     grid = grid or TableGrid()
     experiment = resolve_auto(experiment, rows, grid)       # "auto" faces: the relief's own physics, once
     if engine == "deterministic":
-        from relief_bsdf.plate import deterministic
         vals, info = deterministic.run(experiment, rows, grid, progress, where)
         sig = np.zeros_like(vals)
         if table_sigma_draws >= 2:
-            from relief_bsdf.plate.uncertainty import rows_sigma, sigma_note
             sig = rows_sigma(experiment, rows, grid, table_sigma_draws, seed)
             info = {**info, "sigma": sigma_note(table_sigma_draws)}
     elif engine == "photon":
-        from relief_bsdf.plate import photon
         vals, sig, info = photon.run(experiment, rows, photons=photons, seed=seed, grid=grid, where=where)
     else:
         raise InputError("engine", f"must be one of {', '.join(ENGINES)}, got {engine!r}")

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relief_bsdf.core.bulk import hg_phase
+from relief_bsdf.plate.memory import current_memory
 
 _SUB = 3                 # quadrature points per target-cell axis
 _EPS_LAYER = 1e-4        # beta dz / mu_min of the starting layer
@@ -72,7 +73,6 @@ def phase_cells(theta_edges_deg: np.ndarray, azimuth_cells: int, g: float) -> tu
     default grid): a diagnosis screens the same probes of volume scattering at every step while the
     absorption named at the first step moves, and the phase function's quadrature is most of
     `slab_operators`."""
-    from relief_bsdf.plate.memory import current_memory
     key = ("phase cells", np.asarray(theta_edges_deg, float).tobytes(), int(azimuth_cells), float(g))
     return current_memory().get(key, lambda: _read_only(_phase_cells(theta_edges_deg, azimuth_cells, g)), "phase")
 

@@ -27,7 +27,10 @@ import numpy as np
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.parallel import default_workers, in_worker
 from relief_bsdf.parallel.blas import blas_single_thread
+from relief_bsdf.plate import deterministic
+from relief_bsdf.plate.choice import resolve_auto
 from relief_bsdf.plate.description import Experiment
+from relief_bsdf.plate.deterministic import front_tables, front_traces_beam, half_turn_table, table_incidences
 from relief_bsdf.plate.faces import TableFace
 from relief_bsdf.plate.grid import TableGrid
 
@@ -75,7 +78,6 @@ def _face_tables(experiment: Experiment, rows: Any, grid: TableGrid) -> dict:
     """{face name: (outside | None, inside, half-turned outside | None)} of the non-flat faces whose tables
     carry a sigma (the half-turned outside table: the front's, where rows are lit from the far half of
     azimuths, `plate.deterministic.half_turn_table`)."""
-    from relief_bsdf.plate.deterministic import front_tables, front_traces_beam, half_turn_table, table_incidences
     p = experiment.plate
     traced = front_traces_beam(experiment, rows, grid)
     wl, ti = table_incidences(experiment, rows, traced)
@@ -107,7 +109,6 @@ def rows_draws(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
     """(draws, rows): the deterministic simulation on `draws` perturbed copies of its tables (module doc),
     or None when no face's table carries a sigma (or draws < 2).  Each draw is one realisation of the
     tables' noise seen by every row at once: rows that read the same cells move together."""
-    from relief_bsdf.plate import deterministic
     grid = grid or TableGrid()
     faces = _face_tables(experiment, rows, grid)
     n = int(np.size(rows.theta_i_deg))
@@ -152,9 +153,8 @@ def relative_deviations(experiment: Experiment, rows: Any, grid: TableGrid | Non
     down to 1 (as `relative_sigma`); (0, rows) when no table carries a sigma.  Their standard deviation
     is `relative_sigma`; their products are the rows' covariance through the shared tables, which an
     interval needs where the effects leave the noise where it was (`deviations` at the point otherwise)."""
-    from relief_bsdf.plate.simulate import simulate
     grid = grid or TableGrid()
-    v = np.abs(simulate(experiment, rows, engine="deterministic", grid=grid, where=where).values_per_sr)
+    v = np.abs(deterministic.run(resolve_auto(experiment, rows, grid), rows, grid, where=where)[0])   # as `simulate`
     dev = deviations(experiment, rows, grid, draws)
     if dev.shape[0] == 0:
         return dev
@@ -170,7 +170,6 @@ def deviations(experiment: Experiment, rows: Any, grid: TableGrid | None = None,
     interval is asked (the fitted point): the noise's reach moves with the effects (a beam divergence
     traced into the outside table spreads it over the lobe; the baseline's draws, scaled, moved a fitted
     divergence 3x less than the draws at it and the ray seeds do)."""
-    from relief_bsdf.plate.choice import resolve_auto
     grid = grid or TableGrid()
     runs = rows_draws(resolve_auto(experiment, rows, grid), rows, grid, draws, seed)
     if runs is None:
