@@ -11,6 +11,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from relief_bsdf.plate.grid import critical_angles_deg
+
 from relief_bsdf.plate.memory import current_memory
 import pytest
 
@@ -38,7 +40,7 @@ def test_only_an_anisotropic_relief_traced_by_rays_gets_inside_sector_tables():
     assert t is not None and t.incident_from == "inside"
     assert tuple(t.phi_i_deg) == SECTOR_AZIMUTHS_DEG and t.phi_i_deg[0] == 0.0   # the 0-deg sector averaged too
     assert t.metadata["request"]["options"]["phi_i_spread_deg"] == 7.5    # each the average over its sector
-    assert np.allclose(t.theta_i_deg, grid.inside_incidences_deg())
+    assert np.allclose(t.theta_i_deg, grid.inside_incidences_deg(critical_angles_deg(mat, [550.0])))
     fine = TableGrid(sector_step_deg=7.5)          # the grid's sector step sets the azimuths
     t = inside_sectors(ReliefFace(_anisotropic(), "ray", 2000, 1), mat, fine, [550.0], [0.0])
     assert tuple(t.phi_i_deg) == fine.sector_azimuths_deg() and len(t.phi_i_deg) == 24
@@ -127,7 +129,7 @@ def test_the_loops_one_inside_table_averages_the_incidence_azimuths_around_its_o
     _, t = face.tables(mat, spread, [550.0], [0.0], need_outside=False)
     assert t.metadata["request"]["options"]["phi_i_spread_deg"] == 45.0
     req = face_request(replace(face, options={"phi_i_spread_deg": 45.0}), mat, spread, [550.0],
-                       spread.inside_incidences_deg(), "inside")
+                       spread.inside_incidences_deg(critical_angles_deg(mat, [550.0])), "inside")
     (own,) = reconstruct(iso, mat, req, "ray")
     np.testing.assert_array_equal(t.values_per_sr, own.values_per_sr)
     assert TableGrid().inside_azimuth_spread_deg == 45.0

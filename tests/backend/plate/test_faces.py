@@ -2,6 +2,8 @@
 from types import SimpleNamespace
 
 import numpy as np
+
+from relief_bsdf.plate.grid import critical_angles_deg
 import pytest
 
 from relief_bsdf.core.index import ConstantIndex, Material
@@ -100,7 +102,7 @@ def test_a_microfacet_faces_tables_on_threads_equal_those_of_one_process():
     flat = Relief(np.zeros((8, 8)), 1e-6, 1e-6, periodic=True)
     face = ReliefFace(flat, method="microfacet", samples=200_000, seed=0,
                       options={"alpha": 0.2, "distribution": "beckmann"})
-    req = face_request(face, mat, grid, (550.0,), grid.inside_incidences_deg(), "inside")
+    req = face_request(face, mat, grid, (550.0,), grid.inside_incidences_deg(critical_angles_deg(mat, (550.0,))), "inside")
     with parallel_settings(backend="serial"):
         (ref,) = reconstruct(flat, mat, req, "microfacet")
     ref = closed(ref)

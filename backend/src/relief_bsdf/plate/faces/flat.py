@@ -12,21 +12,18 @@ from relief_bsdf.core.index import Material
 from relief_bsdf.methods.flat import flat_tables
 from relief_bsdf.plate.faces.base import FaceEvent, PhotonContext, _table_args_key
 from relief_bsdf.plate.faces.photons import fresnel_event
-from relief_bsdf.plate.grid import TableGrid
+from relief_bsdf.plate.grid import TableGrid, critical_angles_deg
 from relief_bsdf.plate.memory import current_memory
 
 
 def _flat_inside_incidences(material: Material, grid: TableGrid, wavelengths_nm: Any) -> np.ndarray:
     """The grid's inside incidences plus a dense band (0.05 deg) around each critical angle: Fresnel
     jumps to total reflection there, and the engine interpolates the table's delta parts linearly."""
-    th = [grid.inside_incidences_deg()]
-    for w in np.unique(wavelengths_nm):
-        n_in = float(np.real(material.inside.n(w)))
-        n_out = float(np.real(material.outside.n(w)))
-        if n_in > n_out:
-            tc = float(np.degrees(np.arcsin(n_out / n_in)))
-            th.append(np.clip(np.arange(tc - 2.0, tc + 2.0 + 1e-9, 0.05), 0.0, 89.0))
-            th.append([tc - 1e-6, tc + 1e-6])
+    crit = critical_angles_deg(material, wavelengths_nm)
+    th = [grid.inside_incidences_deg(crit)]
+    for tc in crit:
+        th.append(np.clip(np.arange(tc - 2.0, tc + 2.0 + 1e-9, 0.05), 0.0, 89.0))
+        th.append([tc - 1e-6, tc + 1e-6])
     return np.unique(np.round(np.concatenate(th), 9))
 
 

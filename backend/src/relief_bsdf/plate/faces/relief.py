@@ -21,7 +21,7 @@ from relief_bsdf.plate.faces.derive import TRACED_METHODS, _derive_outside, _rec
 from relief_bsdf.plate.faces.photons import _sample_from_tables
 from relief_bsdf.plate.faces.sectors import _resolved_relief, inside_face
 from relief_bsdf.plate.faces.table import TableFace
-from relief_bsdf.plate.grid import TableGrid
+from relief_bsdf.plate.grid import TableGrid, critical_angles_deg
 from relief_bsdf.plate.memory import current_memory
 from relief_bsdf.surface.relief import Relief
 
@@ -43,7 +43,7 @@ def _derive(face: "ReliefFace", material: Material, grid: TableGrid, wavelengths
            if need_outside else None)
     f_in = inside_face(face, material, grid, wl, progress)
     ins = current_memory().get((f_in.cache_key(),) + base[1:] + ("inside",),
-                          lambda: _reconstruct_side(f_in, material, grid, wl, grid.inside_incidences_deg(), "inside",
+                          lambda: _reconstruct_side(f_in, material, grid, wl, grid.inside_incidences_deg(critical_angles_deg(material, wl)), "inside",
                                                     progress))
     return out, ins
 

@@ -14,7 +14,7 @@ from relief_bsdf.core.index import Material
 from relief_bsdf.plate.faces.base import _grid_key, material_key
 from relief_bsdf.plate.faces.derive import _reconstruct_side
 from relief_bsdf.plate.faces.photons import projected_solid_angle_cells
-from relief_bsdf.plate.grid import TableGrid
+from relief_bsdf.plate.grid import TableGrid, critical_angles_deg
 from relief_bsdf.plate.memory import current_memory
 from relief_bsdf.surface.relief import Relief
 from relief_bsdf.surface.stats import slope_tensor
@@ -156,7 +156,7 @@ def inside_sectors(face: Any, material: Material, grid: TableGrid, wavelengths_n
                    options={**face.options, "phi_i_spread_deg": 0.5 * step})
     wl = tuple(float(w) for w in np.unique(np.asarray(wavelengths_nm, float)))
     key = (face.cache_key(), material_key(material), _grid_key(grid), wl, SECTORS_KEY, azimuths)
-    return current_memory().get(key, lambda: _reconstruct_side(face, material, grid, wl, grid.inside_incidences_deg(),
+    return current_memory().get(key, lambda: _reconstruct_side(face, material, grid, wl, grid.inside_incidences_deg(critical_angles_deg(material, wl)),
                                                           "inside", progress, phi_i_deg=azimuths))
 
 
