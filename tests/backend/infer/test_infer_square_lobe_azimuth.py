@@ -1,13 +1,13 @@
-"""A reproduction, for the plate's owners, of why the EDS10 prediction at azimuth 45 misses its edges.
+"""A square lobe does not turn with the azimuth a normal-incidence beam is named by.
 
-At normal incidence the incidence azimuth is only a label: the plate's transmitted lobe, in the sample's
-own frame, cannot depend on it.  The deterministic plate reads a row lit from azimuth phi_i from its
-outside table at phi_i = 0 turned by phi_i (exact for an isotropic relief); a relief whose lobe is a square
-(random crossed lenslets with uniform slopes, what `relief infer` makes of an engineered top-hat) has equal
-rms slopes along x and y, so the plate's anisotropy test does not flag it, and its lobe at (0 deg, phi_i 45)
-comes out turned by 45 deg: half-maximum edges along the axes at 0.134 instead of 0.097 (n 1.5, slopes
-<= 0.2 per axis, 256^2 tile, 100k rays).  Expected to fail until the plate reads such a relief's outside
-table at the incidence's own azimuth; it then passes and the xfail goes.
+At normal incidence the incidence azimuth only names the plane the source's polarisation is referred
+to: the plate's transmitted lobe, in the sample's own frame, cannot depend on it.  A relief whose lobe
+is a square (random crossed lenslets with uniform slopes, what `relief infer` makes of an engineered
+top-hat) has equal rms slopes along x and y, so no anisotropy test flags it; read from its phi_i = 0
+outside table turned by phi_i, its lobe at (0 deg, phi_i 45) came out turned by 45 deg: half-maximum
+edges along the axes at 0.134 instead of 0.097 (n 1.5, slopes <= 0.2 per axis, 256^2 tile, 100k rays).
+The plate reads such rows from the relief traced from their own azimuth
+(`plate.deterministic.turned_tables`).
 """
 from __future__ import annotations
 
@@ -16,8 +16,6 @@ import pytest
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="plate: the phi_i = 0 outside table is turned by phi_i; a square lobe turns "
-                                       "with the label of a normal-incidence beam")
 def test_a_square_lobe_at_normal_incidence_does_not_turn_with_the_azimuth_label():
     from relief_bsdf.core.index import ConstantIndex
     from relief_bsdf.infer.lobe import lobe_figures

@@ -288,6 +288,10 @@ class RayOptions(MethodOptions):
                                   "request's, its exit turned back by its own offset: the table averages the incidence "
                                   "azimuths of a sector, in the frame of its centre, deg (0: one azimuth)", minimum=0.0,
                                   maximum_excl=90.0)
+    phi_i_turn_deg: float = opt(0.0, "float", "the relief lit from this incidence azimuth (every ray's incidence "
+                                "turned by it about the normal, its exit turned back): the table of light arriving "
+                                "from that azimuth, in the frame of its incidence, deg (0: the relief's own frame)",
+                                minimum=-360.0, maximum_excl=360.0)
 
 
 @dataclass(frozen=True)

@@ -86,6 +86,7 @@ direct terms, the engine grid's for the loop).
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -94,10 +95,11 @@ from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.errors import InputError
 from relief_bsdf.plate.faces import (FlatFace, MicrofacetFace, ReliefFace, TableFace, anisotropic_face, beam_in_table,
                                      half_turned_outside, inside_sectors, isotropy_warning, material_key)
+from relief_bsdf.plate.faces.derive import _derive_outside
 from relief_bsdf.plate.memory import current_memory
 from relief_bsdf.plate.readout import beam_incidences, beam_split, simulate_rows
 from relief_bsdf.plate.reuse import _note_request, _reused_solver, drop_sector_table, held_for_request, refresh_solver
-from relief_bsdf.plate.rows import far_side, to_sample_frame
+from relief_bsdf.plate.rows import azimuth_key, far_side, to_sample_frame
 from relief_bsdf.plate.setup import EngineSetup
 from relief_bsdf.plate.solver import PlateSolver
 
@@ -192,6 +194,11 @@ def solver_of(experiment: Any, rows: Any, grid: Any, progress: Any = None, keep:
         half = _reused_solver(model, f_in, t_out, b_in, sectors, keep)
         half.half_turn = None
         solver.half_turn = half
+    solver.turned = {}
+    for a, t in turned_tables(experiment, rows, grid, traced, progress).items():
+        s = _reused_solver(model, f_in, t, b_in, sectors, keep)
+        s.half_turn, s.turned = None, {}
+        solver.turned[a] = s
     _note_request(memory, request, solver, solver.half_turn)
     return solver
 
@@ -215,8 +222,8 @@ def request_key(experiment: Any, rows: Any, grid: Any, traced: bool) -> tuple | 
     computed without deriving a table; None where a face is of a kind this does not know."""
     p = experiment.plate
     faces = (_face_token(p.front), _face_token(p.back))
-    if None in faces:
-        return None
+    if None in faces or turned_azimuths(experiment, rows, grid, traced):
+        return None             # a face this does not know, or tables turned per azimuth: found by their keys
     wl, t_all, p_all = sample_incidences(experiment, rows, traced)
     far = tuple(float(t) for t in np.unique(t_all[far_side(t_all, p_all)]))
     beam = float(experiment.instrument.beam_divergence_deg) if traced else 0.0
@@ -234,6 +241,58 @@ def half_turn_table(experiment: Any, rows: Any, grid: Any, traced: bool, progres
         return None
     beam = experiment.instrument.beam_divergence_deg if traced else 0.0
     return half_turned_outside(experiment.plate.front, experiment.plate.material, grid, wl, far, progress, beam)
+
+
+TURNED_MAX = 8      # the most incidence azimuths given an outside table of their own (beyond: the turned table)
+
+
+def turned_azimuths(experiment: Any, rows: Any, grid: Any, traced: bool) -> tuple:
+    """The incidence azimuths (sample frame, `azimuth_key`) whose rows read an outside table traced from that
+    azimuth (`turned_tables`): those other than 0 and 180 deg, for a front relief traced by rays, at most
+    TURNED_MAX of them (else none: the rows read the turned phi_i = 0 table).
+
+    Why: the engine reads a row lit from azimuth phi_i as its phi_i = 0 table turned by phi_i, exact for
+    the ensemble of a relief whose statistics do not change under rotation.  A relief with a four-fold
+    (or any other) structure that its rms-slope tensor cannot see turns into another relief: a square
+    top-hat lobe turned by 45 deg is a diamond; at normal incidence, where phi_i only names the plane the
+    source's polarisation is referred to, the lobe would turn with that name.  The ray method traces the
+    relief lit from phi_i itself (option `phi_i_turn_deg`: the beam and its polarisation turned, the exits
+    turned back), exact for any tile; 180 deg keeps the half-turned relief (docs/decisions/002)."""
+    front = experiment.plate.front
+    if not isinstance(front, ReliefFace) or front.method not in ("ray", "auto"):
+        return ()
+    wl, t_all, p_all = sample_incidences(experiment, rows, traced)
+    az = azimuth_key(p_all)
+    out = tuple(float(a) for a in np.unique(az) if a not in (0.0, 180.0))
+    if not out or len(out) > TURNED_MAX:
+        return ()
+    face = _resolved_front(experiment, grid, wl, t_all)
+    return out if face is not None and face.method == "ray" else ()
+
+
+def _resolved_front(experiment: Any, grid: Any, wl: Any, t_all: Any) -> Any:
+    p = experiment.plate
+    resolve = getattr(p.front, "resolved", None)
+    return None if resolve is None else resolve(p.material, grid, wl, np.unique(t_all))
+
+
+def turned_tables(experiment: Any, rows: Any, grid: Any, traced: bool, progress: Any = None) -> dict:
+    """{azimuth: the front relief's outside table for light arriving from that azimuth, in the frame of its
+    incidence} at the incidences of the rows lit from it (`turned_azimuths`)."""
+    azimuths = turned_azimuths(experiment, rows, grid, traced)
+    if not azimuths:
+        return {}
+    p = experiment.plate
+    wl, t_all, p_all = sample_incidences(experiment, rows, traced)
+    face = _resolved_front(experiment, grid, wl, t_all)
+    beam = experiment.instrument.beam_divergence_deg if traced else 0.0
+    az = azimuth_key(p_all)
+    out = {}
+    for a in azimuths:
+        theta = np.unique(t_all[az == a])
+        turned = replace(face, options={**face.options, "phi_i_turn_deg": a})
+        out[a] = _derive_outside(turned, p.material, grid, wl, theta, progress, beam)
+    return out
 
 
 def front_traces_beam(experiment: Any, rows: Any, grid: Any) -> bool:
@@ -274,7 +333,7 @@ def run(experiment: Any, rows: Any, grid: Any, progress: Any = None, where: str 
     vals = simulate_rows(solver.model, solver.inside, solver.outside, rows, solver=solver, where=where)
     if keep_solver:                          # the kernels exist: the sector table goes before the solver is measured
         drop_sector_table(solver)
-    for s in (solver, solver.half_turn):
+    for s in (solver, solver.half_turn, *solver.turned.values()):
         if s is not None:
             refresh_solver(s, time.perf_counter() - t0)
     info = {"engine": "deterministic", "grid": grid.describe()}

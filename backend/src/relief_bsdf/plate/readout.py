@@ -10,7 +10,7 @@ import numpy as np
 
 from relief_bsdf.bsdf.table import BsdfTable
 from relief_bsdf.plate.detector import beam_offsets, grid_reading, offset_directions
-from relief_bsdf.plate.rows import check_rows, far_side, row_arrays, to_sample_frame
+from relief_bsdf.plate.rows import azimuth_key, check_rows, far_side, row_arrays, to_sample_frame
 from relief_bsdf.plate.setup import EngineSetup
 from relief_bsdf.plate.solver import PlateSolver
 
@@ -126,9 +126,19 @@ def _readings(solver: PlateSolver, model: EngineSetup, wl, ti, pi, side, ts, ps,
     out = np.zeros(wl.size)
     half = getattr(solver, "half_turn", None)
     far = far_side(ti, pi) if half is not None else np.zeros(wl.size, bool)
+    turned = getattr(solver, "turned", None) or {}
+    own = np.zeros(wl.size, bool)
+    groups = []
+    if turned:                  # rows lit from an azimuth with a table of its own (`turned_tables`)
+        az = azimuth_key(pi)
+        for a, s in turned.items():
+            m = az == a
+            own |= m
+            groups.append((m, s))
+    groups = [(~own & ~far, solver), (~own & far, half)] + groups
     for w in np.unique(wl):
-        for on_far, s in ((False, solver), (True, half)):
-            mw = (wl == w) & (far == on_far)
+        for m_s, s in groups:
+            mw = (wl == w) & m_s
             if not mw.any():
                 continue
             keys = np.unique(np.stack([ti[mw], pi[mw]], 1), axis=0)

@@ -55,12 +55,12 @@ def _answer(memory: Any, key: tuple, held: PlateSolver, half_key: tuple | None, 
     main = _variant(memory, key, held, model, plate)
     if main is None:
         return None
-    main.half_turn = None
+    main.half_turn, main.turned = None, {}
     if half is not None:
         half = _variant(memory, half_key, half, model, plate)
         if half is None:
             return None
-        half.half_turn = None
+        half.half_turn, half.turned = None, {}
         main.half_turn = half
         memory.note_used([t for t in half_key[1] if t is not None and t[0] != "object"])
     memory.note_used([t for t in key[1] if t is not None and t[0] != "object"])
@@ -95,7 +95,7 @@ def drop_sector_table(solver: PlateSolver) -> None:
     header = SectorsHeader.of(t)
     table_key = memory.key_of(t)
     cost = memory.cost_of(table_key) if table_key is not None else 0.0
-    for s in (solver, solver.half_turn):
+    for s in (solver, solver.half_turn, *getattr(solver, "turned", {}).values()):
         if s is None:
             continue
         key = getattr(s, "memory_key", None)

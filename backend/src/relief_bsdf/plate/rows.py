@@ -74,6 +74,12 @@ def to_sample_frame(theta_deg: Any, phi_deg: Any, side: Any, tilt_deg: float) ->
     return th, ph
 
 
+def azimuth_key(phi_deg: Any) -> np.ndarray:
+    """Incidence azimuths as the keys of the turned outside tables: in [0, 360), rounded to 1e-6 deg."""
+    a = np.round(np.mod(np.asarray(phi_deg, float), 360.0), 6)
+    return np.where(a >= 360.0, 0.0, a)
+
+
 def far_side(theta_deg: Any, phi_deg: Any) -> np.ndarray:
     """Whether each incidence (sample frame) is lit from the far half of azimuths, 90 < phi < 270 deg,
     where the engine reads the half-turned relief's outside table (`PlateSolver.half_turn`); normal

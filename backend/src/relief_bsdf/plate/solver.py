@@ -130,6 +130,9 @@ class PlateSolver(SectorLoop):
         # far half of azimuths (`far_side`, `plate.faces.half_turned_outside`; set by `solver_of`), or None:
         # those rows are then read from this solver's phi_i = 0 table turned by their azimuth
         self.half_turn: "PlateSolver | None" = None
+        # solvers on the outside tables of the relief lit from other incidence azimuths (ray-traced reliefs,
+        # `plate.deterministic.turned_tables`; set by `solver_of`): azimuth (deg, `rows.azimuth_key`) -> solver
+        self.turned: dict = {}
 
     def memory_bytes(self) -> int:
         """Bytes this solver holds of its own (its operators, their factors, the fields kept per wavelength;

@@ -133,6 +133,7 @@ class _RayContext:
         self.tile_uncertainty = bool(opts.tile_uncertainty)
         self.beam_divergence_deg = float(opts.beam_divergence_deg)
         self.phi_i_spread_deg = float(opts.phi_i_spread_deg)
+        self.phi_i_turn_deg = float(opts.phi_i_turn_deg) % 360.0
         mesh_options = (self.max_bounces, repr(self.fill_holes))
         h = tracer.relief_key(relief, mesh_options) if tracer is not None else relief_hash(relief, mesh_options)
         self.tracer_key = ("ray.ReliefTracer", h.hexdigest())
@@ -142,7 +143,8 @@ class _RayContext:
         h.update(repr((self.polarized, self.first_hit_split, float(opts.specular_tol_rad), self.seed,
                        self.samples, self.te.tolist(), self.pe.tolist(), self.subtiles)
                       + ((self.beam_divergence_deg,) if self.beam_divergence_deg else ())
-                      + (("phi_i_spread", self.phi_i_spread_deg) if self.phi_i_spread_deg else ())).encode())
+                      + (("phi_i_spread", self.phi_i_spread_deg) if self.phi_i_spread_deg else ())
+                      + (("phi_i_turn", self.phi_i_turn_deg) if self.phi_i_turn_deg else ())).encode())
         self._digest = h.hexdigest()
 
     def digest(self) -> str:
@@ -303,15 +305,18 @@ def _beam(inc: _Incidence, sigma_deg: float, n: int, rng: np.random.Generator) -
 
 
 def _azimuth_spread(k: np.ndarray, s_init: Any, half_width_deg: float,
-                    rng: np.random.Generator) -> tuple[np.ndarray, Any, np.ndarray]:
+                    rng: np.random.Generator, turn_deg: float = 0.0) -> tuple[np.ndarray, Any, np.ndarray]:
     """(directions, s-axes, (2, n) cos / sin of each ray's offset) of a beam whose incidence azimuths are
     spread uniformly over +-`half_width_deg` about z (`RayOptions.phi_i_spread_deg`): each ray and its
     polarisation basis turned by its own offset, the whole incidence rigidly about the mean plane's
     normal.  `_turn_exits_back` turns the exits by minus the same offsets, so that every ray is seen
     from the frame of the request's azimuth: the table is the average over the sector's incidence
     azimuths of what each scatters relative to its own incidence (a relief's response to a turned
-    beam, sampled continuously in azimuth, not at the sector's centre only)."""
-    a = np.radians(rng.uniform(-half_width_deg, half_width_deg, k.shape[0]))
+    beam, sampled continuously in azimuth, not at the sector's centre only).  `turn_deg`
+    (`RayOptions.phi_i_turn_deg`) adds one fixed offset to every ray: the relief lit from that azimuth,
+    seen from the frame of its incidence (no random number drawn when the spread is 0)."""
+    a = np.radians(rng.uniform(-half_width_deg, half_width_deg, k.shape[0])) if half_width_deg else np.zeros(k.shape[0])
+    a = a + np.radians(turn_deg)
     cs = np.stack([np.cos(a), np.sin(a)]).astype(F32)
     k = rotate_z_rows(k, cs[0], cs[1])
     if s_init is not None:
@@ -371,8 +376,8 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
                              float(tracer.hx), float(sy), float(tracer.hy), z, o)
         k, s_init = _beam(inc, ctx.beam_divergence_deg, hi - lo, rng)
         turn = None
-        if ctx.phi_i_spread_deg:
-            k, s_init, turn = _azimuth_spread(k, s_init, ctx.phi_i_spread_deg, rng)
+        if ctx.phi_i_spread_deg or ctx.phi_i_turn_deg:
+            k, s_init, turn = _azimuth_spread(k, s_init, ctx.phi_i_spread_deg, rng, ctx.phi_i_turn_deg)
         rays = Rays(o, k, np.full(hi - lo, inc.from_below),
                     np.ones(hi - lo, F32), np.zeros(hi - lo, np.int16), np.arange(hi - lo, dtype=np.int64),
                     None)                      # polarised: None = the identity columns (StokesCarrier)
