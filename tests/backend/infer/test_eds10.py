@@ -88,8 +88,6 @@ def test_the_half_maximum_edges_at_azimuth_0(proof):
     assert proof["diffs"]["5/0"]["edges_u"] <= TARGETS["edges_u"], proof["msg"]
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="plate: a row lit from azimuth 45 reads the phi_i = 0 outside table turned "
-                                       "by 45 deg, which turns the square lobe (docs/infer.md)")
 def test_the_half_maximum_edges_at_azimuth_45(proof):
     from relief_bsdf.infer.predict import TARGETS
     assert proof["diffs"]["5/45"]["edges_u"] <= TARGETS["edges_u"], proof["msg"]
