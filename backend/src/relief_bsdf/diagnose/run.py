@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from relief_bsdf.diagnose.effects import all_effects, get_effect
+from relief_bsdf.diagnose.effects.relief_smoothing import derived as smoothing_derived
 from relief_bsdf.diagnose.fitting import intervals as fit_intervals
 from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build_forward
 from relief_bsdf.diagnose.mismatch import SHAPE_PHYSICS, attribute, classify, locate, regions
@@ -231,6 +232,9 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
         effects, params, (v1, s1), rms1 = list(final.effects), final.values, final.model, metric_of_chi2(final.chi2, n)
         ivals, notes = fit_intervals(forward, tuple(get_effect(e) for e in final.effects), final.values,
                                      final.jacobian)
+        if "relief_smoothing" in effects:     # the slope ratio the fitted smoothing implies, beside its filter
+            extra, extra_iv = smoothing_derived(forward.context, params, ivals)
+            params, ivals = {**params, **extra}, {**ivals, **extra_iv}
         if not adequate(final.chi2, n):
             remainder = {"mismatch": locate(rows, v1, s1, n_glass=n_glass),
                          "shapes": classify(rows, v1, s1, n_glass=n_glass)}

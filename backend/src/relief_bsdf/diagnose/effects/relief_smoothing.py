@@ -56,6 +56,26 @@ def _explain(v):
     return f"the relief smoothed by a Gaussian of {g:.2f} um"
 
 
+def slope_ratio(context, filter_sigma_um: float, noise_removed: bool = False) -> float:
+    """The map's rms slope over that of the relief the fitted smoothing leaves (the true relief in this
+    effect's model): >= 1, 1 for no smoothing.  In geometric optics the lobes follow the slopes, so this
+    is the figure a user compares with an instrument's noise: a map whose slopes read 1.5x the true ones."""
+    from relief_bsdf.surface.stats import rms_height_and_slope
+    true = context.processed_relief(1.0, max(float(filter_sigma_um), 0.0) * 1e-6, bool(noise_removed))
+    return float(rms_height_and_slope(context.relief)[1]) / float(rms_height_and_slope(true)[1])
+
+
+def derived(context, values: dict, intervals: dict) -> tuple[dict, dict]:
+    """({"slope_ratio_file_over_true": r}, {the same: [r at the filter's interval ends]}): the rms-slope
+    ratio the fitted smoothing implies, with the interval its filter's interval maps onto (the ratio
+    grows with the filter, so the ends map to the ends)."""
+    noise = float(values.get(NOISE_FORM, 0.0)) > 0.5
+    r = slope_ratio(context, values["filter_sigma_um"], noise)
+    iv = intervals.get("filter_sigma_um")
+    ends = None if iv is None else sorted(slope_ratio(context, g, noise) for g in iv)
+    return {"slope_ratio_file_over_true": r}, ({"slope_ratio_file_over_true": ends} if ends else {})
+
+
 PARAM = Param("filter_sigma_um", 0.0, 8.0, 0.0, "um")
 
 EFFECT = Effect(
