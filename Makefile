@@ -55,7 +55,7 @@ lint-imports: venv-test
 test: venv-test docs lint-imports
 	$(PY) -m pytest -n 2 --dist worksteal
 
-# day-to-day tier: everything not marked slow, on both cores (under 2 minutes on 2 cores)
+# day-to-day tier: everything not marked slow, on both cores
 test-fast: venv-test
 	$(PY) -m pytest -m "not slow" -n 2
 
