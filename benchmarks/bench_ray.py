@@ -1,6 +1,6 @@
 """Benchmark of the `ray` method against the raw Embree limit, measured in the same run.
 
-Scene (issue 3): a periodic 1024 x 1024 Gaussian relief with rms slope magnitude 0.3,
+Scene: a periodic 1024 x 1024 Gaussian relief with rms slope magnitude 0.3,
 n = 1.5, a parallel beam at 30 degrees traced until every ray has left the relief layer,
 binned into a table (1-degree rings x 5-degree azimuths).
 
@@ -29,7 +29,7 @@ the ratios are the meaningful numbers):
 - minimal_loop: a minimal numpy + embreex bounce loop with no physics beyond a Fresnel
   reflect/refract choice (no wrap, no polarisation, no binning), two threads over raster-
   ordered rays: paths/s.  ratio_to_minimal = engine paths/s / minimal paths/s (target >= 0.5).
-- fit reuse (issue 18 item 4): the build's split (mesh, Embree buffers, BVH), a new tracer for
+- fit reuse: the build's split (mesh, Embree buffers, BVH), a new tracer for
   new heights on the same grid (`with_heights`) and the in-place update with BVH refit
   (`update_heights`), seconds.
 - peak_rss_mb: peak resident memory of this process.

@@ -1,4 +1,4 @@
-"""Bake on any mesh: the baked relief goes on every face, each face's own frame (issue 52, item 8).
+"""Bake on any mesh: the baked relief goes on every face, each face's own frame.
 
 The node group reads its rows by the view angle from the shading normal and takes the inside rows
 where a ray meets the back of a face (relief_addon.bake_nodes.coordinate_group), so one material

@@ -1,4 +1,4 @@
-"""Where tables live, re-baking, and what a bake does to an object's materials (issue 16, item 3)."""
+"""Where tables live, re-baking, and what a bake does to an object's materials."""
 from __future__ import annotations
 
 import tempfile

@@ -1,4 +1,4 @@
-"""Operators from a user's script with no `if __name__ == "__main__":` guard (issue 16, item 4).
+"""Operators from a user's script with no `if __name__ == "__main__":` guard.
 
 Each test runs a script in a fresh Python with the bpy module, as `python script.py` (the same
 `__main__` situation as `blender --background --python script.py`).  The script imports bpy at

@@ -1,4 +1,4 @@
-"""The probe corpus of issue 17 as a test suite: every bad input exits 2 with one line naming the file.
+"""The probe corpus of bad inputs as a test suite: every bad input exits 2 with one line naming the file.
 
 Every file is built here, on the fly, in a temporary folder.  Each case runs the command line
 in-process (`relief_bsdf.cli.main`) and asserts the exit code, that stderr is one line (bar

@@ -80,7 +80,7 @@ def test_end_to_end_absorption_named(tmp_path):
     normals`), the rough-face physics this test was written for (the old diagnosis engine:
     random bump mapping over the measured normals).  The fit's default surrogate
     `microfacet+dw` (one Beckmann lobe of the rms slope) misses this relief's transmitted lobe
-    by far more than the noise (issue 18), so an absorption fitted on it compensates the lobe
+    by far more than the noise, so an absorption fitted on it compensates the lobe
     shape instead of measuring the bulk; that is a statement about the surrogate, not about
     the diagnosis pipeline tested here.
     """
@@ -92,7 +92,7 @@ def test_end_to_end_absorption_named(tmp_path):
     # the named effect explains the misfit: with it the rows agree to the noise (the chi^2 test of
     # stepwise.consistent_with_noise), without it they do not.  (A ratio rms_after / rms_before < 0.35
     # was asserted while `normals` tables stated only their Monte-Carlo noise; with the tile's
-    # realisation in their sigma, issue 13, the baseline's rms is 2.52 and the named model's 0.89,
+    # realisation in their sigma, the baseline's rms is 2.52 and the named model's 0.89,
     # below 1: the ratio pinned the old sigma, the noise test does not.)
     n = r["selection"]["n_rows"]
     assert consistent_with_noise(r["rms_after"] ** 2 * n, n)
@@ -117,12 +117,11 @@ def test_end_to_end_absorption_named(tmp_path):
 def test_clean_case_called_none(tmp_path):
     """A clean concealed case (nothing hidden) must be diagnosed `none` by the CLI.
 
-    Was a strict xfail (issue 18): the deterministic model on `normals` tables of this 48 px relief
+    The deterministic model on `normals` tables of this 48 px relief
     misses the independent photon truth in the steep tail of the narrow transmitted lobe (rms z 1.34
-    here), and a relief_scale of 0.95 gained 21 > BIC_MARGIN against it.  The forward model has not
-    changed; the selection now asks a candidate for more than the model's own stated inaccuracy
-    (issue 14, `stepwise.adequate`: a baseline within chi^2 <= 1.2^2 n + 3 sqrt(2n) needs an
-    overwhelming gain, max(40, 3 sqrt(2n)); 21 is not), so the misfit is no longer blamed on a
+    here), and a relief_scale of 0.95 gains 21 > BIC_MARGIN against it; the selection asks a candidate for more than the model's own stated inaccuracy
+    (`stepwise.adequate`: a baseline within chi^2 <= 1.2^2 n + 3 sqrt(2n) needs an
+    overwhelming gain, max(40, 3 sqrt(2n)); 21 is not), so the misfit is not blamed on a
     candidate.  A diagnosis that names something here fails this test again.
     """
     subset = SUBSET

@@ -1,5 +1,5 @@
 """Relief smoothing as removal of the map's own measurement noise (diagnose.noise_removal), beside the
-paper's Gaussian filter, one effect whose form the information criterion chooses (issue 49, item 5).
+paper's Gaussian filter, one effect whose form the information criterion chooses.
 
 Oracles: a synthetic relief of known slopes plus white noise of a known share (the file's rms slope / the
 truth's = 1.5, the independent engine's definition of relief smoothing), and a stand-in forward model whose

@@ -4,7 +4,7 @@
 A screen needs the change of the model toward a candidate's probes.  On a relief that scatters the
 light inside the plate by azimuth, the sector tables (`plate.faces.inside_sectors`) make most of an
 evaluation's cost; the screening forward leaves them out for the probes AND the current model, so it
-finds the same gain (here within 10 %, measured 1-3 % on the seed-10 reliefs, notes 2026-12-04); what is
+finds the same gain (here within 10 %, measured 1-3 % on the seed-10 reliefs); what is
 fitted and named keeps them.  The loop carries intensities only on the screening forward (the tables'
 M00, `TableGrid.stokes_loop` False), except for a candidate that acts through the polarisation.
 """

@@ -1,4 +1,4 @@
-"""The search cannot contradict itself (issue 49, items 2-4): a residual's signature forces its candidate's
+"""The search cannot contradict itself: a residual's signature forces its candidate's
 fit, a fit that ends at its null value is refitted from spread starts, boundary methods are a verdict on
 the method (method_check), never an effect, and trading pairs are reported with their correlation.
 

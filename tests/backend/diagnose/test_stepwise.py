@@ -1,4 +1,4 @@
-"""Stepwise selection of every effect present, joint refit and 68 % intervals (issue 14).
+"""Stepwise selection of every effect present, joint refit and 68 % intervals.
 
 Fast tests check the logic against analytic oracles: a stand-in forward model whose rows are a
 closed-form function of the parameters (a background adds b, an absorption multiplies the

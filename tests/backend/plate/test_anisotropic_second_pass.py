@@ -55,7 +55,7 @@ def _info(relief, grid=TableGrid()) -> dict:
 
 
 def test_the_simulation_says_when_the_loop_meets_the_relief_by_sector():
-    """`simulate`'s info names the sector tables it used (issue 18: every output says which physics it used)."""
+    """`simulate`'s info names the sector tables it used (every output says which physics it used)."""
     with pytest.warns(RuntimeWarning):           # the engine's isotropy warning for the anisotropic relief
         got = _info(_anisotropic())["inside_sectors"]
     assert got["centres_deg"] == list(SECTOR_AZIMUTHS_DEG) and "+-7.5 deg" in got["each"]
@@ -65,10 +65,10 @@ def test_the_simulation_says_when_the_loop_meets_the_relief_by_sector():
 @pytest.mark.slow
 def test_the_second_pass_by_azimuth_sector_agrees_with_the_independent_monte_carlo(monkeypatch):
     """Anisotropic Gaussian relief (correlation 10 x 4 um, rms slopes 2.6x apart), n 1.5, 2 mm, theta_i 0,
-    2.5-deg cone, rows across both principal planes.  Measured 2026-12-03, rms deviation in the bright
+    2.5-deg cone, rows across both principal planes.  Rms deviation in the bright
     part: R 5.5 % with the sectors, 46 % without (the flank along the shallow axis 2x high, the steep
     axis 0.7x); T (no second pass in its bright part) 0.7 % alike with and without.  Left: the sectors'
-    +-15 deg turn.  (Since session 29 every order of the loop goes by sector, test_sector_loop.py.)"""
+    +-15 deg turn.  (Every order of the loop goes by sector: test_sector_loop.py.)"""
     from relief_bsdf.validation.conceal import HeightFieldFace
     from relief_bsdf.validation.photon import PlatePhysics, detect, run_photons
     relief = _anisotropic()

@@ -113,9 +113,9 @@ def test_rough_plate_off_normal_the_traced_beam_and_the_quadrature_agree_with_th
     kind), n 1.5, 2 mm, theta_i 55 deg, beam divergence 2.5 deg, 2.5-deg cone.  In the bright part of both
     lobes the deterministic engine's beam divergence stays within a few percent of the validation's photon
     Monte Carlo; the same width as a blur of the reading misses it several times more.  (Set on seed 5's
-    concealed relief, 2026-12-02: T within 1-1.5 %, R 2-4.5 %, the reading blur 5-12 %; this tile is a
+    concealed relief: T within 1-1.5 %, R 2-4.5 %, the reading blur 5-12 %; this tile is a
     fresh one: rms T 1.7 % against 5.3 %, R 3.9 % (its level, 0.96) against 7.2 %; with the Gauss-Laguerre
-    rule of plate.detector.beam_offsets, T 0.8 %, R 3.9 %; 2026-12-03, the beam traced into the outside
+    rule of plate.detector.beam_offsets, T 0.8 %, R 3.9 %; the beam traced into the outside
     table (the default for a ray-traced relief, plate.deterministic.front_traces_beam): T 1.4 %, R 3.9 %,
     the quadrature beside it 0.8 % and 3.9 %, the reading blur 5.3 % and 7.2 %.)"""
     from relief_bsdf.plate import ReliefFace
@@ -182,7 +182,7 @@ def test_anisotropic_relief_at_normal_incidence_the_divergent_lobe_keeps_the_rel
 
     R's second pass leaves through the relief's inside tables by azimuth sector (plate.faces.inside_sectors;
     before them R missed this relief's Monte Carlo by 20-30 % with or without a divergence).  Measured
-    2026-12-03, rms deviation in the bright part: T traced 1.1 %, shifted 5.0 % (its flank across the
+    Rms deviation in the bright part: T traced 1.1 %, shifted 5.0 % (its flank across the
     steep axis 12 % low: the lobe shape of the in-plane incidence, second order), turned 58 %; R 2.8 %,
     3.0 %, 40 % (without the sectors 21.6 %, 21 %, 43 %).  (The measured map of seed-6 case14 missed by
     chi^2 3590 on its 70 rows at normal incidence turned.)"""

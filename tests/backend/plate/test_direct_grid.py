@@ -1,4 +1,4 @@
-"""The direct grid (issue 18 item 2): outside tables on cells narrower than the detector cone, read by
+"""The direct grid: outside tables on cells narrower than the detector cone, read by
 a cone integral of the cells; the loop on the engine grid.  Checked against analytic integrals (the
 truth is computed here by dense quadrature of the stated field, not by the engine)."""
 import numpy as np

@@ -116,7 +116,7 @@ def test_the_leaning_relief_lit_from_azimuth_180_agrees_with_the_independent_mon
     """The leaning relief, n 1.5, 1 mm, theta_i 20 deg from azimuth 180, R and T rows every degree in the
     plane of incidence, 2-deg cone: the validation's photon Monte Carlo through the relief (3 M photons,
     its own tracer) against the engine with the half-turned outside table and with the old turned
-    phi_i = 0 table.  Measured 2026-12-04, rms relative deviation over the bright rows: T 0.7 % against
+    phi_i = 0 table.  Measured: rms relative deviation over the bright rows: T 0.7 % against
     93 %; R 17 % against 39 %.  R keeps a part: the light that comes back out (the second pass) still
     meets the relief as the phi_i = 0 inside tables turned (with the whole plate turned, inside tables
     and sectors too, R is 9 %: left, at twice the tables' cost; on a Gaussian tile under a tilt the

@@ -1,4 +1,4 @@
-"""Between two incidences of an inside table the lobes move, they do not blend (issue 18 item 2).
+"""Between two incidences of an inside table the lobes move, they do not blend.
 
 The truth here is an analytic lobe written for every incidence (a Gaussian around the Snell exit
 direction or the specular direction), cell-averaged on the engine grid; the table holds it at

@@ -47,8 +47,7 @@ def test_absorption_follows_beer_lambert_on_flat_plate():
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=(
-    "open, issue 18: after this session's changes (ray tables with hashed random numbers and tile sigma, the "
-    "detector's projection weights) the engines agree within 0.6-1.1 % in T and 0.0 % in R at 0 / 60 deg, but R at "
+    "the engines agree within 0.6-1.1 % in T and 0.0 % in R at 0 / 60 deg, but R at "
     "30 deg shows a systematic 3.1 % (bar 3 %; lobe total -0.2 %, worst row +0.4 % beyond 3 sigma); the "
     "detector's average-to-point conversion was ruled out (3.1 % without it too), and so were the outside table's "
     "cells and their reading: with the direct grid (0.5-deg rings, 1-deg azimuth cells, cone integral of the cells, "
@@ -56,8 +55,7 @@ def test_absorption_follows_beer_lambert_on_flat_plate():
     "left is the second pass (front -> back face -> out through the relief from inside, inside tables) or the "
     "Monte-Carlo side. Seeded: fails the suite the day it passes"))
 def test_mc_and_deterministic_plates_agree_within_3_percent_in_lobe_on_the_demo_plate(tmp_path):
-    """Issue 5, on the matte acrylic plate that was the demo until the demo moved to an anti-glare
-    relief (issue 18): a 100 nm / 1 um Gaussian relief, 1024^2 at 0.125 um (seed 1), 2 mm n = 1.49,
+    """The matte acrylic plate: a 100 nm / 1 um Gaussian relief, 1024^2 at 0.125 um (seed 1), 2 mm n = 1.49,
     1-degree detector cone, the demo recording's rows (0-75 deg every 15 deg, theta_s 1-87 every
     2 deg, in-plane) at three incidences.  Both plates get the same boundary physics
     (ray optics through the real relief): the deterministic one through ray-traced tables, the

@@ -5,7 +5,7 @@ back face, out through the relief from inside) and the light trapped after it.  
 map (ST_x3p-2, levelled, cropped, heights x 3, mirrored into a periodic tile: its slopes 2.2x steeper
 along x than along y) that light is narrow across the plane of incidence, so the loop's 5-deg azimuth
 cells matter: the first transmission's cell averages widened it by a cell's variance once more at the
-exit (7 % low at 30 and 60 deg before 2026-12-04); entered as point sources weighted by the centre values
+exit (7 % low at 30 and 60 deg with the cells' averages); entered as point sources weighted by the centre values
 (plate.deterministic `_incidence`, plate.detector.centre_values) it reads ~4 % low.  The direct reflection,
 read on the direct grid, is checked alike (an opaque plate: the same relief, a bulk that keeps nothing).
 The truth is the Monte Carlo's (validation.record.trace_recording: its own Embree tracing of the relief

@@ -70,7 +70,7 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    then traded for a relief scale of 0.47 plus an absorption), and the bar of the next step is
    judged against that chi^2.  The last polish's Jacobian is the intervals' one.
 
-Rules that keep the search from contradicting its own report (issue 49):
+Rules that keep the search from contradicting its own report:
 - the gain a candidate is judged on (`passes`) is the project's one criterion on the
   quasi-likelihood scale (`gain_of`: `criteria.bic_gain` with the larger model's
   overdispersion c = max(1, chi^2 / (n - k)), the fit's QBIC): while the model misses the noise by
