@@ -94,19 +94,7 @@ def test_the_half_maximum_edges_at_azimuth_45(proof):
 
 
 @pytest.mark.parametrize("fmt,side", [("radiance-xml", None), ("is-bsdf", "inside"), ("recording-csv", "inside")])
-def test_the_inferred_boundary_exports_as_any_table(proof, tmp_path, fmt, side):
-    """Item 6: the inferred boundary's tables (both sides: the inside one is the relief's, not measured)
+def test_the_inferred_boundary_exports_as_any_table(proof, export_check, tmp_path, fmt, side):
+    """The inferred boundary's tables (both sides: the inside one is the relief's, not measured)
     export as any table does."""
-    from relief_bsdf.cli import main
-    suffix = {"radiance-xml": ".xml", "is-bsdf": ".bsdf", "recording-csv": ".csv"}[fmt]
-    target = tmp_path / f"inferred{suffix}"
-    args = ["export", str(proof["out"] / "boundary.h5"), "--format", fmt, "-o", str(target)]
-    if side:
-        args += ["--from", side]
-    assert main(args) == 0
-    written = sorted(tmp_path.glob("inferred*"))
-    assert written and all(p.stat().st_size > 1000 for p in written), written
-    if fmt == "recording-csv":
-        from relief_bsdf.io.recording import read_recording
-        rec = read_recording(target)
-        assert np.all(np.isfinite(rec.bsdf_sr)) and rec.bsdf_sr.max() > 0
+    export_check(proof["out"], tmp_path, fmt, side)

@@ -99,17 +99,5 @@ def test_outputs_are_ready_for_the_other_commands(job):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("fmt,side", [("radiance-xml", None), ("is-bsdf", "inside"), ("recording-csv", "inside")])
-def test_the_inferred_boundary_exports_as_any_table(job, tmp_path, fmt, side):
-    from relief_bsdf.cli import main
-    suffix = {"radiance-xml": ".xml", "is-bsdf": ".bsdf", "recording-csv": ".csv"}[fmt]
-    target = tmp_path / f"inferred{suffix}"
-    args = ["export", str(job["out"] / "boundary.h5"), "--format", fmt, "-o", str(target)]
-    if side:
-        args += ["--from", side]
-    assert main(args) == 0
-    written = sorted(tmp_path.glob("inferred*"))
-    assert written and all(p.stat().st_size > 1000 for p in written), written
-    if fmt == "recording-csv":
-        from relief_bsdf.io.recording import read_recording
-        rec = read_recording(target)
-        assert np.all(np.isfinite(rec.bsdf_sr)) and rec.bsdf_sr.max() > 0
+def test_the_inferred_boundary_exports_as_any_table(job, export_check, tmp_path, fmt, side):
+    export_check(job["out"], tmp_path, fmt, side)

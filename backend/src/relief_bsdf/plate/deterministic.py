@@ -96,6 +96,7 @@ from relief_bsdf.errors import InputError
 from relief_bsdf.plate.faces import (FlatFace, MicrofacetFace, ReliefFace, TableFace, anisotropic_face, beam_in_table,
                                      half_turned_outside, inside_sectors, isotropy_warning, material_key)
 from relief_bsdf.plate.faces.derive import _derive_outside
+from relief_bsdf.plate.faces.sectors import _resolved_relief
 from relief_bsdf.plate.memory import current_memory
 from relief_bsdf.plate.readout import beam_incidences, beam_split, simulate_rows
 from relief_bsdf.plate.reuse import _note_request, _reused_solver, drop_sector_table, held_for_request, refresh_solver
@@ -258,22 +259,15 @@ def turned_azimuths(experiment: Any, rows: Any, grid: Any, traced: bool) -> tupl
     source's polarisation is referred to, the lobe would turn with that name.  The ray method traces the
     relief lit from phi_i itself (option `phi_i_turn_deg`: the beam and its polarisation turned, the exits
     turned back), exact for any tile; 180 deg keeps the half-turned relief (docs/decisions/002)."""
-    front = experiment.plate.front
-    if not isinstance(front, ReliefFace) or front.method not in ("ray", "auto"):
+    p = experiment.plate
+    if not isinstance(p.front, ReliefFace) or p.front.method not in ("ray", "auto"):
         return ()
     wl, t_all, p_all = sample_incidences(experiment, rows, traced)
-    az = azimuth_key(p_all)
-    out = tuple(float(a) for a in np.unique(az) if a not in (0.0, 180.0))
+    out = tuple(float(a) for a in np.unique(azimuth_key(p_all)) if a not in (0.0, 180.0))
     if not out or len(out) > TURNED_MAX:
         return ()
-    face = _resolved_front(experiment, grid, wl, t_all)
+    face = _resolved_relief(p.front, p.material, grid, wl, np.unique(t_all))
     return out if face is not None and face.method == "ray" else ()
-
-
-def _resolved_front(experiment: Any, grid: Any, wl: Any, t_all: Any) -> Any:
-    p = experiment.plate
-    resolve = getattr(p.front, "resolved", None)
-    return None if resolve is None else resolve(p.material, grid, wl, np.unique(t_all))
 
 
 def turned_tables(experiment: Any, rows: Any, grid: Any, traced: bool, progress: Any = None) -> dict:
@@ -284,7 +278,7 @@ def turned_tables(experiment: Any, rows: Any, grid: Any, traced: bool, progress:
         return {}
     p = experiment.plate
     wl, t_all, p_all = sample_incidences(experiment, rows, traced)
-    face = _resolved_front(experiment, grid, wl, t_all)
+    face = _resolved_relief(p.front, p.material, grid, wl, np.unique(t_all))
     beam = experiment.instrument.beam_divergence_deg if traced else 0.0
     az = azimuth_key(p_all)
     out = {}

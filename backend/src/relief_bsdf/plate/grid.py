@@ -41,6 +41,8 @@ from typing import Any
 
 import numpy as np
 
+from relief_bsdf.core.fresnel import critical_angle_deg
+
 from relief_bsdf.errors import InputError
 from relief_bsdf.methods.request import Request
 
@@ -56,15 +58,11 @@ CRITICAL_OFFSETS_DEG = (-3.0, -2.0, -1.25, -0.75, -0.4, -0.15, 0.1, 0.5)   # ins
 
 
 def critical_angles_deg(material: Any, wavelengths_nm: Any) -> tuple:
-    """The critical angles arcsin(n_outside / n_inside) of light inside the glass, one per wavelength
+    """The critical angles of light inside the glass (`core.fresnel.critical_angle_deg`), one per wavelength
     (none where the glass is not the denser medium): where total internal reflection begins."""
-    out = []
-    for w in np.unique(np.asarray(wavelengths_nm, float)):
-        n_in = float(np.real(material.inside.n(w)))
-        n_out = float(np.real(material.outside.n(w)))
-        if n_in > n_out:
-            out.append(float(np.degrees(np.arcsin(n_out / n_in))))
-    return tuple(out)
+    out = (critical_angle_deg(material.inside.n(w), material.outside.n(w))
+           for w in np.unique(np.asarray(wavelengths_nm, float)))
+    return tuple(t for t in out if t < 90.0)
 
 
 @dataclass(frozen=True)
