@@ -47,7 +47,7 @@ except ImportError:                      # not built (no compiler, pure-Python w
     _compiled = None
 
 ENV = "RELIEF_RAY_KERNEL"
-NAMES = ("bin_cells", "add_at", "direction_parts", "cells_of_angles", "cells_of_directions", "near_direction",
+NAMES = ("bin_cells", "add_at", "direction_parts", "cells_of_angles", "cells_of_directions", "cells_of_edges", "near_direction",
          "near_two_directions", "exit_columns", "expand_compact", "facet_event", "facet_geometry", "slab_distances", "slab_far",
          "classify_misses", "beam_origins", "subtile_index", "gather_records", "gather_rays", "split_rays",
          "split_weights")

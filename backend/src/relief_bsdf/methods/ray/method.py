@@ -49,6 +49,7 @@ from relief_bsdf.core.frames import beam_directions, cross_rows, direction, dot_
 from relief_bsdf.core.stokes import rotate_stokes_columns_cd, s_axis, s_axis_rows
 from relief_bsdf.errors import RequestError
 from relief_bsdf.methods.options import RayOptions
+from relief_bsdf.methods.ray.cells import cell_index
 from relief_bsdf.methods.ray.exits import BELOW, STATE_NAMES, Exits
 from relief_bsdf.methods.realisation import MAX_SUBTILES, SUBTILE_CORR  # noqa: F401  (module doc)
 from relief_bsdf.methods.realisation import subtile_grid as _subtile_grid
@@ -357,7 +358,7 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
     tracer = ctx.get_tracer()
     threads = 1 if in_worker() or in_task_thread() else ctx.threads_here(tracer)
     K = 4 if ctx.polarized else 0
-    cells = CellIndex(ctx.te, ctx.pe)
+    cells = cell_index(ctx.te, ctx.pe)
     Lx, Ly = float(tracer.Lx), float(tracer.Ly)
     nxs, nys, _, strata_iy, strata_ix = worker_cached(("ray.strata", ctx.samples, Lx, Ly),
                                                       lambda: _beam_strata(ctx.samples, Lx, Ly))
