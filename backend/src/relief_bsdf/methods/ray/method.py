@@ -428,7 +428,8 @@ def _task_rows(total: _Tally, side: str, K: int) -> dict:
     if K:
         dd = _MIRROR_DD if side == "inside" else 1.0
         # from outside the builder's float32 rows as they are (times 1.0 they would be the same numbers, copied twice)
-        out["mue"] = (c.mueller_per_sr * dd).astype(F32) if side == "inside" else c.mueller_per_sr.astype(F32, copy=False)
+        mue = c.mueller_per_sr
+        out["mue"] = (mue * dd).astype(F32) if side == "inside" else mue.astype(F32, copy=False)
         out["smR"] = c.specular_mueller_R * dd
         out["smT"] = c.specular_mueller_T * dd
         out["vals"] = out["mue"][..., 0, 0].copy()
