@@ -33,6 +33,9 @@ the ratios are the meaningful numbers):
   new heights on the same grid (`with_heights`) and the in-place update with BVH refit
   (`update_heights`), seconds.
 - peak_rss_mb: peak resident memory of this process.
+- polarized_cpu_s: the polarised pairs' CPU seconds (medians): the engine, Embree alone on its batches, and the
+  engine outside Embree (per pair, engine less Embree): the part a change to the engine's own work moves,
+  and the load-independent form of the ratio.
 - ray_kernel: which kernels ran the numpy-side hot steps ("cython": the compiled `relief_bsdf.kernels`;
   "numpy": not built, or RELIEF_RAY_KERNEL=numpy); the same tables either way.
 The last line is one JSON object.
@@ -193,6 +196,11 @@ def main(argv=None) -> int:
     ratio_wall_p, ratio_cpu_p = float(np.median(wall_ratios)), float(np.median(cpu_ratios))
     pol = pairs[int(np.argsort(wall_ratios)[len(pairs) // 2])][0]      # the median pair's engine run (wall)
     pair_ratios = [(round(w, 3), round(c, 3)) for w, c in zip(wall_ratios, cpu_ratios)]
+    # CPU seconds of the pairs (the process's own: far less sensitive to other work than wall time): the engine,
+    # Embree alone on its batches, and the engine's time outside Embree (what a change to the engine moves)
+    cpu_split = {"engine": float(np.median([p_i["cpu_s"] for p_i, _, _ in pairs])),
+                 "embree": float(np.median([c_i for _, _, c_i in pairs])),
+                 "outside_embree": float(np.median([p_i["cpu_s"] - c_i for p_i, _, c_i in pairs]))}
     del rec
     min_pps, min_spp = minimal_paths_per_s(tracer, a.rays, a.theta, a.threads)
     pps_s = scal["paths"] / scal["wall_s"]
@@ -209,6 +217,8 @@ def main(argv=None) -> int:
     print(f"engine polarised: {pps_p / 1e6:.3f} M paths/s (Mueller 4x4 per ray: {pps_s / pps_p:.2f}x the scalar "
           f"time), R {pol['R']:.4f} T {pol['T']:.4f}; embree alone on its batches: ratio {ratio_wall_p:.3f} wall, "
           f"{ratio_cpu_p:.3f} CPU (medians of {len(pairs)} pairs (wall, CPU): {pair_ratios})")
+    print(f"polarised CPU seconds (medians of the pairs, {pol['paths']} paths): engine {cpu_split['engine']:.3f}, "
+          f"embree alone {cpu_split['embree']:.3f}, engine outside embree {cpu_split['outside_embree']:.3f}")
     pps_ns = nosplit["paths"] / nosplit["wall_s"]
     print(f"engine scalar without the first-hit split: {pps_ns / 1e6:.3f} M paths/s, "
           f"{nosplit['segments'] / nosplit['paths']:.3f} segments/path")
@@ -229,7 +239,7 @@ def main(argv=None) -> int:
            "ratio_to_minimal": pps_s / min_pps,
            "ratio_to_minimal_polarized": pps_p / min_pps, "polarized_cost_factor": pps_s / pps_p,
            "ratio_to_embree_polarized": ratio_wall_p, "ratio_to_embree_cpu_polarized": ratio_cpu_p,
-           "polarized_pairs": pair_ratios,
+           "polarized_pairs": pair_ratios, "polarized_cpu_s": cpu_split,
            "R": scal["R"], "T": scal["T"], "lost": scal["lost"], "rays": scal["paths"], "size": a.size,
            "threads": a.threads, "build_s": tracer.build_s, "build_split_s": tracer.build_split_s,
            "direct_buffers": tracer.direct_buffers, "with_heights_s": with_heights_s, "update_heights_s": update_s,

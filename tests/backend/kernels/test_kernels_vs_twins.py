@@ -493,6 +493,92 @@ def test_cells_of_directions_of_any_direction(k, grid):
     with np.errstate(invalid="ignore", divide="ignore"):
         same_bits(cells.with_side(k, side), cells._cells_of_numpy_angles(k, side), "cells")
 
+
+# graded edges (a relief-scale request: fine rings, azimuths of 1 and 5 degrees), searched by the builder
+SEARCHED_GRIDS = ((np.concatenate([np.linspace(0.0, 10.0, 61), np.linspace(10.5, 90.0, 160)]),
+                   np.concatenate([np.arange(-2.5, 3.0, 1.0), np.arange(7.5, 358.0, 5.0)])),
+                  (np.concatenate([np.linspace(5.0, 40.0, 8), [42.0, 47.0, 60.0, 80.0]]),     # part of the sphere
+                   np.array([-30.0, -10.0, -2.0, 0.0, 3.0, 25.0])),
+                  (np.concatenate([[0.0, 0.25, 1.0], np.linspace(2.0, 90.0, 45)]),
+                   np.array([350.0, 352.0, 355.0, 360.0, 370.0, 400.0, 500.0, 700.0])))   # edges past 360
+
+
+def searched_args(k: np.ndarray, cells):
+    from relief_bsdf.methods.ray.cells import MARGIN_DEG
+    n = k.shape[0]
+    side = (k[:, 2] < 0).astype(np.int8)
+    return lambda: (k.copy(), cells.te_sin2, cells.last_ring, cells.lut_t, cells.scale_t, cells.pe_rel, cells.lut_p,
+                    cells.scale_p, float(cells.pe[0]), MARGIN_DEG, side.copy(), cells.S * cells.A,
+                    np.zeros(n, np.int32), np.zeros(n, np.int64))
+
+
+def same_searched_cells_where_settled(k: np.ndarray, cells) -> np.ndarray:
+    """`cells_of_edges`: the compiled kernel's cells equal its twin's (numpy's searches, numpy's float32 arctan2)
+    for every direction it settles, and it lists exactly those it leaves (out -2); the twin settles all.  The
+    mask of the directions left to numpy."""
+    k_ = kernels.REGISTRY["cells_of_edges"]
+    ac, at = searched_args(k, cells)(), searched_args(k, cells)()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ne, nt = k_.compiled(*ac), k_.twin(*at)
+    out_c, out_t = ac[-2], at[-2]
+    left = out_c == -2
+    assert nt == 0 and not (out_t == -2).any()
+    np.testing.assert_array_equal(np.sort(ac[-1][:ne]), np.flatnonzero(left))
+    np.testing.assert_array_equal(out_c[~left], out_t[~left])
+    return left
+
+
+@pytest.mark.parametrize("grid", range(len(SEARCHED_GRIDS)))
+def test_cells_of_searched_edges_at_the_edges_equal_numpys(grid):
+    """The cells of graded edges in one compiled pass (`kernels.cells_of_edges`, `methods.ray.cells.SearchedCells`)
+    are the builder's (`CellIndex.with_side`: searches on sin^2 theta and on numpy's float32 azimuth), for
+    directions on every edge to the last ulps (the ring exactly; the azimuths within the margin of an edge left
+    to numpy) and for directions away from the edges, which the kernel settles alone."""
+    from relief_bsdf.bsdf.builder import CellIndex
+    from relief_bsdf.methods.ray.cells import SearchedCells
+    te, pe = tuple(SEARCHED_GRIDS[grid][0]), tuple(SEARCHED_GRIDS[grid][1])
+    cells, ref = SearchedCells(te, pe), CellIndex(te, pe)
+    assert cells.searched and not ref.fast
+    rng = np.random.default_rng(17)
+    r = rng.normal(size=(20000, 3))
+    edges = edge_directions(cells)
+    k = np.concatenate([edges, (r / np.linalg.norm(r, axis=1)[:, None])]).astype(F32)
+    left = same_searched_cells_where_settled(k, cells)
+    m = edges.shape[0]
+    # the azimuth edges' directions are left to numpy (within 3e-6 rad of an edge < the margin) where their ring
+    # is in the table; few random ones are (within the margin of an azimuth edge: < 1 %)
+    assert np.count_nonzero(left[m:]) < 0.01 * (k.shape[0] - m) and np.count_nonzero(left[:m]) > 0
+    side = (k[:, 2] < 0).astype(np.int8)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        same_bits(cells.with_side(k, side), ref.with_side(k, side), "cells")
+
+
+@PROPERTY
+@given(k=arrays(F32, st.tuples(st.integers(1, 60), st.just(3)), elements=st.floats(-1.5, 1.5, width=32)),
+       grid=st.sampled_from(range(len(SEARCHED_GRIDS))))
+def test_cells_of_searched_edges_of_any_direction(k, grid):
+    from relief_bsdf.bsdf.builder import CellIndex
+    from relief_bsdf.methods.ray.cells import SearchedCells
+    te, pe = tuple(SEARCHED_GRIDS[grid][0]), tuple(SEARCHED_GRIDS[grid][1])
+    cells = SearchedCells(te, pe)
+    same_searched_cells_where_settled(k, cells)
+    side = (k[:, 2] < 0).astype(np.int8)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        same_bits(cells.with_side(k, side), CellIndex(te, pe).with_side(k, side), "cells")
+
+
+def test_searched_cells_count_tables_start_at_or_below_every_count():
+    """The look-up tables of the searches never start a count past the edges <= a value in their bucket (the
+    count then goes on from there: exact), on the buckets' bounds and just below them."""
+    from relief_bsdf.methods.ray.cells import SearchedCells
+    cells = SearchedCells(tuple(SEARCHED_GRIDS[0][0]), tuple(SEARCHED_GRIDS[0][1]))
+    for edges, lut, scale in ((cells.te_sin2, cells.lut_t, cells.scale_t), (cells.pe_rel, cells.lut_p, cells.scale_p)):
+        j = np.arange(lut.size)
+        for v in (j / scale, np.nextafter(j / scale, -np.inf), (j + 0.5) / scale):
+            v = v[v >= 0]
+            b = np.clip((v * scale).astype(np.int64), 0, lut.size - 1)
+            assert np.all(lut[b] <= np.searchsorted(edges, v, side="right"))
+
 @PROPERTY
 @given(dirs=arrays(F32, st.tuples(st.integers(0, 60), st.just(3)), elements=st.floats(-1, 1, width=32)),
        a=st.tuples(*[st.floats(-1, 1, width=32)] * 3), b=st.tuples(*[st.floats(-1, 1, width=32)] * 3),

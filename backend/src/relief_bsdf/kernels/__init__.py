@@ -13,14 +13,15 @@ numpy's arccos and arctan2), `near_direction` / `near_two_directions` (the specu
 (the first hits' sub-tiles tagged in the same pass), `split_weights`, `classify_misses`,
 `exit_columns` (methods.ray.transport: a one-interaction path's exit held compactly, its 6 factors and
 exit rotation), `expand_compact`, `gather_records` (methods.ray.exits), `beam_origins`
-(methods.ray.method).  Each does the same
+(methods.ray.method), `cells_of_edges` (methods.ray.cells: the cell of graded edges, searched).  Each does
+the same
 float32 / float64 operations in the same order as its numpy twin (`twins`, the same name and arguments:
 the reference, and what runs without the compiled module), so the tables are bit for bit the same
 (tests/backend/kernels: each kernel against its twin, and whole tables traced with either);
-`cells_of_directions` (the cell index) alone computes otherwise: it settles the cells of the directions
-farther than 2e-5 rad from every cell edge from its own float32 angles, and its twin uses numpy's arccos
-and arctan2 throughout: the same cells (decision record 014); the C is built without fused multiply-adds
-(-ffp-contract=off) and with flags that change no value (backend/setup.py).  Memory access decides
+`cells_of_directions` and `cells_of_edges` (the cell index) alone compute otherwise: they settle the cells of
+the directions farther than 2e-5 rad from every cell edge from their own float32 angles, and their twins use
+numpy's arccos and arctan2 throughout: the same cells (decision records 014, 023); the C is built without fused
+multiply-adds (-ffp-contract=off) and with flags that change no value (backend/setup.py).  Memory access decides
 their speed as much as arithmetic: arrays they read or write row by row are padded
 (`methods.ray.exits.padded_rows`: power-of-two chunk lengths otherwise put the rows in one cache set)
 and the division-heavy facet loop is written to vectorise.
@@ -47,10 +48,10 @@ except ImportError:                      # not built (no compiler, pure-Python w
     _compiled = None
 
 ENV = "RELIEF_RAY_KERNEL"
-NAMES = ("bin_cells", "add_at", "direction_parts", "cells_of_angles", "cells_of_directions", "near_direction",
-         "near_two_directions", "exit_columns", "expand_compact", "facet_event", "facet_geometry", "slab_distances", "slab_far",
-         "classify_misses", "beam_origins", "subtile_index", "gather_records", "gather_rays", "split_rays",
-         "split_weights")
+NAMES = ("bin_cells", "add_at", "direction_parts", "cells_of_angles", "cells_of_directions", "cells_of_edges",
+         "near_direction", "near_two_directions", "exit_columns", "expand_compact", "facet_event", "facet_geometry",
+         "slab_distances", "slab_far", "classify_misses", "beam_origins", "subtile_index", "gather_records",
+         "gather_rays", "split_rays", "split_weights")
 
 
 @dataclass(frozen=True)

@@ -313,6 +313,88 @@ def cells_of_directions(const float[:, :] k, float t_scale, float t_off, float p
     return ne
 
 
+
+cdef inline Py_ssize_t count_up_to(const double *a, Py_ssize_t n, const int *lut, Py_ssize_t nb, double scale,
+                                   double v) noexcept nogil:
+    """np.searchsorted(a[:n], v, side="right") (the number of a[i] <= v) for sorted a and v >= 0 not NaN, from
+    a look-up table: lut[j] counts the a[i] <= (j - 1) / scale (none for j = 0), at most those <= v for v in
+    bucket j = int(v scale), and the count goes on from there (a few steps: the buckets are finer than the edges)."""
+    cdef Py_ssize_t j = <Py_ssize_t>(v * scale)
+    j = 0 if j < 0 else (nb - 1 if j >= nb else j)
+    cdef Py_ssize_t i = lut[j]
+    while i < n and a[i] <= v:
+        i += 1
+    return i
+
+
+def cells_of_edges(const float[:, :] k, const double[::1] te_sin2, int last_ring, const int[::1] lut_t, double scale_t,
+                   const double[::1] pe_rel, const int[::1] lut_p, double scale_p, double pe0, double margin_deg,
+                   const signed char[::1] side, int side_cells, int[::1] out, long[::1] exact):
+    """The cells of directions k (n, 3) on searched edges (`builder.CellIndex` for edges that are not uniform:
+    rings searched on sin^2 theta, azimuths on the float64 degrees of numpy's float32 arctan2), side * side_cells
+    added, -1 outside the table, without numpy's arctan2 where it cannot matter.  The ring is numpy's exactly:
+    sin^2 = float64(max(0, 1 - k_z^2)) (float32) counted in te_sin2 (S + 1 edges) as searchsorted(side="right")
+    - 1 (`count_up_to`, lut_t over sin^2 in [0, 1] with scale_t buckets per unit), last_ring where sin^2 >= the
+    last edge, S (outside) for NaN.  The azimuth v = (degrees(atan2(k_y, k_x)) - pe0) mod 360 from the float32
+    `atan_quadrant` (within 2e-6 rad of atan2, as numpy's float32 arctan2 within 1e-6 rad: both far inside
+    margin_deg): where v - margin_deg and v + margin_deg fall in one cell of pe_rel (the edges less pe0, A + 1 of
+    them; lut_p with scale_p buckets per degree) without crossing 0 or 360 it is the cell of numpy's angle; the
+    others (an azimuth within the margin of an edge, k_y = 0 where atan2 follows the sign of zero, NaN) are listed
+    in exact (out -2) unless their ring alone puts them outside; returns their number (the caller finishes them
+    with numpy's angles).  Its twin computes every cell with numpy and lists none."""
+    cdef Py_ssize_t n = k.shape[0], i, ne = 0, ns = te_sin2.shape[0], na = pe_rel.shape[0]
+    cdef Py_ssize_t nbt = lut_t.shape[0], nbp = lut_p.shape[0]
+    cdef int S = <int>ns - 1, A = <int>na - 1, ib, ia, ia1
+    cdef float kz, q, kx, ky, ph
+    cdef double sin2, v, deg = 180.0 / 3.141592653589793
+    if side.shape[0] != n or out.shape[0] != n or exact.shape[0] < n or k.shape[1] != 3 or S < 1 or A < 1 or \
+            nbt < 1 or nbp < 1:
+        raise ValueError("cells_of_edges: inconsistent shapes")
+    with nogil:
+        for i in range(n):
+            kx = k[i, 0]
+            ky = k[i, 1]
+            kz = k[i, 2]
+            q = <float>1 - kz * kz
+            q = 0 if q < 0 else q
+            sin2 = <double>q
+            if sin2 != sin2:
+                ib = S
+            elif sin2 >= te_sin2[ns - 1]:
+                ib = last_ring
+            else:
+                ib = <int>count_up_to(&te_sin2[0], ns, &lut_t[0], nbt, scale_t, sin2) - 1
+            if ib < 0 or ib >= S:
+                out[i] = -1
+                continue
+            if ky == 0 or kx != kx or ky != ky:
+                exact[ne] = i
+                ne += 1
+                out[i] = -2
+                continue
+            ph = atan_quadrant(fabsf(ky), fabsf(kx))
+            ph = PI_1 - ph if kx < 0 else ph
+            ph = -ph if ky < 0 else ph
+            v = <double>ph * deg - pe0
+            while v < 0:
+                v += 360.0
+            while v >= 360.0:
+                v -= 360.0
+            if v - margin_deg < 0 or v + margin_deg >= 360.0:
+                exact[ne] = i
+                ne += 1
+                out[i] = -2
+                continue
+            ia = <int>count_up_to(&pe_rel[0], na, &lut_p[0], nbp, scale_p, v - margin_deg) - 1
+            ia1 = <int>count_up_to(&pe_rel[0], na, &lut_p[0], nbp, scale_p, v + margin_deg) - 1
+            if ia != ia1:
+                exact[ne] = i
+                ne += 1
+                out[i] = -2
+                continue
+            out[i] = -1 if (ia < 0 or ia >= A) else ib * A + ia + side[i] * side_cells
+    return ne
+
 ctypedef fused key_t:
     int
     long

@@ -134,6 +134,27 @@ def cells_of_directions(k, t_scale, t_off, p_scale, p_off, ring_lut, az_lut, n_a
     return 0
 
 
+
+@_quiet
+def cells_of_edges(k, te_sin2, last_ring, lut_t, scale_t, pe_rel, lut_p, scale_p, pe0, margin_deg, side, side_cells,
+                   out, exact):
+    """The cells of directions k (n, 3) on searched edges from numpy's sin^2 theta search and float32 arctan2
+    (`builder.CellIndex` for edges that are not uniform: `_theta_bins`' and `_phi_bins`' searches): the
+    reference (the look-up tables only speed the compiled search up); none listed in exact (returns 0)."""
+    S, A = te_sin2.size - 1, pe_rel.size - 1
+    kz = k[:, 2]
+    sin2 = np.maximum(F32(0), 1 - kz * kz).astype(np.float64)
+    ib = np.searchsorted(te_sin2, sin2, side="right") - 1
+    ib[sin2 >= te_sin2[-1]] = last_ring
+    phi = np.mod(np.degrees(np.arctan2(k[:, 1], k[:, 0]).astype(np.float64)) - pe0, 360.0)
+    ia = np.searchsorted(pe_rel, phi, side="right") - 1
+    cell = (ib * A + ia).astype(np.int32)
+    bad = (ib < 0) | (ib >= S) | (ia < 0) | (ia >= A)
+    cell += side.astype(np.int32) * np.int32(side_cells)
+    cell[bad] = -1
+    out[...] = cell
+    return 0
+
 @_quiet
 def near_direction(dirs, d0, d1, d2, cos_min, out):
     """Indices (into out, in order; their number returned) of the directions whose float32 dot product

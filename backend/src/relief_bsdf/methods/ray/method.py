@@ -49,6 +49,7 @@ from relief_bsdf.core.frames import beam_directions, cross_rows, direction, dot_
 from relief_bsdf.core.stokes import rotate_stokes_columns_cd, s_axis, s_axis_rows
 from relief_bsdf.errors import RequestError
 from relief_bsdf.methods.options import RayOptions
+from relief_bsdf.methods.ray.cells import cell_index
 from relief_bsdf.methods.ray.exits import BELOW, STATE_NAMES, Exits
 from relief_bsdf.methods.realisation import MAX_SUBTILES, SUBTILE_CORR  # noqa: F401  (module doc)
 from relief_bsdf.methods.realisation import subtile_grid as _subtile_grid
@@ -230,6 +231,14 @@ class _Tally:
         self.bounce_sum += other.bounce_sum
 
 
+def _merged(total: _Tally | None, t: _Tally) -> _Tally:
+    """total + t (the chunk's tally t itself when there is no total yet)."""
+    if total is None:
+        return t
+    total.merge(t)
+    return total
+
+
 def _new_tally(cells: CellIndex, K: int, subtiles: tuple | None = None) -> _Tally:
     G = 0 if subtiles is None else int(subtiles[0] * subtiles[1])
     return _Tally(CellAccumulator(cells, bool(K), tuple(STATE_NAMES.values()), n_groups=G if G >= 2 else 0))
@@ -357,7 +366,7 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
     tracer = ctx.get_tracer()
     threads = 1 if in_worker() or in_task_thread() else ctx.threads_here(tracer)
     K = 4 if ctx.polarized else 0
-    cells = CellIndex(ctx.te, ctx.pe)
+    cells = cell_index(ctx.te, ctx.pe)
     Lx, Ly = float(tracer.Lx), float(tracer.Ly)
     nxs, nys, _, strata_iy, strata_ix = worker_cached(("ray.strata", ctx.samples, Lx, Ly),
                                                       lambda: _beam_strata(ctx.samples, Lx, Ly))
@@ -389,14 +398,18 @@ def _incidence_task(ctx: _RayContext, task: tuple) -> dict:
         return t
 
     t0 = time.perf_counter()
-    total = _new_tally(cells, K, ctx.subtiles)
+    # chunk sums added in chunk order; the first chunk's tally is the total's start (what adding it to zeros gives:
+    # 0 + x is x bit for bit, a sum that starts at +0 never being -0), without a zeroed total and one pass over it
+    total = None
     if threads > 1 and len(chunks) > 1:
         with ThreadPoolExecutor(max_workers=min(threads, len(chunks))) as pool:
             for t in pool.map(job, range(len(chunks))):       # chunk order: deterministic sums
-                total.merge(t)
+                total = _merged(total, t)
     else:
         for ci in range(len(chunks)):
-            total.merge(job(ci))
+            total = _merged(total, job(ci))
+    if total is None:
+        total = _new_tally(cells, K, ctx.subtiles)
     out = _task_rows(total, side, K)
     out["diag"] = {"wavelength_nm": None, "theta_i_deg": float(ti), "phi_i_deg": float(pi_), **out["diag"],
                    "trace_s": time.perf_counter() - t0, "build_s": tracer.build_s,
@@ -414,7 +427,9 @@ def _task_rows(total: _Tally, side: str, K: int) -> dict:
            "lost": c.lost, "mue": None, "smR": None, "smT": None}
     if K:
         dd = _MIRROR_DD if side == "inside" else 1.0
-        out["mue"] = (c.mueller_per_sr * dd).astype(F32)
+        # from outside the builder's float32 rows as they are (times 1.0 they would be the same numbers, copied twice)
+        mue = c.mueller_per_sr
+        out["mue"] = (mue * dd).astype(F32) if side == "inside" else mue.astype(F32, copy=False)
         out["smR"] = c.specular_mueller_R * dd
         out["smT"] = c.specular_mueller_T * dd
         out["vals"] = out["mue"][..., 0, 0].copy()
