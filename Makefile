@@ -55,9 +55,10 @@ lint-imports: venv-test
 test: venv-test docs lint-imports
 	$(PY) -m pytest -n 2 --dist worksteal
 
-# day-to-day tier: everything not marked slow, on both cores
+# day-to-day tier: everything not marked slow, on both cores (worksteal: an idle worker takes queued tests
+# from the busy one, so both end together); each test process gets its share of the cores (tests/conftest.py)
 test-fast: venv-test
-	$(PY) -m pytest -m "not slow" -n 2
+	$(PY) -m pytest -m "not slow" -n 2 --dist worksteal
 
 bench: venv
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

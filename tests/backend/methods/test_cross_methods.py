@@ -113,6 +113,7 @@ def smooth():
 # ====================================================================== 1. geometric regime
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_geometric_methods_hemispherical_agree(geo):
     """R and T of ray, normals and microfacet agree per incidence, azimuth and side.
 
@@ -137,6 +138,7 @@ def test_geometric_methods_hemispherical_agree(geo):
             assert np.allclose(tot, 1.0, atol=1e-9), (m, frm, tot)
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_geometric_lobes_cellwise(geo):
     """In-lobe cells (>= 30 % of ray's peak): microfacet vs ray median relative difference <= 15 %,
     normals vs ray <= 10 % for T (dense), and lobe centroids agree to 0.02 in direction cosines.
@@ -173,6 +175,7 @@ def test_geometric_lobes_cellwise(geo):
                                                                                           other.method, co, cr)
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_incidence_azimuth_rotates_the_lobe(geo):
     """Both sides, every method: the R and T lobes lie in the plane of incidence, on the far side
     (phi_i + 180, formats.md), and T obeys Snell at the centroid: n_s sin(theta_s) ~ n_1 sin(theta_i)
@@ -216,6 +219,7 @@ def test_microfacet_smooth_lobe_at_normal_incidence_keeps_its_energy():
                                                                                                h["R"] + h["T"])
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_inside_frame_mirrored(geo):
     """Light from inside at 60 deg (past the 41.8 deg critical angle): R stays in the glass and
     takes nearly everything; at 30 deg the T lobe leaves at asin(1.5 sin 30) = 48.6 deg in air."""
@@ -266,6 +270,7 @@ def test_kirchhoff_energy_narrow_lobe_default_filter():
     assert np.all(np.abs(h["R"] + h["T"] - 1.0) < 0.006), h["R"] + h["T"]
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_kirchhoff_vs_rayleigh_rice_small_roughness(smooth):
     """5 nm: diffuse R and T of kirchhoff and rayleigh-rice within 15 % (tangent-plane scalar vs
     first-order vector polarisation factors, which differ far from specular); both specular parts
@@ -357,6 +362,7 @@ def test_btdf_reciprocity_across_methods():
 # ====================================================================== 4. Mueller
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_mueller_m00_is_values_everywhere(geo, rough, smooth):
     for group in (geo, rough, smooth):
         for m, tabs in group.items():
@@ -372,6 +378,7 @@ def _norm_mueller(t, i, p, k, mask):
     return M / M[:, :1, :1]
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_mueller_ray_vs_microfacet_in_lobe(geo):
     """Geometric regime: the normalised cell Mueller matrices M / M00 of ray and microfacet agree
     element-wise to 0.06 in-lobe (same s/p frames, same sign conventions; the residue is MC noise
@@ -396,6 +403,7 @@ def test_mueller_ray_vs_microfacet_in_lobe(geo):
 KIRCHHOFF_MIN_THETA_DEG = 10.0
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_mueller_kirchhoff_vs_ray_large_roughness(rough):
     """sigma ~ 2 lambda, oblique incidence: kirchhoff's facet Mueller matrices equal ray's in-lobe
     (both are the stationary-phase facet's Fresnel matrix in the bsdf.py frames) to 0.06."""
@@ -414,6 +422,7 @@ def test_mueller_kirchhoff_vs_ray_large_roughness(rough):
             assert d < 0.06, (frm, "RT"[k], d)
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_mueller_kirchhoff_vs_rayleigh_rice_near_specular(smooth):
     """5 nm, 30 deg: within 6 degrees of the specular / undeviated direction, where both tend to the
     flat interface, every element of M / M00 agrees to 0.1 and no element of magnitude > 0.1 changes
@@ -435,6 +444,7 @@ def test_mueller_kirchhoff_vs_rayleigh_rice_near_specular(smooth):
             assert np.all(np.sign(ma[big]) == np.sign(mb[big])), (frm, side)
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_mueller_follows_incidence_azimuth(geo, smooth):
     """Rotating the incidence azimuth by 40 deg rotates the whole table (values and Mueller cells,
     whose s/p bases are defined from z and the directions, so rotate with them): exact for the
@@ -468,6 +478,7 @@ def _stokes_rotation(psi_rad):
     return np.array([[1, 0, 0, 0], [0, c, s, 0], [0, -s, c, 0], [0, 0, 0, 1.0]])
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_normal_incidence_azimuth_only_turns_the_incident_basis(geo, smooth):
     """At theta_i = 0, phi_i = 0 and 40 are the same light; only the incident basis
     s = (-sin phi_i, cos phi_i, 0) turns, so M(40) = M(0) R(-40 deg) cell by cell (R the Stokes
@@ -525,6 +536,7 @@ def test_flat_limit_equals_mueller_interface():
 # ====================================================================== 5. plumbing
 
 
+@pytest.mark.slow   # physics-long: the module's 100 000-path tables of three methods
 def test_every_method_table_through_files_and_cli(tmp_path, capsys, geo, rough, smooth):
     """HDF5 round trip, `relief info --json` albedo rows, recording-csv rows == table.eval at the
     cell centre, and IS-BSDF export read back near the lobe, for one table of every method."""

@@ -317,10 +317,11 @@ def test_on_result_streams_results_into_the_callers_array(tmp_path):
     assert parallel.last_run()["loaded"] == 5
 
 
-def test_settings_passed_in_win_and_the_block_stays_in_its_thread():
+def test_settings_passed_in_win_and_the_block_stays_in_its_thread(monkeypatch):
     """Settings are values handed down: an explicit `settings=` wins over the block in force, a
     per-call keyword over both, and a `parallel_settings` block is invisible to other threads."""
     import threading
+    monkeypatch.setenv("RELIEF_WORKERS", "2")      # the explicit settings' default worker count: a pool, not one
 
     explicit = parallel.ParallelSettings(backend="serial")
     with parallel.parallel_settings(backend="processes", workers=2) as s:

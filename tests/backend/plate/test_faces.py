@@ -85,9 +85,10 @@ def test_experiment_from_sample_puts_the_relief_on_its_face():
         assert ex.instrument.polarization_q == -1.0 and ex.instrument.detector_half_angle_deg == 2.0
 
 
-def test_a_microfacet_faces_tables_on_threads_equal_those_of_one_process():
+def test_a_microfacet_faces_tables_on_threads_equal_those_of_one_process(monkeypatch):
     """THREADED_METHODS: a plate derives a microfacet face's tables on this process's threads (no worker
     pool); the numbers are those of the method run serially."""
+    monkeypatch.setenv("RELIEF_WORKERS", "2")      # two threads, whatever share of the cores the suite gives
     from relief_bsdf.methods import reconstruct
     from relief_bsdf.parallel import default_workers, last_run, parallel_settings
     from relief_bsdf.plate.energy import closed

@@ -123,6 +123,7 @@ def test_sector_tables_equal_to_the_turned_0_deg_table_give_the_circulant_plate(
         np.testing.assert_allclose(x.grid_T, y.grid_T, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow   # physics-long: ray-traced sector tables on the default grid
 def test_the_sector_loop_keeps_a_lossless_plate_lossless_on_a_ray_traced_anisotropic_relief(monkeypatch):
     """Each sector table conserves the energy of its rays, so sending light through one or another moves it
     between R and T but loses or makes none: R + T with the sectors equals R + T with the 0-deg table alone

@@ -20,6 +20,7 @@ def hemi(ex, theta_i):
     return solver_of(ex, rows, TableGrid()).solve(550.0, [theta_i])[0].hemispherical()
 
 
+@pytest.mark.slow   # physics-long: adding-doubling on the default grid
 @pytest.mark.parametrize("g", [0.0, 0.6])
 def test_lossless_scattering_plate_conserves_energy(g):
     for ti in (0.0, 30.0, 60.0):
@@ -73,6 +74,7 @@ def test_forward_peaked_scattering_tends_to_no_scattering():
     assert h["specular_R"] == pytest.approx(clear["specular_R"], abs=2e-3)
 
 
+@pytest.mark.slow   # physics-long: adding-doubling on the default grid
 def test_photon_engine_agrees_with_the_deterministic_engine_on_a_scattering_plate():
     """Independent photon Monte Carlo (free paths + HG sampling) against adding-doubling, absorbing
     and scattering bulk, flat faces: hemispherical R and T within 0.5 % absolute, diffuse rows to the noise."""

@@ -48,6 +48,23 @@ def strip_images(text: str) -> str:
     return re.sub(r"data:image/png;base64,[A-Za-z0-9+/=]+", "IMG", text)
 
 
+@pytest.fixture(scope="module")
+def drawn(tmp_path_factory):
+    """The fit's four figures of `recording()` (before: twice the recording, after: the recording), drawn
+    once for the module; `drawn(folder)` copies them into a test's own folder (the pages read them beside
+    themselves) and returns `fit_plots`'s {name: file name}.  Nothing writes to the drawn originals."""
+    import shutil
+    src = tmp_path_factory.mktemp("fit_plots")
+    rec = recording()
+    plots = fit_plots(src, rec, rec.bsdf_sr * 2, rec.bsdf_sr)
+
+    def into(folder: Path) -> dict:
+        for name in plots.values():
+            shutil.copyfile(src / name, folder / name)
+        return dict(plots)
+    return into
+
+
 @pytest.mark.slow
 def test_fit_report_is_self_contained_and_readable(tmp_path):
     rec = recording()
@@ -73,9 +90,8 @@ def test_fit_report_is_self_contained_and_readable(tmp_path):
 
 
 @pytest.mark.slow
-def test_fit_report_without_intervals_or_render(tmp_path):
-    rec = recording()
-    plots = fit_plots(tmp_path, rec, rec.bsdf_sr * 2, rec.bsdf_sr)
+def test_fit_report_without_intervals_or_render(tmp_path, drawn):
+    plots = drawn(tmp_path)
     doc = fit_doc(stopped="converged")
     del doc["intervals"], doc["correlation"]
     body = strip_images(write_fit_report(tmp_path / "r.html", doc, plots).read_text())
@@ -96,11 +112,10 @@ def test_number_formatting():
     assert rows[0][1] == "1/mm" and rows[0][3] == "[0.1, 0.13]" and rows[1][3] == "not determined"
 
 
-def test_residual_map_has_one_row_per_incidence(tmp_path):
+def test_residual_map_has_one_row_per_incidence(tmp_path, drawn):
     """Readable aspect: a few incidences x many angles are rows of an image, not thin stripes."""
     import matplotlib.image as mpimg
-    rec = recording()
-    plots = fit_plots(tmp_path, rec, rec.bsdf_sr * 2, rec.bsdf_sr)
+    plots = drawn(tmp_path)
     img = mpimg.imread(tmp_path / plots["residual_before"])
     h, w = img.shape[:2]
     assert 0.3 < h / w < 1.0                                           # six rows on a page-wide image
@@ -131,15 +146,14 @@ def test_diagnosis_report_same_style(tmp_path):
     assert "Not told apart" in body and "volume_scattering" in body and "scatter_per_mm = 0.0871" in body
 
 
-def test_relief_render_of_a_fit_folder_embeds_the_plate_render_in_its_report(tmp_path):
+def test_relief_render_of_a_fit_folder_embeds_the_plate_render_in_its_report(tmp_path, drawn):
     """`relief render FITDIR` (what `make demo` runs after the fit) rewrites FITDIR/report.html with
     the before | after plate render embedded beside the fit's own figures (jobs.render.embed_in_report;
     the Cycles render itself is tested in tests/blender/test_render.py)."""
     import json
     import matplotlib.image as mpimg
     from relief_bsdf.jobs.render import embed_in_report
-    rec = recording()
-    plots = fit_plots(tmp_path, rec, rec.bsdf_sr * 2, rec.bsdf_sr)
+    plots = drawn(tmp_path)
     (tmp_path / "fit.json").write_text(json.dumps(fit_doc(files={"boundary_table": "boundary.h5", **plots})))
     write_fit_report(tmp_path / "report.html", fit_doc(), plots)
     assert "Plate renders" not in strip_images((tmp_path / "report.html").read_text())
@@ -153,9 +167,8 @@ def test_relief_render_of_a_fit_folder_embeds_the_plate_render_in_its_report(tmp
     assert "Plate renders" in body and "before | after" in body
 
 
-def test_fit_report_says_how_the_estimate_and_its_intervals_were_made(tmp_path):
-    rec = recording()
-    plots = fit_plots(tmp_path, rec, rec.bsdf_sr * 2, rec.bsdf_sr)
+def test_fit_report_says_how_the_estimate_and_its_intervals_were_made(tmp_path, drawn):
+    plots = drawn(tmp_path)
     doc = fit_doc(identifiability={"filter_needed": False, "criterion": "BIC rule",
                                    "estimate": "likelihood optimum", "interval_method": "Newey-West"})
     body = strip_images(write_fit_report(tmp_path / "r.html", doc, plots).read_text())
@@ -264,9 +277,8 @@ def test_bsdf_plots_end_at_the_noise_level_with_legends_inside_and_no_empty_pane
     assert sum(ax.get_title().startswith("R,") for ax in dfigs[1].axes) == (0 if sides == "T" else 3)
 
 
-def test_fit_report_names_the_algorithm_that_ran_and_every_file_written(tmp_path):
-    rec = recording()
-    plots = fit_plots(tmp_path, rec, rec.bsdf_sr * 2, rec.bsdf_sr)
+def test_fit_report_names_the_algorithm_that_ran_and_every_file_written(tmp_path, drawn):
+    plots = drawn(tmp_path)
     from relief_bsdf.fit.optimise import ALGORITHM
     files = {"boundary_table": "boundary.h5", "isbsdf_outside": ["boundary_outside_brdf.bsdf",
                                                                   "boundary_outside_btdf.bsdf"],
