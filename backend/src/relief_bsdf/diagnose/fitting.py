@@ -53,6 +53,7 @@ import numpy as np
 from scipy import optimize
 
 from relief_bsdf.diagnose.effects import Effect, Param
+from relief_bsdf.diagnose.profile import stage
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit import gauss_newton
 from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of, shared_columns
@@ -196,7 +197,8 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
         if _polished_fit(effect):
             values, jacobian = _polish_own(forward, effect, effects, fixed_values, values, coarse)
         if effect.params and at_null(effect, values) and not _form_acts(effect, fixed_values):
-            values, jac, restart = _restart(forward, effect, effects, fixed_values, values, coarse)
+            with stage("null_restarts"):
+                values, jac, restart = _restart(forward, effect, effects, fixed_values, values, coarse)
             jacobian = jac if jac is not None else jacobian
         c, v, s = forward.evaluate_set(effects, {**(fixed_values or {}), **values})
     except InputError as e:

@@ -121,6 +121,7 @@ from typing import Any
 
 from relief_bsdf.diagnose.effects import compatible, get_effect
 from relief_bsdf.diagnose.fitting import POLISH_STEPS, fit_effect, polish, refit_joint, why_skipped
+from relief_bsdf.diagnose.profile import captured, merge, stage
 from relief_bsdf.errors import InputError
 from relief_bsdf.criteria import BIC_MARGIN, bic, bic_gain, overdispersion
 from relief_bsdf.parallel import kept_workers, map_tasks
@@ -278,8 +279,9 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
     least REACH times the step's leader's (the best fitted gain, or the largest screen gain)."""
     ln = math.log(max(n, 2))
     forced = {m: f for m, f in (forced or {}).items() if m in names}
-    fits, screens = _step_round(forward, cur, _plan(forward, names, first), progress, workers, label,
-                                {} if held is None else held)
+    with stage("screens"):
+        fits, screens = _step_round(forward, cur, _plan(forward, names, first), progress, workers, label,
+                                    {} if held is None else held)
     passed, screened = [], []
     for r in screens:
         if r["screen"] is None:
@@ -294,7 +296,8 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
     for m, (start, why) in forced.items():
         if m not in screen_of:
             continue
-        f = _step_task(forward, _task(m, None, cur, start))
+        with stage("candidate_fits"):
+            f = _merged(_step_task(forward, _task(m, None, cur, start)))
         f["forced"] = why
         fits.append(f)
     passed.sort(reverse=True)
@@ -318,7 +321,8 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
         # or come within BIC_MARGIN of the winner
         g, m = can_win[0]
         passed.remove((g, m))
-        fits.append(_step_task(forward, _task(m, None, cur)))
+        with stage("candidate_fits"):
+            fits.append(_merged(_step_task(forward, _task(m, None, cur))))
         fitted += 1
         progress(fitted, fitted + len(passed), label)
     # the reach rule for strongly non-linear candidates
@@ -333,7 +337,8 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
             g = screen_of.get(m)
             if m in NONLINEAR and g is not None and lead > 0 and g >= REACH * lead:
                 lst.remove(e)
-                f = _step_task(forward, _task(m, None, cur))
+                with stage("candidate_fits"):
+                    f = _merged(_step_task(forward, _task(m, None, cur)))
                 f["reach"] = (f"fitted although its linear screen (chi2 gain {g:.4g}) did not ask for it: a strongly "
                               f"non-linear effect within reach of the step's leader (screen >= {REACH:g} x "
                               f"{lead:.4g})")
@@ -453,7 +458,7 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
     else:
         pairs = list(zip(there, map_tasks(_step_task, there, forward, progress=progress, label=label,
                                           workers=workers)))
-    result = {t[0]: r for t, r in pairs}
+    result = {t[0]: _merged(r) for t, r in pairs}
     for t in plan:
         r = result[t[0]]
         for key, table in r.pop("tables", {}).items():
@@ -483,11 +488,32 @@ def _current_on_screens(forward, cur: Step, tasks: list) -> None:
             pass                        # the screens report it (`_step_task`)
 
 
+def _merged(result: dict) -> dict:
+    """`result` of `_step_task` with its evaluation counts moved into this process's profile (`profile.merge`)."""
+    merge(result.pop("profile", None))
+    return result
+
+
 def _step_task(forward, task: tuple) -> dict:
     """One task of a step: the conditional fit of a candidate (probes None), or its screen (the
     chi^2 gain of its probes, `line_gain`, with the keys of the tables it used and, in a worker
     process, those tables that are not the baseline's when they are small enough to be held there,
     `TableCache.worth_sending`; an InputError of the plate lists it as skipped)."""
+    from relief_bsdf.parallel.tasks import in_worker
+    name, probes = task[:2]
+    kind = "method_check" if name in METHOD_OF else "candidate_fits" if probes is None else "screens"
+    if not in_worker():                 # counted in this process's profile as it runs
+        with stage(kind):
+            return _step_task_counted(forward, task)
+    with captured() as p, stage(kind):  # on a worker (or a task of a serial round): the counts travel back
+        out = _step_task_counted(forward, task)
+    counts = p.counts()
+    if counts:
+        out["profile"] = counts
+    return out
+
+
+def _step_task_counted(forward, task: tuple) -> dict:
     from relief_bsdf.parallel.tasks import in_worker
     from relief_bsdf.plate.memory import current_memory
     name, probes, cur, coarse = task[:4]
@@ -613,18 +639,25 @@ def _steps(forward, names: list[str], steps: list, dropped: set, held: dict, n: 
         # Gauss-Newton from the conditional fit (the first effect's is its joint fit: nothing else
         # moves), twice the polish's steps when the held effects move too (a start further from the
         # optimum); the coordinate refit only where those steps do not reach the optimum (step 3)
-        if not named and best.get("jacobian") is not None:
-            chi, J = best["chi2"], best["jacobian"]     # its own fit was this polish (`fitting.fit_effect`)
-        else:
-            vals, chi, J = polish(forward, effs, vals, steps=2 * POLISH_STEPS if named else POLISH_STEPS)
-        if named and J is None:
-            vals, chi = refit_joint(forward, effs, vals)
-            vals, chi, J = polish(forward, effs, vals)
-        vals, chi, J = _pair_starts(forward, effs, vals, chi, J, first, best["effect"])
-        chi, v, s = forward.evaluate_set(effs, vals)
+        with stage("joint_refit"):
+            if not named and best.get("jacobian") is not None:
+                chi, J = best["chi2"], best["jacobian"]     # its own fit was this polish (`fitting.fit_effect`)
+            else:
+                vals, chi, J = polish(forward, effs, vals, steps=2 * POLISH_STEPS if named else POLISH_STEPS)
+            if named and J is None:
+                vals, chi = refit_joint(forward, effs, vals)
+                vals, chi, J = polish(forward, effs, vals)
+        with stage("pair_starts"):
+            vals, chi, J = _pair_starts(forward, effs, vals, chi, J, first, best["effect"])
+        with stage("joint_refit"):
+            chi, v, s = forward.evaluate_set(effs, vals)
         new = Step(cur.effects + (best["effect"],), vals, chi, cur.k + best["k"], (v, s), best["effect"],
                    bic(cur.chi2, cur.k, n) - bic(chi, cur.k + best["k"], n), (), step_tried, J, excluded)
-        new = _polished(forward, _drop_redundant(forward, new, n)) if len(new.effects) > 1 else new
+        if len(new.effects) > 1:
+            with stage("redundancy"):
+                new = _drop_redundant(forward, new, n)
+            with stage("joint_refit"):
+                new = _polished(forward, new)
         new.correlations = _correlations(new)
         steps.append(new)
         dropped |= set(steps[-1].dropped)           # a dropped effect is not offered again
