@@ -165,7 +165,16 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
                    f"{a['alternative'].replace('_', ' ')} ({get_effect(a['alternative']).explain(a['alternative_parameters'])}"
                    f" fits almost as well, BIC {a['bic_difference']:.1f} worse; a difference under {BIC_MARGIN:g} "
                    f"is not strong evidence): treat the choice between them as open."
-                   for a in (alike or []))
+                   for a in (alike or []) if "correlation" not in a)
+    weak += "".join(f" {a['named'].replace('_', ' ')} and {a['alternative'].replace('_', ' ')} trade against each "
+                    f"other on these rows (fitted correlation {a['correlation']:+.2f}): "
+                    + (f"{a['named'].replace('_', ' ')} is needed, but the rows do not separate "
+                       f"{a['alternative'].replace('_', ' ')} from it, so it is not named." if a["separated"] else
+                       f"the rows do not separate them; {a['named'].replace('_', ' ')} is kept, and "
+                       f"{a['alternative'].replace('_', ' ')} ({get_effect(a['alternative']).explain(a['alternative_parameters'])}) "
+                       f"would stand in for it (BIC {a['bic_difference']:.1f} worse): treat the choice between them "
+                       f"as open.")
+                    for a in (alike or []) if "correlation" in a)
     return (f"The baseline simulation misses the recording (metric, rms z {fit['rms0']:.2f}).{where} {lead} "
             f"{_effects_words(effects, params)}. Modelling {'it' if len(effects) == 1 else 'them together'} "
             f"brings the metric down to {fit['rms1']:.2f}.{rest}{weak}")

@@ -60,7 +60,8 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    again, so the search ends).
 5. (reporting only) a candidate whose fitted BIC came within BIC_MARGIN of the winner's at the
    step that named an effect, and that is not named itself, is an `alternatives` entry: the
-   recording does not decide between them (relief scale and smoothing in geometric optics).
+   recording does not decide between them (relief scale and smoothing in geometric optics); so is
+   a trading pair's member that the rows do not separate from its partner (`_separate_pair`).
 6. every joint refit of step 3 ends with Gauss-Newton steps to the least-chi^2 point
    (`fitting.polish`), and so does the chosen model when a drop changed its set (a joint refit
    that starts with those steps needs the coordinate search only when they do not converge: on
@@ -93,7 +94,10 @@ Rules that keep the search from contradicting its own report:
   scale act alike on a lobe): when the second of a pair is named, the joint refit runs from the
   other start too (`_pair_starts`), and the step records the correlation of the two
   (`_correlations`, diagnosis.json `steps[].correlations`); `_drop_redundant` on the QBIC scale
-  removes one that the other makes redundant, so one is named only where the data separate them;
+  removes one that the other makes redundant, and where their correlation exceeds PAIR_CORRELATION
+  (0.95) in size a member stays named beside the other only when removing it costs more than the
+  overwhelming bar (`_separate_pair`): otherwise the one whose removal costs less is reported as an
+  alternative with the correlation, so one is named only where the data separate them;
 - boundary methods (METHOD_OF: interreflection is the relief ray traced, diffraction its Kirchhoff
   integral) are fitted at the first step only and never named: `method_check` reports whether one
   fits the baseline better (diagnosis.json `method_check`), a verdict on the method choice.
@@ -147,6 +151,12 @@ REACH = 0.25
 # jointly from both starts and reported with their correlation (`_pair_starts`, `Step.correlations`).
 TRADING_PAIRS = (("instrument_blur", "relief_scale"), ("relief_smoothing", "relief_scale"),
                  ("refractive_index", "relief_scale"))
+# A trading pair named together whose fitted correlation exceeds PAIR_CORRELATION in size is not
+# separated by the rows unless removing a member costs more than the overwhelming bar
+# (`_separate_pair`).  |r| > 0.95 is a variance inflation 1 / (1 - r^2) > 10, the usual bar of
+# collinearity (Marquardt 1970; Kutner et al., Applied Linear Statistical Models): each member's
+# interval is then more than 3.2 times what it would be were the other known.
+PAIR_CORRELATION = 0.95
 # Candidates that are a boundary method, not physics of the sample (`method_check`).
 METHOD_OF = {"interreflection": "ray", "diffraction": "kirchhoff"}
 
@@ -198,6 +208,7 @@ class Step:
     excluded: tuple = ()            # (effect, reason) of candidates not offered at this step
     stop: str = ""                  # on the last step: why the search ended (plain words)
     correlations: list = field(default_factory=list)   # of trading pairs both named (`_correlations`)
+    pairs: list = field(default_factory=list)   # trading pairs the rows do not separate (`_separate_pair`)
 
 
 def _probes(effect, first: dict | None) -> list[dict]:
@@ -659,6 +670,9 @@ def _steps(forward, names: list[str], steps: list, dropped: set, held: dict, n: 
             with stage("joint_refit"):
                 new = _polished(forward, new)
         new.correlations = _correlations(new)
+        if any(c["correlation"] is not None and abs(c["correlation"]) > PAIR_CORRELATION for c in new.correlations):
+            with stage("pair_starts"):
+                new = _separate_pair(forward, new, n)
         steps.append(new)
         dropped |= set(steps[-1].dropped)           # a dropped effect is not offered again
     if not steps[-1].stop:
@@ -718,6 +732,58 @@ def _correlations(step: "Step") -> list[dict]:
             out.append({"pair": [a, b], "parameters": [pa, pb],
                         "correlation": round(r, 4) if math.isfinite(r) else None})
     return out
+
+
+def _separate_pair(forward, step: "Step", n: int) -> "Step":
+    """A trading pair named together with |r| > PAIR_CORRELATION (`_correlations`): neither member is named on
+    its own strength.  Each member is removed in turn and the rest polished jointly from their values
+    (`fitting.polish`, Gauss-Newton: the partner takes over what it can); a member is *separated* by the rows
+    when its removal costs more than the overwhelming bar, max(40, 3 sqrt(2 n)), on the QBIC scale
+    (`gain_of`): the bar a gain must pass where a model already reaches the noise, since the two differ
+    only in the small part of their signatures that does not trade, which is where the forward model's own
+    error lives.  Both separated: both stay named (with their correlation).  Otherwise the member whose
+    removal costs less is dropped, the other stays (named: it is needed, or it fits better alone), and the
+    pair is recorded (`Step.pairs`, diagnosis.json `alternatives` with the correlation and whether the
+    kept one is separated).  The model after a drop is the rest's polished fit (its Jacobian the intervals')."""
+    for c in list(step.correlations):
+        r = c["correlation"]
+        if r is None or abs(r) <= PAIR_CORRELATION or not all(m in step.effects for m in c["pair"]):
+            continue
+        without = {}
+        for m in c["pair"]:
+            eff = get_effect(m)
+            rest = tuple(get_effect(e) for e in step.effects if e != m)
+            vals = {k: v for k, v in step.values.items() if k not in {p.name for p in eff.params}}
+            try:
+                vals, chi, J = polish(forward, rest, vals, steps=2 * POLISH_STEPS)
+            except InputError:
+                continue
+            without[m] = (vals, chi, J, gain_of(chi, step.k - eff.k, step.chi2, step.k, n))
+        if len(without) < 2:
+            continue
+        a, b = c["pair"]
+        separated = {m: without[m][3] > overwhelming_bar(n) for m in (a, b)}
+        if all(separated.values()):
+            continue
+        drop = a if without[a][3] < without[b][3] else b        # its removal costs less
+        keep = b if drop == a else a
+        vals, chi, J, _ = without[drop]
+        eff = get_effect(drop)
+        rest = tuple(get_effect(e) for e in step.effects if e != drop)
+        _, v, s = forward.evaluate_set(rest, vals)
+        other = without[keep][0]            # the model with `drop` in place of `keep`
+        note = {"pair": [a, b], "parameters": c["parameters"], "correlation": r, "named": keep,
+                "alternative": drop, "separated": bool(separated[keep]),
+                "cost_of_removal": {m: round(float(without[m][3]), 3) for m in (a, b)},
+                "bic_difference": round(float(bic(without[keep][1], step.k - get_effect(keep).k, n)
+                                              - bic(chi, step.k - eff.k, n)), 3),
+                "alternative_parameters": {p.name: round(float(other.get(p.name, step.values[p.name])), 6)
+                                           for p in eff.params}}
+        step = replace(step, effects=tuple(e.name for e in rest), values=vals, chi2=chi, k=step.k - eff.k,
+                       model=(v, s), dropped=step.dropped + (drop,), jacobian=J, pairs=step.pairs + [note])
+        step = _polished(forward, step)
+        step.correlations = _correlations(step)
+    return step
 
 
 def gain_words(chi_cur: float, k_cur: int, chi_new: float, k_new: int, n: int) -> str:
@@ -819,16 +885,24 @@ def steps_record(steps: list[Step], n: int) -> tuple[list[dict], str]:
                     status = "screened"
                 cands.append(_entry(name, status, prev.chi2 - screen, screen - k * ln, why))
         cands += [_entry(name, "skipped", None, None, why) for name, why in step.excluded]
+        unseparated = {p["alternative"]: p for p in step.pairs}
         cands += [_entry(name, "dropped", None, None,
                          f"named at an earlier step; with {added or 'the others'} named, removing it and refitting "
                          f"the rest jointly loses less than the bar, so it is redundant and not offered again")
-                  for name in step.dropped]
+                  for name in step.dropped if name not in unseparated and name != added]
+        cands += [_entry(name, "dropped", None, None, pair_words(p, n) + "; not offered again")
+                  for name, p in unseparated.items() if name != added]
+        for c in cands:
+            if c["effect"] == added and added in unseparated:
+                c["reason"] += "; then " + pair_words(unseparated[added], n)
         order = {"fitted": 0, "outgained": 1, "screened": 2, "dropped": 3, "skipped": 4}
         cands.sort(key=lambda c: (order[c["status"]], -(c["bic_gain"] if c["bic_gain"] is not None else -math.inf)))
         entry = {"model": list(step.effects), "chi2": round(float(step.chi2), 3), "added": added,
                  "candidates": cands}
         if step.correlations and added is not None:
             entry["correlations"] = step.correlations
+        if step.pairs:
+            entry["pairs"] = [pair_words(p, n) for p in step.pairs]
         out.append(entry)
     return out, steps[-1].stop or "the search ended"
 
@@ -865,6 +939,19 @@ def _polished(forward, step: Step) -> Step:
     return replace(step, values=vals, chi2=chi, model=(v, s), jacobian=J)
 
 
+def pair_words(p: dict, n: int) -> str:
+    """A trading pair the rows did not separate (`_separate_pair`), in words."""
+    a, b = p["named"], p["alternative"]
+    cost = p["cost_of_removal"]
+    why = (f"{a} is needed (removing it costs QBIC {cost[a]:.1f}, above the overwhelming bar "
+           f"{overwhelming_bar(n):.1f})" if p["separated"] else
+           f"neither is separated (removing {a} costs QBIC {cost[a]:.1f}, {b} {cost[b]:.1f}, both under the "
+           f"overwhelming bar {overwhelming_bar(n):.1f}); {a} is kept as the one whose removal costs more")
+    return (f"{b} and {a} trade against each other on these rows (correlation {p['correlation']:+.3f}, past "
+            f"{PAIR_CORRELATION:g}): {why}, and {b} (removing it costs QBIC {cost[b]:.1f}) is not separated from "
+            f"it, so it is not named (alternatives)")
+
+
 def alternatives(steps: list[Step], n: int) -> list[dict]:
     """Effects the recording cannot tell apart from a named one: at the step that added a named
     effect, another candidate whose fitted BIC came within BIC_MARGIN of the winner's (no "very
@@ -887,6 +974,12 @@ def alternatives(steps: list[Step], n: int) -> list[dict]:
                     and d < BIC_MARGIN):
                 out.append({"named": step.added, "alternative": f["effect"], "bic_difference": round(d, 3),
                             "alternative_parameters": {k: round(float(v), 6) for k, v in f["parameters"].items()}})
+    for step in steps[1:]:          # trading pairs the rows do not separate (`_separate_pair`)
+        for p in step.pairs:
+            if p["named"] in final and p["alternative"] not in final:
+                out.append({"named": p["named"], "alternative": p["alternative"],
+                            "bic_difference": p["bic_difference"], "alternative_parameters": p["alternative_parameters"],
+                            "correlation": p["correlation"], "separated": p["separated"]})
     return out
 
 
