@@ -918,8 +918,9 @@ def _fit_notes(f: dict) -> str:
     r = f.get("restart")
     if r:
         pts = ", ".join(f"{t:g}: {c:.1f}" for t, c in zip(r["fractions"], r["chi2"]))
-        out += (f"; its fit ended at its null value (chi2 {r['chi2_null']:.1f}) and was refitted from starts spread over "
-                f"its range (fraction of the range: chi2 {pts})"
+        on = " on the screening forward model" if r.get("forward") == "screening" else ""
+        out += (f"; its fit ended at its null value (chi2 {r['chi2_null']:.1f}{on}) and was refitted from starts spread "
+                f"over its range (fraction of the range: chi2 {pts})"
                 + ("" if r.get("moved") else ", none better than the null"))
     return out
 
