@@ -130,3 +130,35 @@ def test_a_pair_both_separated_stays_named():
     assert out.effects == step.effects and not out.pairs and out.values == step.values
     for keep in ("relief_scale", "instrument_blur"):       # each removal costs more than the bar (oracle)
         assert _removal_cost(fwd, keep, n, step) / (step.chi2 / (n - 2)) - math.log(n) > overwhelming_bar(n)
+
+
+class WavyForward(AnalyticForward):
+    """The blur's rows: the lobe plus A sin(pi b / 2) on it, so chi^2 has two valleys of the same depth, at
+    b = 0 and b = 2 deg (the truth is b = 0), with a ridge between them at b = 1."""
+
+    def model(self, values: dict) -> np.ndarray:
+        return super().model(values) * (1.0 + 0.3 * math.sin(0.5 * math.pi * values.get("blur_deg", 0.0)))
+
+
+def test_the_second_start_is_skipped_only_inside_the_answers_bowl():
+    """`_same_basin` compares one evaluation at the other start with the quadratic model about the answer.
+    Inside one bowl (the pair stand-in, scale and blur with signatures of their own): skipped, and a polish
+    from the other start (the oracle) ends at the same answer.  Across a ridge (WavyForward: the quadratic
+    model at b = 0 predicts a large rise at b = 2, where chi^2 is as low as at b = 0): polished."""
+    from relief_bsdf.diagnose.stepwise import _pair_starts, _same_basin
+    fwd = _pair_forward({"height_scale": 1.2, "blur_deg": 0.8}, own_s=0.05, own_b=0.05)
+    vals, chi, J = polish(fwd, EFFS, {"height_scale": 1.1, "blur_deg": 0.5}, steps=12)
+    other = {"height_scale": 1.0, "blur_deg": 2.0}
+    assert _same_basin(fwd, EFFS, vals, J, other)
+    back = polish(fwd, EFFS, other, steps=12)
+    assert back[1] == pytest.approx(chi, abs=0.05)
+    fwd.evaluations = 0
+    first = {"instrument_blur": {"parameters": {"blur_deg": 2.0}}}
+    got = _pair_starts(fwd, EFFS, vals, chi, J, first, "instrument_blur")
+    assert got[0] == vals and fwd.evaluations <= 2              # the other start evaluated once, no polish
+    wavy = WavyForward({}, seed=4)
+    blur = (get_effect("instrument_blur"),)
+    at0, chi0, J0 = polish(wavy, blur, {"blur_deg": 0.05}, steps=12)
+    assert at0["blur_deg"] == pytest.approx(0.0, abs=0.05)
+    assert wavy.evaluate_set(blur, {"blur_deg": 2.0})[0] == pytest.approx(chi0, abs=5.0)      # the other valley
+    assert not _same_basin(wavy, blur, at0, J0, {"blur_deg": 2.0})

@@ -689,7 +689,13 @@ def _pair_starts(forward, effs: tuple, vals: dict, chi: float, J, first: dict, a
     """The joint refit of a step that adds one of a trading pair while its partner is named, from the
     other start too: the added effect at its own first-step fit (alone on the baseline) and the partner
     back at its neutral value, polished jointly; the lower chi^2 of the two is kept (a blur may widen
-    the lobe where a larger relief scale does, and a search from one side settles on its own side)."""
+    the lobe where a larger relief scale does, and a search from one side settles on its own side).
+
+    The second polish runs only where the other start may lie in another basin (`_same_basin`): one
+    full evaluation at the other start is compared with the quadratic model of chi^2 about the answer
+    found (its polish's Jacobian); where the rise to the other start is at least BASIN_SHARE of what that
+    model predicts, the surface between them is the one bowl and Gauss-Newton steps from there come back
+    to this answer (a second start's polish costs 2k + 1 full evaluations per step, k parameters)."""
     names = [e.name for e in effs]
     partners = [p for p in _partners(added) if p in names]
     if not partners or added not in first or "parameters" not in first[added]:
@@ -699,12 +705,41 @@ def _pair_starts(forward, effs: tuple, vals: dict, chi: float, J, first: dict, a
     for p in partners:
         other.update(get_effect(p).neutral)
     try:
+        if _same_basin(forward, effs, vals, J, other):
+            return vals, chi, J
         v2, c2, J2 = polish(forward, effs, other, steps=2 * POLISH_STEPS)
     except InputError:
         return vals, chi, J
     if c2 < chi - 1e-9 * max(1.0, chi) and J2 is not None:
         return v2, c2, J2
     return vals, chi, J
+
+
+BASIN_SHARE = 0.75
+
+
+def _same_basin(forward, effs: tuple, vals: dict, J, other: dict) -> bool:
+    """Is the other start of a trading pair (`_pair_starts`) in the basin of the answer `vals`?  With r the
+    residuals at `vals` and J their Jacobian (`fitting.polish`'s, r(x + d) ~ r + J d), the quadratic model
+    predicts chi^2(other) ~ |r + J d|^2, d = other - vals.  The start is in the same basin when its actual
+    chi^2 rises from the answer's by at least BASIN_SHARE of the predicted rise: the bowl holds out to the
+    start, so the steps from there descend to this answer.  A start whose chi^2 lies well below the
+    prediction (the surface bends down toward another valley), or no Jacobian, is polished."""
+    import numpy as np
+    from relief_bsdf.fit.residual import misfit_sigma, signed_residuals
+    if J is None:
+        return False
+    order = [p.name for e in effs for p in e.params]
+    J = np.asarray(J, float)
+    if J.ndim != 2 or J.shape[1] != len(order):
+        return False
+    chi, v, s = forward.evaluate_set(effs, vals)
+    r = signed_residuals(forward.rows.bsdf_sr, v, misfit_sigma(forward.rows, s))
+    d = np.array([other[p] - vals[p] for p in order], float)
+    predicted = float(np.sum((r + J @ d) ** 2))
+    actual = forward.evaluate_set(effs, other)[0]
+    rise = predicted - chi
+    return rise > 0 and actual - chi >= BASIN_SHARE * rise
 
 
 def _correlations(step: "Step") -> list[dict]:
