@@ -52,7 +52,7 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    conditional fit (at the first step the conditional fit is the joint one, and a fit that already
    ended with Gauss-Newton steps, `fitting._polished_fit`, is not polished again): Gauss-Newton steps
    (`fitting.polish`, twice its budget of steps), and where they do not converge the coordinate
-   search (`fitting.refit_joint`) and the steps again, and a named effect that the others now
+   search (`fitting.refit_joint`, on the screening forward model: `_screened_refit`) and the steps again, and a named effect that the others now
    make redundant (removing it and refitting the rest jointly does not fail the bar) is dropped
    (an effect whose removal costs more than ten times the overwhelming bar after the rest's
    linearised refit is kept without the refit, `_clearly_needed`);
@@ -570,9 +570,37 @@ def _clearly_needed(forward, step: Step, name: str, rest: tuple, vals: dict, n: 
     return chi0 - regained - step.chi2 > DROP_SHORTCUT * bar
 
 
+def _screened_refit(forward, effs: tuple, vals: dict) -> tuple[dict, float, Any]:
+    """(values, chi^2, J) of `effs` refitted jointly from `vals`: the coordinate search (`fitting.refit_joint`,
+    three to eleven evaluations per parameter and pass) on the screening forward model
+    (`DiagnosisForward.screening`, with the Stokes loop where an effect of the set acts through the
+    polarisation), then Gauss-Newton steps on the full model from its answer (`fitting.polish`): the search
+    finds the basin, the full model's steps its optimum, and the chi^2 is always the full model's (the
+    reasoning of `fitting._screened_fit`).  Without a screening model (a stand-in), or where the cheaper
+    loop cannot carry the set, the coordinate search runs on the full model."""
+    screen = forward
+    if hasattr(forward, "screening"):
+        stokes = next((e for e in effs if e.stokes), None)
+        try:
+            screen = forward.screening(stokes)
+        except InputError:
+            screen = forward
+    if screen is not forward:
+        before = screen.evaluations
+        try:
+            vals, _ = refit_joint(screen, effs, vals)
+        except InputError:
+            vals, _ = refit_joint(forward, effs, vals)
+        forward.evaluations += screen.evaluations - before
+    else:
+        vals, _ = refit_joint(forward, effs, vals)
+    return polish(forward, effs, vals)
+
+
 def _drop_redundant(forward, step: Step, n: int) -> Step:
     """Drop a named effect that the others make redundant: removing it and refitting the rest
-    jointly (`fitting.refit_joint`, from their current values) loses less than the bar.  The refit
+    jointly (`_screened_refit`: the coordinate search of `fitting.refit_joint` on the screening model,
+    Gauss-Newton steps on the full one, from their current values) loses less than the bar.  The refit
     matters: a greedy first step may name an effect that mimics two true ones together (volume
     scattering both dims the lobes and lifts the floor, like absorption plus stray light); once
     those are named, they take over its share only if they may move.  An effect whose removal
@@ -584,7 +612,7 @@ def _drop_redundant(forward, step: Step, n: int) -> Step:
         vals = {k: v for k, v in step.values.items() if k not in {p.name for p in eff.params}}
         if _clearly_needed(forward, step, name, rest, vals, n):
             continue
-        vals, _ = refit_joint(forward, rest, vals)
+        vals, chi, _ = _screened_refit(forward, rest, vals)
         chi, v, s = forward.evaluate_set(rest, vals)
         if not passes(chi, step.k - eff.k, step.chi2, step.k, n):
             return Step(tuple(e.name for e in rest), vals, chi, step.k - eff.k, (v, s), step.added, step.gain,
@@ -656,8 +684,7 @@ def _steps(forward, names: list[str], steps: list, dropped: set, held: dict, n: 
             else:
                 vals, chi, J = polish(forward, effs, vals, steps=2 * POLISH_STEPS if named else POLISH_STEPS)
             if named and J is None:
-                vals, chi = refit_joint(forward, effs, vals)
-                vals, chi, J = polish(forward, effs, vals)
+                vals, chi, J = _screened_refit(forward, effs, vals)
         with stage("pair_starts"):
             vals, chi, J = _pair_starts(forward, effs, vals, chi, J, first, best["effect"])
         with stage("joint_refit"):
