@@ -218,6 +218,51 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
     return out
 
 
+class OnWorkers:
+    """The screening forward model `screen` of `full` (`DiagnosisForward.screening(effect)`), whose independent
+    points (a grid, a Jacobian's differences, the restarts' starts) are evaluated together on the worker
+    processes that `full` keeps (`parallel.kept_workers`: the diagnosis's pool, whose context is the full
+    model; each worker makes the same screening model from it, `_screen_task`).  Everything else is the
+    screening model's own.  Without kept workers it is the screening model."""
+
+    def __init__(self, screen, full, effect: Effect | None):
+        self._screen, self._full, self._effect = screen, full, effect
+
+    def __getattr__(self, name):
+        return getattr(self._screen, name)
+
+    def prefetch(self, effects, points: list[dict], workers: int | None = None) -> None:
+        from relief_bsdf.diagnose.forward import _memo_key
+        from relief_bsdf.diagnose.profile import note_evaluations
+        from relief_bsdf.parallel import has_kept_workers, map_tasks
+        screen = self._screen
+        todo: dict = {}
+        for values in points:
+            key, vals = _memo_key(effects, values)
+            if key is not None and key not in screen._memo:
+                todo.setdefault(key, vals)
+        if len(todo) < 2 or not has_kept_workers(self._full, workers):
+            return
+        names = tuple(e.name for e in effects)
+        me = self._effect.name if self._effect is not None else None
+        got = map_tasks(_screen_task, [(me, names, todo[k]) for k in todo], self._full, label="evaluations",
+                        workers=workers)
+        for key, result in zip(todo, got):
+            screen._remember(key, result)
+        screen.evaluations += len(todo)
+        note_evaluations(screen.grid, len(todo))
+
+
+def _screen_task(forward, task: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """(values, model sigma) of the named effects at `vals` on the screening model of the worker's context
+    (`OnWorkers.prefetch`)."""
+    from relief_bsdf.diagnose.effects import get_effect
+    me, names, vals = task
+    screen = forward.screening(get_effect(me) if me else None)
+    _, v, s = screen.evaluate_set(tuple(get_effect(n) for n in names), vals)
+    return v, s
+
+
 def _screening(forward, effect: Effect):
     """The forward model a candidate's search runs on: the screening one (`DiagnosisForward.screening`: no
     inside sector tables, the intensity-only loop unless the effect acts through the polarisation) where it
@@ -253,6 +298,7 @@ def _screened_fit(forward, screen, effect: Effect, fixed: tuple, fixed_values: d
     held = dict(fixed_values or {})
     restart = None
     before = screen.evaluations
+    screen = OnWorkers(screen, forward, effect)
     try:
         values = _search(screen, effect, fixed, fixed_values, coarse, start)
         if at_null(effect, values) and not _form_acts(effect, fixed_values):

@@ -586,9 +586,10 @@ def _screened_refit(forward, effs: tuple, vals: dict) -> tuple[dict, float, Any]
         except InputError:
             screen = forward
     if screen is not forward:
+        from relief_bsdf.diagnose.fitting import OnWorkers
         before = screen.evaluations
         try:
-            vals, _ = refit_joint(screen, effs, vals)
+            vals, _ = refit_joint(OnWorkers(screen, forward, stokes), effs, vals)
         except InputError:
             vals, _ = refit_joint(forward, effs, vals)
         forward.evaluations += screen.evaluations - before
