@@ -2,12 +2,15 @@
 import time
 from dataclasses import replace
 
+import pytest
+
 from relief_bsdf.diagnose.profile import Profile, captured, kind_of, merge, note_evaluations, profiling, stage
 from relief_bsdf.plate import TableGrid
 from relief_bsdf.plate.grid import NO_SECTORS_DEG
 
 
 def test_counts_go_to_the_innermost_stage_and_seconds_are_exclusive():
+    t0 = time.perf_counter()
     with profiling() as p:
         with stage("candidate_fits"):
             note_evaluations(TableGrid(), 3)
@@ -16,14 +19,15 @@ def test_counts_go_to_the_innermost_stage_and_seconds_are_exclusive():
                 note_evaluations(TableGrid(), 8)
                 time.sleep(0.1)
             note_evaluations(replace(TableGrid(), stokes_loop=False))
+    wall = time.perf_counter() - t0
     doc = p.doc()
     by = {r["stage"]: r for r in doc["stages"]}
     assert by["candidate_fits"]["full_evaluations"] == 3
     assert by["candidate_fits"]["screening_evaluations"] == 1
     assert by["null_restarts"]["full_evaluations"] == 8
-    # the restart's 0.1 s is its own, not also the fit's
-    assert 0.09 <= by["null_restarts"]["seconds"] < 0.14
-    assert 0.04 <= by["candidate_fits"]["seconds"] < 0.09
+    # the restart's 0.1 s is its own, not also the fit's: the two add up to the block's wall time
+    assert by["null_restarts"]["seconds"] >= 0.1 and by["candidate_fits"]["seconds"] >= 0.05
+    assert by["null_restarts"]["seconds"] + by["candidate_fits"]["seconds"] == pytest.approx(wall, abs=0.01)
     assert doc["full_evaluations"] == 11 and doc["screening_evaluations"] == 1
 
 

@@ -171,9 +171,9 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
                     + (f"{a['named'].replace('_', ' ')} is needed, but the rows do not separate "
                        f"{a['alternative'].replace('_', ' ')} from it, so it is not named." if a["separated"] else
                        f"the rows do not separate them; {a['named'].replace('_', ' ')} is kept, and "
-                       f"{a['alternative'].replace('_', ' ')} ({get_effect(a['alternative']).explain(a['alternative_parameters'])}) "
-                       f"would stand in for it (BIC {a['bic_difference']:.1f} worse): treat the choice between them "
-                       f"as open.")
+                       f"{a['alternative'].replace('_', ' ')} "
+                       f"({get_effect(a['alternative']).explain(a['alternative_parameters'])}) would stand in for it "
+                       f"(BIC {a['bic_difference']:.1f} worse): treat the choice between them as open.")
                     for a in (alike or []) if "correlation" in a)
     return (f"The baseline simulation misses the recording (metric, rms z {fit['rms0']:.2f}).{where} {lead} "
             f"{_effects_words(effects, params)}. Modelling {'it' if len(effects) == 1 else 'them together'} "

@@ -52,10 +52,11 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    conditional fit (at the first step the conditional fit is the joint one, and a fit that already
    ended with Gauss-Newton steps, `fitting._polished_fit`, is not polished again): Gauss-Newton steps
    (`fitting.polish`, twice its budget of steps), and where they do not converge the coordinate
-   search (`fitting.refit_joint`, on the screening forward model: `_screened_refit`) and the steps again, and a named effect that the others now
-   make redundant (removing it and refitting the rest jointly does not fail the bar) is dropped
-   (an effect whose removal costs more than ten times the overwhelming bar after the rest's
-   linearised refit is kept without the refit, `_clearly_needed`);
+   search (`fitting.refit_joint`, on the screening forward model: `_screened_refit`) and the steps
+   again, and a named effect that the others now make redundant (removing it and refitting the
+   rest jointly does not fail the bar) is dropped (an effect whose removal costs more than ten
+   times the overwhelming bar after the rest's linearised refit is kept without the refit,
+   `_clearly_needed`);
 4. stop when no candidate passes, or at MAX_EFFECTS effects (a dropped effect is not offered
    again, so the search ends).
 5. (reporting only) a candidate whose fitted BIC came within BIC_MARGIN of the winner's at the
@@ -982,8 +983,8 @@ def _fit_notes(f: dict) -> str:
     if r:
         pts = ", ".join(f"{t:g}: {c:.1f}" for t, c in zip(r["fractions"], r["chi2"]))
         on = " on the screening forward model" if r.get("forward") == "screening" else ""
-        out += (f"; its fit ended at its null value (chi2 {r['chi2_null']:.1f}{on}) and was refitted from starts spread "
-                f"over its range (fraction of the range: chi2 {pts})"
+        out += (f"; its fit ended at its null value (chi2 {r['chi2_null']:.1f}{on}) and was refitted from starts "
+                f"spread over its range (fraction of the range: chi2 {pts})"
                 + ("" if r.get("moved") else ", none better than the null"))
     return out
 
@@ -1042,7 +1043,8 @@ def alternatives(steps: list[Step], n: int) -> list[dict]:
         for p in step.pairs:
             if p["named"] in final and p["alternative"] not in final:
                 out.append({"named": p["named"], "alternative": p["alternative"],
-                            "bic_difference": p["bic_difference"], "alternative_parameters": p["alternative_parameters"],
+                            "bic_difference": p["bic_difference"],
+                            "alternative_parameters": p["alternative_parameters"],
                             "correlation": p["correlation"], "separated": p["separated"]})
     return out
 
