@@ -67,7 +67,19 @@ def _diag(context, name):
     return {"effects": r["effects"], "parameters": r["parameters"], "intervals": r["intervals"],
             "alternatives": r.get("alternatives", []),
             "rms_before": r["rms_before"], "rms_after": r["rms_after"], "seconds": time.time() - t,
+            "evaluations": _evaluations(r),
             "candidates": [(c["effect"], c["score"]) for c in r["candidates"][:3]]}
+
+
+def _evaluations(doc: dict) -> dict:
+    """{full, screening}: the forward-model evaluations of a diagnosis (its `profile`, diagnose.profile), the
+    load-independent measure of its cost; {} for a diagnosis.json without one."""
+    p = doc.get("profile") or {}
+    if not p:
+        return {}
+    return {"full": p.get("full_evaluations"), "screening": p.get("screening_evaluations"),
+            "by_stage": {s["stage"]: [s["full_evaluations"], s["screening_evaluations"]] for s in p.get("stages", [])
+                         if s["full_evaluations"] or s["screening_evaluations"]}}
 
 
 def _read_results(root: Path, cases) -> tuple[list, list]:
@@ -89,7 +101,8 @@ def _read_results(root: Path, cases) -> tuple[list, list]:
             res.append({"effects": r.get("effects") or [r["effect"]], "parameters": r["parameters"],
                         "intervals": r.get("intervals", {}), "alternatives": r.get("alternatives", []),
                         "rms_before": r["rms_before"],
-                        "rms_after": r["rms_after"], "seconds": secs.get(c.name, float("nan")), "candidates": []})
+                        "rms_after": r["rms_after"], "seconds": secs.get(c.name, float("nan")), "candidates": [],
+                        "evaluations": _evaluations(r)})
             done.append(c)
     return res, done
 
@@ -136,7 +149,8 @@ def summarise(cases, keys: dict, res: list) -> dict:
         print(f"{c.name} [{g:8s} {k.get('relief', 'gaussian'):11s}] true={'+'.join(truth):36s} "
               f"named={'+'.join(r['effects']):36s} {'OK ' if ok else 'BAD'} rms {r['rms_before']:.2f}->"
               f"{r['rms_after']:.2f} true={k['parameters']} fit={r['parameters']} iv={r['intervals']} "
-              f"{r['seconds']:.0f}s", flush=True)
+              f"{r['seconds']:.0f}s evaluations full {r.get('evaluations', {}).get('full', '?')} screening "
+              f"{r.get('evaluations', {}).get('screening', '?')}", flush=True)
     for g in groups.values():
         g["fraction"] = round(g["right"] / g["cases"], 4) if g["cases"] else None
     n_iv = cover["inside"] + cover["outside"]
@@ -145,7 +159,9 @@ def summarise(cases, keys: dict, res: list) -> dict:
             "median_param_rel_error": round(float(np.median([e["rel_error"] for v in perr.values() for e in v])), 4)
             if perr else None,
             "interval_coverage": {**cover, "fraction_inside": round(cover["inside"] / n_iv, 4) if n_iv else None},
-            "seconds_per_diagnose_median": round(float(np.median([r["seconds"] for r in res])), 1) if res else None}
+            "seconds_per_diagnose_median": round(float(np.median([r["seconds"] for r in res])), 1) if res else None,
+            "full_evaluations_median": (float(np.median([r["evaluations"]["full"] for r in res]))
+                                        if res and all(r.get("evaluations") for r in res) else None)}
 
 
 def main(argv=None) -> int:

@@ -53,6 +53,7 @@ import numpy as np
 from scipy import optimize
 
 from relief_bsdf.diagnose.effects import Effect, Param
+from relief_bsdf.diagnose.profile import stage
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit import gauss_newton
 from relief_bsdf.fit.covariance import level_nuisance, parameter_covariance, scans_of, shared_columns
@@ -192,12 +193,17 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
     jacobian = None
     restart = None
     try:
-        values = _search(forward, effect, fixed, fixed_values, coarse, start) if effect.params else {}
-        if _polished_fit(effect):
-            values, jacobian = _polish_own(forward, effect, effects, fixed_values, values, coarse)
-        if effect.params and at_null(effect, values) and not _form_acts(effect, fixed_values):
-            values, jac, restart = _restart(forward, effect, effects, fixed_values, values, coarse)
-            jacobian = jac if jac is not None else jacobian
+        screen = _screening(forward, effect)
+        if screen is not forward:
+            values, jacobian, restart = _screened_fit(forward, screen, effect, fixed, fixed_values, coarse, start)
+        else:
+            values = _search(forward, effect, fixed, fixed_values, coarse, start) if effect.params else {}
+            if _polished_fit(effect):
+                values, jacobian = _polish_own(forward, effect, effects, fixed_values, values, coarse)
+            if effect.params and at_null(effect, values) and not _form_acts(effect, fixed_values):
+                with stage("null_restarts"):
+                    values, jac, restart = _restart(forward, effect, effects, fixed_values, values, coarse)
+                jacobian = jac if jac is not None else jacobian
         c, v, s = forward.evaluate_set(effects, {**(fixed_values or {}), **values})
     except InputError as e:
         return {"effect": effect.name, "skipped": str(e)}
@@ -210,6 +216,107 @@ def fit_effect(forward, effect: Effect, fixed: tuple = (), fixed_values: dict | 
     if jacobian is not None and not fixed:
         out["jacobian"] = jacobian          # the whole model's: `stepwise` names it without a second polish
     return out
+
+
+class OnWorkers:
+    """The screening forward model `screen` of `full` (`DiagnosisForward.screening(effect)`), whose independent
+    points (a grid, a Jacobian's differences, the restarts' starts) are evaluated together on the worker
+    processes that `full` keeps (`parallel.kept_workers`: the diagnosis's pool, whose context is the full
+    model; each worker makes the same screening model from it, `_screen_task`).  Everything else is the
+    screening model's own.  Without kept workers it is the screening model."""
+
+    def __init__(self, screen, full, effect: Effect | None):
+        self._screen, self._full, self._effect = screen, full, effect
+
+    def __getattr__(self, name):
+        return getattr(self._screen, name)
+
+    def prefetch(self, effects, points: list[dict], workers: int | None = None) -> None:
+        from relief_bsdf.diagnose.forward import _memo_key
+        from relief_bsdf.diagnose.profile import note_evaluations
+        from relief_bsdf.parallel import has_kept_workers, map_tasks
+        screen = self._screen
+        todo: dict = {}
+        for values in points:
+            key, vals = _memo_key(effects, values)
+            if key is not None and key not in screen._memo:
+                todo.setdefault(key, vals)
+        if len(todo) < 2 or not has_kept_workers(self._full, workers):
+            return
+        names = tuple(e.name for e in effects)
+        me = self._effect.name if self._effect is not None else None
+        got = map_tasks(_screen_task, [(me, names, todo[k]) for k in todo], self._full, label="evaluations",
+                        workers=workers)
+        for key, result in zip(todo, got):
+            screen._remember(key, result)
+        screen.evaluations += len(todo)
+        note_evaluations(screen.grid, len(todo))
+
+
+def _screen_task(forward, task: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """(values, model sigma) of the named effects at `vals` on the screening model of the worker's context
+    (`OnWorkers.prefetch`)."""
+    from relief_bsdf.diagnose.effects import get_effect
+    me, names, vals = task
+    screen = forward.screening(get_effect(me) if me else None)
+    _, v, s = screen.evaluate_set(tuple(get_effect(n) for n in names), vals)
+    return v, s
+
+
+def _screening(forward, effect: Effect):
+    """The forward model a candidate's search runs on: the screening one (`DiagnosisForward.screening`: no
+    inside sector tables, the intensity-only loop unless the effect acts through the polarisation) where it
+    differs from `forward`, else `forward` (a stand-in forward model has none)."""
+    if not effect.params or not hasattr(forward, "screening"):
+        return forward
+    try:
+        return forward.screening(effect)
+    except InputError:
+        return forward
+
+
+def _screened_fit(forward, screen, effect: Effect, fixed: tuple, fixed_values: dict | None, coarse: bool,
+                  start: dict | None) -> tuple[dict, np.ndarray | None, dict | None]:
+    """(values, jacobian, restart record) of a candidate searched on the screening forward model and
+    finished on the full one.
+
+    The search (grid, Brent, and the restarts of a fit that ends at its null value) only has to find the
+    optimum's basin, and the screening model's optimum lies within a few of the full model's
+    finite-difference steps of the full one's (they differ by the inside sector tables and the Stokes loop
+    only: the trapped light's azimuthal and polarisation detail, not the lobe the parameters move): there
+    one evaluation costs a plate solve on the screening grid, 0.2-3 s where a full one, whose solver the
+    table changes of other candidates have evicted, costs 14-19 s.  From that point Gauss-Newton steps on
+    the full model (`polish`, the effect's parameters moving, the named effects held) reach the full
+    model's optimum; only they and the final point are full evaluations (about 5 for one parameter,
+    against 19 for the grid and Brent of a cheap effect).  A search that ends at the null value on the
+    screening model is the null value on the full one too (no polish: the bound's one-sided slope is
+    zero there).  The full model's chi^2 at the answer is never worse than at the null value (the model of
+    the effects held, memoised): else the null value stands.  The chi^2 a candidate is judged on is
+    always the full model's.  An InputError of the cheaper loop (a polarised source named) falls back to
+    the search on the full model."""
+    effects = tuple(fixed) + (effect,)
+    held = dict(fixed_values or {})
+    restart = None
+    before = screen.evaluations
+    screen = OnWorkers(screen, forward, effect)
+    try:
+        values = _search(screen, effect, fixed, fixed_values, coarse, start)
+        if at_null(effect, values) and not _form_acts(effect, fixed_values):
+            with stage("null_restarts"):
+                values, _, restart = _restart(screen, effect, effects, fixed_values, values, coarse)
+            restart["forward"] = "screening"
+    except InputError:
+        values = _search(forward, effect, fixed, fixed_values, coarse, start)
+    if screen is not forward:
+        forward.evaluations += screen.evaluations - before     # the diagnosis's count holds every evaluation
+    if at_null(effect, values) and not _form_acts(effect, fixed_values):
+        return values, None, restart
+    values, jacobian = _polish_own(forward, effect, effects, fixed_values, values, coarse)
+    if not _form_acts(effect, fixed_values):
+        c_null = (forward.evaluate_set(tuple(fixed), held)[0] if fixed else forward.evaluate_set((), {})[0])
+        if forward.evaluate_set(effects, {**held, **values})[0] > c_null:
+            return effect.neutral, None, restart
+    return values, jacobian, restart
 
 
 def _form_acts(effect: Effect, held: dict | None) -> bool:

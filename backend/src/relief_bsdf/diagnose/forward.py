@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from relief_bsdf.diagnose.effects import Effect, ReliefContext, apply_all, get_effect
+from relief_bsdf.diagnose.profile import note_evaluations
 from relief_bsdf.errors import InputError
 from relief_bsdf.fit.residual import chi2
 from relief_bsdf.parallel.blas import blas_single_thread
@@ -119,6 +120,7 @@ class DiagnosisForward:
         from relief_bsdf.methods.realisation import tile_warnings_quiet
         from relief_bsdf.plate.faces import ISOTROPY_WARNING
         self.evaluations += 1
+        note_evaluations(self.grid)         # the diagnosis's profile (diagnose.profile), per stage
         # the baseline warns about the tile and an anisotropic relief; an effect's experiment (the same tile
         # scaled, filtered, at another index) would repeat it, with other numbers, once per probe and worker
         with contextlib.ExitStack() as quiet:
@@ -236,6 +238,7 @@ class DiagnosisForward:
                 self._remember(k, twin._memo[k])
             self.evaluations += len(mine)
         self.evaluations += len(there)
+        note_evaluations(self.grid, len(there))     # evaluated on the workers: counted here
         for key, result in zip(there, got):
             self._remember(key, result)
 

@@ -205,10 +205,12 @@ def _notes_html(notes: dict) -> str:
 def _alternatives_html(alts: list) -> str:
     from relief_bsdf.report import html as H
     rows = [[a["named"], a["alternative"], H.fmt(a["bic_difference"], 3),
-             ", ".join(f"{k} = {H.fmt(v)}" for k, v in a["alternative_parameters"].items())] for a in alts]
+             ", ".join(f"{k} = {H.fmt(v)}" for k, v in a["alternative_parameters"].items()),
+             H.fmt(a["correlation"], 3) if a.get("correlation") is not None else ""] for a in alts]
     return ("<p>Candidates that fitted almost as well as a named effect at the step that named it (BIC within the "
-            "selection's margin): the recording does not decide between them.</p>"
-            + H.table_html(["named", "fits almost as well", "BIC difference", "its parameters"], rows))
+            "selection's margin), and members of a trading pair whose fitted correlation is near 1 that the rows "
+            "do not separate from the named one: the recording does not decide between them.</p>"
+            + H.table_html(["named", "alternative", "BIC difference", "its parameters", "correlation"], rows))
 
 
 def _unexplained_html(u: dict) -> str:

@@ -44,6 +44,7 @@ from relief_bsdf.diagnose.effects import all_effects, get_effect
 from relief_bsdf.diagnose.effects.relief_smoothing import derived as smoothing_derived
 from relief_bsdf.diagnose.fitting import intervals as fit_intervals
 from relief_bsdf.diagnose.forward import DEFAULT_METHOD, DiagnosisForward, build_forward
+from relief_bsdf.diagnose.profile import profiling, stage
 from relief_bsdf.diagnose.mismatch import SHAPE_PHYSICS, attribute, classify, locate, regions
 from relief_bsdf.diagnose.report import shape_against_search
 from relief_bsdf.diagnose.stepwise import (BIC_OVERWHELMING, CONSISTENCY_Z, MODEL_ACCURACY_RMS, adequate, alternatives,
@@ -164,7 +165,16 @@ def explain(effects: list[str], params: dict, fit: dict, located: tuple, unexpla
                    f"{a['alternative'].replace('_', ' ')} ({get_effect(a['alternative']).explain(a['alternative_parameters'])}"
                    f" fits almost as well, BIC {a['bic_difference']:.1f} worse; a difference under {BIC_MARGIN:g} "
                    f"is not strong evidence): treat the choice between them as open."
-                   for a in (alike or []))
+                   for a in (alike or []) if "correlation" not in a)
+    weak += "".join(f" {a['named'].replace('_', ' ')} and {a['alternative'].replace('_', ' ')} trade against each "
+                    f"other on these rows (fitted correlation {a['correlation']:+.2f}): "
+                    + (f"{a['named'].replace('_', ' ')} is needed, but the rows do not separate "
+                       f"{a['alternative'].replace('_', ' ')} from it, so it is not named." if a["separated"] else
+                       f"the rows do not separate them; {a['named'].replace('_', ' ')} is kept, and "
+                       f"{a['alternative'].replace('_', ' ')} "
+                       f"({get_effect(a['alternative']).explain(a['alternative_parameters'])}) would stand in for it "
+                       f"(BIC {a['bic_difference']:.1f} worse): treat the choice between them as open.")
+                    for a in (alike or []) if "correlation" in a)
     return (f"The baseline simulation misses the recording (metric, rms z {fit['rms0']:.2f}).{where} {lead} "
             f"{_effects_words(effects, params)}. Modelling {'it' if len(effects) == 1 else 'them together'} "
             f"brings the metric down to {fit['rms1']:.2f}.{rest}{weak}")
@@ -230,8 +240,9 @@ def _result(forward: DiagnosisForward, steps: list, located: tuple, n_glass: flo
     unexplained = remainder = None
     if final.effects and closed:
         effects, params, (v1, s1), rms1 = list(final.effects), final.values, final.model, metric_of_chi2(final.chi2, n)
-        ivals, notes = fit_intervals(forward, tuple(get_effect(e) for e in final.effects), final.values,
-                                     final.jacobian)
+        with stage("intervals"):
+            ivals, notes = fit_intervals(forward, tuple(get_effect(e) for e in final.effects), final.values,
+                                         final.jacobian)
         if "relief_smoothing" in effects:     # the slope ratio the fitted smoothing implies, beside its filter
             extra, extra_iv = smoothing_derived(forward.context, params, ivals)
             params, ivals = {**params, **extra}, {**ivals, **extra_iv}
@@ -320,16 +331,21 @@ def diagnosis(sample_path: str | Path, progress=None, *, method: str = DEFAULT_M
     progress = progress or silent
     names = candidate_names(effects)
     memory = ForwardMemory(job_memory_bytes())         # the job's one memory owner: everything the forward keeps
-    with memory.active():
-        forward, sample = build_forward(sample_path, method, photons, seed, sectors=sectors)
-        rows = forward.rows
-        v0, s0 = forward.baseline()
-        plan = _memory_plan(memory, workers)
-        n_mid = float(np.real(sample.plate.index.n(float(np.median(rows.wavelength_nm)))))
-        located = (regions(rows, v0, s0, n_glass=n_mid), classify(rows, v0, s0, n_glass=n_mid))
+    with memory.active(), profiling() as profile:
+        with stage("baseline"):
+            forward, sample = build_forward(sample_path, method, photons, seed, sectors=sectors)
+            rows = forward.rows
+            v0, s0 = forward.baseline()
+            plan = _memory_plan(memory, workers)
+        with stage("report"):
+            n_mid = float(np.real(sample.plate.index.n(float(np.median(rows.wavelength_nm)))))
+            located = (regions(rows, v0, s0, n_glass=n_mid), classify(rows, v0, s0, n_glass=n_mid))
         # the plan in force for every task the search starts (a pool anywhere below takes its worker count)
         with parallel_settings(workers=plan.workers, worker_memory_bytes=plan.worker_budget_bytes):
-            steps = stepwise(forward, names, progress, plan.workers)
-            result, (v1, s1) = _result(forward, steps, located, n_mid)
+            with stage("search"):
+                steps = stepwise(forward, names, progress, plan.workers)
+            with stage("report"):
+                result, (v1, s1) = _result(forward, steps, located, n_mid)
     result["memory"] = {**plan.describe(), "main_process": memory.report()}
+    result["profile"] = profile.doc()          # where the time went (diagnose.profile)
     return Diagnosis(result, rows, (v0, s0), (v1, s1))

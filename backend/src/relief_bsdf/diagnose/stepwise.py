@@ -52,15 +52,17 @@ Step (current set S, chi^2_S, k_S; S = {} is the baseline):
    conditional fit (at the first step the conditional fit is the joint one, and a fit that already
    ended with Gauss-Newton steps, `fitting._polished_fit`, is not polished again): Gauss-Newton steps
    (`fitting.polish`, twice its budget of steps), and where they do not converge the coordinate
-   search (`fitting.refit_joint`) and the steps again, and a named effect that the others now
-   make redundant (removing it and refitting the rest jointly does not fail the bar) is dropped
-   (an effect whose removal costs more than ten times the overwhelming bar after the rest's
-   linearised refit is kept without the refit, `_clearly_needed`);
+   search (`fitting.refit_joint`, on the screening forward model: `_screened_refit`) and the steps
+   again, and a named effect that the others now make redundant (removing it and refitting the
+   rest jointly does not fail the bar) is dropped (an effect whose removal costs more than ten
+   times the overwhelming bar after the rest's linearised refit is kept without the refit,
+   `_clearly_needed`);
 4. stop when no candidate passes, or at MAX_EFFECTS effects (a dropped effect is not offered
    again, so the search ends).
 5. (reporting only) a candidate whose fitted BIC came within BIC_MARGIN of the winner's at the
    step that named an effect, and that is not named itself, is an `alternatives` entry: the
-   recording does not decide between them (relief scale and smoothing in geometric optics).
+   recording does not decide between them (relief scale and smoothing in geometric optics); so is
+   a trading pair's member that the rows do not separate from its partner (`_separate_pair`).
 6. every joint refit of step 3 ends with Gauss-Newton steps to the least-chi^2 point
    (`fitting.polish`), and so does the chosen model when a drop changed its set (a joint refit
    that starts with those steps needs the coordinate search only when they do not converge: on
@@ -93,7 +95,10 @@ Rules that keep the search from contradicting its own report:
   scale act alike on a lobe): when the second of a pair is named, the joint refit runs from the
   other start too (`_pair_starts`), and the step records the correlation of the two
   (`_correlations`, diagnosis.json `steps[].correlations`); `_drop_redundant` on the QBIC scale
-  removes one that the other makes redundant, so one is named only where the data separate them;
+  removes one that the other makes redundant, and where their correlation exceeds PAIR_CORRELATION
+  (0.95) in size a member stays named beside the other only when removing it costs more than the
+  overwhelming bar (`_separate_pair`): otherwise the one whose removal costs less is reported as an
+  alternative with the correlation, so one is named only where the data separate them;
 - boundary methods (METHOD_OF: interreflection is the relief ray traced, diffraction its Kirchhoff
   integral) are fitted at the first step only and never named: `method_check` reports whether one
   fits the baseline better (diagnosis.json `method_check`), a verdict on the method choice.
@@ -121,6 +126,7 @@ from typing import Any
 
 from relief_bsdf.diagnose.effects import compatible, get_effect
 from relief_bsdf.diagnose.fitting import POLISH_STEPS, fit_effect, polish, refit_joint, why_skipped
+from relief_bsdf.diagnose.profile import captured, merge, stage
 from relief_bsdf.errors import InputError
 from relief_bsdf.criteria import BIC_MARGIN, bic, bic_gain, overdispersion
 from relief_bsdf.parallel import kept_workers, map_tasks
@@ -146,6 +152,12 @@ REACH = 0.25
 # jointly from both starts and reported with their correlation (`_pair_starts`, `Step.correlations`).
 TRADING_PAIRS = (("instrument_blur", "relief_scale"), ("relief_smoothing", "relief_scale"),
                  ("refractive_index", "relief_scale"))
+# A trading pair named together whose fitted correlation exceeds PAIR_CORRELATION in size is not
+# separated by the rows unless removing a member costs more than the overwhelming bar
+# (`_separate_pair`).  |r| > 0.95 is a variance inflation 1 / (1 - r^2) > 10, the usual bar of
+# collinearity (Marquardt 1970; Kutner et al., Applied Linear Statistical Models): each member's
+# interval is then more than 3.2 times what it would be were the other known.
+PAIR_CORRELATION = 0.95
 # Candidates that are a boundary method, not physics of the sample (`method_check`).
 METHOD_OF = {"interreflection": "ray", "diffraction": "kirchhoff"}
 
@@ -197,6 +209,7 @@ class Step:
     excluded: tuple = ()            # (effect, reason) of candidates not offered at this step
     stop: str = ""                  # on the last step: why the search ended (plain words)
     correlations: list = field(default_factory=list)   # of trading pairs both named (`_correlations`)
+    pairs: list = field(default_factory=list)   # trading pairs the rows do not separate (`_separate_pair`)
 
 
 def _probes(effect, first: dict | None) -> list[dict]:
@@ -278,8 +291,9 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
     least REACH times the step's leader's (the best fitted gain, or the largest screen gain)."""
     ln = math.log(max(n, 2))
     forced = {m: f for m, f in (forced or {}).items() if m in names}
-    fits, screens = _step_round(forward, cur, _plan(forward, names, first), progress, workers, label,
-                                {} if held is None else held)
+    with stage("screens"):
+        fits, screens = _step_round(forward, cur, _plan(forward, names, first), progress, workers, label,
+                                    {} if held is None else held)
     passed, screened = [], []
     for r in screens:
         if r["screen"] is None:
@@ -294,7 +308,8 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
     for m, (start, why) in forced.items():
         if m not in screen_of:
             continue
-        f = _step_task(forward, _task(m, None, cur, start))
+        with stage("candidate_fits"):
+            f = _merged(_step_task(forward, _task(m, None, cur, start)))
         f["forced"] = why
         fits.append(f)
     passed.sort(reverse=True)
@@ -318,7 +333,8 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
         # or come within BIC_MARGIN of the winner
         g, m = can_win[0]
         passed.remove((g, m))
-        fits.append(_step_task(forward, _task(m, None, cur)))
+        with stage("candidate_fits"):
+            fits.append(_merged(_step_task(forward, _task(m, None, cur))))
         fitted += 1
         progress(fitted, fitted + len(passed), label)
     # the reach rule for strongly non-linear candidates
@@ -333,7 +349,8 @@ def _fit_step(forward, cur: "Step", names: list[str], first: dict, n: int, progr
             g = screen_of.get(m)
             if m in NONLINEAR and g is not None and lead > 0 and g >= REACH * lead:
                 lst.remove(e)
-                f = _step_task(forward, _task(m, None, cur))
+                with stage("candidate_fits"):
+                    f = _merged(_step_task(forward, _task(m, None, cur)))
                 f["reach"] = (f"fitted although its linear screen (chi2 gain {g:.4g}) did not ask for it: a strongly "
                               f"non-linear effect within reach of the step's leader (screen >= {REACH:g} x "
                               f"{lead:.4g})")
@@ -453,7 +470,7 @@ def _step_round(forward, cur: Step, plan: list, progress, workers: int | None, l
     else:
         pairs = list(zip(there, map_tasks(_step_task, there, forward, progress=progress, label=label,
                                           workers=workers)))
-    result = {t[0]: r for t, r in pairs}
+    result = {t[0]: _merged(r) for t, r in pairs}
     for t in plan:
         r = result[t[0]]
         for key, table in r.pop("tables", {}).items():
@@ -483,11 +500,32 @@ def _current_on_screens(forward, cur: Step, tasks: list) -> None:
             pass                        # the screens report it (`_step_task`)
 
 
+def _merged(result: dict) -> dict:
+    """`result` of `_step_task` with its evaluation counts moved into this process's profile (`profile.merge`)."""
+    merge(result.pop("profile", None))
+    return result
+
+
 def _step_task(forward, task: tuple) -> dict:
     """One task of a step: the conditional fit of a candidate (probes None), or its screen (the
     chi^2 gain of its probes, `line_gain`, with the keys of the tables it used and, in a worker
     process, those tables that are not the baseline's when they are small enough to be held there,
     `TableCache.worth_sending`; an InputError of the plate lists it as skipped)."""
+    from relief_bsdf.parallel.tasks import in_worker
+    name, probes = task[:2]
+    kind = "method_check" if name in METHOD_OF else "candidate_fits" if probes is None else "screens"
+    if not in_worker():                 # counted in this process's profile as it runs
+        with stage(kind):
+            return _step_task_counted(forward, task)
+    with captured() as p, stage(kind):  # on a worker (or a task of a serial round): the counts travel back
+        out = _step_task_counted(forward, task)
+    counts = p.counts()
+    if counts:
+        out["profile"] = counts
+    return out
+
+
+def _step_task_counted(forward, task: tuple) -> dict:
     from relief_bsdf.parallel.tasks import in_worker
     from relief_bsdf.plate.memory import current_memory
     name, probes, cur, coarse = task[:4]
@@ -533,9 +571,38 @@ def _clearly_needed(forward, step: Step, name: str, rest: tuple, vals: dict, n: 
     return chi0 - regained - step.chi2 > DROP_SHORTCUT * bar
 
 
+def _screened_refit(forward, effs: tuple, vals: dict) -> tuple[dict, float, Any]:
+    """(values, chi^2, J) of `effs` refitted jointly from `vals`: the coordinate search (`fitting.refit_joint`,
+    three to eleven evaluations per parameter and pass) on the screening forward model
+    (`DiagnosisForward.screening`, with the Stokes loop where an effect of the set acts through the
+    polarisation), then Gauss-Newton steps on the full model from its answer (`fitting.polish`): the search
+    finds the basin, the full model's steps its optimum, and the chi^2 is always the full model's (the
+    reasoning of `fitting._screened_fit`).  Without a screening model (a stand-in), or where the cheaper
+    loop cannot carry the set, the coordinate search runs on the full model."""
+    screen = forward
+    if hasattr(forward, "screening"):
+        stokes = next((e for e in effs if e.stokes), None)
+        try:
+            screen = forward.screening(stokes)
+        except InputError:
+            screen = forward
+    if screen is not forward:
+        from relief_bsdf.diagnose.fitting import OnWorkers
+        before = screen.evaluations
+        try:
+            vals, _ = refit_joint(OnWorkers(screen, forward, stokes), effs, vals)
+        except InputError:
+            vals, _ = refit_joint(forward, effs, vals)
+        forward.evaluations += screen.evaluations - before
+    else:
+        vals, _ = refit_joint(forward, effs, vals)
+    return polish(forward, effs, vals)
+
+
 def _drop_redundant(forward, step: Step, n: int) -> Step:
     """Drop a named effect that the others make redundant: removing it and refitting the rest
-    jointly (`fitting.refit_joint`, from their current values) loses less than the bar.  The refit
+    jointly (`_screened_refit`: the coordinate search of `fitting.refit_joint` on the screening model,
+    Gauss-Newton steps on the full one, from their current values) loses less than the bar.  The refit
     matters: a greedy first step may name an effect that mimics two true ones together (volume
     scattering both dims the lobes and lifts the floor, like absorption plus stray light); once
     those are named, they take over its share only if they may move.  An effect whose removal
@@ -547,7 +614,7 @@ def _drop_redundant(forward, step: Step, n: int) -> Step:
         vals = {k: v for k, v in step.values.items() if k not in {p.name for p in eff.params}}
         if _clearly_needed(forward, step, name, rest, vals, n):
             continue
-        vals, _ = refit_joint(forward, rest, vals)
+        vals, chi, _ = _screened_refit(forward, rest, vals)
         chi, v, s = forward.evaluate_set(rest, vals)
         if not passes(chi, step.k - eff.k, step.chi2, step.k, n):
             return Step(tuple(e.name for e in rest), vals, chi, step.k - eff.k, (v, s), step.added, step.gain,
@@ -613,19 +680,28 @@ def _steps(forward, names: list[str], steps: list, dropped: set, held: dict, n: 
         # Gauss-Newton from the conditional fit (the first effect's is its joint fit: nothing else
         # moves), twice the polish's steps when the held effects move too (a start further from the
         # optimum); the coordinate refit only where those steps do not reach the optimum (step 3)
-        if not named and best.get("jacobian") is not None:
-            chi, J = best["chi2"], best["jacobian"]     # its own fit was this polish (`fitting.fit_effect`)
-        else:
-            vals, chi, J = polish(forward, effs, vals, steps=2 * POLISH_STEPS if named else POLISH_STEPS)
-        if named and J is None:
-            vals, chi = refit_joint(forward, effs, vals)
-            vals, chi, J = polish(forward, effs, vals)
-        vals, chi, J = _pair_starts(forward, effs, vals, chi, J, first, best["effect"])
-        chi, v, s = forward.evaluate_set(effs, vals)
+        with stage("joint_refit"):
+            if not named and best.get("jacobian") is not None:
+                chi, J = best["chi2"], best["jacobian"]     # its own fit was this polish (`fitting.fit_effect`)
+            else:
+                vals, chi, J = polish(forward, effs, vals, steps=2 * POLISH_STEPS if named else POLISH_STEPS)
+            if named and J is None:
+                vals, chi, J = _screened_refit(forward, effs, vals)
+        with stage("pair_starts"):
+            vals, chi, J = _pair_starts(forward, effs, vals, chi, J, first, best["effect"])
+        with stage("joint_refit"):
+            chi, v, s = forward.evaluate_set(effs, vals)
         new = Step(cur.effects + (best["effect"],), vals, chi, cur.k + best["k"], (v, s), best["effect"],
                    bic(cur.chi2, cur.k, n) - bic(chi, cur.k + best["k"], n), (), step_tried, J, excluded)
-        new = _polished(forward, _drop_redundant(forward, new, n)) if len(new.effects) > 1 else new
+        if len(new.effects) > 1:
+            with stage("redundancy"):
+                new = _drop_redundant(forward, new, n)
+            with stage("joint_refit"):
+                new = _polished(forward, new)
         new.correlations = _correlations(new)
+        if any(c["correlation"] is not None and abs(c["correlation"]) > PAIR_CORRELATION for c in new.correlations):
+            with stage("pair_starts"):
+                new = _separate_pair(forward, new, n)
         steps.append(new)
         dropped |= set(steps[-1].dropped)           # a dropped effect is not offered again
     if not steps[-1].stop:
@@ -642,7 +718,13 @@ def _pair_starts(forward, effs: tuple, vals: dict, chi: float, J, first: dict, a
     """The joint refit of a step that adds one of a trading pair while its partner is named, from the
     other start too: the added effect at its own first-step fit (alone on the baseline) and the partner
     back at its neutral value, polished jointly; the lower chi^2 of the two is kept (a blur may widen
-    the lobe where a larger relief scale does, and a search from one side settles on its own side)."""
+    the lobe where a larger relief scale does, and a search from one side settles on its own side).
+
+    The second polish runs only where the other start may lie in another basin (`_same_basin`): one
+    full evaluation at the other start is compared with the quadratic model of chi^2 about the answer
+    found (its polish's Jacobian); where the rise to the other start is at least BASIN_SHARE of what that
+    model predicts, the surface between them is the one bowl and Gauss-Newton steps from there come back
+    to this answer (a second start's polish costs 2k + 1 full evaluations per step, k parameters)."""
     names = [e.name for e in effs]
     partners = [p for p in _partners(added) if p in names]
     if not partners or added not in first or "parameters" not in first[added]:
@@ -652,12 +734,41 @@ def _pair_starts(forward, effs: tuple, vals: dict, chi: float, J, first: dict, a
     for p in partners:
         other.update(get_effect(p).neutral)
     try:
+        if _same_basin(forward, effs, vals, J, other):
+            return vals, chi, J
         v2, c2, J2 = polish(forward, effs, other, steps=2 * POLISH_STEPS)
     except InputError:
         return vals, chi, J
     if c2 < chi - 1e-9 * max(1.0, chi) and J2 is not None:
         return v2, c2, J2
     return vals, chi, J
+
+
+BASIN_SHARE = 0.75
+
+
+def _same_basin(forward, effs: tuple, vals: dict, J, other: dict) -> bool:
+    """Is the other start of a trading pair (`_pair_starts`) in the basin of the answer `vals`?  With r the
+    residuals at `vals` and J their Jacobian (`fitting.polish`'s, r(x + d) ~ r + J d), the quadratic model
+    predicts chi^2(other) ~ |r + J d|^2, d = other - vals.  The start is in the same basin when its actual
+    chi^2 rises from the answer's by at least BASIN_SHARE of the predicted rise: the bowl holds out to the
+    start, so the steps from there descend to this answer.  A start whose chi^2 lies well below the
+    prediction (the surface bends down toward another valley), or no Jacobian, is polished."""
+    import numpy as np
+    from relief_bsdf.fit.residual import misfit_sigma, signed_residuals
+    if J is None:
+        return False
+    order = [p.name for e in effs for p in e.params]
+    J = np.asarray(J, float)
+    if J.ndim != 2 or J.shape[1] != len(order):
+        return False
+    chi, v, s = forward.evaluate_set(effs, vals)
+    r = signed_residuals(forward.rows.bsdf_sr, v, misfit_sigma(forward.rows, s))
+    d = np.array([other[p] - vals[p] for p in order], float)
+    predicted = float(np.sum((r + J @ d) ** 2))
+    actual = forward.evaluate_set(effs, other)[0]
+    rise = predicted - chi
+    return rise > 0 and actual - chi >= BASIN_SHARE * rise
 
 
 def _correlations(step: "Step") -> list[dict]:
@@ -685,6 +796,58 @@ def _correlations(step: "Step") -> list[dict]:
             out.append({"pair": [a, b], "parameters": [pa, pb],
                         "correlation": round(r, 4) if math.isfinite(r) else None})
     return out
+
+
+def _separate_pair(forward, step: "Step", n: int) -> "Step":
+    """A trading pair named together with |r| > PAIR_CORRELATION (`_correlations`): neither member is named on
+    its own strength.  Each member is removed in turn and the rest polished jointly from their values
+    (`fitting.polish`, Gauss-Newton: the partner takes over what it can); a member is *separated* by the rows
+    when its removal costs more than the overwhelming bar, max(40, 3 sqrt(2 n)), on the QBIC scale
+    (`gain_of`): the bar a gain must pass where a model already reaches the noise, since the two differ
+    only in the small part of their signatures that does not trade, which is where the forward model's own
+    error lives.  Both separated: both stay named (with their correlation).  Otherwise the member whose
+    removal costs less is dropped, the other stays (named: it is needed, or it fits better alone), and the
+    pair is recorded (`Step.pairs`, diagnosis.json `alternatives` with the correlation and whether the
+    kept one is separated).  The model after a drop is the rest's polished fit (its Jacobian the intervals')."""
+    for c in list(step.correlations):
+        r = c["correlation"]
+        if r is None or abs(r) <= PAIR_CORRELATION or not all(m in step.effects for m in c["pair"]):
+            continue
+        without = {}
+        for m in c["pair"]:
+            eff = get_effect(m)
+            rest = tuple(get_effect(e) for e in step.effects if e != m)
+            vals = {k: v for k, v in step.values.items() if k not in {p.name for p in eff.params}}
+            try:
+                vals, chi, J = polish(forward, rest, vals, steps=2 * POLISH_STEPS)
+            except InputError:
+                continue
+            without[m] = (vals, chi, J, gain_of(chi, step.k - eff.k, step.chi2, step.k, n))
+        if len(without) < 2:
+            continue
+        a, b = c["pair"]
+        separated = {m: without[m][3] > overwhelming_bar(n) for m in (a, b)}
+        if all(separated.values()):
+            continue
+        drop = a if without[a][3] < without[b][3] else b        # its removal costs less
+        keep = b if drop == a else a
+        vals, chi, J, _ = without[drop]
+        eff = get_effect(drop)
+        rest = tuple(get_effect(e) for e in step.effects if e != drop)
+        _, v, s = forward.evaluate_set(rest, vals)
+        other = without[keep][0]            # the model with `drop` in place of `keep`
+        note = {"pair": [a, b], "parameters": c["parameters"], "correlation": r, "named": keep,
+                "alternative": drop, "separated": bool(separated[keep]),
+                "cost_of_removal": {m: round(float(without[m][3]), 3) for m in (a, b)},
+                "bic_difference": round(float(bic(without[keep][1], step.k - get_effect(keep).k, n)
+                                              - bic(chi, step.k - eff.k, n)), 3),
+                "alternative_parameters": {p.name: round(float(other.get(p.name, step.values[p.name])), 6)
+                                           for p in eff.params}}
+        step = replace(step, effects=tuple(e.name for e in rest), values=vals, chi2=chi, k=step.k - eff.k,
+                       model=(v, s), dropped=step.dropped + (drop,), jacobian=J, pairs=step.pairs + [note])
+        step = _polished(forward, step)
+        step.correlations = _correlations(step)
+    return step
 
 
 def gain_words(chi_cur: float, k_cur: int, chi_new: float, k_new: int, n: int) -> str:
@@ -786,16 +949,24 @@ def steps_record(steps: list[Step], n: int) -> tuple[list[dict], str]:
                     status = "screened"
                 cands.append(_entry(name, status, prev.chi2 - screen, screen - k * ln, why))
         cands += [_entry(name, "skipped", None, None, why) for name, why in step.excluded]
+        unseparated = {p["alternative"]: p for p in step.pairs}
         cands += [_entry(name, "dropped", None, None,
                          f"named at an earlier step; with {added or 'the others'} named, removing it and refitting "
                          f"the rest jointly loses less than the bar, so it is redundant and not offered again")
-                  for name in step.dropped]
+                  for name in step.dropped if name not in unseparated and name != added]
+        cands += [_entry(name, "dropped", None, None, pair_words(p, n) + "; not offered again")
+                  for name, p in unseparated.items() if name != added]
+        for c in cands:
+            if c["effect"] == added and added in unseparated:
+                c["reason"] += "; then " + pair_words(unseparated[added], n)
         order = {"fitted": 0, "outgained": 1, "screened": 2, "dropped": 3, "skipped": 4}
         cands.sort(key=lambda c: (order[c["status"]], -(c["bic_gain"] if c["bic_gain"] is not None else -math.inf)))
         entry = {"model": list(step.effects), "chi2": round(float(step.chi2), 3), "added": added,
                  "candidates": cands}
         if step.correlations and added is not None:
             entry["correlations"] = step.correlations
+        if step.pairs:
+            entry["pairs"] = [pair_words(p, n) for p in step.pairs]
         out.append(entry)
     return out, steps[-1].stop or "the search ended"
 
@@ -811,8 +982,9 @@ def _fit_notes(f: dict) -> str:
     r = f.get("restart")
     if r:
         pts = ", ".join(f"{t:g}: {c:.1f}" for t, c in zip(r["fractions"], r["chi2"]))
-        out += (f"; its fit ended at its null value (chi2 {r['chi2_null']:.1f}) and was refitted from starts spread over "
-                f"its range (fraction of the range: chi2 {pts})"
+        on = " on the screening forward model" if r.get("forward") == "screening" else ""
+        out += (f"; its fit ended at its null value (chi2 {r['chi2_null']:.1f}{on}) and was refitted from starts "
+                f"spread over its range (fraction of the range: chi2 {pts})"
                 + ("" if r.get("moved") else ", none better than the null"))
     return out
 
@@ -830,6 +1002,19 @@ def _polished(forward, step: Step) -> Step:
     vals, chi, J = polish(forward, effs, step.values)
     _, v, s = forward.evaluate_set(effs, vals)
     return replace(step, values=vals, chi2=chi, model=(v, s), jacobian=J)
+
+
+def pair_words(p: dict, n: int) -> str:
+    """A trading pair the rows did not separate (`_separate_pair`), in words."""
+    a, b = p["named"], p["alternative"]
+    cost = p["cost_of_removal"]
+    why = (f"{a} is needed (removing it costs QBIC {cost[a]:.1f}, above the overwhelming bar "
+           f"{overwhelming_bar(n):.1f})" if p["separated"] else
+           f"neither is separated (removing {a} costs QBIC {cost[a]:.1f}, {b} {cost[b]:.1f}, both under the "
+           f"overwhelming bar {overwhelming_bar(n):.1f}); {a} is kept as the one whose removal costs more")
+    return (f"{b} and {a} trade against each other on these rows (correlation {p['correlation']:+.3f}, past "
+            f"{PAIR_CORRELATION:g}): {why}, and {b} (removing it costs QBIC {cost[b]:.1f}) is not separated from "
+            f"it, so it is not named (alternatives)")
 
 
 def alternatives(steps: list[Step], n: int) -> list[dict]:
@@ -854,6 +1039,13 @@ def alternatives(steps: list[Step], n: int) -> list[dict]:
                     and d < BIC_MARGIN):
                 out.append({"named": step.added, "alternative": f["effect"], "bic_difference": round(d, 3),
                             "alternative_parameters": {k: round(float(v), 6) for k, v in f["parameters"].items()}})
+    for step in steps[1:]:          # trading pairs the rows do not separate (`_separate_pair`)
+        for p in step.pairs:
+            if p["named"] in final and p["alternative"] not in final:
+                out.append({"named": p["named"], "alternative": p["alternative"],
+                            "bic_difference": p["bic_difference"],
+                            "alternative_parameters": p["alternative_parameters"],
+                            "correlation": p["correlation"], "separated": p["separated"]})
     return out
 
 
