@@ -52,7 +52,12 @@ def read_infer_sample(path: str | Path):
 
 
 def inversion_rows(rec: Any):
-    """The T rows of the recording's incidence nearest the normal (one (theta_i, phi_i), one wavelength)."""
+    """(T rows of the recording's incidence nearest the normal (one (theta_i, phi_i), one wavelength),
+    theta_i, phi_i, wavelength, the rows the inversion reads, reading): those rows themselves when they
+    cover the direction plane (a measured file's grid, or three or more planes of scatter); an in-plane
+    scan at normal incidence read as isotropic (infer.slopes.isotropic_reading: its assumption is stated in
+    `reading`); `reading` says which."""
+    from relief_bsdf.infer.slopes import isotropic_reading
     T = rec.side == "T"
     if not T.any():
         raise InputError(rec.path or "recording", "no transmitted (T) rows: the slope inversion reads the "
@@ -68,12 +73,20 @@ def inversion_rows(rec: Any):
     sel &= rec.wavelength_nm == wl
     off_pole = sel & (rec.theta_s_deg > 0)
     planes = np.unique(np.round(np.mod(rec.phi_s_deg[off_pole], 180.0), 6))
-    if planes.size < 3:
-        raise InputError(rec.path or "recording",
-                         f"the transmitted rows at incidence {ti:g}/{pi:g} deg lie in {planes.size} plane(s) of "
-                         "scatter (an in-plane scan): the slope inversion reads the lobe over the whole direction "
-                         "plane (a measured plate file's full grid, or rows at three or more scatter azimuths)")
-    return rec.subset(sel), ti, pi, wl
+    rows = rec.subset(sel)
+    if planes.size >= 3:
+        return rows, ti, pi, wl, rows, {"reading": "the lobe over the direction plane"}
+    if planes.size == 1 and ti == 0.0:
+        try:
+            lobe, facts = isotropic_reading(rows)
+        except InputError as e:
+            raise InputError(rec.path or "recording", e.message) from None
+        return rows, ti, pi, wl, lobe, facts
+    raise InputError(rec.path or "recording",
+                     f"the transmitted rows at incidence {ti:g}/{pi:g} deg lie in {planes.size} plane(s) of "
+                     "scatter: the slope inversion reads the lobe over the whole direction plane (a measured plate "
+                     "file's full grid, rows at three or more scatter azimuths) or an in-plane scan at normal "
+                     "incidence (read as isotropic)")
 
 
 def distinct_directions(rec: Any) -> tuple[Any, np.ndarray]:
@@ -143,13 +156,15 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
         raise InputError(sample.path, "plate.rough_face = \"back\": the slope inversion of this version takes "
                                       "the relief on the lit (front) face")
     rec = sample.load_recording()
-    rows0, ti, pi, wl = inversion_rows(rec)
+    rows0, ti, pi, wl, lobe_rows, reading = inversion_rows(rec)
     n0 = float(np.real(sample.plate.index.n(wl)))
     step("inverting the lobe")
-    density = slope_density(rows0, n0)
+    density = slope_density(lobe_rows, n0)
     step("synthesising the candidates")
     plan = plan_for(wl, tile_px, seed=seed)
     cands = candidates(density)
+    if "lobe_readings" in reading:     # an isotropic reading: the non-parametric density is the cut's readings
+        cands = [replace(c, k=reading["lobe_readings"]) if c.name == "non-parametric" else c for c in cands]
     reliefs = [lenslet_relief(c.density, plan) for c in cands]
     fit_index = not index_stated
     kp = 2 if fit_index else 1                      # the plate's parameters: height scale (and index)
@@ -230,6 +245,8 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
                    "index); only the chosen one is polished through the plate",
                    "the refinement's evaluations run on the screening grid (no inside sector tables, a tenth of "
                    "the inside rays); the final simulation and the tables on the default grid"]
+    if "assumption" in reading:
+        limitations.insert(0, f"the inverted lobe is an {reading['reading']}: {reading['assumption']}")
     for j, nm in enumerate(names):
         lo, hi = (rf.LOWER[j], rf.UPPER[j]) if nm == "refractive_index" else (None, None)
         if lo is not None and (abs(n_fit - lo) < 1e-9 or abs(n_fit - hi) < 1e-9):
@@ -260,7 +277,7 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
         "index_stated": index_stated,
         "index_fitted": fit_index,
         "inverted_from": {"theta_i_deg": ti, "phi_i_deg": pi, "wavelength_nm": wl, "rows": len(rows0),
-                          "start_index": n0},
+                          "start_index": n0, **reading},
         "refinement": {"rows": len(meas), "lobe_fraction": rf.LOBE_FRACTION, "chi2": ref.chi2,
                        "evaluations": obj.evaluations, "grid": "screening grid (no inside sector tables), inside rays x "
                                                f"{rf.REFINE_INSIDE_SAMPLES_SCALE:g}",
