@@ -52,13 +52,14 @@ def test_relief_on_the_back_face_is_refused(tmp_path, capsys):
     assert "rough_face" in _one_error_line(capsys)
 
 
-def test_an_in_plane_scan_is_refused_with_one_line(tmp_path, capsys):
-    """The inversion reads the lobe over the direction plane; a recording whose rows lie in the plane of
-    incidence cannot give it (one rc-2 line naming the file, no traceback)."""
+def test_an_oblique_in_plane_scan_is_refused_with_one_line(tmp_path, capsys):
+    """The inversion reads the lobe over the direction plane, or an in-plane scan at normal incidence read as
+    isotropic (infer.slopes.isotropic_reading); an in-plane scan whose incidence nearest the normal is oblique
+    gives neither (one rc-2 line naming the file, no traceback)."""
     rows = ["# relief-recording/1", "wavelength_nm,theta_i_deg,phi_i_deg,side,theta_s_deg,phi_s_deg,bsdf_sr,sigma_sr"]
     for ts in range(0, 40, 2):
         for ps in (0, 180):
-            rows.append(f"633,0,0,T,{ts},{ps},{10.0 if ts < 6 else 0.01},0.01")
+            rows.append(f"633,5,0,T,{ts},{ps},{10.0 if ts < 6 else 0.01},0.01")
     (tmp_path / "inplane.csv").write_text("\n".join(rows) + "\n")
     p = _sample(tmp_path, "inplane.csv")
     assert main(["infer", str(p), "-o", str(tmp_path / "out")]) == 2

@@ -2,14 +2,19 @@
 
 Steps (each a pure function of the step before, seeded):
   1. read the sample: [relief] file may be absent (it is what is made) and [plate] refractive_index
-     may be absent (then n = `DEFAULT_INDEX`, reported as a limitation: this step does not fit it);
+     may be absent (then the index starts at `DEFAULT_INDEX` and is fitted, infer.refine);
   2. the recording's transmitted rows at its incidence nearest the normal (<= `MAX_INVERSION_THETA_DEG`)
-     -> the facet-slope density (infer.slopes, geometric optics through both faces);
-  3. a periodic relief with that density (infer.synth: random crossed lenslets, 512 x 512, lateral
-     scale above the diffraction criterion);
-  4. OUT/relief.npz, OUT/sample.toml (the sample with that relief, periodic), then the plate of that
+     -> the facet-slope density (infer.slopes, geometric optics through both faces); an in-plane scan at
+     normal incidence is read as an isotropic lobe first (infer.slopes.isotropic_reading, its assumption
+     stated in infer.json);
+  3. the candidates (infer.families: the non-parametric density and the few-parameter families), each a
+     periodic relief of random crossed lenslets (infer.synth, 512 x 512, lateral scale above the
+     diffraction criterion), screened through the plate and chosen by the information criterion;
+  4. the chosen one refined through the plate (infer.refine: height scale, and the index when not stated);
+  5. OUT/relief.npz, OUT/sample.toml (the sample with that relief, periodic), then the plate of that
      sample through the one forward model on ALL the recording's rows (the path of `relief simulate`:
-     fit.optimise.Forward -> plate.simulate), OUT/simulated.csv and OUT/infer.json with the metric
+     fit.optimise.Forward -> plate.simulate, the default grid, read out `FINAL_CHUNK_ROWS` rows at a
+     time), OUT/simulated.csv, the boundary tables, the report and OUT/infer.json with the metric
      (fit.residual.rms_z) for a flat plate (before) and the inferred relief (after).
 """
 from __future__ import annotations
@@ -52,7 +57,12 @@ def read_infer_sample(path: str | Path):
 
 
 def inversion_rows(rec: Any):
-    """The T rows of the recording's incidence nearest the normal (one (theta_i, phi_i), one wavelength)."""
+    """(T rows of the recording's incidence nearest the normal (one (theta_i, phi_i), one wavelength),
+    theta_i, phi_i, wavelength, the rows the inversion reads, reading): those rows themselves when they
+    cover the direction plane (a measured file's grid, or three or more planes of scatter); an in-plane
+    scan at normal incidence read as isotropic (infer.slopes.isotropic_reading: its assumption is stated in
+    `reading`); `reading` says which."""
+    from relief_bsdf.infer.slopes import isotropic_reading
     T = rec.side == "T"
     if not T.any():
         raise InputError(rec.path or "recording", "no transmitted (T) rows: the slope inversion reads the "
@@ -68,12 +78,20 @@ def inversion_rows(rec: Any):
     sel &= rec.wavelength_nm == wl
     off_pole = sel & (rec.theta_s_deg > 0)
     planes = np.unique(np.round(np.mod(rec.phi_s_deg[off_pole], 180.0), 6))
-    if planes.size < 3:
-        raise InputError(rec.path or "recording",
-                         f"the transmitted rows at incidence {ti:g}/{pi:g} deg lie in {planes.size} plane(s) of "
-                         "scatter (an in-plane scan): the slope inversion reads the lobe over the whole direction "
-                         "plane (a measured plate file's full grid, or rows at three or more scatter azimuths)")
-    return rec.subset(sel), ti, pi, wl
+    rows = rec.subset(sel)
+    if planes.size >= 3:
+        return rows, ti, pi, wl, rows, {"reading": "the lobe over the direction plane"}
+    if planes.size == 1 and ti == 0.0:
+        try:
+            lobe, facts = isotropic_reading(rows)
+        except InputError as e:
+            raise InputError(rec.path or "recording", e.message) from None
+        return rows, ti, pi, wl, lobe, facts
+    raise InputError(rec.path or "recording",
+                     f"the transmitted rows at incidence {ti:g}/{pi:g} deg lie in {planes.size} plane(s) of "
+                     "scatter: the slope inversion reads the lobe over the whole direction plane (a measured plate "
+                     "file's full grid, rows at three or more scatter azimuths) or an in-plane scan at normal "
+                     "incidence (read as isotropic)")
 
 
 def distinct_directions(rec: Any) -> tuple[Any, np.ndarray]:
@@ -143,13 +161,15 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
         raise InputError(sample.path, "plate.rough_face = \"back\": the slope inversion of this version takes "
                                       "the relief on the lit (front) face")
     rec = sample.load_recording()
-    rows0, ti, pi, wl = inversion_rows(rec)
+    rows0, ti, pi, wl, lobe_rows, reading = inversion_rows(rec)
     n0 = float(np.real(sample.plate.index.n(wl)))
     step("inverting the lobe")
-    density = slope_density(rows0, n0)
+    density = slope_density(lobe_rows, n0)
     step("synthesising the candidates")
     plan = plan_for(wl, tile_px, seed=seed)
     cands = candidates(density)
+    if "lobe_readings" in reading:     # an isotropic reading: the non-parametric density is the cut's readings
+        cands = [replace(c, k=reading["lobe_readings"]) if c.name == "non-parametric" else c for c in cands]
     reliefs = [lenslet_relief(c.density, plan) for c in cands]
     fit_index = not index_stated
     kp = 2 if fit_index else 1                      # the plate's parameters: height scale (and index)
@@ -195,16 +215,21 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
     write_sample(out / "sample.toml", new)
 
     step("simulating the plate on every row")
-    from relief_bsdf.plate.memory import current_memory
-    current_memory().clear()        # the refinement's tables (other reliefs, the screening grid): not read again
+    evaluations = obj.evaluations
+    del obj, reliefs
+    release_memory()                # the refinement's tables (other reliefs, the screening grid): not read again
     exp = experiment_from_sample(new, relief, samples=samples, seed=seed)
     distinct, inverse = distinct_directions(rec)       # the pole's repeated readings simulated once
-    fwd = Forward(relief, exp, distinct, grid=TableGrid(), where=str(sample.recording_path))
-    values = fwd.simulated(1.0, 0.0).values_per_sr[inverse]
+    fwd = Forward(relief, exp, distinct, grid=TableGrid(), where=str(sample.recording_path))   # decided on every row
+    _, values = _in_chunks(lambda rows: Forward(relief, fwd.experiment, rows, grid=TableGrid(),
+                                                where=str(sample.recording_path)),
+                           lambda f: f.simulated(1.0, 0.0).values_per_sr, distinct)
+    values = values[inverse]
     after = rms_z(rec.bsdf_sr, rec.sigma_sr, values)
     flat = exp.with_plate(**{sample.plate.rough_face: FlatFace()})
-    before = rms_z(rec.bsdf_sr, rec.sigma_sr,
-                   simulate(flat, distinct, where=str(sample.recording_path)).values_per_sr[inverse])
+    _, flat_values = _in_chunks(lambda rows: rows, lambda rows: simulate(flat, rows, where=str(sample.recording_path))
+                                .values_per_sr, distinct)
+    before = rms_z(rec.bsdf_sr, rec.sigma_sr, flat_values[inverse])
     write_recording(out / "simulated.csv", rec.with_values(values),
                     comments=[f"relief infer {Path(sample_path).name}: the inferred relief's plate",
                               f"metric (rms z) vs recording: {after:.6g}"])
@@ -230,6 +255,8 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
                    "index); only the chosen one is polished through the plate",
                    "the refinement's evaluations run on the screening grid (no inside sector tables, a tenth of "
                    "the inside rays); the final simulation and the tables on the default grid"]
+    if "assumption" in reading:
+        limitations.insert(0, f"the inverted lobe is an {reading['reading']}: {reading['assumption']}")
     for j, nm in enumerate(names):
         lo, hi = (rf.LOWER[j], rf.UPPER[j]) if nm == "refractive_index" else (None, None)
         if lo is not None and (abs(n_fit - lo) < 1e-9 or abs(n_fit - hi) < 1e-9):
@@ -260,9 +287,9 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
         "index_stated": index_stated,
         "index_fitted": fit_index,
         "inverted_from": {"theta_i_deg": ti, "phi_i_deg": pi, "wavelength_nm": wl, "rows": len(rows0),
-                          "start_index": n0},
+                          "start_index": n0, **reading},
         "refinement": {"rows": len(meas), "lobe_fraction": rf.LOBE_FRACTION, "chi2": ref.chi2,
-                       "evaluations": obj.evaluations, "grid": "screening grid (no inside sector tables), inside rays x "
+                       "evaluations": evaluations, "grid": "screening grid (no inside sector tables), inside rays x "
                                                f"{rf.REFINE_INSIDE_SAMPLES_SCALE:g}",
                        "coordinates": "width scale w = s (n - 1) / (n0 - 1) and n (infer.refine)"},
         "selection": {"criterion": "BIC = chi^2 + k ln n (criteria), QBIC margin "
@@ -286,6 +313,41 @@ def _infer(sample_path: str | Path, out_dir: str | Path, seed: int, progress: An
     write_text_atomic(out / "infer.json", json.dumps(doc, indent=2, default=float) + "\n")
     step("done")
     return doc
+
+
+#: distinct rows per readout of the final simulation (`_in_chunks`)
+FINAL_CHUNK_ROWS = 8000
+
+
+def release_memory() -> None:
+    """Drop what the forward model keeps (the job's memory owner) and hand freed heap back to the system:
+    the allocator keeps large freed blocks for reuse (glibc's trim threshold grows with them), so
+    without the trim the refinement's freed tables would still count in the job's peak while the final
+    simulation builds its own."""
+    import ctypes
+    import gc
+    from relief_bsdf.plate.memory import current_memory
+    current_memory().clear()
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):       # not glibc: the memory stays with the process, nothing else changes
+        pass
+
+
+def _in_chunks(make: Any, read: Any, rows: Any) -> tuple[Any, np.ndarray]:
+    """(the last chunk's reader, values of every row): `read(make(chunk))` over chunks of at most
+    `FINAL_CHUNK_ROWS` rows.  The plate's tables and solver are kept by the memory owner and shared by
+    the chunks; what a readout holds per row (each row's detector cone over the direction grid's
+    sub-points) is then made for one chunk at a time, not for every row of a measured file at once
+    (EDS10's 30 601 distinct rows: 0.55 GB less at the peak, the same values)."""
+    out = np.zeros(len(rows))
+    reader = None
+    for a in range(0, len(rows), FINAL_CHUNK_ROWS):
+        idx = np.arange(a, min(a + FINAL_CHUNK_ROWS, len(rows)))
+        reader = make(rows.subset(idx))
+        out[idx] = read(reader)
+    return reader, out
 
 
 STEPS = 12   # reading, inverting, synthesising, 5 candidates, refining, simulating, tables, report (+ done)

@@ -243,3 +243,86 @@ def slope_density(rows: Any, n: float, bins: int = DEFAULT_BINS) -> SlopeDensity
              f"lobe read where f >= {SUPPORT_FRACTION:g} x its peak ({peak:.4g} 1/sr); slope box +-{s_max:.4g} "
              f"(the slopes of the readings >= {BOX_FRACTION:g} x the peak, +{BOX_MARGIN:.0%}), {bins} x {bins} bins")
     return SlopeDensity(edges, edges.copy(), p / total, notes)
+
+
+#: azimuth step of the direction-plane grid an in-plane cut is spread over (`isotropic_reading`)
+ISOTROPIC_PHI_STEP_DEG = 2.0
+
+
+@dataclass(frozen=True)
+class LobeRows:
+    """Transmitted rows of one incidence as `slope_density` reads them (the columns of a Recording)."""
+
+    side: np.ndarray
+    theta_i_deg: np.ndarray
+    phi_i_deg: np.ndarray
+    theta_s_deg: np.ndarray
+    phi_s_deg: np.ndarray
+    bsdf_sr: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.bsdf_sr.size)
+
+
+def isotropic_reading(rows: Any, phi_step_deg: float = ISOTROPIC_PHI_STEP_DEG) -> tuple[LobeRows, dict]:
+    """The transmitted lobe over the whole direction plane from an in-plane cut at normal incidence,
+    read as isotropic; (rows on a full (theta_s, phi_s) grid, facts).
+
+    Assumption: the relief is statistically isotropic, so at normal incidence its transmitted lobe
+    depends on the exit direction's polar angle alone, f(u) = g(|u|) (the facet-slope density is a
+    function of |s|, and the single-pass map s -> u of `exit_cosines` is rotationally symmetric about
+    the normal).  The cut (rows in one plane of scatter, both halves phi_s and phi_s + 180) then is g:
+    the two halves are averaged at each theta_s (an isotropic lobe is even), and g is spread over the
+    azimuths 0, phi_step_deg, ... of a full grid, which `slope_density` inverts as it inverts a measured
+    file's grid.  What the cut cannot show: an anisotropic relief's other axis (its slopes across the
+    plane of scatter are read as equal to those along it) and any azimuthal structure (a square top-hat
+    is read as a round one).  `facts`: the plane, the readings per half and their asymmetry (the largest
+    difference of the halves at equal theta_s over the peak: a tilt or an asymmetric relief)."""
+    side = np.asarray(rows.side)
+    T = side == "T"
+    ti = np.unique(np.asarray(rows.theta_i_deg)[T])
+    if ti.size != 1 or abs(float(ti[0])) > 1e-9:
+        raise InputError("recording", "the isotropic reading of an in-plane scan takes its rows at normal "
+                                      f"incidence (theta_i = 0); got theta_i {', '.join(f'{t:g}' for t in ti)} deg")
+    th = np.asarray(rows.theta_s_deg, float)[T]
+    ph = np.asarray(rows.phi_s_deg, float)[T]
+    f = np.asarray(rows.bsdf_sr, float)[T]
+    off = th > 0
+    planes = np.unique(np.round(np.mod(ph[off], 180.0), 6))
+    if planes.size != 1:
+        raise InputError("recording", f"an in-plane scan lies in one plane of scatter; these rows lie in {planes.size}")
+    plane = float(planes[0])
+    half_a = off & np.isclose(np.mod(ph, 360.0), plane)
+    half_b = off & ~half_a
+    thetas = np.unique(th)
+    g = np.zeros(thetas.size)
+    asym = 0.0
+    for k, t in enumerate(thetas):
+        at = th == t
+        if t == 0:
+            g[k] = float(np.mean(f[at]))
+            continue
+        a, b = f[at & half_a], f[at & half_b]
+        vals = [float(np.mean(x)) for x in (a, b) if x.size]
+        g[k] = float(np.mean(vals))
+        if len(vals) == 2:
+            asym = max(asym, abs(vals[0] - vals[1]))
+    if thetas[0] != 0.0:
+        raise InputError("recording", "the in-plane scan has no reading at theta_s = 0 (the lobe's centre at "
+                                      "normal incidence): the isotropic reading needs it")
+    phis = np.arange(0.0, 360.0, float(phi_step_deg))
+    TH, PH = np.meshgrid(thetas, phis, indexing="ij")
+    G = np.broadcast_to(g[:, None], TH.shape)
+    n = TH.size
+    out = LobeRows(np.full(n, "T"), np.zeros(n), np.zeros(n), TH.reshape(-1), PH.reshape(-1),
+                   np.ascontiguousarray(G).reshape(-1))
+    peak = float(np.max(g)) if g.size else 0.0
+    facts = {"reading": "isotropic reading of an in-plane scan", "plane_phi_s_deg": plane,
+             "readings_per_half": [int(np.count_nonzero(half_a)), int(np.count_nonzero(half_b))],
+             "half_asymmetry_over_peak": asym / peak if peak > 0 else 0.0,
+             "lobe_readings": int(np.count_nonzero(g >= SUPPORT_FRACTION * peak)) if peak > 0 else 0,
+             "assumption": "the relief is statistically isotropic: at normal incidence the lobe depends on the "
+                           "exit polar angle alone, so the in-plane cut (both halves averaged) is the lobe over "
+                           "every azimuth; an anisotropic relief's slopes across the plane are read as equal to "
+                           "those along it"}
+    return out, facts
