@@ -64,11 +64,11 @@ _ACTIVE: contextvars.ContextVar = contextvars.ContextVar("relief_forward_memory"
 
 def deep_buffers(value: Any, out: dict | None = None, seen: set | None = None, depth: int = 0) -> dict:
     """{buffer id: bytes} of the numpy buffers `value` reaches (attributes, dict values, list / tuple items,
-    to depth 8; an object's `memory_parts()` instead of its attributes where it names what it holds; its
+    to depth 12; an object's `memory_parts()` instead of its attributes where it names what it holds; its
     `memory_bytes()` as one buffer of its own where it knows better, e.g. a tracer's BVH)."""
     out = {} if out is None else out
     seen = set() if seen is None else seen
-    if depth > 8 or value is None or isinstance(value, (str, bytes, int, float, bool, complex)):
+    if depth > 12 or value is None or isinstance(value, (str, bytes, int, float, bool, complex)):
         return out
     if isinstance(value, np.ndarray):
         base = value
@@ -454,9 +454,13 @@ def current_memory() -> ForwardMemory:
 
 
 PROCESS_BASE_BYTES = 0.3e9   # an interpreter with numpy, scipy and Embree loaded, before any table (PSS)
-TRANSIENT_SHARE = 1.0        # what one evaluation allocates while it builds, beyond what it keeps, per kept byte
-#                              (a diagnosis of an exponential relief with inside sector tables: 1.4 GB beside an
-#                              evaluation of 1.6 GB, i.e. ~0.9; decision record 011)
+TRANSIENT_SHARE = 1.0        # what one evaluation allocates OUTSIDE the owner while it builds (sources, Krylov
+#                              vectors, rows, the ray engine's buffers), per byte one evaluation holds: the owner
+#                              itself counts a solve's systems, factors and sector kernels before they are made
+#                              (`reserve`) and the values it evicted that are still alive.  Measured on validation
+#                              case 05 (one process, budget 1.5 GB, baseline then relief scale, stray light,
+#                              absorption): peak RSS 2.24 GB = 0.3 base + 1.34 owner peak + 0.60 outside it, with
+#                              one evaluation holding 0.67 GB: 0.9 (decision record 020)
 
 
 @dataclass(frozen=True)
@@ -480,9 +484,11 @@ class MemoryPlan:
 
 def plan_processes(total_bytes: float, evaluation_bytes: float, max_workers: int) -> MemoryPlan:
     """The most pool workers (`max_workers` at most, else 1 = this process alone) whose processes fit
-    `total_bytes` together.  Model of one process: PROCESS_BASE_BYTES + its budget + TRANSIENT_SHARE x
-    `evaluation_bytes` (what one evaluation of the forward model holds once made: its tables and solver,
-    the owner's held bytes after the baseline), with a budget of at least one evaluation.  A pool of
+    `total_bytes` together.  Model of one process: PROCESS_BASE_BYTES + its budget (everything the owner
+    counts: the entries, the evicted values still alive, what a solve reserves before allocating it) +
+    TRANSIENT_SHARE x `evaluation_bytes` (what one evaluation allocates outside the owner, per byte one
+    evaluation of the forward model holds once made: its tables and solver, the owner's held bytes after
+    the baseline), with a budget of at least one evaluation.  A pool of
     w >= 2 workers runs w + 1 processes (this one evaluates beside them, `diagnose.stepwise`).  Where not
     even one process fits, this process alone with one evaluation's budget (`fits` False: the job
     will exceed the total; the caller says so)."""
