@@ -68,6 +68,8 @@ def test_the_sector_table_goes_once_its_kernels_exist_and_a_held_solver_needs_no
     assert isinstance(solver.inside_sectors, sector_loop.SectorsHeader)       # the loop ran by sector ...
     assert not any(faces.SECTORS_KEY in k[0] + k[1:] for k, _ in memory.entries("table"))   # ... without its table
     assert solver._tops and all(t["sector_kernels"] is not None for t in solver._tops.values())
+    # what a held solver keeps: not the 0-deg loop kernel (it lives in the factors), not the sectors' average
+    assert all(t["Kh"] is None and "sector_average" not in t for t in solver._tops.values())
 
     def no_table(*args, **kwargs):
         raise AssertionError("a table was derived for a held solver")
