@@ -86,14 +86,15 @@ def deep_buffers(value: Any, out: dict | None = None, seen: set | None = None, d
     if callable(own) and not isinstance(value, type):
         out[id(value)] = int(own())
         return out
+    # snapshots (one C call each, atomic under the GIL): another thread may add to a held solver's dicts
     if isinstance(value, dict):
-        items = value.values()
+        items = list(value.values())
     elif isinstance(value, (list, tuple, set, frozenset)):
-        items = value
+        items = list(value)
     else:
         d = getattr(value, "__dict__", None)
         slots = getattr(type(value), "__slots__", ())
-        items = (d.values() if isinstance(d, dict)
+        items = (list(d.values()) if isinstance(d, dict)
                  else [getattr(value, s, None) for s in slots if isinstance(s, str)])
     for v in items:
         deep_buffers(v, out, seen, depth + 1)
