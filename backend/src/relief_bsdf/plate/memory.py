@@ -17,8 +17,8 @@ functions) lives in ONE object, keyed by content, held to ONE byte budget:
 - bytes are the numpy buffers the entries reach (attributes, dicts, lists, tuples; `memory_parts()`
   where an object names what it holds, `memory_bytes()` where it knows better, e.g. a tracer's BVH),
   each buffer counted ONCE over all entries (two solvers sharing their tables' part, a solver and the
-  tables it reads), plus the buffers of evicted values still alive (a solver an evaluation is still
-  using: it occupies memory though the owner let it go); a solver is measured again at every eviction;
+  tables it reads); the buffers of evicted values still alive (a solver an evaluation is still using)
+  are reported apart; a solver is measured again at every eviction;
 - `report()`: budget, held (and evicted but alive) and peak bytes, per kind, hits, misses, evictions
   (the benchmarks and the diagnosis's JSON print it).
 
@@ -255,17 +255,17 @@ class ForwardMemory:
     def _evict(self, incoming: dict | None = None, extra: float = 0.0) -> None:
         """GreedyDual-Size down to the budget and the entry count (module doc); never the newest entry.
         The held bytes are those of the UNION of the buffers the entries reach (a buffer two solvers share,
-        their tables' part, counts once), plus the buffers of evicted values still alive (ghosts: freeing
-        them is not the owner's to do, but they occupy memory), plus `incoming` (an entry about to be put)
-        and `extra` bytes (`reserve`)."""
+        their tables' part, counts once), plus `incoming` (an entry about to be put) and `extra` bytes
+        (`reserve`).  The buffers of evicted values still alive (a solver an evaluation still uses) are
+        reported (`evicted_alive_bytes`), not evicted for: evicting more cannot free them, and the
+        plan counts them among what an evaluation allocates beside the owner (`TRANSIENT_SHARE`)."""
         refs, ghost = self._union()
         held = {b: r[1] for b, r in refs.items()}
         pending = {b: n for b, n in (incoming or {}).items() if b not in held}
 
         def total() -> int:
-            return (sum(held.values()) + sum(n for b, n in ghost.items() if b not in held)
-                    + sum(n for b, n in pending.items() if b not in ghost))
-        self._total = sum(held.values()) + sum(n for b, n in ghost.items() if b not in held)
+            return sum(held.values()) + sum(n for b, n in pending.items() if b not in held)
+        self._total = sum(held.values())
         self.peak_bytes = max(self.peak_bytes, self._total)
         keep = 0 if incoming is not None else 1          # before a put: every held entry may go
         t = total()
@@ -291,14 +291,14 @@ class ForwardMemory:
                         del refs[b], held[b]
             self._retire(e)
             del e                        # the store's last reference: a value nothing else holds is freed now
-            ghost = {}
-            for ref, bufs in self._ghosts:
-                if ref() is not None:
-                    ghost.update(bufs)
             self.evictions += 1
             t = total()
+        ghost = {}
+        for ref, bufs in self._ghosts:
+            if ref() is not None:
+                ghost.update(bufs)
         self._ghost_bytes = sum(n for b, n in ghost.items() if b not in held)
-        self._total = sum(held.values()) + self._ghost_bytes
+        self._total = sum(held.values())
 
     def entries(self, kind: str) -> list[tuple[tuple, Any]]:
         """(key, value) of the entries of `kind`, least recently used first."""
@@ -406,8 +406,8 @@ class ForwardMemory:
 
     # -- reporting
     def report(self) -> dict:
-        """{"budget_bytes", "held_bytes" (the union of the entries' buffers and the evicted ones still alive),
-        "evicted_alive_bytes", "peak_held_bytes", "hits", "misses", "evictions", "by_kind": {kind:
+        """{"budget_bytes", "held_bytes" (the union of the entries' buffers), "evicted_alive_bytes" (those of
+        evicted values still alive, beyond the held ones), "peak_held_bytes", "hits", "misses", "evictions", "by_kind": {kind:
         {"entries", "bytes"}}} (an entry's bytes: every buffer it reaches, shared ones in each)."""
         with self._lock:
             by: dict = {}
@@ -458,7 +458,7 @@ PROCESS_BASE_BYTES = 0.3e9   # an interpreter with numpy, scipy and Embree loade
 TRANSIENT_SHARE = 1.0        # what one evaluation allocates OUTSIDE the owner while it builds (sources, Krylov
 #                              vectors, rows, the ray engine's buffers), per byte one evaluation holds: the owner
 #                              itself counts a solve's systems, factors and sector kernels before they are made
-#                              (`reserve`) and the values it evicted that are still alive.  Measured on validation
+#                              (`reserve`); this counts what it evicted while still in use.  Measured on validation
 #                              case 05 (one process, budget 1.5 GB, baseline then relief scale, stray light,
 #                              absorption): peak RSS 2.24 GB = 0.3 base + 1.34 owner peak + 0.60 outside it, with
 #                              one evaluation holding 0.67 GB: 0.9 (decision record 020)
@@ -486,7 +486,7 @@ class MemoryPlan:
 def plan_processes(total_bytes: float, evaluation_bytes: float, max_workers: int) -> MemoryPlan:
     """The most pool workers (`max_workers` at most, else 1 = this process alone) whose processes fit
     `total_bytes` together.  Model of one process: PROCESS_BASE_BYTES + its budget (everything the owner
-    counts: the entries, the evicted values still alive, what a solve reserves before allocating it) +
+    counts: its entries and what a solve reserves before allocating it) +
     TRANSIENT_SHARE x `evaluation_bytes` (what one evaluation allocates outside the owner, per byte one
     evaluation of the forward model holds once made: its tables and solver, the owner's held bytes after
     the baseline), with a budget of at least one evaluation.  A pool of
