@@ -50,6 +50,50 @@ def test_what_is_dear_to_make_for_its_size_outlives_what_is_cheap():
     assert m.report()["evictions"] == 4
 
 
+def test_a_put_evicts_before_it_adds_so_the_held_bytes_never_pass_the_budget():
+    m = ForwardMemory(budget_bytes=2500)
+    for k in range(10):
+        m.put((k,), np.zeros(100))                                  # 800 bytes each: three fit
+    assert m.report()["peak_held_bytes"] <= 2500 and len(m) == 3 and m.evictions == 7
+
+
+def test_a_buffer_two_entries_reach_counts_once_and_an_entry_that_frees_nothing_stays():
+    """A solver reaches the tables it reads (held as entries of their own) and shares its tables' part
+    with a solver of another bulk: each buffer counts once; evicting a table a held solver reads would
+    free nothing, so the solver goes first."""
+    m = ForwardMemory(budget_bytes=1700)
+    table = np.zeros(100)                                           # 800 bytes
+    m.put(("table",), table)
+    m.put(("solver",), {"reads": table, "own": np.zeros(50)}, "solver")   # 400 bytes of its own
+    assert m.held_bytes == 1200
+    m.put(("other solver",), {"reads": table, "own": np.zeros(50)}, "solver")
+    assert m.held_bytes == 1600
+    del table
+    m.put(("new",), np.zeros(25))                                  # 200 bytes more: over by 100
+    assert ("table",) in m and ("solver",) not in m and m.held_bytes == 1400
+
+
+def test_an_evicted_value_still_alive_is_reported_until_it_is_freed():
+    m = ForwardMemory(budget_bytes=2000)
+    in_use = np.zeros(100)                                          # an evaluation still holds it
+    m.put(("a",), in_use)
+    m.put(("b",), np.zeros(100))
+    m.put(("c",), np.zeros(100))               # over: a goes, but it is alive: reported apart
+    assert ("a",) not in m and ("b",) in m and ("c",) in m
+    assert m.held_bytes == 1600 and m.report()["evicted_alive_bytes"] == 800
+    del in_use
+    m.refresh(None)
+    assert m.held_bytes == 1600 and m.report()["evicted_alive_bytes"] == 0
+
+
+def test_reserve_makes_room_for_what_a_computation_is_about_to_allocate():
+    m = ForwardMemory(budget_bytes=2000)
+    m.put(("a",), np.zeros(100))
+    m.put(("b",), np.zeros(100))
+    m.reserve(500)                                                  # 1600 + 500 > 2000: the older goes
+    assert ("a",) not in m and ("b",) in m and m.held_bytes == 800
+
+
 def test_deep_nbytes_counts_each_buffer_once():
     a = np.zeros(1000)
     assert deep_nbytes({"x": a, "y": a[10:], "z": [a.reshape(10, 100)]}) == 8000

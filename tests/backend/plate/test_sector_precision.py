@@ -42,6 +42,25 @@ def test_single_precision_sector_kernels_move_the_rows_far_below_a_recordings_no
     assert 0 < change < 1e-4
 
 
+def test_the_loop_differences_on_the_tables_incidences_are_those_on_the_engines_cells(experiment, monkeypatch):
+    """The sector loop's kernel differences kept on the tables' own incidences and interpolated onto the
+    engine's cells in the product (`_SectorKernels.interp`) against the same differences made on the
+    engine's cells, both in double precision: the same linear map in another order, so the rows agree to
+    rounding (< 1e-9 of the largest row); and the kept kernels are half as large."""
+    monkeypatch.setattr(sector_loop, "SECTOR_LOOP_DTYPE", np.float64)
+    monkeypatch.setattr(sector_loop, "SECTOR_EXIT_DTYPE", np.complex128)
+    m_table = ForwardMemory(4e9)
+    on_table = _simulate(experiment, m_table)
+    monkeypatch.setattr(sector_loop, "SECTOR_LOOP_ON_TABLE_INCIDENCES", False)
+    m_engine = ForwardMemory(4e9)
+    on_engine = _simulate(experiment, m_engine)
+    assert np.max(np.abs(on_table - on_engine)) < 1e-9 * np.max(np.abs(on_engine))
+    kernels = [next(iter(m.values("solver")[-1]._tops.values()))["sector_kernels"] for m in (m_table, m_engine)]
+    assert kernels[0].interp is not None and kernels[1].interp is None
+    n_i, n_engine = kernels[0].interp.shape[1], kernels[0].interp.shape[0]
+    assert kernels[0].loop.nbytes * n_engine == kernels[1].loop.nbytes * n_i and n_i < n_engine
+
+
 def test_the_sector_table_goes_once_its_kernels_exist_and_a_held_solver_needs_no_table(experiment, monkeypatch):
     memory = ForwardMemory(4e9)
     first = _simulate(experiment, memory)
@@ -49,6 +68,8 @@ def test_the_sector_table_goes_once_its_kernels_exist_and_a_held_solver_needs_no
     assert isinstance(solver.inside_sectors, sector_loop.SectorsHeader)       # the loop ran by sector ...
     assert not any(faces.SECTORS_KEY in k[0] + k[1:] for k, _ in memory.entries("table"))   # ... without its table
     assert solver._tops and all(t["sector_kernels"] is not None for t in solver._tops.values())
+    # what a held solver keeps: not the 0-deg loop kernel (it lives in the factors), not the sectors' average
+    assert all(t["Kh"] is None and "sector_average" not in t for t in solver._tops.values())
 
     def no_table(*args, **kwargs):
         raise AssertionError("a table was derived for a held solver")

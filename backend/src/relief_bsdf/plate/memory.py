@@ -4,18 +4,23 @@ Everything the plate engine would otherwise derive again (boundary tables, plate
 factorised operators, relief tracers, photon samplers, slab operators, detector weights, phase
 functions) lives in ONE object, keyed by content, held to ONE byte budget:
 
-- `get(key, make, kind)`: the held value, else `make()` put under `key`; while the held bytes exceed
-  the budget, entries go by GreedyDual-Size (Cao & Irani 1997): each entry's priority is the
-  clock at its last use plus the seconds it took to make per GB it holds, the lowest goes first and
-  the clock moves up to it, so what was used long ago goes first unless it is dear to make for its
-  size (a ray-traced sector table stays over a detector's weights made in a blink); the newest entry
-  always stays, so a single object larger than the budget is still computed, used and dropped at the
-  next put: the job degrades to recomputing instead of growing;
-- bytes are the arrays an entry reaches (numpy arrays in its attributes, dicts, lists, tuples;
-  each array's buffer counted once per entry; `memory_bytes()` where an object knows better, e.g.
-  a tracer's BVH); a solver that grows while it solves is measured again (`refresh`);
-- `report()`: budget, held and peak bytes per kind, hits, misses, evictions (the benchmarks and
-  the diagnosis's JSON print it).
+- `get(key, make, kind)`: the held value, else `make()` put under `key`; before a value is put, and
+  whenever the held bytes exceed the budget, entries go by GreedyDual-Size (Cao & Irani 1997): each
+  entry's priority is the clock at its last use plus the seconds it took to make per GB it holds, the
+  lowest goes first and the clock moves up to it, so what was used long ago goes first unless it is
+  dear to make for its size (a ray-traced sector table stays over a detector's weights made in a
+  blink); only an entry that frees a buffer goes (a table a held solver reads stays); a single object
+  larger than the budget is still computed, used and dropped at the next put: the job degrades to
+  recomputing instead of growing;
+- `reserve(nbytes)`: evict so that what a computation is about to allocate beside the held entries
+  fits too (a solver's round-trip system and factors, its sector kernels), before it is allocated;
+- bytes are the numpy buffers the entries reach (attributes, dicts, lists, tuples; `memory_parts()`
+  where an object names what it holds, `memory_bytes()` where it knows better, e.g. a tracer's BVH),
+  each buffer counted ONCE over all entries (two solvers sharing their tables' part, a solver and the
+  tables it reads); the buffers of evicted values still alive (a solver an evaluation is still using)
+  are reported apart; a solver is measured again at every eviction;
+- `report()`: budget, held (and evicted but alive) and peak bytes, per kind, hits, misses, evictions
+  (the benchmarks and the diagnosis's JSON print it).
 
 Which owner is in force: the job makes one and activates it for its block (`with memory.active():`,
 a context variable: scoped to the block and its thread); code below asks `current_memory()`.
@@ -32,6 +37,7 @@ import contextvars
 import os
 import threading
 import time
+import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
@@ -56,44 +62,69 @@ _HELD_ONLY: contextvars.ContextVar = contextvars.ContextVar("relief_held_only", 
 _ACTIVE: contextvars.ContextVar = contextvars.ContextVar("relief_forward_memory", default=None)
 
 
-def deep_nbytes(value: Any, seen: set | None = None, depth: int = 0) -> int:
-    """Bytes of the numpy buffers `value` reaches (attributes, dict values, list / tuple items, to depth 8),
-    each buffer once; an object's own `memory_bytes()` where it has one."""
+def deep_buffers(value: Any, out: dict | None = None, seen: set | None = None, depth: int = 0) -> dict:
+    """{buffer id: bytes} of the numpy buffers `value` reaches (attributes, dict values, list / tuple items,
+    to depth 12; an object's `memory_parts()` instead of its attributes where it names what it holds; its
+    `memory_bytes()` as one buffer of its own where it knows better, e.g. a tracer's BVH)."""
+    out = {} if out is None else out
     seen = set() if seen is None else seen
-    if depth > 8 or value is None or isinstance(value, (str, bytes, int, float, bool, complex)):
-        return 0
+    if depth > 12 or value is None or isinstance(value, (str, bytes, int, float, bool, complex)):
+        return out
     if isinstance(value, np.ndarray):
         base = value
         while isinstance(base.base, np.ndarray):
             base = base.base
-        if id(base) in seen:
-            return 0
-        seen.add(id(base))
-        return int(base.nbytes)
+        out[id(base)] = int(base.nbytes)
+        return out
     if id(value) in seen:
-        return 0
+        return out
     seen.add(id(value))
+    parts = getattr(value, "memory_parts", None)
+    if callable(parts) and not isinstance(value, type):
+        return deep_buffers(parts(), out, seen, depth + 1)
     own = getattr(value, "memory_bytes", None)
     if callable(own) and not isinstance(value, type):
-        return int(own())
+        out[id(value)] = int(own())
+        return out
+    # snapshots (one C call each, atomic under the GIL): another thread may add to a held solver's dicts
     if isinstance(value, dict):
-        return sum(deep_nbytes(v, seen, depth + 1) for v in value.values())
-    if isinstance(value, (list, tuple, set, frozenset)):
-        return sum(deep_nbytes(v, seen, depth + 1) for v in value)
-    d = getattr(value, "__dict__", None)
-    if isinstance(d, dict):
-        return sum(deep_nbytes(v, seen, depth + 1) for v in d.values())
-    slots = getattr(type(value), "__slots__", ())
-    return sum(deep_nbytes(getattr(value, s, None), seen, depth + 1) for s in slots if isinstance(s, str))
+        items = list(value.values())
+    elif isinstance(value, (list, tuple, set, frozenset)):
+        items = list(value)
+    else:
+        d = getattr(value, "__dict__", None)
+        slots = getattr(type(value), "__slots__", ())
+        items = (list(d.values()) if isinstance(d, dict)
+                 else [getattr(value, s, None) for s in slots if isinstance(s, str)])
+    for v in items:
+        deep_buffers(v, out, seen, depth + 1)
+    return out
+
+
+def deep_nbytes(value: Any, seen: set | None = None, depth: int = 0) -> int:
+    """Bytes of the numpy buffers `value` reaches (`deep_buffers`), each buffer once (`seen`: ids already
+    counted elsewhere, updated)."""
+    seen = set() if seen is None else seen
+    bufs = deep_buffers(value, None, seen, depth)
+    total = sum(n for b, n in bufs.items() if b not in seen)
+    seen.update(bufs)
+    return total
 
 
 @dataclass
 class _Entry:
     kind: str
     value: Any
-    nbytes: int
+    buffers: dict                # {buffer id: bytes} it reaches (`deep_buffers`), measured at put / refresh
     cost_s: float = 0.0          # seconds it took to make (what evicting it costs the job)
     priority: float = 0.0        # GreedyDual-Size: clock at last use + cost per GB held
+
+    @property
+    def nbytes(self) -> int:
+        return sum(self.buffers.values())
+
+
+MUTABLE_KINDS = ("solver",)      # values that grow or shrink while held: measured again at every eviction
 
 
 def _cost_of(value: Any) -> float:
@@ -113,6 +144,8 @@ class ForwardMemory:
         self.maxsize = int(maxsize)
         self._d: "OrderedDict[tuple, _Entry]" = OrderedDict()
         self._total = 0
+        self._ghost_bytes = 0
+        self._ghosts: list = []          # (weak reference, buffers) of evicted values still alive (`_evict`)
         self._recorders: list[set] = []
         self.hits = self.misses = self.evictions = 0
         self.peak_bytes = 0
@@ -150,18 +183,27 @@ class ForwardMemory:
             return None if e is None else e.value
 
     def put(self, key: tuple, value: Any, kind: str = "table", cost_s: float | None = None) -> None:
-        """Hold `value` under `key` (newest), then evict to the budget.  `cost_s`: the seconds it took to
-        make (None: what the value says, e.g. a table's `timing_s`, else 0)."""
+        """Hold `value` under `key` (newest).  Before it is added, the other entries are evicted until the
+        held bytes with it fit the budget (`_evict`); `cost_s`: the seconds it took to make (None: what the
+        value says, e.g. a table's `timing_s`, else 0)."""
         with self._lock:
             old = self._d.pop(key, None)
-            if old is not None:
-                self._total -= old.nbytes
-            e = _Entry(kind if kind in KINDS else "other", value, deep_nbytes(value),
+            e = _Entry(kind if kind in KINDS else "other", value, deep_buffers(value),
                        _cost_of(value) if cost_s is None else float(cost_s))
+            if old is not None:
+                self._retire(old)
+            self._evict(incoming=e.buffers)
             self._d[key] = e
-            self._total += e.nbytes
             self._use(key, e)
             self._evict()
+
+    def reserve(self, nbytes: float) -> None:
+        """Evict until the held bytes and `nbytes` more fit the budget: what a computation is about to
+        allocate beside what is held (a solver's round-trip system and its factors, `PlateSolver._operators`;
+        its sector kernels), so that the owner gives the room back before the allocation, not after it.
+        The newest entry stays (it is usually what is being computed from)."""
+        with self._lock:
+            self._evict(extra=float(nbytes))
 
     def refresh(self, key: tuple | None, cost_s: float = 0.0) -> None:
         """Measure an entry again (a solver's operators are made while it solves), add `cost_s` to what it
@@ -171,10 +213,8 @@ class ForwardMemory:
             if e is None:
                 self._evict()
                 return
-            self._total -= e.nbytes
-            e.nbytes = deep_nbytes(e.value)
+            e.buffers = deep_buffers(e.value)
             e.cost_s += float(cost_s)
-            self._total += e.nbytes
             self._use(key, e)
             self._evict()
 
@@ -182,18 +222,83 @@ class ForwardMemory:
         with self._lock:
             e = self._d.pop(key, None)
             if e is not None:
-                self._total -= e.nbytes
+                self._retire(e)
+                self._evict()
 
-    def _evict(self) -> None:
-        """GreedyDual-Size down to the budget and the entry count (module doc); never the newest entry."""
+    def _retire(self, e: _Entry) -> None:
+        """An entry leaves the store: while something else still holds its value (a solver in use, a table
+        a held solver reads), its buffers still count (`_evict`'s ghosts) until the value is freed."""
+        try:
+            self._ghosts.append((weakref.ref(e.value), e.buffers))
+        except TypeError:                # no weak reference to it (a plain ndarray subclass, a tuple ...)
+            pass
+
+    def _union(self) -> tuple[dict, dict]:
+        """({buffer id: [entries reaching it, bytes]} over the held entries and the live ghosts, the live
+        ghosts' buffers), the mutable entries measured again (`MUTABLE_KINDS`)."""
+        refs: dict = {}
+        for k, e in self._d.items():
+            if e.kind in MUTABLE_KINDS:
+                e.buffers = deep_buffers(e.value)
+            for b, n in e.buffers.items():
+                r = refs.get(b)
+                if r is None:
+                    refs[b] = [1, n]
+                else:
+                    r[0] += 1
+        self._ghosts = [(ref, bufs) for ref, bufs in self._ghosts if ref() is not None]
+        ghost: dict = {}
+        for _, bufs in self._ghosts:
+            ghost.update(bufs)
+        return refs, ghost
+
+    def _evict(self, incoming: dict | None = None, extra: float = 0.0) -> None:
+        """GreedyDual-Size down to the budget and the entry count (module doc); never the newest entry.
+        The held bytes are those of the UNION of the buffers the entries reach (a buffer two solvers share,
+        their tables' part, counts once), plus `incoming` (an entry about to be put) and `extra` bytes
+        (`reserve`).  The buffers of evicted values still alive (a solver an evaluation still uses) are
+        reported (`evicted_alive_bytes`), not evicted for: evicting more cannot free them, and the
+        plan counts them among what an evaluation allocates beside the owner (`TRANSIENT_SHARE`)."""
+        refs, ghost = self._union()
+        held = {b: r[1] for b, r in refs.items()}
+        pending = {b: n for b, n in (incoming or {}).items() if b not in held}
+
+        def total() -> int:
+            return sum(held.values()) + sum(n for b, n in pending.items() if b not in held)
+        self._total = sum(held.values())
         self.peak_bytes = max(self.peak_bytes, self._total)
-        while len(self._d) > 1 and (len(self._d) > self.maxsize or self._total > self.budget_bytes):
-            newest = next(reversed(self._d))
-            key = min((k for k in self._d if k != newest), key=lambda k: self._d[k].priority)   # ties: least recent
+        keep = 0 if incoming is not None else 1          # before a put: every held entry may go
+        t = total()
+        while len(self._d) > keep and (len(self._d) + (incoming is not None) > self.maxsize
+                                       or t + extra > self.budget_bytes):
+            newest = next(reversed(self._d)) if keep else None
+            # only an entry that frees something (a buffer no other entry reaches) is worth evicting: a table a
+            # held solver reads stays (evicting it would free nothing and lose its key); over the entry count,
+            # any entry
+            over_count = len(self._d) + (incoming is not None) > self.maxsize
+            frees = [k for k in self._d if k != newest
+                     and (over_count or any(refs[b][0] == 1 for b in self._d[k].buffers if b in refs))]
+            if not frees:
+                break
+            key = min(frees, key=lambda k: self._d[k].priority)   # ties: least recent
             e = self._d.pop(key)
             self._clock = max(self._clock, e.priority)
-            self._total -= e.nbytes
+            for b in e.buffers:
+                r = refs.get(b)
+                if r is not None:
+                    r[0] -= 1
+                    if r[0] == 0:
+                        del refs[b], held[b]
+            self._retire(e)
+            del e                        # the store's last reference: a value nothing else holds is freed now
             self.evictions += 1
+            t = total()
+        ghost = {}
+        for ref, bufs in self._ghosts:
+            if ref() is not None:
+                ghost.update(bufs)
+        self._ghost_bytes = sum(n for b, n in ghost.items() if b not in held)
+        self._total = sum(held.values())
 
     def entries(self, kind: str) -> list[tuple[tuple, Any]]:
         """(key, value) of the entries of `kind`, least recently used first."""
@@ -244,6 +349,7 @@ class ForwardMemory:
     def clear(self) -> None:
         with self._lock:
             self._d.clear()
+            self._ghosts.clear()
             self._total = 0
 
     def __contains__(self, key: tuple) -> bool:
@@ -300,8 +406,9 @@ class ForwardMemory:
 
     # -- reporting
     def report(self) -> dict:
-        """{"budget_bytes", "held_bytes", "peak_held_bytes", "hits", "misses", "evictions",
-        "by_kind": {kind: {"entries", "bytes"}}}."""
+        """{"budget_bytes", "held_bytes" (the union of the entries' buffers), "evicted_alive_bytes" (those of
+        evicted values still alive, beyond the held ones), "peak_held_bytes", "hits", "misses", "evictions", "by_kind": {kind:
+        {"entries", "bytes"}}} (an entry's bytes: every buffer it reaches, shared ones in each)."""
         with self._lock:
             by: dict = {}
             for e in self._d.values():
@@ -309,6 +416,7 @@ class ForwardMemory:
                 k["entries"] += 1
                 k["bytes"] += e.nbytes
             return {"budget_bytes": int(self.budget_bytes), "held_bytes": int(self._total),
+                    "evicted_alive_bytes": int(self._ghost_bytes),
                     "peak_held_bytes": int(self.peak_bytes), "hits": self.hits, "misses": self.misses,
                     "evictions": self.evictions, "by_kind": by}
 
@@ -347,9 +455,13 @@ def current_memory() -> ForwardMemory:
 
 
 PROCESS_BASE_BYTES = 0.3e9   # an interpreter with numpy, scipy and Embree loaded, before any table (PSS)
-TRANSIENT_SHARE = 1.0        # what one evaluation allocates while it builds, beyond what it keeps, per kept byte
-#                              (a diagnosis of an exponential relief with inside sector tables: 1.4 GB beside an
-#                              evaluation of 1.6 GB, i.e. ~0.9; decision record 011)
+TRANSIENT_SHARE = 1.0        # what one evaluation allocates OUTSIDE the owner while it builds (sources, Krylov
+#                              vectors, rows, the ray engine's buffers), per byte one evaluation holds: the owner
+#                              itself counts a solve's systems, factors and sector kernels before they are made
+#                              (`reserve`); this counts what it evicted while still in use.  Measured on validation
+#                              case 05 (one process, budget 1.5 GB, baseline then relief scale, stray light,
+#                              absorption): peak RSS 2.24 GB = 0.3 base + 1.34 owner peak + 0.60 outside it, with
+#                              one evaluation holding 0.67 GB: 0.9 (decision record 020)
 
 
 @dataclass(frozen=True)
@@ -373,9 +485,11 @@ class MemoryPlan:
 
 def plan_processes(total_bytes: float, evaluation_bytes: float, max_workers: int) -> MemoryPlan:
     """The most pool workers (`max_workers` at most, else 1 = this process alone) whose processes fit
-    `total_bytes` together.  Model of one process: PROCESS_BASE_BYTES + its budget + TRANSIENT_SHARE x
-    `evaluation_bytes` (what one evaluation of the forward model holds once made: its tables and solver,
-    the owner's held bytes after the baseline), with a budget of at least one evaluation.  A pool of
+    `total_bytes` together.  Model of one process: PROCESS_BASE_BYTES + its budget (everything the owner
+    counts: its entries and what a solve reserves before allocating it) +
+    TRANSIENT_SHARE x `evaluation_bytes` (what one evaluation allocates outside the owner, per byte one
+    evaluation of the forward model holds once made: its tables and solver, the owner's held bytes after
+    the baseline), with a budget of at least one evaluation.  A pool of
     w >= 2 workers runs w + 1 processes (this one evaluates beside them, `diagnose.stepwise`).  Where not
     even one process fits, this process alone with one evaluation's budget (`fits` False: the job
     will exceed the total; the caller says so)."""

@@ -17,7 +17,7 @@ from relief_bsdf.errors import InputError
 from relief_bsdf.parallel.blas import blas_single_thread   # the plate's matrices are small (N ~ 90): one thread
 from relief_bsdf.plate.coupling import _beam_extinction, _slab_sources, _slab_system
 from relief_bsdf.plate.detector import DirectField, centre_values
-from relief_bsdf.plate.memory import current_memory, deep_nbytes
+from relief_bsdf.plate.memory import current_memory
 from relief_bsdf.plate.modes import _block_diag, _blocks, _exit_modes, _loop_solve, _reflect_up, _rough_exit
 from relief_bsdf.plate.sector_loop import SectorLoop
 from relief_bsdf.plate.setup import EngineSetup
@@ -134,18 +134,12 @@ class PlateSolver(SectorLoop):
         # `plate.deterministic.turned_tables`; set by `solver_of`): azimuth (deg, `rows.azimuth_key`) -> solver
         self.turned: dict = {}
 
-    def memory_bytes(self) -> int:
-        """Bytes this solver holds of its own (its operators, their factors, the fields kept per wavelength;
-        `plate.memory`): its tables count here only where the memory owner does not hold them itself, and
-        the half-turned solver is an entry of its own."""
-        memory = current_memory()
-        seen: set = set()
-        tables = [t for t in (self.inside, self.outside, self.back, self.inside_sectors) if t is not None]
-        for t in tables:                 # the owner's tables (and the views of them the operators keep) count there
-            if memory.key_of(t) is not None:
-                deep_nbytes(t, seen)
-        own = deep_nbytes((self._ops, self._tops, self._twins), seen)
-        return own + deep_nbytes([t for t in tables if memory.key_of(t) is None], seen)
+    def memory_parts(self) -> tuple:
+        """What this solver holds (`plate.memory.deep_buffers`): its tables, its operators and their factors,
+        the tables' part it may share with solvers of another bulk, the fields kept per wavelength.  The
+        memory owner counts each buffer once over all its entries (a table it holds itself, the tables'
+        part two solvers share); the half-turned and turned solvers are entries of their own."""
+        return (self.inside, self.outside, self.back, self.inside_sectors, self._ops, self._tops, self._twins)
 
     # -- per wavelength operators
     def _table_ops(self, wl: float) -> dict:
@@ -180,9 +174,7 @@ class PlateSolver(SectorLoop):
         # (times 1 - 1e-9: between two lossless specular faces a totally reflected cell would make the
         # loop singular; it is fed nothing, and 1e-9 per round trip stands for the plate's finite size)
         SR = vin.specular_many("R", th_sub).reshape(N, nsub, 4, 4).mean(axis=1) * (1 - 1e-9)  # (N, 4, 4)
-        # kernel K[t, j, a] from the inside table's R cells, times the receiving cell's projected solid angle
-        Kh = np.moveaxis(vin.diffuse_modes("R", tc, tc, self.delta), 0, 1)                 # (T, J, M[,4,4])
-        Kh *= self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None]
+        Kh = self._loop_kernel(vin, c)                                                      # (T, J, M[,4,4])
         KBh = GBT = None
         if vB is not None:
             KBh = np.moveaxis(vB.diffuse_modes("R", tc, tc, self.delta), 0, 1)
@@ -193,11 +185,22 @@ class PlateSolver(SectorLoop):
         GhT, Wflat, Wspec = self._exit_maps(vin, vB, n, n0, c)
         sector_kernels = None
         if self.inside_sectors is not None and vB is None and m.rough_face == "front":
-            sector_kernels = self._sector_kernels(wl, c, mv, Kh, GhT)
+            current_memory().reserve(_sector_bytes(self.inside_sectors, N, c, Kh.shape[2],
+                                                   np.asarray(self.inside.theta_i_deg).size))
+            sector_kernels = self._sector_kernels(wl, c, mv, vin, Kh, GhT)
         t = dict(n=n, n0=n0, c=c, vin=vin, vB=vB, RF=RF, SR=SR, Kh=Kh, KBh=KBh, GBT=GBT, GhT=GhT,
                  Wflat=Wflat, Wspec=Wspec, sector_kernels=sector_kernels)
         self._tops[wl] = t
         return t
+
+    def _loop_kernel(self, vin: "_TableView", c: int) -> np.ndarray:
+        """(T, J, M[, 4, 4]): the loop kernel K[t, j, a] of the inside table's R cells in azimuthal modes, times
+        the receiving cell's projected solid angle.  A wavelength's tables' part (`_table_ops`) lets it go
+        once its operators are made (`_operators`: the kernel then lives in the round-trip system and its
+        factors); a solver of another bulk on the same tables makes it again, the same numbers."""
+        Kh = np.moveaxis(vin.diffuse_modes("R", self.theta_c, self.theta_c, self.delta), 0, 1)
+        Kh *= self.psa[:, None, None] if c == 1 else self.psa[:, None, None, None, None]
+        return Kh
 
     def _operators(self, wl: float) -> dict:
         if wl in self._ops:
@@ -205,6 +208,10 @@ class PlateSolver(SectorLoop):
         m = self.model
         t = self._table_ops(wl)
         c, RF, SR, Kh, KBh = t["c"], t["RF"], t["SR"], t["Kh"], t["KBh"]
+        current_memory().reserve(_system_bytes(self.theta_c.size * c, self.delta.size // 2 + 1))
+        if Kh is None:                        # let go by an earlier solver on these tables (`_loop_kernel`)
+            Kh = self._loop_kernel(t["vin"], c)
+        t["Kh"] = None                        # from here on it lives in this wavelength's system
         tc = self.theta_c
         N = tc.size
         cos_c = np.maximum(np.cos(np.radians(tc)), 1e-6)
@@ -577,6 +584,21 @@ def _stokes_sum(results: list, weights: list) -> PlateResult:
         direct = replace(direct, R=add(lambda r: r.direct.R), T=add(lambda r: r.direct.T))
     return replace(first, grid_R=add(lambda r: r.grid_R), grid_T=add(lambda r: r.grid_T), deltas=deltas,
                    direct=direct, loop_R=add(lambda r: r.loop_R), loop_T=add(lambda r: r.loop_T))
+
+
+def _system_bytes(nc: int, modes: int) -> int:
+    """What making a wavelength's operators allocates beside what is held (`PlateSolver._operators`): the
+    (M, N c, N c) complex round-trip system and as much again while it is built and factorised (its
+    product's scratch, the LU factors made from it)."""
+    return 2 * modes * nc * nc * 16
+
+
+def _sector_bytes(sectors: Any, N: int, c: int, modes: int, incidences: int) -> int:
+    """What making a wavelength's sector kernels allocates (`SectorLoop._sector_kernels`): the stacked
+    single-precision loop differences on the tables' incidences, their exits, and one sector's
+    double-precision kernel being made."""
+    k, nc, ic = np.asarray(getattr(sectors, "phi_i_deg", [0.0])).size, N * c, min(incidences, N) * c
+    return modes * nc * (2 * k * ic * 4 + k * N * 8 + nc * 16)
 
 
 def _result_bytes(r: PlateResult) -> int:
