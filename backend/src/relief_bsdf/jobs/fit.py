@@ -83,7 +83,8 @@ def run_fit(job: FitJob, progress: Progress | None = None, cancel: CancelToken |
 
 def _run(job: FitJob, progress: Progress, cancel: CancelToken | None) -> FitOutput:
     from relief_bsdf.fit.baseline import baseline
-    from relief_bsdf.fit.optimise import FitSettings, Forward, fit_relief
+    from relief_bsdf.fit.forward import Forward
+    from relief_bsdf.fit.optimise import FitSettings, fit_relief
     from relief_bsdf.io.recording import read_sample
     from relief_bsdf.parallel.memory import small_pages
     small_pages()           # here and in its workers (parallel.memory)
@@ -93,7 +94,7 @@ def _run(job: FitJob, progress: Progress, cancel: CancelToken | None) -> FitOutp
     b = baseline(sample, method=job.method, samples=job.samples, seed=job.seed, grid=job.grid,
                  relief_options=job.relief_options)
     rec = b.recording
-    fwd = Forward(b.relief, b.experiment, rec, grid=b.grid, where=b.where)
+    fwd = Forward.of(b)
     settings = FitSettings(threshold=job.threshold, max_iter=job.max_iter, scale_bounds=job.scale_bounds,
                            max_filter_um=job.max_filter_um)
     check(cancel, "fitting")
@@ -131,7 +132,7 @@ def _write(job: FitJob, out: Path, fwd: Any, rec: Any, res: Any) -> dict:
     rel = fwd.model_rel_sigma()         # the metric's model sigma (the optimiser's)
     plots = report.fit_plots(out, rec, sim_before, sim_after, rel * np.abs(sim_before), rel * np.abs(sim_after))
     files.update(plots)
-    face = getattr(fwd.experiment.plate, fwd.face_name)
+    face = fwd.face
     doc = res.to_json({"method": face.method, "method_requested": job.method, "method_reason": face.chosen_by,
                        "sample": str(Path(job.sample)), "files": files,
                        "relief_history": list(best_relief.history), "physics": after.info.get("physics", {}),
