@@ -106,6 +106,8 @@ def test_fit_steers_on_the_search_model_and_answers_on_the_record(tmp_path):
     assert models[0] == "record" and "search" in models and set(models) == {"record", "search"}
     assert res.computed_by_model["search"] == models.count("search") == sum(b for b, *_ in log)
     assert res.computed_by_model["record"] == models.count("record") == res.computed - models.count("search")
+    assert list(res.stage_seconds) == ["baseline and the model sigma", "search", "criterion", "polish",
+                                       "response surface", "intervals", "ridge probe"]
     # everything after the polish is the model of record's: the design, the answer, the ridge probe
     assert models[-(res.surface["design_points"] + 2):] == ["record"] * (res.surface["design_points"] + 2)
     for name in ("height_scale", "filter_sigma_um"):

@@ -128,6 +128,7 @@ class FitResult:
     surface: dict = field(default_factory=dict)   # the response surface's design (`_smoothed`)
     search: str = ""                  # the search objective's definition (each evaluation's `search`)
     computed_by_model: dict = field(default_factory=dict)   # `computed` by model: "record", "search"
+    stage_seconds: dict = field(default_factory=dict)       # wall seconds per stage of `fit_relief`
 
     def to_json(self, extra: dict | None = None) -> dict:
         d = {"format": FIT_FORMAT, "algorithm": ALGORITHM, "metric": self.metric, "rms_before": self.rms_before,
@@ -162,7 +163,7 @@ class FitResult:
                                                     "(fit.covariance)"},
              "search_objective": self.search,
              "warnings": self.warnings, "iterations": self.iterations, "evaluations_computed": self.computed,
-             "evaluations_by_model": self.computed_by_model,
+             "evaluations_by_model": self.computed_by_model, "stage_seconds": self.stage_seconds,
              "stopped": self.stopped,
              "seconds": self.seconds}
         d.update(extra or {})
@@ -615,6 +616,19 @@ def _ridge_probe(obj: _Objective, ratio: Callable[[float], float], both: dict, g
     return bool(cost <= np.log(obj.n) + BIC_MARGIN), {"height_scale": s1, "filter_sigma_um": g1}
 
 
+class _Stages:
+    """Wall seconds per stage of a fit (fit.json's stage_seconds: where the time goes)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._t = time.monotonic()
+
+    def lap(self, name: str) -> None:
+        now = time.monotonic()
+        self.seconds[name] = round(self.seconds.get(name, 0.0) + now - self._t, 3)
+        self._t = now
+
+
 def _past_the_valley(obj: _Objective) -> bool:
     """The ridge scan has passed its valley: its last two points each rose above the one before (the
     search objective along equal rms slope, `_ridge_scan`), so wider filters only bend the slope
@@ -726,9 +740,11 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     slope_ratio = _slope_ratio_fn(forward.relief)
     cs = _Coords.make(settings, True, gmax, pitch_um, ratio=slope_ratio)     # the search's (module doc)
     stopped = "converged"
+    clock = _Stages()
     try:
         obj(1.0, 0.0)
         rms_before = obj.metric(1.0, 0.0)
+        clock.lap("baseline and the model sigma")
         # scale alone first (cheap, robust from far away: it sets the slopes, the lobe width; its optimum
         # is the criterion's one-parameter model), then both from there; then scale alone again only where
         # the slope-equivalent scale of the joint optimum (g = 0, the same rms slope: the other end of a
@@ -754,8 +770,10 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     except _Stop:
         stopped = "threshold"
         rms_before = obj.iterations[0]["rms"]
+    clock.lap("search")
     # the criterion's two models, each at the search's best point, on the model of record
     both, alone = (_on_record(obj, sobj, only_unfiltered) for only_unfiltered in (False, True))
+    clock.lap("criterion")
     c_hat = overdispersion(obj.chi2(both["search"]), 2, obj.n)       # QBIC when the model misses the noise
     gain = bic_gain(obj.chi2(alone["search"]), 1, obj.chi2(both["search"]), 2, obj.n, c_hat)
     needed = both["parameters"]["filter_sigma_um"] > 0 and gain > BIC_MARGIN
@@ -764,7 +782,9 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     if sobj is not obj:           # the search model, corrected to the model of record where the polish starts
         sobj.correct_to(s, g, obj.simulated_and_sigma(s, g)[0])
     s, g, J = _polish(sobj, c2 if needed else c1, s, g)         # the likelihood's optimum (step 5)
+    clock.lap("polish")
     s, g, J, surface = _smoothed(obj, c2 if needed else c1, s, g, J)
+    clock.lap("response surface")
     surface_doc = {"design_points": surface.points, "rounds": surface.rounds,
                    "coordinates": ["ln height_scale", "filter_sigma_um^2"][:surface.x.size],
                    "scatter_about_linear_model": surface.scatter}
@@ -775,7 +795,9 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
         _, corr, _ = _intervals(obj, c2, bp["height_scale"], bp["filter_sigma_um"], gmax)
         warnings.append(f"the recording does not ask for filtering the relief (BIC gain of the filter "
                         f"{gain:.3g} <= {BIC_MARGIN:g}): reported without filter")
+    clock.lap("intervals")
     ridge, probe = _ridge_probe(obj, slope_ratio, both, gmax, pitch_um)
+    clock.lap("ridge probe")
     if ridge:
         warnings.append(f"height scale and filter trade off along a ridge: ({s:.4g}, {g:.4g} um) and "
                         f"({probe['height_scale']:.4g}, {probe['filter_sigma_um']:.4g} um) have the same rms "
@@ -789,4 +811,4 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     return FitResult(s, g, rms_before, chosen["rms"], obj.iterations, METRIC, stopped,
                      time.monotonic() - t0, iv, corr, bool(needed), float(gain), bool(ridge), warnings,
                      sum(by_model.values()), surface_doc, "log-chi search objective: " + settings.metric.describe(),
-                     by_model)
+                     by_model, clock.seconds)

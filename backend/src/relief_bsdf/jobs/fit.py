@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -113,6 +114,7 @@ def _write(job: FitJob, out: Path, fwd: Any, rec: Any, res: Any) -> dict:
     from relief_bsdf.io.recording import write_recording
     from relief_bsdf.report import fit_report as report
     from relief_bsdf.report.html import user_paths
+    t0 = time.monotonic()
     best_relief, t_out, t_in = fwd.tables(res.height_scale, res.filter_sigma_um)
     after = fwd.simulated_with_sigma(res.height_scale, res.filter_sigma_um)
     sim_after = after.values_per_sr
@@ -137,6 +139,7 @@ def _write(job: FitJob, out: Path, fwd: Any, rec: Any, res: Any) -> dict:
                        "sample": str(Path(job.sample)), "files": files,
                        "relief_history": list(best_relief.history), "physics": after.info.get("physics", {}),
                        "grid": fwd.grid.describe(),     # the plate's table grid; the sector tables when it used them
+                       "stage_seconds": {**res.stage_seconds, "outputs": round(time.monotonic() - t0, 3)},
                        **({"inside_sectors": after.info["inside_sectors"]} if "inside_sectors" in after.info else {})})
     doc = user_paths(doc, job.sample, job.out)     # no absolute path of this machine beyond the user's own
     write_text_atomic(out / "fit.json", json.dumps(doc, indent=1))
