@@ -90,9 +90,9 @@ class _Lobe:
 
 
 def test_fit_steers_on_the_search_model_and_answers_on_the_record(tmp_path):
-    """The search and the polish run on the biased search model; the criterion's points, the response
+    """The search runs on the biased search model; the criterion's points, the polish, the response
     surface, the answer and its intervals on the model of record: the answer is the record-only fit's
-    within a fifth of its interval, and an interrupted fit resumes to the same answer."""
+    within a fifth of its half-width, and an interrupted fit resumes to the same answer."""
     truth = _Lobe().simulate(1.3, 0.3)          # a filter of 2.4 pitches: within the ridge scan's reach
     sigma = 0.02 * truth
     meas = truth + sigma * np.random.default_rng(3).standard_normal(truth.size)
@@ -108,8 +108,11 @@ def test_fit_steers_on_the_search_model_and_answers_on_the_record(tmp_path):
     assert res.computed_by_model["record"] == models.count("record") == res.computed - models.count("search")
     assert list(res.stage_seconds) == ["baseline and the model sigma", "search", "criterion", "polish",
                                        "response surface", "intervals", "ridge probe"]
-    # everything after the polish is the model of record's: the design, the answer, the ridge probe
-    assert models[-(res.surface["design_points"] + 2):] == ["record"] * (res.surface["design_points"] + 2)
+    # everything after the search is the model of record's: the criterion's points, the polish, the design,
+    # the answer, the ridge probe
+    last_search = max(k for k, m in enumerate(models) if m == "search")
+    assert models[last_search + 1:] == ["record"] * (len(models) - last_search - 1)
+    assert len(models) - last_search - 1 >= res.surface["design_points"] + 2
     for name in ("height_scale", "filter_sigma_um"):
         lo, hi = alone.intervals[name]
         assert abs(getattr(res, name) - getattr(alone, name)) <= 0.2 * (hi - lo) / 2, name

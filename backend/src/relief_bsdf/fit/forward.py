@@ -146,8 +146,7 @@ class Forward(PlateForward):
         of which the tables 5.1-5.9 (3.7 M segments outside, 5.8 M inside) and the Stokes loop 1.7-2.3; at a
         quarter of the rays on the intensity loop the same evaluation is about 3.2 CPU-s, its rows 5 %
         (median) off the model of record and its rms z 1.07 where the model of record's is 0.92.  It
-        steers the search from far away and the polish near (`fit.optimise`: there corrected by the
-        model of record's values at the polish's start); what is estimated, tested and reported is
+        steers the search from far away (`fit.optimise`); what is estimated, tested and reported is
         always evaluated on the model of record (docs/decisions/022)."""
         face = self.face
         if face.method in TRACED_METHODS:

@@ -16,13 +16,12 @@ evaluation; any `methods.registry` name may be given instead, e.g. the fast surr
 "microfacet+dw".  Sampling methods (ray) use the same seed at every evaluation (common random
 numbers), so the optimiser sees a smooth objective rather than Monte-Carlo jitter.
 
-Two forward models, one answer.  The search (steps 2-3 of `fit_relief`) and the polish steer on the
-search model (`Forward.search_model`: a quarter of the relief face's rays, the same seed, and for an
-unpolarised source the plate's loop on intensities), which costs a demo evaluation about 3.2 CPU-s
-where the model of record costs 7.6; the polish's model is corrected to the model of record's values
-where it starts (`_Objective.correct_to`), so it steers by the search model's change with the
-parameters only.  The criterion's two points, the response surface, the answer, its intervals and the
-ridge probe are evaluated on the model of record: what is estimated and reported is its (docs/decisions/022).
+Two forward models, one answer.  The search (steps 2-3 of `fit_relief`) steers on the search model
+(`Forward.search_model`: a quarter of the relief face's rays, the same seed, and for an unpolarised
+source the plate's loop on intensities), which costs a demo evaluation about 3.2 CPU-s where the
+model of record costs 7.6.  From the criterion's two points on, everything is evaluated on the model
+of record: the polish, the response surface, the answer, its intervals and the ridge probe; what is
+estimated and reported is its (docs/decisions/022).
 
 Identifiability.  In geometric optics the height scale and the Gaussian filter both act on
 slopes only, and for a Gaussian random relief the slope distribution stays Gaussian under
@@ -213,7 +212,6 @@ class _Objective:
         self._seen: dict[str, np.ndarray] = {}
         self._metric: dict[str, float] = {}
         self._sim: dict[str, np.ndarray] = {}
-        self.correction: tuple[np.ndarray, np.ndarray] | None = None     # (ratio, offset): `correct_to`
         self.new_evals = 0
         self._counter = [0] if counter is None else counter      # new evaluations of every model (`on_eval`)
         self.n = int(np.size(measured))
@@ -261,16 +259,6 @@ class _Objective:
             raise _Stop
         return r
 
-    def correct_to(self, s: float, g: float, values: np.ndarray) -> None:
-        """From now on the likelihood's residuals (`likelihood_residuals`, the polish's) take this model's
-        values times the ratio of `values` (the model of record's at (s, g)) to its own there, an offset
-        where either is not positive: a search model so corrected agrees with the model of record at
-        (s, g), in its noise too, and keeps its own change with the parameters around it."""
-        own = np.asarray(self.simulated_and_sigma(s, g, corrected=False)[0], float)
-        ref = np.asarray(values, float)
-        pos = (own > 0) & (ref > 0)
-        ratio = np.where(pos, np.divide(ref, own, out=np.ones_like(ref), where=pos), 1.0)
-        self.correction = (ratio, np.where(pos, 0.0, ref - own))
 
     def likelihood_residuals(self, s: float, g: float) -> np.ndarray:
         """z with z @ z = the noise-weighted chi^2 of the likelihood at (s, g): (measured - simulated) / S,
@@ -280,13 +268,10 @@ class _Objective:
         sim, S = self.simulated_and_sigma(s, g)
         return signed_residuals(np.asarray(self.measured, float), sim, S)
 
-    def simulated_and_sigma(self, s: float, g: float, corrected: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """(simulated values, the likelihood's S) at (s, g) (`likelihood_residuals`; `correct_to`'s correction
-        applied when there is one and `corrected`)."""
+    def simulated_and_sigma(self, s: float, g: float) -> tuple[np.ndarray, np.ndarray]:
+        """(simulated values, the likelihood's S) at (s, g) (`likelihood_residuals`)."""
         self.residuals(s, g, stop_at_threshold=False)
         sim = np.asarray(self._sim[_key(np.array([s, g]))], float)
-        if corrected and self.correction is not None:
-            sim = sim * self.correction[0] + self.correction[1]
         ms = self._model_sigma(sim)
         S = self._likelihood_sigma if ms is None else np.sqrt(self._likelihood_sigma**2 + ms**2)
         return sim, S
@@ -709,12 +694,11 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
        chi^2 = sum r^2 there); otherwise the scale-only optimum is the answer (the simplest point of a
        ridge);
     5. from the answer, a few Gauss-Newton steps on the likelihood's noise-weighted residuals
-       (`_polish`: the log metric steers the search, the likelihood gives the estimate) of the search
-       model corrected to the model of record's values at the start (`_Objective.correct_to`), the
-       optimum of a response surface of the model of record's residuals over a design of +-2 standard
-       deviations around it (`_smoothed`: 8 evaluations a round, one or two rounds), then 68 % intervals
-       and the correlation from the regression's Jacobian there (`_intervals`), and one probe along
-       equal rms slope for a ridge (`_ridge_probe`): a few evaluations more, all on the model of record.
+       (`_polish`: the log metric steers the search, the likelihood gives the estimate), the optimum
+       of a response surface of those residuals over a design of +-2 standard deviations around it
+       (`_smoothed`: 8 evaluations a round, one or two rounds), then 68 % intervals and the
+       correlation from the regression's Jacobian there (`_intervals`), and one probe along equal rms
+       slope for a ridge (`_ridge_probe`): a few evaluations more, all on the model of record.
     The budget counts distinct parameter points of either model (a Jacobian's base point is not paid
     twice); fit.json's iterations name each one's model.
     `checkpoint`: an io.checkpoint.CheckpointStore (or a .json path, keyed by the recording) of
@@ -779,9 +763,7 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     needed = both["parameters"]["filter_sigma_um"] > 0 and gain > BIC_MARGIN
     chosen = both if needed else alone
     s, g = chosen["parameters"]["height_scale"], chosen["parameters"]["filter_sigma_um"]
-    if sobj is not obj:           # the search model, corrected to the model of record where the polish starts
-        sobj.correct_to(s, g, obj.simulated_and_sigma(s, g)[0])
-    s, g, J = _polish(sobj, c2 if needed else c1, s, g)         # the likelihood's optimum (step 5)
+    s, g, J = _polish(obj, c2 if needed else c1, s, g)         # the likelihood's optimum (step 5)
     clock.lap("polish")
     s, g, J, surface = _smoothed(obj, c2 if needed else c1, s, g, J)
     clock.lap("response surface")
