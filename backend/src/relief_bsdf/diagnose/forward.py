@@ -38,7 +38,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +56,7 @@ __all__ = ["DEFAULT_METHOD", "DiagnosisForward", "build_forward", "face_options"
 MEMO_SIZE = 400        # evaluations kept (each holds two row-length arrays)
 
 
+@dataclass
 class DiagnosisForward(PlateForward):
     """The diagnosis's forward model: the one forward model of the sample's plate (fit.forward.PlateForward:
     relief, rows, physics, grid and the simulation's own sigma decided there) with candidate effects applied
@@ -66,14 +67,23 @@ class DiagnosisForward(PlateForward):
     (Recording.with_sigma_fallback); context: the relief context of the effects; grid: the plate's table
     grid (None: the plate's default); where: the rows' name in errors."""
 
-    def __init__(self, experiment: Experiment, rows: object, context: ReliefContext, grid: TableGrid | None = None,
-                 evaluations: int = 0, where: str = "recording") -> None:
-        super().__init__(experiment, rows, grid, where, SIGMA_DRAWS)
-        self.context = context
-        self.evaluations = int(evaluations)
-        self._baseline: tuple | None = None
-        self._memo: dict = {}
-        self._baseline_keys: frozenset = frozenset()
+    experiment: Experiment
+    rows: object
+    context: ReliefContext
+    grid: TableGrid | None = None
+    evaluations: int = 0
+    where: str = "recording"
+    _baseline: tuple | None = field(default=None, repr=False)
+    _memo: dict = field(default_factory=dict, repr=False)
+    _rel_sigma: np.ndarray | None = field(default=None, repr=False)
+    _rel_dev: np.ndarray | None = field(default=None, repr=False)
+    _baseline_keys: frozenset = field(default=frozenset(), repr=False)
+
+    def __post_init__(self) -> None:
+        # the one forward model's decisions (PlateForward); the model sigma a copy carries is kept
+        rel_sigma, rel_dev = self._rel_sigma, self._rel_dev
+        PlateForward.__init__(self, self.experiment, self.rows, self.grid, self.where, SIGMA_DRAWS)
+        self._rel_sigma, self._rel_dev = rel_sigma, rel_dev
 
     def __getstate__(self) -> dict:
         """Pickled for worker processes (the candidate fits) with the baseline's boundary tables: a
@@ -114,18 +124,10 @@ class DiagnosisForward(PlateForward):
             if not stokes:
                 grid = replace(grid, stokes_loop=False)
             # the model sigma's arrays are shared (the baseline made them): nothing is derived again
-            screen = self if grid == own else self._on_grid(grid)
+            screen = self if grid == own else replace(
+                self, grid=grid, evaluations=0, _baseline=None, _memo={}, _baseline_keys=frozenset())
             self.__dict__[name] = screen
         return screen
-
-    def _on_grid(self, grid: TableGrid) -> "DiagnosisForward":
-        """This forward model on another grid, with its own memo and no baseline yet; the model sigma
-        (its arrays) and everything else shared."""
-        other = object.__new__(type(self))
-        other.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_screen")})
-        other.grid, other.evaluations, other._baseline, other._memo, other._baseline_keys = (
-            grid, 0, None, {}, frozenset())
-        return other
 
     def simulate(self, experiment: Experiment) -> tuple[np.ndarray, np.ndarray]:
         """(values, model sigma): the sigma is the baseline's relative 1-sigma (its tables' Monte-Carlo
