@@ -5,8 +5,10 @@ the relief as measured (plane-levelled) on the front face with the boundary meth
 fit (`--method`, default the fit's), the stated index and thickness, the known absorption
 (0 when not known), a flat back face, the stated source polarisation and detector cone, no
 blur, tilt or background.  A candidate effect is a change of that Experiment
-(`effect.apply`), and every evaluation is `simulate(experiment, rows)` of the one plate
-model (deterministic engine), so the simulation, the fit and the diagnosis share the
+(`effect.apply`), and every evaluation is `PlateForward.run` of the one forward model
+(`fit.forward.PlateForward`: the relief levelled and checked, the rows checked, "auto" decided
+once, the deterministic engine on the grid, the simulation's own sigma), of which
+`DiagnosisForward` is a thin subclass: the simulation, the fit and the diagnosis share the
 physics, the detector and the blur.
 
 Misfit: the censored (Tobit) chi^2 of `fit.residual.chi2`, with s^2 = sigma_recording^2 +
@@ -44,31 +46,45 @@ import numpy as np
 from relief_bsdf.diagnose.effects import Effect, ReliefContext, apply_all, get_effect
 from relief_bsdf.diagnose.profile import note_evaluations
 from relief_bsdf.errors import InputError
+from relief_bsdf.fit.forward import SIGMA_DRAWS, PlateForward
 from relief_bsdf.fit.residual import chi2
 from relief_bsdf.parallel.blas import blas_single_thread
-from relief_bsdf.plate import DEFAULT_METHOD, Experiment, ReliefFace, TableGrid, simulate
+from relief_bsdf.plate import DEFAULT_METHOD, Experiment, ReliefFace, TableGrid
 from relief_bsdf.plate.grid import NO_SECTORS_DEG
 
 __all__ = ["DEFAULT_METHOD", "DiagnosisForward", "build_forward", "face_options", "known_effects"]
 
 MEMO_SIZE = 400        # evaluations kept (each holds two row-length arrays)
-SIGMA_DRAWS = 8        # perturbation draws of the baseline's tables for the model sigma (plate.uncertainty)
 
 
 @dataclass
-class DiagnosisForward:
-    """Baseline Experiment + recording rows + relief context; evaluates effects on the plate model."""
+class DiagnosisForward(PlateForward):
+    """The diagnosis's forward model: the one forward model of the sample's plate (fit.forward.PlateForward:
+    relief, rows, physics, grid and the simulation's own sigma decided there) with candidate effects applied
+    (`effects.apply_all`), and what a search over many candidates adds: a memo of evaluations, the
+    screening forward (`screening`) and evaluations ahead on worker processes (`prefetch`).
+
+    experiment: the baseline Experiment (fit.baseline); rows: a Recording with finite sigma
+    (Recording.with_sigma_fallback); context: the relief context of the effects; grid: the plate's table
+    grid (None: the plate's default); where: the rows' name in errors."""
 
     experiment: Experiment
-    rows: object                      # Recording with finite sigma (Recording.with_sigma_fallback)
+    rows: object
     context: ReliefContext
-    grid: TableGrid | None = None             # the plate's table grid (None: the plate's default)
+    grid: TableGrid | None = None
     evaluations: int = 0
+    where: str = "recording"
     _baseline: tuple | None = field(default=None, repr=False)
     _memo: dict = field(default_factory=dict, repr=False)
     _rel_sigma: np.ndarray | None = field(default=None, repr=False)
     _rel_dev: np.ndarray | None = field(default=None, repr=False)
     _baseline_keys: frozenset = field(default=frozenset(), repr=False)
+
+    def __post_init__(self) -> None:
+        # the one forward model's decisions (PlateForward); the model sigma a copy carries is kept
+        rel_sigma, rel_dev = self._rel_sigma, self._rel_dev
+        PlateForward.__init__(self, self.experiment, self.rows, self.grid, self.where, SIGMA_DRAWS)
+        self._rel_sigma, self._rel_dev = rel_sigma, rel_dev
 
     def __getstate__(self) -> dict:
         """Pickled for worker processes (the candidate fits) with the baseline's boundary tables: a
@@ -103,7 +119,7 @@ class DiagnosisForward:
         screen = self.__dict__.get(name)
         if screen is None:
             self.baseline()
-            own = grid = self.grid or TableGrid()
+            own = grid = self.grid
             if any(SECTORS_KEY in key for key in self._baseline_keys):
                 grid = replace(grid, sector_step_deg=NO_SECTORS_DEG)
             if not stokes:
@@ -128,30 +144,14 @@ class DiagnosisForward:
                 quiet.enter_context(tile_warnings_quiet())
                 quiet.enter_context(warnings.catch_warnings())
                 warnings.filterwarnings("ignore", message=ISOTROPY_WARNING, category=RuntimeWarning)
-            sim = simulate(experiment, self.rows, engine="deterministic", grid=self.grid)
+            sim = self.run(experiment)
         return sim.values_per_sr, self.model_rel_sigma() * np.abs(sim.values_per_sr)
-
-    def model_rel_sigma(self) -> np.ndarray:
-        """The baseline's relative 1-sigma per row (plate.uncertainty.relative_sigma), computed once."""
-        if self._rel_sigma is None:
-            from relief_bsdf.plate.uncertainty import deviations_sigma
-            self._rel_sigma = deviations_sigma(self.model_rel_deviations(), len(self.rows))
-        return self._rel_sigma
-
-    def model_rel_deviations(self) -> np.ndarray:
-        """The baseline's table draws as relative deviations per row (SIGMA_DRAWS x rows,
-        plate.uncertainty.relative_deviations), computed once: their std is the model sigma."""
-        if self._rel_dev is None:
-            from relief_bsdf.plate.uncertainty import relative_deviations
-            self._rel_dev = relative_deviations(self.experiment, self.rows, self.grid, SIGMA_DRAWS)
-        return self._rel_dev
 
     def model_deviations_at(self, effects, values: dict) -> np.ndarray:
         """The simulation's table draws at `values` of `effects` as deviations per row (INTERVAL_DRAWS x rows,
-        plate.uncertainty.deviations): the intervals' shared model noise, made where they are asked."""
-        from relief_bsdf.plate.uncertainty import INTERVAL_DRAWS, deviations
+        PlateForward.deviations): the intervals' shared model noise, made where they are asked."""
         _, vals = _memo_key(effects, values)
-        return deviations(apply_all(self.experiment, self.context, effects, vals), self.rows, self.grid, INTERVAL_DRAWS)
+        return self.deviations(apply_all(self.experiment, self.context, effects, vals))
 
     def baseline(self) -> tuple[np.ndarray, np.ndarray]:
         """(values, model sigma) of the sample as stated (computed once)."""
@@ -334,4 +334,4 @@ def build_forward(sample_path: str | Path, method: str = DEFAULT_METHOD, samples
                             wavelengths_nm=tuple(float(w) for w in np.unique(rows.wavelength_nm)),
                             detector_half_angle_deg=float(sample.instrument.detector_half_angle_deg),
                             samples=samples, seed=seed, method_reason=front.chosen_by, known=known_effects(sample))
-    return DiagnosisForward(b.experiment, rows, context, grid=grid), sample
+    return DiagnosisForward(b.experiment, rows, context, grid=grid, where=b.where), sample

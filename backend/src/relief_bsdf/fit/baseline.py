@@ -14,8 +14,9 @@ the one place where a sample.toml becomes that plate's forward model, so the thr
   wavelengths and incidences (`plate.resolve_auto`), then kept for every evaluation (a scale or
   a filter of the relief does not switch method mid-fit).
 
-What differs between the three stays theirs: the fit varies the relief's scale and filter
-(`fit.optimise.Forward`), the diagnosis adds candidate effects (`diagnose.forward`).
+The one forward model over a Baseline is `fit.forward.PlateForward` (`PlateForward.of`); what differs
+between the three stays in its thin subclasses: the fit varies the relief's scale and filter
+(`fit.forward.Forward`), the diagnosis adds candidate effects (`diagnose.forward.DiagnosisForward`).
 """
 from __future__ import annotations
 

@@ -16,6 +16,13 @@ evaluation; any `methods.registry` name may be given instead, e.g. the fast surr
 "microfacet+dw".  Sampling methods (ray) use the same seed at every evaluation (common random
 numbers), so the optimiser sees a smooth objective rather than Monte-Carlo jitter.
 
+Two forward models, one answer.  The search (steps 2-3 of `fit_relief`) steers on the search model
+(`Forward.search_model`: a quarter of the relief face's rays, the same seed, and for an unpolarised
+source the plate's loop on intensities), which costs a demo evaluation about 3.2 CPU-s where the
+model of record costs 7.6.  From the criterion's two points on, everything is evaluated on the model
+of record: the polish, the response surface, the answer, its intervals and the ridge probe; what is
+estimated and reported is its (docs/decisions/022).
+
 Identifiability.  In geometric optics the height scale and the Gaussian filter both act on
 slopes only, and for a Gaussian random relief the slope distribution stays Gaussian under
 filtering: the two parameters then slide along a ridge of equal rms slope.  Heights become
@@ -48,7 +55,7 @@ the same path and ends with the same result as an uninterrupted run.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
@@ -60,10 +67,9 @@ from relief_bsdf.fit.residual import DEFAULT_METRIC, METRIC, LogChiMetric, rms_z
 from relief_bsdf.fit.response_surface import Surface, smoothed_optimum
 from relief_bsdf.criteria import BIC_MARGIN, bic_gain, overdispersion
 from relief_bsdf.io.recording import sigma_with_fallback
-from relief_bsdf.fit.baseline import resolved
-from relief_bsdf.plate import Experiment, ReliefFace, Simulated, TableGrid, simulate
+from relief_bsdf.fit.forward import Forward, process_relief
+from relief_bsdf.plate import TableGrid
 from relief_bsdf.progress import Progress, silent
-from relief_bsdf.surface.operations import scale_and_filter
 from relief_bsdf.surface.relief import Relief
 from relief_bsdf.surface.stats import rms_height_and_slope
 
@@ -80,107 +86,6 @@ def relief_rms(relief: Relief) -> tuple[float, float]:
     """(rms height, rms slope magnitude) of the levelled relief: surface.stats' one definition."""
     h, m = rms_height_and_slope(relief)
     return float(h), float(m)
-
-
-def process_relief(relief: Relief, height_scale: float, filter_sigma_um: float) -> Relief:
-    """Step 6: the global relief modification being optimised (surface.operations.scale_and_filter)."""
-    return scale_and_filter(relief, float(height_scale), max(float(filter_sigma_um), 0.0) * 1e-6)
-
-
-def _relief_face_name(experiment: Experiment) -> str:
-    for name in ("front", "back"):
-        if isinstance(getattr(experiment.plate, name), ReliefFace):
-            return name
-    raise InputError("fit", "the experiment has no relief face to optimise")
-
-
-@dataclass
-class Forward:
-    """The forward model of the fit: (height scale, filter) -> simulated recording values.
-
-    `experiment` holds the plate with a ReliefFace on its rough face (its method, samples, seed);
-    each evaluation puts the processed relief on that face and runs `plate.simulate`
-    (deterministic engine on `grid`; tables cached by relief content).
-    """
-
-    relief: Relief
-    experiment: Experiment
-    rows: Any
-    grid: TableGrid = field(default_factory=TableGrid)
-    where: str = "recording"
-    sigma_draws: int = 8
-    _rel_sigma: np.ndarray | None = field(default=None, repr=False)
-    _rel_dev: np.ndarray | None = field(default=None, repr=False)
-    _dev_at: dict = field(default_factory=dict, repr=False)
-
-    def __post_init__(self) -> None:
-        self.face_name = _relief_face_name(self.experiment)
-        # rows checked and "auto" decided once, on the relief as read, for every (scale, filter): the one
-        # decision of simulate, fit and diagnose (fit.baseline)
-        self.experiment = resolved(self.experiment, self.rows, self.grid, self.where)
-
-    @property
-    def method(self) -> str:
-        return getattr(self.experiment.plate, self.face_name).method
-
-    def experiment_at(self, height_scale: float, filter_sigma_um: float) -> tuple[Relief, Experiment]:
-        r = process_relief(self.relief, height_scale, filter_sigma_um)
-        face = replace(getattr(self.experiment.plate, self.face_name), relief=r)
-        return r, self.experiment.with_plate(**{self.face_name: face})
-
-    def tables(self, height_scale: float, filter_sigma_um: float):
-        """(processed relief, outside table | None, inside table) of the relief face at these parameters."""
-        r, ex = self.experiment_at(height_scale, filter_sigma_um)
-        face = getattr(ex.plate, self.face_name)
-        return r, *face.tables(ex.plate.material, self.grid, np.unique(self.rows.wavelength_nm),
-                               np.unique(self.rows.theta_i_deg), need_outside=self.face_name == "front")
-
-    def simulate(self, height_scale: float, filter_sigma_um: float) -> np.ndarray:
-        return self.simulated(height_scale, filter_sigma_um).values_per_sr
-
-    def model_rel_sigma(self) -> np.ndarray:
-        """Relative 1-sigma per row of the simulation itself (its tables' Monte-Carlo noise and tile
-        realisation through the plate, plate.uncertainty), at the relief as read; computed once and
-        scaled with the values at other parameters (the relative noise of a table hardly moves
-        with scale and filter; common random numbers keep it the same draw)."""
-        if self._rel_sigma is None:
-            from relief_bsdf.plate.uncertainty import deviations_sigma
-            self._rel_sigma = deviations_sigma(self.model_rel_deviations(), len(self.rows))
-        return self._rel_sigma
-
-    def model_deviations_at(self, height_scale: float, filter_sigma_um: float) -> np.ndarray:
-        """The simulation's table draws at (scale, filter) as deviations per row (INTERVAL_DRAWS x rows,
-        plate.uncertainty.deviations): the intervals' shared model noise, made where they are asked."""
-        from relief_bsdf.plate.uncertainty import INTERVAL_DRAWS, deviations
-        key = _key(np.array([height_scale, filter_sigma_um]))
-        if key not in self._dev_at:          # kept: the fitted point's draws also give its simulated sigma
-            _, ex = self.experiment_at(height_scale, filter_sigma_um)
-            self._dev_at[key] = deviations(ex, self.rows, self.grid, max(INTERVAL_DRAWS, self.sigma_draws))
-        return self._dev_at[key]
-
-    def model_rel_deviations(self) -> np.ndarray:
-        """The table draws behind `model_rel_sigma` as relative deviations per row (sigma_draws x rows,
-        plate.uncertainty.relative_deviations), computed once: their std is the model sigma."""
-        if self._rel_dev is None:
-            from relief_bsdf.plate.uncertainty import relative_deviations
-            _, ex = self.experiment_at(1.0, 0.0)
-            self._rel_dev = relative_deviations(ex, self.rows, self.grid, self.sigma_draws, self.where)
-        return self._rel_dev
-
-    def simulated(self, height_scale: float, filter_sigma_um: float, table_sigma_draws: int = 0) -> Simulated:
-        _, ex = self.experiment_at(height_scale, filter_sigma_um)
-        return simulate(ex, self.rows, grid=self.grid, where=self.where, table_sigma_draws=table_sigma_draws)
-
-    def simulated_with_sigma(self, height_scale: float, filter_sigma_um: float) -> Simulated:
-        """`simulated` with its 1-sigma per row: the spread of the table draws at this point
-        (`model_deviations_at`, the same draws as the intervals there: made once, not again; the
-        standard deviation `plate.uncertainty.rows_sigma` takes of its own draws)."""
-        from relief_bsdf.plate.uncertainty import sigma_note
-        sim = self.simulated(height_scale, filter_sigma_um)
-        dev = self.model_deviations_at(height_scale, filter_sigma_um)
-        if dev.shape[0] < 2:
-            return sim
-        return Simulated(sim.values_per_sr, dev.std(axis=0, ddof=1), {**sim.info, "sigma": sigma_note(dev.shape[0])})
 
 
 class _Stop(Exception):
@@ -221,6 +126,8 @@ class FitResult:
     computed: int = 0                 # forward evaluations computed in this run (not replayed)
     surface: dict = field(default_factory=dict)   # the response surface's design (`_smoothed`)
     search: str = ""                  # the search objective's definition (each evaluation's `search`)
+    computed_by_model: dict = field(default_factory=dict)   # `computed` by model: "record", "search"
+    stage_seconds: dict = field(default_factory=dict)       # wall seconds per stage of `fit_relief`
 
     def to_json(self, extra: dict | None = None) -> dict:
         d = {"format": FIT_FORMAT, "algorithm": ALGORITHM, "metric": self.metric, "rms_before": self.rms_before,
@@ -255,6 +162,7 @@ class FitResult:
                                                     "(fit.covariance)"},
              "search_objective": self.search,
              "warnings": self.warnings, "iterations": self.iterations, "evaluations_computed": self.computed,
+             "evaluations_by_model": self.computed_by_model, "stage_seconds": self.stage_seconds,
              "stopped": self.stopped,
              "seconds": self.seconds}
         d.update(extra or {})
@@ -292,13 +200,20 @@ class _Objective:
     _Budget.
     """
 
-    def __init__(self, forward, measured, sigma, settings: FitSettings, cache: dict, save, progress, on_eval):
+    def __init__(self, forward, measured, sigma, settings: FitSettings, cache: dict, save, progress, on_eval,
+                 model: str = "record", iterations: list | None = None, counter: list | None = None):
         self.forward, self.measured, self.sigma, self.settings = forward, measured, sigma, settings
         self.cache, self.save, self.progress, self.on_eval = cache, save, progress, on_eval
-        self.iterations: list[dict] = []
+        # `model`: "record" (the forward model of record) or "search" (its search model, `Forward.search_model`):
+        # its evaluations are logged with that name in the (shared) `iterations` and checkpointed under a prefix
+        self.model = model
+        self._prefix = "" if model == "record" else f"{model}:"
+        self.iterations: list[dict] = [] if iterations is None else iterations
         self._seen: dict[str, np.ndarray] = {}
         self._metric: dict[str, float] = {}
+        self._sim: dict[str, np.ndarray] = {}
         self.new_evals = 0
+        self._counter = [0] if counter is None else counter      # new evaluations of every model (`on_eval`)
         self.n = int(np.size(measured))
         self.limit: int | None = None
         # the likelihood's recording sigma (unknown ones: io.recording's fallback), fixed for the run
@@ -319,25 +234,31 @@ class _Objective:
             return self._seen[key]
         if self.limit is not None and len(self.iterations) >= self.limit:
             raise _Budget
-        if key not in self.cache:
-            self.cache[key] = [float(v) for v in np.asarray(self.forward.simulate(s, g), float)]
+        stored = self._prefix + key
+        if stored not in self.cache:
+            self.cache[stored] = [float(v) for v in np.asarray(self.forward.simulate(s, g), float)]
             self.new_evals += 1
+            self._counter[0] += 1
             self.save(self.cache)
             if self.on_eval:
-                self.on_eval(self.new_evals)
-        sim = np.asarray(self.cache[key])
+                self.on_eval(self._counter[0])
+        sim = np.asarray(self.cache[stored])
+        self._sim[key] = sim
         ms = self._model_sigma(sim)
         r = self.settings.metric.residuals(sim, self.measured, self.sigma, ms)
         self._seen[key] = r
         m = float(np.sqrt(np.mean(r**2))) if r.size else 0.0
         z = rms_z(self.measured, self._likelihood_sigma, sim, ms)        # the metric (fit.residual)
         self._metric[key] = z
-        self.iterations.append({"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": z, "search": m})
+        self.iterations.append({"parameters": {"height_scale": s, "filter_sigma_um": g}, "rms": z, "search": m,
+                                "model": self.model})
         total = self.settings.max_iter
-        self.progress(min(len(self.iterations), total), total, f"metric {z:.4g} at scale {s:.4g}, filter {g:.4g} um")
+        self.progress(min(len(self.iterations), total), total, f"metric {z:.4g} at scale {s:.4g}, filter {g:.4g} um"
+                      + ("" if self.model == "record" else f" ({self.model} model)"))
         if stop_at_threshold and z <= self.settings.threshold:
             raise _Stop
         return r
+
 
     def likelihood_residuals(self, s: float, g: float) -> np.ndarray:
         """z with z @ z = the noise-weighted chi^2 of the likelihood at (s, g): (measured - simulated) / S,
@@ -350,7 +271,7 @@ class _Objective:
     def simulated_and_sigma(self, s: float, g: float) -> tuple[np.ndarray, np.ndarray]:
         """(simulated values, the likelihood's S) at (s, g) (`likelihood_residuals`)."""
         self.residuals(s, g, stop_at_threshold=False)
-        sim = np.asarray(self.cache[_key(np.array([s, g]))], float)
+        sim = np.asarray(self._sim[_key(np.array([s, g]))], float)
         ms = self._model_sigma(sim)
         S = self._likelihood_sigma if ms is None else np.sqrt(self._likelihood_sigma**2 + ms**2)
         return sim, S
@@ -367,7 +288,8 @@ class _Objective:
 
     def best(self, only_unfiltered: bool = False) -> dict:
         """The evaluation with the lowest search objective (`search`)."""
-        its = [d for d in self.iterations if not only_unfiltered or d["parameters"]["filter_sigma_um"] == 0.0]
+        its = [d for d in self.iterations if d["model"] == self.model
+               and (not only_unfiltered or d["parameters"]["filter_sigma_um"] == 0.0)]
         return min(its, key=lambda d: d["search"])
 
 
@@ -679,6 +601,39 @@ def _ridge_probe(obj: _Objective, ratio: Callable[[float], float], both: dict, g
     return bool(cost <= np.log(obj.n) + BIC_MARGIN), {"height_scale": s1, "filter_sigma_um": g1}
 
 
+class _Stages:
+    """Wall seconds per stage of a fit (fit.json's stage_seconds: where the time goes)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._t = time.monotonic()
+
+    def lap(self, name: str) -> None:
+        now = time.monotonic()
+        self.seconds[name] = round(self.seconds.get(name, 0.0) + now - self._t, 3)
+        self._t = now
+
+
+def _past_the_valley(obj: _Objective) -> bool:
+    """The ridge scan has passed its valley: its last two points each rose above the one before (the
+    search objective along equal rms slope, `_ridge_scan`), so wider filters only bend the slope
+    distribution further from the recording's."""
+    scan = [d["search"] for d in obj.iterations if d["model"] == obj.model and d["parameters"]["filter_sigma_um"] > 0]
+    return len(scan) >= 3 and scan[-1] > scan[-2] > scan[-3]
+
+
+def _on_record(obj: _Objective, search: _Objective, only_unfiltered: bool) -> dict:
+    """The search's best point (`_Objective.best`; scale alone with `only_unfiltered`) evaluated on the
+    model of record `obj`: its entry there (parameters, search objective, metric).  The search model's own
+    values carry its extra noise; what the criterion compares and the polish starts from is the model of
+    record's.  A search that never evaluated (a threshold met at the start) hands over the record's best."""
+    if not any(d["model"] == search.model for d in search.iterations):
+        return obj.best(only_unfiltered)
+    p = search.best(only_unfiltered)["parameters"]
+    s, g = p["height_scale"], p["filter_sigma_um"]
+    return {"parameters": dict(p), "search": obj(s, g, stop_at_threshold=False), "rms": obj.metric(s, g)}
+
+
 def _store(checkpoint: Any, measured: np.ndarray, sigma: np.ndarray | None) -> Any:
     """The fit's checkpoint store (io.checkpoint: JSON data bound to a key): a given CheckpointStore,
     or one for a bare path keyed by the recording's values and sigma (what the fit job, `jobs.run_fit`, keys by
@@ -723,25 +678,29 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     """Optimise (height_scale, filter_sigma_um) so the simulated plate matches `measured`, and say
     what the recording determines (module doc, "Identifiability").
 
-    1. baseline (s = 1, g = 0): "rms_before";
-    2. scale alone from there (g = 0): damped Gauss-Newton with a line search of the normalised
-       residuals (`_gauss_newton`, forward-difference Jacobians) within a reserve of max(6,
-       max_iter // 5) evaluations: the one-parameter model of step 4;
-    3. both parameters: the filter at 1, 2, 4, ... pixel pitches along the valley of equal rms slope
-       through step 2's optimum (`_ridge_scan`), then the same Gauss-Newton from the best point seen, in
-       the search's coordinates (ln of the rms-slope scale, g^2; `_Coords`), the budget less the
-       reserve; then the slope-equivalent scale of its best point (g = 0, the same rms slope: the other
-       end of a ridge), and scale alone from there with what is left when it beats step 2's optimum;
-    4. the filter is kept only when the recording asks for it (criteria: BIC with
-       chi^2 = sum r^2); otherwise the scale-only optimum is the answer (the simplest point of a
+    1. baseline (s = 1, g = 0) on the forward model of record: "rms_before";
+    2. scale alone from there (g = 0), on the search model (`Forward.search_model`: a quarter of the
+       rays, the intensity loop; the model of record itself for a forward model without one): damped
+       Gauss-Newton with a line search of the normalised residuals (`_gauss_newton`, forward-difference
+       Jacobians) within a reserve of max(6, max_iter // 5) evaluations: the one-parameter model of step 4;
+    3. both parameters, on the search model: the filter at 1, 2, 4, ... pixel pitches along the valley
+       of equal rms slope through step 2's optimum (`_ridge_scan`, until two points in a row rise:
+       `_past_the_valley`), then the same Gauss-Newton from the best point seen, in the search's
+       coordinates (ln of the rms-slope scale, g^2; `_Coords`), the budget less the reserve; then the
+       slope-equivalent scale of its best point (g = 0, the same rms slope: the other end of a ridge),
+       and scale alone from there with what is left when it beats step 2's optimum;
+    4. the search's best point with and without the filter evaluated on the model of record
+       (`_on_record`); the filter is kept only when the recording asks for it (criteria: BIC with
+       chi^2 = sum r^2 there); otherwise the scale-only optimum is the answer (the simplest point of a
        ridge);
     5. from the answer, a few Gauss-Newton steps on the likelihood's noise-weighted residuals
        (`_polish`: the log metric steers the search, the likelihood gives the estimate), the optimum
        of a response surface of those residuals over a design of +-2 standard deviations around it
        (`_smoothed`: 8 evaluations a round, one or two rounds), then 68 % intervals and the
-       correlation from the regression's Jacobian there (`_intervals`), and one
-       probe along equal rms slope for a ridge (`_ridge_probe`): a few evaluations more.
-    The budget counts distinct parameter points (a Jacobian's base point is not paid twice).
+       correlation from the regression's Jacobian there (`_intervals`), and one probe along equal rms
+       slope for a ridge (`_ridge_probe`): a few evaluations more, all on the model of record.
+    The budget counts distinct parameter points of either model (a Jacobian's base point is not paid
+    twice); fit.json's iterations name each one's model.
     `checkpoint`: an io.checkpoint.CheckpointStore (or a .json path, keyed by the recording) of
     {params: simulated values}; its entries are replayed (deterministic path, same result as an
     uninterrupted run); a checkpoint of another run is ignored with a note.  `on_eval(n)` is called after each
@@ -750,7 +709,14 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     progress = progress or silent
     t0 = time.monotonic()
     store = _store(checkpoint, measured, sigma)
-    obj = _Objective(forward, measured, sigma, settings, _load_cache(store, int(np.size(measured))), _saver(store), progress, on_eval)
+    cache, save, iterations, counter = _load_cache(store, int(np.size(measured))), _saver(store), [], [0]
+    obj = _Objective(forward, measured, sigma, settings, cache, save, progress, on_eval, "record", iterations, counter)
+    # the search and the polish steer on the search model (`Forward.search_model`); a forward model without
+    # one (a test's stand-in) steers on itself
+    make_search = getattr(forward, "search_model", None)
+    search_fwd = make_search() if make_search is not None else forward
+    sobj = obj if search_fwd is forward else _Objective(search_fwd, measured, sigma, settings, cache, save,
+                                                        progress, on_eval, "search", iterations, counter)
     pitch_um = min(forward.relief.dx_m, forward.relief.dy_m) * 1e6
     gmax = settings.max_filter_um if settings.max_filter_um is not None else 20 * pitch_um
     c2 = _Coords.make(settings, True, gmax, pitch_um)
@@ -758,42 +724,49 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
     slope_ratio = _slope_ratio_fn(forward.relief)
     cs = _Coords.make(settings, True, gmax, pitch_um, ratio=slope_ratio)     # the search's (module doc)
     stopped = "converged"
+    clock = _Stages()
     try:
         obj(1.0, 0.0)
         rms_before = obj.metric(1.0, 0.0)
+        clock.lap("baseline and the model sigma")
         # scale alone first (cheap, robust from far away: it sets the slopes, the lobe width; its optimum
         # is the criterion's one-parameter model), then both from there; then scale alone again only where
         # the slope-equivalent scale of the joint optimum (g = 0, the same rms slope: the other end of a
         # ridge) beats the scale-only optimum found first
         reserve = max(6, settings.max_iter // 5)           # for the scale-only search after the joint one
-        _gauss_newton(obj, c1, c1.x(1.0, 0.0), reserve)
-        a0 = obj.best(only_unfiltered=True)["parameters"]["height_scale"]
+        _gauss_newton(sobj, c1, c1.x(1.0, 0.0), reserve)
+        a0 = sobj.best(only_unfiltered=True)["parameters"]["height_scale"]
         for g in _ridge_scan(pitch_um, gmax):
-            if len(obj.iterations) >= settings.max_iter - reserve:
+            if len(obj.iterations) >= settings.max_iter - reserve or _past_the_valley(sobj):
                 break                                   # within the budget (the reserve kept)
-            obj(*cs.sg(np.array([np.log(a0), g * g])))
-        b = obj.best()["parameters"]
-        _gauss_newton(obj, cs, cs.x(b["height_scale"], b["filter_sigma_um"]),
+            sobj(*cs.sg(np.array([np.log(a0), g * g])))
+        b = sobj.best()["parameters"]
+        _gauss_newton(sobj, cs, cs.x(b["height_scale"], b["filter_sigma_um"]),
                       settings.max_iter - len(obj.iterations) - reserve)
-        b = obj.best()["parameters"]
+        b = sobj.best()["parameters"]
         s_u = b["height_scale"] * slope_ratio(b["filter_sigma_um"])
         if len(obj.iterations) < settings.max_iter:
-            obj(s_u, 0.0)
-            if obj.best(only_unfiltered=True)["parameters"]["height_scale"] == s_u:
-                _gauss_newton(obj, c1, c1.x(s_u, 0.0), settings.max_iter - len(obj.iterations))
+            sobj(s_u, 0.0)
+            if sobj.best(only_unfiltered=True)["parameters"]["height_scale"] == s_u:
+                _gauss_newton(sobj, c1, c1.x(s_u, 0.0), settings.max_iter - len(obj.iterations))
         if len(obj.iterations) >= settings.max_iter:
             stopped = "max_iter"
     except _Stop:
         stopped = "threshold"
         rms_before = obj.iterations[0]["rms"]
-    both, alone = obj.best(), obj.best(only_unfiltered=True)
+    clock.lap("search")
+    # the criterion's two models, each at the search's best point, on the model of record
+    both, alone = (_on_record(obj, sobj, only_unfiltered) for only_unfiltered in (False, True))
+    clock.lap("criterion")
     c_hat = overdispersion(obj.chi2(both["search"]), 2, obj.n)       # QBIC when the model misses the noise
     gain = bic_gain(obj.chi2(alone["search"]), 1, obj.chi2(both["search"]), 2, obj.n, c_hat)
     needed = both["parameters"]["filter_sigma_um"] > 0 and gain > BIC_MARGIN
     chosen = both if needed else alone
     s, g = chosen["parameters"]["height_scale"], chosen["parameters"]["filter_sigma_um"]
     s, g, J = _polish(obj, c2 if needed else c1, s, g)         # the likelihood's optimum (step 5)
+    clock.lap("polish")
     s, g, J, surface = _smoothed(obj, c2 if needed else c1, s, g, J)
+    clock.lap("response surface")
     surface_doc = {"design_points": surface.points, "rounds": surface.rounds,
                    "coordinates": ["ln height_scale", "filter_sigma_um^2"][:surface.x.size],
                    "scatter_about_linear_model": surface.scatter}
@@ -804,7 +777,9 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
         _, corr, _ = _intervals(obj, c2, bp["height_scale"], bp["filter_sigma_um"], gmax)
         warnings.append(f"the recording does not ask for filtering the relief (BIC gain of the filter "
                         f"{gain:.3g} <= {BIC_MARGIN:g}): reported without filter")
+    clock.lap("intervals")
     ridge, probe = _ridge_probe(obj, slope_ratio, both, gmax, pitch_um)
+    clock.lap("ridge probe")
     if ridge:
         warnings.append(f"height scale and filter trade off along a ridge: ({s:.4g}, {g:.4g} um) and "
                         f"({probe['height_scale']:.4g}, {probe['filter_sigma_um']:.4g} um) have the same rms "
@@ -814,6 +789,8 @@ def fit_relief(forward: Forward, measured: np.ndarray, sigma: np.ndarray | None 
                         "the intervals are inflated by it but cover the noise only, not a systematic error of the "
                         "forward model (e.g. its table grid); physics beyond scale and filter may be missing "
                         "(relief diagnose)")
+    by_model = {"record": obj.new_evals, **({"search": sobj.new_evals} if sobj is not obj else {})}
     return FitResult(s, g, rms_before, chosen["rms"], obj.iterations, METRIC, stopped,
-                     time.monotonic() - t0, iv, corr, bool(needed), float(gain), bool(ridge), warnings, obj.new_evals,
-                     surface_doc, "log-chi search objective: " + settings.metric.describe())
+                     time.monotonic() - t0, iv, corr, bool(needed), float(gain), bool(ridge), warnings,
+                     sum(by_model.values()), surface_doc, "log-chi search objective: " + settings.metric.describe(),
+                     by_model, clock.seconds)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -83,7 +84,8 @@ def run_fit(job: FitJob, progress: Progress | None = None, cancel: CancelToken |
 
 def _run(job: FitJob, progress: Progress, cancel: CancelToken | None) -> FitOutput:
     from relief_bsdf.fit.baseline import baseline
-    from relief_bsdf.fit.optimise import FitSettings, Forward, fit_relief
+    from relief_bsdf.fit.forward import Forward
+    from relief_bsdf.fit.optimise import FitSettings, fit_relief
     from relief_bsdf.io.recording import read_sample
     from relief_bsdf.parallel.memory import small_pages
     small_pages()           # here and in its workers (parallel.memory)
@@ -93,7 +95,7 @@ def _run(job: FitJob, progress: Progress, cancel: CancelToken | None) -> FitOutp
     b = baseline(sample, method=job.method, samples=job.samples, seed=job.seed, grid=job.grid,
                  relief_options=job.relief_options)
     rec = b.recording
-    fwd = Forward(b.relief, b.experiment, rec, grid=b.grid, where=b.where)
+    fwd = Forward.of(b)
     settings = FitSettings(threshold=job.threshold, max_iter=job.max_iter, scale_bounds=job.scale_bounds,
                            max_filter_um=job.max_filter_um)
     check(cancel, "fitting")
@@ -112,6 +114,7 @@ def _write(job: FitJob, out: Path, fwd: Any, rec: Any, res: Any) -> dict:
     from relief_bsdf.io.recording import write_recording
     from relief_bsdf.report import fit_report as report
     from relief_bsdf.report.html import user_paths
+    t0 = time.monotonic()
     best_relief, t_out, t_in = fwd.tables(res.height_scale, res.filter_sigma_um)
     after = fwd.simulated_with_sigma(res.height_scale, res.filter_sigma_um)
     sim_after = after.values_per_sr
@@ -131,11 +134,12 @@ def _write(job: FitJob, out: Path, fwd: Any, rec: Any, res: Any) -> dict:
     rel = fwd.model_rel_sigma()         # the metric's model sigma (the optimiser's)
     plots = report.fit_plots(out, rec, sim_before, sim_after, rel * np.abs(sim_before), rel * np.abs(sim_after))
     files.update(plots)
-    face = getattr(fwd.experiment.plate, fwd.face_name)
+    face = fwd.face
     doc = res.to_json({"method": face.method, "method_requested": job.method, "method_reason": face.chosen_by,
                        "sample": str(Path(job.sample)), "files": files,
                        "relief_history": list(best_relief.history), "physics": after.info.get("physics", {}),
                        "grid": fwd.grid.describe(),     # the plate's table grid; the sector tables when it used them
+                       "stage_seconds": {**res.stage_seconds, "outputs": round(time.monotonic() - t0, 3)},
                        **({"inside_sectors": after.info["inside_sectors"]} if "inside_sectors" in after.info else {})})
     doc = user_paths(doc, job.sample, job.out)     # no absolute path of this machine beyond the user's own
     write_text_atomic(out / "fit.json", json.dumps(doc, indent=1))

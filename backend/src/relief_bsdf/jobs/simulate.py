@@ -1,12 +1,12 @@
 """The job `relief simulate`: the plate of a sample as the instrument sees it, on its recording's rows.
 
-The sample's plate as every forward model takes it (`fit.baseline`: the relief levelled and
-checked, the rows checked, "auto" decided once), the relief scaled and filtered as asked
-(`surface.operations.scale_and_filter`), simulated by the one plate model (`plate.simulate`,
-deterministic engine).  Each row's sigma is the simulation's own 1-sigma: the relative spread
+The sample's plate through the one forward model of simulate, fit and diagnose (`fit.forward`, over
+`fit.baseline`: the relief levelled and checked, the rows checked, "auto" decided once), the relief
+scaled and filtered as asked (the fit's `Forward`, `surface.operations.scale_and_filter`), simulated by
+the deterministic engine.  Each row's sigma is the simulation's own 1-sigma: the relative spread
 of its tables' Monte-Carlo draws through the plate at the relief as read (`plate.uncertainty`,
-8 draws), times the values, as the fit and the diagnosis take it; so the metric against the
-recording (`fit.residual.rms_z`) is theirs at the same parameters.  With a table file instead
+`fit.forward.SIGMA_DRAWS` draws), times the values, as the fit and the diagnosis take it; so the
+metric against the recording (`fit.residual.rms_z`) is theirs at the same parameters.  With a table file instead
 of a relief, the rough face is that table and the plate's azimuth grid follows its azimuth cells.
 """
 from __future__ import annotations
@@ -19,8 +19,6 @@ import numpy as np
 
 from relief_bsdf.jobs.control import CancelToken, check
 from relief_bsdf.progress import Progress
-
-SIGMA_DRAWS = 8          # table draws for the simulation's own sigma (as the fit's forward model)
 
 
 @dataclass(frozen=True)
@@ -79,28 +77,17 @@ def run_simulate(job: SimulateJob, progress: Progress | None = None,
     return SimulateOutput(o / "simulated.csv", len(rec), float(m), physics, sim.info, relief)
 
 
-def _at(b: Any, relief: Any) -> Any:
-    """The baseline's experiment with `relief` on its relief face."""
-    from relief_bsdf.plate import ReliefFace
-    name = "front" if isinstance(b.experiment.plate.front, ReliefFace) else "back"
-    face = replace(getattr(b.experiment.plate, name), relief=relief)
-    return b.experiment.with_plate(**{name: face})
-
-
 def _with_relief(job: SimulateJob, sample: Any) -> tuple[Any, Any]:
     """(relief as read, Simulated with the simulation's own sigma) of the sample's relief face."""
     from relief_bsdf.fit.baseline import baseline
-    from relief_bsdf.plate import TableGrid, simulate
-    from relief_bsdf.plate.uncertainty import deviations_sigma, relative_deviations
-    from relief_bsdf.surface.operations import scale_and_filter
+    from relief_bsdf.fit.forward import Forward
+    from relief_bsdf.plate import TableGrid
     b = baseline(sample, method=job.method, samples=job.samples, seed=job.seed, grid=TableGrid(sectors=job.sectors),
                  relief_options=job.relief_options)
-    processed = scale_and_filter(b.relief, float(job.height_scale), max(float(job.filter_sigma_um), 0.0) * 1e-6)
-    sim = simulate(_at(b, processed), b.recording, grid=b.grid, where=b.where)
+    fwd = Forward.of(b)
+    sim = fwd.simulated(job.height_scale, job.filter_sigma_um)
     # the simulation's own relative sigma at the relief as read, scaled with the values (module doc)
-    as_read = _at(b, scale_and_filter(b.relief, 1.0, 0.0))
-    rel = deviations_sigma(relative_deviations(as_read, b.recording, b.grid, SIGMA_DRAWS, b.where), len(b.recording))
-    return b.relief, replace(sim, sigma_per_sr=rel * np.abs(sim.values_per_sr))
+    return b.relief, replace(sim, sigma_per_sr=fwd.model_rel_sigma() * np.abs(sim.values_per_sr))
 
 
 def _with_table(job: SimulateJob, sample: Any, rec: Any) -> Any:
