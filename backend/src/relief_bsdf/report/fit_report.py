@@ -240,11 +240,11 @@ def stop_verdict(doc: dict) -> tuple[str, str]:
     stopped = str(doc.get("stopped", "unknown"))
     n = len(doc.get("iterations", []))
     algo = str(doc.get("algorithm") or "the search")
-    rms = [i["rms"] for i in doc.get("iterations", []) if isinstance(i.get("rms"), (int, float))]
+    rms = [i["rms"] for i in _of_record(doc.get("iterations", [])) if isinstance(i.get("rms"), (int, float))]
     tail = ""
     if len(rms) >= 6:
         best_early, best = min(rms[:-5]), min(rms)
-        tail = (f" Over the last 5 evaluations the best metric changed by {H.fmt(best_early - best, 2)} "
+        tail = (f" Over the last 5 evaluations of the model of record the best metric changed by {H.fmt(best_early - best, 2)} "
                 f"({H.fmt(100 * (best_early - best) / best_early if best_early else 0.0, 2)} %).")
     if stopped == "converged":
         return "ok", (f"Converged after {n} evaluations: {H.esc(algo)}; the search stopped where its steps fell "
@@ -258,19 +258,28 @@ def stop_verdict(doc: dict) -> tuple[str, str]:
     return "warn", f"Stopped: {H.esc(stopped)} after {n} evaluations ({H.esc(algo)}).{tail}"
 
 
+def _of_record(its: list) -> list:
+    """The evaluations of the forward model of record (fit.json `iterations[].model` "record", or no model
+    named): the search model's (a quarter of the rays, intensity loop) are on another scale."""
+    return [it for it in its if it.get("model", "record") == "record"]
+
+
 def _iterations_html(doc: dict) -> str:
     its = doc.get("iterations", [])
     if not its:
         return "<p>No evaluations recorded.</p>"
     names = list(its[0]["parameters"])
     has_search = all("search" in it for it in its)
+    has_model = any("model" in it for it in its)
     key = "search" if has_search else "rms"
-    best = min(range(len(its)), key=lambda k: its[k][key])
+    record = [k for k, it in enumerate(its) if it.get("model", "record") == "record"] or list(range(len(its)))
+    best = min(record, key=lambda k: its[k][key])
     rows = [[k + 1] + [it["parameters"].get(n) for n in names] + [it["rms"]]
-            + ([it["search"]] if has_search else []) + [H.Raw("best of the search" if k == best else "")]
+            + ([it["search"]] if has_search else []) + ([it.get("model", "record")] if has_model else [])
+            + [H.Raw("best of the model of record" if k == best else "")]
             for k, it in enumerate(its)]
     head = (["#"] + [H.PARAMETER_UNITS.get(n, (n, ""))[0] for n in names] + ["metric (rms z)"]
-            + (["search objective (log-chi)"] if has_search else []) + [""])
+            + (["search objective (log-chi)"] if has_search else []) + (["model"] if has_model else []) + [""])
     note = ("<p class='small'>The search steps on the log-chi objective (fit.json's search_objective); the metric "
             "is the one that simulate, fit and diagnose report. The answer is the likelihood's optimum near the "
             "search's best point, not necessarily one of these rows.</p>" if has_search else "")
