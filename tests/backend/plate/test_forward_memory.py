@@ -146,3 +146,20 @@ def test_threads_of_one_job_share_the_owner_safely():
     with ThreadPoolExecutor(4) as pool:
         assert list(pool.map(work, range(4))) == [300] * 4
     assert m.held_bytes <= 20_000 and m.evictions > 0
+
+
+def test_the_plan_counts_what_a_pool_adds_and_its_processes_fit_the_total():
+    """Each process of a pool holds POOL_SHARE evaluations beyond the one-process model (the forward model
+    sent to the workers): at the default 3.5 GB a 0.31 GB evaluation runs in one process, with more
+    memory on a pool, and the planned processes together never pass the total."""
+    from relief_bsdf.plate.memory import POOL_SHARE, PROCESS_BASE_BYTES, TRANSIENT_SHARE, plan_processes
+    per = 0.312e9
+    one = plan_processes(3.5e9, per, 2)
+    assert one.workers == 1 and one.fits
+    assert PROCESS_BASE_BYTES + one.main_budget_bytes + TRANSIENT_SHARE * per <= 3.5e9 + 1
+    pool = plan_processes(8e9, per, 2)
+    assert pool.workers == 2 and pool.fits
+    planned = (pool.workers + 1) * (PROCESS_BASE_BYTES + pool.worker_budget_bytes + (TRANSIENT_SHARE + POOL_SHARE) * per)
+    assert planned <= 8e9 + 1
+    # without the pool's share the same 3.5 GB would have planned two workers
+    assert 3.5e9 / 3 - PROCESS_BASE_BYTES - TRANSIENT_SHARE * per >= per

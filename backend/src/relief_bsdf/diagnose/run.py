@@ -55,6 +55,7 @@ from relief_bsdf.fit.residual import METRIC, metric_of_chi2
 from relief_bsdf.criteria import BIC_MARGIN
 from relief_bsdf.parallel import current_settings, parallel_settings
 from relief_bsdf.plate import TableGrid
+from relief_bsdf.parallel.memory import trim_heap
 from relief_bsdf.plate.memory import ForwardMemory, MemoryPlan, job_memory_bytes, plan_processes
 from relief_bsdf.progress import silent
 
@@ -297,6 +298,7 @@ def _memory_plan(memory: ForwardMemory, workers: int | None) -> MemoryPlan:
     plan = plan_processes(memory.budget_bytes, memory.held_bytes, most)
     memory.budget_bytes = plan.main_budget_bytes
     memory.refresh(None)
+    trim_heap()          # what the baseline's stage freed goes back before the workers allocate (parallel.memory)
     if not plan.fits:
         import warnings
         warnings.warn(f"one evaluation of the forward model holds {plan.evaluation_bytes / 1e9:.1f} GB, more than the "

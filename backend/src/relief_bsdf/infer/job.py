@@ -324,15 +324,10 @@ def release_memory() -> None:
     the allocator keeps large freed blocks for reuse (glibc's trim threshold grows with them), so
     without the trim the refinement's freed tables would still count in the job's peak while the final
     simulation builds its own."""
-    import ctypes
-    import gc
+    from relief_bsdf.parallel.memory import trim_heap
     from relief_bsdf.plate.memory import current_memory
     current_memory().clear()
-    gc.collect()
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):       # not glibc: the memory stays with the process, nothing else changes
-        pass
+    trim_heap()
 
 
 def _in_chunks(make: Any, read: Any, rows: Any) -> tuple[Any, np.ndarray]:

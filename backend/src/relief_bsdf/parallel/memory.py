@@ -31,3 +31,19 @@ def small_pages() -> bool:
         return False
     os.environ[HUGEPAGE_ENV] = "0"  # processes started from here (the fork server, a CLI child) inherit it
     return bool(_set_madvise_hugepage(False))
+
+
+def trim_heap() -> bool:
+    """Collect garbage and hand the heap's free memory back to the system (glibc `malloc_trim`); returns
+    whether the allocator was asked.  glibc keeps large freed blocks for reuse and raises its trim
+    threshold with them, so a process that freed its tables (a memory owner evicted down to a smaller
+    budget, a job's stage done) still holds their pages: they count in the job's peak while the next
+    stage or a pool worker allocates its own.  The values computed afterwards are unchanged."""
+    import ctypes
+    import gc
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):       # not glibc: the memory stays with the process, nothing else changes
+        return False
+    return True

@@ -462,6 +462,13 @@ TRANSIENT_SHARE = 1.0        # what one evaluation allocates OUTSIDE the owner w
 #                              case 05 (one process, budget 1.5 GB, baseline then relief scale, stray light,
 #                              absorption): peak RSS 2.24 GB = 0.3 base + 1.34 owner peak + 0.60 outside it, with
 #                              one evaluation holding 0.67 GB: 0.9 (decision record 020)
+POOL_SHARE = 1.5             # what each process of a pool (this one and every worker) holds beyond that, per byte one
+#                              evaluation holds: the forward model with its baseline tables pickled for each worker and
+#                              unpickled there, and each process's own screening solver.  Measured on validation case 09
+#                              (Gaussian, ray; one evaluation 0.31 GB; 2 workers at 3.5 GB, budgets 0.555 GB each, planned
+#                              1.17 GB per process): main 1.56 GB, workers 1.20 and 1.63 GB, 4.22 GB in all; the same
+#                              diagnosis in one process 2.61 GB.  1.4 (main) and 1.6 (worker) evaluations beyond the
+#                              one-process model
 
 
 @dataclass(frozen=True)
@@ -490,12 +497,13 @@ def plan_processes(total_bytes: float, evaluation_bytes: float, max_workers: int
     TRANSIENT_SHARE x `evaluation_bytes` (what one evaluation allocates outside the owner, per byte one
     evaluation of the forward model holds once made: its tables and solver, the owner's held bytes after
     the baseline), with a budget of at least one evaluation.  A pool of
-    w >= 2 workers runs w + 1 processes (this one evaluates beside them, `diagnose.stepwise`).  Where not
+    w >= 2 workers runs w + 1 processes (this one evaluates beside them, `diagnose.stepwise`), each holding
+    POOL_SHARE x `evaluation_bytes` more (the forward model sent to the workers).  Where not
     even one process fits, this process alone with one evaluation's budget (`fits` False: the job
     will exceed the total; the caller says so)."""
     per = float(evaluation_bytes)
     for w in range(int(max_workers), 1, -1):
-        budget = total_bytes / (w + 1) - PROCESS_BASE_BYTES - TRANSIENT_SHARE * per
+        budget = total_bytes / (w + 1) - PROCESS_BASE_BYTES - (TRANSIENT_SHARE + POOL_SHARE) * per
         if budget >= per:
             return MemoryPlan(total_bytes, per, w, budget, budget, True)
     budget = total_bytes - PROCESS_BASE_BYTES - TRANSIENT_SHARE * per
