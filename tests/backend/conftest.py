@@ -63,3 +63,33 @@ def fresh_memory():
     from relief_bsdf.plate.memory import ForwardMemory
     with ForwardMemory().active() as memory:
         yield memory
+
+
+TABLE_ARRAYS = ("values_per_sr", "sigma_per_sr", "mueller_per_sr", "specular_R", "specular_T", "lost",
+                "specular_mueller_R", "specular_mueller_T")
+
+
+def _untimed(tasks: list) -> list:
+    """A ray table's task diagnostics (rays, segments, bounces, lost detail, tile scatter) without timings
+    and kernel name."""
+    return [{k: v for k, v in d.items() if not k.endswith("_s") and k != "ray_kernel"} for d in tasks]
+
+
+def _assert_same_tables(a, b, tasks: bool = True) -> None:
+    """Two lists of BsdfTables equal bit for bit in every array; with `tasks`, their ray-task diagnostics too."""
+    import numpy as np
+    for ta, tb in zip(a, b, strict=True):
+        for name in TABLE_ARRAYS:
+            x, y = getattr(ta, name), getattr(tb, name)
+            if x is None:
+                assert y is None
+            else:
+                np.testing.assert_array_equal(x, y, err_msg=f"{ta.incident_from}: {name}")
+        if tasks:
+            assert _untimed(ta.metadata["tasks"]) == _untimed(tb.metadata["tasks"])
+
+
+@pytest.fixture(scope="session")
+def same_tables():
+    """assert_same_tables(a, b, tasks=True): the one bit-for-bit comparison of table lists."""
+    return _assert_same_tables

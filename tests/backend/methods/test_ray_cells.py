@@ -19,8 +19,6 @@ from relief_bsdf.surface.synth import random_relief
 pytestmark = pytest.mark.filterwarnings("ignore:ray table:RuntimeWarning")   # a small tile, on purpose
 TE = tuple(np.concatenate([np.linspace(0.0, 10.0, 41), np.linspace(10.5, 90.0, 80)]))
 PE = tuple(np.concatenate([np.arange(-2.5, 3.0, 1.0), np.arange(7.5, 358.0, 5.0)]))
-ARRAYS = ("values_per_sr", "sigma_per_sr", "mueller_per_sr", "specular_R", "specular_T", "lost",
-          "specular_mueller_R", "specular_mueller_T")
 
 
 def graded_tables(polarized: bool):
@@ -32,15 +30,6 @@ def graded_tables(polarized: bool):
     return ray.reconstruct(relief, Material(ConstantIndex(1.5)), req)
 
 
-def assert_same(a, b):
-    for ta, tb in zip(a, b, strict=True):
-        for name in ARRAYS:
-            x, y = getattr(ta, name), getattr(tb, name)
-            if x is None:
-                assert y is None
-            else:
-                np.testing.assert_array_equal(x, y, err_msg=f"{ta.incident_from}: {name}")
-
 
 def test_graded_edges_are_searched_by_the_compiled_pass():
     cells = SearchedCells(TE, PE)
@@ -49,20 +38,20 @@ def test_graded_edges_are_searched_by_the_compiled_pass():
 
 
 @pytest.mark.parametrize("polarized", [True, False])
-def test_compiled_search_gives_the_builders_tables(polarized, monkeypatch):
+def test_compiled_search_gives_the_builders_tables(polarized, monkeypatch, same_tables):
     compiled = graded_tables(polarized)
     assert compiled[0].mueller_per_sr is not None or not polarized
     assert np.count_nonzero(compiled[0].values_per_sr) > 100          # a lobe over many graded cells
     monkeypatch.setattr(ray_method, "cell_index", CellIndex)           # the builder's numpy search
-    assert_same(compiled, graded_tables(polarized))
+    same_tables(compiled, graded_tables(polarized), tasks=False)
 
 
 @pytest.mark.skipif(not kernels.available(), reason="no compiled kernels to compare the twins with")
-def test_numpy_twins_give_the_same_graded_tables():
+def test_numpy_twins_give_the_same_graded_tables(same_tables):
     prev = kernels.select("cython")
     try:
         compiled = graded_tables(True)
         kernels.select("numpy")
-        assert_same(compiled, graded_tables(True))
+        same_tables(compiled, graded_tables(True), tasks=False)
     finally:
         kernels.select(prev)

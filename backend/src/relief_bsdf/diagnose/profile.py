@@ -124,16 +124,11 @@ def stage(name: str) -> Iterator[None]:
         p.leave()
 
 
-@contextlib.contextmanager
-def captured() -> Iterator[Profile]:
-    """A fresh profile for one task (on a worker process or here): its counts travel back with the task's
-    result and are merged where the task was asked for (`Profile.merge`), so none is counted twice."""
-    p = Profile()
-    token = _CURRENT.set(p)
-    try:
-        yield p
-    finally:
-        _CURRENT.reset(token)
+def captured() -> contextlib.AbstractContextManager[Profile]:
+    """A fresh profile for one task (on a worker process or here), as `profiling`: its counts travel back
+    with the task's result and are merged where the task was asked for (`Profile.merge`), so none is
+    counted twice."""
+    return profiling()
 
 
 def merge(counts: dict | None) -> None:
