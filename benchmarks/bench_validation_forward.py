@@ -93,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
         Path(a.json).write_text(line + "\n")
     sys.path.insert(0, str(HERE))
     from measure import write_result
-    write_result("bench_validation_forward", summary, "benchmarks/bench_validation_forward.py " + " ".join(argv or sys.argv[1:]))
+    command = "benchmarks/bench_validation_forward.py " + " ".join(argv or sys.argv[1:])
+    write_result("bench_validation_forward", summary, command)
     print(line)
     return 0
 

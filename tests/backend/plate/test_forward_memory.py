@@ -159,7 +159,8 @@ def test_the_plan_counts_what_a_pool_adds_and_its_processes_fit_the_total():
     assert PROCESS_BASE_BYTES + one.main_budget_bytes + TRANSIENT_SHARE * per <= 3.5e9 + 1
     pool = plan_processes(8e9, per, 2)
     assert pool.workers == 2 and pool.fits
-    planned = (pool.workers + 1) * (PROCESS_BASE_BYTES + pool.worker_budget_bytes + (TRANSIENT_SHARE + POOL_SHARE) * per)
+    per_process = PROCESS_BASE_BYTES + pool.worker_budget_bytes + (TRANSIENT_SHARE + POOL_SHARE) * per
+    planned = (pool.workers + 1) * per_process
     assert planned <= 8e9 + 1
     # without the pool's share the same 3.5 GB would have planned two workers
     assert 3.5e9 / 3 - PROCESS_BASE_BYTES - TRANSIENT_SHARE * per >= per

@@ -465,7 +465,8 @@ TRANSIENT_SHARE = 1.0        # what one evaluation allocates OUTSIDE the owner w
 POOL_SHARE = 1.5             # what each process of a pool (this one and every worker) holds beyond that, per byte one
 #                              evaluation holds: the forward model with its baseline tables pickled for each worker and
 #                              unpickled there, and each process's own screening solver.  Measured on validation case 09
-#                              (Gaussian, ray; one evaluation 0.31 GB; 2 workers at 3.5 GB, budgets 0.555 GB each, planned
+#                              (Gaussian, ray; one evaluation 0.31 GB; 2 workers at 3.5 GB, budgets 0.555 GB each,
+#                              planned
 #                              1.17 GB per process): main 1.56 GB, workers 1.20 and 1.63 GB, 4.22 GB in all; the same
 #                              diagnosis in one process 2.61 GB.  1.4 (main) and 1.6 (worker) evaluations beyond the
 #                              one-process model

@@ -244,7 +244,8 @@ def stop_verdict(doc: dict) -> tuple[str, str]:
     tail = ""
     if len(rms) >= 6:
         best_early, best = min(rms[:-5]), min(rms)
-        tail = (f" Over the last 5 evaluations of the model of record the best metric changed by {H.fmt(best_early - best, 2)} "
+        tail = (" Over the last 5 evaluations of the model of record the best metric changed by "
+                f"{H.fmt(best_early - best, 2)} "
                 f"({H.fmt(100 * (best_early - best) / best_early if best_early else 0.0, 2)} %).")
     if stopped == "converged":
         return "ok", (f"Converged after {n} evaluations: {H.esc(algo)}; the search stopped where its steps fell "
