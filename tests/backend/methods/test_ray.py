@@ -366,7 +366,8 @@ def test_identical_tables_serial_processes_and_dask_local():
     for name, opts in (("serial2", {"backend": "serial", "threads": 2}),
                        ("serial1", {"backend": "serial", "threads": 1}),
                        ("processes", {"backend": "processes"})):
-        runs[name] = ray.reconstruct(relief, mat, Request(options=opts, **kw))
+        with parallel.parallel_settings(workers=2):        # two worker processes, whatever RELIEF_WORKERS says
+            runs[name] = ray.reconstruct(relief, mat, Request(options=opts, **kw))
         assert parallel.last_run()["backend"] == name.rstrip("12") and parallel.last_run()["total"] == 16
     with parallel.parallel_settings(dask="local", workers=2):
         runs["dask"] = ray.reconstruct(relief, mat, Request(**kw))

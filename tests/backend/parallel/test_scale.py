@@ -221,7 +221,7 @@ def test_monte_carlo_method_identical_on_dask_and_locally(client):
     mat = Material(inside=ConstantIndex(1.5))
     on_dask = reconstruct(relief, mat, req, "normals")
     assert parallel.last_run()["backend"] == "dask" and parallel.last_run()["total"] == 24
-    with parallel.parallel_settings(dask=None):
+    with parallel.parallel_settings(dask=None, workers=2):  # two worker processes, whatever RELIEF_WORKERS says
         local = reconstruct(relief, mat, req, "normals")
         assert parallel.last_run()["backend"] == "processes"
     os.environ["RELIEF_BACKEND"] = "serial"

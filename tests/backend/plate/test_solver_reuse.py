@@ -114,6 +114,17 @@ def test_a_tilt_reuses_the_loop_operators_with_its_own_outside_table():
     assert not np.allclose(got, _fresh(ex))
 
 
+def test_after_a_tilt_the_untilted_plate_is_read_through_its_own_outside_table():
+    """The tilted plate's solver is a copy of the untilted one with another outside table: it must not
+    answer the untilted plate's request (`plate.reuse.held_for_request`), which would read the rows
+    through the tilted incidences' table.  The untilted numbers after the tilt are those before it."""
+    ex = _experiment()
+    before = _fresh(ex)
+    simulate(ex.with_instrument(tilt_deg=3.0), ROWS, grid=GRID)
+    again = simulate(ex, ROWS, grid=GRID).values_per_sr
+    np.testing.assert_allclose(again, before, rtol=1e-12, atol=0)
+
+
 def test_interpolation_by_gathers_equals_the_dense_contraction():
     rng = np.random.default_rng(1)
     arr = rng.random((7, 9, 12, 4, 4)).astype(np.float32)

@@ -161,7 +161,11 @@ def _with_sectors(solver: PlateSolver, sectors: BsdfTable | None) -> PlateSolver
 
 
 def _kept(memory: Any, tokens: tuple, plate: tuple, solver: PlateSolver, keep: bool = True) -> PlateSolver:
-    """Hold `solver` in the memory owner under its tables' tokens and plate (not when `keep` is False)."""
+    """Hold `solver` in the memory owner under its tables' tokens and plate (not when `keep` is False).
+
+    A solver made by copying a held one (another bulk, another outside table) starts answering no request
+    (`held_for_request`): the requests its original answered name the original's tables, not its own."""
+    solver.requests = {}
     if keep:
         memory.put(("solver", tokens, plate), solver, "solver")
         solver.memory_key = ("solver", tokens, plate)
