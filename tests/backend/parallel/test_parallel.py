@@ -33,7 +33,7 @@ def _ctx(tmp_path: Path | None = None, **extra) -> dict:
 
 
 def _executions(ctx: dict) -> list[int]:
-    return sorted(int(p.name.split("-")[0]) for p in Path(ctx["log_dir"]).iterdir())
+    return sorted(int(p.name.split("-")[0]) for p in Path(ctx["log_dir"]).iterdir() if p.name[0].isdigit())
 
 
 def _clear_log(ctx: dict) -> None:
@@ -203,7 +203,7 @@ def test_ctrl_c_stops_workers_cleanly(tmp_path):
         while len(_executions(ctx)) < 2:
             assert time.monotonic() - t0 < 60 and proc.poll() is None
             time.sleep(0.02)
-        worker_pids = {int(p.read_text()) for p in Path(ctx["log_dir"]).iterdir()}
+        worker_pids = {int(p.read_text()) for p in Path(ctx["log_dir"]).iterdir() if p.name[0].isdigit()}
         t1 = time.monotonic()
         os.killpg(proc.pid, signal.SIGINT)                     # like Ctrl-C in a terminal
         assert proc.wait(15) == 130

@@ -44,7 +44,7 @@ def _ctx(tmp_path: Path | None = None, **extra) -> dict:
 
 
 def _executions(ctx: dict) -> list[int]:
-    return sorted(int(p.name.split("-")[0]) for p in Path(ctx["log_dir"]).iterdir())
+    return sorted(int(p.name.split("-")[0]) for p in Path(ctx["log_dir"]).iterdir() if p.name[0].isdigit())
 
 
 def _same(a, b) -> bool:
@@ -64,7 +64,7 @@ def test_dask_gives_the_same_numbers_as_local_backends(client, tmp_path):
     assert _same(out, parallel.map_tasks(synthetic_task, TASKS, _ctx(), backend="processes", workers=2))
     assert seen == list(range(1, N + 1))
     # the work really ran on the cluster's worker processes, not here
-    pids = {int(p.read_text()) for p in Path(ctx["log_dir"]).iterdir()}
+    pids = {int(p.read_text()) for p in Path(ctx["log_dir"]).iterdir() if p.name[0].isdigit()}
     worker_pids = set(client.run(os.getpid).values())
     assert pids <= worker_pids and os.getpid() not in pids
 

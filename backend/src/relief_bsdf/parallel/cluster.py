@@ -212,9 +212,11 @@ def synthetic_task(context: dict, task: tuple) -> np.ndarray:
     """
     k = int(task[0])
     if context.get("log_dir"):
-        path = os.path.join(context["log_dir"], f"{k}-{uuid.uuid4().hex}")
-        with open(path, "w") as f:
+        name = f"{k}-{uuid.uuid4().hex}"
+        part = os.path.join(context["log_dir"], "." + name)      # written whole, then named: never read half-written
+        with open(part, "w") as f:
             f.write(str(os.getpid()))
+        os.replace(part, os.path.join(context["log_dir"], name))
     if context.get("crash_file") is not None and k == int(context.get("crash_at", -1)):
         if context.get("crash_always") or not os.path.exists(context["crash_file"]):
             open(context["crash_file"], "w").close()
