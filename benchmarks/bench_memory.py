@@ -47,6 +47,7 @@ def run(name: str, kind: str, cmd: list[str], figures: dict) -> None:
     m = measure_command(cmd, stdout=__import__("subprocess").DEVNULL)
     ok = m.returncode == 0 and m.peak_pss_gb <= TARGET_GB[kind]
     figures[name] = {"kind": kind, "wall_s": round(m.wall_s, 1), "peak_pss_gb": round(m.peak_pss_gb, 3),
+                     "hwm_sum_gb": round(m.hwm_sum_gb, 3), "sampler_cpu_s": round(m.sampler_cpu_s, 1),
                      "processes": m.peak_processes, "rc": m.returncode, "target_gb": TARGET_GB[kind],
                      "within_target": ok}
     print(f"{name:28s} {m.line()}  target {TARGET_GB[kind]:.0f} GB {'ok' if ok else 'OVER'}", flush=True)

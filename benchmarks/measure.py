@@ -4,8 +4,12 @@ Memory is the proportional set size (PSS, /proc/PID/smaps_rollup): a page shared
 counts 1/k in each, so the sum over a process tree is the memory the tree really holds (RSS would
 count a page a forked worker shares with its parent twice).  The tree (the command and all its
 descendants, re-listed at every sample, so workers started later are seen) is sampled every
-`interval_s`; the peak is the largest sum seen.  A spike shorter than the interval can be missed:
-0.1 s is short against the seconds a table or a solve lives.
+`interval_s`, or less often where one sample costs more than SAMPLER_SHARE of that wait (reading the
+smaps of a process of several GB walks its page tables: at 0.1 s the sampler took a third of a core
+from the job it measured on a 2-core machine); the peak is the largest sum seen.  A spike shorter
+than the interval can be missed, so each process's own high-water mark (VmHWM, kept by the kernel,
+exact) is read too: `hwm_sum_gb`, their sum over every process seen, bounds the tree's peak from
+above (a page shared by two processes counts twice) and equals it for one process.
 
     python benchmarks/measure.py [--interval 0.1] [--json OUT.json] -- relief diagnose S.toml -o OUT
 
@@ -68,6 +72,18 @@ def pss_bytes(pid: int) -> int:
     return 0
 
 
+def hwm_bytes(pid: int) -> int:
+    """The process's resident high-water mark (VmHWM: the largest RSS it has had; 0 when gone)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
 def tree_pss_bytes(pid: int) -> tuple[int, int]:
     """(PSS summed over `pid` and its descendants, how many processes)."""
     pids = process_tree(pid)
@@ -82,29 +98,49 @@ class Measure:
     peak_pss_gb: float
     peak_processes: int
     returncode: int
+    hwm_sum_gb: float = 0.0
+    sampler_cpu_s: float = 0.0
 
     def line(self) -> str:
-        return (f"wall_s={self.wall_s:.1f} peak_pss_gb={self.peak_pss_gb:.2f} "
+        return (f"wall_s={self.wall_s:.1f} peak_pss_gb={self.peak_pss_gb:.2f} hwm_sum_gb={self.hwm_sum_gb:.2f} "
                 f"peak_processes={self.peak_processes} rc={self.returncode}")
 
 
+SAMPLER_SHARE = 0.02     # the most of one core the sampler may take from the job it measures
+
+
 class PeakSampler:
-    """Samples the PSS of a process tree on a thread until stopped; `peak_bytes`, `peak_processes`."""
+    """Samples the PSS of a process tree on a thread until stopped: `peak_bytes` (the largest sum seen),
+    `peak_processes`, `hwm_bytes` (the sum of each process's VmHWM, an upper bound) and `cpu_s` (what
+    the sampling itself cost).  The wait between samples is `interval_s`, longer where a sample costs
+    more than SAMPLER_SHARE of it."""
 
     def __init__(self, pid: int, interval_s: float = 0.1):
         self.pid, self.interval_s = pid, interval_s
         self.peak_bytes = 0
         self.peak_processes = 0
+        self.cpu_s = 0.0
+        self._hwm: dict[int, int] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
+    @property
+    def hwm_bytes(self) -> int:
+        return sum(self._hwm.values())
+
     def _run(self) -> None:
         while not self._stop.is_set():
-            b, n = tree_pss_bytes(self.pid)
+            t0 = time.thread_time()
+            pids = process_tree(self.pid)
+            b = sum(pss_bytes(p) for p in pids)
+            for p in pids:
+                self._hwm[p] = max(self._hwm.get(p, 0), hwm_bytes(p))
             if b > self.peak_bytes:
                 self.peak_bytes = b
-            self.peak_processes = max(self.peak_processes, n)
-            self._stop.wait(self.interval_s)
+            self.peak_processes = max(self.peak_processes, len(pids))
+            cost = time.thread_time() - t0
+            self.cpu_s += cost
+            self._stop.wait(max(self.interval_s, cost / SAMPLER_SHARE))
 
     def __enter__(self) -> "PeakSampler":
         self._thread.start()
@@ -121,7 +157,7 @@ def measure_command(cmd: list[str], interval_s: float = 0.1, **popen) -> Measure
     proc = subprocess.Popen(cmd, **popen)
     with PeakSampler(proc.pid, interval_s) as s:
         rc = proc.wait()
-    return Measure(time.perf_counter() - t0, s.peak_bytes / 1e9, s.peak_processes, rc)
+    return Measure(time.perf_counter() - t0, s.peak_bytes / 1e9, s.peak_processes, rc, s.hwm_bytes / 1e9, s.cpu_s)
 
 
 def machine() -> dict:
@@ -186,7 +222,8 @@ def bench(name: str, main, argv: list[str] | None = None) -> int:
     finally:
         sys.stdout = old
     figures = {"wall_s": round(time.perf_counter() - t0, 2), "peak_pss_gb": round(s.peak_bytes / 1e9, 3),
-               "peak_processes": s.peak_processes, "results": out.last}
+               "hwm_sum_gb": round(s.hwm_bytes / 1e9, 3), "peak_processes": s.peak_processes,
+               "sampler_cpu_s": round(s.cpu_s, 1), "results": out.last}
     path = write_result(name, figures, " ".join(["benchmarks/" + name + ".py", *argv]))
     print(f"{name}: wall {figures['wall_s']} s, peak {figures['peak_pss_gb']} GB (PSS, every process); {path}")
     return rc if isinstance(rc, int) else 0
