@@ -33,15 +33,19 @@ def small_pages() -> bool:
     return bool(_set_madvise_hugepage(False))
 
 
-def trim_heap() -> bool:
-    """Collect garbage and hand the heap's free memory back to the system (glibc `malloc_trim`); returns
-    whether the allocator was asked.  glibc keeps large freed blocks for reuse and raises its trim
-    threshold with them, so a process that freed its tables (a memory owner evicted down to a smaller
-    budget, a job's stage done) still holds their pages: they count in the job's peak while the next
-    stage or a pool worker allocates its own.  The values computed afterwards are unchanged."""
+def trim_heap(collect: bool = True) -> bool:
+    """Collect garbage (`collect`) and hand the heap's free memory back to the system (glibc `malloc_trim`:
+    the free pages of every arena, not only the heaps' tops); returns whether the allocator was asked.
+    glibc keeps freed blocks for reuse (the ray engine asks it to keep more, `keep_freed_heap`: one arena
+    per tracing thread), so a process that freed its tables or a solve's temporaries (a memory owner
+    evicted down to a smaller budget, a job's stage done, one evaluation of the forward model done)
+    still holds their pages: they count in the job's peak while the next stage, evaluation or pool
+    worker allocates its own.  Without garbage to collect it costs about a millisecond plus the pages
+    it returns.  The values computed afterwards are unchanged."""
     import ctypes
     import gc
-    gc.collect()
+    if collect:
+        gc.collect()
     try:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):       # not glibc: the memory stays with the process, nothing else changes

@@ -13,6 +13,7 @@ from relief_bsdf.plate import deterministic, photon
 from relief_bsdf.plate.choice import DEFAULT_METHOD, resolve_auto
 from relief_bsdf.plate.uncertainty import rows_sigma, sigma_note
 from relief_bsdf.plate.grid import TableGrid
+from relief_bsdf.parallel.memory import trim_heap
 
 ENGINES = ("deterministic", "photon")
 
@@ -61,6 +62,7 @@ def simulate(experiment: Experiment, rows: Any, engine: str = "deterministic", p
         vals, sig, info = photon.run(experiment, rows, photons=photons, seed=seed, grid=grid, where=where)
     else:
         raise InputError("engine", f"must be one of {', '.join(ENGINES)}, got {engine!r}")
+    trim_heap(collect=False)        # what this evaluation freed is not held into the next (parallel.memory)
     return Simulated(vals, sig, {**info, "physics": describe(experiment)})
 
 

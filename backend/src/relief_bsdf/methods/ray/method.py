@@ -55,6 +55,7 @@ from relief_bsdf.methods.realisation import MAX_SUBTILES, SUBTILE_CORR  # noqa: 
 from relief_bsdf.methods.realisation import subtile_grid as _subtile_grid
 from relief_bsdf.methods.ray.tracer import CHUNK, ReliefTracer, cached_tracer, forget_tracer, relief_hash
 from relief_bsdf.methods.ray.transport import ALONG_Z_XY2, Media, Rays, TraceSettings, carrier_for, trace_chunk
+from relief_bsdf.parallel.memory import trim_heap
 from relief_bsdf.parallel import (default_workers, in_task_thread, in_worker, last_run, map_tasks, task_rng,
                                   worker_cached)
 from relief_bsdf.progress import silent
@@ -537,6 +538,7 @@ def _reconstruct(tracer, relief, material, request, progress, opts) -> list[Bsdf
     finally:
         if tracer is None:
             forget_tracer(ctx.tracer_key)             # a BVH built here is not kept past the request
+        trim_heap(collect=False)                      # the bounce loop's kept temporaries go back
     mesh_info = dict(mesh_seen[0]) if mesh_seen else {}
     run = _Run(relief, material, request, opts, mesh_info, mesh_info.pop("rays", 0),
                {"build": max(build_s) if build_s else 0.0, "trace_all_sides": time.perf_counter() - t_trace}, t0,
