@@ -60,28 +60,26 @@ def process_tree(pid: int) -> list[int]:
     return seen
 
 
-def pss_bytes(pid: int) -> int:
-    """Proportional set size of one process (0 when it is gone or unreadable)."""
+def _proc_kb(path: str, field: str) -> int:
+    """The `field:` line of a /proc file in bytes (its value is in kB; 0 when the process is gone)."""
     try:
-        with open(f"/proc/{pid}/smaps_rollup") as f:
+        with open(path) as f:
             for line in f:
-                if line.startswith("Pss:"):
+                if line.startswith(field):
                     return int(line.split()[1]) * 1024
     except OSError:
         pass
     return 0
+
+
+def pss_bytes(pid: int) -> int:
+    """Proportional set size of one process (0 when it is gone or unreadable)."""
+    return _proc_kb(f"/proc/{pid}/smaps_rollup", "Pss:")
 
 
 def hwm_bytes(pid: int) -> int:
     """The process's resident high-water mark (VmHWM: the largest RSS it has had; 0 when gone)."""
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
+    return _proc_kb(f"/proc/{pid}/status", "VmHWM:")
 
 
 def tree_pss_bytes(pid: int) -> tuple[int, int]:

@@ -15,6 +15,7 @@ bit for bit: the size of a page changes no number.  Where huge pages are cheap (
 """
 from __future__ import annotations
 
+import functools
 import os
 
 HUGEPAGE_ENV = "NUMPY_MADVISE_HUGEPAGE"     # numpy's own switch, read at its import; a user's setting wins
@@ -42,12 +43,22 @@ def trim_heap(collect: bool = True) -> bool:
     still holds their pages: they count in the job's peak while the next stage, evaluation or pool
     worker allocates its own.  Without garbage to collect it costs about a millisecond plus the pages
     it returns.  The values computed afterwards are unchanged."""
-    import ctypes
     import gc
     if collect:
         gc.collect()
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):       # not glibc: the memory stays with the process, nothing else changes
+    trim = _malloc_trim()
+    if trim is None:                        # not glibc: the memory stays with the process, nothing else changes
         return False
+    trim(0)
     return True
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's `malloc_trim`, looked up once per process (trim_heap runs after every plate evaluation),
+    or None where the C library has none."""
+    import ctypes
+    try:
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
